@@ -1,0 +1,22 @@
+"""Typed errors. Every error a user can cause is a :class:`StepsafeError` (exit code 2)."""
+
+from __future__ import annotations
+
+
+class StepsafeError(Exception):
+    """Bad input: the tool cannot answer. Rendered as one line, exit code 2.
+
+    ``where`` names the file and the key path (``file::$.kick[2]``) when there is one.
+    """
+
+    def __init__(self, message: str, where: str | None = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.where = where
+
+    def __str__(self) -> str:
+        return f"{self.where}: {self.message}" if self.where else self.message
+
+
+class MethodError(StepsafeError):
+    """A method definition is malformed (wrong shape, non-finite coefficient, ...)."""

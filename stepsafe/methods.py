@@ -1,0 +1,252 @@
+"""One-step methods as data: Runge–Kutta, partitioned RK, splitting and composition.
+
+Conventions (DESIGN §5). Phase space is ``x = (q, p)``; a partitioned method integrates
+``q' = f(q, p)`` with the tableau ``(A_q, b_q)`` and ``p' = g(q, p)`` with ``(A_p, b_p)``::
+
+    Q_i = q0 + h sum_j A_q[i, j] f(Q_j, P_j)      q1 = q0 + h sum_j b_q[j] f(Q_j, P_j)
+    P_i = p0 + h sum_j A_p[i, j] g(Q_j, P_j)      p1 = p0 + h sum_j b_p[j] g(Q_j, P_j)
+
+A splitting method for ``H = T(p) + V(q)`` applies ``drift(a_1 h), kick(b_1 h),
+drift(a_2 h), ...`` in that order (``drift(t): q += t T'(p)``, ``kick(t): p -= t V'(q)``).
+A composition ``Phi_{g_k h} o ... o Phi_{g_1 h}`` applies the base with ``g_1 h`` first.
+
+The classes are frozen; they validate shapes and finiteness when built and raise
+:class:`~stepsafe.errors.MethodError`. Nothing here knows of files or terminals.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Union
+
+import numpy as np
+
+from .errors import MethodError
+
+#: Rounding-level threshold for the symplecticity and consistency residuals.
+RESIDUAL_TOL = 1e-12
+
+
+def _vector(values, name: str) -> np.ndarray:
+    arr = np.asarray(values, dtype=float)
+    if arr.ndim != 1 or arr.size == 0:
+        raise MethodError(f"{name} must be a non-empty list of numbers, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise MethodError(f"{name} has a non-finite entry")
+    return arr
+
+
+def _square(values, name: str, size: int) -> np.ndarray:
+    arr = np.asarray(values, dtype=float)
+    if arr.shape != (size, size):
+        raise MethodError(f"{name} must be {size}x{size} to match its weights, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise MethodError(f"{name} has a non-finite entry")
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class PartitionedRK:
+    """Partitioned Runge–Kutta method: ``(A_q, b_q)`` for q, ``(A_p, b_p)`` for p."""
+
+    A_q: np.ndarray
+    b_q: np.ndarray
+    A_p: np.ndarray
+    b_p: np.ndarray
+    name: str = "prk"
+    order: int | None = None
+    evaluations: int | None = None
+    title: str = ""
+
+    kind = "prk"
+
+    def __post_init__(self) -> None:
+        b_q = _vector(self.b_q, "b_q")
+        b_p = _vector(self.b_p, "b_p")
+        if b_q.size != b_p.size:
+            raise MethodError(f"b_q has {b_q.size} entries but b_p has {b_p.size}")
+        object.__setattr__(self, "b_q", b_q)
+        object.__setattr__(self, "b_p", b_p)
+        object.__setattr__(self, "A_q", _square(self.A_q, "A_q", b_q.size))
+        object.__setattr__(self, "A_p", _square(self.A_p, "A_p", b_p.size))
+
+    @property
+    def stages(self) -> int:
+        return int(self.b_q.size)
+
+    @property
+    def explicit(self) -> bool:
+        """True when both tableaux are strictly lower triangular (no stage solve needed)."""
+        return bool(not np.triu(self.A_q).any() and not np.triu(self.A_p).any())
+
+    def as_prk(self) -> PartitionedRK:
+        return self
+
+
+@dataclass(frozen=True, eq=False)
+class RungeKutta:
+    """Runge–Kutta method ``(A, b, c)``; the PRK with both tableaux equal."""
+
+    A: np.ndarray
+    b: np.ndarray
+    c: np.ndarray | None = None
+    name: str = "rk"
+    order: int | None = None
+    evaluations: int | None = None
+    title: str = ""
+
+    kind = "rk"
+
+    def __post_init__(self) -> None:
+        b = _vector(self.b, "b")
+        object.__setattr__(self, "b", b)
+        object.__setattr__(self, "A", _square(self.A, "A", b.size))
+        c = self.A.sum(axis=1) if self.c is None else _vector(self.c, "c")
+        if c.size != b.size:
+            raise MethodError(f"c has {c.size} entries but b has {b.size}")
+        object.__setattr__(self, "c", c)
+
+    @property
+    def stages(self) -> int:
+        return int(self.b.size)
+
+    @property
+    def explicit(self) -> bool:
+        return bool(not np.triu(self.A).any())
+
+    def as_prk(self) -> PartitionedRK:
+        return PartitionedRK(self.A, self.b, self.A, self.b, name=self.name, order=self.order)
+
+
+@dataclass(frozen=True, eq=False)
+class Splitting:
+    """Splitting method ``drift(a_1 h) kick(b_1 h) drift(a_2 h) ...`` for ``H = T(p) + V(q)``.
+
+    ``drift`` has as many entries as ``kick`` or one more; zero coefficients are allowed
+    (a method that starts with a kick has ``a_1 = 0``).
+    """
+
+    drift: np.ndarray
+    kick: np.ndarray
+    name: str = "splitting"
+    order: int | None = None
+    evaluations: int | None = None
+    title: str = ""
+
+    kind = "splitting"
+
+    def __post_init__(self) -> None:
+        a = _vector(self.drift, "drift")
+        b = _vector(self.kick, "kick")
+        if a.size not in (b.size, b.size + 1):
+            raise MethodError(
+                f"drift must have as many entries as kick or one more, got {a.size} and {b.size}"
+            )
+        object.__setattr__(self, "drift", a)
+        object.__setattr__(self, "kick", b)
+
+    @property
+    def operations(self) -> list[tuple[str, float]]:
+        """The step as a list of ``("drift"|"kick", coefficient)``, zeros dropped, merged."""
+        ops: list[tuple[str, float]] = []
+        for i, a in enumerate(self.drift):
+            seq = [("drift", a)] + ([("kick", self.kick[i])] if i < self.kick.size else [])
+            for kind, coef in seq:
+                if coef == 0.0:
+                    continue
+                if ops and ops[-1][0] == kind:
+                    ops[-1] = (kind, ops[-1][1] + coef)
+                else:
+                    ops.append((kind, float(coef)))
+        return ops
+
+    @property
+    def stages(self) -> int:
+        """Number of kicks (force evaluations before first-same-as-last merging)."""
+        return sum(1 for kind, _ in self.operations if kind == "kick")
+
+    @property
+    def explicit(self) -> bool:
+        return True
+
+    def euler_factors(self) -> list[tuple[str, float]]:
+        """The step as a composition of symplectic Euler steps and their adjoints.
+
+        ``DK(c)`` is drift(c h) then kick(c h); ``KD(d)`` is kick(d h) then drift(d h).
+        ``DK(c_1) KD(d_1) ... DK(c_m) KD(d_m)`` merges to drift(c_1) kick(c_1 + d_1)
+        drift(d_1 + c_2) ... kick(c_m + d_m) drift(d_m), so ``c_1 = a_1``,
+        ``d_k = b_k - c_k``, ``c_{k+1} = a_{k+1} - d_k`` and the last drift must equal
+        ``d_m``, which holds exactly when ``sum(a) = sum(b)``. Each factor is a 1-stage PRK
+        with ``b_q = b_p``, so the product is a PRK that is symplectic for every H
+        (DESIGN §1): kick-drift-kick Verlet becomes ``KD(1/2) DK(1/2)``, the 2-stage
+        Lobatto IIIA–IIIB pair. Zero-weight factors are dropped.
+        """
+        m = self.kick.size
+        a = np.zeros(m + 1)
+        a[: self.drift.size] = self.drift
+        mismatch = abs(a.sum() - self.kick.sum())
+        if mismatch > RESIDUAL_TOL * max(1.0, np.abs(a).sum()):
+            raise MethodError(
+                f"sum(drift) - sum(kick) = {a.sum() - self.kick.sum():.3g}: a splitting method "
+                "with unequal drift and kick sums has no PRK form for non-separable models"
+            )
+        factors: list[tuple[str, float]] = []
+        c = a[0]
+        for k in range(m):
+            d = self.kick[k] - c
+            factors += [("DK", float(c)), ("KD", float(d))]
+            c = a[k + 1] - d
+        return [(kind, w) for kind, w in factors if w != 0.0]
+
+    def as_prk(self) -> PartitionedRK:
+        """PRK tableaux with ``b_q = b_p`` built from :meth:`euler_factors`.
+
+        Stage i is factor i: ``A_q[i, j] = A_p[i, j] = w_j`` for ``j < i``; the diagonal is
+        ``w_i`` in ``A_q`` for a DK factor and in ``A_p`` for a KD factor.
+        """
+        factors = self.euler_factors()
+        w = np.array([wk for _, wk in factors])
+        A_q = np.tril(np.tile(w, (w.size, 1)), k=-1)
+        A_p = A_q.copy()
+        for i, (kind, wi) in enumerate(factors):
+            (A_q if kind == "DK" else A_p)[i, i] = wi
+        return PartitionedRK(A_q, w, A_p, w.copy(), name=self.name, order=self.order)
+
+
+Method = Union[RungeKutta, PartitionedRK, Splitting, "Composition"]
+
+
+@dataclass(frozen=True, eq=False)
+class Composition:
+    """Composition ``Phi_{g_k h} o ... o Phi_{g_1 h}`` of a base method (weights may be < 0)."""
+
+    base: Method
+    weights: np.ndarray
+    name: str = "composition"
+    order: int | None = None
+    evaluations: int | None = None
+    title: str = ""
+    base_order: int | None = field(default=None)
+
+    kind = "composition"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "weights", _vector(self.weights, "weights"))
+
+    @property
+    def stages(self) -> int:
+        """Total stages: base stages times the number of substeps."""
+        return self.base.stages * int(self.weights.size)
+
+    @property
+    def explicit(self) -> bool:
+        return self.base.explicit
+
+    def flattened(self) -> Composition:
+        """The same map with a non-composition base (nested weights multiplied out)."""
+        if not isinstance(self.base, Composition):
+            return self
+        inner = self.base.flattened()
+        weights = np.concatenate([g * inner.weights for g in self.weights])
+        return Composition(inner.base, weights, name=self.name, order=self.order,
+                           evaluations=self.evaluations, title=self.title)

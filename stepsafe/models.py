@@ -1,0 +1,41 @@
+"""The three linear test models of DESIGN §1, scaled so that only ``z = beta*h`` matters.
+
+Each model is ``x' = beta L x`` with ``x = (q, p~)`` (``p~ = p/beta`` for the two
+kinetic + potential models). ``L`` is the matrix below:
+
+=============  ==================  ==========================  =========================
+model          equations           L                           continuous eigenvalues
+=============  ==================  ==========================  =========================
+``oscillator`` q' = p, p' = -b^2 q  [[0, 1], [-1, 0]]           +-i beta (elliptic centre)
+``saddle``     q' = b q, p' = -b p  [[1, 0], [0, -1]]           +-beta (H = beta p q)
+``inverted``   q' = p, p' = +b^2 q  [[0, 1], [1, 0]]            +-beta (barrier top)
+=============  ==================  ==========================  =========================
+
+``saddle`` is not of the form T(p) + V(q); splitting methods reach it through their PRK form.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+MODELS = ("oscillator", "saddle", "inverted")
+
+#: The scaled generator L of each model, rows (q', p') and columns (q, p).
+GENERATORS = {
+    "oscillator": np.array([[0.0, 1.0], [-1.0, 0.0]]),
+    "saddle": np.array([[1.0, 0.0], [0.0, -1.0]]),
+    "inverted": np.array([[0.0, 1.0], [1.0, 0.0]]),
+}
+
+#: Type of the continuous equilibrium.
+ELLIPTIC = {"oscillator": True, "saddle": False, "inverted": False}
+
+#: Sign of the potential force coefficient seen by a kick: p' = kick_sign * q.
+KICK_SIGN = {"oscillator": -1.0, "inverted": 1.0}
+
+
+def check_model(model: str) -> str:
+    """Return ``model`` if it is a known model name, else raise ``ValueError``."""
+    if model not in GENERATORS:
+        raise ValueError(f"unknown model {model!r}; choose one of {', '.join(MODELS)}")
+    return model

@@ -1,0 +1,410 @@
+"""Structure-preservation regions as unions of z-intervals (DESIGN §2).
+
+For a symplectic method ``det M = 1`` and the type of ``M(z)`` follows from ``t = tr M``:
+elliptic for ``|t| < 2``, hyperbolic with positive multipliers for ``t > 2``, a flip for
+``t < -2``. Preserved means the flow's type **and** orientation:
+
+* ``oscillator``: ``|t| < 2`` and the same sense of rotation, ``M[q, p] > 0`` (for an
+  elliptic M the off-diagonal entries have opposite signs and cannot vanish);
+* ``saddle``: ``t > 2`` and the q direction expands, ``M[q, q] > M[p, p]`` (M is diagonal);
+* ``inverted``: ``t > 2`` and the expanding eigenvector ``v`` of M points outward,
+  ``v_q v_p > 0``, tested as ``o = M_qp (mu - M_qq) + M_pq (mu - M_pp) > 0`` (both terms
+  carry the sign of ``v_q v_p``; ``mu`` is the larger multiplier). This sign is
+  independent of the scaling of p.
+
+Algorithm. The positive poles (singular stage system) are exact eigenvalue data and split
+``(0, zmax]`` into segments. Each segment is sampled on a grid of spacing ``resolution``
+(plus a geometric run towards 0), ``t`` and ``dt/dz`` are evaluated in one vectorised call,
+and cells whose cubic Hermite interpolant hides a pair of extrema are subdivided. Extrema
+of ``t`` are located as roots of ``dt/dz``; between consecutive extrema ``t`` is monotone,
+so every sign change of ``t -+ 2`` between samples is exactly one boundary, refined to the
+floating-point grid. An extremum whose value is within the rounding bound ``tol`` of
+``+-2`` is a tangency: an isolated *resonance* (e.g. ``M = -I``), reported with the
+half-width of z within which float64 cannot tell a touch from a gap, never merged over.
+The rounding bound is ``tol = TOL_FACTOR * eps * scale`` with ``scale`` the magnitude of
+the terms summed into ``tr M`` (see :class:`stepsafe.transfer.Jet`).
+
+A method that is not symplectic on the model is never preserved (a centre becomes a
+spiral for every h > 0); for the oscillator the classical interval ``rho(M) <= 1`` is
+reported instead.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .checks import residuals
+from .errors import StepsafeError
+from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
+from .models import ELLIPTIC, check_model
+from .roots import EPS, refine_brackets
+from .transfer import Jet, poles, transfer_jet
+
+DEFAULT_ZMAX = 10.0
+#: Rounding bound factor: |computed tr M - tr M| <= TOL_FACTOR * eps * scale.
+TOL_FACTOR = 256.0
+#: Cells whose Hermite interpolant hides extrema are split this many times per level.
+REFINE_SPLIT = 8
+REFINE_LEVELS = 4
+MAX_SAMPLES = 400_000
+
+
+@dataclass(frozen=True)
+class Point:
+    """A distinguished z: a boundary, resonance or pole, with its float64 uncertainty."""
+
+    z: float
+    kind: str  # "root" (|tr M| = 2 crossing), "pole", "resonance", "orientation"
+    uncertainty: float = 0.0
+    detail: str = ""
+
+
+@dataclass(frozen=True)
+class Interval:
+    """An open interval ``(lo, hi)`` of z; ``hi`` is None when it reaches zmax."""
+
+    lo: float
+    hi: float | None
+    lo_point: Point | None = None
+    hi_point: Point | None = None
+
+    def contains(self, z: float) -> bool:
+        return self.lo < z and (self.hi is None or z < self.hi)
+
+
+@dataclass(frozen=True)
+class Region:
+    """Where a method preserves a model's structure, up to ``zmax``."""
+
+    model: str
+    zmax: float
+    symplectic: bool
+    intervals: tuple[Interval, ...]
+    reversed: tuple[Interval, ...] = ()
+    resonances: tuple[Point, ...] = ()
+    poles: tuple[Point, ...] = ()
+    resolution: float = 0.0
+    classical: tuple[Interval, ...] | None = None
+    notes: tuple[str, ...] = field(default=())
+
+    @property
+    def first_interval(self) -> Interval | None:
+        """The interval that starts at 0, if the structure is preserved for small z."""
+        if self.intervals and self.intervals[0].lo == 0.0:
+            return self.intervals[0]
+        return None
+
+    @property
+    def first_boundary(self) -> float | None:
+        """``z*``: end of the interval from 0; None if it reaches zmax, 0 if there is none."""
+        first = self.first_interval
+        return 0.0 if first is None else first.hi
+
+    @property
+    def islands(self) -> tuple[tuple[Interval, bool], ...]:
+        """Intervals of the flow's type other than the first, with ``True`` for the same
+        orientation (preserved) and ``False`` for reversed, in increasing z."""
+        first = self.first_interval
+        both = [(iv, True) for iv in self.intervals if iv is not first]
+        both += [(iv, False) for iv in self.reversed]
+        return tuple(sorted(both, key=lambda pair: pair[0].lo))
+
+    @property
+    def first_boundary_point(self) -> Point | None:
+        first = self.first_interval
+        return None if first is None else first.hi_point
+
+
+def default_resolution(method: Method, zmax: float) -> float:
+    """Grid spacing: 1/200 in z, divided by how far the substeps reach (sum of |weights|)."""
+    reach = _reach(method)
+    return max(5e-3 / reach, zmax / MAX_SAMPLES)
+
+
+def _reach(method: Method) -> float:
+    if isinstance(method, Composition):
+        flat = method.flattened()
+        return float(np.abs(flat.weights).sum()) * _reach(flat.base)
+    if isinstance(method, Splitting):
+        return float(max(np.abs(method.drift).sum(), np.abs(method.kick).sum(), 1.0))
+    if isinstance(method, (RungeKutta, PartitionedRK)):
+        prk = method.as_prk()
+        return float(max(1.0, np.abs(prk.A_q).sum(axis=1).max(), np.abs(prk.A_p).sum(axis=1).max()))
+    return 1.0
+
+
+class _Evaluator:
+    """Vectorised evaluation of the jet and the derived scalar functions for one model."""
+
+    def __init__(self, method: Method, model: str) -> None:
+        self.method = method
+        self.model = model
+
+    def jet(self, z) -> Jet:
+        return transfer_jet(self.method, np.asarray(z, dtype=float), self.model)
+
+    def trace(self, z) -> np.ndarray:
+        return self.jet(z).trace
+
+    def dtrace(self, z) -> np.ndarray:
+        return self.jet(z).dtrace
+
+    def orientation(self, z) -> np.ndarray:
+        return orientation(self.jet(z).M, self.model)
+
+
+def orientation(M: np.ndarray, model: str) -> np.ndarray:
+    """Orientation indicator (> 0: same as the flow) for matrices of shape (n, 2, 2)."""
+    a, b, c, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1]
+    if model == "oscillator":
+        return b
+    if model == "saddle":
+        return a - d
+    t = a + d
+    mu = 0.5 * (t + np.sqrt(np.maximum(t * t - 4.0 * (a * d - b * c), 0.0)))
+    return b * (mu - a) + c * (mu - d)
+
+
+def classify(M: np.ndarray, model: str, tol: np.ndarray | float = 0.0) -> np.ndarray:
+    """Per matrix: 1 preserved, -1 same type but reversed orientation, 0 otherwise.
+
+    ``tol`` widens the parabolic set ``| |tr M| - 2 | <= tol`` counted as not preserved.
+    """
+    t = M[:, 0, 0] + M[:, 1, 1]
+    if ELLIPTIC[model]:
+        same_type = np.abs(t) < 2.0 - tol
+    else:
+        same_type = t > 2.0 + tol
+    sense = orientation(M, model) > 0
+    out = np.zeros(t.shape, dtype=int)
+    out[same_type & sense] = 1
+    out[same_type & ~sense] = -1
+    return out
+
+
+def _validate_zmax(zmax: float) -> float:
+    try:
+        zmax = float(zmax)
+    except (TypeError, ValueError):
+        raise StepsafeError(f"zmax must be a number, got {zmax!r}") from None
+    if not np.isfinite(zmax) or zmax <= 0:
+        raise StepsafeError(f"zmax must be a positive finite number, got {zmax}")
+    return zmax
+
+
+def _segment_grid(lo: float, hi: float, dz: float, closed_hi: bool) -> np.ndarray:
+    n = max(16, int(np.ceil((hi - lo) / dz)))
+    frac = np.arange(1, n + (1 if closed_hi else 0)) / n
+    z = lo + (hi - lo) * frac
+    if lo == 0.0:
+        z = np.concatenate([np.geomspace(z[0] * 1e-3, z[0], 13)[:-1], z])
+    return z
+
+
+def _hidden_extrema(z, t, dt) -> np.ndarray:
+    """Cells where the cubic Hermite interpolant suggests extrema the samples miss."""
+    h = np.diff(z)
+    m0, m1 = dt[:-1] * h, dt[1:] * h
+    dtv = np.diff(t)
+    same = m0 * m1 > 0
+    contrary = same & (dtv * m0 < 0)
+    # p'(u) = m0 + 2 (3 dtv - 2 m0 - m1) u + 3 (m0 + m1 - 2 dtv) u^2 on (0, 1)
+    qa = 3.0 * (m0 + m1 - 2.0 * dtv)
+    qb = 2.0 * (3.0 * dtv - 2.0 * m0 - m1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        disc = qb * qb - 4.0 * qa * m0
+        vertex = -qb / (2.0 * qa)
+    # two roots of p' in (0, 1) although p'(0), p'(1) agree in sign
+    dips = same & (disc > 0) & (vertex > 0) & (vertex < 1) & (qa * m0 > 0)
+    flags = contrary | dips
+    flags &= np.isfinite(t[:-1]) & np.isfinite(t[1:]) & np.isfinite(dt[:-1]) & np.isfinite(dt[1:])
+    return np.flatnonzero(flags)
+
+
+def _sample(ev: _Evaluator, lo: float, hi: float, dz: float, closed_hi: bool):
+    """Sample a pole-free segment, refining cells with hidden extrema; returns z, jet arrays."""
+    z = _segment_grid(lo, hi, dz, closed_hi)
+    jet = ev.jet(z)
+    t, dt, scale, M = jet.trace, jet.dtrace, jet.scale, jet.M
+    for _ in range(REFINE_LEVELS):
+        cells = _hidden_extrema(z, t, dt)
+        if cells.size == 0:
+            break
+        frac = np.arange(1, REFINE_SPLIT) / REFINE_SPLIT
+        extra = (z[cells, None] + np.diff(z)[cells, None] * frac[None, :]).ravel()
+        ej = ev.jet(extra)
+        z = np.concatenate([z, extra])
+        order = np.argsort(z, kind="stable")
+        z = z[order]
+        t = np.concatenate([t, ej.trace])[order]
+        dt = np.concatenate([dt, ej.dtrace])[order]
+        scale = np.concatenate([scale, ej.scale])[order]
+        M = np.concatenate([M, ej.M])[order]
+    return z, t, dt, scale, M
+
+
+def _roots_between(fun, z, f) -> np.ndarray:
+    """Refined roots for each strict sign change of samples ``f`` at points ``z``."""
+    f = np.where(np.isfinite(f), f, np.nan)
+    cells = np.flatnonzero(f[:-1] * f[1:] < 0)
+    exact = np.flatnonzero(f == 0.0)
+    roots = refine_brackets(fun, z[cells], z[cells + 1], f[cells], f[cells + 1])
+    return np.concatenate([roots, z[exact]])
+
+
+def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT_ZMAX,
+                resolution: float | None = None) -> Region:
+    """Every interval of ``(0, zmax]`` where ``method`` preserves ``model``'s structure."""
+    check_model(model)
+    zmax = _validate_zmax(zmax)
+    dz = default_resolution(method, zmax) if resolution is None else float(resolution)
+    ev = _Evaluator(method, model)
+    symplectic = residuals(method).symplectic_for(model)
+    pole_z = poles(method, model)
+    pole_z = pole_z[pole_z <= zmax]
+    pole_pts = tuple(Point(float(p), "pole", 1e-14 * float(p), "stage system singular")
+                     for p in pole_z)
+    edges = [0.0, *map(float, pole_z), zmax]
+    if not symplectic:
+        classical = _classical(ev, edges, dz) if ELLIPTIC[model] else None
+        return Region(model, zmax, False, (), (), (), pole_pts, dz, classical,
+                      ("not symplectic on this model: the structure is never preserved",))
+
+    levels = (2.0, -2.0) if ELLIPTIC[model] else (2.0,)
+    points: list[Point] = list(pole_pts)
+    resonances: list[Point] = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        if hi <= lo:
+            continue
+        closed = hi == zmax and not (pole_z.size and pole_z[-1] == zmax)
+        z, t, dt, scale, M = _sample(ev, lo, hi, dz, closed)
+        # extrema of tr M: roots of d(tr M)/dz
+        ext = _roots_between(ev.dtrace, z, dt)
+        if ext.size:
+            ej = ev.jet(ext)
+            t_ext, s_ext = ej.trace.copy(), ej.scale
+            tol_ext = TOL_FACTOR * EPS * s_ext
+            curv = _curvature(ev, ext, dz)
+            for L in levels:
+                touch = np.abs(t_ext - L) <= tol_ext
+                for k in np.flatnonzero(touch):
+                    t_ext[k] = L  # a tangency: never bracket a root across it
+                    inside = _touches_from_inside(model, L, curv[k])
+                    if inside:
+                        resonances.append(_resonance(ext[k], ej.M[k], L, tol_ext[k], curv[k], dz))
+            z = np.concatenate([z, ext])
+            order = np.argsort(z, kind="stable")
+            z = z[order]
+            t = np.concatenate([t, t_ext])[order]
+            M = np.concatenate([M, ej.M])[order]
+            scale = np.concatenate([scale, s_ext])[order]
+        for L in levels:
+            f = t - L
+            roots = _roots_between(lambda x, L=L: ev.trace(x) - L, z, f)
+            roots = roots[~np.isin(roots, [r.z for r in resonances])]
+            if roots.size:
+                rj = ev.jet(roots)
+                slope = np.abs(rj.dtrace)
+                with np.errstate(divide="ignore"):
+                    unc = TOL_FACTOR * EPS * rj.scale / slope
+                points += [Point(float(r), "root", float(u), f"tr M = {L:+g}")
+                           for r, u in zip(roots, unc)]
+        if not ELLIPTIC[model]:
+            o = orientation(M, model)
+            hyper = t > 2.0 + TOL_FACTOR * EPS * scale
+            o = np.where(hyper, o, np.nan)
+            switches = _roots_between(ev.orientation, z, o)
+            points += [Point(float(r), "orientation", 0.0, "expanding direction crosses an axis")
+                       for r in switches]
+    points += resonances
+    return _assemble(ev, model, zmax, points, resonances, pole_pts, dz)
+
+
+def _curvature(ev: _Evaluator, ext: np.ndarray, dz: float) -> np.ndarray:
+    """Second derivative of tr M at the extrema, by a central difference of d(tr M)/dz."""
+    h = np.maximum(1e-6 * np.maximum(ext, 1.0), 1e-3 * dz)
+    return (ev.dtrace(ext + h) - ev.dtrace(ext - h)) / (2.0 * h)
+
+
+def _touches_from_inside(model: str, level: float, curvature: float) -> bool:
+    """Whether an extremum touching ``level`` has the preserved type on both sides."""
+    if ELLIPTIC[model]:
+        return curvature < 0 if level > 0 else curvature > 0
+    return curvature > 0
+
+
+def _resonance(z: float, M: np.ndarray, level: float, tol: float, curvature: float,
+               dz: float) -> Point:
+    sign = 1.0 if level > 0 else -1.0
+    offdiag = max(abs(M[0, 1]), abs(M[1, 0]), abs(M[0, 0] - M[1, 1]))
+    detail = ("M = +I" if sign > 0 else "M = -I") if offdiag <= 1e-6 * np.abs(M).max() \
+        else f"tangency, tr M = {level:+g}"
+    width = np.sqrt(2.0 * tol / abs(curvature)) if curvature != 0 else dz
+    return Point(float(z), "resonance", float(width), detail)
+
+
+def _assemble(ev: _Evaluator, model: str, zmax: float, points: list[Point],
+              resonances: list[Point], pole_pts: tuple[Point, ...], dz: float) -> Region:
+    pts = sorted({p.z: p for p in points if 0.0 < p.z < zmax}.values(), key=lambda p: p.z)
+    edges = [0.0] + [p.z for p in pts] + [zmax]
+    mids = np.array([0.5 * (a + b) for a, b in zip(edges[:-1], edges[1:])])
+    status = classify(ev.jet(mids).M, model) if mids.size else np.zeros(0, dtype=int)
+    intervals: list[Interval] = []
+    reversed_: list[Interval] = []
+    kept: list[Point] = []
+    for i, st in enumerate(status):
+        if st == 0:
+            continue
+        lo_pt = pts[i - 1] if i > 0 else None
+        hi_pt = pts[i] if i < len(pts) else None
+        lo = edges[i]
+        hi = None if hi_pt is None else edges[i + 1]
+        target = intervals if st == 1 else reversed_
+        # extend a run split by a point that is not a real boundary (same status both sides)
+        if target and target[-1].hi == lo and lo_pt is not None and lo_pt.kind == "orientation":
+            prev = target.pop()
+            lo, lo_pt = prev.lo, prev.lo_point
+        target.append(Interval(lo, hi, lo_pt, hi_pt))
+    # resonances: isolated parabolic points with the flow's type on both sides (the
+    # orientation may differ across them, e.g. M = -I ends Gauss s=2's first interval)
+    for i, p in enumerate(pts):
+        if status[i] != 0 and status[i + 1] != 0 and p.kind in ("resonance", "root"):
+            kept.append(p if p.kind == "resonance" else Point(p.z, "resonance", p.uncertainty,
+                                                               p.detail))
+    return Region(model, zmax, True, tuple(intervals), tuple(reversed_), tuple(kept), pole_pts,
+                  dz)
+
+
+def _classical(ev: _Evaluator, edges: list[float], dz: float) -> tuple[Interval, ...]:
+    """Intervals where the spectral radius of M is at most 1 (+ rounding): classical stability."""
+
+    def excess(z):  # rho(M) - 1, refined without bias
+        return np.abs(np.linalg.eigvals(ev.jet(z).M)).max(axis=1) - 1.0
+
+    def margin(z):  # >= 0 where rho(M) <= 1 up to rounding
+        return TOL_FACTOR * EPS * ev.jet(z).scale - excess(z)
+
+    points: list[Point] = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        z = _segment_grid(lo, hi, dz, hi == edges[-1])
+        m = margin(z)
+        cells = np.flatnonzero(m[:-1] * m[1:] < 0)
+        e_lo, e_hi = excess(z[cells]), excess(z[cells + 1])
+        valid = e_lo * e_hi < 0
+        roots = refine_brackets(excess, z[cells][valid], z[cells + 1][valid], e_lo[valid],
+                                e_hi[valid])
+        roots = np.concatenate([roots, np.where(m[cells] > 0, z[cells], z[cells + 1])[~valid]])
+        points += [Point(float(r), "root", 0.0, "|mu| = 1") for r in roots]
+    pts = sorted(points, key=lambda p: p.z)
+    cuts = [0.0] + [p.z for p in pts] + [edges[-1]]
+    mids = np.array([0.5 * (a + b) for a, b in zip(cuts[:-1], cuts[1:])])
+    ok = margin(mids) >= 0
+    out = []
+    for i, good in enumerate(ok):
+        if good:
+            hi = None if i == len(pts) else cuts[i + 1]
+            out.append(Interval(cuts[i], hi, pts[i - 1] if i else None,
+                                pts[i] if i < len(pts) else None))
+    return tuple(out)

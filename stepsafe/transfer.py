@@ -1,0 +1,208 @@
+"""The 2x2 one-step (transfer) matrix M(z) of any method on a test model, with dM/dz.
+
+One place turns every method kind into ``M(z)`` (DESIGN §1):
+
+* RK / PRK: with ``L`` the model generator, stack the stages as ``X = (Q; P)`` and solve
+  ``(I - z K) X = E`` with ``K = [[A_q L_qq, A_q L_qp], [A_p L_pq, A_p L_pp]]`` and
+  ``E = [[1, 0], [0, 1]]`` (blocks of ones); then ``M = I + z B X`` with
+  ``B = [[b_q L_qq, b_q L_qp], [b_p L_pq, b_p L_pp]]``. Differentiating,
+  ``dX/dz = (I - z K)^-1 K X``. The stage system is singular exactly at ``z = 1/lambda``
+  for the real eigenvalues ``lambda`` of ``K`` (the poles).
+* splitting, ``oscillator`` / ``inverted``: the product of drift ``[[1, a z], [0, 1]]`` and
+  kick ``[[1, 0], [-+ b z, 1]]`` factors in the order applied.
+* splitting, ``saddle``: the product of the symplectic Euler factors of
+  :meth:`Splitting.euler_factors` (diagonal: ``DK(c) = diag(1/(1-cz), 1-cz)``,
+  ``KD(d) = diag(1+dz, 1/(1+dz))``).
+* composition: ``M_base(g_k z) ... M_base(g_1 z)``.
+
+Everything is vectorised over an array of z. Alongside ``M`` the jet carries ``scale``, the
+magnitude of the terms that sum to ``tr M`` (trace of the product of entrywise absolute
+values), from which the region finder bounds the rounding error of ``tr M``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
+from .models import GENERATORS, KICK_SIGN, check_model
+
+
+@dataclass(frozen=True)
+class Jet:
+    """``M(z)``, ``dM/dz`` and the term magnitude ``scale`` at each z (shapes (n,2,2), (n,))."""
+
+    M: np.ndarray
+    dM: np.ndarray
+    scale: np.ndarray
+
+    @property
+    def trace(self) -> np.ndarray:
+        return self.M[:, 0, 0] + self.M[:, 1, 1]
+
+    @property
+    def dtrace(self) -> np.ndarray:
+        return self.dM[:, 0, 0] + self.dM[:, 1, 1]
+
+
+def transfer_matrix(method: Method, z, model: str = "oscillator") -> np.ndarray:
+    """``M(z)`` for every z in ``z`` (array of shape (n, 2, 2); NaN where no unique step)."""
+    return transfer_jet(method, z, model).M
+
+
+def transfer_jet(method: Method, z, model: str = "oscillator") -> Jet:
+    """``M``, ``dM/dz`` and the term magnitude at every z."""
+    check_model(model)
+    z = np.atleast_1d(np.asarray(z, dtype=float))
+    if isinstance(method, Composition):
+        return _composition_jet(method.flattened(), z, model)
+    if isinstance(method, Splitting):
+        if model == "saddle":
+            return _euler_factor_jet(method, z)
+        return _splitting_jet(method, z, model)
+    if isinstance(method, (RungeKutta, PartitionedRK)):
+        return _prk_jet(method.as_prk(), z, model)
+    raise TypeError(f"not a method: {type(method).__name__}")
+
+
+def stage_operator(method: RungeKutta | PartitionedRK, model: str):
+    """``(K, E, B)`` of the stage system ``(I - z K) X = E``, ``M = I + z B X``."""
+    prk = method.as_prk()
+    L = GENERATORS[model]
+    s = prk.stages
+    K = np.block([[prk.A_q * L[0, 0], prk.A_q * L[0, 1]], [prk.A_p * L[1, 0], prk.A_p * L[1, 1]]])
+    E = np.zeros((2 * s, 2))
+    E[:s, 0] = 1.0
+    E[s:, 1] = 1.0
+    B = np.block([[prk.b_q * L[0, 0], prk.b_q * L[0, 1]], [prk.b_p * L[1, 0], prk.b_p * L[1, 1]]])
+    return K, E, B
+
+
+def _batched_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve ``S[i] x = rhs[i]``; NaN rows where ``S[i]`` is exactly singular."""
+    try:
+        return np.linalg.solve(S, rhs)
+    except np.linalg.LinAlgError:
+        out = np.full(rhs.shape, np.nan)
+        for i in range(S.shape[0]):
+            try:
+                out[i] = np.linalg.solve(S[i], rhs[i])
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
+
+def _prk_jet(prk: PartitionedRK, z: np.ndarray, model: str) -> Jet:
+    K, E, B = stage_operator(prk, model)
+    n2 = K.shape[0]
+    S = np.eye(n2)[None, :, :] - z[:, None, None] * K[None, :, :]
+    X = _batched_solve(S, np.broadcast_to(E, (z.size, n2, 2)).copy())
+    dX = _batched_solve(S, K[None, :, :] @ X)
+    BX = B[None, :, :] @ X
+    M = np.eye(2)[None, :, :] + z[:, None, None] * BX
+    dM = BX + z[:, None, None] * (B[None, :, :] @ dX)
+    absterms = np.abs(z)[:, None, None] * (np.abs(B)[None, :, :] @ np.abs(X))
+    scale = 2.0 + absterms[:, 0, 0] + absterms[:, 1, 1]
+    return Jet(M, dM, scale)
+
+
+def _identity_jet(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    M = np.zeros((n, 2, 2))
+    M[:, 0, 0] = M[:, 1, 1] = 1.0
+    return M, np.zeros((n, 2, 2)), M.copy()
+
+
+def _splitting_jet(method: Splitting, z: np.ndarray, model: str) -> Jet:
+    """Product of drift/kick factors; rows updated in place (drift: row_q += a z row_p)."""
+    M, dM, A = _identity_jet(z.size)
+    sign = KICK_SIGN[model]
+    for kind, coef in method.operations:
+        src, dst, c = (1, 0, coef) if kind == "drift" else (0, 1, sign * coef)
+        # F = I + c z e_dst e_src^T ;  F M, dF M + F dM, |F| |M|
+        dM[:, dst, :] += c * z[:, None] * dM[:, src, :] + c * M[:, src, :]
+        M[:, dst, :] += c * z[:, None] * M[:, src, :]
+        A[:, dst, :] += abs(c) * np.abs(z)[:, None] * A[:, src, :]
+    return Jet(M, dM, A[:, 0, 0] + A[:, 1, 1])
+
+
+def _euler_factor_jet(method: Splitting, z: np.ndarray) -> Jet:
+    """Saddle model: diagonal product of DK(c) = diag(1/(1-cz), 1-cz), KD(d) = diag(1+dz, 1/(1+dz))."""
+    log_dq = np.zeros(z.size)
+    mq = np.ones(z.size)
+    mp = np.ones(z.size)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for kind, w in method.euler_factors():
+            f = 1.0 - w * z if kind == "DK" else 1.0 + w * z
+            if kind == "DK":
+                mq, mp = mq / f, mp * f
+                log_dq += w / f
+            else:
+                mq, mp = mq * f, mp / f
+                log_dq += w / f
+        M = np.zeros((z.size, 2, 2))
+        M[:, 0, 0], M[:, 1, 1] = mq, mp
+        dM = np.zeros_like(M)
+        dM[:, 0, 0] = mq * log_dq
+        dM[:, 1, 1] = -mp * log_dq
+        bad = ~np.isfinite(mq) | ~np.isfinite(mp)
+        M[bad] = np.nan
+        dM[bad] = np.nan
+    return Jet(M, dM, np.abs(mq) + np.abs(mp))
+
+
+def _composition_jet(method: Composition, z: np.ndarray, model: str) -> Jet:
+    g = method.weights
+    base = transfer_jet(method.base, np.outer(g, z).ravel(), model)
+    n = z.size
+    Mb = base.M.reshape(g.size, n, 2, 2)
+    dMb = base.dM.reshape(g.size, n, 2, 2)
+    Ab = np.abs(base.M).reshape(g.size, n, 2, 2)
+    M, dM, A = _identity_jet(n)
+    for k in range(g.size):
+        dM = g[k] * dMb[k] @ M + Mb[k] @ dM
+        M = Mb[k] @ M
+        A = Ab[k] @ A
+    return Jet(M, dM, A[:, 0, 0] + A[:, 1, 1])
+
+
+def signed_poles(method: Method, model: str) -> np.ndarray:
+    """All real ``z != 0`` (either sign) where the step has no unique solution, sorted.
+
+    RK/PRK: ``z = 1/lambda`` for each real eigenvalue ``lambda`` of the stage operator K
+    (an eigenvalue counts as real when its imaginary part is below 1e-7 of its modulus, so
+    a near-double real pair is reported, conservatively, as a pole). Splitting on the
+    saddle: ``1/c`` for DK(c) factors and ``-1/d`` for KD(d). Composition: the base's
+    poles divided by each weight.
+    """
+    check_model(model)
+    if isinstance(method, Composition):
+        flat = method.flattened()
+        base = signed_poles(flat.base, model)
+        zs = np.concatenate([base / g for g in flat.weights]) if base.size else base
+        return _unique_sorted(zs)
+    if isinstance(method, Splitting):
+        if model != "saddle":
+            return np.empty(0)
+        zs = [1.0 / w if kind == "DK" else -1.0 / w for kind, w in method.euler_factors()]
+        return _unique_sorted(np.array(zs))
+    K, _, _ = stage_operator(method, model)
+    lam = np.linalg.eigvals(K)
+    real = np.abs(lam.imag) <= 1e-7 * np.abs(lam)
+    lam = lam.real[real & (np.abs(lam) > 1e-300)]
+    return _unique_sorted(1.0 / lam)
+
+
+def poles(method: Method, model: str) -> np.ndarray:
+    """The positive poles of :func:`signed_poles`."""
+    zs = signed_poles(method, model)
+    return zs[zs > 0]
+
+
+def _unique_sorted(zs: np.ndarray) -> np.ndarray:
+    zs = np.sort(zs[np.isfinite(zs)])
+    if zs.size < 2:
+        return zs
+    keep = np.concatenate([[True], np.diff(zs) > 1e-12 * np.abs(zs[1:])])
+    return zs[keep]

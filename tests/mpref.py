@@ -1,0 +1,427 @@
+"""Independent high-precision (mpmath) reference for stepsafe.
+
+Self-contained: imports only mpmath and the standard library and shares no
+code with the float64 package.  Every function works at the caller's
+precision (``with mp.workdps(60): ...``).
+
+Conventions: phase space x = (q, p); a method applied to x' = L x with step z
+(z = beta*h) is the linear map x1 = M(z) x0.  Test models (L):
+
+* ``oscillator`` q' = p, p' = -q: preserved iff |tr M| < 2 and M[0,1] > 0
+  (elliptic with the rotation sense of the flow);
+* ``saddle``     q' = q, p' = -p: preserved iff M is diagonal and
+  M_qq > 1 > M_pp > 0;
+* ``inverted``   q' = p, p' = q: preserved iff tr M > 2 and the expanding
+  eigenvector v of M has v_q*v_p > 0.
+"""
+
+from __future__ import annotations
+
+from itertools import zip_longest
+from typing import Callable, NamedTuple, Sequence
+
+from mpmath import mp
+
+MODELS = {
+    "oscillator": ((0, 1), (-1, 0)),
+    "saddle": ((1, 0), (0, -1)),
+    "inverted": ((0, 1), (1, 0)),
+}
+#: names of the functions g_k(M) that are all > 0 exactly when preserved
+CONSTRAINT_NAMES = {
+    "oscillator": ("2-tr", "2+tr", "M_qp"),
+    "saddle": ("M_qq-1", "1-M_pp", "M_pp"),
+    "inverted": ("tr-2", "orientation"),
+}
+#: constraints that may touch zero tangentially (|tr M| = 2 resonances)
+_TANGENT = {"oscillator": (0, 1), "saddle": (0,), "inverted": (0,)}
+
+MFun = Callable[[object], object]
+
+
+# --------------------------------------------------------------------------
+# Butcher tableaux
+# --------------------------------------------------------------------------
+def _shifted_legendre(n: int) -> list:
+    """Ascending coefficients of P_n(2x - 1) (exact integers)."""
+    return [(-1) ** (n + k) * mp.binomial(n, k) * mp.binomial(n + k, k)
+            for k in range(n + 1)]
+
+
+def _real_roots(coeffs: list, n: int) -> list:
+    """Sorted real roots of sum coeffs[k] x^k (all roots real and simple)."""
+    if len(coeffs) < 2:
+        return []
+    roots = mp.polyroots(coeffs[::-1], maxsteps=200 + 20 * n,
+                         extraprec=mp.prec + 20 * n)
+    return sorted(mp.re(r) for r in roots)
+
+
+def _collocation(c: list) -> tuple:
+    """Moment (Vandermonde) solve: b_j with sum_j b_j c_j^k = 1/(k+1) and
+    A[i,j] = int_0^{c_i} l_j(t) dt, i.e. sum_j A[i,j] c_j^k = c_i^{k+1}/(k+1),
+    k = 0..s-1 (simplifying conditions B(s), C(s))."""
+    s = len(c)
+    vinv = mp.inverse(mp.matrix([[cj ** k for cj in c] for k in range(s)]))
+    b = [sum(vinv[j, k] / (k + 1) for k in range(s)) for j in range(s)]
+    A = mp.matrix(s, s)
+    for i in range(s):
+        for j in range(s):
+            A[i, j] = sum(vinv[j, k] * c[i] ** (k + 1) / (k + 1)
+                          for k in range(s))
+    return A, b
+
+
+def _round(A, b: list, c: list) -> tuple:
+    """Round a tableau computed at raised precision to the caller's."""
+    return +A, [+x for x in b], [+x for x in c]
+
+
+def gauss_tableau(s: int) -> tuple:
+    """Gauss-Legendre (A, b, c): c = roots of P_s(2x-1), A by collocation."""
+    with mp.workdps(mp.dps + 3 * s + 10):
+        c = _real_roots(_shifted_legendre(s), s)
+        A, b = _collocation(c)
+    return _round(A, b, c)
+
+
+def _lobatto_iiia(s: int) -> tuple:
+    if s < 2:
+        raise ValueError("Lobatto needs s >= 2")
+    leg = _shifted_legendre(s - 1)
+    dleg = [k * leg[k] for k in range(1, len(leg))]  # d/dx P_{s-1}(2x-1)
+    c = [mp.zero] + _real_roots(dleg, s) + [mp.one]
+    A, b = _collocation(c)
+    return A, b, c
+
+
+def lobatto_IIIA_tableau(s: int) -> tuple:
+    """Lobatto IIIA (A, b, c): nodes 0, 1 and the roots of P'_{s-1}(2x-1);
+    collocation A[i,j] = int_0^{c_i} l_j(t) dt; b the Lobatto weights."""
+    with mp.workdps(mp.dps + 3 * s + 10):
+        A, b, c = _lobatto_iiia(s)
+    return _round(A, b, c)
+
+
+def lobatto_IIIB_tableau(s: int) -> tuple:
+    """Lobatto IIIB: the symplectic partner of IIIA, defined by
+    b_i B[i,j] + b_j A[j,i] - b_i b_j = 0, i.e. B[i,j] = b_j (1 - A[j,i]/b_i).
+    (s=2: [[1/2,0],[1/2,0]]; s=3: [[1/6,-1/6,0],[1/6,1/3,0],[1/6,5/6,0]].)"""
+    with mp.workdps(mp.dps + 3 * s + 10):
+        A, b, c = _lobatto_iiia(s)
+        B = mp.matrix(s, s)
+        for i in range(s):
+            for j in range(s):
+                B[i, j] = b[j] * (1 - A[j, i] / b[i])
+    return _round(B, b, c)
+
+
+def splitting_to_prk(drift: Sequence, kick: Sequence) -> tuple:
+    """PRK (A_q, b, A_p, b) of the splitting drift(a1) kick(b1) drift(a2)...
+
+    The sequence x = (a1, b1, a2, b2, ...) is rewritten as the composition
+    Phi_{c1} Phi*_{c2} Phi_{c3} ... (applied left to right) of symplectic
+    Euler Phi_c (drift then kick: 1-stage PRK A_q = 1, A_p = 0) and its
+    adjoint Phi*_c (kick then drift: A_q = 0, A_p = 1), with c1 = x1,
+    c_k = x_k - c_{k-1}.  Stacking the stages gives a PRK with b_q = b_p = c,
+    A_q[k,l] = A_p[k,l] = c_l (l < k), and c_k on the diagonal of A_q (Phi)
+    or A_p (Phi*).  It is symplectic for every H and equals the splitting
+    for separable H; velocity Verlet (0, 1/2, 1, 1/2) gives exactly 2-stage
+    Lobatto IIIA (q) - IIIB (p).  Zero-weight pieces are dropped.
+    """
+    x = [v for pair in zip_longest(drift, kick, fillvalue=0) for v in pair]
+    pieces, prev = [], mp.zero
+    for k, xk in enumerate(x):
+        ck = mp.mpf(xk) - prev
+        pieces.append((ck, k % 2 == 0))  # True: Phi (drift-kick)
+        prev = ck
+    if abs(prev) > mp.eps * 2 ** 10 * (1 + sum(abs(v) for v in x)):
+        raise ValueError("inconsistent splitting: sum(drift) != sum(kick)")
+    pieces = [pc for pc in pieces if pc[0] != 0]
+    s = len(pieces)
+    A_q, A_p = mp.matrix(s, s), mp.matrix(s, s)
+    for k, (ck, is_phi) in enumerate(pieces):
+        for m in range(k):
+            A_q[k, m] = A_p[k, m] = pieces[m][0]
+        (A_q if is_phi else A_p)[k, k] = ck
+    b = [pc[0] for pc in pieces]
+    return A_q, b, A_p, list(b)
+
+
+# --------------------------------------------------------------------------
+# Transfer matrices
+# --------------------------------------------------------------------------
+def transfer_matrix_prk(A_q, b_q, A_p, b_p, z, model: str):
+    """M(z) of the PRK (A_q,b_q)-(A_p,b_p) on ``model``: solve the 2s x 2s
+    stage system Q = q0 e + z A_q (Lqq Q + Lqp P), P = p0 e + z A_p (Lpq Q +
+    Lpp P) with mp.lu_solve for (q0,p0) = (1,0), (0,1), then
+    q1 = q0 + z b_q.(Lqq Q + Lqp P), p1 = p0 + z b_p.(Lpq Q + Lpp P).
+    Raises ZeroDivisionError where the stage system is singular (a pole)."""
+    (lqq, lqp), (lpq, lpp) = MODELS[model]
+    A_q, A_p = mp.matrix(A_q), mp.matrix(A_p)
+    s, z = A_q.rows, mp.mpf(z)
+    S = mp.eye(2 * s)
+    for i in range(s):
+        for j in range(s):
+            S[i, j] -= z * lqq * A_q[i, j]
+            S[i, s + j] -= z * lqp * A_q[i, j]
+            S[s + i, j] -= z * lpq * A_p[i, j]
+            S[s + i, s + j] -= z * lpp * A_p[i, j]
+    M = mp.matrix(2, 2)
+    for col, (q0, p0) in enumerate(((1, 0), (0, 1))):
+        X = mp.lu_solve(S, [q0] * s + [p0] * s)
+        M[0, col] = q0 + z * mp.fsum(b_q[j] * (lqq * X[j] + lqp * X[s + j])
+                                     for j in range(s))
+        M[1, col] = p0 + z * mp.fsum(b_p[j] * (lpq * X[j] + lpp * X[s + j])
+                                     for j in range(s))
+    return M
+
+
+def transfer_matrix_rk(A, b, z, model: str):
+    """RK method = PRK with both tableaux equal."""
+    return transfer_matrix_prk(A, b, A, b, z, model)
+
+
+def transfer_matrix_splitting(drift: Sequence, kick: Sequence, z,
+                              model: str):
+    """Splitting drift(a1 z) kick(b1 z) drift(a2 z) ... : product of
+    [[1, a z],[0, 1]] and [[1, 0],[-+b z, 1]] (oscillator -, inverted +);
+    on the saddle through the equivalent PRK (see splitting_to_prk)."""
+    if model == "saddle":
+        return transfer_matrix_prk(*splitting_to_prk(drift, kick), z, model)
+    sign = -1 if model == "oscillator" else 1
+    z, M = mp.mpf(z), mp.eye(2)
+    for a, b in zip_longest(drift, kick, fillvalue=0):
+        M = mp.matrix([[1, a * z], [0, 1]]) * M
+        M = mp.matrix([[1, 0], [sign * b * z, 1]]) * M
+    return M
+
+
+def transfer_matrix_composition(base_fn: MFun, weights: Sequence, z):
+    """Composition Phi_{g_k h} o ... o Phi_{g_1 h}: M_base(g_k z)...M_base(g_1 z)."""
+    M = mp.eye(2)
+    for g in weights:
+        M = base_fn(g * z) * M
+    return M
+
+
+def triple_jump(order: int) -> list:
+    """Weights (g1, g2, g1) raising a symmetric method of even ``order`` to
+    order+2: g1 = 1/(2 - 2^(1/(order+1))), g2 = -2^(1/(order+1)) g1
+    (so 2 g1 + g2 = 1; g2 < 0)."""
+    r = mp.root(2, order + 1)
+    g1 = 1 / (2 - r)
+    return [g1, -r * g1, g1]
+
+
+# --------------------------------------------------------------------------
+# Classification
+# --------------------------------------------------------------------------
+def constraints(M, model: str) -> list:
+    """Continuous functions g_k(M), all > 0 iff preserved (CONSTRAINT_NAMES).
+    Inverted orientation: with mu = tr/2 + sqrt(tr^2/4 - 1) the expanding
+    eigenvector is v ~ (M_qp, mu - M_qq) ~ (mu - M_pp, M_pq), so
+    M_qp (mu - M_qq) + M_pq (mu - M_pp) has the sign of v_q v_p."""
+    tr = M[0, 0] + M[1, 1]
+    if model == "oscillator":
+        return [2 - tr, 2 + tr, M[0, 1]]
+    if model == "saddle":
+        return [M[0, 0] - 1, 1 - M[1, 1], M[1, 1]]
+    mu = tr / 2 + mp.sqrt(max(tr * tr / 4 - 1, 0))
+    return [tr - 2, M[0, 1] * (mu - M[0, 0]) + M[1, 0] * (mu - M[1, 1])]
+
+
+def is_preserved(M, model: str) -> bool:
+    """True iff M has the type and orientation of the model's flow."""
+    if model == "saddle" and abs(M[0, 1]) + abs(M[1, 0]) > mp.eps * 2 ** 20:
+        return False
+    return all(g > 0 for g in constraints(M, model))
+
+
+def classify(M) -> str:
+    """Type of a 2x2 symplectic M: 'elliptic+' / 'elliptic-' (sign of M_qp =
+    rotation sense), 'hyperbolic+' (tr > 2), 'hyperbolic-' (tr < -2, flip)."""
+    tr = M[0, 0] + M[1, 1]
+    if abs(tr) < 2:
+        return "elliptic+" if M[0, 1] > 0 else "elliptic-"
+    return "hyperbolic+" if tr > 2 else "hyperbolic-"
+
+
+# --------------------------------------------------------------------------
+# Root finding and boundary search
+# --------------------------------------------------------------------------
+def refine_root(f: Callable, lo, hi, tol=None):
+    """Zero (or sign-changing pole) of f in [lo, hi], f(lo) f(hi) < 0.
+
+    Illinois (modified regula falsi) safeguarded by a bisection step
+    whenever three steps failed to halve the bracket; stops at a bracket
+    width ~ 64 ulp (about mp.dps digits).  A point where f raises
+    ZeroDivisionError is returned at once (an exact pole)."""
+    a, b = mp.mpf(lo), mp.mpf(hi)
+    fa, fb = f(a), f(b)
+    if fa == 0 or fb == 0:
+        return a if fa == 0 else b
+    if (fa > 0) == (fb > 0):
+        raise ValueError("refine_root: no sign change on [lo, hi]")
+    tol = tol or mp.eps * 2 ** 6 * max(1, abs(a), abs(b))
+    side, width, bisect = 0, b - a, False
+    for it in range(1, 20 * mp.prec):
+        if b - a <= tol:
+            break
+        c = (a + b) / 2 if bisect else (a * fb - b * fa) / (fb - fa)
+        if not a < c < b:
+            c = (a + b) / 2
+        try:
+            fc = f(c)
+        except ZeroDivisionError:
+            return c
+        if fc == 0:
+            return c
+        if (fc > 0) == (fa > 0):
+            a, fa = c, fc
+            fb, side = (fb / 2 if side == -1 else fb), -1
+        else:
+            b, fb = c, fc
+            fa, side = (fa / 2 if side == 1 else fa), 1
+        bisect = False
+        if it % 3 == 0:
+            bisect, width = b - a > width / 2, b - a
+    return (a + b) / 2
+
+
+def _g(Mfun: MFun, model: str, k: int) -> Callable:
+    def g(z):
+        return constraints(Mfun(z), model)[k]
+    return g
+
+
+def _crossing_kind(g: Callable, x) -> str:
+    """'root' if |g| is small next to x, 'pole' if it blows up."""
+    d = mp.mpf(10) ** (-(mp.dps // 2)) * max(1, abs(x))
+    try:
+        vals = [abs(g(x - d)), abs(g(x + d))]
+    except ZeroDivisionError:
+        return "pole"
+    return "root" if min(vals) < 1 else "pole"
+
+
+def _tangency(g: Callable, lo, hi):
+    """Local minimum of |g| in (lo, hi) via a root of g'; returns
+    [(z, kind)] for a double zero ('resonance'), two crossings (a narrow
+    gap whose extremum has the opposite sign), or [] (no contact)."""
+    dg = lambda z: mp.diff(g, z)  # noqa: E731
+    try:
+        if (dg(lo) > 0) == (dg(hi) > 0):
+            return []
+        zm = refine_root(dg, lo, hi)
+        gm, glo = g(zm), g(lo)
+    except ZeroDivisionError:
+        return []
+    if abs(gm) < mp.mpf(10) ** (-(3 * mp.dps) // 4):
+        return [(zm, "resonance")]
+    if (gm > 0) != (glo > 0):
+        return [(refine_root(g, lo, zm), "root"),
+                (refine_root(g, zm, hi), "root")]
+    return []
+
+
+class Boundary(NamedTuple):
+    z: object          # mp number
+    kind: str          # 'root', 'pole' or 'resonance'
+    which: str         # constraint(s) that vanish/blow up there
+    preserved_after: bool
+
+
+def _safe_M(Mfun: MFun, z, step):
+    for _ in range(5):
+        try:
+            return z, Mfun(z)
+        except ZeroDivisionError:
+            z += step
+    return z, None
+
+
+def boundaries(Mfun: MFun, model: str, zmax, n: int = 400) -> list:
+    """All boundaries of the preserved set in (0, zmax] (list of Boundary).
+
+    Scan: constraints g_k(M(z)) on the float grid z_i = zmax i/n (mp
+    evaluation); sign changes are refined with refine_root and labelled
+    root/pole (pole: |g| blows up, stage system singular); grid local minima
+    of |2 -+ tr| are refined through g' = 0 into resonances (tangency) or
+    narrow gaps (two roots).  Candidates where the preservation status does
+    not change are dropped, except poles and isolated resonances."""
+    zmax = mp.mpf(zmax)
+    step = zmax / n * mp.mpf("1e-7")
+    grid = [_safe_M(Mfun, zmax * i / n, step) for i in range(1, n + 1)]
+    grid = [(z, constraints(M, model)) for z, M in grid if M is not None]
+    names = CONSTRAINT_NAMES[model]
+    cand = []
+    for k in range(len(names)):
+        g = _g(Mfun, model, k)
+        for (z0, v0), (z1, v1) in zip(grid, grid[1:]):
+            if (v0[k] > 0) != (v1[k] > 0):
+                x = refine_root(g, z0, z1)
+                cand.append((x, _crossing_kind(g, x), names[k]))
+        if k not in _TANGENT[model]:
+            continue
+        for (z0, v0), (_, v1), (z2, v2) in zip(grid, grid[1:], grid[2:]):
+            same = (v0[k] > 0) == (v1[k] > 0) == (v2[k] > 0)
+            if same and abs(v1[k]) < min(abs(v0[k]), abs(v2[k])):
+                cand += [(x, kd, names[k]) for x, kd in _tangency(g, z0, z2)]
+    cand.sort(key=lambda t: t[0])
+    merged: list = []
+    for x, kind, name in cand:
+        if merged and abs(x - merged[-1][0]) < mp.eps ** 0.3 * max(1, x):
+            _, k0, n0 = merged[-1]
+            best = min((k0, kind), key=("pole", "resonance", "root").index)
+            merged[-1] = (merged[-1][0], best, n0 + "," + name)
+        else:
+            merged.append((x, kind, name))
+    pts = [m[0] for m in merged]
+    mids = [pts[0] / 2] if pts else [zmax / 2]
+    mids += [(u + v) / 2 for u, v in zip(pts, pts[1:])]
+    mids += [(pts[-1] + zmax) / 2] if pts else []
+    status = [_safe_M(Mfun, m, step)[1] for m in mids]
+    status = [M is not None and is_preserved(M, model) for M in status]
+    out = []
+    for i, (x, kind, name) in enumerate(merged):
+        before, after = status[i], status[i + 1]
+        if before != after or (kind != "root" and (before or after)):
+            out.append(Boundary(x, kind, name, after))
+    return out
+
+
+def first_boundary(Mfun: MFun, model: str, zmax, n: int = 400) -> tuple:
+    """(z*, kind) ending the preserved interval that starts at z = 0+;
+    (mp.inf, 'none') if nothing is found up to zmax."""
+    for bd in boundaries(Mfun, model, zmax, n):
+        return bd.z, bd.kind
+    return mp.inf, "none"
+
+
+def regions(Mfun: MFun, model: str, zmax, n: int = 400) -> list:
+    """Preserved open intervals [(lo, hi)] in (0, zmax] (hi = zmax: open)."""
+    out, lo = [], mp.zero
+    for bd in boundaries(Mfun, model, zmax, n):
+        if lo is not None:
+            out.append((lo, bd.z))
+        lo = bd.z if bd.preserved_after else None
+    if lo is not None:
+        out.append((lo, mp.mpf(zmax)))
+    return out
+
+
+def resonances(Mfun: MFun, zmax, n: int = 400) -> list:
+    """Points where |tr M| = 2 tangentially (e.g. M = -I): [(z, M(z))].
+    Uses the oscillator constraints 2 - tr, 2 + tr (model independent)."""
+    zmax = mp.mpf(zmax)
+    grid = [(zmax * i / n, Mfun(zmax * i / n)) for i in range(1, n + 1)]
+    out = []
+    for k in (0, 1):
+        g = _g(Mfun, "oscillator", k)
+        vals = [(z, constraints(M, "oscillator")[k]) for z, M in grid]
+        for (z0, v0), (_, v1), (z2, v2) in zip(vals, vals[1:], vals[2:]):
+            if 0 < v1 < min(v0, v2):
+                out += [(x, Mfun(x)) for x, kd in _tangency(g, z0, z2)
+                        if kd == "resonance"]
+    return sorted(out, key=lambda t: t[0])
