@@ -1,0 +1,178 @@
+"""Finding methods by name: the built-in YAML files, the families and method-file paths.
+
+``resolve("pefrl")`` loads ``methods/pefrl.yaml`` (or a file that lists ``pefrl`` among
+its aliases); ``resolve("gauss", stages=3)`` builds a family member; ``resolve("my.yaml")``
+loads a file; ``base=`` swaps the base method of a composition. Unknown names raise
+:class:`~stepsafe.errors.StepsafeError` with the closest known names.
+
+The built-in files live in the top-level ``methods/`` folder of the source tree, which the
+wheel installs as the package data folder ``stepsafe/methods``; both locations are searched
+so that editable installs and wheels behave alike.
+"""
+
+from __future__ import annotations
+
+import difflib
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+from .errors import MethodError, StepsafeError
+
+FAMILIES = {
+    "gauss": ("Gauss–Legendre collocation (order 2s)", 1),
+    "lobatto3ab": ("Lobatto IIIA (q) – IIIB (p) pair (order 2s-2)", 2),
+}
+
+
+@dataclass(frozen=True)
+class Entry:
+    """What is known about a method besides its coefficients."""
+
+    name: str
+    kind: str
+    title: str
+    order: int | None
+    source: str
+    aliases: tuple[str, ...] = ()
+    path: str | None = None
+    evaluations: int | None = None
+    published_stability: dict[str, Any] | None = None
+
+
+def builtin_dir() -> Path:
+    """Folder holding the built-in method files (package data, or the source checkout)."""
+    here = Path(__file__).resolve().parent
+    for candidate in (here / "methods", here.parent / "methods"):
+        if candidate.is_dir() and any(candidate.glob("*.yaml")):
+            return candidate
+    raise StepsafeError("the built-in method files are missing from this installation")
+
+
+@lru_cache(maxsize=1)
+def _alias_index() -> dict[str, Path]:
+    """Every name and alias of every built-in file (parses them all; used only on a miss)."""
+    from .yamlio import load_yaml
+
+    index: dict[str, Path] = {}
+    for path in sorted(builtin_dir().glob("*.yaml")):
+        tree = load_yaml(path)
+        index[path.stem] = path
+        if isinstance(tree, dict):
+            for alias in tree.get("aliases", []) or []:
+                index.setdefault(str(alias), path)
+    return index
+
+
+def builtin_names() -> list[str]:
+    """Names of the built-in method files and families."""
+    return sorted([p.stem for p in builtin_dir().glob("*.yaml")] + list(FAMILIES))
+
+
+def _looks_like_path(name: str) -> bool:
+    return name.endswith((".yaml", ".yml")) or "/" in name or "\\" in name
+
+
+def load_file(path: str | Path, backend=None):
+    """Validated :class:`~stepsafe.methodfile.MethodData` of a method file."""
+    from .expressions import FLOAT
+    from .methodfile import validate_tree
+    from .yamlio import load_yaml
+
+    return validate_tree(load_yaml(path), str(path), backend or FLOAT)
+
+
+def _entry(data, path: Path | None) -> Entry:
+    return Entry(data.name, data.kind, data.title, data.order, data.source, data.aliases,
+                 str(path) if path else None, data.evaluations, data.published_stability)
+
+
+def resolve(name: str, stages: int | None = None, base: str | None = None,
+            _depth: int = 0):
+    """``(method, entry)`` for a built-in name, a family with ``stages`` or a file path."""
+    if _depth > 8:
+        raise StepsafeError(f"method {name!r}: base methods nested too deeply (a cycle?)")
+    if not isinstance(name, str) or not name.strip():
+        raise StepsafeError("the method name is empty")
+    name = name.strip()
+    if name in FAMILIES:
+        method, entry = _family(name, stages)
+    else:
+        if stages is not None:
+            raise StepsafeError(f"-s/--stages applies only to the families "
+                                f"{', '.join(FAMILIES)}, not to {name!r}")
+        path = _find_file(name)
+        data = load_file(path)
+        method = _build(data, _depth)
+        entry = _entry(data, path)
+    if base is not None:
+        method, entry = _swap_base(method, entry, base, _depth)
+    return method, entry
+
+
+def _find_file(name: str) -> Path:
+    if _looks_like_path(name) or Path(name).is_file():
+        return Path(name)
+    path = builtin_dir() / f"{name}.yaml"
+    if path.is_file():
+        return path
+    index = _alias_index()
+    if name in index:
+        return index[name]
+    known = sorted(set(index) | set(FAMILIES))
+    close = difflib.get_close_matches(name, known, n=3, cutoff=0.5)
+    hint = f"; did you mean {', '.join(close)}?" if close else "; see 'stepsafe methods'"
+    raise StepsafeError(f"unknown method {name!r}{hint}")
+
+
+def _family(name: str, stages: int | None):
+    from .families import gauss, lobatto3ab
+
+    title, smallest = FAMILIES[name]
+    if stages is None:
+        raise StepsafeError(f"{name} is a family: give the stage count with -s N (N >= {smallest})")
+    try:
+        method = gauss(stages) if name == "gauss" else lobatto3ab(stages)
+    except MethodError as exc:
+        raise StepsafeError(str(exc)) from None
+    source = ("Hairer & Wanner, Solving ODEs II, Sec. IV.5 (W-transformation); "
+              "Sun Geng (1993) for the IIIA-IIIB pair" if name == "lobatto3ab"
+              else "Hairer & Wanner, Solving ODEs II, Sec. IV.5")
+    entry = Entry(method.name, method.kind, method.title, method.order, source,
+                  evaluations=method.evaluations)
+    return method, entry
+
+
+def _build(data, depth: int):
+    from .methodfile import build_method
+
+    def resolve_base(ref):
+        if isinstance(ref, dict):
+            return resolve(ref["name"], ref.get("stages"), _depth=depth + 1)[0]
+        return resolve(ref, _depth=depth + 1)[0]
+
+    try:
+        return build_method(data, resolve_base)
+    except MethodError as exc:
+        raise StepsafeError(str(exc), data.where) from None
+
+
+def _swap_base(method, entry: Entry, base: str, depth: int):
+    from dataclasses import replace
+
+    from .families import is_symmetric
+    from .methods import Composition
+
+    if not isinstance(method, Composition):
+        raise StepsafeError(f"--base applies to compositions; {entry.name} is a {entry.kind} method")
+    new_base, base_entry = resolve(base, _depth=depth + 1)
+    same_order = (method.base_order is not None and new_base.order == method.base_order
+                  and is_symmetric(new_base))
+    order = method.order if same_order else None
+    swapped = Composition(new_base, method.weights, name=f"{method.name}[{new_base.name}]",
+                          order=order, evaluations=None,
+                          title=f"{method.title or method.name} over {base_entry.name}",
+                          base_order=new_base.order)
+    return swapped, replace(entry, name=swapped.name, title=swapped.title, order=order,
+                            evaluations=None)

@@ -1,0 +1,357 @@
+"""The method file format: its schema, validation and the construction of method objects.
+
+A method file is a YAML mapping (read by :mod:`stepsafe.yamlio`, all scalars strings)::
+
+    name: pefrl                      # CLI name
+    title: "Position-extended Forest-Ruth-like"
+    kind: splitting                  # rk | prk | splitting | composition
+    order: 4
+    evaluations: 4                   # force evaluations per step, first-same-as-last merged
+    source: "Omelyan, Mryglod, Folk, Comput. Phys. Commun. 146 (2002) 188, eq. (20)"
+    aliases: [omelyan4]              # optional
+    constants: {xi: "0.1786178958448091", lam: "-0.2123418310626054"}   # optional, in order
+    symmetric: true                  # optional: only the first half (with the middle) given
+    drift: [xi, "1/2 - xi"]
+    kick: ["(1 - 2*lam)/2", lam]
+
+Coefficient fields by kind: ``rk``: ``A``, ``b``, optional ``c``; ``prk``: ``A_q``,
+``b_q``, ``A_p``, ``b_p``; ``splitting``: ``drift``, ``kick``; ``composition``: ``base``
+(a method name, or ``{name:, stages:}``) and either ``weights`` or ``recipe``
+(``triple-jump`` | ``suzuki``). Coefficients are numbers or expressions
+(:mod:`stepsafe.expressions`). With ``symmetric: true`` the listed operation sequence
+(``drift a_1, kick b_1, drift a_2, ...``, or the weights) is the first half including the
+middle operation; the rest is its mirror image.
+
+:data:`FIELDS` is the single description of the format: :func:`validate_tree` enforces it
+and :func:`json_schema` renders it as a JSON Schema for editors and the README.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from .errors import StepsafeError
+from .expressions import FLOAT, Backend, ExpressionError, evaluate, parse
+
+KINDS = ("rk", "prk", "splitting", "composition")
+MAX_STAGES = 200
+MAX_WEIGHTS = 200
+
+
+@dataclass(frozen=True)
+class Field:
+    type: str  # "text", "int", "bool", "coef", "vector", "matrix", "names", "ref", "map", "enum"
+    description: str
+    kinds: tuple[str, ...] = KINDS
+    required: bool = False
+    choices: tuple[str, ...] = ()
+
+
+FIELDS: dict[str, Field] = {
+    "name": Field("text", "CLI name of the method (lower case, digits, '-')", required=True),
+    "title": Field("text", "human-readable title"),
+    "kind": Field("enum", "method kind", required=True, choices=KINDS),
+    "order": Field("int", "classical order of accuracy", required=True),
+    "evaluations": Field("int", "force evaluations per step as run in practice "
+                                "(first-same-as-last merged; per stage for implicit methods)"),
+    "source": Field("text", "paper and table the coefficients come from", required=True),
+    "aliases": Field("names", "other names the method is known by"),
+    "constants": Field("map", "named coefficients, usable in later expressions"),
+    "symmetric": Field("bool", "only the first half (with the middle) is listed",
+                       kinds=("splitting", "composition")),
+    "A": Field("matrix", "RK coefficient matrix", kinds=("rk",), required=True),
+    "b": Field("vector", "RK weights", kinds=("rk",), required=True),
+    "c": Field("vector", "RK nodes (default: row sums of A)", kinds=("rk",)),
+    "A_q": Field("matrix", "PRK matrix for the q equation", kinds=("prk",), required=True),
+    "b_q": Field("vector", "PRK weights for q", kinds=("prk",), required=True),
+    "A_p": Field("matrix", "PRK matrix for the p equation", kinds=("prk",), required=True),
+    "b_p": Field("vector", "PRK weights for p", kinds=("prk",), required=True),
+    "drift": Field("vector", "drift coefficients a_i (q += a_i h T'(p))", kinds=("splitting",),
+                   required=True),
+    "kick": Field("vector", "kick coefficients b_i (p -= b_i h V'(q))", kinds=("splitting",),
+                  required=True),
+    "base": Field("ref", "base method: a name or {name:, stages:}", kinds=("composition",),
+                  required=True),
+    "weights": Field("vector", "substep fractions g_i (sum 1, negative allowed)",
+                     kinds=("composition",)),
+    "recipe": Field("enum", "build the weights from the base's order instead",
+                    kinds=("composition",), choices=("triple-jump", "suzuki")),
+    "published_stability": Field("map", "a stability threshold stated by a source "
+                                        "({value:, source:})"),
+    "notes": Field("text", "free text"),
+}
+
+
+@dataclass
+class MethodData:
+    """A validated method file, with coefficients evaluated in one backend."""
+
+    name: str
+    kind: str
+    title: str
+    order: int
+    evaluations: int | None
+    source: str
+    aliases: tuple[str, ...]
+    coefficients: dict[str, Any]  # A, b, c / A_q, ... / drift, kick / weights (backend values)
+    base: Any = None  # str or {"name":, "stages":} for compositions
+    recipe: str | None = None
+    published_stability: dict[str, Any] | None = None
+    where: str = ""
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+def _fail(where: str, path: str, message: str) -> StepsafeError:
+    return StepsafeError(message, f"{where}::$.{path}" if path else where)
+
+
+def _text(value: Any, where: str, key: str) -> str:
+    if not isinstance(value, str):
+        raise _fail(where, key, "must be a text value")
+    return value
+
+
+def _int(value: Any, where: str, key: str, lo: int = 0, hi: int = 10_000) -> int:
+    if not isinstance(value, str) or not value.strip().lstrip("+").isdigit():
+        raise _fail(where, key, f"must be a whole number, got {value!r}")
+    number = int(value.strip())
+    if not lo <= number <= hi:
+        raise _fail(where, key, f"must be between {lo} and {hi}, got {number}")
+    return number
+
+
+def _bool(value: Any, where: str, key: str) -> bool:
+    if isinstance(value, str) and value.lower() in ("true", "false"):
+        return value.lower() == "true"
+    raise _fail(where, key, f"must be true or false, got {value!r}")
+
+
+class _Scope:
+    """Constants defined so far, in float (the guard) and in the requested backend."""
+
+    def __init__(self, backend: Backend) -> None:
+        self.backend = backend
+        self.floats: dict[str, float] = {}
+        self.values: dict[str, Any] = {}
+
+    def value(self, text: Any, where: str, path: str) -> Any:
+        if not isinstance(text, str):
+            raise _fail(where, path, "must be a number or an expression string")
+        try:
+            expr = parse(text)
+            as_float = evaluate(expr, self.floats, FLOAT)
+            if self.backend is FLOAT:
+                return as_float
+            return evaluate(expr, self.values, self.backend)
+        except ExpressionError as exc:
+            raise _fail(where, path, f"{exc} in {text[:60]!r}") from None
+
+    def define(self, name: str, text: Any, where: str, path: str) -> None:
+        self.values[name] = self.value(text, where, path)
+        self.floats[name] = self.values[name] if self.backend is FLOAT else \
+            evaluate(parse(text), self.floats, FLOAT)
+
+
+def _vector(value: Any, where: str, key: str, scope: _Scope, limit: int) -> list:
+    if not isinstance(value, list) or not value:
+        raise _fail(where, key, "must be a non-empty list of coefficients")
+    if len(value) > limit:
+        raise _fail(where, key, f"has {len(value)} entries, more than the {limit} allowed")
+    return [scope.value(v, where, f"{key}[{i}]") for i, v in enumerate(value)]
+
+
+def _matrix(value: Any, where: str, key: str, scope: _Scope) -> list[list]:
+    if not isinstance(value, list) or not value:
+        raise _fail(where, key, "must be a non-empty list of rows")
+    if len(value) > MAX_STAGES:
+        raise _fail(where, key, f"has {len(value)} rows, more than the {MAX_STAGES} allowed")
+    rows = []
+    for i, row in enumerate(value):
+        if not isinstance(row, list) or len(row) != len(value):
+            raise _fail(where, f"{key}[{i}]", f"must be a row of {len(value)} coefficients "
+                                              "(the matrix must be square)")
+        rows.append([scope.value(v, where, f"{key}[{i}][{j}]") for j, v in enumerate(row)])
+    return rows
+
+
+def _mirror(seq: list) -> list:
+    return seq + seq[-2::-1]
+
+
+def _mirror_splitting(drift: list, kick: list) -> tuple[list, list]:
+    ops = []
+    for i, a in enumerate(drift):
+        ops.append(a)
+        if i < len(kick):
+            ops.append(kick[i])
+    full = _mirror(ops)
+    return full[0::2], full[1::2]
+
+
+def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData:
+    """Check a parsed method file against :data:`FIELDS` and evaluate its coefficients."""
+    if not isinstance(tree, dict):
+        raise _fail(where, "", "a method file must be a mapping of keys to values")
+    for key in tree:
+        if key not in FIELDS:
+            close = [k for k in FIELDS if k.lower() == str(key).lower()]
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise _fail(where, str(key), f"unknown key{hint}")
+    kind = tree.get("kind")
+    if kind not in KINDS:
+        raise _fail(where, "kind", f"must be one of {', '.join(KINDS)}, got {kind!r}")
+    for key, spec in FIELDS.items():
+        if key in tree and kind not in spec.kinds:
+            raise _fail(where, key, f"does not apply to kind {kind}")
+        if spec.required and kind in spec.kinds and key not in tree:
+            raise _fail(where, key, f"missing (required for kind {kind})")
+    if kind == "composition" and ("weights" in tree) == ("recipe" in tree):
+        raise _fail(where, "weights", "a composition needs exactly one of weights or recipe")
+
+    name = _text(tree["name"], where, "name")
+    if not name or not all(ch.isalnum() or ch == "-" for ch in name):
+        raise _fail(where, "name", "must be letters, digits and '-'")
+    aliases = tree.get("aliases", [])
+    if not isinstance(aliases, list) or not all(isinstance(a, str) for a in aliases):
+        raise _fail(where, "aliases", "must be a list of names")
+
+    scope = _Scope(backend)
+    constants = tree.get("constants", {})
+    if not isinstance(constants, dict):
+        raise _fail(where, "constants", "must be a mapping of names to coefficients")
+    if len(constants) > 1000:
+        raise _fail(where, "constants", "more than 1000 constants")
+    for cname, cvalue in constants.items():
+        if cname in ("pi", "sqrt", "cbrt") or not cname.isidentifier() or cname.startswith("_"):
+            raise _fail(where, f"constants.{cname}", "is not an allowed constant name")
+        scope.define(cname, cvalue, where, f"constants.{cname}")
+
+    coefficients: dict[str, Any] = {}
+    for key, spec in FIELDS.items():
+        if key not in tree or spec.type not in ("vector", "matrix"):
+            continue
+        if spec.type == "matrix":
+            coefficients[key] = _matrix(tree[key], where, key, scope)
+        else:
+            limit = MAX_WEIGHTS if key == "weights" else MAX_STAGES
+            coefficients[key] = _vector(tree[key], where, key, scope, limit)
+    symmetric = _bool(tree["symmetric"], where, "symmetric") if "symmetric" in tree else False
+    _check_shapes(kind, coefficients, where, symmetric)
+    if symmetric and kind == "splitting":
+        coefficients["drift"], coefficients["kick"] = _mirror_splitting(coefficients["drift"],
+                                                                       coefficients["kick"])
+    elif symmetric and "weights" in coefficients:
+        coefficients["weights"] = _mirror(coefficients["weights"])
+
+    base = tree.get("base")
+    if kind == "composition":
+        base = _base_ref(base, where)
+    stability = tree.get("published_stability")
+    if stability is not None:
+        if not isinstance(stability, dict) or "value" not in stability:
+            raise _fail(where, "published_stability", "must be a mapping with value and source")
+        stability = {"value": _Scope(FLOAT).value(stability["value"], where,
+                                                  "published_stability.value"),
+                     "source": str(stability.get("source", ""))}
+    evaluations = _int(tree["evaluations"], where, "evaluations", 0) if "evaluations" in tree \
+        else None
+    return MethodData(
+        name=name, kind=kind, title=_text(tree.get("title", name), where, "title"),
+        order=_int(tree["order"], where, "order", 0, 100), evaluations=evaluations,
+        source=_text(tree["source"], where, "source"), aliases=tuple(aliases),
+        coefficients=coefficients, base=base,
+        recipe=tree.get("recipe"), published_stability=stability, where=where)
+
+
+def _check_shapes(kind: str, co: dict[str, Any], where: str, symmetric: bool) -> None:
+    if kind == "rk":
+        s = len(co["b"])
+        if len(co["A"]) != s:
+            raise _fail(where, "A", f"is {len(co['A'])}x{len(co['A'])} but b has {s} entries")
+        if "c" in co and len(co["c"]) != s:
+            raise _fail(where, "c", f"has {len(co['c'])} entries but b has {s}")
+    elif kind == "prk":
+        s = len(co["b_q"])
+        for key in ("A_q", "A_p", "b_p"):
+            if len(co[key]) != s:
+                raise _fail(where, key, f"has {len(co[key])} rows/entries but b_q has {s}")
+    elif kind == "splitting":
+        nd, nk = len(co["drift"]), len(co["kick"])
+        if nd not in (nk, nk + 1):
+            raise _fail(where, "drift", f"has {nd} entries; it needs as many as kick ({nk}) "
+                                        "or one more")
+
+
+def _base_ref(base: Any, where: str) -> Any:
+    if isinstance(base, str) and base:
+        return base
+    if isinstance(base, dict) and isinstance(base.get("name"), str):
+        unknown = set(base) - {"name", "stages"}
+        if unknown:
+            raise _fail(where, f"base.{sorted(unknown)[0]}", "unknown key (use name, stages)")
+        out = {"name": base["name"]}
+        if "stages" in base:
+            out["stages"] = _int(base["stages"], where, "base.stages", 1, 1000)
+        return out
+    raise _fail(where, "base", "must be a method name or {name:, stages:}")
+
+
+def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
+    """Float method object for validated ``data``; ``resolve_base`` maps a base reference
+    to a method object (compositions only)."""
+    import numpy as np
+
+    from . import methods as m
+    from .families import RECIPES
+
+    co = {k: np.array(v, dtype=float) for k, v in data.coefficients.items()}
+    common = dict(name=data.name, order=data.order, evaluations=data.evaluations,
+                  title=data.title)
+    if data.kind == "rk":
+        return m.RungeKutta(co["A"], co["b"], co.get("c"), **common)
+    if data.kind == "prk":
+        return m.PartitionedRK(co["A_q"], co["b_q"], co["A_p"], co["b_p"], **common)
+    if data.kind == "splitting":
+        return m.Splitting(co["drift"], co["kick"], **common)
+    base = resolve_base(data.base)
+    if data.recipe:
+        built = RECIPES[data.recipe](base, name=data.name)
+        return m.Composition(built.base, built.weights, base_order=built.base_order, **common)
+    return m.Composition(base, co["weights"], base_order=getattr(base, "order", None), **common)
+
+
+def json_schema() -> dict[str, Any]:
+    """The method file format as a JSON Schema (draft 2020-12), generated from FIELDS."""
+    coef = {"type": ["number", "string"], "description": "number or restricted expression"}
+    types = {
+        "text": {"type": "string"}, "int": {"type": "integer", "minimum": 0},
+        "bool": {"type": "boolean"}, "coef": coef,
+        "vector": {"type": "array", "items": coef, "minItems": 1, "maxItems": MAX_STAGES},
+        "matrix": {"type": "array", "items": {"type": "array", "items": coef}, "minItems": 1},
+        "names": {"type": "array", "items": {"type": "string"}},
+        "ref": {"oneOf": [{"type": "string"}, {"type": "object", "properties": {
+            "name": {"type": "string"}, "stages": {"type": "integer", "minimum": 1}},
+            "required": ["name"], "additionalProperties": False}]},
+        "map": {"type": "object"},
+    }
+    props = {}
+    for key, spec in FIELDS.items():
+        schema = {"enum": list(spec.choices)} if spec.type == "enum" else dict(types[spec.type])
+        schema["description"] = spec.description + (
+            "" if spec.kinds == KINDS else f" (kind: {', '.join(spec.kinds)})")
+        props[key] = schema
+    branches = []
+    for kind in KINDS:
+        required = [k for k, s in FIELDS.items() if s.required and kind in s.kinds]
+        branches.append({"if": {"properties": {"kind": {"const": kind}}},
+                         "then": {"required": required}})
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "stepsafe method file",
+        "type": "object",
+        "properties": props,
+        "required": [k for k, s in FIELDS.items() if s.required and s.kinds == KINDS],
+        "additionalProperties": False,
+        "allOf": branches,
+    }

@@ -1,0 +1,165 @@
+"""Results as plain data (for ``--json``) and as rich tables (for people).
+
+The ``*_data`` functions turn core results into JSON-ready dicts with full-precision
+floats; the ``print_*`` functions render the same dicts with rich (imported lazily), so the
+two outputs never disagree. JSON is printed with :mod:`json`, never through rich, which
+would wrap long lines when stdout is a pipe.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from typing import Any
+
+from .checks import residuals
+from .regions import Interval, Point, Region
+
+
+def _num(x: float | None) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def _interval(iv: Interval) -> list[float | None]:
+    return [_num(iv.lo), _num(iv.hi)]
+
+
+def _point(p: Point) -> dict[str, Any]:
+    return {"z": float(p.z), "kind": p.kind, "detail": p.detail,
+            "uncertainty": _num(p.uncertainty)}
+
+
+def region_data(region: Region) -> dict[str, Any]:
+    """JSON-ready description of one model's region."""
+    fb = region.first_boundary_point
+    data: dict[str, Any] = {
+        "first_boundary": _num(region.first_boundary),
+        "first_boundary_kind": fb.kind if fb else None,
+        "first_boundary_detail": fb.detail if fb else None,
+        "first_boundary_uncertainty": _num(fb.uncertainty) if fb else None,
+        "intervals": [_interval(iv) for iv in region.intervals],
+        "islands": [{"lo": float(iv.lo), "hi": _num(iv.hi),
+                     "orientation": "same" if same else "reversed"}
+                    for iv, same in region.islands],
+        "resonances": [_point(p) for p in region.resonances],
+        "poles": [float(p.z) for p in region.poles],
+        "zmax": float(region.zmax),
+        "resolution": float(region.resolution),
+        "symplectic": region.symplectic,
+    }
+    if region.classical is not None:
+        data["classical_intervals"] = [_interval(iv) for iv in region.classical]
+    if region.notes:
+        data["notes"] = list(region.notes)
+    return data
+
+
+def method_data(method, entry) -> dict[str, Any]:
+    """Identity and coefficient checks of a method."""
+    from .families import is_symmetric
+
+    res = residuals(method)
+    return {
+        "method": entry.name,
+        "title": entry.title,
+        "kind": method.kind,
+        "order": method.order,
+        "stages": method.stages,
+        "evaluations": entry.evaluations,
+        "symplectic": res.symplectic,
+        "symplectic_for_separable": res.symplectic_for_separable,
+        "symmetric": is_symmetric(method),
+        "explicit": method.explicit,
+        "residuals": {
+            "symplecticity": res.symplectic_separable,
+            "weights_equal": res.weights_equal,
+            "consistency": res.consistency,
+            **({"row_sums": res.row_sums} if res.row_sums is not None else {}),
+        },
+        "source": entry.source,
+    }
+
+
+def print_json(data: Any) -> None:
+    sys.stdout.write(json.dumps(data, indent=2, allow_nan=False) + "\n")
+
+
+def fmt(x: float | None, digits: int = 13) -> str:
+    if x is None:
+        return "zmax"
+    return f"{x:.{digits}g}"
+
+
+def _fmt_interval(iv: list) -> str:
+    lo, hi = iv
+    return f"({fmt(lo)}, {'zmax' if hi is None else fmt(hi)})"
+
+
+def _console():
+    from rich.console import Console
+
+    return Console(soft_wrap=False)
+
+
+def print_region(head: dict[str, Any], models: dict[str, dict[str, Any]]) -> None:
+    console = _console()
+    console.print(f"[bold]{head['method']}[/bold] — {head['title']}  "
+                  f"({head['kind']}, {head['stages']} stages, order {head['order']}, "
+                  f"{'symplectic' if head['symplectic'] else 'NOT symplectic'})")
+    for model, d in models.items():
+        if d["first_boundary"] is None:
+            first = f"none below zmax = {fmt(d['zmax'])}"
+        else:
+            first = fmt(d["first_boundary"])
+            if d["first_boundary_kind"]:
+                first += f"  ({d['first_boundary_kind']}: {d['first_boundary_detail']})"
+        console.print(f"\n[bold]{model}[/bold]  first boundary z* = {first}")
+        if "classical_intervals" in d:
+            console.print("  preserved: never (not symplectic: a centre becomes a spiral)")
+            console.print("  classical |mu| <= 1: " + (", ".join(
+                _fmt_interval(iv) for iv in d["classical_intervals"]) or "none"))
+        else:
+            console.print("  preserved: " + (", ".join(
+                _fmt_interval(iv) for iv in d["intervals"]) or "nowhere"))
+        for i in d["islands"]:
+            hi = "zmax" if i["hi"] is None else fmt(i["hi"])
+            console.print(f"  island ({fmt(i['lo'])}, {hi}) orientation {i['orientation']}")
+        for r in d["resonances"]:
+            console.print(f"  resonance at {fmt(r['z'])} ± {r['uncertainty']:.1g} ({r['detail']})")
+        if d["poles"]:
+            console.print("  poles (no unique step): " + ", ".join(fmt(p) for p in d["poles"]))
+    console.print("\nz = beta*h. Islands marked 'reversed' have the flow's type but the opposite "
+                  "orientation: not safe.")
+
+
+def print_method(data: dict[str, Any], coefficients: dict[str, Any]) -> None:
+    from rich.table import Table
+
+    console = _console()
+    console.print(f"[bold]{data['method']}[/bold] — {data['title']}")
+    table = Table(show_header=False)
+    table.add_column("field")
+    table.add_column("value")
+    for key in ("kind", "order", "stages", "evaluations", "explicit", "symmetric",
+                "symplectic", "symplectic_for_separable", "source"):
+        table.add_row(key, str(data[key]))
+    for key, value in data["residuals"].items():
+        table.add_row(f"residual: {key}", f"{value:.3g}")
+    console.print(table)
+    for key, value in coefficients.items():
+        console.print(f"[bold]{key}[/bold] = {value}")
+
+
+def print_methods(rows: list[dict[str, Any]]) -> None:
+    from rich.table import Table
+
+    table = Table()
+    for col in ("name", "kind", "order", "stages", "evaluations", "symplectic"):
+        table.add_column(col, no_wrap=True)
+    table.add_column("title", ratio=1)
+    for r in rows:
+        table.add_row(*(str(r[c]) if r[c] is not None else "-" for c in
+                        ("name", "kind", "order", "stages", "evaluations", "symplectic",
+                         "title")))
+    _console().print(table)

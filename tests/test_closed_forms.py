@@ -1,0 +1,95 @@
+"""Regions against exact closed forms (paper Table 1, DESIGN §2, Prop. 2)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from stepsafe.families import gauss, lobatto3ab
+from stepsafe.regions import find_region
+
+from support import method
+
+REL = 1e-12
+
+
+def close(a: float | None, b: float, rel: float = REL) -> bool:
+    return a is not None and abs(a - b) <= rel * abs(b)
+
+
+@pytest.mark.parametrize("s, exact", [(2, 2.0), (3, math.sqrt(8)),
+                                      (4, math.sqrt(42 - 6 * math.sqrt(29)))])
+def test_lobatto_table1_first_boundary(s, exact):
+    region = find_region(lobatto3ab(s), "oscillator")
+    assert close(region.first_boundary, exact)
+
+
+def test_lobatto3_island_sqrt12_sqrt24_is_reversed():
+    region = find_region(lobatto3ab(3), "oscillator")
+    (island, same), = region.islands
+    assert close(island.lo, math.sqrt(12)) and close(island.hi, math.sqrt(24))
+    # past the flip interval the map rotates the other way: elliptic but not preserved
+    assert same is False
+    assert len(region.intervals) == 1
+
+
+def test_gauss2_resonance_at_2_sqrt3():
+    region = find_region(gauss(2), "oscillator")
+    (res,) = region.resonances
+    assert close(res.z, 2 * math.sqrt(3)) and res.detail == "M = -I"
+    assert close(region.first_boundary, 2 * math.sqrt(3))
+    # elliptic on both sides: the rest of (0, zmax) is one reversed island
+    (island, same), = region.islands
+    assert island.lo == res.z and island.hi is None and same is False
+
+
+def test_symplectic_euler():
+    m = method("symplectic-euler")
+    assert close(find_region(m, "oscillator").first_boundary, 2.0)
+    saddle = find_region(m, "saddle")
+    assert close(saddle.first_boundary, 1.0)
+    assert saddle.first_boundary_point.kind == "pole"
+
+
+def test_midpoint_saddle_pole_at_2_and_oscillator_unconditional():
+    m = method("midpoint")
+    saddle = find_region(m, "saddle")
+    assert close(saddle.first_boundary, 2.0) and [p.z for p in saddle.poles] == [2.0]
+    osc = find_region(m, "oscillator", zmax=1e3)
+    assert osc.first_boundary is None and len(osc.intervals) == 1
+
+
+@pytest.mark.parametrize("name", ["verlet", "verlet-position"])
+def test_verlet_inverted_preserved_for_all_z(name):
+    region = find_region(method(name), "inverted", zmax=1e3)
+    assert region.first_boundary is None
+    assert [(iv.lo, iv.hi) for iv in region.intervals] == [(0.0, None)]
+
+
+def test_verlet_is_lobatto3ab_2():
+    z = np.linspace(0.01, 5, 50)
+    from stepsafe.transfer import transfer_matrix
+
+    for model in ("oscillator", "saddle", "inverted"):
+        a = transfer_matrix(method("verlet"), z, model)
+        b = transfer_matrix(lobatto3ab(2), z, model)
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-13)
+
+
+def test_rk4_never_preserved_classical_interval_2_sqrt2():
+    region = find_region(method("rk4"), "oscillator")
+    assert not region.symplectic and region.intervals == () and region.first_boundary == 0.0
+    (classical,) = region.classical
+    assert classical.lo == 0.0 and close(classical.hi, 2 * math.sqrt(2))
+
+
+def test_rk_saddle_equals_inverted():
+    """For an RK method both hyperbolic models see R(z), R(-z) (same eigenvectors)."""
+    for m in (gauss(3), method("midpoint")):
+        a = find_region(m, "saddle")
+        b = find_region(m, "inverted")
+        assert len(a.intervals) == len(b.intervals) == 1
+        assert a.intervals[0].lo == b.intervals[0].lo == 0.0
+        assert close(a.intervals[0].hi, b.intervals[0].hi)
