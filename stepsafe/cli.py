@@ -71,7 +71,8 @@ def method_options(func):
     func = click.option("--base", metavar="NAME",
                         help="Swap the base method of a composition (e.g. midpoint).")(func)
     func = click.option("-s", "--stages", type=int, metavar="N",
-                        help="Stage count for the families gauss (N>=1) and lobatto3ab (N>=2).")(func)
+                        help="Stage count for the families gauss (N>=1) and "
+                             "lobatto3ab (N>=2).")(func)
     return click.argument("method", metavar="METHOD")(func)
 
 

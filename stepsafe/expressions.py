@@ -17,8 +17,9 @@ from __future__ import annotations
 import ast
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 MAX_LENGTH = 1000
 MAX_NODES = 400
@@ -47,7 +48,8 @@ class Expression:
 def parse(text: str) -> Expression:
     """Parse and whitelist-check ``text``; raises :class:`ExpressionError`."""
     if not isinstance(text, str):
-        raise ExpressionError(f"expected a number or an expression string, got {type(text).__name__}")
+        raise ExpressionError("expected a number or an expression string, "
+                              f"got {type(text).__name__}")
     source = text.strip()
     if not source:
         raise ExpressionError("empty expression")

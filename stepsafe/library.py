@@ -165,7 +165,8 @@ def _swap_base(method, entry: Entry, base: str, depth: int):
     from .methods import Composition
 
     if not isinstance(method, Composition):
-        raise StepsafeError(f"--base applies to compositions; {entry.name} is a {entry.kind} method")
+        raise StepsafeError(f"--base applies to compositions; {entry.name} is a "
+                            f"{entry.kind} method")
     new_base, base_entry = resolve(base, _depth=depth + 1)
     same_order = (method.base_order is not None and new_base.order == method.base_order
                   and is_symmetric(new_base))

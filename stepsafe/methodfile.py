@@ -28,8 +28,9 @@ and :func:`json_schema` renders it as a JSON Schema for editors and the README.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 from .errors import StepsafeError
 from .expressions import FLOAT, Backend, ExpressionError, evaluate, parse

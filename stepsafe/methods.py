@@ -39,7 +39,8 @@ def _vector(values, name: str) -> np.ndarray:
 def _square(values, name: str, size: int) -> np.ndarray:
     arr = np.asarray(values, dtype=float)
     if arr.shape != (size, size):
-        raise MethodError(f"{name} must be {size}x{size} to match its weights, got shape {arr.shape}")
+        raise MethodError(f"{name} must be {size}x{size} to match its weights, "
+                          f"got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise MethodError(f"{name} has a non-finite entry")
     return arr

@@ -12,7 +12,7 @@ a sign change, and iteration stops when it is as narrow as the floating-point gr
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

@@ -128,7 +128,10 @@ def _splitting_jet(method: Splitting, z: np.ndarray, model: str) -> Jet:
 
 
 def _euler_factor_jet(method: Splitting, z: np.ndarray) -> Jet:
-    """Saddle model: diagonal product of DK(c) = diag(1/(1-cz), 1-cz), KD(d) = diag(1+dz, 1/(1+dz))."""
+    """Saddle model: the diagonal product of the symplectic Euler factors
+
+    ``DK(c) = diag(1/(1-cz), 1-cz)`` and ``KD(d) = diag(1+dz, 1/(1+dz))``.
+    """
     log_dq = np.zeros(z.size)
     mq = np.ones(z.size)
     mp = np.ones(z.size)

@@ -55,7 +55,8 @@ class _StrictLoader(yaml.SafeLoader):
         seen: set = set()
         for key_node, _ in node.value:
             if not isinstance(key_node, yaml.ScalarNode):
-                raise StepsafeError(f"line {key_node.start_mark.line + 1}: keys must be plain names")
+                line = key_node.start_mark.line + 1
+                raise StepsafeError(f"line {line}: keys must be plain names")
             if key_node.value in seen:
                 raise StepsafeError(f"line {key_node.start_mark.line + 1}: duplicate key "
                                     f"{key_node.value!r}")

@@ -17,8 +17,9 @@ Conventions: phase space x = (q, p); a method applied to x' = L x with step z
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from itertools import zip_longest
-from typing import Callable, NamedTuple, Sequence
+from typing import NamedTuple
 
 from mpmath import mp
 

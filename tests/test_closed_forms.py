@@ -6,11 +6,10 @@ import math
 
 import numpy as np
 import pytest
+from support import method
 
 from stepsafe.families import gauss, lobatto3ab
 from stepsafe.regions import find_region
-
-from support import method
 
 REL = 1e-12
 
