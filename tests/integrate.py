@@ -10,8 +10,9 @@ float64 rounding can be measured: high-order methods need that to show their ord
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import mpmath as mp
 
