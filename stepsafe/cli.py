@@ -172,6 +172,156 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
         print_region(head, results)
 
 
+def scene_options(func):
+    """Options shared by advise and check; they override the scene file's values."""
+    opts = [
+        click.option("--json", "as_json", is_flag=True, help="Print one JSON object."),
+        click.option("--zmax", type=float, default=None, metavar="Z",
+                     help="Analyse z = beta*h up to Z (islands beyond are not reported) "
+                          "[default: 10]."),
+        click.option("--margin", type=float, default=None, metavar="F",
+                     help="0 < F <= 1: allow every frequency to be up to 1/F times larger "
+                          "(scales h_max by F) [default: 1]."),
+        click.option("--modes", "modes_file", type=str, default=None, metavar="FILE",
+                     help="Frequencies from a YAML list of {beta:, model:} or a CSV file "
+                          "with columns beta[,model]."),
+        click.option("--inverted-beta", type=float, multiple=True, metavar="R",
+                     help="Rate of a barrier top (q'=p, p'=+R^2 q); repeatable."),
+        click.option("--saddle-beta", type=float, multiple=True, metavar="R",
+                     help="Rate of a saddle (H = R p q); repeatable."),
+        click.option("--beta", type=float, multiple=True, metavar="B",
+                     help="Angular frequency of a vibration (q'=p, p'=-B^2 q); repeatable."),
+        click.option("--base", metavar="NAME", help="Swap the base method of a composition."),
+        click.option("-s", "--stages", type=int, metavar="N", help="Stage count of a family."),
+        click.option("--method", "method_name", metavar="METHOD",
+                     help="Built-in name, family (with -s) or method file."),
+        click.argument("scene_files", nargs=-1, metavar="[SCENE.yaml]..."),
+    ]
+    for opt in opts:
+        func = opt(func)
+    return func
+
+
+def _scene_inputs(scene_file, method_name, stages, base, beta, saddle_beta, inverted_beta,
+                  modes_file, margin, zmax):
+    """Merge a scene file with command-line options (the options win)."""
+    from .advice import Modes, validate_margin
+    from .regions import DEFAULT_ZMAX
+    from .scene import MethodRef, Scene, load_modes, load_scene
+
+    scene = load_scene(scene_file) if scene_file else Scene()
+    ref = scene.method
+    if method_name:
+        ref = MethodRef(method_name, stages, base)
+    elif ref is not None and (stages is not None or base is not None):
+        ref = MethodRef(ref.name, stages if stages is not None else ref.stages,
+                        base if base is not None else ref.base)
+    if ref is None:
+        raise _input_error("no method: give --method METHOD or a scene file with method:")
+    method, entry = _resolve(ref.name, ref.stages, ref.base)
+    cli_modes = {"oscillator": list(beta), "saddle": list(saddle_beta),
+                 "inverted": list(inverted_beta)}
+    if modes_file:
+        for model, values in load_modes(modes_file).items():
+            cli_modes[model] = list(cli_modes[model]) + [values]
+    if any(len(v) for v in cli_modes.values()):
+        arrays = {m: _concat(v) for m, v in cli_modes.items() if len(v)}
+    elif scene.modes:
+        arrays = scene.modes
+    else:
+        raise _input_error("no frequencies: give --beta/--saddle-beta/--inverted-beta, "
+                           "--modes FILE or modes: in a scene file")
+    modes = Modes.from_arrays(arrays)
+    margin = validate_margin(margin if margin is not None else
+                             (scene.margin if scene.margin is not None else 1.0))
+    zmax = zmax if zmax is not None else (scene.zmax or DEFAULT_ZMAX)
+    return method, entry, modes, margin, zmax, scene
+
+
+def _concat(values):
+    import numpy as np
+
+    parts = [np.atleast_1d(np.asarray(v, dtype=float)) for v in values]
+    return np.concatenate(parts) if parts else np.zeros(0)
+
+
+def _input_error(message: str):
+    from .errors import StepsafeError
+
+    return StepsafeError(message)
+
+
+@main.command("advise")
+@scene_options
+def advise_cmd(scene_files, method_name, stages, base, beta, saddle_beta, inverted_beta,
+               modes_file, margin, zmax, as_json) -> None:
+    """Safe step sizes h for your frequencies.
+
+    Safe h keep every mode's structure: beta*h lies in the method's region for that mode's
+    model. The answer is h_max, the end of the safe interval from 0, the frequency that
+    limits it, and any islands of safe h beyond it (outside the primary interval).
+
+    \b
+    Examples:
+      stepsafe advise --method yoshida4 --beta 3.2 --inverted-beta 1.1
+      stepsafe advise --method lobatto3ab -s 3 --beta 1 --json
+      stepsafe advise scene.yaml --margin 0.8
+    """
+    from .advice import advise
+    from .report import advice_data, print_advice, print_json
+
+    if len(scene_files) > 1:
+        raise _input_error("advise takes at most one scene file")
+    method, entry, modes, margin, zmax, _ = _scene_inputs(
+        scene_files[0] if scene_files else None, method_name, stages, base, beta, saddle_beta, inverted_beta, modes_file,
+        margin, zmax)
+    result = advise(method, modes, margin, zmax, entry.name)
+    data = advice_data(result)
+    print_json(data) if as_json else print_advice(data)
+
+
+@main.command("check")
+@click.option("--h", "h", type=float, default=None, metavar="H", help="The step to check.")
+@scene_options
+def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inverted_beta,
+              modes_file, margin, zmax, as_json) -> None:
+    """Fail (exit 1) when the step h loses some mode's structure; for CI.
+
+    Exit 0: every mode is preserved at h (with the margin); 1: not, with the reason for
+    each failing mode (model, z = beta*h, the boundary crossed, the largest safe h);
+    2: bad input. A step exactly on a resonance or a pole is unsafe.
+
+    \b
+    Examples:
+      stepsafe check --method verlet --h 0.1 --beta 12
+      stepsafe check scene.yaml --json
+    """
+    from .advice import check_step
+    from .report import check_data, print_check, print_json
+
+    outputs, unsafe = [], False
+    for scene_file in scene_files or (None,):
+        method, entry, modes, margin_, zmax_, scene = _scene_inputs(
+            scene_file, method_name, stages, base, beta, saddle_beta, inverted_beta,
+            modes_file, margin, zmax)
+        step = h if h is not None else scene.h
+        if step is None:
+            raise _input_error(f"{scene_file or 'check'}: no step: give --h H or h: in the "
+                               "scene file")
+        result = check_step(method, modes, step, margin_, zmax_, entry.name)
+        data = check_data(result)
+        if scene_file:
+            data["scene"] = scene_file
+        outputs.append(data)
+        unsafe |= not result.safe
+        if not as_json:
+            print_check(data)
+    if as_json:
+        print_json(outputs[0] if len(outputs) == 1 else outputs)
+    if unsafe:
+        sys.exit(EXIT_UNSAFE)
+
+
 @main.command("validate")
 @click.argument("files", nargs=-1, required=True, metavar="FILE...")
 def validate_cmd(files: tuple[str, ...]) -> None:

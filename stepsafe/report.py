@@ -85,7 +85,7 @@ def print_json(data: Any) -> None:
     sys.stdout.write(json.dumps(data, indent=2, allow_nan=False) + "\n")
 
 
-def fmt(x: float | None, digits: int = 13) -> str:
+def fmt(x: float | None, digits: int = 12) -> str:
     if x is None:
         return "zmax"
     return f"{x:.{digits}g}"
@@ -99,7 +99,10 @@ def _fmt_interval(iv: list) -> str:
 def _console():
     from rich.console import Console
 
-    return Console(soft_wrap=False)
+    console = Console(soft_wrap=False)
+    if not console.is_terminal:  # piped: do not squeeze tables into 80 columns
+        console = Console(soft_wrap=False, width=120)
+    return console
 
 
 def print_region(head: dict[str, Any], models: dict[str, dict[str, Any]]) -> None:
@@ -163,3 +166,98 @@ def print_methods(rows: list[dict[str, Any]]) -> None:
                         ("name", "kind", "order", "stages", "evaluations", "symplectic",
                          "title")))
     _console().print(table)
+
+
+def _limit(lim) -> dict[str, Any] | None:
+    if lim is None:
+        return None
+    p = lim.first_boundary_point
+    return {"model": lim.model, "beta": lim.beta_max, "count": lim.count,
+            "first_boundary": _num(lim.first_boundary),
+            "first_boundary_kind": p.kind if p else None,
+            "h_limit": _num(lim.h_limit)}
+
+
+def advice_data(adv) -> dict[str, Any]:
+    """JSON-ready advice: h_max, the safe h intervals, the limiting frequency, per model."""
+    return {
+        "method": adv.method,
+        "margin": adv.margin,
+        "h_max": _num(adv.h_max) if adv.h_max is not None else None,
+        "safe_h": [[float(lo), _num(hi)] for lo, hi in adv.safe_h],
+        "limiting": _limit(adv.limiting),
+        "models": {lim.model: _limit(lim) for lim in adv.models},
+        "horizon": _num(adv.horizon),
+    }
+
+
+def print_advice(data: dict[str, Any]) -> None:
+    from rich.table import Table
+
+    console = _console()
+    margin = data["margin"]
+    console.print(f"[bold]{data['method']}[/bold]" +
+                  (f"  (margin {margin:g}: frequencies may be up to {1 / margin:.4g}x larger)"
+                   if margin < 1 else ""))
+    table = Table()
+    for col in ("model", "modes", "largest beta", "first boundary z*", "h limit = F z*/beta"):
+        table.add_column(col, no_wrap=True)
+    for model, lim in data["models"].items():
+        z = "none below zmax" if lim["first_boundary"] is None else fmt(lim["first_boundary"])
+        if lim["first_boundary_kind"] in ("pole", "resonance"):
+            z += f" ({lim['first_boundary_kind']})"
+        table.add_row(model, str(lim["count"]), fmt(lim["beta"]), z,
+                      "no limit" if lim["h_limit"] is None else fmt(lim["h_limit"]))
+    console.print(table)
+    safe = data["safe_h"]
+    if not safe or safe[0][0] != 0.0:
+        console.print("[red]No safe step from 0:[/red] the method never preserves this structure.")
+    elif safe[0][1] is None:
+        console.print("[green]Safe for every h[/green] (no frequency limits the step).")
+    else:
+        lim = data["limiting"]
+        console.print(f"[green]Safe: 0 < h < {fmt(safe[0][1])}[/green]"
+                      + (f", limited by {lim['model']} beta = {fmt(lim['beta'])}" if lim else ""))
+    islands = [iv for iv in safe if iv[0] != 0.0]
+    if islands:
+        console.print("Also safe (islands outside the primary interval; any error in beta can "
+                      "move h out of them): " + ", ".join(_fmt_interval(iv) for iv in islands))
+    if data["horizon"] is not None:
+        console.print(f"Steps above {fmt(data['horizon'])} (zmax / largest beta) were not analysed.")
+
+
+def check_data(result) -> dict[str, Any]:
+    return {
+        "method": result.method,
+        "h": result.h,
+        "margin": result.margin,
+        "safe": result.safe,
+        "in_primary_interval": result.in_primary,
+        "modes": result.n_modes,
+        "failing": result.n_failing,
+        "failures": [{"model": f.model, "beta": f.beta, "z": f.z, "reason": f.reason,
+                      "largest_safe_h": _num(f.h_limit)} for f in result.failures],
+        "h_max": _num(result.advice.h_max) if result.advice.h_max is not None else None,
+        "safe_h": [[float(lo), _num(hi)] for lo, hi in result.advice.safe_h],
+    }
+
+
+def print_check(data: dict[str, Any]) -> None:
+    console = _console()
+    h = fmt(data["h"])
+    if data["safe"]:
+        where = "" if data["in_primary_interval"] else \
+            " [yellow](in an island outside the primary interval)[/yellow]"
+        console.print(f"[green]SAFE[/green]: {data['method']} with h = {h} preserves all "
+                      f"{data['modes']} mode(s){where}.")
+        return
+    console.print(f"[red]UNSAFE[/red]: {data['method']} with h = {h}: {data['failing']} of "
+                  f"{data['modes']} mode(s) lose their structure.")
+    for f in data["failures"]:
+        limit = "none" if f["largest_safe_h"] is None else fmt(f["largest_safe_h"])
+        console.print(f"  {f['model']} beta = {fmt(f['beta'])}: z = beta*h = {fmt(f['z'])} "
+                      f"{f['reason']}; largest safe h for it: {limit}")
+    if data["failing"] > len(data["failures"]):
+        console.print(f"  ... and {data['failing'] - len(data['failures'])} more")
+    if data["h_max"] is not None:
+        console.print(f"Largest safe h for all modes: {fmt(data['h_max'])}")

@@ -33,9 +33,11 @@ CONSTRAINT_NAMES = {
     "oscillator": ("2-tr", "2+tr", "M_qp"),
     "saddle": ("M_qq-1", "1-M_pp", "M_pp"),
     "inverted": ("tr-2", "orientation"),
+    "elliptic": ("2-tr", "2+tr"),  # pseudo-model: |tr M| < 2, any sense
 }
 #: constraints that may touch zero tangentially (|tr M| = 2 resonances)
-_TANGENT = {"oscillator": (0, 1), "saddle": (0,), "inverted": (0,)}
+_TANGENT = {"oscillator": (0, 1), "saddle": (0,), "inverted": (0,),
+            "elliptic": (0, 1)}
 
 MFun = Callable[[object], object]
 
@@ -222,10 +224,13 @@ def constraints(M, model: str) -> list:
     """Continuous functions g_k(M), all > 0 iff preserved (CONSTRAINT_NAMES).
     Inverted orientation: with mu = tr/2 + sqrt(tr^2/4 - 1) the expanding
     eigenvector is v ~ (M_qp, mu - M_qq) ~ (mu - M_pp, M_pq), so
-    M_qp (mu - M_qq) + M_pq (mu - M_pp) has the sign of v_q v_p."""
+    M_qp (mu - M_qq) + M_pq (mu - M_pp) has the sign of v_q v_p.
+    Pseudo-model 'elliptic': |tr M| < 2 only (islands of either sense)."""
     tr = M[0, 0] + M[1, 1]
     if model == "oscillator":
         return [2 - tr, 2 + tr, M[0, 1]]
+    if model == "elliptic":
+        return [2 - tr, 2 + tr]
     if model == "saddle":
         return [M[0, 0] - 1, 1 - M[1, 1], M[1, 1]]
     mu = tr / 2 + mp.sqrt(max(tr * tr / 4 - 1, 0))

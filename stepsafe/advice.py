@@ -1,0 +1,279 @@
+"""Safe step sizes for a set of frequencies (DESIGN §2): intersections of unions of intervals.
+
+For modes ``(beta_k, model_k)`` the safe set is ``{h > 0 : beta_k h in R(model_k) for all
+k}``, ``R`` the region of :func:`stepsafe.regions.find_region`. Its complement in
+``(0, zmax]`` is a union of *gaps* ``(a, b)`` (the intervals where the structure is lost,
+widened by their float64 uncertainty; resonances and poles are gaps of width twice their
+uncertainty), so the unsafe steps are ``U_k U_gaps (a, b) / beta_k`` and the safe steps
+their complement, computed by one sort and merge over all modes at once.
+
+A margin ``0 < F <= 1`` means every frequency may be up to ``1/F`` times larger than
+given: ``h`` is safe only if the whole z-range ``[beta h, beta h / F]`` lies in ``R``, which
+turns each gap into ``(F a, b) / beta``. For the primary interval this is ``h_max = F z* /
+beta``.
+
+Only the largest beta of each model bounds ``h_max``; the islands beyond it need every mode,
+but only modes whose first gap starts below the horizon ``zmax / beta_max`` can cut them.
+``beta = 0`` (a free particle) constrains nothing. Steps beyond ``zmax / beta_max`` are not
+analysed and never reported as safe.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import StepsafeError
+from .methods import Method
+from .models import MODELS
+from .regions import DEFAULT_ZMAX, Point, Region, find_region
+
+
+@dataclass(frozen=True)
+class Modes:
+    """Frequencies grouped by model: ``betas[model]`` is an array of beta >= 0."""
+
+    betas: dict[str, np.ndarray]
+
+    @classmethod
+    def from_pairs(cls, pairs) -> Modes:
+        grouped: dict[str, list[float]] = {}
+        for beta, model in pairs:
+            grouped.setdefault(model, []).append(beta)
+        return cls.from_arrays({m: np.asarray(v, dtype=float) for m, v in grouped.items()})
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> Modes:
+        out = {}
+        for model, betas in arrays.items():
+            if model not in MODELS:
+                raise StepsafeError(f"unknown model {model!r}; choose one of {', '.join(MODELS)}")
+            betas = np.asarray(betas, dtype=float).ravel()
+            bad = ~np.isfinite(betas) | (betas < 0)
+            if bad.any():
+                raise StepsafeError(f"beta must be a finite number >= 0, got {betas[bad][0]} "
+                                    f"({model})")
+            if betas.size:
+                out[model] = betas
+        if not out:
+            raise StepsafeError("no frequencies given (use --beta, --saddle-beta, --inverted-beta "
+                                "or --modes)")
+        return cls(out)
+
+    @property
+    def count(self) -> int:
+        return sum(b.size for b in self.betas.values())
+
+
+@dataclass(frozen=True)
+class ModelLimit:
+    model: str
+    count: int
+    beta_max: float
+    first_boundary: float | None  # z*, None when the first interval reaches zmax
+    first_boundary_point: Point | None
+    h_limit: float | None  # F z* / beta_max; None when unbounded (beta_max = 0 or no z*)
+
+
+@dataclass(frozen=True)
+class Advice:
+    """Safe steps for a method and a set of modes."""
+
+    method: str
+    margin: float
+    h_max: float | None  # end of the safe interval from 0 (None: no limit found)
+    safe_h: tuple[tuple[float, float | None], ...]
+    limiting: ModelLimit | None
+    models: tuple[ModelLimit, ...]
+    horizon: float | None  # steps above this were not analysed
+    regions: dict[str, Region] = field(default_factory=dict)
+
+
+def validate_margin(margin: float) -> float:
+    try:
+        margin = float(margin)
+    except (TypeError, ValueError):
+        raise StepsafeError(f"margin must be a number in (0, 1], got {margin!r}") from None
+    if not (0.0 < margin <= 1.0):
+        raise StepsafeError(f"margin must be in (0, 1], got {margin}")
+    return margin
+
+
+@dataclass(frozen=True)
+class Gap:
+    """A closed z-interval ``[a, b]`` where the structure is not preserved, and why."""
+
+    a: float
+    b: float
+    reason: str
+
+
+def labelled_gaps(region: Region) -> list[Gap]:
+    """The complement in ``[0, inf)`` of the preserved intervals, each shrunk by the float64
+    uncertainty of its end points (a resonance of uncertainty ``u`` is a gap of width
+    ``2u``); everything from ``zmax`` on is a gap, since it was not analysed."""
+    out: list[Gap] = []
+    cursor, why = 0.0, ("not symplectic: never preserved" if not region.symplectic
+                        else "not preserved for small z")
+    for k, iv in enumerate(region.intervals):
+        lo = iv.lo + (iv.lo_point.uncertainty if iv.lo_point else 0.0)
+        if lo > cursor:
+            out.append(Gap(cursor, lo, why))
+        if iv.hi is None:
+            cursor, why = region.zmax, f"beyond the analysed range zmax = {region.zmax:.6g}"
+            break
+        p = iv.hi_point
+        cursor = iv.hi - (p.uncertainty if p else 0.0)
+        why = _reason(p, first=k == 0 and iv.lo == 0.0)
+    out.append(Gap(cursor, np.inf, why))
+    return out
+
+
+def _reason(p: Point | None, first: bool) -> str:
+    where = "the first boundary z*" if first else "the island boundary"
+    if p is None:
+        return f"beyond {where}"
+    if p.kind == "pole":
+        return f"at or beyond {where} = {p.z:.13g}: a pole (the stage equations are singular)"
+    if p.kind == "resonance":
+        return (f"at or beyond {where} = {p.z:.13g}: a resonance ({p.detail}, "
+                f"uncertainty {p.uncertainty:.1g})")
+    return f"beyond {where} = {p.z:.13g} ({p.detail})"
+
+
+def gaps(region: Region) -> np.ndarray:
+    """:func:`labelled_gaps` as an array of rows ``[a, b]``."""
+    return np.array([(g.a, g.b) for g in labelled_gaps(region)], dtype=float)
+
+
+def _merge(intervals: np.ndarray) -> np.ndarray:
+    """Union of closed intervals (rows ``[a, b]``), sorted and merged."""
+    if intervals.size == 0:
+        return intervals.reshape(0, 2)
+    intervals = intervals[np.argsort(intervals[:, 0], kind="stable")]
+    ends = np.maximum.accumulate(intervals[:, 1])
+    starts_new = np.concatenate([[True], intervals[1:, 0] > ends[:-1]])
+    group = np.cumsum(starts_new) - 1
+    lo = intervals[starts_new, 0]
+    hi = np.zeros(lo.size)
+    np.maximum.at(hi, group, intervals[:, 1])
+    return np.column_stack([lo, hi])
+
+
+def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFAULT_ZMAX,
+           name: str | None = None, regions: dict[str, Region] | None = None) -> Advice:
+    """Safe steps for ``modes`` under ``method`` (see the module docstring)."""
+    margin = validate_margin(margin)
+    regions = dict(regions or {})
+    limits: list[ModelLimit] = []
+    unsafe: list[np.ndarray] = [np.zeros((0, 2))]
+    horizon = np.inf
+    for model, betas in modes.betas.items():
+        if model not in regions:
+            regions[model] = find_region(method, model, zmax)
+        region = regions[model]
+        beta_max = float(betas.max())
+        z_star = region.first_boundary
+        h_limit = margin * z_star / beta_max if beta_max > 0 and z_star is not None else None
+        limits.append(ModelLimit(model, int(betas.size), beta_max, z_star,
+                                 region.first_boundary_point, h_limit))
+        positive = np.unique(betas[betas > 0])
+        if positive.size:
+            horizon = min(horizon, margin * region.zmax / beta_max)
+            g = gaps(region)
+            # a mode cuts the safe set only below the horizon: skip gaps that start above it
+            lo = (margin * g[:, 0])[None, :] / positive[:, None]
+            hi = g[:, 1][None, :] / positive[:, None]
+            keep = lo <= horizon
+            unsafe.append(np.column_stack([lo[keep], hi[keep]]))
+    safe = _complement(_merge(np.concatenate(unsafe)))
+    limiting = min((lim for lim in limits if lim.h_limit is not None),
+                   key=lambda lim: lim.h_limit, default=None)
+    h_max = (safe[0][1] if safe[0][0] == 0.0 else 0.0) if safe else 0.0
+    return Advice(name or method.name, margin, h_max, tuple(safe), limiting, tuple(limits),
+                  None if horizon == np.inf else float(horizon), regions)
+
+
+def _complement(merged: np.ndarray) -> list[tuple[float, float | None]]:
+    """The open intervals of (0, inf) not covered by ``merged``; ``None`` for unbounded."""
+    out: list[tuple[float, float | None]] = []
+    cursor = 0.0
+    for a, b in merged:
+        if a > cursor:
+            out.append((float(cursor), float(a)))
+        cursor = max(cursor, b)
+        if cursor == np.inf:
+            break
+    if cursor < np.inf:
+        out.append((float(cursor), None))
+    return out
+
+
+@dataclass(frozen=True)
+class Failure:
+    """A mode whose structure is lost at the checked step."""
+
+    model: str
+    beta: float
+    z: float
+    reason: str
+    h_limit: float | None  # largest safe h for this mode in its primary interval
+
+
+@dataclass(frozen=True)
+class CheckResult:
+    method: str
+    h: float
+    margin: float
+    safe: bool
+    in_primary: bool  # h below the end of the safe interval from 0
+    n_modes: int
+    n_failing: int
+    failures: tuple[Failure, ...]  # the worst MAX_REPORTED failing modes (largest z first)
+    advice: Advice
+
+
+MAX_REPORTED = 50
+
+
+def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
+               zmax: float = DEFAULT_ZMAX, name: str | None = None) -> CheckResult:
+    """Is every mode's structure preserved at step ``h`` (with the margin)?"""
+    margin = validate_margin(margin)
+    try:
+        h = float(h)
+    except (TypeError, ValueError):
+        raise StepsafeError(f"h must be a number, got {h!r}") from None
+    if not np.isfinite(h) or h <= 0:
+        raise StepsafeError(f"h must be a positive finite number, got {h}")
+    beta_top = max(float(b.max()) for b in modes.betas.values())
+    zmax = max(zmax, 1.05 * beta_top * h / margin)
+    regions = {model: find_region(method, model, zmax) for model in modes.betas}
+    adv = advise(method, modes, margin, zmax, name, regions)
+    failures: list[Failure] = []
+    n_failing = 0
+    for model, betas in modes.betas.items():
+        region = regions[model]
+        z = betas * h
+        failing = np.zeros(betas.size, dtype=bool)
+        reason = np.full(betas.size, -1)
+        gap_list = labelled_gaps(region)
+        for k, gap in enumerate(gap_list):
+            hit = (z <= gap.b) & (z / margin >= gap.a) & (betas > 0) & ~failing
+            failing |= hit
+            reason[hit] = k
+        n_failing += int(failing.sum())
+        idx = np.flatnonzero(failing)
+        idx = idx[np.argsort(-z[idx], kind="stable")][:MAX_REPORTED]
+        z_star = region.first_boundary
+        for i in idx:
+            limit = float(margin * z_star / betas[i]) if z_star is not None else None
+            failures.append(Failure(model, float(betas[i]), float(z[i]),
+                                    gap_list[reason[i]].reason, limit))
+    failures.sort(key=lambda f: -f.z)
+    in_primary = adv.h_max is not None and (h < adv.h_max if adv.h_max else False)
+    if adv.safe_h and adv.safe_h[0][0] == 0.0 and adv.safe_h[0][1] is None:
+        in_primary = True
+    return CheckResult(adv.method, h, margin, n_failing == 0, in_primary, modes.count,
+                       n_failing, tuple(failures[:MAX_REPORTED]), adv)
