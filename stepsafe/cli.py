@@ -273,7 +273,8 @@ def advise_cmd(scene_files, method_name, stages, base, beta, saddle_beta, invert
     if len(scene_files) > 1:
         raise _input_error("advise takes at most one scene file")
     method, entry, modes, margin, zmax, _ = _scene_inputs(
-        scene_files[0] if scene_files else None, method_name, stages, base, beta, saddle_beta, inverted_beta, modes_file,
+        scene_files[0] if scene_files else None, method_name, stages, base, beta, saddle_beta,
+        inverted_beta, modes_file,
         margin, zmax)
     result = advise(method, modes, margin, zmax, entry.name)
     data = advice_data(result)
@@ -320,6 +321,19 @@ def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inve
         print_json(outputs[0] if len(outputs) == 1 else outputs)
     if unsafe:
         sys.exit(EXIT_UNSAFE)
+
+
+@main.command("schema")
+@click.argument("which", type=click.Choice(("method", "scene")))
+def schema_cmd(which: str) -> None:
+    """Print the JSON Schema of method files or scene files."""
+    from .report import print_json
+
+    if which == "method":
+        from .methodfile import json_schema
+    else:
+        from .scene import json_schema
+    print_json(json_schema())
 
 
 @main.command("validate")

@@ -88,6 +88,9 @@ class Region:
     resolution: float = 0.0
     classical: tuple[Interval, ...] | None = None
     notes: tuple[str, ...] = field(default=())
+    #: oscillator only: end of the run of elliptic z (either orientation) from 0, i.e. the
+    #: classical stability limit |tr M| <= 2; None when it reaches zmax
+    stability_limit: float | None = None
 
     @property
     def first_interval(self) -> Interval | None:
@@ -373,8 +376,13 @@ def _assemble(ev: _Evaluator, model: str, zmax: float, points: list[Point],
         if status[i] != 0 and status[i + 1] != 0 and p.kind in ("resonance", "root"):
             kept.append(p if p.kind == "resonance" else Point(p.z, "resonance", p.uncertainty,
                                                                p.detail))
+    stability = None
+    if ELLIPTIC[model]:
+        run_end = next((i for i, st in enumerate(status) if st == 0), len(status))
+        stability = (0.0 if run_end == 0 else
+                     None if run_end == len(status) else pts[run_end - 1].z)
     return Region(model, zmax, True, tuple(intervals), tuple(reversed_), tuple(kept), pole_pts,
-                  dz)
+                  dz, stability_limit=stability)
 
 
 def _classical(ev: _Evaluator, edges: list[float], dz: float) -> tuple[Interval, ...]:

@@ -14,6 +14,7 @@ import sys
 from typing import Any
 
 from .checks import residuals
+from .models import ELLIPTIC
 from .regions import Interval, Point, Region
 
 
@@ -48,6 +49,8 @@ def region_data(region: Region) -> dict[str, Any]:
         "resolution": float(region.resolution),
         "symplectic": region.symplectic,
     }
+    if ELLIPTIC[region.model] and region.symplectic:
+        data["stability_limit"] = _num(region.stability_limit)
     if region.classical is not None:
         data["classical_intervals"] = [_interval(iv) for iv in region.classical]
     if region.notes:
@@ -125,6 +128,9 @@ def print_region(head: dict[str, Any], models: dict[str, dict[str, Any]]) -> Non
         else:
             console.print("  preserved: " + (", ".join(
                 _fmt_interval(iv) for iv in d["intervals"]) or "nowhere"))
+        if "stability_limit" in d and d["stability_limit"] != d["first_boundary"]:
+            limit = "beyond zmax" if d["stability_limit"] is None else fmt(d["stability_limit"])
+            console.print(f"  classical stability limit (|tr M| <= 2, either orientation): {limit}")
         for i in d["islands"]:
             hi = "zmax" if i["hi"] is None else fmt(i["hi"])
             console.print(f"  island ({fmt(i['lo'])}, {hi}) orientation {i['orientation']}")
@@ -223,7 +229,8 @@ def print_advice(data: dict[str, Any]) -> None:
         console.print("Also safe (islands outside the primary interval; any error in beta can "
                       "move h out of them): " + ", ".join(_fmt_interval(iv) for iv in islands))
     if data["horizon"] is not None:
-        console.print(f"Steps above {fmt(data['horizon'])} (zmax / largest beta) were not analysed.")
+        console.print(f"Steps above {fmt(data['horizon'])} (zmax / largest beta) were not "
+                      "analysed.")
 
 
 def check_data(result) -> dict[str, Any]:

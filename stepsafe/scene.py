@@ -50,6 +50,35 @@ class Scene:
     where: str = ""
 
 
+def json_schema() -> dict[str, Any]:
+    """The scene file format as a JSON Schema (draft 2020-12)."""
+    positive = {"type": "number", "exclusiveMinimum": 0}
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "stepsafe scene file",
+        "type": "object",
+        "additionalProperties": False,
+        "properties": {
+            "method": {"oneOf": [
+                {"type": "string", "description": "built-in name or path to a method file"},
+                {"type": "object", "additionalProperties": False, "required": ["name"],
+                 "properties": {"name": {"type": "string"},
+                                "stages": {"type": "integer", "minimum": 1},
+                                "base": {"type": "string"}}}]},
+            "h": {**positive, "description": "the step to check (check only)"},
+            "margin": {"type": "number", "exclusiveMinimum": 0, "maximum": 1,
+                       "description": "frequencies may be up to 1/margin times larger"},
+            "zmax": {**positive, "description": "analyse z = beta*h up to zmax (default 10)"},
+            "modes": {"type": "array", "minItems": 1, "items": {
+                "type": "object", "additionalProperties": False, "required": ["beta"],
+                "properties": {"beta": {"type": "number", "minimum": 0},
+                               "model": {"enum": list(MODELS), "default": "oscillator"},
+                               "label": {"type": "string"}}}},
+            "system": {"description": "reserved for whole systems (not supported yet)"},
+        },
+    }
+
+
 def _fail(where: str, path: str, message: str) -> StepsafeError:
     return StepsafeError(message, f"{where}::$.{path}" if path else where)
 
@@ -71,7 +100,8 @@ def method_ref(value: Any, where: str, path: str = "method") -> MethodRef:
     if isinstance(value, dict):
         unknown = set(value) - {"name", "stages", "base"}
         if unknown:
-            raise _fail(where, f"{path}.{sorted(unknown)[0]}", "unknown key (use name, stages, base)")
+            raise _fail(where, f"{path}.{sorted(unknown)[0]}",
+                        "unknown key (use name, stages, base)")
         if not isinstance(value.get("name"), str):
             raise _fail(where, f"{path}.name", "missing method name")
         stages = None

@@ -156,18 +156,27 @@ def _euler_factor_jet(method: Splitting, z: np.ndarray) -> Jet:
 
 
 def _composition_jet(method: Composition, z: np.ndarray, model: str) -> Jet:
+    """Product of base jets; the rounding scale is the first-order sandwich
+    ``sum_k ||M_n..M_{k+1}|| scale_k ||M_{k-1}..M_1||`` (Frobenius norms), which keeps
+    the cancellation that an entrywise absolute product would throw away."""
     g = method.weights
     base = transfer_jet(method.base, np.outer(g, z).ravel(), model)
     n = z.size
     Mb = base.M.reshape(g.size, n, 2, 2)
     dMb = base.dM.reshape(g.size, n, 2, 2)
-    Ab = np.abs(base.M).reshape(g.size, n, 2, 2)
-    M, dM, A = _identity_jet(n)
+    sb = base.scale.reshape(g.size, n)
+    M, dM, _ = _identity_jet(n)
+    right_norms = np.empty((g.size, n))  # ||M_{k-1} ... M_1||
     for k in range(g.size):
+        right_norms[k] = np.sqrt((M * M).sum(axis=(1, 2)))
         dM = g[k] * dMb[k] @ M + Mb[k] @ dM
         M = Mb[k] @ M
-        A = Ab[k] @ A
-    return Jet(M, dM, A[:, 0, 0] + A[:, 1, 1])
+    L, _, _ = _identity_jet(n)
+    scale = np.zeros(n)
+    for k in range(g.size - 1, -1, -1):
+        scale += np.sqrt((L * L).sum(axis=(1, 2))) * sb[k] * right_norms[k]
+        L = L @ Mb[k]
+    return Jet(M, dM, scale)
 
 
 def signed_poles(method: Method, model: str) -> np.ndarray:

@@ -32,7 +32,7 @@ def test_region_base_swap_is_the_papers_midpoint_composition(run_json):
 def test_region_human_output(run):
     code, out, _ = run("region", "gauss", "-s", "2", "--model", "oscillator")
     assert code == 0
-    assert "3.464101615138" in out and "M = -I" in out and "reversed" in out
+    assert "3.46410161514" in out and "M = -I" in out and "reversed" in out
 
 
 def test_non_symplectic_reports_classical_interval(run_json):
