@@ -243,6 +243,31 @@ class Composition:
     def explicit(self) -> bool:
         return self.base.explicit
 
+    def as_splitting(self) -> Splitting:
+        """A composition of a splitting method is a splitting method: its operations with
+        every coefficient scaled by the substep's weight, adjacent drifts/kicks merged."""
+        flat = self.flattened()
+        if not isinstance(flat.base, Splitting):
+            raise MethodError(f"{self.name}: the base is not a splitting method")
+        drift: list[float] = []
+        kick: list[float] = []
+        for g in flat.weights:
+            for kind, coef in flat.base.operations:
+                if kind == "drift":
+                    if len(drift) > len(kick):
+                        drift[-1] += g * coef
+                    else:
+                        drift.append(g * coef)
+                else:
+                    if len(drift) == len(kick):
+                        if kick:
+                            kick[-1] += g * coef
+                            continue
+                        drift.append(0.0)
+                    kick.append(g * coef)
+        return Splitting(drift or [0.0], kick or [0.0], name=self.name, order=self.order,
+                         evaluations=self.evaluations, title=self.title)
+
     def flattened(self) -> Composition:
         """The same map with a non-composition base (nested weights multiplied out)."""
         if not isinstance(self.base, Composition):

@@ -148,14 +148,22 @@ class _Evaluator:
     def jet(self, z) -> Jet:
         return transfer_jet(self.method, np.asarray(z, dtype=float), self.model)
 
+    def fast(self, z) -> Jet:
+        """The jet without the rounding scale (for root refinement)."""
+        return transfer_jet(self.method, np.asarray(z, dtype=float), self.model, scale=False)
+
     def trace(self, z) -> np.ndarray:
-        return self.jet(z).trace
+        return self.fast(z).trace
 
     def dtrace(self, z) -> np.ndarray:
-        return self.jet(z).dtrace
+        return self.fast(z).dtrace
+
+    def level_slope(self, z, level: float) -> tuple[np.ndarray, np.ndarray]:
+        jet = self.fast(z)
+        return jet.trace - level, jet.dtrace
 
     def orientation(self, z) -> np.ndarray:
-        return orientation(self.jet(z).M, self.model)
+        return orientation(self.fast(z).M, self.model)
 
 
 def orientation(M: np.ndarray, model: str) -> np.ndarray:
@@ -248,12 +256,12 @@ def _sample(ev: _Evaluator, lo: float, hi: float, dz: float, closed_hi: bool):
     return z, t, dt, scale, M
 
 
-def _roots_between(fun, z, f) -> np.ndarray:
+def _roots_between(fun, z, f, slope=None) -> np.ndarray:
     """Refined roots for each strict sign change of samples ``f`` at points ``z``."""
     f = np.where(np.isfinite(f), f, np.nan)
     cells = np.flatnonzero(f[:-1] * f[1:] < 0)
     exact = np.flatnonzero(f == 0.0)
-    roots = refine_brackets(fun, z[cells], z[cells + 1], f[cells], f[cells + 1])
+    roots = refine_brackets(fun, z[cells], z[cells + 1], f[cells], f[cells + 1], slope=slope)
     return np.concatenate([roots, z[exact]])
 
 
@@ -305,7 +313,8 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
             scale = np.concatenate([scale, s_ext])[order]
         for L in levels:
             f = t - L
-            roots = _roots_between(lambda x, L=L: ev.trace(x) - L, z, f)
+            roots = _roots_between(lambda x, L=L: ev.trace(x) - L, z, f,
+                                   slope=lambda x, L=L: ev.level_slope(x, L))
             roots = roots[~np.isin(roots, [r.z for r in resonances])]
             if roots.size:
                 rj = ev.jet(roots)

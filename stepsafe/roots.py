@@ -20,12 +20,18 @@ EPS = np.finfo(float).eps
 
 
 def refine_brackets(fun: Callable[[np.ndarray], np.ndarray], lo: np.ndarray, hi: np.ndarray,
-                    f_lo: np.ndarray, f_hi: np.ndarray, max_iter: int = 400) -> np.ndarray:
+                    f_lo: np.ndarray, f_hi: np.ndarray, max_iter: int = 400,
+                    slope: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
+                    ) -> np.ndarray:
     """Roots of ``fun`` in each bracket ``[lo_i, hi_i]`` where ``f_lo_i * f_hi_i < 0``.
 
-    ``fun`` maps an array of points to an array of values. Returns the point of each final
-    bracket with the smaller ``|f|``.
+    ``fun`` maps an array of points to an array of values. With ``slope`` (a function
+    returning ``(f, df)``) the iteration takes safeguarded Newton steps instead, which
+    converge quadratically; a Newton step that leaves the bracket is replaced by bisection.
+    Returns the point of each final bracket with the smaller ``|f|``.
     """
+    if slope is not None:
+        return _newton_brackets(slope, lo, hi, f_lo, f_hi, max_iter)
     a = np.array(lo, dtype=float)
     b = np.array(hi, dtype=float)
     fa = np.array(f_lo, dtype=float)
@@ -57,3 +63,37 @@ def refine_brackets(fun: Callable[[np.ndarray], np.ndarray], lo: np.ndarray, hi:
         a[idx], fa[idx], b[idx], fb[idx] = new_a, new_fa, c, fc
     # report the end with the smaller residual
     return np.where(np.abs(fa_true) < np.abs(fb), a, b)
+
+
+def _newton_brackets(slope, lo, hi, f_lo, f_hi, max_iter: int) -> np.ndarray:
+    """Safeguarded Newton (``rtsafe``) on many brackets at once."""
+    a = np.minimum(lo, hi).astype(float)
+    b = np.maximum(lo, hi).astype(float)
+    fa = np.where(lo <= hi, f_lo, f_hi).astype(float)
+    x = 0.5 * (a + b)
+    best = x.copy()
+    best_f = np.full(x.size, np.inf)
+    active = np.ones(x.size, dtype=bool)
+    for _ in range(max_iter):
+        if not active.any():
+            break
+        idx = np.flatnonzero(active)
+        f, df = slope(x[idx])
+        f = np.asarray(f, dtype=float)
+        df = np.asarray(df, dtype=float)
+        better = np.abs(f) < best_f[idx]
+        best[idx] = np.where(better, x[idx], best[idx])
+        best_f[idx] = np.where(better, np.abs(f), best_f[idx])
+        left = np.sign(f) == np.sign(fa[idx])  # the root is to the right of x
+        a[idx] = np.where(left, x[idx], a[idx])
+        fa[idx] = np.where(left, f, fa[idx])
+        b[idx] = np.where(left, b[idx], x[idx])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            newton = x[idx] - f / df
+        ok = np.isfinite(newton) & (newton > a[idx]) & (newton < b[idx])
+        nxt = np.where(ok, newton, 0.5 * (a[idx] + b[idx]))
+        tiny = 2.0 * EPS * np.maximum(np.abs(a[idx]), np.abs(b[idx]))
+        done = (f == 0) | (b[idx] - a[idx] <= tiny) | (np.abs(nxt - x[idx]) <= 0.5 * tiny)
+        x[idx] = nxt
+        active[idx[done]] = False
+    return best

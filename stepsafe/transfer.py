@@ -52,16 +52,19 @@ def transfer_matrix(method: Method, z, model: str = "oscillator") -> np.ndarray:
     return transfer_jet(method, z, model).M
 
 
-def transfer_jet(method: Method, z, model: str = "oscillator") -> Jet:
-    """``M``, ``dM/dz`` and the term magnitude at every z."""
+def transfer_jet(method: Method, z, model: str = "oscillator", scale: bool = True) -> Jet:
+    """``M``, ``dM/dz`` and (unless ``scale=False``, then zeros) the rounding scale."""
     check_model(model)
     z = np.atleast_1d(np.asarray(z, dtype=float))
     if isinstance(method, Composition):
-        return _composition_jet(method.flattened(), z, model)
+        flat = method.flattened()
+        if isinstance(flat.base, Splitting):
+            return transfer_jet(_as_splitting(flat), z, model, scale)
+        return _composition_jet(flat, z, model)
     if isinstance(method, Splitting):
         if model == "saddle":
             return _euler_factor_jet(method, z)
-        return _splitting_jet(method, z, model)
+        return _splitting_jet(method, z, model, scale)
     if isinstance(method, (RungeKutta, PartitionedRK)):
         return _prk_jet(method.as_prk(), z, model)
     raise TypeError(f"not a method: {type(method).__name__}")
@@ -114,17 +117,57 @@ def _identity_jet(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return M, np.zeros((n, 2, 2)), M.copy()
 
 
-def _splitting_jet(method: Splitting, z: np.ndarray, model: str) -> Jet:
-    """Product of drift/kick factors; rows updated in place (drift: row_q += a z row_p)."""
-    M, dM, A = _identity_jet(z.size)
+_FLAT: dict[int, tuple[Composition, Splitting]] = {}
+
+
+def _as_splitting(method: Composition) -> Splitting:
+    """Cached :meth:`Composition.as_splitting` (the region finder evaluates many times)."""
+    hit = _FLAT.get(id(method))
+    if hit is None or hit[0] is not method:
+        if len(_FLAT) > 64:
+            _FLAT.clear()
+        hit = _FLAT[id(method)] = (method, method.as_splitting())
+    return hit[1]
+
+
+def _splitting_jet(method: Splitting, z: np.ndarray, model: str, with_scale: bool = True) -> Jet:
+    """Product of drift/kick factors ``F = I + c z e_dst e_src^T`` applied as row updates.
+
+    Matrices are held as (2, 2, n) arrays so every factor costs a few vector operations.
+    The rounding scale is the first-order sandwich ``sum_k ||L_k|| ||F_k|| ||R_{k-1}||``
+    (``R`` the product so far, ``L`` the product of the later factors).
+    """
+    ops = _row_ops(method, model)
+    n = z.size
+    M = np.zeros((2, 2, n))
+    M[0, 0] = M[1, 1] = 1.0
+    dM = np.zeros((2, 2, n))
+    right = np.empty((len(ops), n))
+    for k, (src, dst, c) in enumerate(ops):
+        if with_scale:
+            right[k] = np.sqrt((M * M).sum(axis=(0, 1)))
+        cz = c * z
+        dM[dst] += cz * dM[src] + c * M[src]
+        M[dst] += cz * M[src]
+    scale = np.zeros(n)
+    if not with_scale:
+        return Jet(M.transpose(2, 0, 1), dM.transpose(2, 0, 1), scale)
+    L = np.zeros((2, 2, n))
+    L[0, 0] = L[1, 1] = 1.0
+    for k in range(len(ops) - 1, -1, -1):
+        src, dst, c = ops[k]
+        cz = c * z
+        scale += np.sqrt((L * L).sum(axis=(0, 1))) * np.sqrt(2.0 + cz * cz) * right[k]
+        L[:, src] += cz * L[:, dst]
+    return Jet(M.transpose(2, 0, 1), dM.transpose(2, 0, 1), scale)
+
+
+def _row_ops(method: Splitting, model: str) -> list[tuple[int, int, float]]:
+    """``(src, dst, c)`` per factor: drift adds ``c z`` times row p to row q, a kick adds
+    ``-+ c z`` times row q to row p (``-`` for the oscillator, ``+`` for the inverted)."""
     sign = KICK_SIGN[model]
-    for kind, coef in method.operations:
-        src, dst, c = (1, 0, coef) if kind == "drift" else (0, 1, sign * coef)
-        # F = I + c z e_dst e_src^T ;  F M, dF M + F dM, |F| |M|
-        dM[:, dst, :] += c * z[:, None] * dM[:, src, :] + c * M[:, src, :]
-        M[:, dst, :] += c * z[:, None] * M[:, src, :]
-        A[:, dst, :] += abs(c) * np.abs(z)[:, None] * A[:, src, :]
-    return Jet(M, dM, A[:, 0, 0] + A[:, 1, 1])
+    return [(1, 0, coef) if kind == "drift" else (0, 1, sign * coef)
+            for kind, coef in method.operations]
 
 
 def _euler_factor_jet(method: Splitting, z: np.ndarray) -> Jet:
