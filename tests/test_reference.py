@@ -1,0 +1,115 @@
+"""Every boundary, resonance and pole stepsafe reports, recomputed at 50 digits.
+
+For each shipped method and family member and each model, the float64 region is found;
+then each reported point is re-derived from the method's coefficients in mpmath (stage
+equations solved directly, see reference_methods.py): a boundary must be a sign change of
+``tr M -+ 2`` (or of the orientation) within 1e-12 relative of the float value, a pole a
+sign change of the stage determinant, a resonance an extremum of ``tr M`` at +-2.
+A dense float sampling, independent of the finder's logic, checks that no boundary was
+missed.
+"""
+
+from __future__ import annotations
+
+import mpmath as mp
+import mpref
+import numpy as np
+import pytest
+from reference_methods import mp_transfer
+from support import method
+
+from stepsafe.library import builtin_names
+from stepsafe.models import MODELS
+from stepsafe.regions import find_region, orientation
+from stepsafe.transfer import transfer_jet
+
+DPS = 50
+REL = 1e-12
+LIBRARY = [n for n in builtin_names() if n not in ("gauss", "lobatto3ab", "rk4")]
+FAMILIES = [("gauss", s) for s in (1, 2, 3, 4, 6)] + [("lobatto3ab", s) for s in (2, 3, 4, 5, 6)]
+
+
+def _tr(M):
+    return M[0, 0] + M[1, 1]
+
+
+def _check_point(Mfun, model: str, p, zmax: float) -> None:
+    z = p.z
+    width = max(1e-9 * z, 4 * p.uncertainty)
+    lo, hi = mp.mpf(z - width), mp.mpf(min(z + width, zmax))
+    if p.kind == "root":
+        level = 2 if "+2" in p.detail else -2
+
+        def f(x):
+            return _tr(Mfun(x, model)) - level
+    elif p.kind == "orientation":
+        def f(x):
+            M = Mfun(x, model)
+            arr = np.array([[float(M[0, 0]), float(M[0, 1])], [float(M[1, 0]), float(M[1, 1])]])
+            return mp.mpf(orientation(arr[None], model)[0])
+    elif p.kind == "pole":
+        # simple or multiple (palindromic compositions repeat a substep's pole): check the
+        # blow-up, |1/tr M| ~ |z - z0|^k, rather than a sign change
+        def inv(x):
+            try:
+                return abs(1 / _tr(Mfun(x, model)))
+            except ZeroDivisionError:
+                return mp.mpf(0)
+
+        near = max(inv(mp.mpf(z) * (1 + s * mp.mpf("1e-13"))) for s in (-1, 1))
+        far = min(inv(mp.mpf(z) * (1 + s * mp.mpf("1e-6"))) for s in (-1, 1))
+        assert near <= 1e-5 * far, (p, near, far)
+        return
+    else:  # resonance: an extremum of tr M where |tr M| = 2
+        step = mp.mpf(10) ** (-DPS // 3)  # central difference at the working precision
+
+        def f(x):
+            return (_tr(Mfun(x + step, model)) - _tr(Mfun(x - step, model))) / (2 * step)
+    f_lo, f_hi = f(lo), f(hi)
+    assert f_lo * f_hi <= 0, (p, f_lo, f_hi)
+    root = mpref.refine_root(f, lo, hi) if f_lo * f_hi < 0 else (lo if f_lo == 0 else hi)
+    assert abs(root - z) <= REL * abs(root) + p.uncertainty, (p, root)
+    if p.kind == "resonance":
+        assert abs(abs(_tr(Mfun(root, model))) - 2) < mp.mpf(10) ** -8, p
+
+
+def _points(region):
+    pts = {id(p): p for iv in region.intervals + region.reversed
+           for p in (iv.lo_point, iv.hi_point) if p is not None}
+    pts.update({id(p): p for p in region.resonances + region.poles})
+    return list(pts.values())
+
+
+def _dense_crossings(m, model, zmax, poles):
+    """Sign changes of the type-deciding function on a fine grid, away from poles."""
+    z = np.linspace(zmax / 200_000, zmax, 200_000)
+    t = transfer_jet(m, z, model, scale=False).trace
+    # tr M = -2 bounds the oscillator's region only; the hyperbolic ones need tr M > 2
+    f = (2 - t) * (2 + t) if model == "oscillator" else t - 2
+    cells = np.flatnonzero(f[:-1] * f[1:] < 0)
+    across_pole = [any(z[c] <= p <= z[c + 1] for p in poles) for c in cells]
+    cells = cells[~np.array(across_pole, dtype=bool)] if cells.size else cells
+    return z[cells], z[cells + 1]
+
+
+def _cross_check(m, Mfun, zmax: float = 10.0, most: int = 4):
+    """At most ``most`` points per model (the smallest z) at 50 digits, all by sampling."""
+    for model in MODELS:
+        region = find_region(m, model, zmax)
+        with mp.workdps(DPS):
+            for p in sorted(_points(region), key=lambda p: p.z)[:most]:
+                _check_point(Mfun, model, p, zmax)
+        reported = [p.z for p in _points(region) if p.kind in ("root", "resonance")]
+        lo, hi = _dense_crossings(m, model, zmax, [p.z for p in region.poles])
+        for a, b in zip(lo, hi):
+            assert any(a - 1e-9 <= r <= b + 1e-9 for r in reported), (model, a, b)
+
+
+@pytest.mark.parametrize("name", LIBRARY)
+def test_library_method_points_at_50_digits(name):
+    _cross_check(method(name), mp_transfer(name, dps=DPS))
+
+
+@pytest.mark.parametrize("family, s", FAMILIES)
+def test_family_points_at_50_digits(family, s):
+    _cross_check(method(family, s), mp_transfer(family, s, dps=DPS))
