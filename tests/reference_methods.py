@@ -8,14 +8,14 @@ solved with mpmath): nothing of stepsafe's float64 path is involved.
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache
 
 import mpmath as mp
 import mpref
 from integrate import mp_method
 
 
-@lru_cache(maxsize=None)
+@cache
 def _cached(name: str, stages: int | None, dps: int):
     with mp.workdps(dps):
         return mp_method(name, stages)
