@@ -42,9 +42,6 @@ _TANGENT = {"oscillator": (0, 1), "saddle": (0,), "inverted": (0,),
 MFun = Callable[[object], object]
 
 
-# --------------------------------------------------------------------------
-# Butcher tableaux
-# --------------------------------------------------------------------------
 def _shifted_legendre(n: int) -> list:
     """Ascending coefficients of P_n(2x - 1) (exact integers)."""
     return [(-1) ** (n + k) * mp.binomial(n, k) * mp.binomial(n + k, k)
@@ -68,15 +65,12 @@ def _collocation(c: list) -> tuple:
     vinv = mp.inverse(mp.matrix([[cj ** k for cj in c] for k in range(s)]))
     b = [sum(vinv[j, k] / (k + 1) for k in range(s)) for j in range(s)]
     A = mp.matrix(s, s)
-    for i in range(s):
-        for j in range(s):
-            A[i, j] = sum(vinv[j, k] * c[i] ** (k + 1) / (k + 1)
-                          for k in range(s))
+    for i, j in ((i, j) for i in range(s) for j in range(s)):
+        A[i, j] = sum(vinv[j, k] * c[i] ** (k + 1) / (k + 1) for k in range(s))
     return A, b
 
 
-def _round(A, b: list, c: list) -> tuple:
-    """Round a tableau computed at raised precision to the caller's."""
+def _round(A, b: list, c: list) -> tuple:  # to the caller's precision
     return +A, [+x for x in b], [+x for x in c]
 
 
@@ -112,10 +106,8 @@ def lobatto_IIIB_tableau(s: int) -> tuple:
     (s=2: [[1/2,0],[1/2,0]]; s=3: [[1/6,-1/6,0],[1/6,1/3,0],[1/6,5/6,0]].)"""
     with mp.workdps(mp.dps + 3 * s + 10):
         A, b, c = _lobatto_iiia(s)
-        B = mp.matrix(s, s)
-        for i in range(s):
-            for j in range(s):
-                B[i, j] = b[j] * (1 - A[j, i] / b[i])
+        B = mp.matrix([[b[j] * (1 - A[j, i] / b[i]) for j in range(s)]
+                       for i in range(s)])
     return _round(B, b, c)
 
 
@@ -151,9 +143,6 @@ def splitting_to_prk(drift: Sequence, kick: Sequence) -> tuple:
     return A_q, b, A_p, list(b)
 
 
-# --------------------------------------------------------------------------
-# Transfer matrices
-# --------------------------------------------------------------------------
 def transfer_matrix_prk(A_q, b_q, A_p, b_p, z, model: str):
     """M(z) of the PRK (A_q,b_q)-(A_p,b_p) on ``model``: solve the 2s x 2s
     stage system Q = q0 e + z A_q (Lqq Q + Lqp P), P = p0 e + z A_p (Lpq Q +
@@ -201,7 +190,7 @@ def transfer_matrix_splitting(drift: Sequence, kick: Sequence, z,
 
 
 def transfer_matrix_composition(base_fn: MFun, weights: Sequence, z):
-    """Composition Phi_{g_k h} o ... o Phi_{g_1 h}: M_base(g_k z)...M_base(g_1 z)."""
+    """Phi_{g_k h} o ... o Phi_{g_1 h}: M = M_base(g_k z) ... M_base(g_1 z)."""
     M = mp.eye(2)
     for g in weights:
         M = base_fn(g * z) * M
@@ -217,9 +206,6 @@ def triple_jump(order: int) -> list:
     return [g1, -r * g1, g1]
 
 
-# --------------------------------------------------------------------------
-# Classification
-# --------------------------------------------------------------------------
 def constraints(M, model: str) -> list:
     """Continuous functions g_k(M), all > 0 iff preserved (CONSTRAINT_NAMES).
     Inverted orientation: with mu = tr/2 + sqrt(tr^2/4 - 1) the expanding
@@ -238,8 +224,13 @@ def constraints(M, model: str) -> list:
 
 
 def is_preserved(M, model: str) -> bool:
-    """True iff M has the type and orientation of the model's flow."""
-    if model == "saddle" and abs(M[0, 1]) + abs(M[1, 0]) > mp.eps * 2 ** 20:
+    """True iff M is symplectic (det M = 1 to rounding; otherwise a centre
+    becomes a spiral) and has the type and orientation of the flow."""
+    tol = mp.eps * 2 ** 20
+    scale = abs(M[0, 0] * M[1, 1]) + abs(M[0, 1] * M[1, 0])
+    if abs(mp.det(M) - 1) > tol * scale:
+        return False
+    if model == "saddle" and abs(M[0, 1]) + abs(M[1, 0]) > tol:
         return False
     return all(g > 0 for g in constraints(M, model))
 
@@ -253,9 +244,6 @@ def classify(M) -> str:
     return "hyperbolic+" if tr > 2 else "hyperbolic-"
 
 
-# --------------------------------------------------------------------------
-# Root finding and boundary search
-# --------------------------------------------------------------------------
 def refine_root(f: Callable, lo, hi, tol=None):
     """Zero (or sign-changing pole) of f in [lo, hi], f(lo) f(hi) < 0.
 
@@ -296,9 +284,7 @@ def refine_root(f: Callable, lo, hi, tol=None):
 
 
 def _g(Mfun: MFun, model: str, k: int) -> Callable:
-    def g(z):
-        return constraints(Mfun(z), model)[k]
-    return g
+    return lambda z: constraints(Mfun(z), model)[k]
 
 
 def _crossing_kind(g: Callable, x) -> str:
@@ -335,6 +321,7 @@ class Boundary(NamedTuple):
     z: object          # mp number
     kind: str          # 'root', 'pole' or 'resonance'
     which: str         # constraint(s) that vanish/blow up there
+    preserved_before: bool
     preserved_after: bool
 
 
@@ -384,7 +371,7 @@ def boundaries(Mfun: MFun, model: str, zmax, n: int = 400) -> list:
         else:
             merged.append((x, kind, name))
     pts = [m[0] for m in merged]
-    mids = [pts[0] / 2] if pts else [zmax / 2]
+    mids = [min(pts[0] / 2, grid[0][0])] if pts else [zmax / 2]
     mids += [(u + v) / 2 for u, v in zip(pts, pts[1:])]
     mids += [(pts[-1] + zmax) / 2] if pts else []
     status = [_safe_M(Mfun, m, step)[1] for m in mids]
@@ -393,22 +380,33 @@ def boundaries(Mfun: MFun, model: str, zmax, n: int = 400) -> list:
     for i, (x, kind, name) in enumerate(merged):
         before, after = status[i], status[i + 1]
         if before != after or (kind != "root" and (before or after)):
-            out.append(Boundary(x, kind, name, after))
+            out.append(Boundary(x, kind, name, before, after))
     return out
+
+
+def _start(Mfun: MFun, model: str, zmax, bds: list) -> bool:
+    if bds:
+        return bds[0].preserved_before
+    M = _safe_M(Mfun, mp.mpf(zmax) / 2, mp.mpf(zmax) * 1e-9)[1]
+    return M is not None and is_preserved(M, model)
 
 
 def first_boundary(Mfun: MFun, model: str, zmax, n: int = 400) -> tuple:
     """(z*, kind) ending the preserved interval that starts at z = 0+;
-    (mp.inf, 'none') if nothing is found up to zmax."""
-    for bd in boundaries(Mfun, model, zmax, n):
-        return bd.z, bd.kind
-    return mp.inf, "none"
+    (mp.inf, 'none') if none up to zmax; (0, 'never') if not preserved
+    for small z (e.g. a non-symplectic method)."""
+    bds = boundaries(Mfun, model, zmax, n)
+    if not _start(Mfun, model, zmax, bds):
+        return mp.zero, "never"
+    return (bds[0].z, bds[0].kind) if bds else (mp.inf, "none")
 
 
 def regions(Mfun: MFun, model: str, zmax, n: int = 400) -> list:
-    """Preserved open intervals [(lo, hi)] in (0, zmax] (hi = zmax: open)."""
-    out, lo = [], mp.zero
-    for bd in boundaries(Mfun, model, zmax, n):
+    """Preserved open intervals [(lo, hi)] in (0, zmax] (hi = zmax: open);
+    an isolated resonance splits an interval in two."""
+    bds = boundaries(Mfun, model, zmax, n)
+    out, lo = [], (mp.zero if _start(Mfun, model, zmax, bds) else None)
+    for bd in bds:
         if lo is not None:
             out.append((lo, bd.z))
         lo = bd.z if bd.preserved_after else None
@@ -421,7 +419,9 @@ def resonances(Mfun: MFun, zmax, n: int = 400) -> list:
     """Points where |tr M| = 2 tangentially (e.g. M = -I): [(z, M(z))].
     Uses the oscillator constraints 2 - tr, 2 + tr (model independent)."""
     zmax = mp.mpf(zmax)
-    grid = [(zmax * i / n, Mfun(zmax * i / n)) for i in range(1, n + 1)]
+    grid = [_safe_M(Mfun, zmax * i / n, zmax / n * 1e-7)
+            for i in range(1, n + 1)]
+    grid = [(z, M) for z, M in grid if M is not None]
     out = []
     for k in (0, 1):
         g = _g(Mfun, "oscillator", k)

@@ -113,3 +113,34 @@ def test_library_method_points_at_50_digits(name):
 @pytest.mark.parametrize("family, s", FAMILIES)
 def test_family_points_at_50_digits(family, s):
     _cross_check(method(family, s), mp_transfer(family, s, dps=DPS))
+
+
+def _floats(X):
+    if isinstance(X, mp.matrix):
+        return np.array([[float(X[i, j]) for j in range(X.cols)] for i in range(X.rows)])
+    return np.array([float(x) for x in X])
+
+
+@pytest.mark.parametrize("s", [2, 7, 13, 20])
+def test_family_tableaux_match_mpmath(s):
+    """Stable float construction (no Vandermonde solve) vs mpmath at 40 digits."""
+    with mp.workdps(40):
+        A, b, c = mpref.gauss_tableau(s)
+        A_a, b_l, _ = mpref.lobatto_IIIA_tableau(s)
+        A_b, _, _ = mpref.lobatto_IIIB_tableau(s)
+    g, lob = method("gauss", s), method("lobatto3ab", s)
+    for got, want in ((g.A, A), (g.b, b), (g.c, c), (lob.A_q, A_a), (lob.b_q, b_l),
+                      (lob.A_p, A_b)):
+        np.testing.assert_allclose(got, _floats(want), rtol=0, atol=4e-16)
+
+
+@pytest.mark.parametrize("family, s", [("gauss", 15), ("gauss", 20), ("lobatto3ab", 15),
+                                       ("lobatto3ab", 20)])
+def test_high_stage_first_points_at_50_digits(family, s):
+    """The first two reported points of the oscillator region, recomputed at 50 digits."""
+    m = method(family, s)
+    Mfun = mp_transfer(family, s, dps=DPS)
+    region = find_region(m, "oscillator")
+    with mp.workdps(DPS):
+        for p in sorted(_points(region), key=lambda p: p.z)[:2]:
+            _check_point(Mfun, "oscillator", p, region.zmax)
