@@ -92,3 +92,19 @@ def test_rk_saddle_equals_inverted():
         assert len(a.intervals) == len(b.intervals) == 1
         assert a.intervals[0].lo == b.intervals[0].lo == 0.0
         assert close(a.intervals[0].hi, b.intervals[0].hi)
+
+
+def test_published_stability_thresholds():
+    """Every method file that cites a published oscillator threshold agrees with the
+    computed classical stability limit (|tr M| <= 2, either orientation)."""
+    from stepsafe.library import builtin_dir, load_file
+
+    checked = 0
+    for path in sorted(builtin_dir().glob("*.yaml")):
+        data = load_file(path)
+        if data.published_stability is None:
+            continue
+        region = find_region(method(data.name), "oscillator")
+        assert close(region.stability_limit, data.published_stability["value"]), data.name
+        checked += 1
+    assert checked >= 3
