@@ -21,6 +21,7 @@ analysed and never reported as safe.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -66,8 +67,7 @@ class Modes:
         return sum(b.size for b in self.betas.values())
 
 
-@dataclass(frozen=True)
-class ModelLimit:
+class ModelLimit(NamedTuple):
     model: str
     count: int
     beta_max: float
@@ -100,8 +100,7 @@ def validate_margin(margin: float) -> float:
     return margin
 
 
-@dataclass(frozen=True)
-class Gap:
+class Gap(NamedTuple):
     """A closed z-interval ``[a, b]`` where the structure is not preserved, and why."""
 
     a: float
@@ -210,8 +209,7 @@ def _complement(merged: np.ndarray) -> list[tuple[float, float | None]]:
     return out
 
 
-@dataclass(frozen=True)
-class Failure:
+class Failure(NamedTuple):
     """A mode whose structure is lost at the checked step."""
 
     model: str

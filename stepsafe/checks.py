@@ -14,15 +14,14 @@ size of the coefficients counts as zero.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from .methods import RESIDUAL_TOL, Composition, Method, PartitionedRK, RungeKutta, Splitting
 
 
-@dataclass(frozen=True)
-class Residuals:
+class Residuals(NamedTuple):
     """Max-norm residuals of the coefficient conditions (0.0 where exact by construction)."""
 
     symplectic_separable: float  # B_q A_p + A_q^T B_p - b_q b_p^T

@@ -18,8 +18,7 @@ import ast
 import math
 import re
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 MAX_LENGTH = 1000
 MAX_NODES = 400
@@ -33,8 +32,7 @@ class ExpressionError(ValueError):
     """The text is not an allowed expression, or it does not evaluate to a finite real."""
 
 
-@dataclass(frozen=True)
-class Expression:
+class Expression(NamedTuple):
     """A validated expression: its text and checked syntax tree."""
 
     text: str
@@ -94,8 +92,7 @@ def _check_node(node: ast.AST, source: str) -> None:
             raise ExpressionError(f"{node.func.id} takes exactly one argument")
 
 
-@dataclass(frozen=True)
-class Backend:
+class Backend(NamedTuple):
     """Arithmetic used to evaluate an expression."""
 
     number: Callable[[str], Any]

@@ -13,10 +13,9 @@ so that editable installs and wheels behave alike.
 from __future__ import annotations
 
 import difflib
-from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from .errors import MethodError, StepsafeError
 
@@ -26,8 +25,7 @@ FAMILIES = {
 }
 
 
-@dataclass(frozen=True)
-class Entry:
+class Entry(NamedTuple):
     """What is known about a method besides its coefficients."""
 
     name: str
@@ -159,7 +157,6 @@ def _build(data, depth: int):
 
 
 def _swap_base(method, entry: Entry, base: str, depth: int):
-    from dataclasses import replace
 
     from .families import is_symmetric
     from .methods import Composition
@@ -175,5 +172,5 @@ def _swap_base(method, entry: Entry, base: str, depth: int):
                           order=order, evaluations=None,
                           title=f"{method.title or method.name} over {base_entry.name}",
                           base_order=new_base.order)
-    return swapped, replace(entry, name=swapped.name, title=swapped.title, order=order,
-                            evaluations=None)
+    return swapped, entry._replace(name=swapped.name, title=swapped.title, order=order,
+                                   evaluations=None)

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 from .errors import StepsafeError
 from .expressions import FLOAT, Backend, ExpressionError, evaluate, parse
@@ -40,8 +40,7 @@ MAX_STAGES = 200
 MAX_WEIGHTS = 200
 
 
-@dataclass(frozen=True)
-class Field:
+class Field(NamedTuple):
     type: str  # "text", "int", "bool", "coef", "vector", "matrix", "names", "ref", "map", "enum"
     description: str
     kinds: tuple[str, ...] = KINDS
@@ -304,7 +303,6 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
     import numpy as np
 
     from . import methods as m
-    from .families import RECIPES
 
     co = {k: np.array(v, dtype=float) for k, v in data.coefficients.items()}
     common = dict(name=data.name, order=data.order, evaluations=data.evaluations,
@@ -317,6 +315,8 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
         return m.Splitting(co["drift"], co["kick"], **common)
     base = resolve_base(data.base)
     if data.recipe:
+        from .families import RECIPES
+
         built = RECIPES[data.recipe](base, name=data.name)
         return m.Composition(built.base, built.weights, base_order=built.base_order, **common)
     return m.Composition(base, co["weights"], base_order=getattr(base, "order", None), **common)

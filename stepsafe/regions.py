@@ -32,6 +32,7 @@ reported instead.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -51,8 +52,7 @@ REFINE_LEVELS = 4
 MAX_SAMPLES = 400_000
 
 
-@dataclass(frozen=True)
-class Point:
+class Point(NamedTuple):
     """A distinguished z: a boundary, resonance or pole, with its float64 uncertainty."""
 
     z: float
@@ -61,8 +61,7 @@ class Point:
     detail: str = ""
 
 
-@dataclass(frozen=True)
-class Interval:
+class Interval(NamedTuple):
     """An open interval ``(lo, hi)`` of z; ``hi`` is None when it reaches zmax."""
 
     lo: float

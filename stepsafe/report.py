@@ -250,21 +250,23 @@ def check_data(result) -> dict[str, Any]:
 
 
 def print_check(data: dict[str, Any]) -> None:
-    console = _console()
+    """Plain click output: check runs in CI on every commit, so it does not import rich."""
+    import click
+
     h = fmt(data["h"])
     if data["safe"]:
         where = "" if data["in_primary_interval"] else \
-            " [yellow](in an island outside the primary interval)[/yellow]"
-        console.print(f"[green]SAFE[/green]: {data['method']} with h = {h} preserves all "
-                      f"{data['modes']} mode(s){where}.")
+            " (in an island outside the primary interval)"
+        click.echo(click.style("SAFE", fg="green") + f": {data['method']} with h = {h} "
+                   f"preserves all {data['modes']} mode(s){where}.")
         return
-    console.print(f"[red]UNSAFE[/red]: {data['method']} with h = {h}: {data['failing']} of "
-                  f"{data['modes']} mode(s) lose their structure.")
+    click.echo(click.style("UNSAFE", fg="red") + f": {data['method']} with h = {h}: "
+               f"{data['failing']} of {data['modes']} mode(s) lose their structure.")
     for f in data["failures"]:
         limit = "none" if f["largest_safe_h"] is None else fmt(f["largest_safe_h"])
-        console.print(f"  {f['model']} beta = {fmt(f['beta'])}: z = beta*h = {fmt(f['z'])} "
-                      f"{f['reason']}; largest safe h for it: {limit}")
+        click.echo(f"  {f['model']} beta = {fmt(f['beta'])}: z = beta*h = {fmt(f['z'])} "
+                   f"{f['reason']}; largest safe h for it: {limit}")
     if data["failing"] > len(data["failures"]):
-        console.print(f"  ... and {data['failing'] - len(data['failures'])} more")
+        click.echo(f"  ... and {data['failing'] - len(data['failures'])} more")
     if data["h_max"] is not None:
-        console.print(f"Largest safe h for all modes: {fmt(data['h_max'])}")
+        click.echo(f"Largest safe h for all modes: {fmt(data['h_max'])}")

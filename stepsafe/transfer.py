@@ -22,7 +22,7 @@ values), from which the region finder bounds the rounding error of ``tr M``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -30,8 +30,7 @@ from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
 from .models import GENERATORS, KICK_SIGN, check_model
 
 
-@dataclass(frozen=True)
-class Jet:
+class Jet(NamedTuple):
     """``M(z)``, ``dM/dz`` and the term magnitude ``scale`` at each z (shapes (n,2,2), (n,))."""
 
     M: np.ndarray
