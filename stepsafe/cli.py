@@ -252,9 +252,13 @@ def _input_error(message: str):
 
 
 @main.command("advise")
+@click.option("--tol-energy", type=float, default=None, metavar="T",
+              help="Also require relative energy error <= T (vibrations).")
+@click.option("--tol-phase", type=float, default=None, metavar="T",
+              help="Also require |phase error| <= T (|growth-rate error| for saddles).")
 @scene_options
-def advise_cmd(scene_files, method_name, stages, base, beta, saddle_beta, inverted_beta,
-               modes_file, margin, zmax, as_json) -> None:
+def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, beta,
+               saddle_beta, inverted_beta, modes_file, margin, zmax, as_json) -> None:
     """Safe step sizes h for your frequencies.
 
     Safe h keep every mode's structure: beta*h lies in the method's region for that mode's
@@ -276,8 +280,21 @@ def advise_cmd(scene_files, method_name, stages, base, beta, saddle_beta, invert
         scene_files[0] if scene_files else None, method_name, stages, base, beta, saddle_beta,
         inverted_beta, modes_file,
         margin, zmax)
-    result = advise(method, modes, margin, zmax, entry.name)
-    data = advice_data(result)
+    if tol_phase is None and tol_energy is None:
+        result = advise(method, modes, margin, zmax, entry.name)
+        data = advice_data(result)
+    else:
+        from .report import tradeoff_data
+        from .tradeoff import Tolerance, tradeoff
+
+        tols = tuple(Tolerance(k, v) for k, v in (("phase", tol_phase), ("energy", tol_energy))
+                     if v is not None)
+        for t in tols:
+            if not (0 < t.value < float("inf")):
+                raise _input_error(f"--tol-{t.kind} must be a positive finite number, "
+                                   f"got {t.value}")
+        data = tradeoff_data(tradeoff(method, modes, tols, margin, entry.name,
+                                      entry.evaluations))
     print_json(data) if as_json else print_advice(data)
 
 
@@ -364,6 +381,8 @@ def validate_cmd(files: tuple[str, ...]) -> None:
 def _is_pathlike(path: str) -> bool:
     return "/" in path or path.endswith((".yaml", ".yml"))
 
+
+from . import cli_accuracy  # noqa: E402,F401  (registers error, compare, plot)
 
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -216,6 +216,8 @@ def print_advice(data: dict[str, Any]) -> None:
                       "no limit" if lim["h_limit"] is None else fmt(lim["h_limit"]))
     console.print(table)
     safe = data["safe_h"]
+    if "accuracy" in data:
+        _print_accuracy(console, data)
     if not safe or safe[0][0] != 0.0:
         console.print("[red]No safe step from 0:[/red] the method never preserves this structure.")
     elif safe[0][1] is None:
@@ -270,3 +272,81 @@ def print_check(data: dict[str, Any]) -> None:
         click.echo(f"  ... and {data['failing'] - len(data['failures'])} more")
     if data["h_max"] is not None:
         click.echo(f"Largest safe h for all modes: {fmt(data['h_max'])}")
+
+
+def tradeoff_data(res) -> dict[str, Any]:
+    """advice_data plus the tolerance limits, the usable step and its cost."""
+    data = advice_data(res.advice)
+    data["accuracy"] = [{"model": lim.model, "kind": lim.kind, "tolerance": lim.tol,
+                         "beta": lim.beta, "z": _num(lim.z), "h": _num(lim.h),
+                         "limited_by": lim.limited_by} for lim in res.limits]
+    data["h"] = _num(res.h)
+    data["bound_by"] = res.bound_by
+    data["evaluations"] = res.evaluations
+    data["cost_per_unit_time"] = _num(res.cost)
+    return data
+
+
+def _print_accuracy(console, data: dict[str, Any]) -> None:
+    for lim in data["accuracy"]:
+        what = {"phase": "phase error" if lim["model"] == "oscillator" else "growth-rate error",
+                "energy": "energy error"}[lim["kind"]]
+        if lim["limited_by"] == "unreachable":
+            console.print(f"{lim['model']} beta = {fmt(lim['beta'])}: no step keeps the {what} "
+                          f"below {lim['tolerance']:g}.")
+        elif lim["limited_by"] == "boundary":
+            console.print(f"{lim['model']} beta = {fmt(lim['beta'])}: the {what} stays below "
+                          f"{lim['tolerance']:g} up to the first boundary (h = {fmt(lim['h'])}).")
+        else:
+            console.print(f"{lim['model']} beta = {fmt(lim['beta'])}: {what} <= "
+                          f"{lim['tolerance']:g} for h <= {fmt(lim['h'])} (z = {fmt(lim['z'])}).")
+    if data["h"] is not None:
+        cost = data["cost_per_unit_time"]
+        console.print(f"[bold]Use h = {fmt(data['h'])}[/bold] (bound by {data['bound_by']})"
+                      + (f": {fmt(cost, 6)} force evaluations per unit time"
+                         f" ({data['evaluations']} per step)" if cost is not None else "."))
+
+
+def print_errors(data: dict[str, Any]) -> None:
+    from rich.table import Table
+
+    table = Table(title=f"{data['method']} on the {data['model']} model")
+    table.add_column("z = beta*h", no_wrap=True)
+    table.add_column(data["phase_error"], no_wrap=True)
+    if data["model"] == "oscillator":
+        table.add_column("energy error bound", no_wrap=True)
+    for r in data["rows"]:
+        cells = [fmt(r["z"]), _fmt_err(r["phase_error"])]
+        if data["model"] == "oscillator":
+            cells.append(_fmt_err(r["energy_error"]))
+        table.add_row(*cells)
+    _console().print(table)
+
+
+def _fmt_err(x: float | None) -> str:
+    return "not preserved" if x is None else f"{x:.6e}"
+
+
+def print_compare(data: dict[str, Any]) -> None:
+    from rich.table import Table
+
+    tol = ", ".join(f"{k} <= {v:g}" for k, v in data["tolerances"].items()) or "none"
+    table = Table(title=f"cost per unit time (force evaluations), tolerance: {tol}")
+    for col in ("rank", "method", "z* (osc.)", "h_max (safe)", "h (tolerance)", "use h",
+                "bound by", "evals/step", "cost"):
+        table.add_column(col, no_wrap=True)
+    for r in data["methods"]:
+        table.add_row(
+            "-" if r["rank"] is None else str(r["rank"]), r["method"] + (" *" if r["implicit"]
+                                                                         else ""),
+            "-" if r["first_boundary"] is None else fmt(r["first_boundary"], 6),
+            "-" if r["h_max"] is None else fmt(r["h_max"], 6),
+            "-" if r["h_tol"] is None else ("unreachable" if r["h_tol"] == 0 else
+                                            fmt(r["h_tol"], 6)),
+            "-" if r["h"] is None else fmt(r["h"], 6), r["bound_by"],
+            "-" if r["evaluations"] is None else str(r["evaluations"]),
+            "-" if r["cost"] is None else fmt(r["cost"], 6))
+    console = _console()
+    console.print(table)
+    console.print("* implicit: evaluations count one per stage per nonlinear iteration; multiply "
+                  "by the iterations your solver needs.")

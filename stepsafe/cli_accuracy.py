@@ -1,0 +1,216 @@
+"""Commands on accuracy and cost: ``error``, ``compare`` and ``plot``.
+
+Registered on the main group by :mod:`stepsafe.cli`; like every command they import what
+they use inside their bodies.
+"""
+
+from __future__ import annotations
+
+import click
+
+from .cli import _input_error, _resolve, main, method_options, scene_options
+
+MODEL_ONE = click.Choice(("oscillator", "saddle", "inverted"))
+
+
+@main.command("error")
+@method_options
+@click.option("--z", "zs", type=float, multiple=True, metavar="Z", help="z = beta*h; repeatable.")
+@click.option("--zmin", type=float, default=None, help="Range start (with --zmax and --n).")
+@click.option("--zmax", type=float, default=None, help="Range end.")
+@click.option("--n", "count", type=int, default=11, show_default=True, help="Range points.")
+@click.option("--model", type=MODEL_ONE, default="oscillator", show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json) -> None:
+    """Error figures of METHOD at given z = beta*h.
+
+    oscillator: phase error theta/z - 1 (theta the rotation per step) and the relative
+    energy error bound kappa - 1 from the invariant ellipse of M; saddle/inverted: the
+    growth-rate error log(mu)/z - 1. NaN where the step does not preserve the structure.
+
+    \b
+    Examples:
+      stepsafe error verlet --z 0.1 --z 1
+      stepsafe error yoshida4 --zmin 1e-6 --zmax 1.5 --n 7 --json
+    """
+    import numpy as np
+
+    from .accuracy import errors
+    from .report import print_errors, print_json
+
+    z = list(zs)
+    if zmin is not None or zmax is not None:
+        if zmin is None or zmax is None or count < 2:
+            raise _input_error("a range needs --zmin, --zmax and --n >= 2")
+        if not (0 < zmin < zmax) or not np.isfinite(zmax):
+            raise _input_error(f"need 0 < zmin < zmax (finite), got {zmin}, {zmax}")
+        z += list(np.geomspace(zmin, zmax, count) if zmax / zmin > 100
+                  else np.linspace(zmin, zmax, count))
+    if not z:
+        raise _input_error("give --z Z (repeatable) or --zmin/--zmax/--n")
+    for value in z:
+        if not (np.isfinite(value) and value > 0):
+            raise _input_error(f"z must be a positive finite number, got {value}")
+    m, entry = _resolve(method, stages, base)
+    e = errors(m, np.array(z, dtype=float), model)
+    rows = [{"z": float(zz), "phase_error": _f(p),
+             "energy_error": _f(en) if model == "oscillator" else None}
+            for zz, p, en in zip(e.z, e.phase, e.energy)]
+    data = {"method": entry.name, "model": model,
+            "phase_error": "theta/z - 1" if model == "oscillator" else "log(mu)/z - 1",
+            "rows": rows}
+    print_json(data) if as_json else print_errors(data)
+
+
+def _f(x) -> float | None:
+    import math
+
+    return None if x is None or not math.isfinite(float(x)) else float(x)
+
+
+@main.command("compare")
+@click.option("--methods", "names", default=None, metavar="M1,M2,...",
+              help="Comma-separated methods (family members as gauss:2) [default: a standard "
+                   "set].")
+@click.option("--all", "use_all", is_flag=True, help="Every built-in method (families s=2,3).")
+@click.option("--tol-phase", type=float, default=None, metavar="T",
+              help="Largest |phase error| (|growth-rate error| for saddles and barriers).")
+@click.option("--tol-energy", type=float, default=None, metavar="T",
+              help="Largest relative energy error (vibrations).")
+@scene_options
+def compare_cmd(names, use_all, tol_phase, tol_energy, scene_files, method_name, stages, base,
+                beta, saddle_beta, inverted_beta, modes_file, margin, zmax, as_json) -> None:
+    """Rank methods by cost per unit of simulated time for your frequencies.
+
+    For each method: the first boundary, the largest safe h, the h that meets the
+    tolerance, evaluations per step and the cost evaluations/h at the usable step
+    min(safe, accurate); ranked by cost (cheapest first).
+
+    \b
+    Examples:
+      stepsafe compare --beta 3.2 --tol-phase 1e-6
+      stepsafe compare --beta 1 --tol-energy 1e-4 --methods verlet,pefrl,yoshida4,gauss:2
+    """
+    from .advice import Modes, validate_margin
+    from .library import FAMILIES, builtin_names, resolve
+    from .report import print_compare, print_json
+    from .tradeoff import Tolerance, tradeoff
+
+    if scene_files or method_name:
+        raise _input_error("compare takes --methods or --all, not a method or scene")
+    modes = Modes.from_arrays({m: v for m, v in
+                               (("oscillator", beta), ("saddle", saddle_beta),
+                                ("inverted", inverted_beta)) if v} or {})
+    if modes_file:
+        from .scene import load_modes
+
+        modes = Modes.from_arrays({**modes.betas, **load_modes(modes_file)})
+    tolerances = tuple(Tolerance(k, v) for k, v in (("phase", tol_phase),
+                                                     ("energy", tol_energy)) if v is not None)
+    for t in tolerances:
+        if not (t.value > 0 and t.value < float("inf")):
+            raise _input_error(f"--tol-{t.kind} must be a positive finite number, got {t.value}")
+    margin = validate_margin(1.0 if margin is None else margin)
+    if use_all:
+        specs = [(n, None) for n in builtin_names() if n not in FAMILIES]
+        specs += [(f, s) for f in FAMILIES for s in (2, 3)]
+    else:
+        raw = names or "verlet,yoshida4,suzuki4,pefrl,blanes-moan6,kahan-li8,gauss:2,lobatto3ab:3"
+        specs = []
+        for item in raw.split(","):
+            name, _, s = item.strip().partition(":")
+            if s and not s.isdigit():
+                raise _input_error(f"bad stage count in {item!r} (use family:N)")
+            specs.append((name, int(s) if s else None))
+    rows = []
+    for name, s in specs:
+        m, entry = resolve(name, s)
+        res = tradeoff(m, modes, tolerances, margin, entry.name, entry.evaluations)
+        rows.append(_compare_row(res, m))
+    ranked = sorted(rows, key=lambda r: (r["cost"] is None, r["cost"] or 0.0))
+    for i, r in enumerate(ranked, 1):
+        r["rank"] = i if r["cost"] is not None else None
+    data = {"modes": {k: int(v.size) for k, v in modes.betas.items()},
+            "tolerances": {t.kind: t.value for t in tolerances}, "margin": margin,
+            "cost_unit": "force evaluations per unit of simulated time",
+            "methods": ranked}
+    print_json(data) if as_json else print_compare(data)
+
+
+def _compare_row(res, method) -> dict:
+    first = next((lim for lim in res.advice.models if lim.model == "oscillator"),
+                 res.advice.models[0])
+    h_tol = [lim.h for lim in res.limits]
+    return {
+        "method": res.method,
+        "implicit": not method.explicit,
+        "first_boundary": first.first_boundary,
+        "h_max": res.advice.h_max,
+        "h_tol": (None if not h_tol else (0.0 if any(h is None for h in h_tol) else min(h_tol))),
+        "tolerance_status": sorted({lim.limited_by for lim in res.limits}),
+        "h": res.h,
+        "bound_by": res.bound_by,
+        "evaluations": res.evaluations,
+        "cost": res.cost,
+    }
+
+
+@main.command("plot")
+@method_options
+@click.option("--model", type=MODEL_ONE, default="oscillator", show_default=True)
+@click.option("--zmax", type=float, default=None, metavar="Z", help="Plot z up to Z [default: 6].")
+@click.option("--phase", "with_phase", is_flag=True, help="Add the phase error (log scale).")
+@click.option("-o", "--output", required=True, metavar="FILE.png", help="Where to write.")
+def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
+    """Draw tr M(z)/2 with the band [-1, 1] and the preserved intervals (needs matplotlib).
+
+    \b
+    Example:
+      stepsafe plot lobatto3ab -s 3 -o lobatto3.png --phase
+    """
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise _input_error("plot needs matplotlib: pip install 'stepsafe[plot]'") from None
+    import numpy as np
+
+    from .accuracy import errors
+    from .regions import find_region
+    from .transfer import transfer_matrix
+
+    zmax = 6.0 if zmax is None else zmax
+    if not (np.isfinite(zmax) and zmax > 0):
+        raise _input_error(f"zmax must be a positive finite number, got {zmax}")
+    m, entry = _resolve(method, stages, base)
+    region = find_region(m, model, zmax)
+    z = np.linspace(zmax / 4000, zmax, 4000)
+    M = transfer_matrix(m, z, model)
+    half = 0.5 * (M[:, 0, 0] + M[:, 1, 1])
+    rows = 2 if with_phase else 1
+    fig, axes = plt.subplots(rows, 1, figsize=(8, 3.2 * rows), sharex=True, squeeze=False)
+    ax = axes[0, 0]
+    ax.axhspan(-1, 1, color="0.9", label="|tr M|/2 < 1")
+    ax.plot(z, np.clip(half, -3, 3), lw=1.2, label="tr M / 2 (clipped to ±3)")
+    for iv in region.intervals:
+        ax.axvspan(iv.lo, iv.hi if iv.hi is not None else zmax, color="tab:green", alpha=0.15)
+    for p in region.resonances:
+        ax.axvline(p.z, color="tab:orange", ls="--", lw=0.8)
+    for p in region.poles:
+        ax.axvline(p.z, color="tab:red", ls=":", lw=0.8)
+    ax.set_ylim(-3, 3)
+    ax.set_title(f"{entry.name}, {model}: preserved z = beta*h shaded green")
+    ax.legend(loc="lower left", fontsize=8)
+    if with_phase:
+        e = errors(m, z, model)
+        axes[1, 0].semilogy(z, np.abs(e.phase), lw=1.2)
+        axes[1, 0].set_ylabel("|phase error|" if model == "oscillator" else "|rate error|")
+    axes[-1, 0].set_xlabel("z = beta h")
+    fig.tight_layout()
+    try:
+        fig.savefig(output, dpi=120)
+    except OSError as exc:
+        raise _input_error(f"cannot write {output}: {exc.strerror or exc}") from None
+    click.echo(f"wrote {output}")

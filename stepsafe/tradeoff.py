@@ -1,0 +1,80 @@
+"""Speed against accuracy for a set of frequencies (DESIGN §3): what each method costs.
+
+For a method and modes, the usable step is ``h = min(h_safe, h_tol)``: ``h_safe`` from
+:mod:`stepsafe.advice`, ``h_tol`` the largest step whose error stays within tolerance for
+the largest frequency of each model (errors depend on z = beta h only and grow from 0, so
+the largest beta binds). The cost per unit of simulated time is ``evaluations / h``
+(= evaluations * beta / z): force evaluations per step as listed in the method file; for
+implicit methods this is one evaluation per stage per nonlinear iteration, so multiply by
+the iterations your solver needs.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+from .accuracy import z_for_tolerance
+from .advice import Advice, Modes, advise
+from .methods import Method
+from .models import ELLIPTIC
+
+
+class Tolerance(NamedTuple):
+    kind: str  # "phase" (growth rate for hyperbolic models) or "energy"
+    value: float
+
+
+class ToleranceLimit(NamedTuple):
+    model: str
+    kind: str
+    tol: float
+    beta: float
+    z: float | None
+    h: float | None  # None when no step meets it
+    limited_by: str  # "tolerance", "boundary" (met up to z*), "unreachable"
+
+
+class Tradeoff(NamedTuple):
+    method: str
+    advice: Advice
+    limits: tuple[ToleranceLimit, ...]
+    h: float | None  # the step to use: min(h_safe, h_tol); None if unbounded
+    bound_by: str  # "safety", "accuracy" or "nothing"
+    evaluations: int | None
+    cost: float | None  # evaluations per unit time at h
+
+
+def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (),
+             margin: float = 1.0, name: str | None = None,
+             evaluations: int | None = None) -> Tradeoff:
+    adv = advise(method, modes, margin, name=name)
+    limits: list[ToleranceLimit] = []
+    for tol in tolerances:
+        if not (tol.value > 0):
+            raise ValueError(f"--tol-{tol.kind} must be positive, got {tol.value}")
+        for lim in adv.models:
+            if tol.kind == "energy" and not ELLIPTIC[lim.model]:
+                continue
+            if lim.beta_max == 0:
+                continue
+            region = adv.regions[lim.model]
+            z_star = region.first_boundary if region.first_boundary is not None else region.zmax
+            step = z_for_tolerance(method, tol.value, z_star, lim.model, tol.kind)
+            h = None if step.z is None else margin * step.z / lim.beta_max
+            limits.append(ToleranceLimit(lim.model, tol.kind, tol.value, lim.beta_max, step.z,
+                                         h, step.limited_by))
+    h_safe = adv.h_max
+    h_tol = min((lim.h for lim in limits if lim.h is not None), default=None)
+    if any(lim.h is None for lim in limits):
+        h_tol = 0.0
+    candidates = [(h_safe, "safety"), (h_tol, "accuracy")]
+    candidates = [(h, why) for h, why in candidates if h is not None]
+    if not candidates:
+        h, bound = None, "nothing"
+    else:
+        h, bound = min(candidates, key=lambda pair: pair[0])
+        if h_tol is not None and h_safe is not None and h_tol >= h_safe:
+            bound = "safety"
+    evals = evaluations if evaluations is not None else getattr(method, "evaluations", None)
+    cost = None if (h is None or h == 0 or evals is None) else evals / h
+    return Tradeoff(adv.method, adv, tuple(limits), h, bound, evals, cost)

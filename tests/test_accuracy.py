@@ -1,0 +1,189 @@
+"""Accuracy model: closed forms, mpmath at tiny z, simulated oscillators, orders, compare."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import mpmath as mp
+import numpy as np
+import pytest
+from support import method
+
+from stepsafe.accuracy import errors, z_for_tolerance
+from stepsafe.methods import Composition, Splitting
+from stepsafe.regions import find_region
+from stepsafe.transfer import transfer_matrix
+
+ZS = [1e-8, 1e-6, 1e-4, 1e-2, 0.3, 0.49, 0.51, 1.0, 1.9]
+
+
+def rel(a, b):
+    return abs(a - b) / abs(b)
+
+
+def test_verlet_phase_error_closed_form():
+    e = errors(method("verlet"), ZS).phase
+    with mp.workdps(80):
+        for z, got in zip(ZS, e):
+            zz = mp.mpf(z)
+            exact = mp.acos(1 - zz**2 / 2) / zz - 1
+            assert rel(got, float(exact)) < 1e-12, z
+
+
+def test_midpoint_phase_error_closed_form():
+    e = errors(method("midpoint"), ZS).phase
+    with mp.workdps(80):
+        for z, got in zip(ZS, e):
+            zz = mp.mpf(z)
+            assert rel(got, float(2 * mp.atan(zz / 2) / zz - 1)) < 1e-12, z
+
+
+def test_symplectic_rk_conserves_energy_exactly():
+    assert np.all(np.abs(errors(method("gauss", 2), ZS).energy) <= 1e-15)
+
+
+def _mp_errors(name, z, model="oscillator"):
+    """theta/z - 1 and kappa(S) - 1 from a 100-digit M(z) (reference_methods)."""
+    from reference_methods import mp_transfer
+
+    with mp.workdps(100):
+        M = mp_transfer(name, dps=100)(mp.mpf(z), model)
+        a, b, c, d = M[0, 0], M[0, 1], M[1, 0], M[1, 1]
+        if model != "oscillator":
+            mu = (a + d) / 2 + mp.sqrt(((a + d) / 2) ** 2 - 1)
+            return float(mp.log(mu) / z - 1), None
+        theta = mp.atan2(mp.sqrt(-b * c - (a - d) ** 2 / 4), (a + d) / 2)
+        S = mp.matrix([[-c, (a - d) / 2], [(a - d) / 2, b]])
+        lam = sorted(mp.eigsy(S)[0])
+        return float(theta / z - 1), float(lam[1] / lam[0] - 1)
+
+
+@pytest.mark.parametrize("name, zmin", [("yoshida4", 1e-6), ("ruth3", 1e-6),
+                                        ("mclachlan4", 1e-6), ("symplectic-euler", 1e-6),
+                                        ("pefrl", 1e-2), ("blanes-moan6", 0.6)])
+def test_errors_match_mpmath_down_to_tiny_z(name, zmin):
+    """Exact coefficients: to z = 1e-6. Published decimals satisfy the order conditions only
+    to ~1e-17; the error-series terms that this leaves are below float64 rounding and are
+    treated as zero (the ideal method's error), which the 100-digit reference of the
+    decimal coefficients resolves below z ~ 1e-3."""
+    m = method(name)
+    z = np.array([zmin, 1e-3, 0.2, 0.45, 0.6, 1.2])
+    z = z[z >= zmin]
+    e = errors(m, z)
+    h = errors(m, z, "inverted")
+    for i, zz in enumerate(z):
+        phase, energy = _mp_errors(name, zz)
+        assert rel(e.phase[i], phase) < 1e-9, (zz, e.phase[i], phase)
+        if energy != 0:
+            assert rel(e.energy[i], energy) < 1e-9, (zz, e.energy[i], energy)
+        rate, _ = _mp_errors(name, zz, "inverted")
+        assert rel(h.phase[i], rate) < 1e-9, (zz, h.phase[i], rate)
+
+
+def _run(m, q, p, h, steps):
+    """Real integration of q' = p, p' = -q with the method's own drifts and kicks."""
+    ops = (m.as_splitting() if isinstance(m, Composition) else m).operations
+    energies = [0.5 * (q * q + p * p)]
+    for _ in range(steps):
+        for kind, c in ops:
+            if kind == "drift":
+                q = q + c * h * p
+            else:
+                p = p - c * h * q
+        energies.append(0.5 * (q * q + p * p))
+    return np.array(energies)
+
+
+@pytest.mark.parametrize("name", ["verlet", "pefrl", "yoshida4", "blanes-moan4",
+                                  "symplectic-euler"])
+@pytest.mark.parametrize("m", [8, 12, 20])
+def test_simulated_energy_error_matches_prediction(name, m):
+    meth = method(name)
+    assert isinstance(meth, (Splitting, Composition))
+    target = 2 * math.pi / m  # rotation per step: the orbit closes after m steps
+
+    def theta(z):
+        M = transfer_matrix(meth, np.atleast_1d(z))
+        a, b, c, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1]
+        return np.arctan2(np.sqrt(-b * c - (a - d) ** 2 / 4), (a + d) / 2) - target
+
+    lo, hi = target * 0.5, min(target * 1.5, find_region(meth, "oscillator").first_boundary)
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if theta(mid)[0] < 0 else (lo, mid)
+    z = 0.5 * (lo + hi)
+    M = transfer_matrix(meth, [z])[0]
+    S = np.array([[-M[1, 0], (M[0, 0] - M[1, 1]) / 2], [(M[0, 0] - M[1, 1]) / 2, M[0, 1]]])
+    w, v = np.linalg.eigh(S)
+    x0 = v[:, 0]  # smallest eigenvalue of S: the farthest point of the ellipse, max energy
+    energies = _run(meth, x0[0], x0[1], z, m)
+    measured = energies.max() / energies.min() - 1
+    predicted = errors(meth, [z]).energy[0]
+    assert rel(measured, predicted) < 1e-10
+
+
+@pytest.mark.parametrize("name, slope", [("verlet", 2), ("symplectic-euler", 2), ("ruth3", 4),
+                                         ("pefrl", 4), ("yoshida4", 4), ("yoshida6", 6),
+                                         ("blanes-moan6", 6), ("kahan-li8", 8),
+                                         ("calvo-sanz-serna4", 4)])
+def test_observed_order_of_phase_error(name, slope):
+    """log-log slope at small z: the order for symmetric methods; one more for the
+    odd-order ones (symplectic Euler, ruth3), whose oscillator trace is even in z."""
+    e = errors(method(name), [1e-3, 2e-3]).phase
+    assert abs(math.log2(e[1] / e[0]) - slope) < 0.05
+
+
+def test_tolerance_inverse_problem():
+    verlet = method("verlet")
+    step = z_for_tolerance(verlet, 1e-6, 2.0)
+    assert step.limited_by == "tolerance"
+    assert abs(errors(verlet, [step.z]).phase[0] - 1e-6) < 1e-15
+    assert z_for_tolerance(verlet, 10.0, 2.0).limited_by == "boundary"
+    assert z_for_tolerance(verlet, 1e-300, 2.0).limited_by == "unreachable"
+
+
+def test_compare_ranks_by_the_cost_it_prints(run):
+    code, out, err = run("compare", "--beta", "3.2", "--tol-phase", "1e-6", "--json")
+    assert code == 0, err
+    rows = json.loads(out)["methods"]
+    costs = [r["cost"] for r in rows]
+    assert costs == sorted(costs) and [r["rank"] for r in rows] == list(range(1, len(rows) + 1))
+    for r in rows:
+        assert r["h"] == pytest.approx(min(r["h_max"], r["h_tol"]))
+        assert r["cost"] == pytest.approx(r["evaluations"] / r["h"])
+        assert r["bound_by"] == ("accuracy" if r["h_tol"] < r["h_max"] else "safety")
+
+
+def test_advise_with_tolerances_says_what_binds(run_json):
+    loose = run_json("advise", "--method", "verlet", "--beta", "2", "--tol-phase", "1")
+    assert loose["bound_by"] == "safety" and loose["accuracy"][0]["limited_by"] == "boundary"
+    tight = run_json("advise", "--method", "verlet", "--beta", "2", "--tol-phase", "1e-8")
+    assert tight["bound_by"] == "accuracy"
+    assert tight["h"] == pytest.approx(tight["accuracy"][0]["h"])
+    never = run_json("advise", "--method", "verlet", "--beta", "2", "--tol-energy", "1e-300")
+    assert never["accuracy"][0]["limited_by"] == "unreachable"
+
+
+def test_error_command_and_bad_input(run_json, run):
+    data = run_json("error", "verlet", "--z", "0.1", "--z", "2.5")
+    assert data["rows"][0]["phase_error"] == pytest.approx(
+        math.acos(1 - 0.005) / 0.1 - 1, rel=1e-12)
+    assert data["rows"][1]["phase_error"] is None  # beyond z* = 2: not preserved
+    for args in (["error", "verlet"], ["error", "verlet", "--z", "-1"],
+                 ["error", "verlet", "--zmin", "2", "--zmax", "1"],
+                 ["advise", "--method", "verlet", "--beta", "1", "--tol-phase", "0"],
+                 ["compare", "--beta", "1", "--tol-phase", "nan"]):
+        code, _, err = run(*args)
+        assert code == 2 and "Traceback" not in err, args
+
+
+def test_plot_writes_a_png_or_names_the_extra(run, tmp_path):
+    out = tmp_path / "p.png"
+    code, stdout, err = run("plot", "verlet", "-o", str(out), "--phase")
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        assert code == 2 and "stepsafe[plot]" in err
+        return
+    assert code == 0 and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
