@@ -14,6 +14,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 HEAVY = {"numpy", "scipy", "rich", "yaml", "mpmath", "sympy", "matplotlib"}
+REPORT = ("print(json.dumps(sorted({m.split('.')[0] for m in sys.modules} & "
+          f"set({sorted(HEAVY)!r}))))")
 
 
 def loaded_after(*argv: str) -> set[str]:
@@ -22,10 +24,9 @@ def loaded_after(*argv: str) -> set[str]:
         f"sys.argv = ['stepsafe', *{list(argv)!r}]\n"
         "from stepsafe.cli import main\n"
         "try:\n    main()\nexcept SystemExit:\n    pass\n"
-        f"print(json.dumps(sorted({{m.split('.')[0] for m in sys.modules}} & set({sorted(HEAVY)!r}))))"
+        + REPORT
         if argv else
-        "import sys, json, stepsafe.cli\n"
-        f"print(json.dumps(sorted({{m.split('.')[0] for m in sys.modules}} & set({sorted(HEAVY)!r}))))"
+        "import sys, json, stepsafe.cli\n" + REPORT
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
                          check=True).stdout
