@@ -187,3 +187,26 @@ def test_plot_writes_a_png_or_names_the_extra(run, tmp_path):
         assert code == 2 and "stepsafe[plot]" in err
         return
     assert code == 0 and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_tradeoff_example_measures_what_it_predicts(tmp_path):
+    """examples/tradeoff.py on two methods: measured oscillator phase and energy errors
+    agree with the predictions (the README's claim)."""
+    import csv
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    out = tmp_path / "t.csv"
+    subprocess.run([sys.executable, str(root / "examples" / "tradeoff.py"), "--methods",
+                    "verlet,pefrl", "--steps", "0.1,0.4", "--T", "60", "--out", str(out)],
+                   check=True, capture_output=True, cwd=tmp_path)
+    rows = list(csv.DictReader(out.open()))
+    assert len(rows) == 4
+    for r in rows:
+        assert rel(float(r["osc_phase"]), float(r["pred_phase"])) < 1e-5
+        # max/min over a finite run approaches kappa - 1 from below (sampling of the
+        # ellipse); the exact comparison is test_simulated_energy_error_matches_prediction
+        assert 0 <= 1 - float(r["osc_energy"]) / float(r["pred_energy"]) < 5e-3
+        assert rel(float(r["top_rate"]), float(r["pred_rate"])) < 1e-3
