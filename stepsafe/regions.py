@@ -41,7 +41,7 @@ from .errors import StepsafeError
 from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
 from .models import ELLIPTIC, check_model
 from .roots import EPS, refine_brackets
-from .transfer import Jet, poles, transfer_jet
+from .transfer import Jet, poles, transfer_jet, transfer_matrix
 
 DEFAULT_ZMAX = 10.0
 #: Rounding bound factor: |computed tr M - tr M| <= TOL_FACTOR * eps * scale.
@@ -393,14 +393,41 @@ def _assemble(ev: _Evaluator, model: str, zmax: float, points: list[Point],
                   dz, stability_limit=stability)
 
 
+def spectral_radius(M: np.ndarray) -> np.ndarray:
+    """Largest eigenvalue modulus of each 2x2 matrix, in closed form."""
+    t = M[:, 0, 0] + M[:, 1, 1]
+    det = M[:, 0, 0] * M[:, 1, 1] - M[:, 0, 1] * M[:, 1, 0]
+    disc = 0.25 * t * t - det
+    with np.errstate(invalid="ignore"):
+        real = 0.5 * np.abs(t) + np.sqrt(np.maximum(disc, 0.0))
+        cplx = np.sqrt(np.maximum(det, 0.0))
+    return np.where(disc >= 0, real, cplx)
+
+
+def classical_interval(method: Method, model: str = "oscillator", zmax: float = DEFAULT_ZMAX,
+                       resolution: float | None = None) -> tuple[Interval, ...]:
+    """Intervals of z where the spectral radius of M(z) is at most 1 (up to rounding).
+
+    For an RK method on the oscillator this is the imaginary-axis stability interval
+    (``|R(iy)| <= 1``); unlike :func:`find_region` it ignores symplecticity and orientation.
+    """
+    check_model(model)
+    zmax = _validate_zmax(zmax)
+    dz = default_resolution(method, zmax) if resolution is None else float(resolution)
+    pole_z = poles(method, model)
+    edges = [0.0, *map(float, pole_z[pole_z <= zmax]), zmax]
+    return _classical(_Evaluator(method, model), edges, dz)
+
+
 def _classical(ev: _Evaluator, edges: list[float], dz: float) -> tuple[Interval, ...]:
     """Intervals where the spectral radius of M is at most 1 (+ rounding): classical stability."""
 
     def excess(z):  # rho(M) - 1, refined without bias
-        return np.abs(np.linalg.eigvals(ev.jet(z).M)).max(axis=1) - 1.0
+        return spectral_radius(transfer_matrix(ev.method, z, ev.model)) - 1.0
 
     def margin(z):  # >= 0 where rho(M) <= 1 up to rounding
-        return TOL_FACTOR * EPS * ev.jet(z).scale - excess(z)
+        M = transfer_matrix(ev.method, z, ev.model)
+        return TOL_FACTOR * EPS * np.abs(M).sum(axis=(1, 2)) - (spectral_radius(M) - 1.0)
 
     points: list[Point] = []
     for lo, hi in zip(edges[:-1], edges[1:]):

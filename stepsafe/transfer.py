@@ -48,24 +48,28 @@ class Jet(NamedTuple):
 
 def transfer_matrix(method: Method, z, model: str = "oscillator") -> np.ndarray:
     """``M(z)`` for every z in ``z`` (array of shape (n, 2, 2); NaN where no unique step)."""
-    return transfer_jet(method, z, model).M
+    return transfer_jet(method, z, model, scale=False, derivative=False).M
 
 
-def transfer_jet(method: Method, z, model: str = "oscillator", scale: bool = True) -> Jet:
-    """``M``, ``dM/dz`` and (unless ``scale=False``, then zeros) the rounding scale."""
+def transfer_jet(method: Method, z, model: str = "oscillator", scale: bool = True,
+                 derivative: bool = True) -> Jet:
+    """``M``, ``dM/dz`` and (unless ``scale=False``, then zeros) the rounding scale.
+
+    ``derivative=False`` skips the second stage solve of implicit methods (dM is then NaN).
+    """
     check_model(model)
     z = np.atleast_1d(np.asarray(z, dtype=float))
     if isinstance(method, Composition):
         flat = method.flattened()
         if isinstance(flat.base, Splitting):
-            return transfer_jet(_as_splitting(flat), z, model, scale)
-        return _composition_jet(flat, z, model)
+            return transfer_jet(_as_splitting(flat), z, model, scale, derivative)
+        return _composition_jet(flat, z, model, derivative)
     if isinstance(method, Splitting):
         if model == "saddle":
             return _euler_factor_jet(method, z)
         return _splitting_jet(method, z, model, scale)
     if isinstance(method, (RungeKutta, PartitionedRK)):
-        return _prk_jet(method.as_prk(), z, model)
+        return _prk_jet(method.as_prk(), z, model, derivative)
     raise TypeError(f"not a method: {type(method).__name__}")
 
 
@@ -96,15 +100,18 @@ def _batched_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         return out
 
 
-def _prk_jet(prk: PartitionedRK, z: np.ndarray, model: str) -> Jet:
+def _prk_jet(prk: PartitionedRK, z: np.ndarray, model: str, derivative: bool = True) -> Jet:
     K, E, B = stage_operator(prk, model)
     n2 = K.shape[0]
     S = np.eye(n2)[None, :, :] - z[:, None, None] * K[None, :, :]
     X = _batched_solve(S, np.broadcast_to(E, (z.size, n2, 2)).copy())
-    dX = _batched_solve(S, K[None, :, :] @ X)
     BX = B[None, :, :] @ X
     M = np.eye(2)[None, :, :] + z[:, None, None] * BX
-    dM = BX + z[:, None, None] * (B[None, :, :] @ dX)
+    if derivative:
+        dX = _batched_solve(S, K[None, :, :] @ X)
+        dM = BX + z[:, None, None] * (B[None, :, :] @ dX)
+    else:
+        dM = np.full_like(M, np.nan)
     absterms = np.abs(z)[:, None, None] * (np.abs(B)[None, :, :] @ np.abs(X))
     scale = 2.0 + absterms[:, 0, 0] + absterms[:, 1, 1]
     return Jet(M, dM, scale)
@@ -197,12 +204,13 @@ def _euler_factor_jet(method: Splitting, z: np.ndarray) -> Jet:
     return Jet(M, dM, np.abs(mq) + np.abs(mp))
 
 
-def _composition_jet(method: Composition, z: np.ndarray, model: str) -> Jet:
+def _composition_jet(method: Composition, z: np.ndarray, model: str,
+                     derivative: bool = True) -> Jet:
     """Product of base jets; the rounding scale is the first-order sandwich
     ``sum_k ||M_n..M_{k+1}|| scale_k ||M_{k-1}..M_1||`` (Frobenius norms), which keeps
     the cancellation that an entrywise absolute product would throw away."""
     g = method.weights
-    base = transfer_jet(method.base, np.outer(g, z).ravel(), model)
+    base = transfer_jet(method.base, np.outer(g, z).ravel(), model, derivative=derivative)
     n = z.size
     Mb = base.M.reshape(g.size, n, 2, 2)
     dMb = base.dM.reshape(g.size, n, 2, 2)

@@ -222,3 +222,55 @@ def test_small_cases_confirmed():
     with mp.workdps(DPS):
         M = mp_transfer("symplectic-euler", dps=DPS)(mp.mpf("0.5"), "saddle")
         assert M[0, 0] == 2 and M[1, 1] == mp.mpf("0.5")  # 1/(1-z), 1-z: the paper's (3.x)
+
+
+# ---- Printed formulas (helper-checked with exact sympy as well) -----------------------
+
+
+def test_gamma2_sign_printed_wrong():
+    """Paper: gamma_2 = 2^(1/3)/(2 - 2^(1/3)). The triple jump needs 2 gamma_1 + gamma_2 = 1,
+    so gamma_2 = -2^(1/3)/(2 - 2^(1/3)) < 0: the printed sign is wrong."""
+    with mp.workdps(DPS):
+        g1, g2 = _gammas()
+        assert abs(2 * g1 - g2 - 1) < mp.mpf(10) ** -45  # with the corrected sign
+        assert abs(2 * g1 + g2 - 1) > 1
+
+
+def test_composition_polynomial_z4_coefficient_is_one_24th():
+    """M_qq(z) of the triple jump of Verlet is a polynomial of degree 6; its z^2 and z^6
+    coefficients match the paper's (-1/2 and -g1^3 g2 (g1+g2)^2 / 8 with the corrected
+    g2), but the z^4 coefficient is exactly 1/24, not g1^2 g2^2 (5 g1 + 4 g2) / 4."""
+    M = osc("yoshida4")
+    with mp.workdps(DPS):
+        g1, g2 = _gammas()
+        g2 = -g2
+        zs = [mp.mpf(k) / 7 for k in range(1, 8)]
+        V = mp.matrix([[z**j for j in range(7)] for z in zs])
+        coef = mp.lu_solve(V, mp.matrix([M(z)[0, 0] for z in zs]))
+        assert abs(coef[0] - 1) < mp.mpf(10) ** -40
+        assert abs(coef[2] + mp.mpf(1) / 2) < mp.mpf(10) ** -40
+        assert abs(coef[4] - mp.mpf(1) / 24) < mp.mpf(10) ** -40
+        assert abs(coef[6] + g1**3 * g2 * (g1 + g2) ** 2 / 8) < mp.mpf(10) ** -40
+        assert abs(coef[4] - g1**2 * g2**2 * (5 * g1 + 4 * g2) / 4) > mp.mpf("0.1")
+
+
+@pytest.mark.parametrize("s", [3, 4, 6])
+def test_lobatto_iiib_w_transform_corner_printed_wrong(s):
+    """Eq. (2.18): X of Lobatto IIIB has -xi_{s-1} in its corner (row s-1, column s). With
+    W[i, k] = sqrt(2k+1) P_k(2 c_i - 1) the corner is -xi_{s-1} (2s-1)/(s-1) (the rest of X
+    as printed), computed here as W^-1 A W at 50 digits; IIIA's X (2.17) is confirmed."""
+    with mp.workdps(DPS):
+        A_a, b, c = mpref.lobatto_IIIA_tableau(s)
+        A_b, _, _ = mpref.lobatto_IIIB_tableau(s)
+        W = mp.matrix(s, s)
+        for i in range(s):
+            for k in range(s):
+                W[i, k] = mp.sqrt(2 * k + 1) * mp.legendre(k, 2 * c[i] - 1)
+        X_a = mp.inverse(W) * A_a * W
+        X_b = mp.inverse(W) * A_b * W
+        xi = 1 / (2 * mp.sqrt(4 * (s - 1) ** 2 - 1))
+        tiny = mp.mpf(10) ** -40
+        assert abs(X_a[s - 1, s - 2] - xi) < tiny and abs(X_a[s - 2, s - 1]) < tiny
+        assert abs(X_b[s - 1, s - 2]) < tiny
+        assert abs(X_b[s - 2, s - 1] + xi * (2 * s - 1) / (s - 1)) < tiny
+        assert abs(X_b[s - 2, s - 1] + xi) > mp.mpf("0.01")

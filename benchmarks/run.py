@@ -1,0 +1,224 @@
+"""stepsafe benchmarks: every figure measured side by side in one run, printed as a table.
+
+    pip install '.[bench]' && python benchmarks/run.py
+
+1. Peer (nodepy) on the tasks both do: the imaginary-axis stability interval and the
+   stability function R(iy) of rk4, Gauss s = 2..5 and Lobatto IIIA s = 3..5; time for
+   both and accuracy against mpmath (30 digits). Goal: >= 100x faster at equal or better
+   accuracy. nodepy gets the same float tableaux where it has no built-in method.
+2. Region cost: warm time of ``find_region`` (three models) for every library method and
+   for the families s = 2..20. Goal: < 10 ms per model for library methods; cost growing no
+   faster than s^3 (log-log slope).
+3. Scale: ``advise`` over 10^6 frequencies.
+4. Start-up: ``stepsafe check`` on a scene file and ``stepsafe advise`` on a built-in, as
+   ratios to ``python -c "import numpy"`` measured in the same run. Goals: 2x and 3x.
+
+Timings are medians of repeated runs; the machine is printed with the table. Exit code 0
+(a benchmark reports, it does not fail).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from stepsafe.advice import Modes, advise  # noqa: E402
+from stepsafe.families import gauss, lobatto3a, lobatto3ab  # noqa: E402
+from stepsafe.library import builtin_names, resolve  # noqa: E402
+from stepsafe.methods import RungeKutta  # noqa: E402
+from stepsafe.regions import classical_interval, find_region  # noqa: E402
+from stepsafe.transfer import transfer_matrix  # noqa: E402
+
+ROWS: list[tuple[str, str, str, str]] = []
+
+
+def row(figure: str, value: str, ratio: str = "", goal: str = "") -> None:
+    ROWS.append((figure, value, ratio, goal))
+    print(f"  {figure:58s} {value:>22s} {ratio:>10s}  {goal}", flush=True)
+
+
+def timed(fn, repeat: int = 7, warm: bool = True) -> float:
+    if warm:
+        fn()
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+# ------------------------------------------------------------------ 1. nodepy side by side
+
+
+def _mp_R(A, b, y):
+    import mpmath as mp
+
+    s = len(b)
+    Am = mp.matrix([[mp.mpf(float(x)) for x in r] for r in A])
+    e = mp.matrix([1] * s)
+    bm = mp.matrix([mp.mpf(float(x)) for x in b]).T
+    w = mp.mpc(0, y)
+    num = mp.det(mp.eye(s) - w * Am + w * e * bm)
+    return num / mp.det(mp.eye(s) - w * Am)
+
+
+def stepsafe_R(method, y):
+    """R(iy) from the oscillator transfer matrix: M (1, i) = R(iy) (1, i) for RK methods."""
+    M = transfer_matrix(method, y, "oscillator")
+    return M[:, 0, 0] + 1j * M[:, 0, 1]
+
+
+def bench_nodepy() -> None:
+    try:
+        from nodepy import runge_kutta_method as rkm
+        from nodepy import stability_function as sf
+    except ImportError:
+        row("nodepy comparison", "skipped", "", "pip install '.[bench]'")
+        return
+    import mpmath as mp
+
+    rk4 = resolve("rk4")[0]
+    cases = [("rk4", rk4, rkm.loadRKM("RK44"), 2 * math.sqrt(2))]
+    for s in (2, 3, 4, 5):
+        g = gauss(s)
+        peer = rkm.loadRKM(f"GL{s}") if s <= 3 else rkm.RungeKuttaMethod(g.A, g.b)
+        cases.append((f"gauss-s{s}", g, peer, math.inf))
+    for s in (3, 4, 5):
+        A, b, c = lobatto3a(s)
+        m = RungeKutta(A, b, c, name=f"lobatto3a-s{s}", order=2 * s - 2)
+        peer = rkm.loadRKM("LobattoIIIA3") if s == 3 else rkm.RungeKuttaMethod(A, b)
+        cases.append((m.name, m, peer, math.inf))
+    y = np.linspace(0.01, 10.0, 1000)
+    y_ref = y[::50]
+    speed = []
+    for name, ours, peer, exact in cases:
+        def ours_interval(ours=ours):
+            iv = classical_interval(ours, zmax=10.0)
+            return iv[0].hi if iv and iv[0].lo == 0.0 else 0.0
+
+        def peer_interval(peer=peer):
+            p, q = peer.stability_function()
+            return sf.imaginary_stability_interval(p, q)
+
+        t_ours = timed(ours_interval, repeat=5)
+        t_peer = timed(peer_interval, repeat=3)
+        v_ours = ours_interval()
+        v_ours = math.inf if v_ours is None else v_ours
+        v_peer = float(peer_interval())
+        speed.append(t_peer / t_ours)
+        def err(v, exact=exact):
+            if math.isinf(exact):
+                return "right (unbounded)" if math.isinf(v) else f"WRONG ({v:.6g})"
+            return f"rel err {abs(v - exact) / exact:.1e}"
+        row(f"imag. interval {name}: stepsafe | nodepy",
+            f"{t_ours * 1e3:.2f} | {t_peer * 1e3:.1f} ms", f"{t_peer / t_ours:.0f}x",
+            f"ours {err(v_ours)}; nodepy {err(v_peer)}")
+
+        def ours_R(ours=ours):
+            return stepsafe_R(ours, y)
+
+        def peer_R(peer=peer):
+            p, q = peer.stability_function()
+            pf = np.poly1d(np.array(p.coeffs, dtype=float))
+            qf = np.poly1d(np.array(q.coeffs, dtype=float))
+            return pf(1j * y) / qf(1j * y)
+
+        t_o, t_p = timed(ours_R, repeat=5), timed(peer_R, repeat=3)
+        with mp.workdps(30):
+            ref = np.array([complex(_mp_R(ours.A, ours.b, float(v))) for v in y_ref])
+        e_o = np.max(np.abs(ours_R()[::50] - ref) / np.abs(ref))
+        e_p = np.max(np.abs(peer_R()[::50] - ref) / np.abs(ref))
+        row(f"R(iy) at 1000 points {name}: stepsafe | nodepy",
+            f"{t_o * 1e3:.2f} | {t_p * 1e3:.1f} ms", f"{t_p / t_o:.0f}x",
+            f"max rel err {e_o:.1e} | {e_p:.1e}")
+    row("nodepy comparison, geometric mean speed-up (intervals)",
+        f"{math.exp(np.mean(np.log(speed))):.0f}x", "", "goal >= 100x")
+
+
+# ------------------------------------------------------------------ 2. region cost
+
+
+def bench_regions() -> None:
+    worst = 0.0
+    for name in builtin_names():
+        if name in ("gauss", "lobatto3ab"):
+            continue
+        m = resolve(name)[0]
+        t = timed(lambda m=m: [find_region(m, model) for model in
+                               ("oscillator", "saddle", "inverted")], repeat=5) / 3
+        worst = max(worst, t)
+        row(f"region {name} (per model)", f"{t * 1e3:.1f} ms", f"{t / 0.01:.2f}x goal",
+            "goal < 10 ms")
+    row("region, slowest library method (per model)", f"{worst * 1e3:.1f} ms",
+        f"{worst / 0.01:.2f}x goal", "goal < 10 ms")
+    for family, build in (("gauss", gauss), ("lobatto3ab", lobatto3ab)):
+        stages, times = [], []
+        for s in (2, 4, 6, 8, 12, 16, 20):
+            m = build(s)
+            t = timed(lambda m=m: find_region(m, "oscillator"), repeat=3)
+            stages.append(s)
+            times.append(t)
+        slope = np.polyfit(np.log(stages), np.log(times), 1)[0]
+        row(f"region {family} s=2..20 (oscillator): s=2 | s=20",
+            f"{times[0] * 1e3:.1f} | {times[-1] * 1e3:.1f} ms", f"slope {slope:.2f}",
+            "goal: slope <= 3")
+
+
+# ------------------------------------------------------------------ 3. scale
+
+
+def bench_scale() -> None:
+    betas = np.exp(np.random.default_rng(0).uniform(np.log(1e-3), np.log(1e3), 10**6))
+    m = resolve("pefrl")[0]
+    t = timed(lambda: advise(m, Modes.from_arrays({"oscillator": betas})), repeat=3)
+    row("advise, 10^6 frequencies (pefrl)", f"{t * 1e3:.0f} ms", "", "goal well under 1 s")
+    row("10^5-dof sparse stiffness; 200-dof coupled Hessian", "not measured", "",
+        "needs whole-system input (not implemented yet)")
+
+
+# ------------------------------------------------------------------ 4. start-up
+
+
+def bench_startup() -> None:
+    py = sys.executable
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+
+    def run(args):
+        return lambda: subprocess.run(args, capture_output=True, cwd=ROOT, env=env)
+
+    base = timed(run([py, "-c", "import numpy"]), repeat=11)
+    check = timed(run([py, "-m", "stepsafe", "check", "examples/scene.yaml"]), repeat=11)
+    adv = timed(run([py, "-m", "stepsafe", "advise", "--method", "yoshida4", "--beta", "3.2"]),
+                repeat=11)
+    row("python -c 'import numpy'", f"{base * 1e3:.0f} ms", "1.00x", "")
+    row("stepsafe check examples/scene.yaml", f"{check * 1e3:.0f} ms", f"{check / base:.2f}x",
+        "goal <= 2x")
+    row("stepsafe advise --method yoshida4 --beta 3.2", f"{adv * 1e3:.0f} ms",
+        f"{adv / base:.2f}x", "goal <= 3x")
+
+
+def main() -> int:
+    print(f"stepsafe benchmarks on {platform.machine()} {platform.processor() or ''}, "
+          f"{os.cpu_count()} cores, Python {platform.python_version()}, numpy {np.__version__}")
+    print(f"  {'figure':58s} {'value':>22s} {'ratio':>10s}  goal / accuracy")
+    bench_nodepy()
+    bench_regions()
+    bench_scale()
+    bench_startup()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
