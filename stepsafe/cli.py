@@ -145,8 +145,11 @@ def _coefficients(method) -> dict:
 @click.option("--zmax", type=float, default=None, metavar="Z",
               help="Search z = beta*h up to Z  [default: 10].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
+@click.option("--verify", is_flag=True,
+              help="Recompute every reported point with mpmath (40 digits); exit 3 if one is "
+                   "off by more than 1e-10 relative.")
 def region_cmd(method: str, stages: int | None, base: str | None, model: str,
-               zmax: float | None, as_json: bool) -> None:
+               zmax: float | None, as_json: bool, verify: bool) -> None:
     """Every z = beta*h interval where METHOD preserves the equilibrium's structure.
 
     Reports the first boundary z* (the end of the interval from 0: the largest safe
@@ -162,19 +165,28 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
     m, entry = _resolve(method, stages, base)
     models = MODELS if model == "all" else (model,)
     zmax = DEFAULT_ZMAX if zmax is None else zmax
-    results = {name: region_data(find_region(m, name, zmax)) for name in models}
+    regions = {name: find_region(m, name, zmax) for name in models}
+    results = {name: region_data(r) for name, r in regions.items()}
     head = method_data(m, entry)
+    verdict = _verify(method, stages, base, regions) if verify else None
     if as_json:
-        print_json({"method": head["method"], "title": head["title"], "kind": head["kind"],
-                    "stages": head["stages"], "order": head["order"],
-                    "symplectic": head["symplectic"], "models": results})
+        out = {"method": head["method"], "title": head["title"], "kind": head["kind"],
+               "stages": head["stages"], "order": head["order"],
+               "symplectic": head["symplectic"], "models": results}
+        print_json({**out, "verify": verdict} if verdict else out)
     else:
         print_region(head, results)
+        if verdict:
+            _print_verify(verdict)
+    _exit_if_unverified(verdict)
 
 
 def scene_options(func):
     """Options shared by advise and check; they override the scene file's values."""
     opts = [
+        click.option("--verify", is_flag=True,
+                     help="Recompute every boundary used with mpmath (40 digits) and report "
+                          "the largest discrepancy; exit 3 if one exceeds 1e-10."),
         click.option("--json", "as_json", is_flag=True, help="Print one JSON object."),
         click.option("--zmax", type=float, default=None, metavar="Z",
                      help="Analyse z = beta*h up to Z (islands beyond are not reported) "
@@ -235,7 +247,7 @@ def _scene_inputs(scene_file, method_name, stages, base, beta, saddle_beta, inve
     margin = validate_margin(margin if margin is not None else
                              (scene.margin if scene.margin is not None else 1.0))
     zmax = zmax if zmax is not None else (scene.zmax or DEFAULT_ZMAX)
-    return method, entry, modes, margin, zmax, scene
+    return method, entry, modes, margin, zmax, scene, ref
 
 
 def _concat(values):
@@ -258,7 +270,7 @@ def _input_error(message: str):
               help="Also require |phase error| <= T (|growth-rate error| for saddles).")
 @scene_options
 def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, beta,
-               saddle_beta, inverted_beta, modes_file, margin, zmax, as_json) -> None:
+               saddle_beta, inverted_beta, modes_file, margin, zmax, as_json, verify) -> None:
     """Safe step sizes h for your frequencies.
 
     Safe h keep every mode's structure: beta*h lies in the method's region for that mode's
@@ -276,13 +288,14 @@ def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, be
 
     if len(scene_files) > 1:
         raise _input_error("advise takes at most one scene file")
-    method, entry, modes, margin, zmax, _ = _scene_inputs(
+    method, entry, modes, margin, zmax, _, ref = _scene_inputs(
         scene_files[0] if scene_files else None, method_name, stages, base, beta, saddle_beta,
         inverted_beta, modes_file,
         margin, zmax)
     if tol_phase is None and tol_energy is None:
         result = advise(method, modes, margin, zmax, entry.name)
         data = advice_data(result)
+        regions = result.regions
     else:
         from .report import tradeoff_data
         from .tradeoff import Tolerance, tradeoff
@@ -293,16 +306,23 @@ def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, be
             if not (0 < t.value < float("inf")):
                 raise _input_error(f"--tol-{t.kind} must be a positive finite number, "
                                    f"got {t.value}")
-        data = tradeoff_data(tradeoff(method, modes, tols, margin, entry.name,
-                                      entry.evaluations))
+        res = tradeoff(method, modes, tols, margin, entry.name, entry.evaluations)
+        data = tradeoff_data(res)
+        regions = res.advice.regions
+    verdict = _verify(ref.name, ref.stages, ref.base, regions) if verify else None
+    if verdict:
+        data["verify"] = verdict
     print_json(data) if as_json else print_advice(data)
+    if verdict and not as_json:
+        _print_verify(verdict)
+    _exit_if_unverified(verdict)
 
 
 @main.command("check")
 @click.option("--h", "h", type=float, default=None, metavar="H", help="The step to check.")
 @scene_options
 def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inverted_beta,
-              modes_file, margin, zmax, as_json) -> None:
+              modes_file, margin, zmax, as_json, verify) -> None:
     """Fail (exit 1) when the step h loses some mode's structure; for CI.
 
     Exit 0: every mode is preserved at h (with the margin); 1: not, with the reason for
@@ -317,9 +337,9 @@ def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inve
     from .advice import check_step
     from .report import check_data, print_check, print_json
 
-    outputs, unsafe = [], False
+    outputs, unsafe, verdicts = [], False, []
     for scene_file in scene_files or (None,):
-        method, entry, modes, margin_, zmax_, scene = _scene_inputs(
+        method, entry, modes, margin_, zmax_, scene, ref = _scene_inputs(
             scene_file, method_name, stages, base, beta, saddle_beta, inverted_beta,
             modes_file, margin, zmax)
         step = h if h is not None else scene.h
@@ -330,14 +350,57 @@ def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inve
         data = check_data(result)
         if scene_file:
             data["scene"] = scene_file
+        if verify:
+            top = max(float(b.max()) for b in modes.betas.values()) * step / margin_
+            data["verify"] = _verify(ref.name, ref.stages, ref.base, result.advice.regions,
+                                     up_to=1.05 * top)
+            verdicts.append(data["verify"])
         outputs.append(data)
         unsafe |= not result.safe
         if not as_json:
             print_check(data)
+            if verify:
+                _print_verify(data["verify"])
     if as_json:
         print_json(outputs[0] if len(outputs) == 1 else outputs)
+    for verdict in verdicts:
+        _exit_if_unverified(verdict)
     if unsafe:
         sys.exit(EXIT_UNSAFE)
+
+
+def _verify(name, stages, base, regions, up_to=None) -> dict:
+    """Run the mpmath verification of the regions' points; a JSON-ready verdict."""
+    from .verify import DPS, TOLERANCE, verify_regions
+
+    checks = verify_regions(name, stages, base, regions, up_to=up_to)
+    worst = max((c.discrepancy for c in checks), default=0.0)
+    failed = [{"model": c.model, "z": c.point.z, "kind": c.point.kind,
+               "reference": c.reference,
+               "discrepancy": None if c.discrepancy == float("inf") else c.discrepancy}
+              for c in checks if not c.ok]
+    return {"digits": DPS, "points": len(checks),
+            "largest_discrepancy": None if worst == float("inf") else worst,
+            "tolerance": TOLERANCE, "ok": not failed, "failed": failed}
+
+
+def _print_verify(verdict: dict) -> None:
+    worst = verdict["largest_discrepancy"]
+    worst_text = "not confirmed" if worst is None else f"{worst:.1e}"
+    click.echo(f"verify: {verdict['points']} point(s) recomputed with mpmath at "
+               f"{verdict['digits']} digits; largest relative discrepancy {worst_text} "
+               f"({'ok' if verdict['ok'] else 'FAILED'}; allowed: {verdict['tolerance']:g} plus "
+               "each point's stated uncertainty)")
+    for f in verdict["failed"]:
+        click.echo(f"  {f['model']} {f['kind']} at {f['z']!r}: reference {f['reference']!r}",
+                   err=True)
+
+
+def _exit_if_unverified(verdict) -> None:
+    if verdict and not verdict["ok"]:
+        click.echo("stepsafe: error: verification failed: a float answer is off by more than "
+                   f"{verdict['tolerance']:g} (rerun with --debug and report it)", err=True)
+        sys.exit(EXIT_INTERNAL)
 
 
 @main.command("schema")

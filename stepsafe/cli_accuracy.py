@@ -79,7 +79,8 @@ def _f(x) -> float | None:
               help="Largest relative energy error (vibrations).")
 @scene_options
 def compare_cmd(names, use_all, tol_phase, tol_energy, scene_files, method_name, stages, base,
-                beta, saddle_beta, inverted_beta, modes_file, margin, zmax, as_json) -> None:
+                beta, saddle_beta, inverted_beta, modes_file, margin, zmax, as_json,
+                verify) -> None:
     """Rank methods by cost per unit of simulated time for your frequencies.
 
     For each method: the first boundary, the largest safe h, the h that meets the
@@ -98,6 +99,8 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, scene_files, method_name,
 
     if scene_files or method_name:
         raise _input_error("compare takes --methods or --all, not a method or scene")
+    if verify:
+        raise _input_error("--verify applies to region, advise and check (run it per method)")
     modes = Modes.from_arrays({m: v for m, v in
                                (("oscillator", beta), ("saddle", saddle_beta),
                                 ("inverted", inverted_beta)) if v} or {})

@@ -11,11 +11,11 @@ import functools
 import math
 
 import mpmath as mp
-import mpref
 import pytest
 from reference_methods import mp_transfer
 from support import method
 
+from stepsafe import reference as mpref
 from stepsafe.regions import find_region
 
 DPS = 50

@@ -12,16 +12,18 @@ missed.
 from __future__ import annotations
 
 import mpmath as mp
-import mpref
 import numpy as np
 import pytest
 from reference_methods import mp_transfer
 from support import method
 
+from stepsafe import reference as mpref
 from stepsafe.library import builtin_names
 from stepsafe.models import MODELS
-from stepsafe.regions import find_region, orientation
+from stepsafe.regions import find_region
 from stepsafe.transfer import transfer_jet
+from stepsafe.verify import check_point
+from stepsafe.verify import points as _points
 
 DPS = 50
 REL = 1e-12
@@ -29,55 +31,9 @@ LIBRARY = [n for n in builtin_names() if n not in ("gauss", "lobatto3ab", "rk4")
 FAMILIES = [("gauss", s) for s in (1, 2, 3, 4, 6)] + [("lobatto3ab", s) for s in (2, 3, 4, 5, 6)]
 
 
-def _tr(M):
-    return M[0, 0] + M[1, 1]
-
-
 def _check_point(Mfun, model: str, p, zmax: float) -> None:
-    z = p.z
-    width = max(1e-9 * z, 4 * p.uncertainty)
-    lo, hi = mp.mpf(z - width), mp.mpf(min(z + width, zmax))
-    if p.kind == "root":
-        level = 2 if "+2" in p.detail else -2
-
-        def f(x):
-            return _tr(Mfun(x, model)) - level
-    elif p.kind == "orientation":
-        def f(x):
-            M = Mfun(x, model)
-            arr = np.array([[float(M[0, 0]), float(M[0, 1])], [float(M[1, 0]), float(M[1, 1])]])
-            return mp.mpf(orientation(arr[None], model)[0])
-    elif p.kind == "pole":
-        # simple or multiple (palindromic compositions repeat a substep's pole): check the
-        # blow-up, |1/tr M| ~ |z - z0|^k, rather than a sign change
-        def inv(x):
-            try:
-                return abs(1 / _tr(Mfun(x, model)))
-            except ZeroDivisionError:
-                return mp.mpf(0)
-
-        near = max(inv(mp.mpf(z) * (1 + s * mp.mpf("1e-13"))) for s in (-1, 1))
-        far = min(inv(mp.mpf(z) * (1 + s * mp.mpf("1e-6"))) for s in (-1, 1))
-        assert near <= 1e-5 * far, (p, near, far)
-        return
-    else:  # resonance: an extremum of tr M where |tr M| = 2
-        step = mp.mpf(10) ** (-DPS // 3)  # central difference at the working precision
-
-        def f(x):
-            return (_tr(Mfun(x + step, model)) - _tr(Mfun(x - step, model))) / (2 * step)
-    f_lo, f_hi = f(lo), f(hi)
-    assert f_lo * f_hi <= 0, (p, f_lo, f_hi)
-    root = mpref.refine_root(f, lo, hi) if f_lo * f_hi < 0 else (lo if f_lo == 0 else hi)
-    assert abs(root - z) <= REL * abs(root) + p.uncertainty, (p, root)
-    if p.kind == "resonance":
-        assert abs(abs(_tr(Mfun(root, model))) - 2) < mp.mpf(10) ** -8, p
-
-
-def _points(region):
-    pts = {id(p): p for iv in region.intervals + region.reversed
-           for p in (iv.lo_point, iv.hi_point) if p is not None}
-    pts.update({id(p): p for p in region.resonances + region.poles})
-    return list(pts.values())
+    check = check_point(Mfun, model, p, zmax, DPS)
+    assert check.ok and check.discrepancy <= REL + p.uncertainty / p.z, check
 
 
 def _dense_crossings(m, model, zmax, poles):

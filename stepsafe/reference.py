@@ -1,7 +1,7 @@
-"""Independent high-precision (mpmath) reference for stepsafe.
+"""Independent high-precision (mpmath) reference for stepsafe (``--verify`` and the tests).
 
 Self-contained: imports only mpmath and the standard library and shares no
-code with the float64 package.  Every function works at the caller's
+code with the float64 path.  Every function works at the caller's
 precision (``with mp.workdps(60): ...``).
 
 Conventions: phase space x = (q, p); a method applied to x' = L x with step z
@@ -52,8 +52,13 @@ def _real_roots(coeffs: list, n: int) -> list:
     """Sorted real roots of sum coeffs[k] x^k (all roots real and simple)."""
     if len(coeffs) < 2:
         return []
-    roots = mp.polyroots(coeffs[::-1], maxsteps=200 + 20 * n,
-                         extraprec=mp.prec + 20 * n)
+    import inspect
+
+    kwargs = dict(maxsteps=200 + 20 * n, extraprec=mp.prec + 20 * n)
+    if "asc" in inspect.signature(mp.polyroots).parameters:  # mpmath >= 1.4
+        roots = mp.polyroots(coeffs, asc=True, **kwargs)
+    else:
+        roots = mp.polyroots(coeffs[::-1], **kwargs)
     return sorted(mp.re(r) for r in roots)
 
 

@@ -1,0 +1,210 @@
+"""``--verify``: recompute every reported point with mpmath from the method's coefficients.
+
+The method is rebuilt at high precision from its definition, independently of the float64
+path: method files are re-read with the mpmath backend of the expression evaluator (decimal
+literals exactly), family tableaux come from :mod:`stepsafe.reference` (nodes and weights
+at raised precision), recipes from their formulas; M(z) is then computed by
+:mod:`stepsafe.reference` alone (stage equations solved with mpmath). Each reported point is
+re-derived in a bracket around it:
+
+* a boundary (``root``): a sign change of ``tr M -+ 2``, refined at the working precision;
+* an ``orientation`` switch: a sign change of the orientation indicator;
+* a ``pole``: ``|1/tr M|`` vanishes at it (simple or multiple: palindromic compositions
+  repeat a substep's pole);
+* a ``resonance``: an extremum of ``tr M`` (root of a central difference) at ``|tr M| = 2``
+  within 1e-8; its float64 ``uncertainty`` is part of the allowed discrepancy.
+
+The discrepancy of a point is ``|z_float - z_mp| / z_mp``, less its stated uncertainty.
+Imports mpmath, so only the commands run with ``--verify`` (and the tests) load it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from functools import lru_cache
+from typing import Any, NamedTuple
+
+from .regions import Point, Region
+
+DPS = 40
+TOLERANCE = 1e-10
+
+
+class MPMethod(NamedTuple):
+    kind: str  # "prk", "splitting", "composition"
+    order: int | None
+    data: dict[str, Any]
+
+
+class Check(NamedTuple):
+    model: str
+    point: Point
+    reference: float | None  # the mpmath location (None when no sign change was found)
+    discrepancy: float  # |z_float - z_mp| / z_mp; inf when not confirmed
+    allowed: float  # TOLERANCE plus the point's stated uncertainty, relative
+
+    @property
+    def ok(self) -> bool:
+        return self.discrepancy <= self.allowed
+
+
+def _rows(A) -> list[list]:
+    import mpmath as mp
+
+    if isinstance(A, mp.matrix):
+        return [[A[i, j] for j in range(A.cols)] for i in range(A.rows)]
+    return [list(r) for r in A]
+
+
+@lru_cache(maxsize=64)
+def mp_method(name: str, stages: int | None = None, base: str | None = None,
+              dps: int = DPS) -> MPMethod:
+    """The method at ``dps`` digits (same resolution rules as :func:`library.resolve`)."""
+    import mpmath as mp
+
+    from . import reference
+    from .expressions import mpmath_backend
+    from .library import FAMILIES, _find_file, load_file
+
+    with mp.workdps(dps):
+        if name in FAMILIES:
+            if name == "gauss":
+                A, b, _ = reference.gauss_tableau(stages)
+                A, b = _rows(A), list(b)
+                out = MPMethod("prk", 2 * stages, {"A_q": A, "b_q": b, "A_p": A, "b_p": b})
+            else:
+                A, b, _ = reference.lobatto_IIIA_tableau(stages)
+                B, _, _ = reference.lobatto_IIIB_tableau(stages)
+                out = MPMethod("prk", 2 * stages - 2, {"A_q": _rows(A), "b_q": list(b),
+                                                       "A_p": _rows(B), "b_p": list(b)})
+        else:
+            data = load_file(_find_file(name), backend=mpmath_backend())
+            co = dict(data.coefficients)
+            if data.kind == "composition":
+                ref = data.base
+                inner = (mp_method(ref, dps=dps) if isinstance(ref, str)
+                         else mp_method(ref["name"], ref.get("stages"), dps=dps))
+                if data.recipe:
+                    co["weights"] = _recipe_weights(data.recipe, inner.order)
+                out = MPMethod("composition", data.order, {"base": inner,
+                                                           "weights": co["weights"]})
+            elif data.kind in ("rk", "prk"):
+                if data.kind == "rk":
+                    co = {"A_q": co["A"], "b_q": co["b"], "A_p": co["A"], "b_p": co["b"]}
+                out = MPMethod("prk", data.order, co)
+            else:
+                out = MPMethod("splitting", data.order, co)
+        if base is not None:
+            if out.kind != "composition":
+                raise ValueError("--base applies to compositions")
+            out = MPMethod("composition", None, {"base": mp_method(base, dps=dps),
+                                                 "weights": out.data["weights"]})
+    return out
+
+
+def _recipe_weights(recipe: str, base_order: int) -> list:
+    import mpmath as mp
+
+    k = base_order + 1
+    if recipe == "triple-jump":
+        g1 = 1 / (2 - mp.root(2, k))
+        return [g1, -mp.root(2, k) * g1, g1]
+    p = 1 / (4 - mp.root(4, k))
+    return [p, p, 1 - 4 * p, p, p]
+
+
+def mp_transfer(m: MPMethod) -> Callable:
+    """``Mfun(z, model)``: the mpmath transfer matrix of ``m``."""
+    from . import reference
+
+    if m.kind == "composition":
+        inner = mp_transfer(m.data["base"])
+        weights = m.data["weights"]
+        return lambda z, model: reference.transfer_matrix_composition(
+            lambda x: inner(x, model), weights, z)
+    if m.kind == "splitting":
+        d, k = m.data["drift"], m.data["kick"]
+        return lambda z, model: reference.transfer_matrix_splitting(d, k, z, model)
+    A_q, b_q, A_p, b_p = (m.data[key] for key in ("A_q", "b_q", "A_p", "b_p"))
+    return lambda z, model: reference.transfer_matrix_prk(A_q, b_q, A_p, b_p, z, model)
+
+
+def _tr(M):
+    return M[0, 0] + M[1, 1]
+
+
+def check_point(Mfun: Callable, model: str, p: Point, zmax: float, dps: int = DPS) -> Check:
+    """Re-derive one reported point at ``dps`` digits (see the module docstring)."""
+    import mpmath as mp
+
+    from . import reference
+
+    allowed = TOLERANCE + p.uncertainty / abs(p.z)
+    with mp.workdps(dps):
+        z = p.z
+        width = max(1e-9 * z, 4 * p.uncertainty)
+        lo, hi = mp.mpf(z - width), mp.mpf(min(z + width, zmax))
+        if p.kind == "pole":
+            def inv(x):
+                try:
+                    return abs(1 / _tr(Mfun(x, model)))
+                except ZeroDivisionError:
+                    return mp.mpf(0)
+
+            near = max(inv(mp.mpf(z) * (1 + s * mp.mpf("1e-13"))) for s in (-1, 1))
+            far = min(inv(mp.mpf(z) * (1 + s * mp.mpf("1e-6"))) for s in (-1, 1))
+            ok = near <= 1e-5 * far
+            return Check(model, p, z if ok else None, 0.0 if ok else float("inf"), allowed)
+        if p.kind == "root":
+            level = 2 if "+2" in p.detail else -2
+
+            def f(x):
+                return _tr(Mfun(x, model)) - level
+        elif p.kind == "orientation":
+            def f(x):
+                M = Mfun(x, model)
+                if model == "saddle":
+                    return M[0, 0] - M[1, 1]
+                t = _tr(M)
+                mu = t / 2 + mp.sqrt(max(t * t / 4 - 1, 0))
+                return M[0, 1] * (mu - M[0, 0]) + M[1, 0] * (mu - M[1, 1])
+        else:
+            step = mp.mpf(10) ** (-dps // 3)
+
+            def f(x):
+                return (_tr(Mfun(x + step, model)) - _tr(Mfun(x - step, model))) / (2 * step)
+        f_lo, f_hi = f(lo), f(hi)
+        if f_lo * f_hi > 0:
+            return Check(model, p, None, float("inf"), allowed)
+        root = reference.refine_root(f, lo, hi) if f_lo * f_hi < 0 else (
+            lo if f_lo == 0 else hi)
+        if p.kind == "resonance" and abs(abs(_tr(Mfun(root, model))) - 2) > mp.mpf(10) ** -8:
+            return Check(model, p, float(root), float("inf"), allowed)
+        return Check(model, p, float(root), float(abs(root - z) / abs(root)), allowed)
+
+
+def points(region: Region) -> list[Point]:
+    """Every distinct point a region reports (interval ends, resonances, poles)."""
+    found: dict[tuple, Point] = {}
+    for iv in region.intervals + region.reversed:
+        for p in (iv.lo_point, iv.hi_point):
+            if p is not None:
+                found[(p.z, p.kind)] = p
+    for p in region.resonances + region.poles:
+        found[(p.z, p.kind)] = p
+    return sorted(found.values(), key=lambda p: p.z)
+
+
+def verify_regions(name: str, stages: int | None, base: str | None,
+                   regions: dict[str, Region], dps: int = DPS,
+                   up_to: float | None = None) -> list[Check]:
+    """Check every point of every region; with ``up_to``, only the first boundary and the
+    points with z <= up_to (what a check at that z depends on)."""
+    Mfun = mp_transfer(mp_method(name, stages, base, dps))
+    out = []
+    for model, region in regions.items():
+        first = region.first_boundary_point
+        for p in points(region):
+            if up_to is None or p.z <= up_to or p == first:
+                out.append(check_point(Mfun, model, p, region.zmax, dps))
+    return out
