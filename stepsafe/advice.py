@@ -106,6 +106,8 @@ class Gap(NamedTuple):
     a: float
     b: float
     reason: str
+    boundary: float | None = None  # the reported point that starts the gap
+    uncertainty: float = 0.0  # its float64 uncertainty (the gap starts this much below it)
 
 
 def labelled_gaps(region: Region) -> list[Gap]:
@@ -115,17 +117,20 @@ def labelled_gaps(region: Region) -> list[Gap]:
     out: list[Gap] = []
     cursor, why = 0.0, ("not symplectic: never preserved" if not region.symplectic
                         else "not preserved for small z")
+    point: tuple[float | None, float] = (None, 0.0)
     for k, iv in enumerate(region.intervals):
         lo = iv.lo + (iv.lo_point.uncertainty if iv.lo_point else 0.0)
         if lo > cursor:
-            out.append(Gap(cursor, lo, why))
+            out.append(Gap(cursor, lo, why, *point))
         if iv.hi is None:
             cursor, why = region.zmax, f"beyond the analysed range zmax = {region.zmax:.6g}"
+            point = (None, 0.0)
             break
         p = iv.hi_point
         cursor = iv.hi - (p.uncertainty if p else 0.0)
         why = _reason(p, first=k == 0 and iv.lo == 0.0)
-    out.append(Gap(cursor, np.inf, why))
+        point = (iv.hi, p.uncertainty if p else 0.0)
+    out.append(Gap(cursor, np.inf, why, *point))
     return out
 
 
@@ -267,8 +272,12 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
         z_star = region.first_boundary
         for i in idx:
             limit = float(margin * z_star / betas[i]) if z_star is not None else None
-            failures.append(Failure(model, float(betas[i]), float(z[i]),
-                                    gap_list[reason[i]].reason, limit))
+            gap = gap_list[reason[i]]
+            why = gap.reason
+            if gap.boundary is not None and z[i] / margin < gap.boundary:
+                why = (f"within the float64 uncertainty (±{gap.uncertainty:.1g}) below a "
+                       f"boundary, which cannot be certified: {gap.reason}")
+            failures.append(Failure(model, float(betas[i]), float(z[i]), why, limit))
     failures.sort(key=lambda f: -f.z)
     in_primary = adv.h_max is not None and (h < adv.h_max if adv.h_max else False)
     if adv.safe_h and adv.safe_h[0][0] == 0.0 and adv.safe_h[0][1] is None:

@@ -236,8 +236,14 @@ def _hidden_extrema(z, t, dt) -> np.ndarray:
 def _sample(ev: _Evaluator, lo: float, hi: float, dz: float, closed_hi: bool):
     """Sample a pole-free segment, refining cells with hidden extrema; returns z, jet arrays."""
     z = _segment_grid(lo, hi, dz, closed_hi)
-    jet = ev.jet(z)
+    with np.errstate(over="ignore", invalid="ignore"):
+        jet = ev.jet(z)
     t, dt, scale, M = jet.trace, jet.dtrace, jet.scale, jet.M
+    bad = ~np.isfinite(t) | ~np.isfinite(dt) | ~np.isfinite(scale)
+    if bad.any():
+        z_bad = float(z[np.argmax(bad)])
+        raise StepsafeError(f"M(z) overflows float64 at z = {z_bad:.3g} for this method; "
+                            f"analyse a smaller range (--zmax below {z_bad:.3g}, or a smaller h)")
     for _ in range(REFINE_LEVELS):
         cells = _hidden_extrema(z, t, dt)
         if cells.size == 0:

@@ -243,3 +243,24 @@ def test_readme_ci_example_runs():
     assert result.exit_code == 0, result.output
     hooks = yaml.safe_load((ROOT / ".pre-commit-hooks.yaml").read_text())
     assert hooks[0]["entry"] == "stepsafe check"
+
+
+def test_one_ulp_around_a_boundary_is_consistent_with_region():
+    """One ulp above z*: region and check agree it is lost. One ulp below: region puts it
+    inside, within the boundary's stated float64 uncertainty; check refuses to certify it
+    and says so (never a 'safe' that the uncertainty cannot back)."""
+    m = method("pefrl")
+    region = find_region(m, "oscillator")
+    z_star, unc = region.first_boundary, region.first_boundary_point.uncertainty
+    modes = Modes.from_pairs([(1.0, "oscillator")])
+    above = check_step(m, modes, np.nextafter(z_star, np.inf))
+    assert not above.safe and not region.intervals[0].contains(np.nextafter(z_star, np.inf))
+    below = check_step(m, modes, np.nextafter(z_star, 0))
+    assert region.intervals[0].contains(np.nextafter(z_star, 0))
+    assert not below.safe and "uncertainty" in below.failures[0].reason
+    assert check_step(m, modes, z_star - 2 * unc).safe
+
+
+def test_overflow_is_a_clear_error(run):
+    code, _, err = run("check", "--method", "verlet", "--inverted-beta", "1e100", "--h", "1e100")
+    assert code == 2 and "overflows float64" in err
