@@ -102,7 +102,7 @@ def resolve(name: str, stages: int | None = None, base: str | None = None,
                                 f"{', '.join(FAMILIES)}, not to {name!r}")
         path = _find_file(name)
         data = load_file(path)
-        method = _build(data, _depth)
+        method = _build(data, _depth, Path(path).parent)
         entry = _entry(data, path)
     if base is not None:
         method, entry = _swap_base(method, entry, base, _depth)
@@ -142,13 +142,19 @@ def _family(name: str, stages: int | None):
     return method, entry
 
 
-def _build(data, depth: int):
+def _build(data, depth: int, folder: Path):
+    """Float method of a validated file; a base given as a relative path is found next to
+    the file that names it."""
     from .methodfile import build_method
+
+    def local(name: str) -> str:
+        return str(folder / name) if _looks_like_path(name) and not Path(name).is_absolute() \
+            else name
 
     def resolve_base(ref):
         if isinstance(ref, dict):
-            return resolve(ref["name"], ref.get("stages"), _depth=depth + 1)[0]
-        return resolve(ref, _depth=depth + 1)[0]
+            return resolve(local(ref["name"]), ref.get("stages"), _depth=depth + 1)[0]
+        return resolve(local(ref), _depth=depth + 1)[0]
 
     try:
         return build_method(data, resolve_base)

@@ -64,7 +64,7 @@ def mp_method(name: str, stages: int | None = None, base: str | None = None,
 
     from . import reference
     from .expressions import mpmath_backend
-    from .library import FAMILIES, _find_file, load_file
+    from .library import FAMILIES, _find_file, _looks_like_path, load_file
 
     with mp.workdps(dps):
         if name in FAMILIES:
@@ -82,8 +82,12 @@ def mp_method(name: str, stages: int | None = None, base: str | None = None,
             co = dict(data.coefficients)
             if data.kind == "composition":
                 ref = data.base
-                inner = (mp_method(ref, dps=dps) if isinstance(ref, str)
-                         else mp_method(ref["name"], ref.get("stages"), dps=dps))
+                folder = Path(data.where).parent
+                ref_name = ref if isinstance(ref, str) else ref["name"]
+                if _looks_like_path(ref_name) and not Path(ref_name).is_absolute():
+                    ref_name = str(folder / ref_name)
+                inner = mp_method(ref_name, None if isinstance(ref, str) else ref.get("stages"),
+                                  dps=dps)
                 if data.recipe:
                     co["weights"] = _recipe_weights(data.recipe, inner.order)
                 out = MPMethod("composition", data.order, {"base": inner,
