@@ -1,0 +1,113 @@
+"""Extremes: tangencies and near-touches, close boundaries, rounded coefficients, huge z."""
+
+from __future__ import annotations
+
+import math
+
+import mpmath as mp
+import numpy as np
+import pytest
+from support import method
+
+from stepsafe import reference as R
+from stepsafe.methods import Splitting
+from stepsafe.regions import find_region, touches
+
+
+def test_tangency_policy_tells_a_touch_from_a_near_touch():
+    scale = np.array([4.0])
+    assert touches(np.array([-2.0 + 1e-15]), -2.0, scale)[0]
+    assert touches(np.array([-2.0 - 1e-15]), -2.0, scale)[0]
+    assert not touches(np.array([-2.0 + 1e-9]), -2.0, scale)[0]
+    assert not touches(np.array([2.0 + 1e-11]), 2.0, scale)[0]
+
+
+def _dkdkd(a: float) -> Splitting:
+    """Two position-Verlet half steps when a = 1/4 (an exact M = -I tangency at 2 sqrt 2);
+    a = 1/4 + d opens a flip gap about 11.3 |d| wide around it."""
+    return Splitting([a, 1 - 2 * a, a], [0.5, 0.5])
+
+
+def _true_boundaries(a: float):
+    with mp.workdps(50):
+        am = mp.mpf(a)
+
+        def f(z):
+            M = R.transfer_matrix_splitting([am, 1 - 2 * am, am], [mp.mpf(1) / 2] * 2, z,
+                                            "oscillator")
+            return M[0, 0] + M[1, 1] + 2
+
+        h = mp.mpf(10) ** -20
+        zm = R.refine_root(lambda z: (f(z + h) - f(z - h)) / (2 * h), mp.mpf("2.7"),
+                           mp.mpf("2.95"))
+        assert f(zm) < 0
+        return (float(R.refine_root(f, zm - mp.mpf("0.1"), zm)),
+                float(R.refine_root(f, zm, zm + mp.mpf("0.1"))))
+
+
+def test_exact_tangency_is_a_resonance():
+    region = find_region(_dkdkd(0.25), "oscillator")
+    (res,) = [p for p in region.resonances if abs(p.z - 2 * math.sqrt(2)) < 1e-6]
+    assert res.detail == "M = -I" and abs(res.z - 2 * math.sqrt(2)) < 1e-12
+
+
+def test_two_boundaries_1e5_apart_are_both_found():
+    a = 0.25 + 8.8e-7  # gap width ~1e-5 (about 11.3 delta)
+    lo, hi = _true_boundaries(a)
+    assert 5e-6 < hi - lo < 2e-5
+    region = find_region(_dkdkd(a), "oscillator")
+    # near a double root the slope is small: each boundary is right within its stated
+    # float64 uncertainty (here a few 1e-12), which is what check and advise use
+    p = region.first_boundary_point
+    assert p.kind == "root" and abs(p.z - lo) <= 1e-12 * lo + p.uncertainty
+    starts = [(iv.lo, iv.lo_point) for iv, _ in region.islands]
+    assert any(abs(z - hi) <= 1e-12 * hi + q.uncertainty for z, q in starts)
+
+
+def test_two_boundaries_1e6_apart_found_or_covered_by_the_stated_uncertainty():
+    a = 0.25 + 8.8e-8  # gap width ~1e-6
+    lo, hi = _true_boundaries(a)
+    assert 5e-7 < hi - lo < 2e-6
+    region = find_region(_dkdkd(a), "oscillator")
+    p = region.first_boundary_point
+    if p.kind == "root":
+        assert abs(p.z - lo) <= 1e-12 * lo + p.uncertainty
+    else:  # reported as a resonance: its uncertainty must cover the whole gap
+        assert p.kind == "resonance" and p.z - p.uncertainty <= lo and hi <= p.z + p.uncertainty
+
+
+def test_rounded_coefficients_gap_is_reported_as_a_resonance():
+    """bcss3's published 14-digit coefficients turn what is M = -I into a flip gap ~1e-13
+    wide (tr M + 2 = -3.2e-27 at the extremum, 40 digits). The policy reports one resonance
+    whose uncertainty covers it, and the first interval ends there (past it the rotation is
+    reversed)."""
+    from stepsafe.verify import mp_method, mp_transfer
+
+    f = mp_transfer(mp_method("bcss3", dps=40))
+    region = find_region(method("bcss3"), "oscillator")
+    p = region.first_boundary_point
+    assert p.kind == "resonance" and p.detail == "M = -I"
+    with mp.workdps(40):
+        def tr2(z):
+            M = f(z, "oscillator")
+            return M[0, 0] + M[1, 1] + 2
+
+        h = mp.mpf(10) ** -13
+        zm = R.refine_root(lambda z: (tr2(z + h) - tr2(z - h)) / (2 * h), mp.mpf(p.z) - 1e-4,
+                           mp.mpf(p.z) + 1e-4)
+        depth = tr2(zm)
+        assert -1e-20 < depth < 0  # a gap, far below float64 resolution
+        lo = R.refine_root(tr2, zm - mp.mpf("1e-6"), zm)
+        hi = R.refine_root(tr2, zm, zm + mp.mpf("1e-6"))
+    assert hi - lo < 1e-12
+    assert p.z - p.uncertainty <= float(lo) and float(hi) <= p.z + p.uncertainty
+
+
+@pytest.mark.parametrize("z", [1e-8, 1e-4, 1.0, 1e2, 1e4])
+def test_check_across_eight_decades_of_z(run, z):
+    """check at z = beta*h from 1e-8 to 1e4 (Verlet inverted: preserved for all z; the
+    oscillator: only below 2) answers, never crashes."""
+    code_inv, _, _ = run("check", "--method", "verlet", "--inverted-beta", "1", "--h", str(z))
+    code_osc, _, _ = run("check", "--method", "verlet", "--beta", "1", "--h", str(z))
+    assert code_inv == 0
+    assert code_osc == (0 if z < 2 else 1)
