@@ -108,3 +108,21 @@ def test_published_stability_thresholds():
         assert close(region.stability_limit, data.published_stability["value"]), data.name
         checked += 1
     assert checked >= 3
+
+
+def test_gauss3_resonances_closed_form():
+    """R(iz) = N(iz)/N(-iz), N(iz) = 1 - z^2/10 + i (z/2 - z^3/120): the rotation reaches pi
+    at sqrt 10 (M = -I) and 2 pi at sqrt 60 (M = +I); the orientation flips at each."""
+    region = find_region(gauss(3), "oscillator", zmax=20)
+    res = [(p.z, p.detail) for p in region.resonances]
+    assert len(res) == 2
+    assert close(res[0][0], math.sqrt(10)) and res[0][1] == "M = -I"
+    assert close(res[1][0], math.sqrt(60)) and res[1][1] == "M = +I"
+    assert [same for _, same in region.islands] == [False, True]
+
+
+@pytest.mark.parametrize("s", [2, 4, 6])
+def test_gauss_has_s_minus_1_resonances(s):
+    region = find_region(gauss(s), "oscillator", zmax=200)
+    assert len(region.resonances) == s - 1
+    assert all(p.detail in ("M = -I", "M = +I") for p in region.resonances)
