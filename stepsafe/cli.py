@@ -16,7 +16,7 @@ import click
 from . import __version__
 
 EXIT_OK, EXIT_UNSAFE, EXIT_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
-MODEL_CHOICES = ("oscillator", "saddle", "inverted", "all")
+MODEL_CHOICES = ("oscillator", "saddle", "inverted", "saddle-p", "all")
 
 
 class _Group(click.Group):
@@ -158,12 +158,12 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
     equations are singular: no unique step). METHOD is a built-in name, a family with
     -s N, or a path to a method file.
     """
-    from .models import MODELS
+    from .models import MAIN_MODELS
     from .regions import DEFAULT_ZMAX, find_region
     from .report import method_data, print_json, print_region, region_data
 
     m, entry = _resolve(method, stages, base)
-    models = MODELS if model == "all" else (model,)
+    models = MAIN_MODELS if model == "all" else (model,)
     zmax = DEFAULT_ZMAX if zmax is None else zmax
     regions = {name: find_region(m, name, zmax) for name in models}
     results = {name: region_data(r) for name, r in regions.items()}

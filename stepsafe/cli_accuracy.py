@@ -10,7 +10,7 @@ import click
 
 from .cli import _input_error, _resolve, main, method_options, scene_options
 
-MODEL_ONE = click.Choice(("oscillator", "saddle", "inverted"))
+MODEL_ONE = click.Choice(("oscillator", "saddle", "inverted", "saddle-p"))
 
 
 @main.command("error")

@@ -27,6 +27,7 @@ MODELS = {
     "oscillator": ((0, 1), (-1, 0)),
     "saddle": ((1, 0), (0, -1)),
     "inverted": ((0, 1), (1, 0)),
+    "saddle-p": ((-1, 0), (0, 1)),
 }
 #: names of the functions g_k(M) that are all > 0 exactly when preserved
 CONSTRAINT_NAMES = {
@@ -184,7 +185,7 @@ def transfer_matrix_splitting(drift: Sequence, kick: Sequence, z,
     """Splitting drift(a1 z) kick(b1 z) drift(a2 z) ... : product of
     [[1, a z],[0, 1]] and [[1, 0],[-+b z, 1]] (oscillator -, inverted +);
     on the saddle through the equivalent PRK (see splitting_to_prk)."""
-    if model == "saddle":
+    if model in ("saddle", "saddle-p"):
         return transfer_matrix_prk(*splitting_to_prk(drift, kick), z, model)
     sign = -1 if model == "oscillator" else 1
     z, M = mp.mpf(z), mp.eye(2)

@@ -7,6 +7,7 @@ elliptic for ``|t| < 2``, hyperbolic with positive multipliers for ``t > 2``, a 
 * ``oscillator``: ``|t| < 2`` and the same sense of rotation, ``M[q, p] > 0`` (for an
   elliptic M the off-diagonal entries have opposite signs and cannot vanish);
 * ``saddle``: ``t > 2`` and the q direction expands, ``M[q, q] > M[p, p]`` (M is diagonal);
+  ``saddle-p`` alike with p expanding, ``M[p, p] > M[q, q]``;
 * ``inverted``: ``t > 2`` and the expanding eigenvector ``v`` of M points outward,
   ``v_q v_p > 0``, tested as ``o = M_qp (mu - M_qq) + M_pq (mu - M_pp) > 0`` (both terms
   carry the sign of ``v_q v_p``; ``mu`` is the larger multiplier). This sign is
@@ -172,6 +173,8 @@ def orientation(M: np.ndarray, model: str) -> np.ndarray:
         return b
     if model == "saddle":
         return a - d
+    if model == "saddle-p":
+        return d - a
     t = a + d
     mu = 0.5 * (t + np.sqrt(np.maximum(t * t - 4.0 * (a * d - b * c), 0.0)))
     return b * (mu - a) + c * (mu - d)

@@ -67,6 +67,9 @@ def transfer_jet(method: Method, z, model: str = "oscillator", scale: bool = Tru
     if isinstance(method, Splitting):
         if model == "saddle":
             return _euler_factor_jet(method, z)
+        if model == "saddle-p":  # the saddle at -z: M(z) = M_saddle(-z), dM/dz = -dM_saddle
+            jet = _euler_factor_jet(method, -z)
+            return Jet(jet.M, -jet.dM, jet.scale)
         return _splitting_jet(method, z, model, scale)
     if isinstance(method, (RungeKutta, PartitionedRK)):
         return _prk_jet(method.as_prk(), z, model, derivative)
@@ -245,10 +248,11 @@ def signed_poles(method: Method, model: str) -> np.ndarray:
         zs = np.concatenate([base / g for g in flat.weights]) if base.size else base
         return _unique_sorted(zs)
     if isinstance(method, Splitting):
-        if model != "saddle":
+        if model not in ("saddle", "saddle-p"):
             return np.empty(0)
-        zs = [1.0 / w if kind == "DK" else -1.0 / w for kind, w in method.euler_factors()]
-        return _unique_sorted(np.array(zs))
+        zs = np.array([1.0 / w if kind == "DK" else -1.0 / w
+                       for kind, w in method.euler_factors()])
+        return _unique_sorted(zs if model == "saddle" else -zs)
     K, _, _ = stage_operator(method, model)
     lam = np.linalg.eigvals(K)
     real = np.abs(lam.imag) <= 1e-7 * np.abs(lam)

@@ -170,6 +170,8 @@ def check_point(Mfun: Callable, model: str, p: Point, zmax: float, dps: int = DP
                 M = Mfun(x, model)
                 if model == "saddle":
                     return M[0, 0] - M[1, 1]
+                if model == "saddle-p":
+                    return M[1, 1] - M[0, 0]
                 t = _tr(M)
                 mu = t / 2 + mp.sqrt(max(t * t / 4 - 1, 0))
                 return M[0, 1] * (mu - M[0, 0]) + M[1, 0] * (mu - M[1, 1])
