@@ -236,18 +236,25 @@ def _scene_inputs(scene_file, method_name, stages, base, beta, saddle_beta, inve
     if modes_file:
         for model, values in load_modes(modes_file).items():
             cli_modes[model] = list(cli_modes[model]) + [values]
+    system = None
     if any(len(v) for v in cli_modes.values()):
         arrays = {m: _concat(v) for m, v in cli_modes.items() if len(v)}
     elif scene.modes:
         arrays = scene.modes
+    elif scene.system is not None:
+        from .sysfile import analyse_system
+
+        system = analyse_system(scene.system, scene.where, scene.folder, method,
+                                zmax if zmax is not None else (scene.zmax or DEFAULT_ZMAX))
+        arrays = system.modes.betas if system.modes is not None else {"oscillator": [0.0]}
     else:
         raise _input_error("no frequencies: give --beta/--saddle-beta/--inverted-beta, "
-                           "--modes FILE or modes: in a scene file")
+                           "--modes FILE, or modes: or system: in a scene file")
     modes = Modes.from_arrays(arrays)
     margin = validate_margin(margin if margin is not None else
                              (scene.margin if scene.margin is not None else 1.0))
     zmax = zmax if zmax is not None else (scene.zmax or DEFAULT_ZMAX)
-    return method, entry, modes, margin, zmax, scene, ref
+    return method, entry, modes, margin, zmax, scene, ref, system
 
 
 def _concat(values):
@@ -288,11 +295,19 @@ def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, be
 
     if len(scene_files) > 1:
         raise _input_error("advise takes at most one scene file")
-    method, entry, modes, margin, zmax, _, ref = _scene_inputs(
+    method, entry, modes, margin, zmax, _, ref, system = _scene_inputs(
         scene_files[0] if scene_files else None, method_name, stages, base, beta, saddle_beta,
         inverted_beta, modes_file,
         margin, zmax)
-    if tol_phase is None and tol_energy is None:
+    if system is not None:
+        from .sysadvice import system_advice
+
+        if tol_phase is not None or tol_energy is not None:
+            raise _input_error("--tol-phase/--tol-energy apply to frequencies, not yet to "
+                               "system: scenes")
+        data = system_advice(method, system, margin, zmax, entry.name)
+        regions = {}
+    elif tol_phase is None and tol_energy is None:
         result = advise(method, modes, margin, zmax, entry.name)
         data = advice_data(result)
         regions = result.regions
@@ -309,10 +324,14 @@ def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, be
         res = tradeoff(method, modes, tols, margin, entry.name, entry.evaluations)
         data = tradeoff_data(res)
         regions = res.advice.regions
-    verdict = _verify(ref.name, ref.stages, ref.base, regions) if verify else None
+    verdict = _verify(ref.name, ref.stages, ref.base, regions) if verify and regions else None
     if verdict:
         data["verify"] = verdict
     print_json(data) if as_json else print_advice(data)
+    if "system" in data and not as_json:
+        from .report import print_system
+
+        print_system(data["system"])
     if verdict and not as_json:
         _print_verify(verdict)
     _exit_if_unverified(verdict)
@@ -335,31 +354,39 @@ def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inve
       stepsafe check scene.yaml --json
     """
     from .advice import check_step
-    from .report import check_data, print_check, print_json
+    from .report import check_data, print_check, print_json, print_system
 
     outputs, unsafe, verdicts = [], False, []
     for scene_file in scene_files or (None,):
-        method, entry, modes, margin_, zmax_, scene, ref = _scene_inputs(
+        method, entry, modes, margin_, zmax_, scene, ref, system = _scene_inputs(
             scene_file, method_name, stages, base, beta, saddle_beta, inverted_beta,
             modes_file, margin, zmax)
         step = h if h is not None else scene.h
         if step is None:
             raise _input_error(f"{scene_file or 'check'}: no step: give --h H or h: in the "
                                "scene file")
-        result = check_step(method, modes, step, margin_, zmax_, entry.name)
-        data = check_data(result)
+        if system is not None:
+            from .sysadvice import system_check
+
+            data = system_check(method, system, step, margin_, zmax_, entry.name)
+            result = None
+        else:
+            result = check_step(method, modes, step, margin_, zmax_, entry.name)
+            data = check_data(result)
         if scene_file:
             data["scene"] = scene_file
-        if verify:
+        if verify and result is not None:
             top = max(float(b.max()) for b in modes.betas.values()) * step / margin_
             data["verify"] = _verify(ref.name, ref.stages, ref.base, result.advice.regions,
                                      up_to=1.05 * top)
             verdicts.append(data["verify"])
         outputs.append(data)
-        unsafe |= not result.safe
+        unsafe |= not data["safe"]
         if not as_json:
             print_check(data)
-            if verify:
+            if "system" in data:
+                print_system(data["system"])
+            if "verify" in data:
                 _print_verify(data["verify"])
     if as_json:
         print_json(outputs[0] if len(outputs) == 1 else outputs)

@@ -40,11 +40,15 @@ class Expression(NamedTuple):
 
     @property
     def names(self) -> set[str]:
-        return {n.id for n in ast.walk(self.tree) if isinstance(n, ast.Name)} - set(FUNCTIONS)
+        """Names used as values (not the called functions)."""
+        called = {n.func.id for n in ast.walk(self.tree) if isinstance(n, ast.Call)}
+        used = {n.id for n in ast.walk(self.tree) if isinstance(n, ast.Name)}
+        return used - called
 
 
-def parse(text: str) -> Expression:
-    """Parse and whitelist-check ``text``; raises :class:`ExpressionError`."""
+def parse(text: str, functions: tuple[str, ...] = FUNCTIONS) -> Expression:
+    """Parse and whitelist-check ``text`` (calls only of ``functions``); raises
+    :class:`ExpressionError`."""
     if not isinstance(text, str):
         raise ExpressionError("expected a number or an expression string, "
                               f"got {type(text).__name__}")
@@ -61,7 +65,7 @@ def parse(text: str) -> Expression:
     if len(nodes) > MAX_NODES:
         raise ExpressionError(f"expression has more than {MAX_NODES} parts")
     for node in nodes:
-        _check_node(node, source)
+        _check_node(node, source, functions)
     return Expression(source, tree.body)
 
 
@@ -73,11 +77,11 @@ _ALLOWED = (ast.Expression, ast.BinOp, ast.UnaryOp, ast.Constant, ast.Name, ast.
             ast.Add, ast.Sub, ast.Mult, ast.Div, ast.Pow, ast.USub, ast.UAdd, ast.Load)
 
 
-def _check_node(node: ast.AST, source: str) -> None:
+def _check_node(node: ast.AST, source: str, functions: tuple[str, ...] = FUNCTIONS) -> None:
     if not isinstance(node, _ALLOWED):
         what = type(node).__name__
-        raise ExpressionError(f"{what} is not allowed in a coefficient expression "
-                              "(only numbers, + - * / **, parentheses, sqrt, cbrt, pi, names)")
+        raise ExpressionError(f"{what} is not allowed in an expression (only numbers, "
+                              f"+ - * / **, parentheses, {', '.join(functions)}, pi, names)")
     if isinstance(node, ast.Constant):
         literal = ast.get_source_segment(source, node) or ""
         if type(node.value) not in (int, float) or not _NUMBER.match(literal):
@@ -86,8 +90,9 @@ def _check_node(node: ast.AST, source: str) -> None:
         if not _NAME.match(node.id) or node.id.startswith("__"):
             raise ExpressionError(f"name {node.id!r} is not allowed")
     elif isinstance(node, ast.Call):
-        if not isinstance(node.func, ast.Name) or node.func.id not in FUNCTIONS:
-            raise ExpressionError("only sqrt(...) and cbrt(...) may be called")
+        if not isinstance(node.func, ast.Name) or node.func.id not in functions:
+            raise ExpressionError(f"only {', '.join(f + '(...)' for f in functions)} may be "
+                                  "called")
         if len(node.args) != 1 or node.keywords:
             raise ExpressionError(f"{node.func.id} takes exactly one argument")
 

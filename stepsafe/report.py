@@ -350,3 +350,20 @@ def print_compare(data: dict[str, Any]) -> None:
     console.print(table)
     console.print("* implicit: evaluations count one per stage per nonlinear iteration; multiply "
                   "by the iterations your solver needs.")
+
+
+def print_system(system: dict[str, Any]) -> None:
+    """The modes or equilibria a system: scene was reduced to."""
+    import click
+
+    click.echo(f"System analysis: {system['analysis']}")
+    for item in system["items"]:
+        where = (f"(q, p) = ({fmt(item['q'], 8)}, {fmt(item['p'], 8)}) "
+                 if "q" in item else "")
+        beta = "" if item.get("beta") is None else f"beta = {fmt(item['beta'], 8)} "
+        limit = item.get("h_limit")
+        limit_text = "" if "h_limit" not in item else (
+            "no limit" if limit is None else f"h < {fmt(limit, 10)}")
+        click.echo(f"  {where}{item['type']} {item.get('model') or ''} {beta}{limit_text}")
+    for note in system["notes"]:
+        click.echo(f"  note: {note}")

@@ -10,7 +10,7 @@ A scene file::
       - {beta: 3.2, model: oscillator}
       - {beta: 1.1, model: inverted}
 
-``system:`` (whole linear or nonlinear systems) is reserved for a later version.
+``system:`` describes a whole system instead (see :mod:`stepsafe.sysfile`).
 
 A modes file (``--modes FILE``) is YAML (a list of ``{beta:, model:}``, or a mapping with
 ``modes:``) or CSV with a header row naming the columns ``beta`` and optionally ``model``
@@ -47,7 +47,12 @@ class Scene:
     margin: float | None = None
     zmax: float | None = None
     modes: dict[str, np.ndarray] | None = None
+    system: Any = None  # the raw system: mapping (read by stepsafe.sysfile)
     where: str = ""
+
+    @property
+    def folder(self) -> Path:
+        return Path(self.where).parent if self.where else Path(".")
 
 
 def json_schema() -> dict[str, Any]:
@@ -74,7 +79,8 @@ def json_schema() -> dict[str, Any]:
                 "properties": {"beta": {"type": "number", "minimum": 0},
                                "model": {"enum": list(MODELS), "default": "oscillator"},
                                "label": {"type": "string"}}}},
-            "system": {"description": "reserved for whole systems (not supported yet)"},
+            "system": {"type": "object", "description": "a whole system: {stiffness:, mass:}, "
+                       "{hessian:} or {hamiltonian:, parameters:, box: {q:, p:}}"},
         },
     }
 
@@ -146,10 +152,9 @@ def load_scene(path: str | Path) -> Scene:
     for key in tree:
         if key not in SCENE_KEYS:
             raise _fail(where, str(key), f"unknown key (scene keys: {', '.join(SCENE_KEYS)})")
-    if "system" in tree:
-        raise _fail(where, "system", "whole systems are not supported yet: list their "
-                                     "linearised frequencies under modes")
     scene = Scene(where=where)
+    if "system" in tree:
+        scene.system = tree["system"]
     if "method" in tree:
         scene.method = method_ref(tree["method"], where)
     for key in ("h", "margin", "zmax"):

@@ -1,0 +1,104 @@
+"""Advice and checks for whole systems: decoupled modes through :mod:`stepsafe.advice`,
+coupled pieces through the one-step matrix of :mod:`stepsafe.systems`; the answer is the
+intersection (only the primary interval of a coupled piece is used)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .advice import Failure, advise, check_step, validate_margin
+from .methods import Method
+from .sysfile import SystemReport
+from .systems import coupled_preserved
+
+
+def _limit_items(report: SystemReport, regions, margin: float) -> list[dict[str, Any]]:
+    out = []
+    for item in report.items:
+        item = dict(item)
+        model, beta = item.get("model"), item.get("beta")
+        if model in regions and beta:
+            z_star = regions[model].first_boundary
+            item["h_limit"] = None if z_star is None else margin * z_star / beta
+        out.append(item)
+    return out
+
+
+def system_advice(method: Method, report: SystemReport, margin: float = 1.0,
+                  zmax: float = 10.0, name: str | None = None) -> dict[str, Any]:
+    """JSON-ready advice for a system (see advice_data for the common fields)."""
+    from .report import advice_data
+
+    margin = validate_margin(margin)
+    if report.modes is not None:
+        adv = advise(method, report.modes, margin, zmax, name)
+        data = advice_data(adv)
+        regions = adv.regions
+    else:
+        data = {"method": name or method.name, "margin": margin, "h_max": None,
+                "safe_h": [[0.0, None]], "limiting": None, "models": {}, "horizon": None}
+        regions = {}
+    for result, _ in report.coupled:
+        cap = margin * result.h_max
+        data["safe_h"] = _cap(data["safe_h"], cap)
+        horizon = data["horizon"]
+        data["horizon"] = cap if horizon is None else min(horizon, margin * result.horizon)
+    safe = data["safe_h"]
+    data["h_max"] = safe[0][1] if safe and safe[0][0] == 0.0 else 0.0
+    if report.coupled and (data["limiting"] is None or (
+            data["h_max"] is not None and data["limiting"].get("h_limit") is not None
+            and data["h_max"] < data["limiting"]["h_limit"])):
+        data["limiting"] = {"model": "coupled", "beta": None, "h_limit": data["h_max"]}
+    data["system"] = {"analysis": report.analysis, "items": _limit_items(report, regions, margin),
+                      "notes": report.notes}
+    return data
+
+
+def _cap(safe: list, cap: float) -> list:
+    out = []
+    for lo, hi in safe:
+        if lo >= cap:
+            continue
+        out.append([lo, cap if hi is None else min(hi, cap)])
+    return out
+
+
+def system_check(method: Method, report: SystemReport, h: float, margin: float = 1.0,
+                 zmax: float = 10.0, name: str | None = None) -> dict[str, Any]:
+    """JSON-ready check of step h for a system (see check_data for the common fields)."""
+    from .report import check_data
+
+    margin = validate_margin(margin)
+    if report.modes is not None:
+        result = check_step(method, report.modes, h, margin, zmax, name)
+        data = check_data(result)
+        regions = result.advice.regions
+    else:
+        data = {"method": name or method.name, "h": float(h), "margin": margin, "safe": True,
+                "in_primary_interval": True, "modes": 0, "failing": 0, "failures": [],
+                "h_max": None, "safe_h": [[0.0, None]]}
+        regions = {}
+    for result, S in report.coupled:
+        ok = all(coupled_preserved(method, S, step) for step in (h, h / margin))
+        data["modes"] += 1
+        cap = margin * result.h_max
+        data["safe_h"] = _cap(data["safe_h"], cap)
+        if not ok:
+            data["failing"] += 1
+            data["safe"] = False
+            data["failures"].append(Failure(
+                "coupled", float("nan"), float(h),
+                "the one-step matrix does not keep the eigen-structure of J S at this h",
+                cap)._asdict() | {"largest_safe_h": cap, "beta": None})
+    safe = data["safe_h"]
+    data["h_max"] = safe[0][1] if safe and safe[0][0] == 0.0 else 0.0
+    data["in_primary_interval"] = bool(data["safe"] and (data["h_max"] is None
+                                                         or h < data["h_max"]))
+    data["system"] = {"analysis": report.analysis, "items": _limit_items(report, regions, margin),
+                      "notes": report.notes}
+    return data
+
+
+__all__ = ["system_advice", "system_check", "np"]

@@ -1,0 +1,247 @@
+"""The ``system:`` key of scene files: read matrices or a Hamiltonian, and turn the system
+into what advise/check analyse (the modes, or the coupled analysis).
+
+::
+
+    system: {stiffness: K.npz, mass: M.npy}        # or inline lists of lists; K indefinite ok
+    system: {hessian: [[2, 0.3], [0.3, 1]]}         # H = x^T S x / 2, x = (q, p)
+    system: {hamiltonian: "alpha*q*p*(p-1)", parameters: {alpha: 2},
+             box: {q: [-2, 2], p: [-2, 2]}}
+
+Matrix files (paths relative to the scene file): ``.npy`` (dense), ``.npz`` (a dense array
+saved by numpy, or a sparse matrix saved by ``scipy.sparse.save_npz``) and ``.mtx`` (Matrix
+Market). Sparse stiffness matrices with more than :data:`DENSE_LIMIT` rows are analysed
+through their extreme eigenvalues only (enough for ``h_max``; islands are then not
+analysed, and the output says so). scipy is imported here only.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from .advice import Modes
+from .errors import StepsafeError
+from .methods import Method
+
+DENSE_LIMIT = 2000
+MAX_FILE_BYTES = 512 << 20
+SYSTEM_KEYS = {"stiffness", "mass", "hessian", "hamiltonian", "parameters", "box"}
+
+
+class SystemReport(NamedTuple):
+    """What was found in the system, ready for JSON, and how to advise on it."""
+
+    analysis: str
+    items: list[dict[str, Any]]  # each mode or equilibrium: type, beta, model, ...
+    modes: Modes | None  # decoupled test-model frequencies (None if all coupled)
+    coupled: list[Any]  # CoupledResult per coupled piece (with its Hessian)
+    notes: list[str]
+
+
+def _fail(where: str, path: str, message: str) -> StepsafeError:
+    return StepsafeError(message, f"{where}::$.system.{path}")
+
+
+def _matrix(value: Any, where: str, key: str, folder: Path, sparse_ok: bool = False):
+    if isinstance(value, str):
+        return _matrix_file(folder / value, where, key, sparse_ok)
+    if not isinstance(value, list) or not value or not all(isinstance(r, list) for r in value):
+        raise _fail(where, key, "must be a list of rows or a .npy/.npz/.mtx file name")
+    n = len(value)
+    out = np.empty((n, len(value[0])))
+    for i, row in enumerate(value):
+        if len(row) != out.shape[1]:
+            raise _fail(where, f"{key}[{i}]", f"has {len(row)} entries, row 0 has "
+                                               f"{out.shape[1]}")
+        for j, x in enumerate(row):
+            try:
+                out[i, j] = float(x)
+            except (TypeError, ValueError):
+                raise _fail(where, f"{key}[{i}][{j}]", f"is not a number: {x!r}") from None
+    if not np.all(np.isfinite(out)):
+        raise _fail(where, key, "has a non-finite entry")
+    return out
+
+
+def _matrix_file(path: Path, where: str, key: str, sparse_ok: bool):
+    if not path.is_file():
+        raise _fail(where, key, f"no such file: {path}")
+    if path.stat().st_size > MAX_FILE_BYTES:
+        raise _fail(where, key, f"{path} is larger than {MAX_FILE_BYTES} bytes")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".npy":
+            return np.load(path, allow_pickle=False)
+        if suffix == ".npz":
+            with np.load(path, allow_pickle=False) as data:
+                if "format" in data.files and "indptr" in data.files:
+                    import scipy.sparse as sp
+
+                    matrix = sp.load_npz(path)
+                    return matrix if sparse_ok else matrix.toarray()
+                if len(data.files) != 1:
+                    raise _fail(where, key, f"{path} holds {len(data.files)} arrays; save one")
+                return data[data.files[0]]
+        if suffix == ".mtx":
+            import scipy.io
+
+            matrix = scipy.io.mmread(str(path))
+            if hasattr(matrix, "tocsr"):
+                return matrix.tocsr() if sparse_ok else matrix.toarray()
+            return np.asarray(matrix)
+    except StepsafeError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any reader failure is bad input here
+        raise _fail(where, key, f"cannot read {path.name}: {str(exc).splitlines()[0][:80]}"
+                    ) from None
+    raise _fail(where, key, f"{path.name}: use a .npy, .npz or .mtx file")
+
+
+def _float(value: Any, where: str, key: str) -> float:
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise _fail(where, key, f"must be a number, got {value!r}") from None
+    if not np.isfinite(x):
+        raise _fail(where, key, "must be finite")
+    return x
+
+
+def analyse_system(tree: Any, where: str, folder: Path, method: Method,
+                   zmax: float = 10.0) -> SystemReport:
+    """Read a ``system:`` mapping and decide the analysis for ``method``."""
+    from .errors import StepsafeError as _E
+
+    if not isinstance(tree, dict):
+        raise _fail(where, "", "must be a mapping (stiffness/mass, hessian or hamiltonian)")
+    unknown = set(tree) - SYSTEM_KEYS
+    if unknown:
+        raise _fail(where, sorted(unknown)[0], "unknown key (stiffness, mass, hessian, "
+                                               "hamiltonian, parameters, box)")
+    kinds = [k for k in ("stiffness", "hessian", "hamiltonian") if k in tree]
+    if len(kinds) != 1:
+        raise _fail(where, "", "give exactly one of stiffness (with optional mass), hessian or "
+                               "hamiltonian")
+    try:
+        if kinds[0] == "stiffness":
+            return _stiffness(tree, where, folder)
+        if kinds[0] == "hessian":
+            return _hessian(tree, where, folder, method, zmax)
+        return _hamiltonian(tree, where, method, zmax)
+    except _E as exc:
+        if exc.where:
+            raise
+        raise _fail(where, kinds[0], exc.message) from None
+
+
+def _report_modes(modes, analysis: str, notes: list[str]) -> SystemReport:
+    items = [{"type": {"oscillator": "elliptic", "inverted": "hyperbolic",
+                       "saddle": "hyperbolic", "saddle-p": "hyperbolic",
+                       "free": "free"}[m.model],
+              "model": m.model, "beta": m.beta} for m in modes]
+    grouped: dict[str, list[float]] = {}
+    for m in modes:
+        if m.model != "free":
+            grouped.setdefault(m.model, []).append(m.beta)
+    if not grouped:
+        notes.append("every mode is free (beta = 0): no limit on h")
+        grouped = {"oscillator": [0.0]}
+    return SystemReport(analysis, items, Modes.from_arrays(
+        {k: np.array(v) for k, v in grouped.items()}), [], notes)
+
+
+def _stiffness(tree, where, folder) -> SystemReport:
+    from .systems import separable_modes, sparse_extreme_modes
+
+    K = _matrix(tree["stiffness"], where, "stiffness", folder, sparse_ok=True)
+    M = _matrix(tree["mass"], where, "mass", folder, sparse_ok=True) if "mass" in tree else None
+    notes: list[str] = []
+    if hasattr(K, "tocsr") and K.shape[0] > DENSE_LIMIT:
+        d = sparse_extreme_modes(K, M)
+        notes.append(f"{K.shape[0]} dof sparse: only the extreme modes were computed; islands "
+                     "beyond h_max are not analysed")
+    else:
+        K = K.toarray() if hasattr(K, "toarray") else K
+        M = M.toarray() if hasattr(M, "toarray") else M
+        if K.shape[0] > 4 * DENSE_LIMIT:
+            raise StepsafeError(f"a dense {K.shape[0]} x {K.shape[0]} stiffness is too large; "
+                                "save it as a sparse .npz or .mtx")
+        d = separable_modes(K, M)
+    return _report_modes(d.modes, d.analysis, notes)
+
+
+def _hessian(tree, where, folder, method, zmax) -> SystemReport:
+    from .systems import check_square, coupled_safe_steps, hessian_modes
+
+    S = check_square(_matrix(tree["hessian"], where, "hessian", folder), "hessian")
+    if S.shape[0] > 2 * DENSE_LIMIT:
+        raise StepsafeError(f"a {S.shape[0]} x {S.shape[0]} Hessian is too large")
+    d = hessian_modes(S, method)
+    if d is not None:
+        return _report_modes(d.modes, d.analysis, [])
+    result = coupled_safe_steps(method, S, zmax)
+    items = [{"type": "coupled", "dof": S.shape[0] // 2, "h_limit": result.h_max}]
+    return SystemReport(result.analysis, items, None, [(result, S)], [
+        "the modes do not decouple for this method (partitioned method, non-separable H, "
+        "or loxodromic modes): h_max comes from the full one-step matrix; islands beyond it "
+        "are not analysed"])
+
+
+def _hamiltonian(tree, where, method, zmax) -> SystemReport:
+    from .expressions import ExpressionError
+    from .nonlinear import find_equilibria, parse_hamiltonian
+    from .systems import coupled_safe_steps, hessian_modes
+
+    text = tree["hamiltonian"]
+    if not isinstance(text, str):
+        raise _fail(where, "hamiltonian", "must be an expression in q and p")
+    params_tree = tree.get("parameters", {})
+    if not isinstance(params_tree, dict):
+        raise _fail(where, "parameters", "must be a mapping of names to numbers")
+    params = {k: _float(v, where, f"parameters.{k}") for k, v in params_tree.items()}
+    box = tree.get("box")
+    if not isinstance(box, dict) or set(box) != {"q", "p"}:
+        raise _fail(where, "box", "must be {q: [lo, hi], p: [lo, hi]}")
+    bounds = []
+    for axis in ("q", "p"):
+        pair = box[axis]
+        if not isinstance(pair, list) or len(pair) != 2:
+            raise _fail(where, f"box.{axis}", "must be [lo, hi]")
+        bounds.append((_float(pair[0], where, f"box.{axis}[0]"),
+                       _float(pair[1], where, f"box.{axis}[1]")))
+    try:
+        H = parse_hamiltonian(text, params)
+        equilibria = find_equilibria(H, bounds[0], bounds[1])
+    except ExpressionError as exc:
+        raise _fail(where, "hamiltonian", f"{exc} in {text[:60]!r}") from None
+    if not equilibria:
+        raise _fail(where, "box", "no equilibria found in the box")
+    items, grouped, coupled, notes = [], {}, [], []
+    for e in equilibria:
+        item = {"q": e.q, "p": e.p, "type": e.kind, "D": e.D, "beta": e.beta,
+                "model": e.model}
+        if e.model is None:
+            notes.append(f"degenerate equilibrium at (q, p) = ({e.q:.6g}, {e.p:.6g}): no linear "
+                         "model, not analysed")
+        elif e.model == "coupled":
+            S = e.hessian
+            d = hessian_modes(S, method)
+            if d is not None:
+                for m in d.modes:
+                    if m.model != "free":
+                        grouped.setdefault(m.model, []).append(m.beta)
+                item["model"] = ",".join(sorted({m.model for m in d.modes}))
+            else:
+                result = coupled_safe_steps(method, S, zmax)
+                coupled.append((result, S))
+                item["h_limit"] = result.h_max
+                item["analysis"] = "coupled 2x2 (mixed q-p terms with a partitioned method)"
+        else:
+            grouped.setdefault(e.model, []).append(e.beta)
+        items.append(item)
+    modes = Modes.from_arrays({k: np.array(v) for k, v in grouped.items()}) if grouped else None
+    return SystemReport("equilibria of H found in the box and linearised exactly "
+                        "(automatic differentiation)", items, modes, coupled, notes)

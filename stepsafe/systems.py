@@ -1,0 +1,355 @@
+"""Linear n-dof systems: which modes to analyse, and the coupled analysis when they do not
+decouple (DESIGN §4).
+
+``H = x^T S x / 2`` with ``x = (q, p)`` and ``S = [[S_qq, S_qp], [S_pq, S_pp]]`` gives
+``x' = J S x``. Use the cheapest analysis that is exact for the system in hand:
+
+* **separable** (``S_qp = 0``, ``S_pp`` positive definite: ``H = p^T M^-1 p/2 + q^T K q/2``,
+  K may be indefinite): every method decouples along the generalised eigenvectors of
+  ``K v = w^2 M v``; ``w^2 > 0`` is an ``oscillator`` of rate ``w``, ``w^2 < 0`` an
+  ``inverted`` barrier of rate ``sqrt(-w^2)``, ``w^2 = 0`` a free mode (no limit). A
+  partitioned method commutes with ``q -> T q, p -> T^-T p``, which is what decouples it.
+* **RK methods** (not partitioned) commute with every linear change of variables, so they
+  decouple along the eigenvalues ``mu`` of ``J S``: ``mu = +-i w`` is an ``oscillator``,
+  ``mu = +-lam`` real a saddle (for RK methods ``saddle`` and ``inverted`` coincide).
+  Complex quadruplets ``+-a +-ib`` (loxodromic) have no 1-dof model and go to the coupled
+  analysis.
+* otherwise (**coupled**): the full 2n x 2n one-step matrix ``M_h`` is built (stage equations
+  for PRK/RK; symplectic Euler factors for splittings, one n x n solve each) and its
+  eigenvalues are classified against those of ``J S``: the numbers of elliptic pairs
+  (``|nu| = 1``), hyperbolic pairs with positive multipliers and loxodromic quadruplets must
+  match, no multiplier may be negative real (a flip), and the elliptic pairs must keep their
+  Krein signatures (the sense of rotation: ``sign Im(v^H J v)`` of the eigenvector in the
+  upper half-plane), which is what ``oscillator`` checks in one dof. The orientation of
+  hyperbolic directions is not checked in the coupled analysis.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from .errors import StepsafeError
+from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
+
+ZERO_TOL = 1e-10  # eigenvalues below this times the largest are zero modes
+CIRCLE_TOL = 1e-8  # |nu| within this of 1 is on the unit circle
+
+
+class LinearMode(NamedTuple):
+    beta: float
+    model: str  # "oscillator", "inverted", "saddle", "free"
+    eigenvalue: complex  # w^2 (separable) or mu (eigenvalues of J S)
+
+
+class Decoupled(NamedTuple):
+    modes: tuple[LinearMode, ...]
+    analysis: str
+    extremes_only: bool = False
+
+
+def check_square(A: np.ndarray, name: str, symmetric: bool = True) -> np.ndarray:
+    A = np.asarray(A, dtype=float)
+    if A.ndim != 2 or A.shape[0] != A.shape[1] or A.size == 0:
+        raise StepsafeError(f"{name} must be a non-empty square matrix, got shape {A.shape}")
+    if not np.all(np.isfinite(A)):
+        raise StepsafeError(f"{name} has a non-finite entry")
+    if symmetric and not np.allclose(A, A.T, rtol=1e-12, atol=1e-12 * np.abs(A).max()):
+        raise StepsafeError(f"{name} must be symmetric")
+    return A
+
+
+def separable_modes(K, M=None) -> Decoupled:
+    """Modes of ``H = p^T M^-1 p / 2 + q^T K q / 2`` (dense K and M)."""
+    from scipy.linalg import eigh
+
+    K = check_square(K, "stiffness")
+    if M is None:
+        M = np.eye(K.shape[0])
+    M = check_square(M, "mass")
+    if M.shape != K.shape:
+        raise StepsafeError(f"mass is {M.shape[0]}x{M.shape[0]} but stiffness is "
+                            f"{K.shape[0]}x{K.shape[0]}")
+    if np.linalg.eigvalsh(M).min() <= 0:
+        raise StepsafeError("mass must be positive definite")
+    w2 = eigh(K, M, eigvals_only=True)
+    return Decoupled(_modes_from_w2(w2), "decoupled: separable H, generalised eigenproblem "
+                                          "K v = w^2 M v")
+
+
+def _modes_from_w2(w2: np.ndarray) -> tuple[LinearMode, ...]:
+    scale = max(float(np.abs(w2).max()), 1e-300)
+    out = []
+    for value in w2:
+        if abs(value) <= ZERO_TOL * scale:
+            out.append(LinearMode(0.0, "free", complex(value)))
+        elif value > 0:
+            out.append(LinearMode(float(np.sqrt(value)), "oscillator", complex(value)))
+        else:
+            out.append(LinearMode(float(np.sqrt(-value)), "inverted", complex(value)))
+    return tuple(out)
+
+
+def sparse_extreme_modes(K, M=None) -> Decoupled:
+    """Only the extreme modes of a large sparse separable system (enough for ``h_max``).
+
+    A diagonal (lumped) mass is folded in, ``M^-1/2 K M^-1/2``. The largest ``w^2`` is found
+    by shift-invert Lanczos (``eigsh``) just above the Gershgorin upper bound, where it
+    converges in a few iterations even when the top of the spectrum is clustered (a chain
+    of 10^5 masses: gaps of 1e-9); the smallest likewise below the Gershgorin lower bound,
+    only when that bound is negative (a barrier may exist).
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import ArpackNoConvergence, eigsh
+
+    K = sp.csr_matrix(K, dtype=float)
+    n = K.shape[0]
+    if K.shape[0] != K.shape[1]:
+        raise StepsafeError(f"stiffness must be square, got shape {K.shape}")
+    if not np.all(np.isfinite(K.data)):
+        raise StepsafeError("stiffness has a non-finite entry")
+    if n and abs(K - K.T).max() > 1e-12 * abs(K).max():
+        raise StepsafeError("stiffness must be symmetric")
+    if M is not None:
+        M = sp.csr_matrix(M, dtype=float)
+        if M.shape != K.shape:
+            raise StepsafeError(f"mass is {M.shape} but stiffness is {K.shape}")
+        if (M - sp.diags(M.diagonal())).count_nonzero():
+            raise StepsafeError("a large sparse system needs a diagonal (lumped) mass")
+        m = M.diagonal()
+        if not np.all(m > 0):
+            raise StepsafeError("mass must be positive definite")
+        d = sp.diags(1.0 / np.sqrt(m))
+        K = (d @ K @ d).tocsr()
+    diag = K.diagonal()
+    off = np.asarray(abs(K).sum(axis=1)).ravel() - np.abs(diag)
+    upper, lower = float((diag + off).max()), float((diag - off).min())
+    scale = max(abs(upper), abs(lower), 1e-300)
+    w2 = []
+    try:
+        for bound, sign in ((upper, 1.0), (lower, -1.0)):
+            if sign < 0 and lower >= 0:
+                break
+            sigma = bound + sign * 1e-6 * scale
+            vals = eigsh(K.tocsc(), k=1, sigma=sigma, which="LM", return_eigenvectors=False,
+                         tol=1e-13, maxiter=500)
+            w2.append(float(vals[0]))
+    except (ArpackNoConvergence, RuntimeError):
+        raise StepsafeError("the sparse eigensolver did not converge for the extreme "
+                            "eigenvalues; give a dense matrix or list the modes") from None
+    return Decoupled(_modes_from_w2(np.array(w2)), "decoupled: separable H, extreme "
+                     "eigenvalues of K v = w^2 M v only (shift-invert eigsh); islands "
+                     "not analysed", True)
+
+
+def split_hessian(S) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    S = check_square(S, "hessian")
+    if S.shape[0] % 2:
+        raise StepsafeError(f"hessian must be 2n x 2n for x = (q, p), got {S.shape[0]}")
+    n = S.shape[0] // 2
+    return S[:n, :n], S[:n, n:], S[n:, :n], S[n:, n:]
+
+
+def is_partitioned(method: Method) -> bool:
+    if isinstance(method, Composition):
+        return is_partitioned(method.base)
+    return not isinstance(method, RungeKutta)
+
+
+def hessian_modes(S, method: Method) -> Decoupled | None:
+    """The decoupled modes of ``H = x^T S x / 2`` when they are exact for ``method``,
+    else None (the coupled analysis is needed)."""
+    S_qq, S_qp, _, S_pp = split_hessian(S)
+    scale = np.abs(S).max()
+    if np.abs(S_qp).max() <= 1e-14 * scale and np.linalg.eigvalsh(S_pp).min() > 0:
+        d = separable_modes(S_qq, np.linalg.inv(S_pp))
+        return d._replace(analysis="decoupled: separable Hessian, generalised eigenproblem")
+    if is_partitioned(method):
+        return None
+    mu = np.linalg.eigvals(hamiltonian_matrix(S))
+    mu = mu[(mu.imag > 0) | ((mu.imag == 0) & (mu.real >= 0))]
+    top = max(float(np.abs(mu).max()), 1e-300)
+    modes = []
+    for m in mu:
+        if abs(m) <= ZERO_TOL * top:
+            modes.append(LinearMode(0.0, "free", complex(m)))
+        elif abs(m.real) <= 1e-9 * abs(m):
+            modes.append(LinearMode(float(abs(m.imag)), "oscillator", complex(m)))
+        elif abs(m.imag) <= 1e-9 * abs(m):
+            modes.append(LinearMode(float(abs(m.real)), "saddle", complex(m)))
+        else:
+            return None  # loxodromic: no 1-dof model
+    return Decoupled(tuple(modes), "decoupled: RK method, eigenvalues of J S")
+
+
+def hamiltonian_matrix(S: np.ndarray) -> np.ndarray:
+    """``J S`` with ``J = [[0, I], [-I, 0]]``: the generator of ``x' = J S x``."""
+    n = S.shape[0] // 2
+    return np.vstack([S[n:], -S[:n]])
+
+
+def one_step_matrix(method: Method, S: np.ndarray, h: float) -> np.ndarray:
+    """The 2n x 2n matrix of one step of size h on ``x' = J S x`` (NaN if no unique step)."""
+    S_qq, S_qp, S_pq, S_pp = split_hessian(S)
+    n = S_qq.shape[0]
+    if isinstance(method, Composition):
+        flat = method.flattened()
+        out = np.eye(2 * n)
+        for g in flat.weights:
+            out = one_step_matrix(flat.base, S, g * h) @ out
+        return out
+    if isinstance(method, Splitting):
+        out = np.eye(2 * n)
+        eye = np.eye(n)
+        for kind, w in method.euler_factors():
+            c = w * h
+            F = np.zeros((2 * n, 2 * n))
+            try:
+                if kind == "DK":  # q1 = q0 + c f(q1, p0), p1 = p0 + c g(q1, p0)
+                    inv = np.linalg.inv(eye - c * S_pq)
+                    F[:n, :n], F[:n, n:] = inv, c * inv @ S_pp
+                    F[n:, :n] = -c * S_qq @ F[:n, :n]
+                    F[n:, n:] = eye - c * (S_qq @ F[:n, n:] + S_qp)
+                else:  # p1 = p0 + c g(q0, p1), q1 = q0 + c f(q0, p1)
+                    inv = np.linalg.inv(eye + c * S_qp)
+                    F[n:, :n], F[n:, n:] = -c * inv @ S_qq, inv
+                    F[:n, :n] = eye + c * (S_pq + S_pp @ F[n:, :n])
+                    F[:n, n:] = c * S_pp @ F[n:, n:]
+            except np.linalg.LinAlgError:
+                return np.full((2 * n, 2 * n), np.nan)
+            out = F @ out
+        return out
+    prk = method.as_prk() if isinstance(method, RungeKutta) else method
+    assert isinstance(prk, PartitionedRK)
+    s = prk.stages
+    I_sn = np.eye(s * n)
+    top = np.hstack([I_sn - h * np.kron(prk.A_q, S_pq), -h * np.kron(prk.A_q, S_pp)])
+    bottom = np.hstack([h * np.kron(prk.A_p, S_qq), I_sn + h * np.kron(prk.A_p, S_qp)])
+    E = np.zeros((2 * s * n, 2 * n))
+    E[: s * n, :n] = np.tile(np.eye(n), (s, 1))
+    E[s * n:, n:] = np.tile(np.eye(n), (s, 1))
+    try:
+        X = np.linalg.solve(np.vstack([top, bottom]), E)
+    except np.linalg.LinAlgError:
+        return np.full((2 * n, 2 * n), np.nan)
+    Q, P = X[: s * n].reshape(s, n, 2 * n), X[s * n:].reshape(s, n, 2 * n)
+    F = np.einsum("ab,sbk->sak", S_pq, Q) + np.einsum("ab,sbk->sak", S_pp, P)
+    G = -(np.einsum("ab,sbk->sak", S_qq, Q) + np.einsum("ab,sbk->sak", S_qp, P))
+    out = np.eye(2 * n)
+    out[:n] += h * np.einsum("s,sak->ak", prk.b_q, F)
+    out[n:] += h * np.einsum("s,sak->ak", prk.b_p, G)
+    return out
+
+
+class Signature(NamedTuple):
+    elliptic_plus: int
+    elliptic_minus: int
+    hyperbolic: int
+    flips: int
+    loxodromic: int
+    parabolic: int
+
+
+def _krein(matrix: np.ndarray, eigvals: np.ndarray, eigvecs: np.ndarray, elliptic) -> tuple:
+    n = matrix.shape[0] // 2
+    J = np.block([[np.zeros((n, n)), np.eye(n)], [-np.eye(n), np.zeros((n, n))]])
+    plus = minus = 0
+    for k in np.flatnonzero(elliptic):
+        v = eigvecs[:, k]
+        sign = np.sign((v.conj() @ J @ v).imag)
+        plus += sign > 0
+        minus += sign < 0
+    return int(plus), int(minus)
+
+
+def continuous_signature(S: np.ndarray) -> Signature:
+    A = hamiltonian_matrix(S)
+    mu, V = np.linalg.eig(A)
+    top = max(float(np.abs(mu).max()), 1e-300)
+    zero = np.abs(mu) <= ZERO_TOL * top
+    ell = ~zero & (np.abs(mu.real) <= 1e-9 * np.abs(mu)) & (mu.imag > 0)
+    hyp = ~zero & (np.abs(mu.imag) <= 1e-9 * np.abs(mu)) & (mu.real > 0)
+    lox = ~zero & ~ell & ~hyp & (mu.real > 0) & (mu.imag > 0)
+    plus, minus = _krein(A, mu, V, ell)
+    return Signature(plus, minus, int(hyp.sum()), 0, int(lox.sum()), int(zero.sum()) // 2)
+
+
+def discrete_signature(Mh: np.ndarray) -> Signature | None:
+    if not np.all(np.isfinite(Mh)):
+        return None
+    nu, V = np.linalg.eig(Mh)
+    mod = np.abs(nu)
+    one = np.abs(nu - 1) <= CIRCLE_TOL
+    circle = (np.abs(mod - 1) <= CIRCLE_TOL) & ~one
+    ell = circle & (nu.imag > CIRCLE_TOL)
+    minus_one = circle & (np.abs(nu.imag) <= CIRCLE_TOL)
+    real = (np.abs(nu.imag) <= CIRCLE_TOL * mod) & ~circle & ~one
+    hyp = real & (nu.real > 1)
+    flips = real & (nu.real < -1)
+    lox = ~circle & ~real & ~one & (mod > 1) & (nu.imag > 0)
+    plus, minus = _krein(Mh, nu, V, ell)
+    return Signature(plus, minus, int(hyp.sum()), int(flips.sum() + minus_one.sum()),
+                     int(lox.sum()), int(one.sum()) // 2)
+
+
+def coupled_preserved(method: Method, S: np.ndarray, h: float,
+                      reference: Signature | None = None) -> bool:
+    """Whether one step of size h keeps the eigen-structure of ``x' = J S x``."""
+    ref = reference or continuous_signature(S)
+    got = discrete_signature(one_step_matrix(method, S, h))
+    return got is not None and got.flips == 0 and got == ref
+
+
+class CoupledResult(NamedTuple):
+    h_max: float  # end of the preserved interval from 0 (float resolution of the bisection)
+    safe_h: tuple[tuple[float, float | None], ...]
+    horizon: float
+    samples: int
+    analysis: str
+
+
+def coupled_safe_steps(method: Method, S, zmax: float = 10.0, samples: int = 120
+                       ) -> CoupledResult:
+    """Safe h for the coupled analysis: a scan of h up to ``zmax / |mu|_max`` (the fastest
+    rate) and a bisection of the first change, to 1e-12 relative."""
+    S = check_square(S, "hessian")
+    ref = continuous_signature(S)
+    top = float(np.abs(np.linalg.eigvals(hamiltonian_matrix(S))).max())
+    if top == 0:
+        return CoupledResult(np.inf, ((0.0, None),), np.inf, 0, "coupled: S = 0, no limit")
+    horizon = zmax / top
+    hs = np.linspace(horizon / samples, horizon, samples)
+    ok = np.array([coupled_preserved(method, S, h, ref) for h in hs])
+    intervals: list[tuple[float, float | None]] = []
+    lo = 0.0 if ok[0] else None
+    prev = 0.0
+    for h, good in zip(hs, ok):
+        if good and lo is None:
+            lo = _bisect(method, S, ref, prev, h, want=True)
+        if not good and lo is not None:
+            intervals.append((lo, _bisect(method, S, ref, prev, h, want=False)))
+            lo = None
+        prev = h
+    if lo is not None:
+        intervals.append((lo, None))
+    h_max = intervals[0][1] if intervals and intervals[0][0] == 0.0 else 0.0
+    h_max = horizon if h_max is None else h_max
+    return CoupledResult(h_max, tuple(intervals), horizon, samples,
+                         "coupled: full 2n x 2n one-step matrix, eigenvalues classified "
+                         "against J S (the modes do not decouple for this method)")
+
+
+def _bisect(method, S, ref, lo: float, hi: float, want: bool) -> float:
+    """Where preservation switches to ``want`` between ``lo`` (not ``want``) and ``hi``
+    (``want``), to 1e-12 relative: the first h with ``want`` if True, the last without."""
+    a, b = lo, hi
+    for _ in range(80):
+        mid = 0.5 * (a + b)
+        if coupled_preserved(method, S, mid, ref) == want:
+            b = mid
+        else:
+            a = mid
+        if b - a <= 1e-12 * b:
+            break
+    return b if want else a

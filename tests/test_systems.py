@@ -1,0 +1,189 @@
+"""Whole systems: linear n-dof (decoupled and coupled) and nonlinear 1-dof equilibria."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from support import method
+
+from stepsafe.nonlinear import find_equilibria, parse_hamiltonian
+from stepsafe.regions import find_region
+from stepsafe.systems import (
+    continuous_signature,
+    coupled_safe_steps,
+    discrete_signature,
+    hessian_modes,
+    one_step_matrix,
+    separable_modes,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def scene(tmp_path, text: str) -> str:
+    path = tmp_path / "scene.yaml"
+    path.write_text(text)
+    return str(path)
+
+
+def test_paper_section3_from_the_hamiltonian(run_json):
+    data = run_json("advise", str(ROOT / "examples" / "paper-section3-system.yaml"))
+    assert data["h_max"] == pytest.approx(0.5, rel=1e-12)  # 0 < alpha h < 1, alpha = 2
+    items = {(round(i["q"], 9), round(i["p"], 9)): i for i in data["system"]["items"]}
+    assert items[(0.0, 0.0)]["model"] == "saddle-p" and items[(0.0, 0.0)]["h_limit"] is None
+    assert items[(0.0, 1.0)]["model"] == "saddle"
+    assert items[(0.0, 1.0)]["h_limit"] == pytest.approx(0.5, rel=1e-12)  # the limiting one
+    assert data["limiting"]["model"] == "saddle"
+
+
+def test_paper_section3_check_exit_codes(run, tmp_path):
+    base = (ROOT / "examples" / "paper-section3-system.yaml").read_text()
+    assert run("check", scene(tmp_path, base))[0] == 0  # h = 0.4
+    assert run("check", scene(tmp_path, base.replace("h: 0.4", "h: 0.5")))[0] == 1
+
+
+def test_pendulum_centre_limits_saddles_never(run_json):
+    data = run_json("advise", str(ROOT / "examples" / "pendulum.yaml"))
+    assert data["h_max"] == pytest.approx(2.0, rel=1e-12)
+    kinds = sorted((i["type"], i["model"], i["h_limit"]) for i in data["system"]["items"])
+    assert kinds[0] == ("elliptic", "oscillator", pytest.approx(2.0, rel=1e-12))
+    assert [k[2] for k in kinds[1:]] == [None, None]  # the tops (inverted) never limit
+
+
+def test_non_separable_saddle_differs_for_a_partitioned_method():
+    """The pendulum top (kinetic + potential) and H = q p have the same continuous
+    eigenvalues, but symplectic Euler loses the second at z = 1 and never the first."""
+    se = method("symplectic-euler")
+    top, = [e for e in find_equilibria(parse_hamiltonian("p**2/2 - cos(q)"), (2, 4), (-1, 1))]
+    qp, = find_equilibria(parse_hamiltonian("q*p"), (-1, 1), (-1, 1))
+    assert (top.model, qp.model) == ("inverted", "saddle") and top.beta == qp.beta == 1
+    assert find_region(se, "inverted").first_boundary is None
+    assert find_region(se, "saddle").first_boundary == pytest.approx(1.0)
+
+
+def test_double_well():
+    eqs = find_equilibria(parse_hamiltonian("p**2/2 + (q**2 - 1)**2/4"), (-2, 2), (-1, 1))
+    assert [(round(e.q, 12), e.model) for e in eqs] == [(-1.0, "oscillator"), (0.0, "inverted"),
+                                                          (1.0, "oscillator")]
+    assert eqs[0].beta == pytest.approx(math.sqrt(2), rel=1e-14)
+
+
+def _random_separable(rng, n):
+    A = rng.normal(size=(n, n))
+    K = A + A.T
+    B = rng.normal(size=(n, n))
+    Minv = B @ B.T + n * np.eye(n)
+    S = np.block([[K, np.zeros((n, n))], [np.zeros((n, n)), Minv]])
+    return S, K, np.linalg.inv(Minv)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("name", ["verlet", "pefrl", "yoshida4"])
+def test_coupled_analysis_agrees_with_decoupled(seed, name):
+    rng = np.random.default_rng(seed)
+    S, K, M = _random_separable(rng, 3)
+    m = method(name)
+    modes = separable_modes(K, M).modes
+    limits = []
+    for mode in modes:
+        if mode.model == "free":
+            continue
+        z_star = find_region(m, mode.model, zmax=50).first_boundary
+        limits.append(np.inf if z_star is None else z_star / mode.beta)
+    decoupled = min(limits)
+    coupled = coupled_safe_steps(m, S, zmax=50).h_max
+    assert coupled == pytest.approx(decoupled, rel=1e-9)
+
+
+@pytest.mark.parametrize("name", ["verlet", "pefrl", "lobatto3ab", "gauss"])
+def test_one_step_matrix_is_symplectic(name):
+    rng = np.random.default_rng(7)
+    n = 3
+    A = rng.normal(size=(2 * n, 2 * n))
+    S = A @ A.T  # positive definite, non-separable
+    m = method(name, 3 if name in ("lobatto3ab", "gauss") else None)
+    J = np.block([[np.zeros((n, n)), np.eye(n)], [-np.eye(n), np.zeros((n, n))]])
+    for h in (0.01, 0.1, 0.3):
+        Mh = one_step_matrix(m, S, h)
+        assert np.abs(Mh.T @ J @ Mh - J).max() <= 1e-11 * max(1.0, np.abs(Mh).max() ** 2)
+
+
+def test_rk_decouples_partitioned_does_not():
+    S = np.array([[2.0, 0.4], [0.4, 1.0]])
+    assert hessian_modes(S, method("gauss", 2)) is not None
+    assert hessian_modes(S, method("pefrl")) is None
+    sig = continuous_signature(S)
+    assert sig.elliptic_plus + sig.elliptic_minus == 1
+    assert discrete_signature(one_step_matrix(method("pefrl"), S, 0.1)) == sig
+
+
+def test_coupled_scene_says_which_analysis(run_json, tmp_path):
+    text = ("method: pefrl\nh: 0.1\nsystem: {hessian: [[2, 0, 0.4, 0], [0, 1, 0, 0.1], "
+            "[0.4, 0, 1, 0], [0, 0.1, 0, 1]]}\n")
+    data = run_json("advise", scene(tmp_path, text))
+    assert data["system"]["analysis"].startswith("coupled")
+    assert data["h_max"] > 0
+    rk = run_json("advise", scene(tmp_path, text.replace("pefrl", "{name: gauss, stages: 2}")))
+    assert rk["system"]["analysis"].startswith("decoupled: RK")
+
+
+def test_sparse_chain_of_1e5_dof(run_json, tmp_path):
+    import scipy.sparse as sp
+
+    n = 100_000
+    K = sp.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1], format="csr")
+    sp.save_npz(tmp_path / "chain.npz", K)
+    data = run_json("advise", scene(tmp_path, "method: verlet\nsystem: {stiffness: chain.npz}\n"))
+    w_max = math.sqrt(2 - 2 * math.cos(n * math.pi / (n + 1)))
+    assert data["h_max"] == pytest.approx(2 / w_max, rel=1e-10)
+    assert "islands not analysed" in data["system"]["analysis"]
+
+
+def test_matrix_files(run_json, tmp_path):
+    K = np.array([[2.0, -1.0], [-1.0, 2.0]])
+    np.save(tmp_path / "K.npy", K)
+    np.savez(tmp_path / "M.npz", np.diag([1.0, 2.0]))
+    import scipy.io
+    import scipy.sparse as sp
+
+    scipy.io.mmwrite(str(tmp_path / "K.mtx"), sp.csr_matrix(K))
+    for stiff in ("K.npy", "K.mtx"):
+        data = run_json("advise", scene(tmp_path, f"method: verlet\nsystem: {{stiffness: {stiff}, "
+                                                   "mass: M.npz}\n"))
+        w = max(np.sqrt(np.linalg.eigvals(np.linalg.solve(np.diag([1.0, 2.0]), K)).real))
+        assert data["h_max"] == pytest.approx(2 / w, rel=1e-12)
+
+
+@pytest.mark.parametrize("system, message", [
+    ("{stiffness: [[1, 2], [3, 4]]}", "must be symmetric"),
+    ("{stiffness: [[1, 2, 3], [2, 1, 3]]}", "square"),
+    ("{stiffness: [[1, 0], [0, 1]], mass: [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}", "mass is 3x3"),
+    ("{stiffness: [[1, 0], [0, 1]], mass: [[1, 0], [0, -1]]}", "positive definite"),
+    ("{stiffness: [[1, .nan], [.nan, 1]]}", "is not a number"),
+    ("{stiffness: [[1, nan], [nan, 1]]}", "non-finite"),
+    ("{hessian: [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}", "2n x 2n"),
+    ("{stiffness: missing.npy}", "no such file"),
+    ('{hamiltonian: "p**2/2 + z*q", box: {q: [-1, 1], p: [-1, 1]}}', "unknown name 'z'"),
+    ('{hamiltonian: "p**2/2 + q.real", box: {q: [-1, 1], p: [-1, 1]}}', "Attribute"),
+    ('{hamiltonian: "p**2/2 + q**2", box: {q: [2, 3], p: [2, 3]}}', "no equilibria found"),
+    ('{hamiltonian: "p**2/2 + q**2", box: {q: [3, 2], p: [-1, 1]}}', "lo < hi"),
+    ('{hamiltonian: "p**2/2 + q**2"}', "$.system.box"),
+    ("{stiffness: [[1]], hessian: [[1, 0], [0, 1]]}", "exactly one of"),
+    ("{springs: 3}", "unknown key"),
+])
+def test_bad_systems_exit_2(run, tmp_path, system, message):
+    code, out, err = run("check", scene(tmp_path, f"method: verlet\nh: 0.1\nsystem: {system}\n"))
+    assert code == 2 and message in err, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_json_lists_each_equilibrium(run, tmp_path):
+    code, out, _ = run("check", str(ROOT / "examples" / "double-well.yaml"), "--json")
+    data = json.loads(out)
+    assert code == 0 and len(data["system"]["items"]) == 3
+    for item in data["system"]["items"]:
+        assert {"q", "p", "type", "beta", "model", "D"} <= set(item)
