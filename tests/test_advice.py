@@ -209,7 +209,8 @@ def test_bad_scene_files(run, tmp_path):
         "method: verlet\nh: 0.1\nmodes: [{beta: 1, model: wobble}]\n": "$.modes[0].model",
         "method: verlet\nh: fast\nmodes: [{beta: 1}]\n": "$.h: must be a number",
         "method: verlet\nmodes: [{beta: x}]\n": "$.modes[0].beta",
-        "method: verlet\nh: 0.1\nsystem: {hessian: [[1]]}\n": "$.system.hessian: hessian must be 2n x 2n",
+        "method: verlet\nh: 0.1\nsystem: {hessian: [[1]]}\n":
+            "$.system.hessian: hessian must be 2n x 2n",
         "method: verlet\nh: 0.1\nmodes: []\n": "$.modes: must be a non-empty list",
         "colour: red\n": "$.colour: unknown key",
     }
