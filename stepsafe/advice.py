@@ -25,7 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .errors import StepsafeError
+from .errors import StepsafeError, positive_finite
 from .methods import Method
 from .models import MODELS
 from .regions import DEFAULT_ZMAX, Point, Region, find_region
@@ -244,12 +244,7 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
                zmax: float = DEFAULT_ZMAX, name: str | None = None) -> CheckResult:
     """Is every mode's structure preserved at step ``h`` (with the margin)?"""
     margin = validate_margin(margin)
-    try:
-        h = float(h)
-    except (TypeError, ValueError):
-        raise StepsafeError(f"h must be a number, got {h!r}") from None
-    if not np.isfinite(h) or h <= 0:
-        raise StepsafeError(f"h must be a positive finite number, got {h}")
+    h = positive_finite(h, "h")
     beta_top = max(float(b.max()) for b in modes.betas.values())
     zmax = max(zmax, 1.05 * beta_top * h / margin)
     regions = {model: find_region(method, model, zmax) for model in modes.betas}

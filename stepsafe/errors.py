@@ -20,3 +20,16 @@ class StepsafeError(Exception):
 
 class MethodError(StepsafeError):
     """A method definition is malformed (wrong shape, non-finite coefficient, ...)."""
+
+
+def positive_finite(value, name: str) -> float:
+    """``value`` as a float > 0 and finite, else a :class:`StepsafeError` naming ``name``."""
+    import math
+
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise StepsafeError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(x) or x <= 0:
+        raise StepsafeError(f"{name} must be a positive finite number, got {x}")
+    return x

@@ -38,7 +38,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .checks import residuals
-from .errors import StepsafeError
+from .errors import StepsafeError, positive_finite
 from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
 from .models import ELLIPTIC, check_model
 from .roots import EPS, refine_brackets
@@ -198,13 +198,7 @@ def classify(M: np.ndarray, model: str, tol: np.ndarray | float = 0.0) -> np.nda
 
 
 def _validate_zmax(zmax: float) -> float:
-    try:
-        zmax = float(zmax)
-    except (TypeError, ValueError):
-        raise StepsafeError(f"zmax must be a number, got {zmax!r}") from None
-    if not np.isfinite(zmax) or zmax <= 0:
-        raise StepsafeError(f"zmax must be a positive finite number, got {zmax}")
-    return zmax
+    return positive_finite(zmax, "zmax")
 
 
 def _segment_grid(lo: float, hi: float, dz: float, closed_hi: bool) -> np.ndarray:

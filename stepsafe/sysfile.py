@@ -101,13 +101,9 @@ def _matrix_file(path: Path, where: str, key: str, sparse_ok: bool):
 
 
 def _float(value: Any, where: str, key: str) -> float:
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise _fail(where, key, f"must be a number, got {value!r}") from None
-    if not np.isfinite(x):
-        raise _fail(where, key, "must be finite")
-    return x
+    from .scene import number
+
+    return number(value, where, f"system.{key}")
 
 
 def analyse_system(tree: Any, where: str, folder: Path, method: Method,
