@@ -284,11 +284,16 @@ def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, be
     model. The answer is h_max, the end of the safe interval from 0, the frequency that
     limits it, and any islands of safe h beyond it (outside the primary interval).
 
+    A scene file gives the method and either modes: (frequencies with their models) or
+    system: (a stiffness/mass pair, a Hessian, or a 1-dof Hamiltonian whose equilibria
+    stepsafe finds and linearises); options on the command line override it.
+
     \b
     Examples:
       stepsafe advise --method yoshida4 --beta 3.2 --inverted-beta 1.1
       stepsafe advise --method lobatto3ab -s 3 --beta 1 --json
       stepsafe advise scene.yaml --margin 0.8
+      stepsafe advise examples/pendulum.yaml
     """
     from .advice import advise
     from .report import advice_data, print_advice, print_json
