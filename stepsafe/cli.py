@@ -69,7 +69,8 @@ def main(debug: bool) -> None:
 def method_options(func):
     """METHOD argument with -s/--stages and --base."""
     func = click.option("--base", metavar="NAME",
-                        help="Swap the base method of a composition (e.g. midpoint).")(func)
+                        help="Swap the base method of a composition (e.g. midpoint, or "
+                             "gauss:2 for a family member).")(func)
     func = click.option("-s", "--stages", type=int, metavar="N",
                         help="Stage count for the families gauss (N>=1) and "
                              "lobatto3ab (N>=2).")(func)
@@ -203,7 +204,8 @@ def scene_options(func):
                      help="Rate of a saddle (H = R p q); repeatable."),
         click.option("--beta", type=float, multiple=True, metavar="B",
                      help="Angular frequency of a vibration (q'=p, p'=-B^2 q); repeatable."),
-        click.option("--base", metavar="NAME", help="Swap the base method of a composition."),
+        click.option("--base", metavar="NAME", help="Swap the base method of a composition "
+                                                    "(a family member as gauss:2)."),
         click.option("-s", "--stages", type=int, metavar="N", help="Stage count of a family."),
         click.option("--method", "method_name", metavar="METHOD",
                      help="Built-in name, family (with -s) or method file."),

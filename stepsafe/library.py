@@ -170,7 +170,12 @@ def _swap_base(method, entry: Entry, base: str, depth: int):
     if not isinstance(method, Composition):
         raise StepsafeError(f"--base applies to compositions; {entry.name} is a "
                             f"{entry.kind} method")
-    new_base, base_entry = resolve(base, _depth=depth + 1)
+    name, _, stages = base.partition(":")
+    if name in FAMILIES and not stages:
+        raise StepsafeError(f"--base {name} is a family: write it as {name}:N (e.g. {name}:3)")
+    if stages and not stages.isdigit():
+        raise StepsafeError(f"--base {base!r}: the stage count after ':' must be a number")
+    new_base, base_entry = resolve(name, int(stages) if stages else None, _depth=depth + 1)
     same_order = (method.base_order is not None and new_base.order == method.base_order
                   and is_symmetric(new_base))
     order = method.order if same_order else None

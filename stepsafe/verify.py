@@ -102,8 +102,10 @@ def mp_method(name: str, stages: int | None = None, base: str | None = None,
         if base is not None:
             if out.kind != "composition":
                 raise ValueError("--base applies to compositions")
-            out = MPMethod("composition", None, {"base": mp_method(base, dps=dps),
-                                                 "weights": out.data["weights"]})
+            bname, _, bstages = base.partition(":")
+            out = MPMethod("composition", None, {
+                "base": mp_method(bname, int(bstages) if bstages else None, dps=dps),
+                "weights": out.data["weights"]})
     return out
 
 

@@ -85,3 +85,10 @@ def test_bad_input_is_one_line_exit_2(run, args, message):
 def test_bad_option_type_exit_2(run):
     code, _, err = run("region", "gauss", "-s", "three")
     assert code == 2 and "Traceback" not in err
+
+
+def test_base_can_be_a_family_member(run_json, run):
+    data = run_json("region", "yoshida4", "--base", "gauss:2", "--model", "saddle", "--verify")
+    assert data["stages"] == 6 and data["verify"]["ok"]
+    code, _, err = run("region", "yoshida4", "--base", "lobatto3ab")
+    assert code == 2 and "lobatto3ab:N" in err
