@@ -6,9 +6,7 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-
-from .advice import Failure, advise, check_step, validate_margin
+from .advice import advise, check_step, validate_margin
 from .methods import Method
 from .sysfile import SystemReport
 from .systems import coupled_preserved
@@ -88,10 +86,11 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
         if not ok:
             data["failing"] += 1
             data["safe"] = False
-            data["failures"].append(Failure(
-                "coupled", float("nan"), float(h),
-                "the one-step matrix does not keep the eigen-structure of J S at this h",
-                cap)._asdict() | {"largest_safe_h": cap, "beta": None})
+            data["failures"].append({
+                "model": "coupled", "beta": None, "z": float(h),
+                "reason": "the one-step matrix does not keep the eigen-structure of J S at "
+                          "this h",
+                "largest_safe_h": cap})
     safe = data["safe_h"]
     data["h_max"] = safe[0][1] if safe and safe[0][0] == 0.0 else 0.0
     data["in_primary_interval"] = bool(data["safe"] and (data["h_max"] is None
@@ -100,5 +99,3 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
                       "notes": report.notes}
     return data
 
-
-__all__ = ["system_advice", "system_check", "np"]

@@ -30,6 +30,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .checks import is_partitioned
 from .errors import StepsafeError
 from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
 
@@ -149,12 +150,6 @@ def split_hessian(S) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         raise StepsafeError(f"hessian must be 2n x 2n for x = (q, p), got {S.shape[0]}")
     n = S.shape[0] // 2
     return S[:n, :n], S[:n, n:], S[n:, :n], S[n:, n:]
-
-
-def is_partitioned(method: Method) -> bool:
-    if isinstance(method, Composition):
-        return is_partitioned(method.base)
-    return not isinstance(method, RungeKutta)
 
 
 def hessian_modes(S, method: Method) -> Decoupled | None:

@@ -187,3 +187,15 @@ def test_json_lists_each_equilibrium(run, tmp_path):
     assert code == 0 and len(data["system"]["items"]) == 3
     for item in data["system"]["items"]:
         assert {"q", "p", "type", "beta", "model", "D"} <= set(item)
+
+
+def test_coupled_check_fails_beyond_h_max(run, tmp_path):
+    text = ("method: pefrl\nh: H\nsystem: {hessian: [[2, 0, 0.4, 0], [0, 1, 0, 0.1], "
+            "[0.4, 0, 1, 0], [0, 0.1, 0, 1]]}\n")
+    code, out, _ = run("check", scene(tmp_path, text.replace("H", "0.1")), "--json")
+    assert code == 0 and json.loads(out)["safe"]
+    code, out, _ = run("check", scene(tmp_path, text.replace("H", "5")), "--json")
+    data = json.loads(out)
+    assert code == 1 and not data["safe"]
+    (fail,) = data["failures"]
+    assert fail["model"] == "coupled" and 0 < fail["largest_safe_h"] < 5
