@@ -145,25 +145,29 @@ class _Evaluator:
         self.method = method
         self.model = model
 
-    def jet(self, z) -> Jet:
-        return transfer_jet(self.method, np.asarray(z, dtype=float), self.model)
+    def jet(self, z, order: int = 1, scale: bool = False) -> Jet:
+        return transfer_jet(self.method, np.asarray(z, dtype=float), self.model, scale, order)
 
-    def fast(self, z) -> Jet:
-        """The jet without the rounding scale (for root refinement)."""
-        return transfer_jet(self.method, np.asarray(z, dtype=float), self.model, scale=False)
+    def matrix(self, z) -> np.ndarray:
+        return transfer_matrix(self.method, np.asarray(z, dtype=float), self.model)
 
     def trace(self, z) -> np.ndarray:
-        return self.fast(z).trace
+        M = self.matrix(z)
+        return M[:, 0, 0] + M[:, 1, 1]
 
     def dtrace(self, z) -> np.ndarray:
-        return self.fast(z).dtrace
+        return self.jet(z).dtrace
 
-    def level_slope(self, z, level: float) -> tuple[np.ndarray, np.ndarray]:
-        jet = self.fast(z)
-        return jet.trace - level, jet.dtrace
+    def trace_slope(self, z) -> tuple[np.ndarray, np.ndarray]:
+        jet = self.jet(z)
+        return jet.trace, jet.dtrace
+
+    def dtrace_slope(self, z) -> tuple[np.ndarray, np.ndarray]:
+        jet = self.jet(z, order=2)
+        return jet.dtrace, jet.d2trace
 
     def orientation(self, z) -> np.ndarray:
-        return orientation(self.fast(z).M, self.model)
+        return orientation(self.matrix(z), self.model)
 
 
 def orientation(M: np.ndarray, model: str) -> np.ndarray:
@@ -210,7 +214,37 @@ def _segment_grid(lo: float, hi: float, dz: float, closed_hi: bool) -> np.ndarra
     return z
 
 
-def _hidden_extrema(z, t, dt) -> np.ndarray:
+class _Grid:
+    """Samples over all pole-free segments at once; a cell ``(z[i], z[i+1])`` is usable
+    only when both ends lie in the same segment (no pole between them)."""
+
+    def __init__(self, edges: list[float], dz: float, closed_hi: bool) -> None:
+        self.edges = np.asarray(edges, dtype=float)
+        last = len(edges) - 2
+        parts = [_segment_grid(lo, hi, dz, closed_hi and i == last)
+                 for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])) if hi > lo]
+        self.z = np.concatenate(parts) if parts else np.empty(0)
+
+    def segment(self, z: np.ndarray) -> np.ndarray:
+        return np.searchsorted(self.edges, z, side="left") - 1
+
+    def cells(self, z: np.ndarray) -> np.ndarray:
+        """Mask of the usable cells between consecutive points of sorted ``z``."""
+        seg = self.segment(z)
+        return seg[:-1] == seg[1:]
+
+
+def _overflow(z: np.ndarray, *values: np.ndarray) -> None:
+    bad = np.zeros(z.shape, dtype=bool)
+    for v in values:
+        bad |= ~np.isfinite(v)
+    if bad.any():
+        z_bad = float(z[np.argmax(bad)])
+        raise StepsafeError(f"M(z) overflows float64 at z = {z_bad:.3g} for this method; "
+                            f"analyse a smaller range (--zmax below {z_bad:.3g}, or a smaller h)")
+
+
+def _hidden_extrema(z, t, dt, usable) -> np.ndarray:
     """Cells where the cubic Hermite interpolant suggests extrema the samples miss."""
     h = np.diff(z)
     m0, m1 = dt[:-1] * h, dt[1:] * h
@@ -225,51 +259,47 @@ def _hidden_extrema(z, t, dt) -> np.ndarray:
         vertex = -qb / (2.0 * qa)
     # two roots of p' in (0, 1) although p'(0), p'(1) agree in sign
     dips = same & (disc > 0) & (vertex > 0) & (vertex < 1) & (qa * m0 > 0)
-    flags = contrary | dips
-    flags &= np.isfinite(t[:-1]) & np.isfinite(t[1:]) & np.isfinite(dt[:-1]) & np.isfinite(dt[1:])
-    return np.flatnonzero(flags)
+    return np.flatnonzero((contrary | dips) & usable)
 
 
-def _sample(ev: _Evaluator, lo: float, hi: float, dz: float, closed_hi: bool):
-    """Sample a pole-free segment, refining cells with hidden extrema; returns z, jet arrays."""
-    z = _segment_grid(lo, hi, dz, closed_hi)
+def _merge(z: np.ndarray, extra: np.ndarray, *pairs: tuple[np.ndarray, np.ndarray]):
+    """Insert ``extra`` into sorted ``z``, and each ``(values, extra_values)`` alike."""
+    order = np.argsort(np.concatenate([z, extra]), kind="stable")
+    return (np.concatenate([z, extra])[order],
+            *(np.concatenate([v, e])[order] for v, e in pairs))
+
+
+def _sample(ev: _Evaluator, grid: _Grid):
+    """Sample every segment, refining cells with hidden extrema; returns z, t, dt, M."""
+    z = grid.z
     with np.errstate(over="ignore", invalid="ignore"):
         jet = ev.jet(z)
-    t, dt, scale, M = jet.trace, jet.dtrace, jet.scale, jet.M
-    bad = ~np.isfinite(t) | ~np.isfinite(dt) | ~np.isfinite(scale)
-    if bad.any():
-        z_bad = float(z[np.argmax(bad)])
-        raise StepsafeError(f"M(z) overflows float64 at z = {z_bad:.3g} for this method; "
-                            f"analyse a smaller range (--zmax below {z_bad:.3g}, or a smaller h)")
+    t, dt, M = jet.trace, jet.dtrace, jet.M
+    _overflow(z, t, dt)
     for _ in range(REFINE_LEVELS):
-        cells = _hidden_extrema(z, t, dt)
+        cells = _hidden_extrema(z, t, dt, grid.cells(z))
         if cells.size == 0:
             break
         frac = np.arange(1, REFINE_SPLIT) / REFINE_SPLIT
         extra = (z[cells, None] + np.diff(z)[cells, None] * frac[None, :]).ravel()
         ej = ev.jet(extra)
-        z = np.concatenate([z, extra])
-        order = np.argsort(z, kind="stable")
-        z = z[order]
-        t = np.concatenate([t, ej.trace])[order]
-        dt = np.concatenate([dt, ej.dtrace])[order]
-        scale = np.concatenate([scale, ej.scale])[order]
-        M = np.concatenate([M, ej.M])[order]
-    return z, t, dt, scale, M
+        z, t, dt, M = _merge(z, extra, (t, ej.trace), (dt, ej.dtrace), (M, ej.M))
+    return z, t, dt, M
 
 
-def _roots_between(fun, z, f, slope=None) -> np.ndarray:
-    """Refined roots for each strict sign change of samples ``f`` at points ``z``."""
-    f = np.where(np.isfinite(f), f, np.nan)
-    cells = np.flatnonzero(f[:-1] * f[1:] < 0)
-    exact = np.flatnonzero(f == 0.0)
-    roots = refine_brackets(fun, z[cells], z[cells + 1], f[cells], f[cells + 1], slope=slope)
-    return np.concatenate([roots, z[exact]])
+def _brackets(z: np.ndarray, f: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """Cells with a strict sign change of ``f`` (NaN never brackets)."""
+    return np.flatnonzero((f[:-1] * f[1:] < 0) & usable)
 
 
 def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT_ZMAX,
                 resolution: float | None = None) -> Region:
-    """Every interval of ``(0, zmax]`` where ``method`` preserves ``model``'s structure."""
+    """Every interval of ``(0, zmax]`` where ``method`` preserves ``model``'s structure.
+
+    One vectorised pass over all pole-free segments: sample ``tr M`` and its slope, locate
+    the extrema by Newton's method on ``d(tr M)/dz``, decide tangencies there, then refine
+    every crossing of every level together.
+    """
     check_model(model)
     zmax = _validate_zmax(zmax)
     dz = default_resolution(method, zmax) if resolution is None else float(resolution)
@@ -280,60 +310,75 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     pole_pts = tuple(Point(float(p), "pole", 1e-14 * float(p), "stage system singular")
                      for p in pole_z)
     edges = [0.0, *map(float, pole_z), zmax]
+    closed = not (pole_z.size and pole_z[-1] == zmax)
     if not symplectic:
-        classical = _classical(ev, edges, dz) if ELLIPTIC[model] else None
+        classical = _classical(ev, _Grid(edges, dz, closed)) if ELLIPTIC[model] else None
         return Region(model, zmax, False, (), (), (), pole_pts, dz, classical,
                       ("not symplectic on this model: the structure is never preserved",))
 
+    grid = _Grid(edges, dz, closed)
     levels = (2.0, -2.0) if ELLIPTIC[model] else (2.0,)
-    points: list[Point] = list(pole_pts)
+    z, t, dt, M = _sample(ev, grid)
+    # extrema of tr M: roots of d(tr M)/dz, by Newton on its second derivative
+    usable = grid.cells(z)
+    cells = _brackets(z, dt, usable)
+    ext = refine_brackets(ev.dtrace, z[cells], z[cells + 1], dt[cells], dt[cells + 1],
+                          slope=ev.dtrace_slope)
+    ext = np.concatenate([ext, z[dt == 0.0]])
     resonances: list[Point] = []
-    for lo, hi in zip(edges[:-1], edges[1:]):
-        if hi <= lo:
-            continue
-        closed = hi == zmax and not (pole_z.size and pole_z[-1] == zmax)
-        z, t, dt, scale, M = _sample(ev, lo, hi, dz, closed)
-        # extrema of tr M: roots of d(tr M)/dz
-        ext = _roots_between(ev.dtrace, z, dt)
-        if ext.size:
-            ej = ev.jet(ext)
-            t_ext, s_ext = ej.trace.copy(), ej.scale
-            tol_ext = TOL_FACTOR * EPS * s_ext  # the bound used by touches()
-            curv = _curvature(ev, ext, dz)
-            for L in levels:
-                touch = touches(t_ext, L, s_ext)
-                for k in np.flatnonzero(touch):
-                    t_ext[k] = L  # a tangency: never bracket a root across it
-                    inside = _touches_from_inside(model, L, curv[k])
-                    if inside:
-                        resonances.append(_resonance(ext[k], ej.M[k], L, tol_ext[k], curv[k], dz))
-            z = np.concatenate([z, ext])
-            order = np.argsort(z, kind="stable")
-            z = z[order]
-            t = np.concatenate([t, t_ext])[order]
-            M = np.concatenate([M, ej.M])[order]
-            scale = np.concatenate([scale, s_ext])[order]
+    if ext.size:
+        ej = ev.jet(ext, order=2, scale=True)
+        t_ext, s_ext, curv = ej.trace.copy(), ej.scale, ej.d2trace
+        _overflow(ext, s_ext)
+        tol_ext = TOL_FACTOR * EPS * s_ext  # the bound used by touches()
         for L in levels:
-            f = t - L
-            roots = _roots_between(lambda x, L=L: ev.trace(x) - L, z, f,
-                                   slope=lambda x, L=L: ev.level_slope(x, L))
-            roots = roots[~np.isin(roots, [r.z for r in resonances])]
-            if roots.size:
-                rj = ev.jet(roots)
-                slope = np.abs(rj.dtrace)
-                with np.errstate(divide="ignore"):
-                    unc = TOL_FACTOR * EPS * rj.scale / slope
-                points += [Point(float(r), "root", float(u), f"tr M = {L:+g}")
-                           for r, u in zip(roots, unc)]
-        if not ELLIPTIC[model]:
-            o = orientation(M, model)
-            hyper = t > 2.0 + TOL_FACTOR * EPS * scale
-            o = np.where(hyper, o, np.nan)
-            switches = _roots_between(ev.orientation, z, o)
-            points += [Point(float(r), "orientation", 0.0, "expanding direction crosses an axis")
-                       for r in switches]
+            for k in np.flatnonzero(touches(t_ext, L, s_ext)):
+                t_ext[k] = L  # a tangency: never bracket a root across it
+                if _touches_from_inside(model, L, curv[k]):
+                    resonances.append(_resonance(ext[k], ej.M[k], L, tol_ext[k], curv[k], dz))
+        z, t, M = _merge(z, ext, (t, t_ext), (M, ej.M))
+        usable = grid.cells(z)
+    # crossings of every level, refined together
+    lo_idx, lv = [], []
+    for L in levels:
+        cells = _brackets(z, t - L, usable)
+        lo_idx.append(cells)
+        lv.append(np.full(cells.size, L))
+    cells, lv = np.concatenate(lo_idx), np.concatenate(lv)
+    roots = refine_brackets(ev.trace, z[cells], z[cells + 1], t[cells] - lv, t[cells + 1] - lv,
+                            slope=ev.trace_slope, level=lv)
+    exact = np.concatenate([np.flatnonzero(t == L) for L in levels])
+    roots = np.concatenate([roots, z[exact]])
+    lv = np.concatenate([lv, t[exact]])
+    keep = ~np.isin(roots, [r.z for r in resonances])
+    roots, lv = roots[keep], lv[keep]
+    points: list[Point] = list(pole_pts)
+    if roots.size:
+        rj = ev.jet(roots, scale=True)
+        _overflow(roots, rj.scale)
+        with np.errstate(divide="ignore"):
+            unc = TOL_FACTOR * EPS * rj.scale / np.abs(rj.dtrace)
+        points += [Point(float(r), "root", float(u), f"tr M = {L:+g}")
+                   for r, u, L in zip(roots, unc, lv)]
+    if not ELLIPTIC[model]:
+        points += _orientation_switches(ev, z, t, M, usable)
     points += resonances
     return _assemble(ev, model, zmax, points, resonances, pole_pts, dz)
+
+
+def _orientation_switches(ev: _Evaluator, z, t, M, usable) -> list[Point]:
+    """Where the expanding direction crosses an axis inside a hyperbolic run: sign changes
+    of the orientation between samples that are hyperbolic beyond the rounding bound."""
+    o = np.where(t > 2.0, orientation(M, ev.model), np.nan)
+    cells = _brackets(z, o, usable)
+    if cells.size:
+        ends = np.concatenate([z[cells], z[cells + 1]])
+        jet = ev.jet(ends, order=0, scale=True)
+        hyper = (jet.trace > 2.0 + TOL_FACTOR * EPS * jet.scale).reshape(2, -1).all(axis=0)
+        cells = cells[hyper]
+    switches = refine_brackets(ev.orientation, z[cells], z[cells + 1], o[cells], o[cells + 1])
+    return [Point(float(r), "orientation", 0.0, "expanding direction crosses an axis")
+            for r in switches]
 
 
 def touches(t_ext: np.ndarray, level: float, scale: np.ndarray) -> np.ndarray:
@@ -345,12 +390,6 @@ def touches(t_ext: np.ndarray, level: float, scale: np.ndarray) -> np.ndarray:
     tangency of the ideal method may show up as a gap ~1e-13 wide or a near miss: both land
     inside this bound and are reported as the resonance they approximate."""
     return np.abs(np.asarray(t_ext) - level) <= TOL_FACTOR * EPS * np.asarray(scale)
-
-
-def _curvature(ev: _Evaluator, ext: np.ndarray, dz: float) -> np.ndarray:
-    """Second derivative of tr M at the extrema, by a central difference of d(tr M)/dz."""
-    h = np.maximum(1e-6 * np.maximum(ext, 1.0), 1e-3 * dz)
-    return (ev.dtrace(ext + h) - ev.dtrace(ext - h)) / (2.0 * h)
 
 
 def _touches_from_inside(model: str, level: float, curvature: float) -> bool:
@@ -375,7 +414,7 @@ def _assemble(ev: _Evaluator, model: str, zmax: float, points: list[Point],
     pts = sorted({p.z: p for p in points if 0.0 < p.z < zmax}.values(), key=lambda p: p.z)
     edges = [0.0] + [p.z for p in pts] + [zmax]
     mids = np.array([0.5 * (a + b) for a, b in zip(edges[:-1], edges[1:])])
-    status = classify(ev.jet(mids).M, model) if mids.size else np.zeros(0, dtype=int)
+    status = classify(ev.matrix(mids), model) if mids.size else np.zeros(0, dtype=int)
     intervals: list[Interval] = []
     reversed_: list[Interval] = []
     kept: list[Point] = []
@@ -429,33 +468,32 @@ def classical_interval(method: Method, model: str = "oscillator", zmax: float = 
     zmax = _validate_zmax(zmax)
     dz = default_resolution(method, zmax) if resolution is None else float(resolution)
     pole_z = poles(method, model)
-    edges = [0.0, *map(float, pole_z[pole_z <= zmax]), zmax]
-    return _classical(_Evaluator(method, model), edges, dz)
+    pole_z = pole_z[pole_z <= zmax]
+    edges = [0.0, *map(float, pole_z), zmax]
+    closed = not (pole_z.size and pole_z[-1] == zmax)
+    return _classical(_Evaluator(method, model), _Grid(edges, dz, closed))
 
 
-def _classical(ev: _Evaluator, edges: list[float], dz: float) -> tuple[Interval, ...]:
+def _classical(ev: _Evaluator, grid: _Grid) -> tuple[Interval, ...]:
     """Intervals where the spectral radius of M is at most 1 (+ rounding): classical stability."""
 
     def excess(z):  # rho(M) - 1, refined without bias
-        return spectral_radius(transfer_matrix(ev.method, z, ev.model)) - 1.0
+        return spectral_radius(ev.matrix(z)) - 1.0
 
     def margin(z):  # >= 0 where rho(M) <= 1 up to rounding
-        M = transfer_matrix(ev.method, z, ev.model)
+        M = ev.matrix(z)
         return TOL_FACTOR * EPS * np.abs(M).sum(axis=(1, 2)) - (spectral_radius(M) - 1.0)
 
-    points: list[Point] = []
-    for lo, hi in zip(edges[:-1], edges[1:]):
-        z = _segment_grid(lo, hi, dz, hi == edges[-1])
-        m = margin(z)
-        cells = np.flatnonzero(m[:-1] * m[1:] < 0)
-        e_lo, e_hi = excess(z[cells]), excess(z[cells + 1])
-        valid = e_lo * e_hi < 0
-        roots = refine_brackets(excess, z[cells][valid], z[cells + 1][valid], e_lo[valid],
-                                e_hi[valid])
-        roots = np.concatenate([roots, np.where(m[cells] > 0, z[cells], z[cells + 1])[~valid]])
-        points += [Point(float(r), "root", 0.0, "|mu| = 1") for r in roots]
-    pts = sorted(points, key=lambda p: p.z)
-    cuts = [0.0] + [p.z for p in pts] + [edges[-1]]
+    z = grid.z
+    m = margin(z)
+    cells = _brackets(z, m, grid.cells(z))
+    e_lo, e_hi = excess(z[cells]), excess(z[cells + 1])
+    valid = e_lo * e_hi < 0
+    roots = refine_brackets(excess, z[cells][valid], z[cells + 1][valid], e_lo[valid],
+                            e_hi[valid])
+    roots = np.concatenate([roots, np.where(m[cells] > 0, z[cells], z[cells + 1])[~valid]])
+    pts = [Point(float(r), "root", 0.0, "|mu| = 1") for r in np.sort(roots)]
+    cuts = [0.0] + [p.z for p in pts] + [float(grid.edges[-1])]
     mids = np.array([0.5 * (a + b) for a, b in zip(cuts[:-1], cuts[1:])])
     ok = margin(mids) >= 0
     out = []

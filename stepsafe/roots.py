@@ -21,17 +21,20 @@ EPS = np.finfo(float).eps
 
 def refine_brackets(fun: Callable[[np.ndarray], np.ndarray], lo: np.ndarray, hi: np.ndarray,
                     f_lo: np.ndarray, f_hi: np.ndarray, max_iter: int = 400,
-                    slope: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
-                    ) -> np.ndarray:
-    """Roots of ``fun`` in each bracket ``[lo_i, hi_i]`` where ``f_lo_i * f_hi_i < 0``.
+                    slope: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
+                    level: np.ndarray | float = 0.0) -> np.ndarray:
+    """Solutions of ``fun(x) = level_i`` in each bracket ``[lo_i, hi_i]`` where
+    ``f_lo_i * f_hi_i < 0`` (``f`` the values of ``fun - level`` at the ends).
 
-    ``fun`` maps an array of points to an array of values. With ``slope`` (a function
-    returning ``(f, df)``) the iteration takes safeguarded Newton steps instead, which
-    converge quadratically; a Newton step that leaves the bracket is replaced by bisection.
-    Returns the point of each final bracket with the smaller ``|f|``.
+    ``fun`` maps an array of points to an array of values; ``level`` (a scalar or one value
+    per bracket) lets brackets for different levels advance together. With ``slope`` (a
+    function returning ``(fun, dfun)``) the iteration takes safeguarded Newton steps
+    instead, which converge quadratically; a Newton step that leaves the bracket is replaced
+    by bisection. Returns the point of each final bracket with the smaller ``|f|``.
     """
+    level = np.broadcast_to(np.asarray(level, dtype=float), np.shape(lo))
     if slope is not None:
-        return _newton_brackets(slope, lo, hi, f_lo, f_hi, max_iter)
+        return _newton_brackets(slope, lo, hi, f_lo, f_hi, max_iter, level)
     a = np.array(lo, dtype=float)
     b = np.array(hi, dtype=float)
     fa = np.array(f_lo, dtype=float)
@@ -53,7 +56,7 @@ def refine_brackets(fun: Callable[[np.ndarray], np.ndarray], lo: np.ndarray, hi:
         lo_i, hi_i = np.minimum(ai, bi), np.maximum(ai, bi)
         bad = ~np.isfinite(c) | (c <= lo_i) | (c >= hi_i) | (it % 4 == 3)
         c = np.where(bad, mid, c)
-        fc = np.asarray(fun(c), dtype=float)
+        fc = np.asarray(fun(c), dtype=float) - level[idx]
         fc = np.where(np.isnan(fc), fbi, fc)  # treat an undefined value as b's side
         same = np.sign(fc) == np.sign(fbi)
         # Illinois: keep a and halve fa when c lands on b's side; else a <- b
@@ -65,12 +68,21 @@ def refine_brackets(fun: Callable[[np.ndarray], np.ndarray], lo: np.ndarray, hi:
     return np.where(np.abs(fa_true) < np.abs(fb), a, b)
 
 
-def _newton_brackets(slope, lo, hi, f_lo, f_hi, max_iter: int) -> np.ndarray:
-    """Safeguarded Newton (``rtsafe``) on many brackets at once."""
+def _newton_brackets(slope, lo, hi, f_lo, f_hi, max_iter: int, level: np.ndarray) -> np.ndarray:
+    """Safeguarded Newton (``rtsafe``) on many brackets at once, started at the secant point.
+
+    A bracket is done when ``f`` is exactly zero or the bracket or the Newton correction
+    (before safeguarding: a root found exactly sits on the bracket's end) is below the
+    floating-point grid. Where rounding noise in ``f`` exceeds that, Newton steps land on
+    both sides of the root and the bracket closes in on it by sign.
+    """
     a = np.minimum(lo, hi).astype(float)
     b = np.maximum(lo, hi).astype(float)
     fa = np.where(lo <= hi, f_lo, f_hi).astype(float)
-    x = 0.5 * (a + b)
+    fb = np.where(lo <= hi, f_hi, f_lo).astype(float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = a - fa * (b - a) / (fb - fa)
+    x = np.where(np.isfinite(x) & (x > a) & (x < b), x, 0.5 * (a + b))
     best = x.copy()
     best_f = np.full(x.size, np.inf)
     active = np.ones(x.size, dtype=bool)
@@ -78,22 +90,23 @@ def _newton_brackets(slope, lo, hi, f_lo, f_hi, max_iter: int) -> np.ndarray:
         if not active.any():
             break
         idx = np.flatnonzero(active)
-        f, df = slope(x[idx])
-        f = np.asarray(f, dtype=float)
+        xi = x[idx]
+        f, df = slope(xi)
+        f = np.asarray(f, dtype=float) - level[idx]
         df = np.asarray(df, dtype=float)
         better = np.abs(f) < best_f[idx]
-        best[idx] = np.where(better, x[idx], best[idx])
+        best[idx] = np.where(better, xi, best[idx])
         best_f[idx] = np.where(better, np.abs(f), best_f[idx])
         left = np.sign(f) == np.sign(fa[idx])  # the root is to the right of x
-        a[idx] = np.where(left, x[idx], a[idx])
+        a[idx] = ai = np.where(left, xi, a[idx])
         fa[idx] = np.where(left, f, fa[idx])
-        b[idx] = np.where(left, b[idx], x[idx])
+        b[idx] = bi = np.where(left, b[idx], xi)
         with np.errstate(divide="ignore", invalid="ignore"):
-            newton = x[idx] - f / df
-        ok = np.isfinite(newton) & (newton > a[idx]) & (newton < b[idx])
-        nxt = np.where(ok, newton, 0.5 * (a[idx] + b[idx]))
-        tiny = 2.0 * EPS * np.maximum(np.abs(a[idx]), np.abs(b[idx]))
-        done = (f == 0) | (b[idx] - a[idx] <= tiny) | (np.abs(nxt - x[idx]) <= 0.5 * tiny)
-        x[idx] = nxt
+            newton = xi - f / df
+        step = np.where(np.isfinite(newton), np.abs(newton - xi), np.inf)
+        ok = np.isfinite(newton) & (newton > ai) & (newton < bi)
+        tiny = 2.0 * EPS * np.maximum(np.abs(ai), np.abs(bi))
+        done = (f == 0) | (bi - ai <= tiny) | (step <= 0.5 * tiny)
+        x[idx] = np.where(ok, newton, 0.5 * (ai + bi))
         active[idx[done]] = False
     return best

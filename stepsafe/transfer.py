@@ -15,9 +15,10 @@ One place turns every method kind into ``M(z)`` (DESIGN §1):
   ``KD(d) = diag(1+dz, 1/(1+dz))``).
 * composition: ``M_base(g_k z) ... M_base(g_1 z)``.
 
-Everything is vectorised over an array of z. Alongside ``M`` the jet carries ``scale``, the
-magnitude of the terms that sum to ``tr M`` (trace of the product of entrywise absolute
-values), from which the region finder bounds the rounding error of ``tr M``.
+Everything is vectorised over an array of z. The jet carries ``dM/dz`` and, on request,
+``d2M/dz2`` (the region finder locates extrema of ``tr M`` by Newton's method), and
+``scale``, the magnitude of the terms that sum to ``tr M``, from which the region finder
+bounds the rounding error of ``tr M``.
 """
 
 from __future__ import annotations
@@ -31,11 +32,17 @@ from .models import GENERATORS, KICK_SIGN, check_model
 
 
 class Jet(NamedTuple):
-    """``M(z)``, ``dM/dz`` and the term magnitude ``scale`` at each z (shapes (n,2,2), (n,))."""
+    """``M(z)``, ``dM/dz``, the term magnitude ``scale`` and ``d2M/dz2`` at each z (shapes
+    (n,2,2), (n,2,2), (n,), (n,2,2)); derivatives not requested are NaN, ``scale`` zeros."""
 
     M: np.ndarray
     dM: np.ndarray
     scale: np.ndarray
+    d2M: np.ndarray
+
+    @property
+    def d2trace(self) -> np.ndarray:
+        return self.d2M[:, 0, 0] + self.d2M[:, 1, 1]
 
     @property
     def trace(self) -> np.ndarray:
@@ -48,31 +55,30 @@ class Jet(NamedTuple):
 
 def transfer_matrix(method: Method, z, model: str = "oscillator") -> np.ndarray:
     """``M(z)`` for every z in ``z`` (array of shape (n, 2, 2); NaN where no unique step)."""
-    return transfer_jet(method, z, model, scale=False, derivative=False).M
+    return transfer_jet(method, z, model, scale=False, order=0).M
 
 
 def transfer_jet(method: Method, z, model: str = "oscillator", scale: bool = True,
-                 derivative: bool = True) -> Jet:
-    """``M``, ``dM/dz`` and (unless ``scale=False``, then zeros) the rounding scale.
-
-    ``derivative=False`` skips the second stage solve of implicit methods (dM is then NaN).
-    """
+                 order: int = 1) -> Jet:
+    """``M`` with its derivatives up to ``order`` (0, 1 or 2) and, unless ``scale=False``
+    (then zeros), the rounding scale. Derivatives above ``order`` are NaN; implicit methods
+    pay one extra stage solve per order."""
     check_model(model)
     z = np.atleast_1d(np.asarray(z, dtype=float))
     if isinstance(method, Composition):
         flat = method.flattened()
         if isinstance(flat.base, Splitting):
-            return transfer_jet(_as_splitting(flat), z, model, scale, derivative)
-        return _composition_jet(flat, z, model, derivative)
+            return transfer_jet(_as_splitting(flat), z, model, scale, order)
+        return _composition_jet(flat, z, model, order)
     if isinstance(method, Splitting):
         if model == "saddle":
             return _euler_factor_jet(method, z)
         if model == "saddle-p":  # the saddle at -z: M(z) = M_saddle(-z), dM/dz = -dM_saddle
             jet = _euler_factor_jet(method, -z)
-            return Jet(jet.M, -jet.dM, jet.scale)
-        return _splitting_jet(method, z, model, scale)
+            return Jet(jet.M, -jet.dM, jet.scale, jet.d2M)
+        return _splitting_jet(method, z, model, scale, order)
     if isinstance(method, (RungeKutta, PartitionedRK)):
-        return _prk_jet(method.as_prk(), z, model, derivative)
+        return _prk_jet(method.as_prk(), z, model, order)
     raise TypeError(f"not a method: {type(method).__name__}")
 
 
@@ -103,27 +109,34 @@ def _batched_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         return out
 
 
-def _prk_jet(prk: PartitionedRK, z: np.ndarray, model: str, derivative: bool = True) -> Jet:
+def _prk_jet(prk: PartitionedRK, z: np.ndarray, model: str, order: int = 1) -> Jet:
+    """Stage solves: ``S X = E``, ``S X' = K X``, ``S X'' = 2 K X'`` (``S = I - z K``);
+    ``M = I + z B X``, ``M' = B X + z B X'``, ``M'' = 2 B X' + z B X''``."""
     K, E, B = stage_operator(prk, model)
     n2 = K.shape[0]
-    S = np.eye(n2)[None, :, :] - z[:, None, None] * K[None, :, :]
+    zc = z[:, None, None]
+    S = np.eye(n2)[None, :, :] - zc * K[None, :, :]
     X = _batched_solve(S, np.broadcast_to(E, (z.size, n2, 2)).copy())
     BX = B[None, :, :] @ X
-    M = np.eye(2)[None, :, :] + z[:, None, None] * BX
-    if derivative:
+    M = np.eye(2)[None, :, :] + zc * BX
+    dM = np.full_like(M, np.nan)
+    d2M = np.full_like(M, np.nan)
+    if order >= 1:
         dX = _batched_solve(S, K[None, :, :] @ X)
-        dM = BX + z[:, None, None] * (B[None, :, :] @ dX)
-    else:
-        dM = np.full_like(M, np.nan)
+        BdX = B[None, :, :] @ dX
+        dM = BX + zc * BdX
+        if order >= 2:
+            d2X = _batched_solve(S, 2.0 * (K[None, :, :] @ dX))
+            d2M = 2.0 * BdX + zc * (B[None, :, :] @ d2X)
     absterms = np.abs(z)[:, None, None] * (np.abs(B)[None, :, :] @ np.abs(X))
     scale = 2.0 + absterms[:, 0, 0] + absterms[:, 1, 1]
-    return Jet(M, dM, scale)
+    return Jet(M, dM, scale, d2M)
 
 
-def _identity_jet(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _identity(n: int) -> np.ndarray:
     M = np.zeros((n, 2, 2))
     M[:, 0, 0] = M[:, 1, 1] = 1.0
-    return M, np.zeros((n, 2, 2)), M.copy()
+    return M
 
 
 _FLAT: dict[int, tuple[Composition, Splitting]] = {}
@@ -139,10 +152,12 @@ def _as_splitting(method: Composition) -> Splitting:
     return hit[1]
 
 
-def _splitting_jet(method: Splitting, z: np.ndarray, model: str, with_scale: bool = True) -> Jet:
+def _splitting_jet(method: Splitting, z: np.ndarray, model: str, with_scale: bool = True,
+                   order: int = 1) -> Jet:
     """Product of drift/kick factors ``F = I + c z e_dst e_src^T`` applied as row updates.
 
-    Matrices are held as (2, 2, n) arrays so every factor costs a few vector operations.
+    Matrices are held as (2, 2, n) arrays so every factor costs a few vector operations;
+    the derivatives follow by the product rule (``F' = c e_dst e_src^T``, ``F'' = 0``).
     The rounding scale is the first-order sandwich ``sum_k ||L_k|| ||F_k|| ||R_{k-1}||``
     (``R`` the product so far, ``L`` the product of the later factors).
     """
@@ -151,24 +166,30 @@ def _splitting_jet(method: Splitting, z: np.ndarray, model: str, with_scale: boo
     M = np.zeros((2, 2, n))
     M[0, 0] = M[1, 1] = 1.0
     dM = np.zeros((2, 2, n))
-    right = np.empty((len(ops), n))
+    d2M = np.zeros((2, 2, n)) if order >= 2 else None
+    right = np.empty((len(ops), n)) if with_scale else None
     for k, (src, dst, c) in enumerate(ops):
-        if with_scale:
+        if right is not None:
             right[k] = np.sqrt((M * M).sum(axis=(0, 1)))
         cz = c * z
-        dM[dst] += cz * dM[src] + c * M[src]
+        if d2M is not None:
+            d2M[dst] += cz * d2M[src] + (2.0 * c) * dM[src]
+        if order >= 1:
+            dM[dst] += cz * dM[src] + c * M[src]
         M[dst] += cz * M[src]
     scale = np.zeros(n)
-    if not with_scale:
-        return Jet(M.transpose(2, 0, 1), dM.transpose(2, 0, 1), scale)
-    L = np.zeros((2, 2, n))
-    L[0, 0] = L[1, 1] = 1.0
-    for k in range(len(ops) - 1, -1, -1):
-        src, dst, c = ops[k]
-        cz = c * z
-        scale += np.sqrt((L * L).sum(axis=(0, 1))) * np.sqrt(2.0 + cz * cz) * right[k]
-        L[:, src] += cz * L[:, dst]
-    return Jet(M.transpose(2, 0, 1), dM.transpose(2, 0, 1), scale)
+    if right is not None:
+        L = np.zeros((2, 2, n))
+        L[0, 0] = L[1, 1] = 1.0
+        for k in range(len(ops) - 1, -1, -1):
+            src, dst, c = ops[k]
+            cz = c * z
+            scale += np.sqrt((L * L).sum(axis=(0, 1))) * np.sqrt(2.0 + cz * cz) * right[k]
+            L[:, src] += cz * L[:, dst]
+    if order < 1:
+        dM.fill(np.nan)
+    d2 = np.full((n, 2, 2), np.nan) if d2M is None else d2M.transpose(2, 0, 1)
+    return Jet(M.transpose(2, 0, 1), dM.transpose(2, 0, 1), scale, d2)
 
 
 def _row_ops(method: Splitting, model: str) -> list[tuple[int, int, float]]:
@@ -182,54 +203,67 @@ def _row_ops(method: Splitting, model: str) -> list[tuple[int, int, float]]:
 def _euler_factor_jet(method: Splitting, z: np.ndarray) -> Jet:
     """Saddle model: the diagonal product of the symplectic Euler factors
 
-    ``DK(c) = diag(1/(1-cz), 1-cz)`` and ``KD(d) = diag(1+dz, 1/(1+dz))``.
+    ``DK(c) = diag(1/(1-cz), 1-cz)`` and ``KD(d) = diag(1+dz, 1/(1+dz))``, so
+    ``M = diag(m, 1/m)`` with ``(log m)' = g = sum w/f`` over the factors (``f`` the linear
+    factor), ``g' = sum -+ (w/f)^2`` (+ for DK), ``m'' = m (g^2 + g')``,
+    ``(1/m)'' = (g^2 - g')/m``. Always computed to second order (it costs nothing).
     """
-    log_dq = np.zeros(z.size)
+    g = np.zeros(z.size)
+    dg = np.zeros(z.size)
     mq = np.ones(z.size)
     mp = np.ones(z.size)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         for kind, w in method.euler_factors():
             f = 1.0 - w * z if kind == "DK" else 1.0 + w * z
             if kind == "DK":
                 mq, mp = mq / f, mp * f
-                log_dq += w / f
             else:
                 mq, mp = mq * f, mp / f
-                log_dq += w / f
+            r = w / f
+            g += r
+            dg += r * r if kind == "DK" else -r * r
         M = np.zeros((z.size, 2, 2))
         M[:, 0, 0], M[:, 1, 1] = mq, mp
         dM = np.zeros_like(M)
-        dM[:, 0, 0] = mq * log_dq
-        dM[:, 1, 1] = -mp * log_dq
+        dM[:, 0, 0] = mq * g
+        dM[:, 1, 1] = -mp * g
+        d2M = np.zeros_like(M)
+        d2M[:, 0, 0] = mq * (g * g + dg)
+        d2M[:, 1, 1] = mp * (g * g - dg)
         bad = ~np.isfinite(mq) | ~np.isfinite(mp)
-        M[bad] = np.nan
-        dM[bad] = np.nan
-    return Jet(M, dM, np.abs(mq) + np.abs(mp))
+        M[bad] = dM[bad] = d2M[bad] = np.nan
+    return Jet(M, dM, np.abs(mq) + np.abs(mp), d2M)
 
 
-def _composition_jet(method: Composition, z: np.ndarray, model: str,
-                     derivative: bool = True) -> Jet:
-    """Product of base jets; the rounding scale is the first-order sandwich
-    ``sum_k ||M_n..M_{k+1}|| scale_k ||M_{k-1}..M_1||`` (Frobenius norms), which keeps
-    the cancellation that an entrywise absolute product would throw away."""
+def _composition_jet(method: Composition, z: np.ndarray, model: str, order: int = 1) -> Jet:
+    """Product of base jets ``M = M_n(g_n z) ... M_1(g_1 z)`` (product rule for the
+    derivatives, with the chain-rule factors ``g_k``, ``g_k^2``); the rounding scale is the
+    first-order sandwich ``sum_k ||M_n..M_{k+1}|| scale_k ||M_{k-1}..M_1||`` (Frobenius
+    norms), which keeps the cancellation that an entrywise absolute product would throw
+    away."""
     g = method.weights
-    base = transfer_jet(method.base, np.outer(g, z).ravel(), model, derivative=derivative)
+    base = transfer_jet(method.base, np.outer(g, z).ravel(), model, order=order)
     n = z.size
     Mb = base.M.reshape(g.size, n, 2, 2)
     dMb = base.dM.reshape(g.size, n, 2, 2)
+    d2Mb = base.d2M.reshape(g.size, n, 2, 2)
     sb = base.scale.reshape(g.size, n)
-    M, dM, _ = _identity_jet(n)
+    M, dM, d2M = _identity(n), np.zeros((n, 2, 2)), np.zeros((n, 2, 2))
     right_norms = np.empty((g.size, n))  # ||M_{k-1} ... M_1||
     for k in range(g.size):
         right_norms[k] = np.sqrt((M * M).sum(axis=(1, 2)))
+        if order >= 2:
+            d2M = (g[k] ** 2) * d2Mb[k] @ M + (2.0 * g[k]) * dMb[k] @ dM + Mb[k] @ d2M
         dM = g[k] * dMb[k] @ M + Mb[k] @ dM
         M = Mb[k] @ M
-    L, _, _ = _identity_jet(n)
+    L = _identity(n)
     scale = np.zeros(n)
     for k in range(g.size - 1, -1, -1):
         scale += np.sqrt((L * L).sum(axis=(1, 2))) * sb[k] * right_norms[k]
         L = L @ Mb[k]
-    return Jet(M, dM, scale)
+    if order < 2:
+        d2M = np.full_like(M, np.nan)
+    return Jet(M, dM, scale, d2M)
 
 
 def signed_poles(method: Method, model: str) -> np.ndarray:

@@ -123,8 +123,8 @@ def test_conjecture_boundary_tends_to_pi(s):
     resolution (s >= 7) stepsafe's resonance and its uncertainty cover both boundaries."""
     p, lo, hi = true_gap(s)
     assert lo < mp.pi < hi or lo < hi < mp.pi
-    if p.kind == "root":
-        assert abs(p.z - float(lo)) <= REL * float(lo)
+    if p.kind == "root":  # near a double root: as close as float64 can tell (its uncertainty)
+        assert abs(p.z - float(lo)) <= max(REL * float(lo), p.uncertainty) and p.uncertainty < 1e-8
     else:
         assert p.kind == "resonance"
         assert p.z - p.uncertainty <= float(lo) and float(hi) <= p.z + p.uncertainty
