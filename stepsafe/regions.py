@@ -41,7 +41,7 @@ from .checks import residuals
 from .errors import StepsafeError, positive_finite
 from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
 from .models import ELLIPTIC, check_model
-from .roots import EPS, refine_brackets
+from .roots import EPS, hermite_extremum, hermite_root, refine_brackets
 from .transfer import Jet, poles, transfer_jet, transfer_matrix
 
 DEFAULT_ZMAX = 10.0
@@ -322,8 +322,10 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     # extrema of tr M: roots of d(tr M)/dz, by Newton on its second derivative
     usable = grid.cells(z)
     cells = _brackets(z, dt, usable)
+    start = hermite_extremum(z[cells], z[cells + 1], t[cells], t[cells + 1], dt[cells],
+                             dt[cells + 1])
     ext = refine_brackets(ev.dtrace, z[cells], z[cells + 1], dt[cells], dt[cells + 1],
-                          slope=ev.dtrace_slope)
+                          slope=ev.dtrace_slope, start=start)
     ext = np.concatenate([ext, z[dt == 0.0]])
     resonances: list[Point] = []
     if ext.size:
@@ -336,7 +338,7 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
                 t_ext[k] = L  # a tangency: never bracket a root across it
                 if _touches_from_inside(model, L, curv[k]):
                     resonances.append(_resonance(ext[k], ej.M[k], L, tol_ext[k], curv[k], dz))
-        z, t, M = _merge(z, ext, (t, t_ext), (M, ej.M))
+        z, t, dt, M = _merge(z, ext, (t, t_ext), (dt, ej.dtrace), (M, ej.M))
         usable = grid.cells(z)
     # crossings of every level, refined together
     lo_idx, lv = [], []
@@ -345,8 +347,10 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
         lo_idx.append(cells)
         lv.append(np.full(cells.size, L))
     cells, lv = np.concatenate(lo_idx), np.concatenate(lv)
-    roots = refine_brackets(ev.trace, z[cells], z[cells + 1], t[cells] - lv, t[cells + 1] - lv,
-                            slope=ev.trace_slope, level=lv)
+    f0, f1 = t[cells] - lv, t[cells + 1] - lv
+    start = hermite_root(z[cells], z[cells + 1], f0, f1, dt[cells], dt[cells + 1])
+    roots = refine_brackets(ev.trace, z[cells], z[cells + 1], f0, f1, slope=ev.trace_slope,
+                            level=lv, start=start)
     exact = np.concatenate([np.flatnonzero(t == L) for L in levels])
     roots = np.concatenate([roots, z[exact]])
     lv = np.concatenate([lv, t[exact]])

@@ -156,40 +156,39 @@ def _splitting_jet(method: Splitting, z: np.ndarray, model: str, with_scale: boo
                    order: int = 1) -> Jet:
     """Product of drift/kick factors ``F = I + c z e_dst e_src^T`` applied as row updates.
 
-    Matrices are held as (2, 2, n) arrays so every factor costs a few vector operations;
-    the derivatives follow by the product rule (``F' = c e_dst e_src^T``, ``F'' = 0``).
+    The jet is held as Taylor coefficients ``T[k] = M^(k) / k!``, shape (order+1, 2, 2, n);
+    since ``F`` is linear in z, ``(F R)_k = F R_k + c e_dst e_src^T R_(k-1)``, so every
+    factor costs a few vector operations whatever the order.
     The rounding scale is the first-order sandwich ``sum_k ||L_k|| ||F_k|| ||R_{k-1}||``
-    (``R`` the product so far, ``L`` the product of the later factors).
+    (``R`` the product so far, ``L`` the product of the later factors, Frobenius norms).
     """
     ops = _row_ops(method, model)
     n = z.size
-    M = np.zeros((2, 2, n))
-    M[0, 0] = M[1, 1] = 1.0
-    dM = np.zeros((2, 2, n))
-    d2M = np.zeros((2, 2, n)) if order >= 2 else None
+    T = np.zeros((order + 1, 2, 2, n))
+    T[0, 0, 0] = T[0, 1, 1] = 1.0
+    coef = np.array([c for _, _, c in ops])
+    cz = coef[:, None] * z[None, :]
     right = np.empty((len(ops), n)) if with_scale else None
     for k, (src, dst, c) in enumerate(ops):
         if right is not None:
-            right[k] = np.sqrt((M * M).sum(axis=(0, 1)))
-        cz = c * z
-        if d2M is not None:
-            d2M[dst] += cz * d2M[src] + (2.0 * c) * dM[src]
-        if order >= 1:
-            dM[dst] += cz * dM[src] + c * M[src]
-        M[dst] += cz * M[src]
+            right[k] = np.einsum("ijn,ijn->n", T[0], T[0])
+        T[:, dst] += cz[k] * T[:, src]
+        if order:
+            T[1:, dst] += c * T[:-1, src]
     scale = np.zeros(n)
     if right is not None:
         L = np.zeros((2, 2, n))
         L[0, 0] = L[1, 1] = 1.0
+        left = np.empty((len(ops), n))
         for k in range(len(ops) - 1, -1, -1):
-            src, dst, c = ops[k]
-            cz = c * z
-            scale += np.sqrt((L * L).sum(axis=(0, 1))) * np.sqrt(2.0 + cz * cz) * right[k]
-            L[:, src] += cz * L[:, dst]
-    if order < 1:
-        dM.fill(np.nan)
-    d2 = np.full((n, 2, 2), np.nan) if d2M is None else d2M.transpose(2, 0, 1)
-    return Jet(M.transpose(2, 0, 1), dM.transpose(2, 0, 1), scale, d2)
+            src, dst, _ = ops[k]
+            left[k] = np.einsum("ijn,ijn->n", L, L)
+            L[:, src] += cz[k] * L[:, dst]
+        scale = (np.sqrt(left * right * (2.0 + cz * cz))).sum(axis=0)
+    jet = [T[k].transpose(2, 0, 1) * factorial for k, factorial in zip(range(order + 1), (1, 1, 2))]
+    nan = np.full((n, 2, 2), np.nan)
+    jet += [nan] * (3 - len(jet))
+    return Jet(jet[0], jet[1], scale, jet[2])
 
 
 def _row_ops(method: Splitting, model: str) -> list[tuple[int, int, float]]:

@@ -47,6 +47,19 @@ def test_derivative_matches_finite_difference(m):
         np.testing.assert_allclose(jet.dM, fd, rtol=1e-6, atol=1e-6 * np.abs(jet.M).max())
 
 
+@pytest.mark.parametrize("m", _all_methods(), ids=lambda m: m.name)
+def test_second_derivative_matches_finite_difference(m):
+    z = np.array([0.3, 0.9, 1.7])
+    for model in MODELS:
+        if np.any(np.abs(z[:, None] - poles(m, model)[None, :]) < 1e-2):
+            continue
+        jet = transfer_jet(m, z, model, order=2)
+        h = 1e-5
+        fd = (transfer_jet(m, z + h, model).dM - transfer_jet(m, z - h, model).dM) / (2 * h)
+        np.testing.assert_allclose(jet.d2M, fd, rtol=1e-5, atol=1e-5 * np.abs(jet.d2M).max())
+        assert np.isnan(transfer_jet(m, z, model, order=1).d2M).all() or model.startswith("sad")
+
+
 @pytest.mark.parametrize("name", ["verlet", "pefrl", "yoshida4", "symplectic-euler"])
 def test_splitting_products_equal_prk_form(name):
     """The drift/kick product and the method's PRK form (b_q = b_p) give the same M."""
