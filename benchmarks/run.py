@@ -5,7 +5,9 @@
 1. Peer (nodepy) on the tasks both do: the imaginary-axis stability interval and the
    stability function R(iy) of rk4, Gauss s = 2..5 and Lobatto IIIA s = 3..5; time for
    both and accuracy against mpmath (30 digits). Goal: >= 100x faster at equal or better
-   accuracy. nodepy gets the same float tableaux where it has no built-in method.
+   accuracy. nodepy gets the same float tableaux where it has no built-in method. stepsafe's
+   interval is ``classical_interval`` (roots of |Q(iy)|^2 - |P(iy)|^2, status decided from
+   M(z)); its R(iy) is ``rkstability.stability_function``.
 2. Region cost: warm time of ``find_region`` (three models) for every library method and
    for the families s = 2..20. Goal: < 10 ms per model for library methods; cost growing no
    faster than s^3 (log-log slope).
@@ -39,7 +41,8 @@ from stepsafe.families import gauss, lobatto3a, lobatto3ab  # noqa: E402
 from stepsafe.library import builtin_names, resolve  # noqa: E402
 from stepsafe.methods import RungeKutta  # noqa: E402
 from stepsafe.regions import classical_interval, find_region  # noqa: E402
-from stepsafe.transfer import transfer_matrix  # noqa: E402
+from stepsafe.rkstability import stability_function, stability_polynomials  # noqa: E402
+from stepsafe.transfer import stage_operator  # noqa: E402
 
 ROWS: list[tuple[str, str, str, str]] = []
 
@@ -75,10 +78,14 @@ def _mp_R(A, b, y):
     return num / mp.det(mp.eye(s) - w * Am)
 
 
+def cold() -> None:
+    stability_polynomials.cache_clear()
+    stage_operator.cache_clear()
+
+
 def stepsafe_R(method, y):
-    """R(iy) from the oscillator transfer matrix: M (1, i) = R(iy) (1, i) for RK methods."""
-    M = transfer_matrix(method, y, "oscillator")
-    return M[:, 0, 0] + 1j * M[:, 0, 1]
+    """R(iy) from stepsafe's stability polynomials (stepsafe.rkstability)."""
+    return stability_function(method, 1j * y)
 
 
 def bench_nodepy() -> None:
@@ -106,6 +113,7 @@ def bench_nodepy() -> None:
     speed = []
     for name, ours, peer, exact in cases:
         def ours_interval(ours=ours):
+            cold()  # no per-method caches carried between calls: both sides start from A, b
             iv = classical_interval(ours, zmax=10.0)
             return iv[0].hi if iv and iv[0].lo == 0.0 else 0.0
 
@@ -128,6 +136,7 @@ def bench_nodepy() -> None:
             f"ours {err(v_ours)}; nodepy {err(v_peer)}")
 
         def ours_R(ours=ours):
+            cold()
             return stepsafe_R(ours, y)
 
         def peer_R(peer=peer):

@@ -17,6 +17,7 @@ The classes are frozen; they validate shapes and finiteness when built and raise
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Union
 
 import numpy as np
@@ -111,7 +112,7 @@ class RungeKutta:
     def stages(self) -> int:
         return int(self.b.size)
 
-    @property
+    @cached_property
     def explicit(self) -> bool:
         return bool(not np.triu(self.A).any())
 

@@ -41,6 +41,7 @@ from .checks import residuals
 from .errors import StepsafeError, positive_finite
 from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
 from .models import ELLIPTIC, check_model
+from .rkstability import imaginary_axis_crossings, stability_function
 from .roots import EPS, hermite_extremum, hermite_root, refine_brackets
 from .transfer import Jet, poles, transfer_jet, transfer_matrix
 
@@ -225,6 +226,13 @@ class _Grid:
                  for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])) if hi > lo]
         self.z = np.concatenate(parts) if parts else np.empty(0)
 
+    @classmethod
+    def between_poles(cls, pole_z: np.ndarray, zmax: float, dz: float) -> _Grid:
+        """The grid on ``(0, zmax]`` split at the poles in it (``zmax`` open if a pole)."""
+        pole_z = pole_z[pole_z <= zmax]
+        closed = not (pole_z.size and pole_z[-1] == zmax)
+        return cls([0.0, *map(float, pole_z), zmax], dz, closed)
+
     def segment(self, z: np.ndarray) -> np.ndarray:
         return np.searchsorted(self.edges, z, side="left") - 1
 
@@ -309,14 +317,12 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     pole_z = pole_z[pole_z <= zmax]
     pole_pts = tuple(Point(float(p), "pole", 1e-14 * float(p), "stage system singular")
                      for p in pole_z)
-    edges = [0.0, *map(float, pole_z), zmax]
-    closed = not (pole_z.size and pole_z[-1] == zmax)
     if not symplectic:
-        classical = _classical(ev, _Grid(edges, dz, closed)) if ELLIPTIC[model] else None
+        classical = _classical(ev, zmax, dz) if ELLIPTIC[model] else None
         return Region(model, zmax, False, (), (), (), pole_pts, dz, classical,
                       ("not symplectic on this model: the structure is never preserved",))
 
-    grid = _Grid(edges, dz, closed)
+    grid = _Grid.between_poles(pole_z, zmax, dz)
     levels = (2.0, -2.0) if ELLIPTIC[model] else (2.0,)
     z, t, dt, M = _sample(ev, grid)
     # extrema of tr M: roots of d(tr M)/dz, by Newton on its second derivative
@@ -470,23 +476,58 @@ def classical_interval(method: Method, model: str = "oscillator", zmax: float = 
     """
     check_model(model)
     zmax = _validate_zmax(zmax)
-    dz = default_resolution(method, zmax) if resolution is None else float(resolution)
-    pole_z = poles(method, model)
-    pole_z = pole_z[pole_z <= zmax]
-    edges = [0.0, *map(float, pole_z), zmax]
-    closed = not (pole_z.size and pole_z[-1] == zmax)
-    return _classical(_Evaluator(method, model), _Grid(edges, dz, closed))
+    return _classical(_Evaluator(method, model), zmax, resolution)
 
 
-def _classical(ev: _Evaluator, grid: _Grid) -> tuple[Interval, ...]:
-    """Intervals where the spectral radius of M is at most 1 (+ rounding): classical stability."""
+def _classical(ev: _Evaluator, zmax: float, dz: float | None) -> tuple[Interval, ...]:
+    """Intervals where the spectral radius of M is at most 1 (+ rounding): classical stability.
 
-    def excess(z):  # rho(M) - 1, refined without bias
-        return spectral_radius(ev.matrix(z)) - 1.0
+    Candidate boundaries: for an RK method on the oscillator the positive roots of the
+    stability polynomial ``|Q(iz)|^2 - |P(iz)|^2`` (:mod:`stepsafe.rkstability`), else the
+    sign changes of the margin on the grid between poles. The status between candidates is
+    decided from ``M`` at the midpoints; only candidates with different status on either
+    side remain.
+    """
+
+    rk_axis = isinstance(ev.method, RungeKutta) and ev.model == "oscillator"
 
     def margin(z):  # >= 0 where rho(M) <= 1 up to rounding
+        if rk_axis:  # M acts as R(iz) on q + i p: entries Re R, +-Im R; rho = |R|
+            R = stability_function(ev.method, 1j * np.asarray(z))
+            return TOL_FACTOR * EPS * 2.0 * (np.abs(R.real) + np.abs(R.imag)) - (np.abs(R) - 1)
         M = ev.matrix(z)
         return TOL_FACTOR * EPS * np.abs(M).sum(axis=(1, 2)) - (spectral_radius(M) - 1.0)
+
+    if rk_axis:
+        roots = imaginary_axis_crossings(ev.method, zmax)
+    else:
+        dz = default_resolution(ev.method, zmax) if dz is None else float(dz)
+        grid = _Grid.between_poles(poles(ev.method, ev.model), zmax, dz)
+        roots = _margin_crossings(ev, grid, margin)
+    roots = roots[(roots > 0) & (roots < zmax)]
+    cuts = np.concatenate([[0.0], roots, [zmax]])
+    ok = margin(0.5 * (cuts[:-1] + cuts[1:])) >= 0
+    out: list[Interval] = []
+    start = None
+    for i, good in enumerate(ok):
+        if good and start is None:
+            start = i
+        if start is not None and (not good or i == ok.size - 1):
+            end = i if not good else i + 1  # cuts[end] closes the run
+            lo_pt = None if start == 0 else Point(float(cuts[start]), "root", 0.0, "|mu| = 1")
+            hi_pt = (None if end == ok.size else
+                     Point(float(cuts[end]), "root", 0.0, "|mu| = 1"))
+            out.append(Interval(float(cuts[start]), None if hi_pt is None else hi_pt.z,
+                                lo_pt, hi_pt))
+            start = None
+    return tuple(out)
+
+
+def _margin_crossings(ev: _Evaluator, grid: _Grid, margin) -> np.ndarray:
+    """Sign changes of the margin on the grid, refined on ``rho(M) - 1`` without bias."""
+
+    def excess(z):
+        return spectral_radius(ev.matrix(z)) - 1.0
 
     z = grid.z
     m = margin(z)
@@ -495,15 +536,5 @@ def _classical(ev: _Evaluator, grid: _Grid) -> tuple[Interval, ...]:
     valid = e_lo * e_hi < 0
     roots = refine_brackets(excess, z[cells][valid], z[cells + 1][valid], e_lo[valid],
                             e_hi[valid])
-    roots = np.concatenate([roots, np.where(m[cells] > 0, z[cells], z[cells + 1])[~valid]])
-    pts = [Point(float(r), "root", 0.0, "|mu| = 1") for r in np.sort(roots)]
-    cuts = [0.0] + [p.z for p in pts] + [float(grid.edges[-1])]
-    mids = np.array([0.5 * (a + b) for a, b in zip(cuts[:-1], cuts[1:])])
-    ok = margin(mids) >= 0
-    out = []
-    for i, good in enumerate(ok):
-        if good:
-            hi = None if i == len(pts) else cuts[i + 1]
-            out.append(Interval(cuts[i], hi, pts[i - 1] if i else None,
-                                pts[i] if i < len(pts) else None))
-    return tuple(out)
+    return np.sort(np.concatenate([roots, np.where(m[cells] > 0, z[cells],
+                                                   z[cells + 1])[~valid]]))

@@ -23,6 +23,7 @@ bounds the rounding error of ``tr M``.
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
@@ -78,29 +79,37 @@ def transfer_jet(method: Method, z, model: str = "oscillator", scale: bool = Tru
             return Jet(jet.M, -jet.dM, jet.scale, jet.d2M)
         return _splitting_jet(method, z, model, scale, order)
     if isinstance(method, (RungeKutta, PartitionedRK)):
-        return _prk_jet(method.as_prk(), z, model, order)
+        return _prk_jet(method, z, model, order)
     raise TypeError(f"not a method: {type(method).__name__}")
 
 
+@lru_cache(maxsize=64)
 def stage_operator(method: RungeKutta | PartitionedRK, model: str):
-    """``(K, E, B)`` of the stage system ``(I - z K) X = E``, ``M = I + z B X``."""
+    """``(K, E, B)`` of the stage system ``(I - z K) X = E``, ``M = I + z B X`` (cached per
+    method object and model: the region finder evaluates the same method many times)."""
     prk = method.as_prk()
     L = GENERATORS[model]
     s = prk.stages
-    K = np.block([[prk.A_q * L[0, 0], prk.A_q * L[0, 1]], [prk.A_p * L[1, 0], prk.A_p * L[1, 1]]])
+    K = np.empty((2 * s, 2 * s))
+    K[:s, :s], K[:s, s:] = prk.A_q * L[0, 0], prk.A_q * L[0, 1]
+    K[s:, :s], K[s:, s:] = prk.A_p * L[1, 0], prk.A_p * L[1, 1]
     E = np.zeros((2 * s, 2))
     E[:s, 0] = 1.0
     E[s:, 1] = 1.0
-    B = np.block([[prk.b_q * L[0, 0], prk.b_q * L[0, 1]], [prk.b_p * L[1, 0], prk.b_p * L[1, 1]]])
+    B = np.empty((2, 2 * s))
+    B[0, :s], B[0, s:] = prk.b_q * L[0, 0], prk.b_q * L[0, 1]
+    B[1, :s], B[1, s:] = prk.b_p * L[1, 0], prk.b_p * L[1, 1]
+    for array in (K, E, B):
+        array.flags.writeable = False
     return K, E, B
 
 
-def _batched_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+def batched_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """Solve ``S[i] x = rhs[i]``; NaN rows where ``S[i]`` is exactly singular."""
     try:
         return np.linalg.solve(S, rhs)
     except np.linalg.LinAlgError:
-        out = np.full(rhs.shape, np.nan)
+        out = np.full(rhs.shape, np.nan, dtype=np.result_type(S, rhs))
         for i in range(S.shape[0]):
             try:
                 out[i] = np.linalg.solve(S[i], rhs[i])
@@ -109,24 +118,24 @@ def _batched_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         return out
 
 
-def _prk_jet(prk: PartitionedRK, z: np.ndarray, model: str, order: int = 1) -> Jet:
+def _prk_jet(prk: RungeKutta | PartitionedRK, z: np.ndarray, model: str, order: int = 1) -> Jet:
     """Stage solves: ``S X = E``, ``S X' = K X``, ``S X'' = 2 K X'`` (``S = I - z K``);
     ``M = I + z B X``, ``M' = B X + z B X'``, ``M'' = 2 B X' + z B X''``."""
     K, E, B = stage_operator(prk, model)
     n2 = K.shape[0]
     zc = z[:, None, None]
     S = np.eye(n2)[None, :, :] - zc * K[None, :, :]
-    X = _batched_solve(S, np.broadcast_to(E, (z.size, n2, 2)).copy())
+    X = batched_solve(S, np.broadcast_to(E, (z.size, n2, 2)).copy())
     BX = B[None, :, :] @ X
     M = np.eye(2)[None, :, :] + zc * BX
     dM = np.full_like(M, np.nan)
     d2M = np.full_like(M, np.nan)
     if order >= 1:
-        dX = _batched_solve(S, K[None, :, :] @ X)
+        dX = batched_solve(S, K[None, :, :] @ X)
         BdX = B[None, :, :] @ dX
         dM = BX + zc * BdX
         if order >= 2:
-            d2X = _batched_solve(S, 2.0 * (K[None, :, :] @ dX))
+            d2X = batched_solve(S, 2.0 * (K[None, :, :] @ dX))
             d2M = 2.0 * BdX + zc * (B[None, :, :] @ d2X)
     absterms = np.abs(z)[:, None, None] * (np.abs(B)[None, :, :] @ np.abs(X))
     scale = 2.0 + absterms[:, 0, 0] + absterms[:, 1, 1]
