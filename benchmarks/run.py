@@ -215,7 +215,10 @@ def bench_scale() -> None:
 
 def bench_startup() -> None:
     py = sys.executable
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    # bytecode cached, as for an installed package (pip compiles it); a sandbox that sets
+    # PYTHONDONTWRITEBYTECODE would otherwise time compiling stepsafe's sources each run
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    env["PYTHONPATH"] = str(ROOT)
 
     def run(args):
         return lambda: subprocess.run(args, capture_output=True, cwd=ROOT, env=env)

@@ -14,20 +14,23 @@ elliptic for ``|t| < 2``, hyperbolic with positive multipliers for ``t > 2``, a 
   independent of the scaling of p.
 
 Algorithm. The positive poles (singular stage system) are exact eigenvalue data and split
-``(0, zmax]`` into segments. Each segment is sampled on a grid of spacing ``resolution``
-(plus a geometric run towards 0), ``t`` and ``dt/dz`` are evaluated in one vectorised call,
-and cells whose cubic Hermite interpolant hides a pair of extrema are subdivided. Extrema
-of ``t`` are located as roots of ``dt/dz``; between consecutive extrema ``t`` is monotone,
-so every sign change of ``t -+ 2`` between samples is exactly one boundary, refined to the
-floating-point grid. An extremum whose value is within the rounding bound ``tol`` of
-``+-2`` is a tangency: an isolated *resonance* (e.g. ``M = -I``), reported with the
-half-width of z within which float64 cannot tell a touch from a gap, never merged over.
-The rounding bound is ``tol = TOL_FACTOR * eps * scale`` with ``scale`` the magnitude of
-the terms summed into ``tr M`` (see :class:`stepsafe.transfer.Jet`).
+``(0, zmax]`` into segments, all sampled in one vectorised pass on a grid of spacing
+``resolution`` (plus a geometric run towards 0); ``t`` and ``dt/dz`` are evaluated
+together, and cells whose cubic Hermite interpolant hides a pair of extrema are
+subdivided. Cells never span a pole. Extrema of ``t`` are located by Newton's method on
+``dt/dz`` (the jet carries ``d2t/dz2``), started where the Hermite interpolant is flat;
+between consecutive extrema ``t`` is monotone, so every sign change of ``t -+ 2`` between
+samples is exactly one boundary, refined by Newton from the Hermite interpolant's root
+(all levels together) to the floating-point grid. An extremum whose value is within the
+rounding bound ``tol`` of ``+-2`` is a tangency: an isolated *resonance* (e.g.
+``M = -I``), reported with the half-width of z within which float64 cannot tell a touch
+from a gap, never merged over. The rounding bound is ``tol = TOL_FACTOR * eps * scale``
+with ``scale`` the magnitude of the terms summed into ``tr M`` (see
+:class:`stepsafe.transfer.Jet`), computed only at the points where a tolerance is decided.
 
 A method that is not symplectic on the model is never preserved (a centre becomes a
 spiral for every h > 0); for the oscillator the classical interval ``rho(M) <= 1`` is
-reported instead.
+reported instead (for RK methods from the stability polynomials, :mod:`.rkstability`).
 """
 
 from __future__ import annotations
