@@ -255,22 +255,40 @@ def _overflow(z: np.ndarray, *values: np.ndarray) -> None:
                             f"analyse a smaller range (--zmax below {z_bad:.3g}, or a smaller h)")
 
 
-def _hidden_extrema(z, t, dt, usable) -> np.ndarray:
-    """Cells where the cubic Hermite interpolant suggests extrema the samples miss."""
+def _hidden_extrema(z, t, dt, usable, levels: tuple[float, ...]) -> np.ndarray:
+    """Cells where the cubic Hermite interpolant suggests extrema the samples miss, and
+    that could matter: the interpolant's range over the cell, widened by the cell's own
+    variation, reaches a level. (Far from every level a hidden wiggle cannot change the
+    type; chasing it would only chase rounding noise where ``|tr M|`` is huge.)"""
     h = np.diff(z)
     m0, m1 = dt[:-1] * h, dt[1:] * h
     dtv = np.diff(t)
     same = m0 * m1 > 0
     contrary = same & (dtv * m0 < 0)
-    # p'(u) = m0 + 2 (3 dtv - 2 m0 - m1) u + 3 (m0 + m1 - 2 dtv) u^2 on (0, 1)
-    qa = 3.0 * (m0 + m1 - 2.0 * dtv)
-    qb = 2.0 * (3.0 * dtv - 2.0 * m0 - m1)
-    with np.errstate(invalid="ignore", divide="ignore"):
+    # p(u) = t0 + m0 u + c2 u^2 + c3 u^3, p'(u) = m0 + qb u + qa u^2 on (0, 1)
+    c3 = m0 + m1 - 2.0 * dtv
+    c2 = 3.0 * dtv - 2.0 * m0 - m1
+    qa, qb = 3.0 * c3, 2.0 * c2
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         disc = qb * qb - 4.0 * qa * m0
         vertex = -qb / (2.0 * qa)
-    # two roots of p' in (0, 1) although p'(0), p'(1) agree in sign
-    dips = same & (disc > 0) & (vertex > 0) & (vertex < 1) & (qa * m0 > 0)
-    return np.flatnonzero((contrary | dips) & usable)
+        # two roots of p' in (0, 1) although p'(0), p'(1) agree in sign
+        dips = same & (disc > 0) & (vertex > 0) & (vertex < 1) & (qa * m0 > 0)
+        flagged = np.flatnonzero((contrary | dips) & usable)
+        t0, t1 = t[flagged], t[flagged + 1]
+        lo, hi = np.minimum(t0, t1), np.maximum(t0, t1)
+        root = np.sqrt(np.maximum(disc[flagged], 0.0))
+        for sign in (1.0, -1.0):  # the interpolant at its critical points inside the cell
+            u = np.clip((-qb[flagged] + sign * root) / (2.0 * qa[flagged]), 0.0, 1.0)
+            u = np.where(np.isfinite(u), u, 0.0)
+            p = t0 + u * (m0[flagged] + u * (c2[flagged] + u * c3[flagged]))
+            lo, hi = np.minimum(lo, p), np.maximum(hi, p)
+        spread = np.maximum.reduce([np.abs(dtv[flagged]), np.abs(m0[flagged]),
+                                    np.abs(m1[flagged])])
+        near = np.zeros(flagged.size, dtype=bool)
+        for L in levels:
+            near |= (lo - spread <= L) & (L <= hi + spread)
+    return flagged[near]
 
 
 def _merge(z: np.ndarray, extra: np.ndarray, *pairs: tuple[np.ndarray, np.ndarray]):
@@ -280,7 +298,7 @@ def _merge(z: np.ndarray, extra: np.ndarray, *pairs: tuple[np.ndarray, np.ndarra
             *(np.concatenate([v, e])[order] for v, e in pairs))
 
 
-def _sample(ev: _Evaluator, grid: _Grid):
+def _sample(ev: _Evaluator, grid: _Grid, levels: tuple[float, ...]):
     """Sample every segment, refining cells with hidden extrema; returns z, t, dt, M."""
     z = grid.z
     with np.errstate(over="ignore", invalid="ignore"):
@@ -288,7 +306,7 @@ def _sample(ev: _Evaluator, grid: _Grid):
     t, dt, M = jet.trace, jet.dtrace, jet.M
     _overflow(z, t, dt)
     for _ in range(REFINE_LEVELS):
-        cells = _hidden_extrema(z, t, dt, grid.cells(z))
+        cells = _hidden_extrema(z, t, dt, grid.cells(z), levels)
         if cells.size == 0:
             break
         frac = np.arange(1, REFINE_SPLIT) / REFINE_SPLIT
@@ -300,7 +318,8 @@ def _sample(ev: _Evaluator, grid: _Grid):
 
 def _brackets(z: np.ndarray, f: np.ndarray, usable: np.ndarray) -> np.ndarray:
     """Cells with a strict sign change of ``f`` (NaN never brackets)."""
-    return np.flatnonzero((f[:-1] * f[1:] < 0) & usable)
+    sign = np.sign(f)  # signs, not products: huge values must not overflow
+    return np.flatnonzero((sign[:-1] * sign[1:] < 0) & usable)
 
 
 def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT_ZMAX,
@@ -327,7 +346,7 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
 
     grid = _Grid.between_poles(pole_z, zmax, dz)
     levels = (2.0, -2.0) if ELLIPTIC[model] else (2.0,)
-    z, t, dt, M = _sample(ev, grid)
+    z, t, dt, M = _sample(ev, grid, levels)
     # extrema of tr M: roots of d(tr M)/dz, by Newton on its second derivative
     usable = grid.cells(z)
     cells = _brackets(z, dt, usable)

@@ -118,11 +118,20 @@ def batched_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         return out
 
 
+#: Stage matrices per batch in the PRK jet: bounds memory to ~16 MB whatever the grid.
+_PRK_BATCH_ELEMENTS = 2_000_000
+
+
 def _prk_jet(prk: RungeKutta | PartitionedRK, z: np.ndarray, model: str, order: int = 1) -> Jet:
     """Stage solves: ``S X = E``, ``S X' = K X``, ``S X'' = 2 K X'`` (``S = I - z K``);
-    ``M = I + z B X``, ``M' = B X + z B X'``, ``M'' = 2 B X' + z B X''``."""
+    ``M = I + z B X``, ``M' = B X + z B X'``, ``M'' = 2 B X' + z B X''``. Long grids are
+    processed in batches (80-stage systems on 10^5 points would need gigabytes at once)."""
     K, E, B = stage_operator(prk, model)
     n2 = K.shape[0]
+    batch = max(1, _PRK_BATCH_ELEMENTS // (n2 * n2))
+    if z.size > batch:
+        parts = [_prk_jet(prk, z[i:i + batch], model, order) for i in range(0, z.size, batch)]
+        return Jet(*(np.concatenate(field) for field in zip(*parts)))
     zc = z[:, None, None]
     S = np.eye(n2)[None, :, :] - zc * K[None, :, :]
     X = batched_solve(S, np.broadcast_to(E, (z.size, n2, 2)).copy())

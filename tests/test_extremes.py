@@ -111,3 +111,22 @@ def test_check_across_eight_decades_of_z(run, z):
     code_osc, _, _ = run("check", "--method", "verlet", "--beta", "1", "--h", str(z))
     assert code_inv == 0
     assert code_osc == (0 if z < 2 else 1)
+
+
+def test_refinement_does_not_chase_rounding_noise_far_from_the_levels(monkeypatch):
+    """Gauss s=40 on the inverted model: beyond z ~ 30 tr M ~ 1e15 carries relative noise
+    ~1e-4 from ill-conditioned stage solves. Hidden-extremum refinement must not subdivide
+    there (it once multiplied the grid 22-fold): no wiggle of that size can reach +2."""
+    import stepsafe.regions as regions
+
+    evaluated = []
+    real = regions.transfer_jet
+
+    def counting(m, z, *args, **kwargs):
+        evaluated.append(np.size(z))
+        return real(m, z, *args, **kwargs)
+
+    monkeypatch.setattr(regions, "transfer_jet", counting)
+    region = find_region(method("gauss", 40), "inverted", zmax=40.0)
+    assert region.intervals and region.intervals[0].lo == 0.0
+    assert sum(evaluated) < 1.5 * region.resolution ** -1 * 40.0
