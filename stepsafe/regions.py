@@ -175,7 +175,12 @@ class _Evaluator:
 
 
 def orientation(M: np.ndarray, model: str) -> np.ndarray:
-    """Orientation indicator (> 0: same as the flow) for matrices of shape (n, 2, 2)."""
+    """Orientation indicator (> 0: same as the flow) for matrices of shape (n, 2, 2).
+
+    Each M is first divided by its largest entry (the sign is invariant under positive
+    scaling), so huge M (|tr M| ~ 1e200 far out on a saddle) cannot overflow ``t^2``."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        M = M / np.abs(M).max(axis=(1, 2))[:, None, None]
     a, b, c, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1]
     if model == "oscillator":
         return b
@@ -263,13 +268,13 @@ def _hidden_extrema(z, t, dt, usable, levels: tuple[float, ...]) -> np.ndarray:
     h = np.diff(z)
     m0, m1 = dt[:-1] * h, dt[1:] * h
     dtv = np.diff(t)
-    same = m0 * m1 > 0
-    contrary = same & (dtv * m0 < 0)
-    # p(u) = t0 + m0 u + c2 u^2 + c3 u^3, p'(u) = m0 + qb u + qa u^2 on (0, 1)
-    c3 = m0 + m1 - 2.0 * dtv
-    c2 = 3.0 * dtv - 2.0 * m0 - m1
-    qa, qb = 3.0 * c3, 2.0 * c2
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        same = np.sign(m0) * np.sign(m1) > 0
+        contrary = same & (np.sign(dtv) * np.sign(m0) < 0)
+        # p(u) = t0 + m0 u + c2 u^2 + c3 u^3, p'(u) = m0 + qb u + qa u^2 on (0, 1)
+        c3 = m0 + m1 - 2.0 * dtv
+        c2 = 3.0 * dtv - 2.0 * m0 - m1
+        qa, qb = 3.0 * c3, 2.0 * c2
         disc = qb * qb - 4.0 * qa * m0
         vertex = -qb / (2.0 * qa)
         # two roots of p' in (0, 1) although p'(0), p'(1) agree in sign

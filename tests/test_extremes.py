@@ -130,3 +130,29 @@ def test_refinement_does_not_chase_rounding_noise_far_from_the_levels(monkeypatc
     region = find_region(method("gauss", 40), "inverted", zmax=40.0)
     assert region.intervals and region.intervals[0].lo == 0.0
     assert sum(evaluated) < 1.5 * region.resolution ** -1 * 40.0
+
+
+def test_orientation_far_out_where_tr_m_squared_overflows():
+    """sofroniou-spaletta10 on the inverted model reaches tr M ~ 4e211 at z = 1e4, where
+    t^2 overflows float64. The orientation (50-digit check: the expanding direction stays
+    outward at z = 20, 500, 5000, 9999) must not turn into NaN and read as 'reversed'."""
+    region = find_region(method("sofroniou-spaletta10"), "inverted", zmax=1e4)
+    assert region.intervals[-1].hi is None and not region.reversed
+    with mp.workdps(60):
+        from stepsafe.verify import mp_method, mp_transfer
+
+        M = mp_transfer(mp_method("sofroniou-spaletta10"))(mp.mpf(5000), "inverted")
+        a, b, c, d = M[0, 0], M[0, 1], M[1, 0], M[1, 1]
+        mu = ((a + d) + mp.sqrt((a + d) ** 2 - 4 * (a * d - b * c))) / 2
+        assert b * (mu - a) + c * (mu - d) > 0
+
+
+def test_orientation_sign_is_invariant_under_scaling():
+    from stepsafe.regions import orientation
+
+    rng = np.random.default_rng(3)
+    M = rng.normal(size=(200, 2, 2))
+    for model in ("oscillator", "saddle", "saddle-p", "inverted"):
+        base = np.sign(orientation(M, model))
+        assert np.array_equal(np.sign(orientation(M * 1e250, model)), base)
+        assert np.array_equal(np.sign(orientation(M * 1e-250, model)), base)
