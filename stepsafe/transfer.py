@@ -296,7 +296,8 @@ def signed_poles(method: Method, model: str) -> np.ndarray:
     if isinstance(method, Composition):
         flat = method.flattened()
         base = signed_poles(flat.base, model)
-        zs = np.concatenate([base / g for g in flat.weights]) if base.size else base
+        with np.errstate(over="ignore", divide="ignore"):  # a tiny weight: no pole in range
+            zs = np.concatenate([base / g for g in flat.weights]) if base.size else base
         return _unique_sorted(zs)
     if isinstance(method, Splitting):
         if model not in ("saddle", "saddle-p"):
