@@ -45,7 +45,7 @@ from .errors import StepsafeError, positive_finite
 from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
 from .models import ELLIPTIC, check_model
 from .rkstability import imaginary_axis_crossings, stability_function
-from .roots import EPS, hermite_extremum, hermite_root, refine_brackets
+from .roots import EPS, HermiteCubic, hermite_extremum, hermite_root, refine_brackets
 from .transfer import Jet, poles, transfer_jet, transfer_matrix
 
 DEFAULT_ZMAX = 10.0
@@ -265,31 +265,25 @@ def _hidden_extrema(z, t, dt, usable, levels: tuple[float, ...]) -> np.ndarray:
     that could matter: the interpolant's range over the cell, widened by the cell's own
     variation, reaches a level. (Far from every level a hidden wiggle cannot change the
     type; chasing it would only chase rounding noise where ``|tr M|`` is huge.)"""
-    h = np.diff(z)
-    m0, m1 = dt[:-1] * h, dt[1:] * h
-    dtv = np.diff(t)
+    cubic = HermiteCubic.on_cells(z[:-1], z[1:], t[:-1], t[1:], dt[:-1], dt[1:])
+    m0, m1, dtv = cubic.m0, cubic.m1, cubic.dv
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         same = np.sign(m0) * np.sign(m1) > 0
         contrary = same & (np.sign(dtv) * np.sign(m0) < 0)
-        # p(u) = t0 + m0 u + c2 u^2 + c3 u^3, p'(u) = m0 + qb u + qa u^2 on (0, 1)
-        c3 = m0 + m1 - 2.0 * dtv
-        c2 = 3.0 * dtv - 2.0 * m0 - m1
-        qa, qb = 3.0 * c3, 2.0 * c2
+        qa, qb = 3.0 * cubic.c3, 2.0 * cubic.c2  # p'(u) = m0 + qb u + qa u^2 on (0, 1)
         disc = qb * qb - 4.0 * qa * m0
         vertex = -qb / (2.0 * qa)
         # two roots of p' in (0, 1) although p'(0), p'(1) agree in sign
         dips = same & (disc > 0) & (vertex > 0) & (vertex < 1) & (qa * m0 > 0)
         flagged = np.flatnonzero((contrary | dips) & usable)
-        t0, t1 = t[flagged], t[flagged + 1]
-        lo, hi = np.minimum(t0, t1), np.maximum(t0, t1)
+        cell = HermiteCubic(*(field[flagged] for field in cubic))
+        lo, hi = np.minimum(cell.f0, cell.f0 + cell.dv), np.maximum(cell.f0, cell.f0 + cell.dv)
         root = np.sqrt(np.maximum(disc[flagged], 0.0))
         for sign in (1.0, -1.0):  # the interpolant at its critical points inside the cell
             u = np.clip((-qb[flagged] + sign * root) / (2.0 * qa[flagged]), 0.0, 1.0)
-            u = np.where(np.isfinite(u), u, 0.0)
-            p = t0 + u * (m0[flagged] + u * (c2[flagged] + u * c3[flagged]))
+            p = cell.value(np.where(np.isfinite(u), u, 0.0))
             lo, hi = np.minimum(lo, p), np.maximum(hi, p)
-        spread = np.maximum.reduce([np.abs(dtv[flagged]), np.abs(m0[flagged]),
-                                    np.abs(m1[flagged])])
+        spread = np.maximum.reduce([np.abs(cell.dv), np.abs(cell.m0), np.abs(cell.m1)])
         near = np.zeros(flagged.size, dtype=bool)
         for L in levels:
             near |= (lo - spread <= L) & (L <= hi + spread)

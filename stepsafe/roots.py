@@ -13,6 +13,7 @@ a sign change, and iteration stops when it is as narrow as the floating-point gr
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 
@@ -71,33 +72,55 @@ def refine_brackets(fun: Callable[[np.ndarray], np.ndarray], lo: np.ndarray, hi:
     return np.where(np.abs(fa_true) < np.abs(fb), a, b)
 
 
+class HermiteCubic(NamedTuple):
+    """The cubic Hermite interpolant on a cell of width ``h``, in ``u = (z - z0)/h``:
+    ``p(u) = f0 + m0 u + c2 u^2 + c3 u^3`` with ``p(1) = f0 + dv``, ``p'(0) = m0``,
+    ``p'(1) = m1`` (slopes scaled by h). Arrays: one cell per entry."""
+
+    f0: np.ndarray
+    m0: np.ndarray
+    m1: np.ndarray
+    dv: np.ndarray
+    c2: np.ndarray
+    c3: np.ndarray
+
+    @classmethod
+    def on_cells(cls, z0, z1, f0, f1, d0, d1) -> HermiteCubic:
+        h = z1 - z0
+        m0, m1, dv = d0 * h, d1 * h, f1 - f0
+        with np.errstate(over="ignore", invalid="ignore"):
+            return cls(f0, m0, m1, dv, 3.0 * dv - 2.0 * m0 - m1, m0 + m1 - 2.0 * dv)
+
+    def value(self, u):
+        return self.f0 + u * (self.m0 + u * (self.c2 + u * self.c3))
+
+    def slope(self, u):
+        return self.m0 + u * (2.0 * self.c2 + 3.0 * u * self.c3)
+
+
 def hermite_root(z0, z1, f0, f1, d0, d1, iterations: int = 8) -> np.ndarray:
     """Root in ``(z0, z1)`` of the cubic Hermite interpolant of ``f`` (values ``f0, f1``,
     slopes ``d0, d1``; ``f0 f1 < 0``): a starting point with error ``O(h^4)`` for Newton on
-    ``f`` itself. Safeguarded Newton on the cubic in ``u = (z - z0)/(z1 - z0)``."""
-    h = z1 - z0
-    m0, m1, dv = d0 * h, d1 * h, f1 - f0
-    c3 = m0 + m1 - 2.0 * dv  # p(u) = f0 + m0 u + c2 u^2 + c3 u^3
-    c2 = 3.0 * dv - 2.0 * m0 - m1
-    lo, hi = np.zeros(h.shape), np.ones(h.shape)
+    ``f`` itself. Safeguarded Newton on the cubic in ``u``."""
+    cubic = HermiteCubic.on_cells(z0, z1, f0, f1, d0, d1)
+    lo, hi = np.zeros(np.shape(z0)), np.ones(np.shape(z0))
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.clip(-f0 / dv, 0.0, 1.0)
+        u = np.clip(-f0 / cubic.dv, 0.0, 1.0)
         for _ in range(iterations):
-            p = f0 + u * (m0 + u * (c2 + u * c3))
+            p = cubic.value(u)
             left = np.sign(p) == np.sign(f0)
             lo, hi = np.where(left, u, lo), np.where(left, hi, u)
-            u = u - p / (m0 + u * (2.0 * c2 + 3.0 * u * c3))
+            u = u - p / cubic.slope(u)
             u = np.where(np.isfinite(u) & (u >= lo) & (u <= hi), u, 0.5 * (lo + hi))
-    return z0 + u * h
+    return z0 + u * (z1 - z0)
 
 
 def hermite_extremum(z0, z1, f0, f1, d0, d1) -> np.ndarray:
     """Where the cubic Hermite interpolant of ``f`` has zero slope in ``(z0, z1)`` (``d0 d1
     < 0``: exactly one such point), in closed form: the start for Newton on ``f'``."""
-    h = z1 - z0
-    m0, m1, dv = d0 * h, d1 * h, f1 - f0
-    qa = 3.0 * (m0 + m1 - 2.0 * dv)  # p'(u) = m0 + qb u + qa u^2
-    qb = 2.0 * (3.0 * dv - 2.0 * m0 - m1)
+    cubic = HermiteCubic.on_cells(z0, z1, f0, f1, d0, d1)
+    m0, m1 = cubic.m0, cubic.m1
+    qa, qb = 3.0 * cubic.c3, 2.0 * cubic.c2  # p'(u) = m0 + qb u + qa u^2
     with np.errstate(divide="ignore", invalid="ignore"):
         disc = np.sqrt(np.maximum(qb * qb - 4.0 * qa * m0, 0.0))
         # the root of the quadratic in (0, 1), in the cancellation-free form
@@ -105,7 +128,7 @@ def hermite_extremum(z0, z1, f0, f1, d0, d1) -> np.ndarray:
         r1, r2 = q / qa, m0 / q
         u = np.where((r1 > 0) & (r1 < 1), r1, r2)
         u = np.where(np.isfinite(u) & (u > 0) & (u < 1), u, m0 / (m0 - m1))
-    return z0 + u * h
+    return z0 + u * (z1 - z0)
 
 
 def _newton_brackets(slope, lo, hi, f_lo, f_hi, max_iter: int, level: np.ndarray,

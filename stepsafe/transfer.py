@@ -70,7 +70,7 @@ def transfer_jet(method: Method, z, model: str = "oscillator", scale: bool = Tru
         flat = method.flattened()
         if isinstance(flat.base, Splitting):
             return transfer_jet(_as_splitting(flat), z, model, scale, order)
-        return _composition_jet(flat, z, model, order)
+        return _composition_jet(flat, z, model, order, scale)
     if isinstance(method, Splitting):
         if model == "saddle":
             return _euler_factor_jet(method, z)
@@ -79,7 +79,7 @@ def transfer_jet(method: Method, z, model: str = "oscillator", scale: bool = Tru
             return Jet(jet.M, -jet.dM, jet.scale, jet.d2M)
         return _splitting_jet(method, z, model, scale, order)
     if isinstance(method, (RungeKutta, PartitionedRK)):
-        return _prk_jet(method, z, model, order)
+        return _prk_jet(method, z, model, order, scale)
     raise TypeError(f"not a method: {type(method).__name__}")
 
 
@@ -118,20 +118,26 @@ def batched_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         return out
 
 
-#: Stage matrices per batch in the PRK jet: bounds memory to ~16 MB whatever the grid.
-_PRK_BATCH_ELEMENTS = 2_000_000
+#: Work arrays per batch of z (stage matrices, per-factor rows): ~16 MB whatever the grid.
+_BATCH_ELEMENTS = 2_000_000
 
 
-def _prk_jet(prk: RungeKutta | PartitionedRK, z: np.ndarray, model: str, order: int = 1) -> Jet:
+def _in_batches(jet_of, z: np.ndarray, batch: int) -> Jet:
+    """``jet_of`` applied to consecutive slices of ``z`` of at most ``batch`` points."""
+    parts = [jet_of(z[i:i + batch]) for i in range(0, z.size, batch)]
+    return Jet(*(np.concatenate(field) for field in zip(*parts)))
+
+
+def _prk_jet(prk: RungeKutta | PartitionedRK, z: np.ndarray, model: str, order: int = 1,
+             with_scale: bool = True) -> Jet:
     """Stage solves: ``S X = E``, ``S X' = K X``, ``S X'' = 2 K X'`` (``S = I - z K``);
     ``M = I + z B X``, ``M' = B X + z B X'``, ``M'' = 2 B X' + z B X''``. Long grids are
     processed in batches (80-stage systems on 10^5 points would need gigabytes at once)."""
     K, E, B = stage_operator(prk, model)
     n2 = K.shape[0]
-    batch = max(1, _PRK_BATCH_ELEMENTS // (n2 * n2))
+    batch = max(1, _BATCH_ELEMENTS // (n2 * n2))
     if z.size > batch:
-        parts = [_prk_jet(prk, z[i:i + batch], model, order) for i in range(0, z.size, batch)]
-        return Jet(*(np.concatenate(field) for field in zip(*parts)))
+        return _in_batches(lambda zb: _prk_jet(prk, zb, model, order, with_scale), z, batch)
     zc = z[:, None, None]
     S = np.eye(n2)[None, :, :] - zc * K[None, :, :]
     X = batched_solve(S, np.broadcast_to(E, (z.size, n2, 2)).copy())
@@ -146,8 +152,10 @@ def _prk_jet(prk: RungeKutta | PartitionedRK, z: np.ndarray, model: str, order: 
         if order >= 2:
             d2X = batched_solve(S, 2.0 * (K[None, :, :] @ dX))
             d2M = 2.0 * BdX + zc * (B[None, :, :] @ d2X)
-    absterms = np.abs(z)[:, None, None] * (np.abs(B)[None, :, :] @ np.abs(X))
-    scale = 2.0 + absterms[:, 0, 0] + absterms[:, 1, 1]
+    scale = np.zeros(z.size)
+    if with_scale:
+        absterms = np.abs(z)[:, None, None] * (np.abs(B)[None, :, :] @ np.abs(X))
+        scale = 2.0 + absterms[:, 0, 0] + absterms[:, 1, 1]
     return Jet(M, dM, scale, d2M)
 
 
@@ -182,10 +190,13 @@ def _splitting_jet(method: Splitting, z: np.ndarray, model: str, with_scale: boo
     """
     ops = _row_ops(method, model)
     n = z.size
+    batch = max(1, _BATCH_ELEMENTS // len(ops)) if ops else n
+    if n > batch:
+        return _in_batches(lambda zb: _splitting_jet(method, zb, model, with_scale, order),
+                           z, batch)
     T = np.zeros((order + 1, 2, 2, n))
     T[0, 0, 0] = T[0, 1, 1] = 1.0
-    coef = np.array([c for _, _, c in ops])
-    cz = coef[:, None] * z[None, :]
+    cz = np.array([c for _, _, c in ops])[:, None] * z[None, :]
     right = np.empty((len(ops), n)) if with_scale else None
     for k, (src, dst, c) in enumerate(ops):
         if right is not None:
@@ -202,7 +213,7 @@ def _splitting_jet(method: Splitting, z: np.ndarray, model: str, with_scale: boo
             src, dst, _ = ops[k]
             left[k] = np.einsum("ijn,ijn->n", L, L)
             L[:, src] += cz[k] * L[:, dst]
-        scale = (np.sqrt(left * right * (2.0 + cz * cz))).sum(axis=0)
+        scale = np.sqrt(left * right * (2.0 + cz * cz)).sum(axis=0)
     jet = [T[k].transpose(2, 0, 1) * factorial for k, factorial in zip(range(order + 1), (1, 1, 2))]
     nan = np.full((n, 2, 2), np.nan)
     jet += [nan] * (3 - len(jet))
@@ -252,14 +263,15 @@ def _euler_factor_jet(method: Splitting, z: np.ndarray) -> Jet:
     return Jet(M, dM, np.abs(mq) + np.abs(mp), d2M)
 
 
-def _composition_jet(method: Composition, z: np.ndarray, model: str, order: int = 1) -> Jet:
+def _composition_jet(method: Composition, z: np.ndarray, model: str, order: int = 1,
+                     with_scale: bool = True) -> Jet:
     """Product of base jets ``M = M_n(g_n z) ... M_1(g_1 z)`` (product rule for the
     derivatives, with the chain-rule factors ``g_k``, ``g_k^2``); the rounding scale is the
     first-order sandwich ``sum_k ||M_n..M_{k+1}|| scale_k ||M_{k-1}..M_1||`` (Frobenius
     norms), which keeps the cancellation that an entrywise absolute product would throw
     away."""
     g = method.weights
-    base = transfer_jet(method.base, np.outer(g, z).ravel(), model, order=order)
+    base = transfer_jet(method.base, np.outer(g, z).ravel(), model, with_scale, order)
     n = z.size
     Mb = base.M.reshape(g.size, n, 2, 2)
     dMb = base.dM.reshape(g.size, n, 2, 2)
@@ -268,14 +280,15 @@ def _composition_jet(method: Composition, z: np.ndarray, model: str, order: int 
     M, dM, d2M = _identity(n), np.zeros((n, 2, 2)), np.zeros((n, 2, 2))
     right_norms = np.empty((g.size, n))  # ||M_{k-1} ... M_1||
     for k in range(g.size):
-        right_norms[k] = np.sqrt((M * M).sum(axis=(1, 2)))
+        if with_scale:
+            right_norms[k] = np.sqrt((M * M).sum(axis=(1, 2)))
         if order >= 2:
             d2M = (g[k] ** 2) * d2Mb[k] @ M + (2.0 * g[k]) * dMb[k] @ dM + Mb[k] @ d2M
         dM = g[k] * dMb[k] @ M + Mb[k] @ dM
         M = Mb[k] @ M
     L = _identity(n)
     scale = np.zeros(n)
-    for k in range(g.size - 1, -1, -1):
+    for k in range(g.size - 1, -1, -1) if with_scale else ():
         scale += np.sqrt((L * L).sum(axis=(1, 2))) * sb[k] * right_norms[k]
         L = L @ Mb[k]
     if order < 2:
