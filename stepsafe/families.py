@@ -19,6 +19,8 @@ diagonal entry (Lobatto), so ``W^-1`` is explicit and well conditioned.
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 
 from .errors import MethodError
@@ -111,7 +113,8 @@ def gauss(s: int) -> RungeKutta:
     W = _normalised_legendre_table(c, s)
     A = W @ _integration_matrix(s) @ W.T @ np.diag(b)
     return RungeKutta(A, b, c, name=f"gauss-s{s}", order=2 * s, evaluations=s,
-                      title=f"{s}-stage Gauss–Legendre collocation")
+                      title=f"{s}-stage Gauss–Legendre collocation",
+                      exact=partial(_exact, "gauss", s))
 
 
 def lobatto3a(s: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -136,7 +139,25 @@ def lobatto3ab(s: int) -> PartitionedRK:
     A_b[:, s - 1] = 0.0  # IIIB's last column vanishes
     return PartitionedRK(A_a, b, A_b, b.copy(), name=f"lobatto3ab-s{s}", order=2 * s - 2,
                          evaluations=s - 1,
-                         title=f"{s}-stage Lobatto IIIA–IIIB pair")
+                         title=f"{s}-stage Lobatto IIIA–IIIB pair",
+                         exact=partial(_exact, "lobatto3ab", s))
+
+
+def _exact(family: str, s: int):
+    """The family member's transfer matrix at high precision (:mod:`stepsafe.reference`:
+    nodes and weights computed at raised precision, not rounded to float64)."""
+    import mpmath as mp
+
+    from . import reference as R
+    from .escalate import DPS
+
+    with mp.workdps(DPS + 10):
+        if family == "gauss":
+            A, b, _ = R.gauss_tableau(s)
+            return R.prk_transfer(A, b, A, b)
+        A, b, _ = R.lobatto_IIIA_tableau(s)
+        B, _, _ = R.lobatto_IIIB_tableau(s)
+        return R.prk_transfer(A, b, B, b)
 
 
 def _recipe_order(base: Method, recipe: str) -> int:

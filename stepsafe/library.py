@@ -13,7 +13,8 @@ so that editable installs and wheels behave alike.
 from __future__ import annotations
 
 import difflib
-from functools import lru_cache
+from dataclasses import replace
+from functools import lru_cache, partial
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -102,11 +103,22 @@ def resolve(name: str, stages: int | None = None, base: str | None = None,
                                 f"{', '.join(FAMILIES)}, not to {name!r}")
         path = _find_file(name)
         data = load_file(path)
-        method = _build(data, _depth, Path(path).parent)
+        method = replace(_build(data, _depth, Path(path).parent),
+                         exact=partial(_exact, str(path), None, None))
         entry = _entry(data, path)
     if base is not None:
         method, entry = _swap_base(method, entry, base, _depth)
+        method = replace(method, exact=partial(_exact, name, stages, base))
     return method, entry
+
+
+def _exact(name: str, stages: int | None, base: str | None):
+    """The method's transfer matrix at high precision, from its definition (see
+    :mod:`stepsafe.verify`; read only when the region finder escalates a point)."""
+    from .escalate import DPS
+    from .verify import mp_method, mp_transfer
+
+    return mp_transfer(mp_method(name, stages, base, DPS))
 
 
 def _find_file(name: str) -> Path:

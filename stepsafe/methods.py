@@ -12,13 +12,20 @@ A composition ``Phi_{g_k h} o ... o Phi_{g_1 h}`` applies the base with ``g_1 h`
 
 The classes are frozen; they validate shapes and finiteness when built and raise
 :class:`~stepsafe.errors.MethodError`. Nothing here knows of files or terminals.
+
+``exact`` (optional, never compared) returns the method's transfer matrix at high
+precision, ``Mfun(z, model)`` in mpmath, built from its definition rather than from the
+rounded floats (family tableaux at raised precision, decimal literals read exactly); the
+region finder asks it where float64 cannot decide (:mod:`stepsafe.escalate`). Without it
+the float coefficients are taken as exact.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Union
+from typing import Any, Union
 
 import numpy as np
 
@@ -59,6 +66,7 @@ class PartitionedRK:
     order: int | None = None
     evaluations: int | None = None
     title: str = ""
+    exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
 
     kind = "prk"
 
@@ -96,6 +104,7 @@ class RungeKutta:
     order: int | None = None
     evaluations: int | None = None
     title: str = ""
+    exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
 
     kind = "rk"
 
@@ -117,7 +126,8 @@ class RungeKutta:
         return bool(not np.triu(self.A).any())
 
     def as_prk(self) -> PartitionedRK:
-        return PartitionedRK(self.A, self.b, self.A, self.b, name=self.name, order=self.order)
+        return PartitionedRK(self.A, self.b, self.A, self.b, name=self.name, order=self.order,
+                             exact=self.exact)
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,6 +144,7 @@ class Splitting:
     order: int | None = None
     evaluations: int | None = None
     title: str = ""
+    exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
 
     kind = "splitting"
 
@@ -212,7 +223,8 @@ class Splitting:
         A_p = A_q.copy()
         for i, (kind, wi) in enumerate(factors):
             (A_q if kind == "DK" else A_p)[i, i] = wi
-        return PartitionedRK(A_q, w, A_p, w.copy(), name=self.name, order=self.order)
+        return PartitionedRK(A_q, w, A_p, w.copy(), name=self.name, order=self.order,
+                             exact=self.exact)
 
 
 Method = Union[RungeKutta, PartitionedRK, Splitting, "Composition"]
@@ -229,6 +241,7 @@ class Composition:
     evaluations: int | None = None
     title: str = ""
     base_order: int | None = field(default=None)
+    exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
 
     kind = "composition"
 
@@ -267,7 +280,7 @@ class Composition:
                         drift.append(0.0)
                     kick.append(g * coef)
         return Splitting(drift or [0.0], kick or [0.0], name=self.name, order=self.order,
-                         evaluations=self.evaluations, title=self.title)
+                         evaluations=self.evaluations, title=self.title, exact=self.exact)
 
     def flattened(self) -> Composition:
         """The same map with a non-composition base (nested weights multiplied out)."""
@@ -276,4 +289,4 @@ class Composition:
         inner = self.base.flattened()
         weights = np.concatenate([g * inner.weights for g in self.weights])
         return Composition(inner.base, weights, name=self.name, order=self.order,
-                           evaluations=self.evaluations, title=self.title)
+                           evaluations=self.evaluations, title=self.title, exact=self.exact)

@@ -149,30 +149,86 @@ def splitting_to_prk(drift: Sequence, kick: Sequence) -> tuple:
     return A_q, b, A_p, list(b)
 
 
+def _solve(A: list, rhs: list) -> list:
+    """Solve A X = rhs (lists of rows) by Gaussian elimination with partial pivoting at
+    the working precision; raises ZeroDivisionError if A is singular."""
+    n, m = len(A), len(rhs[0])
+    W = [list(A[i]) + list(rhs[i]) for i in range(n)]
+    for k in range(n):
+        piv = max(range(k, n), key=lambda i: abs(W[i][k]))
+        if W[piv][k] == 0:
+            raise ZeroDivisionError("singular stage system")
+        W[k], W[piv] = W[piv], W[k]
+        row = W[k]
+        inv = 1 / row[k]
+        for i in range(k + 1, n):
+            f = W[i][k] * inv
+            if f:
+                Wi = W[i]
+                for j in range(k + 1, n + m):
+                    Wi[j] -= f * row[j]
+    X = [[mp.zero] * m for _ in range(n)]
+    for i in range(n - 1, -1, -1):
+        for c in range(m):
+            acc = W[i][n + c] - mp.fsum(W[i][j] * X[j][c] for j in range(i + 1, n))
+            X[i][c] = acc / W[i][i]
+    return X
+
+
+def _rows_of(A) -> list:
+    A = mp.matrix(A)
+    return [[A[i, j] for j in range(A.cols)] for i in range(A.rows)]
+
+
 def transfer_matrix_prk(A_q, b_q, A_p, b_p, z, model: str):
-    """M(z) of the PRK (A_q,b_q)-(A_p,b_p) on ``model``: solve the 2s x 2s
-    stage system Q = q0 e + z A_q (Lqq Q + Lqp P), P = p0 e + z A_p (Lpq Q +
-    Lpp P) with mp.lu_solve for (q0,p0) = (1,0), (0,1), then
-    q1 = q0 + z b_q.(Lqq Q + Lqp P), p1 = p0 + z b_p.(Lpq Q + Lpp P).
-    Raises ZeroDivisionError where the stage system is singular (a pole)."""
-    (lqq, lqp), (lpq, lpp) = MODELS[model]
-    A_q, A_p = mp.matrix(A_q), mp.matrix(A_p)
-    s, z = A_q.rows, mp.mpf(z)
-    S = mp.eye(2 * s)
-    for i in range(s):
-        for j in range(s):
-            S[i, j] -= z * lqq * A_q[i, j]
-            S[i, s + j] -= z * lqp * A_q[i, j]
-            S[s + i, j] -= z * lpq * A_p[i, j]
-            S[s + i, s + j] -= z * lpp * A_p[i, j]
-    M = mp.matrix(2, 2)
-    for col, (q0, p0) in enumerate(((1, 0), (0, 1))):
-        X = mp.lu_solve(S, [q0] * s + [p0] * s)
-        M[0, col] = q0 + z * mp.fsum(b_q[j] * (lqq * X[j] + lqp * X[s + j])
-                                     for j in range(s))
-        M[1, col] = p0 + z * mp.fsum(b_p[j] * (lpq * X[j] + lpp * X[s + j])
-                                     for j in range(s))
-    return M
+    """M(z) of the PRK (A_q,b_q)-(A_p,b_p) on ``model`` (see :func:`prk_transfer`)."""
+    return prk_transfer(A_q, b_q, A_p, b_p)(z, model)
+
+
+def prk_transfer(A_q, b_q, A_p, b_p) -> Callable:
+    """``Mfun(z, model)`` of the PRK (A_q,b_q)-(A_p,b_p): the stage system
+    Q = q0 e + z A_q (Lqq Q + Lqp P), P = p0 e + z A_p (Lpq Q + Lpp P), solved for
+    (q0, p0) = (1, 0) and (0, 1); then q1 = q0 + z b_q.(Lqq Q + Lqp P),
+    p1 = p0 + z b_p.(Lpq Q + Lpp P). Every model here has Lqq = Lpp = 0 (then
+    (I - z^2 Lqp Lpq A_q A_p) Q = q0 e + z Lqp p0 A_q e and P follows) or
+    Lqp = Lpq = 0 (two s x s systems), so only s x s systems are solved; the product
+    A_q A_p is formed once per working precision.
+    ``Mfun`` raises ZeroDivisionError where the stage system is singular (a pole)."""
+    Aq, Ap = _rows_of(A_q), _rows_of(A_p)
+    s = len(Aq)
+    b_q, b_p = list(b_q), list(b_p)
+    eye = [[mp.one if i == j else mp.zero for j in range(s)] for i in range(s)]
+    products: dict[int, tuple] = {}
+
+    def Mfun(z, model: str):
+        (lqq, lqp), (lpq, lpp) = MODELS[model]
+        z = mp.mpf(z)
+        if mp.prec not in products:
+            products[mp.prec] = ([mp.fsum(row) for row in Aq],  # A_q e
+                                 [[mp.fsum(Aq[i][k] * Ap[k][j] for k in range(s))
+                                   for j in range(s)] for i in range(s)])
+        rq, AqAp = products[mp.prec]
+        if lqq == 0 and lpp == 0:
+            c = z * z * lqp * lpq
+            S = [[eye[i][j] - c * AqAp[i][j] for j in range(s)] for i in range(s)]
+            # columns: (q0, p0) = (1, 0) and (0, 1)
+            Q = _solve(S, [[mp.one, z * lqp * rq[i]] for i in range(s)])
+            P = [[z * lpq * mp.fsum(Ap[i][k] * Q[k][col] for k in range(s)) + (col == 1)
+                  for col in range(2)] for i in range(s)]
+        else:
+            Q = _solve([[eye[i][j] - z * lqq * Aq[i][j] for j in range(s)] for i in range(s)],
+                       [[mp.one, mp.zero] for _ in range(s)])
+            P = _solve([[eye[i][j] - z * lpp * Ap[i][j] for j in range(s)] for i in range(s)],
+                       [[mp.zero, mp.one] for _ in range(s)])
+        M = mp.matrix(2, 2)
+        for col, (q0, p0) in enumerate(((1, 0), (0, 1))):
+            M[0, col] = q0 + z * mp.fsum(b_q[j] * (lqq * Q[j][col] + lqp * P[j][col])
+                                         for j in range(s))
+            M[1, col] = p0 + z * mp.fsum(b_p[j] * (lpq * Q[j][col] + lpp * P[j][col])
+                                         for j in range(s))
+        return M
+
+    return Mfun
 
 
 def transfer_matrix_rk(A, b, z, model: str):

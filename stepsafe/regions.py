@@ -14,19 +14,23 @@ elliptic for ``|t| < 2``, hyperbolic with positive multipliers for ``t > 2``, a 
   independent of the scaling of p.
 
 Algorithm. The positive poles (singular stage system) are exact eigenvalue data and split
-``(0, zmax]`` into segments, all sampled in one vectorised pass on a grid of spacing
-``resolution`` (plus a geometric run towards 0); ``t`` and ``dt/dz`` are evaluated
-together, and cells whose cubic Hermite interpolant hides a pair of extrema are
-subdivided. Cells never span a pole. Extrema of ``t`` are located by Newton's method on
-``dt/dz`` (the jet carries ``d2t/dz2``), started where the Hermite interpolant is flat;
-between consecutive extrema ``t`` is monotone, so every sign change of ``t -+ 2`` between
+``(0, zmax]`` into segments, all sampled in one vectorised pass on the grid of
+:mod:`stepsafe.grid` (uniform near the features, geometric far out, cut short where a
+polynomial trace can change no more); ``dev = tr M - 2`` (summed without cancellation, so
+that it keeps its relative accuracy at z = 1e-8) and its slope are evaluated together,
+and cells whose cubic Hermite interpolant hides a pair of extrema are subdivided. Cells
+never span a pole. Extrema of ``tr M`` are located by Newton's method on ``dt/dz`` (the
+jet carries ``d2t/dz2``), started where the Hermite interpolant is flat; between
+consecutive extrema ``tr M`` is monotone, so every sign change of ``t -+ 2`` between
 samples is exactly one boundary, refined by Newton from the Hermite interpolant's root
 (all levels together) to the floating-point grid. An extremum whose value is within the
 rounding bound ``tol`` of ``+-2`` is a tangency: an isolated *resonance* (e.g.
 ``M = -I``), reported with the half-width of z within which float64 cannot tell a touch
 from a gap, never merged over. The rounding bound is ``tol = TOL_FACTOR * eps * scale``
-with ``scale`` the magnitude of the terms summed into ``tr M`` (see
-:class:`stepsafe.transfer.Jet`), computed only at the points where a tolerance is decided.
+with ``scale`` the first-order rounding sensitivity of ``tr M`` (see
+:class:`stepsafe.transfer.Jet`; it includes the conditioning of implicit stage solves),
+computed only at the points where a tolerance is decided. Where ``M(z)`` overflows float64
+the analysis stops below that z and the region says so (``zmax`` is lowered, with a note).
 
 A method that is not symplectic on the model is never preserved (a centre becomes a
 spiral for every h > 0); for the oscillator the classical interval ``rho(M) <= 1`` is
@@ -42,26 +46,30 @@ import numpy as np
 
 from .checks import residuals
 from .errors import StepsafeError, positive_finite
-from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
+from .escalate import ESCALATE_REL, Escalation
+from .grid import Grid, default_resolution, far_bound
+from .methods import Method, RungeKutta
 from .models import ELLIPTIC, check_model
 from .rkstability import imaginary_axis_crossings, stability_function
 from .roots import EPS, HermiteCubic, hermite_extremum, hermite_root, refine_brackets
-from .transfer import Jet, poles, transfer_jet, transfer_matrix
+from .transfer import TOL_FACTOR, Jet, poles, transfer_jet
 
 DEFAULT_ZMAX = 10.0
-#: Rounding bound factor: |computed tr M - tr M| <= TOL_FACTOR * eps * scale.
-TOL_FACTOR = 256.0
 #: Cells whose Hermite interpolant hides extrema are split this many times per level.
 REFINE_SPLIT = 8
 REFINE_LEVELS = 4
-MAX_SAMPLES = 400_000
+#: Past this magnitude of M - I (or its slope) the analysis stops: the rounding bounds,
+#: products of such entries, would overflow float64.
+OVERFLOW = 1e150
+#: z is analysed up to here at most (unless nothing can change beyond a smaller z).
+Z_CAP = 1e100
 
 
 class Point(NamedTuple):
     """A distinguished z: a boundary, resonance or pole, with its float64 uncertainty."""
 
     z: float
-    kind: str  # "root" (|tr M| = 2 crossing), "pole", "resonance", "orientation"
+    kind: str  # "root" (|tr M| = 2 crossing), "pole", "resonance", "orientation", "undecided"
     uncertainty: float = 0.0
     detail: str = ""
 
@@ -95,6 +103,9 @@ class Region:
     #: oscillator only: end of the run of elliptic z (either orientation) from 0, i.e. the
     #: classical stability limit |tr M| <= 2; None when it reaches zmax
     stability_limit: float | None = None
+    #: stretches where float64 cannot decide the type (|tr M| within rounding of 2 over a
+    #: range of z, where features the grid resolves could be rounding noise): not preserved
+    undecided: tuple[Interval, ...] = ()
 
     @property
     def first_interval(self) -> Interval | None:
@@ -124,26 +135,12 @@ class Region:
         return None if first is None else first.hi_point
 
 
-def default_resolution(method: Method, zmax: float) -> float:
-    """Grid spacing: 1/200 in z, divided by how far the substeps reach (sum of |weights|)."""
-    reach = _reach(method)
-    return max(5e-3 / reach, zmax / MAX_SAMPLES)
-
-
-def _reach(method: Method) -> float:
-    if isinstance(method, Composition):
-        flat = method.flattened()
-        return float(np.abs(flat.weights).sum()) * _reach(flat.base)
-    if isinstance(method, Splitting):
-        return float(max(np.abs(method.drift).sum(), np.abs(method.kick).sum(), 1.0))
-    if isinstance(method, (RungeKutta, PartitionedRK)):
-        prk = method.as_prk()
-        return float(max(1.0, np.abs(prk.A_q).sum(axis=1).max(), np.abs(prk.A_p).sum(axis=1).max()))
-    return 1.0
-
-
 class _Evaluator:
-    """Vectorised evaluation of the jet and the derived scalar functions for one model."""
+    """Vectorised evaluation of the jet and the derived scalar functions for one model.
+
+    The level ``tr M = +2`` is decided on ``dev = tr M - 2``, the level ``-2`` on
+    ``dev_m = tr M + 2``: each is summed where it keeps its accuracy (see
+    :class:`stepsafe.transfer.Jet`)."""
 
     def __init__(self, method: Method, model: str) -> None:
         self.method = method
@@ -153,58 +150,76 @@ class _Evaluator:
         return transfer_jet(self.method, np.asarray(z, dtype=float), self.model, scale, order)
 
     def matrix(self, z) -> np.ndarray:
-        return transfer_matrix(self.method, np.asarray(z, dtype=float), self.model)
+        return self.jet(z, order=0).M
 
-    def trace(self, z) -> np.ndarray:
-        M = self.matrix(z)
-        return M[:, 0, 0] + M[:, 1, 1]
+    def level(self, z, level: float) -> np.ndarray:
+        return _at_level(self.jet(z, order=0), level)
+
+    def level_slope(self, level: float):
+        def slope(z) -> tuple[np.ndarray, np.ndarray]:
+            jet = self.jet(z)
+            return _at_level(jet, level), jet.dtrace
+        return slope
 
     def dtrace(self, z) -> np.ndarray:
         return self.jet(z).dtrace
-
-    def trace_slope(self, z) -> tuple[np.ndarray, np.ndarray]:
-        jet = self.jet(z)
-        return jet.trace, jet.dtrace
 
     def dtrace_slope(self, z) -> tuple[np.ndarray, np.ndarray]:
         jet = self.jet(z, order=2)
         return jet.dtrace, jet.d2trace
 
     def orientation(self, z) -> np.ndarray:
-        return orientation(self.matrix(z), self.model)
+        return orientation(self.jet(z, order=0).D, self.model)
 
 
-def orientation(M: np.ndarray, model: str) -> np.ndarray:
-    """Orientation indicator (> 0: same as the flow) for matrices of shape (n, 2, 2).
+def _at_level(jet: Jet, level: float) -> np.ndarray:
+    """``tr M - level`` from the jet, for ``level`` +2 or -2."""
+    return jet.dev if level > 0 else jet.dev_m
 
-    Each M is first divided by its largest entry (the sign is invariant under positive
-    scaling), so huge M (|tr M| ~ 1e200 far out on a saddle) cannot overflow ``t^2``."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        M = M / np.abs(M).max(axis=(1, 2))[:, None, None]
-    a, b, c, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1]
+
+def _tolerance(jet: Jet, level: float) -> np.ndarray:
+    """The rounding bound of ``tr M - level`` (see :data:`~stepsafe.transfer.TOL_FACTOR`)."""
+    return TOL_FACTOR * EPS * (jet.scale if level > 0 else jet.scale_m)
+
+
+def orientation(D: np.ndarray, model: str) -> np.ndarray:
+    """Orientation indicator (> 0: same as the flow) from ``D = M - I``, shape (n, 2, 2).
+
+    oscillator: ``M_qp``; saddle: ``M_qq - M_pp`` (``saddle-p``: the opposite); inverted:
+    ``o = M_qp (mu - M_qq) + M_pq (mu - M_pp)`` with ``mu`` the larger multiplier. With
+    ``u = (M_qq - M_pp)/2`` and ``r = sqrt(u^2 + M_qp M_pq)`` (the discriminant
+    ``tr^2/4 - det``, free of cancellation), ``mu - M_qq = r - u`` and ``mu - M_pp = r + u``;
+    whichever of those two cancels is taken as ``M_qp M_pq / (r -+ u)``. ``o`` is
+    homogeneous in ``(u, M_qp, M_pq)``, which are first divided by their largest modulus,
+    so neither t^2 far out on a barrier (|tr M| ~ 1e200) nor tiny entries over- or
+    underflow."""
+    a, b, c, d = D[:, 0, 0], D[:, 0, 1], D[:, 1, 0], D[:, 1, 1]
     if model == "oscillator":
         return b
     if model == "saddle":
         return a - d
     if model == "saddle-p":
         return d - a
-    t = a + d
-    mu = 0.5 * (t + np.sqrt(np.maximum(t * t - 4.0 * (a * d - b * c), 0.0)))
-    return b * (mu - a) + c * (mu - d)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        u = 0.5 * (a - d)
+        top = np.maximum.reduce([np.abs(u), np.abs(b), np.abs(c)])
+        top = np.where(top > 0, top, 1.0)
+        u, b, c = u / top, b / top, c / top
+        bc = b * c
+        r = np.sqrt(np.maximum(u * u + bc, 0.0))
+        minus = np.where(u >= 0, bc / (r + u), r - u)  # r - u
+        plus = np.where(u >= 0, r + u, bc / (r - u))  # r + u
+        return b * minus + c * plus
 
 
-def classify(M: np.ndarray, model: str, tol: np.ndarray | float = 0.0) -> np.ndarray:
-    """Per matrix: 1 preserved, -1 same type but reversed orientation, 0 otherwise.
-
-    ``tol`` widens the parabolic set ``| |tr M| - 2 | <= tol`` counted as not preserved.
-    """
-    t = M[:, 0, 0] + M[:, 1, 1]
+def classify(jet: Jet, model: str) -> np.ndarray:
+    """Per z of the jet: 1 preserved, -1 same type but reversed orientation, 0 otherwise."""
     if ELLIPTIC[model]:
-        same_type = np.abs(t) < 2.0 - tol
+        same_type = (jet.dev < 0.0) & (jet.dev_m > 0.0)
     else:
-        same_type = t > 2.0 + tol
-    sense = orientation(M, model) > 0
-    out = np.zeros(t.shape, dtype=int)
+        same_type = jet.dev > 0.0
+    sense = orientation(jet.D, model) > 0
+    out = np.zeros(jet.dev.shape, dtype=int)
     out[same_type & sense] = 1
     out[same_type & ~sense] = -1
     return out
@@ -214,50 +229,13 @@ def _validate_zmax(zmax: float) -> float:
     return positive_finite(zmax, "zmax")
 
 
-def _segment_grid(lo: float, hi: float, dz: float, closed_hi: bool) -> np.ndarray:
-    n = max(16, int(np.ceil((hi - lo) / dz)))
-    frac = np.arange(1, n + (1 if closed_hi else 0)) / n
-    z = lo + (hi - lo) * frac
-    if lo == 0.0:
-        z = np.concatenate([np.geomspace(z[0] * 1e-3, z[0], 13)[:-1], z])
-    return z
-
-
-class _Grid:
-    """Samples over all pole-free segments at once; a cell ``(z[i], z[i+1])`` is usable
-    only when both ends lie in the same segment (no pole between them)."""
-
-    def __init__(self, edges: list[float], dz: float, closed_hi: bool) -> None:
-        self.edges = np.asarray(edges, dtype=float)
-        last = len(edges) - 2
-        parts = [_segment_grid(lo, hi, dz, closed_hi and i == last)
-                 for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])) if hi > lo]
-        self.z = np.concatenate(parts) if parts else np.empty(0)
-
-    @classmethod
-    def between_poles(cls, pole_z: np.ndarray, zmax: float, dz: float) -> _Grid:
-        """The grid on ``(0, zmax]`` split at the poles in it (``zmax`` open if a pole)."""
-        pole_z = pole_z[pole_z <= zmax]
-        closed = not (pole_z.size and pole_z[-1] == zmax)
-        return cls([0.0, *map(float, pole_z), zmax], dz, closed)
-
-    def segment(self, z: np.ndarray) -> np.ndarray:
-        return np.searchsorted(self.edges, z, side="left") - 1
-
-    def cells(self, z: np.ndarray) -> np.ndarray:
-        """Mask of the usable cells between consecutive points of sorted ``z``."""
-        seg = self.segment(z)
-        return seg[:-1] == seg[1:]
-
-
-def _overflow(z: np.ndarray, *values: np.ndarray) -> None:
+def _usable_extent(z: np.ndarray, *values: np.ndarray) -> int:
+    """How many leading samples are finite and below :data:`OVERFLOW`."""
     bad = np.zeros(z.shape, dtype=bool)
     for v in values:
-        bad |= ~np.isfinite(v)
-    if bad.any():
-        z_bad = float(z[np.argmax(bad)])
-        raise StepsafeError(f"M(z) overflows float64 at z = {z_bad:.3g} for this method; "
-                            f"analyse a smaller range (--zmax below {z_bad:.3g}, or a smaller h)")
+        with np.errstate(invalid="ignore"):
+            bad |= ~(np.abs(v.reshape(z.size, -1)) < OVERFLOW).all(axis=1)
+    return int(np.argmax(bad)) if bad.any() else z.size
 
 
 def _hidden_extrema(z, t, dt, usable, levels: tuple[float, ...]) -> np.ndarray:
@@ -297,22 +275,67 @@ def _merge(z: np.ndarray, extra: np.ndarray, *pairs: tuple[np.ndarray, np.ndarra
             *(np.concatenate([v, e])[order] for v, e in pairs))
 
 
-def _sample(ev: _Evaluator, grid: _Grid, levels: tuple[float, ...]):
-    """Sample every segment, refining cells with hidden extrema; returns z, t, dt, M."""
+class _Samples(NamedTuple):
+    z: np.ndarray
+    f: np.ndarray  # (n, levels): tr M - level, each level from its accurate form
+    dt: np.ndarray
+    D: np.ndarray
+    uncertain: np.ndarray  # within the rounding bound of a level: the sign is not decided
+    end: float  # the last z analysed (below the grid's end when M overflows beyond)
+
+
+#: Samples this close to a level get their rounding bound computed.
+NEAR_LEVEL = 1e-3
+
+
+def _level_values(jet: Jet, levels: tuple[float, ...]) -> np.ndarray:
+    return np.stack([_at_level(jet, L) for L in levels], axis=1)
+
+
+def _uncertain(ev: _Evaluator, z: np.ndarray, f: np.ndarray,
+               levels: tuple[float, ...]) -> np.ndarray:
+    """Samples whose distance to some level is within the rounding bound (computed only
+    for the few samples near a level)."""
+    near = np.flatnonzero((np.abs(f) < NEAR_LEVEL).any(axis=1))
+    out = np.zeros(z.size, dtype=bool)
+    if near.size:
+        jet = ev.jet(z[near], order=0, scale=True)
+        tol = np.stack([_tolerance(jet, L) for L in levels], axis=1)
+        out[near] = (np.abs(f[near]) <= tol).any(axis=1)
+    return out
+
+
+def _sample(ev: _Evaluator, grid: Grid, levels: tuple[float, ...]) -> _Samples:
+    """Sample every segment, refining cells with hidden extrema (not where an end lies
+    within rounding of a level: a wiggle there is not resolvable). Stops before the first
+    sample where ``M - I`` or its slope leaves the float64 range (:data:`OVERFLOW`)."""
     z = grid.z
     with np.errstate(over="ignore", invalid="ignore"):
         jet = ev.jet(z)
-    t, dt, M = jet.trace, jet.dtrace, jet.M
-    _overflow(z, t, dt)
+    f, dt, D = _level_values(jet, levels), jet.dtrace, jet.D
+    keep = _usable_extent(z, D, jet.dM)
+    end = float(grid.edges[-1])
+    if keep < z.size:
+        if keep == 0:
+            raise StepsafeError(f"M(z) overflows float64 already at z = {z[0]:.3g} for this "
+                                "method: its coefficients are out of the range stepsafe "
+                                "can analyse")
+        z, f, dt, D = z[:keep], f[:keep], dt[:keep], D[:keep]
+        end = float(z[-1])
+    unc = _uncertain(ev, z, f, levels)
     for _ in range(REFINE_LEVELS):
-        cells = _hidden_extrema(z, t, dt, grid.cells(z), levels)
+        usable = grid.cells(z) & ~unc[:-1] & ~unc[1:]
+        cells = np.unique(np.concatenate([_hidden_extrema(z, f[:, i], dt, usable, (0.0,))
+                                          for i in range(len(levels))]))
         if cells.size == 0:
             break
         frac = np.arange(1, REFINE_SPLIT) / REFINE_SPLIT
         extra = (z[cells, None] + np.diff(z)[cells, None] * frac[None, :]).ravel()
         ej = ev.jet(extra)
-        z, t, dt, M = _merge(z, extra, (t, ej.trace), (dt, ej.dtrace), (M, ej.M))
-    return z, t, dt, M
+        fe = _level_values(ej, levels)
+        z, f, dt, D, unc = _merge(z, extra, (f, fe), (dt, ej.dtrace), (D, ej.D),
+                                  (unc, _uncertain(ev, extra, fe, levels)))
+    return _Samples(z, f, dt, D, unc, end)
 
 
 def _brackets(z: np.ndarray, f: np.ndarray, usable: np.ndarray) -> np.ndarray:
@@ -327,11 +350,12 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
 
     One vectorised pass over all pole-free segments: sample ``tr M`` and its slope, locate
     the extrema by Newton's method on ``d(tr M)/dz``, decide tangencies there, then refine
-    every crossing of every level together.
+    every crossing of every level. Points float64 cannot place to the printed digits are
+    re-decided at high precision (:mod:`stepsafe.escalate`).
     """
     check_model(model)
     zmax = _validate_zmax(zmax)
-    dz = default_resolution(method, zmax) if resolution is None else float(resolution)
+    dz = default_resolution(method) if resolution is None else float(resolution)
     ev = _Evaluator(method, model)
     symplectic = residuals(method).symplectic_for(model)
     pole_z = poles(method, model)
@@ -343,13 +367,28 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
         return Region(model, zmax, False, (), (), (), pole_pts, dz, classical,
                       ("not symplectic on this model: the structure is never preserved",))
 
-    grid = _Grid.between_poles(pole_z, zmax, dz)
+    far = far_bound(method, model)
+    z_end = min(zmax, far * 1.5 + 16 * dz)
+    notes: tuple[str, ...] = ()
+    if z_end > Z_CAP:
+        z_end = zmax = Z_CAP
+        notes = (f"z above {Z_CAP:g} is not analysed (the deviations of M from its limit "
+                 "there fall below the float64 range)",)
+        pole_z = pole_z[pole_z < zmax]
+        pole_pts = tuple(p for p in pole_pts if p.z < zmax)
+    grid = Grid.between_poles(pole_z, z_end, dz)
     levels = (2.0, -2.0) if ELLIPTIC[model] else (2.0,)
-    z, t, dt, M = _sample(ev, grid, levels)
+    s = _sample(ev, grid, levels)
+    z, f, dt, D, unc = s.z, s.f, s.dt, s.D, s.uncertain
+    if s.end < z_end:
+        zmax = s.end
+        notes = (f"M(z) leaves the float64 range beyond z = {s.end:.6g}: not analysed "
+                 "further",)
+        pole_pts = tuple(p for p in pole_pts if p.z < zmax)
     # extrema of tr M: roots of d(tr M)/dz, by Newton on its second derivative
     usable = grid.cells(z)
     cells = _brackets(z, dt, usable)
-    start = hermite_extremum(z[cells], z[cells + 1], t[cells], t[cells + 1], dt[cells],
+    start = hermite_extremum(z[cells], z[cells + 1], f[cells, 0], f[cells + 1, 0], dt[cells],
                              dt[cells + 1])
     ext = refine_brackets(ev.dtrace, z[cells], z[cells + 1], dt[cells], dt[cells + 1],
                           slope=ev.dtrace_slope, start=start)
@@ -357,55 +396,60 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     resonances: list[Point] = []
     if ext.size:
         ej = ev.jet(ext, order=2, scale=True)
-        t_ext, s_ext, curv = ej.trace.copy(), ej.scale, ej.d2trace
-        _overflow(ext, s_ext)
-        tol_ext = TOL_FACTOR * EPS * s_ext  # the bound used by touches()
-        for L in levels:
-            for k in np.flatnonzero(touches(t_ext, L, s_ext)):
-                t_ext[k] = L  # a tangency: never bracket a root across it
+        f_ext, curv = _level_values(ej, levels), ej.d2trace
+        scales = np.stack([ej.scale if L > 0 else ej.scale_m for L in levels], axis=1)
+        tol_ext = TOL_FACTOR * EPS * scales
+        unc_ext = (np.abs(f_ext) <= tol_ext).any(axis=1)
+        for i, L in enumerate(levels):
+            for k in np.flatnonzero(touches(f_ext[:, i], 0.0, scales[:, i])):
+                f_ext[k, i] = 0.0  # a tangency: never bracket a root across it
                 if _touches_from_inside(model, L, curv[k]):
-                    resonances.append(_resonance(ext[k], ej.M[k], L, tol_ext[k], curv[k], dz))
-        z, t, dt, M = _merge(z, ext, (t, t_ext), (dt, ej.dtrace), (M, ej.M))
+                    resonances.append(_Candidate(
+                        _resonance(ext[k], ej.D[k], L, tol_ext[k, i], curv[k], dz), L,
+                        float(tol_ext[k, i])))
+        z, f, dt, D, unc = _merge(z, ext, (f, f_ext), (dt, ej.dtrace), (D, ej.D),
+                                  (unc, unc_ext))
         usable = grid.cells(z)
-    # crossings of every level, refined together
-    lo_idx, lv = [], []
-    for L in levels:
-        cells = _brackets(z, t - L, usable)
-        lo_idx.append(cells)
-        lv.append(np.full(cells.size, L))
-    cells, lv = np.concatenate(lo_idx), np.concatenate(lv)
-    f0, f1 = t[cells] - lv, t[cells + 1] - lv
-    start = hermite_root(z[cells], z[cells + 1], f0, f1, dt[cells], dt[cells + 1])
-    roots = refine_brackets(ev.trace, z[cells], z[cells + 1], f0, f1, slope=ev.trace_slope,
-                            level=lv, start=start)
-    exact = np.concatenate([np.flatnonzero(t == L) for L in levels])
-    roots = np.concatenate([roots, z[exact]])
-    lv = np.concatenate([lv, t[exact]])
-    keep = ~np.isin(roots, [r.z for r in resonances])
-    roots, lv = roots[keep], lv[keep]
-    points: list[Point] = list(pole_pts)
+    # crossings of every level
+    roots, root_levels = [], []
+    for i, L in enumerate(levels):
+        cells = _brackets(z, f[:, i], usable)
+        f0, f1 = f[cells, i], f[cells + 1, i]
+        start = hermite_root(z[cells], z[cells + 1], f0, f1, dt[cells], dt[cells + 1])
+        found = refine_brackets(lambda x, L=L: ev.level(x, L), z[cells], z[cells + 1], f0, f1,
+                                slope=ev.level_slope(L), start=start)
+        found = np.concatenate([found, z[f[:, i] == 0.0]])
+        roots.append(found)
+        root_levels.append(np.full(found.size, L))
+    roots, root_levels = np.concatenate(roots), np.concatenate(root_levels)
+    keep = ~np.isin(roots, [r.point.z for r in resonances])
+    roots, root_levels = roots[keep], root_levels[keep]
+    points = [_Candidate(p) for p in pole_pts]
     if roots.size:
         rj = ev.jet(roots, scale=True)
-        _overflow(roots, rj.scale)
+        tol = np.where(root_levels > 0, _tolerance(rj, 2.0), _tolerance(rj, -2.0))
         with np.errstate(divide="ignore"):
-            unc = TOL_FACTOR * EPS * rj.scale / np.abs(rj.dtrace)
-        points += [Point(float(r), "root", float(u), f"tr M = {L:+g}")
-                   for r, u, L in zip(roots, unc, lv)]
+            width = tol / np.abs(rj.dtrace)
+        points += [_Candidate(Point(float(r), "root", float(u), f"tr M = {L:+g}"), L, float(t))
+                   for r, u, L, t in zip(roots, width, root_levels, tol)]
     if not ELLIPTIC[model]:
-        points += _orientation_switches(ev, z, t, M, usable)
+        points += [_Candidate(p) for p in _orientation_switches(ev, z, f[:, 0], D, usable)]
     points += resonances
-    return _assemble(ev, model, zmax, points, resonances, pole_pts, dz)
+    spreads = _within_decided(points, z[~unc], zmax)
+    spreads = _escalate(ev, spreads, Escalation(method, model), dz)
+    return _assemble(ev, model, zmax, float(z[-1]) if z.size else zmax, spreads, pole_pts,
+                     dz, notes)
 
 
-def _orientation_switches(ev: _Evaluator, z, t, M, usable) -> list[Point]:
+def _orientation_switches(ev: _Evaluator, z, dev, D, usable) -> list[Point]:
     """Where the expanding direction crosses an axis inside a hyperbolic run: sign changes
     of the orientation between samples that are hyperbolic beyond the rounding bound."""
-    o = np.where(t > 2.0, orientation(M, ev.model), np.nan)
+    o = np.where(dev > 0.0, orientation(D, ev.model), np.nan)
     cells = _brackets(z, o, usable)
     if cells.size:
         ends = np.concatenate([z[cells], z[cells + 1]])
         jet = ev.jet(ends, order=0, scale=True)
-        hyper = (jet.trace > 2.0 + TOL_FACTOR * EPS * jet.scale).reshape(2, -1).all(axis=0)
+        hyper = (jet.dev > TOL_FACTOR * EPS * jet.scale).reshape(2, -1).all(axis=0)
         cells = cells[hyper]
     switches = refine_brackets(ev.orientation, z[cells], z[cells + 1], o[cells], o[cells + 1])
     return [Point(float(r), "orientation", 0.0, "expanding direction crosses an axis")
@@ -413,10 +457,11 @@ def _orientation_switches(ev: _Evaluator, z, t, M, usable) -> list[Point]:
 
 
 def touches(t_ext: np.ndarray, level: float, scale: np.ndarray) -> np.ndarray:
-    """Tolerance policy: an extremum of tr M within the rounding bound of ``level``
-    (``TOL_FACTOR * eps * scale``, ~1e-13 for methods of moderate size) is a tangency and is
+    """Tolerance policy: an extremum of ``tr M`` (or of ``tr M -+ 2``, with ``level`` in the
+    same terms) within the rounding bound of the level (``TOL_FACTOR * eps * scale``,
+    ~1e-13 near ``tr M = -2`` for methods of moderate size) is a tangency and is
     reported as a resonance with the z half-width float64 cannot resolve; anything further
-    from ``level`` (e.g. a near-touch at 2 - 1e-9) is an ordinary extremum, and crossings
+    from the level (e.g. a near-touch at 2 - 1e-9) is an ordinary extremum, and crossings
     around it are ordinary boundaries. Published coefficients are rounded, so an exact
     tangency of the ideal method may show up as a gap ~1e-13 wide or a near miss: both land
     inside this bound and are reported as the resonance they approximate."""
@@ -424,15 +469,17 @@ def touches(t_ext: np.ndarray, level: float, scale: np.ndarray) -> np.ndarray:
 
 
 def _touches_from_inside(model: str, level: float, curvature: float) -> bool:
-    """Whether an extremum touching ``level`` has the preserved type on both sides."""
+    """Whether an extremum touching ``level`` (of ``tr M``) has the preserved type on both
+    sides."""
     if ELLIPTIC[model]:
         return curvature < 0 if level > 0 else curvature > 0
     return curvature > 0
 
 
-def _resonance(z: float, M: np.ndarray, level: float, tol: float, curvature: float,
+def _resonance(z: float, D: np.ndarray, level: float, tol: float, curvature: float,
                dz: float) -> Point:
     sign = 1.0 if level > 0 else -1.0
+    M = D + np.eye(2)
     offdiag = max(abs(M[0, 1]), abs(M[1, 0]), abs(M[0, 0] - M[1, 1]))
     detail = ("M = +I" if sign > 0 else "M = -I") if offdiag <= 1e-6 * np.abs(M).max() \
         else f"tangency, tr M = {level:+g}"
@@ -440,12 +487,117 @@ def _resonance(z: float, M: np.ndarray, level: float, tol: float, curvature: flo
     return Point(float(z), "resonance", float(width), detail)
 
 
-def _assemble(ev: _Evaluator, model: str, zmax: float, points: list[Point],
-              resonances: list[Point], pole_pts: tuple[Point, ...], dz: float) -> Region:
-    pts = sorted({p.z: p for p in points if 0.0 < p.z < zmax}.values(), key=lambda p: p.z)
+class _Candidate(NamedTuple):
+    """A point with the level it is a boundary of (None: a pole or an orientation switch)
+    and the rounding bound of ``tr M - level`` there."""
+
+    point: Point
+    level: float | None = None
+    band: float = 0.0
+
+
+class _Spread(NamedTuple):
+    """A candidate and the z-interval that surely holds it."""
+
+    point: Point
+    lo: float
+    hi: float
+    level: float | None = None
+    band: float = 0.0
+
+
+def _within_decided(points: list[_Candidate], decided: np.ndarray,
+                    zmax: float) -> list[_Spread]:
+    """Each point with the interval that holds it: its uncertainty interval, clipped to the
+    nearest samples whose type float64 did decide. (The linearised bound ``tol / |slope|``,
+    or ``sqrt(2 tol / |curvature|)``, explodes where ``tr M`` is flat, but the point surely
+    lies between those samples.) The reported uncertainty shrinks to match."""
+    out = []
+    for p, level, band in points:
+        u = p.uncertainty if np.isfinite(p.uncertainty) else np.inf
+        lo, hi = p.z - u, p.z + u
+        if p.kind in ("root", "resonance") and u > 0:
+            i = int(np.searchsorted(decided, p.z))
+            lo = max(lo, decided[i - 1] if i > 0 else 0.0)
+            hi = min(hi, decided[i] if i < decided.size else zmax)
+            p = p._replace(uncertainty=float(max(p.z - lo, hi - p.z)))
+        out.append(_Spread(p, float(lo), float(hi), level, band))
+    return out
+
+
+def _escalate(ev: _Evaluator, spreads: list[_Spread], esc: Escalation,
+              dz: float) -> list[_Spread]:
+    """Re-decide at high precision the boundaries float64 places only to worse than
+    :data:`~stepsafe.escalate.ESCALATE_REL` (see :mod:`stepsafe.escalate`)."""
+    out: list[_Spread] = []
+    for c in spreads:
+        p = c.point
+        vague = c.level is not None and p.uncertainty > ESCALATE_REL * p.z and c.lo < c.hi
+        decision = esc.decide(c.lo, c.hi, c.level, c.band) if vague else None
+        if decision is None:
+            out.append(c)
+            continue
+        for r in decision.roots:
+            u = float(np.spacing(r))
+            out.append(_Spread(Point(r, "root", u, f"tr M = {c.level:+g}"), r - u, r + u,
+                               c.level, c.band))
+        if decision.touch is not None:
+            jet = ev.jet([decision.touch], order=2)
+            q = _resonance(decision.touch, jet.D[0], c.level, c.band, jet.d2trace[0], dz)
+            out.append(_Spread(q, q.z - q.uncertainty, q.z + q.uncertainty, c.level, c.band))
+    return out
+
+
+def _bands(spreads: list[_Spread]) -> tuple[list[Point], list[tuple[float, float]]]:
+    """Merge points whose intervals overlap: two or more boundaries that float64 cannot
+    separate (rounding noise where ``|tr M|`` hugs 2 over a stretch of z) become one
+    undecided band ``(lo, hi)``; the other points are returned as they are."""
+    kept: list[Point] = []
+    bands: list[tuple[float, float]] = []
+    cluster: list[_Spread] = []
+
+    def close() -> None:
+        if len(cluster) == 1:
+            kept.append(cluster[0].point)
+        elif cluster:
+            bands.append((min(c.lo for c in cluster), max(c.hi for c in cluster)))
+        cluster.clear()
+
+    reach = -np.inf
+    for c in sorted(spreads, key=lambda c: c.point.z):
+        if c.lo > reach:
+            close()
+        cluster.append(c)
+        reach = max(reach, c.hi)
+    close()
+    return kept, bands
+
+
+def _assemble(ev: _Evaluator, model: str, zmax: float, z_last: float,
+              points: list[_Spread], pole_pts: tuple[Point, ...], dz: float,
+              notes: tuple[str, ...]) -> Region:
+    """Intervals between the points, each classified at one interior z (no further out
+    than the last sample: beyond it nothing changes); undecided bands are never preserved."""
+    unique = {c.point.z: c for c in points if 0.0 < c.point.z < zmax}
+    pts, bands = _bands(list(unique.values()))
+    undecided = []
+    for lo, hi in bands:
+        lo_pt = Point(max(lo, 0.0), "undecided", 0.0,
+                      "float64 cannot decide the type (|tr M| within rounding of 2)")
+        if hi >= zmax:
+            undecided.append(Interval(lo_pt.z, None, lo_pt, None))
+            pts = [p for p in pts if p.z < lo_pt.z] + ([lo_pt] if lo_pt.z > 0 else [])
+            continue
+        hi_pt = lo_pt._replace(z=hi)
+        undecided.append(Interval(lo_pt.z, hi, lo_pt, hi_pt))
+        pts += [hi_pt] + ([lo_pt] if lo_pt.z > 0 else [])
+    pts.sort(key=lambda p: p.z)
     edges = [0.0] + [p.z for p in pts] + [zmax]
-    mids = np.array([0.5 * (a + b) for a, b in zip(edges[:-1], edges[1:])])
-    status = classify(ev.matrix(mids), model) if mids.size else np.zeros(0, dtype=int)
+    mids = np.array([0.5 * (a + min(b, max(z_last, a))) if b > z_last else 0.5 * (a + b)
+                     for a, b in zip(edges[:-1], edges[1:])])
+    status = classify(ev.jet(mids, order=0), model) if mids.size else np.zeros(0, dtype=int)
+    for band in undecided:
+        status[(mids > band.lo) & ((band.hi is None) | (mids < (band.hi or 0.0)))] = 0
     intervals: list[Interval] = []
     reversed_: list[Interval] = []
     kept: list[Point] = []
@@ -474,7 +626,7 @@ def _assemble(ev: _Evaluator, model: str, zmax: float, points: list[Point],
         stability = (0.0 if run_end == 0 else
                      None if run_end == len(status) else pts[run_end - 1].z)
     return Region(model, zmax, True, tuple(intervals), tuple(reversed_), tuple(kept), pole_pts,
-                  dz, stability_limit=stability)
+                  dz, stability_limit=stability, notes=notes, undecided=tuple(undecided))
 
 
 def spectral_radius(M: np.ndarray) -> np.ndarray:
@@ -522,8 +674,8 @@ def _classical(ev: _Evaluator, zmax: float, dz: float | None) -> tuple[Interval,
     if rk_axis:
         roots = imaginary_axis_crossings(ev.method, zmax)
     else:
-        dz = default_resolution(ev.method, zmax) if dz is None else float(dz)
-        grid = _Grid.between_poles(poles(ev.method, ev.model), zmax, dz)
+        dz = default_resolution(ev.method) if dz is None else float(dz)
+        grid = Grid.between_poles(poles(ev.method, ev.model), zmax, dz)
         roots = _margin_crossings(ev, grid, margin)
     roots = roots[(roots > 0) & (roots < zmax)]
     cuts = np.concatenate([[0.0], roots, [zmax]])
@@ -544,7 +696,7 @@ def _classical(ev: _Evaluator, zmax: float, dz: float | None) -> tuple[Interval,
     return tuple(out)
 
 
-def _margin_crossings(ev: _Evaluator, grid: _Grid, margin) -> np.ndarray:
+def _margin_crossings(ev: _Evaluator, grid: Grid, margin) -> np.ndarray:
     """Sign changes of the margin on the grid, refined on ``rho(M) - 1`` without bias."""
 
     def excess(z):

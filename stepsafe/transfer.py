@@ -31,27 +31,55 @@ import numpy as np
 from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
 from .models import GENERATORS, KICK_SIGN, check_model
 
+EPS = float(np.finfo(float).eps)
+
 
 class Jet(NamedTuple):
-    """``M(z)``, ``dM/dz``, the term magnitude ``scale`` and ``d2M/dz2`` at each z (shapes
-    (n,2,2), (n,2,2), (n,), (n,2,2)); derivatives not requested are NaN, ``scale`` zeros."""
+    """The one-step matrix and what the region finder needs of it, at each z.
 
-    M: np.ndarray
+    ``D = M - I`` is accumulated directly (never as ``M - I``), so ``dev = tr M - 2`` keeps
+    its relative accuracy as z -> 0, where it behaves like ``-z^2`` while ``tr M`` rounds
+    to 2; ``dev_m = tr M + 2`` likewise where ``M`` tends to ``-I``. ``sens`` bounds the
+    first-order rounding error of each entry of ``D``: ``|computed D - D| <= eps * sens``
+    entrywise, including the amplification by the
+    conditioning of an implicit stage solve, and ``scale`` bounds that of ``dev``
+    (``scale_m`` that of ``dev_m``). The region finder's tolerance is
+    ``TOL_FACTOR * eps * scale``. Shapes: (n, 2, 2) for the
+    matrices, (n,) for ``dev`` and ``scale``; derivatives not requested are NaN, ``sens``
+    and ``scale`` zeros when not requested."""
+
+    D: np.ndarray
     dM: np.ndarray
-    scale: np.ndarray
     d2M: np.ndarray
+    dev: np.ndarray
+    scale: np.ndarray
+    sens: np.ndarray
+    dev_m: np.ndarray  # tr M + 2 (accurate where M -> -I as z -> inf, see _prk_jet)
+    scale_m: np.ndarray  # bounds the rounding of dev_m as scale does that of dev
+
+    @property
+    def M(self) -> np.ndarray:
+        return self.D + np.eye(2)
+
+    @property
+    def trace(self) -> np.ndarray:
+        return self.dev + 2.0
+
+    @property
+    def dtrace(self) -> np.ndarray:
+        return self.dM[:, 0, 0] + self.dM[:, 1, 1]
 
     @property
     def d2trace(self) -> np.ndarray:
         return self.d2M[:, 0, 0] + self.d2M[:, 1, 1]
 
-    @property
-    def trace(self) -> np.ndarray:
-        return self.M[:, 0, 0] + self.M[:, 1, 1]
 
-    @property
-    def dtrace(self) -> np.ndarray:
-        return self.dM[:, 0, 0] + self.dM[:, 1, 1]
+def _jet(D, dM, d2M, sens=None) -> Jet:
+    """A :class:`Jet` with ``dev`` from ``D`` and ``scale`` the trace of ``sens``."""
+    sens = np.zeros(D.shape) if sens is None else sens
+    dev = D[:, 0, 0] + D[:, 1, 1]
+    scale = sens[:, 0, 0] + sens[:, 1, 1]
+    return Jet(D, dM, d2M, dev, scale, sens, dev + 4.0, scale + 4.0)
 
 
 def transfer_matrix(method: Method, z, model: str = "oscillator") -> np.ndarray:
@@ -62,8 +90,8 @@ def transfer_matrix(method: Method, z, model: str = "oscillator") -> np.ndarray:
 def transfer_jet(method: Method, z, model: str = "oscillator", scale: bool = True,
                  order: int = 1) -> Jet:
     """``M`` with its derivatives up to ``order`` (0, 1 or 2) and, unless ``scale=False``
-    (then zeros), the rounding scale. Derivatives above ``order`` are NaN; implicit methods
-    pay one extra stage solve per order."""
+    (then zeros), the rounding sensitivity. Derivatives above ``order`` are NaN; implicit
+    methods pay one extra stage solve per order."""
     check_model(model)
     z = np.atleast_1d(np.asarray(z, dtype=float))
     if isinstance(method, Composition):
@@ -76,7 +104,7 @@ def transfer_jet(method: Method, z, model: str = "oscillator", scale: bool = Tru
             return _euler_factor_jet(method, z)
         if model == "saddle-p":  # the saddle at -z: M(z) = M_saddle(-z), dM/dz = -dM_saddle
             jet = _euler_factor_jet(method, -z)
-            return Jet(jet.M, -jet.dM, jet.scale, jet.d2M)
+            return jet._replace(dM=-jet.dM)
         return _splitting_jet(method, z, model, scale, order)
     if isinstance(method, (RungeKutta, PartitionedRK)):
         return _prk_jet(method, z, model, order, scale)
@@ -128,41 +156,130 @@ def _in_batches(jet_of, z: np.ndarray, batch: int) -> Jet:
     return Jet(*(np.concatenate(field) for field in zip(*parts)))
 
 
+#: Safety factor of the region finder's rounding bound ``TOL_FACTOR * eps * scale`` over
+#: the first-order bound ``eps * scale`` (second-order terms, LU pivot growth, and the
+#: decimals of published coefficients).
+TOL_FACTOR = 16.0
+
+
+class FarForm(NamedTuple):
+    """``M(z) = M_inf + B S^-1 V`` for an invertible stage operator (``V = K^-1 E``,
+    ``M_inf = I - B V``, the limit as z -> inf), with ``tr M_inf -+ 2`` taken as exactly 0
+    when within the rounding policy (:data:`TOL_FACTOR`) of 0: Gauss methods tend to
+    ``M = (-1)^s I`` exactly, which float64 coefficients reproduce only to ~1e-16."""
+
+    V: np.ndarray
+    minus_2: float  # tr M_inf - 2
+    plus_2: float  # tr M_inf + 2
+    z_from: float  # used for z >= z_from, where ||(z K)^-1|| <= 1/4
+
+
+@lru_cache(maxsize=64)
+def far_form(method: RungeKutta | PartitionedRK, model: str) -> FarForm | None:
+    """The :class:`FarForm` of ``method`` on ``model``, or None if K is (nearly) singular."""
+    K, E, B = stage_operator(method, model)
+    try:
+        K_inv = np.linalg.inv(K)
+    except np.linalg.LinAlgError:
+        return None
+    norm_inv = np.linalg.norm(K_inv, 2)
+    if not np.isfinite(norm_inv) or np.linalg.norm(K, 2) * norm_inv > 1e8:
+        return None
+    V = K_inv @ E
+    trace = 2.0 - float(np.trace(B @ V))
+    tol = TOL_FACTOR * EPS * K.shape[0] * float(np.trace(np.abs(B) @ np.abs(K_inv) @ E)) * (
+        np.linalg.norm(K, 2) * norm_inv)
+    minus_2, plus_2 = trace - 2.0, trace + 2.0
+    if abs(minus_2) <= tol:
+        minus_2, plus_2 = 0.0, 4.0
+    elif abs(plus_2) <= tol:
+        minus_2, plus_2 = -4.0, 0.0
+    V.flags.writeable = False
+    return FarForm(V, minus_2, plus_2, 4.0 * norm_inv)
+
+
 def _prk_jet(prk: RungeKutta | PartitionedRK, z: np.ndarray, model: str, order: int = 1,
              with_scale: bool = True) -> Jet:
-    """Stage solves: ``S X = E``, ``S X' = K X``, ``S X'' = 2 K X'`` (``S = I - z K``);
-    ``M = I + z B X``, ``M' = B X + z B X'``, ``M'' = 2 B X' + z B X''``. Long grids are
+    """``M = I + z B X`` with the stage solve ``S X = E`` (``S = I - z K``), in whichever of
+    three exact forms keeps ``dev = tr M - 2`` (and ``tr M + 2``) accurate:
+
+    * small z (``z ||K|| <= 1``): ``D = z B E + z^2 B K X`` (since ``X = E + z K X``): the
+      O(z) part is exact and the rest carries the factor z^2;
+    * large z (:func:`far_form`, K invertible): ``M = M_inf + B S^-1 V``, the second part
+      O(1/z) and accurate;
+    * in between, ``D = z B X`` directly.
+
+    Derivatives without cancellation: ``M' = B S^-2 E``, ``M'' = 2 B K S^-3 E`` (S and K
+    commute), i.e. two more solves with the previous solution as right-hand side.
+
+    Rounding: the LU solve returns X for some ``S + dS`` with ``|dS| <~ 2s eps |S|``, so X
+    errs by ``S^-1 dS X``, and ``z B X`` by ``z B S^-1 dS X``, entrywise at most
+    ``2s z |W| |S| |X|`` with ``W = B S^-1`` (a transposed solve; ``W = B K S^-1`` and
+    ``z^2`` for the small-z form): the conditioning of the stage system enters through
+    ``|W|``. The products add ``2s |B| ...`` terms of the same shape. Long grids are
     processed in batches (80-stage systems on 10^5 points would need gigabytes at once)."""
     K, E, B = stage_operator(prk, model)
     n2 = K.shape[0]
     batch = max(1, _BATCH_ELEMENTS // (n2 * n2))
     if z.size > batch:
         return _in_batches(lambda zb: _prk_jet(prk, zb, model, order, with_scale), z, batch)
+    with np.errstate(over="ignore", invalid="ignore"):  # the form not chosen may overflow
+        return _prk_forms(prk, z, model, order, with_scale)
+
+
+def _prk_forms(prk: RungeKutta | PartitionedRK, z: np.ndarray, model: str, order: int,
+               with_scale: bool) -> Jet:
+    """The body of :func:`_prk_jet` for one batch."""
+    K, E, B = stage_operator(prk, model)
+    n2 = K.shape[0]
+    far = far_form(prk, model)
+    BK, BE = B @ K, B @ E
     zc = z[:, None, None]
+    small = (np.abs(z) * np.abs(K).sum(axis=1).max() <= 1.0)[:, None, None]
+    use_far = (np.abs(z) >= far.z_from)[:, None, None] if far else np.zeros_like(small)
     S = np.eye(n2)[None, :, :] - zc * K[None, :, :]
-    X = batched_solve(S, np.broadcast_to(E, (z.size, n2, 2)).copy())
-    BX = B[None, :, :] @ X
-    M = np.eye(2)[None, :, :] + zc * BX
-    dM = np.full_like(M, np.nan)
-    d2M = np.full_like(M, np.nan)
+    rhs = E if far is None else np.hstack([E, far.V])
+    Y = batched_solve(S, np.broadcast_to(rhs, (z.size, n2, rhs.shape[1])).copy())
+    X = Y[:, :, :2]
+    D = np.where(small, zc * BE[None, :, :] + (zc * zc) * (BK[None, :, :] @ X),
+                 zc * (B[None, :, :] @ X))
+    dev = D[:, 0, 0] + D[:, 1, 1]
+    dev_m = dev + 4.0
+    if far is not None:
+        BSV = B[None, :, :] @ Y[:, :, 2:]
+        tail = BSV[:, 0, 0] + BSV[:, 1, 1]
+        D = np.where(use_far, BSV - (B @ far.V)[None, :, :], D)
+        dev = np.where(use_far[:, 0, 0], far.minus_2 + tail, dev)
+        dev_m = np.where(use_far[:, 0, 0], far.plus_2 + tail, dev_m)
+    dM = np.full_like(D, np.nan)
+    d2M = np.full_like(D, np.nan)
     if order >= 1:
-        dX = batched_solve(S, K[None, :, :] @ X)
-        BdX = B[None, :, :] @ dX
-        dM = BX + zc * BdX
+        Y2 = batched_solve(S, X)
+        dM = B[None, :, :] @ Y2
         if order >= 2:
-            d2X = batched_solve(S, 2.0 * (K[None, :, :] @ dX))
-            d2M = 2.0 * BdX + zc * (B[None, :, :] @ d2X)
-    scale = np.zeros(z.size)
-    if with_scale:
-        absterms = np.abs(z)[:, None, None] * (np.abs(B)[None, :, :] @ np.abs(X))
-        scale = 2.0 + absterms[:, 0, 0] + absterms[:, 1, 1]
-    return Jet(M, dM, scale, d2M)
-
-
-def _identity(n: int) -> np.ndarray:
-    M = np.zeros((n, 2, 2))
-    M[:, 0, 0] = M[:, 1, 1] = 1.0
-    return M
+            d2M = 2.0 * BK[None, :, :] @ batched_solve(S, Y2)
+    if not with_scale:
+        return Jet(D, dM, d2M, dev, np.zeros(z.size), np.zeros(D.shape), dev_m, np.zeros(z.size))
+    W = batched_solve(S.transpose(0, 2, 1),
+                      np.broadcast_to(np.hstack([BK.T, B.T]), (z.size, n2, 4)).copy())
+    absW = np.abs(W).transpose(0, 2, 1)
+    absY = np.abs(Y)
+    absSY = absY + np.abs(zc) * (np.abs(K)[None, :, :] @ absY)  # |S| |Y|
+    near = (zc * zc) * (absW[:, :2] @ absSY[:, :, :2]
+                        + (np.abs(B) @ np.abs(K))[None, :, :] @ absY[:, :, :2])
+    near = near + np.abs(zc) * (np.abs(B) @ E)[None, :, :] / n2
+    direct = np.abs(zc) * (absW[:, 2:] @ absSY[:, :, :2] + np.abs(B)[None, :, :] @ absY[:, :, :2])
+    sens = n2 * np.where(small, near, direct)
+    scale = sens[:, 0, 0] + sens[:, 1, 1]
+    scale_m = scale + 4.0
+    if far is not None:
+        tail = absW[:, 2:] @ absSY[:, :, 2:] + np.abs(B)[None, :, :] @ absY[:, :, 2:]
+        sens = np.where(use_far, n2 * tail, sens)
+        tail_scale = sens[:, 0, 0] + sens[:, 1, 1]
+        far_scale = use_far[:, 0, 0]
+        scale = np.where(far_scale, tail_scale + abs(far.minus_2), scale)
+        scale_m = np.where(far_scale, tail_scale + abs(far.plus_2), scale_m)
+    return Jet(D, dM, d2M, dev, scale, sens, dev_m, scale_m)
 
 
 _FLAT: dict[int, tuple[Composition, Splitting]] = {}
@@ -182,42 +299,51 @@ def _splitting_jet(method: Splitting, z: np.ndarray, model: str, with_scale: boo
                    order: int = 1) -> Jet:
     """Product of drift/kick factors ``F = I + c z e_dst e_src^T`` applied as row updates.
 
-    The jet is held as Taylor coefficients ``T[k] = M^(k) / k!``, shape (order+1, 2, 2, n);
-    since ``F`` is linear in z, ``(F R)_k = F R_k + c e_dst e_src^T R_(k-1)``, so every
-    factor costs a few vector operations whatever the order.
-    The rounding scale is the first-order sandwich ``sum_k ||L_k|| ||F_k|| ||R_{k-1}||``
-    (``R`` the product so far, ``L`` the product of the later factors, Frobenius norms).
+    Held as Taylor coefficients ``T[k] = M^(k) / k!`` (shape (order+1, 2, 2, n)) except
+    that ``T[0]`` holds ``D = M - I``: a factor adds ``c z`` times row ``src`` of ``M``
+    (``= D[src] + e_src``) to row ``dst``, and ``(F R)_k = F R_k + c e_dst e_src^T
+    R_(k-1)``, a few vector operations per factor whatever the order.
+
+    Rounding, to first order: the update of row ``dst`` errs by at most
+    ``3 eps (|D_new[dst]| + |c z| |M_old[src]|)`` entrywise (the product ``c z``, the
+    multiplication and the addition), and the later factors ``L`` carry that error to the
+    end as ``L e``, so ``sens = 3 sum_k |L_k[:, dst]| (|D_new[dst]| + |c z| |M_old[src]|)``
+    (an outer product per factor). Changing a coefficient by a relative ``delta`` moves
+    ``M`` by the same expression times ``delta / (3 eps)``.
     """
     ops = _row_ops(method, model)
     n = z.size
-    batch = max(1, _BATCH_ELEMENTS // len(ops)) if ops else n
+    batch = max(1, _BATCH_ELEMENTS // max(4 * len(ops), 1))
     if n > batch:
         return _in_batches(lambda zb: _splitting_jet(method, zb, model, with_scale, order),
                            z, batch)
     T = np.zeros((order + 1, 2, 2, n))
-    T[0, 0, 0] = T[0, 1, 1] = 1.0
     cz = np.array([c for _, _, c in ops])[:, None] * z[None, :]
-    right = np.empty((len(ops), n)) if with_scale else None
+    rows = np.empty((len(ops), 2, n)) if with_scale else None
     for k, (src, dst, c) in enumerate(ops):
-        if right is not None:
-            right[k] = np.einsum("ijn,ijn->n", T[0], T[0])
-        T[:, dst] += cz[k] * T[:, src]
-        if order:
-            T[1:, dst] += c * T[:-1, src]
-    scale = np.zeros(n)
-    if right is not None:
+        old = T[0, src].copy()
+        old[src] += 1.0  # row src of M = I + D
+        if order >= 2:
+            T[2, dst] += cz[k] * T[2, src] + c * T[1, src]
+        if order >= 1:
+            T[1, dst] += cz[k] * T[1, src] + c * old
+        T[0, dst] += cz[k] * old
+        if rows is not None:
+            rows[k] = np.abs(T[0, dst]) + np.abs(cz[k]) * np.abs(old)
+    sens = None
+    if rows is not None:
+        sens = np.zeros((2, 2, n))
         L = np.zeros((2, 2, n))
         L[0, 0] = L[1, 1] = 1.0
-        left = np.empty((len(ops), n))
         for k in range(len(ops) - 1, -1, -1):
             src, dst, _ = ops[k]
-            left[k] = np.einsum("ijn,ijn->n", L, L)
+            sens += np.abs(L[:, dst])[:, None, :] * rows[k][None, :, :]
             L[:, src] += cz[k] * L[:, dst]
-        scale = np.sqrt(left * right * (2.0 + cz * cz)).sum(axis=0)
+        sens = 3.0 * sens.transpose(2, 0, 1)
     jet = [T[k].transpose(2, 0, 1) * factorial for k, factorial in zip(range(order + 1), (1, 1, 2))]
     nan = np.full((n, 2, 2), np.nan)
     jet += [nan] * (3 - len(jet))
-    return Jet(jet[0], jet[1], scale, jet[2])
+    return _jet(jet[0], jet[1], jet[2], sens)
 
 
 def _row_ops(method: Splitting, model: str) -> list[tuple[int, int, float]]:
@@ -232,68 +358,98 @@ def _euler_factor_jet(method: Splitting, z: np.ndarray) -> Jet:
     """Saddle model: the diagonal product of the symplectic Euler factors
 
     ``DK(c) = diag(1/(1-cz), 1-cz)`` and ``KD(d) = diag(1+dz, 1/(1+dz))``, so
-    ``M = diag(m, 1/m)`` with ``(log m)' = g = sum w/f`` over the factors (``f`` the linear
-    factor), ``g' = sum -+ (w/f)^2`` (+ for DK), ``m'' = m (g^2 + g')``,
-    ``(1/m)'' = (g^2 - g')/m``. Always computed to second order (it costs nothing).
+    ``M = diag(m, 1/m)``. With ``m = sigma e^lam`` (``lam = sum -+ log|f|`` over the linear
+    factors ``f``, by ``log1p`` near 1): ``M_qq - 1 = sigma e^lam - 1`` and
+    ``tr M - 2 = 4 sinh(lam/2)^2`` (``sigma = 1``) or ``-4 cosh(lam/2)^2`` (``sigma = -1``:
+    a flip), all without cancellation. ``(log m)' = g = sum w/f``, ``g' = sum -+ (w/f)^2``
+    (+ for DK), ``m'' = m (g^2 + g')``, ``(1/m)'' = (g^2 - g')/m``. Rounding: ``lam`` errs
+    by at most ``2 eps sum (|log|f|| + |w z / f|)``, which moves ``tr M`` by
+    ``2 |sinh lam|`` times that. Always computed to second order (it costs nothing).
     """
-    g = np.zeros(z.size)
-    dg = np.zeros(z.size)
-    mq = np.ones(z.size)
-    mp = np.ones(z.size)
+    n = z.size
+    g, dg, lam, spread = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    sigma = np.ones(n)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         for kind, w in method.euler_factors():
-            f = 1.0 - w * z if kind == "DK" else 1.0 + w * z
-            if kind == "DK":
-                mq, mp = mq / f, mp * f
-            else:
-                mq, mp = mq * f, mp / f
+            wz = -w * z if kind == "DK" else w * z
+            f = 1.0 + wz
+            log_f = np.where(f > 0, np.log1p(np.maximum(wz, -1.0)), np.log(np.abs(f)))
+            sigma = sigma * np.sign(f)
+            lam += -log_f if kind == "DK" else log_f
+            spread += np.abs(log_f) + np.abs(wz / f)
             r = w / f
             g += r
             dg += r * r if kind == "DK" else -r * r
-        M = np.zeros((z.size, 2, 2))
-        M[:, 0, 0], M[:, 1, 1] = mq, mp
-        dM = np.zeros_like(M)
+        mq, mp = sigma * np.exp(lam), sigma * np.exp(-lam)
+        D = np.zeros((n, 2, 2))
+        D[:, 0, 0] = np.where(sigma > 0, np.expm1(lam), mq - 1.0)
+        D[:, 1, 1] = np.where(sigma > 0, np.expm1(-lam), mp - 1.0)
+        dev = np.where(sigma > 0, 4.0 * np.sinh(0.5 * lam) ** 2, -4.0 * np.cosh(0.5 * lam) ** 2)
+        dM = np.zeros_like(D)
         dM[:, 0, 0] = mq * g
         dM[:, 1, 1] = -mp * g
-        d2M = np.zeros_like(M)
+        d2M = np.zeros_like(D)
         d2M[:, 0, 0] = mq * (g * g + dg)
         d2M[:, 1, 1] = mp * (g * g - dg)
-        bad = ~np.isfinite(mq) | ~np.isfinite(mp)
-        M[bad] = dM[bad] = d2M[bad] = np.nan
-    return Jet(M, dM, np.abs(mq) + np.abs(mp), d2M)
+        sens = np.zeros_like(D)
+        sens[:, 0, 0] = 2.0 * np.abs(mq) * spread
+        sens[:, 1, 1] = 2.0 * np.abs(mp) * spread
+        scale = 4.0 * np.abs(np.sinh(lam)) * spread + 4.0 * EPS_FLOOR * np.abs(dev)
+        bad = ~np.isfinite(mq) | ~np.isfinite(mp) | ~np.isfinite(lam)
+        D[bad] = dM[bad] = d2M[bad] = np.nan
+        dev[bad] = np.nan
+    return Jet(D, dM, d2M, dev, scale, sens, dev + 4.0, scale + 4.0)
+
+
+#: Relative rounding of the last operation that forms a value (in units of eps).
+EPS_FLOOR = 1.0
 
 
 def _composition_jet(method: Composition, z: np.ndarray, model: str, order: int = 1,
                      with_scale: bool = True) -> Jet:
-    """Product of base jets ``M = M_n(g_n z) ... M_1(g_1 z)`` (product rule for the
-    derivatives, with the chain-rule factors ``g_k``, ``g_k^2``); the rounding scale is the
-    first-order sandwich ``sum_k ||M_n..M_{k+1}|| scale_k ||M_{k-1}..M_1||`` (Frobenius
-    norms), which keeps the cancellation that an entrywise absolute product would throw
-    away."""
+    """Product of base jets ``M = M_n(g_n z) ... M_1(g_1 z)``, accumulated as
+    ``D <- D_k + D + D_k D`` (``M = I + D``), the derivatives by the product rule with the
+    chain-rule factors ``g_k``, ``g_k^2``.
+
+    Rounding, to first order: the error ``E_k`` of substep k's ``D_k`` (entrywise at most
+    ``eps sens_k``) reaches the end as ``L_k E_k R_(k-1)`` (``L`` the later substeps, ``R``
+    the earlier ones), and the update itself errs by ``2 eps (|D_new| + |D_k| |D|)``
+    entrywise, carried by ``L_k``; ``sens`` sums these with absolute values."""
     g = method.weights
     base = transfer_jet(method.base, np.outer(g, z).ravel(), model, with_scale, order)
     n = z.size
-    Mb = base.M.reshape(g.size, n, 2, 2)
+    Db = base.D.reshape(g.size, n, 2, 2)
     dMb = base.dM.reshape(g.size, n, 2, 2)
     d2Mb = base.d2M.reshape(g.size, n, 2, 2)
-    sb = base.scale.reshape(g.size, n)
-    M, dM, d2M = _identity(n), np.zeros((n, 2, 2)), np.zeros((n, 2, 2))
-    right_norms = np.empty((g.size, n))  # ||M_{k-1} ... M_1||
+    sb = base.sens.reshape(g.size, n, 2, 2)
+    eye = np.eye(2)[None, :, :]
+    D, dM, d2M = np.zeros((n, 2, 2)), np.zeros((n, 2, 2)), np.zeros((n, 2, 2))
+    right = np.empty((g.size, n, 2, 2)) if with_scale else None  # |M_{k-1} ... M_1|
+    local = np.empty((g.size, n, 2, 2)) if with_scale else None
     for k in range(g.size):
-        if with_scale:
-            right_norms[k] = np.sqrt((M * M).sum(axis=(1, 2)))
+        Mk, M = eye + Db[k], eye + D
         if order >= 2:
-            d2M = (g[k] ** 2) * d2Mb[k] @ M + (2.0 * g[k]) * dMb[k] @ dM + Mb[k] @ d2M
-        dM = g[k] * dMb[k] @ M + Mb[k] @ dM
-        M = Mb[k] @ M
-    L = _identity(n)
-    scale = np.zeros(n)
-    for k in range(g.size - 1, -1, -1) if with_scale else ():
-        scale += np.sqrt((L * L).sum(axis=(1, 2))) * sb[k] * right_norms[k]
-        L = L @ Mb[k]
+            d2M = (g[k] ** 2) * d2Mb[k] @ M + (2.0 * g[k]) * dMb[k] @ dM + Mk @ d2M
+        if order >= 1:
+            dM = g[k] * dMb[k] @ M + Mk @ dM
+        new = Db[k] + D + Db[k] @ D
+        if with_scale:
+            right[k] = np.abs(M)
+            local[k] = 2.0 * (np.abs(new) + np.abs(Db[k]) @ np.abs(D))
+        D = new
     if order < 2:
-        d2M = np.full_like(M, np.nan)
-    return Jet(M, dM, scale, d2M)
+        d2M = np.full_like(D, np.nan)
+    if order < 1:
+        dM = np.full_like(D, np.nan)
+    if not with_scale:
+        return _jet(D, dM, d2M)
+    L = np.broadcast_to(eye, (n, 2, 2)).copy()
+    sens = np.zeros((n, 2, 2))
+    for k in range(g.size - 1, -1, -1):
+        absL = np.abs(L)
+        sens += absL @ (sb[k] @ right[k] + local[k])
+        L = L @ (eye + Db[k])
+    return _jet(D, dM, d2M, sens)
 
 
 def signed_poles(method: Method, model: str) -> np.ndarray:

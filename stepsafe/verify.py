@@ -132,8 +132,7 @@ def mp_transfer(m: MPMethod) -> Callable:
     if m.kind == "splitting":
         d, k = m.data["drift"], m.data["kick"]
         return lambda z, model: reference.transfer_matrix_splitting(d, k, z, model)
-    A_q, b_q, A_p, b_p = (m.data[key] for key in ("A_q", "b_q", "A_p", "b_p"))
-    return lambda z, model: reference.transfer_matrix_prk(A_q, b_q, A_p, b_p, z, model)
+    return reference.prk_transfer(*(m.data[key] for key in ("A_q", "b_q", "A_p", "b_p")))
 
 
 def _tr(M):

@@ -120,7 +120,8 @@ def test_simulated_energy_error_matches_prediction(name, m):
     energies = _run(meth, x0[0], x0[1], z, m)
     measured = energies.max() / energies.min() - 1
     predicted = errors(meth, [z]).energy[0]
-    assert rel(measured, predicted) < 1e-10
+    # the float64 run loses a few eps of the energy per step: that is the measurement floor
+    assert rel(measured, predicted) < 4 * m * np.finfo(float).eps / predicted + 1e-12
 
 
 @pytest.mark.parametrize("name, slope", [("verlet", 2), ("symplectic-euler", 2), ("ruth3", 4),

@@ -1,0 +1,131 @@
+"""High precision for the few points float64 cannot decide.
+
+A boundary whose float64 uncertainty exceeds :data:`ESCALATE_REL` (relative; the digits
+stepsafe prints) sits where ``tr M`` crosses ``+-2`` almost flat: next to a tangency or a
+double root, or amid ill-conditioned stage solves. There float64 cannot tell a touch from a
+narrow gap or a near miss, nor give the boundary's digits. Such points are re-decided with
+mpmath at :data:`DPS` digits, inside the interval the float samples bracket them in:
+
+* a sign change of ``tr M - L`` between the bracket's ends: one root, refined to full
+  precision (uncertainty one ulp);
+* no sign change: the extremum of ``tr M`` in the bracket (a root of its derivative),
+  whose value decides: within the tolerance policy of ``L`` a resonance (a touch, reported
+  as before), beyond it on the far side a gap (two roots, each refined), else a near miss
+  (no boundary at all).
+
+The high-precision transfer matrix is the method's own definition where it carries one
+(``Method.exact``: decimal literals read exactly, family tableaux at high precision), else
+its float coefficients converted exactly. At most :data:`MAX_EVALUATIONS` evaluations
+are spent per region; points left over keep their float64 uncertainty, which is honest
+but wider. Imports mpmath only when a point needs it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
+
+DPS = 40
+ESCALATE_REL = 1e-12
+MAX_EVALUATIONS = 300
+
+#: ``Mfun(z, model)``: the 2x2 transfer matrix at z (an mpf) as an mpmath matrix.
+Reference = Callable[[Any, str], Any]
+
+
+class Decision(NamedTuple):
+    """What high precision found in a bracket: ``roots`` (floats), or a resonance at
+    ``touch`` (its extremum), or neither (a near miss)."""
+
+    roots: tuple[float, ...] = ()
+    touch: float | None = None
+
+
+def reference_of(method: Method) -> Reference:
+    """The high-precision transfer matrix of ``method``: its own ``exact`` definition when
+    it has one, else built from its parts, float coefficients taken as exact."""
+    from . import reference as R
+
+    if method.exact is not None:
+        return method.exact()
+    if isinstance(method, Composition):
+        inner = reference_of(method.base)
+        weights = [float(g) for g in method.weights]
+        return lambda z, model: R.transfer_matrix_composition(lambda x: inner(x, model),
+                                                              weights, z)
+    if isinstance(method, Splitting):
+        drift, kick = method.drift.tolist(), method.kick.tolist()
+        return lambda z, model: R.transfer_matrix_splitting(drift, kick, z, model)
+    prk = method.as_prk() if isinstance(method, RungeKutta) else method
+    assert isinstance(prk, PartitionedRK)
+    return R.prk_transfer(prk.A_q.tolist(), prk.b_q.tolist(), prk.A_p.tolist(),
+                          prk.b_p.tolist())
+
+
+class Escalation:
+    """Decides brackets at high precision for one method and model, within a budget."""
+
+    def __init__(self, method: Method, model: str) -> None:
+        self.method = method
+        self.model = model
+        self._reference: Reference | None = None
+        self.evaluations = 0
+
+    @property
+    def exhausted(self) -> bool:
+        return self.evaluations >= MAX_EVALUATIONS
+
+    def _trace(self, z):
+        import mpmath as mp
+
+        if self._reference is None:
+            self._reference = reference_of(self.method)
+        self.evaluations += 1
+        M = self._reference(mp.mpf(z), self.model)
+        return M[0, 0] + M[1, 1]
+
+    def decide(self, lo: float, hi: float, level: float, band: float) -> Decision | None:
+        """Roots of ``tr M = level`` in ``(lo, hi)``, or a touch within ``band`` of it
+        (None when the budget ran out or the bracket holds a pole)."""
+        import mpmath as mp
+
+        from .reference import refine_root
+
+        if self.exhausted:
+            return None
+        with mp.workdps(DPS):
+            def g(x):
+                return self._trace(x) - level
+
+            try:
+                a, b = mp.mpf(lo), mp.mpf(hi)
+                ga, gb = g(a), g(b)
+                if (ga > 0) != (gb > 0):
+                    return Decision((float(refine_root(g, a, b, tol=_digits(b))),))
+                step = mp.mpf(10) ** (-(DPS // 3)) * max(1, abs(b))
+
+                def dg(x):
+                    return (g(x + step) - g(x - step)) / (2 * step)
+
+                da, db = dg(a + 2 * step), dg(b - 2 * step)
+                if (da > 0) == (db > 0):
+                    return Decision()  # monotone, no sign change: no boundary
+                zm = refine_root(dg, a + 2 * step, b - 2 * step, tol=b * mp.mpf("1e-12"))
+                gm = g(zm)
+            except ZeroDivisionError:
+                return None
+            if abs(gm) <= band:
+                return Decision(touch=float(zm))
+            if (gm > 0) != (ga > 0):
+                return Decision((float(refine_root(g, a, zm, tol=_digits(b))),
+                                 float(refine_root(g, zm, b, tol=_digits(b)))))
+            return Decision()
+
+
+def _digits(z):
+    """Bracket width at which a root is known far beyond float64's digits."""
+    import mpmath as mp
+
+    return abs(z) * mp.mpf("1e-22")
