@@ -4,14 +4,32 @@ linear model each one gives.
 ``H`` is a restricted expression in ``q``, ``p`` and named parameters (numbers, + - * / **,
 sin, cos, exp, log, sqrt, cosh, sinh, tanh, pi; checked by :mod:`stepsafe.expressions`,
 never ``eval``). Derivatives are exact: H is evaluated on second-order jets (value,
-gradient, Hessian), i.e. forward-mode automatic differentiation, not finite differences.
+gradient, Hessian), i.e. forward-mode automatic differentiation, not finite differences,
+in float64 or, to verify, in mpmath.
 
-Equilibria solve ``grad H = 0`` inside a box: Newton from a grid of starts, deduplicated.
-Each is classified by ``D = H_qp^2 - H_qq H_pp`` (the paper's ``f_q g_p - f_p g_q``):
-``D < 0`` elliptic, ``D > 0`` hyperbolic, ``D = 0`` degenerate (no linear model). Its exact
-linearisation ``x' = L x``, ``L = [[H_pq, H_pp], [-H_qq, -H_qp]]``, maps to a test model
-when a partition-preserving scaling ``q -> a q, p -> b p`` brings it there (which every
-partitioned method commutes with):
+Equilibria solve ``grad H = 0`` inside a box, whatever the units:
+
+1. Newton's method in float64 from a grid of starts, in box coordinates (the box mapped to
+   ``[-1, 1]^2``) and with the Hessian scaled by its diagonal, so coefficients from 1e-300
+   to 1e300 and anisotropic energies (``1e-6 p^2 + 1e6 q^2``) converge alike; starts where
+   H or its derivatives cannot be evaluated (overflow, a domain error) are counted.
+2. Each cluster of end points is re-solved by Newton's method in mpmath
+   (:data:`VERIFY_DPS` digits, to steps of :data:`VERIFY_STEP`) and kept only if it
+   converges: that is the verification. The last steps give the location's uncertainty
+   ``dx``.
+3. The Hessian there (in mpmath, so that cancellations such as ``sin(q)/q`` near 0 do
+   not matter; at a removable singularity it is the limit from both sides) decides the
+   type by ``D = H_qp^2 - H_qq H_pp`` (the paper's ``f_q g_p - f_p g_q``): ``D < 0``
+   elliptic, ``D > 0`` hyperbolic. ``D`` is *degenerate* (no linear model) when its sign
+   is not decided: ``|D|`` is within what moving the point by ``dx`` changes it, plus
+   rounding relative to its terms ``max(H_qp^2, |H_qq H_pp|)``, or when Newton's method
+   approached it only linearly (more than six steps below 1e-8): a zero of the gradient
+   where the Hessian is singular (``q^4`` at 0), whose Hessian at the computed point is
+   an artefact of the location error.
+
+The exact linearisation ``x' = L x``, ``L = [[H_pq, H_pp], [-H_qq, -H_qp]]``, maps to a
+test model when a partition-preserving scaling ``q -> a q, p -> b p`` brings it there
+(which every partitioned method commutes with):
 
 * ``H_qp = 0``: ``oscillator`` with ``beta = sqrt(H_qq H_pp)`` if ``H_qq H_pp > 0``, else
   ``inverted`` with ``beta = sqrt(-H_qq H_pp)``;
@@ -25,7 +43,7 @@ from __future__ import annotations
 
 import ast
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -33,45 +51,58 @@ from .errors import StepsafeError
 from .expressions import Expression, ExpressionError, parse
 
 FUNCTIONS = ("sin", "cos", "exp", "log", "sqrt", "cosh", "sinh", "tanh")
+MAX_PARAMETERS = 100
+VERIFY_DPS = 120
+#: mpmath Newton stops when its step falls below this (box units); the cancellations near
+#: a removable singularity at that distance (~1/x^3) leave ~30 of the working digits.
+VERIFY_STEP = 1e-30
+GRID = 13
 
 
 class Jet2:
-    """A value with its gradient and Hessian in (q, p): second-order forward AD."""
+    """A value with its gradient and Hessian in (q, p): second-order forward AD.
 
-    __slots__ = ("v", "g", "H")
+    Plain Python numbers (float or mpmath ``mpf``): ``g = (g_q, g_p)``,
+    ``H = (H_qq, H_qp, H_pp)``; ``lib`` supplies the elementary functions."""
 
-    def __init__(self, v: float, g=None, H=None) -> None:
-        self.v = float(v)
-        self.g = np.zeros(2) if g is None else g
-        self.H = np.zeros((2, 2)) if H is None else H
+    __slots__ = ("v", "g", "H", "lib")
 
-    @staticmethod
-    def lift(x) -> Jet2:
-        return x if isinstance(x, Jet2) else Jet2(x)
+    def __init__(self, v, g=(0, 0), H=(0, 0, 0), lib=math) -> None:
+        self.v, self.g, self.H, self.lib = v, g, H, lib
 
-    def _chain(self, f0: float, f1: float, f2: float) -> Jet2:
+    def lift(self, x) -> Jet2:
+        return x if isinstance(x, Jet2) else Jet2(x, lib=self.lib)
+
+    def _chain(self, f0, f1, f2) -> Jet2:
         """``f(self)`` from f, f', f'' at self.v."""
-        return Jet2(f0, f1 * self.g, f1 * self.H + f2 * np.outer(self.g, self.g))
+        (gq, gp), (hqq, hqp, hpp) = self.g, self.H
+        return Jet2(f0, (f1 * gq, f1 * gp),
+                    (f1 * hqq + f2 * gq * gq, f1 * hqp + f2 * gq * gp, f1 * hpp + f2 * gp * gp),
+                    self.lib)
 
     def __add__(self, o):
-        o = Jet2.lift(o)
-        return Jet2(self.v + o.v, self.g + o.g, self.H + o.H)
+        o = self.lift(o)
+        return Jet2(self.v + o.v, (self.g[0] + o.g[0], self.g[1] + o.g[1]),
+                    tuple(a + b for a, b in zip(self.H, o.H)), self.lib)
 
     __radd__ = __add__
 
     def __neg__(self):
-        return Jet2(-self.v, -self.g, -self.H)
+        return Jet2(-self.v, (-self.g[0], -self.g[1]), tuple(-h for h in self.H), self.lib)
 
     def __sub__(self, o):
-        return self + (-Jet2.lift(o))
+        return self + (-self.lift(o))
 
     def __rsub__(self, o):
-        return Jet2.lift(o) - self
+        return self.lift(o) - self
 
     def __mul__(self, o):
-        o = Jet2.lift(o)
-        return Jet2(self.v * o.v, self.v * o.g + o.v * self.g,
-                    self.v * o.H + o.v * self.H + np.outer(self.g, o.g) + np.outer(o.g, self.g))
+        o = self.lift(o)
+        (a, b), (c, d) = self.g, o.g
+        return Jet2(self.v * o.v, (self.v * c + o.v * a, self.v * d + o.v * b),
+                    (self.v * o.H[0] + o.v * self.H[0] + 2 * a * c,
+                     self.v * o.H[1] + o.v * self.H[1] + a * d + b * c,
+                     self.v * o.H[2] + o.v * self.H[2] + 2 * b * d), self.lib)
 
     __rmul__ = __mul__
 
@@ -81,56 +112,62 @@ class Jet2:
         return self._chain(1 / self.v, -1 / self.v**2, 2 / self.v**3)
 
     def __truediv__(self, o):
-        return self * Jet2.lift(o).reciprocal()
+        return self * self.lift(o).reciprocal()
 
     def __rtruediv__(self, o):
-        return Jet2.lift(o) * self.reciprocal()
+        return self.lift(o) * self.reciprocal()
+
+    def _constant(self) -> bool:
+        return not any(self.g) and not any(self.H)
 
     def __pow__(self, o):
-        o = Jet2.lift(o)
-        if not o.g.any() and not o.H.any():  # constant exponent
+        o = self.lift(o)
+        if o._constant():
             n, x = o.v, self.v
             if x == 0 and n == int(n) and n >= 0:
                 k = int(n)
-                return self._chain(0.0 if k else 1.0, 1.0 if k == 1 else 0.0,
-                                   2.0 if k == 2 else 0.0)
+                return self._chain(0 if k else 1, 1 if k == 1 else 0, 2 if k == 2 else 0)
             if x <= 0 and n != int(n):
                 raise ValueError("power of a non-positive base")
             return self._chain(x**n, n * x ** (n - 1), n * (n - 1) * x ** (n - 2))
         return (o * self.log()).exp()
 
     def __rpow__(self, o):
-        return Jet2.lift(o) ** self
+        return self.lift(o) ** self
 
     def exp(self):
-        e = math.exp(self.v)
+        e = self.lib.exp(self.v)
         return self._chain(e, e, e)
 
     def log(self):
         if self.v <= 0:
             raise ValueError("log of a non-positive number")
-        return self._chain(math.log(self.v), 1 / self.v, -1 / self.v**2)
+        return self._chain(self.lib.log(self.v), 1 / self.v, -1 / self.v**2)
 
     def sqrt(self):
         if self.v <= 0:
             raise ValueError("sqrt at a non-positive number (not differentiable)")
-        r = math.sqrt(self.v)
-        return self._chain(r, 0.5 / r, -0.25 / (r * self.v))
+        r = self.lib.sqrt(self.v)
+        return self._chain(r, 1 / (2 * r), -1 / (4 * r * self.v))
 
     def sin(self):
-        return self._chain(math.sin(self.v), math.cos(self.v), -math.sin(self.v))
+        s, c = self.lib.sin(self.v), self.lib.cos(self.v)
+        return self._chain(s, c, -s)
 
     def cos(self):
-        return self._chain(math.cos(self.v), -math.sin(self.v), -math.cos(self.v))
+        s, c = self.lib.sin(self.v), self.lib.cos(self.v)
+        return self._chain(c, -s, -c)
 
     def sinh(self):
-        return self._chain(math.sinh(self.v), math.cosh(self.v), math.sinh(self.v))
+        s, c = self.lib.sinh(self.v), self.lib.cosh(self.v)
+        return self._chain(s, c, s)
 
     def cosh(self):
-        return self._chain(math.cosh(self.v), math.sinh(self.v), math.cosh(self.v))
+        s, c = self.lib.sinh(self.v), self.lib.cosh(self.v)
+        return self._chain(c, s, c)
 
     def tanh(self):
-        t = math.tanh(self.v)
+        t = self.lib.tanh(self.v)
         return self._chain(t, 1 - t * t, -2 * t * (1 - t * t))
 
 
@@ -138,19 +175,27 @@ class Hamiltonian(NamedTuple):
     expression: Expression
     parameters: dict[str, float]
 
-    def jet(self, q: float, p: float) -> Jet2:
-        env = {"q": Jet2(q, np.array([1.0, 0.0])), "p": Jet2(p, np.array([0.0, 1.0])),
-               **{k: Jet2(v) for k, v in self.parameters.items()}, "pi": Jet2(math.pi)}
+    def jet(self, q, p, lib=math) -> Jet2:
+        """Value, gradient and Hessian at (q, p) in float64 (``lib=math``) or mpmath."""
+        number = float if lib is math else lib.mpf
+        env = {"q": Jet2(q, (1, 0), lib=lib), "p": Jet2(p, (0, 1), lib=lib),
+               **{k: Jet2(number(v), lib=lib) for k, v in self.parameters.items()},
+               "pi": Jet2(lib.pi if lib is not math else math.pi, lib=lib)}
         try:
-            out = _eval(self.expression.tree, self.expression.text, env)
+            out = _eval(self.expression.tree, self.expression.text, env, number)
         except (ZeroDivisionError, ValueError, OverflowError) as exc:
             raise ExpressionError(str(exc) or type(exc).__name__) from None
-        return Jet2.lift(out)
+        out = env["q"].lift(out)
+        if lib is math and not all(map(math.isfinite, (out.v, *out.g, *out.H))):
+            raise ExpressionError("H or its derivatives overflow float64")
+        return out
 
 
 def parse_hamiltonian(text: str, parameters: dict[str, float] | None = None) -> Hamiltonian:
     """A whitelisted H(q, p); unknown names are an error."""
     parameters = dict(parameters or {})
+    if len(parameters) > MAX_PARAMETERS:
+        raise ExpressionError(f"more than {MAX_PARAMETERS} parameters")
     for name in parameters:
         if name in ("q", "p", "pi") or name in FUNCTIONS or not name.isidentifier():
             raise ExpressionError(f"parameter name {name!r} is not allowed")
@@ -162,31 +207,32 @@ def parse_hamiltonian(text: str, parameters: dict[str, float] | None = None) -> 
     return Hamiltonian(expr, parameters)
 
 
-def _eval(node: ast.AST, source: str, env: dict[str, Jet2]):
+def _eval(node: ast.AST, source: str, env: dict[str, Jet2], number):
     if isinstance(node, ast.Constant):
-        return float(ast.get_source_segment(source, node))
+        return number(ast.get_source_segment(source, node))
     if isinstance(node, ast.Name):
         return env[node.id]
     if isinstance(node, ast.UnaryOp):
-        value = _eval(node.operand, source, env)
+        value = _eval(node.operand, source, env, number)
         return -value if isinstance(node.op, ast.USub) else value
+    lift = env["q"].lift
     if isinstance(node, ast.Call):
-        return getattr(Jet2.lift(_eval(node.args[0], source, env)), node.func.id)()
+        return getattr(lift(_eval(node.args[0], source, env, number)), node.func.id)()
     assert isinstance(node, ast.BinOp)
-    a, b = _eval(node.left, source, env), _eval(node.right, source, env)
+    a, b = _eval(node.left, source, env, number), _eval(node.right, source, env, number)
     if isinstance(node.op, ast.Add):
-        return Jet2.lift(a) + b
+        return lift(a) + b
     if isinstance(node.op, ast.Sub):
-        return Jet2.lift(a) - b
+        return lift(a) - b
     if isinstance(node.op, ast.Mult):
-        return Jet2.lift(a) * b
+        return lift(a) * b
     if isinstance(node.op, ast.Div):
-        return Jet2.lift(a) / b
+        return lift(a) / b
     bv = b.v if isinstance(b, Jet2) else b
-    if isinstance(b, (int, float)) or (not b.g.any() and not b.H.any()):
+    if not isinstance(b, Jet2) or b._constant():
         if abs(bv) > 64:
             raise ValueError("exponent above 64")
-    return Jet2.lift(a) ** b
+    return lift(a) ** b
 
 
 class Equilibrium(NamedTuple):
@@ -199,62 +245,201 @@ class Equilibrium(NamedTuple):
     model: str | None  # a test model, "coupled" (needs the 2x2 Hessian analysis) or None
 
 
+class Search(NamedTuple):
+    """What the search found: verified equilibria, and why the other starts failed."""
+
+    equilibria: list[Equilibrium]
+    starts: int
+    unevaluable: int  # starts (or iterates) where H or its derivatives could not be evaluated
+    outside: int  # Newton left the box or did not converge
+    unverified: int  # float64 end points that high precision did not confirm
+    flat: int = 0  # starts where gradient and Hessian vanish: no isolated equilibrium
+
+    def explain(self) -> str:
+        """Why nothing was found, in one phrase."""
+        parts = [f"{self.starts} Newton starts"]
+        if self.flat:
+            parts.append(f"{self.flat} where H is flat (zero gradient and Hessian, e.g. a "
+                         "constant): no isolated equilibrium to analyse")
+        if self.unevaluable:
+            parts.append(f"{self.unevaluable} where H or its derivatives cannot be evaluated "
+                         "(overflow or outside its domain)")
+        if self.outside:
+            parts.append(f"{self.outside} that left the box or did not converge")
+        if self.unverified:
+            parts.append(f"{self.unverified} end points not confirmed at high precision")
+        return "; ".join(parts)
+
+
 def find_equilibria(H: Hamiltonian, box_q: tuple[float, float], box_p: tuple[float, float],
-                    grid: int = 13) -> list[Equilibrium]:
-    """All zeros of grad H in the box: Newton from a grid of starts, deduplicated."""
+                    grid: int = GRID) -> Search:
+    """All zeros of grad H in the box (see the module docstring)."""
     (q0, q1), (p0, p1) = box_q, box_p
     if not (q0 < q1 and p0 < p1) or not all(map(math.isfinite, (q0, q1, p0, p1))):
         raise StepsafeError("the box needs finite q: [lo, hi] and p: [lo, hi] with lo < hi")
-    size = max(q1 - q0, p1 - p0)
-    found: list[np.ndarray] = []
-    for qs in np.linspace(q0, q1, grid):
-        for ps in np.linspace(p0, p1, grid):
-            x = np.array([qs, ps])
-            for _ in range(60):
-                try:
-                    j = H.jet(*x)
-                except ExpressionError:
-                    break
-                try:
-                    step = np.linalg.lstsq(j.H, j.g, rcond=1e-14)[0]
-                except np.linalg.LinAlgError:
-                    break
-                x = x - step
-                if not np.all(np.isfinite(x)) or np.abs(x).max() > 1e3 * (1 + size):
-                    break
-                if np.abs(step).max() <= 1e-15 * (1 + np.abs(x).max()):
-                    break
+    centre = np.array([0.5 * q0 + 0.5 * q1, 0.5 * p0 + 0.5 * p1])
+    half = np.array([0.5 * q1 - 0.5 * q0, 0.5 * p1 - 0.5 * p0])
+    if not np.all(np.isfinite(half)) or np.any(half <= 0):
+        raise StepsafeError("the box is too wide or too narrow for float64")
+    ends: list[np.ndarray] = []
+    unevaluable = outside = flat = 0
+    axis = np.linspace(-1.0, 1.0, grid)
+    for uq in axis:
+        for up in axis:
+            status, u = _newton_float(H, np.array([uq, up]), centre, half)
+            if status == "unevaluable":
+                unevaluable += 1
+            elif status == "flat":
+                flat += 1
+            elif status == "outside":
+                outside += 1
+            elif not any(np.abs(u - v).max() <= 1e-6 for v in ends):
+                ends.append(u)
+    found: list[Equilibrium] = []
+    unverified = 0
+    for u in ends:
+        e = _verify(H, u, centre, half)
+        if e is None:
+            unverified += 1
+        elif not any(abs(e.q - f.q) <= 1e-9 * half[0] and abs(e.p - f.p) <= 1e-9 * half[1]
+                     for f in found):
+            found.append(e)
+    found.sort(key=lambda e: (e.q, e.p))
+    return Search(found, grid * grid, unevaluable, outside, unverified, flat)
+
+
+def _scaled(H: Hamiltonian, u: np.ndarray, centre: np.ndarray, half: np.ndarray):
+    """Gradient and Hessian of H in box coordinates ``x = centre + half * u``."""
+    j = H.jet(*(centre + half * u))
+    g = np.array(j.g) * half
+    hqq, hqp, hpp = j.H
+    A = np.array([[hqq, hqp], [hqp, hpp]]) * np.outer(half, half)
+    return g, A
+
+
+def _newton_float(H: Hamiltonian, u: np.ndarray, centre, half, iterations: int = 80):
+    """Newton's method in box coordinates with the Hessian scaled by its diagonal;
+    returns ("ok", u), ("outside", u), ("unevaluable", u) or ("flat", u) (zero gradient and
+    Hessian: no isolated equilibrium)."""
+    with np.errstate(all="ignore"):
+        for _ in range(iterations):
             try:
-                g = H.jet(*x).g
+                g, A = _scaled(H, u, centre, half)
             except ExpressionError:
-                continue
-            inside = (q0 - 1e-9 * size <= x[0] <= q1 + 1e-9 * size and
-                      p0 - 1e-9 * size <= x[1] <= p1 + 1e-9 * size)
-            if inside and np.abs(g).max() <= 1e-10 * (1 + _grad_scale(H, x)) and not any(
-                    np.abs(x - y).max() <= 1e-7 * (1 + size) for y in found):
-                found.append(x)
-    return [classify_equilibrium(H, x) for x in sorted(found, key=lambda v: (v[0], v[1]))]
+                return "unevaluable", u
+            if not (np.all(np.isfinite(A)) and np.all(np.isfinite(g))):
+                return "unevaluable", u
+            if not A.any():
+                return ("flat" if not g.any() else "outside"), u
+            d = np.sqrt(np.abs(np.diag(A)))
+            d = np.where(d > 0, d, np.sqrt(np.abs(A).max()))
+            try:
+                step = np.linalg.lstsq(A / np.outer(d, d), g / d, rcond=1e-13)[0] / d
+            except np.linalg.LinAlgError:
+                return "outside", u
+            u = u - step
+            if not np.all(np.isfinite(u)) or np.abs(u).max() > 4.0:
+                return "outside", u
+            if np.abs(step).max() <= 1e-14:
+                break
+    return ("ok", u) if np.abs(u).max() <= 1.0 + 1e-9 else ("outside", u)
 
 
-def _grad_scale(H: Hamiltonian, x: np.ndarray) -> float:
-    return float(np.abs(H.jet(*x).H).max())
+def _verify(H: Hamiltonian, u: np.ndarray, centre, half) -> Equilibrium | None:
+    """Newton's method in mpmath from a float64 end point; the equilibrium with its
+    classification, or None when high precision does not converge to one in the box."""
+    import mpmath as mp
+
+    with mp.workdps(VERIFY_DPS):
+        c = [mp.mpf(float(x)) for x in centre]
+        w = [mp.mpf(float(x)) for x in half]
+        x = [c[0] + w[0] * mp.mpf(float(u[0])), c[1] + w[1] * mp.mpf(float(u[1]))]
+        steps: list[Any] = []
+        for _ in range(200):
+            jet = _mp_jet(H, x, w)
+            if jet is None:
+                return None
+            (gq, gp), (hqq, hqp, hpp) = jet.g, jet.H
+            det = hqq * hpp - hqp * hqp
+            if det == 0:
+                break
+            dq, dp = (hpp * gq - hqp * gp) / det, (hqq * gp - hqp * gq) / det
+            x = [x[0] - dq, x[1] - dp]
+            size = max(abs(dq) / w[0], abs(dp) / w[1])
+            steps.append(size)
+            if size <= VERIFY_STEP:
+                break
+        if not steps or steps[-1] > mp.mpf(10) ** (-12):
+            return None  # did not converge: not an equilibrium we can vouch for
+        uq, up = (x[0] - c[0]) / w[0], (x[1] - c[1]) / w[1]
+        if max(abs(uq), abs(up)) > 1 + mp.mpf(10) ** -9:
+            return None
+        # location uncertainty (box units): a few times the last steps (linear convergence
+        # at a degenerate zero leaves an error comparable to the last step)
+        dx = 4 * max(steps[-3:]) + VERIFY_STEP
+        shifted = [_mp_jet(H, [x[0] + sq * dx * w[0], x[1] + sp * dx * w[1]], w)
+                   for sq, sp in ((1, 1), (-1, -1), (1, -1), (-1, 1))]
+        if any(s is None for s in shifted):
+            return None
+        # the Hessian at the point: the mean over the four corners dx away (O(dx^2) off; the
+        # point itself may sit where cancellations swamp the digits, e.g. sin(q)/q at 1e-70);
+        # an entry within what the location uncertainty moves it is zero (e.g. H_pp = 2 a q
+        # at q = 0 of alpha q p (p - 1)), so the point maps to its exact test model
+        mean = [mp.fsum(s.H[i] for s in shifted) / 4 for i in range(3)]
+        entries = [h if abs(h) > 2 * max(abs(s.H[i] - h) for s in shifted) else mp.mpf(0)
+                   for i, h in enumerate(mean)]
+        hqq, hqp, hpp = entries
+        D = hqp * hqp - hqq * hpp
+        spread = max(abs((s.H[1] ** 2 - s.H[0] * s.H[2]) - D) for s in shifted)
+        terms = max(hqp * hqp, abs(hqq * hpp))
+        undecided = abs(D) <= 2 * spread + mp.mpf(10) ** (-(VERIFY_DPS // 2)) * terms
+        # Newton converges quadratically to a zero where the Hessian is regular (three
+        # steps from 1e-8 to VERIFY_STEP) and only linearly where it is singular
+        linear = sum(1 for size in steps if size < mp.mpf("1e-8")) > 6
+        # a coordinate within the location's uncertainty of 0 is 0 (the equilibrium at the
+        # origin, not at 1e-87)
+        q, p = (mp.mpf(0) if abs(xi) <= dx * wi else xi for xi, wi in zip(x, w))
+        return _classify(float(q), float(p), float(hqq), float(hqp), float(hpp),
+                         float(D), undecided or linear or terms == 0)
 
 
-def classify_equilibrium(H: Hamiltonian, x: np.ndarray) -> Equilibrium:
-    j = H.jet(*x)
-    Hqq, Hqp, Hpp = j.H[0, 0], j.H[0, 1], j.H[1, 1]
-    D = Hqp * Hqp - Hqq * Hpp
-    scale = max(abs(Hqq), abs(Hqp), abs(Hpp), 1e-300)
-    tol = 1e-12 * scale * scale
-    q, p = float(x[0]), float(x[1])
-    if abs(D) <= tol:
-        return Equilibrium(q, p, 0.0, "degenerate", j.H, None, None)
+def _mp_jet(H: Hamiltonian, x, w):
+    """The mpmath jet at x; at a removable singularity (H not defined at the point but on
+    both sides, with the same Hessian) the mean of the two sides a little way off."""
+    import mpmath as mp
+
+    try:
+        return H.jet(x[0], x[1], lib=mp)
+    except ExpressionError:
+        pass
+    eps = mp.mpf(VERIFY_STEP)
+    sides = []
+    for s in (1, -1):
+        try:
+            sides.append(H.jet(x[0] + s * eps * w[0], x[1] + s * eps * w[1], lib=mp))
+        except ExpressionError:
+            return None
+    a, b = sides
+    scale = max(max(abs(h) for h in a.H), mp.mpf(10) ** -300)
+    if max(abs(ha - hb) for ha, hb in zip(a.H, b.H)) > mp.mpf(10) ** (-(VERIFY_DPS // 8)) * scale:
+        return None  # a genuine singularity, not a removable one
+    return Jet2((a.v + b.v) / 2, tuple((ga + gb) / 2 for ga, gb in zip(a.g, b.g)),
+                tuple((ha + hb) / 2 for ha, hb in zip(a.H, b.H)), mp)
+
+
+def _classify(q: float, p: float, hqq: float, hqp: float, hpp: float, D: float,
+              degenerate: bool) -> Equilibrium:
+    hessian = np.array([[hqq, hqp], [hqp, hpp]])
+    if degenerate:
+        return Equilibrium(q, p, 0.0, "degenerate", hessian, None, None)
     kind = "elliptic" if D < 0 else "hyperbolic"
-    if abs(Hqp) <= 1e-12 * scale:
-        prod = Hqq * Hpp
+    if hqp == 0:
+        prod = hqq * hpp
         model = "oscillator" if prod > 0 else "inverted"
-        return Equilibrium(q, p, D, kind, j.H, float(math.sqrt(abs(prod))), model)
-    if abs(Hqq) <= 1e-12 * scale and abs(Hpp) <= 1e-12 * scale:
-        return Equilibrium(q, p, D, kind, j.H, float(abs(Hqp)),
-                           "saddle" if Hqp > 0 else "saddle-p")
-    return Equilibrium(q, p, D, kind, j.H, float(math.sqrt(abs(D))), "coupled")
+        return Equilibrium(q, p, D, kind, hessian, math.sqrt(abs(hqq)) * math.sqrt(abs(hpp)),
+                           model)
+    if hqq == 0 and hpp == 0:
+        return Equilibrium(q, p, D, kind, hessian, abs(hqp), "saddle" if hqp > 0 else "saddle-p")
+    beta = math.sqrt(abs(D)) if math.isfinite(D) and D != 0 else abs(hqp) * math.sqrt(
+        abs(1 - (hqq / hqp) * (hpp / hqp)))
+    return Equilibrium(q, p, D, kind, hessian, beta, "coupled")

@@ -210,11 +210,17 @@ def _hamiltonian(tree, where, method, zmax) -> SystemReport:
                        _float(pair[1], where, f"box.{axis}[1]")))
     try:
         H = parse_hamiltonian(text, params)
-        equilibria = find_equilibria(H, bounds[0], bounds[1])
+        search = find_equilibria(H, bounds[0], bounds[1])
     except ExpressionError as exc:
         raise _fail(where, "hamiltonian", f"{exc} in {text[:60]!r}") from None
+    equilibria = search.equilibria
     if not equilibria:
-        raise _fail(where, "box", "no equilibria found in the box")
+        raise _fail(where, "box", f"no equilibrium of H found in the box ({search.explain()})")
+    if all(e.model is None for e in equilibria):
+        where_ = ", ".join(f"({e.q:.6g}, {e.p:.6g})" for e in equilibria[:3])
+        raise _fail(where, "hamiltonian", "nothing to analyse: every equilibrium found is "
+                    f"degenerate (no linear model): {where_}"
+                    + (" ..." if len(equilibria) > 3 else ""))
     items, grouped, coupled, notes = [], {}, [], []
     for e in equilibria:
         item = {"q": e.q, "p": e.p, "type": e.kind, "D": e.D, "beta": e.beta,
