@@ -89,6 +89,13 @@ class Advice:
     horizon: float | None  # steps above this were not analysed
     regions: dict[str, Region] = field(default_factory=dict)
 
+    @property
+    def h_max_is_horizon(self) -> bool:
+        """True when no boundary limits the step below the horizon: ``h_max`` is only how
+        far the analysis looked (``zmax / beta_max``), not a safety limit."""
+        return (self.h_max is not None and self.horizon is not None
+                and self.h_max >= self.horizon * (1.0 - 1e-12))
+
 
 def validate_margin(margin: float) -> float:
     try:

@@ -94,9 +94,40 @@ def fmt(x: float | None, digits: int = 12) -> str:
     return f"{x:.{digits}g}"
 
 
+def fmt_below(x: float, digits: int = 12) -> str:
+    """``x`` to ``digits`` significant digits, rounded towards zero and strictly below a
+    positive ``x``: a step limit shown to the user is one the user may take (an ``h_max``
+    printed rounded up would be outside the safe set)."""
+    return _directed(x, digits, below=True)
+
+
+def fmt_above(x: float, digits: int = 12) -> str:
+    """``x`` rounded up, strictly above a positive ``x`` (lower ends of safe intervals)."""
+    return _directed(x, digits, below=False)
+
+
+def _directed(x: float, digits: int, below: bool) -> str:
+    from decimal import ROUND_CEILING, ROUND_FLOOR, Decimal
+
+    if not math.isfinite(x) or x == 0:
+        return fmt(x, digits)
+    exact = Decimal(x)
+    unit = Decimal(1).scaleb(exact.adjusted() - (digits - 1))
+    rounded = exact.quantize(unit, rounding=ROUND_FLOOR if below else ROUND_CEILING)
+    if rounded == exact:
+        rounded += -unit if below else unit
+    return f"{rounded:.{digits}g}"
+
+
 def _fmt_interval(iv: list) -> str:
     lo, hi = iv
     return f"({fmt(lo)}, {'zmax' if hi is None else fmt(hi)})"
+
+
+def _fmt_steps(iv: list) -> str:
+    """A safe interval of h, shown inside what is safe (ends rounded inwards)."""
+    lo, hi = iv
+    return f"({fmt_above(lo) if lo else '0'}, {'no limit' if hi is None else fmt_below(hi)})"
 
 
 def _console():
@@ -185,13 +216,22 @@ def _limit(lim) -> dict[str, Any] | None:
 
 
 def advice_data(adv) -> dict[str, Any]:
-    """JSON-ready advice: h_max, the safe h intervals, the limiting frequency, per model."""
+    """JSON-ready advice: h_max, the safe h intervals, the limiting frequency, per model.
+
+    ``h_max_limited_by`` is ``boundary`` when a structure boundary (root, pole, resonance)
+    ends the safe interval from 0, ``horizon`` when none was found below the analysed
+    range (then ``h_max`` is the horizon, not a safety limit), ``none`` when no step is
+    safe."""
+    safe = adv.safe_h
+    limited_by = ("none" if not safe or safe[0][0] != 0.0 else
+                  "horizon" if adv.h_max_is_horizon or safe[0][1] is None else "boundary")
     return {
         "method": adv.method,
         "margin": adv.margin,
         "h_max": _num(adv.h_max) if adv.h_max is not None else None,
+        "h_max_limited_by": limited_by,
         "safe_h": [[float(lo), _num(hi)] for lo, hi in adv.safe_h],
-        "limiting": _limit(adv.limiting),
+        "limiting": _limit(adv.limiting) if limited_by == "boundary" else None,
         "models": {lim.model: _limit(lim) for lim in adv.models},
         "horizon": _num(adv.horizon),
     }
@@ -213,24 +253,28 @@ def print_advice(data: dict[str, Any]) -> None:
         if lim["first_boundary_kind"] in ("pole", "resonance"):
             z += f" ({lim['first_boundary_kind']})"
         table.add_row(model, str(lim["count"]), fmt(lim["beta"]), z,
-                      "no limit" if lim["h_limit"] is None else fmt(lim["h_limit"]))
+                      "no limit" if lim["h_limit"] is None else fmt_below(lim["h_limit"]))
     console.print(table)
     safe = data["safe_h"]
     if "accuracy" in data:
         _print_accuracy(console, data)
-    if not safe or safe[0][0] != 0.0:
+    if data["h_max_limited_by"] == "none":
         console.print("[red]No safe step from 0:[/red] the method never preserves this structure.")
     elif safe[0][1] is None:
         console.print("[green]Safe for every h[/green] (no frequency limits the step).")
+    elif data["h_max_limited_by"] == "horizon":
+        console.print(f"[green]No limit found[/green] up to h = {fmt_below(safe[0][1])}, the "
+                      "horizon of the analysis (zmax / largest beta; raise --zmax to look "
+                      "further).")
     else:
         lim = data["limiting"]
-        console.print(f"[green]Safe: 0 < h < {fmt(safe[0][1])}[/green]"
+        console.print(f"[green]Safe: 0 < h < {fmt_below(safe[0][1])}[/green]"
                       + (f", limited by {lim['model']} beta = {fmt(lim['beta'])}" if lim else ""))
     islands = [iv for iv in safe if iv[0] != 0.0]
     if islands:
         console.print("Also safe (islands outside the primary interval; any error in beta can "
-                      "move h out of them): " + ", ".join(_fmt_interval(iv) for iv in islands))
-    if data["horizon"] is not None:
+                      "move h out of them): " + ", ".join(_fmt_steps(iv) for iv in islands))
+    if data["horizon"] is not None and data["h_max_limited_by"] != "horizon":
         console.print(f"Steps above {fmt(data['horizon'])} (zmax / largest beta) were not "
                       "analysed.")
 
@@ -247,6 +291,7 @@ def check_data(result) -> dict[str, Any]:
         "failures": [{"model": f.model, "beta": f.beta, "z": f.z, "reason": f.reason,
                       "largest_safe_h": _num(f.h_limit)} for f in result.failures],
         "h_max": _num(result.advice.h_max) if result.advice.h_max is not None else None,
+        "h_max_limited_by": advice_data(result.advice)["h_max_limited_by"],
         "safe_h": [[float(lo), _num(hi)] for lo, hi in result.advice.safe_h],
     }
 
@@ -265,13 +310,19 @@ def print_check(data: dict[str, Any]) -> None:
     click.echo(click.style("UNSAFE", fg="red") + f": {data['method']} with h = {h}: "
                f"{data['failing']} of {data['modes']} mode(s) lose their structure.")
     for f in data["failures"]:
-        limit = "none" if f["largest_safe_h"] is None else fmt(f["largest_safe_h"])
-        click.echo(f"  {f['model']} beta = {fmt(f['beta'])}: z = beta*h = {fmt(f['z'])} "
-                   f"{f['reason']}; largest safe h for it: {limit}")
+        limit = ("none below the horizon" if f["largest_safe_h"] is None
+                 else fmt_below(f["largest_safe_h"]) if f["largest_safe_h"] > 0 else "none")
+        what = (f"{f['model']}: " if f["beta"] is None else
+                f"{f['model']} beta = {fmt(f['beta'])}: z = beta*h = {fmt(f['z'])} ")
+        click.echo(f"  {what}{f['reason']}; largest safe h for it: {limit}")
     if data["failing"] > len(data["failures"]):
         click.echo(f"  ... and {data['failing'] - len(data['failures'])} more")
-    if data["h_max"] is not None:
-        click.echo(f"Largest safe h for all modes: {fmt(data['h_max'])}")
+    if data["h_max"]:
+        horizon = " (no limit found up to the horizon of the analysis)" if data.get(
+            "h_max_limited_by") == "horizon" else ""
+        click.echo(f"Safe steps for all modes: 0 < h < {fmt_below(data['h_max'])}{horizon}")
+    elif data["h_max"] is not None:
+        click.echo("No step is safe for all modes.")
 
 
 def tradeoff_data(res) -> dict[str, Any]:
@@ -296,13 +347,15 @@ def _print_accuracy(console, data: dict[str, Any]) -> None:
                           f"below {lim['tolerance']:g}.")
         elif lim["limited_by"] == "boundary":
             console.print(f"{lim['model']} beta = {fmt(lim['beta'])}: the {what} stays below "
-                          f"{lim['tolerance']:g} up to the first boundary (h = {fmt(lim['h'])}).")
+                          f"{lim['tolerance']:g} up to the first boundary "
+                          f"(h < {fmt_below(lim['h'])}).")
         else:
             console.print(f"{lim['model']} beta = {fmt(lim['beta'])}: {what} <= "
-                          f"{lim['tolerance']:g} for h <= {fmt(lim['h'])} (z = {fmt(lim['z'])}).")
+                          f"{lim['tolerance']:g} for h <= {fmt_below(lim['h'])} "
+                          f"(z = {fmt(lim['z'])}).")
     if data["h"] is not None:
         cost = data["cost_per_unit_time"]
-        console.print(f"[bold]Use h = {fmt(data['h'])}[/bold] (bound by {data['bound_by']})"
+        console.print(f"[bold]Use h = {fmt_below(data['h'])}[/bold] (bound by {data['bound_by']})"
                       + (f": {fmt(cost, 6)} force evaluations per unit time"
                          f" ({data['evaluations']} per step)" if cost is not None else "."))
 
@@ -340,10 +393,10 @@ def print_compare(data: dict[str, Any]) -> None:
             "-" if r["rank"] is None else str(r["rank"]), r["method"] + (" *" if r["implicit"]
                                                                          else ""),
             "-" if r["first_boundary"] is None else fmt(r["first_boundary"], 6),
-            "-" if r["h_max"] is None else fmt(r["h_max"], 6),
+            "-" if r["h_max"] is None else fmt_below(r["h_max"], 6),
             "-" if r["h_tol"] is None else ("unreachable" if r["h_tol"] == 0 else
-                                            fmt(r["h_tol"], 6)),
-            "-" if r["h"] is None else fmt(r["h"], 6), r["bound_by"],
+                                            fmt_below(r["h_tol"], 6)),
+            "-" if r["h"] is None else fmt_below(r["h"], 6), r["bound_by"],
             "-" if r["evaluations"] is None else str(r["evaluations"]),
             "-" if r["cost"] is None else fmt(r["cost"], 6))
     console = _console()
@@ -363,7 +416,7 @@ def print_system(system: dict[str, Any]) -> None:
         beta = "" if item.get("beta") is None else f"beta = {fmt(item['beta'], 8)} "
         limit = item.get("h_limit")
         limit_text = "" if "h_limit" not in item else (
-            "no limit" if limit is None else f"h < {fmt(limit, 10)}")
+            "no limit" if limit is None else f"h < {fmt_below(limit, 10)}")
         click.echo(f"  {where}{item['type']} {item.get('model') or ''} {beta}{limit_text}")
     for note in system["notes"]:
         click.echo(f"  note: {note}")

@@ -152,6 +152,9 @@ def load_scene(path: str | Path) -> Scene:
     for key in tree:
         if key not in SCENE_KEYS:
             raise _fail(where, str(key), f"unknown key (scene keys: {', '.join(SCENE_KEYS)})")
+    if "modes" in tree and "system" in tree:
+        raise _fail(where, "system", "give either modes: or system:, not both (one would be "
+                                     "ignored)")
     scene = Scene(where=where)
     if "system" in tree:
         scene.system = tree["system"]

@@ -43,6 +43,9 @@ def system_advice(method: Method, report: SystemReport, margin: float = 1.0,
         data["safe_h"] = _cap(data["safe_h"], cap)
         horizon = data["horizon"]
         data["horizon"] = cap if horizon is None else min(horizon, margin * result.horizon)
+    if report.primary_only:
+        data["safe_h"] = data["safe_h"][:1] if data["safe_h"] and data["safe_h"][0][0] == 0.0 \
+            else []
     safe = data["safe_h"]
     data["h_max"] = safe[0][1] if safe and safe[0][0] == 0.0 else 0.0
     if report.coupled and (data["limiting"] is None or (
@@ -91,6 +94,18 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
                 "reason": "the one-step matrix does not keep the eigen-structure of J S at "
                           "this h",
                 "largest_safe_h": cap})
+    if report.primary_only:
+        data["safe_h"] = data["safe_h"][:1] if data["safe_h"] and data["safe_h"][0][0] == 0.0 \
+            else []
+        top = data["safe_h"][0][1] if data["safe_h"] else 0.0
+        if data["safe"] and top is not None and h >= top:
+            data["safe"] = False
+            data["failing"] += 1
+            data["failures"].append({
+                "model": "system", "beta": None, "z": None,
+                "reason": "beyond the safe interval from 0, and islands beyond it are not "
+                          "analysed for this system (extreme eigenvalues only)",
+                "largest_safe_h": top})
     safe = data["safe_h"]
     data["h_max"] = safe[0][1] if safe and safe[0][0] == 0.0 else 0.0
     data["in_primary_interval"] = bool(data["safe"] and (data["h_max"] is None

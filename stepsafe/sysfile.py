@@ -39,6 +39,7 @@ class SystemReport(NamedTuple):
     modes: Modes | None  # decoupled test-model frequencies (None if all coupled)
     coupled: list[Any]  # CoupledResult per coupled piece (with its Hessian)
     notes: list[str]
+    primary_only: bool = False  # only the safe interval from 0 was analysed (no islands)
 
 
 def _fail(where: str, path: str, message: str) -> StepsafeError:
@@ -133,11 +134,16 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
         raise _fail(where, kinds[0], exc.message) from None
 
 
-def _report_modes(modes, analysis: str, notes: list[str]) -> SystemReport:
+def _report_modes(modes, analysis: str, notes: list[str],
+                  primary_only: bool = False) -> SystemReport:
     items = [{"type": {"oscillator": "elliptic", "inverted": "hyperbolic",
                        "saddle": "hyperbolic", "saddle-p": "hyperbolic",
-                       "free": "free"}[m.model],
+                       "free": "free"}[m.model] if m.decided else "undecided",
               "model": m.model, "beta": m.beta} for m in modes]
+    if not all(m.decided for m in modes):
+        notes.append("eigenvalues within rounding of 0 have no decided type: each is "
+                     "analysed both as a vibration and as a barrier at the largest rate "
+                     "rounding allows")
     grouped: dict[str, list[float]] = {}
     for m in modes:
         if m.model != "free":
@@ -146,7 +152,7 @@ def _report_modes(modes, analysis: str, notes: list[str]) -> SystemReport:
         notes.append("every mode is free (beta = 0): no limit on h")
         grouped = {"oscillator": [0.0]}
     return SystemReport(analysis, items, Modes.from_arrays(
-        {k: np.array(v) for k, v in grouped.items()}), [], notes)
+        {k: np.array(v) for k, v in grouped.items()}), [], notes, primary_only)
 
 
 def _stiffness(tree, where, folder) -> SystemReport:
@@ -166,7 +172,7 @@ def _stiffness(tree, where, folder) -> SystemReport:
             raise StepsafeError(f"a dense {K.shape[0]} x {K.shape[0]} stiffness is too large; "
                                 "save it as a sparse .npz or .mtx")
         d = separable_modes(K, M)
-    return _report_modes(d.modes, d.analysis, notes)
+    return _report_modes(d.modes, d.analysis, notes, d.extremes_only)
 
 
 def _hessian(tree, where, folder, method, zmax) -> SystemReport:

@@ -34,14 +34,16 @@ from .checks import is_partitioned
 from .errors import StepsafeError
 from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
 
-ZERO_TOL = 1e-10  # eigenvalues below this times the largest are zero modes
+ZERO_TOL = 1e-10  # eigenvalues of J S below this times the largest are zero modes
 CIRCLE_TOL = 1e-8  # |nu| within this of 1 is on the unit circle
+EPS = float(np.finfo(float).eps)
 
 
 class LinearMode(NamedTuple):
     beta: float
     model: str  # "oscillator", "inverted", "saddle", "free"
     eigenvalue: complex  # w^2 (separable) or mu (eigenvalues of J S)
+    decided: bool = True  # False: within rounding of 0, analysed as both types
 
 
 class Decoupled(NamedTuple):
@@ -75,21 +77,42 @@ def separable_modes(K, M=None) -> Decoupled:
     if np.linalg.eigvalsh(M).min() <= 0:
         raise StepsafeError("mass must be positive definite")
     w2 = eigh(K, M, eigvals_only=True)
-    return Decoupled(_modes_from_w2(w2), "decoupled: separable H, generalised eigenproblem "
-                                          "K v = w^2 M v")
+    return Decoupled(_modes_from_w2(w2, _eigenvalue_error(w2, K.shape[0]) * _cond(M)),
+                     "decoupled: separable H, generalised eigenproblem K v = w^2 M v")
 
 
-def _modes_from_w2(w2: np.ndarray) -> tuple[LinearMode, ...]:
-    scale = max(float(np.abs(w2).max()), 1e-300)
+def _cond(M: np.ndarray) -> float:
+    """Condition number of a positive definite mass (it amplifies K's rounding in the
+    generalised eigenvalues)."""
+    m = np.linalg.eigvalsh(M)
+    return float(m.max() / m.min())
+
+
+def _modes_from_w2(w2: np.ndarray, error: float) -> tuple[LinearMode, ...]:
+    """Modes from the eigenvalues ``w^2``, each known to ``error`` (absolute). An
+    eigenvalue within ``error`` of 0 has no decided sign: it might be a slow vibration or
+    a slow barrier of rate up to ``sqrt(error)``, so it is analysed as both at that rate
+    (zero, a free mode, only when exactly 0). A stiff system keeps its slow modes: in
+    ``diag(1e12, -1)`` the barrier of rate 1 is far above the rounding (~1e-3)."""
     out = []
     for value in w2:
-        if abs(value) <= ZERO_TOL * scale:
+        if value == 0:
             out.append(LinearMode(0.0, "free", complex(value)))
+        elif abs(value) <= error:
+            rate = float(np.sqrt(error))
+            out += [LinearMode(rate, "oscillator", complex(value), False),
+                    LinearMode(rate, "inverted", complex(value), False)]
         elif value > 0:
             out.append(LinearMode(float(np.sqrt(value)), "oscillator", complex(value)))
         else:
             out.append(LinearMode(float(np.sqrt(-value)), "inverted", complex(value)))
     return tuple(out)
+
+
+def _eigenvalue_error(values: np.ndarray, n: int) -> float:
+    """Absolute rounding bound of the eigenvalues of a symmetric (or symmetric-definite)
+    problem of size n: a small multiple of ``n eps`` times the largest modulus."""
+    return 16.0 * n * EPS * float(np.abs(values).max(initial=0.0))
 
 
 def sparse_extreme_modes(K, M=None) -> Decoupled:
@@ -139,9 +162,10 @@ def sparse_extreme_modes(K, M=None) -> Decoupled:
     except (ArpackNoConvergence, RuntimeError):
         raise StepsafeError("the sparse eigensolver did not converge for the extreme "
                             "eigenvalues; give a dense matrix or list the modes") from None
-    return Decoupled(_modes_from_w2(np.array(w2)), "decoupled: separable H, extreme "
-                     "eigenvalues of K v = w^2 M v only (shift-invert eigsh); islands "
-                     "not analysed", True)
+    w2 = np.array(w2)
+    return Decoupled(_modes_from_w2(w2, 1e-12 * float(np.abs(w2).max())),
+                     "decoupled: separable H, extreme eigenvalues of K v = w^2 M v only "
+                     "(shift-invert eigsh); islands not analysed", True)
 
 
 def split_hessian(S) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -156,22 +180,27 @@ def hessian_modes(S, method: Method) -> Decoupled | None:
     """The decoupled modes of ``H = x^T S x / 2`` when they are exact for ``method``,
     else None (the coupled analysis is needed)."""
     S_qq, S_qp, _, S_pp = split_hessian(S)
-    scale = np.abs(S).max()
-    if np.abs(S_qp).max() <= 1e-14 * scale and np.linalg.eigvalsh(S_pp).min() > 0:
+    if not S_qp.any() and np.linalg.eigvalsh(S_pp).min() > 0:
         d = separable_modes(S_qq, np.linalg.inv(S_pp))
         return d._replace(analysis="decoupled: separable Hessian, generalised eigenproblem")
     if is_partitioned(method):
         return None
     mu = np.linalg.eigvals(hamiltonian_matrix(S))
     mu = mu[(mu.imag > 0) | ((mu.imag == 0) & (mu.real >= 0))]
-    top = max(float(np.abs(mu).max()), 1e-300)
+    # eigenvalues of J S carry an absolute error of a few n eps |J S|: a real or imaginary
+    # part within it is zero; an eigenvalue within it of 0 is analysed as a vibration and
+    # a saddle of that rate (its type is not decided)
+    error = 1e3 * S.shape[0] * EPS * float(np.abs(mu).max(initial=0.0))
     modes = []
     for m in mu:
-        if abs(m) <= ZERO_TOL * top:
+        if m == 0:
             modes.append(LinearMode(0.0, "free", complex(m)))
-        elif abs(m.real) <= 1e-9 * abs(m):
+        elif abs(m) <= error:
+            modes += [LinearMode(error, "oscillator", complex(m), False),
+                      LinearMode(error, "saddle", complex(m), False)]
+        elif abs(m.real) <= error:
             modes.append(LinearMode(float(abs(m.imag)), "oscillator", complex(m)))
-        elif abs(m.imag) <= 1e-9 * abs(m):
+        elif abs(m.imag) <= error:
             modes.append(LinearMode(float(abs(m.real)), "saddle", complex(m)))
         else:
             return None  # loxodromic: no 1-dof model

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numpy as np
+
 from .accuracy import z_for_tolerance
 from .advice import Advice, Modes, advise
 from .methods import Method
@@ -39,7 +41,7 @@ class Tradeoff(NamedTuple):
     advice: Advice
     limits: tuple[ToleranceLimit, ...]
     h: float | None  # the step to use: min(h_safe, h_tol); None if unbounded
-    bound_by: str  # "safety", "accuracy" or "nothing"
+    bound_by: str  # "safety", "accuracy", "horizon" (the analysed range) or "nothing"
     evaluations: int | None
     cost: float | None  # evaluations per unit time at h
 
@@ -63,7 +65,8 @@ def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (
             h = None if step.z is None else margin * step.z / lim.beta_max
             limits.append(ToleranceLimit(lim.model, tol.kind, tol.value, lim.beta_max, step.z,
                                          h, step.limited_by))
-    h_safe = adv.h_max
+    # the safe interval is open: a step to use lies strictly inside it
+    h_safe = None if adv.h_max is None else float(np.nextafter(adv.h_max, 0.0))
     h_tol = min((lim.h for lim in limits if lim.h is not None), default=None)
     if any(lim.h is None for lim in limits):
         h_tol = 0.0
@@ -75,6 +78,8 @@ def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (
         h, bound = min(candidates, key=lambda pair: pair[0])
         if h_tol is not None and h_safe is not None and h_tol >= h_safe:
             bound = "safety"
+        if bound == "safety" and adv.h_max_is_horizon:
+            bound = "horizon"  # no boundary below the analysed range: not a safety limit
     evals = evaluations if evaluations is not None else getattr(method, "evaluations", None)
     cost = None if (h is None or h == 0 or evals is None) else evals / h
     return Tradeoff(adv.method, adv, tuple(limits), h, bound, evals, cost)
