@@ -12,7 +12,10 @@ re-derived in a bracket around it:
 * a ``pole``: ``|1/tr M|`` vanishes at it (simple or multiple: palindromic compositions
   repeat a substep's pole);
 * a ``resonance``: an extremum of ``tr M`` (root of a central difference) at ``|tr M| = 2``
-  within 1e-8; its float64 ``uncertainty`` is part of the allowed discrepancy.
+  within 1e-8; its float64 ``uncertainty`` is part of the allowed discrepancy;
+* between the points, the claimed status (preserved, reversed, not preserved) at one
+  interior z: a region that says 'never preserved' where the method does preserve, or
+  the reverse, fails even when it reports no point at all. Undecided bands claim nothing.
 
 The discrepancy of a point is ``|z_float - z_mp| / z_mp``, less its stated uncertainty.
 Imports mpmath, so only the commands run with ``--verify`` (and the tests) load it.
@@ -203,11 +206,57 @@ def points(region: Region) -> list[Point]:
     return sorted(found.values(), key=lambda p: p.z)
 
 
+def stretches(region: Region) -> list[tuple[float, float, int | None]]:
+    """The region cut at its points into ``(lo, hi, status)``: 1 preserved, -1 the flow's
+    type with reversed orientation, 0 not preserved, None undecided (not claimed)."""
+    cuts = sorted({0.0, region.zmax} | {p.z for p in points(region) if 0 < p.z < region.zmax}
+                  | {iv.lo for iv in region.undecided}
+                  | {iv.hi for iv in region.undecided if iv.hi is not None})
+    out = []
+    for lo, hi in zip(cuts[:-1], cuts[1:]):
+        mid = 0.5 * (lo + hi)
+        status: int | None = 0
+        for ivs, value in ((region.intervals, 1), (region.reversed, -1),
+                           (region.undecided, None)):
+            if any(iv.lo <= mid and (iv.hi is None or mid <= iv.hi) for iv in ivs):
+                status = value
+        out.append((lo, hi, status))
+    return out
+
+
+def check_status(Mfun: Callable, model: str, lo: float, hi: float, claimed: int,
+                 dps: int = DPS) -> Check:
+    """Re-derive the status the region claims on ``(lo, hi)`` at an interior z (the
+    geometric mean on wide stretches): a 'never preserved' region, a stretch claimed
+    preserved that is not, or the reverse, fails here."""
+    import mpmath as mp
+
+    from . import reference
+
+    z = (lo * hi) ** 0.5 if lo > 0 and hi > 4 * lo else 0.5 * (lo + hi)
+    point = Point(z, "status", 0.0, {1: "preserved", -1: "reversed", 0: "not preserved"}[
+        claimed])
+    with mp.workdps(dps):
+        try:
+            M = Mfun(mp.mpf(z), model)
+        except ZeroDivisionError:
+            return Check(model, point, z, 0.0 if claimed == 0 else float("inf"), TOLERANCE)
+        if reference.is_preserved(M, model):
+            actual = 1
+        else:
+            tr = M[0, 0] + M[1, 1]
+            same_type = (abs(tr) < 2) if model == "oscillator" else (tr > 2)
+            actual = -1 if same_type else 0
+    ok = actual == claimed or (claimed == 0 and actual == -1)
+    return Check(model, point, z if ok else None, 0.0 if ok else float("inf"), TOLERANCE)
+
+
 def verify_regions(name: str, stages: int | None, base: str | None,
                    regions: dict[str, Region], dps: int = DPS,
                    up_to: float | None = None) -> list[Check]:
-    """Check every point of every region; with ``up_to``, only the first boundary and the
-    points with z <= up_to (what a check at that z depends on)."""
+    """Check every point of every region and the status claimed between them; with
+    ``up_to``, only the first boundary and what lies at z <= up_to (what a check at that z
+    depends on)."""
     Mfun = mp_transfer(mp_method(name, stages, base, dps))
     out = []
     for model, region in regions.items():
@@ -215,4 +264,9 @@ def verify_regions(name: str, stages: int | None, base: str | None,
         for p in points(region):
             if up_to is None or p.z <= up_to or p == first:
                 out.append(check_point(Mfun, model, p, region.zmax, dps))
+        if not region.symplectic:
+            continue
+        for lo, hi, claimed in stretches(region):
+            if claimed is not None and (up_to is None or lo <= up_to) and hi - lo > 1e-9 * hi:
+                out.append(check_status(Mfun, model, lo, hi, claimed, dps))
     return out
