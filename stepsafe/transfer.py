@@ -133,16 +133,16 @@ def stage_operator(method: RungeKutta | PartitionedRK, model: str):
 
 
 def batched_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Solve ``S[i] x = rhs[i]``; NaN rows where ``S[i]`` is exactly singular."""
+    """Solve ``S[i] x = rhs[i]``; NaN rows where ``S[i]`` is exactly singular (found by
+    their zero LU determinant, replaced by the identity so the rest stays one batch)."""
     try:
         return np.linalg.solve(S, rhs)
     except np.linalg.LinAlgError:
-        out = np.full(rhs.shape, np.nan, dtype=np.result_type(S, rhs))
-        for i in range(S.shape[0]):
-            try:
-                out[i] = np.linalg.solve(S[i], rhs[i])
-            except np.linalg.LinAlgError:
-                pass
+        singular = np.linalg.det(S) == 0
+        S = S.copy()
+        S[singular] = np.eye(S.shape[-1])
+        out = np.linalg.solve(S, rhs)
+        out[singular] = np.nan
         return out
 
 
