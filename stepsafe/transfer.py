@@ -178,11 +178,14 @@ class FarForm(NamedTuple):
 def far_form(method: RungeKutta | PartitionedRK, model: str) -> FarForm | None:
     """The :class:`FarForm` of ``method`` on ``model``, or None if K is (nearly) singular."""
     K, E, B = stage_operator(method, model)
-    try:
-        K_inv = np.linalg.inv(K)
-    except np.linalg.LinAlgError:
-        return None
-    norm_inv = np.linalg.norm(K_inv, 2)
+    with np.errstate(all="ignore"):
+        try:
+            K_inv = np.linalg.inv(K)
+            if not np.all(np.isfinite(K_inv)):
+                return None
+            norm_inv = np.linalg.norm(K_inv, 2)
+        except np.linalg.LinAlgError:
+            return None
     if not np.isfinite(norm_inv) or np.linalg.norm(K, 2) * norm_inv > 1e8:
         return None
     V = K_inv @ E
