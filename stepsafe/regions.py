@@ -428,7 +428,7 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     if roots.size:
         rj = ev.jet(roots, scale=True)
         tol = np.where(root_levels > 0, _tolerance(rj, 2.0), _tolerance(rj, -2.0))
-        with np.errstate(divide="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore"):
             width = tol / np.abs(rj.dtrace)
         points += [_Candidate(Point(float(r), "root", float(u), f"tr M = {L:+g}"), L, float(t))
                    for r, u, L, t in zip(roots, width, root_levels, tol)]

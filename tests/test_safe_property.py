@@ -1,0 +1,154 @@
+"""Never a false SAFE: whenever check_step says safe, 50-digit arithmetic agrees.
+
+Generated cases (hypothesis): built-in methods, Gauss/Lobatto members, random consistent
+and inconsistent splittings and random symplectic PRK tableaux; one to four modes of every
+model with frequencies spread over 12 decades; steps from 1e-9 to 1e9 in z; margins. For
+a SAFE verdict every mode's whole range ``[beta h, beta h / margin]`` must lie in the
+preserved set: checked at 50 digits with :mod:`stepsafe.reference` (stage equations and
+drift/kick products in mpmath, sharing no code with the float path) at the ends and at
+interior points, and no boundary may lie in between (the float region's claim, here
+re-derived from sign changes of the 50-digit constraints on a sub-grid).
+"""
+
+from __future__ import annotations
+
+import math
+
+import mpmath as mp
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from support import method
+
+from stepsafe import reference as R
+from stepsafe.advice import Modes, check_step
+from stepsafe.methods import Composition, PartitionedRK, RungeKutta, Splitting
+
+DPS = 50
+SETTINGS = settings(max_examples=60, deadline=None, derandomize=True,
+                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+BUILTIN = ["verlet", "pefrl", "yoshida4", "bcss3", "mclachlan2-min", "kahan-li6", "ruth3",
+           "symplectic-euler", "midpoint", "blanes-moan6"]
+MODEL_NAMES = ("oscillator", "saddle", "inverted", "saddle-p")
+
+
+def _mp_function(m):
+    """``Mfun(z, model)`` at the working precision from the float coefficients (exact)."""
+    if isinstance(m, Composition):
+        flat = m.flattened()
+        inner = _mp_function(flat.base)
+        weights = [mp.mpf(float(g)) for g in flat.weights]
+        return lambda z, model: R.transfer_matrix_composition(lambda x: inner(x, model),
+                                                              weights, z)
+    if isinstance(m, Splitting):  # the saddle models go through its PRK form (as the float
+        d, k = [mp.mpf(float(x)) for x in m.drift], [mp.mpf(float(x)) for x in m.kick]
+        saddle = _mp_function(m.as_prk())  # path does: the sums may differ by rounding)
+        return lambda z, model: (saddle(z, model) if model.startswith("saddle") else
+                                 R.transfer_matrix_splitting(d, k, z, model))
+    prk = m.as_prk() if isinstance(m, RungeKutta) else m
+    rows = [[[mp.mpf(float(x)) for x in r] for r in A] for A in (prk.A_q, prk.A_p)]
+    return R.prk_transfer(rows[0], [mp.mpf(float(x)) for x in prk.b_q], rows[1],
+                          [mp.mpf(float(x)) for x in prk.b_p])
+
+
+def _preserved(Mfun, z, model) -> bool:
+    """Type and orientation of the flow (the reference's constraints, all > 0). Float
+    coefficients are symplectic only to rounding, so det M = 1 is not demanded to 50
+    digits; that moves the boundaries by ~1e-16, inside every stated uncertainty."""
+    try:
+        M = Mfun(mp.mpf(z), model)
+    except ZeroDivisionError:
+        return False  # a pole: no unique step
+    if model == "saddle-p":  # H = -beta p q: p expands
+        return bool(M[1, 1] > 1 > M[0, 0] > 0)
+    return all(g > 0 for g in R.constraints(M, model))
+
+
+def _confirm(m, modes: Modes, h: float, margin: float) -> None:
+    Mfun = _mp_function(m)
+    with mp.workdps(DPS):
+        for model, betas in modes.betas.items():
+            for beta in np.unique(betas):
+                if beta == 0:
+                    continue
+                lo, hi = beta * h, beta * h / margin
+                zs = {lo, hi} | ({math.sqrt(lo * hi)} if hi > lo else set())
+                if hi > lo:  # a sub-grid: the status must not change inside
+                    zs |= {lo + (hi - lo) * k / 8 for k in range(1, 8)}
+                for z in sorted(zs):
+                    assert _preserved(Mfun, z, model), (m.name, model, beta, h, margin, z)
+
+
+@st.composite
+def random_splitting(draw):
+    n = draw(st.integers(1, 4))
+    coef = st.floats(-1.5, 1.5, allow_nan=False)
+    a = np.array(draw(st.lists(coef, min_size=n, max_size=n)))
+    k = np.array(draw(st.lists(coef, min_size=n, max_size=n)))
+    if draw(st.booleans()):  # consistent, and equal sums (a PRK form exists)
+        a[-1] += 1.0 - a.sum()
+        k[-1] += 1.0 - k.sum()
+        return Splitting(np.append(a, 0.0), k, name="random-splitting")
+    k[-1] += a.sum() - k.sum()  # equal sums only
+    return Splitting(np.append(a, 0.0), k, name="random-splitting")
+
+
+@st.composite
+def random_prk(draw):
+    s = draw(st.integers(1, 3))
+    coef = st.floats(-1.0, 1.0, allow_nan=False)
+    A_q = np.array(draw(st.lists(st.lists(coef, min_size=s, max_size=s), min_size=s,
+                                 max_size=s)))
+    b = np.array(draw(st.lists(st.floats(0.1, 1.0), min_size=s, max_size=s)))
+    b = b / b.sum()
+    A_p = b[None, :] * (1.0 - A_q.T / b[:, None])
+    return PartitionedRK(A_q, b, A_p, b.copy(), name="random-prk")
+
+
+methods = st.one_of(
+    st.sampled_from(BUILTIN).map(method),
+    st.tuples(st.sampled_from(["gauss", "lobatto3ab"]), st.integers(2, 5)).map(
+        lambda fs: method(*fs)),
+    random_splitting(),
+    random_prk(),
+)
+
+
+@st.composite
+def scenes(draw):
+    m = draw(methods)
+    n = draw(st.integers(1, 4))
+    log_beta = st.floats(-6.0, 6.0)
+    pairs = [(10 ** draw(log_beta), draw(st.sampled_from(MODEL_NAMES))) for _ in range(n)]
+    # a step that puts the fastest mode anywhere from z = 1e-9 to z = 1e9, often near O(1)
+    top = max(b for b, _ in pairs)
+    z_top = 10 ** draw(st.one_of(st.floats(-9.0, 9.0), st.floats(-0.7, 0.8)))
+    margin = draw(st.sampled_from([1.0, 0.9, 0.5]))
+    return m, Modes.from_pairs(pairs), z_top / top, margin
+
+
+@SETTINGS
+@given(scenes())
+def test_every_safe_verdict_holds_at_50_digits(case):
+    m, modes, h, margin = case
+    result = check_step(m, modes, h, margin)
+    if result.safe:
+        _confirm(m, modes, h, margin)
+
+
+@SETTINGS
+@given(st.sampled_from(BUILTIN + ["gauss:3", "lobatto3ab:4"]),
+       st.floats(-8.0, 12.0), st.sampled_from(MODEL_NAMES))
+def test_safe_at_any_scale_of_z(name, log_z, model):
+    """One mode, z = beta h from 1e-8 to 1e12 (beta 1e6, so h spans 20 decades)."""
+    family, _, s = name.partition(":")
+    m = method(family, int(s)) if s else method(name)
+    beta = 1e6
+    h = 10 ** log_z / beta
+    modes = Modes.from_pairs([(beta, model)])
+    result = check_step(m, modes, h)
+    if result.safe:
+        _confirm(m, modes, h, 1.0)
+    else:  # and an UNSAFE verdict at small z, where every consistent method is safe,
+        # would be a bug too
+        assert log_z > -6 or model not in ("oscillator", "inverted"), result.failures
