@@ -124,6 +124,29 @@ class Escalation:
             return Decision()
 
 
+    def pole(self, lo: float, hi: float) -> float | None:
+        """The pole in ``(lo, hi)``: where ``1 / tr M`` changes sign (``tr M`` passes
+        through infinity); None if it does not (an even pole) or the budget ran out."""
+        import mpmath as mp
+
+        from .reference import refine_root
+
+        if self.exhausted:
+            return None
+        with mp.workdps(DPS):
+            def g(x):
+                try:
+                    return 1 / self._trace(x)
+                except ZeroDivisionError:  # exactly singular: the pole itself
+                    return mp.mpf(0)
+
+            a, b = mp.mpf(lo), mp.mpf(hi)
+            ga, gb = g(a), g(b)
+            if ga == 0 or gb == 0 or (ga > 0) == (gb > 0):
+                return None
+            return float(refine_root(g, a, b, tol=_digits(b)))
+
+
 def _digits(z):
     """Bracket width at which a root is known far beyond float64's digits."""
     import mpmath as mp

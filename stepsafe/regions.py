@@ -52,7 +52,7 @@ from .methods import Method, RungeKutta
 from .models import ELLIPTIC, check_model
 from .rkstability import imaginary_axis_crossings, stability_function
 from .roots import EPS, HermiteCubic, hermite_extremum, hermite_root, refine_brackets
-from .transfer import TOL_FACTOR, Jet, poles, transfer_jet
+from .transfer import TOL_FACTOR, Jet, pole_locations, poles, transfer_jet
 
 DEFAULT_ZMAX = 10.0
 #: Cells whose Hermite interpolant hides extrema are split this many times per level.
@@ -358,10 +358,11 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     dz = default_resolution(method) if resolution is None else float(resolution)
     ev = _Evaluator(method, model)
     symplectic = residuals(method).symplectic_for(model)
-    pole_z = poles(method, model)
-    pole_z = pole_z[pole_z <= zmax]
-    pole_pts = tuple(Point(float(p), "pole", 1e-14 * float(p), "stage system singular")
-                     for p in pole_z)
+    pole_z, pole_u = pole_locations(method, model)
+    inside = (pole_z > 0) & (pole_z <= zmax)
+    pole_z = pole_z[inside]
+    pole_pts = tuple(Point(float(p), "pole", float(u), "stage system singular")
+                     for p, u in zip(pole_z, pole_u[inside]))
     if not symplectic:
         classical = _classical(ev, zmax, dz) if ELLIPTIC[model] else None
         return Region(model, zmax, False, (), (), (), pole_pts, dz, classical,
@@ -437,8 +438,7 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     points += resonances
     spreads = _within_decided(points, z[~unc], zmax)
     spreads = _escalate(ev, spreads, Escalation(method, model), dz)
-    return _assemble(ev, model, zmax, float(z[-1]) if z.size else zmax, spreads, pole_pts,
-                     dz, notes)
+    return _assemble(ev, model, zmax, float(z[-1]) if z.size else zmax, spreads, dz, notes)
 
 
 def _orientation_switches(ev: _Evaluator, z, dev, D, usable) -> list[Point]:
@@ -530,13 +530,26 @@ def _escalate(ev: _Evaluator, spreads: list[_Spread], esc: Escalation,
     """Re-decide at high precision the boundaries float64 places only to worse than
     :data:`~stepsafe.escalate.ESCALATE_REL` (see :mod:`stepsafe.escalate`)."""
     out: list[_Spread] = []
+    touches: set[float] = set()
     for c in spreads:
         p = c.point
-        vague = c.level is not None and p.uncertainty > ESCALATE_REL * p.z and c.lo < c.hi
+        vague = p.uncertainty > ESCALATE_REL * p.z and c.lo < c.hi
+        if vague and p.kind == "pole":
+            z = esc.pole(c.lo, c.hi)
+            if z is not None:
+                u = float(np.spacing(z))
+                c = c._replace(point=p._replace(z=z, uncertainty=u), lo=z - u, hi=z + u)
+            out.append(c)
+            continue
+        vague = vague and c.level is not None
         decision = esc.decide(c.lo, c.hi, c.level, c.band) if vague else None
         if decision is None:
             out.append(c)
             continue
+        if decision.touch is not None:
+            if any(abs(decision.touch - t) <= 1e-9 * t for t in touches):
+                continue  # two float points (a resonance and rounding noise) were one touch
+            touches.add(decision.touch)
         for r in decision.roots:
             u = float(np.spacing(r))
             out.append(_Spread(Point(r, "root", u, f"tr M = {c.level:+g}"), r - u, r + u,
@@ -574,7 +587,7 @@ def _bands(spreads: list[_Spread]) -> tuple[list[Point], list[tuple[float, float
 
 
 def _assemble(ev: _Evaluator, model: str, zmax: float, z_last: float,
-              points: list[_Spread], pole_pts: tuple[Point, ...], dz: float,
+              points: list[_Spread], dz: float,
               notes: tuple[str, ...]) -> Region:
     """Intervals between the points, each classified at one interior z (no further out
     than the last sample: beyond it nothing changes); undecided bands are never preserved."""
@@ -625,6 +638,8 @@ def _assemble(ev: _Evaluator, model: str, zmax: float, z_last: float,
         run_end = next((i for i, st in enumerate(status) if st == 0), len(status))
         stability = (0.0 if run_end == 0 else
                      None if run_end == len(status) else pts[run_end - 1].z)
+    pole_pts = tuple(sorted((c.point for c in points if c.point.kind == "pole"
+                             and c.point.z <= zmax), key=lambda p: p.z))
     return Region(model, zmax, True, tuple(intervals), tuple(reversed_), tuple(kept), pole_pts,
                   dz, stability_limit=stability, notes=notes, undecided=tuple(undecided))
 

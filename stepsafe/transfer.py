@@ -456,32 +456,54 @@ def _composition_jet(method: Composition, z: np.ndarray, model: str, order: int 
 
 
 def signed_poles(method: Method, model: str) -> np.ndarray:
-    """All real ``z != 0`` (either sign) where the step has no unique solution, sorted.
+    """All real ``z != 0`` (either sign) where the step has no unique solution, sorted
+    (see :func:`pole_locations`)."""
+    return pole_locations(method, model)[0]
+
+
+def pole_locations(method: Method, model: str) -> tuple[np.ndarray, np.ndarray]:
+    """The real ``z != 0`` (either sign, sorted) where the step has no unique solution,
+    and the float64 uncertainty of each.
 
     RK/PRK: ``z = 1/lambda`` for each real eigenvalue ``lambda`` of the stage operator K
     (an eigenvalue counts as real when its imaginary part is below 1e-7 of its modulus, so
-    a near-double real pair is reported, conservatively, as a pole). Splitting on the
-    saddle: ``1/c`` for DK(c) factors and ``-1/d`` for KD(d). Composition: the base's
-    poles divided by each weight.
+    a near-double real pair is reported, conservatively, as a pole); ``lambda`` errs by
+    about ``eps ||K|| kappa`` with ``kappa = |y| |x| / |y^H x|`` its condition number (left
+    and right eigenvectors), so ``z`` by ``z^2`` times that (times a safety factor of 16).
+    Splitting on the saddle: ``1/c`` for DK(c) factors and ``-1/d`` for KD(d), exact to
+    rounding. Composition: the base's poles divided by each weight.
     """
     check_model(model)
     if isinstance(method, Composition):
         flat = method.flattened()
-        base = signed_poles(flat.base, model)
+        base, unc = pole_locations(flat.base, model)
+        if not base.size:
+            return base, unc
         with np.errstate(over="ignore", divide="ignore"):  # a tiny weight: no pole in range
-            zs = np.concatenate([base / g for g in flat.weights]) if base.size else base
-        return _unique_sorted(zs)
+            zs = np.concatenate([base / g for g in flat.weights])
+            us = np.concatenate([unc / abs(g) for g in flat.weights])
+        return _unique_sorted(zs, us)
     if isinstance(method, Splitting):
         if model not in ("saddle", "saddle-p"):
-            return np.empty(0)
+            return np.empty(0), np.empty(0)
         zs = np.array([1.0 / w if kind == "DK" else -1.0 / w
                        for kind, w in method.euler_factors()])
-        return _unique_sorted(zs if model == "saddle" else -zs)
+        zs = zs if model == "saddle" else -zs
+        return _unique_sorted(zs, 2.0 * EPS * np.abs(zs))
     K, _, _ = stage_operator(method, model)
-    lam = np.linalg.eigvals(K)
-    real = np.abs(lam.imag) <= 1e-7 * np.abs(lam)
-    lam = lam.real[real & (np.abs(lam) > 1e-300)]
-    return _unique_sorted(1.0 / lam)
+    lam, right = np.linalg.eig(K)
+    real = (np.abs(lam.imag) <= 1e-7 * np.abs(lam)) & (np.abs(lam) > 1e-300)
+    lam, right = lam.real[real], right[:, real].real
+    # left eigenvectors: those of K^T, matched by eigenvalue (real ones are real vectors)
+    lam_t, left = np.linalg.eig(K.T)
+    match = np.abs(lam_t[None, :] - lam[:, None]).argmin(axis=1) if lam.size else []
+    left = left[:, match].real
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kappa = (np.linalg.norm(left, axis=0) * np.linalg.norm(right, axis=0)
+                 / np.abs(np.einsum("ij,ij->j", left, right)))
+        zs = 1.0 / lam
+        unc = 16.0 * EPS * np.linalg.norm(K, 2) * kappa * zs * zs
+    return _unique_sorted(zs, np.maximum(np.nan_to_num(unc, nan=np.inf), 2 * EPS * np.abs(zs)))
 
 
 def poles(method: Method, model: str) -> np.ndarray:
@@ -490,9 +512,11 @@ def poles(method: Method, model: str) -> np.ndarray:
     return zs[zs > 0]
 
 
-def _unique_sorted(zs: np.ndarray) -> np.ndarray:
-    zs = np.sort(zs[np.isfinite(zs)])
+def _unique_sorted(zs: np.ndarray, unc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    finite = np.isfinite(zs)
+    order = np.argsort(zs[finite])
+    zs, unc = zs[finite][order], unc[finite][order]
     if zs.size < 2:
-        return zs
+        return zs, unc
     keep = np.concatenate([[True], np.diff(zs) > 1e-12 * np.abs(zs[1:])])
-    return zs[keep]
+    return zs[keep], unc[keep]

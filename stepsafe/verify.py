@@ -199,7 +199,7 @@ def points(region: Region) -> list[Point]:
     found: dict[tuple, Point] = {}
     for iv in region.intervals + region.reversed:
         for p in (iv.lo_point, iv.hi_point):
-            if p is not None:
+            if p is not None and p.kind != "undecided":  # a band's edge claims nothing
                 found[(p.z, p.kind)] = p
     for p in region.resonances + region.poles:
         found[(p.z, p.kind)] = p
@@ -241,12 +241,13 @@ def check_status(Mfun: Callable, model: str, lo: float, hi: float, claimed: int,
             M = Mfun(mp.mpf(z), model)
         except ZeroDivisionError:
             return Check(model, point, z, 0.0 if claimed == 0 else float("inf"), TOLERANCE)
-        if reference.is_preserved(M, model):
-            actual = 1
-        else:
-            tr = M[0, 0] + M[1, 1]
-            same_type = (abs(tr) < 2) if model == "oscillator" else (tr > 2)
-            actual = -1 if same_type else 0
+        tr = M[0, 0] + M[1, 1]
+        same_type = (abs(tr) < 2) if model == "oscillator" else (tr > 2)
+        if model == "saddle-p":  # p expands
+            preserved = M[1, 1] > 1 > M[0, 0] > 0
+        else:  # type and orientation (det M = 1 is the method's, checked elsewhere)
+            preserved = all(g > 0 for g in reference.constraints(M, model))
+        actual = 1 if preserved else (-1 if same_type else 0)
     ok = actual == claimed or (claimed == 0 and actual == -1)
     return Check(model, point, z if ok else None, 0.0 if ok else float("inf"), TOLERANCE)
 

@@ -1,0 +1,70 @@
+"""Sweep ``--verify`` over the families and the library (the README's verify table).
+
+For Gauss and Lobatto IIIA-IIIB with s = 2..40 and every built-in method, at zmax = 4 pi
+and 40, find the regions of the three main models and recompute every reported point and
+the status between points at 40 digits (:func:`stepsafe.verify.verify_regions`, what
+``region --verify`` runs). Prints one line per run and a summary; ``--json FILE`` also
+writes the rows.
+
+    python benchmarks/verify_sweep.py                 # everything (tens of minutes)
+    python benchmarks/verify_sweep.py --max-stages 12 # a quicker subset
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+
+from stepsafe.library import FAMILIES, builtin_names, resolve
+from stepsafe.models import MAIN_MODELS
+from stepsafe.regions import find_region
+from stepsafe.verify import verify_regions
+
+ZMAXES = (4 * math.pi, 40.0)
+
+
+def run(name: str, stages: int | None, zmax: float) -> dict:
+    start = time.perf_counter()
+    method, entry = resolve(name, stages)
+    regions = {model: find_region(method, model, zmax) for model in MAIN_MODELS}
+    found = time.perf_counter() - start
+    checks = verify_regions(name, stages, None, regions)
+    failed = [c for c in checks if not c.ok]
+    worst = max((c.discrepancy for c in checks if c.point.kind != "status"), default=0.0)
+    return {"method": entry.name, "zmax": zmax, "points": len(checks), "ok": not failed,
+            "worst": worst, "failed": [f"{c.model} {c.point.kind} {c.point.z!r}"
+                                       for c in failed],
+            "undecided": sum(len(r.undecided) for r in regions.values()),
+            "seconds_region": round(found, 2),
+            "seconds_verify": round(time.perf_counter() - start - found, 2)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--max-stages", type=int, default=40)
+    parser.add_argument("--json", dest="json_path", default=None)
+    args = parser.parse_args()
+    cases = [(f, s) for f in FAMILIES for s in range(2, args.max_stages + 1)]
+    cases += [(n, None) for n in builtin_names() if n not in FAMILIES]
+    rows = []
+    for name, stages in cases:
+        for zmax in ZMAXES:
+            row = run(name, stages, zmax)
+            rows.append(row)
+            print(f"{row['method']:28s} zmax {zmax:7.4f}  {row['points']:4d} checks  "
+                  f"worst {row['worst']:.1e}  {'ok' if row['ok'] else 'FAILED ' + str(row['failed'])}"
+                  f"  undecided {row['undecided']}  {row['seconds_region']:.1f}+"
+                  f"{row['seconds_verify']:.1f} s", flush=True)
+    bad = [r for r in rows if not r["ok"]]
+    print(f"\n{len(rows)} runs, {sum(r['points'] for r in rows)} checks, {len(bad)} failed, "
+          f"worst point discrepancy {max(r['worst'] for r in rows):.1e}, "
+          f"{sum(r['undecided'] for r in rows)} undecided bands")
+    if args.json_path:
+        with open(args.json_path, "w") as fh:
+            json.dump(rows, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()
