@@ -160,9 +160,19 @@ def check_point(Mfun: Callable, model: str, p: Point, zmax: float, dps: int = DP
                 except ZeroDivisionError:
                     return mp.mpf(0)
 
-            near = max(inv(mp.mpf(z) * (1 + s * mp.mpf("1e-13"))) for s in (-1, 1))
+            def signed(x):
+                try:
+                    return 1 / _tr(Mfun(x, model))
+                except ZeroDivisionError:
+                    return mp.mpf(0)
+
+            # a simple pole: 1/tr M changes sign within the stated uncertainty; any pole:
+            # |1/tr M| is far smaller there than a relative 1e-6 away
+            band = max(2 * p.uncertainty, 1e-13 * z)
+            ends = [signed(mp.mpf(z) + s * band) for s in (-1, 1)]
+            near = max(inv(mp.mpf(z) + s * band) for s in (-1, 1))
             far = min(inv(mp.mpf(z) * (1 + s * mp.mpf("1e-6"))) for s in (-1, 1))
-            ok = near <= 1e-5 * far
+            ok = (ends[0] * ends[1] <= 0 and band < 1e-7 * z) or near <= 1e-5 * far
             return Check(model, p, z if ok else None, 0.0 if ok else float("inf"), allowed)
         if p.kind == "root":
             level = 2 if "+2" in p.detail else -2
