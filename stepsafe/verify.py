@@ -234,16 +234,22 @@ def stretches(region: Region) -> list[tuple[float, float, int | None]]:
     return out
 
 
-def check_status(Mfun: Callable, model: str, lo: float, hi: float, claimed: int,
+def status_samples(lo: float, hi: float) -> list[float]:
+    """Where a stretch's status is re-derived: its middle (geometric on wide stretches)
+    and, on the stretch from 0, also 1e-3, 1e-6 and 1e-9 of its end (near 0 every
+    consistent method keeps the structure, whatever the grid did)."""
+    mid = (lo * hi) ** 0.5 if lo > 0 and hi > 4 * lo else 0.5 * (lo + hi)
+    return [mid] + ([hi * 1e-3, hi * 1e-6, hi * 1e-9] if lo == 0 else [])
+
+
+def check_status(Mfun: Callable, model: str, z: float, claimed: int,
                  dps: int = DPS) -> Check:
-    """Re-derive the status the region claims on ``(lo, hi)`` at an interior z (the
-    geometric mean on wide stretches): a 'never preserved' region, a stretch claimed
-    preserved that is not, or the reverse, fails here."""
+    """Re-derive the status a region claims at z: a 'never preserved' region, a stretch
+    claimed preserved that is not, or the reverse, fails here."""
     import mpmath as mp
 
     from . import reference
 
-    z = (lo * hi) ** 0.5 if lo > 0 and hi > 4 * lo else 0.5 * (lo + hi)
     point = Point(z, "status", 0.0, {1: "preserved", -1: "reversed", 0: "not preserved"}[
         claimed])
     with mp.workdps(dps):
@@ -279,5 +285,6 @@ def verify_regions(name: str, stages: int | None, base: str | None,
             continue
         for lo, hi, claimed in stretches(region):
             if claimed is not None and (up_to is None or lo <= up_to) and hi - lo > 1e-9 * hi:
-                out.append(check_status(Mfun, model, lo, hi, claimed, dps))
+                out += [check_status(Mfun, model, z, claimed, dps)
+                        for z in status_samples(lo, hi)]
     return out

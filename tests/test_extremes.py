@@ -12,6 +12,7 @@ from support import method
 from stepsafe import reference as R
 from stepsafe.methods import Splitting
 from stepsafe.regions import find_region, touches
+from stepsafe.roots import EPS
 
 
 def test_tangency_policy_tells_a_touch_from_a_near_touch():
@@ -159,3 +160,77 @@ def test_orientation_sign_is_invariant_under_scaling():
         assert np.all(base != 0)
         assert np.array_equal(np.sign(orientation(D * 1e250, model)), base)
         assert np.array_equal(np.sign(orientation(D * 1e-250, model)), base)
+
+
+@pytest.mark.parametrize("zmax", [1e-8, 1e-6, 1e-3, 1e3, 1e6, 1e9])
+@pytest.mark.parametrize("name", ["verlet", "yoshida4", "ruth3", "midpoint", "pefrl"])
+def test_region_from_1e_8_to_1e9(name, zmax):
+    """A consistent symplectic method keeps every model's structure near 0: the interval
+    from 0 exists at any zmax, never 'never preserved', and a small zmax adds no boundary of
+    its own (at zmax <= 1e-3 every model is preserved on all of (0, zmax)); a huge zmax
+    keeps the first boundaries found at zmax = 10."""
+    m = method(name)
+    for model in ("oscillator", "saddle", "inverted"):
+        region = find_region(m, model, zmax)
+        first = region.first_interval
+        assert first is not None and first.lo == 0.0, (model, region)
+        if zmax <= 1e-3:
+            assert first.hi is None and len(region.intervals) == 1 and not region.undecided
+        elif zmax >= 1e3:
+            near = find_region(m, model, 10.0).first_boundary_point
+            here = region.first_boundary_point
+            assert (near is None) == (here is None)
+            if here is not None:
+                assert abs(here.z - near.z) <= here.uncertainty + near.uncertainty + 4 * EPS
+
+
+
+def test_midpoint_is_preserved_up_to_z_1e9():
+    """Implicit midpoint: tr M = 2 (1 - z^2/4) / (1 + z^2/4) > -2 and M_qp > 0 for every z,
+    so the oscillator is preserved on all of (0, 1e9) although tr M + 2 = 16/z^2 falls
+    below float64's resolution of tr M near -2 (the far form M_inf + B S^-1 V keeps it)."""
+    region = find_region(method("midpoint"), "oscillator", 1e9)
+    assert region.intervals == (region.intervals[0],) and region.intervals[0].hi is None
+    assert not region.undecided and not region.resonances
+
+
+def test_verify_catches_a_never_preserved_claim(run, monkeypatch):
+    """A region that claims 'preserved: nowhere' reports no point at all; --verify must
+    still fail it (the status between points is recomputed too)."""
+    import dataclasses
+
+    import stepsafe.regions as regions_module
+
+    real = regions_module.find_region
+
+    def nowhere(m, model="oscillator", zmax=10.0, resolution=None):
+        return dataclasses.replace(real(m, model, zmax, resolution), intervals=(),
+                                   resonances=())
+
+    monkeypatch.setattr(regions_module, "find_region", nowhere)
+    code, _, err = run("region", "verlet", "--model", "oscillator", "--zmax", "1e9",
+                       "--verify")
+    assert code == 3 and "verification failed" in err
+
+
+def test_gauss_far_poles_and_touches_within_their_uncertainty():
+    """Gauss s = 11 on the saddle: the pole near 15.2447 is an eigenvalue of an
+    ill-conditioned stage operator (float64 gets it only to ~1e-11); s = 12 near 2 pi:
+    float64 places two points 1 ulp apart where there is one M = +I touch. Each is
+    re-decided at high precision: the pole to 50 digits, one resonance."""
+    from stepsafe.verify import mp_method, mp_transfer
+
+    pole, = [p for p in find_region(method("gauss", 11), "saddle", 40.0).poles
+             if 15 < p.z < 16]
+    f = mp_transfer(mp_method("gauss", 11, None, 50))
+    with mp.workdps(50):
+        def inv(z):
+            M = f(z, "saddle")
+            return 1 / (M[0, 0] + M[1, 1])
+
+        true = R.refine_root(inv, mp.mpf(pole.z) * (1 - mp.mpf("1e-9")),
+                             mp.mpf(pole.z) * (1 + mp.mpf("1e-9")))
+    assert abs(pole.z - float(true)) <= 2 * np.spacing(pole.z)
+    region = find_region(method("gauss", 12), "oscillator", 4 * math.pi)
+    near = [p for p in region.resonances if abs(p.z - 2 * math.pi) < 1e-4]
+    assert len(near) == 1 and near[0].detail == "M = +I" and not region.undecided
