@@ -33,9 +33,15 @@ from .regions import DEFAULT_ZMAX, Point, Region, find_region
 
 @dataclass(frozen=True)
 class Modes:
-    """Frequencies grouped by model: ``betas[model]`` is an array of beta >= 0."""
+    """Frequencies grouped by model: ``betas[model]`` is an array of beta >= 0, and
+    ``errors[model]`` (same shape) the relative uncertainty of each: 0 for frequencies the
+    user gives, the rounding bound for those computed from a system's matrices."""
 
     betas: dict[str, np.ndarray]
+    errors: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def error(self, model: str) -> np.ndarray:
+        return self.errors.get(model, np.zeros(self.betas[model].size))
 
     @classmethod
     def from_pairs(cls, pairs) -> Modes:
@@ -45,8 +51,10 @@ class Modes:
         return cls.from_arrays({m: np.asarray(v, dtype=float) for m, v in grouped.items()})
 
     @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> Modes:
+    def from_arrays(cls, arrays: dict[str, np.ndarray],
+                    errors: dict[str, np.ndarray] | None = None) -> Modes:
         out = {}
+        errs = {}
         for model, betas in arrays.items():
             if model not in MODELS:
                 raise StepsafeError(f"unknown model {model!r}; choose one of {', '.join(MODELS)}")
@@ -57,10 +65,12 @@ class Modes:
                                     f"({model})")
             if betas.size:
                 out[model] = betas
+                if errors and model in errors:
+                    errs[model] = np.asarray(errors[model], dtype=float).ravel()
         if not out:
             raise StepsafeError("no frequencies given (use --beta, --saddle-beta, --inverted-beta "
                                 "or --modes)")
-        return cls(out)
+        return cls(out, errs)
 
     @property
     def count(self) -> int:
@@ -189,13 +199,18 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
         h_limit = margin * z_star / beta_max if beta_max > 0 and z_star is not None else None
         limits.append(ModelLimit(model, int(betas.size), beta_max, z_star,
                                  region.first_boundary_point, h_limit))
-        positive = np.unique(betas[betas > 0])
+        positive, err = _distinct(betas, modes.error(model))
         if positive.size:
-            horizon = min(horizon, margin * region.zmax / beta_max)
+            top = positive * (1.0 + err)
+            horizon = min(horizon, margin * region.zmax / float(top.max()))
             g = gaps(region)
+            # a beta known to a relative error r may be (1 -+ r) times itself: each gap
+            # widens to (F a / (beta (1 + r)), b / (beta (1 - r)))
+            low = np.maximum(positive * (1.0 - err), 0.0)
+            with np.errstate(divide="ignore"):
+                lo = (margin * g[:, 0])[None, :] / top[:, None]
+                hi = g[:, 1][None, :] / low[:, None]
             # a mode cuts the safe set only below the horizon: skip gaps that start above it
-            lo = (margin * g[:, 0])[None, :] / positive[:, None]
-            hi = g[:, 1][None, :] / positive[:, None]
             keep = lo <= horizon
             unsafe.append(np.column_stack([lo[keep], hi[keep]]))
     safe = _complement(_merge(np.concatenate(unsafe)))
@@ -204,6 +219,18 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
     h_max = (safe[0][1] if safe[0][0] == 0.0 else 0.0) if safe else 0.0
     return Advice(name or method.name, margin, h_max, tuple(safe), limiting, tuple(limits),
                   None if horizon == np.inf else float(horizon), regions)
+
+
+def _distinct(betas: np.ndarray, errors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct positive betas, each with the largest relative error given for it."""
+    keep = betas > 0
+    betas, errors = betas[keep], errors[keep]
+    if not betas.size:
+        return betas, errors
+    unique, index = np.unique(betas, return_inverse=True)
+    worst = np.zeros(unique.size)
+    np.maximum.at(worst, index, errors)
+    return unique, worst
 
 
 def _complement(merged: np.ndarray) -> list[tuple[float, float | None]]:
@@ -261,22 +288,29 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
     for model, betas in modes.betas.items():
         region = regions[model]
         z = betas * h
+        err = modes.error(model)
+        z_lo, z_hi = z * np.maximum(1.0 - err, 0.0), z * (1.0 + err)
         failing = np.zeros(betas.size, dtype=bool)
         reason = np.full(betas.size, -1)
         gap_list = labelled_gaps(region)
         for k, gap in enumerate(gap_list):
-            hit = (z <= gap.b) & (z / margin >= gap.a) & (betas > 0) & ~failing
+            hit = (z_lo <= gap.b) & (z_hi / margin >= gap.a) & (betas > 0) & ~failing
             failing |= hit
             reason[hit] = k
         n_failing += int(failing.sum())
         idx = np.flatnonzero(failing)
         idx = idx[np.argsort(-z[idx], kind="stable")][:MAX_REPORTED]
-        z_star = region.first_boundary
+        first_gap = next((g for g in gap_list if g.a > 0 or g.b == np.inf), None)
         for i in idx:
-            limit = float(margin * z_star / betas[i]) if z_star is not None else None
+            # the largest safe h in the interval from 0: the first gap's start (the boundary
+            # less its uncertainty), for the largest beta this mode may have
+            limit = (0.0 if region.first_boundary == 0.0 else
+                     float(margin * first_gap.a / (betas[i] * (1.0 + err[i])))
+                     if region.first_boundary is not None and first_gap is not None
+                     and first_gap.a > 0 else None)
             gap = gap_list[reason[i]]
             why = gap.reason
-            if gap.boundary is not None and z[i] / margin < gap.boundary:
+            if gap.boundary is not None and z_hi[i] / margin < gap.boundary:
                 why = (f"within the float64 uncertainty (±{gap.uncertainty:.1g}) below a "
                        f"boundary, which cannot be certified: {gap.reason}")
             failures.append(Failure(model, float(betas[i]), float(z[i]), why, limit))

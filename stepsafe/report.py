@@ -114,9 +114,14 @@ def _directed(x: float, digits: int, below: bool) -> str:
     exact = Decimal(x)
     unit = Decimal(1).scaleb(exact.adjusted() - (digits - 1))
     rounded = exact.quantize(unit, rounding=ROUND_FLOOR if below else ROUND_CEILING)
-    if rounded == exact:
+    # strictly beyond x, also once read back as a float (1e-12 reads as 2/2e12 itself)
+    while (float(rounded) >= x) if below else (float(rounded) <= x):
         rounded += -unit if below else unit
-    return f"{rounded:.{digits}g}"
+    text = f"{rounded:.{digits}g}"
+    mantissa, e, exponent = text.partition("e")
+    if "." in mantissa:  # no trailing zeros (they would suggest more digits than shown)
+        mantissa = mantissa.rstrip("0").rstrip(".")
+    return mantissa + e + exponent
 
 
 def _fmt_interval(iv: list) -> str:

@@ -27,6 +27,9 @@ from .errors import StepsafeError
 from .methods import Method
 
 DENSE_LIMIT = 2000
+#: Relative uncertainty of an equilibrium's beta: its Hessian is exact to ~30 digits (see
+#: stepsafe.nonlinear), the float64 square roots and products add a few ulps.
+EQUILIBRIUM_ERROR = 8 * float(np.finfo(float).eps)
 MAX_FILE_BYTES = 512 << 20
 SYSTEM_KEYS = {"stiffness", "mass", "hessian", "hamiltonian", "parameters", "box"}
 
@@ -145,14 +148,17 @@ def _report_modes(modes, analysis: str, notes: list[str],
                      "analysed both as a vibration and as a barrier at the largest rate "
                      "rounding allows")
     grouped: dict[str, list[float]] = {}
+    errors: dict[str, list[float]] = {}
     for m in modes:
         if m.model != "free":
             grouped.setdefault(m.model, []).append(m.beta)
+            errors.setdefault(m.model, []).append(m.rel_error)
     if not grouped:
         notes.append("every mode is free (beta = 0): no limit on h")
-        grouped = {"oscillator": [0.0]}
+        grouped, errors = {"oscillator": [0.0]}, {"oscillator": [0.0]}
     return SystemReport(analysis, items, Modes.from_arrays(
-        {k: np.array(v) for k, v in grouped.items()}), [], notes, primary_only)
+        {k: np.array(v) for k, v in grouped.items()},
+        {k: np.array(v) for k, v in errors.items()}), [], notes, primary_only)
 
 
 def _stiffness(tree, where, folder) -> SystemReport:
@@ -227,7 +233,7 @@ def _hamiltonian(tree, where, method, zmax) -> SystemReport:
         raise _fail(where, "hamiltonian", "nothing to analyse: every equilibrium found is "
                     f"degenerate (no linear model): {where_}"
                     + (" ..." if len(equilibria) > 3 else ""))
-    items, grouped, coupled, notes = [], {}, [], []
+    items, grouped, errors, coupled, notes = [], {}, {}, [], []
     for e in equilibria:
         item = {"q": e.q, "p": e.p, "type": e.kind, "D": e.D, "beta": e.beta,
                 "model": e.model}
@@ -241,6 +247,7 @@ def _hamiltonian(tree, where, method, zmax) -> SystemReport:
                 for m in d.modes:
                     if m.model != "free":
                         grouped.setdefault(m.model, []).append(m.beta)
+                        errors.setdefault(m.model, []).append(m.rel_error + EQUILIBRIUM_ERROR)
                 item["model"] = ",".join(sorted({m.model for m in d.modes}))
             else:
                 result = coupled_safe_steps(method, S, zmax)
@@ -249,7 +256,9 @@ def _hamiltonian(tree, where, method, zmax) -> SystemReport:
                 item["analysis"] = "coupled 2x2 (mixed q-p terms with a partitioned method)"
         else:
             grouped.setdefault(e.model, []).append(e.beta)
+            errors.setdefault(e.model, []).append(EQUILIBRIUM_ERROR)
         items.append(item)
-    modes = Modes.from_arrays({k: np.array(v) for k, v in grouped.items()}) if grouped else None
+    modes = Modes.from_arrays({k: np.array(v) for k, v in grouped.items()},
+                              {k: np.array(v) for k, v in errors.items()}) if grouped else None
     return SystemReport("equilibria of H found in the box and linearised exactly "
                         "(automatic differentiation)", items, modes, coupled, notes)

@@ -44,6 +44,7 @@ class LinearMode(NamedTuple):
     model: str  # "oscillator", "inverted", "saddle", "free"
     eigenvalue: complex  # w^2 (separable) or mu (eigenvalues of J S)
     decided: bool = True  # False: within rounding of 0, analysed as both types
+    rel_error: float = 0.0  # relative uncertainty of beta (from the eigenvalue's rounding)
 
 
 class Decoupled(NamedTuple):
@@ -96,16 +97,19 @@ def _modes_from_w2(w2: np.ndarray, error: float) -> tuple[LinearMode, ...]:
     ``diag(1e12, -1)`` the barrier of rate 1 is far above the rounding (~1e-3)."""
     out = []
     for value in w2:
+        rel = 0.5 * error / abs(value) + 2 * EPS if value else 0.0  # of sqrt|w^2|
         if value == 0:
             out.append(LinearMode(0.0, "free", complex(value)))
         elif abs(value) <= error:
-            rate = float(np.sqrt(error))
-            out += [LinearMode(rate, "oscillator", complex(value), False),
-                    LinearMode(rate, "inverted", complex(value), False)]
+            rate = float(np.sqrt(error))  # the rate is anywhere in [0, rate]
+            out += [LinearMode(rate, "oscillator", complex(value), False, 1.0),
+                    LinearMode(rate, "inverted", complex(value), False, 1.0)]
         elif value > 0:
-            out.append(LinearMode(float(np.sqrt(value)), "oscillator", complex(value)))
+            out.append(LinearMode(float(np.sqrt(value)), "oscillator", complex(value), True,
+                                  rel))
         else:
-            out.append(LinearMode(float(np.sqrt(-value)), "inverted", complex(value)))
+            out.append(LinearMode(float(np.sqrt(-value)), "inverted", complex(value), True,
+                                  rel))
     return tuple(out)
 
 
@@ -193,15 +197,16 @@ def hessian_modes(S, method: Method) -> Decoupled | None:
     error = 1e3 * S.shape[0] * EPS * float(np.abs(mu).max(initial=0.0))
     modes = []
     for m in mu:
+        rel = error / abs(m) + 2 * EPS if m else 0.0
         if m == 0:
             modes.append(LinearMode(0.0, "free", complex(m)))
         elif abs(m) <= error:
-            modes += [LinearMode(error, "oscillator", complex(m), False),
-                      LinearMode(error, "saddle", complex(m), False)]
+            modes += [LinearMode(error, "oscillator", complex(m), False, 1.0),
+                      LinearMode(error, "saddle", complex(m), False, 1.0)]
         elif abs(m.real) <= error:
-            modes.append(LinearMode(float(abs(m.imag)), "oscillator", complex(m)))
+            modes.append(LinearMode(float(abs(m.imag)), "oscillator", complex(m), True, rel))
         elif abs(m.imag) <= error:
-            modes.append(LinearMode(float(abs(m.real)), "saddle", complex(m)))
+            modes.append(LinearMode(float(abs(m.real)), "saddle", complex(m), True, rel))
         else:
             return None  # loxodromic: no 1-dof model
     return Decoupled(tuple(modes), "decoupled: RK method, eigenvalues of J S")

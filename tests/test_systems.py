@@ -199,3 +199,112 @@ def test_coupled_check_fails_beyond_h_max(run, tmp_path):
     assert code == 1 and not data["safe"]
     (fail,) = data["failures"]
     assert fail["model"] == "coupled" and 0 < fail["largest_safe_h"] < 5
+
+
+def _hamiltonian_scene(tmp_path, text: str, box: str = "{q: [-1, 1], p: [-1, 1]}",
+                       method: str = "verlet", h: float = 0.5) -> str:
+    path = tmp_path / "h.yaml"
+    path.write_text(f'method: {method}\nh: {h}\nsystem:\n  hamiltonian: "{text}"\n'
+                    f"  box: {box}\n")
+    return str(path)
+
+
+@pytest.mark.parametrize("text, model, beta", [
+    ("1e-6*p**2 + 1e6*q**2", "oscillator", 2.0),  # beta^2 = H_qq H_pp = 2e6 * 2e-6
+    ("1e300*q**2 + 1e-300*p**2", "oscillator", 2.0),
+    ("p**2 + 1e-32*q**2", "oscillator", 2e-16),
+    ("(q - 0.3)**2*1e-300 + p**2", "oscillator", 2e-150),
+    ("1e12*p**2 + 1e12*q**2", "oscillator", 2e12),
+    ("sin(q)/q + p**2", "inverted", math.sqrt(2 / 3)),  # removable singularity at 0
+    ("p**2/2 - cos(q)", "oscillator", 1.0),
+])
+def test_hamiltonians_at_any_scale(tmp_path, text, model, beta):
+    """The linearisation at the equilibrium, whatever the units: beta^2 = |H_qq H_pp|."""
+    from stepsafe.advice import Modes
+    from stepsafe.sysfile import analyse_system
+
+    report = analyse_system({"hamiltonian": text, "box": {"q": ["-1", "1"], "p": ["-1", "1"]}},
+                            "h.yaml", tmp_path, method("verlet"))
+    (item,) = report.items
+    assert item["model"] == model and item["beta"] == pytest.approx(beta, rel=1e-12)
+    assert isinstance(report.modes, Modes)
+
+
+def test_stiff_hamiltonian_limits_the_step(run, tmp_path):
+    """beta = 2e12: Verlet is safe below h = 2/beta = 1e-12 (the largest safe h is not 0)."""
+    code, out, _ = run("check", _hamiltonian_scene(tmp_path, "1e12*p**2 + 1e12*q**2"))
+    shown = float(out.split("largest safe h for it: ")[1].split()[0])
+    assert code == 1 and 0.999e-12 < shown < 2 / 2e12
+    code, _, _ = run("check", _hamiltonian_scene(tmp_path, "1e12*p**2 + 1e12*q**2", h=shown))
+    assert code == 0  # the step shown is one that may be taken
+
+
+@pytest.mark.parametrize("text, message", [
+    ("q**4 + p**2", "degenerate"),
+    ("q**4 + p**4", "degenerate"),
+    ("q**3 + p**2", "degenerate"),
+    ("1", "flat"),
+    ("0*q + 0*p", "flat"),
+    ("exp(1000*q) + p**2", "cannot be evaluated"),
+    ("1/q + p**2", "no equilibrium"),
+])
+def test_nothing_analysed_is_not_safe(run, tmp_path, text, message):
+    """No mode or equilibrium could be analysed: exit 2 with the reason, never SAFE."""
+    code, out, err = run("check", _hamiltonian_scene(tmp_path, text))
+    assert code == 2 and message in err and "SAFE" not in out, (out, err)
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_degenerate_equilibrium_beside_an_analysed_one(run_json, tmp_path):
+    """H = p^2/2 + q^4/4 - q^3/3 (from V' = q^2 (q - 1)): a degenerate point at 0 and a
+    centre at q = 1 (V'' = 1): the centre is analysed, the other reported as having no
+    linear model."""
+    data = run_json("advise", _hamiltonian_scene(tmp_path, "p**2/2 + q**4/4 - q**3/3",
+                                                 "{q: [-0.5, 1.5], p: [-1, 1]}"))
+    kinds = {round(item["q"], 9): item["type"] for item in data["system"]["items"]}
+    assert kinds == {0.0: "degenerate", 1.0: "elliptic"}
+    assert data["h_max"] == pytest.approx(2.0, rel=1e-12)
+    assert any("no linear model" in note for note in data["system"]["notes"])
+
+
+def test_stiff_matrix_keeps_its_slow_barrier(run, tmp_path):
+    """K = diag(1e12, -1): the barrier of rate 1 is far above rounding (~1e-3) and limits
+    the midpoint rule (pole at z = 2) to h < 2; it was once dropped as a 'free' mode."""
+    path = tmp_path / "k.yaml"
+    path.write_text("method: midpoint\nh: 3\nsystem: {stiffness: [[1e12, 0], [0, -1]]}\n")
+    code, out, _ = run("check", str(path))
+    assert code == 1 and "inverted beta = 1:" in out
+
+
+def test_eigenvalue_within_rounding_of_zero_is_analysed_as_both_types():
+    from stepsafe.systems import separable_modes
+
+    K = np.diag([1e12, 1e-9])  # 1e-9 is far below the rounding of 1e12 (~3e-3)
+    modes = separable_modes(K).modes
+    undecided = [m for m in modes if not m.decided]
+    assert {m.model for m in undecided} == {"oscillator", "inverted"}
+    assert all(m.beta >= np.sqrt(1e-9) for m in undecided)
+
+
+def test_large_sparse_system_is_safe_only_from_zero(run, tmp_path):
+    """Only the extreme modes of a > 2000-dof sparse system are computed, so a step in an
+    island of the fastest mode (Gauss s = 3 on the oscillator: reversed on (sqrt 10, sqrt 60),
+    preserved again beyond) cannot be certified: beyond h_max the check fails."""
+    import scipy.sparse as sp
+
+    w = np.linspace(0.1, 100.0, 2001)
+    sp.save_npz(tmp_path / "K.npz", sp.diags(w ** 2).tocsr())
+    path = tmp_path / "s.yaml"
+    path.write_text("method: {name: gauss, stages: 3}\nh: 0.08\nsystem: {stiffness: K.npz}\n")
+    code, out, _ = run("check", str(path))
+    assert code == 1, out  # z = 8 is past sqrt 60 for the top mode: an island, not analysed
+    path.write_text("method: {name: gauss, stages: 3}\nh: 0.03\nsystem: {stiffness: K.npz}\n")
+    assert run("check", str(path))[0] == 0
+
+
+def test_scene_with_modes_and_system_is_refused(run, tmp_path):
+    path = tmp_path / "both.yaml"
+    path.write_text("method: verlet\nh: 0.1\nmodes: [{beta: 1}]\n"
+                    "system: {stiffness: [[4]]}\n")
+    code, _, err = run("check", str(path))
+    assert code == 2 and "$.system" in err and "not both" in err
