@@ -1,10 +1,13 @@
 """High precision for the few points float64 cannot decide.
 
-A boundary whose float64 uncertainty exceeds :data:`ESCALATE_REL` (relative; the digits
-stepsafe prints) sits where ``tr M`` crosses ``+-2`` almost flat: next to a tangency or a
-double root, or amid ill-conditioned stage solves. There float64 cannot tell a touch from a
-narrow gap or a near miss, nor give the boundary's digits. Such points are re-decided with
-mpmath at :data:`DPS` digits, inside the interval the float samples bracket them in:
+A boundary or pole whose float64 uncertainty exceeds :data:`ESCALATE_REL` (relative; the
+digits stepsafe prints) sits where ``tr M`` crosses ``+-2`` almost flat: next to a
+tangency or a double root, or amid ill-conditioned stage solves or eigenvalues. There
+float64 cannot tell a touch from a narrow gap or a near miss, nor give the point's digits.
+Such points are re-decided with mpmath at :data:`DPS` digits, inside the interval the
+float samples bracket them in (a resonance float64 finds is kept as it is: its band bounds
+float64's error, so the truth is a touch, or a gap or miss too shallow for the tolerance
+policy to tell apart):
 
 * a sign change of ``tr M - L`` between the bracket's ends: one root, refined to full
   precision (uncertainty one ulp);

@@ -19,7 +19,7 @@ diagonal entry (Lobatto), so ``W^-1`` is explicit and well conditioned.
 
 from __future__ import annotations
 
-from functools import partial
+from functools import lru_cache, partial
 
 import numpy as np
 
@@ -143,6 +143,7 @@ def lobatto3ab(s: int) -> PartitionedRK:
                          exact=partial(_exact, "lobatto3ab", s))
 
 
+@lru_cache(maxsize=16)
 def _exact(family: str, s: int):
     """The family member's transfer matrix at high precision (:mod:`stepsafe.reference`:
     nodes and weights computed at raised precision, not rounded to float64)."""

@@ -530,10 +530,12 @@ def _escalate(ev: _Evaluator, spreads: list[_Spread], esc: Escalation,
     """Re-decide at high precision the boundaries float64 places only to worse than
     :data:`~stepsafe.escalate.ESCALATE_REL` (see :mod:`stepsafe.escalate`)."""
     out: list[_Spread] = []
-    touches: set[float] = set()
+    # a resonance float64 found is already a touch within the policy (a deeper gap or a
+    # wider miss would have shown in float64, whose error its band bounds): kept as it is
+    touches = [(c.point.z, c.point.uncertainty) for c in spreads if c.point.kind == "resonance"]
     for c in spreads:
         p = c.point
-        vague = p.uncertainty > ESCALATE_REL * p.z and c.lo < c.hi
+        vague = p.uncertainty > ESCALATE_REL * p.z and c.lo < c.hi and p.kind != "resonance"
         if vague and p.kind == "pole":
             z = esc.pole(c.lo, c.hi)
             if z is not None:
@@ -547,9 +549,9 @@ def _escalate(ev: _Evaluator, spreads: list[_Spread], esc: Escalation,
             out.append(c)
             continue
         if decision.touch is not None:
-            if any(abs(decision.touch - t) <= 1e-9 * t for t in touches):
-                continue  # two float points (a resonance and rounding noise) were one touch
-            touches.add(decision.touch)
+            if any(abs(decision.touch - t) <= max(u, 1e-9 * t) for t, u in touches):
+                continue  # a resonance and rounding noise next to it were one touch
+            touches.append((decision.touch, 0.0))
         for r in decision.roots:
             u = float(np.spacing(r))
             out.append(_Spread(Point(r, "root", u, f"tr M = {c.level:+g}"), r - u, r + u,
