@@ -16,11 +16,54 @@ import click
 from . import __version__
 
 EXIT_OK, EXIT_UNSAFE, EXIT_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
+EXIT_INTERRUPTED = 130
 MODEL_CHOICES = ("oscillator", "saddle", "inverted", "saddle-p", "all")
+PROG = "stepsafe"
 
 
 class _Group(click.Group):
-    """Turns errors into one-line messages with the documented exit codes."""
+    """Owns every exit path: one-line errors with the documented exit codes.
+
+    Usage errors (unknown option or command, bad choice, missing argument, a bare
+    ``stepsafe``) are one line on stderr and exit 2, never click's multi-line Usage block.
+    ``-h`` is not a help alias (``--help`` is): on ``check`` it would read as the step.
+    """
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True,
+             **extra):
+        if not standalone_mode:  # for embedding: click's behaviour, exceptions propagate
+            return super().main(args, prog_name or PROG, complete_var, False, **extra)
+        args = sys.argv[1:] if args is None else list(args)
+        sys.exit(self._run(args, extra))
+
+    def _run(self, args: list[str], extra: dict) -> int:
+        from . import output
+
+        output.reset()
+        try:
+            try:
+                with self.make_context(PROG, args, **extra) as ctx:
+                    self.invoke(ctx)
+                code = EXIT_OK
+            except click.exceptions.Exit as exc:
+                code = exc.exit_code
+            except SystemExit as exc:
+                code = _system_exit_code(exc)
+            output.flush()
+        except click.UsageError as exc:
+            _error_line(_usage_message(exc, self, args))
+            return EXIT_INPUT
+        except click.ClickException as exc:  # e.g. a file click could not open: bad input
+            _error_line(exc.format_message())
+            return EXIT_INPUT
+        except (click.exceptions.Abort, KeyboardInterrupt, EOFError):
+            _error_line("interrupted")
+            return EXIT_INTERRUPTED
+        except OSError as exc:
+            if not output.is_output_error(exc):
+                raise
+            return output.failed(exc, _error_line)
+        return code
 
     def invoke(self, ctx: click.Context):
         from .errors import StepsafeError
@@ -31,20 +74,58 @@ class _Group(click.Group):
         except StepsafeError as exc:
             if debug:
                 raise
-            click.echo(f"stepsafe: error: {exc}", err=True)
+            _error_line(str(exc))
             ctx.exit(EXIT_INPUT)
         except (click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
             raise
         except Exception as exc:  # noqa: BLE001 - the documented internal-error path
-            if debug:
+            from .output import is_output_error
+
+            if debug or is_output_error(exc):  # a closed pipe or a full disk: see _run
                 raise
             message = str(exc).splitlines()[0] if str(exc) else ""
-            click.echo(f"stepsafe: internal error: {type(exc).__name__}: {message} "
-                       "(rerun with --debug for the traceback)", err=True)
+            _error_line(f"internal error: {type(exc).__name__}: {message} "
+                        "(rerun with --debug for the traceback)", prefix="stepsafe: ")
             ctx.exit(EXIT_INTERNAL)
 
 
-@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
+def _system_exit_code(exc: SystemExit) -> int:
+    if exc.code is None:
+        return EXIT_OK
+    if isinstance(exc.code, int):
+        return exc.code
+    _error_line(str(exc.code))
+    return EXIT_INTERNAL
+
+
+def _error_line(message: str, prefix: str = "stepsafe: error: ") -> None:
+    """One line on stderr, control characters made visible (the message may quote a file)."""
+    from .text import printable
+
+    click.echo(prefix + printable(" ".join(message.split())), err=True)
+
+
+def _usage_message(exc: click.UsageError, group: click.Group, args: list[str]) -> str:
+    ctx = exc.ctx
+    command = ctx.command if ctx is not None else None
+    if command is None:  # some parser errors carry no context: name the command given
+        name = next((a for a in args if a in group.commands), None)
+        command = group.commands[name] if name else group
+    where = PROG if command is group else f"{PROG} {command.name}"
+    takes_step = any(p.name == "h" for p in command.params)
+    if isinstance(exc, click.NoSuchOption) and exc.option_name in ("-h", "-H", "--H"):
+        message = (f"{exc.option_name} is not an option: write the step as --step H; "
+                   "for help use --help") if takes_step else \
+            f"{exc.option_name} is not an option: for help use --help"
+    elif isinstance(exc, click.exceptions.NoArgsIsHelpError) or (
+            command is group and exc.message == "Missing command."):
+        message = f"missing command (one of: {', '.join(sorted(group.commands))})"
+    else:
+        message = exc.format_message().rstrip(".")
+    return f"{message} (see '{where} --help')"
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["--help"]})
 @click.version_option(__version__, prog_name="stepsafe")
 @click.option("--debug", is_flag=True, help="Show tracebacks instead of one-line errors.")
 def main(debug: bool) -> None:
@@ -62,7 +143,9 @@ def main(debug: bool) -> None:
       stepsafe region lobatto3ab -s 3 --model oscillator --zmax 6
       stepsafe region yoshida4 --base midpoint --model saddle --json
 
-    Exit codes: 0 ok, 1 unsafe (check), 2 bad input, 3 internal error.
+    Exit codes: 0 ok, 1 unsafe (check), 2 bad input, a usage error or output that cannot
+    be written (one line on stderr), 3 internal error. Help is --help only (-h is an
+    error, never help); 'stepsafe' without a command is a usage error.
     """
 
 
@@ -170,6 +253,7 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
     results = {name: region_data(r) for name, r in regions.items()}
     head = method_data(m, entry)
     verdict = _verify(method, stages, base, regions) if verify else None
+    _decide([verdict])
     if as_json:
         out = {"method": head["method"], "title": head["title"], "kind": head["kind"],
                "stages": head["stages"], "order": head["order"],
@@ -334,6 +418,7 @@ def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, be
     verdict = _verify(ref.name, ref.stages, ref.base, regions) if verify and regions else None
     if verdict:
         data["verify"] = verdict
+    _decide([verdict])
     print_json(data) if as_json else print_advice(data)
     if "system" in data and not as_json:
         from .report import print_system
@@ -345,7 +430,8 @@ def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, be
 
 
 @main.command("check")
-@click.option("--h", "h", type=float, default=None, metavar="H", help="The step to check.")
+@click.option("--step", "--h", "h", type=float, default=None, metavar="H",
+              help="The step to check (--h is the same option; -h is an error, not help).")
 @scene_options
 def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inverted_beta,
               modes_file, margin, zmax, as_json, verify) -> None:
@@ -353,11 +439,13 @@ def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inve
 
     Exit 0: every mode is preserved at h (with the margin); 1: not, with the reason for
     each failing mode (model, z = beta*h, the boundary crossed, the largest safe h);
-    2: bad input. A step exactly on a resonance or a pole is unsafe.
+    2: bad input or a usage error (one line on stderr). A step exactly on a resonance or a
+    pole is unsafe. Every scene is analysed before anything is printed, so a reader that
+    stops early (| head -1) does not change the exit code.
 
     \b
     Examples:
-      stepsafe check --method verlet --h 0.1 --beta 12
+      stepsafe check --method verlet --step 0.1 --beta 12
       stepsafe check scene.yaml --json
     """
     from .advice import check_step
@@ -370,8 +458,8 @@ def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inve
             modes_file, margin, zmax)
         step = h if h is not None else scene.h
         if step is None:
-            raise _input_error(f"{scene_file or 'check'}: no step: give --h H or h: in the "
-                               "scene file")
+            raise _input_error(f"{scene_file or 'check'}: no step: give --step H or h: in "
+                               "the scene file")
         if system is not None:
             from .sysadvice import system_check
 
@@ -389,14 +477,16 @@ def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inve
             verdicts.append(data["verify"])
         outputs.append(data)
         unsafe |= not data["safe"]
-        if not as_json:
+    _decide(verdicts, unsafe)
+    if as_json:
+        print_json(outputs[0] if len(outputs) == 1 else outputs)
+    else:
+        for data in outputs:
             print_check(data)
             if "system" in data:
                 print_system(data["system"])
             if "verify" in data:
                 _print_verify(data["verify"])
-    if as_json:
-        print_json(outputs[0] if len(outputs) == 1 else outputs)
     for verdict in verdicts:
         _exit_if_unverified(verdict)
     if unsafe:
@@ -430,10 +520,26 @@ def _print_verify(verdict: dict) -> None:
                    err=True)
 
 
+def _unverified_message(verdict: dict) -> str:
+    return ("verification failed: a float answer is off by more than "
+            f"{verdict['tolerance']:g} (rerun with --debug and report it)")
+
+
+def _decide(verdicts, unsafe: bool = False) -> None:
+    """Record the exit code before printing: a reader that closes the pipe early (``| head``)
+    then gets this code, never a code made up by the write error."""
+    from .output import decided
+
+    failed = next((v for v in verdicts if v and not v["ok"]), None)
+    if failed is not None:
+        decided(EXIT_INTERNAL, _unverified_message(failed))
+    else:
+        decided(EXIT_UNSAFE if unsafe else EXIT_OK)
+
+
 def _exit_if_unverified(verdict) -> None:
     if verdict and not verdict["ok"]:
-        click.echo("stepsafe: error: verification failed: a float answer is off by more than "
-                   f"{verdict['tolerance']:g} (rerun with --debug and report it)", err=True)
+        _error_line(_unverified_message(verdict))
         sys.exit(EXIT_INTERNAL)
 
 

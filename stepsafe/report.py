@@ -141,7 +141,12 @@ def _console():
     console = Console(soft_wrap=False)
     if not console.is_terminal:  # piped: do not squeeze tables into 80 columns
         console = Console(soft_wrap=False, width=120)
+    console.on_broken_pipe = _pipe_closed  # rich would exit 1 ("unsafe"); the CLI decides
     return console
+
+
+def _pipe_closed() -> None:
+    raise BrokenPipeError(32, "Broken pipe")
 
 
 def print_region(head: dict[str, Any], models: dict[str, dict[str, Any]]) -> None:

@@ -92,3 +92,158 @@ def test_base_can_be_a_family_member(run_json, run):
     assert data["stages"] == 6 and data["verify"]["ok"]
     code, _, err = run("region", "yoshida4", "--base", "lobatto3ab")
     assert code == 2 and "lobatto3ab:N" in err
+
+
+# --- usage errors: one line, exit 2; -h is never help ------------------------------------
+
+ROOT = __import__("pathlib").Path(__file__).resolve().parent.parent
+
+
+def _stepsafe(*args, **kwargs):
+    """The real process (``python -m stepsafe``): exit codes, pipes and streams as in CI."""
+    import subprocess
+    import sys
+
+    if "stdout" not in kwargs:
+        kwargs.setdefault("capture_output", True)
+    return subprocess.run([sys.executable, "-m", "stepsafe", *args], cwd=ROOT, text=True,
+                          timeout=120, **kwargs)
+
+
+def _one_error_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("stepsafe: error: ") and "Traceback" not in err
+    return lines[0]
+
+
+def test_dash_h_is_an_error_not_help_in_the_real_process():
+    """The CI trap: with -h as help, this unsafe step passed with exit 0."""
+    proc = _stepsafe("check", "--method", "verlet", "--beta", "0.697", "-h", "3")
+    assert proc.returncode == 2 and proc.stdout == ""
+    line = _one_error_line(proc.stderr)
+    assert "--step" in line and "--help" in line
+    assert _stepsafe("check", "--method", "verlet", "--beta", "0.697", "--step", "3"
+                     ).returncode == 1
+    assert _stepsafe("check", "--help").returncode == 0
+
+
+@pytest.mark.parametrize("args", [
+    ["check", "--method", "verlet", "--beta", "1", "-h", "3"],
+    ["check", "-h"], ["check", "-H", "3"], ["check", "--H", "3"],
+    ["advise", "--method", "verlet", "--beta", "1", "-h"], ["region", "verlet", "-h"],
+    ["show", "verlet", "-h"], ["methods", "-h"], ["compare", "-h"], ["error", "-h"],
+    ["plot", "-h"], ["validate", "-h"], ["schema", "-h"], ["-h"], ["-h", "check"],
+])
+def test_dash_h_is_a_usage_error_everywhere(run, args):
+    code, out, err = run(*args)
+    assert code == 2 and out == ""
+    line = _one_error_line(err)
+    assert "is not an option" in line and "--help" in line
+    assert ("--step" in line) == (args[0] == "check")
+
+
+@pytest.mark.parametrize("flag", ["--step", "--h"])
+def test_step_option_and_its_alias(run, flag):
+    assert run("check", "--method", "verlet", "--beta", "1", flag, "0.1")[0] == 0
+    assert run("check", "--method", "verlet", "--beta", "1", flag, "3")[0] == 1
+
+
+@pytest.mark.parametrize("args, message", [
+    ([], "missing command (one of: advise, check,"),
+    (["--debug"], "missing command"),
+    (["bogus"], "No such command 'bogus'"),
+    (["region"], "Missing argument 'METHOD'"),
+    (["validate"], "Missing argument"),
+    (["plot", "verlet"], "Missing option '-o'"),
+    (["region", "verlet", "--model", "bogus"], "'bogus' is not one of"),
+    (["region", "gauss", "-s", "three"], "'three' is not a valid integer"),
+    (["check", "--method", "verlet", "--beta", "1", "--step"], "requires an argument"),
+    (["check", "--method", "verlet", "--beta", "x", "--step", "1"], "'x' is not a valid float"),
+    (["check", "--bogus"], "No such option"),
+    (["schema", "nothing"], "is not one of"),
+    (["--nope"], "No such option"),
+])
+def test_usage_errors_are_one_line_exit_2(run, args, message):
+    code, out, err = run(*args)
+    assert code == 2 and out == ""
+    line = _one_error_line(err)
+    assert message in line and "--help')" in line
+    assert "Usage:" not in err
+
+
+def test_usage_error_names_the_command():
+    proc = _stepsafe("check", "--method", "verlet", "--beta", "1", "--step")
+    assert proc.returncode == 2
+    assert "(see 'stepsafe check --help')" in _one_error_line(proc.stderr)
+    proc = _stepsafe()  # bare stepsafe: a usage error too, not 34 lines of help
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert "missing command" in _one_error_line(proc.stderr)
+
+
+def test_unknown_options_of_any_spelling_are_one_line(run):
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    names = st.text(st.characters(codec="utf-8", categories=("L", "N", "P", "S", "Cc")),
+                    min_size=1, max_size=12)
+
+    @settings(max_examples=40, deadline=None)
+    @given(command=st.sampled_from(["check", "advise", "region", "show", "compare", "error"]),
+           name=names)
+    def prop(command, name):
+        code, out, err = run(command, "--zz" + name)
+        assert code == 2 and out == ""
+        line = _one_error_line(err)
+        assert all(ch == "\t" or ch.isprintable() for ch in line), line
+
+    prop()
+
+
+# --- output that cannot be written: a closed pipe, a full disk ----------------------------
+
+MANY_BETAS = [a for i in range(1, 301) for a in ("--beta", str(i))]
+
+
+@pytest.mark.parametrize("args, code", [
+    (["check", "--method", "verlet", "--step", "3", *MANY_BETAS], 1),
+    (["check", "--method", "verlet", "--step", "3", "--json", *MANY_BETAS], 1),
+    (["check", "--method", "verlet", "--step", "1e-4", *MANY_BETAS], 0),
+    (["check", "examples/scene.yaml", "examples/paper-section3.yaml"], 1),
+    (["region", "lobatto3ab", "-s", "3"], 0),
+    (["show", "kahan-li8"], 0),
+    (["methods"], 0),
+    (["check", "--help"], 0),
+])
+def test_closed_pipe_exits_with_the_commands_own_code(args, code):
+    """| head -1: the reader is gone before stepsafe writes. The verdict stands: exit 1 for
+    an unsafe step, 0 for a safe one or another command; never 3, never a made-up 1."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "stepsafe", *args], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # the read end: every write now fails with EPIPE
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == code, err
+    assert err == ""
+
+
+def test_scene_with_an_unsafe_step_is_unsafe():
+    # the multi-scene pipe case above relies on this: the first scene is safe, the second not
+    assert _stepsafe("check", "examples/scene.yaml").returncode == 0
+    assert _stepsafe("check", "examples/paper-section3.yaml").returncode == 1
+
+
+@pytest.mark.skipif(not __import__("os").path.exists("/dev/full"), reason="needs /dev/full")
+@pytest.mark.parametrize("args", [
+    ["check", "--method", "verlet", "--step", "0.1", "--beta", "1"],
+    ["check", "--method", "verlet", "--step", "3", "--beta", "1", "--json"],
+    ["region", "verlet"], ["region", "verlet", "--json"], ["methods"], ["check", "--help"],
+])
+def test_full_disk_is_one_line_exit_2(args):
+    with open("/dev/full", "w") as full:
+        proc = _stepsafe(*args, stdout=full, stderr=__import__("subprocess").PIPE)
+    assert proc.returncode == 2
+    assert _one_error_line(proc.stderr) == \
+        "stepsafe: error: cannot write output: No space left on device"
