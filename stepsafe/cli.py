@@ -21,6 +21,30 @@ MODEL_CHOICES = ("oscillator", "saddle", "inverted", "saddle-p", "all")
 PROG = "stepsafe"
 
 
+class _Number(click.ParamType):
+    """An int or float option written in ASCII: click's own types accept other scripts'
+    digits (``-s ٣`` read as 3) and ``1_0`` (read as 10)."""
+
+    def __init__(self, kind: type) -> None:
+        self.kind = kind
+        self.name = "integer" if kind is int else "float"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return self.kind(value)  # a default given in the code
+        text = str(value).strip()
+        try:
+            if not text.isascii() or "_" in text:
+                raise ValueError(text)
+            return self.kind(text)
+        except ValueError:
+            shown = repr(value) if len(repr(value)) <= 40 else repr(value)[:37] + "..."
+            self.fail(f"{shown} is not a valid {self.name} (ASCII digits 0-9)", param, ctx)
+
+
+INT, FLOAT = _Number(int), _Number(float)
+
+
 class _Group(click.Group):
     """Owns every exit path: one-line errors with the documented exit codes.
 
@@ -154,7 +178,7 @@ def method_options(func):
     func = click.option("--base", metavar="NAME",
                         help="Swap the base method of a composition (e.g. midpoint, or "
                              "gauss:2 for a family member).")(func)
-    func = click.option("-s", "--stages", type=int, metavar="N",
+    func = click.option("-s", "--stages", type=INT, metavar="N",
                         help="Stage count for the families gauss (N>=1) and "
                              "lobatto3ab (N>=2).")(func)
     return click.argument("method", metavar="METHOD")(func)
@@ -226,7 +250,7 @@ def _coefficients(method) -> dict:
 @method_options
 @click.option("--model", type=click.Choice(MODEL_CHOICES), default="all", show_default=True,
               help="Test model to analyse.")
-@click.option("--zmax", type=float, default=None, metavar="Z",
+@click.option("--zmax", type=FLOAT, default=None, metavar="Z",
               help="Search z = beta*h up to Z  [default: 10].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @click.option("--verify", is_flag=True,
@@ -273,24 +297,24 @@ def scene_options(func):
                      help="Recompute every boundary used with mpmath (40 digits) and report "
                           "the largest discrepancy; exit 3 if one exceeds 1e-10."),
         click.option("--json", "as_json", is_flag=True, help="Print one JSON object."),
-        click.option("--zmax", type=float, default=None, metavar="Z",
+        click.option("--zmax", type=FLOAT, default=None, metavar="Z",
                      help="Analyse z = beta*h up to Z (islands beyond are not reported) "
                           "[default: 10]."),
-        click.option("--margin", type=float, default=None, metavar="F",
+        click.option("--margin", type=FLOAT, default=None, metavar="F",
                      help="0 < F <= 1: allow every frequency to be up to 1/F times larger "
                           "(scales h_max by F) [default: 1]."),
         click.option("--modes", "modes_file", type=str, default=None, metavar="FILE",
                      help="Frequencies from a YAML list of {beta:, model:} or a CSV file "
                           "with columns beta[,model]."),
-        click.option("--inverted-beta", type=float, multiple=True, metavar="R",
+        click.option("--inverted-beta", type=FLOAT, multiple=True, metavar="R",
                      help="Rate of a barrier top (q'=p, p'=+R^2 q); repeatable."),
-        click.option("--saddle-beta", type=float, multiple=True, metavar="R",
+        click.option("--saddle-beta", type=FLOAT, multiple=True, metavar="R",
                      help="Rate of a saddle (H = R p q); repeatable."),
-        click.option("--beta", type=float, multiple=True, metavar="B",
+        click.option("--beta", type=FLOAT, multiple=True, metavar="B",
                      help="Angular frequency of a vibration (q'=p, p'=-B^2 q); repeatable."),
         click.option("--base", metavar="NAME", help="Swap the base method of a composition "
                                                     "(a family member as gauss:2)."),
-        click.option("-s", "--stages", type=int, metavar="N", help="Stage count of a family."),
+        click.option("-s", "--stages", type=INT, metavar="N", help="Stage count of a family."),
         click.option("--method", "method_name", metavar="METHOD",
                      help="Built-in name, family (with -s) or method file."),
         click.argument("scene_files", nargs=-1, metavar="[SCENE.yaml]..."),
@@ -357,9 +381,9 @@ def _input_error(message: str):
 
 
 @main.command("advise")
-@click.option("--tol-energy", type=float, default=None, metavar="T",
+@click.option("--tol-energy", type=FLOAT, default=None, metavar="T",
               help="Also require relative energy error <= T (vibrations).")
-@click.option("--tol-phase", type=float, default=None, metavar="T",
+@click.option("--tol-phase", type=FLOAT, default=None, metavar="T",
               help="Also require |phase error| <= T (|growth-rate error| for saddles).")
 @scene_options
 def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, beta,
@@ -430,7 +454,7 @@ def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, be
 
 
 @main.command("check")
-@click.option("--step", "--h", "h", type=float, default=None, metavar="H",
+@click.option("--step", "--h", "h", type=FLOAT, default=None, metavar="H",
               help="The step to check (--h is the same option; -h is an error, not help).")
 @scene_options
 def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inverted_beta,

@@ -8,17 +8,17 @@ from __future__ import annotations
 
 import click
 
-from .cli import _input_error, _resolve, main, method_options, scene_options
+from .cli import FLOAT, INT, _input_error, _resolve, main, method_options, scene_options
 
 MODEL_ONE = click.Choice(("oscillator", "saddle", "inverted", "saddle-p"))
 
 
 @main.command("error")
 @method_options
-@click.option("--z", "zs", type=float, multiple=True, metavar="Z", help="z = beta*h; repeatable.")
-@click.option("--zmin", type=float, default=None, help="Range start (with --zmax and --n).")
-@click.option("--zmax", type=float, default=None, help="Range end.")
-@click.option("--n", "count", type=int, default=11, show_default=True, help="Range points.")
+@click.option("--z", "zs", type=FLOAT, multiple=True, metavar="Z", help="z = beta*h; repeatable.")
+@click.option("--zmin", type=FLOAT, default=None, help="Range start (with --zmax and --n).")
+@click.option("--zmax", type=FLOAT, default=None, help="Range end.")
+@click.option("--n", "count", type=INT, default=11, show_default=True, help="Range points.")
 @click.option("--model", type=MODEL_ONE, default="oscillator", show_default=True)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json) -> None:
@@ -73,9 +73,9 @@ def _f(x) -> float | None:
               help="Comma-separated methods (family members as gauss:2) [default: a standard "
                    "set].")
 @click.option("--all", "use_all", is_flag=True, help="Every built-in method (families s=2,3).")
-@click.option("--tol-phase", type=float, default=None, metavar="T",
+@click.option("--tol-phase", type=FLOAT, default=None, metavar="T",
               help="Largest |phase error| (|growth-rate error| for saddles and barriers).")
-@click.option("--tol-energy", type=float, default=None, metavar="T",
+@click.option("--tol-energy", type=FLOAT, default=None, metavar="T",
               help="Largest relative energy error (vibrations).")
 @scene_options
 def compare_cmd(names, use_all, tol_phase, tol_energy, scene_files, method_name, stages, base,
@@ -122,7 +122,7 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, scene_files, method_name,
         specs = []
         for item in raw.split(","):
             name, _, s = item.strip().partition(":")
-            if s and not s.isdigit():
+            if s and not (s.isascii() and s.isdigit() and len(s) <= 30):
                 raise _input_error(f"bad stage count in {item!r} (use family:N)")
             specs.append((name, int(s) if s else None))
     rows = []
@@ -161,7 +161,7 @@ def _compare_row(res, method) -> dict:
 @main.command("plot")
 @method_options
 @click.option("--model", type=MODEL_ONE, default="oscillator", show_default=True)
-@click.option("--zmax", type=float, default=None, metavar="Z", help="Plot z up to Z [default: 6].")
+@click.option("--zmax", type=FLOAT, default=None, metavar="Z", help="Plot z up to Z [default: 6].")
 @click.option("--phase", "with_phase", is_flag=True, help="Add the phase error (log scale).")
 @click.option("-o", "--output", required=True, metavar="FILE.png", help="Where to write.")
 def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:

@@ -185,8 +185,9 @@ def _swap_base(method, entry: Entry, base: str, depth: int):
     name, _, stages = base.partition(":")
     if name in FAMILIES and not stages:
         raise StepsafeError(f"--base {name} is a family: write it as {name}:N (e.g. {name}:3)")
-    if stages and not stages.isdigit():
-        raise StepsafeError(f"--base {base!r}: the stage count after ':' must be a number")
+    if stages and not (stages.isascii() and stages.isdigit() and len(stages) <= 30):
+        raise StepsafeError(f"--base {base!r}: the stage count after ':' must be a whole "
+                            "number written with the digits 0-9")
     new_base, base_entry = resolve(name, int(stages) if stages else None, _depth=depth + 1)
     same_order = (method.base_order is not None and new_base.order == method.base_order
                   and is_symmetric(new_base))

@@ -113,9 +113,13 @@ def _text(value: Any, where: str, key: str) -> str:
 
 
 def _int(value: Any, where: str, key: str, lo: int = 0, hi: int = 10_000) -> int:
-    if not isinstance(value, str) or not value.strip().lstrip("+").isdigit():
-        raise _fail(where, key, f"must be a whole number, got {value!r}")
-    number = int(value.strip())
+    from .text import ascii_whole
+
+    number = ascii_whole(value, max_digits=30)
+    if number is None:
+        shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
+        raise _fail(where, key, f"must be a whole number written with the digits 0-9, got "
+                                f"{shown}")
     if not lo <= number <= hi:
         raise _fail(where, key, f"must be between {lo} and {hi}, got {number}")
     return number

@@ -113,7 +113,7 @@ def method_ref(value: Any, where: str, path: str = "method") -> MethodRef:
         stages = None
         if "stages" in value:
             s = value["stages"]
-            if not isinstance(s, str) or not s.isdigit():
+            if not isinstance(s, str) or not (s.isascii() and s.isdigit() and len(s) < 1000):
                 raise _fail(where, f"{path}.stages", f"must be a whole number, got {s!r}")
             stages = int(s)
         base = value.get("base")

@@ -33,3 +33,20 @@ def printable(text: object) -> str:
         return s
     return "".join(_visible(ch) if ch not in _KEEP and unicodedata.category(ch) in _HIDDEN
                    else ch for ch in s)
+
+
+def ascii_whole(text: object, max_digits: int = 1000) -> int | None:
+    """The whole number written in ``text`` with ASCII digits 0-9 (an optional leading ``+``
+    and surrounding spaces allowed), else None.
+
+    ``str.isdigit`` also accepts superscripts (``"²"``, which ``int`` then rejects) and other
+    scripts' digits (``"٣"``, which ``int`` reads as 3); a number in a file or on the
+    command line is written in ASCII. More than ``max_digits`` digits is None too (``int``
+    refuses strings beyond 4300 digits)."""
+    if not isinstance(text, str):
+        return None
+    s = text.strip()
+    s = s[1:] if s.startswith("+") else s
+    if not s or len(s) > max_digits or not (s.isascii() and s.isdigit()):
+        return None
+    return int(s)

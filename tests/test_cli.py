@@ -247,3 +247,84 @@ def test_full_disk_is_one_line_exit_2(args):
     assert proc.returncode == 2
     assert _one_error_line(proc.stderr) == \
         "stepsafe: error: cannot write output: No space left on device"
+
+
+# --- integers are written with the ASCII digits 0-9 ---------------------------------------
+
+def _non_ascii_digit_strings():
+    """Strings that str.isdigit() or int() may accept but that are not ASCII digits:
+    superscripts, other scripts' digits (Arabic-Indic, Devanagari, fullwidth), mixed in
+    with ASCII digits."""
+    from hypothesis import strategies as st
+
+    foreign = st.characters(categories=("Nd", "No", "Nl"), exclude_characters="0123456789")
+    return st.builds(lambda a, f, b: a + f + b, st.text("0123456789", max_size=2),
+                     st.text(foreign, min_size=1, max_size=3), st.text("0123456789", max_size=2))
+
+
+METHOD_FILE = """\
+name: m
+kind: {kind}
+order: {order}
+{extra}source: test
+{body}
+"""
+
+
+@pytest.mark.parametrize("field", ["order", "evaluations", "base.stages"])
+def test_unicode_digits_in_method_file_integers_are_refused(run, tmp_path, field):
+    from hypothesis import given, settings
+
+    @settings(max_examples=30, deadline=None)
+    @given(text=_non_ascii_digit_strings())
+    def prop(text):
+        quoted = '"' + text + '"'
+        if field == "base.stages":
+            body = "base: {name: gauss, stages: " + quoted + "}\nweights: [1]"
+            src = METHOD_FILE.format(kind="composition", order=2, extra="", body=body)
+        else:
+            src = METHOD_FILE.format(
+                kind="splitting", order=quoted if field == "order" else 2,
+                extra=f"evaluations: {quoted}\n" if field == "evaluations" else "",
+                body='drift: [0, 1]\nkick: ["1/2", "1/2"]')
+        path = tmp_path / "m.yaml"
+        path.write_text(src, encoding="utf-8")
+        code, out, err = run("validate", str(path))
+        assert code == 2 and out == "", (text, err)
+        line = _one_error_line(err)
+        assert f"{path}::$.{field}: must be a whole number written with the digits 0-9" in line
+
+    prop()
+
+
+def test_ascii_integers_still_work(run, tmp_path):
+    path = tmp_path / "m.yaml"
+    path.write_text(METHOD_FILE.format(kind="composition", order=" +4", extra="",
+                                       body='base: {name: gauss, stages: "2"}\nweights: [1]'))
+    code, out, err = run("validate", str(path))
+    assert code == 0 and "order 4" in out, err
+
+
+def test_unicode_digits_on_the_command_line_are_refused(run):
+    from hypothesis import given, settings
+
+    @settings(max_examples=30, deadline=None)
+    @given(text=_non_ascii_digit_strings())
+    def prop(text):
+        for args in (["region", "yoshida4", "--base", f"gauss:{text}"],
+                     ["region", "gauss", "-s", text],
+                     ["check", "--method", "verlet", "--step", "0.1", "--beta", text],
+                     ["compare", "--methods", f"gauss:{text}", "--beta", "1"]):
+            code, out, err = run(*args)
+            assert code == 2 and out == "", (args, err)
+            assert "digits 0-9" in _one_error_line(err) or "bad stage count" in err
+
+    prop()
+
+
+def test_ascii_whole_numbers():
+    from stepsafe.text import ascii_whole
+
+    assert ascii_whole(" +12 ") == 12 and ascii_whole("007") == 7
+    for bad in ("²", "٣", "３", "1²", "-1", "1.0", "1_0", "", " ", "+", None, 3, "9" * 5000):
+        assert ascii_whole(bad) is None, bad
