@@ -212,6 +212,11 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
             raise _fail(where, key, f"missing (required for kind {kind})")
     if kind == "composition" and ("weights" in tree) == ("recipe" in tree):
         raise _fail(where, "weights", "a composition needs exactly one of weights or recipe")
+    for key, spec in FIELDS.items():
+        if spec.type == "enum" and key != "kind" and key in tree \
+                and tree[key] not in spec.choices:
+            shown = repr(tree[key]) if len(repr(tree[key])) <= 60 else repr(tree[key])[:57] + "..."
+            raise _fail(where, key, f"must be one of {', '.join(spec.choices)}, got {shown}")
 
     name = _text(tree["name"], where, "name")
     if not name or not all(ch.isalnum() or ch == "-" for ch in name):
@@ -242,6 +247,9 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
             coefficients[key] = _vector(tree[key], where, key, scope, limit)
     symmetric = _bool(tree["symmetric"], where, "symmetric") if "symmetric" in tree else False
     _check_shapes(kind, coefficients, where, symmetric)
+    if "weights" in coefficients and all(float(w) == 0 for w in coefficients["weights"]):
+        raise _fail(where, "weights", "all weights are zero: the composition would not move "
+                                      "(a zero weight among others is allowed)")
     if symmetric and kind == "splitting":
         coefficients["drift"], coefficients["kick"] = _mirror_splitting(coefficients["drift"],
                                                                        coefficients["kick"])

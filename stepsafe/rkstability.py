@@ -27,27 +27,37 @@ from functools import lru_cache
 
 import numpy as np
 
+from .errors import StepsafeError
 from .methods import RungeKutta
 from .transfer import batched_solve
+
+
+def _too_large(method: RungeKutta) -> StepsafeError:
+    return StepsafeError(f"method {method.name!r}: coefficients A, b too large to analyse "
+                         "(its stability polynomial overflows float64)")
 
 
 @lru_cache(maxsize=64)
 def stability_polynomials(method: RungeKutta) -> tuple[np.ndarray, np.ndarray]:
     """Ascending coefficients ``(p, q)`` of ``P`` and ``Q`` (each of length s + 1; cached per
-    method object, read-only)."""
+    method object, read-only). A tableau whose coefficients overflow float64 (entries like
+    1e200: ``b^T A^j e`` is out of range) is refused with a :class:`StepsafeError`."""
     A, b = method.A, method.b
     s = b.size
     q = np.zeros(s + 1)
     q[0] = 1.0
-    if not method.explicit:
-        q = np.real(np.poly(A))
-    r = np.empty(s + 1)  # Taylor coefficients of R: 1, b^T e, b^T A e, ...
-    r[0] = 1.0
-    v = np.ones(s)
-    for j in range(1, s + 1):
-        r[j] = b @ v
-        v = A @ v
-    p = np.array([q[: k + 1] @ r[k::-1] for k in range(s + 1)])
+    with np.errstate(over="ignore", invalid="ignore"):
+        if not method.explicit:
+            q = np.real(np.poly(A))
+        r = np.empty(s + 1)  # Taylor coefficients of R: 1, b^T e, b^T A e, ...
+        r[0] = 1.0
+        v = np.ones(s)
+        for j in range(1, s + 1):
+            r[j] = b @ v
+            v = A @ v
+        p = np.array([q[: k + 1] @ r[k::-1] for k in range(s + 1)])
+    if not (np.isfinite(p).all() and np.isfinite(q).all()):
+        raise _too_large(method)
     p.flags.writeable = q.flags.writeable = False
     return p, q
 
@@ -89,7 +99,10 @@ def imaginary_axis_crossings(method: RungeKutta, ymax: float) -> np.ndarray:
     the positive real roots of ``E`` (numerically real: imaginary part below 1e-6 of the
     modulus; extra candidates are harmless, the caller classifies between them)."""
     p, q = stability_polynomials(method)
-    e = _modulus_squared_on_axis(q) - _modulus_squared_on_axis(p)
+    with np.errstate(over="ignore", invalid="ignore"):
+        e = _modulus_squared_on_axis(q) - _modulus_squared_on_axis(p)
+    if not np.isfinite(e).all():
+        raise _too_large(method)
     nz = np.flatnonzero(e)
     if nz.size == 0 or nz[-1] == nz[0]:
         return np.empty(0)  # E identically zero, or c x^k: no positive root

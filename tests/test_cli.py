@@ -328,3 +328,33 @@ def test_ascii_whole_numbers():
     assert ascii_whole(" +12 ") == 12 and ascii_whole("007") == 7
     for bad in ("²", "٣", "３", "1²", "-1", "1.0", "1_0", "", " ", "+", None, 3, "9" * 5000):
         assert ascii_whole(bad) is None, bad
+
+
+# --- compositions, recipes and huge tableaux: exit 2, not 3 -------------------------------
+
+def _method_file(tmp_path, body: str, name: str = "m.yaml") -> str:
+    path = tmp_path / name
+    path.write_text("name: m\norder: 2\nsource: test\n" + body)
+    return str(path)
+
+
+@pytest.mark.filterwarnings("error")
+@pytest.mark.parametrize("weights", ["[0, 1, 0]", "[1, 0]", "[0, 1]"])
+def test_a_zero_weight_among_others_is_an_identity_substep(run_json, tmp_path, weights):
+    """Allowed: the substep with weight 0 is the identity, the composition is the rest."""
+    path = _method_file(tmp_path, f"kind: composition\nbase: midpoint\nweights: {weights}\n")
+    data = run_json("region", path)
+    ref = run_json("region", "midpoint")
+    for model in ("oscillator", "saddle", "inverted"):
+        ours, theirs = (d["models"][model]["first_boundary"] for d in (data, ref))
+        assert ours == theirs or ours == pytest.approx(theirs, rel=1e-12), model
+
+
+@pytest.mark.filterwarnings("error")
+@pytest.mark.parametrize("command", [["region"], ["check", "--step", "1", "--beta", "1",
+                                                  "--method"]])
+def test_rk_coefficients_too_large_are_refused_cleanly(run, tmp_path, command):
+    path = _method_file(tmp_path, "kind: rk\nA: [[1e200, 0], [0, 1e-200]]\nb: [0.5, 0.5]\n")
+    code, out, err = run(*command, path)
+    assert code == 2 and out == ""
+    assert "coefficients A, b too large to analyse" in _one_error_line(err)
