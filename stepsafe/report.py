@@ -135,6 +135,18 @@ def _fmt_steps(iv: list) -> str:
     return f"({fmt_above(lo) if lo else '0'}, {'no limit' if hi is None else fmt_below(hi)})"
 
 
+def _lit(text: Any) -> str:
+    """File text for rich: control characters made visible, markup escaped (shown as
+    typed: a title "[red]x[/red]" or "[/]" is text, not a style). Every "[" gets a
+    backslash, and backslashes before it are doubled (rich's escape() also doubles a
+    trailing backslash, which then shows twice)."""
+    import re
+
+    from .text import printable
+
+    return re.sub(r"(\\*)\[", lambda m: 2 * m.group(1) + "\\[", printable(text))
+
+
 def _console():
     from rich.console import Console
 
@@ -151,8 +163,9 @@ def _pipe_closed() -> None:
 
 def print_region(head: dict[str, Any], models: dict[str, dict[str, Any]]) -> None:
     console = _console()
-    console.print(f"[bold]{head['method']}[/bold] — {head['title']}  "
-                  f"({head['kind']}, {head['stages']} stages, order {head['order']}, "
+    order = "unknown" if head["order"] is None else head["order"]
+    console.print(f"[bold]{_lit(head['method'])}[/bold] — {_lit(head['title'])}  "
+                  f"({head['kind']}, {head['stages']} stages, order {order}, "
                   f"{'symplectic' if head['symplectic'] else 'NOT symplectic'})")
     for model, d in models.items():
         if d["first_boundary"] is None:
@@ -187,18 +200,20 @@ def print_method(data: dict[str, Any], coefficients: dict[str, Any]) -> None:
     from rich.table import Table
 
     console = _console()
-    console.print(f"[bold]{data['method']}[/bold] — {data['title']}")
+    console.print(f"[bold]{_lit(data['method'])}[/bold] — {_lit(data['title'])}")
     table = Table(show_header=False)
     table.add_column("field")
     table.add_column("value")
     for key in ("kind", "order", "stages", "evaluations", "explicit", "symmetric",
                 "symplectic", "symplectic_for_separable", "source"):
-        table.add_row(key, str(data[key]))
+        value = "unknown" if data[key] is None and key in ("order", "evaluations") \
+            else data[key]
+        table.add_row(key, _lit(value))
     for key, value in data["residuals"].items():
         table.add_row(f"residual: {key}", f"{value:.3g}")
     console.print(table)
     for key, value in coefficients.items():
-        console.print(f"[bold]{key}[/bold] = {value}")
+        console.print(f"[bold]{key}[/bold] = {_lit(value)}")
 
 
 def print_methods(rows: list[dict[str, Any]]) -> None:
@@ -209,7 +224,7 @@ def print_methods(rows: list[dict[str, Any]]) -> None:
         table.add_column(col, no_wrap=True)
     table.add_column("title", ratio=1)
     for r in rows:
-        table.add_row(*(str(r[c]) if r[c] is not None else "-" for c in
+        table.add_row(*(_lit(r[c]) if r[c] is not None else "-" for c in
                         ("name", "kind", "order", "stages", "evaluations", "symplectic",
                          "title")))
     _console().print(table)
@@ -252,7 +267,7 @@ def print_advice(data: dict[str, Any]) -> None:
 
     console = _console()
     margin = data["margin"]
-    console.print(f"[bold]{data['method']}[/bold]" +
+    console.print(f"[bold]{_lit(data['method'])}[/bold]" +
                   (f"  (margin {margin:g}: frequencies may be up to {1 / margin:.4g}x larger)"
                    if margin < 1 else ""))
     table = Table()
@@ -310,14 +325,16 @@ def print_check(data: dict[str, Any]) -> None:
     """Plain click output: check runs in CI on every commit, so it does not import rich."""
     import click
 
-    h = fmt(data["h"])
+    from .text import printable
+
+    h, name = fmt(data["h"]), printable(data["method"])
     if data["safe"]:
         where = "" if data["in_primary_interval"] else \
             " (in an island outside the primary interval)"
-        click.echo(click.style("SAFE", fg="green") + f": {data['method']} with h = {h} "
+        click.echo(click.style("SAFE", fg="green") + f": {name} with h = {h} "
                    f"preserves all {data['modes']} mode(s){where}.")
         return
-    click.echo(click.style("UNSAFE", fg="red") + f": {data['method']} with h = {h}: "
+    click.echo(click.style("UNSAFE", fg="red") + f": {name} with h = {h}: "
                f"{data['failing']} of {data['modes']} mode(s) lose their structure.")
     for f in data["failures"]:
         limit = ("none below the horizon" if f["largest_safe_h"] is None
@@ -373,7 +390,7 @@ def _print_accuracy(console, data: dict[str, Any]) -> None:
 def print_errors(data: dict[str, Any]) -> None:
     from rich.table import Table
 
-    table = Table(title=f"{data['method']} on the {data['model']} model")
+    table = Table(title=f"{_lit(data['method'])} on the {data['model']} model")
     table.add_column("z = beta*h", no_wrap=True)
     table.add_column(data["phase_error"], no_wrap=True)
     if data["model"] == "oscillator":
@@ -400,8 +417,8 @@ def print_compare(data: dict[str, Any]) -> None:
         table.add_column(col, no_wrap=True)
     for r in data["methods"]:
         table.add_row(
-            "-" if r["rank"] is None else str(r["rank"]), r["method"] + (" *" if r["implicit"]
-                                                                         else ""),
+            "-" if r["rank"] is None else str(r["rank"]),
+            _lit(r["method"]) + (" *" if r["implicit"] else ""),
             "-" if r["first_boundary"] is None else fmt(r["first_boundary"], 6),
             "-" if r["h_max"] is None else fmt_below(r["h_max"], 6),
             "-" if r["h_tol"] is None else ("unreachable" if r["h_tol"] == 0 else
@@ -419,6 +436,8 @@ def print_system(system: dict[str, Any]) -> None:
     """The modes or equilibria a system: scene was reduced to."""
     import click
 
+    from .text import printable
+
     click.echo(f"System analysis: {system['analysis']}")
     for item in system["items"]:
         where = (f"(q, p) = ({fmt(item['q'], 8)}, {fmt(item['p'], 8)}) "
@@ -429,4 +448,4 @@ def print_system(system: dict[str, Any]) -> None:
             "no limit" if limit is None else f"h < {fmt_below(limit, 10)}")
         click.echo(f"  {where}{item['type']} {item.get('model') or ''} {beta}{limit_text}")
     for note in system["notes"]:
-        click.echo(f"  note: {note}")
+        click.echo(f"  note: {printable(note)}")

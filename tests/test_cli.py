@@ -358,3 +358,92 @@ def test_rk_coefficients_too_large_are_refused_cleanly(run, tmp_path, command):
     code, out, err = run(*command, path)
     assert code == 2 and out == ""
     assert "coefficients A, b too large to analyse" in _one_error_line(err)
+
+
+# --- text from files is printed literally ------------------------------------------------
+
+HOSTILE_TEXT = ["[red]x[/red]", "[/]", "[bold]B", "[link=http://x]L[/link]", "\\[i]",
+                "a\\", "\x1b[31mRED\x1b[0m", "\x1b]0;pwned\x07", "\x9b31m", "\u202eevil",
+                "x\u200by", "\ud800", "line\nbreak", "\x00\x7f", "[1]", "\\\\[b]", "a\\"]
+
+
+def _titled(tmp_path, title: str, source: str = "test") -> str:
+    import json
+
+    path = tmp_path / "t.yaml"
+    path.write_text(f"name: m\nkind: splitting\norder: 2\ntitle: {json.dumps(title)}\n"
+                    f"source: {json.dumps(source)}\ndrift: [0, 1]\nkick: [0.5, 0.5]\n",
+                    encoding="utf-8", errors="surrogatepass")
+    return str(path)
+
+
+def _no_control_characters(out: str) -> None:
+    import unicodedata
+
+    bad = [ch for ch in out if ch not in "\n\t" and unicodedata.category(ch) in
+           ("Cc", "Cf", "Cs", "Zl", "Zp")]
+    assert not bad, (bad, out)
+
+
+def test_printable_makes_controls_visible():
+    from stepsafe.text import printable
+
+    assert printable("a\x1b[31mb") == "a\\x1b[31mb"
+    assert printable("\x9b\u202e\ud800\t") == "\\x9b\\u202e\\ud800\t"
+    assert printable("plain [red] ²٣ é") == "plain [red] ²٣ é"
+
+
+def test_file_text_is_shown_literally(run, tmp_path):
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from stepsafe.text import printable
+
+    pieces = st.sampled_from(HOSTILE_TEXT) | st.text(
+        st.sampled_from("[]/\\=#@ab \x1b\x9b\x07\u202e\u2028"), max_size=8)
+    texts = st.lists(pieces, min_size=1, max_size=3).map("".join)
+
+    @settings(max_examples=40, deadline=None)
+    @given(title=texts, source=texts)
+    def prop(title, source):
+        path = _titled(tmp_path, title, source)
+        code, out, err = run("show", path)
+        assert code == 0 and err == "", err
+        _no_control_characters(out)
+        assert f"m — {printable(title)}" == out.splitlines()[0]
+        code, out, err = run("region", path, "--model", "oscillator")
+        assert code == 0 and err == "", err
+        _no_control_characters(out)
+        assert printable(title) in out.replace("\n", "")
+        import json
+
+        data = json.loads(run("show", path, "--json")[1])
+        assert (data["title"], data["source"]) == (title, source)  # --json: exact
+
+    prop()
+
+
+@pytest.mark.parametrize("text", HOSTILE_TEXT)
+def test_source_in_the_show_table_is_literal(run, tmp_path, text):
+    from stepsafe.text import printable
+
+    code, out, err = run("show", _titled(tmp_path, "t", text))
+    assert code == 0 and err == ""
+    _no_control_characters(out)
+    row = next(line for line in out.splitlines() if "source" in line)
+    assert printable(text).strip() in row
+
+
+def test_swapped_base_name_is_not_markup(run):
+    code, out, _ = run("advise", "--method", "yoshida4", "--base", "midpoint", "--beta", "1")
+    assert code == 0 and out.splitlines()[0].startswith("yoshida4[midpoint]")
+
+
+def test_unknown_order_after_base_swap(run):
+    code, out, _ = run("region", "yoshida4", "--base", "gauss:3", "--model", "oscillator")
+    assert code == 0 and "order unknown" in " ".join(out.split()) and "None" not in out
+
+
+def test_a_tab_in_file_text_is_kept(run, tmp_path):
+    code, out, err = run("show", _titled(tmp_path, "a\tb", "tab\tok"))
+    assert code == 0 and err == "" and out.startswith("m — a")
