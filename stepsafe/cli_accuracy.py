@@ -163,15 +163,23 @@ def _compare_row(res, method) -> dict:
 @click.option("--model", type=MODEL_ONE, default="oscillator", show_default=True)
 @click.option("--zmax", type=FLOAT, default=None, metavar="Z", help="Plot z up to Z [default: 6].")
 @click.option("--phase", "with_phase", is_flag=True, help="Add the phase error (log scale).")
-@click.option("-o", "--output", required=True, metavar="FILE.png", help="Where to write.")
+@click.option("-o", "--output", required=True, metavar="FILE.png",
+              help="Where to write: exactly this path; its extension picks the format (png, "
+                   "pdf, svg, eps, ...; an unknown or missing extension is refused).")
 def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
     """Draw tr M(z)/2 with the band [-1, 1] and the preserved intervals (needs matplotlib).
+
+    The file is written at exactly the path given, in the format its extension names; no
+    extension is ever added.
 
     \b
     Example:
       stepsafe plot lobatto3ab -s 3 -o lobatto3.png --phase
     """
+    import logging
+
     try:
+        logging.getLogger("matplotlib").setLevel(logging.ERROR)  # font cache, eps alpha notes
         import matplotlib
 
         matplotlib.use("Agg")
@@ -184,14 +192,16 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
     from .regions import find_region
     from .transfer import transfer_matrix
 
+    fmt = _plot_format(output, plt)
     zmax = 6.0 if zmax is None else zmax
     if not (np.isfinite(zmax) and zmax > 0):
         raise _input_error(f"zmax must be a positive finite number, got {zmax}")
     m, entry = _resolve(method, stages, base)
     region = find_region(m, model, zmax)
     z = np.linspace(zmax / 4000, zmax, 4000)
-    M = transfer_matrix(m, z, model)
-    half = 0.5 * (M[:, 0, 0] + M[:, 1, 1])
+    with np.errstate(all="ignore"):  # overflow far out is drawn clipped, not warned about
+        M = transfer_matrix(m, z, model)
+        half = 0.5 * (M[:, 0, 0] + M[:, 1, 1])
     rows = 2 if with_phase else 1
     fig, axes = plt.subplots(rows, 1, figsize=(8, 3.2 * rows), sharex=True, squeeze=False)
     ax = axes[0, 0]
@@ -207,13 +217,51 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
     ax.set_title(f"{entry.name}, {model}: preserved z = beta*h shaded green")
     ax.legend(loc="lower left", fontsize=8)
     if with_phase:
-        e = errors(m, z, model)
+        with np.errstate(all="ignore"):
+            e = errors(m, z, model)
         axes[1, 0].semilogy(z, np.abs(e.phase), lw=1.2)
         axes[1, 0].set_ylabel("|phase error|" if model == "oscillator" else "|rate error|")
     axes[-1, 0].set_xlabel("z = beta h")
     fig.tight_layout()
-    try:
-        fig.savefig(output, dpi=120)
-    except OSError as exc:
-        raise _input_error(f"cannot write {output}: {exc.strerror or exc}") from None
+    _save(fig, output, fmt)
     click.echo(f"wrote {output}")
+
+
+def _plot_format(output: str, plt) -> str:
+    """The format named by the extension of ``output``; refuses anything that would not
+    write exactly that path."""
+    import os
+
+    formats = sorted(set(plt.figure().canvas.get_supported_filetypes()) - {"pgf"})
+    plt.close("all")
+    listed = ", ".join(formats)
+    if output == "-":
+        raise _input_error("-o -: plot writes a file, not standard output (give a path such "
+                           "as plot.png)")
+    if os.path.isdir(output) or output.endswith(("/", os.sep)):
+        raise _input_error(f"-o {output}: a directory, not a file (give a path such as "
+                           f"plot.png; formats: {listed})")
+    ext = os.path.splitext(os.path.basename(output))[1][1:].lower()
+    if not ext:
+        raise _input_error(f"-o {output}: no extension to choose the format from (one of: "
+                           f"{listed})")
+    if ext not in formats:
+        raise _input_error(f"-o {output}: unknown format .{ext} (one of: {listed})")
+    return ext
+
+
+def _save(fig, output: str, fmt: str) -> None:
+    """Write exactly ``output`` (the format is given, so matplotlib never adds an extension);
+    a file left half-written by a failure is removed unless it was there before."""
+    import os
+    import warnings
+
+    existed = os.path.lexists(output)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fig.savefig(output, dpi=120, format=fmt)
+    except OSError as exc:
+        if not existed and os.path.isfile(output):
+            os.remove(output)
+        raise _input_error(f"cannot write {output}: {exc.strerror or exc}") from None

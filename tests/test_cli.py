@@ -447,3 +447,37 @@ def test_unknown_order_after_base_swap(run):
 def test_a_tab_in_file_text_is_kept(run, tmp_path):
     code, out, err = run("show", _titled(tmp_path, "a\tb", "tab\tok"))
     assert code == 0 and err == "" and out.startswith("m — a")
+
+
+# --- plot -o writes exactly PATH or refuses ----------------------------------------------
+
+@pytest.mark.parametrize("output, message", [
+    ("out", "no extension"), ("out.xyz", "unknown format .xyz"), ("out.txt", "unknown format"),
+    ("-", "not standard output"), (".png", "no extension"), ("plotdir", "a directory"),
+    ("plotdir/", "a directory"), ("missing/x.png", "cannot write missing/x.png"),
+])
+def test_plot_refuses_what_it_would_not_write_exactly(run, tmp_path, monkeypatch, output,
+                                                      message):
+    pytest.importorskip("matplotlib")
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "plotdir").mkdir()
+    code, out, err = run("plot", "verlet", "-o", output)
+    assert code == 2 and out == ""
+    line = _one_error_line(err)
+    assert message in line and "Traceback" not in err
+    if "format" in message or "extension" in message:
+        assert "png, ps" in line and "svg" in line and "pdf" in line  # lists the formats
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["plotdir"]
+
+
+@pytest.mark.filterwarnings("error")
+@pytest.mark.parametrize("output", ["out.png", "out.PNG", "out.eps", "out.svg", "out.pdf",
+                                    "dots.in.name.jpg"])
+def test_plot_writes_exactly_the_path_given(run, tmp_path, monkeypatch, output):
+    pytest.importorskip("matplotlib")
+    monkeypatch.chdir(tmp_path)
+    code, out, err = run("plot", "verlet", "--phase", "-o", output)
+    assert code == 0 and err == ""  # no matplotlib warnings (eps has no transparency)
+    assert out.strip() == f"wrote {output}"
+    assert [p.name for p in tmp_path.iterdir()] == [output]
+    assert (tmp_path / output).stat().st_size > 0
