@@ -11,6 +11,7 @@ import click
 from .cli import FLOAT, INT, _input_error, _resolve, main, method_options, scene_options
 
 MODEL_ONE = click.Choice(("oscillator", "saddle", "inverted", "saddle-p"))
+OVERFLOW = 1e150  # |M| beyond this: products of its entries leave float64
 
 
 @main.command("error")
@@ -26,7 +27,9 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json) -> No
 
     oscillator: phase error theta/z - 1 (theta the rotation per step) and the relative
     energy error bound kappa - 1 from the invariant ellipse of M; saddle/inverted: the
-    growth-rate error log(mu)/z - 1. NaN where the step does not preserve the structure.
+    growth-rate error log(mu)/z - 1. "not preserved" (null in JSON) where the step does
+    not preserve the structure; "overflow" (null, with "overflow": true) where M(z) is too
+    large for float64 to evaluate the errors (entries beyond 1e150).
 
     \b
     Examples:
@@ -37,6 +40,7 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json) -> No
 
     from .accuracy import errors
     from .report import print_errors, print_json
+    from .transfer import transfer_matrix
 
     z = list(zs)
     if zmin is not None or zmax is not None:
@@ -52,10 +56,17 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json) -> No
         if not (np.isfinite(value) and value > 0):
             raise _input_error(f"z must be a positive finite number, got {value}")
     m, entry = _resolve(method, stages, base)
-    e = errors(m, np.array(z, dtype=float), model)
-    rows = [{"z": float(zz), "phase_error": _f(p),
-             "energy_error": _f(en) if model == "oscillator" else None}
-            for zz, p, en in zip(e.z, e.phase, e.energy)]
+    zs = np.array(z, dtype=float)
+    with np.errstate(all="ignore"):  # far out, M(z) overflows: those rows say so, no warnings
+        e = errors(m, zs, model)
+        M = np.asarray(transfer_matrix(m, zs, model))
+        size = np.abs(M).max(axis=(1, 2))
+    # the error formulas multiply entries of M: beyond OVERFLOW they cannot be evaluated
+    overflow = ~(np.isfinite(M).all(axis=(1, 2)) & (size <= OVERFLOW))
+    rows = [{"z": float(zz), "phase_error": None if over else _f(p),
+             "energy_error": _f(en) if model == "oscillator" and not over else None,
+             "overflow": bool(over)}
+            for zz, p, en, over in zip(e.z, e.phase, e.energy, overflow)]
     data = {"method": entry.name, "model": model,
             "phase_error": "theta/z - 1" if model == "oscillator" else "log(mu)/z - 1",
             "rows": rows}

@@ -396,14 +396,16 @@ def print_errors(data: dict[str, Any]) -> None:
     if data["model"] == "oscillator":
         table.add_column("energy error bound", no_wrap=True)
     for r in data["rows"]:
-        cells = [fmt(r["z"]), _fmt_err(r["phase_error"])]
+        cells = [fmt(r["z"]), _fmt_err(r["phase_error"], r.get("overflow"))]
         if data["model"] == "oscillator":
-            cells.append(_fmt_err(r["energy_error"]))
+            cells.append(_fmt_err(r["energy_error"], r.get("overflow")))
         table.add_row(*cells)
     _console().print(table)
 
 
-def _fmt_err(x: float | None) -> str:
+def _fmt_err(x: float | None, overflow: bool = False) -> str:
+    if overflow:
+        return "overflow (M too large)"
     return "not preserved" if x is None else f"{x:.6e}"
 
 

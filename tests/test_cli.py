@@ -481,3 +481,23 @@ def test_plot_writes_exactly_the_path_given(run, tmp_path, monkeypatch, output):
     assert out.strip() == f"wrote {output}"
     assert [p.name for p in tmp_path.iterdir()] == [output]
     assert (tmp_path / output).stat().st_size > 0
+
+
+# --- numpy warnings never reach stderr; overflow is reported as such ----------------------
+
+@pytest.mark.filterwarnings("error")
+@pytest.mark.parametrize("model", ["oscillator", "saddle", "inverted"])
+@pytest.mark.parametrize("method", [["verlet"], ["yoshida4"], ["gauss", "-s", "3"],
+                                    ["lobatto3ab", "-s", "3"]])
+def test_error_at_huge_z_says_overflow_without_warnings(run, run_json, method, model):
+    data = run_json("error", *method, "--model", model, "--z", "0.5", "--z", "1e10",
+                    "--z", "1e160", "--z", "1e300")
+    rows = data["rows"]
+    assert rows[0]["overflow"] is False and rows[0]["phase_error"] is not None
+    for row in rows:
+        if row["overflow"]:
+            assert row["phase_error"] is None and row["energy_error"] is None
+    if method == ["verlet"] and model != "saddle":  # M ~ z^2: 1e160, 1e300 overflow float64
+        assert [r["overflow"] for r in rows] == [False, False, True, True]
+        code, out, err = run("error", *method, "--model", model, "--z", "1e300")
+        assert code == 0 and err == "" and "overflow" in out
