@@ -328,10 +328,18 @@ def _scene_inputs(scene_file, method_name, stages, base, beta, saddle_beta, inve
                   modes_file, margin, zmax):
     """Merge a scene file with command-line options (the options win)."""
     from .advice import Modes, validate_margin
+    from .errors import positive_finite
     from .regions import DEFAULT_ZMAX
-    from .scene import MethodRef, Scene, load_modes, load_scene
+    from .scene import MethodRef, Scene, load_scene
 
+    if zmax is not None:  # the options are checked before any file is read or analysed
+        zmax = positive_finite(zmax, "zmax")
+    if margin is not None:
+        margin = validate_margin(margin)
     scene = load_scene(scene_file) if scene_file else Scene()
+    margin = validate_margin(margin if margin is not None else
+                             (scene.margin if scene.margin is not None else 1.0))
+    zmax = zmax if zmax is not None else (scene.zmax or DEFAULT_ZMAX)
     ref = scene.method
     if method_name:
         ref = MethodRef(method_name, stages, base)
@@ -341,37 +349,38 @@ def _scene_inputs(scene_file, method_name, stages, base, beta, saddle_beta, inve
     if ref is None:
         raise _input_error("no method: give --method METHOD or a scene file with method:")
     method, entry = _resolve(ref.name, ref.stages, ref.base)
-    cli_modes = {"oscillator": list(beta), "saddle": list(saddle_beta),
-                 "inverted": list(inverted_beta)}
-    if modes_file:
-        for model, values in load_modes(modes_file).items():
-            cli_modes[model] = list(cli_modes[model]) + [values]
+    cli_modes = command_line_modes(beta, saddle_beta, inverted_beta, modes_file)
     system = None
-    if any(len(v) for v in cli_modes.values()):
-        arrays = {m: _concat(v) for m, v in cli_modes.items() if len(v)}
+    if cli_modes:
+        arrays = cli_modes
     elif scene.modes:
         arrays = scene.modes
     elif scene.system is not None:
         from .sysfile import analyse_system
 
-        system = analyse_system(scene.system, scene.where, scene.folder, method,
-                                zmax if zmax is not None else (scene.zmax or DEFAULT_ZMAX))
+        system = analyse_system(scene.system, scene.where, scene.folder, method, zmax)
         arrays = system.modes.betas if system.modes is not None else {"oscillator": [0.0]}
     else:
         raise _input_error("no frequencies: give --beta/--saddle-beta/--inverted-beta, "
                            "--modes FILE, or modes: or system: in a scene file")
     modes = Modes.from_arrays(arrays)
-    margin = validate_margin(margin if margin is not None else
-                             (scene.margin if scene.margin is not None else 1.0))
-    zmax = zmax if zmax is not None else (scene.zmax or DEFAULT_ZMAX)
     return method, entry, modes, margin, zmax, scene, ref, system
 
 
-def _concat(values):
+def command_line_modes(beta, saddle_beta, inverted_beta, modes_file) -> dict:
+    """Every frequency given on the command line, per model: --beta, --saddle-beta,
+    --inverted-beta and the --modes file together (none is dropped); {} if none."""
     import numpy as np
 
-    parts = [np.atleast_1d(np.asarray(v, dtype=float)) for v in values]
-    return np.concatenate(parts) if parts else np.zeros(0)
+    parts: dict[str, list] = {"oscillator": list(beta), "saddle": list(saddle_beta),
+                              "inverted": list(inverted_beta)}
+    if modes_file:
+        from .scene import load_modes
+
+        for model, values in load_modes(modes_file).items():
+            parts.setdefault(model, []).append(values)
+    return {model: np.concatenate([np.atleast_1d(np.asarray(v, dtype=float)) for v in vs])
+            for model, vs in parts.items() if len(vs)}
 
 
 def _input_error(message: str):
@@ -436,7 +445,7 @@ def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, be
             if not (0 < t.value < float("inf")):
                 raise _input_error(f"--tol-{t.kind} must be a positive finite number, "
                                    f"got {t.value}")
-        res = tradeoff(method, modes, tols, margin, entry.name, entry.evaluations)
+        res = tradeoff(method, modes, tols, margin, entry.name, entry.evaluations, zmax)
         data = tradeoff_data(res)
         regions = res.advice.regions
     verdict = _verify(ref.name, ref.stages, ref.base, regions) if verify and regions else None

@@ -8,7 +8,16 @@ from __future__ import annotations
 
 import click
 
-from .cli import FLOAT, INT, _input_error, _resolve, main, method_options, scene_options
+from .cli import (
+    FLOAT,
+    INT,
+    _input_error,
+    _resolve,
+    command_line_modes,
+    main,
+    method_options,
+    scene_options,
+)
 
 MODEL_ONE = click.Choice(("oscillator", "saddle", "inverted", "saddle-p"))
 OVERFLOW = 1e150  # |M| beyond this: products of its entries leave float64
@@ -104,6 +113,7 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, scene_files, method_name,
       stepsafe compare --beta 1 --tol-energy 1e-4 --methods verlet,pefrl,yoshida4,gauss:2
     """
     from .advice import Modes, validate_margin
+    from .errors import positive_finite
     from .library import FAMILIES, builtin_names, resolve
     from .report import print_compare, print_json
     from .tradeoff import Tolerance, tradeoff
@@ -112,19 +122,15 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, scene_files, method_name,
         raise _input_error("compare takes --methods or --all, not a method or scene")
     if verify:
         raise _input_error("--verify applies to region, advise and check (run it per method)")
-    modes = Modes.from_arrays({m: v for m, v in
-                               (("oscillator", beta), ("saddle", saddle_beta),
-                                ("inverted", inverted_beta)) if v} or {})
-    if modes_file:
-        from .scene import load_modes
-
-        modes = Modes.from_arrays({**modes.betas, **load_modes(modes_file)})
+    modes = Modes.from_arrays(command_line_modes(beta, saddle_beta, inverted_beta, modes_file))
     tolerances = tuple(Tolerance(k, v) for k, v in (("phase", tol_phase),
                                                      ("energy", tol_energy)) if v is not None)
     for t in tolerances:
         if not (t.value > 0 and t.value < float("inf")):
             raise _input_error(f"--tol-{t.kind} must be a positive finite number, got {t.value}")
     margin = validate_margin(1.0 if margin is None else margin)
+    if zmax is not None:
+        zmax = positive_finite(zmax, "zmax")
     if use_all:
         specs = [(n, None) for n in builtin_names() if n not in FAMILIES]
         specs += [(f, s) for f in FAMILIES for s in (2, 3)]
@@ -139,7 +145,7 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, scene_files, method_name,
     rows = []
     for name, s in specs:
         m, entry = resolve(name, s)
-        res = tradeoff(m, modes, tolerances, margin, entry.name, entry.evaluations)
+        res = tradeoff(m, modes, tolerances, margin, entry.name, entry.evaluations, zmax)
         rows.append(_compare_row(res, m))
     ranked = sorted(rows, key=lambda r: (r["cost"] is None, r["cost"] or 0.0))
     for i, r in enumerate(ranked, 1):

@@ -501,3 +501,75 @@ def test_error_at_huge_z_says_overflow_without_warnings(run, run_json, method, m
         assert [r["overflow"] for r in rows] == [False, False, True, True]
         code, out, err = run("error", *method, "--model", model, "--z", "1e300")
         assert code == 0 and err == "" and "overflow" in out
+
+
+# --- every frequency source is used; --zmax and --margin are checked everywhere -----------
+
+def _modes_csv(tmp_path, rows: str) -> str:
+    path = tmp_path / "modes.csv"
+    path.write_text("beta,model\n" + rows)
+    return str(path)
+
+
+def test_compare_uses_a_modes_file_alone_and_with_betas(run_json, tmp_path):
+    modes = _modes_csv(tmp_path, "2,oscillator\n0.5,saddle\n")
+    alone = run_json("compare", "--modes", modes, "--methods", "verlet,pefrl")
+    assert alone["modes"] == {"oscillator": 1, "saddle": 1}
+    both = run_json("compare", "--modes", modes, "--beta", "4", "--beta", "1",
+                    "--methods", "verlet")
+    assert both["modes"] == {"oscillator": 3, "saddle": 1}
+    # the largest beta (4, from the command line) limits verlet: h < 2/4
+    assert both["methods"][0]["h_max"] == pytest.approx(0.5, rel=1e-9)
+    every = run_json("compare", "--modes", modes, "--all")
+    assert len(every["methods"]) > 10
+
+
+@pytest.mark.parametrize("command", [["check", "--step", "0.1"], ["advise"]])
+def test_modes_file_with_betas_and_saddle_p(run_json, tmp_path, command):
+    modes = _modes_csv(tmp_path, "2,oscillator\n0.5,saddle-p\n")
+    data = run_json(*command, "--method", "verlet", "--modes", modes, "--beta", "5")
+    limits = data["models"] if "models" in data else None
+    if limits is not None:
+        assert limits["oscillator"]["count"] == 2 and "saddle-p" in limits
+    else:
+        assert data["modes"] == 3
+
+
+ZMAX_COMMANDS = [
+    ["check", "--method", "verlet", "--beta", "1", "--step", "0.1"],
+    ["check", "examples/scene.yaml"],
+    ["advise", "--method", "verlet", "--beta", "1"],
+    ["advise", "examples/scene.yaml"],
+    ["compare", "--beta", "1", "--methods", "verlet"],
+    ["region", "verlet"],
+    ["plot", "verlet", "-o", "never-written.png"],
+]
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "inf", "nan", "-0"])
+@pytest.mark.parametrize("command", ZMAX_COMMANDS)
+def test_zmax_must_be_positive_and_finite_everywhere(run, command, value):
+    code, out, err = run(*command, "--zmax", value)
+    assert code == 2 and out == ""
+    assert "zmax must be a positive finite number" in _one_error_line(err)
+
+
+@pytest.mark.parametrize("value", ["0", "-0.5", "1.5", "inf", "nan"])
+@pytest.mark.parametrize("command", [c for c in ZMAX_COMMANDS if c[0] in ("check", "advise",
+                                                                         "compare")])
+def test_margin_must_be_in_0_1_everywhere(run, command, value):
+    code, out, err = run(*command, "--margin", value)
+    assert code == 2 and out == ""
+    assert "margin must be in (0, 1]" in _one_error_line(err)
+
+
+def test_error_range_is_checked(run):
+    code, _, err = run("error", "verlet", "--zmin", "0", "--zmax", "0")
+    assert code == 2 and "need 0 < zmin < zmax" in _one_error_line(err)
+
+
+def test_compare_and_advise_with_tolerance_use_zmax(run_json):
+    far = run_json("advise", "--method", "midpoint", "--beta", "1", "--tol-phase", "1",
+                   "--zmax", "50")
+    near = run_json("advise", "--method", "midpoint", "--beta", "1", "--tol-phase", "1")
+    assert far["horizon"] == pytest.approx(50) and near["horizon"] == pytest.approx(10)
