@@ -126,7 +126,10 @@ def _error_line(message: str, prefix: str = "stepsafe: error: ") -> None:
     """One line on stderr, control characters made visible (the message may quote a file)."""
     from .text import printable
 
-    click.echo(prefix + printable(" ".join(message.split())), err=True)
+    try:
+        click.echo(prefix + printable(" ".join(message.split())), err=True)
+    except OSError:  # stderr itself is closed or full: the exit code still tells
+        pass
 
 
 def _usage_message(exc: click.UsageError, group: click.Group, args: list[str]) -> str:
