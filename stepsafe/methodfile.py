@@ -28,6 +28,7 @@ and :func:`json_schema` renders it as a JSON Schema for editors and the README.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
@@ -255,6 +256,11 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
                                                                        coefficients["kick"])
     elif symmetric and "weights" in coefficients:
         coefficients["weights"] = _mirror(coefficients["weights"])
+    for key, values in coefficients.items():  # every analysis sums them: they must fit
+        rows = values if FIELDS[key].type == "matrix" else [values]
+        if not all(math.isfinite(sum(abs(float(v)) for v in row)) for row in rows) or \
+                not math.isfinite(sum(sum(abs(float(v)) for v in row) for row in rows)):
+            raise _fail(where, key, "coefficients too large: their sum overflows float64")
 
     base = tree.get("base")
     if kind == "composition":
