@@ -21,6 +21,7 @@ from .cli import (
 
 MODEL_ONE = click.Choice(("oscillator", "saddle", "inverted", "saddle-p"))
 OVERFLOW = 1e150  # |M| beyond this: products of its entries leave float64
+MAX_POINTS = 100_000  # error --n: a table, not a sweep (bounded time and memory)
 
 
 @main.command("error")
@@ -28,7 +29,8 @@ OVERFLOW = 1e150  # |M| beyond this: products of its entries leave float64
 @click.option("--z", "zs", type=FLOAT, multiple=True, metavar="Z", help="z = beta*h; repeatable.")
 @click.option("--zmin", type=FLOAT, default=None, help="Range start (with --zmax and --n).")
 @click.option("--zmax", type=FLOAT, default=None, help="Range end.")
-@click.option("--n", "count", type=INT, default=11, show_default=True, help="Range points.")
+@click.option("--n", "count", type=INT, default=11, show_default=True,
+              help=f"Range points (at most {MAX_POINTS}).")
 @click.option("--model", type=MODEL_ONE, default="oscillator", show_default=True)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json) -> None:
@@ -55,6 +57,8 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json) -> No
     if zmin is not None or zmax is not None:
         if zmin is None or zmax is None or count < 2:
             raise _input_error("a range needs --zmin, --zmax and --n >= 2")
+        if count > MAX_POINTS:
+            raise _input_error(f"--n {count}: at most {MAX_POINTS} points")
         if not (0 < zmin < zmax) or not np.isfinite(zmax):
             raise _input_error(f"need 0 < zmin < zmax (finite), got {zmin}, {zmax}")
         z += list(np.geomspace(zmin, zmax, count) if zmax / zmin > 100
@@ -194,6 +198,7 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
       stepsafe plot lobatto3ab -s 3 -o lobatto3.png --phase
     """
     import logging
+    import warnings
 
     try:
         logging.getLogger("matplotlib").setLevel(logging.ERROR)  # font cache, eps alpha notes
@@ -205,7 +210,6 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
         raise _input_error("plot needs matplotlib: pip install 'stepsafe[plot]'") from None
     import numpy as np
 
-    from .accuracy import errors
     from .regions import find_region
     from .transfer import transfer_matrix
 
@@ -219,6 +223,19 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
     with np.errstate(all="ignore"):  # overflow far out is drawn clipped, not warned about
         M = transfer_matrix(m, z, model)
         half = 0.5 * (M[:, 0, 0] + M[:, 1, 1])
+    with warnings.catch_warnings(), np.errstate(all="ignore"):
+        # matplotlib's tick locator overflows on axes out to 1e308: cosmetic, not a result
+        warnings.simplefilter("ignore")
+        fig = _draw(plt, m, entry, model, region, z, half, zmax, with_phase)
+    _save(fig, output, fmt)
+    click.echo(f"wrote {output}")
+
+
+def _draw(plt, m, entry, model, region, z, half, zmax, with_phase):
+    import numpy as np
+
+    from .accuracy import errors
+
     rows = 2 if with_phase else 1
     fig, axes = plt.subplots(rows, 1, figsize=(8, 3.2 * rows), sharex=True, squeeze=False)
     ax = axes[0, 0]
@@ -234,14 +251,12 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
     ax.set_title(f"{entry.name}, {model}: preserved z = beta*h shaded green")
     ax.legend(loc="lower left", fontsize=8)
     if with_phase:
-        with np.errstate(all="ignore"):
-            e = errors(m, z, model)
+        e = errors(m, z, model)
         axes[1, 0].semilogy(z, np.abs(e.phase), lw=1.2)
         axes[1, 0].set_ylabel("|phase error|" if model == "oscillator" else "|rate error|")
     axes[-1, 0].set_xlabel("z = beta h")
     fig.tight_layout()
-    _save(fig, output, fmt)
-    click.echo(f"wrote {output}")
+    return fig
 
 
 def _plot_format(output: str, plt) -> str:

@@ -573,3 +573,16 @@ def test_compare_and_advise_with_tolerance_use_zmax(run_json):
                    "--zmax", "50")
     near = run_json("advise", "--method", "midpoint", "--beta", "1", "--tol-phase", "1")
     assert far["horizon"] == pytest.approx(50) and near["horizon"] == pytest.approx(10)
+
+
+def test_error_range_points_are_bounded(run):
+    code, _, err = run("error", "verlet", "--zmin", "1", "--zmax", "2", "--n", "100000000")
+    assert code == 2 and "at most 100000 points" in _one_error_line(err)
+
+
+@pytest.mark.filterwarnings("error")
+def test_plot_far_out_has_no_warnings(run, tmp_path, monkeypatch):
+    pytest.importorskip("matplotlib")
+    monkeypatch.chdir(tmp_path)
+    code, out, err = run("plot", "verlet", "--zmax", "1e308", "--phase", "-o", "far.svg")
+    assert code == 0 and err == "" and (tmp_path / "far.svg").is_file()
