@@ -600,21 +600,35 @@ def validate_cmd(files: tuple[str, ...]) -> None:
     Exit 0 when every file is valid (warnings allowed), 2 at the first invalid file.
     """
     from .checks import residuals
+    from .errors import StepsafeError
     from .library import resolve
+    from .output import decided
 
-    for path in files:
-        method, entry = resolve(path if _is_pathlike(path) else f"./{path}")
+    lines, invalid = [], None
+    for path in files:  # all files first: a reader that stops early keeps the exit code
+        try:
+            method, entry = resolve(path if _is_pathlike(path) else f"./{path}")
+        except StepsafeError as exc:
+            invalid = exc
+            break
         res = residuals(method)
-        click.echo(f"ok: {path}: {entry.name} ({method.kind}, order {method.order}, "
-                   f"{method.stages} stages)")
+        lines.append(f"ok: {path}: {entry.name} ({method.kind}, order {method.order}, "
+                     f"{method.stages} stages)")
         if not res.symplectic_for_separable:
-            click.echo(f"warning: {path}: not symplectic (residual {res.symplectic_separable:.3g})")
+            lines.append(f"warning: {path}: not symplectic "
+                         f"(residual {res.symplectic_separable:.3g})")
         elif not res.symplectic:
-            click.echo(f"warning: {path}: symplectic only for separable H "
-                       f"(|b_q - b_p| = {res.weights_equal:.3g})")
+            lines.append(f"warning: {path}: symplectic only for separable H "
+                         f"(|b_q - b_p| = {res.weights_equal:.3g})")
         if not res.consistent:
-            click.echo(f"warning: {path}: not consistent (weight sums off by "
-                       f"{res.consistency:.3g})")
+            lines.append(f"warning: {path}: not consistent (weight sums off by "
+                         f"{res.consistency:.3g})")
+    if invalid is not None:
+        decided(EXIT_INPUT, str(invalid))
+    for line in lines:
+        click.echo(line)
+    if invalid is not None:
+        raise invalid
 
 
 def _is_pathlike(path: str) -> bool:

@@ -586,3 +586,20 @@ def test_plot_far_out_has_no_warnings(run, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     code, out, err = run("plot", "verlet", "--zmax", "1e308", "--phase", "-o", "far.svg")
     assert code == 0 and err == "" and (tmp_path / "far.svg").is_file()
+
+
+def test_validate_keeps_its_exit_code_when_the_reader_stops_early(tmp_path):
+    """'validate good.yaml bad.yaml | head -1' must not pass because the pipe closed."""
+    import subprocess
+    import sys
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: m\nkind: splitting\norder: two\nsource: x\ndrift: [1]\nkick: [1]\n")
+    args = [sys.executable, "-m", "stepsafe", "validate", "methods/verlet.yaml", str(bad)]
+    proc = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 2
+    assert "$.order: must be a whole number" in _one_error_line(err)
+    done = _stepsafe("validate", "methods/verlet.yaml", str(bad))
+    assert done.returncode == 2 and done.stdout.startswith("ok: methods/verlet.yaml")
