@@ -135,16 +135,16 @@ def _fmt_steps(iv: list) -> str:
     return f"({fmt_above(lo) if lo else '0'}, {'no limit' if hi is None else fmt_below(hi)})"
 
 
-def _lit(text: Any) -> str:
-    """File text for rich: control characters made visible, markup escaped (shown as
-    typed: a title "[red]x[/red]" or "[/]" is text, not a style). Every "[" gets a
-    backslash, and backslashes before it are doubled (rich's escape() also doubles a
-    trailing backslash, which then shows twice)."""
-    import re
+def _lit(*parts: Any):
+    """File text for rich, shown as typed: a rich ``Text`` (never parsed as markup, so
+    "[red]x[/red]" or "[/]" is text, not a style, and ":smile:" is not an emoji), with
+    control characters made visible. ``parts`` are strings or ``(string, style)`` pairs."""
+    from rich.text import Text
 
     from .text import printable
 
-    return re.sub(r"(\\*)\[", lambda m: 2 * m.group(1) + "\\[", printable(text))
+    return Text.assemble(*((printable(p[0]), p[1]) if isinstance(p, tuple) else printable(p)
+                           for p in parts))
 
 
 def _console():
@@ -164,9 +164,9 @@ def _pipe_closed() -> None:
 def print_region(head: dict[str, Any], models: dict[str, dict[str, Any]]) -> None:
     console = _console()
     order = "unknown" if head["order"] is None else head["order"]
-    console.print(f"[bold]{_lit(head['method'])}[/bold] — {_lit(head['title'])}  "
-                  f"({head['kind']}, {head['stages']} stages, order {order}, "
-                  f"{'symplectic' if head['symplectic'] else 'NOT symplectic'})")
+    console.print(_lit((head["method"], "bold"), f" — {head['title']}  "
+                       f"({head['kind']}, {head['stages']} stages, order {order}, "
+                       f"{'symplectic' if head['symplectic'] else 'NOT symplectic'})"))
     for model, d in models.items():
         if d["first_boundary"] is None:
             first = f"none below zmax = {fmt(d['zmax'])}"
@@ -200,7 +200,7 @@ def print_method(data: dict[str, Any], coefficients: dict[str, Any]) -> None:
     from rich.table import Table
 
     console = _console()
-    console.print(f"[bold]{_lit(data['method'])}[/bold] — {_lit(data['title'])}")
+    console.print(_lit((data["method"], "bold"), f" — {data['title']}"))
     table = Table(show_header=False)
     table.add_column("field")
     table.add_column("value")
@@ -213,7 +213,7 @@ def print_method(data: dict[str, Any], coefficients: dict[str, Any]) -> None:
         table.add_row(f"residual: {key}", f"{value:.3g}")
     console.print(table)
     for key, value in coefficients.items():
-        console.print(f"[bold]{key}[/bold] = {_lit(value)}")
+        console.print(_lit((key, "bold"), f" = {value}"))
 
 
 def print_methods(rows: list[dict[str, Any]]) -> None:
@@ -267,9 +267,9 @@ def print_advice(data: dict[str, Any]) -> None:
 
     console = _console()
     margin = data["margin"]
-    console.print(f"[bold]{_lit(data['method'])}[/bold]" +
-                  (f"  (margin {margin:g}: frequencies may be up to {1 / margin:.4g}x larger)"
-                   if margin < 1 else ""))
+    console.print(_lit((data["method"], "bold"),
+                       f"  (margin {margin:g}: frequencies may be up to {1 / margin:.4g}x larger)"
+                       if margin < 1 else ""))
     table = Table()
     for col in ("model", "modes", "largest beta", "first boundary z*", "h limit = F z*/beta"):
         table.add_column(col, no_wrap=True)
@@ -390,7 +390,7 @@ def _print_accuracy(console, data: dict[str, Any]) -> None:
 def print_errors(data: dict[str, Any]) -> None:
     from rich.table import Table
 
-    table = Table(title=f"{_lit(data['method'])} on the {data['model']} model")
+    table = Table(title=_lit(f"{data['method']} on the {data['model']} model"))
     table.add_column("z = beta*h", no_wrap=True)
     table.add_column(data["phase_error"], no_wrap=True)
     if data["model"] == "oscillator":
@@ -420,7 +420,7 @@ def print_compare(data: dict[str, Any]) -> None:
     for r in data["methods"]:
         table.add_row(
             "-" if r["rank"] is None else str(r["rank"]),
-            _lit(r["method"]) + (" *" if r["implicit"] else ""),
+            _lit(r["method"] + (" *" if r["implicit"] else "")),
             "-" if r["first_boundary"] is None else fmt(r["first_boundary"], 6),
             "-" if r["h_max"] is None else fmt_below(r["h_max"], 6),
             "-" if r["h_tol"] is None else ("unreachable" if r["h_tol"] == 0 else

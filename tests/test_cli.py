@@ -364,7 +364,8 @@ def test_rk_coefficients_too_large_are_refused_cleanly(run, tmp_path, command):
 
 HOSTILE_TEXT = ["[red]x[/red]", "[/]", "[bold]B", "[link=http://x]L[/link]", "\\[i]",
                 "a\\", "\x1b[31mRED\x1b[0m", "\x1b]0;pwned\x07", "\x9b31m", "\u202eevil",
-                "x\u200by", "\ud800", "line\nbreak", "\x00\x7f", "[1]", "\\\\[b]", "a\\"]
+                "x\u200by", "\ud800", "line\nbreak", "\x00\x7f", "[1]", "\\\\[b]", "a\\",
+                ":smile:", "\\["]
 
 
 def _titled(tmp_path, title: str, source: str = "test") -> str:
@@ -400,7 +401,7 @@ def test_file_text_is_shown_literally(run, tmp_path):
     from stepsafe.text import printable
 
     pieces = st.sampled_from(HOSTILE_TEXT) | st.text(
-        st.sampled_from("[]/\\=#@ab \x1b\x9b\x07\u202e\u2028"), max_size=8)
+        st.sampled_from("[]/\\=#@:ab \x1b\x9b\x07\u202e\u2028"), max_size=8)
     texts = st.lists(pieces, min_size=1, max_size=3).map("".join)
 
     @settings(max_examples=40, deadline=None)
@@ -603,3 +604,13 @@ def test_validate_keeps_its_exit_code_when_the_reader_stops_early(tmp_path):
     assert "$.order: must be a whole number" in _one_error_line(err)
     done = _stepsafe("validate", "methods/verlet.yaml", str(bad))
     assert done.returncode == 2 and done.stdout.startswith("ok: methods/verlet.yaml")
+
+
+@pytest.mark.parametrize("text", ["\\[", "\\[1]", ":smile:", ":warning: [b]x[/b] :cross_mark:",
+                                  "\\\\[red]", "a\\"])
+def test_no_rich_processing_of_file_text(run, tmp_path, text):
+    """Backslash escapes and :emoji: codes are rich markup too: shown as typed."""
+    code, out, _ = run("show", _titled(tmp_path, text, text))
+    assert code == 0 and out.splitlines()[0] == f"m — {text}"
+    assert any(line.split("│")[2].strip() == text for line in out.splitlines()
+               if "│ source" in line)
