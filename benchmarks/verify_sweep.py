@@ -53,10 +53,10 @@ def main() -> None:
         for zmax in ZMAXES:
             row = run(name, stages, zmax)
             rows.append(row)
+            verdict = "ok" if row["ok"] else f"FAILED {row['failed']}"
             print(f"{row['method']:28s} zmax {zmax:7.4f}  {row['points']:4d} checks  "
-                  f"worst {row['worst']:.1e}  {'ok' if row['ok'] else 'FAILED ' + str(row['failed'])}"
-                  f"  undecided {row['undecided']}  {row['seconds_region']:.1f}+"
-                  f"{row['seconds_verify']:.1f} s", flush=True)
+                  f"worst {row['worst']:.1e}  {verdict}  undecided {row['undecided']}  "
+                  f"{row['seconds_region']:.1f}+{row['seconds_verify']:.1f} s", flush=True)
     bad = [r for r in rows if not r["ok"]]
     print(f"\n{len(rows)} runs, {sum(r['points'] for r in rows)} checks, {len(bad)} failed, "
           f"worst point discrepancy {max(r['worst'] for r in rows):.1e}, "

@@ -66,7 +66,8 @@ def test_non_separable_saddle_differs_for_a_partitioned_method():
 
 
 def test_double_well():
-    eqs = find_equilibria(parse_hamiltonian("p**2/2 + (q**2 - 1)**2/4"), (-2, 2), (-1, 1)).equilibria
+    H = parse_hamiltonian("p**2/2 + (q**2 - 1)**2/4")
+    eqs = find_equilibria(H, (-2, 2), (-1, 1)).equilibria
     assert [(round(e.q, 12), e.model) for e in eqs] == [(-1.0, "oscillator"), (0.0, "inverted"),
                                                           (1.0, "oscillator")]
     assert eqs[0].beta == pytest.approx(math.sqrt(2), rel=1e-14)
