@@ -39,6 +39,9 @@ from .expressions import FLOAT, Backend, ExpressionError, evaluate, parse
 KINDS = ("rk", "prk", "splitting", "composition")
 MAX_STAGES = 200
 MAX_WEIGHTS = 200
+#: RK and PRK tableaux: each sample of M(z) solves a 2s x 2s stage system, so the cost grows
+#: like s^3 (Gauss s = 40: about a second per region; s = 64: tens of seconds).
+MAX_TABLEAU_STAGES = 40
 
 
 class Field(NamedTuple):
@@ -283,6 +286,12 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
 
 
 def _check_shapes(kind: str, co: dict[str, Any], where: str, symmetric: bool) -> None:
+    if kind in ("rk", "prk"):
+        key = "b" if kind == "rk" else "b_q"
+        if len(co[key]) > MAX_TABLEAU_STAGES:
+            raise _fail(where, key, f"has {len(co[key])} stages, more than the "
+                                    f"{MAX_TABLEAU_STAGES} an RK/PRK tableau may have (each "
+                                    "sample solves a stage system of twice that size)")
     if kind == "rk":
         s = len(co["b"])
         if len(co["A"]) != s:
