@@ -132,3 +132,66 @@ def test_every_shipped_file_validates(run):
     code, out, err = run("validate", *files)
     assert code == 0, err
     assert out.count("ok:") == len(files)
+
+
+# --- Hostile files, run in a subprocess: a FIFO read in-process would hang the test run. ---
+
+def _cli(*args: str, cwd=None):
+    """Run ``python -m stepsafe`` (the timeout only detects a hang; it is not a benchmark)."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "stepsafe", *args], capture_output=True,
+                          text=True, cwd=cwd, timeout=120)
+    return proc.returncode, proc.stdout, proc.stderr
+
+
+def _assert_input_error(code: int, out: str, err: str, *needles: str) -> None:
+    """The bad-input contract: exit 2, one line 'stepsafe: error: ...', no traceback."""
+    assert code == 2, (code, out, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("stepsafe: error: "), err
+    assert "Traceback" not in out + err and "Warning" not in err, err
+    for needle in needles:
+        assert needle in err, (needle, err)
+
+
+def _fifo(tmp_path, name: str) -> str:
+    import os
+
+    if not hasattr(os, "mkfifo"):
+        pytest.skip("no FIFOs on this platform")
+    path = tmp_path / name
+    os.mkfifo(path)
+    return str(path)
+
+
+def test_fifos_are_refused_not_read(tmp_path):
+    """A FIFO blocks open() until a writer appears: each must be refused before opening."""
+    scene = _fifo(tmp_path, "scene.yaml")
+    method = _fifo(tmp_path, "method.yaml")
+    modes_csv = _fifo(tmp_path, "modes.csv")
+    modes_yaml = _fifo(tmp_path, "modes.yaml")
+    cases = [("check", scene), ("validate", method), ("show", method),
+             ("check", "--method", method, "--h", "1", "--beta", "1"),
+             ("check", "--method", "verlet", "--h", "1", "--modes", modes_csv),
+             ("advise", "--method", "verlet", "--modes", modes_yaml)]
+    for args in cases:
+        fifo = args[-1] if args[-1].startswith(str(tmp_path)) else args[2]
+        _assert_input_error(*_cli(*args, cwd=tmp_path), fifo, "not a regular file (a FIFO)")
+
+
+def test_devices_and_sockets_are_refused(tmp_path):
+    import os
+    import socket
+
+    if os.path.exists("/dev/null"):
+        _assert_input_error(*_cli("validate", "/dev/null"), "/dev/null",
+                            "not a regular file (a character device)")
+    path = tmp_path / "s.yaml"
+    if not hasattr(socket, "AF_UNIX") or len(str(path)) > 100:
+        pytest.skip("no short unix socket path here")
+    with socket.socket(socket.AF_UNIX) as sock:
+        sock.bind(str(path))
+        _assert_input_error(*_cli("validate", str(path)), str(path),
+                            "not a regular file (a socket)")
