@@ -19,6 +19,7 @@ A modes file (``--modes FILE``) is YAML (a list of ``{beta:, model:}``, or a map
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -89,12 +90,33 @@ def _fail(where: str, path: str, message: str) -> StepsafeError:
     return StepsafeError(message, f"{where}::$.{path}" if path else where)
 
 
+#: A plain decimal number: ASCII digits, optional sign, point and exponent. Python's
+#: float() would also take "1_0", Unicode digits ("٣") and "infinity"; these are refused.
+_REAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?", re.ASCII)
+_NON_FINITE = re.compile(r"[+-]?(?:inf|infinity|nan)", re.ASCII | re.IGNORECASE)
+
+
+def parse_real(text: str) -> float | None:
+    """The value of a plain decimal number (surrounding whitespace allowed); ``inf`` or
+    ``nan`` for their spellings (so callers can say "must be finite"); None otherwise."""
+    text = text.strip()
+    if _REAL.fullmatch(text):
+        return float(text)
+    if _NON_FINITE.fullmatch(text):
+        return float(text)
+    return None
+
+
 def number(value: Any, where: str, path: str) -> float:
     """A finite real from a YAML string or a CLI value (no expressions here)."""
-    try:
+    if isinstance(value, str):
+        x = parse_real(value)
+        if x is None:
+            raise _fail(where, path, f"must be a number, got {value!r}")
+    elif isinstance(value, (int, float)) and not isinstance(value, bool):
         x = float(value)
-    except (TypeError, ValueError):
-        raise _fail(where, path, f"must be a number, got {value!r}") from None
+    else:
+        raise _fail(where, path, f"must be a number, got {value!r}")
     if not np.isfinite(x):
         raise _fail(where, path, f"must be finite, got {value!r}")
     return x

@@ -195,3 +195,228 @@ def test_devices_and_sockets_are_refused(tmp_path):
         sock.bind(str(path))
         _assert_input_error(*_cli("validate", str(path)), str(path),
                             "not a regular file (a socket)")
+
+
+# --- Matrix files: refused from their headers, within the documented budgets. ---
+
+def _npy_bytes(array=None, *, shape=None, dtype=None) -> bytes:
+    """An .npy image: a real array, or only a header declaring ``shape`` and ``dtype``."""
+    import io
+
+    import numpy as np
+    from numpy.lib import format as npf
+
+    buf = io.BytesIO()
+    if array is not None:
+        np.save(buf, array)
+    else:
+        npf.write_array_header_1_0(buf, {"descr": npf.dtype_to_descr(np.dtype(dtype)),
+                                         "fortran_order": False, "shape": shape})
+    return buf.getvalue()
+
+
+def _system_scene(tmp_path, system: str) -> str:
+    path = tmp_path / "scene.yaml"
+    path.write_text(f"method: verlet\nh: 0.5\nsystem: {system}\n")
+    return str(path)
+
+
+def test_npz_bomb_refused_from_the_declared_unpacked_size(run, tmp_path):
+    """A member whose zip directory declares 10 GB is refused without inflating anything."""
+    import zipfile
+
+    from stepsafe.matrixfile import MAX_FILE_BYTES
+
+    with zipfile.ZipFile(tmp_path / "K.npz", "w", allowZip64=True) as archive:
+        archive.writestr("arr_0.npy", _npy_bytes(shape=(50_000, 50_000), dtype="<f8"))
+        archive.filelist[0].file_size = 20_000_000_000  # what a 23000^2 zeros bomb declares
+    code, out, err = run("check", _system_scene(tmp_path, "{stiffness: K.npz}"))
+    assert code == 2, out + err
+    assert f"K.npz: the .npz file unpacks to 20000000000 bytes, more than the " \
+           f"{MAX_FILE_BYTES} allowed" in err
+
+
+def test_npz_dense_header_over_budget(run, tmp_path):
+    import zipfile
+
+    from stepsafe.matrixfile import MAX_DENSE_BYTES
+
+    with zipfile.ZipFile(tmp_path / "K.npz", "w") as archive:
+        archive.writestr("arr_0.npy", _npy_bytes(shape=(10_000, 10_000), dtype="<f4"))
+    code, _, err = run("check", _system_scene(tmp_path, "{stiffness: K.npz}"))
+    assert code == 2 and "$.system.stiffness: K.npz: a dense 10000 x 10000 matrix needs " \
+                          f"800000000 bytes as float64, more than the {MAX_DENSE_BYTES}" in err
+
+
+def _sparse_npz(path, members: dict) -> None:
+    import zipfile
+
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, image in members.items():
+            archive.writestr(f"{name}.npy", image)
+
+
+def test_sparse_npz_budgets_from_headers(run, tmp_path):
+    import numpy as np
+
+    from stepsafe.matrixfile import MAX_SPARSE_DIM, MAX_SPARSE_NNZ
+
+    nnz = MAX_SPARSE_NNZ + 1
+    _sparse_npz(tmp_path / "K.npz", {
+        "format": _npy_bytes(np.array(b"coo")), "shape": _npy_bytes(np.array([10, 10])),
+        "row": _npy_bytes(shape=(nnz,), dtype="<i4"), "col": _npy_bytes(shape=(nnz,),
+                                                                        dtype="<i4"),
+        "data": _npy_bytes(shape=(nnz,), dtype="<f8")})
+    code, _, err = run("check", _system_scene(tmp_path, "{stiffness: K.npz}"))
+    assert code == 2 and f"{nnz} stored entries, more than the {MAX_SPARSE_NNZ} allowed" in err
+    n = MAX_SPARSE_DIM + 1
+    _sparse_npz(tmp_path / "K.npz", {
+        "format": _npy_bytes(np.array(b"csr")), "shape": _npy_bytes(np.array([n, n])),
+        "indptr": _npy_bytes(shape=(n + 1,), dtype="<i8"),
+        "indices": _npy_bytes(np.zeros(1, dtype="<i4")), "data": _npy_bytes(np.ones(1))})
+    code, _, err = run("check", _system_scene(tmp_path, "{stiffness: K.npz}"))
+    assert code == 2 and f"a sparse {n} x {n} matrix is larger than the {MAX_SPARSE_DIM} " \
+                          "rows allowed" in err
+
+
+def test_sparse_npz_with_indices_out_of_range(run, tmp_path):
+    import numpy as np
+
+    _sparse_npz(tmp_path / "K.npz", {
+        "format": _npy_bytes(np.array(b"csr")), "shape": _npy_bytes(np.array([2, 2])),
+        "indptr": _npy_bytes(np.array([0, 1, 2])), "indices": _npy_bytes(np.array([0, 7])),
+        "data": _npy_bytes(np.array([1.0, 2.0]))})
+    code, _, err = run("check", _system_scene(tmp_path, "{stiffness: K.npz}"))
+    assert code == 2 and "$.system.stiffness: K.npz: cannot read" in err, err
+
+
+def test_mtx_sparse_dimension_budget(run, tmp_path):
+    from stepsafe.matrixfile import MAX_SPARSE_DIM
+
+    n = MAX_SPARSE_DIM + 1
+    (tmp_path / "K.mtx").write_text(f"%%MatrixMarket matrix coordinate real symmetric\n"
+                                    f"{n} {n} 1\n1 1 1.0\n")
+    code, _, err = run("check", _system_scene(tmp_path, "{stiffness: K.mtx}"))
+    assert code == 2 and f"larger than the {MAX_SPARSE_DIM} rows allowed" in err
+
+
+def test_special_files_as_matrices(tmp_path):
+    (tmp_path / "D.npy").mkdir()
+    _fifo(tmp_path, "F.npy")
+    for name, message in (("D.npy", "is a directory"), ("F.npy", "not a regular file (a FIFO)"),
+                          ("K.txt", "use a .npy, .npz or .mtx file")):
+        scene = _system_scene(tmp_path, f"{{stiffness: {name}}}")
+        _assert_input_error(*_cli("check", scene), f"{scene}::$.system.stiffness: {name}: "
+                                                   f"{message}")
+
+
+def test_real_matrices_of_any_width_are_read_as_float64(run_json, tmp_path):
+    import numpy as np
+    import scipy.io
+    import scipy.sparse as sp
+
+    K = np.array([[4, -1], [-1, 3]])
+    expected = np.sort(np.sqrt(np.linalg.eigvalsh(K.astype(float))))
+    files = {"i8.npy": K.astype(np.int8), "f2.npy": K.astype(np.float16),
+             "f4.npy": K.astype(np.float32), "dense.npz": K.astype(np.int64)}
+    for name, array in files.items():
+        (np.savez if name.endswith(".npz") else np.save)(tmp_path / name, array)
+    sp.save_npz(tmp_path / "coo.npz", sp.coo_matrix(K.astype(float)))
+    scipy.io.mmwrite(str(tmp_path / "int.mtx"), sp.coo_matrix(K))
+    for name in [*files, "coo.npz", "int.mtx"]:
+        data = run_json("advise", _system_scene(tmp_path, f"{{stiffness: {name}}}"))
+        betas = sorted(item["beta"] for item in data["system"]["items"])
+        assert betas == pytest.approx(expected, rel=1e-12), name
+
+
+REFUSED_KINDS = {"c": "complex values are not allowed", "b": "boolean values are not allowed",
+                 "U": "text values are not allowed", "S": "text values are not allowed",
+                 "O": "Python objects are not allowed", "M": "date/time values are not allowed",
+                 "m": "date/time values are not allowed",
+                 "V": "structured (record) values are not allowed"}
+DTYPES = ["<f8", "<f4", "<f2", "<i1", "<u2", "<i8", "<u8", "|b1", "<c16", "<c8", "<U3",
+          "|S2", "|O", "<M8[s]", "<m8[s]", [("a", "<f8"), ("b", "<i4")], [("x", "<f8")]]
+
+
+def _hostile_array(data):
+    import numpy as np
+    from hypothesis import strategies as st
+
+    dtype = np.dtype(data.draw(st.sampled_from(DTYPES), label="dtype"))
+    shape = tuple(data.draw(st.lists(st.integers(0, 4), max_size=3), label="shape"))
+    values = np.arange(int(np.prod(shape, dtype=np.int64)), dtype=np.int64).reshape(shape)
+    if dtype.kind == "c":
+        tiny = data.draw(st.sampled_from([1e-300, 0.0, 1.0]), label="imaginary part")
+        return values.astype(dtype) + tiny * 1j
+    if dtype.kind == "O":
+        return values.astype(object)
+    if dtype.fields is not None:
+        return np.zeros(shape, dtype=dtype)
+    return values.astype(dtype)
+
+
+def _expected_refusal(array) -> str | None:
+    kind = "V" if array.dtype.fields is not None else array.dtype.kind
+    if kind in REFUSED_KINDS:
+        return REFUSED_KINDS[kind]
+    if array.ndim == 0:
+        return "holds a single number (a 0-d array), not a matrix"
+    if array.ndim != 2:
+        return "not a 2-D matrix"
+    if array.shape[0] != array.shape[1] or array.size == 0:
+        return "the matrix must be square and non-empty"
+    return None
+
+
+def test_hostile_npy_and_npz_dtypes_and_shapes(tmp_path):
+    """Any dtype and shape in .npy or dense .npz: a float64 square matrix with the same values
+    for real dtypes, otherwise a StepsafeError naming the file and the reason; never a
+    truncation of complex values, never another exception."""
+    import numpy as np
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    from stepsafe.errors import StepsafeError
+    from stepsafe.matrixfile import read_matrix
+
+    @settings(max_examples=120, deadline=None, suppress_health_check=[
+        HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+    @given(st.data(), st.sampled_from([".npy", ".npz"]))
+    def check(data, suffix):
+        array = _hostile_array(data)
+        path = tmp_path / f"K{suffix}"
+        if suffix == ".npy":
+            np.save(path, array, allow_pickle=True)
+        else:
+            np.savez(path, array)
+        refusal = _expected_refusal(array)
+        try:
+            got = read_matrix(path, path.name, sparse_ok=data.draw(st.booleans()))
+        except StepsafeError as exc:
+            assert refusal is not None and refusal in str(exc), (array.dtype, array.shape, exc)
+            assert str(exc).startswith(f"{path.name}: ")
+            return
+        assert refusal is None, (array.dtype, array.shape)
+        assert got.dtype == np.float64 and np.array_equal(got, array.astype(np.float64))
+
+    check()
+
+
+@pytest.mark.parametrize("field, symmetry, message", [
+    ("complex", "general", "complex values are not allowed"),
+    ("complex", "hermitian", "complex values are not allowed"),
+    ("pattern", "general", "a pattern matrix (positions without values) is not allowed"),
+    ("real", "general", None), ("integer", "symmetric", None), ("double", "general", None),
+])
+def test_mtx_fields(run, tmp_path, field, symmetry, message):
+    values = {"complex": " 4.0 0.5", "pattern": ""}.get(field, " 4")
+    (tmp_path / "K.mtx").write_text(f"%%MatrixMarket matrix coordinate {field} {symmetry}\n"
+                                    f"2 2 2\n1 1{values}\n2 2{values}\n")
+    for key in ("stiffness", "mass"):
+        system = "{stiffness: K.mtx}" if key == "stiffness" else \
+            "{stiffness: [[1, 0], [0, 1]], mass: K.mtx}"
+        code, out, err = run("check", _system_scene(tmp_path, system))
+        if message is None:
+            assert code in (0, 1), err
+        else:
+            assert code == 2 and f"$.system.{key}: K.mtx: {message}" in err, err
