@@ -101,7 +101,9 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
     except _E as exc:
         if exc.where:
             raise
-        raise _fail(where, kinds[0], exc.message) from None
+        # a MatrixError names the matrix at fault (mass errors under $.system.mass)
+        key = getattr(exc, "key", None)
+        raise _fail(where, key if key in tree else kinds[0], exc.message) from None
 
 
 def _report_modes(modes, analysis: str, notes: list[str]) -> SystemReport:

@@ -420,3 +420,52 @@ def test_mtx_fields(run, tmp_path, field, symmetry, message):
             assert code in (0, 1), err
         else:
             assert code == 2 and f"$.system.{key}: K.mtx: {message}" in err, err
+
+
+# --- System matrices: the right key, and definiteness independent of scale. ---
+
+def test_positive_definite_whatever_the_scale():
+    import numpy as np
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from stepsafe.systems import is_positive_definite
+
+    @settings(max_examples=80, deadline=None)
+    @given(st.integers(1, 6), st.integers(0, 2**32 - 1), st.booleans())
+    def check(n, seed, definite):
+        rng = np.random.default_rng(seed)
+        B = rng.normal(size=(n, n))
+        A = B @ B.T + 0.5 * np.eye(n)
+        if not definite:
+            v = rng.normal(size=n)
+            A = A - (2.0 * np.linalg.eigvalsh(A).max() + 1.0) * np.outer(v, v) / (v @ v)
+        d = 10.0 ** rng.uniform(-150, 150, size=n)
+        assert is_positive_definite(d[:, None] * A * d[None, :]) == definite
+
+    check()
+    assert is_positive_definite(np.diag([1e-300, 1e300]))
+    assert not is_positive_definite(np.array([[1e-300, 1e300], [1e300, 1e300]]))
+    assert not is_positive_definite(np.array([[0.0, 0.0], [0.0, 1.0]]))
+
+
+def test_badly_scaled_mass_is_analysed(run_json, tmp_path):
+    """M = diag(1e-300, 1e300) is positive definite; with K = diag(4e-300, 1e300) the
+    frequencies are exactly 2 and 1."""
+    data = run_json("advise", _system_scene(
+        tmp_path, "{stiffness: [[4e-300, 0], [0, 1e300]], mass: [[1e-300, 0], [0, 1e300]]}"))
+    assert sorted(item["beta"] for item in data["system"]["items"]) == pytest.approx([1, 2])
+
+
+def test_large_sparse_system_mass_errors_name_the_mass(run, tmp_path):
+    import scipy.sparse as sp
+
+    n = 2500
+    K = sp.diags([2.0] * n) - sp.eye(n, k=1) - sp.eye(n, k=-1)
+    sp.save_npz(tmp_path / "K.npz", K.tocsr())
+    for M, message in ((sp.diags([1.0] * (n - 1) + [-1.0]), "mass must be positive definite"),
+                       (K, "a large sparse system needs a diagonal (lumped) mass"),
+                       (sp.eye(n + 1), f"mass is {n + 1}x{n + 1} but stiffness is {n}x{n}")):
+        sp.save_npz(tmp_path / "M.npz", M.tocsr())
+        code, _, err = run("check", _system_scene(tmp_path, "{stiffness: K.npz, mass: M.npz}"))
+        assert code == 2 and f"$.system.mass: {message}" in err, err
