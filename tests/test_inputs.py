@@ -469,3 +469,127 @@ def test_large_sparse_system_mass_errors_name_the_mass(run, tmp_path):
         sp.save_npz(tmp_path / "M.npz", M.tocsr())
         code, _, err = run("check", _system_scene(tmp_path, "{stiffness: K.npz, mass: M.npz}"))
         assert code == 2 and f"$.system.mass: {message}" in err, err
+
+
+# --- Modes CSV files: numpy speed, exact messages naming the line, a row budget. ---
+
+def _modes_csv(tmp_path, content: str | bytes) -> str:
+    path = tmp_path / "modes.csv"
+    (path.write_bytes if isinstance(content, bytes) else path.write_text)(content)
+    return str(path)
+
+
+@pytest.mark.parametrize("content, message", [
+    ("beta,model\n1_0,oscillator\n", "$.line 2.beta: is not a number: '1_0'"),
+    ("beta,model\n\"3\",oscillator\n", "$.line 2.beta: is not a number: '\"3\"'"),
+    ("beta,model\n0x10,oscillator\n", "$.line 2.beta: is not a number: '0x10'"),
+    ("beta,model\n\u0663,oscillator\n", "$.line 2.beta: is not a number: '\u0663'"),
+    ("beta,model\n,oscillator\n", "$.line 2.beta: is not a number: ''"),
+    ("beta,model\nnan,oscillator\n", "$.line 2.beta: must be a finite number >= 0, got nan"),
+    ("beta,model\n1e400,oscillator\n", "$.line 2.beta: must be a finite number >= 0, got 1e400"),
+    ("beta\n1\n# note\n\n-2.5\n", "$.line 5.beta: must be a finite number >= 0, got -2.5"),
+    ("beta,model\n3,Oscillator\n", "$.line 2.model: must be one of oscillator, saddle, "
+                                   "inverted, saddle-p, got 'Oscillator'"),
+    ("beta,model\n3,oscillator,x\n", "$.line 2: has 3 columns, the header 2"),
+    ("beta,model\n3\n", "$.line 2: has 1 columns, the header 2"),
+    ("3,oscillator\n", "the CSV header must name the columns beta"),
+    ("beta,beta\n3,4\n", "the CSV header must name the columns beta"),
+    ("beta,model\n", "no rows after the header"),
+    ("# only a comment\n\n", "empty CSV file"),
+    (b"beta\n\x003\n", "binary file (contains NUL bytes)"),
+    (b"beta,label\n3,\xff\n", "not UTF-8 text (byte 13)"),
+])
+def test_bad_modes_csv(run, tmp_path, content, message):
+    path = _modes_csv(tmp_path, content)
+    code, out, err = run("check", "--method", "verlet", "--h", "0.1", "--modes", path)
+    assert code == 2 and f"{path}" in err and message in err, err
+    assert len(err.strip().splitlines()) == 1
+    assert "np.str_" not in err and "np.float64" not in err and "np.bytes_" not in err
+
+
+@pytest.mark.parametrize("content", [
+    "beta,model\n3,oscillator\n1,inverted\n",
+    "beta,model\r\n3,oscillator\r\n1,inverted\r\n",  # Windows line ends
+    "beta,model\r3,oscillator\r1,inverted",  # old Mac line ends, no final newline
+    "\ufeffbeta,model\n3,oscillator\n1,inverted\n",  # byte order mark (spreadsheets)
+    " beta , model \n 3 , oscillator \n\t1\t,\tinverted\n",
+    "# frequencies\n\nmodel,label,beta\noscillator,a,3\n\n# barrier\ninverted,b,1 # top\n",
+])
+def test_modes_csv_variants(tmp_path, content):
+    from stepsafe.scene import load_modes
+
+    got = load_modes(_modes_csv(tmp_path, content))
+    assert {k: v.tolist() for k, v in got.items()} == {"oscillator": [3.0], "inverted": [1.0]}
+
+
+def test_modes_csv_row_budget_checked_before_parsing(run, tmp_path):
+    from stepsafe.scene import MAX_CSV_ROWS
+
+    path = _modes_csv(tmp_path, b"beta\n" + b"1\n" * (MAX_CSV_ROWS + 1))
+    code, _, err = run("check", "--method", "verlet", "--h", "0.1", "--modes", path)
+    assert code == 2 and f"has {MAX_CSV_ROWS + 2} lines, more than the {MAX_CSV_ROWS} rows " \
+                          "(and a header) allowed" in err, err
+
+
+def _reference_csv(lines: list[str]):
+    """The documented CSV semantics, line by line: (grouped betas) or (line, field)."""
+    import re
+
+    from stepsafe.models import MODELS
+
+    number = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?", re.ASCII)
+    grouped: dict[str, list[float]] = {}
+    for n, line in enumerate(lines[1:], 2):
+        text = line.split("#", 1)[0]
+        if not text.strip():
+            continue
+        fields = text.split(",")
+        if len(fields) != 2:
+            return (n, "")
+        beta, model = fields[0].strip(), fields[1].strip()
+        if not number.fullmatch(beta) or not 0 <= float(beta) < math.inf:
+            return (n, ".beta")
+        if model not in MODELS:
+            return (n, ".model")
+        grouped.setdefault(model, []).append(float(beta))
+    return grouped
+
+
+def test_modes_csv_fast_and_exact_readers_agree(tmp_path, monkeypatch):
+    """np.loadtxt reads the file; on any doubt the exact reader decides, bisecting the file.
+    With tiny bisection blocks, random files of good and hostile lines must give what the
+    documented semantics give: the same frequencies, or the first bad line."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    import stepsafe.scene as scene
+    from stepsafe.errors import StepsafeError
+
+    monkeypatch.setattr(scene, "_CSV_ROW_BY_ROW", 2)
+    good = ["3,oscillator", "0.5,inverted", " 1e-3 , saddle ", "2.,saddle-p", ".25,oscillator",
+            "7,oscillator # comment", "", "# comment", "   ",
+            "4," + " " * 40 + "inverted" + " " * 40]  # wider than the fast reader's field
+    bad = ["1_0,oscillator", "-1,oscillator", "nan,saddle", "inf,saddle", "1e400,saddle",
+           "x,oscillator", "3,wobble", "3,oscillatorX", "3", "3,saddle,1", "\"3\",saddle",
+           "\u0663,saddle", "3,Oscillator", "0x1p3,saddle", "1e,saddle", "- 3,saddle"]
+    line = st.one_of(st.sampled_from(good), st.sampled_from(good), st.sampled_from(bad))
+
+    @settings(max_examples=150, deadline=None,
+              suppress_health_check=[HealthCheck.function_scoped_fixture])
+    @given(st.lists(line, min_size=0, max_size=40))
+    def check(body):
+        lines = ["beta,model", *body]
+        expected = _reference_csv(lines)
+        path = _modes_csv(tmp_path, "\n".join(lines) + "\n")
+        try:
+            got = scene.load_modes(path)
+        except StepsafeError as exc:
+            if isinstance(expected, tuple):
+                assert f"::$.line {expected[0]}{expected[1]}:" in str(exc), (exc, expected)
+            else:
+                assert not any(expected.values()) and "no rows" in str(exc), exc
+            return
+        assert isinstance(expected, dict), (expected, got)
+        assert {k: v.tolist() for k, v in got.items()} == expected
+
+    check()
