@@ -170,6 +170,18 @@ def _modes_list(items: Any, where: str, path: str) -> dict[str, np.ndarray]:
     return {m: np.array(v) for m, v in grouped.items()}
 
 
+def _near_scene(name: str | None, folder: Path) -> str | None:
+    """A relative method-file path in a scene is looked up next to the scene file first
+    (as a composition's ``base`` is next to its method file), then as given (relative to
+    the working directory). Names of built-in methods are left alone."""
+    from .library import _looks_like_path
+
+    if name is None or not _looks_like_path(name) or Path(name).is_absolute():
+        return name
+    local = folder / name
+    return str(local) if local.exists() else name
+
+
 def load_scene(path: str | Path) -> Scene:
     where = str(path)
     tree = load_yaml(path)
@@ -182,7 +194,9 @@ def load_scene(path: str | Path) -> Scene:
     if "system" in tree:
         scene.system = tree["system"]
     if "method" in tree:
-        scene.method = method_ref(tree["method"], where)
+        ref = method_ref(tree["method"], where)
+        scene.method = MethodRef(_near_scene(ref.name, scene.folder), ref.stages,
+                                 _near_scene(ref.base, scene.folder))
     for key in ("h", "margin", "zmax"):
         if key in tree:
             setattr(scene, key, number(tree[key], where, key))

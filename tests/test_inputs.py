@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import time
 
@@ -593,3 +594,35 @@ def test_modes_csv_fast_and_exact_readers_agree(tmp_path, monkeypatch):
         assert {k: v.tolist() for k, v in got.items()} == expected
 
     check()
+
+
+# --- Scenes: a relative method path is next to the scene file. ---
+
+def test_scene_method_path_is_next_to_the_scene(run, tmp_path, monkeypatch):
+    """From any working directory, 'method: m.yaml' is the file next to the scene, even when
+    the working directory holds another m.yaml."""
+    sub = tmp_path / "sub"
+    sub.mkdir()
+    (sub / "m.yaml").write_text(VALID)  # a Verlet step: first boundary z = 2
+    (tmp_path / "m.yaml").write_text(VALID.replace("drift: [0, 1]", 'drift: [0, "1/2"]')
+                                     .replace('kick: ["1/2", 0.5]', 'kick: ["1/4", "1/4"]'))
+    (sub / "c.yaml").write_text("name: c\nkind: composition\norder: 2\nsource: t\n"
+                                "base: m.yaml\nweights: [0.5, 0.5]\n")
+    monkeypatch.chdir(tmp_path)
+    def h_max(*args):
+        code, out, err = run("advise", *args, "--json")
+        assert code == 0, err
+        return json.loads(out)["h_max"]
+
+    assert h_max("--method", "m.yaml", "--beta", "1") == pytest.approx(4.0)  # the cwd file
+    for method, target in (("m.yaml", "m.yaml"), ("./m.yaml", "m.yaml"),
+                           ("{name: m.yaml}", "m.yaml"), ("c.yaml", "c.yaml")):
+        (sub / "scene.yaml").write_text(f"method: {method}\nmodes: [{{beta: 1}}]\n")
+        assert h_max("sub/scene.yaml") == h_max("--method", str(sub / target), "--beta", "1")
+    assert h_max("--method", str(sub / "m.yaml"), "--beta", "1") == pytest.approx(2.0)
+    (sub / "scene.yaml").write_text("method: {name: c.yaml, base: m.yaml}\nh: 1\n"
+                                    "modes: [{beta: 1}]\n")
+    assert run("check", "sub/scene.yaml")[0] == 0
+    (sub / "scene.yaml").write_text("method: missing.yaml\nh: 1\nmodes: [{beta: 1}]\n")
+    code, _, err = run("check", "sub/scene.yaml")
+    assert code == 2 and "missing.yaml: no such file" in err
