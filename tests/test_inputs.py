@@ -626,3 +626,42 @@ def test_scene_method_path_is_next_to_the_scene(run, tmp_path, monkeypatch):
     (sub / "scene.yaml").write_text("method: missing.yaml\nh: 1\nmodes: [{beta: 1}]\n")
     code, _, err = run("check", "sub/scene.yaml")
     assert code == 2 and "missing.yaml: no such file" in err
+
+
+# --- Nested compositions: the flattened step count is bounded before anything is built. ---
+
+def test_nested_composition_budget_counts_without_flattening():
+    from support import method
+
+    from stepsafe.errors import MethodError
+    from stepsafe.methods import MAX_BASE_STEPS, Composition
+
+    verlet = method("verlet")
+    inner = Composition(verlet, [1 / 40] * 40)
+    assert Composition(inner, [1 / 25] * 25).flattened().weights.size == MAX_BASE_STEPS
+    with pytest.raises(MethodError, match=f"1200 steps of the base method .* more than the "
+                                          f"{MAX_BASE_STEPS} allowed"):
+        Composition(inner, [1 / 30] * 30)
+
+
+def test_nested_composition_files_are_refused_from_their_counts(tmp_path):
+    """Four nested files of 100 weights would flatten to 10^8 steps (gigabytes): refused
+    while the second level is built, naming the file and the budget."""
+    from stepsafe.methods import MAX_BASE_STEPS
+
+    weights = ", ".join(["0.01"] * 100)
+    base = "verlet"
+    for level in range(1, 5):
+        (tmp_path / f"nest{level}.yaml").write_text(
+            f"name: nest{level}\nkind: composition\norder: 2\nsource: t\nbase: {base}\n"
+            f"weights: [{weights}]\n")
+        base = f"nest{level}.yaml"
+    for command in (("region", "nest4.yaml"), ("validate", "nest4.yaml"),
+                    ("check", "--method", "nest3.yaml", "--h", "1", "--beta", "1"),
+                    ("region", "nest1.yaml", "--base", "nest1.yaml")):
+        code, out, err = _cli(*command, cwd=tmp_path)
+        _assert_input_error(code, out, err, f"10000 steps of the base method once the nested "
+                                            f"compositions are multiplied out, more than the "
+                                            f"{MAX_BASE_STEPS} allowed")
+        if command[-1] != "nest1.yaml":
+            assert "nest2.yaml: nest2: " in err
