@@ -171,7 +171,27 @@ def _read_npy(fh, size: int, label: str) -> np.ndarray:
     return _as_float(array)
 
 
+def _central_directory(fh) -> tuple[int, int] | None:
+    """``(entries, bytes)`` of the zip central directory, from its end record (zip64 aware),
+    or None if the stdlib helper is missing. zipfile.ZipFile would build one object per
+    entry of a directory that can fill the whole file."""
+    end_record = getattr(zipfile, "_EndRecData", None)
+    if end_record is None:
+        return None
+    record = end_record(fh)
+    fh.seek(0)
+    if not record:
+        return None
+    return int(record[zipfile._ECD_ENTRIES_TOTAL]), int(record[zipfile._ECD_SIZE])
+
+
 def _read_npz(fh, label: str, sparse_ok: bool):
+    directory = _central_directory(fh)
+    if directory is not None and (directory[0] > MAX_NPZ_MEMBERS
+                                  or directory[1] > MAX_NPZ_MEMBERS * 1024):
+        raise _refuse(label, f"the .npz file holds {directory[0]} members in a "
+                             f"{directory[1]}-byte directory, more than the {MAX_NPZ_MEMBERS} "
+                             "allowed")
     try:
         archive = zipfile.ZipFile(fh)
     except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError) as exc:

@@ -237,6 +237,21 @@ def test_npz_bomb_refused_from_the_declared_unpacked_size(run, tmp_path):
            f"{MAX_FILE_BYTES} allowed" in err
 
 
+def test_npz_with_many_members_refused_from_the_end_record(run, tmp_path):
+    """zipfile.ZipFile builds one object per member: a directory filling a 512 MiB file
+    would take gigabytes, so the member count is read from the end record first."""
+    import zipfile
+
+    from stepsafe.matrixfile import MAX_NPZ_MEMBERS
+
+    with zipfile.ZipFile(tmp_path / "K.npz", "w") as archive:
+        for i in range(1000):
+            archive.writestr(f"a{i}.npy", b"")
+    code, _, err = run("check", _system_scene(tmp_path, "{stiffness: K.npz}"))
+    assert code == 2 and "K.npz: the .npz file holds 1000 members" in err
+    assert f"more than the {MAX_NPZ_MEMBERS} allowed" in err
+
+
 def test_npz_dense_header_over_budget(run, tmp_path):
     import zipfile
 
