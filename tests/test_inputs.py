@@ -1,4 +1,6 @@
-"""Coefficient expressions, the strict YAML reader and broken method files."""
+"""Coefficient expressions, the strict YAML reader and broken method files; hostile input
+files (FIFOs and devices, matrix files, modes CSVs), system-matrix errors under the right
+key, scene-relative method paths and the composition step budget."""
 
 from __future__ import annotations
 
