@@ -34,6 +34,11 @@ from .errors import MethodError
 #: Rounding-level threshold for the symplecticity and consistency residuals.
 RESIDUAL_TOL = 1e-12
 
+#: Most base steps a composition may take once nested compositions are multiplied out
+#: (checked when it is built, before :meth:`Composition.flattened` allocates anything):
+#: three nested files of 100 weights would be 10^6 steps and gigabytes.
+MAX_BASE_STEPS = 1000
+
 
 def _vector(values, name: str) -> np.ndarray:
     arr = np.asarray(values, dtype=float)
@@ -247,6 +252,16 @@ class Composition:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "weights", _vector(self.weights, "weights"))
+        if self.base_steps > MAX_BASE_STEPS:
+            raise MethodError(
+                f"{self.name}: {self.base_steps} steps of the base method once the nested "
+                f"compositions are multiplied out, more than the {MAX_BASE_STEPS} allowed")
+
+    @property
+    def base_steps(self) -> int:
+        """Steps of the innermost base per step, counted without multiplying out."""
+        inner = self.base.base_steps if isinstance(self.base, Composition) else 1
+        return int(self.weights.size) * inner
 
     @property
     def stages(self) -> int:

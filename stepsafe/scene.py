@@ -14,11 +14,15 @@ A scene file::
 
 A modes file (``--modes FILE``) is YAML (a list of ``{beta:, model:}``, or a mapping with
 ``modes:``) or CSV with a header row naming the columns ``beta`` and optionally ``model``
-(default ``oscillator``). CSV files may be large (up to :data:`MAX_CSV_BYTES`).
+(default ``oscillator``) and ``label`` (ignored). CSV fields are not quoted, ``#`` starts a
+comment, and numbers are plain decimals (:func:`parse_real`). CSV files may be large (up to
+:data:`MAX_CSV_BYTES` and :data:`MAX_CSV_ROWS` rows); they are parsed by ``np.loadtxt``.
 """
 
 from __future__ import annotations
 
+import io
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,10 +31,11 @@ import numpy as np
 
 from .errors import StepsafeError
 from .models import MODELS
-from .yamlio import load_yaml, read_text
+from .yamlio import load_yaml, read_bytes
 
 SCENE_KEYS = ("method", "h", "margin", "zmax", "modes", "system")
 MAX_CSV_BYTES = 256 << 20
+MAX_CSV_ROWS = 10_000_000  # rows of a modes CSV, counted (newlines) before parsing
 
 
 @dataclass
@@ -89,12 +94,33 @@ def _fail(where: str, path: str, message: str) -> StepsafeError:
     return StepsafeError(message, f"{where}::$.{path}" if path else where)
 
 
+#: A plain decimal number: ASCII digits, optional sign, point and exponent. Python's
+#: float() would also take "1_0", Unicode digits ("٣") and "infinity"; these are refused.
+_REAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?", re.ASCII)
+_NON_FINITE = re.compile(r"[+-]?(?:inf|infinity|nan)", re.ASCII | re.IGNORECASE)
+
+
+def parse_real(text: str) -> float | None:
+    """The value of a plain decimal number (surrounding whitespace allowed); ``inf`` or
+    ``nan`` for their spellings (so callers can say "must be finite"); None otherwise."""
+    text = text.strip()
+    if _REAL.fullmatch(text):
+        return float(text)
+    if _NON_FINITE.fullmatch(text):
+        return float(text)
+    return None
+
+
 def number(value: Any, where: str, path: str) -> float:
     """A finite real from a YAML string or a CLI value (no expressions here)."""
-    try:
+    if isinstance(value, str):
+        x = parse_real(value)
+        if x is None:
+            raise _fail(where, path, f"must be a number, got {value!r}")
+    elif isinstance(value, (int, float)) and not isinstance(value, bool):
         x = float(value)
-    except (TypeError, ValueError):
-        raise _fail(where, path, f"must be a number, got {value!r}") from None
+    else:
+        raise _fail(where, path, f"must be a number, got {value!r}")
     if not np.isfinite(x):
         raise _fail(where, path, f"must be finite, got {value!r}")
     return x
@@ -144,6 +170,18 @@ def _modes_list(items: Any, where: str, path: str) -> dict[str, np.ndarray]:
     return {m: np.array(v) for m, v in grouped.items()}
 
 
+def _near_scene(name: str | None, folder: Path) -> str | None:
+    """A relative method-file path in a scene is looked up next to the scene file first
+    (as a composition's ``base`` is next to its method file), then as given (relative to
+    the working directory). Names of built-in methods are left alone."""
+    from .library import _looks_like_path
+
+    if name is None or not _looks_like_path(name) or Path(name).is_absolute():
+        return name
+    local = folder / name
+    return str(local) if local.exists() else name
+
+
 def load_scene(path: str | Path) -> Scene:
     where = str(path)
     tree = load_yaml(path)
@@ -159,7 +197,9 @@ def load_scene(path: str | Path) -> Scene:
     if "system" in tree:
         scene.system = tree["system"]
     if "method" in tree:
-        scene.method = method_ref(tree["method"], where)
+        ref = method_ref(tree["method"], where)
+        scene.method = MethodRef(_near_scene(ref.name, scene.folder), ref.stages,
+                                 _near_scene(ref.base, scene.folder))
     for key in ("h", "margin", "zmax"):
         if key in tree:
             setattr(scene, key, number(tree[key], where, key))
@@ -172,51 +212,183 @@ def load_modes(path: str | Path) -> dict[str, np.ndarray]:
     """Frequencies from a YAML or CSV modes file, grouped by model."""
     where = str(path)
     if str(path).lower().endswith(".csv"):
-        return _load_csv(read_text(path, MAX_CSV_BYTES), where)
+        return _load_csv(read_bytes(path, MAX_CSV_BYTES), where)
     tree = load_yaml(path)
     if isinstance(tree, dict) and "modes" in tree:
         return _modes_list(tree["modes"], where, "modes")
     return _modes_list(tree, where, "")
 
 
-def _load_csv(text: str, where: str) -> dict[str, np.ndarray]:
-    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-    if not lines:
-        raise _fail(where, "", "empty CSV file")
-    header = [h.strip().lower() for h in lines[0].split(",")]
-    if "beta" not in header or set(header) - {"beta", "model", "label"}:
-        raise _fail(where, "", "the CSV header must name the columns beta and (optionally) "
-                               f"model, got {lines[0][:60]!r}")
-    ib = header.index("beta")
-    im = header.index("model") if "model" in header else None
-    rows = [ln.split(",") for ln in lines[1:]]
-    for r, row in enumerate(rows):
-        if len(row) != len(header):
-            raise _fail(where, f"row {r + 2}", f"has {len(row)} columns, the header {len(header)}")
-    try:
-        betas = np.array([row[ib] for row in rows], dtype=float)
-    except ValueError:
-        bad = next(r for r, row in enumerate(rows) if not _is_float(row[ib]))
-        raise _fail(where, f"row {bad + 2}.beta", f"is not a number: {rows[bad][ib]!r}") from None
-    models = (np.array([row[im].strip() for row in rows]) if im is not None
-              else np.full(betas.size, "oscillator"))
-    bad = ~np.isin(models, MODELS)
-    if bad.any():
-        r = int(np.flatnonzero(bad)[0])
-        raise _fail(where, f"row {r + 2}.model", f"must be one of {', '.join(MODELS)}, "
-                                                f"got {models[r]!r}")
-    wrong = ~np.isfinite(betas) | (betas < 0)
-    if wrong.any():
-        r = int(np.flatnonzero(wrong)[0])
-        raise _fail(where, f"row {r + 2}.beta", f"must be a finite number >= 0, got {betas[r]}")
+def _load_csv(data: bytes, where: str) -> dict[str, np.ndarray]:
+    """A modes CSV. Parsed by ``np.loadtxt`` (C speed); where it refuses a part of the file,
+    that part is bisected down to blocks read row by row by :func:`_csv_rows`, which decides
+    and names the first bad line. Memory and time stay linear in the file size."""
+    if b"\x00" in data:
+        raise _fail(where, "", "binary file (contains NUL bytes), not CSV text")
+    if data.startswith(b"\xef\xbb\xbf"):  # UTF-8 byte order mark (spreadsheet exports)
+        data = data[3:]
+    if b"\r" in data:
+        data = data.replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+    lines = data.count(b"\n") + (1 if data and not data.endswith(b"\n") else 0)
+    if lines > MAX_CSV_ROWS + 1:
+        raise _fail(where, "", f"has {lines} lines, more than the {MAX_CSV_ROWS} rows (and a "
+                               "header) allowed")
+    if not data.isascii():
+        try:
+            data.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise _fail(where, "", f"not UTF-8 text (byte {exc.start})") from None
+    body, first_line, header = _csv_header(data, where)
+    betas, codes = _csv_parse(_CsvPart(data, body, len(data), first_line), header, where)
     if not betas.size:
         raise _fail(where, "", "no rows after the header")
-    return {m: betas[models == m] for m in MODELS if np.any(models == m)}
+    return {m: betas[codes == k] for k, m in enumerate(MODELS) if np.any(codes == k)}
 
 
-def _is_float(text: str) -> bool:
+#: Parts of a CSV with at most this many lines are read row by row once np.loadtxt has
+#: refused them (about 0.5 s); larger parts are bisected.
+_CSV_ROW_BY_ROW = 1 << 16
+
+
+@dataclass
+class _CsvPart:
+    data: bytes
+    start: int  # byte offsets: the part is data[start:end], whole lines
+    end: int
+    first_line: int  # line number of its first line
+
+    def lines(self):
+        """``(line number, text without comment)`` of each line, without a list of them."""
+        stream = io.BytesIO(memoryview(self.data)[self.start:self.end])
+        for number, raw in enumerate(stream, self.first_line):
+            yield number, raw.decode("utf-8").rstrip("\n").split("#", 1)[0]
+
+    def line(self, index: int) -> _CsvPart:
+        """The part's line ``index`` (from 0) alone."""
+        start, left, block = self.start, index, 1 << 20
+        while left:  # skip whole 1 MiB blocks by counting, then single lines
+            count = self.data.count(b"\n", start, min(start + block, self.end))
+            if count < left and start + block < self.end:
+                start, left = start + block, left - count
+                continue
+            for _ in range(left):
+                start = self.data.find(b"\n", start, self.end) + 1
+            left = 0
+        end = self.data.find(b"\n", start, self.end)
+        return _CsvPart(self.data, start, self.end if end < 0 else end + 1,
+                        self.first_line + index)
+
+    def halves(self) -> tuple[_CsvPart, _CsvPart] | None:
+        middle = (self.start + self.end) // 2
+        cut = self.data.find(b"\n", middle, self.end - 1)
+        if cut < 0:
+            cut = self.data.rfind(b"\n", self.start, middle)
+        if cut < 0:
+            return None
+        left = _CsvPart(self.data, self.start, cut + 1, self.first_line)
+        right = _CsvPart(self.data, cut + 1, self.end,
+                         self.first_line + self.data.count(b"\n", self.start, cut + 1))
+        return left, right
+
+
+def _csv_header(data: bytes, where: str) -> tuple[int, int, list[str]]:
+    """``(offset of the first row, its line number, column names)``."""
+    offset = 0
+    for number, text in _CsvPart(data, 0, len(data), 1).lines():
+        end = data.find(b"\n", offset)
+        offset = len(data) if end < 0 else end + 1
+        if not text.strip():
+            continue
+        header = [h.strip().lower() for h in text.split(",")]
+        if "beta" not in header or set(header) - {"beta", "model", "label"} or \
+                len(set(header)) != len(header):
+            raise _fail(where, "", "the CSV header must name the columns beta and (optionally) "
+                                   f"model and label, each once, got {text.strip()[:60]!r}")
+        return offset, number + 1, header
+    raise _fail(where, "", "empty CSV file")
+
+
+def _csv_parse(part: _CsvPart, header: list[str], where: str):
+    fast = _csv_table(part, header)
+    if isinstance(fast, tuple):
+        return fast
+    if isinstance(fast, int):
+        # parsed, but row `fast` failed a check; every line is a row, so it is that line
+        bad = part.line(fast)
+        _csv_rows(bad, header, where)  # raises with the exact message, unless row by row
+        # reading accepts what the check refused: then read the whole part that way
+    halves = None
+    if part.data.count(b"\n", part.start, part.end) > _CSV_ROW_BY_ROW:
+        halves = part.halves()
+    if halves is None:
+        return _csv_rows(part, header, where)
+    (b1, c1), (b2, c2) = (_csv_parse(half, header, where) for half in halves)
+    return np.concatenate([b1, b2]), np.concatenate([c1, c2])
+
+
+def _row_count(part: _CsvPart) -> int:
+    count = part.data.count(b"\n", part.start, part.end)
+    return count + (1 if part.end > part.start and part.data[part.end - 1] != 10 else 0)
+
+
+def _csv_table(part: _CsvPart, header: list[str]):
+    """``(betas, model codes)`` of the part by ``np.loadtxt``; if anything in it is not
+    plainly valid, None (loadtxt refused it) or the index of the first row that failed a
+    check, then :func:`_csv_rows` decides. ``model`` is read as bytes longer than any model
+    name, so a wrong value can never be truncated into a right one."""
+    import warnings
+
+    width = 32
+    dtype = [(name, {"beta": "f8", "model": f"S{width}", "label": "S1"}[name])
+             for name in header]
+    whole = part.end == len(part.data)
+    stream = io.BytesIO(part.data if whole else part.data[part.start:part.end])
     try:
-        float(text)
-    except ValueError:
-        return False
-    return True
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # "input contained no data"
+            table = np.loadtxt(stream, dtype=dtype, delimiter=",", comments="#", ndmin=1,
+                               skiprows=part.first_line - 1 if whole else 0,
+                               encoding="utf-8", quotechar=None)
+    except (ValueError, TypeError, UnicodeError):
+        return None
+    betas = np.ascontiguousarray(table["beta"], dtype=float)
+    codes = np.zeros(betas.size, dtype=np.int8)
+    if "model" in header:
+        names = np.char.strip(table["model"])
+        codes[:] = -1
+        for k, model in enumerate(MODELS):
+            codes[names == model.encode()] = k
+    wrong = (codes < 0) | ~np.isfinite(betas) | (betas < 0)
+    if wrong.any():
+        return int(np.argmax(wrong)) if betas.size == _row_count(part) else None
+    return betas, codes
+
+
+def _csv_rows(part: _CsvPart, header: list[str], where: str):
+    """The exact reader, row by row: betas and model codes of the part, or an error naming
+    its first bad line (``$.line N.beta``). Fields are not quoted; ``#`` starts a comment."""
+    from array import array
+
+    ib = header.index("beta")
+    im = header.index("model") if "model" in header else None
+    betas, codes = array("d"), array("b")
+    for number, text in part.lines():
+        if not text.strip():
+            continue
+        fields = text.split(",")
+        if len(fields) != len(header):
+            raise _fail(where, f"line {number}", f"has {len(fields)} columns, the header "
+                                                 f"{len(header)}")
+        beta = parse_real(fields[ib])
+        if beta is None:
+            raise _fail(where, f"line {number}.beta", f"is not a number: {fields[ib].strip()!r}")
+        if not np.isfinite(beta) or beta < 0:
+            raise _fail(where, f"line {number}.beta", f"must be a finite number >= 0, got "
+                                                      f"{fields[ib].strip()}")
+        model = fields[im].strip() if im is not None else "oscillator"
+        if model not in MODELS:
+            raise _fail(where, f"line {number}.model", f"must be one of {', '.join(MODELS)}, "
+                                                       f"got {model!r}")
+        betas.append(beta)
+        codes.append(MODELS.index(model))
+    return np.array(betas, dtype=float), np.array(codes, dtype=np.int8)

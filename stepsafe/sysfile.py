@@ -10,9 +10,9 @@ into what advise/check analyse (the modes, or the coupled analysis).
 
 Matrix files (paths relative to the scene file): ``.npy`` (dense), ``.npz`` (a dense array
 saved by numpy, or a sparse matrix saved by ``scipy.sparse.save_npz``) and ``.mtx`` (Matrix
-Market). Sparse stiffness matrices with more than :data:`DENSE_LIMIT` rows are analysed
-through their extreme eigenvalues only (enough for ``h_max``; islands are then not
-analysed, and the output says so). scipy is imported here only.
+Market), read within the budgets of :mod:`stepsafe.matrixfile`. Sparse stiffness matrices
+with more than :data:`DENSE_LIMIT` rows are analysed through their extreme eigenvalues only
+(enough for ``h_max``; islands are then not analysed, and the output says so).
 """
 
 from __future__ import annotations
@@ -30,7 +30,6 @@ DENSE_LIMIT = 2000
 #: Relative uncertainty of an equilibrium's beta: its Hessian is exact to ~30 digits (see
 #: stepsafe.nonlinear), the float64 square roots and products add a few ulps.
 EQUILIBRIUM_ERROR = 8 * float(np.finfo(float).eps)
-MAX_FILE_BYTES = 512 << 20
 SYSTEM_KEYS = {"stiffness", "mass", "hessian", "hamiltonian", "parameters", "box"}
 
 
@@ -50,8 +49,14 @@ def _fail(where: str, path: str, message: str) -> StepsafeError:
 
 
 def _matrix(value: Any, where: str, key: str, folder: Path, sparse_ok: bool = False):
+    from .matrixfile import read_matrix
+    from .scene import parse_real
+
     if isinstance(value, str):
-        return _matrix_file(folder / value, where, key, sparse_ok)
+        try:
+            return read_matrix(folder / value, value, sparse_ok)
+        except StepsafeError as exc:
+            raise _fail(where, key, str(exc)) from None
     if not isinstance(value, list) or not value or not all(isinstance(r, list) for r in value):
         raise _fail(where, key, "must be a list of rows or a .npy/.npz/.mtx file name")
     n = len(value)
@@ -61,47 +66,13 @@ def _matrix(value: Any, where: str, key: str, folder: Path, sparse_ok: bool = Fa
             raise _fail(where, f"{key}[{i}]", f"has {len(row)} entries, row 0 has "
                                                f"{out.shape[1]}")
         for j, x in enumerate(row):
-            try:
-                out[i, j] = float(x)
-            except (TypeError, ValueError):
-                raise _fail(where, f"{key}[{i}][{j}]", f"is not a number: {x!r}") from None
+            number = parse_real(x) if isinstance(x, str) else None
+            if number is None:
+                raise _fail(where, f"{key}[{i}][{j}]", f"is not a number: {x!r}")
+            out[i, j] = number
     if not np.all(np.isfinite(out)):
         raise _fail(where, key, "has a non-finite entry")
     return out
-
-
-def _matrix_file(path: Path, where: str, key: str, sparse_ok: bool):
-    if not path.is_file():
-        raise _fail(where, key, f"no such file: {path}")
-    if path.stat().st_size > MAX_FILE_BYTES:
-        raise _fail(where, key, f"{path} is larger than {MAX_FILE_BYTES} bytes")
-    suffix = path.suffix.lower()
-    try:
-        if suffix == ".npy":
-            return np.load(path, allow_pickle=False)
-        if suffix == ".npz":
-            with np.load(path, allow_pickle=False) as data:
-                if "format" in data.files and "indptr" in data.files:
-                    import scipy.sparse as sp
-
-                    matrix = sp.load_npz(path)
-                    return matrix if sparse_ok else matrix.toarray()
-                if len(data.files) != 1:
-                    raise _fail(where, key, f"{path} holds {len(data.files)} arrays; save one")
-                return data[data.files[0]]
-        if suffix == ".mtx":
-            import scipy.io
-
-            matrix = scipy.io.mmread(str(path))
-            if hasattr(matrix, "tocsr"):
-                return matrix.tocsr() if sparse_ok else matrix.toarray()
-            return np.asarray(matrix)
-    except StepsafeError:
-        raise
-    except Exception as exc:  # noqa: BLE001 - any reader failure is bad input here
-        raise _fail(where, key, f"cannot read {path.name}: {str(exc).splitlines()[0][:80]}"
-                    ) from None
-    raise _fail(where, key, f"{path.name}: use a .npy, .npz or .mtx file")
 
 
 def _float(value: Any, where: str, key: str) -> float:
@@ -134,7 +105,9 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
     except _E as exc:
         if exc.where:
             raise
-        raise _fail(where, kinds[0], exc.message) from None
+        # a MatrixError names the matrix at fault (mass errors under $.system.mass)
+        key = getattr(exc, "key", None)
+        raise _fail(where, key if key in tree else kinds[0], exc.message) from None
 
 
 def _report_modes(modes, analysis: str, notes: list[str],
@@ -166,6 +139,10 @@ def _stiffness(tree, where, folder) -> SystemReport:
 
     K = _matrix(tree["stiffness"], where, "stiffness", folder, sparse_ok=True)
     M = _matrix(tree["mass"], where, "mass", folder, sparse_ok=True) if "mass" in tree else None
+    if M is not None and K.shape[0] == K.shape[1] and M.shape != K.shape:
+        # before any dense copy of a sparse mass
+        raise _fail(where, "mass", f"mass is {'x'.join(map(str, M.shape))} but stiffness is "
+                                   f"{'x'.join(map(str, K.shape))}")
     notes: list[str] = []
     if hasattr(K, "tocsr") and K.shape[0] > DENSE_LIMIT:
         d = sparse_extreme_modes(K, M)

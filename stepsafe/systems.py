@@ -53,15 +53,54 @@ class Decoupled(NamedTuple):
     extremes_only: bool = False
 
 
+class MatrixError(StepsafeError):
+    """A system matrix is unusable; ``key`` names it (``stiffness``, ``mass``, ``hessian``)
+    so that the scene-file error points at the right key."""
+
+    def __init__(self, key: str, message: str) -> None:
+        super().__init__(message)
+        self.key = key
+
+
 def check_square(A: np.ndarray, name: str, symmetric: bool = True) -> np.ndarray:
-    A = np.asarray(A, dtype=float)
+    if isinstance(A, np.ndarray) and A.dtype.kind not in "fiu":
+        raise MatrixError(name, f"{name} must hold real numbers, got dtype {A.dtype}")
+    try:
+        A = np.asarray(A, dtype=float)
+    except (TypeError, ValueError):
+        raise MatrixError(name, f"{name} must hold real numbers") from None
     if A.ndim != 2 or A.shape[0] != A.shape[1] or A.size == 0:
-        raise StepsafeError(f"{name} must be a non-empty square matrix, got shape {A.shape}")
+        raise MatrixError(name, f"{name} must be a non-empty square matrix, got shape {A.shape}")
     if not np.all(np.isfinite(A)):
-        raise StepsafeError(f"{name} has a non-finite entry")
+        raise MatrixError(name, f"{name} has a non-finite entry")
     if symmetric and not np.allclose(A, A.T, rtol=1e-12, atol=1e-12 * np.abs(A).max()):
-        raise StepsafeError(f"{name} must be symmetric")
+        raise MatrixError(name, f"{name} must be symmetric")
     return A
+
+
+def is_positive_definite(M: np.ndarray) -> bool:
+    """Whether the symmetric matrix M is positive definite, whatever its scaling.
+
+    Decided by a Cholesky factorisation of ``D^-1/2 M D^-1/2`` (``D = diag M``, unit
+    diagonal), not by an absolute eigenvalue threshold: ``diag(1e-300, 1e300)`` is positive
+    definite. A positive definite M has ``M_ii > 0`` and ``|M_ij| < sqrt(M_ii M_jj)``, so the
+    scaled entries are at most 1 and cannot overflow; an entry that overflows proves M
+    indefinite.
+    """
+    d = np.diag(M)
+    if not np.all(d > 0):
+        return False
+    s = np.sqrt(d)
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+        C = M / s[:, None] / s[None, :]
+    if not np.all(np.isfinite(C)):
+        return False
+    np.fill_diagonal(C, 1.0)
+    try:
+        np.linalg.cholesky(C)
+    except np.linalg.LinAlgError:
+        return False
+    return True
 
 
 def separable_modes(K, M=None) -> Decoupled:
@@ -73,19 +112,28 @@ def separable_modes(K, M=None) -> Decoupled:
         M = np.eye(K.shape[0])
     M = check_square(M, "mass")
     if M.shape != K.shape:
-        raise StepsafeError(f"mass is {M.shape[0]}x{M.shape[0]} but stiffness is "
-                            f"{K.shape[0]}x{K.shape[0]}")
-    if np.linalg.eigvalsh(M).min() <= 0:
-        raise StepsafeError("mass must be positive definite")
-    w2 = eigh(K, M, eigvals_only=True)
+        raise MatrixError("mass", f"mass is {M.shape[0]}x{M.shape[0]} but stiffness is "
+                                  f"{K.shape[0]}x{K.shape[0]}")
+    if not is_positive_definite(M):
+        raise MatrixError("mass", "mass must be positive definite")
+    try:
+        with np.errstate(all="ignore"):
+            w2 = eigh(K, M, eigvals_only=True)
+    except np.linalg.LinAlgError:
+        raise MatrixError("mass", "the generalised eigenproblem K v = w^2 M v failed in "
+                                  "float64 (mass too badly scaled); rescale the units") from None
+    if not np.all(np.isfinite(w2)):
+        raise MatrixError("stiffness", "the eigenvalues w^2 of K v = w^2 M v are beyond the "
+                                       "float64 range; rescale the units of K or M")
     return Decoupled(_modes_from_w2(w2, _eigenvalue_error(w2, K.shape[0]) * _cond(M)),
                      "decoupled: separable H, generalised eigenproblem K v = w^2 M v")
 
 
 def _cond(M: np.ndarray) -> float:
-    """Condition number of a positive definite mass (it amplifies K's rounding in the
-    generalised eigenvalues)."""
-    m = np.linalg.eigvalsh(M)
+    """Condition number of a positive definite mass scaled to unit diagonal (it amplifies
+    K's rounding in the generalised eigenvalues; a diagonal scaling only changes units)."""
+    d = 1.0 / np.sqrt(np.diag(M))
+    m = np.linalg.eigvalsh(M * np.outer(d, d))
     return float(m.max() / m.min())
 
 
@@ -134,20 +182,20 @@ def sparse_extreme_modes(K, M=None) -> Decoupled:
     K = sp.csr_matrix(K, dtype=float)
     n = K.shape[0]
     if K.shape[0] != K.shape[1]:
-        raise StepsafeError(f"stiffness must be square, got shape {K.shape}")
+        raise MatrixError("stiffness", f"stiffness must be square, got shape {K.shape}")
     if not np.all(np.isfinite(K.data)):
-        raise StepsafeError("stiffness has a non-finite entry")
+        raise MatrixError("stiffness", "stiffness has a non-finite entry")
     if n and abs(K - K.T).max() > 1e-12 * abs(K).max():
-        raise StepsafeError("stiffness must be symmetric")
+        raise MatrixError("stiffness", "stiffness must be symmetric")
     if M is not None:
         M = sp.csr_matrix(M, dtype=float)
         if M.shape != K.shape:
-            raise StepsafeError(f"mass is {M.shape} but stiffness is {K.shape}")
+            raise MatrixError("mass", f"mass is {M.shape} but stiffness is {K.shape}")
         if (M - sp.diags(M.diagonal())).count_nonzero():
-            raise StepsafeError("a large sparse system needs a diagonal (lumped) mass")
+            raise MatrixError("mass", "a large sparse system needs a diagonal (lumped) mass")
         m = M.diagonal()
         if not np.all(m > 0):
-            raise StepsafeError("mass must be positive definite")
+            raise MatrixError("mass", "mass must be positive definite")
         d = sp.diags(1.0 / np.sqrt(m))
         K = (d @ K @ d).tocsr()
     diag = K.diagonal()
@@ -175,7 +223,7 @@ def sparse_extreme_modes(K, M=None) -> Decoupled:
 def split_hessian(S) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     S = check_square(S, "hessian")
     if S.shape[0] % 2:
-        raise StepsafeError(f"hessian must be 2n x 2n for x = (q, p), got {S.shape[0]}")
+        raise MatrixError("hessian", f"hessian must be 2n x 2n for x = (q, p), got {S.shape[0]}")
     n = S.shape[0] // 2
     return S[:n, :n], S[:n, n:], S[n:, :n], S[n:, n:]
 

@@ -6,12 +6,15 @@ Refused, each with a one-line :class:`~stepsafe.errors.StepsafeError` naming the
 files over :data:`MAX_BYTES`, binary or non-UTF-8 content, aliases and anchors (no alias
 bombs), duplicate keys, nesting deeper than :data:`MAX_DEPTH`, more than :data:`MAX_NODES`
 nodes, non-string keys, and anything that is not valid YAML.
+
+Every input file of stepsafe is opened through :func:`open_regular`: FIFOs, devices and
+sockets are refused before they are opened (reading them could block forever or never end).
 """
 
 from __future__ import annotations
 
 import os
-from pathlib import Path
+import stat
 from typing import Any
 
 import yaml
@@ -67,24 +70,70 @@ class _StrictLoader(yaml.SafeLoader):
         return super().construct_sequence(node, deep=True)
 
 
-def read_text(path: str | os.PathLike, max_bytes: int = MAX_BYTES) -> str:
-    """The file's text; refuses missing, directory, unreadable, huge, binary, non-UTF-8."""
-    p = Path(path)
-    where = str(path)
-    if not p.exists():
-        raise StepsafeError("no such file", where)
-    if p.is_dir():
-        raise StepsafeError("is a directory, not a file", where)
+def _kind(mode: int) -> str:
+    for test, name in ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"),
+                       (stat.S_ISDIR, "a directory")):
+        if test(mode):
+            return name
+    return "a special file"
+
+
+def open_regular(path: str | os.PathLike, max_bytes: int, where: str | None = None):
+    """An open binary file object for ``path``, which must be an existing regular file of
+    at most ``max_bytes`` bytes.
+
+    The type is checked with ``os.stat`` before opening (a FIFO would block ``open``) and
+    again with ``os.fstat`` on the descriptor, opened non-blocking, so a file swapped in
+    between is refused too. Errors name ``where`` (default: the path).
+    """
+    where = str(path) if where is None else where
     try:
-        size = p.stat().st_size
-        if size > max_bytes:
-            raise StepsafeError(f"file is {size} bytes, more than the {max_bytes} allowed", where)
-        with open(p, "rb") as fh:
-            data = fh.read(max_bytes + 1)
+        info = os.stat(path)
+    except FileNotFoundError:
+        raise StepsafeError("no such file", where) from None
     except OSError as exc:
         raise StepsafeError(f"cannot read: {exc.strerror or exc}", where) from None
+    if stat.S_ISDIR(info.st_mode):
+        raise StepsafeError("is a directory, not a file", where)
+    if not stat.S_ISREG(info.st_mode):
+        raise StepsafeError(f"not a regular file ({_kind(info.st_mode)})", where)
+    if info.st_size > max_bytes:
+        raise StepsafeError(f"file is {info.st_size} bytes, more than the {max_bytes} allowed",
+                            where)
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(path, flags)
+    except OSError as exc:
+        raise StepsafeError(f"cannot read: {exc.strerror or exc}", where) from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise StepsafeError(f"not a regular file ({_kind(mode)})", where)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_bytes(path: str | os.PathLike, max_bytes: int = MAX_BYTES) -> bytes:
+    """The bytes of a regular file of at most ``max_bytes`` (see :func:`open_regular`)."""
+    where = str(path)
+    with open_regular(path, max_bytes, where) as fh:
+        try:
+            data = fh.read(max_bytes + 1)
+        except OSError as exc:
+            raise StepsafeError(f"cannot read: {exc.strerror or exc}", where) from None
     if len(data) > max_bytes:
         raise StepsafeError(f"file is more than the {max_bytes} bytes allowed", where)
+    return data
+
+
+def read_text(path: str | os.PathLike, max_bytes: int = MAX_BYTES) -> str:
+    """The file's text; refuses missing, directory, special (FIFO, device, socket),
+    unreadable, huge, binary, non-UTF-8."""
+    where = str(path)
+    data = read_bytes(path, max_bytes)
     if b"\x00" in data:
         raise StepsafeError("binary file (contains NUL bytes), not YAML text", where)
     try:

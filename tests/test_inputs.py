@@ -1,7 +1,10 @@
-"""Coefficient expressions, the strict YAML reader and broken method files."""
+"""Coefficient expressions, the strict YAML reader and broken method files; hostile input
+files (FIFOs and devices, matrix files, modes CSVs), system-matrix errors under the right
+key, scene-relative method paths and the composition step budget."""
 
 from __future__ import annotations
 
+import json
 import math
 import time
 
@@ -132,3 +135,550 @@ def test_every_shipped_file_validates(run):
     code, out, err = run("validate", *files)
     assert code == 0, err
     assert out.count("ok:") == len(files)
+
+
+# --- Hostile files, run in a subprocess: a FIFO read in-process would hang the test run. ---
+
+def _cli(*args: str, cwd=None):
+    """Run ``python -m stepsafe`` (the timeout only detects a hang; it is not a benchmark)."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "stepsafe", *args], capture_output=True,
+                          text=True, cwd=cwd, timeout=120)
+    return proc.returncode, proc.stdout, proc.stderr
+
+
+def _assert_input_error(code: int, out: str, err: str, *needles: str) -> None:
+    """The bad-input contract: exit 2, one line 'stepsafe: error: ...', no traceback."""
+    assert code == 2, (code, out, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("stepsafe: error: "), err
+    assert "Traceback" not in out + err and "Warning" not in err, err
+    for needle in needles:
+        assert needle in err, (needle, err)
+
+
+def _fifo(tmp_path, name: str) -> str:
+    import os
+
+    if not hasattr(os, "mkfifo"):
+        pytest.skip("no FIFOs on this platform")
+    path = tmp_path / name
+    os.mkfifo(path)
+    return str(path)
+
+
+def test_fifos_are_refused_not_read(tmp_path):
+    """A FIFO blocks open() until a writer appears: each must be refused before opening."""
+    scene = _fifo(tmp_path, "scene.yaml")
+    method = _fifo(tmp_path, "method.yaml")
+    modes_csv = _fifo(tmp_path, "modes.csv")
+    modes_yaml = _fifo(tmp_path, "modes.yaml")
+    cases = [("check", scene), ("validate", method), ("show", method),
+             ("check", "--method", method, "--h", "1", "--beta", "1"),
+             ("check", "--method", "verlet", "--h", "1", "--modes", modes_csv),
+             ("advise", "--method", "verlet", "--modes", modes_yaml)]
+    for args in cases:
+        fifo = args[-1] if args[-1].startswith(str(tmp_path)) else args[2]
+        _assert_input_error(*_cli(*args, cwd=tmp_path), fifo, "not a regular file (a FIFO)")
+
+
+def test_devices_and_sockets_are_refused(tmp_path):
+    import os
+    import socket
+
+    if os.path.exists("/dev/null"):
+        _assert_input_error(*_cli("validate", "/dev/null"), "/dev/null",
+                            "not a regular file (a character device)")
+    path = tmp_path / "s.yaml"
+    if not hasattr(socket, "AF_UNIX") or len(str(path)) > 100:
+        pytest.skip("no short unix socket path here")
+    with socket.socket(socket.AF_UNIX) as sock:
+        sock.bind(str(path))
+        _assert_input_error(*_cli("validate", str(path)), str(path),
+                            "not a regular file (a socket)")
+
+
+# --- Matrix files: refused from their headers, within the documented budgets. ---
+
+def _npy_bytes(array=None, *, shape=None, dtype=None) -> bytes:
+    """An .npy image: a real array, or only a header declaring ``shape`` and ``dtype``."""
+    import io
+
+    import numpy as np
+    from numpy.lib import format as npf
+
+    buf = io.BytesIO()
+    if array is not None:
+        np.save(buf, array)
+    else:
+        npf.write_array_header_1_0(buf, {"descr": npf.dtype_to_descr(np.dtype(dtype)),
+                                         "fortran_order": False, "shape": shape})
+    return buf.getvalue()
+
+
+def _system_scene(tmp_path, system: str) -> str:
+    path = tmp_path / "scene.yaml"
+    path.write_text(f"method: verlet\nh: 0.5\nsystem: {system}\n")
+    return str(path)
+
+
+def test_npz_bomb_refused_from_the_declared_unpacked_size(run, tmp_path):
+    """A member whose zip directory declares 10 GB is refused without inflating anything."""
+    import zipfile
+
+    from stepsafe.matrixfile import MAX_FILE_BYTES
+
+    with zipfile.ZipFile(tmp_path / "K.npz", "w", allowZip64=True) as archive:
+        archive.writestr("arr_0.npy", _npy_bytes(shape=(50_000, 50_000), dtype="<f8"))
+        archive.filelist[0].file_size = 20_000_000_000  # what a 23000^2 zeros bomb declares
+    code, out, err = run("check", _system_scene(tmp_path, "{stiffness: K.npz}"))
+    assert code == 2, out + err
+    assert f"K.npz: the .npz file unpacks to 20000000000 bytes, more than the " \
+           f"{MAX_FILE_BYTES} allowed" in err
+
+
+def test_npz_with_many_members_refused_from_the_end_record(run, tmp_path):
+    """zipfile.ZipFile builds one object per member: a directory filling a 512 MiB file
+    would take gigabytes, so the member count is read from the end record first."""
+    import zipfile
+
+    from stepsafe.matrixfile import MAX_NPZ_MEMBERS
+
+    with zipfile.ZipFile(tmp_path / "K.npz", "w") as archive:
+        for i in range(1000):
+            archive.writestr(f"a{i}.npy", b"")
+    code, _, err = run("check", _system_scene(tmp_path, "{stiffness: K.npz}"))
+    assert code == 2 and "K.npz: the .npz file holds 1000 members" in err
+    assert f"more than the {MAX_NPZ_MEMBERS} allowed" in err
+
+
+def test_npz_dense_header_over_budget(run, tmp_path):
+    import zipfile
+
+    from stepsafe.matrixfile import MAX_DENSE_BYTES
+
+    with zipfile.ZipFile(tmp_path / "K.npz", "w") as archive:
+        archive.writestr("arr_0.npy", _npy_bytes(shape=(10_000, 10_000), dtype="<f4"))
+    code, _, err = run("check", _system_scene(tmp_path, "{stiffness: K.npz}"))
+    assert code == 2 and "$.system.stiffness: K.npz: a dense 10000 x 10000 matrix needs " \
+                          f"800000000 bytes as float64, more than the {MAX_DENSE_BYTES}" in err
+
+
+def _sparse_npz(path, members: dict) -> None:
+    import zipfile
+
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, image in members.items():
+            archive.writestr(f"{name}.npy", image)
+
+
+def test_sparse_npz_budgets_from_headers(run, tmp_path):
+    import numpy as np
+
+    from stepsafe.matrixfile import MAX_SPARSE_DIM, MAX_SPARSE_NNZ
+
+    nnz = MAX_SPARSE_NNZ + 1
+    _sparse_npz(tmp_path / "K.npz", {
+        "format": _npy_bytes(np.array(b"coo")), "shape": _npy_bytes(np.array([10, 10])),
+        "row": _npy_bytes(shape=(nnz,), dtype="<i4"), "col": _npy_bytes(shape=(nnz,),
+                                                                        dtype="<i4"),
+        "data": _npy_bytes(shape=(nnz,), dtype="<f8")})
+    code, _, err = run("check", _system_scene(tmp_path, "{stiffness: K.npz}"))
+    assert code == 2 and f"{nnz} stored entries, more than the {MAX_SPARSE_NNZ} allowed" in err
+    n = MAX_SPARSE_DIM + 1
+    _sparse_npz(tmp_path / "K.npz", {
+        "format": _npy_bytes(np.array(b"csr")), "shape": _npy_bytes(np.array([n, n])),
+        "indptr": _npy_bytes(shape=(n + 1,), dtype="<i8"),
+        "indices": _npy_bytes(np.zeros(1, dtype="<i4")), "data": _npy_bytes(np.ones(1))})
+    code, _, err = run("check", _system_scene(tmp_path, "{stiffness: K.npz}"))
+    assert code == 2 and f"a sparse {n} x {n} matrix is larger than the {MAX_SPARSE_DIM} " \
+                          "rows allowed" in err
+
+
+def test_sparse_npz_with_indices_out_of_range(run, tmp_path):
+    import numpy as np
+
+    _sparse_npz(tmp_path / "K.npz", {
+        "format": _npy_bytes(np.array(b"csr")), "shape": _npy_bytes(np.array([2, 2])),
+        "indptr": _npy_bytes(np.array([0, 1, 2])), "indices": _npy_bytes(np.array([0, 7])),
+        "data": _npy_bytes(np.array([1.0, 2.0]))})
+    code, _, err = run("check", _system_scene(tmp_path, "{stiffness: K.npz}"))
+    assert code == 2 and "$.system.stiffness: K.npz: cannot read" in err, err
+
+
+def test_mtx_sparse_dimension_budget(run, tmp_path):
+    from stepsafe.matrixfile import MAX_SPARSE_DIM
+
+    n = MAX_SPARSE_DIM + 1
+    (tmp_path / "K.mtx").write_text(f"%%MatrixMarket matrix coordinate real symmetric\n"
+                                    f"{n} {n} 1\n1 1 1.0\n")
+    code, _, err = run("check", _system_scene(tmp_path, "{stiffness: K.mtx}"))
+    assert code == 2 and f"larger than the {MAX_SPARSE_DIM} rows allowed" in err
+
+
+def test_special_files_as_matrices(tmp_path):
+    (tmp_path / "D.npy").mkdir()
+    _fifo(tmp_path, "F.npy")
+    for name, message in (("D.npy", "is a directory"), ("F.npy", "not a regular file (a FIFO)"),
+                          ("K.txt", "use a .npy, .npz or .mtx file")):
+        scene = _system_scene(tmp_path, f"{{stiffness: {name}}}")
+        _assert_input_error(*_cli("check", scene), f"{scene}::$.system.stiffness: {name}: "
+                                                   f"{message}")
+
+
+def test_real_matrices_of_any_width_are_read_as_float64(run_json, tmp_path):
+    import numpy as np
+    import scipy.io
+    import scipy.sparse as sp
+
+    K = np.array([[4, -1], [-1, 3]])
+    expected = np.sort(np.sqrt(np.linalg.eigvalsh(K.astype(float))))
+    files = {"i8.npy": K.astype(np.int8), "f2.npy": K.astype(np.float16),
+             "f4.npy": K.astype(np.float32), "dense.npz": K.astype(np.int64)}
+    for name, array in files.items():
+        (np.savez if name.endswith(".npz") else np.save)(tmp_path / name, array)
+    sp.save_npz(tmp_path / "coo.npz", sp.coo_matrix(K.astype(float)))
+    scipy.io.mmwrite(str(tmp_path / "int.mtx"), sp.coo_matrix(K))
+    for name in [*files, "coo.npz", "int.mtx"]:
+        data = run_json("advise", _system_scene(tmp_path, f"{{stiffness: {name}}}"))
+        betas = sorted(item["beta"] for item in data["system"]["items"])
+        assert betas == pytest.approx(expected, rel=1e-12), name
+
+
+REFUSED_KINDS = {"c": "complex values are not allowed", "b": "boolean values are not allowed",
+                 "U": "text values are not allowed", "S": "text values are not allowed",
+                 "O": "Python objects are not allowed", "M": "date/time values are not allowed",
+                 "m": "date/time values are not allowed",
+                 "V": "structured (record) values are not allowed"}
+DTYPES = ["<f8", "<f4", "<f2", "<i1", "<u2", "<i8", "<u8", "|b1", "<c16", "<c8", "<U3",
+          "|S2", "|O", "<M8[s]", "<m8[s]", [("a", "<f8"), ("b", "<i4")], [("x", "<f8")]]
+
+
+def _hostile_array(data):
+    import numpy as np
+    from hypothesis import strategies as st
+
+    dtype = np.dtype(data.draw(st.sampled_from(DTYPES), label="dtype"))
+    shape = tuple(data.draw(st.lists(st.integers(0, 4), max_size=3), label="shape"))
+    values = np.arange(int(np.prod(shape, dtype=np.int64)), dtype=np.int64).reshape(shape)
+    if dtype.kind == "c":
+        tiny = data.draw(st.sampled_from([1e-300, 0.0, 1.0]), label="imaginary part")
+        return values.astype(dtype) + tiny * 1j
+    if dtype.kind == "O":
+        return values.astype(object)
+    if dtype.fields is not None:
+        return np.zeros(shape, dtype=dtype)
+    return values.astype(dtype)
+
+
+def _expected_refusal(array) -> str | None:
+    kind = "V" if array.dtype.fields is not None else array.dtype.kind
+    if kind in REFUSED_KINDS:
+        return REFUSED_KINDS[kind]
+    if array.ndim == 0:
+        return "holds a single number (a 0-d array), not a matrix"
+    if array.ndim != 2:
+        return "not a 2-D matrix"
+    if array.shape[0] != array.shape[1] or array.size == 0:
+        return "the matrix must be square and non-empty"
+    return None
+
+
+def test_hostile_npy_and_npz_dtypes_and_shapes(tmp_path):
+    """Any dtype and shape in .npy or dense .npz: a float64 square matrix with the same values
+    for real dtypes, otherwise a StepsafeError naming the file and the reason; never a
+    truncation of complex values, never another exception."""
+    import numpy as np
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    from stepsafe.errors import StepsafeError
+    from stepsafe.matrixfile import read_matrix
+
+    @settings(max_examples=120, deadline=None, suppress_health_check=[
+        HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+    @given(st.data(), st.sampled_from([".npy", ".npz"]))
+    def check(data, suffix):
+        array = _hostile_array(data)
+        path = tmp_path / f"K{suffix}"
+        if suffix == ".npy":
+            np.save(path, array, allow_pickle=True)
+        else:
+            np.savez(path, array)
+        refusal = _expected_refusal(array)
+        try:
+            got = read_matrix(path, path.name, sparse_ok=data.draw(st.booleans()))
+        except StepsafeError as exc:
+            assert refusal is not None and refusal in str(exc), (array.dtype, array.shape, exc)
+            assert str(exc).startswith(f"{path.name}: ")
+            return
+        assert refusal is None, (array.dtype, array.shape)
+        assert got.dtype == np.float64 and np.array_equal(got, array.astype(np.float64))
+
+    check()
+
+
+@pytest.mark.parametrize("field, symmetry, message", [
+    ("complex", "general", "complex values are not allowed"),
+    ("complex", "hermitian", "complex values are not allowed"),
+    ("pattern", "general", "a pattern matrix (positions without values) is not allowed"),
+    ("real", "general", None), ("integer", "symmetric", None), ("double", "general", None),
+])
+def test_mtx_fields(run, tmp_path, field, symmetry, message):
+    values = {"complex": " 4.0 0.5", "pattern": ""}.get(field, " 4")
+    (tmp_path / "K.mtx").write_text(f"%%MatrixMarket matrix coordinate {field} {symmetry}\n"
+                                    f"2 2 2\n1 1{values}\n2 2{values}\n")
+    for key in ("stiffness", "mass"):
+        system = "{stiffness: K.mtx}" if key == "stiffness" else \
+            "{stiffness: [[1, 0], [0, 1]], mass: K.mtx}"
+        code, out, err = run("check", _system_scene(tmp_path, system))
+        if message is None:
+            assert code in (0, 1), err
+        else:
+            assert code == 2 and f"$.system.{key}: K.mtx: {message}" in err, err
+
+
+# --- System matrices: the right key, and definiteness independent of scale. ---
+
+def test_positive_definite_whatever_the_scale():
+    import numpy as np
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from stepsafe.systems import is_positive_definite
+
+    @settings(max_examples=80, deadline=None)
+    @given(st.integers(1, 6), st.integers(0, 2**32 - 1), st.booleans())
+    def check(n, seed, definite):
+        rng = np.random.default_rng(seed)
+        B = rng.normal(size=(n, n))
+        A = B @ B.T + 0.5 * np.eye(n)
+        if not definite:
+            v = rng.normal(size=n)
+            A = A - (2.0 * np.linalg.eigvalsh(A).max() + 1.0) * np.outer(v, v) / (v @ v)
+        d = 10.0 ** rng.uniform(-150, 150, size=n)
+        assert is_positive_definite(d[:, None] * A * d[None, :]) == definite
+
+    check()
+    assert is_positive_definite(np.diag([1e-300, 1e300]))
+    assert not is_positive_definite(np.array([[1e-300, 1e300], [1e300, 1e300]]))
+    assert not is_positive_definite(np.array([[0.0, 0.0], [0.0, 1.0]]))
+
+
+def test_badly_scaled_mass_is_analysed(run_json, tmp_path):
+    """M = diag(1e-300, 1e300) is positive definite; with K = diag(4e-300, 1e300) the
+    frequencies are exactly 2 and 1."""
+    data = run_json("advise", _system_scene(
+        tmp_path, "{stiffness: [[4e-300, 0], [0, 1e300]], mass: [[1e-300, 0], [0, 1e300]]}"))
+    assert sorted(item["beta"] for item in data["system"]["items"]) == pytest.approx([1, 2])
+
+
+def test_large_sparse_system_mass_errors_name_the_mass(run, tmp_path):
+    import scipy.sparse as sp
+
+    n = 2500
+    K = sp.diags([2.0] * n) - sp.eye(n, k=1) - sp.eye(n, k=-1)
+    sp.save_npz(tmp_path / "K.npz", K.tocsr())
+    for M, message in ((sp.diags([1.0] * (n - 1) + [-1.0]), "mass must be positive definite"),
+                       (K, "a large sparse system needs a diagonal (lumped) mass"),
+                       (sp.eye(n + 1), f"mass is {n + 1}x{n + 1} but stiffness is {n}x{n}")):
+        sp.save_npz(tmp_path / "M.npz", M.tocsr())
+        code, _, err = run("check", _system_scene(tmp_path, "{stiffness: K.npz, mass: M.npz}"))
+        assert code == 2 and f"$.system.mass: {message}" in err, err
+
+
+# --- Modes CSV files: numpy speed, exact messages naming the line, a row budget. ---
+
+def _modes_csv(tmp_path, content: str | bytes) -> str:
+    path = tmp_path / "modes.csv"
+    (path.write_bytes if isinstance(content, bytes) else path.write_text)(content)
+    return str(path)
+
+
+@pytest.mark.parametrize("content, message", [
+    ("beta,model\n1_0,oscillator\n", "$.line 2.beta: is not a number: '1_0'"),
+    ("beta,model\n\"3\",oscillator\n", "$.line 2.beta: is not a number: '\"3\"'"),
+    ("beta,model\n0x10,oscillator\n", "$.line 2.beta: is not a number: '0x10'"),
+    ("beta,model\n\u0663,oscillator\n", "$.line 2.beta: is not a number: '\u0663'"),
+    ("beta,model\n,oscillator\n", "$.line 2.beta: is not a number: ''"),
+    ("beta,model\nnan,oscillator\n", "$.line 2.beta: must be a finite number >= 0, got nan"),
+    ("beta,model\n1e400,oscillator\n", "$.line 2.beta: must be a finite number >= 0, got 1e400"),
+    ("beta\n1\n# note\n\n-2.5\n", "$.line 5.beta: must be a finite number >= 0, got -2.5"),
+    ("beta,model\n3,Oscillator\n", "$.line 2.model: must be one of oscillator, saddle, "
+                                   "inverted, saddle-p, got 'Oscillator'"),
+    ("beta,model\n3,oscillator,x\n", "$.line 2: has 3 columns, the header 2"),
+    ("beta,model\n3\n", "$.line 2: has 1 columns, the header 2"),
+    ("3,oscillator\n", "the CSV header must name the columns beta"),
+    ("beta,beta\n3,4\n", "the CSV header must name the columns beta"),
+    ("beta,model\n", "no rows after the header"),
+    ("# only a comment\n\n", "empty CSV file"),
+    (b"beta\n\x003\n", "binary file (contains NUL bytes)"),
+    (b"beta,label\n3,\xff\n", "not UTF-8 text (byte 13)"),
+])
+def test_bad_modes_csv(run, tmp_path, content, message):
+    path = _modes_csv(tmp_path, content)
+    code, out, err = run("check", "--method", "verlet", "--h", "0.1", "--modes", path)
+    assert code == 2 and f"{path}" in err and message in err, err
+    assert len(err.strip().splitlines()) == 1
+    assert "np.str_" not in err and "np.float64" not in err and "np.bytes_" not in err
+
+
+@pytest.mark.parametrize("content", [
+    "beta,model\n3,oscillator\n1,inverted\n",
+    "beta,model\r\n3,oscillator\r\n1,inverted\r\n",  # Windows line ends
+    "beta,model\r3,oscillator\r1,inverted",  # old Mac line ends, no final newline
+    "\ufeffbeta,model\n3,oscillator\n1,inverted\n",  # byte order mark (spreadsheets)
+    " beta , model \n 3 , oscillator \n\t1\t,\tinverted\n",
+    "# frequencies\n\nmodel,label,beta\noscillator,a,3\n\n# barrier\ninverted,b,1 # top\n",
+])
+def test_modes_csv_variants(tmp_path, content):
+    from stepsafe.scene import load_modes
+
+    got = load_modes(_modes_csv(tmp_path, content))
+    assert {k: v.tolist() for k, v in got.items()} == {"oscillator": [3.0], "inverted": [1.0]}
+
+
+def test_modes_csv_row_budget_checked_before_parsing(run, tmp_path):
+    from stepsafe.scene import MAX_CSV_ROWS
+
+    path = _modes_csv(tmp_path, b"beta\n" + b"1\n" * (MAX_CSV_ROWS + 1))
+    code, _, err = run("check", "--method", "verlet", "--h", "0.1", "--modes", path)
+    assert code == 2 and f"has {MAX_CSV_ROWS + 2} lines, more than the {MAX_CSV_ROWS} rows " \
+                          "(and a header) allowed" in err, err
+
+
+def _reference_csv(lines: list[str]):
+    """The documented CSV semantics, line by line: (grouped betas) or (line, field)."""
+    import re
+
+    from stepsafe.models import MODELS
+
+    number = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?", re.ASCII)
+    grouped: dict[str, list[float]] = {}
+    for n, line in enumerate(lines[1:], 2):
+        text = line.split("#", 1)[0]
+        if not text.strip():
+            continue
+        fields = text.split(",")
+        if len(fields) != 2:
+            return (n, "")
+        beta, model = fields[0].strip(), fields[1].strip()
+        if not number.fullmatch(beta) or not 0 <= float(beta) < math.inf:
+            return (n, ".beta")
+        if model not in MODELS:
+            return (n, ".model")
+        grouped.setdefault(model, []).append(float(beta))
+    return grouped
+
+
+def test_modes_csv_fast_and_exact_readers_agree(tmp_path, monkeypatch):
+    """np.loadtxt reads the file; on any doubt the exact reader decides, bisecting the file.
+    With tiny bisection blocks, random files of good and hostile lines must give what the
+    documented semantics give: the same frequencies, or the first bad line."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    import stepsafe.scene as scene
+    from stepsafe.errors import StepsafeError
+
+    monkeypatch.setattr(scene, "_CSV_ROW_BY_ROW", 2)
+    good = ["3,oscillator", "0.5,inverted", " 1e-3 , saddle ", "2.,saddle-p", ".25,oscillator",
+            "7,oscillator # comment", "", "# comment", "   ",
+            "4," + " " * 40 + "inverted" + " " * 40]  # wider than the fast reader's field
+    bad = ["1_0,oscillator", "-1,oscillator", "nan,saddle", "inf,saddle", "1e400,saddle",
+           "x,oscillator", "3,wobble", "3,oscillatorX", "3", "3,saddle,1", "\"3\",saddle",
+           "\u0663,saddle", "3,Oscillator", "0x1p3,saddle", "1e,saddle", "- 3,saddle"]
+    line = st.one_of(st.sampled_from(good), st.sampled_from(good), st.sampled_from(bad))
+
+    @settings(max_examples=150, deadline=None,
+              suppress_health_check=[HealthCheck.function_scoped_fixture])
+    @given(st.lists(line, min_size=0, max_size=40))
+    def check(body):
+        lines = ["beta,model", *body]
+        expected = _reference_csv(lines)
+        path = _modes_csv(tmp_path, "\n".join(lines) + "\n")
+        try:
+            got = scene.load_modes(path)
+        except StepsafeError as exc:
+            if isinstance(expected, tuple):
+                assert f"::$.line {expected[0]}{expected[1]}:" in str(exc), (exc, expected)
+            else:
+                assert not any(expected.values()) and "no rows" in str(exc), exc
+            return
+        assert isinstance(expected, dict), (expected, got)
+        assert {k: v.tolist() for k, v in got.items()} == expected
+
+    check()
+
+
+# --- Scenes: a relative method path is next to the scene file. ---
+
+def test_scene_method_path_is_next_to_the_scene(run, tmp_path, monkeypatch):
+    """From any working directory, 'method: m.yaml' is the file next to the scene, even when
+    the working directory holds another m.yaml."""
+    sub = tmp_path / "sub"
+    sub.mkdir()
+    (sub / "m.yaml").write_text(VALID)  # a Verlet step: first boundary z = 2
+    (tmp_path / "m.yaml").write_text(VALID.replace("drift: [0, 1]", 'drift: [0, "1/2"]')
+                                     .replace('kick: ["1/2", 0.5]', 'kick: ["1/4", "1/4"]'))
+    (sub / "c.yaml").write_text("name: c\nkind: composition\norder: 2\nsource: t\n"
+                                "base: m.yaml\nweights: [0.5, 0.5]\n")
+    monkeypatch.chdir(tmp_path)
+    def h_max(*args):
+        code, out, err = run("advise", *args, "--json")
+        assert code == 0, err
+        return json.loads(out)["h_max"]
+
+    assert h_max("--method", "m.yaml", "--beta", "1") == pytest.approx(4.0)  # the cwd file
+    for method, target in (("m.yaml", "m.yaml"), ("./m.yaml", "m.yaml"),
+                           ("{name: m.yaml}", "m.yaml"), ("c.yaml", "c.yaml")):
+        (sub / "scene.yaml").write_text(f"method: {method}\nmodes: [{{beta: 1}}]\n")
+        assert h_max("sub/scene.yaml") == h_max("--method", str(sub / target), "--beta", "1")
+    assert h_max("--method", str(sub / "m.yaml"), "--beta", "1") == pytest.approx(2.0)
+    (sub / "scene.yaml").write_text("method: {name: c.yaml, base: m.yaml}\nh: 1\n"
+                                    "modes: [{beta: 1}]\n")
+    assert run("check", "sub/scene.yaml")[0] == 0
+    (sub / "scene.yaml").write_text("method: missing.yaml\nh: 1\nmodes: [{beta: 1}]\n")
+    code, _, err = run("check", "sub/scene.yaml")
+    assert code == 2 and "missing.yaml: no such file" in err
+
+
+# --- Nested compositions: the flattened step count is bounded before anything is built. ---
+
+def test_nested_composition_budget_counts_without_flattening():
+    from support import method
+
+    from stepsafe.errors import MethodError
+    from stepsafe.methods import MAX_BASE_STEPS, Composition
+
+    verlet = method("verlet")
+    inner = Composition(verlet, [1 / 40] * 40)
+    assert Composition(inner, [1 / 25] * 25).flattened().weights.size == MAX_BASE_STEPS
+    with pytest.raises(MethodError, match=f"1200 steps of the base method .* more than the "
+                                          f"{MAX_BASE_STEPS} allowed"):
+        Composition(inner, [1 / 30] * 30)
+
+
+def test_nested_composition_files_are_refused_from_their_counts(tmp_path):
+    """Four nested files of 100 weights would flatten to 10^8 steps (gigabytes): refused
+    while the second level is built, naming the file and the budget."""
+    from stepsafe.methods import MAX_BASE_STEPS
+
+    weights = ", ".join(["0.01"] * 100)
+    base = "verlet"
+    for level in range(1, 5):
+        (tmp_path / f"nest{level}.yaml").write_text(
+            f"name: nest{level}\nkind: composition\norder: 2\nsource: t\nbase: {base}\n"
+            f"weights: [{weights}]\n")
+        base = f"nest{level}.yaml"
+    for command in (("region", "nest4.yaml"), ("validate", "nest4.yaml"),
+                    ("check", "--method", "nest3.yaml", "--h", "1", "--beta", "1"),
+                    ("region", "nest1.yaml", "--base", "nest1.yaml")):
+        code, out, err = _cli(*command, cwd=tmp_path)
+        _assert_input_error(code, out, err, f"10000 steps of the base method once the nested "
+                                            f"compositions are multiplied out, more than the "
+                                            f"{MAX_BASE_STEPS} allowed")
+        if command[-1] != "nest1.yaml":
+            assert "nest2.yaml: nest2: " in err
