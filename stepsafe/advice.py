@@ -207,7 +207,7 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
             # a beta known to a relative error r may be (1 -+ r) times itself: each gap
             # widens to (F a / (beta (1 + r)), b / (beta (1 - r)))
             low = np.maximum(positive * (1.0 - err), 0.0)
-            with np.errstate(divide="ignore"):
+            with np.errstate(divide="ignore", over="ignore"):  # beta ~ 1e-320: gaps at inf
                 lo = (margin * g[:, 0])[None, :] / top[:, None]
                 hi = g[:, 1][None, :] / low[:, None]
             # a mode cuts the safe set only below the horizon: skip gaps that start above it
@@ -280,7 +280,12 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
     margin = validate_margin(margin)
     h = positive_finite(h, "h")
     beta_top = max(float(b.max()) for b in modes.betas.values())
-    zmax = max(zmax, 1.05 * beta_top * h / margin)
+    with np.errstate(over="ignore"):
+        z_top = 1.05 * beta_top * h / margin
+    if not np.isfinite(z_top):
+        raise StepsafeError(f"z = beta*h = {beta_top:g} * {h:g} overflows float64: give the "
+                            "frequencies and the step in units where their product is finite")
+    zmax = max(zmax, z_top)
     regions = {model: find_region(method, model, zmax) for model in modes.betas}
     adv = advise(method, modes, margin, zmax, name, regions)
     failures: list[Failure] = []

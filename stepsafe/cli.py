@@ -10,6 +10,7 @@ Only click is imported at start-up; each command imports what it uses.
 from __future__ import annotations
 
 import sys
+from contextlib import contextmanager
 
 import click
 
@@ -193,6 +194,22 @@ def _resolve(method: str, stages: int | None, base: str | None):
     return resolve(method, stages, base)
 
 
+@contextmanager
+def _blame(entry):
+    """An analysis error about a method read from the user's file names that file."""
+    from pathlib import Path
+
+    from .errors import StepsafeError
+    from .library import builtin_dir
+
+    try:
+        yield
+    except StepsafeError as exc:
+        if exc.where or not entry.path or Path(entry.path).parent == builtin_dir():
+            raise
+        raise StepsafeError(exc.message, entry.path) from None
+
+
 @main.command("methods")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON list.")
 def methods_cmd(as_json: bool) -> None:
@@ -276,7 +293,8 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
     m, entry = _resolve(method, stages, base)
     models = MAIN_MODELS if model == "all" else (model,)
     zmax = DEFAULT_ZMAX if zmax is None else zmax
-    regions = {name: find_region(m, name, zmax) for name in models}
+    with _blame(entry):
+        regions = {name: find_region(m, name, zmax) for name in models}
     results = {name: region_data(r) for name, r in regions.items()}
     head = method_data(m, entry)
     verdict = _verify(method, stages, base, regions) if verify else None
@@ -432,10 +450,12 @@ def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, be
         if tol_phase is not None or tol_energy is not None:
             raise _input_error("--tol-phase/--tol-energy apply to frequencies, not yet to "
                                "system: scenes")
-        data = system_advice(method, system, margin, zmax, entry.name)
+        with _blame(entry):
+            data = system_advice(method, system, margin, zmax, entry.name)
         regions = {}
     elif tol_phase is None and tol_energy is None:
-        result = advise(method, modes, margin, zmax, entry.name)
+        with _blame(entry):
+            result = advise(method, modes, margin, zmax, entry.name)
         data = advice_data(result)
         regions = result.regions
     else:
@@ -448,7 +468,9 @@ def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, be
             if not (0 < t.value < float("inf")):
                 raise _input_error(f"--tol-{t.kind} must be a positive finite number, "
                                    f"got {t.value}")
-        res = tradeoff(method, modes, tols, margin, entry.name, entry.evaluations, zmax)
+        with _blame(entry):
+            res = tradeoff(method, modes, tols, margin, entry.name, entry.evaluations,
+                           zmax)
         data = tradeoff_data(res)
         regions = res.advice.regions
     verdict = _verify(ref.name, ref.stages, ref.base, regions) if verify and regions else None
@@ -499,10 +521,12 @@ def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inve
         if system is not None:
             from .sysadvice import system_check
 
-            data = system_check(method, system, step, margin_, zmax_, entry.name)
+            with _blame(entry):
+                data = system_check(method, system, step, margin_, zmax_, entry.name)
             result = None
         else:
-            result = check_step(method, modes, step, margin_, zmax_, entry.name)
+            with _blame(entry):
+                result = check_step(method, modes, step, margin_, zmax_, entry.name)
             data = check_data(result)
         if scene_file:
             data["scene"] = scene_file

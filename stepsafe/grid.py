@@ -77,10 +77,13 @@ def far_bound(method: Method, model: str) -> float:
     P = np.zeros((2, 2, len(ops) + 1))
     P[0, 0, 0] = P[1, 1, 0] = 1.0
     A = P.copy()
-    for kind, c in ops:
-        src, dst, c = (1, 0, c) if kind == "drift" else (0, 1, sign * c)
-        P[dst, :, 1:] += c * P[src, :, :-1]
-        A[dst, :, 1:] += abs(c) * A[src, :, :-1]
+    with np.errstate(over="ignore", invalid="ignore"):
+        for kind, c in ops:
+            src, dst, c = (1, 0, c) if kind == "drift" else (0, 1, sign * c)
+            P[dst, :, 1:] += c * P[src, :, :-1]
+            A[dst, :, 1:] += abs(c) * A[src, :, :-1]
+    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(A))):
+        return np.inf  # coefficients beyond float64: no bound
     err = 4.0 * (len(ops) + 1) * EPS * A
     trace, trace_err = P[0, 0] + P[1, 1], err[0, 0] + err[1, 1]
     bounds = [_fujiwara(trace - np.eye(1, trace.size, 0)[0] * level, trace_err)

@@ -310,10 +310,10 @@ def _sample(ev: _Evaluator, grid: Grid, levels: tuple[float, ...]) -> _Samples:
     within rounding of a level: a wiggle there is not resolvable). Stops before the first
     sample where ``M - I`` or its slope leaves the float64 range (:data:`OVERFLOW`)."""
     z = grid.z
-    with np.errstate(over="ignore", invalid="ignore"):
+    with np.errstate(over="ignore", invalid="ignore"):  # beyond the range: cut just below
         jet = ev.jet(z)
-    f, dt, D = _level_values(jet, levels), jet.dtrace, jet.D
-    keep = _usable_extent(z, D, jet.dM)
+        f, dt, D = _level_values(jet, levels), jet.dtrace, jet.D
+        keep = _usable_extent(z, D, jet.dM)
     end = float(grid.edges[-1])
     if keep < z.size:
         if keep == 0:

@@ -171,15 +171,15 @@ def _modes_list(items: Any, where: str, path: str) -> dict[str, np.ndarray]:
 
 
 def _near_scene(name: str | None, folder: Path) -> str | None:
-    """A relative method-file path in a scene is looked up next to the scene file first
-    (as a composition's ``base`` is next to its method file), then as given (relative to
-    the working directory). Names of built-in methods are left alone."""
+    """A relative method-file path in a scene is read next to the scene file (as a
+    composition's ``base`` is next to its method file), never relative to the working
+    directory, so a scene means the same from wherever it is checked. Names of built-in
+    methods are left alone."""
     from .library import _looks_like_path
 
     if name is None or not _looks_like_path(name) or Path(name).is_absolute():
         return name
-    local = folder / name
-    return str(local) if local.exists() else name
+    return str(folder / name)
 
 
 def load_scene(path: str | Path) -> Scene:

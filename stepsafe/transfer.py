@@ -498,7 +498,7 @@ def pole_locations(method: Method, model: str) -> tuple[np.ndarray, np.ndarray]:
     lam_t, left = np.linalg.eig(K.T)
     match = np.abs(lam_t[None, :] - lam[:, None]).argmin(axis=1) if lam.size else []
     left = left[:, match].real
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         kappa = (np.linalg.norm(left, axis=0) * np.linalg.norm(right, axis=0)
                  / np.abs(np.einsum("ij,ij->j", left, right)))
         zs = 1.0 / lam
