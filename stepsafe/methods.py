@@ -38,6 +38,11 @@ RESIDUAL_TOL = 1e-12
 #: (checked when it is built, before :meth:`Composition.flattened` allocates anything):
 #: three nested files of 100 weights would be 10^6 steps and gigabytes.
 MAX_BASE_STEPS = 1000
+#: A composition of an RK/PRK base solves one stage system per base step and per sample of
+#: M(z), and needs samples in proportion to how far its substeps reach: at most this much
+#: work, counted as base steps x stages^3 x sum |weights| (yoshida4 over Gauss s = 40:
+#: 8.4e5, about 10 s; 200 steps of Gauss s = 10 of total weight 1: 2e5).
+MAX_IMPLICIT_WORK = 1_000_000
 
 
 def _vector(values, name: str) -> np.ndarray:
@@ -256,6 +261,23 @@ class Composition:
             raise MethodError(
                 f"{self.name}: {self.base_steps} steps of the base method once the nested "
                 f"compositions are multiplied out, more than the {MAX_BASE_STEPS} allowed")
+        inner = self.base
+        while isinstance(inner, Composition):
+            inner = inner.base
+        if isinstance(inner, (RungeKutta, PartitionedRK)) and not inner.explicit:
+            work = self.base_steps * inner.stages ** 3 * max(1.0, self.reach)
+            if work > MAX_IMPLICIT_WORK:
+                raise MethodError(
+                    f"{self.name}: {self.base_steps} steps of a {inner.stages}-stage implicit "
+                    f"base: stage-solve work {work:.3g} (steps x stages^3 x sum |weights|) "
+                    f"exceeds the {MAX_IMPLICIT_WORK:.3g} allowed")
+
+    @property
+    def reach(self) -> float:
+        """Sum of |weights| once nested compositions are multiplied out (how far the
+        substeps reach, in steps of the base), counted without multiplying out."""
+        inner = self.base.reach if isinstance(self.base, Composition) else 1.0
+        return float(np.abs(self.weights).sum()) * inner
 
     @property
     def base_steps(self) -> int:
