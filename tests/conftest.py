@@ -3,11 +3,17 @@
 from __future__ import annotations
 
 import json
+import os
 
-import pytest
-from click.testing import CliRunner
+# one BLAS/OpenMP thread per test process: with pytest -n 2 on two cores, threaded BLAS
+# on small matrices only oversubscribes (set before anything imports numpy)
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-from stepsafe.cli import main
+import pytest  # noqa: E402
+from click.testing import CliRunner  # noqa: E402
+
+from stepsafe.cli import main  # noqa: E402
 
 
 @pytest.fixture
