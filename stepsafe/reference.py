@@ -239,16 +239,21 @@ def transfer_matrix_rk(A, b, z, model: str):
 def transfer_matrix_splitting(drift: Sequence, kick: Sequence, z,
                               model: str):
     """Splitting drift(a1 z) kick(b1 z) drift(a2 z) ... : product of
-    [[1, a z],[0, 1]] and [[1, 0],[-+b z, 1]] (oscillator -, inverted +);
-    on the saddle through the equivalent PRK (see splitting_to_prk)."""
+    [[1, a z],[0, 1]] and [[1, 0],[-+b z, 1]] (oscillator -, inverted +), applied to the
+    rows of M as scalars; on the saddle through the equivalent PRK (see splitting_to_prk)."""
     if model in ("saddle", "saddle-p"):
         return transfer_matrix_prk(*splitting_to_prk(drift, kick), z, model)
     sign = -1 if model == "oscillator" else 1
-    z, M = mp.mpf(z), mp.eye(2)
-    for a, b in zip_longest(drift, kick, fillvalue=0):
-        M = mp.matrix([[1, a * z], [0, 1]]) * M
-        M = mp.matrix([[1, 0], [sign * b * z, 1]]) * M
-    return M
+    z = mp.mpf(z)
+    a, b, c, d = mp.one, mp.zero, mp.zero, mp.one  # rows (a, b) for q and (c, d) for p
+    for x, y in zip_longest(drift, kick, fillvalue=0):
+        if x:
+            t = x * z
+            a, b = a + t * c, b + t * d
+        if y:
+            t = sign * y * z
+            c, d = c + t * a, d + t * b
+    return mp.matrix([[a, b], [c, d]])
 
 
 def transfer_matrix_composition(base_fn: MFun, weights: Sequence, z):

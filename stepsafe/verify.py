@@ -127,6 +127,21 @@ def mp_transfer(m: MPMethod) -> Callable:
     """``Mfun(z, model)``: the mpmath transfer matrix of ``m``."""
     from . import reference
 
+    if m.kind == "composition" and m.data["base"].kind == "splitting":
+        # a composition of a splitting is a splitting: one pass of scalar updates (its
+        # coefficients multiplied out once per working precision)
+        from mpmath import mp
+
+        flat: dict[int, tuple[list, list]] = {}
+
+        def composed(z, model: str):
+            if mp.prec not in flat:
+                flat[mp.prec] = _flat_splitting(m.data["weights"],
+                                                m.data["base"].data["drift"],
+                                                m.data["base"].data["kick"])
+            return reference.transfer_matrix_splitting(*flat[mp.prec], z, model)
+
+        return composed
     if m.kind == "composition":
         inner = mp_transfer(m.data["base"])
         weights = m.data["weights"]
@@ -136,6 +151,24 @@ def mp_transfer(m: MPMethod) -> Callable:
         d, k = m.data["drift"], m.data["kick"]
         return lambda z, model: reference.transfer_matrix_splitting(d, k, z, model)
     return reference.prk_transfer(*(m.data[key] for key in ("A_q", "b_q", "A_p", "b_p")))
+
+
+def _flat_splitting(weights, drift, kick) -> tuple[list, list]:
+    """drift/kick lists of ``weights`` applied to a splitting, with the drifts that meet
+    across substeps added (the sequence alternates drift, kick, drift, ...)."""
+    ops: list[list] = []  # [kind, coefficient], alternating
+    for g in weights:
+        for i, a in enumerate(drift):
+            for kind, c in (("d", a), ("k", kick[i] if i < len(kick) else None)):
+                if c is None:
+                    continue
+                if ops and ops[-1][0] == kind:
+                    ops[-1][1] += g * c
+                else:
+                    ops.append([kind, g * c])
+    if ops and ops[0][0] == "k":
+        ops.insert(0, ["d", 0])
+    return [c for k, c in ops if k == "d"], [c for k, c in ops if k == "k"]
 
 
 def _tr(M):
