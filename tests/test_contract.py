@@ -204,3 +204,29 @@ def test_command_line_numbers_keep_the_contract(beta, h, zmax, margin, model, na
         data = json.loads(out)
         assert data["safe"] == (code == 0)
         assert math.isfinite(beta) and math.isfinite(h)
+
+
+@SETTINGS
+@given(name=st.sampled_from(["verlet", "pefrl", "yoshida4", "bcss2", "midpoint", "ruth3",
+                             "symplectic-euler", "kahan-li8"]),
+       betas=st.lists(st.tuples(st.floats(-6, 6), st.sampled_from(["--beta", "--saddle-beta",
+                                                                    "--inverted-beta"])),
+                      min_size=1, max_size=3),
+       margin=st.sampled_from(["1", "0.9"]))
+def test_printed_limits_are_steps_check_accepts(name, betas, margin):
+    """advise prints 'Safe: 0 < h < X' (X rounded down): check --step X must pass, and a
+    step at the JSON h_max itself (the open end) must not."""
+    args = [a for log_beta, opt in betas for a in (opt, repr(10 ** log_beta))]
+    code, out, err, exc = _invoke("advise", "--method", name, *args, "--margin", margin)
+    _assert_contract(code, out, err, exc, False)
+    if "Safe: 0 < h < " not in out:
+        return
+    shown = out.split("Safe: 0 < h < ")[1].split(",")[0].split()[0].strip()
+    code, _, err, exc = _invoke("check", "--method", name, *args, "--margin", margin,
+                                "--step", shown)
+    assert code == 0, (shown, err)
+    data = json.loads(_invoke("advise", "--method", name, *args, "--margin", margin,
+                              "--json")[1])
+    code, _, _, _ = _invoke("check", "--method", name, *args, "--margin", margin, "--step",
+                            repr(data["h_max"]))
+    assert code == 1
