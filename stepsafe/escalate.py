@@ -127,15 +127,20 @@ class Escalation:
             return Decision()
 
 
-    def pole(self, lo: float, hi: float) -> float | None:
-        """The pole in ``(lo, hi)``: where ``1 / tr M`` changes sign (``tr M`` passes
-        through infinity); None if it does not (an even pole) or the budget ran out."""
+    def pole(self, z0: float, width: float) -> float | None:
+        """The pole float64 put at ``z0 +- width``: where ``1 / tr M`` changes sign
+        (``tr M`` passes through infinity), the sign change nearest ``z0`` when the
+        bracket is narrow, else the nearest found on a geometric scan of it (an
+        ill-conditioned eigenvalue can be off by percent: Gauss s = 27, 37.2 for 36.45).
+        None if there is no sign change (an even pole) or the budget ran out."""
         import mpmath as mp
 
         from .reference import refine_root
 
         if self.exhausted:
             return None
+        lo, hi = max(z0 - width, z0 / 8), min(z0 + width, 8 * z0)
+        count = 2 if width <= 1e-3 * z0 else POLE_SCAN
         with mp.workdps(DPS):
             def g(x):
                 try:
@@ -143,11 +148,23 @@ class Escalation:
                 except ZeroDivisionError:  # exactly singular: the pole itself
                     return mp.mpf(0)
 
-            a, b = mp.mpf(lo), mp.mpf(hi)
-            ga, gb = g(a), g(b)
-            if ga == 0 or gb == 0 or (ga > 0) == (gb > 0):
+            xs = ([mp.mpf(lo), mp.mpf(hi)] if count == 2 else
+                  [mp.mpf(lo) * (mp.mpf(hi) / lo) ** (mp.mpf(k) / (count - 1))
+                   for k in range(count)])
+            gs = [g(x) for x in xs]
+            found = []
+            for (a, ga), (b, gb) in zip(zip(xs, gs), zip(xs[1:], gs[1:])):
+                if ga == 0:
+                    found.append(a)
+                elif gb != 0 and (ga > 0) != (gb > 0) and not self.exhausted:
+                    found.append(refine_root(g, a, b, tol=_digits(b)))
+            if not found:
                 return None
-            return float(refine_root(g, a, b, tol=_digits(b)))
+            return float(min(found, key=lambda x: abs(x - z0)))
+
+
+#: Samples of a wide pole bracket scanned for sign changes of 1/tr M.
+POLE_SCAN = 48
 
 
 def _digits(z):

@@ -537,7 +537,7 @@ def _escalate(ev: _Evaluator, spreads: list[_Spread], esc: Escalation,
         p = c.point
         vague = p.uncertainty > ESCALATE_REL * p.z and c.lo < c.hi and p.kind != "resonance"
         if vague and p.kind == "pole":
-            z = esc.pole(c.lo, c.hi)
+            z = esc.pole(p.z, p.uncertainty)
             if z is not None:
                 u = float(np.spacing(z))
                 c = c._replace(point=p._replace(z=z, uncertainty=u), lo=z - u, hi=z + u)

@@ -31,8 +31,8 @@ LIBRARY = [n for n in builtin_names() if n not in ("gauss", "lobatto3ab", "rk4")
 FAMILIES = [("gauss", s) for s in (1, 2, 3, 4, 6)] + [("lobatto3ab", s) for s in (2, 3, 4, 5, 6)]
 
 
-def _check_point(Mfun, model: str, p, zmax: float) -> None:
-    check = check_point(Mfun, model, p, zmax, DPS)
+def _check_point(Mfun, model: str, p) -> None:
+    check = check_point(Mfun, model, p, DPS)
     assert check.ok and check.discrepancy <= REL + p.uncertainty / p.z, check
 
 
@@ -54,7 +54,7 @@ def _cross_check(m, Mfun, zmax: float = 10.0, most: int = 4):
         region = find_region(m, model, zmax)
         with mp.workdps(DPS):
             for p in sorted(_points(region), key=lambda p: p.z)[:most]:
-                _check_point(Mfun, model, p, zmax)
+                _check_point(Mfun, model, p)
         reported = [p.z for p in _points(region) if p.kind in ("root", "resonance")]
         lo, hi = _dense_crossings(m, model, zmax, [p.z for p in region.poles])
         for a, b in zip(lo, hi):
@@ -99,4 +99,4 @@ def test_high_stage_first_points_at_50_digits(family, s):
     region = find_region(m, "oscillator")
     with mp.workdps(DPS):
         for p in sorted(_points(region), key=lambda p: p.z)[:2]:
-            _check_point(Mfun, "oscillator", p, region.zmax)
+            _check_point(Mfun, "oscillator", p)
