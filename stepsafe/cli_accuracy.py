@@ -198,8 +198,13 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
       stepsafe plot lobatto3ab -s 3 -o lobatto3.png --phase
     """
     import logging
+    import math
     import warnings
 
+    # the arguments are checked before matplotlib is looked for
+    zmax = 6.0 if zmax is None else zmax
+    if not (math.isfinite(zmax) and zmax > 0):
+        raise _input_error(f"zmax must be a positive finite number, got {zmax}")
     try:
         logging.getLogger("matplotlib").setLevel(logging.ERROR)  # font cache, eps alpha notes
         import matplotlib
@@ -214,9 +219,6 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
     from .transfer import transfer_matrix
 
     fmt = _plot_format(output, plt)
-    zmax = 6.0 if zmax is None else zmax
-    if not (np.isfinite(zmax) and zmax > 0):
-        raise _input_error(f"zmax must be a positive finite number, got {zmax}")
     m, entry = _resolve(method, stages, base)
     region = find_region(m, model, zmax)
     z = np.linspace(zmax / 4000, zmax, 4000)
