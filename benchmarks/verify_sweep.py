@@ -8,6 +8,7 @@ writes the rows.
 
     python benchmarks/verify_sweep.py                 # everything (tens of minutes)
     python benchmarks/verify_sweep.py --max-stages 12 # a quicker subset
+    python benchmarks/verify_sweep.py --shard 1/2     # every other case (one per core)
 """
 
 from __future__ import annotations
@@ -45,11 +46,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--max-stages", type=int, default=40)
     parser.add_argument("--json", dest="json_path", default=None)
+    parser.add_argument("--shard", default="1/1", metavar="I/N",
+                        help="run only cases I, I+N, I+2N, ... (1-based), to split over cores")
     args = parser.parse_args()
+    index, count = (int(x) for x in args.shard.split("/"))
     cases = [(f, s) for f in FAMILIES for s in range(2, args.max_stages + 1)]
     cases += [(n, None) for n in builtin_names() if n not in FAMILIES]
     rows = []
-    for name, stages in cases:
+    for name, stages in cases[index - 1::count]:
         for zmax in ZMAXES:
             row = run(name, stages, zmax)
             rows.append(row)

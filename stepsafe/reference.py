@@ -130,15 +130,7 @@ def splitting_to_prk(drift: Sequence, kick: Sequence) -> tuple:
     for separable H; velocity Verlet (0, 1/2, 1, 1/2) gives exactly 2-stage
     Lobatto IIIA (q) - IIIB (p).  Zero-weight pieces are dropped.
     """
-    x = [v for pair in zip_longest(drift, kick, fillvalue=0) for v in pair]
-    pieces, prev = [], mp.zero
-    for k, xk in enumerate(x):
-        ck = mp.mpf(xk) - prev
-        pieces.append((ck, k % 2 == 0))  # True: Phi (drift-kick)
-        prev = ck
-    if abs(prev) > mp.eps * 2 ** 10 * (1 + sum(abs(v) for v in x)):
-        raise ValueError("inconsistent splitting: sum(drift) != sum(kick)")
-    pieces = [pc for pc in pieces if pc[0] != 0]
+    pieces = _euler_pieces(drift, kick)
     s = len(pieces)
     A_q, A_p = mp.matrix(s, s), mp.matrix(s, s)
     for k, (ck, is_phi) in enumerate(pieces):
@@ -149,10 +141,26 @@ def splitting_to_prk(drift: Sequence, kick: Sequence) -> tuple:
     return A_q, b, A_p, list(b)
 
 
+def _euler_pieces(drift: Sequence, kick: Sequence) -> list[tuple]:
+    """The pieces (c_k, is_phi) of :func:`splitting_to_prk`, zero weights dropped."""
+    x = [v for pair in zip_longest(drift, kick, fillvalue=0) for v in pair]
+    pieces, prev = [], mp.zero
+    for k, xk in enumerate(x):
+        ck = mp.mpf(xk) - prev
+        pieces.append((ck, k % 2 == 0))  # True: Phi (drift-kick)
+        prev = ck
+    if abs(prev) > mp.eps * 2 ** 10 * (1 + sum(abs(v) for v in x)):
+        raise ValueError("inconsistent splitting: sum(drift) != sum(kick)")
+    return [pc for pc in pieces if pc[0] != 0]
+
+
 def _solve(A: list, rhs: list) -> list:
     """Solve A X = rhs (lists of rows) by Gaussian elimination with partial pivoting at
-    the working precision; raises ZeroDivisionError if A is singular."""
+    the working precision (forward substitution when A is lower triangular, as the stage
+    systems of splittings are); raises ZeroDivisionError if A is singular."""
     n, m = len(A), len(rhs[0])
+    if all(A[i][j] == 0 for i in range(n) for j in range(i + 1, n)):
+        return _forward_substitution(A, rhs)
     W = [list(A[i]) + list(rhs[i]) for i in range(n)]
     for k in range(n):
         piv = max(range(k, n), key=lambda i: abs(W[i][k]))
@@ -172,6 +180,18 @@ def _solve(A: list, rhs: list) -> list:
         for c in range(m):
             acc = W[i][n + c] - mp.fsum(W[i][j] * X[j][c] for j in range(i + 1, n))
             X[i][c] = acc / W[i][i]
+    return X
+
+
+def _forward_substitution(L: list, rhs: list) -> list:
+    """Solve L X = rhs for lower-triangular L (lists of rows)."""
+    n, m = len(L), len(rhs[0])
+    X: list = []
+    for i in range(n):
+        if L[i][i] == 0:
+            raise ZeroDivisionError("singular stage system")
+        X.append([(rhs[i][c] - mp.fsum(L[i][j] * X[j][c] for j in range(i))) / L[i][i]
+                  for c in range(m)])
     return X
 
 
@@ -242,7 +262,7 @@ def transfer_matrix_splitting(drift: Sequence, kick: Sequence, z,
     [[1, a z],[0, 1]] and [[1, 0],[-+b z, 1]] (oscillator -, inverted +), applied to the
     rows of M as scalars; on the saddle through the equivalent PRK (see splitting_to_prk)."""
     if model in ("saddle", "saddle-p"):
-        return transfer_matrix_prk(*splitting_to_prk(drift, kick), z, model)
+        return _diagonal_splitting(drift, kick, z, model)
     sign = -1 if model == "oscillator" else 1
     z = mp.mpf(z)
     a, b, c, d = mp.one, mp.zero, mp.zero, mp.one  # rows (a, b) for q and (c, d) for p
@@ -254,6 +274,28 @@ def transfer_matrix_splitting(drift: Sequence, kick: Sequence, z,
             t = sign * y * z
             c, d = c + t * a, d + t * b
     return mp.matrix([[a, b], [c, d]])
+
+
+def _diagonal_splitting(drift: Sequence, kick: Sequence, z, model: str):
+    """The PRK of :func:`splitting_to_prk` on a diagonal model (q' = lqq q, p' = lpp p):
+    q and p decouple, and each symplectic Euler piece Phi_c is implicit Euler in q and
+    explicit Euler in p (Phi*_c the reverse), so M = diag(prod r_q, prod r_p) with
+    r = 1/(1 - z l c) (implicit) or 1 + z l c (explicit).  Raises ZeroDivisionError at a
+    pole (1 - z l c = 0)."""
+    (lqq, _), (_, lpp) = MODELS[model]
+    z = mp.mpf(z)
+    rq = rp = mp.one
+    for c, is_phi in _euler_pieces(drift, kick):
+        implicit, explicit = (lqq, lpp) if is_phi else (lpp, lqq)
+        den = 1 - z * implicit * c
+        if den == 0:
+            raise ZeroDivisionError("singular stage system")
+        r_impl, r_expl = 1 / den, 1 + z * explicit * c
+        if is_phi:
+            rq, rp = rq * r_impl, rp * r_expl
+        else:
+            rq, rp = rq * r_expl, rp * r_impl
+    return mp.matrix([[rq, mp.zero], [mp.zero, rp]])
 
 
 def transfer_matrix_composition(base_fn: MFun, weights: Sequence, z):

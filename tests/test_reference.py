@@ -100,3 +100,23 @@ def test_high_stage_first_points_at_50_digits(family, s):
     with mp.workdps(DPS):
         for p in sorted(_points(region), key=lambda p: p.z)[:2]:
             _check_point(Mfun, "oscillator", p)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_splitting_on_the_saddles_equals_its_prk_stage_solve(seed):
+    """The product form used for splittings on the diagonal models against the stacked
+    symplectic-Euler PRK solved as a full stage system."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 7))
+    with mp.workdps(DPS):
+        a = [mp.mpf(float(x)) for x in rng.uniform(-1.5, 1.5, n)]
+        k = [mp.mpf(float(x)) for x in rng.uniform(-1.5, 1.5, n)]
+        a[-1] += 1 - mp.fsum(a)
+        k[-1] += 1 - mp.fsum(k)
+        a.append(mp.mpf(0))
+        for z in rng.uniform(0.1, 5.0, 3):
+            for model in ("saddle", "saddle-p"):
+                want = mpref.transfer_matrix_prk(*mpref.splitting_to_prk(a, k), z, model)
+                got = mpref.transfer_matrix_splitting(a, k, z, model)
+                assert mp.mnorm(got - want, 1) <= mp.mpf(10) ** (8 - DPS) * (
+                    1 + mp.mnorm(want, 1))
