@@ -386,8 +386,16 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
         notes = (f"M(z) leaves the float64 range beyond z = {s.end:.6g}: not analysed "
                  "further",)
         pole_pts = tuple(p for p in pole_pts if p.z < zmax)
-    # extrema of tr M: roots of d(tr M)/dz, by Newton on its second derivative
     usable = grid.cells(z)
+    if model in DIAGONAL_MODELS:
+        extra = _orientation_extrema(ev, z, usable)
+        if extra.size:
+            ej = ev.jet(extra)
+            fe = _level_values(ej, levels)
+            z, f, dt, D, unc = _merge(z, extra, (f, fe), (dt, ej.dtrace), (D, ej.D),
+                                      (unc, _uncertain(ev, extra, fe, levels)))
+            usable = grid.cells(z)
+    # extrema of tr M: roots of d(tr M)/dz, by Newton on its second derivative
     cells = _brackets(z, dt, usable)
     start = hermite_extremum(z[cells], z[cells + 1], f[cells, 0], f[cells + 1, 0], dt[cells],
                              dt[cells + 1])
@@ -439,6 +447,44 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     spreads = _within_decided(points, z[~unc], zmax)
     spreads = _escalate(ev, spreads, Escalation(method, model), dz)
     return _assemble(ev, model, zmax, float(z[-1]) if z.size else zmax, spreads, dz, notes)
+
+
+#: Models on which M is diagonal for every method (q and p decouple).
+DIAGONAL_MODELS = ("saddle", "saddle-p")
+
+
+def _orientation_extrema(ev: _Evaluator, z: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """Extrema of the orientation ``o = +-(M_qq - M_pp)`` inside cells, on the diagonal
+    models, to be added as samples.
+
+    There ``M = diag(R, 1/R)``, so ``tr M - 2 = (R - 1)^2 / R`` never changes sign: a dip of
+    R below 1 inside one cell is three extrema of tr M (two touches of 2 around a
+    maximum) that the cell's ends do not separate, while ``o = R - 1/R`` has one extremum
+    there (``o' = R' (1 + 1/R^2)`` vanishes only with R'). A sample at that extremum
+    splits the three, so each touch is found on its own. Cells where the cubic
+    interpolant of o hides a pair of extrema are split into ``REFINE_SPLIT`` parts."""
+    jet = ev.jet(z, order=2)
+    sign = 1.0 if ev.model == "saddle" else -1.0
+    o = sign * (jet.D[:, 0, 0] - jet.D[:, 1, 1])
+    do = sign * (jet.dM[:, 0, 0] - jet.dM[:, 1, 1])
+    with np.errstate(invalid="ignore", over="ignore"):
+        cells = _brackets(z, do, usable)
+
+        def slope(x):
+            j = ev.jet(x, order=2)
+            return (sign * (j.dM[:, 0, 0] - j.dM[:, 1, 1]),
+                    sign * (j.d2M[:, 0, 0] - j.d2M[:, 1, 1]))
+
+        start = hermite_extremum(z[cells], z[cells + 1], o[cells], o[cells + 1], do[cells],
+                                 do[cells + 1])
+        ext = refine_brackets(lambda x: slope(x)[0], z[cells], z[cells + 1], do[cells],
+                              do[cells + 1], slope=slope, start=start)
+        hidden = _hidden_extrema(z, o, do, usable & np.isfinite(o[:-1]) & np.isfinite(o[1:]),
+                                 (0.0,))
+    frac = np.arange(1, REFINE_SPLIT) / REFINE_SPLIT
+    split = (z[hidden, None] + np.diff(z)[hidden, None] * frac[None, :]).ravel()
+    extra = np.concatenate([ext[np.isfinite(ext)], split])
+    return np.setdiff1d(extra, z)
 
 
 def _orientation_switches(ev: _Evaluator, z, dev, D, usable) -> list[Point]:

@@ -234,3 +234,38 @@ def test_gauss_far_poles_and_touches_within_their_uncertainty():
     region = find_region(method("gauss", 12), "oscillator", 4 * math.pi)
     near = [p for p in region.resonances if abs(p.z - 2 * math.pi) < 1e-4]
     assert len(near) == 1 and near[0].detail == "M = +I" and not region.undecided
+
+
+@pytest.mark.parametrize("detune", [0.0, 1e-9, -1e-9, 3e-7, -3e-7])
+def test_saddle_dip_inside_one_grid_cell_is_found(detune):
+    """A symmetric Verlet composition tuned near a double root of R_q(z) = 1: on the saddle
+    R_q dips below 1 (q contracts: reversed) over a band far narrower than the grid, while
+    tr M - 2 = (R - 1)^2 / R stays >= 0. Both ends of the band (50-digit roots of R_q = 1)
+    must bound the preserved intervals; with the dip gone nothing is lost."""
+    from stepsafe.methods import Composition
+
+    a, b = -1.3814395335576392367, 1.1886084963163208 + detune
+    weights = [a, b, 1 - 2 * a - 2 * b, b, a]
+    m = Composition(method("verlet"), weights)
+    region = find_region(m, "saddle", zmax=1.44)
+    with mp.workdps(50):
+        g = [mp.mpf(w) for w in weights]
+        def Rq(z):  # velocity Verlet (kick-drift-kick) on q' = q, p' = -p: implicit in q
+            M = R.transfer_matrix_composition(
+                lambda x: R.transfer_matrix_splitting([0, 1], [0.5, 0.5], x, "saddle"), g, z)
+            return M[0, 0] - 1
+
+        zs = [mp.mpf(1.4384) + k * mp.mpf("2e-6") for k in range(151)]
+        vals = [Rq(z) for z in zs]
+        roots = [float(mp.findroot(Rq, (zs[k], zs[k + 1]), solver="anderson"))
+                 for k in range(150) if vals[k] * vals[k + 1] < 0]
+    safe_ends = sorted({iv.hi for iv in region.intervals if iv.hi is not None}
+                       | {iv.lo for iv in region.intervals if iv.lo > 0})
+    for r in roots:
+        assert any(abs(r - e) <= 1e-9 for e in safe_ends), (r, region.intervals)
+    for lo, hi in zip(roots[::2], roots[1::2]):
+        mid = 0.5 * (lo + hi)
+        assert not any(iv.contains(mid) for iv in region.intervals), (mid, region.intervals)
+    assert len(roots) in (0, 2)
+    if not roots:
+        assert region.first_boundary is None or region.first_boundary > 1.4386
