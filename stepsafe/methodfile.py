@@ -34,7 +34,16 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 from .errors import StepsafeError
-from .expressions import FLOAT, Backend, ExpressionError, evaluate, parse
+from .expressions import (
+    EPS,
+    FLOAT,
+    Backend,
+    ExpressionError,
+    evaluate,
+    evaluate_with_bound,
+    mpmath_backend,
+    parse,
+)
 
 KINDS = ("rk", "prk", "splitting", "composition")
 MAX_STAGES = 200
@@ -135,20 +144,51 @@ def _bool(value: Any, where: str, key: str) -> bool:
     raise _fail(where, key, f"must be true or false, got {value!r}")
 
 
+#: A float coefficient whose rounding bound exceeds this many ulps is re-evaluated at
+#: EXACT_DPS digits and rounded once.
+EXACT_ULPS = 16
+EXACT_DPS = 50
+
+
 class _Scope:
-    """Constants defined so far, in float (the guard) and in the requested backend."""
+    """Constants defined so far, in float (the guard) and in the requested backend.
+
+    Float values are the decimal text's value rounded once: an expression whose float
+    evaluation may be off by more than :data:`EXACT_ULPS` ulps (cancellation) is evaluated
+    at :data:`EXACT_DPS` digits instead, so the float path analyses the method the file
+    defines."""
 
     def __init__(self, backend: Backend) -> None:
         self.backend = backend
         self.floats: dict[str, float] = {}
+        self.errors: dict[str, float] = {}
         self.values: dict[str, Any] = {}
+        self.texts: dict[str, Any] = {}
+        self._exact: dict[str, Any] | None = None
+
+    def _float(self, expr, text: str) -> float:
+        guard = evaluate(expr, self.floats, FLOAT)
+        value, bound = evaluate_with_bound(expr, self.floats, self.errors)
+        if not bound > EXACT_ULPS * EPS * abs(guard):
+            return guard
+        import mpmath
+
+        with mpmath.workdps(EXACT_DPS):
+            if self._exact is None:
+                self._exact = {}
+            backend = mpmath_backend()
+            for name, known in self.texts.items():
+                if name not in self._exact:
+                    self._exact[name] = evaluate(known, self._exact, backend)
+            exact = float(evaluate(expr, self._exact, backend))
+        return FLOAT.check(exact)
 
     def value(self, text: Any, where: str, path: str) -> Any:
         if not isinstance(text, str):
             raise _fail(where, path, "must be a number or an expression string")
         try:
             expr = parse(text)
-            as_float = evaluate(expr, self.floats, FLOAT)
+            as_float = self._float(expr, text)
             if self.backend is FLOAT:
                 return as_float
             return evaluate(expr, self.values, self.backend)
@@ -158,7 +198,9 @@ class _Scope:
     def define(self, name: str, text: Any, where: str, path: str) -> None:
         self.values[name] = self.value(text, where, path)
         self.floats[name] = self.values[name] if self.backend is FLOAT else \
-            evaluate(parse(text), self.floats, FLOAT)
+            self._float(parse(text), text)
+        self.errors[name] = EPS / 2 * abs(self.floats[name])
+        self.texts[name] = parse(text)
 
 
 def _vector(value: Any, where: str, key: str, scope: _Scope, limit: int) -> list:

@@ -682,3 +682,18 @@ def test_nested_composition_files_are_refused_from_their_counts(tmp_path):
                                             f"{MAX_BASE_STEPS} allowed")
         if command[-1] != "nest1.yaml":
             assert "nest2.yaml: nest2: " in err
+
+
+def test_cancelling_coefficient_expressions_are_evaluated_exactly(run, tmp_path):
+    """A drift written as ((1e16 + 0.25) - 1e16) + 0.75 is exactly 1 (plain Verlet): float64
+    evaluation would give 0.75 and a boundary at sqrt(16/3) instead of 2."""
+    path = tmp_path / "cancel.yaml"
+    path.write_text('name: cancel\nkind: splitting\norder: 2\nsource: "test"\n'
+                    'drift: [0, "((1e16 + 0.25) - 1e16) + 0.75"]\nkick: [1/2, 1/2]\n')
+    code, out, _ = run("check", "--method", str(path), "--step", "2.1", "--beta", "1")
+    assert code == 1, out
+    code, out, _ = run("region", str(path), "--model", "oscillator", "--json")
+    assert code == 0
+    import json
+
+    assert json.loads(out)["models"]["oscillator"]["first_boundary"] == 2.0
