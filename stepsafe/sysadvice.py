@@ -7,9 +7,9 @@ from __future__ import annotations
 from typing import Any
 
 from .advice import advise, check_step, validate_margin
+from .coupled import CoupledSystem
 from .methods import Method
 from .sysfile import SystemReport
-from .systems import coupled_preserved
 
 
 def _limit_items(report: SystemReport, regions, margin: float) -> list[dict[str, Any]]:
@@ -82,7 +82,8 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
                 "h_max": None, "safe_h": [[0.0, None]]}
         regions = {}
     for result, S in report.coupled:
-        ok = all(coupled_preserved(method, S, step) for step in (h, h / margin))
+        system = CoupledSystem(method, S)
+        ok = all(system.preserved(step) for step in (h, h / margin))
         data["modes"] += 1
         cap = margin * result.h_max
         data["safe_h"] = _cap(data["safe_h"], cap)

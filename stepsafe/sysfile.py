@@ -159,7 +159,8 @@ def _stiffness(tree, where, folder) -> SystemReport:
 
 
 def _hessian(tree, where, folder, method, zmax) -> SystemReport:
-    from .systems import check_square, coupled_safe_steps, hessian_modes
+    from .coupled import coupled_safe_steps
+    from .systems import check_square, hessian_modes
 
     S = check_square(_matrix(tree["hessian"], where, "hessian", folder), "hessian")
     if S.shape[0] > 2 * DENSE_LIMIT:
@@ -176,9 +177,10 @@ def _hessian(tree, where, folder, method, zmax) -> SystemReport:
 
 
 def _hamiltonian(tree, where, method, zmax) -> SystemReport:
+    from .coupled import coupled_safe_steps
     from .expressions import ExpressionError
     from .nonlinear import find_equilibria, parse_hamiltonian
-    from .systems import coupled_safe_steps, hessian_modes
+    from .systems import hessian_modes
 
     text = tree["hamiltonian"]
     if not isinstance(text, str):

@@ -14,14 +14,9 @@ decouple (DESIGN §4).
   ``mu = +-lam`` real a saddle (for RK methods ``saddle`` and ``inverted`` coincide).
   Complex quadruplets ``+-a +-ib`` (loxodromic) have no 1-dof model and go to the coupled
   analysis.
-* otherwise (**coupled**): the full 2n x 2n one-step matrix ``M_h`` is built (stage equations
-  for PRK/RK; symplectic Euler factors for splittings, one n x n solve each) and its
-  eigenvalues are classified against those of ``J S``: the numbers of elliptic pairs
-  (``|nu| = 1``), hyperbolic pairs with positive multipliers and loxodromic quadruplets must
-  match, no multiplier may be negative real (a flip), and the elliptic pairs must keep their
-  Krein signatures (the sense of rotation: ``sign Im(v^H J v)`` of the eigenvector in the
-  upper half-plane), which is what ``oscillator`` checks in one dof. The orientation of
-  hyperbolic directions is not checked in the coupled analysis.
+* otherwise (**coupled**, :mod:`stepsafe.coupled`): the full 2n x 2n one-step matrix, whose
+  multipliers must have the types and Krein signatures of the eigenvalues of ``J S``. The
+  orientation of hyperbolic directions is not checked in the coupled analysis.
 """
 
 from __future__ import annotations
@@ -32,10 +27,9 @@ import numpy as np
 
 from .checks import is_partitioned
 from .errors import StepsafeError
-from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
+from .methods import Method
 
 ZERO_TOL = 1e-10  # eigenvalues of J S below this times the largest are zero modes
-CIRCLE_TOL = 1e-8  # |nu| within this of 1 is on the unit circle
 EPS = float(np.finfo(float).eps)
 
 
@@ -264,169 +258,3 @@ def hamiltonian_matrix(S: np.ndarray) -> np.ndarray:
     """``J S`` with ``J = [[0, I], [-I, 0]]``: the generator of ``x' = J S x``."""
     n = S.shape[0] // 2
     return np.vstack([S[n:], -S[:n]])
-
-
-def one_step_matrix(method: Method, S: np.ndarray, h: float) -> np.ndarray:
-    """The 2n x 2n matrix of one step of size h on ``x' = J S x`` (NaN if no unique step)."""
-    S_qq, S_qp, S_pq, S_pp = split_hessian(S)
-    n = S_qq.shape[0]
-    if isinstance(method, Composition):
-        flat = method.flattened()
-        out = np.eye(2 * n)
-        for g in flat.weights:
-            out = one_step_matrix(flat.base, S, g * h) @ out
-        return out
-    if isinstance(method, Splitting):
-        out = np.eye(2 * n)
-        eye = np.eye(n)
-        for kind, w in method.euler_factors():
-            c = w * h
-            F = np.zeros((2 * n, 2 * n))
-            try:
-                if kind == "DK":  # q1 = q0 + c f(q1, p0), p1 = p0 + c g(q1, p0)
-                    inv = np.linalg.inv(eye - c * S_pq)
-                    F[:n, :n], F[:n, n:] = inv, c * inv @ S_pp
-                    F[n:, :n] = -c * S_qq @ F[:n, :n]
-                    F[n:, n:] = eye - c * (S_qq @ F[:n, n:] + S_qp)
-                else:  # p1 = p0 + c g(q0, p1), q1 = q0 + c f(q0, p1)
-                    inv = np.linalg.inv(eye + c * S_qp)
-                    F[n:, :n], F[n:, n:] = -c * inv @ S_qq, inv
-                    F[:n, :n] = eye + c * (S_pq + S_pp @ F[n:, :n])
-                    F[:n, n:] = c * S_pp @ F[n:, n:]
-            except np.linalg.LinAlgError:
-                return np.full((2 * n, 2 * n), np.nan)
-            out = F @ out
-        return out
-    prk = method.as_prk() if isinstance(method, RungeKutta) else method
-    assert isinstance(prk, PartitionedRK)
-    s = prk.stages
-    I_sn = np.eye(s * n)
-    top = np.hstack([I_sn - h * np.kron(prk.A_q, S_pq), -h * np.kron(prk.A_q, S_pp)])
-    bottom = np.hstack([h * np.kron(prk.A_p, S_qq), I_sn + h * np.kron(prk.A_p, S_qp)])
-    E = np.zeros((2 * s * n, 2 * n))
-    E[: s * n, :n] = np.tile(np.eye(n), (s, 1))
-    E[s * n:, n:] = np.tile(np.eye(n), (s, 1))
-    try:
-        X = np.linalg.solve(np.vstack([top, bottom]), E)
-    except np.linalg.LinAlgError:
-        return np.full((2 * n, 2 * n), np.nan)
-    Q, P = X[: s * n].reshape(s, n, 2 * n), X[s * n:].reshape(s, n, 2 * n)
-    F = np.einsum("ab,sbk->sak", S_pq, Q) + np.einsum("ab,sbk->sak", S_pp, P)
-    G = -(np.einsum("ab,sbk->sak", S_qq, Q) + np.einsum("ab,sbk->sak", S_qp, P))
-    out = np.eye(2 * n)
-    out[:n] += h * np.einsum("s,sak->ak", prk.b_q, F)
-    out[n:] += h * np.einsum("s,sak->ak", prk.b_p, G)
-    return out
-
-
-class Signature(NamedTuple):
-    elliptic_plus: int
-    elliptic_minus: int
-    hyperbolic: int
-    flips: int
-    loxodromic: int
-    parabolic: int
-
-
-def _krein(matrix: np.ndarray, eigvals: np.ndarray, eigvecs: np.ndarray, elliptic) -> tuple:
-    n = matrix.shape[0] // 2
-    J = np.block([[np.zeros((n, n)), np.eye(n)], [-np.eye(n), np.zeros((n, n))]])
-    plus = minus = 0
-    for k in np.flatnonzero(elliptic):
-        v = eigvecs[:, k]
-        sign = np.sign((v.conj() @ J @ v).imag)
-        plus += sign > 0
-        minus += sign < 0
-    return int(plus), int(minus)
-
-
-def continuous_signature(S: np.ndarray) -> Signature:
-    A = hamiltonian_matrix(S)
-    mu, V = np.linalg.eig(A)
-    top = max(float(np.abs(mu).max()), 1e-300)
-    zero = np.abs(mu) <= ZERO_TOL * top
-    ell = ~zero & (np.abs(mu.real) <= 1e-9 * np.abs(mu)) & (mu.imag > 0)
-    hyp = ~zero & (np.abs(mu.imag) <= 1e-9 * np.abs(mu)) & (mu.real > 0)
-    lox = ~zero & ~ell & ~hyp & (mu.real > 0) & (mu.imag > 0)
-    plus, minus = _krein(A, mu, V, ell)
-    return Signature(plus, minus, int(hyp.sum()), 0, int(lox.sum()), int(zero.sum()) // 2)
-
-
-def discrete_signature(Mh: np.ndarray) -> Signature | None:
-    if not np.all(np.isfinite(Mh)):
-        return None
-    nu, V = np.linalg.eig(Mh)
-    mod = np.abs(nu)
-    one = np.abs(nu - 1) <= CIRCLE_TOL
-    circle = (np.abs(mod - 1) <= CIRCLE_TOL) & ~one
-    ell = circle & (nu.imag > CIRCLE_TOL)
-    minus_one = circle & (np.abs(nu.imag) <= CIRCLE_TOL)
-    real = (np.abs(nu.imag) <= CIRCLE_TOL * mod) & ~circle & ~one
-    hyp = real & (nu.real > 1)
-    flips = real & (nu.real < -1)
-    lox = ~circle & ~real & ~one & (mod > 1) & (nu.imag > 0)
-    plus, minus = _krein(Mh, nu, V, ell)
-    return Signature(plus, minus, int(hyp.sum()), int(flips.sum() + minus_one.sum()),
-                     int(lox.sum()), int(one.sum()) // 2)
-
-
-def coupled_preserved(method: Method, S: np.ndarray, h: float,
-                      reference: Signature | None = None) -> bool:
-    """Whether one step of size h keeps the eigen-structure of ``x' = J S x``."""
-    ref = reference or continuous_signature(S)
-    got = discrete_signature(one_step_matrix(method, S, h))
-    return got is not None and got.flips == 0 and got == ref
-
-
-class CoupledResult(NamedTuple):
-    h_max: float  # end of the preserved interval from 0 (float resolution of the bisection)
-    safe_h: tuple[tuple[float, float | None], ...]
-    horizon: float
-    samples: int
-    analysis: str
-
-
-def coupled_safe_steps(method: Method, S, zmax: float = 10.0, samples: int = 120
-                       ) -> CoupledResult:
-    """Safe h for the coupled analysis: a scan of h up to ``zmax / |mu|_max`` (the fastest
-    rate) and a bisection of the first change, to 1e-12 relative."""
-    S = check_square(S, "hessian")
-    ref = continuous_signature(S)
-    top = float(np.abs(np.linalg.eigvals(hamiltonian_matrix(S))).max())
-    if top == 0:
-        return CoupledResult(np.inf, ((0.0, None),), np.inf, 0, "coupled: S = 0, no limit")
-    horizon = zmax / top
-    hs = np.linspace(horizon / samples, horizon, samples)
-    ok = np.array([coupled_preserved(method, S, h, ref) for h in hs])
-    intervals: list[tuple[float, float | None]] = []
-    lo = 0.0 if ok[0] else None
-    prev = 0.0
-    for h, good in zip(hs, ok):
-        if good and lo is None:
-            lo = _bisect(method, S, ref, prev, h, want=True)
-        if not good and lo is not None:
-            intervals.append((lo, _bisect(method, S, ref, prev, h, want=False)))
-            lo = None
-        prev = h
-    if lo is not None:
-        intervals.append((lo, None))
-    h_max = intervals[0][1] if intervals and intervals[0][0] == 0.0 else 0.0
-    h_max = horizon if h_max is None else h_max
-    return CoupledResult(h_max, tuple(intervals), horizon, samples,
-                         "coupled: full 2n x 2n one-step matrix, eigenvalues classified "
-                         "against J S (the modes do not decouple for this method)")
-
-
-def _bisect(method, S, ref, lo: float, hi: float, want: bool) -> float:
-    """Where preservation switches to ``want`` between ``lo`` (not ``want``) and ``hi``
-    (``want``), to 1e-12 relative: the first h with ``want`` if True, the last without."""
-    a, b = lo, hi
-    for _ in range(80):
-        mid = 0.5 * (a + b)
-        if coupled_preserved(method, S, mid, ref) == want:
-            b = mid
-        else:
-            a = mid
-        if b - a <= 1e-12 * b:
-            break
-    return b if want else a

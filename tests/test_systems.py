@@ -10,16 +10,15 @@ import numpy as np
 import pytest
 from support import method
 
-from stepsafe.nonlinear import find_equilibria, parse_hamiltonian
-from stepsafe.regions import find_region
-from stepsafe.systems import (
+from stepsafe.coupled import (
     continuous_signature,
     coupled_safe_steps,
     discrete_signature,
-    hessian_modes,
     one_step_matrix,
-    separable_modes,
 )
+from stepsafe.nonlinear import find_equilibria, parse_hamiltonian
+from stepsafe.regions import find_region
+from stepsafe.systems import hessian_modes, separable_modes
 
 ROOT = Path(__file__).resolve().parent.parent
 

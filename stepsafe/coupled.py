@@ -1,0 +1,467 @@
+"""The coupled analysis of ``x' = J S x`` when the modes do not decouple (DESIGN §4).
+
+``x = (q, p)``, ``J = [[0, I], [-I, 0]]``, ``S`` symmetric 2n x 2n. One step of size h is a
+2n x 2n matrix ``M(h)``; it keeps the structure of the flow when its eigenvalues have the
+types of those of ``J S`` (elliptic pairs with their Krein signatures, hyperbolic pairs with
+positive multipliers, loxodromic quadruplets) and none is negative real (a flip).
+
+Two criteria, both exact, chosen by S:
+
+* **S definite** (one Cholesky of ``S`` or ``-S`` tells): every mode is elliptic with the
+  Krein signature of ``sign(S)``, and the structure is kept iff
+  ``Q(h) = sign(S) (M^T J - J M)`` is positive definite. For ``M v = e^{i theta} v``,
+  ``v^H Q v = 2 sin(theta) Im(v^H J v)`` (times the sign), so ``Q > 0`` says every
+  multiplier is on the unit circle, off the real axis, with the flow's sense of rotation;
+  ``Q`` is singular exactly where M has a multiplier +-1. The margin
+  ``phi(h) = lambda_min(L^-1 Q L^-T) / (2h)`` with ``L L^T = sign(S) S`` is 1 at h -> 0
+  and changes sign at the boundary, which a bracketing root finder locates.
+* **S indefinite**: the multipliers' types from the eigenvalues of M alone, and the
+  difference of the Krein counts from the inertia of Q: ``n+ - n- = 2 (e+ - e-)``
+  (elliptic pairs contribute +-2, hyperbolic and loxodromic blocks 0).
+
+``M - I`` is accumulated without forming ``I + (small)`` and subtracting: each symplectic
+Euler factor of a splitting adds its increment ``c (...)`` (one n x n solve and one matrix
+product, the products ``S_qq q`` and ``S_pp p`` reused between factors), so ``Q = D^T J -
+J D`` with ``D = M - I`` has no cancellation at small h. A decision within the rounding
+bound of Q is not a pass: such an h counts as not preserved.
+
+The scan runs only until the first failure (the safe interval from 0 is what limits h;
+islands beyond it are not analysed), in steps of ``SCAN_DZ`` in z = h |mu|_max, and looks
+between samples for a dip of ``phi`` that the samples straddle.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+
+from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
+from .systems import ZERO_TOL, hamiltonian_matrix
+
+EPS = float(np.finfo(float).eps)
+#: |nu| within this of 1 is on the unit circle (indefinite S only)
+CIRCLE_TOL = 1e-8
+#: scan step in z = h |mu|_max
+SCAN_DZ = 0.2
+#: bracket width at which the boundary is accepted, relative
+REL_TOL = 1e-12
+#: safety factor on the rounding estimate of Q (first-order terms plus the measured
+#: symplecticity defect)
+ROUNDING_FACTOR = 8.0
+
+@dataclass(frozen=True)
+class Signature:
+    """Counts of multiplier types: elliptic pairs by Krein sign, hyperbolic pairs, flips
+    (negative real multipliers), loxodromic quadruplets, parabolic (multiplier 1) pairs."""
+
+    elliptic_plus: int
+    elliptic_minus: int
+    hyperbolic: int
+    flips: int
+    loxodromic: int
+    parabolic: int
+
+
+@dataclass(frozen=True)
+class CoupledResult:
+    """The safe interval from 0 found by the coupled analysis."""
+
+    h_max: float  #: end of the preserved interval from 0 (the horizon if none was found)
+    horizon: float  #: zmax / |mu|_max: steps beyond it were not analysed
+    evaluations: int  #: one-step matrices built
+    analysis: str
+
+    @property
+    def safe_h(self) -> tuple[tuple[float, float | None], ...]:
+        return ((0.0, self.h_max),) if self.h_max > 0 else ()
+
+
+def _krein_counts(eigvecs: np.ndarray, elliptic: np.ndarray) -> tuple[int, int]:
+    """Krein signs ``sign Im(v^H J v)`` of the elliptic eigenvectors (columns)."""
+    V = eigvecs[:, elliptic]
+    n = V.shape[0] // 2
+    # v^H J v = conj(v_q) . v_p - conj(v_p) . v_q
+    form = (np.conj(V[:n]) * V[n:]).sum(axis=0) - (np.conj(V[n:]) * V[:n]).sum(axis=0)
+    return int((form.imag > 0).sum()), int((form.imag < 0).sum())
+
+
+def continuous_signature(S: np.ndarray) -> Signature:
+    """The types of the eigenvalues of ``J S`` (once per system)."""
+    mu, V = np.linalg.eig(hamiltonian_matrix(S))
+    top = max(float(np.abs(mu).max()), 1e-300)
+    zero = np.abs(mu) <= ZERO_TOL * top
+    ell = ~zero & (np.abs(mu.real) <= 1e-9 * np.abs(mu)) & (mu.imag > 0)
+    hyp = ~zero & (np.abs(mu.imag) <= 1e-9 * np.abs(mu)) & (mu.real > 0)
+    lox = ~zero & ~ell & ~hyp & (mu.real > 0) & (mu.imag > 0)
+    plus, minus = _krein_counts(V, ell)
+    return Signature(plus, minus, int(hyp.sum()), 0, int(lox.sum()), int(zero.sum()) // 2)
+
+
+def _multiplier_types(nu: np.ndarray) -> tuple[int, int, int, int, int]:
+    """(elliptic, hyperbolic, flips, loxodromic, parabolic) from the multipliers alone."""
+    mod = np.abs(nu)
+    one = np.abs(nu - 1) <= CIRCLE_TOL
+    circle = (np.abs(mod - 1) <= CIRCLE_TOL) & ~one
+    ell = circle & (nu.imag > CIRCLE_TOL)
+    minus_one = circle & (np.abs(nu.imag) <= CIRCLE_TOL)
+    real = (np.abs(nu.imag) <= CIRCLE_TOL * mod) & ~circle & ~one
+    hyp = real & (nu.real > 1)
+    flips = real & (nu.real < -1)
+    lox = ~circle & ~real & ~one & (mod > 1) & (nu.imag > 0)
+    return (int(ell.sum()), int(hyp.sum()), int(flips.sum() + minus_one.sum()),
+            int(lox.sum()), int(one.sum()) // 2)
+
+
+def discrete_signature(M: np.ndarray) -> Signature | None:
+    """The types of the multipliers of a one-step matrix (eigenvectors for the Krein signs;
+    the reference implementation the fast criteria are tested against)."""
+    if not np.all(np.isfinite(M)):
+        return None
+    nu, V = np.linalg.eig(M)
+    ell_count, hyp, flips, lox, par = _multiplier_types(nu)
+    mod = np.abs(nu)
+    ell = (np.abs(mod - 1) <= CIRCLE_TOL) & (np.abs(nu - 1) > CIRCLE_TOL) & (nu.imag > CIRCLE_TOL)
+    plus, minus = _krein_counts(V, ell)
+    return Signature(plus, minus, hyp, flips, lox, par)
+
+
+# ---------------------------------------------------------------- one-step matrix
+
+
+class _Steps:
+    """Builds ``D(h) = M(h) - I`` for one method on one S (see module docstring)."""
+
+    def __init__(self, method: Method, S: np.ndarray) -> None:
+        n = S.shape[0] // 2
+        self.n = n
+        self.S = S
+        self.S_qq, self.S_qp = S[:n, :n], S[:n, n:]
+        self.S_pq, self.S_pp = S[n:, :n], S[n:, n:]
+        self.norm_S = float(np.linalg.norm(S))
+        self.pieces = _pieces(method)
+
+    def deviation(self, h: float) -> tuple[np.ndarray, float]:
+        """``(D, err)``: ``D = M(h) - I`` and a first-order bound on its rounding error
+        (Frobenius); D is NaN where the step is not unique (a singular stage system)."""
+        n = self.n
+        D = np.zeros((2 * n, 2 * n))
+        err = 0.0
+        for kind, item in self.pieces:
+            if kind == "euler":
+                for label, c in item:
+                    err += self._euler(D, label, c * h)
+            else:
+                g, prk = item
+                Df, e = self._prk(prk, g * h)
+                # (I + Df)(I + D) - I = D + Df + Df D
+                D += Df + Df @ D
+                err += e * (1.0 + float(np.linalg.norm(D)))
+            if not np.all(np.isfinite(D)):
+                return np.full_like(D, np.nan), np.inf
+        return D, err
+
+    def _euler(self, D: np.ndarray, label: str, c: float) -> float:
+        """Apply one symplectic Euler factor to ``X = I + D`` in place (on D); returns the
+        rounding bound of the increment."""
+        n = self.n
+        X = D.copy()
+        X[np.arange(2 * n), np.arange(2 * n)] += 1.0
+        q, p = X[:n], X[n:]
+        eye = np.eye(n)
+        try:
+            if label == "DK":  # q1 = q0 + c f(q1, p0), p1 = p0 + c g(q1, p0)
+                A = eye - c * self.S_pq
+                dq = np.linalg.solve(A, c * (self.S_pq @ q + self.S_pp @ p))
+                q1 = q + dq
+                dp = -c * (self.S_qq @ q1 + self.S_qp @ p)
+            else:  # p1 = p0 + c g(q0, p1), q1 = q0 + c f(q0, p1)
+                A = eye + c * self.S_qp
+                dp = np.linalg.solve(A, -c * (self.S_qq @ q + self.S_qp @ p))
+                p1 = p + dp
+                dq = c * (self.S_pq @ q + self.S_pp @ p1)
+        except np.linalg.LinAlgError:
+            D[:] = np.nan
+            return np.inf
+        D[:n] += dq
+        D[n:] += dp
+        return 2 * n * EPS * abs(c) * self.norm_S * float(np.linalg.norm(X))
+
+    def _prk(self, prk: PartitionedRK, h: float) -> tuple[np.ndarray, float]:
+        """``M - I`` of one PRK step from its stage system (``h`` times the stage sums)."""
+        n, s = self.n, prk.stages
+        I_sn = np.eye(s * n)
+        top = np.hstack([I_sn - h * np.kron(prk.A_q, self.S_pq), -h * np.kron(prk.A_q, self.S_pp)])
+        bottom = np.hstack([h * np.kron(prk.A_p, self.S_qq),
+                            I_sn + h * np.kron(prk.A_p, self.S_qp)])
+        system = np.vstack([top, bottom])
+        E = np.zeros((2 * s * n, 2 * n))
+        E[: s * n, :n] = np.tile(np.eye(n), (s, 1))
+        E[s * n:, n:] = np.tile(np.eye(n), (s, 1))
+        try:
+            X = np.linalg.solve(system, E)
+        except np.linalg.LinAlgError:
+            return np.full((2 * n, 2 * n), np.nan), np.inf
+        Q, P = X[: s * n].reshape(s, n, 2 * n), X[s * n:].reshape(s, n, 2 * n)
+        F = np.einsum("ab,sbk->sak", self.S_pq, Q) + np.einsum("ab,sbk->sak", self.S_pp, P)
+        G = -(np.einsum("ab,sbk->sak", self.S_qq, Q) + np.einsum("ab,sbk->sak", self.S_qp, P))
+        D = np.empty((2 * n, 2 * n))
+        D[:n] = h * np.einsum("s,sak->ak", prk.b_q, F)
+        D[n:] = h * np.einsum("s,sak->ak", prk.b_p, G)
+        return D, 2 * s * n * EPS * abs(h) * self.norm_S * float(np.linalg.norm(X))
+
+
+def _pieces(method: Method) -> list[tuple[str, object]]:
+    """The step as Euler factors (splittings, compositions of them) or weighted PRK
+    steps (``("prk", (g, prk))``), in the order they are applied."""
+    if isinstance(method, Composition):
+        flat = method.flattened()
+        if isinstance(flat.base, Splitting):
+            return [("euler", flat.as_splitting().euler_factors())]
+        base = flat.base.as_prk() if isinstance(flat.base, RungeKutta) else flat.base
+        return [("prk", (float(g), base)) for g in flat.weights]
+    if isinstance(method, Splitting):
+        return [("euler", method.euler_factors())]
+    prk = method.as_prk() if isinstance(method, RungeKutta) else method
+    assert isinstance(prk, PartitionedRK)
+    return [("prk", (1.0, prk))]
+
+
+def one_step_matrix(method: Method, S: np.ndarray, h: float) -> np.ndarray:
+    """The 2n x 2n matrix of one step of size h on ``x' = J S x`` (NaN if no unique step)."""
+    D, _ = _Steps(method, S).deviation(h)
+    return D + np.eye(D.shape[0])
+
+
+# ---------------------------------------------------------------- criteria
+
+
+class CoupledSystem:
+    """One method on one S, with what every h shares computed once."""
+
+    def __init__(self, method: Method, S: np.ndarray) -> None:
+        self.S = S
+        self.n = S.shape[0] // 2
+        self.steps = _Steps(method, S)
+        self.reference = continuous_signature(S)
+        self.top = float(np.abs(np.linalg.eigvals(hamiltonian_matrix(S))).max())
+        self.sign, self.chol = 0, None
+        for sign in (1, -1):
+            try:
+                self.chol = np.linalg.cholesky(sign * S)
+                self.sign = sign
+                break
+            except np.linalg.LinAlgError:
+                continue
+        self.evaluations = 0
+        self._cache: dict[float, float] = {}
+        self._built: dict[float, tuple | None] = {}
+
+    @property
+    def definite(self) -> bool:
+        return self.sign != 0
+
+    @property
+    def tracks_types(self) -> bool:
+        """Whether :meth:`margin` follows every type change (not with zero modes or
+        loxodromic quadruplets, whose traces sit at 2 or off the real axis)."""
+        return self.definite or (self.reference.parabolic == 0
+                                 and self.reference.loxodromic == 0)
+
+    def _evaluate(self, h: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """``(D, Q, err)`` at h, err bounding the rounding of Q; None if no unique step."""
+        if h not in self._built:
+            if len(self._built) > 8:
+                self._built.clear()
+            self._built[h] = self._build(h)
+        return self._built[h]
+
+    def _build(self, h: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+        self.evaluations += 1
+        D, err = self.steps.deviation(h)
+        if not np.all(np.isfinite(D)):
+            return None
+        n = self.n
+        JD = np.vstack([D[n:], -D[:n]])  # J D
+        # the symplecticity defect M^T J M - J = D^T J + J D + D^T J D (0 in exact
+        # arithmetic) measures what the stage solves' conditioning did to M
+        defect = float(np.linalg.norm(JD - JD.T + D.T @ JD))
+        return D, -JD.T - JD, ROUNDING_FACTOR * (2 * err + defect)  # Q = D^T J - J D
+
+    def margin(self, h: float) -> float:
+        """A continuous function of h that is > 0 where the structure is kept and must
+        reach 0 wherever it is lost (cached per h). Definite S: ``phi(h)`` less its rounding
+        bound. Indefinite S: from the pair traces ``t_k = nu + 1/nu`` (eigenvalues of
+        ``D - J D^T J`` are ``t_k - 2``, each twice), sorted: the smallest ``2e`` (e elliptic
+        pairs) must lie in (-2, 2) and the rest above 2, so the distance to those limits
+        reaches 0 whenever a pair changes type, even when two pairs swap types between
+        samples; the smallest gap between distinct elliptic traces is included, so a dip
+        towards a Krein collision is followed too."""
+        if h not in self._cache:
+            self._cache[h] = self._margin(h) if self.definite else self._trace_margin(h)
+        return self._cache[h]
+
+    def _trace_margin(self, h: float) -> float:
+        out = self._evaluate(h)
+        if out is None:
+            return -np.inf
+        D = out[0]
+        n = self.n
+        JDt = np.vstack([D.T[n:], -D.T[:n]])  # J D^T
+        JDtJ = np.hstack([-JDt[:, n:], JDt[:, :n]])  # (J D^T) J
+        u = np.sort(np.linalg.eigvals(D - JDtJ).real)
+        ref = self.reference
+        e = 2 * (ref.elliptic_plus + ref.elliptic_minus)
+        limits = [np.inf]
+        if e:
+            limits += [u[0] + 4, -u[e - 1]]
+            singles = u[0:e:2]
+            if singles.size > 1:
+                limits.append(float(np.diff(singles).min()))
+        if e < u.size:
+            limits.append(u[e])
+        return float(min(limits))
+
+    def _margin(self, h: float) -> float:
+        out = self._evaluate(h)
+        if out is None:
+            return -np.inf
+        _, Q, err = out
+        L = self.chol
+        W = sla.solve_triangular(L, self.sign * Q, lower=True)
+        W = sla.solve_triangular(L, W.T, lower=True)
+        low = float(sla.eigh(0.5 * (W + W.T), eigvals_only=True, subset_by_index=[0, 0],
+                             check_finite=False)[0])
+        # |delta lambda| <= ||L^-1||_2^2 ||delta Q||_2, ||L^-1||_2 <= ||L^-1||_F
+        bound = err * self.inv_chol_norm2
+        return (low - bound) / (2 * h)
+
+    @property
+    def inv_chol_norm2(self) -> float:
+        if not hasattr(self, "_inv_chol_norm2"):
+            Linv = sla.solve_triangular(self.chol, np.eye(2 * self.n), lower=True)
+            self._inv_chol_norm2 = float(np.linalg.norm(Linv)) ** 2
+        return self._inv_chol_norm2
+
+    def preserved(self, h: float) -> bool:
+        """Whether one step of size h keeps the structure (decided beyond rounding)."""
+        if h <= 0:
+            return True
+        if self.definite:
+            return self.margin(h) > 0
+        out = self._evaluate(h)
+        if out is None:
+            return False
+        D, Q, err = out
+        nu = np.linalg.eigvals(D + np.eye(D.shape[0]))
+        ell, hyp, flips, lox, par = _multiplier_types(nu)
+        lam = np.linalg.eigvalsh(Q)
+        if np.any(np.abs(lam) <= err):
+            return False  # Q singular within rounding: a multiplier at +-1, undecided
+        krein = (int((lam > 0).sum()) - int((lam < 0).sum())) // 2
+        ref = self.reference
+        return (flips == 0 and ell == ref.elliptic_plus + ref.elliptic_minus
+                and krein == ref.elliptic_plus - ref.elliptic_minus
+                and hyp == ref.hyperbolic and lox == ref.loxodromic
+                and par == ref.parabolic)
+
+
+# ---------------------------------------------------------------- the safe interval
+
+
+def coupled_safe_steps(method: Method, S: np.ndarray, zmax: float = 10.0) -> CoupledResult:
+    """The safe interval from 0 of ``method`` on ``x' = J S x``, up to the horizon
+    ``zmax / |mu|_max``.
+
+    The scan steps by ``SCAN_DZ`` in z = h |mu|_max until the first h that is not
+    preserved; for definite S it also follows ``phi`` into any dip between samples (a
+    local minimum among three samples is refined by golden section) and brackets the
+    boundary on ``phi`` (Brent), for indefinite S by bisection; both to ``REL_TOL``
+    relative, ending on an h that is preserved.
+    """
+    system = CoupledSystem(method, S)
+    if system.top == 0:
+        return CoupledResult(np.inf, np.inf, 0, "coupled: S = 0, no limit")
+    horizon = zmax / system.top
+    count = max(2, int(np.ceil(zmax / SCAN_DZ)))
+    hs = horizon * np.arange(1, count + 1) / count
+    analysis = ("coupled: full 2n x 2n one-step matrix; "
+                + ("S definite, Q(h) = M^T J - J M positive definite"
+                   if system.definite else
+                   "S indefinite, multiplier types and the inertia of M^T J - J M")
+                + " against J S (the modes do not decouple for this method)")
+    lo = 0.0
+    for k, h in enumerate(hs):
+        bad = _first_failure(system, lo, h, hs[k - 2] if k >= 2 else None)
+        if bad is not None:
+            good, bad = bad
+            h_max = _boundary(system, good, bad)
+            return CoupledResult(h_max, horizon, system.evaluations, analysis)
+        lo = h
+    return CoupledResult(horizon, horizon, system.evaluations, analysis)
+
+
+def _first_failure(system: CoupledSystem, lo: float, h: float, before: float | None
+                   ) -> tuple[float, float] | None:
+    """``(good, bad)`` bracketing a first failure in (lo, h], or None if none is seen."""
+    if not system.preserved(h):
+        return lo, h
+    if before is None or not system.tracks_types:
+        return None
+    # a dip of phi between samples: lo is a local minimum among (before, lo, h)
+    a, m, b = before, lo, h
+    fa, fm, fb = system.margin(a), system.margin(m), system.margin(b)
+    if not (fm < fa and fm < fb):
+        return None
+    golden = 0.5 * (3 - 5 ** 0.5)
+    for _ in range(40):
+        if b - a <= REL_TOL * b:
+            break
+        x = m + golden * (b - m) if b - m > m - a else m - golden * (m - a)
+        fx = system.margin(x)
+        if fx <= 0 and not system.preserved(x):
+            return (a, x) if x < m else (m, x)  # preserved at a / m, not at x
+        if fx < fm:
+            a, b = (m, b) if x > m else (a, m)
+            m, fm = x, fx
+        else:
+            a, b = (a, x) if x > m else (x, b)
+    return None
+
+
+def _boundary(system: CoupledSystem, good: float, bad: float) -> float:
+    """The last preserved h of ``(good, bad)``, to ``REL_TOL``: Brent on phi (definite S),
+    bisection otherwise; the result is always an h that was found preserved (0 if none
+    down to ``bad`` 1e-30 is)."""
+    if good == 0.0:
+        for _ in range(30):
+            trial = bad / 10
+            if system.preserved(trial):
+                good = trial
+                break
+            bad = trial
+        else:
+            return 0.0
+    if system.definite and np.isfinite(system.margin(bad)) and good > 0:
+        from scipy.optimize import brentq
+
+        try:
+            root = brentq(system.margin, good, bad, xtol=REL_TOL * bad * 0.25, rtol=4 * EPS,
+                          maxiter=60)
+            step = REL_TOL * root
+            for candidate in (root - step, root - 4 * step, root - 16 * step):
+                if good < candidate and system.preserved(candidate):
+                    good = candidate
+                    break
+            if system.preserved(min(bad, root + step)) is False:
+                bad = min(bad, root + step)
+        except ValueError:
+            pass
+    while bad - good > REL_TOL * bad:
+        mid = 0.5 * (good + bad)
+        if system.preserved(mid):
+            good = mid
+        else:
+            bad = mid
+    return good
