@@ -656,7 +656,16 @@ def _assemble(ev: _Evaluator, model: str, zmax: float, z_last: float,
     edges = [0.0] + [p.z for p in pts] + [zmax]
     mids = np.array([0.5 * (a + min(b, max(z_last, a))) if b > z_last else 0.5 * (a + b)
                      for a, b in zip(edges[:-1], edges[1:])])
-    status = classify(ev.jet(mids, order=0), model) if mids.size else np.zeros(0, dtype=int)
+    status = np.zeros(0, dtype=int)
+    if mids.size:
+        jet = ev.jet(mids, order=0, scale=True)
+        status = classify(jet, model)
+        # a stretch whose type float64 cannot decide at its midpoint is never preserved
+        # (far past a pole |tr M - 2| ~ 1e16 can still be below a rounding bound ~ 1e31 eps)
+        blind = np.abs(jet.dev) <= TOL_FACTOR * EPS * jet.scale
+        if ELLIPTIC[model]:
+            blind |= np.abs(jet.dev_m) <= TOL_FACTOR * EPS * jet.scale_m
+        status[blind] = 0
     for band in undecided:
         status[(mids > band.lo) & ((band.hi is None) | (mids < (band.hi or 0.0)))] = 0
     intervals: list[Interval] = []

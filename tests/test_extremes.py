@@ -269,3 +269,17 @@ def test_saddle_dip_inside_one_grid_cell_is_found(detune):
     assert len(roots) in (0, 2)
     if not roots:
         assert region.first_boundary is None or region.first_boundary > 1.4386
+
+
+def test_a_stretch_float64_cannot_decide_is_never_preserved():
+    """Lobatto IIIA-IIIB s = 27 on the barrier past its pole at 37.7: tr M - 2 ~ -1.5e16 (a
+    flip, 50 digits), while float64's own rounding bound there is ~1e31 eps > 1e16."""
+    region = find_region(method("lobatto3ab", 27), "inverted", zmax=40.0)
+    with mp.workdps(50):
+        from stepsafe.verify import mp_method, mp_transfer
+
+        Mfun = mp_transfer(mp_method("lobatto3ab", 27, None))
+        for z in (38.0, 38.7, 39.5):
+            M = Mfun(mp.mpf(z), "inverted")
+            assert not R.is_preserved(M, "inverted")
+            assert not any(iv.contains(z) for iv in region.intervals), z
