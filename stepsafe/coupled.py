@@ -241,11 +241,16 @@ class CoupledSystem:
     """One method on one S, with what every h shares computed once."""
 
     def __init__(self, method: Method, S: np.ndarray) -> None:
+        # work on S / |S|_max and h |S|_max (the same one-step matrices), so neither S nor
+        # its norms over- or underflow whatever its units
+        largest = float(np.abs(S).max()) if S.size else 0.0
+        self.unit = largest if largest > 0 and np.isfinite(largest) else 1.0
+        S = S / self.unit
         self.S = S
         self.n = S.shape[0] // 2
         self.steps = _Steps(method, S)
         self.reference = continuous_signature(S)
-        self.top = float(np.abs(np.linalg.eigvals(hamiltonian_matrix(S))).max())
+        self.top = self.unit * float(np.abs(np.linalg.eigvals(hamiltonian_matrix(S))).max())
         self.sign, self.chol = 0, None
         for sign in (1, -1):
             try:
@@ -279,7 +284,7 @@ class CoupledSystem:
 
     def _build(self, h: float) -> tuple[np.ndarray, np.ndarray, float] | None:
         self.evaluations += 1
-        D, err = self.steps.deviation(h)
+        D, err = self.steps.deviation(h * self.unit)
         if not np.all(np.isfinite(D)):
             return None
         n = self.n
@@ -335,7 +340,7 @@ class CoupledSystem:
                              check_finite=False)[0])
         # |delta lambda| <= ||L^-1||_2^2 ||delta Q||_2, ||L^-1||_2 <= ||L^-1||_F
         bound = err * self.inv_chol_norm2
-        return (low - bound) / (2 * h)
+        return (low - bound) / (2 * h * self.unit)
 
     @property
     def inv_chol_norm2(self) -> float:

@@ -135,3 +135,16 @@ def test_types_swapping_between_samples_are_not_missed():
     m = method("yoshida4")
     got = coupled_safe_steps(m, S, 50.0).h_max
     assert got == pytest.approx(_straightforward_h_max(m, S, 50.0, samples=20000), rel=1e-8)
+
+
+@pytest.mark.parametrize("unit", [1e-300, 1e-200, 1e-12, 1e12, 1e200, 1e300])
+@pytest.mark.parametrize("kind", ["definite", "indefinite"])
+def test_h_max_scales_with_the_units_of_s(kind, unit):
+    """h_max(c S) = h_max(S) / c: the analysis never over- or underflows with S's units."""
+    S = KINDS[kind](np.random.default_rng(0), 3)
+    m = method("pefrl")
+    base = coupled_safe_steps(m, S, 8.0).h_max
+    scaled = coupled_safe_steps(m, unit * S, 8.0).h_max
+    assert scaled * unit == pytest.approx(base, rel=1e-11)
+    assert CoupledSystem(m, unit * S).preserved(0.999 * base / unit)
+    assert not CoupledSystem(m, unit * S).preserved(1.001 * base / unit)
