@@ -83,7 +83,8 @@ class ModelLimit(NamedTuple):
     beta_max: float
     first_boundary: float | None  # z*, None when the first interval reaches zmax
     first_boundary_point: Point | None
-    h_limit: float | None  # F z* / beta_max; None when unbounded (beta_max = 0 or no z*)
+    h_limit: float | None  # F (z* - its uncertainty) / beta_max (beta_max at its largest
+    # within its stated error); None when unbounded (beta_max = 0 or no z*)
 
 
 @dataclass(frozen=True)
@@ -144,11 +145,17 @@ def labelled_gaps(region: Region) -> list[Gap]:
             point = (None, 0.0)
             break
         p = iv.hi_point
-        cursor = iv.hi - (p.uncertainty if p else 0.0)
+        cursor = max(iv.hi - (p.uncertainty if p else 0.0), 0.0)  # (a vague boundary)
         why = _reason(p, first=k == 0 and iv.lo == 0.0)
         point = (iv.hi, p.uncertainty if p else 0.0)
     out.append(Gap(cursor, np.inf, why, *point))
     return out
+
+
+def first_unsafe_z(region: Region) -> float:
+    """Where the first gap of :func:`labelled_gaps` starts: the first boundary less its
+    uncertainty (0 when that uncertainty covers the whole interval from 0)."""
+    return min(g.a for g in labelled_gaps(region))
 
 
 def _reason(p: Point | None, first: bool) -> str:
@@ -196,12 +203,13 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
         region = regions[model]
         beta_max = float(betas.max())
         z_star = region.first_boundary
-        h_limit = margin * z_star / beta_max if beta_max > 0 and z_star is not None else None
+        positive, err = _distinct(betas, modes.error(model))
+        top = positive * (1.0 + err)
+        h_limit = (margin * first_unsafe_z(region) / float(top.max())
+                   if positive.size and z_star is not None else None)
         limits.append(ModelLimit(model, int(betas.size), beta_max, z_star,
                                  region.first_boundary_point, h_limit))
-        positive, err = _distinct(betas, modes.error(model))
         if positive.size:
-            top = positive * (1.0 + err)
             horizon = min(horizon, margin * region.zmax / float(top.max()))
             g = gaps(region)
             # a beta known to a relative error r may be (1 -+ r) times itself: each gap
@@ -305,14 +313,12 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
         n_failing += int(failing.sum())
         idx = np.flatnonzero(failing)
         idx = idx[np.argsort(-z[idx], kind="stable")][:MAX_REPORTED]
-        first_gap = next((g for g in gap_list if g.a > 0 or g.b == np.inf), None)
+        first_gap = min(g.a for g in gap_list)
         for i in idx:
             # the largest safe h in the interval from 0: the first gap's start (the boundary
             # less its uncertainty), for the largest beta this mode may have
-            limit = (0.0 if region.first_boundary == 0.0 else
-                     float(margin * first_gap.a / (betas[i] * (1.0 + err[i])))
-                     if region.first_boundary is not None and first_gap is not None
-                     and first_gap.a > 0 else None)
+            limit = (float(margin * first_gap / (betas[i] * (1.0 + err[i])))
+                     if region.first_boundary is not None else None)
             gap = gap_list[reason[i]]
             why = gap.reason
             if gap.boundary is not None and z_hi[i] / margin < gap.boundary:

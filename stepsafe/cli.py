@@ -284,18 +284,29 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
     beta*h), islands further out with their orientation, isolated resonances (e.g.
     M = -I) with the half-width float64 cannot resolve, and poles (the implicit stage
     equations are singular: no unique step). METHOD is a built-in name, a family with
-    -s N, or a path to a method file.
+    -s N, or a path to a method file. With --model all, a model the method cannot be
+    applied to (a splitting whose drift and kick sums differ has no form for the saddle)
+    is listed as not analysed, with the reason.
     """
+    from .errors import StepsafeError, positive_finite
     from .models import MAIN_MODELS
     from .regions import DEFAULT_ZMAX, find_region
     from .report import method_data, print_json, print_region, region_data
 
     m, entry = _resolve(method, stages, base)
     models = MAIN_MODELS if model == "all" else (model,)
-    zmax = DEFAULT_ZMAX if zmax is None else zmax
+    zmax = DEFAULT_ZMAX if zmax is None else positive_finite(zmax, "zmax")
+    regions, skipped, first_error = {}, {}, None
     with _blame(entry):
-        regions = {name: find_region(m, name, zmax) for name in models}
-    results = {name: region_data(r) for name, r in regions.items()}
+        for name in models:
+            try:
+                regions[name] = find_region(m, name, zmax)
+            except StepsafeError as exc:
+                skipped[name], first_error = exc.message, first_error or exc
+        if first_error and (model != "all" or not regions):  # nothing the user asked for
+            raise first_error
+    results = {name: region_data(regions[name]) if name in regions
+               else {"not_analysed": skipped[name]} for name in models}
     head = method_data(m, entry)
     verdict = _verify(method, stages, base, regions) if verify else None
     _decide([verdict])

@@ -132,10 +132,10 @@ class Escalation:
         (``tr M`` passes through infinity), the sign change nearest ``z0`` when the
         bracket is narrow, else the nearest found on a geometric scan of it (an
         ill-conditioned eigenvalue can be off by percent: Gauss s = 27, 37.2 for 36.45).
-        None if there is no sign change (an even pole) or the budget ran out."""
+        None if no pole is found or the budget ran out."""
         import mpmath as mp
 
-        from .reference import refine_root
+        from .reference import locate_pole, refine_root
 
         if self.exhausted:
             return None
@@ -158,6 +158,11 @@ class Escalation:
                     found.append(a)
                 elif gb != 0 and (ga > 0) != (gb > 0) and not self.exhausted:
                     found.append(refine_root(g, a, b, tol=_digits(b)))
+            if not found and not self.exhausted:  # an even pole: |1/tr M| touches zero
+                k = min(range(count), key=lambda i: abs(gs[i]))
+                a, b = xs[max(k - 1, 0)], xs[min(k + 1, count - 1)]
+                even = locate_pole(g, a, b, tol=_digits(b))
+                found = [] if even is None else [even]
             if not found:
                 return None
             return float(min(found, key=lambda x: abs(x - z0)))

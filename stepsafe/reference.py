@@ -392,6 +392,40 @@ def refine_root(f: Callable, lo, hi, tol=None):
     return (a + b) / 2
 
 
+def locate_pole(inv: Callable, lo, hi, tol=None):
+    """The pole of ``tr M`` in ``[lo, hi]`` given ``inv(z) = 1 / tr M(z)`` (0 where the stage
+    system is exactly singular), or None.  An odd pole is a sign change of ``inv``, refined
+    by :func:`refine_root`; an even one (a double eigenvalue of the stage operator) is a
+    zero of ``|inv|`` without a sign change, found by golden-section search and accepted
+    when ``|inv|`` there is below ``10^(-dps/2)`` of its value at the nearer end (near a
+    double pole ``|inv|`` falls like the square of the distance; a finite peak of
+    ``tr M`` does not take it to zero)."""
+    a, b = mp.mpf(lo), mp.mpf(hi)
+    fa, fb = inv(a), inv(b)
+    if fa == 0 or fb == 0:
+        return a if fa == 0 else b
+    if (fa > 0) != (fb > 0):
+        return refine_root(inv, a, b, tol)
+    ratio = (mp.sqrt(5) - 1) / 2
+    c, d = b - ratio * (b - a), a + ratio * (b - a)
+    fc, fd = abs(inv(c)), abs(inv(d))
+    for _ in range(2 * mp.prec):
+        if fc == 0 or fd == 0:
+            return c if fc == 0 else d
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - ratio * (b - a)
+            fc = abs(inv(c))
+        else:
+            a, c, fc = c, d, fd
+            d = a + ratio * (b - a)
+            fd = abs(inv(d))
+        if b - a <= (tol or mp.eps * 2 ** 6 * max(1, abs(b))):
+            break
+    x, fx = (c, fc) if fc < fd else (d, fd)
+    return x if fx <= mp.mpf(10) ** (-(mp.dps // 2)) * min(abs(fa), abs(fb)) else None
+
+
 def _g(Mfun: MFun, model: str, k: int) -> Callable:
     return lambda z: constraints(Mfun(z), model)[k]
 

@@ -168,6 +168,10 @@ def print_region(head: dict[str, Any], models: dict[str, dict[str, Any]]) -> Non
                        f"({head['kind']}, {head['stages']} stages, order {order}, "
                        f"{'symplectic' if head['symplectic'] else 'NOT symplectic'})"))
     for model, d in models.items():
+        if "not_analysed" in d:
+            console.print()
+            console.print(_lit((model, "bold"), f"  not analysed: {d['not_analysed']}"))
+            continue
         if d["first_boundary"] is None:
             first = f"none below zmax = {fmt(d['zmax'])}"
         else:

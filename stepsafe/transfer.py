@@ -469,7 +469,10 @@ def pole_locations(method: Method, model: str) -> tuple[np.ndarray, np.ndarray]:
     (an eigenvalue counts as real when its imaginary part is below 1e-7 of its modulus, so
     a near-double real pair is reported, conservatively, as a pole); ``lambda`` errs by
     about ``eps ||K|| kappa`` with ``kappa = |y| |x| / |y^H x|`` its condition number (left
-    and right eigenvectors), so ``z`` by ``z^2`` times that (times a safety factor of 16).
+    and right eigenvectors), and never by more than Elsner's bound
+    ``(2 ||K||)^(1-1/n) (eps ||K||)^(1/n)`` (n the size of K), which holds for any K
+    (finite where ``kappa`` is not: a defective eigenvalue); so ``z`` by ``z^2`` times the
+    smaller (times a safety factor of 16).
     Splitting on the saddle: ``1/c`` for DK(c) factors and ``-1/d`` for KD(d), exact to
     rounding. Composition: the base's poles divided by each weight.
     """
@@ -498,12 +501,17 @@ def pole_locations(method: Method, model: str) -> tuple[np.ndarray, np.ndarray]:
     lam_t, left = np.linalg.eig(K.T)
     match = np.abs(lam_t[None, :] - lam[:, None]).argmin(axis=1) if lam.size else []
     left = left[:, match].real
+    norm = np.linalg.norm(K, 2)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         kappa = (np.linalg.norm(left, axis=0) * np.linalg.norm(right, axis=0)
                  / np.abs(np.einsum("ij,ij->j", left, right)))
+        first_order = np.nan_to_num(16.0 * EPS * norm * kappa, nan=np.inf)
+        n = K.shape[0]
+        elsner = 16.0 * (2 * norm) ** (1 - 1 / n) * (EPS * norm) ** (1 / n)
+        dlam = np.minimum(first_order, elsner)
         zs = 1.0 / lam
-        unc = 16.0 * EPS * np.linalg.norm(K, 2) * kappa * zs * zs
-    return _unique_sorted(zs, np.maximum(np.nan_to_num(unc, nan=np.inf), 2 * EPS * np.abs(zs)))
+        unc = dlam * zs * zs
+    return _unique_sorted(zs, np.maximum(unc, 2 * EPS * np.abs(zs)))
 
 
 def poles(method: Method, model: str) -> np.ndarray:

@@ -187,26 +187,19 @@ def check_point(Mfun: Callable, model: str, p: Point, dps: int = DPS) -> Check:
         width = max(1e-9 * z, 4 * p.uncertainty)
         lo, hi = mp.mpf(z - width), mp.mpf(z + width)  # (a point at zmax: look past it)
         if p.kind == "pole":
-            def inv(x):
-                try:
-                    return abs(1 / _tr(Mfun(x, model)))
-                except ZeroDivisionError:
-                    return mp.mpf(0)
-
             def signed(x):
                 try:
                     return 1 / _tr(Mfun(x, model))
                 except ZeroDivisionError:
                     return mp.mpf(0)
 
-            # a simple pole: 1/tr M changes sign within the stated uncertainty; any pole:
-            # |1/tr M| is far smaller there than a relative 1e-6 away
+            # the pole (odd: a sign change of 1/tr M; even: a zero of |1/tr M|) within
+            # twice the stated uncertainty
             band = max(2 * p.uncertainty, 1e-13 * z)
-            ends = [signed(mp.mpf(z) + s * band) for s in (-1, 1)]
-            near = max(inv(mp.mpf(z) + s * band) for s in (-1, 1))
-            far = min(inv(mp.mpf(z) * (1 + s * mp.mpf("1e-6"))) for s in (-1, 1))
-            ok = (ends[0] * ends[1] <= 0 and band < 1e-7 * z) or near <= 1e-5 * far
-            return Check(model, p, z if ok else None, 0.0 if ok else float("inf"), allowed)
+            found = reference.locate_pole(signed, mp.mpf(z) - band, mp.mpf(z) + band)
+            if found is None:
+                return Check(model, p, None, float("inf"), allowed)
+            return Check(model, p, float(found), float(abs(found - z) / abs(found)), allowed)
         if p.kind == "root":
             level = 2 if "+2" in p.detail else -2
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -351,13 +352,19 @@ def test_a_zero_weight_among_others_is_an_identity_substep(run_json, tmp_path, w
 
 
 @pytest.mark.filterwarnings("error")
-@pytest.mark.parametrize("command", [["region"], ["check", "--step", "1", "--beta", "1",
-                                                  "--method"]])
+@pytest.mark.parametrize("command", [["region", "--model", "oscillator"],
+                                     ["check", "--step", "1", "--beta", "1", "--method"]])
 def test_rk_coefficients_too_large_are_refused_cleanly(run, tmp_path, command):
     path = _method_file(tmp_path, "kind: rk\nA: [[1e200, 0], [0, 1e-200]]\nb: [0.5, 0.5]\n")
     code, out, err = run(*command, path)
     assert code == 2 and out == ""
     assert "coefficients A, b too large to analyse" in _one_error_line(err)
+    if command[0] == "region":  # --model all analyses the models it can and says so
+        code, out, err = run("region", path, "--json")
+        assert code == 0, err
+        models = json.loads(out)["models"]
+        assert "too large to analyse" in models["oscillator"]["not_analysed"]
+        assert models["saddle"]["intervals"] == []  # not symplectic: never preserved
 
 
 # --- text from files is printed literally ------------------------------------------------

@@ -283,3 +283,73 @@ def test_a_stretch_float64_cannot_decide_is_never_preserved():
             M = Mfun(mp.mpf(z), "inverted")
             assert not R.is_preserved(M, "inverted")
             assert not any(iv.contains(z) for iv in region.intervals), z
+
+
+JORDAN_RK = """\
+name: jordan-rk
+title: Two implicit midpoint half-steps as one 2-stage RK (A is a Jordan block)
+kind: rk
+order: 2
+source: A = [[1/4, 1/2], [0, 1/4]], b = [1/2, 1/2]; R(w) = ((1 + w/4) / (1 - w/4))^2
+A: [["1/4", "1/2"], [0, "1/4"]]
+b: ["1/2", "1/2"]
+"""
+
+
+def test_double_pole_of_a_defective_stage_operator(tmp_path, run):
+    """A has the double eigenvalue 1/4 and one eigenvector: on the saddle tr M = R(z) + R(-z)
+    has a double pole at z = 4 (no sign change of 1/tr M) and every other z is preserved.
+    The eigenvalue condition number is infinite there; the pole's uncertainty must still be
+    finite and small (Elsner's bound), and --verify must confirm an even pole."""
+    path = tmp_path / "jordan.yaml"
+    path.write_text(JORDAN_RK)
+    code, out, err = run("region", str(path), "--model", "all", "--verify")
+    assert code == 0, err
+    saddle = run("region", str(path), "--model", "saddle", "--json")[1]
+    import json
+
+    data = json.loads(saddle)["models"]["saddle"]
+    assert data["first_boundary"] == 4.0 and data["first_boundary_uncertainty"] < 1e-5
+    for z, expected in ((1.0, 0), (3.99, 0), (4.0, 1), (8.0, 0)):
+        assert run("check", "--method", str(path), "--step", str(z),
+                   "--saddle-beta", "1")[0] == expected, z
+
+
+def test_uncertainty_wider_than_the_safe_interval_leaves_no_safe_step(monkeypatch):
+    """When the first boundary's uncertainty exceeds the boundary itself, no step from 0 is
+    certified: advise's per-model limit, check's 'largest safe h' and h_max all say 0
+    (they once said 9.99, the horizon, next to 'no safe step')."""
+    import dataclasses
+
+    from stepsafe import advice
+    from stepsafe.advice import Modes, check_step
+
+    real = advice.find_region
+
+    def vague(m, model, zmax=10.0, resolution=None):
+        region = real(m, model, zmax)
+        first = region.intervals[0]
+        wide = first.hi_point._replace(uncertainty=5.0)
+        rest = tuple(iv._replace(lo_point=wide) if iv.lo_point == first.hi_point else iv
+                     for iv in region.intervals[1:])
+        return dataclasses.replace(region, intervals=(first._replace(hi_point=wide),) + rest)
+
+    monkeypatch.setattr(advice, "find_region", vague)
+    result = check_step(method("verlet"), Modes.from_pairs([(1.0, "oscillator")]), 1.0)
+    assert not result.safe
+    assert result.failures[0].h_limit == 0.0
+    assert result.advice.h_max == 0.0 and result.advice.models[0].h_limit == 0.0
+
+
+def test_model_all_lists_a_model_the_method_cannot_be_applied_to(tmp_path, run, run_json):
+    """A splitting whose drift and kick sums differ has no PRK form on the saddle: --model
+    all still analyses the oscillator and the barrier and names why the saddle is not
+    analysed; asking for the saddle alone is a usage error."""
+    path = tmp_path / "unequal.yaml"
+    path.write_text("name: unequal\ntitle: unequal sums\nkind: splitting\norder: 1\n"
+                    "source: test\ndrift: [1.0]\nkick: [0.5]\n")
+    data = run_json("region", str(path), "--model", "all")["models"]
+    assert "sum(drift) - sum(kick)" in data["saddle"]["not_analysed"]
+    assert data["oscillator"]["intervals"] and "not_analysed" not in data["inverted"]
+    code, out, err = run("region", str(path), "--model", "saddle")
+    assert code == 2 and "sum(drift)" in err and len(err.strip().splitlines()) == 1
