@@ -33,12 +33,14 @@ between samples for a dip of ``phi`` that the samples straddle.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.linalg as sla
 
 from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
 from .systems import ZERO_TOL, hamiltonian_matrix
+from .threads import blas_threads_for
 
 EPS = float(np.finfo(float).eps)
 #: |nu| within this of 1 is on the unit circle (indefinite S only)
@@ -249,7 +251,6 @@ class CoupledSystem:
         self.S = S
         self.n = S.shape[0] // 2
         self.steps = _Steps(method, S)
-        self.reference = continuous_signature(S)
         self.top = self.unit * float(np.abs(np.linalg.eigvals(hamiltonian_matrix(S))).max())
         self.sign, self.chol = 0, None
         for sign in (1, -1):
@@ -266,6 +267,12 @@ class CoupledSystem:
     @property
     def definite(self) -> bool:
         return self.sign != 0
+
+    @cached_property
+    def reference(self) -> Signature:
+        """The types of the eigenvalues of ``J S`` (computed only when a criterion needs
+        them: the definite one does not)."""
+        return continuous_signature(self.S)
 
     @property
     def tracks_types(self) -> bool:
@@ -338,16 +345,22 @@ class CoupledSystem:
         W = sla.solve_triangular(L, W.T, lower=True)
         low = float(sla.eigh(0.5 * (W + W.T), eigvals_only=True, subset_by_index=[0, 0],
                              check_finite=False)[0])
-        # |delta lambda| <= ||L^-1||_2^2 ||delta Q||_2, ||L^-1||_2 <= ||L^-1||_F
+        # |delta lambda| <= ||L^-1||_2^2 ||delta Q||_2
         bound = err * self.inv_chol_norm2
         return (low - bound) / (2 * h * self.unit)
 
-    @property
+    @cached_property
     def inv_chol_norm2(self) -> float:
-        if not hasattr(self, "_inv_chol_norm2"):
-            Linv = sla.solve_triangular(self.chol, np.eye(2 * self.n), lower=True)
-            self._inv_chol_norm2 = float(np.linalg.norm(Linv)) ** 2
-        return self._inv_chol_norm2
+        """An upper bound on ``||L^-1||_2^2 = 1 / lambda_min(sign S)``: the computed smallest
+        eigenvalue less its rounding bound (``4 (2n) eps |S|_F``), or, if that leaves
+        nothing, ``||L^-1||_F^2``."""
+        low = float(sla.eigh(self.sign * self.S, eigvals_only=True, subset_by_index=[0, 0],
+                             check_finite=False)[0])
+        low -= 8 * self.n * EPS * float(np.linalg.norm(self.S))
+        if low > 0:
+            return 1.0 / low
+        Linv = sla.solve_triangular(self.chol, np.eye(2 * self.n), lower=True)
+        return float(np.linalg.norm(Linv)) ** 2
 
     def preserved(self, h: float) -> bool:
         """Whether one step of size h keeps the structure (decided beyond rounding)."""
@@ -385,6 +398,11 @@ def coupled_safe_steps(method: Method, S: np.ndarray, zmax: float = 10.0) -> Cou
     boundary on ``phi`` (Brent), for indefinite S by bisection; both to ``REL_TOL``
     relative, ending on an h that is preserved.
     """
+    with blas_threads_for(S.shape[0]):
+        return _safe_steps(method, S, zmax)
+
+
+def _safe_steps(method: Method, S: np.ndarray, zmax: float) -> CoupledResult:
     system = CoupledSystem(method, S)
     if system.top == 0:
         return CoupledResult(np.inf, np.inf, 0, "coupled: S = 0, no limit")

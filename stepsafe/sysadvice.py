@@ -10,6 +10,7 @@ from .advice import advise, check_step, validate_margin
 from .coupled import CoupledSystem
 from .methods import Method
 from .sysfile import SystemReport
+from .threads import blas_threads_for
 
 
 def _limit_items(report: SystemReport, regions, margin: float) -> list[dict[str, Any]]:
@@ -82,8 +83,9 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
                 "h_max": None, "safe_h": [[0.0, None]]}
         regions = {}
     for result, S in report.coupled:
-        system = CoupledSystem(method, S)
-        ok = all(system.preserved(step) for step in (h, h / margin))
+        with blas_threads_for(S.shape[0]):
+            system = CoupledSystem(method, S)
+            ok = all(system.preserved(step) for step in (h, h / margin))
         data["modes"] += 1
         cap = margin * result.h_max
         data["safe_h"] = _cap(data["safe_h"], cap)

@@ -28,6 +28,7 @@ import numpy as np
 from .checks import is_partitioned
 from .errors import StepsafeError
 from .methods import Method
+from .threads import blas_threads_for
 
 ZERO_TOL = 1e-10  # eigenvalues of J S below this times the largest are zero modes
 EPS = float(np.finfo(float).eps)
@@ -111,7 +112,7 @@ def separable_modes(K, M=None) -> Decoupled:
     if not is_positive_definite(M):
         raise MatrixError("mass", "mass must be positive definite")
     try:
-        with np.errstate(all="ignore"):
+        with np.errstate(all="ignore"), blas_threads_for(K.shape[0]):
             w2 = eigh(K, M, eigvals_only=True)
     except np.linalg.LinAlgError:
         raise MatrixError("mass", "the generalised eigenproblem K v = w^2 M v failed in "
