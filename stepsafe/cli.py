@@ -329,6 +329,10 @@ def scene_options(func):
                      help="Recompute every boundary used with mpmath (40 digits) and report "
                           "the largest discrepancy; exit 3 if one exceeds 1e-10."),
         click.option("--json", "as_json", is_flag=True, help="Print one JSON object."),
+        click.option("--budget", type=FLOAT, default=None, metavar="SECONDS",
+                     help="Stop a coupled system analysis after SECONDS: steps above the h "
+                          "reached are then not analysed (reported as the horizon). A bar "
+                          "on stderr shows its progress when it takes over a second."),
         click.option("--zmax", type=FLOAT, default=None, metavar="Z",
                      help="Analyse z = beta*h up to Z (islands beyond are not reported) "
                           "[default: 10]."),
@@ -357,7 +361,7 @@ def scene_options(func):
 
 
 def _scene_inputs(scene_file, method_name, stages, base, beta, saddle_beta, inverted_beta,
-                  modes_file, margin, zmax):
+                  modes_file, margin, zmax, budget=None, show_progress=False):
     """Merge a scene file with command-line options (the options win)."""
     from .advice import Modes, validate_margin
     from .errors import positive_finite
@@ -366,6 +370,8 @@ def _scene_inputs(scene_file, method_name, stages, base, beta, saddle_beta, inve
 
     if zmax is not None:  # the options are checked before any file is read or analysed
         zmax = positive_finite(zmax, "zmax")
+    if budget is not None:
+        budget = positive_finite(budget, "budget")
     if margin is not None:
         margin = validate_margin(margin)
     scene = load_scene(scene_file) if scene_file else Scene()
@@ -388,9 +394,15 @@ def _scene_inputs(scene_file, method_name, stages, base, beta, saddle_beta, inve
     elif scene.modes:
         arrays = scene.modes
     elif scene.system is not None:
+        import time
+
+        from .progressbar import progress_bar
         from .sysfile import analyse_system
 
-        system = analyse_system(scene.system, scene.where, scene.folder, method, zmax)
+        deadline = None if budget is None else time.monotonic() + budget
+        with progress_bar("coupled analysis", show_progress) as progress:
+            system = analyse_system(scene.system, scene.where, scene.folder, method, zmax,
+                                    progress, deadline)
         arrays = system.modes.betas if system.modes is not None else {"oscillator": [0.0]}
     else:
         raise _input_error("no frequencies: give --beta/--saddle-beta/--inverted-beta, "
@@ -428,7 +440,8 @@ def _input_error(message: str):
               help="Also require |phase error| <= T (|growth-rate error| for saddles).")
 @scene_options
 def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, beta,
-               saddle_beta, inverted_beta, modes_file, margin, zmax, as_json, verify) -> None:
+               saddle_beta, inverted_beta, modes_file, margin, zmax, budget, as_json,
+               verify) -> None:
     """Safe step sizes h for your frequencies.
 
     Safe h keep every mode's structure: beta*h lies in the method's region for that mode's
@@ -454,7 +467,7 @@ def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, be
     method, entry, modes, margin, zmax, _, ref, system = _scene_inputs(
         scene_files[0] if scene_files else None, method_name, stages, base, beta, saddle_beta,
         inverted_beta, modes_file,
-        margin, zmax)
+        margin, zmax, budget, not as_json)
     if system is not None:
         from .sysadvice import system_advice
 
@@ -503,7 +516,7 @@ def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, be
               help="The step to check (--h is the same option; -h is an error, not help).")
 @scene_options
 def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inverted_beta,
-              modes_file, margin, zmax, as_json, verify) -> None:
+              modes_file, margin, zmax, budget, as_json, verify) -> None:
     """Fail (exit 1) when the step h loses some mode's structure; for CI.
 
     Exit 0: every mode is preserved at h (with the margin); 1: not, with the reason for
@@ -524,7 +537,7 @@ def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inve
     for scene_file in scene_files or (None,):
         method, entry, modes, margin_, zmax_, scene, ref, system = _scene_inputs(
             scene_file, method_name, stages, base, beta, saddle_beta, inverted_beta,
-            modes_file, margin, zmax)
+            modes_file, margin, zmax, budget, not as_json)
         step = h if h is not None else scene.h
         if step is None:
             raise _input_error(f"{scene_file or 'check'}: no step: give --step H or h: in "

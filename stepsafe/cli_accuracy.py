@@ -103,7 +103,7 @@ def _f(x) -> float | None:
               help="Largest relative energy error (vibrations).")
 @scene_options
 def compare_cmd(names, use_all, tol_phase, tol_energy, scene_files, method_name, stages, base,
-                beta, saddle_beta, inverted_beta, modes_file, margin, zmax, as_json,
+                beta, saddle_beta, inverted_beta, modes_file, margin, zmax, budget, as_json,
                 verify) -> None:
     """Rank methods by cost per unit of simulated time for your frequencies.
 
@@ -126,6 +126,8 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, scene_files, method_name,
         raise _input_error("compare takes --methods or --all, not a method or scene")
     if verify:
         raise _input_error("--verify applies to region, advise and check (run it per method)")
+    if budget is not None:
+        raise _input_error("--budget applies to the system analysis of advise and check")
     modes = Modes.from_arrays(command_line_modes(beta, saddle_beta, inverted_beta, modes_file))
     tolerances = tuple(Tolerance(k, v) for k, v in (("phase", tol_phase),
                                                      ("energy", tol_energy)) if v is not None)

@@ -32,6 +32,8 @@ between samples for a dip of ``phi`` that the samples straddle.
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -388,7 +390,9 @@ class CoupledSystem:
 # ---------------------------------------------------------------- the safe interval
 
 
-def coupled_safe_steps(method: Method, S: np.ndarray, zmax: float = 10.0) -> CoupledResult:
+def coupled_safe_steps(method: Method, S: np.ndarray, zmax: float = 10.0,
+                       progress: Callable[[float], None] | None = None,
+                       deadline: float | None = None) -> CoupledResult:
     """The safe interval from 0 of ``method`` on ``x' = J S x``, up to the horizon
     ``zmax / |mu|_max``.
 
@@ -397,12 +401,18 @@ def coupled_safe_steps(method: Method, S: np.ndarray, zmax: float = 10.0) -> Cou
     local minimum among three samples is refined by golden section) and brackets the
     boundary on ``phi`` (Brent), for indefinite S by bisection; both to ``REL_TOL``
     relative, ending on an h that is preserved.
+
+    ``progress(fraction)`` is called after each scan sample (the fraction of the horizon
+    scanned). At ``deadline`` (a ``time.monotonic()`` value) the scan stops: the horizon
+    becomes the last h scanned, every h below it having been found preserved.
     """
     with blas_threads_for(S.shape[0]):
-        return _safe_steps(method, S, zmax)
+        return _safe_steps(method, S, zmax, progress, deadline)
 
 
-def _safe_steps(method: Method, S: np.ndarray, zmax: float) -> CoupledResult:
+def _safe_steps(method: Method, S: np.ndarray, zmax: float,
+                progress: Callable[[float], None] | None, deadline: float | None
+                ) -> CoupledResult:
     system = CoupledSystem(method, S)
     if system.top == 0:
         return CoupledResult(np.inf, np.inf, 0, "coupled: S = 0, no limit")
@@ -416,12 +426,19 @@ def _safe_steps(method: Method, S: np.ndarray, zmax: float) -> CoupledResult:
                 + " against J S (the modes do not decouple for this method)")
     lo = 0.0
     for k, h in enumerate(hs):
+        if deadline is not None and time.monotonic() > deadline and lo > 0:
+            return CoupledResult(lo, lo, system.evaluations, analysis + "; stopped by the "
+                                 f"time budget at z = {lo * system.top:.3g} of {zmax:g}")
         bad = _first_failure(system, lo, h, hs[k - 2] if k >= 2 else None)
         if bad is not None:
             good, bad = bad
             h_max = _boundary(system, good, bad)
+            if progress:
+                progress(1.0)
             return CoupledResult(h_max, horizon, system.evaluations, analysis)
         lo = h
+        if progress:
+            progress((k + 1) / count)
     return CoupledResult(horizon, horizon, system.evaluations, analysis)
 
 

@@ -283,7 +283,8 @@ def print_advice(data: dict[str, Any]) -> None:
             z += f" ({lim['first_boundary_kind']})"
         table.add_row(model, str(lim["count"]), fmt(lim["beta"]), z,
                       "no limit" if lim["h_limit"] is None else fmt_below(lim["h_limit"]))
-    console.print(table)
+    if data["models"]:
+        console.print(table)
     safe = data["safe_h"]
     if "accuracy" in data:
         _print_accuracy(console, data)
@@ -297,8 +298,9 @@ def print_advice(data: dict[str, Any]) -> None:
                       "further).")
     else:
         lim = data["limiting"]
-        console.print(f"[green]Safe: 0 < h < {fmt_below(safe[0][1])}[/green]"
-                      + (f", limited by {lim['model']} beta = {fmt(lim['beta'])}" if lim else ""))
+        by = ("" if not lim else f", limited by {lim['model']} beta = {fmt(lim['beta'])}"
+              if lim["beta"] is not None else f", limited by the {lim['model']} analysis")
+        console.print(f"[green]Safe: 0 < h < {fmt_below(safe[0][1])}[/green]{by}")
     islands = [iv for iv in safe if iv[0] != 0.0]
     if islands:
         console.print("Also safe (islands outside the primary interval; any error in beta can "

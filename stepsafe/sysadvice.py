@@ -43,7 +43,8 @@ def system_advice(method: Method, report: SystemReport, margin: float = 1.0,
         cap = margin * result.h_max
         data["safe_h"] = _cap(data["safe_h"], cap)
         horizon = data["horizon"]
-        data["horizon"] = cap if horizon is None else min(horizon, margin * result.horizon)
+        data["horizon"] = (margin * result.horizon if horizon is None
+                           else min(horizon, margin * result.horizon))
     if report.primary_only:
         data["safe_h"] = data["safe_h"][:1] if data["safe_h"] and data["safe_h"][0][0] == 0.0 \
             else []
@@ -53,9 +54,21 @@ def system_advice(method: Method, report: SystemReport, margin: float = 1.0,
             data["h_max"] is not None and data["limiting"].get("h_limit") is not None
             and data["h_max"] < data["limiting"]["h_limit"])):
         data["limiting"] = {"model": "coupled", "beta": None, "h_limit": data["h_max"]}
+    data["h_max_limited_by"] = _limited_by(data)
     data["system"] = {"analysis": report.analysis, "items": _limit_items(report, regions, margin),
                       "notes": report.notes}
     return data
+
+
+def _limited_by(data: dict[str, Any]) -> str:
+    """What ends the safe interval from 0 (see :func:`stepsafe.report.advice_data`)."""
+    safe, horizon = data["safe_h"], data["horizon"]
+    if not safe or safe[0][0] != 0.0:
+        return "none"
+    top = safe[0][1]
+    if top is None or (horizon is not None and top >= horizon * (1.0 - 1e-12)):
+        return "horizon"
+    return "boundary"
 
 
 def _cap(safe: list, cap: float) -> list:

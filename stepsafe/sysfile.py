@@ -17,6 +17,7 @@ with more than :data:`DENSE_LIMIT` rows are analysed through their extreme eigen
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -82,8 +83,10 @@ def _float(value: Any, where: str, key: str) -> float:
 
 
 def analyse_system(tree: Any, where: str, folder: Path, method: Method,
-                   zmax: float = 10.0) -> SystemReport:
-    """Read a ``system:`` mapping and decide the analysis for ``method``."""
+                   zmax: float = 10.0, progress: Callable[[float], None] | None = None,
+                   deadline: float | None = None) -> SystemReport:
+    """Read a ``system:`` mapping and decide the analysis for ``method`` (``progress`` and
+    ``deadline``: see :func:`stepsafe.coupled.coupled_safe_steps`)."""
     from .errors import StepsafeError as _E
 
     if not isinstance(tree, dict):
@@ -100,7 +103,7 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
         if kinds[0] == "stiffness":
             return _stiffness(tree, where, folder)
         if kinds[0] == "hessian":
-            return _hessian(tree, where, folder, method, zmax)
+            return _hessian(tree, where, folder, method, zmax, progress, deadline)
         return _hamiltonian(tree, where, method, zmax)
     except _E as exc:
         if exc.where:
@@ -158,7 +161,8 @@ def _stiffness(tree, where, folder) -> SystemReport:
     return _report_modes(d.modes, d.analysis, notes, d.extremes_only)
 
 
-def _hessian(tree, where, folder, method, zmax) -> SystemReport:
+def _hessian(tree, where, folder, method, zmax, progress=None, deadline=None
+             ) -> SystemReport:
     from .coupled import coupled_safe_steps
     from .systems import check_square, hessian_modes
 
@@ -168,7 +172,7 @@ def _hessian(tree, where, folder, method, zmax) -> SystemReport:
     d = hessian_modes(S, method)
     if d is not None:
         return _report_modes(d.modes, d.analysis, [])
-    result = coupled_safe_steps(method, S, zmax)
+    result = coupled_safe_steps(method, S, zmax, progress, deadline)
     items = [{"type": "coupled", "dof": S.shape[0] // 2, "h_limit": result.h_max}]
     return SystemReport(result.analysis, items, None, [(result, S)], [
         "the modes do not decouple for this method (partitioned method, non-separable H, "

@@ -148,3 +148,40 @@ def test_h_max_scales_with_the_units_of_s(kind, unit):
     assert scaled * unit == pytest.approx(base, rel=1e-11)
     assert CoupledSystem(m, unit * S).preserved(0.999 * base / unit)
     assert not CoupledSystem(m, unit * S).preserved(1.001 * base / unit)
+
+
+def test_progress_is_reported_and_a_deadline_stops_at_a_preserved_horizon():
+    """progress(fraction) rises to 1; a deadline already past stops the scan after its
+    first sample, whose h becomes both h_max and the horizon (and is preserved)."""
+    import time
+
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(8, 8))
+    S = A @ A.T / 8 + np.eye(8)
+    m = method("pefrl")
+    seen: list[float] = []
+    full = coupled_safe_steps(m, S, progress=seen.append)
+    assert seen and seen == sorted(seen) and seen[-1] == 1.0
+    cut = coupled_safe_steps(m, S, deadline=time.monotonic())
+    assert 0 < cut.h_max == cut.horizon < full.h_max
+    assert "time budget" in cut.analysis
+    assert CoupledSystem(m, S).preserved(cut.h_max)
+
+
+def test_budget_on_the_command_line_caps_the_analysed_steps(tmp_path, run, run_json):
+    """advise --budget: h_max is the h the analysis reached (preserved, below the full
+    answer); check still decides its own step exactly."""
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(8, 8))
+    np.save(tmp_path / "S.npy", A @ A.T / 8 + np.eye(8))
+    scene = tmp_path / "scene.yaml"
+    scene.write_text("method: pefrl\nsystem:\n  hessian: S.npy\n")
+    full = run_json("advise", str(scene))
+    cut = run_json("advise", str(scene), "--budget", "1e-9")
+    assert 0 < cut["h_max"] < full["h_max"]
+    assert "time budget" in cut["system"]["analysis"]
+    assert cut["h_max_limited_by"] == "horizon" and full["h_max_limited_by"] == "boundary"
+    code, out, err = run("advise", str(scene))  # the text report (once exit 3)
+    assert code == 0 and "limited by the coupled analysis" in out, err
+    for step, code in ((0.5 * (cut["h_max"] + full["h_max"]), 0), (1.01 * full["h_max"], 1)):
+        assert run("check", str(scene), "--step", str(step), "--budget", "1e-9")[0] == code
