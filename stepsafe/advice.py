@@ -197,21 +197,29 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
     limits: list[ModelLimit] = []
     unsafe: list[np.ndarray] = [np.zeros((0, 2))]
     horizon = np.inf
-    for model, betas in modes.betas.items():
+    tops = {model: _largest(betas, modes.errors.get(model))
+            for model, betas in modes.betas.items()}
+    for model in modes.betas:
         if model not in regions:
             regions[model] = find_region(method, model, zmax)
+        if tops[model] > 0:
+            horizon = min(horizon, margin * regions[model].zmax / tops[model])
+    for model, betas in modes.betas.items():
         region = regions[model]
         beta_max = float(betas.max())
         z_star = region.first_boundary
-        positive, err = _distinct(betas, modes.error(model))
-        top = positive * (1.0 + err)
-        h_limit = (margin * first_unsafe_z(region) / float(top.max())
-                   if positive.size and z_star is not None else None)
+        h_limit = (margin * first_unsafe_z(region) / tops[model]
+                   if tops[model] > 0 and z_star is not None else None)
         limits.append(ModelLimit(model, int(betas.size), beta_max, z_star,
                                  region.first_boundary_point, h_limit))
+        g = gaps(region)
+        # a mode whose every gap starts above the horizon cannot cut the safe set below it:
+        # drop those before any sort (beta (1 + r) < F a_min / horizon)
+        floor = (margin * float(g[:, 0].min()) / horizon * (1.0 - 1e-12)
+                 if np.isfinite(horizon) else 0.0)
+        positive, err = _distinct(*_above(betas, modes.errors.get(model), floor))
         if positive.size:
-            horizon = min(horizon, margin * region.zmax / float(top.max()))
-            g = gaps(region)
+            top = positive * (1.0 + err)
             # a beta known to a relative error r may be (1 -+ r) times itself: each gap
             # widens to (F a / (beta (1 + r)), b / (beta (1 - r)))
             low = np.maximum(positive * (1.0 - err), 0.0)
@@ -227,6 +235,21 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
     h_max = (safe[0][1] if safe[0][0] == 0.0 else 0.0) if safe else 0.0
     return Advice(name or method.name, margin, h_max, tuple(safe), limiting, tuple(limits),
                   None if horizon == np.inf else float(horizon), regions)
+
+
+def _largest(betas: np.ndarray, errors: np.ndarray | None) -> float:
+    """The largest ``beta (1 + r)`` (0 if every beta is 0)."""
+    if errors is None:
+        return float(betas.max())
+    return float((betas * (1.0 + errors)).max())
+
+
+def _above(betas: np.ndarray, errors: np.ndarray | None, floor: float
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """The betas (with their errors) whose ``beta (1 + r)`` reaches ``floor``, positive."""
+    top = betas if errors is None else betas * (1.0 + errors)
+    keep = (top >= floor) & (betas > 0)
+    return betas[keep], (np.zeros(int(keep.sum())) if errors is None else errors[keep])
 
 
 def _distinct(betas: np.ndarray, errors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -271,3 +271,28 @@ def test_steps_far_beyond_float64_range_of_m(run):
     assert code == 0 and "SAFE" in out
     code, out, _ = run("check", "--method", "kahan-li8", "--saddle-beta", "1e100", "--h", "1e100")
     assert code == 1 and "beyond the analysed range" in out
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_dropping_modes_that_cannot_reach_the_horizon_changes_nothing(seed, monkeypatch):
+    """advise drops, before sorting, modes whose every gap starts above the horizon; the
+    answer (islands included) equals the one from every mode."""
+    from stepsafe import advice as A
+
+    rng = np.random.default_rng(seed)
+    if seed < 2:  # many modes over six decades
+        betas = {"oscillator": np.exp(rng.uniform(-4, 2, 300)), "saddle": rng.uniform(0, 3, 40)}
+    else:  # two fast modes close enough to share an island, many slow ones
+        betas = {"oscillator": np.concatenate([[1.0, 1.005], np.exp(rng.uniform(-9, -4, 298))])}
+    betas["oscillator"][-3:] = 0.0
+    errors = {"oscillator": rng.uniform(0, 1e-4, 300)}
+    modes = A.Modes.from_arrays(betas, errors)
+    name = ("yoshida4", "blanes-moan6", "pefrl", "kahan-li8")[seed]
+    margin = 0.95 if seed < 2 else 1.0  # (a margin closes the islands)
+    fast = A.advise(method(name), modes, margin=margin, zmax=30.0)
+    assert seed < 2 or len(fast.safe_h) > 1  # islands are part of what is compared
+    monkeypatch.setattr(A, "_above", lambda b, e, floor: (
+        b[b > 0], np.zeros(int((b > 0).sum())) if e is None else e[b > 0]))
+    slow = A.advise(method(name), modes, margin=margin, zmax=30.0)
+    assert fast.safe_h == slow.safe_h and fast.h_max == slow.h_max
+    assert fast.horizon == slow.horizon
