@@ -438,8 +438,11 @@ def _input_error(message: str):
               help="Also require relative energy error <= T (vibrations).")
 @click.option("--tol-phase", type=FLOAT, default=None, metavar="T",
               help="Also require |phase error| <= T (|growth-rate error| for saddles).")
+@click.option("--every-mode", is_flag=True,
+              help="List every mode or equilibrium of a system (default: the ten most "
+                   "limiting when there are more).")
 @scene_options
-def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, beta,
+def advise_cmd(tol_phase, tol_energy, every_mode, scene_files, method_name, stages, base, beta,
                saddle_beta, inverted_beta, modes_file, margin, zmax, budget, as_json,
                verify) -> None:
     """Safe step sizes h for your frequencies.
@@ -505,7 +508,7 @@ def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, be
     if "system" in data and not as_json:
         from .report import print_system
 
-        print_system(data["system"])
+        print_system(data["system"], every_mode)
     if verdict and not as_json:
         _print_verify(verdict)
     _exit_if_unverified(verdict)
@@ -514,9 +517,12 @@ def advise_cmd(tol_phase, tol_energy, scene_files, method_name, stages, base, be
 @main.command("check")
 @click.option("--step", "--h", "h", type=FLOAT, default=None, metavar="H",
               help="The step to check (--h is the same option; -h is an error, not help).")
+@click.option("--every-mode", is_flag=True,
+              help="List every mode or equilibrium of a system (default: the ten most "
+                   "limiting when there are more).")
 @scene_options
-def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inverted_beta,
-              modes_file, margin, zmax, budget, as_json, verify) -> None:
+def check_cmd(h, every_mode, scene_files, method_name, stages, base, beta, saddle_beta,
+              inverted_beta, modes_file, margin, zmax, budget, as_json, verify) -> None:
     """Fail (exit 1) when the step h loses some mode's structure; for CI.
 
     Exit 0: every mode is preserved at h (with the margin); 1: not, with the reason for
@@ -568,7 +574,7 @@ def check_cmd(h, scene_files, method_name, stages, base, beta, saddle_beta, inve
         for data in outputs:
             print_check(data)
             if "system" in data:
-                print_system(data["system"])
+                print_system(data["system"], every_mode)
             if "verify" in data:
                 _print_verify(data["verify"])
     for verdict in verdicts:

@@ -440,14 +440,28 @@ def print_compare(data: dict[str, Any]) -> None:
                   "by the iterations your solver needs.")
 
 
-def print_system(system: dict[str, Any]) -> None:
-    """The modes or equilibria a system: scene was reduced to."""
+#: a system with more modes or equilibria than this lists only the most limiting
+SUMMARY_ITEMS = 10
+
+
+def print_system(system: dict[str, Any], every: bool = False) -> None:
+    """The modes or equilibria a system: scene was reduced to: every one, or (beyond
+    :data:`SUMMARY_ITEMS`, unless ``every``) the ones with the smallest h limit."""
     import click
 
     from .text import printable
 
     click.echo(f"System analysis: {system['analysis']}")
-    for item in system["items"]:
+    items = system["items"]
+    if len(items) > SUMMARY_ITEMS and not every:
+        def key(item):
+            limit = item.get("h_limit")
+            return (limit is None, limit if limit is not None else 0.0)
+
+        click.echo(f"  the {SUMMARY_ITEMS} most limiting of {len(items)} (--every-mode lists "
+                   "all; --json has all):")
+        items = sorted(items, key=key)[:SUMMARY_ITEMS]
+    for item in items:
         where = (f"(q, p) = ({fmt(item['q'], 8)}, {fmt(item['p'], 8)}) "
                  if "q" in item else "")
         beta = "" if item.get("beta") is None else f"beta = {fmt(item['beta'], 8)} "

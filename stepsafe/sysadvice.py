@@ -99,16 +99,17 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
         with blas_threads_for(S.shape[0]):
             system = CoupledSystem(method, S)
             ok = all(system.preserved(step) for step in (h, h / margin))
-        data["modes"] += 1
+        dof = S.shape[0] // 2  # analysed together: they keep their structure or not as one
+        data["modes"] += dof
         cap = margin * result.h_max
         data["safe_h"] = _cap(data["safe_h"], cap)
         if not ok:
-            data["failing"] += 1
+            data["failing"] += dof
             data["safe"] = False
             data["failures"].append({
                 "model": "coupled", "beta": None, "z": float(h),
-                "reason": "the one-step matrix does not keep the eigen-structure of J S at "
-                          "this h",
+                "reason": f"the one-step matrix of the coupled {dof}-dof system does not keep "
+                          "the eigen-structure of J S at this h",
                 "largest_safe_h": cap})
     if report.primary_only:
         data["safe_h"] = data["safe_h"][:1] if data["safe_h"] and data["safe_h"][0][0] == 0.0 \

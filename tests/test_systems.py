@@ -308,3 +308,27 @@ def test_scene_with_modes_and_system_is_refused(run, tmp_path):
                     "system: {stiffness: [[4]]}\n")
     code, _, err = run("check", str(path))
     assert code == 2 and "$.system" in err and "not both" in err
+
+
+def test_large_systems_list_the_most_limiting_modes(tmp_path, run):
+    """advise/check on a 30-dof system list the ten modes with the smallest h limit (the
+    first is the one that limits h) unless --every-mode; a coupled system counts its dof."""
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(30, 30))
+    np.save(tmp_path / "K.npy", A @ A.T / 30 + np.eye(30))
+    scene = tmp_path / "s.yaml"
+    scene.write_text("method: verlet\nsystem:\n  stiffness: K.npy\n")
+    for command in (["advise"], ["check", "--step", "0.1"]):
+        code, out, _ = run(*command, str(scene))
+        assert code == 0 and "the 10 most limiting of 30" in out
+        listed = [line for line in out.splitlines() if "elliptic oscillator" in line]
+        assert len(listed) == 10
+        limits = [float(line.rsplit("h < ", 1)[1]) for line in listed]
+        assert limits == sorted(limits)
+        code, out, _ = run(*command, str(scene), "--every-mode")
+        assert len([line for line in out.splitlines() if "elliptic oscillator" in line]) == 30
+    np.save(tmp_path / "S.npy", np.block([[np.eye(3), 0.3 * np.ones((3, 3))],
+                                          [0.3 * np.ones((3, 3)), np.eye(3)]]))
+    scene.write_text("method: pefrl\nsystem:\n  hessian: S.npy\n")
+    code, out, _ = run("check", str(scene), "--step", "0.01")
+    assert code == 0 and "all 3 mode(s)" in out
