@@ -138,7 +138,7 @@ def _report_modes(modes, analysis: str, notes: list[str],
 
 
 def _stiffness(tree, where, folder) -> SystemReport:
-    from .systems import separable_modes, sparse_extreme_modes
+    from .systems import is_diagonal, separable_modes, sparse_extreme_modes
 
     K = _matrix(tree["stiffness"], where, "stiffness", folder, sparse_ok=True)
     M = _matrix(tree["mass"], where, "mass", folder, sparse_ok=True) if "mass" in tree else None
@@ -147,10 +147,11 @@ def _stiffness(tree, where, folder) -> SystemReport:
         raise _fail(where, "mass", f"mass is {'x'.join(map(str, M.shape))} but stiffness is "
                                    f"{'x'.join(map(str, K.shape))}")
     notes: list[str] = []
-    if hasattr(K, "tocsr") and K.shape[0] > DENSE_LIMIT:
+    sparse = hasattr(K, "tocsr")
+    if K.shape[0] > DENSE_LIMIT and (sparse or M is None or is_diagonal(M)):
         d = sparse_extreme_modes(K, M)
-        notes.append(f"{K.shape[0]} dof sparse: only the extreme modes were computed; islands "
-                     "beyond h_max are not analysed")
+        notes.append(f"{K.shape[0]} dof{' sparse' if sparse else ''}: only the extreme modes "
+                     "were computed; islands beyond h_max are not analysed")
     else:
         K = K.toarray() if hasattr(K, "toarray") else K
         M = M.toarray() if hasattr(M, "toarray") else M

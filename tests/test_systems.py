@@ -332,3 +332,31 @@ def test_large_systems_list_the_most_limiting_modes(tmp_path, run):
     scene.write_text("method: pefrl\nsystem:\n  hessian: S.npy\n")
     code, out, _ = run("check", str(scene), "--step", "0.01")
     assert code == 0 and "all 3 mode(s)" in out
+
+
+@pytest.mark.parametrize("barrier", [False, True])
+def test_large_dense_stiffness_uses_the_extreme_eigenvalues_only(tmp_path, run_json,
+                                                                 monkeypatch, barrier):
+    """Above DENSE_LIMIT a dense stiffness (with a lumped mass) is analysed by shift-invert
+    Lanczos for its extreme eigenvalues: the same h_max as every eigenvalue gives."""
+    from scipy.linalg import eigh
+
+    from stepsafe import sysfile
+
+    monkeypatch.setattr(sysfile, "DENSE_LIMIT", 40)
+    rng = np.random.default_rng(6)
+    A = rng.normal(size=(60, 60))
+    K = A @ A.T / 60 + 0.5 * np.eye(60) - (1.5 * np.eye(60) if barrier else 0)
+    m = rng.uniform(0.5, 2, 60)
+    np.save(tmp_path / "K.npy", K)
+    np.save(tmp_path / "M.npy", np.diag(m))
+    scene = tmp_path / "s.yaml"
+    scene.write_text("method: verlet\nsystem:\n  stiffness: K.npy\n  mass: M.npy\n")
+    data = run_json("advise", str(scene))
+    assert "extreme eigenvalues" in data["system"]["analysis"]
+    w2 = eigh(K, np.diag(m), eigvals_only=True)
+    beta_max = float(np.sqrt(w2.max()))
+    assert data["h_max"] == pytest.approx(2 / beta_max, rel=1e-10) or barrier
+    if barrier:  # the barrier's rate is there too, and h_max is the smaller limit
+        rates = [item["beta"] for item in data["system"]["items"] if item["model"] != "oscillator"]
+        assert max(rates) == pytest.approx(float(np.sqrt(-w2.min())), rel=1e-10)
