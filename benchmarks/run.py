@@ -40,13 +40,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from stepsafe.advice import Modes, advise  # noqa: E402
-from stepsafe.families import gauss, lobatto3a, lobatto3ab  # noqa: E402
-from stepsafe.library import builtin_names, resolve  # noqa: E402
-from stepsafe.methods import RungeKutta  # noqa: E402
-from stepsafe.regions import classical_interval, find_region  # noqa: E402
-from stepsafe.rkstability import stability_function, stability_polynomials  # noqa: E402
-from stepsafe.transfer import stage_operator  # noqa: E402
+from stepsafe.core.advice import Modes, advise  # noqa: E402
+from stepsafe.core.regions import classical_interval, find_region  # noqa: E402
+from stepsafe.core.rkstability import stability_function, stability_polynomials  # noqa: E402
+from stepsafe.core.transfer import stage_operator  # noqa: E402
+from stepsafe.methods.families import gauss, lobatto3a, lobatto3ab  # noqa: E402
+from stepsafe.methods.library import builtin_names, resolve  # noqa: E402
+from stepsafe.methods.tableaux import RungeKutta  # noqa: E402
 
 ROWS: list[tuple[str, str, str, str]] = []
 
@@ -88,7 +88,7 @@ def cold() -> None:
 
 
 def stepsafe_R(method, y):
-    """R(iy) from stepsafe's stability polynomials (stepsafe.rkstability)."""
+    """R(iy) from stepsafe's stability polynomials (stepsafe.core.rkstability)."""
     return stability_function(method, 1j * y)
 
 
@@ -216,8 +216,8 @@ def bench_scale(big: bool) -> None:
             "", "goal well under 1 s" if count == 10**6 else "")
     import scipy.sparse as sp
 
-    from stepsafe.coupled import coupled_safe_steps
-    from stepsafe.systems import sparse_extreme_modes
+    from stepsafe.systems.coupled import coupled_safe_steps
+    from stepsafe.systems.linear import sparse_extreme_modes
 
     n = 100_000
     K = sp.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1], format="csr")
@@ -235,12 +235,12 @@ def bench_scale(big: bool) -> None:
             f"{t['ours'] / t['eig']:.0f}x eig",
             "ratio to one eig (with vectors) of the same 2n x 2n size; goal <= 10x")
         if dof == 200:
-            import stepsafe.threads
+            import stepsafe.core.threads
 
-            pin, stepsafe.threads.PIN_MAX_SIZE = stepsafe.threads.PIN_MAX_SIZE, 0
+            pin, stepsafe.core.threads.PIN_MAX_SIZE = stepsafe.core.threads.PIN_MAX_SIZE, 0
             with threadpool_limits(2, "blas"):  # (stepsafe's own pinning switched off)
                 two = interleaved({"ours": lambda S=S: coupled_safe_steps(m, S)}, repeat=3)
-            stepsafe.threads.PIN_MAX_SIZE = pin
+            stepsafe.core.threads.PIN_MAX_SIZE = pin
             row("  the same with two BLAS threads (stepsafe pins one)", f"{two['ours']:.2f} s",
                 f"{two['ours'] / t['ours']:.2f}x", "")
     if big:

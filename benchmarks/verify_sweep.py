@@ -2,7 +2,7 @@
 
 For Gauss and Lobatto IIIA-IIIB with s = 2..40 and every built-in method, at zmax = 4 pi
 and 40, find the regions of the three main models and recompute every reported point and
-the status between points at 40 digits (:func:`stepsafe.verify.verify_regions`, what
+the status between points at 40 digits (:func:`stepsafe.reference.verify.verify_regions`, what
 ``region --verify`` runs). Prints one line per run and a summary; ``--json FILE`` also
 writes the rows.
 
@@ -18,10 +18,10 @@ import json
 import math
 import time
 
-from stepsafe.library import FAMILIES, builtin_names, resolve
-from stepsafe.models import MAIN_MODELS
-from stepsafe.regions import find_region
-from stepsafe.verify import verify_regions
+from stepsafe.core.models import MAIN_MODELS
+from stepsafe.core.regions import find_region
+from stepsafe.methods.library import FAMILIES, builtin_names, resolve
+from stepsafe.reference.verify import verify_regions
 
 ZMAXES = (4 * math.pi, 40.0)
 

@@ -28,9 +28,9 @@ import time
 
 import numpy as np
 
-from stepsafe.accuracy import errors
-from stepsafe.library import resolve
-from stepsafe.methods import Composition, PartitionedRK, RungeKutta, Splitting
+from stepsafe.core.accuracy import errors
+from stepsafe.methods.library import resolve
+from stepsafe.methods.tableaux import Composition, PartitionedRK, RungeKutta, Splitting
 
 MAIN = ["verlet", "yoshida4", "suzuki4", "pefrl", "blanes-moan6", "kahan-li8", "gauss:2",
         "lobatto3ab:3"]

@@ -5,8 +5,8 @@ Titles, sources and names come from method and scene files that stepsafe did not
 Cs, Zl, Zp: C0 and C1 controls such as ESC and CSI ``\\x9b``, DEL, bidirectional
 overrides, zero-width characters, lone surrogates, line and paragraph separators) by a
 visible escape such as ``\\x1b``; only the tab is kept. Rich markup is escaped separately
-where text reaches rich (``report.py``); ``--json`` output needs neither (:func:`json.dumps`
-escapes control characters).
+where text reaches rich (:mod:`stepsafe.cli.report`); ``--json`` output needs neither
+(:func:`json.dumps` escapes control characters).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 One step of a method on the pendulum-type problem H = p^2/2 + V(q), independent of
 stepsafe's transfer matrices: splitting methods apply their drifts and kicks, compositions
 apply the base with scaled steps, RK/PRK methods solve the nonlinear stage equations by
-fixed-point iteration. Coefficients come from :func:`stepsafe.verify.mp_method` (method
+fixed-point iteration. Coefficients come from :func:`stepsafe.reference.verify.mp_method` (method
 files read with the mpmath backend, decimal literals exactly), so errors far below float64
 rounding can be measured: high-order methods need that to show their order.
 """
@@ -14,7 +14,7 @@ from collections.abc import Callable
 
 import mpmath as mp
 
-from stepsafe.verify import MPMethod, mp_method
+from stepsafe.reference.verify import MPMethod, mp_method
 
 __all__ = ["integrate", "mp_method", "step"]
 

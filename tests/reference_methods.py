@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from stepsafe.verify import mp_method
-from stepsafe.verify import mp_transfer as _mp_transfer
+from stepsafe.reference.verify import mp_method
+from stepsafe.reference.verify import mp_transfer as _mp_transfer
 
 
 def mp_transfer(name: str, stages: int | None = None, dps: int = 50):

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from stepsafe.library import resolve
+from stepsafe.methods.library import resolve
 
 
 def method(name: str, stages: int | None = None, base: str | None = None):

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from support import method
 
-from stepsafe.accuracy import errors, z_for_tolerance
-from stepsafe.methods import Composition, Splitting
-from stepsafe.regions import find_region
-from stepsafe.transfer import transfer_matrix
+from stepsafe.core.accuracy import errors, z_for_tolerance
+from stepsafe.core.regions import find_region
+from stepsafe.core.transfer import transfer_matrix
+from stepsafe.methods.tableaux import Composition, Splitting
 
 ZS = [1e-8, 1e-6, 1e-4, 1e-2, 0.3, 0.49, 0.51, 1.0, 1.9]
 

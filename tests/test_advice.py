@@ -13,10 +13,10 @@ import pytest
 import yaml
 from support import method
 
-from stepsafe.advice import Modes, advise, check_step
-from stepsafe.library import builtin_names
-from stepsafe.models import MODELS
-from stepsafe.regions import find_region
+from stepsafe.core.advice import Modes, advise, check_step
+from stepsafe.core.models import MODELS
+from stepsafe.core.regions import find_region
+from stepsafe.methods.library import builtin_names
 
 ROOT = Path(__file__).resolve().parent.parent
 LIBRARY = [n for n in builtin_names() if n not in ("gauss", "lobatto3ab", "rk4")]
@@ -277,7 +277,7 @@ def test_steps_far_beyond_float64_range_of_m(run):
 def test_dropping_modes_that_cannot_reach_the_horizon_changes_nothing(seed, monkeypatch):
     """advise drops, before sorting, modes whose every gap starts above the horizon; the
     answer (islands included) equals the one from every mode."""
-    from stepsafe import advice as A
+    from stepsafe.core import advice as A
 
     rng = np.random.default_rng(seed)
     if seed < 2:  # many modes over six decades

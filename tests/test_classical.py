@@ -1,7 +1,7 @@
 """Classical (imaginary-axis) stability intervals of non-symplectic RK methods.
 
 stepsafe takes its candidate boundaries from the roots of ``|Q(iy)|^2 - |P(iy)|^2``
-(stepsafe.rkstability) and decides the status between them from M(z). Here every reported
+(stepsafe.core.rkstability) and decides the status between them from M(z). Here every reported
 boundary is re-derived at 50 digits from ``R(iy) = 1 + iy b^T (I - iy A)^-1 e`` with the
 stage system solved in mpmath (the float tableau taken exactly), and a dense 50-digit
 sampling of ``|R(iy)|`` checks that nothing was missed; closed forms where known.
@@ -15,10 +15,10 @@ import mpmath as mp
 import numpy as np
 import pytest
 
-from stepsafe.families import gauss, lobatto3a
-from stepsafe.methods import RungeKutta
-from stepsafe.regions import classical_interval
-from stepsafe.rkstability import stability_function, stability_polynomials
+from stepsafe.core.regions import classical_interval
+from stepsafe.core.rkstability import stability_function, stability_polynomials
+from stepsafe.methods.families import gauss, lobatto3a
+from stepsafe.methods.tableaux import RungeKutta
 
 DPS = 50
 ZMAX = 10.0

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from support import method
 
-from stepsafe.families import gauss, lobatto3ab
-from stepsafe.regions import find_region
+from stepsafe.core.regions import find_region
+from stepsafe.methods.families import gauss, lobatto3ab
 
 REL = 1e-12
 
@@ -69,7 +69,7 @@ def test_verlet_inverted_preserved_for_all_z(name):
 
 def test_verlet_is_lobatto3ab_2():
     z = np.linspace(0.01, 5, 50)
-    from stepsafe.transfer import transfer_matrix
+    from stepsafe.core.transfer import transfer_matrix
 
     for model in ("oscillator", "saddle", "inverted"):
         a = transfer_matrix(method("verlet"), z, model)
@@ -97,7 +97,7 @@ def test_rk_saddle_equals_inverted():
 def test_published_stability_thresholds():
     """Every method file that cites a published oscillator threshold agrees with the
     computed classical stability limit (|tr M| <= 2, either orientation)."""
-    from stepsafe.library import builtin_dir, load_file
+    from stepsafe.methods.library import builtin_dir, load_file
 
     checked = 0
     for path in sorted(builtin_dir().glob("*.yaml")):

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from support import method
 
-from stepsafe.coupled import (
+from stepsafe.systems.coupled import (
     CoupledSystem,
     continuous_signature,
     coupled_safe_steps,
     discrete_signature,
     one_step_matrix,
 )
-from stepsafe.systems import hamiltonian_matrix
+from stepsafe.systems.linear import hamiltonian_matrix
 
 METHODS = [("verlet", None), ("pefrl", None), ("yoshida4", None), ("lobatto3ab", 3),
            ("symplectic-euler", None)]

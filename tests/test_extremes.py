@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from support import method
 
-from stepsafe import reference as R
-from stepsafe.methods import Splitting
-from stepsafe.regions import find_region, touches
-from stepsafe.roots import EPS
+from stepsafe.core.regions import find_region, touches
+from stepsafe.core.roots import EPS
+from stepsafe.methods.tableaux import Splitting
+from stepsafe.reference import highprec as R
 
 
 def test_tangency_policy_tells_a_touch_from_a_near_touch():
@@ -82,7 +82,7 @@ def test_rounded_coefficients_gap_is_reported_as_a_resonance():
     wide (tr M + 2 = -3.2e-27 at the extremum, 40 digits). The policy reports one resonance
     whose uncertainty covers it, and the first interval ends there (past it the rotation is
     reversed)."""
-    from stepsafe.verify import mp_method, mp_transfer
+    from stepsafe.reference.verify import mp_method, mp_transfer
 
     f = mp_transfer(mp_method("bcss3", dps=40))
     region = find_region(method("bcss3"), "oscillator")
@@ -118,7 +118,7 @@ def test_refinement_does_not_chase_rounding_noise_far_from_the_levels(monkeypatc
     """Gauss s=40 on the inverted model: beyond z ~ 30 tr M ~ 1e15 carries relative noise
     ~1e-4 from ill-conditioned stage solves. Hidden-extremum refinement must not subdivide
     there (it once multiplied the grid 22-fold): no wiggle of that size can reach +2."""
-    import stepsafe.regions as regions
+    import stepsafe.core.regions as regions
 
     evaluated = []
     real = regions.transfer_jet
@@ -140,7 +140,7 @@ def test_orientation_far_out_where_tr_m_squared_overflows():
     region = find_region(method("sofroniou-spaletta10"), "inverted", zmax=1e4)
     assert region.intervals[-1].hi is None and not region.reversed
     with mp.workdps(60):
-        from stepsafe.verify import mp_method, mp_transfer
+        from stepsafe.reference.verify import mp_method, mp_transfer
 
         M = mp_transfer(mp_method("sofroniou-spaletta10"))(mp.mpf(5000), "inverted")
         a, b, c, d = M[0, 0], M[0, 1], M[1, 0], M[1, 1]
@@ -151,7 +151,7 @@ def test_orientation_far_out_where_tr_m_squared_overflows():
 def test_orientation_sign_is_invariant_under_scaling():
     """The indicator is homogeneous in the entries of D = M - I (and of M - I's diagonal
     difference), so scaling D by 1e250 or 1e-250 must neither over- nor underflow."""
-    from stepsafe.regions import orientation
+    from stepsafe.core.regions import orientation
 
     rng = np.random.default_rng(3)
     D = rng.normal(size=(200, 2, 2))
@@ -199,7 +199,7 @@ def test_verify_catches_a_never_preserved_claim(run, monkeypatch):
     still fail it (the status between points is recomputed too)."""
     import dataclasses
 
-    import stepsafe.regions as regions_module
+    import stepsafe.core.regions as regions_module
 
     real = regions_module.find_region
 
@@ -218,7 +218,7 @@ def test_gauss_far_poles_and_touches_within_their_uncertainty():
     ill-conditioned stage operator (float64 gets it only to ~1e-11); s = 12 near 2 pi:
     float64 places two points 1 ulp apart where there is one M = +I touch. Each is
     re-decided at high precision: the pole to 50 digits, one resonance."""
-    from stepsafe.verify import mp_method, mp_transfer
+    from stepsafe.reference.verify import mp_method, mp_transfer
 
     pole, = [p for p in find_region(method("gauss", 11), "saddle", 40.0).poles
              if 15 < p.z < 16]
@@ -242,7 +242,7 @@ def test_saddle_dip_inside_one_grid_cell_is_found(detune):
     R_q dips below 1 (q contracts: reversed) over a band far narrower than the grid, while
     tr M - 2 = (R - 1)^2 / R stays >= 0. Both ends of the band (50-digit roots of R_q = 1)
     must bound the preserved intervals; with the dip gone nothing is lost."""
-    from stepsafe.methods import Composition
+    from stepsafe.methods.tableaux import Composition
 
     a, b = -1.3814395335576392367, 1.1886084963163208 + detune
     weights = [a, b, 1 - 2 * a - 2 * b, b, a]
@@ -276,7 +276,7 @@ def test_a_stretch_float64_cannot_decide_is_never_preserved():
     flip, 50 digits), while float64's own rounding bound there is ~1e31 eps > 1e16."""
     region = find_region(method("lobatto3ab", 27), "inverted", zmax=40.0)
     with mp.workdps(50):
-        from stepsafe.verify import mp_method, mp_transfer
+        from stepsafe.reference.verify import mp_method, mp_transfer
 
         Mfun = mp_transfer(mp_method("lobatto3ab", 27, None))
         for z in (38.0, 38.7, 39.5):
@@ -321,8 +321,8 @@ def test_uncertainty_wider_than_the_safe_interval_leaves_no_safe_step(monkeypatc
     (they once said 9.99, the horizon, next to 'no safe step')."""
     import dataclasses
 
-    from stepsafe import advice
-    from stepsafe.advice import Modes, check_step
+    from stepsafe.core import advice
+    from stepsafe.core.advice import Modes, check_step
 
     real = advice.find_region
 

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from stepsafe.expressions import ExpressionError, mpmath_backend, value_of
+from stepsafe.files.expressions import ExpressionError, mpmath_backend, value_of
 
 GOOD = {
     "1/2": 0.5, "sqrt(3)/6": math.sqrt(3) / 6, "1/(2-2**(1/3))": 1 / (2 - 2 ** (1 / 3)),
@@ -111,7 +111,7 @@ def test_validate_binary_and_non_utf8_and_directory(run, tmp_path):
 
 
 def test_validate_good_file_and_symmetric_expansion(run, tmp_path):
-    from stepsafe.library import resolve
+    from stepsafe.methods.library import resolve
 
     path = _write(tmp_path, VALID)
     code, out, _ = run("validate", path)
@@ -129,7 +129,7 @@ def test_validate_warns_on_non_symplectic(run, tmp_path):
 
 
 def test_every_shipped_file_validates(run):
-    from stepsafe.library import builtin_dir
+    from stepsafe.methods.library import builtin_dir
 
     files = sorted(str(p) for p in builtin_dir().glob("*.yaml"))
     code, out, err = run("validate", *files)
@@ -228,7 +228,7 @@ def test_npz_bomb_refused_from_the_declared_unpacked_size(run, tmp_path):
     """A member whose zip directory declares 10 GB is refused without inflating anything."""
     import zipfile
 
-    from stepsafe.matrixfile import MAX_FILE_BYTES
+    from stepsafe.systems.matrixfile import MAX_FILE_BYTES
 
     with zipfile.ZipFile(tmp_path / "K.npz", "w", allowZip64=True) as archive:
         archive.writestr("arr_0.npy", _npy_bytes(shape=(50_000, 50_000), dtype="<f8"))
@@ -244,7 +244,7 @@ def test_npz_with_many_members_refused_from_the_end_record(run, tmp_path):
     would take gigabytes, so the member count is read from the end record first."""
     import zipfile
 
-    from stepsafe.matrixfile import MAX_NPZ_MEMBERS
+    from stepsafe.systems.matrixfile import MAX_NPZ_MEMBERS
 
     with zipfile.ZipFile(tmp_path / "K.npz", "w") as archive:
         for i in range(1000):
@@ -257,7 +257,7 @@ def test_npz_with_many_members_refused_from_the_end_record(run, tmp_path):
 def test_npz_dense_header_over_budget(run, tmp_path):
     import zipfile
 
-    from stepsafe.matrixfile import MAX_DENSE_BYTES
+    from stepsafe.systems.matrixfile import MAX_DENSE_BYTES
 
     with zipfile.ZipFile(tmp_path / "K.npz", "w") as archive:
         archive.writestr("arr_0.npy", _npy_bytes(shape=(10_000, 10_000), dtype="<f4"))
@@ -277,7 +277,7 @@ def _sparse_npz(path, members: dict) -> None:
 def test_sparse_npz_budgets_from_headers(run, tmp_path):
     import numpy as np
 
-    from stepsafe.matrixfile import MAX_SPARSE_DIM, MAX_SPARSE_NNZ
+    from stepsafe.systems.matrixfile import MAX_SPARSE_DIM, MAX_SPARSE_NNZ
 
     nnz = MAX_SPARSE_NNZ + 1
     _sparse_npz(tmp_path / "K.npz", {
@@ -309,7 +309,7 @@ def test_sparse_npz_with_indices_out_of_range(run, tmp_path):
 
 
 def test_mtx_sparse_dimension_budget(run, tmp_path):
-    from stepsafe.matrixfile import MAX_SPARSE_DIM
+    from stepsafe.systems.matrixfile import MAX_SPARSE_DIM
 
     n = MAX_SPARSE_DIM + 1
     (tmp_path / "K.mtx").write_text(f"%%MatrixMarket matrix coordinate real symmetric\n"
@@ -395,7 +395,7 @@ def test_hostile_npy_and_npz_dtypes_and_shapes(tmp_path):
     from hypothesis import strategies as st
 
     from stepsafe.errors import StepsafeError
-    from stepsafe.matrixfile import read_matrix
+    from stepsafe.systems.matrixfile import read_matrix
 
     @settings(max_examples=120, deadline=None, suppress_health_check=[
         HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
@@ -447,7 +447,7 @@ def test_positive_definite_whatever_the_scale():
     from hypothesis import given, settings
     from hypothesis import strategies as st
 
-    from stepsafe.systems import is_positive_definite
+    from stepsafe.systems.linear import is_positive_definite
 
     @settings(max_examples=80, deadline=None)
     @given(st.integers(1, 6), st.integers(0, 2**32 - 1), st.booleans())
@@ -534,14 +534,14 @@ def test_bad_modes_csv(run, tmp_path, content, message):
     "# frequencies\n\nmodel,label,beta\noscillator,a,3\n\n# barrier\ninverted,b,1 # top\n",
 ])
 def test_modes_csv_variants(tmp_path, content):
-    from stepsafe.scene import load_modes
+    from stepsafe.systems.scene import load_modes
 
     got = load_modes(_modes_csv(tmp_path, content))
     assert {k: v.tolist() for k, v in got.items()} == {"oscillator": [3.0], "inverted": [1.0]}
 
 
 def test_modes_csv_row_budget_checked_before_parsing(run, tmp_path):
-    from stepsafe.scene import MAX_CSV_ROWS
+    from stepsafe.systems.scene import MAX_CSV_ROWS
 
     path = _modes_csv(tmp_path, b"beta\n" + b"1\n" * (MAX_CSV_ROWS + 1))
     code, _, err = run("check", "--method", "verlet", "--h", "0.1", "--modes", path)
@@ -553,7 +553,7 @@ def _reference_csv(lines: list[str]):
     """The documented CSV semantics, line by line: (grouped betas) or (line, field)."""
     import re
 
-    from stepsafe.models import MODELS
+    from stepsafe.core.models import MODELS
 
     number = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?", re.ASCII)
     grouped: dict[str, list[float]] = {}
@@ -580,7 +580,7 @@ def test_modes_csv_fast_and_exact_readers_agree(tmp_path, monkeypatch):
     from hypothesis import HealthCheck, given, settings
     from hypothesis import strategies as st
 
-    import stepsafe.scene as scene
+    import stepsafe.systems.scene as scene
     from stepsafe.errors import StepsafeError
 
     monkeypatch.setattr(scene, "_CSV_ROW_BY_ROW", 2)
@@ -651,7 +651,7 @@ def test_nested_composition_budget_counts_without_flattening():
     from support import method
 
     from stepsafe.errors import MethodError
-    from stepsafe.methods import MAX_BASE_STEPS, Composition
+    from stepsafe.methods.tableaux import MAX_BASE_STEPS, Composition
 
     verlet = method("verlet")
     inner = Composition(verlet, [1 / 40] * 40)
@@ -664,7 +664,7 @@ def test_nested_composition_budget_counts_without_flattening():
 def test_nested_composition_files_are_refused_from_their_counts(tmp_path):
     """Four nested files of 100 weights would flatten to 10^8 steps (gigabytes): refused
     while the second level is built, naming the file and the budget."""
-    from stepsafe.methods import MAX_BASE_STEPS
+    from stepsafe.methods.tableaux import MAX_BASE_STEPS
 
     weights = ", ".join(["0.01"] * 100)
     base = "verlet"

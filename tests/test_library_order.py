@@ -13,7 +13,7 @@ import mpmath as mp
 import pytest
 from integrate import integrate, mp_method
 
-from stepsafe.library import builtin_names
+from stepsafe.methods.library import builtin_names
 
 LIBRARY = [n for n in builtin_names() if n not in ("gauss", "lobatto3ab")]
 T = 1

@@ -35,7 +35,7 @@ def test_installed_wheel_resolves_builtin_methods(wheel, tmp_path):
     target = tmp_path / "site"
     subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target",
                     str(target), str(wheel)], check=True, capture_output=True)
-    code = ("import stepsafe.library as L; p = L.builtin_dir(); "
+    code = ("import stepsafe.methods.library as L; p = L.builtin_dir(); "
             "m, e = L.resolve('pefrl'); print(p); print(m.name)")
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True,
                          text=True, cwd=tmp_path, env={"PYTHONPATH": str(target)}).stdout

@@ -15,8 +15,8 @@ import pytest
 from reference_methods import mp_transfer
 from support import method
 
-from stepsafe import reference as mpref
-from stepsafe.regions import find_region
+from stepsafe.core.regions import find_region
+from stepsafe.reference import highprec as mpref
 
 DPS = 50
 REL = 1e-12

@@ -6,11 +6,11 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from stepsafe.checks import residuals
-from stepsafe.methods import Composition, PartitionedRK, Splitting
-from stepsafe.models import MODELS
-from stepsafe.regions import find_region
-from stepsafe.transfer import poles, transfer_matrix
+from stepsafe.core.models import MODELS
+from stepsafe.core.regions import find_region
+from stepsafe.core.transfer import poles, transfer_matrix
+from stepsafe.methods.residuals import residuals
+from stepsafe.methods.tableaux import Composition, PartitionedRK, Splitting
 
 SETTINGS = settings(max_examples=25, deadline=None,
                     suppress_health_check=[HealthCheck.too_slow])

@@ -17,13 +17,13 @@ import pytest
 from reference_methods import mp_transfer
 from support import method
 
-from stepsafe import reference as mpref
-from stepsafe.library import builtin_names
-from stepsafe.models import MODELS
-from stepsafe.regions import find_region
-from stepsafe.transfer import transfer_jet
-from stepsafe.verify import check_point
-from stepsafe.verify import points as _points
+from stepsafe.core.models import MODELS
+from stepsafe.core.regions import find_region
+from stepsafe.core.transfer import transfer_jet
+from stepsafe.methods.library import builtin_names
+from stepsafe.reference import highprec as mpref
+from stepsafe.reference.verify import check_point
+from stepsafe.reference.verify import points as _points
 
 DPS = 50
 REL = 1e-12

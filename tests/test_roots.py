@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stepsafe.roots import EPS, hermite_extremum, hermite_root, refine_brackets
+from stepsafe.core.roots import EPS, hermite_extremum, hermite_root, refine_brackets
 
 
 def _solutions(level, lo, hi):

@@ -4,7 +4,7 @@ Generated cases (hypothesis): built-in methods, Gauss/Lobatto members, random co
 and inconsistent splittings and random symplectic PRK tableaux; one to four modes of every
 model with frequencies spread over 12 decades; steps from 1e-9 to 1e9 in z; margins. For
 a SAFE verdict every mode's whole range ``[beta h, beta h / margin]`` must lie in the
-preserved set: checked at 50 digits with :mod:`stepsafe.reference` (stage equations and
+preserved set: checked at 50 digits with :mod:`stepsafe.reference.highprec` (stage equations and
 drift/kick products in mpmath, sharing no code with the float path) at the ends and at
 interior points, and no boundary may lie in between (the float region's claim, here
 re-derived from sign changes of the 50-digit constraints on a sub-grid).
@@ -20,9 +20,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from support import method
 
-from stepsafe import reference as R
-from stepsafe.advice import Modes, check_step
-from stepsafe.methods import Composition, PartitionedRK, RungeKutta, Splitting
+from stepsafe.core.advice import Modes, check_step
+from stepsafe.methods.tableaux import Composition, PartitionedRK, RungeKutta, Splitting
+from stepsafe.reference import highprec as R
 
 DPS = 50
 SETTINGS = settings(max_examples=60, deadline=None, derandomize=True,

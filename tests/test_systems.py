@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 from support import method
 
-from stepsafe.coupled import (
+from stepsafe.core.regions import find_region
+from stepsafe.systems.coupled import (
     continuous_signature,
     coupled_safe_steps,
     discrete_signature,
     one_step_matrix,
 )
-from stepsafe.nonlinear import find_equilibria, parse_hamiltonian
-from stepsafe.regions import find_region
-from stepsafe.systems import hessian_modes, separable_modes
+from stepsafe.systems.linear import hessian_modes, separable_modes
+from stepsafe.systems.nonlinear import find_equilibria, parse_hamiltonian
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -220,8 +220,8 @@ def _hamiltonian_scene(tmp_path, text: str, box: str = "{q: [-1, 1], p: [-1, 1]}
 ])
 def test_hamiltonians_at_any_scale(tmp_path, text, model, beta):
     """The linearisation at the equilibrium, whatever the units: beta^2 = |H_qq H_pp|."""
-    from stepsafe.advice import Modes
-    from stepsafe.sysfile import analyse_system
+    from stepsafe.core.advice import Modes
+    from stepsafe.systems.loader import analyse_system
 
     report = analyse_system({"hamiltonian": text, "box": {"q": ["-1", "1"], "p": ["-1", "1"]}},
                             "h.yaml", tmp_path, method("verlet"))
@@ -277,7 +277,7 @@ def test_stiff_matrix_keeps_its_slow_barrier(run, tmp_path):
 
 
 def test_eigenvalue_within_rounding_of_zero_is_analysed_as_both_types():
-    from stepsafe.systems import separable_modes
+    from stepsafe.systems.linear import separable_modes
 
     K = np.diag([1e12, 1e-9])  # 1e-9 is far below the rounding of 1e12 (~3e-3)
     modes = separable_modes(K).modes
@@ -341,7 +341,7 @@ def test_large_dense_stiffness_uses_the_extreme_eigenvalues_only(tmp_path, run_j
     Lanczos for its extreme eigenvalues: the same h_max as every eigenvalue gives."""
     from scipy.linalg import eigh
 
-    from stepsafe import sysfile
+    from stepsafe.systems import loader as sysfile
 
     monkeypatch.setattr(sysfile, "DENSE_LIMIT", 40)
     rng = np.random.default_rng(6)

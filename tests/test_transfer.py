@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 from support import method
 
-from stepsafe.checks import residuals
-from stepsafe.families import gauss, lobatto3ab
-from stepsafe.library import builtin_names
-from stepsafe.methods import PartitionedRK, Splitting
-from stepsafe.models import MODELS
-from stepsafe.transfer import poles, transfer_jet, transfer_matrix
+from stepsafe.core.models import MODELS
+from stepsafe.core.transfer import poles, transfer_jet, transfer_matrix
+from stepsafe.methods.families import gauss, lobatto3ab
+from stepsafe.methods.library import builtin_names
+from stepsafe.methods.residuals import residuals
+from stepsafe.methods.tableaux import PartitionedRK, Splitting
 
 LIBRARY = [n for n in builtin_names() if n not in ("gauss", "lobatto3ab")]
 FAMILY = [gauss(s) for s in (1, 2, 3, 5, 8)] + [lobatto3ab(s) for s in (2, 3, 4, 6, 9)]
@@ -86,7 +86,7 @@ def test_singular_stage_system_gives_nan_not_an_exception():
 
 
 def test_composition_with_weight_one_is_the_base():
-    from stepsafe.methods import Composition
+    from stepsafe.methods.tableaux import Composition
 
     base = method("pefrl")
     comp = Composition(base, [1.0])

@@ -5,8 +5,8 @@ from __future__ import annotations
 import dataclasses
 import json
 
-import stepsafe.regions as regions_module
-from stepsafe.regions import Point
+import stepsafe.core.regions as regions_module
+from stepsafe.core.regions import Point
 
 
 def test_region_verify_json(run_json):

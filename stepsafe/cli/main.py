@@ -14,7 +14,7 @@ from contextlib import contextmanager
 
 import click
 
-from . import __version__
+from stepsafe import __version__
 
 EXIT_OK, EXIT_UNSAFE, EXIT_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
 EXIT_INTERRUPTED = 130
@@ -62,7 +62,7 @@ class _Group(click.Group):
         sys.exit(self._run(args, extra))
 
     def _run(self, args: list[str], extra: dict) -> int:
-        from . import output
+        from stepsafe.cli import output
 
         output.reset()
         try:
@@ -91,7 +91,7 @@ class _Group(click.Group):
         return code
 
     def invoke(self, ctx: click.Context):
-        from .errors import StepsafeError
+        from stepsafe.errors import StepsafeError
 
         debug = "--debug" in sys.argv[1:] or bool(ctx.params.get("debug"))
         try:
@@ -104,7 +104,7 @@ class _Group(click.Group):
         except (click.exceptions.Exit, click.exceptions.Abort, click.ClickException):
             raise
         except Exception as exc:  # noqa: BLE001 - the documented internal-error path
-            from .output import is_output_error
+            from stepsafe.cli.output import is_output_error
 
             if debug or is_output_error(exc):  # a closed pipe or a full disk: see _run
                 raise
@@ -125,7 +125,7 @@ def _system_exit_code(exc: SystemExit) -> int:
 
 def _error_line(message: str, prefix: str = "stepsafe: error: ") -> None:
     """One line on stderr, control characters made visible (the message may quote a file)."""
-    from .text import printable
+    from stepsafe.text import printable
 
     try:
         click.echo(prefix + printable(" ".join(message.split())), err=True)
@@ -189,7 +189,7 @@ def method_options(func):
 
 
 def _resolve(method: str, stages: int | None, base: str | None):
-    from .library import resolve
+    from stepsafe.methods.library import resolve
 
     return resolve(method, stages, base)
 
@@ -199,8 +199,8 @@ def _blame(entry):
     """An analysis error about a method read from the user's file names that file."""
     from pathlib import Path
 
-    from .errors import StepsafeError
-    from .library import builtin_dir
+    from stepsafe.errors import StepsafeError
+    from stepsafe.methods.library import builtin_dir
 
     try:
         yield
@@ -214,9 +214,9 @@ def _blame(entry):
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON list.")
 def methods_cmd(as_json: bool) -> None:
     """List the built-in methods and families."""
-    from .checks import residuals
-    from .library import FAMILIES, builtin_names, resolve
-    from .report import print_json, print_methods
+    from stepsafe.cli.report import print_json, print_methods
+    from stepsafe.methods.library import FAMILIES, builtin_names, resolve
+    from stepsafe.methods.residuals import residuals
 
     rows = []
     for name in builtin_names():
@@ -242,7 +242,7 @@ def methods_cmd(as_json: bool) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def show_cmd(method: str, stages: int | None, base: str | None, as_json: bool) -> None:
     """Coefficients, order, stages and symplecticity residuals of METHOD."""
-    from .report import method_data, print_json, print_method
+    from stepsafe.cli.report import method_data, print_json, print_method
 
     m, entry = _resolve(method, stages, base)
     data = method_data(m, entry)
@@ -254,7 +254,7 @@ def show_cmd(method: str, stages: int | None, base: str | None, as_json: bool) -
 
 
 def _coefficients(method) -> dict:
-    from .methods import Composition, PartitionedRK, RungeKutta, Splitting
+    from stepsafe.methods.tableaux import Composition, PartitionedRK, RungeKutta, Splitting
 
     if isinstance(method, RungeKutta):
         return {"A": method.A.tolist(), "b": method.b.tolist(), "c": method.c.tolist()}
@@ -288,10 +288,10 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
     applied to (a splitting whose drift and kick sums differ has no form for the saddle)
     is listed as not analysed, with the reason.
     """
-    from .errors import StepsafeError, positive_finite
-    from .models import MAIN_MODELS
-    from .regions import DEFAULT_ZMAX, find_region
-    from .report import method_data, print_json, print_region, region_data
+    from stepsafe.cli.report import method_data, print_json, print_region, region_data
+    from stepsafe.core.models import MAIN_MODELS
+    from stepsafe.core.regions import DEFAULT_ZMAX, find_region
+    from stepsafe.errors import StepsafeError, positive_finite
 
     m, entry = _resolve(method, stages, base)
     models = MAIN_MODELS if model == "all" else (model,)
@@ -363,10 +363,10 @@ def scene_options(func):
 def _scene_inputs(scene_file, method_name, stages, base, beta, saddle_beta, inverted_beta,
                   modes_file, margin, zmax, budget=None, show_progress=False):
     """Merge a scene file with command-line options (the options win)."""
-    from .advice import Modes, validate_margin
-    from .errors import positive_finite
-    from .regions import DEFAULT_ZMAX
-    from .scene import MethodRef, Scene, load_scene
+    from stepsafe.core.advice import Modes, validate_margin
+    from stepsafe.core.regions import DEFAULT_ZMAX
+    from stepsafe.errors import positive_finite
+    from stepsafe.systems.scene import MethodRef, Scene, load_scene
 
     if zmax is not None:  # the options are checked before any file is read or analysed
         zmax = positive_finite(zmax, "zmax")
@@ -396,8 +396,8 @@ def _scene_inputs(scene_file, method_name, stages, base, beta, saddle_beta, inve
     elif scene.system is not None:
         import time
 
-        from .progressbar import progress_bar
-        from .sysfile import analyse_system
+        from stepsafe.cli.progressbar import progress_bar
+        from stepsafe.systems.loader import analyse_system
 
         deadline = None if budget is None else time.monotonic() + budget
         with progress_bar("coupled analysis", show_progress) as progress:
@@ -419,7 +419,7 @@ def command_line_modes(beta, saddle_beta, inverted_beta, modes_file) -> dict:
     parts: dict[str, list] = {"oscillator": list(beta), "saddle": list(saddle_beta),
                               "inverted": list(inverted_beta)}
     if modes_file:
-        from .scene import load_modes
+        from stepsafe.systems.scene import load_modes
 
         for model, values in load_modes(modes_file).items():
             parts.setdefault(model, []).append(values)
@@ -428,7 +428,7 @@ def command_line_modes(beta, saddle_beta, inverted_beta, modes_file) -> dict:
 
 
 def _input_error(message: str):
-    from .errors import StepsafeError
+    from stepsafe.errors import StepsafeError
 
     return StepsafeError(message)
 
@@ -462,8 +462,8 @@ def advise_cmd(tol_phase, tol_energy, every_mode, scene_files, method_name, stag
       stepsafe advise scene.yaml --margin 0.8
       stepsafe advise examples/pendulum.yaml
     """
-    from .advice import advise
-    from .report import advice_data, print_advice, print_json
+    from stepsafe.cli.report import advice_data, print_advice, print_json
+    from stepsafe.core.advice import advise
 
     if len(scene_files) > 1:
         raise _input_error("advise takes at most one scene file")
@@ -472,7 +472,7 @@ def advise_cmd(tol_phase, tol_energy, every_mode, scene_files, method_name, stag
         inverted_beta, modes_file,
         margin, zmax, budget, not as_json)
     if system is not None:
-        from .sysadvice import system_advice
+        from stepsafe.systems.advice import system_advice
 
         if tol_phase is not None or tol_energy is not None:
             raise _input_error("--tol-phase/--tol-energy apply to frequencies, not yet to "
@@ -486,8 +486,8 @@ def advise_cmd(tol_phase, tol_energy, every_mode, scene_files, method_name, stag
         data = advice_data(result)
         regions = result.regions
     else:
-        from .report import tradeoff_data
-        from .tradeoff import Tolerance, tradeoff
+        from stepsafe.cli.report import tradeoff_data
+        from stepsafe.core.tradeoff import Tolerance, tradeoff
 
         tols = tuple(Tolerance(k, v) for k, v in (("phase", tol_phase), ("energy", tol_energy))
                      if v is not None)
@@ -506,7 +506,7 @@ def advise_cmd(tol_phase, tol_energy, every_mode, scene_files, method_name, stag
     _decide([verdict])
     print_json(data) if as_json else print_advice(data)
     if "system" in data and not as_json:
-        from .report import print_system
+        from stepsafe.cli.report import print_system
 
         print_system(data["system"], every_mode)
     if verdict and not as_json:
@@ -536,8 +536,8 @@ def check_cmd(h, every_mode, scene_files, method_name, stages, base, beta, saddl
       stepsafe check --method verlet --step 0.1 --beta 12
       stepsafe check scene.yaml --json
     """
-    from .advice import check_step
-    from .report import check_data, print_check, print_json, print_system
+    from stepsafe.cli.report import check_data, print_check, print_json, print_system
+    from stepsafe.core.advice import check_step
 
     outputs, unsafe, verdicts = [], False, []
     for scene_file in scene_files or (None,):
@@ -549,7 +549,7 @@ def check_cmd(h, every_mode, scene_files, method_name, stages, base, beta, saddl
             raise _input_error(f"{scene_file or 'check'}: no step: give --step H or h: in "
                                "the scene file")
         if system is not None:
-            from .sysadvice import system_check
+            from stepsafe.systems.advice import system_check
 
             with _blame(entry):
                 data = system_check(method, system, step, margin_, zmax_, entry.name)
@@ -585,7 +585,7 @@ def check_cmd(h, every_mode, scene_files, method_name, stages, base, beta, saddl
 
 def _verify(name, stages, base, regions, up_to=None) -> dict:
     """Run the mpmath verification of the regions' points; a JSON-ready verdict."""
-    from .verify import DPS, TOLERANCE, verify_regions
+    from stepsafe.reference.verify import DPS, TOLERANCE, verify_regions
 
     checks = verify_regions(name, stages, base, regions, up_to=up_to)
     worst = max((c.discrepancy for c in checks), default=0.0)
@@ -618,7 +618,7 @@ def _unverified_message(verdict: dict) -> str:
 def _decide(verdicts, unsafe: bool = False) -> None:
     """Record the exit code before printing: a reader that closes the pipe early (``| head``)
     then gets this code, never a code made up by the write error."""
-    from .output import decided
+    from stepsafe.cli.output import decided
 
     failed = next((v for v in verdicts if v and not v["ok"]), None)
     if failed is not None:
@@ -637,12 +637,12 @@ def _exit_if_unverified(verdict) -> None:
 @click.argument("which", type=click.Choice(("method", "scene")))
 def schema_cmd(which: str) -> None:
     """Print the JSON Schema of method files or scene files."""
-    from .report import print_json
+    from stepsafe.cli.report import print_json
 
     if which == "method":
-        from .methodfile import json_schema
+        from stepsafe.methods.fileformat import json_schema
     else:
-        from .scene import json_schema
+        from stepsafe.systems.scene import json_schema
     print_json(json_schema())
 
 
@@ -653,10 +653,10 @@ def validate_cmd(files: tuple[str, ...]) -> None:
 
     Exit 0 when every file is valid (warnings allowed), 2 at the first invalid file.
     """
-    from .checks import residuals
-    from .errors import StepsafeError
-    from .library import resolve
-    from .output import decided
+    from stepsafe.cli.output import decided
+    from stepsafe.errors import StepsafeError
+    from stepsafe.methods.library import resolve
+    from stepsafe.methods.residuals import residuals
 
     lines, invalid = [], None
     for path in files:  # all files first: a reader that stops early keeps the exit code
@@ -689,7 +689,7 @@ def _is_pathlike(path: str) -> bool:
     return "/" in path or path.endswith((".yaml", ".yml"))
 
 
-from . import cli_accuracy  # noqa: E402,F401  (registers error, compare, plot)
+from stepsafe.cli import accuracy as cli_accuracy  # noqa: E402,F401  (registers error, compare, plot)
 
 if __name__ == "__main__":  # pragma: no cover
     main()

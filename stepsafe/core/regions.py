@@ -15,7 +15,7 @@ elliptic for ``|t| < 2``, hyperbolic with positive multipliers for ``t > 2``, a 
 
 Algorithm. The positive poles (singular stage system) are exact eigenvalue data and split
 ``(0, zmax]`` into segments, all sampled in one vectorised pass on the grid of
-:mod:`stepsafe.grid` (uniform near the features, geometric far out, cut short where a
+:mod:`stepsafe.core.grid` (uniform near the features, geometric far out, cut short where a
 polynomial trace can change no more); ``dev = tr M - 2`` (summed without cancellation, so
 that it keeps its relative accuracy at z = 1e-8) and its slope are evaluated together,
 and cells whose cubic Hermite interpolant hides a pair of extrema are subdivided. Cells
@@ -28,7 +28,7 @@ rounding bound ``tol`` of ``+-2`` is a tangency: an isolated *resonance* (e.g.
 ``M = -I``), reported with the half-width of z within which float64 cannot tell a touch
 from a gap, never merged over. The rounding bound is ``tol = TOL_FACTOR * eps * scale``
 with ``scale`` the first-order rounding sensitivity of ``tr M`` (see
-:class:`stepsafe.transfer.Jet`; it includes the conditioning of implicit stage solves),
+:class:`stepsafe.core.transfer.Jet`; it includes the conditioning of implicit stage solves),
 computed only at the points where a tolerance is decided. Where ``M(z)`` overflows float64
 the analysis stops below that z and the region says so (``zmax`` is lowered, with a note).
 
@@ -44,15 +44,15 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .checks import residuals
-from .errors import StepsafeError, positive_finite
-from .escalate import ESCALATE_REL, Escalation
-from .grid import Grid, default_resolution, far_bound
-from .methods import Method, RungeKutta
-from .models import ELLIPTIC, check_model
-from .rkstability import imaginary_axis_crossings, stability_function
-from .roots import EPS, HermiteCubic, hermite_extremum, hermite_root, refine_brackets
-from .transfer import TOL_FACTOR, Jet, pole_locations, poles, transfer_jet
+from stepsafe.core.escalate import ESCALATE_REL, Escalation
+from stepsafe.core.grid import Grid, default_resolution, far_bound
+from stepsafe.core.models import ELLIPTIC, check_model
+from stepsafe.core.rkstability import imaginary_axis_crossings, stability_function
+from stepsafe.core.roots import EPS, HermiteCubic, hermite_extremum, hermite_root, refine_brackets
+from stepsafe.core.transfer import TOL_FACTOR, Jet, pole_locations, poles, transfer_jet
+from stepsafe.errors import StepsafeError, positive_finite
+from stepsafe.methods.residuals import residuals
+from stepsafe.methods.tableaux import Method, RungeKutta
 
 DEFAULT_ZMAX = 10.0
 #: Cells whose Hermite interpolant hides extrema are split this many times per level.
@@ -140,7 +140,7 @@ class _Evaluator:
 
     The level ``tr M = +2`` is decided on ``dev = tr M - 2``, the level ``-2`` on
     ``dev_m = tr M + 2``: each is summed where it keeps its accuracy (see
-    :class:`stepsafe.transfer.Jet`)."""
+    :class:`stepsafe.core.transfer.Jet`)."""
 
     def __init__(self, method: Method, model: str) -> None:
         self.method = method
@@ -178,7 +178,7 @@ def _at_level(jet: Jet, level: float) -> np.ndarray:
 
 
 def _tolerance(jet: Jet, level: float) -> np.ndarray:
-    """The rounding bound of ``tr M - level`` (see :data:`~stepsafe.transfer.TOL_FACTOR`)."""
+    """The rounding bound of ``tr M - level`` (see :data:`~stepsafe.core.transfer.TOL_FACTOR`)."""
     return TOL_FACTOR * EPS * (jet.scale if level > 0 else jet.scale_m)
 
 
@@ -351,7 +351,7 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     One vectorised pass over all pole-free segments: sample ``tr M`` and its slope, locate
     the extrema by Newton's method on ``d(tr M)/dz``, decide tangencies there, then refine
     every crossing of every level. Points float64 cannot place to the printed digits are
-    re-decided at high precision (:mod:`stepsafe.escalate`).
+    re-decided at high precision (:mod:`stepsafe.core.escalate`).
     """
     check_model(model)
     zmax = _validate_zmax(zmax)
@@ -574,7 +574,7 @@ def _within_decided(points: list[_Candidate], decided: np.ndarray,
 def _escalate(ev: _Evaluator, spreads: list[_Spread], esc: Escalation,
               dz: float) -> list[_Spread]:
     """Re-decide at high precision the boundaries float64 places only to worse than
-    :data:`~stepsafe.escalate.ESCALATE_REL` (see :mod:`stepsafe.escalate`)."""
+    :data:`~stepsafe.core.escalate.ESCALATE_REL` (see :mod:`stepsafe.core.escalate`)."""
     out: list[_Spread] = []
     # a resonance float64 found is already a touch within the policy (a deeper gap or a
     # wider miss would have shown in float64, whose error its band bounds): kept as it is
@@ -728,7 +728,7 @@ def _classical(ev: _Evaluator, zmax: float, dz: float | None) -> tuple[Interval,
     """Intervals where the spectral radius of M is at most 1 (+ rounding): classical stability.
 
     Candidate boundaries: for an RK method on the oscillator the positive roots of the
-    stability polynomial ``|Q(iz)|^2 - |P(iz)|^2`` (:mod:`stepsafe.rkstability`), else the
+    stability polynomial ``|Q(iz)|^2 - |P(iz)|^2`` (:mod:`stepsafe.core.rkstability`), else the
     sign changes of the margin on the grid between poles. The status between candidates is
     decided from ``M`` at the midpoints; only candidates with different status on either
     side remain.

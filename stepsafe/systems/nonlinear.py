@@ -2,7 +2,7 @@
 linear model each one gives.
 
 ``H`` is a restricted expression in ``q``, ``p`` and named parameters (numbers, + - * / **,
-sin, cos, exp, log, sqrt, cosh, sinh, tanh, pi; checked by :mod:`stepsafe.expressions`,
+sin, cos, exp, log, sqrt, cosh, sinh, tanh, pi; checked by :mod:`stepsafe.files.expressions`,
 never ``eval``). Derivatives are exact: H is evaluated on second-order jets (value,
 gradient, Hessian), i.e. forward-mode automatic differentiation, not finite differences,
 in float64 or, to verify, in mpmath.
@@ -35,7 +35,7 @@ test model when a partition-preserving scaling ``q -> a q, p -> b p`` brings it 
   ``inverted`` with ``beta = sqrt(-H_qq H_pp)``;
 * ``H_qq = H_pp = 0``: ``saddle`` (q expands) if ``H_qp > 0`` or ``saddle-p`` if ``H_qp < 0``,
   ``beta = |H_qp|``;
-* otherwise the linearisation is analysed as a 2x2 Hessian (:mod:`stepsafe.systems`:
+* otherwise the linearisation is analysed as a 2x2 Hessian (:mod:`stepsafe.systems.linear`:
   decoupled for RK methods, coupled for partitioned ones).
 """
 
@@ -47,8 +47,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .errors import StepsafeError
-from .expressions import Expression, ExpressionError, parse
+from stepsafe.errors import StepsafeError
+from stepsafe.files.expressions import Expression, ExpressionError, parse
 
 FUNCTIONS = ("sin", "cos", "exp", "log", "sqrt", "cosh", "sinh", "tanh")
 MAX_PARAMETERS = 100

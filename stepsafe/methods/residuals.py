@@ -8,7 +8,7 @@
 * Consistency (order >= 1): ``sum(b) = 1`` (RK, PRK), ``sum(drift) = sum(kick) = 1``
   (splitting), ``sum(weights) = 1`` (composition; the base consistent too).
 
-Residuals are max-norms; a residual below :data:`~stepsafe.methods.RESIDUAL_TOL` times the
+Residuals are max-norms; a residual below :data:`~stepsafe.methods.tableaux.RESIDUAL_TOL` times the
 size of the coefficients counts as zero.
 """
 
@@ -18,7 +18,14 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .methods import RESIDUAL_TOL, Composition, Method, PartitionedRK, RungeKutta, Splitting
+from stepsafe.methods.tableaux import (
+    RESIDUAL_TOL,
+    Composition,
+    Method,
+    PartitionedRK,
+    RungeKutta,
+    Splitting,
+)
 
 
 class Residuals(NamedTuple):

@@ -1,7 +1,7 @@
 """Matrix files of the ``system:`` key (``.npy``, ``.npz``, ``.mtx``), read within budgets.
 
 Every file is checked from its header before anything is allocated: the file type (a
-regular file, :func:`stepsafe.yamlio.open_regular`), its size (:data:`MAX_FILE_BYTES`), for
+regular file, :func:`stepsafe.files.yamlio.open_regular`), its size (:data:`MAX_FILE_BYTES`), for
 an ``.npz`` the declared unpacked size of its members (the same budget), the shape and the
 type of the values. Refused, with a one-line :class:`~stepsafe.errors.StepsafeError`:
 
@@ -25,8 +25,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .errors import StepsafeError
-from .yamlio import open_regular
+from stepsafe.errors import StepsafeError
+from stepsafe.files.yamlio import open_regular
 
 MAX_FILE_BYTES = 512 << 20  # a matrix file, and the declared unpacked size of an .npz
 MAX_DENSE_BYTES = 200_000_000  # a dense matrix as float64: at most 5000 x 5000

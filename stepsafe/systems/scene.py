@@ -10,7 +10,7 @@ A scene file::
       - {beta: 3.2, model: oscillator}
       - {beta: 1.1, model: inverted}
 
-``system:`` describes a whole system instead (see :mod:`stepsafe.sysfile`).
+``system:`` describes a whole system instead (see :mod:`stepsafe.systems.loader`).
 
 A modes file (``--modes FILE``) is YAML (a list of ``{beta:, model:}``, or a mapping with
 ``modes:``) or CSV with a header row naming the columns ``beta`` and optionally ``model``
@@ -29,9 +29,9 @@ from typing import Any
 
 import numpy as np
 
-from .errors import StepsafeError
-from .models import MODELS
-from .yamlio import load_yaml, read_bytes
+from stepsafe.core.models import MODELS
+from stepsafe.errors import StepsafeError
+from stepsafe.files.yamlio import load_yaml, read_bytes
 
 SCENE_KEYS = ("method", "h", "margin", "zmax", "modes", "system")
 MAX_CSV_BYTES = 256 << 20
@@ -52,7 +52,7 @@ class Scene:
     margin: float | None = None
     zmax: float | None = None
     modes: dict[str, np.ndarray] | None = None
-    system: Any = None  # the raw system: mapping (read by stepsafe.sysfile)
+    system: Any = None  # the raw system: mapping (read by stepsafe.systems.loader)
     where: str = ""
 
     @property
@@ -175,7 +175,7 @@ def _near_scene(name: str | None, folder: Path) -> str | None:
     composition's ``base`` is next to its method file), never relative to the working
     directory, so a scene means the same from wherever it is checked. Names of built-in
     methods are left alone."""
-    from .library import _looks_like_path
+    from stepsafe.methods.library import _looks_like_path
 
     if name is None or not _looks_like_path(name) or Path(name).is_absolute():
         return name

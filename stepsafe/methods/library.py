@@ -18,7 +18,7 @@ from functools import lru_cache, partial
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from .errors import MethodError, StepsafeError
+from stepsafe.errors import MethodError, StepsafeError
 
 FAMILIES = {
     "gauss": ("Gauss–Legendre collocation (order 2s)", 1),
@@ -43,7 +43,7 @@ class Entry(NamedTuple):
 def builtin_dir() -> Path:
     """Folder holding the built-in method files (package data, or the source checkout)."""
     here = Path(__file__).resolve().parent
-    for candidate in (here / "methods", here.parent / "methods"):
+    for candidate in (here / "builtin", here.parent.parent / "methods"):
         if candidate.is_dir() and any(candidate.glob("*.yaml")):
             return candidate
     raise StepsafeError("the built-in method files are missing from this installation")
@@ -52,7 +52,7 @@ def builtin_dir() -> Path:
 @lru_cache(maxsize=1)
 def _alias_index() -> dict[str, Path]:
     """Every name and alias of every built-in file (parses them all; used only on a miss)."""
-    from .yamlio import load_yaml
+    from stepsafe.files.yamlio import load_yaml
 
     index: dict[str, Path] = {}
     for path in sorted(builtin_dir().glob("*.yaml")):
@@ -74,10 +74,10 @@ def _looks_like_path(name: str) -> bool:
 
 
 def load_file(path: str | Path, backend=None):
-    """Validated :class:`~stepsafe.methodfile.MethodData` of a method file."""
-    from .expressions import FLOAT
-    from .methodfile import validate_tree
-    from .yamlio import load_yaml
+    """Validated :class:`~stepsafe.methods.fileformat.MethodData` of a method file."""
+    from stepsafe.files.expressions import FLOAT
+    from stepsafe.files.yamlio import load_yaml
+    from stepsafe.methods.fileformat import validate_tree
 
     return validate_tree(load_yaml(path), str(path), backend or FLOAT)
 
@@ -114,9 +114,9 @@ def resolve(name: str, stages: int | None = None, base: str | None = None,
 
 def _exact(name: str, stages: int | None, base: str | None):
     """The method's transfer matrix at high precision, from its definition (see
-    :mod:`stepsafe.verify`; read only when the region finder escalates a point)."""
-    from .escalate import DPS
-    from .verify import mp_method, mp_transfer
+    :mod:`stepsafe.reference.verify`; read only when the region finder escalates a point)."""
+    from stepsafe.core.escalate import DPS
+    from stepsafe.reference.verify import mp_method, mp_transfer
 
     return mp_transfer(mp_method(name, stages, base, DPS))
 
@@ -137,7 +137,7 @@ def _find_file(name: str) -> Path:
 
 
 def _family(name: str, stages: int | None):
-    from .families import gauss, lobatto3ab
+    from stepsafe.methods.families import gauss, lobatto3ab
 
     title, smallest = FAMILIES[name]
     if stages is None:
@@ -157,7 +157,7 @@ def _family(name: str, stages: int | None):
 def _build(data, depth: int, folder: Path):
     """Float method of a validated file; a base given as a relative path is found next to
     the file that names it."""
-    from .methodfile import build_method
+    from stepsafe.methods.fileformat import build_method
 
     def local(name: str) -> str:
         return str(folder / name) if _looks_like_path(name) and not Path(name).is_absolute() \
@@ -176,8 +176,8 @@ def _build(data, depth: int, folder: Path):
 
 def _swap_base(method, entry: Entry, base: str, depth: int):
 
-    from .families import is_symmetric
-    from .methods import Composition
+    from stepsafe.methods.families import is_symmetric
+    from stepsafe.methods.tableaux import Composition
 
     if not isinstance(method, Composition):
         raise StepsafeError(f"--base applies to compositions; {entry.name} is a "

@@ -14,7 +14,7 @@ decouple (DESIGN §4).
   ``mu = +-lam`` real a saddle (for RK methods ``saddle`` and ``inverted`` coincide).
   Complex quadruplets ``+-a +-ib`` (loxodromic) have no 1-dof model and go to the coupled
   analysis.
-* otherwise (**coupled**, :mod:`stepsafe.coupled`): the full 2n x 2n one-step matrix, whose
+* otherwise (**coupled**, :mod:`stepsafe.systems.coupled`): the full 2n x 2n one-step matrix, whose
   multipliers must have the types and Krein signatures of the eigenvalues of ``J S``. The
   orientation of hyperbolic directions is not checked in the coupled analysis.
 """
@@ -25,10 +25,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .checks import is_partitioned
-from .errors import StepsafeError
-from .methods import Method
-from .threads import blas_threads_for
+from stepsafe.core.threads import blas_threads_for
+from stepsafe.errors import StepsafeError
+from stepsafe.methods.residuals import is_partitioned
+from stepsafe.methods.tableaux import Method
 
 ZERO_TOL = 1e-10  # eigenvalues of J S below this times the largest are zero modes
 EPS = float(np.finfo(float).eps)

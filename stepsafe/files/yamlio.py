@@ -19,7 +19,7 @@ from typing import Any
 
 import yaml
 
-from .errors import StepsafeError
+from stepsafe.errors import StepsafeError
 
 MAX_BYTES = 1 << 20
 MAX_DEPTH = 32

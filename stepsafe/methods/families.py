@@ -23,8 +23,8 @@ from functools import lru_cache, partial
 
 import numpy as np
 
-from .errors import MethodError
-from .methods import Composition, Method, PartitionedRK, RungeKutta
+from stepsafe.errors import MethodError
+from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta
 
 #: Largest stage count accepted for the families (accuracy verified up to here by tests).
 MAX_STAGES = 40
@@ -145,12 +145,12 @@ def lobatto3ab(s: int) -> PartitionedRK:
 
 @lru_cache(maxsize=16)
 def _exact(family: str, s: int):
-    """The family member's transfer matrix at high precision (:mod:`stepsafe.reference`:
+    """The family member's transfer matrix at high precision (:mod:`stepsafe.reference.highprec`:
     nodes and weights computed at raised precision, not rounded to float64)."""
     import mpmath as mp
 
-    from . import reference as R
-    from .escalate import DPS
+    from stepsafe.core.escalate import DPS
+    from stepsafe.reference import highprec as R
 
     with mp.workdps(DPS + 10):
         if family == "gauss":
@@ -200,7 +200,7 @@ def is_symmetric(method: Method, tol: float = 1e-12) -> bool:
     stage reversal). Splitting: the merged drift/kick sequence is a palindrome.
     Composition: palindromic weights over a symmetric base.
     """
-    from .methods import Splitting
+    from stepsafe.methods.tableaux import Splitting
 
     if isinstance(method, Composition):
         w = method.weights

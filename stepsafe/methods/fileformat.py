@@ -1,6 +1,6 @@
 """The method file format: its schema, validation and the construction of method objects.
 
-A method file is a YAML mapping (read by :mod:`stepsafe.yamlio`, all scalars strings)::
+A method file is a YAML mapping (read by :mod:`stepsafe.files.yamlio`, all scalars strings)::
 
     name: pefrl                      # CLI name
     title: "Position-extended Forest-Ruth-like"
@@ -18,7 +18,7 @@ Coefficient fields by kind: ``rk``: ``A``, ``b``, optional ``c``; ``prk``: ``A_q
 ``b_q``, ``A_p``, ``b_p``; ``splitting``: ``drift``, ``kick``; ``composition``: ``base``
 (a method name, or ``{name:, stages:}``) and either ``weights`` or ``recipe``
 (``triple-jump`` | ``suzuki``). Coefficients are numbers or expressions
-(:mod:`stepsafe.expressions`). With ``symmetric: true`` the listed operation sequence
+(:mod:`stepsafe.files.expressions`). With ``symmetric: true`` the listed operation sequence
 (``drift a_1, kick b_1, drift a_2, ...``, or the weights) is the first half including the
 middle operation; the rest is its mirror image.
 
@@ -33,8 +33,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
-from .errors import StepsafeError
-from .expressions import (
+from stepsafe.errors import StepsafeError
+from stepsafe.files.expressions import (
     EPS,
     FLOAT,
     Backend,
@@ -126,7 +126,7 @@ def _text(value: Any, where: str, key: str) -> str:
 
 
 def _int(value: Any, where: str, key: str, lo: int = 0, hi: int = 10_000) -> int:
-    from .text import ascii_whole
+    from stepsafe.text import ascii_whole
 
     number = ascii_whole(value, max_digits=30)
     if number is None:
@@ -371,7 +371,7 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
     to a method object (compositions only)."""
     import numpy as np
 
-    from . import methods as m
+    from stepsafe.methods import tableaux as m
 
     co = {k: np.array(v, dtype=float) for k, v in data.coefficients.items()}
     common = dict(name=data.name, order=data.order, evaluations=data.evaluations,
@@ -384,7 +384,7 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
         return m.Splitting(co["drift"], co["kick"], **common)
     base = resolve_base(data.base)
     if data.recipe:
-        from .families import RECIPES
+        from stepsafe.methods.families import RECIPES
 
         built = RECIPES[data.recipe](base, name=data.name)
         return m.Composition(built.base, built.weights, base_order=built.base_order, **common)

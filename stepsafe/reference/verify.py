@@ -2,10 +2,10 @@
 
 The method is rebuilt at high precision from its definition, independently of the float64
 path: method files are re-read with the mpmath backend of the expression evaluator (decimal
-literals exactly), family tableaux come from :mod:`stepsafe.reference` (nodes and weights
+literals exactly), family tableaux come from :mod:`stepsafe.reference.highprec` (nodes and weights
 at raised precision), recipes from their formulas; M(z) is then computed by
-:mod:`stepsafe.reference` alone (stage equations solved with mpmath). Each reported point is
-re-derived in a bracket around it:
+:mod:`stepsafe.reference.highprec` alone (stage equations solved with mpmath). Each
+reported point is re-derived in a bracket around it:
 
 * a boundary (``root``): a sign change of ``tr M -+ 2``, refined at the working precision;
 * an ``orientation`` switch: a sign change of the orientation indicator;
@@ -28,7 +28,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from .regions import Point, Region
+from stepsafe.core.regions import Point, Region
 
 DPS = 40
 TOLERANCE = 1e-10
@@ -63,12 +63,13 @@ def _rows(A) -> list[list]:
 @lru_cache(maxsize=64)
 def mp_method(name: str, stages: int | None = None, base: str | None = None,
               dps: int = DPS) -> MPMethod:
-    """The method at ``dps`` digits (same resolution rules as :func:`library.resolve`)."""
+    """The method at ``dps`` digits (resolved as by
+    :func:`stepsafe.methods.library.resolve`)."""
     import mpmath as mp
 
-    from . import reference
-    from .expressions import mpmath_backend
-    from .library import FAMILIES, _find_file, _looks_like_path, load_file
+    from stepsafe.files.expressions import mpmath_backend
+    from stepsafe.methods.library import FAMILIES, _find_file, _looks_like_path, load_file
+    from stepsafe.reference import highprec as reference
 
     with mp.workdps(dps):
         if name in FAMILIES:
@@ -125,7 +126,7 @@ def _recipe_weights(recipe: str, base_order: int) -> list:
 
 def mp_transfer(m: MPMethod) -> Callable:
     """``Mfun(z, model)``: the mpmath transfer matrix of ``m``."""
-    from . import reference
+    from stepsafe.reference import highprec as reference
 
     if m.kind == "composition" and m.data["base"].kind == "splitting":
         # a composition of a splitting is a splitting: one pass of scalar updates (its
@@ -179,7 +180,7 @@ def check_point(Mfun: Callable, model: str, p: Point, dps: int = DPS) -> Check:
     """Re-derive one reported point at ``dps`` digits (see the module docstring)."""
     import mpmath as mp
 
-    from . import reference
+    from stepsafe.reference import highprec as reference
 
     allowed = TOLERANCE + p.uncertainty / abs(p.z)
     with mp.workdps(dps):
@@ -274,7 +275,7 @@ def check_status(Mfun: Callable, model: str, z: float, claimed: int,
     claimed preserved that is not, or the reverse, fails here."""
     import mpmath as mp
 
-    from . import reference
+    from stepsafe.reference import highprec as reference
 
     point = Point(z, "status", 0.0, {1: "preserved", -1: "reversed", 0: "not preserved"}[
         claimed])

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import click
 
-from .cli import (
+from stepsafe.cli.main import (
     FLOAT,
     INT,
     _input_error,
@@ -49,9 +49,9 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json) -> No
     """
     import numpy as np
 
-    from .accuracy import errors
-    from .report import print_errors, print_json
-    from .transfer import transfer_matrix
+    from stepsafe.cli.report import print_errors, print_json
+    from stepsafe.core.accuracy import errors
+    from stepsafe.core.transfer import transfer_matrix
 
     z = list(zs)
     if zmin is not None or zmax is not None:
@@ -116,11 +116,11 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, scene_files, method_name,
       stepsafe compare --beta 3.2 --tol-phase 1e-6
       stepsafe compare --beta 1 --tol-energy 1e-4 --methods verlet,pefrl,yoshida4,gauss:2
     """
-    from .advice import Modes, validate_margin
-    from .errors import positive_finite
-    from .library import FAMILIES, builtin_names, resolve
-    from .report import print_compare, print_json
-    from .tradeoff import Tolerance, tradeoff
+    from stepsafe.cli.report import print_compare, print_json
+    from stepsafe.core.advice import Modes, validate_margin
+    from stepsafe.core.tradeoff import Tolerance, tradeoff
+    from stepsafe.errors import positive_finite
+    from stepsafe.methods.library import FAMILIES, builtin_names, resolve
 
     if scene_files or method_name:
         raise _input_error("compare takes --methods or --all, not a method or scene")
@@ -217,8 +217,8 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
         raise _input_error("plot needs matplotlib: pip install 'stepsafe[plot]'") from None
     import numpy as np
 
-    from .regions import find_region
-    from .transfer import transfer_matrix
+    from stepsafe.core.regions import find_region
+    from stepsafe.core.transfer import transfer_matrix
 
     fmt = _plot_format(output, plt)
     m, entry = _resolve(method, stages, base)
@@ -238,7 +238,7 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
 def _draw(plt, m, entry, model, region, z, half, zmax, with_phase):
     import numpy as np
 
-    from .accuracy import errors
+    from stepsafe.core.accuracy import errors
 
     rows = 2 if with_phase else 1
     fig, axes = plt.subplots(rows, 1, figsize=(8, 3.2 * rows), sharex=True, squeeze=False)

@@ -27,9 +27,9 @@ from functools import lru_cache
 
 import numpy as np
 
-from .errors import StepsafeError
-from .methods import RungeKutta
-from .transfer import batched_solve
+from stepsafe.core.transfer import batched_solve
+from stepsafe.errors import StepsafeError
+from stepsafe.methods.tableaux import RungeKutta
 
 
 def _too_large(method: RungeKutta) -> StepsafeError:

@@ -16,7 +16,7 @@ The classes are frozen; they validate shapes and finiteness when built and raise
 ``exact`` (optional, never compared) returns the method's transfer matrix at high
 precision, ``Mfun(z, model)`` in mpmath, built from its definition rather than from the
 rounded floats (family tableaux at raised precision, decimal literals read exactly); the
-region finder asks it where float64 cannot decide (:mod:`stepsafe.escalate`). Without it
+region finder asks it where float64 cannot decide (:mod:`stepsafe.core.escalate`). Without it
 the float coefficients are taken as exact.
 """
 
@@ -29,7 +29,7 @@ from typing import Any, Union
 
 import numpy as np
 
-from .errors import MethodError
+from stepsafe.errors import MethodError
 
 #: Rounding-level threshold for the symplecticity and consistency residuals.
 RESIDUAL_TOL = 1e-12

@@ -40,9 +40,9 @@ from functools import cached_property
 import numpy as np
 import scipy.linalg as sla
 
-from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
-from .systems import ZERO_TOL, hamiltonian_matrix
-from .threads import blas_threads_for
+from stepsafe.core.threads import blas_threads_for
+from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
+from stepsafe.systems.linear import ZERO_TOL, hamiltonian_matrix
 
 EPS = float(np.finfo(float).eps)
 #: |nu| within this of 1 is on the unit circle (indefinite S only)

@@ -23,9 +23,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
-from .models import KICK_SIGN
-from .roots import EPS
+from stepsafe.core.models import KICK_SIGN
+from stepsafe.core.roots import EPS
+from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
 
 UNIFORM_SAMPLES = 40_000
 GEOMETRIC_SAMPLES = 40_000

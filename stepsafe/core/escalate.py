@@ -28,7 +28,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
-from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
+from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
 
 DPS = 40
 ESCALATE_REL = 1e-12
@@ -49,7 +49,7 @@ class Decision(NamedTuple):
 def reference_of(method: Method) -> Reference:
     """The high-precision transfer matrix of ``method``: its own ``exact`` definition when
     it has one, else built from its parts, float coefficients taken as exact."""
-    from . import reference as R
+    from stepsafe.reference import highprec as R
 
     if method.exact is not None:
         return method.exact()
@@ -94,7 +94,7 @@ class Escalation:
         (None when the budget ran out or the bracket holds a pole)."""
         import mpmath as mp
 
-        from .reference import refine_root
+        from stepsafe.reference.highprec import refine_root
 
         if self.exhausted:
             return None
@@ -135,7 +135,7 @@ class Escalation:
         None if no pole is found or the budget ran out."""
         import mpmath as mp
 
-        from .reference import locate_pole, refine_root
+        from stepsafe.reference.highprec import locate_pole, refine_root
 
         if self.exhausted:
             return None

@@ -28,8 +28,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
-from .models import GENERATORS, KICK_SIGN, check_model
+from stepsafe.core.models import GENERATORS, KICK_SIGN, check_model
+from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
 
 EPS = float(np.finfo(float).eps)
 

@@ -1,7 +1,7 @@
 """Speed against accuracy for a set of frequencies (DESIGN §3): what each method costs.
 
 For a method and modes, the usable step is ``h = min(h_safe, h_tol)``: ``h_safe`` from
-:mod:`stepsafe.advice`, ``h_tol`` the largest step whose error stays within tolerance for
+:mod:`stepsafe.core.advice`, ``h_tol`` the largest step whose error stays within tolerance for
 the largest frequency of each model (errors depend on z = beta h only and grow from 0, so
 the largest beta binds). The cost per unit of simulated time is ``evaluations / h``
 (= evaluations * beta / z): force evaluations per step as listed in the method file; for
@@ -15,10 +15,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .accuracy import z_for_tolerance
-from .advice import Advice, Modes, advise
-from .methods import Method
-from .models import ELLIPTIC
+from stepsafe.core.accuracy import z_for_tolerance
+from stepsafe.core.advice import Advice, Modes, advise
+from stepsafe.core.models import ELLIPTIC
+from stepsafe.methods.tableaux import Method
 
 
 class Tolerance(NamedTuple):

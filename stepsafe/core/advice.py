@@ -1,7 +1,7 @@
 """Safe step sizes for a set of frequencies (DESIGN §2): intersections of unions of intervals.
 
 For modes ``(beta_k, model_k)`` the safe set is ``{h > 0 : beta_k h in R(model_k) for all
-k}``, ``R`` the region of :func:`stepsafe.regions.find_region`. Its complement in
+k}``, ``R`` the region of :func:`stepsafe.core.regions.find_region`. Its complement in
 ``(0, zmax]`` is a union of *gaps* ``(a, b)`` (the intervals where the structure is lost,
 widened by their float64 uncertainty; resonances and poles are gaps of width twice their
 uncertainty), so the unsafe steps are ``U_k U_gaps (a, b) / beta_k`` and the safe steps
@@ -25,10 +25,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .errors import StepsafeError, positive_finite
-from .methods import Method
-from .models import MODELS
-from .regions import DEFAULT_ZMAX, Point, Region, find_region
+from stepsafe.core.models import MODELS
+from stepsafe.core.regions import DEFAULT_ZMAX, Point, Region, find_region
+from stepsafe.errors import StepsafeError, positive_finite
+from stepsafe.methods.tableaux import Method
 
 
 @dataclass(frozen=True)

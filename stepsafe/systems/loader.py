@@ -10,7 +10,7 @@ into what advise/check analyse (the modes, or the coupled analysis).
 
 Matrix files (paths relative to the scene file): ``.npy`` (dense), ``.npz`` (a dense array
 saved by numpy, or a sparse matrix saved by ``scipy.sparse.save_npz``) and ``.mtx`` (Matrix
-Market), read within the budgets of :mod:`stepsafe.matrixfile`. Sparse stiffness matrices
+Market), read within the budgets of :mod:`stepsafe.systems.matrixfile`. Sparse stiffness matrices
 with more than :data:`DENSE_LIMIT` rows are analysed through their extreme eigenvalues only
 (enough for ``h_max``; islands are then not analysed, and the output says so).
 """
@@ -23,13 +23,13 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .advice import Modes
-from .errors import StepsafeError
-from .methods import Method
+from stepsafe.core.advice import Modes
+from stepsafe.errors import StepsafeError
+from stepsafe.methods.tableaux import Method
 
 DENSE_LIMIT = 2000
 #: Relative uncertainty of an equilibrium's beta: its Hessian is exact to ~30 digits (see
-#: stepsafe.nonlinear), the float64 square roots and products add a few ulps.
+#: stepsafe.systems.nonlinear), the float64 square roots and products add a few ulps.
 EQUILIBRIUM_ERROR = 8 * float(np.finfo(float).eps)
 SYSTEM_KEYS = {"stiffness", "mass", "hessian", "hamiltonian", "parameters", "box"}
 
@@ -50,8 +50,8 @@ def _fail(where: str, path: str, message: str) -> StepsafeError:
 
 
 def _matrix(value: Any, where: str, key: str, folder: Path, sparse_ok: bool = False):
-    from .matrixfile import read_matrix
-    from .scene import parse_real
+    from stepsafe.systems.matrixfile import read_matrix
+    from stepsafe.systems.scene import parse_real
 
     if isinstance(value, str):
         try:
@@ -77,7 +77,7 @@ def _matrix(value: Any, where: str, key: str, folder: Path, sparse_ok: bool = Fa
 
 
 def _float(value: Any, where: str, key: str) -> float:
-    from .scene import number
+    from stepsafe.systems.scene import number
 
     return number(value, where, f"system.{key}")
 
@@ -86,8 +86,8 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
                    zmax: float = 10.0, progress: Callable[[float], None] | None = None,
                    deadline: float | None = None) -> SystemReport:
     """Read a ``system:`` mapping and decide the analysis for ``method`` (``progress`` and
-    ``deadline``: see :func:`stepsafe.coupled.coupled_safe_steps`)."""
-    from .errors import StepsafeError as _E
+    ``deadline``: see :func:`stepsafe.systems.coupled.coupled_safe_steps`)."""
+    from stepsafe.errors import StepsafeError as _E
 
     if not isinstance(tree, dict):
         raise _fail(where, "", "must be a mapping (stiffness/mass, hessian or hamiltonian)")
@@ -138,7 +138,7 @@ def _report_modes(modes, analysis: str, notes: list[str],
 
 
 def _stiffness(tree, where, folder) -> SystemReport:
-    from .systems import is_diagonal, separable_modes, sparse_extreme_modes
+    from stepsafe.systems.linear import is_diagonal, separable_modes, sparse_extreme_modes
 
     K = _matrix(tree["stiffness"], where, "stiffness", folder, sparse_ok=True)
     M = _matrix(tree["mass"], where, "mass", folder, sparse_ok=True) if "mass" in tree else None
@@ -164,8 +164,8 @@ def _stiffness(tree, where, folder) -> SystemReport:
 
 def _hessian(tree, where, folder, method, zmax, progress=None, deadline=None
              ) -> SystemReport:
-    from .coupled import coupled_safe_steps
-    from .systems import check_square, hessian_modes
+    from stepsafe.systems.coupled import coupled_safe_steps
+    from stepsafe.systems.linear import check_square, hessian_modes
 
     S = check_square(_matrix(tree["hessian"], where, "hessian", folder), "hessian")
     if S.shape[0] > 2 * DENSE_LIMIT:
@@ -182,10 +182,10 @@ def _hessian(tree, where, folder, method, zmax, progress=None, deadline=None
 
 
 def _hamiltonian(tree, where, method, zmax) -> SystemReport:
-    from .coupled import coupled_safe_steps
-    from .expressions import ExpressionError
-    from .nonlinear import find_equilibria, parse_hamiltonian
-    from .systems import hessian_modes
+    from stepsafe.files.expressions import ExpressionError
+    from stepsafe.systems.coupled import coupled_safe_steps
+    from stepsafe.systems.linear import hessian_modes
+    from stepsafe.systems.nonlinear import find_equilibria, parse_hamiltonian
 
     text = tree["hamiltonian"]
     if not isinstance(text, str):

@@ -13,9 +13,9 @@ import math
 import sys
 from typing import Any
 
-from .checks import residuals
-from .models import ELLIPTIC
-from .regions import Interval, Point, Region
+from stepsafe.core.models import ELLIPTIC
+from stepsafe.core.regions import Interval, Point, Region
+from stepsafe.methods.residuals import residuals
 
 
 def _num(x: float | None) -> float | None:
@@ -60,7 +60,7 @@ def region_data(region: Region) -> dict[str, Any]:
 
 def method_data(method, entry) -> dict[str, Any]:
     """Identity and coefficient checks of a method."""
-    from .families import is_symmetric
+    from stepsafe.methods.families import is_symmetric
 
     res = residuals(method)
     return {
@@ -141,7 +141,7 @@ def _lit(*parts: Any):
     control characters made visible. ``parts`` are strings or ``(string, style)`` pairs."""
     from rich.text import Text
 
-    from .text import printable
+    from stepsafe.text import printable
 
     return Text.assemble(*((printable(p[0]), p[1]) if isinstance(p, tuple) else printable(p)
                            for p in parts))
@@ -331,7 +331,7 @@ def print_check(data: dict[str, Any]) -> None:
     """Plain click output: check runs in CI on every commit, so it does not import rich."""
     import click
 
-    from .text import printable
+    from stepsafe.text import printable
 
     h, name = fmt(data["h"]), printable(data["method"])
     if data["safe"]:
@@ -449,7 +449,7 @@ def print_system(system: dict[str, Any], every: bool = False) -> None:
     :data:`SUMMARY_ITEMS`, unless ``every``) the ones with the smallest h limit."""
     import click
 
-    from .text import printable
+    from stepsafe.text import printable
 
     click.echo(f"System analysis: {system['analysis']}")
     items = system["items"]

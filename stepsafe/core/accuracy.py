@@ -15,7 +15,7 @@ so ``e_rate = log(mu) / z - 1``.
 
 Small z. ``theta - z`` can be 1e-30 while ``tr M / 2 - 1 ~ -z^2/2``: subtracting is hopeless.
 Instead ``delta(z) = tr M / 2 - cos z`` (or ``- cosh z``) is summed from the Taylor series of
-M, ``M = I + sum_k z^(k+1) B K^k E`` (the stage operator of :mod:`stepsafe.transfer`; for
+M, ``M = I + sum_k z^(k+1) B K^k E`` (the stage operator of :mod:`stepsafe.core.transfer`; for
 explicit methods K is nilpotent and the series is the exact polynomial). Coefficients that
 cancel to rounding are set to zero (their error bound is tracked with absolute values), and
 the identity ``cos theta - cos z = -2 sin((theta+z)/2) sin((theta-z)/2)`` (``cosh`` alike)
@@ -37,10 +37,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .methods import Composition, Method, PartitionedRK, RungeKutta, Splitting
-from .models import ELLIPTIC
-from .roots import EPS, refine_brackets
-from .transfer import stage_operator, transfer_matrix
+from stepsafe.core.models import ELLIPTIC
+from stepsafe.core.roots import EPS, refine_brackets
+from stepsafe.core.transfer import stage_operator, transfer_matrix
+from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
 
 SERIES_TERMS = 64
 SERIES_Z = 0.5

@@ -1,0 +1,2 @@
+"""Whole systems: linear systems (stiffness, mass, Hessian) split into modes or analysed
+coupled, nonlinear Hamiltonians and their equilibria, matrix files, and scene files."""
