@@ -27,7 +27,7 @@ import numpy as np
 
 from stepsafe.core.models import MODELS
 from stepsafe.core.regions import DEFAULT_ZMAX, Point, Region, find_region
-from stepsafe.errors import StepsafeError, positive_finite
+from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.methods.tableaux import Method
 
 
@@ -287,6 +287,7 @@ class Failure(NamedTuple):
     z: float
     reason: str
     h_limit: float | None  # largest safe h for this mode in its primary interval
+    index: int = -1  # position of the mode among its model's frequencies
 
 
 @dataclass(frozen=True)
@@ -329,8 +330,14 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
         failing = np.zeros(betas.size, dtype=bool)
         reason = np.full(betas.size, -1)
         gap_list = labelled_gaps(region)
+        top = betas * (1.0 + err)
         for k, gap in enumerate(gap_list):
-            hit = (z_lo <= gap.b) & (z_hi / margin >= gap.a) & (betas > 0) & ~failing
+            # both tests, in z and in h (the gap's start as a step, computed as advise does):
+            # rounding of beta*h may put h = h_max, the open end advise prints, just below
+            # the gap's start in z
+            with np.errstate(divide="ignore", over="ignore"):
+                enters = (z_hi / margin >= gap.a) | (h >= (margin * gap.a) / top)
+            hit = (z_lo <= gap.b) & enters & (betas > 0) & ~failing
             failing |= hit
             reason[hit] = k
         n_failing += int(failing.sum())
@@ -347,7 +354,7 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
             if gap.boundary is not None and z_hi[i] / margin < gap.boundary:
                 why = (f"within the float64 uncertainty (±{gap.uncertainty:.1g}) below a "
                        f"boundary, which cannot be certified: {gap.reason}")
-            failures.append(Failure(model, float(betas[i]), float(z[i]), why, limit))
+            failures.append(Failure(model, float(betas[i]), float(z[i]), why, limit, int(i)))
     failures.sort(key=lambda f: -f.z)
     in_primary = adv.h_max is not None and (h < adv.h_max if adv.h_max else False)
     if adv.safe_h and adv.safe_h[0][0] == 0.0 and adv.safe_h[0][1] is None:
