@@ -1,8 +1,62 @@
 """stepsafe: step sizes that keep the type of an equilibrium under a symplectic integrator.
 
-The numeric core (``methods``, ``families``, ``models``, ``transfer``, ``regions``) knows
-nothing of YAML or the terminal; ``methodfile``/``library`` read method files and ``cli``
-is the command-line interface. Importing this package imports nothing heavy.
+The public API (see :mod:`stepsafe.api`)::
+
+    method(name, stages=None, base=None)        a built-in method, family member or file
+    method_from_file(path)                      a method file
+    region(method, model="all", zmax=10)        every z = beta*h interval that keeps structure
+    advise(method, frequencies, ...)            the safe steps h for your frequencies
+    check(method, h, frequencies, ...)          whether step h is safe (``.safe``)
+    errors(method, z, model="oscillator")       phase and energy errors of one step
+    problem(...), load_scene(path)              inputs merged from a scene file and arguments
+    StepsafeError                               every error a caller can cause (bad input)
+
+Results are frozen objects whose ``to_dict()`` is the command line's ``--json`` output.
+The folders follow the data: ``methods`` (method data and files), ``core`` (transfer
+matrices, regions, advice, accuracy), ``systems`` (linear and nonlinear systems, scenes),
+``reference`` (the independent mpmath path), ``cli`` (commands and reports). Importing this
+package imports nothing heavy: the API is loaded on first use.
 """
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from stepsafe.exceptions import MethodError, StepsafeError
+
 __version__ = "0.1.0"
+
+_API = ("Integrator", "RegionReport", "AdviceReport", "CheckReport", "ErrorTable", "Problem",
+        "method", "method_from_file", "region", "advise", "check", "errors", "problem",
+        "load_scene")
+__all__ = [*_API, "StepsafeError", "MethodError", "__version__"]
+
+if TYPE_CHECKING:  # pragma: no cover
+    from stepsafe.api import (  # noqa: F401
+        AdviceReport,
+        CheckReport,
+        ErrorTable,
+        Integrator,
+        Problem,
+        RegionReport,
+        advise,
+        check,
+        errors,
+        load_scene,
+        method,
+        method_from_file,
+        problem,
+        region,
+    )
+
+
+def __getattr__(name: str) -> Any:
+    if name in _API:
+        from stepsafe import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'stepsafe' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_API))

@@ -33,3 +33,14 @@ def positive_finite(value, name: str) -> float:
     if not math.isfinite(x) or x <= 0:
         raise StepsafeError(f"{name} must be a positive finite number, got {x}")
     return x
+
+
+def unknown_key(key: object, valid: tuple[str, ...] | list[str]) -> str:
+    """``unknown key`` with the closest valid key, if one is close, and the valid keys."""
+    import difflib
+
+    text = str(key)
+    close = [k for k in valid if k.lower() == text.lower()] or \
+        difflib.get_close_matches(text, list(valid), n=1, cutoff=0.6)
+    hint = f"; did you mean {close[0]!r}?" if close else ""
+    return f"unknown key{hint} (valid keys: {', '.join(valid)})"

@@ -149,7 +149,9 @@ def test_check_json_failure_reasons(run):
                        "--json")
     data = json.loads(out)
     assert code == 1 and data["safe"] is False
-    (fail,) = data["failures"]
+    (entry,) = data["checks"]
+    assert entry["safe"] is False and entry["scene"].endswith("paper-section3.yaml")
+    (fail,) = entry["failures"]
     assert fail["model"] == "saddle" and fail["z"] == pytest.approx(1.2)
     assert fail["largest_safe_h"] == pytest.approx(0.5)
 

@@ -540,7 +540,7 @@ def test_modes_file_with_betas_and_saddle_p(run_json, tmp_path, command):
     if limits is not None:
         assert limits["oscillator"]["count"] == 2 and "saddle-p" in limits
     else:
-        assert data["modes"] == 3
+        assert data["checks"][0]["modes"] == 3
 
 
 ZMAX_COMMANDS = [

@@ -394,7 +394,7 @@ def test_hostile_npy_and_npz_dtypes_and_shapes(tmp_path):
     from hypothesis import HealthCheck, given, settings
     from hypothesis import strategies as st
 
-    from stepsafe.errors import StepsafeError
+    from stepsafe.exceptions import StepsafeError
     from stepsafe.systems.matrixfile import read_matrix
 
     @settings(max_examples=120, deadline=None, suppress_health_check=[
@@ -581,7 +581,7 @@ def test_modes_csv_fast_and_exact_readers_agree(tmp_path, monkeypatch):
     from hypothesis import strategies as st
 
     import stepsafe.systems.scene as scene
-    from stepsafe.errors import StepsafeError
+    from stepsafe.exceptions import StepsafeError
 
     monkeypatch.setattr(scene, "_CSV_ROW_BY_ROW", 2)
     good = ["3,oscillator", "0.5,inverted", " 1e-3 , saddle ", "2.,saddle-p", ".25,oscillator",
@@ -650,7 +650,7 @@ def test_scene_method_path_is_next_to_the_scene(run, tmp_path, monkeypatch):
 def test_nested_composition_budget_counts_without_flattening():
     from support import method
 
-    from stepsafe.errors import MethodError
+    from stepsafe.exceptions import MethodError
     from stepsafe.methods.tableaux import MAX_BASE_STEPS, Composition
 
     verlet = method("verlet")

@@ -183,7 +183,7 @@ def test_bad_systems_exit_2(run, tmp_path, system, message):
 
 def test_json_lists_each_equilibrium(run, tmp_path):
     code, out, _ = run("check", str(ROOT / "examples" / "double-well.yaml"), "--json")
-    data = json.loads(out)
+    (data,) = json.loads(out)["checks"]
     assert code == 0 and len(data["system"]["items"]) == 3
     for item in data["system"]["items"]:
         assert {"q", "p", "type", "beta", "model", "D"} <= set(item)
@@ -197,7 +197,7 @@ def test_coupled_check_fails_beyond_h_max(run, tmp_path):
     code, out, _ = run("check", scene(tmp_path, text.replace("H", "5")), "--json")
     data = json.loads(out)
     assert code == 1 and not data["safe"]
-    (fail,) = data["failures"]
+    (fail,) = data["checks"][0]["failures"]
     assert fail["model"] == "coupled" and 0 < fail["largest_safe_h"] < 5
 
 

@@ -20,7 +20,6 @@ from stepsafe.cli.main import (
 )
 
 MODEL_ONE = click.Choice(("oscillator", "saddle", "inverted", "saddle-p"))
-OVERFLOW = 1e150  # |M| beyond this: products of its entries leave float64
 MAX_POINTS = 100_000  # error --n: a table, not a sweep (bounded time and memory)
 
 
@@ -49,9 +48,8 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json) -> No
     """
     import numpy as np
 
+    from stepsafe import api
     from stepsafe.cli.report import print_errors, print_json
-    from stepsafe.core.accuracy import errors
-    from stepsafe.core.transfer import transfer_matrix
 
     z = list(zs)
     if zmin is not None or zmax is not None:
@@ -68,28 +66,8 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json) -> No
     for value in z:
         if not (np.isfinite(value) and value > 0):
             raise _input_error(f"z must be a positive finite number, got {value}")
-    m, entry = _resolve(method, stages, base)
-    zs = np.array(z, dtype=float)
-    with np.errstate(all="ignore"):  # far out, M(z) overflows: those rows say so, no warnings
-        e = errors(m, zs, model)
-        M = np.asarray(transfer_matrix(m, zs, model))
-        size = np.abs(M).max(axis=(1, 2))
-    # the error formulas multiply entries of M: beyond OVERFLOW they cannot be evaluated
-    overflow = ~(np.isfinite(M).all(axis=(1, 2)) & (size <= OVERFLOW))
-    rows = [{"z": float(zz), "phase_error": None if over else _f(p),
-             "energy_error": _f(en) if model == "oscillator" and not over else None,
-             "overflow": bool(over)}
-            for zz, p, en, over in zip(e.z, e.phase, e.energy, overflow)]
-    data = {"method": entry.name, "model": model,
-            "phase_error": "theta/z - 1" if model == "oscillator" else "log(mu)/z - 1",
-            "rows": rows}
+    data = api.errors(api.method(method, stages, base), z, model).to_dict()
     print_json(data) if as_json else print_errors(data)
-
-
-def _f(x) -> float | None:
-    import math
-
-    return None if x is None or not math.isfinite(float(x)) else float(x)
 
 
 @main.command("compare")
@@ -119,7 +97,7 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, scene_files, method_name,
     from stepsafe.cli.report import print_compare, print_json
     from stepsafe.core.advice import Modes, validate_margin
     from stepsafe.core.tradeoff import Tolerance, tradeoff
-    from stepsafe.errors import positive_finite
+    from stepsafe.exceptions import positive_finite
     from stepsafe.methods.library import FAMILIES, builtin_names, resolve
 
     if scene_files or method_name:

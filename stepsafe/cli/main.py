@@ -10,7 +10,6 @@ Only click is imported at start-up; each command imports what it uses.
 from __future__ import annotations
 
 import sys
-from contextlib import contextmanager
 
 import click
 
@@ -91,7 +90,7 @@ class _Group(click.Group):
         return code
 
     def invoke(self, ctx: click.Context):
-        from stepsafe.errors import StepsafeError
+        from stepsafe.exceptions import StepsafeError
 
         debug = "--debug" in sys.argv[1:] or bool(ctx.params.get("debug"))
         try:
@@ -194,22 +193,6 @@ def _resolve(method: str, stages: int | None, base: str | None):
     return resolve(method, stages, base)
 
 
-@contextmanager
-def _blame(entry):
-    """An analysis error about a method read from the user's file names that file."""
-    from pathlib import Path
-
-    from stepsafe.errors import StepsafeError
-    from stepsafe.methods.library import builtin_dir
-
-    try:
-        yield
-    except StepsafeError as exc:
-        if exc.where or not entry.path or Path(entry.path).parent == builtin_dir():
-            raise
-        raise StepsafeError(exc.message, entry.path) from None
-
-
 @main.command("methods")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON list.")
 def methods_cmd(as_json: bool) -> None:
@@ -242,28 +225,15 @@ def methods_cmd(as_json: bool) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def show_cmd(method: str, stages: int | None, base: str | None, as_json: bool) -> None:
     """Coefficients, order, stages and symplecticity residuals of METHOD."""
-    from stepsafe.cli.report import method_data, print_json, print_method
+    from stepsafe import api
+    from stepsafe.cli.report import print_json, print_method
 
-    m, entry = _resolve(method, stages, base)
-    data = method_data(m, entry)
-    coefficients = _coefficients(m)
+    data = api.method(method, stages, base).to_dict()
     if as_json:
-        print_json({**data, "coefficients": coefficients})
+        print_json(data)
     else:
+        coefficients = data.pop("coefficients")
         print_method(data, coefficients)
-
-
-def _coefficients(method) -> dict:
-    from stepsafe.methods.tableaux import Composition, PartitionedRK, RungeKutta, Splitting
-
-    if isinstance(method, RungeKutta):
-        return {"A": method.A.tolist(), "b": method.b.tolist(), "c": method.c.tolist()}
-    if isinstance(method, PartitionedRK):
-        return {k: getattr(method, k).tolist() for k in ("A_q", "b_q", "A_p", "b_p")}
-    if isinstance(method, Splitting):
-        return {"drift": method.drift.tolist(), "kick": method.kick.tolist()}
-    assert isinstance(method, Composition)
-    return {"base": method.base.name, "weights": method.weights.tolist()}
 
 
 @main.command("region")
@@ -288,35 +258,20 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
     applied to (a splitting whose drift and kick sums differ has no form for the saddle)
     is listed as not analysed, with the reason.
     """
-    from stepsafe.cli.report import method_data, print_json, print_region, region_data
-    from stepsafe.core.models import MAIN_MODELS
-    from stepsafe.core.regions import DEFAULT_ZMAX, find_region
-    from stepsafe.errors import StepsafeError, positive_finite
+    from stepsafe import api
+    from stepsafe.cli.report import print_json, print_region
+    from stepsafe.core.regions import DEFAULT_ZMAX
 
-    m, entry = _resolve(method, stages, base)
-    models = MAIN_MODELS if model == "all" else (model,)
-    zmax = DEFAULT_ZMAX if zmax is None else positive_finite(zmax, "zmax")
-    regions, skipped, first_error = {}, {}, None
-    with _blame(entry):
-        for name in models:
-            try:
-                regions[name] = find_region(m, name, zmax)
-            except StepsafeError as exc:
-                skipped[name], first_error = exc.message, first_error or exc
-        if first_error and (model != "all" or not regions):  # nothing the user asked for
-            raise first_error
-    results = {name: region_data(regions[name]) if name in regions
-               else {"not_analysed": skipped[name]} for name in models}
-    head = method_data(m, entry)
-    verdict = _verify(method, stages, base, regions) if verify else None
+    report = api.region(api.method(method, stages, base), model,
+                        DEFAULT_ZMAX if zmax is None else zmax, verify)
+    data = report.to_dict()
+    verdict = data.get("verify")
     _decide([verdict])
     if as_json:
-        out = {"method": head["method"], "title": head["title"], "kind": head["kind"],
-               "stages": head["stages"], "order": head["order"],
-               "symplectic": head["symplectic"], "models": results}
-        print_json({**out, "verify": verdict} if verdict else out)
+        print_json(data)
     else:
-        print_region(head, results)
+        head = {k: data[k] for k in ("method", "title", "kind", "stages", "order", "symplectic")}
+        print_region(head, data["models"])
         if verdict:
             _print_verify(verdict)
     _exit_if_unverified(verdict)
@@ -360,55 +315,17 @@ def scene_options(func):
     return func
 
 
-def _scene_inputs(scene_file, method_name, stages, base, beta, saddle_beta, inverted_beta,
-                  modes_file, margin, zmax, budget=None, show_progress=False):
-    """Merge a scene file with command-line options (the options win)."""
-    from stepsafe.core.advice import Modes, validate_margin
-    from stepsafe.core.regions import DEFAULT_ZMAX
-    from stepsafe.errors import positive_finite
-    from stepsafe.systems.scene import MethodRef, Scene, load_scene
+def _problem(scene_file, method_name, stages, base, beta, saddle_beta, inverted_beta,
+             modes_file, margin, zmax, budget=None, show_progress=False):
+    """The scene file merged with the command-line options (the options win)."""
+    from stepsafe import api
+    from stepsafe.cli.progressbar import progress_bar
 
-    if zmax is not None:  # the options are checked before any file is read or analysed
-        zmax = positive_finite(zmax, "zmax")
-    if budget is not None:
-        budget = positive_finite(budget, "budget")
-    if margin is not None:
-        margin = validate_margin(margin)
-    scene = load_scene(scene_file) if scene_file else Scene()
-    margin = validate_margin(margin if margin is not None else
-                             (scene.margin if scene.margin is not None else 1.0))
-    zmax = zmax if zmax is not None else (scene.zmax or DEFAULT_ZMAX)
-    ref = scene.method
-    if method_name:
-        ref = MethodRef(method_name, stages, base)
-    elif ref is not None and (stages is not None or base is not None):
-        ref = MethodRef(ref.name, stages if stages is not None else ref.stages,
-                        base if base is not None else ref.base)
-    if ref is None:
-        raise _input_error("no method: give --method METHOD or a scene file with method:")
-    method, entry = _resolve(ref.name, ref.stages, ref.base)
-    cli_modes = command_line_modes(beta, saddle_beta, inverted_beta, modes_file)
-    system = None
-    if cli_modes:
-        arrays = cli_modes
-    elif scene.modes:
-        arrays = scene.modes
-    elif scene.system is not None:
-        import time
-
-        from stepsafe.cli.progressbar import progress_bar
-        from stepsafe.systems.loader import analyse_system
-
-        deadline = None if budget is None else time.monotonic() + budget
-        with progress_bar("coupled analysis", show_progress) as progress:
-            system = analyse_system(scene.system, scene.where, scene.folder, method, zmax,
-                                    progress, deadline)
-        arrays = system.modes.betas if system.modes is not None else {"oscillator": [0.0]}
-    else:
-        raise _input_error("no frequencies: give --beta/--saddle-beta/--inverted-beta, "
-                           "--modes FILE, or modes: or system: in a scene file")
-    modes = Modes.from_arrays(arrays)
-    return method, entry, modes, margin, zmax, scene, ref, system
+    modes = command_line_modes(beta, saddle_beta, inverted_beta, modes_file)
+    with progress_bar("coupled analysis", show_progress) as progress:
+        return api.problem(method_name, modes=modes, scene=scene_file, stages=stages,
+                           base=base, margin=margin, zmax=zmax, progress=progress,
+                           budget=budget)
 
 
 def command_line_modes(beta, saddle_beta, inverted_beta, modes_file) -> dict:
@@ -428,7 +345,7 @@ def command_line_modes(beta, saddle_beta, inverted_beta, modes_file) -> dict:
 
 
 def _input_error(message: str):
-    from stepsafe.errors import StepsafeError
+    from stepsafe.exceptions import StepsafeError
 
     return StepsafeError(message)
 
@@ -462,47 +379,17 @@ def advise_cmd(tol_phase, tol_energy, every_mode, scene_files, method_name, stag
       stepsafe advise scene.yaml --margin 0.8
       stepsafe advise examples/pendulum.yaml
     """
-    from stepsafe.cli.report import advice_data, print_advice, print_json
-    from stepsafe.core.advice import advise
+    from stepsafe import api
+    from stepsafe.cli.report import print_advice, print_json
 
     if len(scene_files) > 1:
         raise _input_error("advise takes at most one scene file")
-    method, entry, modes, margin, zmax, _, ref, system = _scene_inputs(
-        scene_files[0] if scene_files else None, method_name, stages, base, beta, saddle_beta,
-        inverted_beta, modes_file,
-        margin, zmax, budget, not as_json)
-    if system is not None:
-        from stepsafe.systems.advice import system_advice
-
-        if tol_phase is not None or tol_energy is not None:
-            raise _input_error("--tol-phase/--tol-energy apply to frequencies, not yet to "
-                               "system: scenes")
-        with _blame(entry):
-            data = system_advice(method, system, margin, zmax, entry.name)
-        regions = {}
-    elif tol_phase is None and tol_energy is None:
-        with _blame(entry):
-            result = advise(method, modes, margin, zmax, entry.name)
-        data = advice_data(result)
-        regions = result.regions
-    else:
-        from stepsafe.cli.report import tradeoff_data
-        from stepsafe.core.tradeoff import Tolerance, tradeoff
-
-        tols = tuple(Tolerance(k, v) for k, v in (("phase", tol_phase), ("energy", tol_energy))
-                     if v is not None)
-        for t in tols:
-            if not (0 < t.value < float("inf")):
-                raise _input_error(f"--tol-{t.kind} must be a positive finite number, "
-                                   f"got {t.value}")
-        with _blame(entry):
-            res = tradeoff(method, modes, tols, margin, entry.name, entry.evaluations,
-                           zmax)
-        data = tradeoff_data(res)
-        regions = res.advice.regions
-    verdict = _verify(ref.name, ref.stages, ref.base, regions) if verify and regions else None
-    if verdict:
-        data["verify"] = verdict
+    problem = _problem(scene_files[0] if scene_files else None, method_name, stages, base, beta,
+                       saddle_beta, inverted_beta, modes_file, margin, zmax, budget,
+                       not as_json)
+    data = api.advise(problem=problem, tol_phase=tol_phase, tol_energy=tol_energy,
+                      verify=verify).to_dict()
+    verdict = data.get("verify")
     _decide([verdict])
     print_json(data) if as_json else print_advice(data)
     if "system" in data and not as_json:
@@ -536,40 +423,21 @@ def check_cmd(h, every_mode, scene_files, method_name, stages, base, beta, saddl
       stepsafe check --method verlet --step 0.1 --beta 12
       stepsafe check scene.yaml --json
     """
-    from stepsafe.cli.report import check_data, print_check, print_json, print_system
-    from stepsafe.core.advice import check_step
+    from stepsafe import api
+    from stepsafe.cli.report import print_check, print_json, print_system
 
-    outputs, unsafe, verdicts = [], False, []
+    outputs, verdicts = [], []
     for scene_file in scene_files or (None,):
-        method, entry, modes, margin_, zmax_, scene, ref, system = _scene_inputs(
-            scene_file, method_name, stages, base, beta, saddle_beta, inverted_beta,
-            modes_file, margin, zmax, budget, not as_json)
-        step = h if h is not None else scene.h
-        if step is None:
-            raise _input_error(f"{scene_file or 'check'}: no step: give --step H or h: in "
-                               "the scene file")
-        if system is not None:
-            from stepsafe.systems.advice import system_check
-
-            with _blame(entry):
-                data = system_check(method, system, step, margin_, zmax_, entry.name)
-            result = None
-        else:
-            with _blame(entry):
-                result = check_step(method, modes, step, margin_, zmax_, entry.name)
-            data = check_data(result)
-        if scene_file:
-            data["scene"] = scene_file
-        if verify and result is not None:
-            top = max(float(b.max()) for b in modes.betas.values()) * step / margin_
-            data["verify"] = _verify(ref.name, ref.stages, ref.base, result.advice.regions,
-                                     up_to=1.05 * top)
+        problem = _problem(scene_file, method_name, stages, base, beta, saddle_beta,
+                           inverted_beta, modes_file, margin, zmax, budget, not as_json)
+        data = api.check(h=h, problem=problem, verify=verify).to_dict()
+        if "verify" in data:
             verdicts.append(data["verify"])
         outputs.append(data)
-        unsafe |= not data["safe"]
+    unsafe = not all(data["safe"] for data in outputs)
     _decide(verdicts, unsafe)
     if as_json:
-        print_json(outputs[0] if len(outputs) == 1 else outputs)
+        print_json({"safe": not unsafe, "checks": outputs})
     else:
         for data in outputs:
             print_check(data)
@@ -581,21 +449,6 @@ def check_cmd(h, every_mode, scene_files, method_name, stages, base, beta, saddl
         _exit_if_unverified(verdict)
     if unsafe:
         sys.exit(EXIT_UNSAFE)
-
-
-def _verify(name, stages, base, regions, up_to=None) -> dict:
-    """Run the mpmath verification of the regions' points; a JSON-ready verdict."""
-    from stepsafe.reference.verify import DPS, TOLERANCE, verify_regions
-
-    checks = verify_regions(name, stages, base, regions, up_to=up_to)
-    worst = max((c.discrepancy for c in checks), default=0.0)
-    failed = [{"model": c.model, "z": c.point.z, "kind": c.point.kind,
-               "reference": c.reference,
-               "discrepancy": None if c.discrepancy == float("inf") else c.discrepancy}
-              for c in checks if not c.ok]
-    return {"digits": DPS, "points": len(checks),
-            "largest_discrepancy": None if worst == float("inf") else worst,
-            "tolerance": TOLERANCE, "ok": not failed, "failed": failed}
 
 
 def _print_verify(verdict: dict) -> None:
@@ -654,7 +507,7 @@ def validate_cmd(files: tuple[str, ...]) -> None:
     Exit 0 when every file is valid (warnings allowed), 2 at the first invalid file.
     """
     from stepsafe.cli.output import decided
-    from stepsafe.errors import StepsafeError
+    from stepsafe.exceptions import StepsafeError
     from stepsafe.methods.library import resolve
     from stepsafe.methods.residuals import residuals
 

@@ -1,9 +1,9 @@
-"""Results as plain data (for ``--json``) and as rich tables (for people).
+"""Results as rich tables (for people) and JSON (for scripts).
 
-The ``*_data`` functions turn core results into JSON-ready dicts with full-precision
-floats; the ``print_*`` functions render the same dicts with rich (imported lazily), so the
-two outputs never disagree. JSON is printed with :mod:`json`, never through rich, which
-would wrap long lines when stdout is a pipe.
+The ``print_*`` functions render the records of :mod:`stepsafe.core.records` (the
+``--json`` output) with rich, imported lazily, so the two outputs never disagree. JSON is
+printed with :mod:`json`, never through rich, which would wrap long lines when stdout is
+a pipe.
 """
 
 from __future__ import annotations
@@ -13,75 +13,13 @@ import math
 import sys
 from typing import Any
 
-from stepsafe.core.models import ELLIPTIC
-from stepsafe.core.regions import Interval, Point, Region
-from stepsafe.methods.residuals import residuals
-
-
-def _num(x: float | None) -> float | None:
-    return None if x is None or not math.isfinite(x) else float(x)
-
-
-def _interval(iv: Interval) -> list[float | None]:
-    return [_num(iv.lo), _num(iv.hi)]
-
-
-def _point(p: Point) -> dict[str, Any]:
-    return {"z": float(p.z), "kind": p.kind, "detail": p.detail,
-            "uncertainty": _num(p.uncertainty)}
-
-
-def region_data(region: Region) -> dict[str, Any]:
-    """JSON-ready description of one model's region."""
-    fb = region.first_boundary_point
-    data: dict[str, Any] = {
-        "first_boundary": _num(region.first_boundary),
-        "first_boundary_kind": fb.kind if fb else None,
-        "first_boundary_detail": fb.detail if fb else None,
-        "first_boundary_uncertainty": _num(fb.uncertainty) if fb else None,
-        "intervals": [_interval(iv) for iv in region.intervals],
-        "islands": [{"lo": float(iv.lo), "hi": _num(iv.hi),
-                     "orientation": "same" if same else "reversed"}
-                    for iv, same in region.islands],
-        "resonances": [_point(p) for p in region.resonances],
-        "poles": [float(p.z) for p in region.poles],
-        "zmax": float(region.zmax),
-        "resolution": float(region.resolution),
-        "symplectic": region.symplectic,
-    }
-    if ELLIPTIC[region.model] and region.symplectic:
-        data["stability_limit"] = _num(region.stability_limit)
-    if region.classical is not None:
-        data["classical_intervals"] = [_interval(iv) for iv in region.classical]
-    if region.notes:
-        data["notes"] = list(region.notes)
-    return data
-
-
-def method_data(method, entry) -> dict[str, Any]:
-    """Identity and coefficient checks of a method."""
-    from stepsafe.methods.families import is_symmetric
-
-    res = residuals(method)
-    return {
-        "method": entry.name,
-        "title": entry.title,
-        "kind": method.kind,
-        "order": method.order,
-        "stages": method.stages,
-        "evaluations": entry.evaluations,
-        "symplectic": res.symplectic,
-        "symplectic_for_separable": res.symplectic_for_separable,
-        "symmetric": is_symmetric(method),
-        "explicit": method.explicit,
-        "residuals": {
-            "symplecticity": res.symplectic_separable,
-            "weights_equal": res.weights_equal,
-            "consistency": res.consistency,
-            **({"row_sums": res.row_sums} if res.row_sums is not None else {}),
-        },
-        "source": entry.source,
-    }
+from stepsafe.core.records import (  # noqa: F401  (re-exported for the commands)
+    advice_data,
+    check_data,
+    method_data,
+    region_data,
+    tradeoff_data,
+)
 
 
 def print_json(data: Any) -> None:
@@ -234,38 +172,6 @@ def print_methods(rows: list[dict[str, Any]]) -> None:
     _console().print(table)
 
 
-def _limit(lim) -> dict[str, Any] | None:
-    if lim is None:
-        return None
-    p = lim.first_boundary_point
-    return {"model": lim.model, "beta": lim.beta_max, "count": lim.count,
-            "first_boundary": _num(lim.first_boundary),
-            "first_boundary_kind": p.kind if p else None,
-            "h_limit": _num(lim.h_limit)}
-
-
-def advice_data(adv) -> dict[str, Any]:
-    """JSON-ready advice: h_max, the safe h intervals, the limiting frequency, per model.
-
-    ``h_max_limited_by`` is ``boundary`` when a structure boundary (root, pole, resonance)
-    ends the safe interval from 0, ``horizon`` when none was found below the analysed
-    range (then ``h_max`` is the horizon, not a safety limit), ``none`` when no step is
-    safe."""
-    safe = adv.safe_h
-    limited_by = ("none" if not safe or safe[0][0] != 0.0 else
-                  "horizon" if adv.h_max_is_horizon or safe[0][1] is None else "boundary")
-    return {
-        "method": adv.method,
-        "margin": adv.margin,
-        "h_max": _num(adv.h_max) if adv.h_max is not None else None,
-        "h_max_limited_by": limited_by,
-        "safe_h": [[float(lo), _num(hi)] for lo, hi in adv.safe_h],
-        "limiting": _limit(adv.limiting) if limited_by == "boundary" else None,
-        "models": {lim.model: _limit(lim) for lim in adv.models},
-        "horizon": _num(adv.horizon),
-    }
-
-
 def print_advice(data: dict[str, Any]) -> None:
     from rich.table import Table
 
@@ -310,23 +216,6 @@ def print_advice(data: dict[str, Any]) -> None:
                       "analysed.")
 
 
-def check_data(result) -> dict[str, Any]:
-    return {
-        "method": result.method,
-        "h": result.h,
-        "margin": result.margin,
-        "safe": result.safe,
-        "in_primary_interval": result.in_primary,
-        "modes": result.n_modes,
-        "failing": result.n_failing,
-        "failures": [{"model": f.model, "beta": f.beta, "z": f.z, "reason": f.reason,
-                      "largest_safe_h": _num(f.h_limit)} for f in result.failures],
-        "h_max": _num(result.advice.h_max) if result.advice.h_max is not None else None,
-        "h_max_limited_by": advice_data(result.advice)["h_max_limited_by"],
-        "safe_h": [[float(lo), _num(hi)] for lo, hi in result.advice.safe_h],
-    }
-
-
 def print_check(data: dict[str, Any]) -> None:
     """Plain click output: check runs in CI on every commit, so it does not import rich."""
     import click
@@ -334,15 +223,18 @@ def print_check(data: dict[str, Any]) -> None:
     from stepsafe.text import printable
 
     h, name = fmt(data["h"]), printable(data["method"])
+    scene = f"{printable(data['scene'])}: " if data.get("scene") else ""
     if data["safe"]:
         where = "" if data["in_primary_interval"] else \
             " (in an island outside the primary interval)"
-        click.echo(click.style("SAFE", fg="green") + f": {name} with h = {h} "
+        click.echo(scene + click.style("SAFE", fg="green") + f": {name} with h = {h} "
                    f"preserves all {data['modes']} mode(s){where}.")
         return
-    click.echo(click.style("UNSAFE", fg="red") + f": {name} with h = {h}: "
+    click.echo(scene + click.style("UNSAFE", fg="red") + f": {name} with h = {h}: "
                f"{data['failing']} of {data['modes']} mode(s) lose their structure.")
     for f in data["failures"]:
+        if f.get("label"):
+            f = {**f, "model": f"{printable(f['label'])} ({f['model']})"}
         limit = ("none below the horizon" if f["largest_safe_h"] is None
                  else fmt_below(f["largest_safe_h"]) if f["largest_safe_h"] > 0 else "none")
         what = (f"{f['model']}: " if f["beta"] is None else
@@ -356,19 +248,6 @@ def print_check(data: dict[str, Any]) -> None:
         click.echo(f"Safe steps for all modes: 0 < h < {fmt_below(data['h_max'])}{horizon}")
     elif data["h_max"] is not None:
         click.echo("No step is safe for all modes.")
-
-
-def tradeoff_data(res) -> dict[str, Any]:
-    """advice_data plus the tolerance limits, the usable step and its cost."""
-    data = advice_data(res.advice)
-    data["accuracy"] = [{"model": lim.model, "kind": lim.kind, "tolerance": lim.tol,
-                         "beta": lim.beta, "z": _num(lim.z), "h": _num(lim.h),
-                         "limited_by": lim.limited_by} for lim in res.limits]
-    data["h"] = _num(res.h)
-    data["bound_by"] = res.bound_by
-    data["evaluations"] = res.evaluations
-    data["cost_per_unit_time"] = _num(res.cost)
-    return data
 
 
 def _print_accuracy(console, data: dict[str, Any]) -> None:

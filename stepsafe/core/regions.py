@@ -50,7 +50,7 @@ from stepsafe.core.models import ELLIPTIC, check_model
 from stepsafe.core.rkstability import imaginary_axis_crossings, stability_function
 from stepsafe.core.roots import EPS, HermiteCubic, hermite_extremum, hermite_root, refine_brackets
 from stepsafe.core.transfer import TOL_FACTOR, Jet, pole_locations, poles, transfer_jet
-from stepsafe.errors import StepsafeError, positive_finite
+from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.methods.residuals import residuals
 from stepsafe.methods.tableaux import Method, RungeKutta
 

@@ -28,7 +28,7 @@ from functools import lru_cache
 import numpy as np
 
 from stepsafe.core.transfer import batched_solve
-from stepsafe.errors import StepsafeError
+from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import RungeKutta
 
 

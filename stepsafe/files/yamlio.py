@@ -2,7 +2,7 @@
 
 Every plain scalar stays a **string** (YAML 1.1 would read ``1e-3`` as a string but ``0.5``
 as a float and ``no`` as False; here the schema layer decides every type, STYLE.md).
-Refused, each with a one-line :class:`~stepsafe.errors.StepsafeError` naming the file:
+Refused, each with a one-line :class:`~stepsafe.exceptions.StepsafeError` naming the file:
 files over :data:`MAX_BYTES`, binary or non-UTF-8 content, aliases and anchors (no alias
 bombs), duplicate keys, nesting deeper than :data:`MAX_DEPTH`, more than :data:`MAX_NODES`
 nodes, non-string keys, and anything that is not valid YAML.
@@ -19,7 +19,7 @@ from typing import Any
 
 import yaml
 
-from stepsafe.errors import StepsafeError
+from stepsafe.exceptions import StepsafeError
 
 MAX_BYTES = 1 << 20
 MAX_DEPTH = 32

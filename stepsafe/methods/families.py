@@ -23,7 +23,7 @@ from functools import lru_cache, partial
 
 import numpy as np
 
-from stepsafe.errors import MethodError
+from stepsafe.exceptions import MethodError
 from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta
 
 #: Largest stage count accepted for the families (accuracy verified up to here by tests).

@@ -33,7 +33,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
-from stepsafe.errors import StepsafeError
+from stepsafe.exceptions import StepsafeError, unknown_key
 from stepsafe.files.expressions import (
     EPS,
     FLOAT,
@@ -245,9 +245,7 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
         raise _fail(where, "", "a method file must be a mapping of keys to values")
     for key in tree:
         if key not in FIELDS:
-            close = [k for k in FIELDS if k.lower() == str(key).lower()]
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise _fail(where, str(key), f"unknown key{hint}")
+            raise _fail(where, str(key), unknown_key(key, list(FIELDS)))
     kind = tree.get("kind")
     if kind not in KINDS:
         raise _fail(where, "kind", f"must be one of {', '.join(KINDS)}, got {kind!r}")
@@ -358,7 +356,8 @@ def _base_ref(base: Any, where: str) -> Any:
     if isinstance(base, dict) and isinstance(base.get("name"), str):
         unknown = set(base) - {"name", "stages"}
         if unknown:
-            raise _fail(where, f"base.{sorted(unknown)[0]}", "unknown key (use name, stages)")
+            raise _fail(where, f"base.{sorted(unknown)[0]}",
+                        unknown_key(sorted(unknown)[0], ("name", "stages")))
         out = {"name": base["name"]}
         if "stages" in base:
             out["stages"] = _int(base["stages"], where, "base.stages", 1, 1000)

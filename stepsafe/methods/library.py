@@ -3,7 +3,7 @@
 ``resolve("pefrl")`` loads ``methods/pefrl.yaml`` (or a file that lists ``pefrl`` among
 its aliases); ``resolve("gauss", stages=3)`` builds a family member; ``resolve("my.yaml")``
 loads a file; ``base=`` swaps the base method of a composition. Unknown names raise
-:class:`~stepsafe.errors.StepsafeError` with the closest known names.
+:class:`~stepsafe.exceptions.StepsafeError` with the closest known names.
 
 The built-in files live in the top-level ``methods/`` folder of the source tree, which the
 wheel installs as the package data folder ``stepsafe/methods``; both locations are searched
@@ -18,7 +18,7 @@ from functools import lru_cache, partial
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from stepsafe.errors import MethodError, StepsafeError
+from stepsafe.exceptions import MethodError, StepsafeError
 
 FAMILIES = {
     "gauss": ("Gauss–Legendre collocation (order 2s)", 1),

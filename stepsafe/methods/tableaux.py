@@ -11,7 +11,7 @@ drift(a_2 h), ...`` in that order (``drift(t): q += t T'(p)``, ``kick(t): p -= t
 A composition ``Phi_{g_k h} o ... o Phi_{g_1 h}`` applies the base with ``g_1 h`` first.
 
 The classes are frozen; they validate shapes and finiteness when built and raise
-:class:`~stepsafe.errors.MethodError`. Nothing here knows of files or terminals.
+:class:`~stepsafe.exceptions.MethodError`. Nothing here knows of files or terminals.
 
 ``exact`` (optional, never compared) returns the method's transfer matrix at high
 precision, ``Mfun(z, model)`` in mpmath, built from its definition rather than from the
@@ -29,7 +29,7 @@ from typing import Any, Union
 
 import numpy as np
 
-from stepsafe.errors import MethodError
+from stepsafe.exceptions import MethodError
 
 #: Rounding-level threshold for the symplecticity and consistency residuals.
 RESIDUAL_TOL = 1e-12

@@ -28,7 +28,7 @@ def _limit_items(report: SystemReport, regions, margin: float) -> list[dict[str,
 def system_advice(method: Method, report: SystemReport, margin: float = 1.0,
                   zmax: float = 10.0, name: str | None = None) -> dict[str, Any]:
     """JSON-ready advice for a system (see advice_data for the common fields)."""
-    from stepsafe.cli.report import advice_data
+    from stepsafe.core.records import advice_data
 
     margin = validate_margin(margin)
     if report.modes is not None:
@@ -61,7 +61,7 @@ def system_advice(method: Method, report: SystemReport, margin: float = 1.0,
 
 
 def _limited_by(data: dict[str, Any]) -> str:
-    """What ends the safe interval from 0 (see :func:`stepsafe.cli.report.advice_data`)."""
+    """What ends the safe interval from 0 (see :func:`stepsafe.core.records.advice_data`)."""
     safe, horizon = data["safe_h"], data["horizon"]
     if not safe or safe[0][0] != 0.0:
         return "none"
@@ -83,7 +83,7 @@ def _cap(safe: list, cap: float) -> list:
 def system_check(method: Method, report: SystemReport, h: float, margin: float = 1.0,
                  zmax: float = 10.0, name: str | None = None) -> dict[str, Any]:
     """JSON-ready check of step h for a system (see check_data for the common fields)."""
-    from stepsafe.cli.report import check_data
+    from stepsafe.core.records import check_data
 
     margin = validate_margin(margin)
     if report.modes is not None:

@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 from stepsafe.core.threads import blas_threads_for
-from stepsafe.errors import StepsafeError
+from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.residuals import is_partitioned
 from stepsafe.methods.tableaux import Method
 

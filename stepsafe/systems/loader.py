@@ -24,7 +24,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from stepsafe.core.advice import Modes
-from stepsafe.errors import StepsafeError
+from stepsafe.exceptions import StepsafeError, unknown_key
 from stepsafe.methods.tableaux import Method
 
 DENSE_LIMIT = 2000
@@ -58,6 +58,8 @@ def _matrix(value: Any, where: str, key: str, folder: Path, sparse_ok: bool = Fa
             return read_matrix(folder / value, value, sparse_ok)
         except StepsafeError as exc:
             raise _fail(where, key, str(exc)) from None
+    if isinstance(value, np.ndarray) or hasattr(value, "tocsr"):  # from the Python API
+        return _array(value, where, key, sparse_ok)
     if not isinstance(value, list) or not value or not all(isinstance(r, list) for r in value):
         raise _fail(where, key, "must be a list of rows or a .npy/.npz/.mtx file name")
     n = len(value)
@@ -76,6 +78,23 @@ def _matrix(value: Any, where: str, key: str, folder: Path, sparse_ok: bool = Fa
     return out
 
 
+def _array(value: Any, where: str, key: str, sparse_ok: bool):
+    """A numpy array or scipy sparse matrix given through the API: real, square, finite."""
+    sparse = hasattr(value, "tocsr")
+    if sparse and not sparse_ok:
+        value = value.toarray()
+        sparse = False
+    data = value.data if sparse else value
+    if np.asarray(data).dtype.kind not in "biuf":
+        raise _fail(where, key, f"must hold real numbers, got dtype {np.asarray(data).dtype}")
+    if value.ndim != 2 or value.shape[0] != value.shape[1] or value.shape[0] == 0:
+        raise _fail(where, key, f"must be a non-empty square matrix, got shape {value.shape}")
+    out = value.tocsr().astype(float) if sparse else np.array(value, dtype=float)
+    if not np.all(np.isfinite(out.data if sparse else out)):
+        raise _fail(where, key, "has a non-finite entry")
+    return out
+
+
 def _float(value: Any, where: str, key: str) -> float:
     from stepsafe.systems.scene import number
 
@@ -87,14 +106,14 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
                    deadline: float | None = None) -> SystemReport:
     """Read a ``system:`` mapping and decide the analysis for ``method`` (``progress`` and
     ``deadline``: see :func:`stepsafe.systems.coupled.coupled_safe_steps`)."""
-    from stepsafe.errors import StepsafeError as _E
+    from stepsafe.exceptions import StepsafeError as _E
 
     if not isinstance(tree, dict):
         raise _fail(where, "", "must be a mapping (stiffness/mass, hessian or hamiltonian)")
     unknown = set(tree) - SYSTEM_KEYS
     if unknown:
-        raise _fail(where, sorted(unknown)[0], "unknown key (stiffness, mass, hessian, "
-                                               "hamiltonian, parameters, box)")
+        key = sorted(unknown)[0]
+        raise _fail(where, key, unknown_key(key, sorted(SYSTEM_KEYS)))
     kinds = [k for k in ("stiffness", "hessian", "hamiltonian") if k in tree]
     if len(kinds) != 1:
         raise _fail(where, "", "give exactly one of stiffness (with optional mass), hessian or "

@@ -3,7 +3,7 @@
 Every file is checked from its header before anything is allocated: the file type (a
 regular file, :func:`stepsafe.files.yamlio.open_regular`), its size (:data:`MAX_FILE_BYTES`), for
 an ``.npz`` the declared unpacked size of its members (the same budget), the shape and the
-type of the values. Refused, with a one-line :class:`~stepsafe.errors.StepsafeError`:
+type of the values. Refused, with a one-line :class:`~stepsafe.exceptions.StepsafeError`:
 
 * values that are not real numbers: complex, booleans, text, Python objects, structured
   (record) or date/time dtypes, and Matrix Market ``complex`` or ``pattern`` (no values)
@@ -25,7 +25,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from stepsafe.errors import StepsafeError
+from stepsafe.exceptions import StepsafeError
 from stepsafe.files.yamlio import open_regular
 
 MAX_FILE_BYTES = 512 << 20  # a matrix file, and the declared unpacked size of an .npz

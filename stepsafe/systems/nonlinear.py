@@ -47,7 +47,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from stepsafe.errors import StepsafeError
+from stepsafe.exceptions import StepsafeError
 from stepsafe.files.expressions import Expression, ExpressionError, parse
 
 FUNCTIONS = ("sin", "cos", "exp", "log", "sqrt", "cosh", "sinh", "tanh")

@@ -23,14 +23,14 @@ from __future__ import annotations
 
 import io
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from stepsafe.core.models import MODELS
-from stepsafe.errors import StepsafeError
+from stepsafe.exceptions import StepsafeError, unknown_key
 from stepsafe.files.yamlio import load_yaml, read_bytes
 
 SCENE_KEYS = ("method", "h", "margin", "zmax", "modes", "system")
@@ -54,6 +54,8 @@ class Scene:
     modes: dict[str, np.ndarray] | None = None
     system: Any = None  # the raw system: mapping (read by stepsafe.systems.loader)
     where: str = ""
+    labels: dict[str, tuple[str | None, ...]] = field(default_factory=dict)  # per model,
+    # in the order of modes[model]: the modes' label: (None where a mode has none)
 
     @property
     def folder(self) -> Path:
@@ -133,7 +135,7 @@ def method_ref(value: Any, where: str, path: str = "method") -> MethodRef:
         unknown = set(value) - {"name", "stages", "base"}
         if unknown:
             raise _fail(where, f"{path}.{sorted(unknown)[0]}",
-                        "unknown key (use name, stages, base)")
+                        unknown_key(sorted(unknown)[0], ("name", "stages", "base")))
         if not isinstance(value.get("name"), str):
             raise _fail(where, f"{path}.name", "missing method name")
         stages = None
@@ -149,16 +151,20 @@ def method_ref(value: Any, where: str, path: str = "method") -> MethodRef:
     raise _fail(where, path, "must be a method name or {name:, stages:, base:}")
 
 
-def _modes_list(items: Any, where: str, path: str) -> dict[str, np.ndarray]:
+def _modes_list(items: Any, where: str, path: str
+                ) -> tuple[dict[str, np.ndarray], dict[str, tuple[str | None, ...]]]:
+    """The frequencies of a ``modes:`` list grouped by model, and their labels."""
     if not isinstance(items, list) or not items:
         raise _fail(where, path, "must be a non-empty list of {beta:, model:}")
     grouped: dict[str, list[float]] = {}
+    labels: dict[str, list[str | None]] = {}
     for i, item in enumerate(items):
         if not isinstance(item, dict) or "beta" not in item:
             raise _fail(where, f"{path}[{i}]", "must be a mapping with beta (and model)")
         unknown = set(item) - {"beta", "model", "label"}
         if unknown:
-            raise _fail(where, f"{path}[{i}].{sorted(unknown)[0]}", "unknown key")
+            raise _fail(where, f"{path}[{i}].{sorted(unknown)[0]}",
+                        unknown_key(sorted(unknown)[0], ("beta", "model", "label")))
         model = item.get("model", "oscillator")
         if model not in MODELS:
             raise _fail(where, f"{path}[{i}].model", f"must be one of {', '.join(MODELS)}, "
@@ -166,8 +172,13 @@ def _modes_list(items: Any, where: str, path: str) -> dict[str, np.ndarray]:
         beta = number(item["beta"], where, f"{path}[{i}].beta")
         if beta < 0:
             raise _fail(where, f"{path}[{i}].beta", f"must be >= 0, got {beta}")
+        label = item.get("label")
+        if label is not None and not isinstance(label, str):
+            raise _fail(where, f"{path}[{i}].label", f"must be text, got {label!r}")
         grouped.setdefault(model, []).append(beta)
-    return {m: np.array(v) for m, v in grouped.items()}
+        labels.setdefault(model, []).append(label)
+    return ({m: np.array(v) for m, v in grouped.items()},
+            {m: tuple(v) for m, v in labels.items() if any(x is not None for x in v)})
 
 
 def _near_scene(name: str | None, folder: Path) -> str | None:
@@ -189,7 +200,7 @@ def load_scene(path: str | Path) -> Scene:
         raise _fail(where, "", "a scene file must be a mapping (method, h, margin, modes)")
     for key in tree:
         if key not in SCENE_KEYS:
-            raise _fail(where, str(key), f"unknown key (scene keys: {', '.join(SCENE_KEYS)})")
+            raise _fail(where, str(key), unknown_key(key, SCENE_KEYS))
     if "modes" in tree and "system" in tree:
         raise _fail(where, "system", "give either modes: or system:, not both (one would be "
                                      "ignored)")
@@ -204,7 +215,7 @@ def load_scene(path: str | Path) -> Scene:
         if key in tree:
             setattr(scene, key, number(tree[key], where, key))
     if "modes" in tree:
-        scene.modes = _modes_list(tree["modes"], where, "modes")
+        scene.modes, scene.labels = _modes_list(tree["modes"], where, "modes")
     return scene
 
 
@@ -215,8 +226,8 @@ def load_modes(path: str | Path) -> dict[str, np.ndarray]:
         return _load_csv(read_bytes(path, MAX_CSV_BYTES), where)
     tree = load_yaml(path)
     if isinstance(tree, dict) and "modes" in tree:
-        return _modes_list(tree["modes"], where, "modes")
-    return _modes_list(tree, where, "")
+        return _modes_list(tree["modes"], where, "modes")[0]
+    return _modes_list(tree, where, "")[0]
 
 
 def _load_csv(data: bytes, where: str) -> dict[str, np.ndarray]:

@@ -1,0 +1,532 @@
+"""The public Python API: the same answers as the command line, as frozen objects.
+
+Every function takes numbers and arrays (or file paths for scenes and method files), never
+prints and never exits; bad input raises :class:`~stepsafe.exceptions.StepsafeError` (exit code
+2 on the command line), whose ``where`` names the file and key at fault. Each result has
+``to_dict()``, which is exactly the command's ``--json`` output.
+
+Conventions: z = beta*h; a vibration of angular frequency beta is the model ``oscillator``
+(q' = p, p' = -beta^2 q), a barrier top of rate beta ``inverted`` (q' = p, p' = +beta^2 q),
+a saddle ``saddle`` (H = beta p q). ``margin`` F in (0, 1] allows every frequency to be up
+to 1/F times larger. Steps h are in the time unit of 1/beta.
+
+>>> import stepsafe
+>>> verlet = stepsafe.method("verlet")
+>>> verlet.order, verlet.kind, verlet.evaluations
+(2, 'splitting', 1)
+>>> advice = stepsafe.advise(verlet, frequencies=[1.0, 4.0])
+>>> round(advice.h_max, 12)   # Verlet keeps a centre a centre for beta*h < 2
+0.5
+>>> stepsafe.check(verlet, 0.6, frequencies=[4.0]).safe
+False
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from stepsafe.exceptions import StepsafeError
+
+#: Models accepted by :func:`region` besides ``"all"`` (which means the main three).
+REGION_MODELS = ("oscillator", "saddle", "inverted", "saddle-p")
+ArrayLike = Sequence[float] | np.ndarray | float
+
+
+@dataclass(frozen=True)
+class Integrator:
+    """A method ready to analyse: its identity, and its coefficients as ``tableau``.
+
+    ``tableau`` is the frozen coefficient object (:mod:`stepsafe.methods.tableaux`);
+    ``reference`` is how to rebuild it at high precision (name or path, stages, base).
+    """
+
+    name: str
+    kind: str
+    title: str
+    order: int | None
+    stages: int
+    evaluations: int | None
+    source: str
+    explicit: bool
+    tableau: Any = field(repr=False, compare=False)
+    entry: Any = field(repr=False, compare=False)
+    reference: tuple[str, int | None, str | None] = field(repr=False, default=("", None, None))
+
+    def to_dict(self) -> dict[str, Any]:
+        """What ``stepsafe show METHOD --json`` prints."""
+        from stepsafe.core.records import coefficients, method_data
+
+        return {**method_data(self.tableau, self.entry),
+                "coefficients": coefficients(self.tableau)}
+
+    @contextmanager
+    def naming_its_file(self) -> Iterator[None]:
+        """An analysis error about a method read from a user's file names that file."""
+        from stepsafe.methods.library import builtin_dir
+
+        try:
+            yield
+        except StepsafeError as exc:
+            path = self.entry.path
+            if exc.where or not path or Path(path).parent == builtin_dir():
+                raise
+            raise StepsafeError(exc.message, path) from None
+
+
+def method(name: str, stages: int | None = None, base: str | None = None) -> Integrator:
+    """A built-in method (``stepsafe methods`` lists them), a family member
+    (``method("gauss", stages=3)``) or a method file given by path.
+
+    ``base`` swaps the base of a composition (``"midpoint"``, or ``"gauss:2"``).
+
+    >>> method("gauss", stages=2).order
+    4
+    """
+    from stepsafe.methods.library import resolve
+
+    tableau, entry = resolve(name, stages, base)
+    return Integrator(entry.name, tableau.kind, entry.title, tableau.order, tableau.stages,
+                      entry.evaluations, entry.source, bool(tableau.explicit), tableau, entry,
+                      (name, stages, base))
+
+
+def method_from_file(path: str | Path, base: str | None = None) -> Integrator:
+    """A method file (YAML, see ``stepsafe schema method``), read by path even when its
+    name is also a built-in's."""
+    from stepsafe.methods.library import _looks_like_path
+
+    text = str(path)
+    return method(text if _looks_like_path(text) else f"./{text}", None, base)
+
+
+def _integrator(value: Integrator | str) -> Integrator:
+    if isinstance(value, Integrator):
+        return value
+    if isinstance(value, str):
+        return method(value)
+    raise StepsafeError(f"method must be a name, a path or a stepsafe.Integrator, "
+                        f"got {type(value).__name__}")
+
+
+def _frozen(data: dict[str, Any]) -> Mapping[str, Any]:
+    return MappingProxyType(copy.deepcopy(data))
+
+
+def _verification(integrator: Integrator, regions: Mapping[str, Any],
+                  up_to: float | None = None) -> dict[str, Any]:
+    """Recompute the regions' points with mpmath; a JSON-ready verdict."""
+    from stepsafe.reference.verify import DPS, TOLERANCE, verify_regions
+
+    name, stages, base = integrator.reference
+    checks = verify_regions(name, stages, base, dict(regions), up_to=up_to)
+    worst = max((c.discrepancy for c in checks), default=0.0)
+    failed = [{"model": c.model, "z": c.point.z, "kind": c.point.kind,
+               "reference": c.reference,
+               "discrepancy": None if c.discrepancy == float("inf") else c.discrepancy}
+              for c in checks if not c.ok]
+    return {"digits": DPS, "points": len(checks),
+            "largest_discrepancy": None if worst == float("inf") else worst,
+            "tolerance": TOLERANCE, "ok": not failed, "failed": failed}
+
+
+# --------------------------------------------------------------------------- region
+
+
+@dataclass(frozen=True)
+class RegionReport:
+    """Every interval of z = beta*h where the method keeps each model's structure.
+
+    ``regions[model]`` is a :class:`stepsafe.core.regions.Region` (intervals, islands,
+    resonances, poles); ``not_analysed[model]`` says why a model has no form for this
+    method. ``verification`` is the ``--verify`` verdict when asked for.
+    """
+
+    integrator: Integrator
+    regions: Mapping[str, Any]
+    not_analysed: Mapping[str, str] = field(default_factory=dict)
+    verification: Mapping[str, Any] | None = None
+
+    def first_boundary(self, model: str = "oscillator") -> float | None:
+        """z*, the end of the preserved interval from 0 (None: none below zmax)."""
+        return self.regions[model].first_boundary
+
+    def to_dict(self) -> dict[str, Any]:
+        """What ``stepsafe region METHOD --json`` prints."""
+        from stepsafe.core.records import method_data, region_data
+
+        head = method_data(self.integrator.tableau, self.integrator.entry)
+        models = {m: region_data(self.regions[m]) if m in self.regions
+                  else {"not_analysed": self.not_analysed[m]}
+                  for m in (*self.regions, *self.not_analysed)}
+        out = {key: head[key] for key in ("method", "title", "kind", "stages", "order",
+                                          "symplectic")}
+        out["models"] = {m: models[m] for m in _ordered(models)}
+        if self.verification is not None:
+            out["verify"] = copy.deepcopy(dict(self.verification))
+        return out
+
+
+def _ordered(models: Mapping[str, Any]) -> list[str]:
+    rank = {m: i for i, m in enumerate(REGION_MODELS)}
+    return sorted(models, key=lambda m: rank.get(m, len(rank)))
+
+
+def region(method: Integrator | str, model: str = "all", zmax: float = 10.0,
+           verify: bool = False) -> RegionReport:
+    """The regions of ``method`` for ``model`` (``"all"``: oscillator, saddle and inverted;
+    a model the method has no form for is then listed in ``not_analysed``).
+
+    >>> round(region("verlet", "oscillator").first_boundary(), 12)
+    2.0
+    """
+    from stepsafe.core.models import MAIN_MODELS
+    from stepsafe.core.regions import find_region
+    from stepsafe.exceptions import positive_finite
+
+    integrator = _integrator(method)
+    if model != "all" and model not in REGION_MODELS:
+        raise StepsafeError(f"unknown model {model!r}; choose one of "
+                            f"{', '.join(REGION_MODELS)} or all")
+    zmax = positive_finite(zmax, "zmax")
+    models = MAIN_MODELS if model == "all" else (model,)
+    regions, skipped, first_error = {}, {}, None
+    with integrator.naming_its_file():
+        for name in models:
+            try:
+                regions[name] = find_region(integrator.tableau, name, zmax)
+            except StepsafeError as exc:
+                skipped[name], first_error = exc.message, first_error or exc
+        if first_error and (model != "all" or not regions):  # nothing the user asked for
+            raise first_error
+    verdict = _verification(integrator, regions) if verify else None
+    return RegionReport(integrator, MappingProxyType(regions), MappingProxyType(skipped),
+                        None if verdict is None else _frozen(verdict))
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+@dataclass(frozen=True)
+class Problem:
+    """What advise and check analyse: a method, the frequencies (``modes``) or an analysed
+    system, the margin, zmax, and the step a scene may name. Built by :func:`problem`."""
+
+    integrator: Integrator
+    modes: Any  # stepsafe.core.advice.Modes, or None for a system
+    system: Any  # stepsafe.systems.loader.SystemReport, or None
+    margin: float
+    zmax: float
+    h: float | None = None
+    scene: str | None = None
+    labels: Mapping[str, tuple[str | None, ...]] = field(default_factory=dict)
+
+
+def _modes_dict(frequencies: ArrayLike | None, saddle: ArrayLike | None,
+                inverted: ArrayLike | None, modes: Mapping[str, ArrayLike] | None
+                ) -> dict[str, np.ndarray]:
+    parts: dict[str, list[np.ndarray]] = {}
+    for model, values in (("oscillator", frequencies), ("saddle", saddle),
+                          ("inverted", inverted), *((modes or {}).items())):
+        if values is None:
+            continue
+        arr = np.asarray(values)
+        if arr.dtype.kind == "c":
+            raise StepsafeError(f"{model} frequencies must be real, got complex values")
+        try:
+            arr = np.atleast_1d(arr.astype(float)).ravel()
+        except (TypeError, ValueError):
+            raise StepsafeError(f"{model} frequencies must be numbers") from None
+        if arr.size:
+            parts.setdefault(model, []).append(arr)
+    return {model: np.concatenate(v) for model, v in parts.items()}
+
+
+def problem(method: Integrator | str | None = None, frequencies: ArrayLike | None = None, *,
+            saddle: ArrayLike | None = None, inverted: ArrayLike | None = None,
+            modes: Mapping[str, ArrayLike] | None = None, system: Mapping[str, Any] | None = None,
+            scene: str | Path | None = None, stages: int | None = None, base: str | None = None,
+            margin: float | None = None, zmax: float | None = None,
+            progress: Callable[[float], None] | None = None, budget: float | None = None
+            ) -> Problem:
+    """Merge a scene file with explicit arguments (the arguments win, as options do on the
+    command line). Frequencies: ``frequencies`` (vibrations), ``saddle`` and ``inverted``
+    rates, ``modes`` by model name, all used together; else the scene's ``modes:``; else a
+    ``system`` (``{"stiffness": K, "mass": M}``, ``{"hessian": H}``, or a scene's
+    ``system:``), analysed for the method. ``budget`` (seconds) stops a coupled analysis
+    early; ``progress`` is called with the fraction done."""
+    import time
+
+    from stepsafe.core.advice import Modes, validate_margin
+    from stepsafe.core.regions import DEFAULT_ZMAX
+    from stepsafe.exceptions import positive_finite
+    from stepsafe.systems.scene import Scene, load_scene
+
+    if zmax is not None:  # checked before any file is read or analysed
+        zmax = positive_finite(zmax, "zmax")
+    if budget is not None:
+        budget = positive_finite(budget, "budget")
+    if margin is not None:
+        margin = validate_margin(margin)
+    loaded = load_scene(scene) if scene is not None else Scene()
+    margin = validate_margin(margin if margin is not None else
+                             (loaded.margin if loaded.margin is not None else 1.0))
+    zmax = zmax if zmax is not None else (loaded.zmax or DEFAULT_ZMAX)
+    integrator = _scene_method(method, loaded, stages, base)
+    given = _modes_dict(frequencies, saddle, inverted, modes)
+    report, labels = None, {}
+    if given:
+        arrays = given
+    elif loaded.modes:
+        arrays, labels = loaded.modes, loaded.labels
+    elif system is not None or loaded.system is not None:
+        from stepsafe.systems.loader import analyse_system
+
+        deadline = None if budget is None else time.monotonic() + budget
+        tree, where, folder = ((system, "system", Path(".")) if system is not None
+                               else (loaded.system, loaded.where, loaded.folder))
+        report = analyse_system(tree, where, folder, integrator.tableau, zmax, progress,
+                                deadline)
+        arrays = report.modes.betas if report.modes is not None else {"oscillator": [0.0]}
+    else:
+        raise StepsafeError("no frequencies: give --beta/--saddle-beta/--inverted-beta, "
+                            "--modes FILE, or modes: or system: in a scene file")
+    return Problem(integrator, Modes.from_arrays(arrays), report, margin, zmax, loaded.h,
+                   str(scene) if scene is not None else None, MappingProxyType(dict(labels)))
+
+
+def _scene_method(method: Integrator | str | None, scene: Any, stages: int | None,
+                  base: str | None) -> Integrator:
+    if isinstance(method, Integrator):
+        return method
+    if method is not None:
+        return globals()["method"](method, stages, base)
+    ref = scene.method
+    if ref is None:
+        raise StepsafeError("no method: give --method METHOD or a scene file with method:")
+    return globals()["method"](ref.name, stages if stages is not None else ref.stages,
+                               base if base is not None else ref.base)
+
+
+# --------------------------------------------------------------------------- advise
+
+
+@dataclass(frozen=True)
+class AdviceReport:
+    """Safe steps: ``h_max`` ends the safe interval from 0 (``h_max_limited_by``:
+    ``boundary``, ``horizon`` when no boundary was found below how far the analysis
+    looked, ``none`` when no step is safe); ``safe_h`` lists every safe interval of h
+    (islands included, ``None`` for no upper end). ``advice`` is the core result (with
+    the regions used) for decoupled modes."""
+
+    method: str
+    h_max: float | None
+    h_max_limited_by: str
+    safe_h: tuple[tuple[float, float | None], ...]
+    horizon: float | None
+    record: Mapping[str, Any] = field(repr=False)
+    advice: Any = field(repr=False, default=None)
+    verification: Mapping[str, Any] | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """What ``stepsafe advise ... --json`` prints."""
+        out = copy.deepcopy(dict(self.record))
+        if self.verification is not None:
+            out["verify"] = copy.deepcopy(dict(self.verification))
+        return out
+
+
+def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None = None, *,
+           tol_phase: float | None = None, tol_energy: float | None = None,
+           verify: bool = False, **inputs: Any) -> AdviceReport:
+    """Safe step sizes for a method and frequencies (or a scene, or a system): see
+    :func:`problem` for the inputs (``saddle``, ``inverted``, ``modes``, ``system``,
+    ``scene``, ``stages``, ``base``, ``margin``, ``zmax``, ``budget``, ``progress``).
+    ``tol_phase``/``tol_energy`` also bound the phase (growth-rate) and energy errors
+    and add the usable step and its cost.
+
+    >>> report = advise("yoshida4", [3.2], inverted=[1.1])
+    >>> report.h_max_limited_by, f"{report.h_max:.6f}"
+    ('boundary', '0.491688')
+    """
+    from stepsafe.core.advice import advise as core_advise
+    from stepsafe.core.records import advice_data, tradeoff_data
+
+    p = inputs.pop("problem", None) or problem(method, frequencies, **inputs)
+    integrator, result = p.integrator, None
+    with integrator.naming_its_file():
+        if p.system is not None:
+            from stepsafe.systems.advice import system_advice
+
+            if tol_phase is not None or tol_energy is not None:
+                raise StepsafeError("--tol-phase/--tol-energy apply to frequencies, not yet "
+                                    "to system: scenes")
+            data = system_advice(integrator.tableau, p.system, p.margin, p.zmax,
+                                 integrator.name)
+        elif tol_phase is None and tol_energy is None:
+            result = core_advise(integrator.tableau, p.modes, p.margin, p.zmax, integrator.name)
+            data = advice_data(result)
+        else:
+            from stepsafe.core.tradeoff import Tolerance, tradeoff
+
+            tols = tuple(Tolerance(k, _tolerance(k, v)) for k, v in
+                         (("phase", tol_phase), ("energy", tol_energy)) if v is not None)
+            res = tradeoff(integrator.tableau, p.modes, tols, p.margin, integrator.name,
+                           integrator.evaluations, p.zmax)
+            result = res.advice
+            data = tradeoff_data(res)
+    verdict = _verification(integrator, result.regions) if verify and result else None
+    safe = tuple((float(lo), hi) for lo, hi in data["safe_h"])
+    return AdviceReport(data["method"], data["h_max"], data["h_max_limited_by"], safe,
+                        data["horizon"], _frozen(data), result,
+                        None if verdict is None else _frozen(verdict))
+
+
+def _tolerance(kind: str, value: float) -> float:
+    value = float(value)
+    if not (0 < value < float("inf")):
+        raise StepsafeError(f"--tol-{kind} must be a positive finite number, got {value}")
+    return value
+
+
+# --------------------------------------------------------------------------- check
+
+
+@dataclass(frozen=True)
+class CheckReport:
+    """Whether step ``h`` keeps every mode's structure (``safe``), the failing modes with
+    their reasons, and the safe steps for all modes (``h_max``, ``safe_h``)."""
+
+    method: str
+    h: float
+    safe: bool
+    h_max: float | None
+    failures: tuple[Mapping[str, Any], ...]
+    scene: str | None
+    record: Mapping[str, Any] = field(repr=False)
+    result: Any = field(repr=False, default=None)
+    verification: Mapping[str, Any] | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """One entry of ``checks`` in ``stepsafe check ... --json``."""
+        out = copy.deepcopy(dict(self.record))
+        if self.verification is not None:
+            out["verify"] = copy.deepcopy(dict(self.verification))
+        return out
+
+
+def check(method: Integrator | str | None = None, h: float | None = None,
+          frequencies: ArrayLike | None = None, *, verify: bool = False,
+          **inputs: Any) -> CheckReport:
+    """Is step ``h`` safe for every frequency (see :func:`problem` for the inputs)? A scene
+    may give the step (``h:``). A step exactly on a resonance or a pole is unsafe.
+
+    >>> check("verlet", 0.49, [4.0]).safe
+    True
+    """
+    from stepsafe.core.advice import check_step
+    from stepsafe.core.records import check_data
+
+    p = inputs.pop("problem", None) or problem(method, frequencies, **inputs)
+    step = h if h is not None else p.h
+    if step is None:
+        raise StepsafeError(f"{p.scene or 'check'}: no step: give --step H or h: in the "
+                            "scene file")
+    integrator, result = p.integrator, None
+    with integrator.naming_its_file():
+        if p.system is not None:
+            from stepsafe.systems.advice import system_check
+
+            data = system_check(integrator.tableau, p.system, step, p.margin, p.zmax,
+                                integrator.name)
+        else:
+            result = check_step(integrator.tableau, p.modes, step, p.margin, p.zmax,
+                                integrator.name)
+            data = check_data(result, p.labels)
+    data["scene"] = p.scene
+    verdict = None
+    if verify and result is not None:
+        top = max(float(b.max()) for b in p.modes.betas.values()) * float(step) / p.margin
+        verdict = _verification(integrator, result.advice.regions, up_to=1.05 * top)
+    return CheckReport(data["method"], float(step), bool(data["safe"]), data["h_max"],
+                       tuple(MappingProxyType(f) for f in copy.deepcopy(data["failures"])),
+                       p.scene, _frozen(data), result,
+                       None if verdict is None else _frozen(verdict))
+
+
+# --------------------------------------------------------------------------- errors
+
+
+@dataclass(frozen=True)
+class ErrorTable:
+    """Accuracy of one step at each z: ``phase`` (theta/z - 1 for a vibration, log(mu)/z - 1
+    for a saddle or barrier) and ``energy`` (relative energy error bound, vibrations), NaN
+    where the structure is lost; ``overflow`` where M(z) leaves float64."""
+
+    method: str
+    model: str
+    z: np.ndarray = field(repr=False)
+    phase: np.ndarray = field(repr=False)
+    energy: np.ndarray = field(repr=False)
+    overflow: np.ndarray = field(repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """What ``stepsafe error METHOD --json`` prints."""
+        rows = [{"z": float(zz), "phase_error": None if over else _finite(p),
+                 "energy_error": _finite(en) if self.model == "oscillator" and not over
+                 else None, "overflow": bool(over)}
+                for zz, p, en, over in zip(self.z, self.phase, self.energy, self.overflow)]
+        return {"method": self.method, "model": self.model,
+                "phase_error": "theta/z - 1" if self.model == "oscillator"
+                else "log(mu)/z - 1", "rows": rows}
+
+
+#: |M| beyond this: products of its entries leave float64, the errors cannot be evaluated.
+OVERFLOW = 1e150
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def errors(method: Integrator | str, z: ArrayLike, model: str = "oscillator") -> ErrorTable:
+    """Phase and energy errors of one step at each z = beta*h > 0.
+
+    >>> table = errors("verlet", [0.1])
+    >>> f"{table.phase[0]:.3e}"
+    '4.171e-04'
+    """
+    from stepsafe.core.accuracy import errors as core_errors
+    from stepsafe.core.transfer import transfer_matrix
+
+    integrator = _integrator(method)
+    if model not in REGION_MODELS:
+        raise StepsafeError(f"unknown model {model!r}; choose one of {', '.join(REGION_MODELS)}")
+    zs = np.atleast_1d(np.asarray(z, dtype=float)).ravel()
+    if not zs.size or not np.all(np.isfinite(zs) & (zs > 0)):
+        raise StepsafeError("z must be positive finite numbers")
+    with np.errstate(all="ignore"):  # far out, M(z) overflows: those rows say so
+        e = core_errors(integrator.tableau, zs, model)
+        M = np.asarray(transfer_matrix(integrator.tableau, zs, model))
+        size = np.abs(M).max(axis=(1, 2))
+    overflow = ~(np.isfinite(M).all(axis=(1, 2)) & (size <= OVERFLOW))
+    phase = np.where(overflow, np.nan, np.asarray(e.phase, dtype=float))
+    energy = np.where(overflow, np.nan, np.asarray(e.energy, dtype=float))
+    for arr in (zs, phase, energy, overflow):
+        arr.flags.writeable = False
+    return ErrorTable(integrator.name, model, zs, phase, energy, overflow)
+
+
+def load_scene(path: str | Path) -> Any:
+    """A scene file (see ``stepsafe schema scene``) as a :class:`stepsafe.systems.scene.Scene`;
+    pass its path as ``scene=`` to :func:`advise` or :func:`check`."""
+    from stepsafe.systems.scene import load_scene as _load
+
+    return _load(path)

@@ -1,0 +1,166 @@
+"""Core results as JSON-ready records: the exact shape of ``--json`` and of ``to_dict()``.
+
+Floats keep full precision; a non-finite value (no limit, the horizon at infinity) is
+``None``. Nothing here prints.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from stepsafe.core.models import ELLIPTIC
+from stepsafe.core.regions import Interval, Point, Region
+from stepsafe.methods.residuals import residuals
+
+
+def _num(x: float | None) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def _interval(iv: Interval) -> list[float | None]:
+    return [_num(iv.lo), _num(iv.hi)]
+
+
+def _point(p: Point) -> dict[str, Any]:
+    return {"z": float(p.z), "kind": p.kind, "detail": p.detail,
+            "uncertainty": _num(p.uncertainty)}
+
+
+def region_data(region: Region) -> dict[str, Any]:
+    """JSON-ready description of one model's region."""
+    fb = region.first_boundary_point
+    data: dict[str, Any] = {
+        "first_boundary": _num(region.first_boundary),
+        "first_boundary_kind": fb.kind if fb else None,
+        "first_boundary_detail": fb.detail if fb else None,
+        "first_boundary_uncertainty": _num(fb.uncertainty) if fb else None,
+        "intervals": [_interval(iv) for iv in region.intervals],
+        "islands": [{"lo": float(iv.lo), "hi": _num(iv.hi),
+                     "orientation": "same" if same else "reversed"}
+                    for iv, same in region.islands],
+        "resonances": [_point(p) for p in region.resonances],
+        "poles": [float(p.z) for p in region.poles],
+        "zmax": float(region.zmax),
+        "resolution": float(region.resolution),
+        "symplectic": region.symplectic,
+    }
+    if ELLIPTIC[region.model] and region.symplectic:
+        data["stability_limit"] = _num(region.stability_limit)
+    if region.classical is not None:
+        data["classical_intervals"] = [_interval(iv) for iv in region.classical]
+    if region.notes:
+        data["notes"] = list(region.notes)
+    return data
+
+
+def method_data(method, entry) -> dict[str, Any]:
+    """Identity and coefficient checks of a method."""
+    from stepsafe.methods.families import is_symmetric
+
+    res = residuals(method)
+    return {
+        "method": entry.name,
+        "title": entry.title,
+        "kind": method.kind,
+        "order": method.order,
+        "stages": method.stages,
+        "evaluations": entry.evaluations,
+        "symplectic": res.symplectic,
+        "symplectic_for_separable": res.symplectic_for_separable,
+        "symmetric": is_symmetric(method),
+        "explicit": method.explicit,
+        "residuals": {
+            "symplecticity": res.symplectic_separable,
+            "weights_equal": res.weights_equal,
+            "consistency": res.consistency,
+            **({"row_sums": res.row_sums} if res.row_sums is not None else {}),
+        },
+        "source": entry.source,
+    }
+
+
+def _limit(lim) -> dict[str, Any] | None:
+    if lim is None:
+        return None
+    p = lim.first_boundary_point
+    return {"model": lim.model, "beta": lim.beta_max, "count": lim.count,
+            "first_boundary": _num(lim.first_boundary),
+            "first_boundary_kind": p.kind if p else None,
+            "h_limit": _num(lim.h_limit)}
+
+
+def advice_data(adv) -> dict[str, Any]:
+    """JSON-ready advice: h_max, the safe h intervals, the limiting frequency, per model.
+
+    ``h_max_limited_by`` is ``boundary`` when a structure boundary (root, pole, resonance)
+    ends the safe interval from 0, ``horizon`` when none was found below the analysed
+    range (then ``h_max`` is the horizon, not a safety limit), ``none`` when no step is
+    safe."""
+    safe = adv.safe_h
+    limited_by = ("none" if not safe or safe[0][0] != 0.0 else
+                  "horizon" if adv.h_max_is_horizon or safe[0][1] is None else "boundary")
+    return {
+        "method": adv.method,
+        "margin": adv.margin,
+        "h_max": _num(adv.h_max) if adv.h_max is not None else None,
+        "h_max_limited_by": limited_by,
+        "safe_h": [[float(lo), _num(hi)] for lo, hi in adv.safe_h],
+        "limiting": _limit(adv.limiting) if limited_by == "boundary" else None,
+        "models": {lim.model: _limit(lim) for lim in adv.models},
+        "horizon": _num(adv.horizon),
+    }
+
+
+def check_data(result, labels: Mapping[str, Sequence[str | None]] | None = None
+               ) -> dict[str, Any]:
+    """JSON-ready check; ``labels[model][i]`` names mode i of that model (scene ``label:``)."""
+
+    def failure(f) -> dict[str, Any]:
+        names = (labels or {}).get(f.model, ())
+        label = names[f.index] if 0 <= f.index < len(names) else None
+        return {"model": f.model, "beta": f.beta, "z": f.z, "reason": f.reason,
+                "largest_safe_h": _num(f.h_limit), **({"label": label} if label else {})}
+
+    return {
+        "method": result.method,
+        "h": result.h,
+        "margin": result.margin,
+        "safe": result.safe,
+        "in_primary_interval": result.in_primary,
+        "modes": result.n_modes,
+        "failing": result.n_failing,
+        "failures": [failure(f) for f in result.failures],
+        "h_max": _num(result.advice.h_max) if result.advice.h_max is not None else None,
+        "h_max_limited_by": advice_data(result.advice)["h_max_limited_by"],
+        "safe_h": [[float(lo), _num(hi)] for lo, hi in result.advice.safe_h],
+    }
+
+
+def tradeoff_data(res) -> dict[str, Any]:
+    """advice_data plus the tolerance limits, the usable step and its cost."""
+    data = advice_data(res.advice)
+    data["accuracy"] = [{"model": lim.model, "kind": lim.kind, "tolerance": lim.tol,
+                         "beta": lim.beta, "z": _num(lim.z), "h": _num(lim.h),
+                         "limited_by": lim.limited_by} for lim in res.limits]
+    data["h"] = _num(res.h)
+    data["bound_by"] = res.bound_by
+    data["evaluations"] = res.evaluations
+    data["cost_per_unit_time"] = _num(res.cost)
+    return data
+
+
+def coefficients(method) -> dict[str, Any]:
+    """The coefficient arrays of a method (``show --json``)."""
+    from stepsafe.methods.tableaux import Composition, PartitionedRK, RungeKutta, Splitting
+
+    if isinstance(method, RungeKutta):
+        return {"A": method.A.tolist(), "b": method.b.tolist(), "c": method.c.tolist()}
+    if isinstance(method, PartitionedRK):
+        return {k: getattr(method, k).tolist() for k in ("A_q", "b_q", "A_p", "b_p")}
+    if isinstance(method, Splitting):
+        return {"drift": method.drift.tolist(), "kick": method.kick.tolist()}
+    if not isinstance(method, Composition):
+        raise TypeError(f"not a method: {type(method).__name__}")
+    return {"base": method.base.name, "weights": method.weights.tolist()}

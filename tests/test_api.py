@@ -1,0 +1,150 @@
+"""The public Python API: the same answers as the command line, frozen, silent, typed errors."""
+
+from __future__ import annotations
+
+import dataclasses
+import doctest
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import stepsafe
+from stepsafe import api
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_docstring_examples_run():
+    failures, tried = doctest.testmod(api, raise_on_error=False, verbose=False)
+    assert tried >= 8 and failures == 0
+
+
+def test_import_stepsafe_is_light():
+    code = ("import sys, stepsafe; print(sorted({'numpy', 'scipy', 'yaml', 'rich', 'mpmath'}"
+            " & set(sys.modules)))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout
+    assert out.strip() == "[]"
+
+
+@pytest.mark.parametrize("args, call", [
+    (["show", "pefrl", "--json"], lambda: stepsafe.method("pefrl").to_dict()),
+    (["region", "lobatto3ab", "-s", "3", "--json"],
+     lambda: stepsafe.region(stepsafe.method("lobatto3ab", stages=3)).to_dict()),
+    (["region", "verlet", "--model", "saddle", "--zmax", "5", "--json"],
+     lambda: stepsafe.region("verlet", "saddle", zmax=5).to_dict()),
+    (["advise", "--method", "yoshida4", "--beta", "3.2", "--inverted-beta", "1.1", "--json"],
+     lambda: stepsafe.advise("yoshida4", [3.2], inverted=[1.1]).to_dict()),
+    (["advise", "--method", "verlet", "--beta", "2", "--tol-phase", "1e-3", "--json"],
+     lambda: stepsafe.advise("verlet", 2.0, tol_phase=1e-3).to_dict()),
+    (["advise", str(ROOT / "examples/double-well.yaml"), "--json"],
+     lambda: stepsafe.advise(scene=ROOT / "examples/double-well.yaml").to_dict()),
+    (["error", "yoshida4", "--z", "0.1", "--z", "1", "--json"],
+     lambda: stepsafe.errors("yoshida4", [0.1, 1.0]).to_dict()),
+])
+def test_to_dict_is_the_command_json(run, args, call):
+    code, out, _ = run(*args)
+    assert code == 0
+    assert json.loads(out) == json.loads(json.dumps(call()))
+
+
+def test_check_to_dict_is_one_entry_of_the_command_json(run):
+    scene = str(ROOT / "examples/paper-section3.yaml")
+    code, out, _ = run("check", scene, "--json")
+    report = stepsafe.check(scene=scene)
+    assert code == 1 and not report.safe
+    assert json.loads(out) == {"safe": False, "checks": [report.to_dict()]}
+    assert report.failures[0]["model"] == "saddle"
+
+
+def test_results_are_frozen_and_calls_are_silent(capsys):
+    report = stepsafe.advise("verlet", [1.0, 4.0])
+    assert report.h_max == pytest.approx(0.5, rel=1e-12)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        report.h_max = 1.0  # type: ignore[misc]
+    with pytest.raises(TypeError):
+        report.record["h_max"] = 1.0  # type: ignore[index]
+    data = report.to_dict()
+    data["h_max"] = 7.0  # a copy: the report is unchanged
+    assert report.to_dict()["h_max"] == report.h_max
+    table = stepsafe.errors("verlet", [0.5])
+    with pytest.raises(ValueError):
+        table.phase[0] = 0.0
+    assert capsys.readouterr() == ("", "")
+
+
+@pytest.mark.parametrize("call, where", [
+    (lambda: stepsafe.method("no-such-method"), "unknown method"),
+    (lambda: stepsafe.advise("verlet", [-1.0]), "beta must be"),
+    (lambda: stepsafe.advise("verlet", [1 + 1j]), "must be real"),
+    (lambda: stepsafe.check("verlet", 0.1), "no frequencies"),
+    (lambda: stepsafe.check("verlet", None, [1.0]), "no step"),
+    (lambda: stepsafe.region("verlet", "pendulum"), "unknown model"),
+    (lambda: stepsafe.region("verlet", zmax=-1), "zmax"),
+    (lambda: stepsafe.advise("verlet", [1.0], margin=2), "margin"),
+    (lambda: stepsafe.errors("verlet", [0.0]), "positive"),
+    (lambda: stepsafe.advise("verlet", system={"stiffness": np.eye(2) * 1j}), "real"),
+])
+def test_bad_input_raises_stepsafe_error(call, where):
+    with pytest.raises(stepsafe.StepsafeError, match=where):
+        call()
+
+
+def test_arrays_in_system_as_in_a_scene_file(tmp_path):
+    """A stiffness and mass given as numpy arrays answer as the same matrices in a scene."""
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(5, 5))
+    K = A @ A.T + 5 * np.eye(5)
+    mass = np.diag(rng.uniform(0.5, 2.0, 5))
+    scene = tmp_path / "s.yaml"
+    scene.write_text(f"method: pefrl\nsystem: {{stiffness: {K.tolist()}, "
+                     f"mass: {mass.tolist()}}}\n")
+    from_file = stepsafe.advise(scene=scene)
+    from_arrays = stepsafe.advise("pefrl", system={"stiffness": K, "mass": mass})
+    assert from_arrays.h_max == from_file.h_max
+    scale = np.diag(1 / np.sqrt(np.diag(mass)))
+    beta_max = np.sqrt(np.linalg.eigvalsh(scale @ K @ scale).max())
+    z_star = stepsafe.region("pefrl", "oscillator").first_boundary()
+    assert from_arrays.h_max == pytest.approx(z_star / beta_max, rel=1e-9)
+
+
+def test_labels_name_the_failing_modes(run, tmp_path):
+    scene = tmp_path / "labelled.yaml"
+    scene.write_text("method: verlet\nh: 0.3\nmodes:\n"
+                     "  - {beta: 1, label: slow torsion}\n"
+                     "  - {beta: 7, label: fast stretch}\n")
+    report = stepsafe.check(scene=scene)
+    (fail,) = report.failures
+    assert fail["label"] == "fast stretch" and fail["beta"] == 7
+    code, out, _ = run("check", str(scene))
+    assert code == 1 and "fast stretch (oscillator) beta = 7" in out
+    assert out.startswith(f"{scene}: UNSAFE")
+
+
+def test_several_scenes_one_json_shape(run, tmp_path):
+    safe, unsafe = tmp_path / "a.yaml", tmp_path / "b.yaml"
+    safe.write_text("method: verlet\nh: 0.1\nmodes: [{beta: 1}]\n")
+    unsafe.write_text("method: verlet\nh: 3\nmodes: [{beta: 1}]\n")
+    for files, verdict in (([safe], True), ([safe, unsafe], False)):
+        code, out, _ = run("check", *map(str, files), "--json")
+        data = json.loads(out)
+        assert code == (0 if verdict else 1) and data["safe"] is verdict
+        assert [c["scene"] for c in data["checks"]] == list(map(str, files))
+    code, out, _ = run("check", str(safe), str(unsafe))
+    lines = out.splitlines()
+    assert lines[0].startswith(f"{safe}: SAFE") and lines[1].startswith(f"{unsafe}: UNSAFE")
+
+
+def test_unknown_keys_suggest_the_closest(run, tmp_path):
+    scene = tmp_path / "typo.yaml"
+    scene.write_text("method: verlet\nh: 0.1\nmodez: [{beta: 1}]\n")
+    code, _, err = run("check", str(scene))
+    assert code == 2 and "did you mean 'modes'?" in err and "typo.yaml" in err
+    method = tmp_path / "m.yaml"
+    method.write_text("kind: splitting\ndrfit: [0.5, 0.5]\nkick: [1, 0]\n")
+    code, _, err = run("region", str(method))
+    assert code == 2 and "did you mean 'drift'?" in err
