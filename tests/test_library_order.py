@@ -9,12 +9,15 @@ step pair must be within 0.3 of the claim.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import mpmath as mp
 import pytest
 from integrate import integrate, mp_method
 
 from stepsafe.methods.library import builtin_names
 
+ROOT = Path(__file__).resolve().parent.parent
 LIBRARY = [n for n in builtin_names() if n not in ("gauss", "lobatto3ab")]
 T = 1
 Q0, P0 = 1, "0.5"
@@ -60,3 +63,14 @@ def test_family_order(family, s, reference):
     with mp.workdps(DPS):
         m = mp_method(family, s)
     assert abs(observed_order(m, reference, steps_for(m.order)) - m.order) <= 0.3
+
+
+def test_method_files_carry_facts_not_development_notes():
+    """Sources and comments of the shipped files are third-person facts: no first-person
+    notes, no reminders of what was not checked."""
+    import re
+
+    notes = re.compile(r"\bI [a-z]|\b(we|We|our)\b|brief|re-checked|not checked|TODO|FIXME")
+    for path in sorted((ROOT / "methods").glob("*.yaml")):
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            assert not notes.search(line), f"{path.name}:{number}: {line.strip()[:80]}"

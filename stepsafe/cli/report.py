@@ -85,12 +85,19 @@ def _lit(*parts: Any):
                            for p in parts))
 
 
+#: Width of text piped to a file or a program when COLUMNS does not say otherwise.
+MAX_PIPE_WIDTH = 400
+
+
 def _console():
+    import os
+
     from rich.console import Console
 
-    console = Console(soft_wrap=False)
-    if not console.is_terminal:  # piped: do not squeeze tables into 80 columns
-        console = Console(soft_wrap=False, width=120)
+    console = Console(soft_wrap=False)  # rich honours NO_COLOR and COLUMNS itself
+    if not console.is_terminal and not os.environ.get("COLUMNS"):
+        # piped: tables keep their natural width (no column cut to an ellipsis)
+        console = Console(soft_wrap=False, width=MAX_PIPE_WIDTH)
     console.on_broken_pipe = _pipe_closed  # rich would exit 1 ("unsafe"); the CLI decides
     return console
 
@@ -163,7 +170,7 @@ def print_methods(rows: list[dict[str, Any]]) -> None:
 
     table = Table()
     for col in ("name", "kind", "order", "stages", "evaluations", "symplectic"):
-        table.add_column(col, no_wrap=True)
+        table.add_column(col, overflow="fold")
     table.add_column("title", ratio=1)
     for r in rows:
         table.add_row(*(_lit(r[c]) if r[c] is not None else "-" for c in
@@ -182,7 +189,7 @@ def print_advice(data: dict[str, Any]) -> None:
                        if margin < 1 else ""))
     table = Table()
     for col in ("model", "modes", "largest beta", "first boundary z*", "h limit = F z*/beta"):
-        table.add_column(col, no_wrap=True)
+        table.add_column(col, overflow="fold")
     for model, lim in data["models"].items():
         z = "none below zmax" if lim["first_boundary"] is None else fmt(lim["first_boundary"])
         if lim["first_boundary_kind"] in ("pole", "resonance"):
@@ -216,6 +223,16 @@ def print_advice(data: dict[str, Any]) -> None:
                       "analysed.")
 
 
+def _styled(word: str, colour: str) -> str:
+    """``word`` in colour, unless NO_COLOR is set (https://no-color.org); click drops the
+    colour itself when stdout is not a terminal."""
+    import os
+
+    import click
+
+    return word if os.environ.get("NO_COLOR") else click.style(word, fg=colour)
+
+
 def print_check(data: dict[str, Any]) -> None:
     """Plain click output: check runs in CI on every commit, so it does not import rich."""
     import click
@@ -227,10 +244,10 @@ def print_check(data: dict[str, Any]) -> None:
     if data["safe"]:
         where = "" if data["in_primary_interval"] else \
             " (in an island outside the primary interval)"
-        click.echo(scene + click.style("SAFE", fg="green") + f": {name} with h = {h} "
+        click.echo(scene + _styled("SAFE", "green") + f": {name} with h = {h} "
                    f"preserves all {data['modes']} mode(s){where}.")
         return
-    click.echo(scene + click.style("UNSAFE", fg="red") + f": {name} with h = {h}: "
+    click.echo(scene + _styled("UNSAFE", "red") + f": {name} with h = {h}: "
                f"{data['failing']} of {data['modes']} mode(s) lose their structure.")
     for f in data["failures"]:
         if f.get("label"):
@@ -276,10 +293,10 @@ def print_errors(data: dict[str, Any]) -> None:
     from rich.table import Table
 
     table = Table(title=_lit(f"{data['method']} on the {data['model']} model"))
-    table.add_column("z = beta*h", no_wrap=True)
-    table.add_column(data["phase_error"], no_wrap=True)
+    table.add_column("z = beta*h", overflow="fold")
+    table.add_column(data["phase_error"], overflow="fold")
     if data["model"] == "oscillator":
-        table.add_column("energy error bound", no_wrap=True)
+        table.add_column("energy error bound", overflow="fold")
     for r in data["rows"]:
         cells = [fmt(r["z"]), _fmt_err(r["phase_error"], r.get("overflow"))]
         if data["model"] == "oscillator":
@@ -301,7 +318,7 @@ def print_compare(data: dict[str, Any]) -> None:
     table = Table(title=f"cost per unit time (force evaluations), tolerance: {tol}")
     for col in ("rank", "method", "z* (osc.)", "h_max (safe)", "h (tolerance)", "use h",
                 "bound by", "evals/step", "cost"):
-        table.add_column(col, no_wrap=True)
+        table.add_column(col, overflow="fold")
     for r in data["methods"]:
         table.add_row(
             "-" if r["rank"] is None else str(r["rank"]),
