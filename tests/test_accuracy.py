@@ -185,7 +185,7 @@ def test_plot_writes_a_png_or_names_the_extra(run, tmp_path):
     try:
         import matplotlib  # noqa: F401
     except ImportError:
-        assert code == 2 and "stepsafe[plot]" in err
+        assert code == 2 and "pip install '.[plot]'" in err
         return
     assert code == 0 and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 

@@ -156,7 +156,7 @@ def test_step_option_and_its_alias(run, flag):
     (["bogus"], "No such command 'bogus'"),
     (["region"], "Missing argument 'METHOD'"),
     (["validate"], "Missing argument"),
-    (["plot", "verlet"], "Missing option '-o'"),
+    (["plot", "verlet", "-o"], "requires an argument"),
     (["region", "verlet", "--model", "bogus"], "'bogus' is not one of"),
     (["region", "gauss", "-s", "three"], "'three' is not a valid integer"),
     (["check", "--method", "verlet", "--beta", "1", "--step"], "requires an argument"),
@@ -621,3 +621,31 @@ def test_no_rich_processing_of_file_text(run, tmp_path, text):
     assert code == 0 and out.splitlines()[0] == f"m — {text}"
     assert any(line.split("│")[2].strip() == text for line in out.splitlines()
                if "│ source" in line)
+
+
+def test_validate_names_a_scene_file(run):
+    code, _, err = run("validate", str(ROOT / "examples" / "scene.yaml"))
+    assert code == 2 and "this is a scene file" in err and "stepsafe check" in err
+
+
+def test_methods_lists_aliases(run_json):
+    rows = {r["name"]: r for r in run_json("methods", "--json")}
+    assert "blanes-casas-sanz-serna2" in rows["bcss2"]["aliases"]
+
+
+def test_piped_tables_are_never_cut(run):
+    """Through a pipe (CliRunner is one) every number is printed whole: no ellipsis."""
+    code, out, _ = run("compare", "--all", "--beta", "1", "--tol-phase", "1e-6")
+    assert code == 0 and "…" not in out
+
+
+def test_shell_completion_offers_method_names():
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "_STEPSAFE_COMPLETE": "bash_complete",
+           "COMP_WORDS": "stepsafe check --method pef", "COMP_CWORD": "3"}
+    out = subprocess.run([sys.executable, "-c", "from stepsafe.cli import main; main()"],
+                         env=env, capture_output=True, text=True)
+    assert out.returncode == 0 and "plain,pefrl" in out.stdout.split()

@@ -164,14 +164,15 @@ def _compare_row(res, method) -> dict:
 @click.option("--model", type=MODEL_ONE, default="oscillator", show_default=True)
 @click.option("--zmax", type=FLOAT, default=None, metavar="Z", help="Plot z up to Z [default: 6].")
 @click.option("--phase", "with_phase", is_flag=True, help="Add the phase error (log scale).")
-@click.option("-o", "--output", required=True, metavar="FILE.png",
+@click.option("-o", "--output", default=None, metavar="FILE.png",
               help="Where to write: exactly this path; its extension picks the format (png, "
-                   "pdf, svg, eps, ...; an unknown or missing extension is refused).")
+                   "pdf, svg, eps, ...; an unknown or missing extension is refused) "
+                   "[default: METHOD-MODEL.png in the current folder].")
 def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
     """Draw tr M(z)/2 with the band [-1, 1] and the preserved intervals (needs matplotlib).
 
     The file is written at exactly the path given, in the format its extension names; no
-    extension is ever added.
+    extension is ever added. Without -o it is METHOD-MODEL.png (e.g. verlet-oscillator.png).
 
     \b
     Example:
@@ -192,14 +193,18 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise _input_error("plot needs matplotlib: pip install 'stepsafe[plot]'") from None
+        raise _input_error("plot needs matplotlib: pip install matplotlib (from a clone of "
+                           "stepsafe: pip install '.[plot]')") from None
     import numpy as np
 
     from stepsafe.core.regions import find_region
     from stepsafe.core.transfer import transfer_matrix
 
-    fmt = _plot_format(output, plt)
     m, entry = _resolve(method, stages, base)
+    if output is None:
+        safe_name = "".join(c if c.isalnum() or c in "-_." else "_" for c in entry.name)
+        output = f"{safe_name}-{model}.png"
+    fmt = _plot_format(output, plt)
     region = find_region(m, model, zmax)
     z = np.linspace(zmax / 4000, zmax, 4000)
     with np.errstate(all="ignore"):  # overflow far out is drawn clipped, not warned about

@@ -57,6 +57,8 @@ class _Group(click.Group):
              **extra):
         if not standalone_mode:  # for embedding: click's behaviour, exceptions propagate
             return super().main(args, prog_name or PROG, complete_var, False, **extra)
+        # shell completion (_STEPSAFE_COMPLETE=bash_source stepsafe): click answers and exits
+        self._main_shell_completion(extra, prog_name or PROG, complete_var)
         args = sys.argv[1:] if args is None else list(args)
         sys.exit(self._run(args, extra))
 
@@ -184,7 +186,18 @@ def method_options(func):
     func = click.option("-s", "--stages", type=INT, metavar="N",
                         help="Stage count for the families gauss (N>=1) and "
                              "lobatto3ab (N>=2).")(func)
-    return click.argument("method", metavar="METHOD")(func)
+    return click.argument("method", metavar="METHOD", shell_complete=_complete_method)(func)
+
+
+def _complete_method(ctx, param, incomplete: str) -> list:
+    """Shell completion of METHOD: built-in names and aliases, then method files."""
+    from click.shell_completion import CompletionItem
+
+    from stepsafe.methods.library import builtin_names
+
+    if "/" in incomplete or incomplete.endswith((".yaml", ".yml")):
+        return [CompletionItem(incomplete, type="file")]
+    return [CompletionItem(name) for name in builtin_names() if name.startswith(incomplete)]
 
 
 def _resolve(method: str, stages: int | None, base: str | None):
@@ -208,12 +221,14 @@ def methods_cmd(as_json: bool) -> None:
             order = "2s" if name == "gauss" else "2s-2"
             rows.append({"name": f"{name} -s N", "kind": "rk" if name == "gauss" else "prk",
                          "order": order, "stages": f"N>={smallest}",
-                         "evaluations": "implicit", "symplectic": True, "title": title})
+                         "evaluations": "implicit", "symplectic": True, "title": title,
+                         "aliases": []})
             continue
         method, entry = resolve(name)
         rows.append({"name": name, "kind": method.kind, "order": method.order,
                      "stages": method.stages, "evaluations": entry.evaluations,
-                     "symplectic": residuals(method).symplectic, "title": entry.title})
+                     "symplectic": residuals(method).symplectic, "title": entry.title,
+                     "aliases": list(entry.aliases)})
     if as_json:
         print_json(rows)
     else:
@@ -307,6 +322,7 @@ def scene_options(func):
                                                     "(a family member as gauss:2)."),
         click.option("-s", "--stages", type=INT, metavar="N", help="Stage count of a family."),
         click.option("--method", "method_name", metavar="METHOD",
+                     shell_complete=_complete_method,
                      help="Built-in name, family (with -s) or method file."),
         click.argument("scene_files", nargs=-1, metavar="[SCENE.yaml]..."),
     ]
@@ -514,6 +530,7 @@ def validate_cmd(files: tuple[str, ...]) -> None:
     lines, invalid = [], None
     for path in files:  # all files first: a reader that stops early keeps the exit code
         try:
+            _not_a_scene(path)
             method, entry = resolve(path if _is_pathlike(path) else f"./{path}")
         except StepsafeError as exc:
             invalid = exc
@@ -536,6 +553,22 @@ def validate_cmd(files: tuple[str, ...]) -> None:
         click.echo(line)
     if invalid is not None:
         raise invalid
+
+
+def _not_a_scene(path: str) -> None:
+    """A scene file given to validate (which checks method files) is named as such."""
+    from stepsafe.exceptions import StepsafeError
+    from stepsafe.files.yamlio import load_yaml
+    from stepsafe.systems.scene import SCENE_KEYS
+
+    try:
+        tree = load_yaml(path)
+    except StepsafeError:
+        return  # resolve reports it, naming the file
+    if isinstance(tree, dict) and tree and "kind" not in tree and set(map(str, tree)) <= set(
+            SCENE_KEYS):
+        raise StepsafeError(f"this is a scene file (keys {', '.join(map(str, tree))}); "
+                            f"validate checks method files: use 'stepsafe check {path}'", path)
 
 
 def _is_pathlike(path: str) -> bool:

@@ -172,10 +172,11 @@ def print_methods(rows: list[dict[str, Any]]) -> None:
     for col in ("name", "kind", "order", "stages", "evaluations", "symplectic"):
         table.add_column(col, overflow="fold")
     table.add_column("title", ratio=1)
+    table.add_column("also called", overflow="fold")
     for r in rows:
         table.add_row(*(_lit(r[c]) if r[c] is not None else "-" for c in
                         ("name", "kind", "order", "stages", "evaluations", "symplectic",
-                         "title")))
+                         "title")), _lit(", ".join(r.get("aliases", ()))))
     _console().print(table)
 
 

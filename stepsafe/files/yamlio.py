@@ -26,6 +26,12 @@ MAX_DEPTH = 32
 MAX_NODES = 200_000
 
 
+class QuotedText(str):
+    """A scalar written in quotes: text by the author's choice, so a field whose schema
+    says "number" can refuse it (``h: "0.1"``), while coefficient fields, which accept
+    quoted expressions such as ``"2/3"``, read it like any other string."""
+
+
 class _StrictLoader(yaml.SafeLoader):
     """SafeLoader without implicit typing, aliases or duplicate keys; bounded in size."""
 
@@ -53,6 +59,10 @@ class _StrictLoader(yaml.SafeLoader):
             return super().compose_node(parent, index)
         finally:
             self._depth -= 1
+
+    def construct_scalar(self, node):  # noqa: ANN001
+        value = super().construct_scalar(node)
+        return QuotedText(value) if node.style in ("'", '"') else value
 
     def construct_mapping(self, node, deep=False):  # noqa: ANN001
         seen: set = set()

@@ -31,7 +31,7 @@ import numpy as np
 
 from stepsafe.core.models import MODELS
 from stepsafe.exceptions import StepsafeError, unknown_key
-from stepsafe.files.yamlio import load_yaml, read_bytes
+from stepsafe.files.yamlio import QuotedText, load_yaml, read_bytes
 
 SCENE_KEYS = ("method", "h", "margin", "zmax", "modes", "system")
 MAX_CSV_BYTES = 256 << 20
@@ -114,7 +114,11 @@ def parse_real(text: str) -> float | None:
 
 
 def number(value: Any, where: str, path: str) -> float:
-    """A finite real from a YAML string or a CLI value (no expressions here)."""
+    """A finite real from a YAML string or a CLI value (no expressions here); a quoted
+    YAML scalar is text, refused as the schema says."""
+    if isinstance(value, QuotedText):
+        raise _fail(where, path, f"must be a number, got the quoted text {str(value)!r} "
+                                 "(write it without quotes)")
     if isinstance(value, str):
         x = parse_real(value)
         if x is None:
