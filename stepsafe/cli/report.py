@@ -13,14 +13,6 @@ import math
 import sys
 from typing import Any
 
-from stepsafe.core.records import (  # noqa: F401  (re-exported for the commands)
-    advice_data,
-    check_data,
-    method_data,
-    region_data,
-    tradeoff_data,
-)
-
 
 def print_json(data: Any) -> None:
     sys.stdout.write(json.dumps(data, indent=2, allow_nan=False) + "\n")
