@@ -8,6 +8,8 @@ The public API (see :mod:`stepsafe.api`)::
     advise(method, frequencies, ...)            the safe steps h for your frequencies
     check(method, h, frequencies, ...)          whether step h is safe (``.safe``)
     errors(method, z, model="oscillator")       phase and energy errors of one step
+    compare(methods, frequencies, ...)          methods ranked by cost at the usable step
+    transfer_matrices(method, z, model)         the one-step matrices M(z), shape (n, 2, 2)
     problem(...), load_scene(path)              inputs merged from a scene file and arguments
     StepsafeError                               every error a caller can cause (bad input)
 
@@ -26,8 +28,9 @@ from stepsafe.exceptions import MethodError, StepsafeError
 
 __version__ = "0.1.0"
 
-_API = ("Integrator", "RegionReport", "AdviceReport", "CheckReport", "ErrorTable", "Problem",
-        "method", "method_from_file", "region", "advise", "check", "errors", "problem",
+_API = ("Integrator", "PartitionedTableau", "RegionReport", "AdviceReport", "CheckReport",
+        "ErrorTable", "CompareReport", "CompareRow", "Problem", "method", "method_from_file",
+        "region", "advise", "check", "errors", "compare", "transfer_matrices", "problem",
         "load_scene")
 __all__ = [*_API, "StepsafeError", "MethodError", "__version__"]
 
@@ -35,18 +38,23 @@ if TYPE_CHECKING:  # pragma: no cover
     from stepsafe.api import (  # noqa: F401
         AdviceReport,
         CheckReport,
+        CompareReport,
+        CompareRow,
         ErrorTable,
         Integrator,
+        PartitionedTableau,
         Problem,
         RegionReport,
         advise,
         check,
+        compare,
         errors,
         load_scene,
         method,
         method_from_file,
         problem,
         region,
+        transfer_matrices,
     )
 
 

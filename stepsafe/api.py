@@ -41,6 +41,22 @@ ArrayLike = Sequence[float] | np.ndarray | float
 
 
 @dataclass(frozen=True)
+class PartitionedTableau:
+    """One step of a partitioned Runge–Kutta method for q' = dH/dp, p' = -dH/dq:
+    stages Q_i = q + h sum_j A_q[i, j] dH/dp(Q_j, P_j), P_i = p - h sum_j A_p[i, j]
+    dH/dq(Q_j, P_j), then q + h b_q . dH/dp, p - h b_p . dH/dq (read-only arrays)."""
+
+    A_q: np.ndarray = field(repr=False)
+    b_q: np.ndarray = field(repr=False)
+    A_p: np.ndarray = field(repr=False)
+    b_p: np.ndarray = field(repr=False)
+
+    @property
+    def stages(self) -> int:
+        return int(self.b_q.size)
+
+
+@dataclass(frozen=True)
 class Integrator:
     """A method ready to analyse: its identity, and its coefficients as ``tableau``.
 
@@ -66,6 +82,36 @@ class Integrator:
 
         return {**method_data(self.tableau, self.entry),
                 "coefficients": coefficients(self.tableau)}
+
+    @property
+    def operations(self) -> tuple[tuple[str, float], ...] | None:
+        """One step of a splitting method (or a composition of one) as its sequence of
+        ``("drift", a)`` (q += a h dT/dp) and ``("kick", b)`` (p -= b h dV/dq), zero
+        coefficients dropped and neighbours merged; None for Runge–Kutta methods.
+
+        >>> method("verlet").operations
+        (('kick', 0.5), ('drift', 1.0), ('kick', 0.5))
+        """
+        from stepsafe.methods.tableaux import Composition, Splitting
+
+        m = self.tableau
+        if isinstance(m, Composition) and isinstance(m.flattened().base, Splitting):
+            m = m.as_splitting()
+        return tuple(m.operations) if isinstance(m, Splitting) else None
+
+    @property
+    def partitioned_tableau(self) -> PartitionedTableau | None:
+        """The coefficients of a Runge–Kutta or partitioned Runge–Kutta method (an RK method
+        has both tableaux equal); None for splittings and compositions."""
+        from stepsafe.methods.tableaux import PartitionedRK, RungeKutta
+
+        if not isinstance(self.tableau, (RungeKutta, PartitionedRK)):
+            return None
+        prk = self.tableau.as_prk()
+        arrays = [np.array(a, dtype=float) for a in (prk.A_q, prk.b_q, prk.A_p, prk.b_p)]
+        for a in arrays:
+            a.flags.writeable = False
+        return PartitionedTableau(*arrays)
 
     @contextmanager
     def naming_its_file(self) -> Iterator[None]:
@@ -251,14 +297,18 @@ def _modes_dict(frequencies: ArrayLike | None, saddle: ArrayLike | None,
 
 def problem(method: Integrator | str | None = None, frequencies: ArrayLike | None = None, *,
             saddle: ArrayLike | None = None, inverted: ArrayLike | None = None,
-            modes: Mapping[str, ArrayLike] | None = None, system: Mapping[str, Any] | None = None,
-            scene: str | Path | None = None, stages: int | None = None, base: str | None = None,
-            margin: float | None = None, zmax: float | None = None,
+            modes: Mapping[str, ArrayLike] | None = None,
+            labels: Mapping[str, Sequence[str | None]] | None = None,
+            system: Mapping[str, Any] | None = None, scene: str | Path | None = None,
+            stages: int | None = None, base: str | None = None, margin: float | None = None,
+            zmax: float | None = None,
             progress: Callable[[float], None] | None = None, budget: float | None = None
             ) -> Problem:
     """Merge a scene file with explicit arguments (the arguments win, as options do on the
     command line). Frequencies: ``frequencies`` (vibrations), ``saddle`` and ``inverted``
-    rates, ``modes`` by model name, all used together; else the scene's ``modes:``; else a
+    rates, ``modes`` by model name, all used together (``labels[model][i]`` names mode i of
+    ``model`` in that order: ``frequencies``, ``saddle``, ``inverted``, then ``modes``);
+    else the scene's ``modes:``; else a
     ``system`` (``{"stiffness": K, "mass": M}``, ``{"hessian": H}``, or a scene's
     ``system:``), analysed for the method. ``budget`` (seconds) stops a coupled analysis
     early; ``progress`` is called with the fraction done."""
@@ -281,9 +331,9 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
     zmax = zmax if zmax is not None else (loaded.zmax or DEFAULT_ZMAX)
     integrator = _scene_method(method, loaded, stages, base)
     given = _modes_dict(frequencies, saddle, inverted, modes)
-    report, labels = None, {}
+    report = None
     if given:
-        arrays = given
+        arrays, labels = given, _labels(labels, given)
     elif loaded.modes:
         arrays, labels = loaded.modes, loaded.labels
     elif system is not None or loaded.system is not None:
@@ -295,11 +345,28 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
         report = analyse_system(tree, where, folder, integrator.tableau, zmax, progress,
                                 deadline)
         arrays = report.modes.betas if report.modes is not None else {"oscillator": [0.0]}
+        labels = {}
     else:
         raise StepsafeError("no frequencies: give --beta/--saddle-beta/--inverted-beta, "
                             "--modes FILE, or modes: or system: in a scene file")
     return Problem(integrator, Modes.from_arrays(arrays), report, margin, zmax, loaded.h,
                    str(scene) if scene is not None else None, MappingProxyType(dict(labels)))
+
+
+def _labels(labels: Mapping[str, Sequence[str | None]] | None,
+            arrays: Mapping[str, np.ndarray]) -> dict[str, tuple[str | None, ...]]:
+    """``labels`` checked against the frequencies they name."""
+    out = {}
+    for model, names in (labels or {}).items():
+        if isinstance(names, str) or not isinstance(names, Sequence):
+            raise StepsafeError(f"labels[{model!r}] must be a list of texts (or None)")
+        if not all(n is None or isinstance(n, str) for n in names):
+            raise StepsafeError(f"labels[{model!r}] must hold texts or None")
+        if len(names) > len(arrays.get(model, ())):
+            raise StepsafeError(f"labels[{model!r}] names {len(names)} modes, there are "
+                                f"{len(arrays.get(model, ()))}")
+        out[model] = tuple(names)
+    return out
 
 
 def _scene_method(method: Integrator | str | None, scene: Any, stages: int | None,
@@ -382,6 +449,10 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
                            integrator.evaluations, p.zmax)
             result = res.advice
             data = tradeoff_data(res)
+    if result is not None and p.labels:
+        from stepsafe.core.records import label_limits
+
+        label_limits(data, p.modes.betas, p.labels)
     verdict = _verification(integrator, result.regions) if verify and result else None
     safe = tuple((float(lo), hi) for lo, hi in data["safe_h"])
     return AdviceReport(data["method"], data["h_max"], data["h_max_limited_by"], safe,
@@ -522,6 +593,143 @@ def errors(method: Integrator | str, z: ArrayLike, model: str = "oscillator") ->
     for arr in (zs, phase, energy, overflow):
         arr.flags.writeable = False
     return ErrorTable(integrator.name, model, zs, phase, energy, overflow)
+
+
+def transfer_matrices(method: Integrator | str, z: ArrayLike,
+                      model: str = "oscillator") -> np.ndarray:
+    """The one-step matrices M(z) of ``method`` on ``model`` at each z = beta*h, shape
+    (len(z), 2, 2), read-only: (q, p) after one step = M (q, p) before, in units where
+    beta = 1 (p scaled by beta). The structure is kept where |tr M| < 2 (oscillator) or
+    tr M > 2 (saddle, barrier). NaN where the implicit stage equations are singular (a pole);
+    entries may overflow to inf far out; no warning is raised.
+
+    >>> M = transfer_matrices("verlet", [1.0])[0]
+    >>> float(M[0, 0] + M[1, 1])   # 2 - z^2
+    1.0
+    """
+    from stepsafe.core.transfer import transfer_matrix
+
+    integrator = _integrator(method)
+    if model not in REGION_MODELS:
+        raise StepsafeError(f"unknown model {model!r}; choose one of {', '.join(REGION_MODELS)}")
+    zs = np.atleast_1d(np.asarray(z, dtype=float)).ravel()
+    if not np.all(np.isfinite(zs) & (zs >= 0)):
+        raise StepsafeError("z must be finite numbers >= 0")
+    with np.errstate(all="ignore"), integrator.naming_its_file():
+        M = np.array(transfer_matrix(integrator.tableau, zs, model), dtype=float)
+    M.flags.writeable = False
+    return M
+
+
+# --------------------------------------------------------------------------- compare
+
+#: What ``compare`` ranks when no methods are named.
+COMPARE_DEFAULT = ("verlet", "yoshida4", "suzuki4", "pefrl", "blanes-moan6", "kahan-li8",
+                   "gauss:2", "lobatto3ab:3")
+
+
+@dataclass(frozen=True)
+class CompareRow:
+    """One method in a :class:`CompareReport`: ``first_boundary`` z* on the oscillator,
+    ``h_max`` the safe limit, ``h_tol`` the largest step meeting the tolerances (0: none
+    does), ``h`` the step to use (``bound_by`` says which limit), ``cost`` force
+    evaluations per unit of simulated time at ``h``, ``rank`` (cheapest first; None when
+    there is no cost)."""
+
+    method: str
+    implicit: bool
+    first_boundary: float | None
+    h_max: float | None
+    h_tol: float | None
+    tolerance_status: tuple[str, ...]
+    h: float | None
+    bound_by: str
+    evaluations: int | None
+    cost: float | None
+    rank: int | None
+
+
+@dataclass(frozen=True)
+class CompareReport:
+    """Methods ranked by cost per unit of simulated time for the same frequencies."""
+
+    rows: tuple[CompareRow, ...]
+    modes: Mapping[str, int]
+    tolerances: Mapping[str, float]
+    margin: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """What ``stepsafe compare ... --json`` prints."""
+        from dataclasses import asdict
+
+        return {"modes": dict(self.modes), "tolerances": dict(self.tolerances),
+                "margin": self.margin,
+                "cost_unit": "force evaluations per unit of simulated time",
+                "methods": [{**asdict(r), "tolerance_status": list(r.tolerance_status)}
+                            for r in self.rows]}
+
+
+def compare(methods: Sequence[Integrator | str] | str | None = None,
+            frequencies: ArrayLike | None = None, *, saddle: ArrayLike | None = None,
+            inverted: ArrayLike | None = None, modes: Mapping[str, ArrayLike] | None = None,
+            tol_phase: float | None = None, tol_energy: float | None = None,
+            margin: float = 1.0, zmax: float | None = None) -> CompareReport:
+    """Rank ``methods`` (names, ``"family:N"`` such as ``"gauss:2"``, Integrators; ``"all"``:
+    every built-in method with the families at s = 2 and 3; None: :data:`COMPARE_DEFAULT`)
+    by the cost of the usable step h = min(safe, accurate) for the same frequencies.
+
+    >>> best = compare(["verlet", "pefrl"], [1.0], tol_phase=1e-6).rows[0]
+    >>> best.method, best.bound_by
+    ('pefrl', 'accuracy')
+    """
+    from stepsafe.core.advice import Modes, validate_margin
+    from stepsafe.core.records import compare_row
+    from stepsafe.core.tradeoff import Tolerance, tradeoff
+    from stepsafe.exceptions import positive_finite
+
+    arrays = _modes_dict(frequencies, saddle, inverted, modes)
+    grid = Modes.from_arrays(arrays)
+    tolerances = tuple(Tolerance(k, _tolerance(k, v)) for k, v in
+                       (("phase", tol_phase), ("energy", tol_energy)) if v is not None)
+    margin = validate_margin(margin)
+    if zmax is not None:
+        zmax = positive_finite(zmax, "zmax")
+    rows = []
+    for integrator in _compared(methods):
+        with integrator.naming_its_file():
+            res = tradeoff(integrator.tableau, grid, tolerances, margin, integrator.name,
+                           integrator.evaluations, zmax)
+        rows.append(compare_row(res, integrator.explicit))
+    rows.sort(key=lambda r: (r["cost"] is None, r["cost"] or 0.0))
+    ranked = []
+    for i, r in enumerate(rows, 1):
+        r["rank"] = i if r["cost"] is not None else None
+        ranked.append(CompareRow(**{**r, "tolerance_status": tuple(r["tolerance_status"])}))
+    return CompareReport(tuple(ranked),
+                         MappingProxyType({k: int(v.size) for k, v in grid.betas.items()}),
+                         MappingProxyType({t.kind: t.value for t in tolerances}), margin)
+
+
+def _compared(methods: Sequence[Integrator | str] | str | None) -> list[Integrator]:
+    from stepsafe.methods.library import FAMILIES, builtin_names
+
+    if methods == "all":
+        return ([method(n) for n in builtin_names() if n not in FAMILIES]
+                + [method(f, s) for f in FAMILIES for s in (2, 3)])
+    if isinstance(methods, str):
+        raise StepsafeError(f"methods must be a list of names or 'all', got {methods!r}")
+    out = []
+    for item in COMPARE_DEFAULT if methods is None else methods:
+        if not isinstance(item, str):
+            out.append(_integrator(item))
+            continue
+        name, _, stages = item.strip().partition(":")
+        if stages and not (stages.isascii() and stages.isdigit() and len(stages) <= 30):
+            raise StepsafeError(f"bad stage count in {item!r} (use family:N)")
+        out.append(method(name, int(stages) if stages else None))
+    if not out:
+        raise StepsafeError("no methods to compare")
+    return out
 
 
 def load_scene(path: str | Path) -> Any:

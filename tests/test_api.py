@@ -45,6 +45,11 @@ def test_import_stepsafe_is_light():
      lambda: stepsafe.advise(scene=ROOT / "examples/double-well.yaml").to_dict()),
     (["error", "yoshida4", "--z", "0.1", "--z", "1", "--json"],
      lambda: stepsafe.errors("yoshida4", [0.1, 1.0]).to_dict()),
+    (["compare", "--beta", "3.2", "--inverted-beta", "1", "--tol-phase", "1e-6", "--json"],
+     lambda: stepsafe.compare(None, [3.2], inverted=[1.0], tol_phase=1e-6).to_dict()),
+    (["compare", "--methods", "verlet,gauss:3", "--beta", "2", "--margin", "0.9", "--json"],
+     lambda: stepsafe.compare(["verlet", stepsafe.method("gauss", 3)], [2.0],
+                              margin=0.9).to_dict()),
 ])
 def test_to_dict_is_the_command_json(run, args, call):
     code, out, _ = run(*args)
@@ -160,3 +165,86 @@ def test_readme_python_examples_run(monkeypatch):
     monkeypatch.chdir(ROOT)
     for block in blocks:
         exec(compile(block, "README.md", "exec"), {})
+
+
+@pytest.mark.parametrize("args", [
+    ["compare", "--beta", "1", "--tol-phase", "1e-6"],
+    ["error", "verlet", "--z", "0.1", "--z", "2.5"],
+    ["error", "yoshida4", "--z", "1", "--model", "inverted"],
+    ["methods"],
+])
+def test_tsv_holds_what_json_holds(run, args):
+    """--tsv: a header of JSON keys, one line per row, floats that read back exactly,
+    empty fields for null."""
+    _, js, _ = run(*args, "--json")
+    code, out, err = run(*args, "--tsv")
+    assert code == 0, err
+    data = json.loads(js)
+    rows = data if isinstance(data, list) else data.get("rows") or data["methods"]
+    header, *lines = out.rstrip("\n").split("\n")
+    columns = header.split("\t")
+    assert len(lines) == len(rows)
+    for line, row in zip(lines, rows):
+        for column, cell in zip(columns, line.split("\t"), strict=True):
+            value = row[column]
+            if value is None:
+                assert cell == ""
+            elif isinstance(value, bool):
+                assert cell == str(value).lower()
+            elif isinstance(value, float):
+                assert float(cell) == value
+            elif isinstance(value, list):
+                assert cell == ", ".join(value)
+            else:
+                assert cell == str(value)
+
+
+def test_json_and_tsv_together_is_a_usage_error(run):
+    code, out, err = run("compare", "--beta", "1", "--json", "--tsv")
+    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1
+
+
+def test_compare_help_offers_only_what_compare_accepts(run):
+    """Every option listed by compare --help is accepted (no scene, method or --verify)."""
+    _, text, _ = run("compare", "--help")
+    for refused in ("--verify", "--budget", "--method ", "SCENE"):
+        assert refused not in text
+
+
+def test_transfer_matrices_and_recipes_agree():
+    """M(z) from transfer_matrices equals the product of the method's own operations
+    applied to the oscillator (and the PRK stage equations solved directly)."""
+    z = np.array([0.3, 1.1, 2.7])
+    for name, stages in (("verlet", None), ("yoshida4", None), ("pefrl", None),
+                         ("gauss", 2), ("lobatto3ab", 3)):
+        m = stepsafe.method(name, stages)
+        got = stepsafe.transfer_matrices(m, z)
+        assert not got.flags.writeable
+        for k, zz in enumerate(z):
+            M = np.eye(2)
+            if m.operations is not None:
+                for kind, c in m.operations:
+                    step = [[1, c * zz], [0, 1]] if kind == "drift" else [[1, 0], [-c * zz, 1]]
+                    M = np.array(step) @ M
+            else:
+                t = m.partitioned_tableau
+                s = t.stages
+                # Q = q + z A_q P, P = p - z A_p Q  (beta = 1, h = z), solved for (Q, P)
+                lhs = np.block([[np.eye(s), -zz * t.A_q], [zz * t.A_p, np.eye(s)]])
+                for col, (q, p) in enumerate(((1.0, 0.0), (0.0, 1.0))):
+                    Q, P = np.split(np.linalg.solve(lhs, np.r_[np.full(s, q), np.full(s, p)]),
+                                    2)
+                    M[:, col] = (q + zz * t.b_q @ P, p - zz * t.b_p @ Q)
+            np.testing.assert_allclose(got[k], M, rtol=1e-12, atol=1e-12)
+
+
+def test_examples_use_only_the_public_api():
+    """Programs in examples/ import stepsafe, never its internal modules."""
+    import ast
+
+    for path in (ROOT / "examples").glob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                     [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            assert not any(n.startswith("stepsafe.") for n in names), (path, names)

@@ -537,7 +537,37 @@ def test_modes_csv_variants(tmp_path, content):
     from stepsafe.systems.scene import load_modes
 
     got = load_modes(_modes_csv(tmp_path, content))
-    assert {k: v.tolist() for k, v in got.items()} == {"oscillator": [3.0], "inverted": [1.0]}
+    assert {k: v.tolist() for k, v in got.betas.items()} == {"oscillator": [3.0],
+                                                             "inverted": [1.0]}
+    if "label" in content:
+        assert got.labels == {"oscillator": ("a",), "inverted": ("b",)}
+
+
+def test_modes_csv_labels_follow_their_rows(tmp_path):
+    """Labels stay with their rows across models, blank lines and comments; an empty label
+    field is no label, and a model whose rows have none has no labels."""
+    from stepsafe.systems.scene import load_modes
+
+    text = ("beta,label,model\n1,slow bend,oscillator\n# comment\n2,,oscillator\n\n"
+            "3,the top,inverted\n4,fast stretch,oscillator\n5,,saddle\n")
+    got = load_modes(_modes_csv(tmp_path, text))
+    assert got.betas["oscillator"].tolist() == [1.0, 2.0, 4.0]
+    assert got.labels == {"oscillator": ("slow bend", None, "fast stretch"),
+                          "inverted": ("the top",)}
+
+
+def test_modes_file_labels_reach_the_verdict(run, tmp_path):
+    """A labelled mode from --modes (CSV or YAML) is named in check's failures, after
+    the --beta frequencies given on the command line."""
+    csv_file = _modes_csv(tmp_path, "beta,label\n1,slow bend\n40,fast stretch\n")
+    yaml_file = tmp_path / "modes.yaml"
+    yaml_file.write_text("- {beta: 1, label: slow bend}\n- {beta: 40, label: fast stretch}\n")
+    for path in (csv_file, yaml_file):
+        code, out, err = run("check", "--method", "verlet", "--step", "0.1", "--beta", "15",
+                             "--modes", str(path), "--json")
+        assert code == 1, err
+        failures = json.loads(out)["checks"][0]["failures"]
+        assert [(f["beta"], f.get("label")) for f in failures] == [(40.0, "fast stretch")]
 
 
 def test_modes_csv_row_budget_checked_before_parsing(run, tmp_path):
@@ -608,7 +638,7 @@ def test_modes_csv_fast_and_exact_readers_agree(tmp_path, monkeypatch):
                 assert not any(expected.values()) and "no rows" in str(exc), exc
             return
         assert isinstance(expected, dict), (expected, got)
-        assert {k: v.tolist() for k, v in got.items()} == expected
+        assert {k: v.tolist() for k, v in got.betas.items()} == expected
 
     check()
 
@@ -697,3 +727,19 @@ def test_cancelling_coefficient_expressions_are_evaluated_exactly(run, tmp_path)
     import json
 
     assert json.loads(out)["models"]["oscillator"]["first_boundary"] == 2.0
+
+
+def test_advise_names_the_limiting_mode_by_its_label(run, tmp_path):
+    """The label of the mode that limits h reaches advise's JSON and text, literally."""
+    scene = tmp_path / "labelled.yaml"
+    scene.write_text("method: verlet\nmodes:\n  - {beta: 1, label: slow bend}\n"
+                     "  - {beta: 7, label: \"fast [red]stretch\"}\n"
+                     "  - {beta: 2, model: inverted}\n")
+    code, out, err = run("advise", str(scene), "--json")
+    assert code == 0, err
+    data = json.loads(out)
+    assert data["limiting"]["label"] == "fast [red]stretch"
+    assert data["models"]["oscillator"]["label"] == "fast [red]stretch"
+    assert "label" not in data["models"]["inverted"]
+    code, out, err = run("advise", str(scene))
+    assert "limited by fast [red]stretch (oscillator) beta = 7" in out

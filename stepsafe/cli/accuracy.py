@@ -12,11 +12,11 @@ from stepsafe.cli.main import (
     FLOAT,
     INT,
     _input_error,
-    _resolve,
     command_line_modes,
+    frequency_options,
     main,
     method_options,
-    scene_options,
+    one_format,
 )
 
 MODEL_ONE = click.Choice(("oscillator", "saddle", "inverted", "saddle-p"))
@@ -32,7 +32,10 @@ MAX_POINTS = 100_000  # error --n: a table, not a sweep (bounded time and memory
               help=f"Range points (at most {MAX_POINTS}).")
 @click.option("--model", type=MODEL_ONE, default="oscillator", show_default=True)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
-def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json) -> None:
+@click.option("--tsv", is_flag=True,
+              help="Print the table as tab-separated values (z, phase_error, energy_error, "
+                   "overflow; empty where not preserved).")
+def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json, tsv) -> None:
     """Error figures of METHOD at given z = beta*h.
 
     oscillator: phase error theta/z - 1 (theta the rotation per step) and the relative
@@ -49,8 +52,9 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json) -> No
     import numpy as np
 
     from stepsafe import api
-    from stepsafe.cli.report import print_errors, print_json
+    from stepsafe.cli.report import print_errors, print_json, print_tsv
 
+    one_format(as_json, tsv)
     z = list(zs)
     if zmin is not None or zmax is not None:
         if zmin is None or zmax is None or count < 2:
@@ -67,7 +71,12 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json) -> No
         if not (np.isfinite(value) and value > 0):
             raise _input_error(f"z must be a positive finite number, got {value}")
     data = api.errors(api.method(method, stages, base), z, model).to_dict()
-    print_json(data) if as_json else print_errors(data)
+    if as_json:
+        print_json(data)
+    elif tsv:
+        print_tsv(("z", "phase_error", "energy_error", "overflow"), data["rows"])
+    else:
+        print_errors(data)
 
 
 @main.command("compare")
@@ -79,84 +88,39 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json) -> No
               help="Largest |phase error| (|growth-rate error| for saddles and barriers).")
 @click.option("--tol-energy", type=FLOAT, default=None, metavar="T",
               help="Largest relative energy error (vibrations).")
-@scene_options
-def compare_cmd(names, use_all, tol_phase, tol_energy, scene_files, method_name, stages, base,
-                beta, saddle_beta, inverted_beta, modes_file, margin, zmax, budget, as_json,
-                verify) -> None:
+@click.option("--tsv", is_flag=True, help="Print the table as tab-separated values.")
+@frequency_options
+def compare_cmd(names, use_all, tol_phase, tol_energy, tsv, beta, saddle_beta, inverted_beta,
+                modes_file, margin, zmax, as_json) -> None:
     """Rank methods by cost per unit of simulated time for your frequencies.
 
     For each method: the first boundary, the largest safe h, the h that meets the
     tolerance, evaluations per step and the cost evaluations/h at the usable step
-    min(safe, accurate); ranked by cost (cheapest first).
+    min(safe, accurate); ranked by cost (cheapest first). Steps are in the time unit of
+    1/beta.
 
     \b
     Examples:
       stepsafe compare --beta 3.2 --tol-phase 1e-6
       stepsafe compare --beta 1 --tol-energy 1e-4 --methods verlet,pefrl,yoshida4,gauss:2
     """
-    from stepsafe.cli.report import print_compare, print_json
-    from stepsafe.core.advice import Modes, validate_margin
-    from stepsafe.core.tradeoff import Tolerance, tradeoff
-    from stepsafe.exceptions import positive_finite
-    from stepsafe.methods.library import FAMILIES, builtin_names, resolve
+    from stepsafe import api
+    from stepsafe.cli.report import print_compare, print_json, print_tsv
 
-    if scene_files or method_name:
-        raise _input_error("compare takes --methods or --all, not a method or scene")
-    if verify:
-        raise _input_error("--verify applies to region, advise and check (run it per method)")
-    if budget is not None:
-        raise _input_error("--budget applies to the system analysis of advise and check")
-    modes = Modes.from_arrays(command_line_modes(beta, saddle_beta, inverted_beta, modes_file))
-    tolerances = tuple(Tolerance(k, v) for k, v in (("phase", tol_phase),
-                                                     ("energy", tol_energy)) if v is not None)
-    for t in tolerances:
-        if not (t.value > 0 and t.value < float("inf")):
-            raise _input_error(f"--tol-{t.kind} must be a positive finite number, got {t.value}")
-    margin = validate_margin(1.0 if margin is None else margin)
-    if zmax is not None:
-        zmax = positive_finite(zmax, "zmax")
-    if use_all:
-        specs = [(n, None) for n in builtin_names() if n not in FAMILIES]
-        specs += [(f, s) for f in FAMILIES for s in (2, 3)]
+    one_format(as_json, tsv)
+    if use_all and names:
+        raise _input_error("give --methods or --all, not both")
+    arrays, _ = command_line_modes(beta, saddle_beta, inverted_beta, modes_file)
+    methods = "all" if use_all else (None if names is None else names.split(","))
+    data = api.compare(methods, modes=arrays, tol_phase=tol_phase, tol_energy=tol_energy,
+                       margin=1.0 if margin is None else margin, zmax=zmax).to_dict()
+    if as_json:
+        print_json(data)
+    elif tsv:
+        print_tsv(("rank", "method", "implicit", "first_boundary", "h_max", "h_tol", "h",
+                   "bound_by", "evaluations", "cost"), data["methods"])
     else:
-        raw = names or "verlet,yoshida4,suzuki4,pefrl,blanes-moan6,kahan-li8,gauss:2,lobatto3ab:3"
-        specs = []
-        for item in raw.split(","):
-            name, _, s = item.strip().partition(":")
-            if s and not (s.isascii() and s.isdigit() and len(s) <= 30):
-                raise _input_error(f"bad stage count in {item!r} (use family:N)")
-            specs.append((name, int(s) if s else None))
-    rows = []
-    for name, s in specs:
-        m, entry = resolve(name, s)
-        res = tradeoff(m, modes, tolerances, margin, entry.name, entry.evaluations, zmax)
-        rows.append(_compare_row(res, m))
-    ranked = sorted(rows, key=lambda r: (r["cost"] is None, r["cost"] or 0.0))
-    for i, r in enumerate(ranked, 1):
-        r["rank"] = i if r["cost"] is not None else None
-    data = {"modes": {k: int(v.size) for k, v in modes.betas.items()},
-            "tolerances": {t.kind: t.value for t in tolerances}, "margin": margin,
-            "cost_unit": "force evaluations per unit of simulated time",
-            "methods": ranked}
-    print_json(data) if as_json else print_compare(data)
-
-
-def _compare_row(res, method) -> dict:
-    first = next((lim for lim in res.advice.models if lim.model == "oscillator"),
-                 res.advice.models[0])
-    h_tol = [lim.h for lim in res.limits]
-    return {
-        "method": res.method,
-        "implicit": not method.explicit,
-        "first_boundary": first.first_boundary,
-        "h_max": res.advice.h_max,
-        "h_tol": (None if not h_tol else (0.0 if any(h is None for h in h_tol) else min(h_tol))),
-        "tolerance_status": sorted({lim.limited_by for lim in res.limits}),
-        "h": res.h,
-        "bound_by": res.bound_by,
-        "evaluations": res.evaluations,
-        "cost": res.cost,
-    }
+        print_compare(data)
 
 
 @main.command("plot")
@@ -197,31 +161,30 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
                            "stepsafe: pip install '.[plot]')") from None
     import numpy as np
 
-    from stepsafe.core.regions import find_region
-    from stepsafe.core.transfer import transfer_matrix
+    from stepsafe import api
 
-    m, entry = _resolve(method, stages, base)
+    integrator = api.method(method, stages, base)
     if output is None:
-        safe_name = "".join(c if c.isalnum() or c in "-_." else "_" for c in entry.name)
+        safe_name = "".join(c if c.isalnum() or c in "-_." else "_" for c in integrator.name)
         output = f"{safe_name}-{model}.png"
     fmt = _plot_format(output, plt)
-    region = find_region(m, model, zmax)
+    region = api.region(integrator, model, zmax).regions[model]
     z = np.linspace(zmax / 4000, zmax, 4000)
+    M = api.transfer_matrices(integrator, z, model)
     with np.errstate(all="ignore"):  # overflow far out is drawn clipped, not warned about
-        M = transfer_matrix(m, z, model)
         half = 0.5 * (M[:, 0, 0] + M[:, 1, 1])
     with warnings.catch_warnings(), np.errstate(all="ignore"):
         # matplotlib's tick locator overflows on axes out to 1e308: cosmetic, not a result
         warnings.simplefilter("ignore")
-        fig = _draw(plt, m, entry, model, region, z, half, zmax, with_phase)
+        fig = _draw(plt, integrator, model, region, z, half, zmax, with_phase)
     _save(fig, output, fmt)
     click.echo(f"wrote {output}")
 
 
-def _draw(plt, m, entry, model, region, z, half, zmax, with_phase):
+def _draw(plt, integrator, model, region, z, half, zmax, with_phase):
     import numpy as np
 
-    from stepsafe.core.accuracy import errors
+    from stepsafe import api
 
     rows = 2 if with_phase else 1
     fig, axes = plt.subplots(rows, 1, figsize=(8, 3.2 * rows), sharex=True, squeeze=False)
@@ -235,10 +198,10 @@ def _draw(plt, m, entry, model, region, z, half, zmax, with_phase):
     for p in region.poles:
         ax.axvline(p.z, color="tab:red", ls=":", lw=0.8)
     ax.set_ylim(-3, 3)
-    ax.set_title(f"{entry.name}, {model}: preserved z = beta*h shaded green")
+    ax.set_title(f"{integrator.name}, {model}: preserved z = beta*h shaded green")
     ax.legend(loc="lower left", fontsize=8)
     if with_phase:
-        e = errors(m, z, model)
+        e = api.errors(integrator, z, model)
         axes[1, 0].semilogy(z, np.abs(e.phase), lw=1.2)
         axes[1, 0].set_ylabel("|phase error|" if model == "oscillator" else "|rate error|")
     axes[-1, 0].set_xlabel("z = beta h")

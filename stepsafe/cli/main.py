@@ -200,17 +200,12 @@ def _complete_method(ctx, param, incomplete: str) -> list:
     return [CompletionItem(name) for name in builtin_names() if name.startswith(incomplete)]
 
 
-def _resolve(method: str, stages: int | None, base: str | None):
-    from stepsafe.methods.library import resolve
-
-    return resolve(method, stages, base)
-
-
 @main.command("methods")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON list.")
-def methods_cmd(as_json: bool) -> None:
+@click.option("--tsv", is_flag=True, help="Print the table as tab-separated values.")
+def methods_cmd(as_json: bool, tsv: bool) -> None:
     """List the built-in methods and families."""
-    from stepsafe.cli.report import print_json, print_methods
+    from stepsafe.cli.report import print_json, print_methods, print_tsv
     from stepsafe.methods.library import FAMILIES, builtin_names, resolve
     from stepsafe.methods.residuals import residuals
 
@@ -231,6 +226,9 @@ def methods_cmd(as_json: bool) -> None:
                      "aliases": list(entry.aliases)})
     if as_json:
         print_json(rows)
+    elif tsv:
+        print_tsv(("name", "kind", "order", "stages", "evaluations", "symplectic", "title",
+                   "aliases"), rows)
     else:
         print_methods(rows)
 
@@ -292,17 +290,11 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
     _exit_if_unverified(verdict)
 
 
-def scene_options(func):
-    """Options shared by advise and check; they override the scene file's values."""
+def frequency_options(func):
+    """Frequencies, margin, zmax and --json: the options of every command that analyses
+    frequencies (advise, check, compare)."""
     opts = [
-        click.option("--verify", is_flag=True,
-                     help="Recompute every boundary used with mpmath (40 digits) and report "
-                          "the largest discrepancy; exit 3 if one exceeds 1e-10."),
         click.option("--json", "as_json", is_flag=True, help="Print one JSON object."),
-        click.option("--budget", type=FLOAT, default=None, metavar="SECONDS",
-                     help="Stop a coupled system analysis after SECONDS: steps above the h "
-                          "reached are then not analysed (reported as the horizon). A bar "
-                          "on stderr shows its progress when it takes over a second."),
         click.option("--zmax", type=FLOAT, default=None, metavar="Z",
                      help="Analyse z = beta*h up to Z (islands beyond are not reported) "
                           "[default: 10]."),
@@ -310,14 +302,31 @@ def scene_options(func):
                      help="0 < F <= 1: allow every frequency to be up to 1/F times larger "
                           "(scales h_max by F) [default: 1]."),
         click.option("--modes", "modes_file", type=str, default=None, metavar="FILE",
-                     help="Frequencies from a YAML list of {beta:, model:} or a CSV file "
-                          "with columns beta[,model]."),
+                     help="Frequencies from a YAML list of {beta:, model:[, label:]} or a CSV "
+                          "file with columns beta[,model][,label]."),
         click.option("--inverted-beta", type=FLOAT, multiple=True, metavar="R",
                      help="Rate of a barrier top (q'=p, p'=+R^2 q); repeatable."),
         click.option("--saddle-beta", type=FLOAT, multiple=True, metavar="R",
                      help="Rate of a saddle (H = R p q); repeatable."),
         click.option("--beta", type=FLOAT, multiple=True, metavar="B",
                      help="Angular frequency of a vibration (q'=p, p'=-B^2 q); repeatable."),
+    ]
+    for opt in opts:
+        func = opt(func)
+    return func
+
+
+def scene_options(func):
+    """Options shared by advise and check; they override the scene file's values."""
+    opts = [
+        click.option("--verify", is_flag=True,
+                     help="Recompute every boundary used with mpmath (40 digits) and report "
+                          "the largest discrepancy; exit 3 if one exceeds 1e-10."),
+        click.option("--budget", type=FLOAT, default=None, metavar="SECONDS",
+                     help="Stop a coupled system analysis after SECONDS: steps above the h "
+                          "reached are then not analysed (reported as the horizon). A bar "
+                          "on stderr shows its progress when it takes over a second."),
+        frequency_options,
         click.option("--base", metavar="NAME", help="Swap the base method of a composition "
                                                     "(a family member as gauss:2)."),
         click.option("-s", "--stages", type=INT, metavar="N", help="Stage count of a family."),
@@ -337,27 +346,40 @@ def _problem(scene_file, method_name, stages, base, beta, saddle_beta, inverted_
     from stepsafe import api
     from stepsafe.cli.progressbar import progress_bar
 
-    modes = command_line_modes(beta, saddle_beta, inverted_beta, modes_file)
+    modes, labels = command_line_modes(beta, saddle_beta, inverted_beta, modes_file)
     with progress_bar("coupled analysis", show_progress) as progress:
-        return api.problem(method_name, modes=modes, scene=scene_file, stages=stages,
-                           base=base, margin=margin, zmax=zmax, progress=progress,
-                           budget=budget)
+        return api.problem(method_name, modes=modes, labels=labels, scene=scene_file,
+                           stages=stages, base=base, margin=margin, zmax=zmax,
+                           progress=progress, budget=budget)
 
 
-def command_line_modes(beta, saddle_beta, inverted_beta, modes_file) -> dict:
+def command_line_modes(beta, saddle_beta, inverted_beta, modes_file
+                       ) -> tuple[dict, dict[str, tuple[str | None, ...]]]:
     """Every frequency given on the command line, per model: --beta, --saddle-beta,
-    --inverted-beta and the --modes file together (none is dropped); {} if none."""
+    --inverted-beta and the --modes file together, in that order (none is dropped); and the
+    labels of the file's modes at their places in that order. ({}, {}) if none."""
     import numpy as np
 
     parts: dict[str, list] = {"oscillator": list(beta), "saddle": list(saddle_beta),
                               "inverted": list(inverted_beta)}
+    labels: dict[str, tuple[str | None, ...]] = {}
     if modes_file:
         from stepsafe.systems.scene import load_modes
 
-        for model, values in load_modes(modes_file).items():
+        loaded = load_modes(modes_file)
+        for model, values in loaded.betas.items():
+            if model in loaded.labels:
+                labels[model] = (None,) * len(parts.get(model, ())) + loaded.labels[model]
             parts.setdefault(model, []).append(values)
-    return {model: np.concatenate([np.atleast_1d(np.asarray(v, dtype=float)) for v in vs])
-            for model, vs in parts.items() if len(vs)}
+    arrays = {model: np.concatenate([np.atleast_1d(np.asarray(v, dtype=float)) for v in vs])
+              for model, vs in parts.items() if len(vs)}
+    return arrays, labels
+
+
+def one_format(as_json: bool, tsv: bool) -> None:
+    """--json and --tsv each choose the whole output: giving both is a usage error."""
+    if as_json and tsv:
+        raise _input_error("give --json or --tsv, not both")
 
 
 def _input_error(message: str):

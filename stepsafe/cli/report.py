@@ -11,11 +11,36 @@ from __future__ import annotations
 import json
 import math
 import sys
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 
 def print_json(data: Any) -> None:
     sys.stdout.write(json.dumps(data, indent=2, allow_nan=False) + "\n")
+
+
+def print_tsv(columns: Sequence[str], rows: Iterable[Mapping[str, Any]]) -> None:
+    """A table as tab-separated values for scripts: a header line naming ``columns`` (the
+    ``--json`` keys), then one line per row. Numbers at full precision (the shortest text
+    that reads back as the same float), true/false, an empty field for null; tabs and line
+    breaks inside text become spaces, control characters are made visible."""
+    from stepsafe.text import printable
+
+    def cell(value: Any) -> str:
+        if value is None:
+            return ""
+        if isinstance(value, bool):
+            return "true" if value else "false"
+        if isinstance(value, float):
+            return repr(value)
+        if isinstance(value, (list, tuple)):
+            return ", ".join(cell(v) for v in value)
+        text = str(value).replace("\t", " ").replace("\r", " ").replace("\n", " ")
+        return printable(text)
+
+    lines = ["\t".join(columns)]
+    lines += ["\t".join(cell(row.get(c)) for c in columns) for row in rows]
+    sys.stdout.write("\n".join(lines) + "\n")
 
 
 def fmt(x: float | None, digits: int = 12) -> str:
@@ -204,9 +229,11 @@ def print_advice(data: dict[str, Any]) -> None:
                       "further).")
     else:
         lim = data["limiting"]
-        by = ("" if not lim else f", limited by {lim['model']} beta = {fmt(lim['beta'])}"
+        who = (f"{lim['label']} ({lim['model']})" if lim and lim.get("label")
+               else lim and lim["model"])
+        by = ("" if not lim else f", limited by {who} beta = {fmt(lim['beta'])}"
               if lim["beta"] is not None else f", limited by the {lim['model']} analysis")
-        console.print(f"[green]Safe: 0 < h < {fmt_below(safe[0][1])}[/green]{by}")
+        console.print(_lit((f"Safe: 0 < h < {fmt_below(safe[0][1])}", "green"), by))
     islands = [iv for iv in safe if iv[0] != 0.0]
     if islands:
         console.print("Also safe (islands outside the primary interval; any error in beta can "

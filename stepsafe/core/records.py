@@ -113,6 +113,28 @@ def advice_data(adv) -> dict[str, Any]:
     }
 
 
+def label_limits(data: dict[str, Any], betas: Mapping[str, Any],
+                 labels: Mapping[str, Sequence[str | None]]) -> None:
+    """Add to advice ``data`` (in place) the ``label`` of each model's largest frequency
+    (the one that sets its limit, the first such mode) and of the limiting one, when the
+    scene or modes file names it."""
+    import numpy as np
+
+    def name(model: str) -> str | None:
+        values, names = betas.get(model), labels.get(model, ())
+        if values is None or not len(values):
+            return None
+        index = int(np.argmax(np.asarray(values)))
+        return names[index] if index < len(names) else None
+
+    for model, entry in data["models"].items():
+        if name(model):
+            entry["label"] = name(model)
+    limiting = data.get("limiting")
+    if limiting and limiting.get("model") in data["models"] and name(limiting["model"]):
+        limiting["label"] = name(limiting["model"])
+
+
 def check_data(result, labels: Mapping[str, Sequence[str | None]] | None = None
                ) -> dict[str, Any]:
     """JSON-ready check; ``labels[model][i]`` names mode i of that model (scene ``label:``)."""
@@ -149,6 +171,28 @@ def tradeoff_data(res) -> dict[str, Any]:
     data["evaluations"] = res.evaluations
     data["cost_per_unit_time"] = _num(res.cost)
     return data
+
+
+def compare_row(res, explicit: bool) -> dict[str, Any]:
+    """One method's row of ``compare --json`` from its :class:`~stepsafe.core.tradeoff.Tradeoff`:
+    the oscillator's first boundary, the safe and accurate steps, the step to use and its cost
+    (``rank`` is set by the caller once every row is known)."""
+    first = next((lim for lim in res.advice.models if lim.model == "oscillator"),
+                 res.advice.models[0])
+    h_tol = [lim.h for lim in res.limits]
+    return {
+        "method": res.method,
+        "implicit": not explicit,
+        "first_boundary": first.first_boundary,
+        "h_max": res.advice.h_max,
+        "h_tol": (None if not h_tol else (0.0 if any(h is None for h in h_tol) else min(h_tol))),
+        "tolerance_status": sorted({lim.limited_by for lim in res.limits}),
+        "h": res.h,
+        "bound_by": res.bound_by,
+        "evaluations": res.evaluations,
+        "cost": res.cost,
+        "rank": None,
+    }
 
 
 def coefficients(method) -> dict[str, Any]:

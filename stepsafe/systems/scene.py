@@ -14,7 +14,8 @@ A scene file::
 
 A modes file (``--modes FILE``) is YAML (a list of ``{beta:, model:}``, or a mapping with
 ``modes:``) or CSV with a header row naming the columns ``beta`` and optionally ``model``
-(default ``oscillator``) and ``label`` (ignored). CSV fields are not quoted, ``#`` starts a
+(default ``oscillator``) and ``label`` (names the mode in verdicts; may be empty). CSV
+fields are not quoted, ``#`` starts a
 comment, and numbers are plain decimals (:func:`parse_real`). CSV files may be large (up to
 :data:`MAX_CSV_BYTES` and :data:`MAX_CSV_ROWS` rows); they are parsed by ``np.loadtxt``.
 """
@@ -223,18 +224,27 @@ def load_scene(path: str | Path) -> Scene:
     return scene
 
 
-def load_modes(path: str | Path) -> dict[str, np.ndarray]:
-    """Frequencies from a YAML or CSV modes file, grouped by model."""
+@dataclass(frozen=True)
+class ModesFile:
+    """A modes file's frequencies grouped by model, and per model the modes' labels in the
+    same order (None where a mode has none; a model without labels is absent)."""
+
+    betas: dict[str, np.ndarray]
+    labels: dict[str, tuple[str | None, ...]]
+
+
+def load_modes(path: str | Path) -> ModesFile:
+    """Frequencies (and labels) from a YAML or CSV modes file, grouped by model."""
     where = str(path)
     if str(path).lower().endswith(".csv"):
         return _load_csv(read_bytes(path, MAX_CSV_BYTES), where)
     tree = load_yaml(path)
     if isinstance(tree, dict) and "modes" in tree:
-        return _modes_list(tree["modes"], where, "modes")[0]
-    return _modes_list(tree, where, "")[0]
+        return ModesFile(*_modes_list(tree["modes"], where, "modes"))
+    return ModesFile(*_modes_list(tree, where, ""))
 
 
-def _load_csv(data: bytes, where: str) -> dict[str, np.ndarray]:
+def _load_csv(data: bytes, where: str) -> ModesFile:
     """A modes CSV. Parsed by ``np.loadtxt`` (C speed); where it refuses a part of the file,
     that part is bisected down to blocks read row by row by :func:`_csv_rows`, which decides
     and names the first bad line. Memory and time stay linear in the file size."""
@@ -254,10 +264,19 @@ def _load_csv(data: bytes, where: str) -> dict[str, np.ndarray]:
         except UnicodeDecodeError as exc:
             raise _fail(where, "", f"not UTF-8 text (byte {exc.start})") from None
     body, first_line, header = _csv_header(data, where)
-    betas, codes = _csv_parse(_CsvPart(data, body, len(data), first_line), header, where)
+    rows = _CsvPart(data, body, len(data), first_line)
+    betas, codes = _csv_parse(rows, header, where)
     if not betas.size:
         raise _fail(where, "", "no rows after the header")
-    return {m: betas[codes == k] for k, m in enumerate(MODELS) if np.any(codes == k)}
+    labels: dict[str, tuple[str | None, ...]] = {}
+    if "label" in header:
+        column = header.index("label")
+        names = np.array([text.split(",")[column].strip() or None
+                          for _, text in rows.lines() if text.strip()], dtype=object)
+        labels = {m: tuple(names[codes == k]) for k, m in enumerate(MODELS)
+                  if np.any(codes == k) and any(names[codes == k])}
+    return ModesFile({m: betas[codes == k] for k, m in enumerate(MODELS) if np.any(codes == k)},
+                     labels)
 
 
 #: Parts of a CSV with at most this many lines are read row by row once np.loadtxt has
