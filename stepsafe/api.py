@@ -273,13 +273,35 @@ class Problem:
     h: float | None = None
     scene: str | None = None
     labels: Mapping[str, tuple[str | None, ...]] = field(default_factory=dict)
+    time_unit: str | None = None  # the unit of h (None: the time unit of 1/beta)
+
+
+#: Vibrations given as ordinary frequency, wavenumber or period (see :mod:`stepsafe.units`).
+UnitValues = Sequence[float | str] | np.ndarray | float | str
+
+
+def _converted(forms: Mapping[str, UnitValues | None], time_unit: str | None
+               ) -> list[np.ndarray]:
+    """beta (rad per time unit) of each vibration given in another form."""
+    from stepsafe.units import quantity
+
+    out = []
+    for form, values in forms.items():
+        if values is None:
+            continue
+        items = [values] if isinstance(values, (str, int, float)) else list(
+            np.asarray(values, dtype=object).ravel())
+        out.append(np.array([quantity(v.item() if isinstance(v, np.generic) else v, form,
+                                      time_unit) for v in items], dtype=float))
+    return out
 
 
 def _modes_dict(frequencies: ArrayLike | None, saddle: ArrayLike | None,
-                inverted: ArrayLike | None, modes: Mapping[str, ArrayLike] | None
-                ) -> dict[str, np.ndarray]:
+                inverted: ArrayLike | None, modes: Mapping[str, ArrayLike] | None,
+                converted: Sequence[np.ndarray] = ()) -> dict[str, np.ndarray]:
     parts: dict[str, list[np.ndarray]] = {}
-    for model, values in (("oscillator", frequencies), ("saddle", saddle),
+    for model, values in (("oscillator", frequencies),
+                          *(("oscillator", v) for v in converted), ("saddle", saddle),
                           ("inverted", inverted), *((modes or {}).items())):
         if values is None:
             continue
@@ -298,6 +320,8 @@ def _modes_dict(frequencies: ArrayLike | None, saddle: ArrayLike | None,
 def problem(method: Integrator | str | None = None, frequencies: ArrayLike | None = None, *,
             saddle: ArrayLike | None = None, inverted: ArrayLike | None = None,
             modes: Mapping[str, ArrayLike] | None = None,
+            frequency: UnitValues | None = None, wavenumber: UnitValues | None = None,
+            period: UnitValues | None = None, time_unit: str | None = None,
             labels: Mapping[str, Sequence[str | None]] | None = None,
             system: Mapping[str, Any] | None = None, scene: str | Path | None = None,
             stages: int | None = None, base: str | None = None, margin: float | None = None,
@@ -306,9 +330,12 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
             ) -> Problem:
     """Merge a scene file with explicit arguments (the arguments win, as options do on the
     command line). Frequencies: ``frequencies`` (vibrations), ``saddle`` and ``inverted``
-    rates, ``modes`` by model name, all used together (``labels[model][i]`` names mode i of
-    ``model`` in that order: ``frequencies``, ``saddle``, ``inverted``, then ``modes``);
-    else the scene's ``modes:``; else a
+    rates, ``modes`` by model name, and vibrations as ``frequency``, ``wavenumber`` (cm^-1)
+    or ``period`` (numbers, or texts with a unit such as ``"100 THz"``, ``"9 fs"``; see
+    :mod:`stepsafe.units`), converted to rad per ``time_unit`` (``"fs"``, ``"ps"``, ...: the
+    unit of every h in and out), all used together (``labels[model][i]`` names mode i of
+    ``model`` in that order: ``frequencies``, ``frequency``, ``wavenumber``, ``period``,
+    ``saddle``, ``inverted``, then ``modes``); else the scene's ``modes:``; else a
     ``system`` (``{"stiffness": K, "mass": M}``, ``{"hessian": H}``, or a scene's
     ``system:``), analysed for the method. ``budget`` (seconds) stops a coupled analysis
     early; ``progress`` is called with the fraction done."""
@@ -325,12 +352,17 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
         budget = positive_finite(budget, "budget")
     if margin is not None:
         margin = validate_margin(margin)
-    loaded = load_scene(scene) if scene is not None else Scene()
+    from stepsafe.units import time_unit as known_time_unit
+
+    time_unit = known_time_unit(time_unit)
+    loaded = load_scene(scene, time_unit) if scene is not None else Scene(time_unit=time_unit)
     margin = validate_margin(margin if margin is not None else
                              (loaded.margin if loaded.margin is not None else 1.0))
     zmax = zmax if zmax is not None else (loaded.zmax or DEFAULT_ZMAX)
     integrator = _scene_method(method, loaded, stages, base)
-    given = _modes_dict(frequencies, saddle, inverted, modes)
+    converted = _converted({"frequency": frequency, "wavenumber": wavenumber,
+                            "period": period}, loaded.time_unit)
+    given = _modes_dict(frequencies, saddle, inverted, modes, converted)
     report = None
     if given:
         arrays, labels = given, _labels(labels, given)
@@ -350,7 +382,8 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
         raise StepsafeError("no frequencies: give --beta/--saddle-beta/--inverted-beta, "
                             "--modes FILE, or modes: or system: in a scene file")
     return Problem(integrator, Modes.from_arrays(arrays), report, margin, zmax, loaded.h,
-                   str(scene) if scene is not None else None, MappingProxyType(dict(labels)))
+                   str(scene) if scene is not None else None, MappingProxyType(dict(labels)),
+                   loaded.time_unit)
 
 
 def _labels(labels: Mapping[str, Sequence[str | None]] | None,
@@ -453,6 +486,7 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
         from stepsafe.core.records import label_limits
 
         label_limits(data, p.modes.betas, p.labels)
+    data["time_unit"] = p.time_unit
     verdict = _verification(integrator, result.regions) if verify and result else None
     safe = tuple((float(lo), hi) for lo, hi in data["safe_h"])
     return AdviceReport(data["method"], data["h_max"], data["h_max_limited_by"], safe,
@@ -522,6 +556,7 @@ def check(method: Integrator | str | None = None, h: float | None = None,
                                 integrator.name)
             data = check_data(result, p.labels)
     data["scene"] = p.scene
+    data["time_unit"] = p.time_unit
     verdict = None
     if verify and result is not None:
         top = max(float(b.max()) for b in p.modes.betas.values()) * float(step) / p.margin
@@ -657,13 +692,14 @@ class CompareReport:
     modes: Mapping[str, int]
     tolerances: Mapping[str, float]
     margin: float
+    time_unit: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe compare ... --json`` prints."""
         from dataclasses import asdict
 
         return {"modes": dict(self.modes), "tolerances": dict(self.tolerances),
-                "margin": self.margin,
+                "margin": self.margin, "time_unit": self.time_unit,
                 "cost_unit": "force evaluations per unit of simulated time",
                 "methods": [{**asdict(r), "tolerance_status": list(r.tolerance_status)}
                             for r in self.rows]}
@@ -673,10 +709,14 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
             frequencies: ArrayLike | None = None, *, saddle: ArrayLike | None = None,
             inverted: ArrayLike | None = None, modes: Mapping[str, ArrayLike] | None = None,
             tol_phase: float | None = None, tol_energy: float | None = None,
-            margin: float = 1.0, zmax: float | None = None) -> CompareReport:
+            margin: float = 1.0, zmax: float | None = None,
+            frequency: UnitValues | None = None, wavenumber: UnitValues | None = None,
+            period: UnitValues | None = None, time_unit: str | None = None
+            ) -> CompareReport:
     """Rank ``methods`` (names, ``"family:N"`` such as ``"gauss:2"``, Integrators; ``"all"``:
     every built-in method with the families at s = 2 and 3; None: :data:`COMPARE_DEFAULT`)
-    by the cost of the usable step h = min(safe, accurate) for the same frequencies.
+    by the cost of the usable step h = min(safe, accurate) for the same frequencies
+    (given as for :func:`problem`; h in ``time_unit``).
 
     >>> best = compare(["verlet", "pefrl"], [1.0], tol_phase=1e-6).rows[0]
     >>> best.method, best.bound_by
@@ -686,9 +726,12 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     from stepsafe.core.records import compare_row
     from stepsafe.core.tradeoff import Tolerance, tradeoff
     from stepsafe.exceptions import positive_finite
+    from stepsafe.units import time_unit as known_time_unit
 
-    arrays = _modes_dict(frequencies, saddle, inverted, modes)
-    grid = Modes.from_arrays(arrays)
+    time_unit = known_time_unit(time_unit)
+    converted = _converted({"frequency": frequency, "wavenumber": wavenumber,
+                            "period": period}, time_unit)
+    grid = Modes.from_arrays(_modes_dict(frequencies, saddle, inverted, modes, converted))
     tolerances = tuple(Tolerance(k, _tolerance(k, v)) for k, v in
                        (("phase", tol_phase), ("energy", tol_energy)) if v is not None)
     margin = validate_margin(margin)
@@ -707,7 +750,8 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
         ranked.append(CompareRow(**{**r, "tolerance_status": tuple(r["tolerance_status"])}))
     return CompareReport(tuple(ranked),
                          MappingProxyType({k: int(v.size) for k, v in grid.betas.items()}),
-                         MappingProxyType({t.kind: t.value for t in tolerances}), margin)
+                         MappingProxyType({t.kind: t.value for t in tolerances}), margin,
+                         time_unit)
 
 
 def _compared(methods: Sequence[Integrator | str] | str | None) -> list[Integrator]:

@@ -90,8 +90,7 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json, tsv) 
               help="Largest relative energy error (vibrations).")
 @click.option("--tsv", is_flag=True, help="Print the table as tab-separated values.")
 @frequency_options
-def compare_cmd(names, use_all, tol_phase, tol_energy, tsv, beta, saddle_beta, inverted_beta,
-                modes_file, margin, zmax, as_json) -> None:
+def compare_cmd(names, use_all, tol_phase, tol_energy, tsv, as_json, **options) -> None:
     """Rank methods by cost per unit of simulated time for your frequencies.
 
     For each method: the first boundary, the largest safe h, the h that meets the
@@ -110,10 +109,12 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, tsv, beta, saddle_beta, i
     one_format(as_json, tsv)
     if use_all and names:
         raise _input_error("give --methods or --all, not both")
-    arrays, _ = command_line_modes(beta, saddle_beta, inverted_beta, modes_file)
+    arrays, _ = command_line_modes(options)
     methods = "all" if use_all else (None if names is None else names.split(","))
+    margin = options["margin"]
     data = api.compare(methods, modes=arrays, tol_phase=tol_phase, tol_energy=tol_energy,
-                       margin=1.0 if margin is None else margin, zmax=zmax).to_dict()
+                       margin=1.0 if margin is None else margin, zmax=options["zmax"],
+                       time_unit=options["time_unit"]).to_dict()
     if as_json:
         print_json(data)
     elif tsv:

@@ -18,6 +18,7 @@ from stepsafe import __version__
 EXIT_OK, EXIT_UNSAFE, EXIT_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
 EXIT_INTERRUPTED = 130
 MODEL_CHOICES = ("oscillator", "saddle", "inverted", "saddle-p", "all")
+TIME_UNIT_NAMES = ("s", "ms", "us", "ns", "ps", "fs", "as")  # stepsafe.units.TIME_UNITS
 PROG = "stepsafe"
 
 
@@ -42,7 +43,31 @@ class _Number(click.ParamType):
             self.fail(f"{shown} is not a valid {self.name} (ASCII digits 0-9)", param, ctx)
 
 
-INT, FLOAT = _Number(int), _Number(float)
+class _Beta(_Number):
+    """--beta: a plain number (rad per time unit); a value with a unit is pointed to the
+    option that takes it."""
+
+    def __init__(self) -> None:
+        super().__init__(float)
+
+    def convert(self, value, param, ctx):
+        from stepsafe.exceptions import StepsafeError
+        from stepsafe.units import parse_quantity
+
+        try:
+            _, unit = parse_quantity(str(value))
+        except StepsafeError:
+            unit = None
+        if unit is not None:
+            form = ("--wavenumber" if unit == "cm-1" else "--period" if unit in TIME_UNIT_NAMES
+                    else "--frequency")
+            self.fail(f"{value!r}: --beta is a plain number in rad per time unit; for a "
+                      f"value in {unit} use {form} with --time-unit (e.g. --wavenumber 3700 "
+                      "--time-unit fs)", param, ctx)
+        return super().convert(value, param, ctx)
+
+
+INT, FLOAT, BETA = _Number(int), _Number(float), _Beta()
 
 
 class _Group(click.Group):
@@ -308,8 +333,21 @@ def frequency_options(func):
                      help="Rate of a barrier top (q'=p, p'=+R^2 q); repeatable."),
         click.option("--saddle-beta", type=FLOAT, multiple=True, metavar="R",
                      help="Rate of a saddle (H = R p q); repeatable."),
-        click.option("--beta", type=FLOAT, multiple=True, metavar="B",
-                     help="Angular frequency of a vibration (q'=p, p'=-B^2 q); repeatable."),
+        click.option("--time-unit", type=click.Choice(TIME_UNIT_NAMES), default=None,
+                     help="The unit of h (in and out); frequencies become rad per unit "
+                          "[default: the time unit of 1/beta]."),
+        click.option("--period", multiple=True, metavar="T",
+                     help="Period of a vibration: T in the time unit, or with a unit "
+                          "('9fs'); repeatable."),
+        click.option("--wavenumber", multiple=True, metavar="K",
+                     help="Wavenumber of a vibration in cm-1 (needs --time-unit); "
+                          "repeatable."),
+        click.option("--frequency", multiple=True, metavar="F",
+                     help="Frequency of a vibration: cycles per time unit, or with a unit "
+                          "('100THz', '3ps-1'); repeatable."),
+        click.option("--beta", type=BETA, multiple=True, metavar="B",
+                     help="Angular frequency of a vibration (q'=p, p'=-B^2 q), rad per "
+                          "time unit; repeatable."),
     ]
     for opt in opts:
         func = opt(func)
@@ -340,40 +378,57 @@ def scene_options(func):
     return func
 
 
-def _problem(scene_file, method_name, stages, base, beta, saddle_beta, inverted_beta,
-             modes_file, margin, zmax, budget=None, show_progress=False):
+def _problem(scene_file, options: dict, show_progress: bool = False):
     """The scene file merged with the command-line options (the options win)."""
     from stepsafe import api
     from stepsafe.cli.progressbar import progress_bar
 
-    modes, labels = command_line_modes(beta, saddle_beta, inverted_beta, modes_file)
+    modes, labels = command_line_modes(options)
     with progress_bar("coupled analysis", show_progress) as progress:
-        return api.problem(method_name, modes=modes, labels=labels, scene=scene_file,
-                           stages=stages, base=base, margin=margin, zmax=zmax,
-                           progress=progress, budget=budget)
+        return api.problem(options["method_name"], modes=modes, labels=labels,
+                           scene=scene_file, stages=options["stages"], base=options["base"],
+                           margin=options["margin"], zmax=options["zmax"],
+                           time_unit=options["time_unit"], progress=progress,
+                           budget=options["budget"])
 
 
-def command_line_modes(beta, saddle_beta, inverted_beta, modes_file
-                       ) -> tuple[dict, dict[str, tuple[str | None, ...]]]:
-    """Every frequency given on the command line, per model: --beta, --saddle-beta,
-    --inverted-beta and the --modes file together, in that order (none is dropped); and the
-    labels of the file's modes at their places in that order. ({}, {}) if none."""
+def command_line_modes(options: dict) -> tuple[dict, dict[str, tuple[str | None, ...]]]:
+    """Every frequency given on the command line, per model, as beta in rad per
+    --time-unit: --beta, --frequency, --wavenumber, --period (vibrations), --saddle-beta,
+    --inverted-beta and the --modes file together, in that order (none is dropped); and
+    the labels of the file's modes at their places in that order. ({}, {}) if none."""
     import numpy as np
 
-    parts: dict[str, list] = {"oscillator": list(beta), "saddle": list(saddle_beta),
-                              "inverted": list(inverted_beta)}
+    from stepsafe.units import quantity
+
+    unit = options["time_unit"]
+    vibrations = list(options["beta"])
+    for form in ("frequency", "wavenumber", "period"):
+        vibrations += [_option_value(lambda v, f=form: quantity(v, f, unit), form, v)
+                       for v in options[form]]
+    parts: dict[str, list] = {"oscillator": vibrations, "saddle": list(options["saddle_beta"]),
+                              "inverted": list(options["inverted_beta"])}
     labels: dict[str, tuple[str | None, ...]] = {}
-    if modes_file:
+    if options["modes_file"]:
         from stepsafe.systems.scene import load_modes
 
-        loaded = load_modes(modes_file)
+        loaded = load_modes(options["modes_file"], unit)
         for model, values in loaded.betas.items():
             if model in loaded.labels:
                 labels[model] = (None,) * len(parts.get(model, ())) + loaded.labels[model]
-            parts.setdefault(model, []).append(values)
-    arrays = {model: np.concatenate([np.atleast_1d(np.asarray(v, dtype=float)) for v in vs])
-              for model, vs in parts.items() if len(vs)}
+            parts.setdefault(model, []).extend(np.atleast_1d(values).tolist())
+    arrays = {model: np.asarray(vs, dtype=float) for model, vs in parts.items() if len(vs)}
     return arrays, labels
+
+
+def _option_value(convert, option: str, value: str) -> float:
+    """``convert(value)``, an error naming the option otherwise."""
+    from stepsafe.exceptions import StepsafeError
+
+    try:
+        return convert(value)
+    except StepsafeError as exc:
+        raise StepsafeError(f"--{option} {value}: {exc.message}") from None
 
 
 def one_format(as_json: bool, tsv: bool) -> None:
@@ -397,9 +452,8 @@ def _input_error(message: str):
               help="List every mode or equilibrium of a system (default: the ten most "
                    "limiting when there are more).")
 @scene_options
-def advise_cmd(tol_phase, tol_energy, every_mode, scene_files, method_name, stages, base, beta,
-               saddle_beta, inverted_beta, modes_file, margin, zmax, budget, as_json,
-               verify) -> None:
+def advise_cmd(tol_phase, tol_energy, every_mode, scene_files, as_json, verify,
+               **options) -> None:
     """Safe step sizes h for your frequencies.
 
     Safe h keep every mode's structure: beta*h lies in the method's region for that mode's
@@ -422,9 +476,7 @@ def advise_cmd(tol_phase, tol_energy, every_mode, scene_files, method_name, stag
 
     if len(scene_files) > 1:
         raise _input_error("advise takes at most one scene file")
-    problem = _problem(scene_files[0] if scene_files else None, method_name, stages, base, beta,
-                       saddle_beta, inverted_beta, modes_file, margin, zmax, budget,
-                       not as_json)
+    problem = _problem(scene_files[0] if scene_files else None, options, not as_json)
     data = api.advise(problem=problem, tol_phase=tol_phase, tol_energy=tol_energy,
                       verify=verify).to_dict()
     verdict = data.get("verify")
@@ -433,7 +485,7 @@ def advise_cmd(tol_phase, tol_energy, every_mode, scene_files, method_name, stag
     if "system" in data and not as_json:
         from stepsafe.cli.report import print_system
 
-        print_system(data["system"], every_mode)
+        print_system(data["system"], every_mode, data.get("time_unit"))
     if verdict and not as_json:
         _print_verify(verdict)
     _exit_if_unverified(verdict)
@@ -446,8 +498,7 @@ def advise_cmd(tol_phase, tol_energy, every_mode, scene_files, method_name, stag
               help="List every mode or equilibrium of a system (default: the ten most "
                    "limiting when there are more).")
 @scene_options
-def check_cmd(h, every_mode, scene_files, method_name, stages, base, beta, saddle_beta,
-              inverted_beta, modes_file, margin, zmax, budget, as_json, verify) -> None:
+def check_cmd(h, every_mode, scene_files, as_json, verify, **options) -> None:
     """Fail (exit 1) when the step h loses some mode's structure; for CI.
 
     Exit 0: every mode is preserved at h (with the margin); 1: not, with the reason for
@@ -466,8 +517,7 @@ def check_cmd(h, every_mode, scene_files, method_name, stages, base, beta, saddl
 
     outputs, verdicts = [], []
     for scene_file in scene_files or (None,):
-        problem = _problem(scene_file, method_name, stages, base, beta, saddle_beta,
-                           inverted_beta, modes_file, margin, zmax, budget, not as_json)
+        problem = _problem(scene_file, options, not as_json)
         data = api.check(h=h, problem=problem, verify=verify).to_dict()
         if "verify" in data:
             verdicts.append(data["verify"])
@@ -480,7 +530,7 @@ def check_cmd(h, every_mode, scene_files, method_name, stages, base, beta, saddl
         for data in outputs:
             print_check(data)
             if "system" in data:
-                print_system(data["system"], every_mode)
+                print_system(data["system"], every_mode, data.get("time_unit"))
             if "verify" in data:
                 _print_verify(data["verify"])
     for verdict in verdicts:

@@ -201,12 +201,14 @@ def print_advice(data: dict[str, Any]) -> None:
     from rich.table import Table
 
     console = _console()
-    margin = data["margin"]
+    margin, unit = data["margin"], data.get("time_unit")
+    u = f" {unit}" if unit else ""
     console.print(_lit((data["method"], "bold"),
                        f"  (margin {margin:g}: frequencies may be up to {1 / margin:.4g}x larger)"
                        if margin < 1 else ""))
     table = Table()
-    for col in ("model", "modes", "largest beta", "first boundary z*", "h limit = F z*/beta"):
+    for col in ("model", "modes", f"largest beta{f' (rad/{unit})' if unit else ''}",
+                "first boundary z*", f"h limit = F z*/beta{f' ({unit})' if unit else ''}"):
         table.add_column(col, overflow="fold")
     for model, lim in data["models"].items():
         z = "none below zmax" if lim["first_boundary"] is None else fmt(lim["first_boundary"])
@@ -218,13 +220,13 @@ def print_advice(data: dict[str, Any]) -> None:
         console.print(table)
     safe = data["safe_h"]
     if "accuracy" in data:
-        _print_accuracy(console, data)
+        _print_accuracy(console, data, u)
     if data["h_max_limited_by"] == "none":
         console.print("[red]No safe step from 0:[/red] the method never preserves this structure.")
     elif safe[0][1] is None:
         console.print("[green]Safe for every h[/green] (no frequency limits the step).")
     elif data["h_max_limited_by"] == "horizon":
-        console.print(f"[green]No limit found[/green] up to h = {fmt_below(safe[0][1])}, the "
+        console.print(f"[green]No limit found[/green] up to h = {fmt_below(safe[0][1])}{u}, the "
                       "horizon of the analysis (zmax / largest beta; raise --zmax to look "
                       "further).")
     else:
@@ -233,14 +235,16 @@ def print_advice(data: dict[str, Any]) -> None:
                else lim and lim["model"])
         by = ("" if not lim else f", limited by {who} beta = {fmt(lim['beta'])}"
               if lim["beta"] is not None else f", limited by the {lim['model']} analysis")
-        console.print(_lit((f"Safe: 0 < h < {fmt_below(safe[0][1])}", "green"), by))
+        console.print(_lit((f"Safe: 0 < h < {fmt_below(safe[0][1])}{u}", "green"), by))
     islands = [iv for iv in safe if iv[0] != 0.0]
     if islands:
         console.print("Also safe (islands outside the primary interval; any error in beta can "
-                      "move h out of them): " + ", ".join(_fmt_steps(iv) for iv in islands))
+                      "move h out of them): " + ", ".join(_fmt_steps(iv) + u for iv in islands))
     if data["horizon"] is not None and data["h_max_limited_by"] != "horizon":
-        console.print(f"Steps above {fmt(data['horizon'])} (zmax / largest beta) were not "
+        console.print(f"Steps above {fmt(data['horizon'])}{u} (zmax / largest beta) were not "
                       "analysed.")
+    if not unit and data["models"]:
+        console.print("h is in the time unit of 1/beta (--time-unit names it).")
 
 
 def _styled(word: str, colour: str) -> str:
@@ -259,7 +263,8 @@ def print_check(data: dict[str, Any]) -> None:
 
     from stepsafe.text import printable
 
-    h, name = fmt(data["h"]), printable(data["method"])
+    u = f" {data['time_unit']}" if data.get("time_unit") else ""
+    h, name = fmt(data["h"]) + u, printable(data["method"])
     scene = f"{printable(data['scene'])}: " if data.get("scene") else ""
     if data["safe"]:
         where = "" if data["in_primary_interval"] else \
@@ -273,7 +278,7 @@ def print_check(data: dict[str, Any]) -> None:
         if f.get("label"):
             f = {**f, "model": f"{printable(f['label'])} ({f['model']})"}
         limit = ("none below the horizon" if f["largest_safe_h"] is None
-                 else fmt_below(f["largest_safe_h"]) if f["largest_safe_h"] > 0 else "none")
+                 else fmt_below(f["largest_safe_h"]) + u if f["largest_safe_h"] > 0 else "none")
         what = (f"{f['model']}: " if f["beta"] is None else
                 f"{f['model']} beta = {fmt(f['beta'])}: z = beta*h = {fmt(f['z'])} ")
         click.echo(f"  {what}{f['reason']}; largest safe h for it: {limit}")
@@ -282,12 +287,12 @@ def print_check(data: dict[str, Any]) -> None:
     if data["h_max"]:
         horizon = " (no limit found up to the horizon of the analysis)" if data.get(
             "h_max_limited_by") == "horizon" else ""
-        click.echo(f"Safe steps for all modes: 0 < h < {fmt_below(data['h_max'])}{horizon}")
+        click.echo(f"Safe steps for all modes: 0 < h < {fmt_below(data['h_max'])}{u}{horizon}")
     elif data["h_max"] is not None:
         click.echo("No step is safe for all modes.")
 
 
-def _print_accuracy(console, data: dict[str, Any]) -> None:
+def _print_accuracy(console, data: dict[str, Any], u: str = "") -> None:
     for lim in data["accuracy"]:
         what = {"phase": "phase error" if lim["model"] == "oscillator" else "growth-rate error",
                 "energy": "energy error"}[lim["kind"]]
@@ -297,15 +302,16 @@ def _print_accuracy(console, data: dict[str, Any]) -> None:
         elif lim["limited_by"] == "boundary":
             console.print(f"{lim['model']} beta = {fmt(lim['beta'])}: the {what} stays below "
                           f"{lim['tolerance']:g} up to the first boundary "
-                          f"(h < {fmt_below(lim['h'])}).")
+                          f"(h < {fmt_below(lim['h'])}{u}).")
         else:
             console.print(f"{lim['model']} beta = {fmt(lim['beta'])}: {what} <= "
-                          f"{lim['tolerance']:g} for h <= {fmt_below(lim['h'])} "
+                          f"{lim['tolerance']:g} for h <= {fmt_below(lim['h'])}{u} "
                           f"(z = {fmt(lim['z'])}).")
     if data["h"] is not None:
         cost = data["cost_per_unit_time"]
-        console.print(f"[bold]Use h = {fmt_below(data['h'])}[/bold] (bound by {data['bound_by']})"
-                      + (f": {fmt(cost, 6)} force evaluations per unit time"
+        console.print(f"[bold]Use h = {fmt_below(data['h'])}{u}[/bold] (bound by "
+                      f"{data['bound_by']})"
+                      + (f": {fmt(cost, 6)} force evaluations per{u or ' unit time'}"
                          f" ({data['evaluations']} per step)" if cost is not None else "."))
 
 
@@ -335,7 +341,9 @@ def print_compare(data: dict[str, Any]) -> None:
     from rich.table import Table
 
     tol = ", ".join(f"{k} <= {v:g}" for k, v in data["tolerances"].items()) or "none"
-    table = Table(title=f"cost per unit time (force evaluations), tolerance: {tol}")
+    unit = data.get("time_unit")
+    per = f"per {unit}, h in {unit}" if unit else "per unit time"
+    table = Table(title=f"cost {per} (force evaluations), tolerance: {tol}")
     for col in ("rank", "method", "z* (osc.)", "h_max (safe)", "h (tolerance)", "use h",
                 "bound by", "evals/step", "cost"):
         table.add_column(col, overflow="fold")
@@ -360,7 +368,8 @@ def print_compare(data: dict[str, Any]) -> None:
 SUMMARY_ITEMS = 10
 
 
-def print_system(system: dict[str, Any], every: bool = False) -> None:
+def print_system(system: dict[str, Any], every: bool = False, unit: str | None = None
+                 ) -> None:
     """The modes or equilibria a system: scene was reduced to: every one, or (beyond
     :data:`SUMMARY_ITEMS`, unless ``every``) the ones with the smallest h limit."""
     import click
@@ -383,7 +392,8 @@ def print_system(system: dict[str, Any], every: bool = False) -> None:
         beta = "" if item.get("beta") is None else f"beta = {fmt(item['beta'], 8)} "
         limit = item.get("h_limit")
         limit_text = "" if "h_limit" not in item else (
-            "no limit" if limit is None else f"h < {fmt_below(limit, 10)}")
+            "no limit" if limit is None else f"h < {fmt_below(limit, 10)}"
+            + (f" {unit}" if unit else ""))
         click.echo(f"  {where}{item['type']} {item.get('model') or ''} {beta}{limit_text}")
     for note in system["notes"]:
         click.echo(f"  note: {printable(note)}")

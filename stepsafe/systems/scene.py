@@ -33,8 +33,9 @@ import numpy as np
 from stepsafe.core.models import MODELS
 from stepsafe.exceptions import StepsafeError, unknown_key
 from stepsafe.files.yamlio import QuotedText, load_yaml, read_bytes
+from stepsafe.units import FORMS, TIME_UNITS, quantity
 
-SCENE_KEYS = ("method", "h", "margin", "zmax", "modes", "system")
+SCENE_KEYS = ("method", "h", "time_unit", "margin", "zmax", "modes", "system")
 MAX_CSV_BYTES = 256 << 20
 MAX_CSV_ROWS = 10_000_000  # rows of a modes CSV, counted (newlines) before parsing
 
@@ -57,6 +58,7 @@ class Scene:
     where: str = ""
     labels: dict[str, tuple[str | None, ...]] = field(default_factory=dict)  # per model,
     # in the order of modes[model]: the modes' label: (None where a mode has none)
+    time_unit: str | None = None  # the unit of h (and of the modes' beta: rad per unit)
 
     @property
     def folder(self) -> Path:
@@ -78,15 +80,28 @@ def json_schema() -> dict[str, Any]:
                  "properties": {"name": {"type": "string"},
                                 "stages": {"type": "integer", "minimum": 1},
                                 "base": {"type": "string"}}}]},
-            "h": {**positive, "description": "the step to check (check only)"},
+            "h": {**positive, "description": "the step to check (check only), in time_unit"},
+            "time_unit": {"enum": list(TIME_UNITS),
+                          "description": "the unit of h; frequencies are converted to rad "
+                                         "per time_unit (default: the unit of 1/beta)"},
             "margin": {"type": "number", "exclusiveMinimum": 0, "maximum": 1,
                        "description": "frequencies may be up to 1/margin times larger"},
             "zmax": {**positive, "description": "analyse z = beta*h up to zmax (default 10)"},
             "modes": {"type": "array", "minItems": 1, "items": {
-                "type": "object", "additionalProperties": False, "required": ["beta"],
-                "properties": {"beta": {"type": "number", "minimum": 0},
-                               "model": {"enum": list(MODELS), "default": "oscillator"},
-                               "label": {"type": "string"}}}},
+                "type": "object", "additionalProperties": False,
+                "oneOf": [{"required": [form]} for form in FORMS],
+                "properties": {
+                    "beta": {"type": "number", "minimum": 0,
+                             "description": "angular frequency, rad per time unit"},
+                    "frequency": {"type": ["number", "string"],
+                                  "description": "cycles per time unit, or with a unit: "
+                                                 "'100 THz', '3 ps-1'"},
+                    "wavenumber": {"type": ["number", "string"],
+                                   "description": "cm-1 (needs time_unit): 3700"},
+                    "period": {"type": ["number", "string"],
+                               "description": "in time units, or with a unit: '9 fs'"},
+                    "model": {"enum": list(MODELS), "default": "oscillator"},
+                    "label": {"type": "string"}}}},
             "system": {"type": "object", "description": "a whole system: {stiffness:, mass:}, "
                        "{hessian:} or {hamiltonian:, parameters:, box: {q:, p:}}"},
         },
@@ -156,27 +171,30 @@ def method_ref(value: Any, where: str, path: str = "method") -> MethodRef:
     raise _fail(where, path, "must be a method name or {name:, stages:, base:}")
 
 
-def _modes_list(items: Any, where: str, path: str
+def _modes_list(items: Any, where: str, path: str, time_unit: str | None = None
                 ) -> tuple[dict[str, np.ndarray], dict[str, tuple[str | None, ...]]]:
-    """The frequencies of a ``modes:`` list grouped by model, and their labels."""
+    """The frequencies of a ``modes:`` list grouped by model (as beta, rad per time unit),
+    and their labels. Each item gives one of beta, frequency, wavenumber or period."""
     if not isinstance(items, list) or not items:
         raise _fail(where, path, "must be a non-empty list of {beta:, model:}")
+    keys = (*FORMS, "model", "label")
     grouped: dict[str, list[float]] = {}
     labels: dict[str, list[str | None]] = {}
     for i, item in enumerate(items):
-        if not isinstance(item, dict) or "beta" not in item:
-            raise _fail(where, f"{path}[{i}]", "must be a mapping with beta (and model)")
-        unknown = set(item) - {"beta", "model", "label"}
+        forms = [f for f in FORMS if isinstance(item, dict) and f in item]
+        if not isinstance(item, dict) or len(forms) != 1:
+            raise _fail(where, f"{path}[{i}]", "must be a mapping with one of beta, "
+                                               "frequency, wavenumber or period (and model)")
+        unknown = set(item) - set(keys)
         if unknown:
             raise _fail(where, f"{path}[{i}].{sorted(unknown)[0]}",
-                        unknown_key(sorted(unknown)[0], ("beta", "model", "label")))
+                        unknown_key(sorted(unknown)[0], keys))
         model = item.get("model", "oscillator")
         if model not in MODELS:
             raise _fail(where, f"{path}[{i}].model", f"must be one of {', '.join(MODELS)}, "
                                                       f"got {model!r}")
-        beta = number(item["beta"], where, f"{path}[{i}].beta")
-        if beta < 0:
-            raise _fail(where, f"{path}[{i}].beta", f"must be >= 0, got {beta}")
+        form = forms[0]
+        beta = _frequency(item[form], form, time_unit, where, f"{path}[{i}].{form}")
         label = item.get("label")
         if label is not None and not isinstance(label, str):
             raise _fail(where, f"{path}[{i}].label", f"must be text, got {label!r}")
@@ -184,6 +202,19 @@ def _modes_list(items: Any, where: str, path: str
         labels.setdefault(model, []).append(label)
     return ({m: np.array(v) for m, v in grouped.items()},
             {m: tuple(v) for m, v in labels.items() if any(x is not None for x in v)})
+
+
+def _frequency(value: Any, form: str, time_unit: str | None, where: str, path: str) -> float:
+    """beta (rad per time unit) of one mode's value; a text is a number with a unit."""
+    if form == "beta" or not isinstance(value, str) or (
+            isinstance(value, QuotedText) and parse_real(value) is not None):
+        value = number(value, where, path)
+        if value < 0:
+            raise _fail(where, path, f"must be >= 0, got {value}")
+    try:
+        return quantity(value, form, time_unit)
+    except StepsafeError as exc:
+        raise _fail(where, path, exc.message) from None
 
 
 def _near_scene(name: str | None, folder: Path) -> str | None:
@@ -198,7 +229,9 @@ def _near_scene(name: str | None, folder: Path) -> str | None:
     return str(folder / name)
 
 
-def load_scene(path: str | Path) -> Scene:
+def load_scene(path: str | Path, time_unit: str | None = None) -> Scene:
+    """A scene file; ``time_unit`` (from the command line) must agree with the file's
+    ``time_unit:`` when both are given, since the file's h and modes are in its own."""
     where = str(path)
     tree = load_yaml(path)
     if not isinstance(tree, dict):
@@ -219,8 +252,18 @@ def load_scene(path: str | Path) -> Scene:
     for key in ("h", "margin", "zmax"):
         if key in tree:
             setattr(scene, key, number(tree[key], where, key))
+    scene.time_unit = time_unit
+    if "time_unit" in tree:
+        unit = tree["time_unit"]
+        if not isinstance(unit, str) or unit not in TIME_UNITS:
+            raise _fail(where, "time_unit", f"must be one of {', '.join(TIME_UNITS)}, got "
+                                            f"{unit!r}")
+        if time_unit is not None and unit != time_unit:
+            raise _fail(where, "time_unit", f"is {unit}, but --time-unit {time_unit} was "
+                                            "given (h and the modes are in the file's unit)")
+        scene.time_unit = unit
     if "modes" in tree:
-        scene.modes, scene.labels = _modes_list(tree["modes"], where, "modes")
+        scene.modes, scene.labels = _modes_list(tree["modes"], where, "modes", scene.time_unit)
     return scene
 
 
@@ -233,15 +276,16 @@ class ModesFile:
     labels: dict[str, tuple[str | None, ...]]
 
 
-def load_modes(path: str | Path) -> ModesFile:
-    """Frequencies (and labels) from a YAML or CSV modes file, grouped by model."""
+def load_modes(path: str | Path, time_unit: str | None = None) -> ModesFile:
+    """Frequencies (and labels) from a YAML or CSV modes file, grouped by model; a YAML
+    file's frequency, wavenumber and period items are converted to rad per ``time_unit``."""
     where = str(path)
     if str(path).lower().endswith(".csv"):
         return _load_csv(read_bytes(path, MAX_CSV_BYTES), where)
     tree = load_yaml(path)
     if isinstance(tree, dict) and "modes" in tree:
-        return ModesFile(*_modes_list(tree["modes"], where, "modes"))
-    return ModesFile(*_modes_list(tree, where, ""))
+        return ModesFile(*_modes_list(tree["modes"], where, "modes", time_unit))
+    return ModesFile(*_modes_list(tree, where, "", time_unit))
 
 
 def _load_csv(data: bytes, where: str) -> ModesFile:

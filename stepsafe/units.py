@@ -1,0 +1,148 @@
+"""Physical units: frequencies in the forms users have them, steps in a named time unit.
+
+Every step h is in the *time unit* (``fs``, ``ps``, ...; without one, in the time unit of
+1/beta), and every frequency becomes the angular frequency beta in radians per time unit,
+so z = beta*h is unit-free and the analysis never sees a unit. The four forms:
+
+==============  ==========================================  ===========================
+form            beta (rad per time unit)                    unit of the value
+==============  ==========================================  ===========================
+``beta``        beta                                        rad per time unit
+``frequency``   2 pi f                                      cycles per time unit, or a
+                                                            unit: Hz ... PHz, ``ps-1``
+``wavenumber``  2 pi c k,  c = 299 792 458 m/s              cm^-1 (needs a time unit)
+``period``      2 pi / T                                    time unit, or ``fs``, ``ps``
+==============  ==========================================  ===========================
+
+The speed of light is exact in the SI (since 1983), and so are the decimal prefixes, so the
+conversions carry no constant of limited precision: the scale factor is formed exactly as a
+fraction and rounded once (the result is within a few ulps of the exact product). Example:
+the O-H stretch of water at 3700 cm^-1 has beta = 2 pi c k = 0.69697... rad/fs.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from fractions import Fraction
+
+from stepsafe.exceptions import StepsafeError
+
+#: The speed of light in vacuum, m/s (exact by the definition of the metre).
+SPEED_OF_LIGHT = 299_792_458
+
+#: Time units, in seconds (exact).
+TIME_UNITS: dict[str, Fraction] = {
+    "s": Fraction(1), "ms": Fraction(1, 10**3), "us": Fraction(1, 10**6),
+    "ns": Fraction(1, 10**9), "ps": Fraction(1, 10**12), "fs": Fraction(1, 10**15),
+    "as": Fraction(1, 10**18),
+}
+
+#: Frequency units, in hertz (exact); ``ps-1`` (also ``1/ps``, ``ps^-1``) is 1/ps = 1 THz.
+FREQUENCY_UNITS: dict[str, Fraction] = {
+    "Hz": Fraction(1), "kHz": Fraction(10**3), "MHz": Fraction(10**6), "GHz": Fraction(10**9),
+    "THz": Fraction(10**12), "PHz": Fraction(10**15),
+    **{f"{t}-1": 1 / s for t, s in TIME_UNITS.items()},
+}
+
+#: The forms a frequency can take (keys of a ``modes:`` item, options on the command line).
+FORMS = ("beta", "frequency", "wavenumber", "period")
+
+_QUANTITY = re.compile(r"\s*([+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)\s*([A-Za-z/^\-0-9]*)\s*")
+
+
+def time_unit(name: str | None) -> str | None:
+    """``name`` if it is a known time unit (None stays None)."""
+    if name is None:
+        return None
+    if name not in TIME_UNITS:
+        raise StepsafeError(f"unknown time unit {name!r}; choose one of "
+                            f"{', '.join(TIME_UNITS)}")
+    return name
+
+
+def _unit_name(text: str) -> str:
+    """Spellings of inverse time: ``1/ps`` and ``ps^-1`` are ``ps-1``; ``cm^-1`` is ``cm-1``."""
+    if text.startswith("1/"):
+        return text[2:] + "-1"
+    return text.replace("^-1", "-1")
+
+
+def parse_quantity(text: str) -> tuple[float, str | None]:
+    """``"3700 cm-1"`` -> ``(3700.0, "cm-1")``; a plain number has unit None. No
+    expressions: a decimal number and a unit name, nothing else."""
+    match = _QUANTITY.fullmatch(text) if text.isascii() else None
+    if match is None:
+        raise StepsafeError(f"{text!r} is not a number with an optional unit "
+                            "(e.g. 3700 cm-1, 100 THz, 9 fs)")
+    value, unit = float(match.group(1)), match.group(2)
+    return value, (_unit_name(unit) if unit else None)
+
+
+def angular_frequency(form: str, value: float, unit: str | None = None,
+                      time: str | None = None) -> float:
+    """beta in radians per ``time`` unit of a frequency given as ``form`` (see the module
+    table) with value ``value`` in ``unit`` (None: the form's default)."""
+    if not (math.isfinite(value) and value >= 0):
+        raise StepsafeError(f"{form} must be a finite number >= 0, got {value}")
+    seconds = None if time is None else TIME_UNITS[time]
+    if form == "beta":
+        if unit is not None:
+            raise StepsafeError(f"beta takes no unit (rad per time unit), got {unit!r}: "
+                                "use frequency, wavenumber or period for values with units")
+        return value
+    if form == "wavenumber":
+        if unit not in (None, "cm-1"):
+            raise StepsafeError(f"a wavenumber is in cm-1, got {unit!r}")
+        factor = Fraction(SPEED_OF_LIGHT * 100) * _needs(seconds, form)
+        return _scaled(value, 2 * factor)
+    if form == "frequency":
+        if unit is None:
+            return _scaled(value, Fraction(2))
+        if unit not in FREQUENCY_UNITS:
+            raise StepsafeError(f"unknown frequency unit {unit!r}; choose one of "
+                                f"{', '.join(FREQUENCY_UNITS)}")
+        return _scaled(value, 2 * FREQUENCY_UNITS[unit] * _needs(seconds, form))
+    if form == "period":
+        if value == 0:
+            raise StepsafeError("a period must be > 0")
+        if unit is None:
+            return _scaled(1 / value, Fraction(2))
+        if unit not in TIME_UNITS:
+            raise StepsafeError(f"unknown time unit {unit!r} for a period; choose one of "
+                                f"{', '.join(TIME_UNITS)}")
+        # beta = 2 pi / (T * unit / time unit)
+        ratio = TIME_UNITS[unit] / _needs(seconds, form)
+        return _scaled(1 / value, 2 / ratio)
+    raise StepsafeError(f"unknown form {form!r}; choose one of {', '.join(FORMS)}")
+
+
+def _needs(seconds: Fraction | None, form: str) -> Fraction:
+    if seconds is None:
+        what = "a wavenumber (cm-1)" if form == "wavenumber" else f"a {form} with a unit"
+        raise StepsafeError(f"{what} needs a time unit for h: give --time-unit (e.g. fs) or "
+                            "time_unit: in the scene file")
+    return seconds
+
+
+def _scaled(value: float, factor: Fraction) -> float:
+    """``pi * factor * value``, with ``factor`` exact until the one rounding of its float."""
+    result = value * float(factor) * math.pi
+    if not math.isfinite(result):
+        raise StepsafeError(f"the angular frequency overflows: {value} x {float(factor):g} "
+                            "x pi")
+    return result
+
+
+def quantity(value: object, form: str, time: str | None) -> float:
+    """beta of one value as read from a file or the command line: a number (in the form's
+    default unit) or a text with a unit (``"3700 cm-1"``)."""
+    if isinstance(value, bool):
+        raise StepsafeError(f"{form} must be a number, got {value!r}")
+    if isinstance(value, (int, float)):
+        return angular_frequency(form, float(value), None, time)
+    if isinstance(value, str):
+        number, unit = parse_quantity(value)
+        return angular_frequency(form, number, unit, time)
+    raise StepsafeError(f"{form} must be a number or a text such as '3700 cm-1', got "
+                        f"{type(value).__name__}")

@@ -1,0 +1,170 @@
+"""Physical units: conversions against exact values at 50 digits, and units on every h."""
+
+from __future__ import annotations
+
+import json
+
+import mpmath
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import stepsafe
+from stepsafe.exceptions import StepsafeError
+from stepsafe.units import FREQUENCY_UNITS, TIME_UNITS, angular_frequency, quantity
+
+C = mpmath.mpf(299792458)  # m/s, exact since 1983
+SECONDS = {"s": 0, "ms": -3, "us": -6, "ns": -9, "ps": -12, "fs": -15, "as": -18}
+HERTZ = {"Hz": 0, "kHz": 3, "MHz": 6, "GHz": 9, "THz": 12, "PHz": 15,
+         **{f"{t}-1": -e for t, e in SECONDS.items()}}
+
+
+def exact(form: str, value: float, unit: str | None, time: str | None):
+    """beta at 50 digits, from the definitions (not from stepsafe's factors)."""
+    with mpmath.workdps(50):
+        v, two_pi = mpmath.mpf(value), 2 * mpmath.pi
+        t = None if time is None else mpmath.mpf(10) ** SECONDS[time]
+        if form == "wavenumber":  # k in 1/cm: c in cm/s times k, cycles per second
+            return two_pi * C * 100 * v * t
+        if form == "frequency":
+            return two_pi * v * (1 if unit is None else mpmath.mpf(10) ** HERTZ[unit] * t)
+        if form == "period":
+            scale = 1 if unit is None else mpmath.mpf(10) ** SECONDS[unit] / t
+            return two_pi / (v * scale)
+        raise AssertionError(form)
+
+
+def test_tables_match_the_reference_tables():
+    assert set(TIME_UNITS) == set(SECONDS) and set(FREQUENCY_UNITS) == set(HERTZ)
+
+
+def test_water_stretch():
+    """3700 cm^-1 is 0.69695 rad/fs (2 pi c k); Verlet's linear limit 2/beta = 2.8696 fs."""
+    beta = quantity(3700, "wavenumber", "fs")
+    assert beta == pytest.approx(float(exact("wavenumber", 3700, None, "fs")), rel=1e-15)
+    assert f"{beta:.5f}" == "0.69695"
+    advice = stepsafe.advise("verlet", wavenumber=[3700], time_unit="fs")
+    with mpmath.workdps(50):
+        limit = 2 / exact("wavenumber", 3700, None, "fs")
+    assert advice.h_max == pytest.approx(float(limit), rel=1e-13)
+    assert advice.h_max < limit
+    assert advice.to_dict()["time_unit"] == "fs"
+
+
+@settings(max_examples=300, deadline=None)
+@given(form=st.sampled_from(["wavenumber", "frequency", "period"]),
+       mantissa=st.floats(1.0, 10.0), exponent=st.integers(-12, 12),
+       unit=st.one_of(st.none(), st.sampled_from(sorted(HERTZ)), st.sampled_from(sorted(SECONDS))),
+       time=st.sampled_from(sorted(SECONDS)))
+def test_conversions_within_a_few_ulps_of_exact(form, mantissa, exponent, unit, time):
+    value = mantissa * 10.0 ** exponent
+    if form == "wavenumber":
+        unit = None if unit is None else "cm-1"
+    elif form == "frequency" and unit in SECONDS:
+        unit = None
+    elif form == "period" and unit in HERTZ:
+        unit = None
+    try:
+        got = angular_frequency(form, value, unit, time)
+    except StepsafeError as exc:
+        assert "overflow" in str(exc)
+        return
+    assert float(abs(got / exact(form, value, unit, time) - 1)) < 1e-15
+
+
+@pytest.mark.parametrize("text, form, time, expected", [
+    ("3700 cm-1", "wavenumber", "fs", ("wavenumber", 3700, None)),
+    ("3700cm^-1", "wavenumber", "ps", ("wavenumber", 3700, None)),
+    ("100 THz", "frequency", "fs", ("frequency", 100, "THz")),
+    ("3 1/ps", "frequency", "fs", ("frequency", 3, "ps-1")),
+    ("3 ps^-1", "frequency", "ns", ("frequency", 3, "ps-1")),
+    ("9 fs", "period", "ps", ("period", 9, "fs")),
+    ("0.25", "period", None, ("period", 0.25, None)),
+])
+def test_texts_with_units(text, form, time, expected):
+    f, value, unit = expected
+    assert quantity(text, form, time) == pytest.approx(float(exact(f, value, unit, time)),
+                                                       rel=2e-16)
+
+
+@pytest.mark.parametrize("text, form, time, message", [
+    ("3700", "wavenumber", None, "needs a time unit"),
+    ("100 THz", "frequency", None, "needs a time unit"),
+    ("100 furlongs", "frequency", "fs", "unknown frequency unit"),
+    ("9 lightyears", "period", "fs", "unknown time unit"),
+    ("3700 THz", "wavenumber", "fs", "in cm-1"),
+    ("-3", "frequency", "fs", ">= 0"),
+    ("0", "period", "fs", "> 0"),
+    ("nan THz", "frequency", "fs", "not a number"),
+    ("1e999 THz", "frequency", "fs", "finite"),
+    ("1e308 Hz", "frequency", "s", "overflows"),
+    ("1e-320", "period", "fs", "overflows"),
+    ("__import__('os')", "frequency", "fs", "not a number"),
+    ("٣ THz", "frequency", "fs", "not a number"),
+])
+def test_bad_quantities_are_refused(text, form, time, message):
+    with pytest.raises(StepsafeError, match=message):
+        quantity(text, form, time)
+
+
+def test_command_line_units(run):
+    code, out, err = run("check", "--method", "verlet", "--wavenumber", "3700", "--time-unit",
+                         "fs", "--step", "3")
+    assert code == 1, err
+    assert "h = 3 fs" in out and "largest safe h for it: 2.86964186966 fs" in out
+    code, out, _ = run("advise", "--method", "verlet", "--wavenumber", "3700",
+                       "--time-unit", "fs")
+    assert "Safe: 0 < h < 2.86964186966 fs" in out and "(rad/fs)" in out
+    code, out, _ = run("advise", "--method", "verlet", "--beta", "1")
+    assert "time unit of 1/beta" in out
+    # the same vibration in four forms: one limit
+    forms = [["--beta", str(quantity(100, "frequency", "ps") / 1000)],
+             ["--frequency", "100THz"], ["--period", "10fs"], ["--frequency", "0.1"]]
+    limits = set()
+    for args in forms:
+        code, out, err = run("advise", "--method", "verlet", *args, "--time-unit", "fs",
+                             "--json")
+        assert code == 0, err
+        limits.add(round(json.loads(out)["h_max"], 12))
+    assert len(limits) == 1
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--beta", "3700cm-1"], "use --wavenumber"),
+    (["--beta", "100THz"], "use --frequency"),
+    (["--beta", "9fs"], "use --period"),
+    (["--wavenumber", "3700"], "needs a time unit"),
+    (["--frequency", "100 furlongs", "--time-unit", "fs"], "--frequency 100 furlongs"),
+    (["--wavenumber", "3700", "--time-unit", "minutes"], "--time-unit"),
+])
+def test_command_line_unit_errors(run, args, message):
+    code, out, err = run("advise", "--method", "verlet", *args)
+    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1
+    assert message in err
+
+
+def test_scene_with_units(run, tmp_path):
+    scene = tmp_path / "water.yaml"
+    scene.write_text("method: verlet\ntime_unit: fs\nh: 1.0\nmodes:\n"
+                     "  - {wavenumber: 3700, label: O-H stretch}\n"
+                     "  - {wavenumber: 1600, label: H-O-H bend}\n"
+                     "  - {frequency: 30 THz}\n  - {period: 0.5 ps}\n")
+    code, out, err = run("check", str(scene), "--json")
+    assert code == 0, err
+    entry = json.loads(out)["checks"][0]
+    assert entry["time_unit"] == "fs" and entry["h"] == 1.0
+    with mpmath.workdps(50):
+        top = exact("wavenumber", 3700, None, "fs")
+    assert entry["h_max"] == pytest.approx(float(2 / top), rel=1e-13)
+    code, out, err = run("check", str(scene), "--time-unit", "ps")
+    assert code == 2 and "time_unit" in err and "--time-unit ps" in err
+    bad = tmp_path / "no-unit.yaml"
+    bad.write_text("method: verlet\nmodes:\n  - {wavenumber: 3700}\n")
+    code, out, err = run("advise", str(bad))
+    assert code == 2 and "modes[0].wavenumber" in err and "time unit" in err
+    code, out, err = run("advise", str(bad), "--time-unit", "fs", "--json")
+    assert code == 0 and json.loads(out)["time_unit"] == "fs"
+    two = tmp_path / "two-forms.yaml"
+    two.write_text("method: verlet\nmodes:\n  - {beta: 1, wavenumber: 3700}\n")
+    code, out, err = run("advise", str(two), "--time-unit", "fs")
+    assert code == 2 and "modes[0]" in err and "one of beta" in err
