@@ -199,6 +199,8 @@ class RegionReport:
     regions: Mapping[str, Any]
     not_analysed: Mapping[str, str] = field(default_factory=dict)
     verification: Mapping[str, Any] | None = None
+    #: oscillator: the nonlinear resonances n theta = 2 pi m in the interval from 0
+    nonlinear: tuple[Any, ...] = ()
 
     def first_boundary(self, model: str = "oscillator") -> float | None:
         """z*, the end of the preserved interval from 0 (None: none below zmax)."""
@@ -215,6 +217,10 @@ class RegionReport:
         out = {key: head[key] for key in ("method", "title", "kind", "stages", "order",
                                           "symplectic")}
         out["models"] = {m: models[m] for m in _ordered(models)}
+        if "oscillator" in self.regions and self.regions["oscillator"].symplectic:
+            from stepsafe.core.records import nonlinear_data
+
+            out["models"]["oscillator"]["nonlinear_resonances"] = nonlinear_data(self.nonlinear)
         if self.verification is not None:
             out["verify"] = copy.deepcopy(dict(self.verification))
         return out
@@ -226,9 +232,12 @@ def _ordered(models: Mapping[str, Any]) -> list[str]:
 
 
 def region(method: Integrator | str, model: str = "all", zmax: float = 10.0,
-           verify: bool = False) -> RegionReport:
+           verify: bool = False, resonance_orders: Sequence[int] = (3, 4, 5, 6)
+           ) -> RegionReport:
     """The regions of ``method`` for ``model`` (``"all"``: oscillator, saddle and inverted;
-    a model the method has no form for is then listed in ``not_analysed``).
+    a model the method has no form for is then listed in ``not_analysed``). On the
+    oscillator, also the nonlinear resonances ``n theta = 2 pi m`` of the orders n in
+    ``resonance_orders`` below the first boundary.
 
     >>> round(region("verlet", "oscillator").first_boundary(), 12)
     2.0
@@ -252,9 +261,15 @@ def region(method: Integrator | str, model: str = "all", zmax: float = 10.0,
                 skipped[name], first_error = exc.message, first_error or exc
         if first_error and (model != "all" or not regions):  # nothing the user asked for
             raise first_error
+    nonlinear: tuple[Any, ...] = ()
+    if "oscillator" in regions and regions["oscillator"].symplectic:
+        from stepsafe.core.resonances import nonlinear_resonances, validate_orders
+
+        orders = validate_orders(resonance_orders)
+        nonlinear = nonlinear_resonances(integrator.tableau, regions["oscillator"], orders)
     verdict = _verification(integrator, regions) if verify else None
     return RegionReport(integrator, MappingProxyType(regions), MappingProxyType(skipped),
-                        None if verdict is None else _frozen(verdict))
+                        None if verdict is None else _frozen(verdict), nonlinear)
 
 
 # --------------------------------------------------------------------------- inputs
@@ -445,12 +460,16 @@ class AdviceReport:
 
 def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None = None, *,
            tol_phase: float | None = None, tol_energy: float | None = None,
-           verify: bool = False, **inputs: Any) -> AdviceReport:
+           resonance_order: int | None = None, verify: bool = False,
+           **inputs: Any) -> AdviceReport:
     """Safe step sizes for a method and frequencies (or a scene, or a system): see
     :func:`problem` for the inputs (``saddle``, ``inverted``, ``modes``, ``system``,
     ``scene``, ``stages``, ``base``, ``margin``, ``zmax``, ``budget``, ``progress``).
     ``tol_phase``/``tol_energy`` also bound the phase (growth-rate) and energy errors
-    and add the usable step and its cost.
+    and add the usable step and its cost. ``resonance_order`` N also keeps every
+    vibration below its first nonlinear resonance n theta = 2 pi m with n <= N; the
+    resonances of orders 3 to 6 (and up to N) of the fastest vibration are listed in
+    ``record["nonlinear_resonances"]`` either way.
 
     >>> report = advise("yoshida4", [3.2], inverted=[1.1])
     >>> report.h_max_limited_by, f"{report.h_max:.6f}"
@@ -471,7 +490,8 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
             data = system_advice(integrator.tableau, p.system, p.margin, p.zmax,
                                  integrator.name)
         elif tol_phase is None and tol_energy is None:
-            result = core_advise(integrator.tableau, p.modes, p.margin, p.zmax, integrator.name)
+            result = core_advise(integrator.tableau, p.modes, p.margin, p.zmax, integrator.name,
+                                 resonance_order=_order(resonance_order))
             data = advice_data(result)
         else:
             from stepsafe.core.tradeoff import Tolerance, tradeoff
@@ -479,9 +499,12 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
             tols = tuple(Tolerance(k, _tolerance(k, v)) for k, v in
                          (("phase", tol_phase), ("energy", tol_energy)) if v is not None)
             res = tradeoff(integrator.tableau, p.modes, tols, p.margin, integrator.name,
-                           integrator.evaluations, p.zmax)
+                           integrator.evaluations, p.zmax, _order(resonance_order))
             result = res.advice
             data = tradeoff_data(res)
+        if result is not None:
+            data["nonlinear_resonances"] = _fastest_resonances(
+                integrator, result, p, resonance_order)
     if result is not None and p.labels:
         from stepsafe.core.records import label_limits
 
@@ -492,6 +515,28 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
     return AdviceReport(data["method"], data["h_max"], data["h_max_limited_by"], safe,
                         data["horizon"], _frozen(data), result,
                         None if verdict is None else _frozen(verdict))
+
+
+def _order(order: int | None) -> int | None:
+    from stepsafe.core.resonances import validate_orders
+
+    return None if order is None else validate_orders((order,))[0]
+
+
+def _fastest_resonances(integrator: Integrator, result: Any, p: Problem,
+                        order: int | None) -> list[dict[str, Any]]:
+    """The nonlinear resonances of the fastest vibration below its first boundary (or
+    below the resonance that caps it), with their steps h."""
+    from stepsafe.core.records import nonlinear_data
+    from stepsafe.core.resonances import DEFAULT_ORDERS, nonlinear_resonances
+
+    region = result.regions.get("oscillator")
+    betas = p.modes.betas.get("oscillator")
+    if region is None or betas is None or not region.symplectic or not betas.max() > 0:
+        return []
+    orders = tuple(range(3, max(order or 0, max(DEFAULT_ORDERS)) + 1))
+    found = nonlinear_resonances(integrator.tableau, region, orders)
+    return nonlinear_data(found, float(betas.max()), p.margin)
 
 
 def _tolerance(kind: str, value: float) -> float:
@@ -528,10 +573,12 @@ class CheckReport:
 
 
 def check(method: Integrator | str | None = None, h: float | None = None,
-          frequencies: ArrayLike | None = None, *, verify: bool = False,
-          **inputs: Any) -> CheckReport:
+          frequencies: ArrayLike | None = None, *, resonance_order: int | None = None,
+          verify: bool = False, **inputs: Any) -> CheckReport:
     """Is step ``h`` safe for every frequency (see :func:`problem` for the inputs)? A scene
-    may give the step (``h:``). A step exactly on a resonance or a pole is unsafe.
+    may give the step (``h:``). A step exactly on a resonance or a pole is unsafe. With
+    ``resonance_order`` N, a vibration at or beyond its first nonlinear resonance of order
+    at most N is unsafe too.
 
     >>> check("verlet", 0.49, [4.0]).safe
     True
@@ -553,7 +600,7 @@ def check(method: Integrator | str | None = None, h: float | None = None,
                                 integrator.name)
         else:
             result = check_step(integrator.tableau, p.modes, step, p.margin, p.zmax,
-                                integrator.name)
+                                integrator.name, _order(resonance_order))
             data = check_data(result, p.labels)
     data["scene"] = p.scene
     data["time_unit"] = p.time_unit

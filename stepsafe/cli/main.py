@@ -280,12 +280,15 @@ def show_cmd(method: str, stages: int | None, base: str | None, as_json: bool) -
               help="Test model to analyse.")
 @click.option("--zmax", type=FLOAT, default=None, metavar="Z",
               help="Search z = beta*h up to Z  [default: 10].")
+@click.option("--resonance-orders", default="3,4,5,6", show_default=True, metavar="N,N,...",
+              help="Orders n of the nonlinear resonances n theta = 2 pi m listed for the "
+                   "oscillator.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @click.option("--verify", is_flag=True,
               help="Recompute every reported point with mpmath (40 digits); exit 3 if one is "
                    "off by more than 1e-10 relative.")
 def region_cmd(method: str, stages: int | None, base: str | None, model: str,
-               zmax: float | None, as_json: bool, verify: bool) -> None:
+               zmax: float | None, resonance_orders: str, as_json: bool, verify: bool) -> None:
     """Every z = beta*h interval where METHOD preserves the equilibrium's structure.
 
     Reports the first boundary z* (the end of the interval from 0: the largest safe
@@ -300,8 +303,13 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
     from stepsafe.cli.report import print_json, print_region
     from stepsafe.core.regions import DEFAULT_ZMAX
 
+    orders = [item.strip() for item in resonance_orders.split(",")]
+    if not all(item.isascii() and item.isdigit() and len(item) <= 3 for item in orders):
+        raise _input_error(f"--resonance-orders {resonance_orders}: give integers such as "
+                           "3,4,5,6")
     report = api.region(api.method(method, stages, base), model,
-                        DEFAULT_ZMAX if zmax is None else zmax, verify)
+                        DEFAULT_ZMAX if zmax is None else zmax, verify,
+                        tuple(int(item) for item in orders))
     data = report.to_dict()
     verdict = data.get("verify")
     _decide([verdict])
@@ -451,8 +459,12 @@ def _input_error(message: str):
 @click.option("--every-mode", is_flag=True,
               help="List every mode or equilibrium of a system (default: the ten most "
                    "limiting when there are more).")
+@click.option("--resonance-order", type=INT, default=None, metavar="N",
+              help="Also keep every vibration below its first nonlinear resonance "
+                   "n theta = 2 pi m of order n <= N (3 or more; Verlet: 4:1 at "
+                   "beta*h = sqrt 2, 3:1 at sqrt 3).")
 @scene_options
-def advise_cmd(tol_phase, tol_energy, every_mode, scene_files, as_json, verify,
+def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, scene_files, as_json, verify,
                **options) -> None:
     """Safe step sizes h for your frequencies.
 
@@ -478,7 +490,7 @@ def advise_cmd(tol_phase, tol_energy, every_mode, scene_files, as_json, verify,
         raise _input_error("advise takes at most one scene file")
     problem = _problem(scene_files[0] if scene_files else None, options, not as_json)
     data = api.advise(problem=problem, tol_phase=tol_phase, tol_energy=tol_energy,
-                      verify=verify).to_dict()
+                      resonance_order=resonance_order, verify=verify).to_dict()
     verdict = data.get("verify")
     _decide([verdict])
     print_json(data) if as_json else print_advice(data)
@@ -497,8 +509,12 @@ def advise_cmd(tol_phase, tol_energy, every_mode, scene_files, as_json, verify,
 @click.option("--every-mode", is_flag=True,
               help="List every mode or equilibrium of a system (default: the ten most "
                    "limiting when there are more).")
+@click.option("--resonance-order", type=INT, default=None, metavar="N",
+              help="Also fail a vibration at or beyond its first nonlinear resonance "
+                   "n theta = 2 pi m of order n <= N (3 or more).")
 @scene_options
-def check_cmd(h, every_mode, scene_files, as_json, verify, **options) -> None:
+def check_cmd(h, every_mode, resonance_order, scene_files, as_json, verify,
+              **options) -> None:
     """Fail (exit 1) when the step h loses some mode's structure; for CI.
 
     Exit 0: every mode is preserved at h (with the margin); 1: not, with the reason for
@@ -518,7 +534,8 @@ def check_cmd(h, every_mode, scene_files, as_json, verify, **options) -> None:
     outputs, verdicts = [], []
     for scene_file in scene_files or (None,):
         problem = _problem(scene_file, options, not as_json)
-        data = api.check(h=h, problem=problem, verify=verify).to_dict()
+        data = api.check(h=h, problem=problem, resonance_order=resonance_order,
+                         verify=verify).to_dict()
         if "verify" in data:
             verdicts.append(data["verify"])
         outputs.append(data)

@@ -158,6 +158,9 @@ def print_region(head: dict[str, Any], models: dict[str, dict[str, Any]]) -> Non
             console.print(f"  resonance at {fmt(r['z'])} ± {r['uncertainty']:.1g} ({r['detail']})")
         if d["poles"]:
             console.print("  poles (no unique step): " + ", ".join(fmt(p) for p in d["poles"]))
+        if d.get("nonlinear_resonances"):
+            console.print("  nonlinear resonances n:m (n theta = 2 pi m) below z*: " + ", ".join(
+                f"{r['resonance']} at {fmt(r['z'])}" for r in d["nonlinear_resonances"]))
     console.print("\nz = beta*h. Islands marked 'reversed' have the flow's type but the opposite "
                   "orientation: not safe.")
 
@@ -214,6 +217,8 @@ def print_advice(data: dict[str, Any]) -> None:
         z = "none below zmax" if lim["first_boundary"] is None else fmt(lim["first_boundary"])
         if lim["first_boundary_kind"] in ("pole", "resonance"):
             z += f" ({lim['first_boundary_kind']})"
+        elif lim["first_boundary_kind"] == "nonlinear":
+            z += f" ({lim['resonance']} resonance)"
         table.add_row(model, str(lim["count"]), fmt(lim["beta"]), z,
                       "no limit" if lim["h_limit"] is None else fmt_below(lim["h_limit"]))
     if data["models"]:
@@ -235,6 +240,8 @@ def print_advice(data: dict[str, Any]) -> None:
                else lim and lim["model"])
         by = ("" if not lim else f", limited by {who} beta = {fmt(lim['beta'])}"
               if lim["beta"] is not None else f", limited by the {lim['model']} analysis")
+        if lim and lim.get("resonance"):
+            by += f" (its {lim['resonance']} nonlinear resonance)"
         console.print(_lit((f"Safe: 0 < h < {fmt_below(safe[0][1])}{u}", "green"), by))
     islands = [iv for iv in safe if iv[0] != 0.0]
     if islands:
@@ -243,6 +250,11 @@ def print_advice(data: dict[str, Any]) -> None:
     if data["horizon"] is not None and data["h_max_limited_by"] != "horizon":
         console.print(f"Steps above {fmt(data['horizon'])}{u} (zmax / largest beta) were not "
                       "analysed.")
+    if data.get("nonlinear_resonances"):
+        console.print("Nonlinear resonances of the fastest vibration (n theta = 2 pi m; "
+                      "--resonance-order N keeps h below those of order <= N): " + ", ".join(
+                          f"{r['resonance']} at h = {fmt_below(r['h'])}{u}"
+                          for r in data["nonlinear_resonances"]))
     if not unit and data["models"]:
         console.print("h is in the time unit of 1/beta (--time-unit names it).")
 

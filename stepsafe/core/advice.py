@@ -164,6 +164,9 @@ def _reason(p: Point | None, first: bool) -> str:
         return f"beyond {where}"
     if p.kind == "pole":
         return f"at or beyond {where} = {p.z:.13g}: a pole (the stage equations are singular)"
+    if p.kind == "nonlinear":
+        return (f"at or beyond the {p.detail} at z = {p.z:.13g} (the resonance order "
+                "asked for)")
     if p.kind == "resonance":
         return (f"at or beyond {where} = {p.z:.13g}: a resonance ({p.detail}, "
                 f"uncertainty {p.uncertainty:.1g})")
@@ -190,10 +193,20 @@ def _merge(intervals: np.ndarray) -> np.ndarray:
 
 
 def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFAULT_ZMAX,
-           name: str | None = None, regions: dict[str, Region] | None = None) -> Advice:
-    """Safe steps for ``modes`` under ``method`` (see the module docstring)."""
+           name: str | None = None, regions: dict[str, Region] | None = None,
+           resonance_order: int | None = None) -> Advice:
+    """Safe steps for ``modes`` under ``method`` (see the module docstring). With
+    ``resonance_order`` N, vibrations also keep below the first nonlinear resonance of
+    order at most N (:mod:`stepsafe.core.resonances`)."""
     margin = validate_margin(margin)
     regions = dict(regions or {})
+    if resonance_order is not None and "oscillator" in modes.betas:
+        from stepsafe.core.resonances import capped_at_resonance
+
+        if "oscillator" not in regions:
+            regions["oscillator"] = find_region(method, "oscillator", zmax)
+        regions["oscillator"] = capped_at_resonance(method, regions["oscillator"],
+                                                    resonance_order)
     limits: list[ModelLimit] = []
     unsafe: list[np.ndarray] = [np.zeros((0, 2))]
     horizon = np.inf
@@ -307,8 +320,11 @@ MAX_REPORTED = 50
 
 
 def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
-               zmax: float = DEFAULT_ZMAX, name: str | None = None) -> CheckResult:
-    """Is every mode's structure preserved at step ``h`` (with the margin)?"""
+               zmax: float = DEFAULT_ZMAX, name: str | None = None,
+               resonance_order: int | None = None) -> CheckResult:
+    """Is every mode's structure preserved at step ``h`` (with the margin)? With
+    ``resonance_order`` N, is every vibration also below its first nonlinear resonance of
+    order at most N?"""
     margin = validate_margin(margin)
     h = positive_finite(h, "h")
     beta_top = max(float(b.max()) for b in modes.betas.values())
@@ -319,6 +335,11 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
                             "frequencies and the step in units where their product is finite")
     zmax = max(zmax, z_top)
     regions = {model: find_region(method, model, zmax) for model in modes.betas}
+    if resonance_order is not None and "oscillator" in regions:
+        from stepsafe.core.resonances import capped_at_resonance
+
+        regions["oscillator"] = capped_at_resonance(method, regions["oscillator"],
+                                                    resonance_order)
     adv = advise(method, modes, margin, zmax, name, regions)
     failures: list[Failure] = []
     n_failing = 0

@@ -85,10 +85,28 @@ def _limit(lim) -> dict[str, Any] | None:
     if lim is None:
         return None
     p = lim.first_boundary_point
-    return {"model": lim.model, "beta": lim.beta_max, "count": lim.count,
-            "first_boundary": _num(lim.first_boundary),
-            "first_boundary_kind": p.kind if p else None,
-            "h_limit": _num(lim.h_limit)}
+    out = {"model": lim.model, "beta": lim.beta_max, "count": lim.count,
+           "first_boundary": _num(lim.first_boundary),
+           "first_boundary_kind": p.kind if p else None,
+           "h_limit": _num(lim.h_limit)}
+    if p is not None and p.kind == "nonlinear":
+        out["resonance"] = p.detail.split()[0]  # "n:m", the resonance that ends it
+    return out
+
+
+def nonlinear_data(found, beta: float | None = None, margin: float = 1.0
+                   ) -> list[dict[str, Any]]:
+    """The nonlinear resonances (:mod:`stepsafe.core.resonances`) as records; with the
+    frequency ``beta``, each with ``h``: the step of the resonance less its uncertainty,
+    times the margin."""
+    out = []
+    for r in found:
+        item = {"resonance": r.name, "n": r.n, "m": r.m, "z": r.z,
+                "uncertainty": _num(r.uncertainty)}
+        if beta:
+            item["h"] = _num(margin * max(r.z - r.uncertainty, 0.0) / beta)
+        out.append(item)
+    return out
 
 
 def advice_data(adv) -> dict[str, Any]:

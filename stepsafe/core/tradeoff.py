@@ -48,8 +48,9 @@ class Tradeoff(NamedTuple):
 
 def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (),
              margin: float = 1.0, name: str | None = None,
-             evaluations: int | None = None, zmax: float | None = None) -> Tradeoff:
-    adv = advise(method, modes, margin, name=name,
+             evaluations: int | None = None, zmax: float | None = None,
+             resonance_order: int | None = None) -> Tradeoff:
+    adv = advise(method, modes, margin, name=name, resonance_order=resonance_order,
                  **({} if zmax is None else {"zmax": zmax}))
     limits: list[ToleranceLimit] = []
     for tol in tolerances:

@@ -201,8 +201,8 @@ def check_point(Mfun: Callable, model: str, p: Point, dps: int = DPS) -> Check:
             if found is None:
                 return Check(model, p, None, float("inf"), allowed)
             return Check(model, p, float(found), float(abs(found - z) / abs(found)), allowed)
-        if p.kind == "root":
-            level = 2 if "+2" in p.detail else -2
+        if p.kind in ("root", "nonlinear"):
+            level = (2 if "+2" in p.detail else -2) if p.kind == "root" else _level(p.detail)
 
             def f(x):
                 return _tr(Mfun(x, model)) - level
@@ -229,6 +229,15 @@ def check_point(Mfun: Callable, model: str, p: Point, dps: int = DPS) -> Check:
         if p.kind == "resonance" and abs(abs(_tr(Mfun(root, model))) - 2) > mp.mpf(10) ** -8:
             return Check(model, p, float(root), float("inf"), allowed)
         return Check(model, p, float(root), float(abs(root - z) / abs(root)), allowed)
+
+
+def _level(detail: str):
+    """``2 cos(2 pi m / n)`` at the working precision for a point whose detail starts with
+    its resonance ``n:m``."""
+    import mpmath as mp
+
+    n, m = (int(k) for k in detail.split()[0].split(":"))
+    return 2 * mp.cos(2 * mp.pi * m / n)
 
 
 def points(region: Region) -> list[Point]:
@@ -310,7 +319,12 @@ def verify_regions(name: str, stages: int | None, base: str | None,
                 out.append(check_point(Mfun, model, p, dps))
         if not region.symplectic:
             continue
+        # a region capped at a nonlinear resonance claims nothing beyond it (the linear map
+        # may well be stable there): only the interval below it is checked
+        cap = region.zmax if first is None or first.kind != "nonlinear" else first.z
         for lo, hi, claimed in stretches(region):
+            if lo >= cap:
+                continue
             if claimed is not None and (up_to is None or lo <= up_to) and hi - lo > 1e-9 * hi:
                 out += [check_status(Mfun, model, z, claimed, dps)
                         for z in status_samples(lo, hi)]
