@@ -378,6 +378,7 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
         pole_z = pole_z[pole_z < zmax]
         pole_pts = tuple(p for p in pole_pts if p.z < zmax)
     grid = Grid.between_poles(pole_z, z_end, dz)
+    grid.z = np.union1d(grid.z, _near_poles(pole_z, pole_u[inside][:pole_z.size], z_end))
     levels = (2.0, -2.0) if ELLIPTIC[model] else (2.0,)
     s = _sample(ev, grid, levels)
     z, f, dt, D, unc = s.z, s.f, s.dt, s.D, s.uncertain
@@ -449,6 +450,24 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     return _assemble(ev, model, zmax, float(z[-1]) if z.size else zmax, spreads, dz, notes)
 
 
+#: Relative distances from a pole at which the grid samples on both sides: tr M and the
+#: orientation change fastest there, and a boundary (e.g. M = +I on the saddle, where the
+#: multiplier crosses 1 on its way to 0 at the pole) can lie within 1e-6 of it, much closer
+#: than the uniform spacing.
+NEAR_POLE = 10.0 ** -np.arange(2, 14)
+
+
+def _near_poles(pole_z: np.ndarray, pole_u: np.ndarray, z_end: float) -> np.ndarray:
+    """Samples approaching each pole geometrically from both sides (outside its
+    uncertainty), so that what happens between a pole and the uniform grid is seen."""
+    if not pole_z.size:
+        return np.empty(0)
+    offsets = pole_z[:, None] * NEAR_POLE[None, :]
+    keep = offsets > 2.0 * pole_u[:, None]
+    z = np.concatenate([(pole_z[:, None] - offsets)[keep], (pole_z[:, None] + offsets)[keep]])
+    return z[(z > 0) & (z < z_end) & ~np.isin(z, pole_z)]
+
+
 #: Models on which M is diagonal for every method (q and p decouple).
 DIAGONAL_MODELS = ("saddle", "saddle-p")
 
@@ -498,8 +517,31 @@ def _orientation_switches(ev: _Evaluator, z, dev, D, usable) -> list[Point]:
         hyper = (jet.dev > TOL_FACTOR * EPS * jet.scale).reshape(2, -1).all(axis=0)
         cells = cells[hyper]
     switches = refine_brackets(ev.orientation, z[cells], z[cells + 1], o[cells], o[cells + 1])
-    return [Point(float(r), "orientation", 0.0, "expanding direction crosses an axis")
-            for r in switches]
+    width = _orientation_uncertainty(ev, switches)
+    return [Point(float(r), "orientation", float(u), "expanding direction crosses an axis")
+            for r, u in zip(switches, width)]
+
+
+def _orientation_uncertainty(ev: _Evaluator, z: np.ndarray) -> np.ndarray:
+    """The z half-width within which float64 cannot place a sign change of the orientation
+    indicator: its rounding bound over its slope. The indicator is computed from the
+    entries of ``D = M - I``, each wrong by up to ``eps * sens``, on the barrier after
+    division by the largest of them (``top``; 1 on the diagonal models), so it is wrong by
+    up to about ``4 eps max(sens) / top``
+    (times the usual safety factor); its slope is a central difference."""
+    if not z.size:
+        return np.empty(0)
+    jet = ev.jet(z, order=0, scale=True)
+    D = jet.D
+    a, b, c, d = D[:, 0, 0], D[:, 0, 1], D[:, 1, 0], D[:, 1, 1]
+    top = (np.maximum.reduce([np.abs(0.5 * (a - d)), np.abs(b), np.abs(c)])
+           if ev.model == "inverted" else 1.0)  # the diagonal models' o = +-(a - d)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        bound = TOL_FACTOR * EPS * 4.0 * jet.sens.reshape(z.size, -1).max(axis=1) / top
+        step = np.maximum(np.abs(z) * 1e-7, 1e-300)
+        slope = (ev.orientation(z + step) - ev.orientation(z - step)) / (2.0 * step)
+        width = bound / np.abs(slope)
+    return np.where(np.isfinite(width), width, np.abs(z))
 
 
 def touches(t_ext: np.ndarray, level: float, scale: np.ndarray) -> np.ndarray:
