@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import mpmath as mp
@@ -353,3 +354,38 @@ def test_model_all_lists_a_model_the_method_cannot_be_applied_to(tmp_path, run, 
     assert data["oscillator"]["intervals"] and "not_analysed" not in data["inverted"]
     code, out, err = run("region", str(path), "--model", "saddle")
     assert code == 2 and "sum(drift)" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("args", [
+    ["region", "verlet", "--zmax", "1e-320"],
+    ["advise", "--method", "verlet", "--beta", "1", "--zmax", "5e-324", "--json"],
+    ["advise", "--method", "verlet", "--beta", "1", "--zmax", "1e-200", "--margin", "1e-200"],
+    ["advise", "--method", "verlet", "--beta", "1e300", "--zmax", "1e100", "--margin",
+     "5e-324"],
+])
+def test_underflowing_ranges_are_refused_in_one_line(run, args):
+    code, out, err = run(*args)
+    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1, err
+
+
+@pytest.mark.parametrize("beta", ["1e308", "1e-310"])
+def test_compare_json_at_extreme_frequencies(run, beta):
+    """Costs and steps beyond float64 are null in the JSON (never inf), ranked last."""
+    code, out, err = run("compare", "--beta", beta, "--json")
+    assert code == 0, err
+    rows = json.loads(out)["methods"]
+    ranked = [r["cost"] for r in rows if r["rank"] is not None]
+    assert ranked == sorted(ranked) and all(r["rank"] is None for r in rows if r["cost"] is None)
+
+
+def test_huge_tableau_prints_no_warnings(run, tmp_path):
+    path = tmp_path / "rk-huge.yaml"
+    path.write_text("name: t\nsource: s\norder: 2\nkind: rk\nA: [[1e300, 0], [0, 1e300]]\n"
+                    "b: [1e300, -1e300]\n")
+    code, out, err = run("region", str(path), "--json")
+    assert code in (0, 2) and "Warning" not in err and len(err.strip().splitlines()) <= 1
+    if code == 0:
+        json.loads(out)
+    code, out, err = run("advise", "--method", str(path), "--beta", "1", "--saddle-beta", "1",
+                         "--json")
+    assert "Warning" not in err and len(err.strip().splitlines()) <= 1

@@ -117,11 +117,18 @@ class _Group(click.Group):
         return code
 
     def invoke(self, ctx: click.Context):
+        import warnings
+
         from stepsafe.exceptions import StepsafeError
 
         debug = "--debug" in sys.argv[1:] or bool(ctx.params.get("debug"))
         try:
-            return super().invoke(ctx)
+            with warnings.catch_warnings():
+                # overflow far out is handled (a limit, or an error naming it), never printed:
+                # a warning line would break --json and the one-line error contract
+                if not debug:
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                return super().invoke(ctx)
         except StepsafeError as exc:
             if debug:
                 raise

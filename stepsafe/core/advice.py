@@ -217,6 +217,9 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
             regions[model] = find_region(method, model, zmax)
         if tops[model] > 0:
             horizon = min(horizon, margin * regions[model].zmax / tops[model])
+    if horizon == 0.0:
+        raise StepsafeError("margin * zmax / beta underflows to 0: no step can be analysed "
+                            "(give the frequencies in units nearer 1)")
     for model, betas in modes.betas.items():
         region = regions[model]
         beta_max = float(betas.max())

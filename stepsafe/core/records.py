@@ -201,14 +201,15 @@ def compare_row(res, explicit: bool) -> dict[str, Any]:
     return {
         "method": res.method,
         "implicit": not explicit,
-        "first_boundary": first.first_boundary,
-        "h_max": res.advice.h_max,
-        "h_tol": (None if not h_tol else (0.0 if any(h is None for h in h_tol) else min(h_tol))),
+        "first_boundary": _num(first.first_boundary),
+        "h_max": _num(res.advice.h_max),
+        "h_tol": (None if not h_tol else
+                  (0.0 if any(h is None for h in h_tol) else _num(min(h_tol)))),
         "tolerance_status": sorted({lim.limited_by for lim in res.limits}),
-        "h": res.h,
+        "h": _num(res.h),
         "bound_by": res.bound_by,
         "evaluations": res.evaluations,
-        "cost": res.cost,
+        "cost": _num(res.cost),
         "rank": None,
     }
 

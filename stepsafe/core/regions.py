@@ -225,8 +225,16 @@ def classify(jet: Jet, model: str) -> np.ndarray:
     return out
 
 
+#: The smallest zmax analysed: below it, M(z) - I underflows float64 for every method.
+MIN_ZMAX = 1e-250
+
+
 def _validate_zmax(zmax: float) -> float:
-    return positive_finite(zmax, "zmax")
+    zmax = positive_finite(zmax, "zmax")
+    if zmax < MIN_ZMAX:
+        raise StepsafeError(f"zmax = {zmax:g} is below {MIN_ZMAX:g}: M(z) - I would underflow "
+                            "float64 (give the frequencies and steps in other units)")
+    return zmax
 
 
 def _usable_extent(z: np.ndarray, *values: np.ndarray) -> int:
