@@ -19,8 +19,9 @@ policy to tell apart):
 The high-precision transfer matrix is the method's own definition where it carries one
 (``Method.exact``: decimal literals read exactly, family tableaux at high precision), else
 its float coefficients converted exactly. At most :data:`MAX_EVALUATIONS` evaluations
-are spent per region; points left over keep their float64 uncertainty, which is honest
-but wider. Imports mpmath only when a point needs it.
+are spent per region, fewer for large implicit methods (:data:`MP_WORK_BUDGET`); points
+left over keep their float64 uncertainty, which is honest but wider. Imports mpmath only
+when a point needs it.
 """
 
 from __future__ import annotations
@@ -33,6 +34,10 @@ from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeK
 DPS = 40
 ESCALATE_REL = 1e-12
 MAX_EVALUATIONS = 300
+#: High-precision work per region, in units of :func:`stepsafe.core.grid.sample_work`
+#: (one 40-digit evaluation of an 80-unknown stage system, Gauss s = 40, is 512,000 units
+#: and takes about 0.2 s here): a 40-stage method gets about 20 evaluations, not 300.
+MP_WORK_BUDGET = 1e7
 
 #: ``Mfun(z, model)``: the 2x2 transfer matrix at z (an mpf) as an mpmath matrix.
 Reference = Callable[[Any, str], Any]
@@ -75,10 +80,13 @@ class Escalation:
         self.model = model
         self._reference: Reference | None = None
         self.evaluations = 0
+        from stepsafe.core.grid import sample_work
+
+        self.limit = int(min(MAX_EVALUATIONS, max(8, MP_WORK_BUDGET / sample_work(method))))
 
     @property
     def exhausted(self) -> bool:
-        return self.evaluations >= MAX_EVALUATIONS
+        return self.evaluations >= self.limit
 
     def _trace(self, z):
         import mpmath as mp

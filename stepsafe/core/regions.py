@@ -45,7 +45,13 @@ from typing import NamedTuple
 import numpy as np
 
 from stepsafe.core.escalate import ESCALATE_REL, Escalation
-from stepsafe.core.grid import Grid, default_resolution, far_bound
+from stepsafe.core.grid import (
+    SAMPLE_WORK_BUDGET,
+    Grid,
+    default_resolution,
+    far_bound,
+    sample_work,
+)
 from stepsafe.core.models import ELLIPTIC, check_model
 from stepsafe.core.rkstability import imaginary_axis_crossings, stability_function
 from stepsafe.core.roots import EPS, HermiteCubic, hermite_extremum, hermite_root, refine_brackets
@@ -387,6 +393,12 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
         pole_pts = tuple(p for p in pole_pts if p.z < zmax)
     grid = Grid.between_poles(pole_z, z_end, dz)
     grid.z = np.union1d(grid.z, _near_poles(pole_z, pole_u[inside][:pole_z.size], z_end))
+    work = grid.z.size * sample_work(method)
+    if work > SAMPLE_WORK_BUDGET:
+        raise StepsafeError(
+            f"zmax = {zmax:g}: {grid.z.size} samples of M(z), each a stage solve of "
+            f"{method.stages} stages, exceed the work budget ({work:.2g} > "
+            f"{SAMPLE_WORK_BUDGET:.2g} units, a few seconds): give a smaller zmax")
     levels = (2.0, -2.0) if ELLIPTIC[model] else (2.0,)
     s = _sample(ev, grid, levels)
     z, f, dt, D, unc = s.z, s.f, s.dt, s.D, s.uncertain
