@@ -397,3 +397,13 @@ def test_work_budget_refuses_in_one_line_and_bounded_time(run):
     code, out, err = run("region", "gauss", "-s", "40", "--zmax", "1000", "--json")
     assert code == 2 and out == "" and "work budget" in err
     assert len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("name", ["calvo-sanz-serna4", "bcss3", "kahan-li6", "kahan-li8",
+                                  "yoshida6", "sofroniou-spaletta10"])
+def test_saddle_at_huge_z_is_never_safe(run, name):
+    """At z = 1e18 these methods flip the saddle (R_q < 0 at 50 digits); a factor weight
+    that is 0 in exact arithmetic but 1e-17 in float64 made the float matrix say otherwise.
+    The coefficients' rounding is part of the bound: such z are not certified."""
+    code, out, _ = run("check", "--method", name, "--saddle-beta", "1e9", "--step", "1e9")
+    assert code == 1, out

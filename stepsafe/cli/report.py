@@ -158,6 +158,8 @@ def print_region(head: dict[str, Any], models: dict[str, dict[str, Any]]) -> Non
             console.print(f"  resonance at {fmt(r['z'])} ± {r['uncertainty']:.1g} ({r['detail']})")
         if d["poles"]:
             console.print("  poles (no unique step): " + ", ".join(fmt(p) for p in d["poles"]))
+        for note in d.get("notes", ()):
+            console.print(_lit(f"  note: {note}"))
         if d.get("nonlinear_resonances"):
             console.print("  nonlinear resonances n:m (n theta = 2 pi m) below z*: " + ", ".join(
                 f"{r['resonance']} at {fmt(r['z'])}" for r in d["nonlinear_resonances"]))

@@ -373,7 +373,23 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     ev = _Evaluator(method, model)
     symplectic = residuals(method).symplectic_for(model)
     pole_z, pole_u = pole_locations(method, model)
-    inside = (pole_z > 0) & (pole_z <= zmax)
+    # a pole whose uncertainty exceeds its distance from 0 (1/w for a weight w that is 0 up
+    # to the rounding of the coefficients) may lie anywhere beyond z^2 / (z + u): nothing
+    # there is decided, so the analysis stops below it (its band would reach down to 0)
+    # (a splitting's saddle poles: 1/w, w a difference of the coefficients; the eigenvalue
+    # bound of an implicit method's poles is a worst case over perturbations, and its
+    # poles far beyond zmax are not this kind)
+    vague = (pole_z > 0) & (pole_u >= pole_z) & _splitting_on_diagonal(method, model)
+    undecided_from = float(np.min(pole_z[vague] ** 2 / (pole_z[vague] + pole_u[vague]),
+                                  initial=np.inf))
+    vague_note: tuple[str, ...] = ()
+    if undecided_from < zmax:
+        zmax = undecided_from
+        vague_note = (f"z above {zmax:.6g} is not analysed: there the float64 rounding of "
+                      "the coefficients leaves a pole undecided (a weight that is 0 exactly "
+                      "may be computed as 1e-17)",)
+    keep = ~vague & (pole_z > 0) & (pole_z < zmax)
+    inside = keep
     pole_z = pole_z[inside]
     pole_pts = tuple(Point(float(p), "pole", float(u), "stage system singular")
                      for p, u in zip(pole_z, pole_u[inside]))
@@ -384,7 +400,7 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
 
     far = far_bound(method, model)
     z_end = min(zmax, far * 1.5 + 16 * dz)
-    notes: tuple[str, ...] = ()
+    notes: tuple[str, ...] = vague_note
     if z_end > Z_CAP:
         z_end = zmax = Z_CAP
         notes = (f"z above {Z_CAP:g} is not analysed (the deviations of M from its limit "
@@ -486,6 +502,15 @@ def _near_poles(pole_z: np.ndarray, pole_u: np.ndarray, z_end: float) -> np.ndar
     keep = offsets > 2.0 * pole_u[:, None]
     z = np.concatenate([(pole_z[:, None] - offsets)[keep], (pole_z[:, None] + offsets)[keep]])
     return z[(z > 0) & (z < z_end) & ~np.isin(z, pole_z)]
+
+
+def _splitting_on_diagonal(method: Method, model: str) -> bool:
+    """A splitting method (or a composition of one) on the saddle models, whose poles are
+    ``1/w`` for the weights ``w`` of its symplectic Euler factors."""
+    from stepsafe.methods.tableaux import Composition, Splitting
+
+    base = method.flattened().base if isinstance(method, Composition) else method
+    return model in DIAGONAL_MODELS and isinstance(base, Splitting)
 
 
 #: Models on which M is diagonal for every method (q and p decouple).

@@ -366,12 +366,16 @@ def _euler_factor_jet(method: Splitting, z: np.ndarray) -> Jet:
     ``tr M - 2 = 4 sinh(lam/2)^2`` (``sigma = 1``) or ``-4 cosh(lam/2)^2`` (``sigma = -1``:
     a flip), all without cancellation. ``(log m)' = g = sum w/f``, ``g' = sum -+ (w/f)^2``
     (+ for DK), ``m'' = m (g^2 + g')``, ``(1/m)'' = (g^2 - g')/m``. Rounding: ``lam`` errs
-    by at most ``2 eps sum (|log|f|| + |w z / f|)``, which moves ``tr M`` by
-    ``2 |sinh lam|`` times that. Always computed to second order (it costs nothing).
+    by at most ``2 eps sum (|log|f|| + |w z / f| + S |z / f|)``, the last term for the
+    weights themselves (differences of partial sums of the coefficients, each wrong by up to
+    ``2 eps S``, S the coefficients' total size: a weight that is 0 in exact arithmetic may
+    be 1e-17, a factor 1 + 10 at z = 1e18), which moves ``tr M`` by ``2 |sinh lam|`` times
+    that. Always computed to second order (it costs nothing).
     """
     n = z.size
     g, dg, lam, spread = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
     sigma = np.ones(n)
+    size = float(np.abs(method.drift).sum() + np.abs(method.kick).sum())
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         for kind, w in method.euler_factors():
             wz = -w * z if kind == "DK" else w * z
@@ -379,7 +383,7 @@ def _euler_factor_jet(method: Splitting, z: np.ndarray) -> Jet:
             log_f = np.where(f > 0, np.log1p(np.maximum(wz, -1.0)), np.log(np.abs(f)))
             sigma = sigma * np.sign(f)
             lam += -log_f if kind == "DK" else log_f
-            spread += np.abs(log_f) + np.abs(wz / f)
+            spread += np.abs(log_f) + np.abs(wz / f) + size * np.abs(z / f)
             r = w / f
             g += r
             dg += r * r if kind == "DK" else -r * r
@@ -492,7 +496,10 @@ def pole_locations(method: Method, model: str) -> tuple[np.ndarray, np.ndarray]:
         zs = np.array([1.0 / w if kind == "DK" else -1.0 / w
                        for kind, w in method.euler_factors()])
         zs = zs if model == "saddle" else -zs
-        return _unique_sorted(zs, 2.0 * EPS * np.abs(zs))
+        # each factor weight w is a difference of partial sums of the coefficients, wrong
+        # by up to 2 eps S (S their total size); the pole 1/w then by z^2 times that
+        size = float(np.abs(method.drift).sum() + np.abs(method.kick).sum())
+        return _unique_sorted(zs, 2.0 * EPS * np.maximum(np.abs(zs), size * zs * zs))
     K, _, _ = stage_operator(method, model)
     lam, right = np.linalg.eig(K)
     real = (np.abs(lam.imag) <= 1e-7 * np.abs(lam)) & (np.abs(lam) > 1e-300)
