@@ -476,6 +476,21 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
         tol = np.where(root_levels > 0, _tolerance(rj, 2.0), _tolerance(rj, -2.0))
         with np.errstate(divide="ignore", invalid="ignore"):
             width = tol / np.abs(rj.dtrace)
+        if not ELLIPTIC[model]:
+            # the orientation is decided only where the type is: sample just beside each
+            # root, where tr M - 2 clears its rounding bound, so that an axis crossing
+            # between a root and the next sample is bracketed; the root's band covers the
+            # stretch in between (2.5e-13 of it, below the escalation threshold)
+            delta = np.maximum(4.0 * np.nan_to_num(width, nan=0.0), 2.5e-13 * roots)
+            width = np.maximum(width, delta)
+            beside = np.concatenate([roots - delta, roots + delta])
+            beside = beside[(beside > 0) & (beside < z[-1])]
+            if beside.size:
+                bj = ev.jet(beside)
+                fb = _level_values(bj, levels)
+                z, f, dt, D, unc = _merge(z, beside, (f, fb), (dt, bj.dtrace), (D, bj.D),
+                                          (unc, _uncertain(ev, beside, fb, levels)))
+                usable = grid.cells(z)
         points += [_Candidate(Point(float(r), "root", float(u), f"tr M = {L:+g}"), L, float(t))
                    for r, u, L, t in zip(roots, width, root_levels, tol)]
     if not ELLIPTIC[model]:

@@ -499,7 +499,9 @@ def pole_locations(method: Method, model: str) -> tuple[np.ndarray, np.ndarray]:
         # each factor weight w is a difference of partial sums of the coefficients, wrong
         # by up to 2 eps S (S their total size); the pole 1/w then by z^2 times that
         size = float(np.abs(method.drift).sum() + np.abs(method.kick).sum())
-        return _unique_sorted(zs, 2.0 * EPS * np.maximum(np.abs(zs), size * zs * zs))
+        with np.errstate(over="ignore"):  # a pole beyond 1e154: its band is unbounded
+            unc = 2.0 * EPS * np.maximum(np.abs(zs), size * zs * zs)
+        return _unique_sorted(zs, unc)
     K, _, _ = stage_operator(method, model)
     lam, right = np.linalg.eig(K)
     real = (np.abs(lam.imag) <= 1e-7 * np.abs(lam)) & (np.abs(lam) > 1e-300)
