@@ -365,9 +365,13 @@ class CoupledSystem:
         return float(np.linalg.norm(Linv)) ** 2
 
     def preserved(self, h: float) -> bool:
-        """Whether one step of size h keeps the structure (decided beyond rounding)."""
+        """Whether one step of size h keeps the structure (decided beyond rounding). At a
+        pole (within :data:`POLE_BAND` of it) the step is not unique: not kept."""
         if h <= 0:
             return True
+        poles = self.poles
+        if poles.size and float(np.min(np.abs(poles - h))) <= POLE_BAND * h:
+            return False
         if self.definite:
             return self.margin(h) > 0
         out = self._evaluate(h)
@@ -381,11 +385,93 @@ class CoupledSystem:
             return False  # Q singular within rounding: a multiplier at +-1, undecided
         krein = (int((lam > 0).sum()) - int((lam < 0).sum())) // 2
         ref = self.reference
-        return (flips == 0 and ell == ref.elliptic_plus + ref.elliptic_minus
-                and krein == ref.elliptic_plus - ref.elliptic_minus
-                and hyp == ref.hyperbolic and lox == ref.loxodromic
-                and par == ref.parabolic)
+        types = (flips == 0 and ell == ref.elliptic_plus + ref.elliptic_minus
+                 and krein == ref.elliptic_plus - ref.elliptic_minus
+                 and hyp == ref.hyperbolic and lox == ref.loxodromic
+                 and par == ref.parabolic)
+        return types and (ref.hyperbolic == 0 or self.oriented(D))
 
+    @cached_property
+    def poles(self) -> np.ndarray:
+        """The positive h where a step has no unique solution (sorted): ``1 / (c lambda)``
+        for each Euler factor of weight c (``lambda`` a real eigenvalue of ``S_pq``, or of
+        ``-S_qp`` for a KD factor), ``1 / (g lambda)`` for each PRK piece of weight g
+        (``lambda`` a real eigenvalue of its stage operator; only up to
+        :data:`MAX_POLE_SIZE` unknowns). Near a pole the structure can change within 1e-6
+        of it, far closer than the scan's spacing, so the scan samples around each."""
+        found: list[float] = []
+        S = self.S
+        n = self.n
+        S_qq, S_qp, S_pq, S_pp = S[:n, :n], S[:n, n:], S[n:, :n], S[n:, n:]
+        eig_pq = eig_qp = None
+        for kind, item in self.steps.pieces:
+            if kind == "euler":
+                for label, c in item:
+                    if label == "DK":
+                        eig_pq = np.linalg.eigvals(S_pq) if eig_pq is None else eig_pq
+                        lam = eig_pq
+                    else:
+                        eig_qp = np.linalg.eigvals(-S_qp) if eig_qp is None else eig_qp
+                        lam = eig_qp
+                    found += _reciprocals(c * lam)
+            else:
+                g, prk = item
+                if 2 * prk.stages * n > MAX_POLE_SIZE:
+                    continue
+                K = np.block([[np.kron(prk.A_q, S_pq), np.kron(prk.A_q, S_pp)],
+                              [-np.kron(prk.A_p, S_qq), -np.kron(prk.A_p, S_qp)]])
+                found += _reciprocals(g * np.linalg.eigvals(K))
+        h = np.array(sorted(found)) / self.unit
+        return h[np.isfinite(h) & (h > 0)]
+
+    @cached_property
+    def _flow_hyperbolic(self) -> tuple[np.ndarray, list[tuple[int, int]]]:
+        """The inverse of the eigenvector matrix of ``J S`` (columns of unit length) and,
+        per hyperbolic pair of the flow, the indices of its unstable and stable vectors."""
+        mu, V = np.linalg.eig(hamiltonian_matrix(self.S))
+        V = V / np.linalg.norm(V, axis=0)
+        top = max(float(np.abs(mu).max()), 1e-300)
+        real = (np.abs(mu.imag) <= 1e-9 * np.abs(mu)) & (np.abs(mu) > ZERO_TOL * top)
+        pairs = [(int(i), int(np.argmin(np.abs(mu + mu[i])))) for i in np.flatnonzero(
+            real & (mu.real > 0))]
+        return np.linalg.inv(V), pairs
+
+    def oriented(self, D: np.ndarray) -> bool:
+        """Whether every expanding real multiplier's eigenvector lies with the flow's
+        unstable direction: written in the flow's eigenvectors (unit length), its
+        component on the unstable vector of the pair it is mostly made of exceeds the one
+        on that pair's stable vector. For one degree of freedom this is the saddle's
+        'q expands' and the barrier's 'v_q v_p > 0' (the flow's u and s of equal length
+        are symmetric about the axes). Within 1e-8 of a tie it is undecided: not kept."""
+        inverse, pairs = self._flow_hyperbolic
+        if not pairs:
+            return True
+        nu, X = np.linalg.eig(D + np.eye(D.shape[0]))
+        expanding = (np.abs(nu.imag) <= CIRCLE_TOL * np.abs(nu)) & (nu.real > 1 + CIRCLE_TOL)
+        for x in X[:, expanding].T:
+            c = np.abs(inverse @ x)
+            u, s = max(((c[i], c[j]) for i, j in pairs), key=lambda pair: pair[0] + pair[1])
+            if not u - s > 1e-8 * (u + s):
+                return False
+        return True
+
+
+def _reciprocals(lam: np.ndarray) -> list[float]:
+    """``1 / lambda`` of the (numerically) real, nonzero entries of ``lam``."""
+    lam = np.asarray(lam)
+    top = float(np.abs(lam).max()) if lam.size else 0.0
+    real = (np.abs(lam.imag) <= 1e-7 * np.abs(lam)) & (np.abs(lam) > 1e-14 * top)
+    with np.errstate(divide="ignore", over="ignore"):
+        return list(1.0 / lam.real[real])
+
+
+#: Stage systems of more unknowns than this are not searched for poles (an eigenvalue
+#: problem of that size per PRK piece).
+MAX_POLE_SIZE = 400
+#: A step within this (relative) of a pole is treated as the pole (its float64 location).
+POLE_BAND = 1e-10
+#: Relative distances from a pole at which the scan samples on both sides.
+NEAR_POLE = 10.0 ** -np.arange(2, 14)
 
 # ---------------------------------------------------------------- the safe interval
 
@@ -419,6 +505,12 @@ def _safe_steps(method: Method, S: np.ndarray, zmax: float,
     horizon = zmax / system.top
     count = max(2, int(np.ceil(zmax / SCAN_DZ)))
     hs = horizon * np.arange(1, count + 1) / count
+    poles = system.poles[system.poles < horizon]
+    if poles.size:
+        near = (poles[:, None] * (1.0 + np.concatenate([-NEAR_POLE, NEAR_POLE])[None, :]))
+        near = near[(near > 0) & (near < horizon)].ravel()
+        hs = np.union1d(hs, near[~np.isin(near, poles)])
+        count = hs.size
     analysis = ("coupled: full 2n x 2n one-step matrix; "
                 + ("S definite, Q(h) = M^T J - J M positive definite"
                    if system.definite else
@@ -430,6 +522,8 @@ def _safe_steps(method: Method, S: np.ndarray, zmax: float,
             return CoupledResult(lo, lo, system.evaluations, analysis + "; stopped by the "
                                  f"time budget at z = {lo * system.top:.3g} of {zmax:g}")
         bad = _first_failure(system, lo, h, hs[k - 2] if k >= 2 else None)
+        if bad is None and poles.size and lo < poles[0] <= h:
+            bad = (lo, float(poles[0]))  # the first pole ends the interval from 0
         if bad is not None:
             good, bad = bad
             h_max = _boundary(system, good, bad)
@@ -460,7 +554,9 @@ def _first_failure(system: CoupledSystem, lo: float, h: float, before: float | N
             break
         x = m + golden * (b - m) if b - m > m - a else m - golden * (m - a)
         fx = system.margin(x)
-        if fx <= 0 and not system.preserved(x):
+        # hyperbolic pairs can reverse where their trace only touches 2 (M = +I on a
+        # saddle): there the margin need not go below 0, so each point is decided
+        if (fx <= 0 or system.reference.hyperbolic) and not system.preserved(x):
             return (a, x) if x < m else (m, x)  # preserved at a / m, not at x
         if fx < fm:
             a, b = (m, b) if x > m else (a, m)

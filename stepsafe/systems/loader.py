@@ -69,7 +69,9 @@ def _matrix(value: Any, where: str, key: str, folder: Path, sparse_ok: bool = Fa
             raise _fail(where, f"{key}[{i}]", f"has {len(row)} entries, row 0 has "
                                                f"{out.shape[1]}")
         for j, x in enumerate(row):
-            number = parse_real(x) if isinstance(x, str) else None
+            number = (parse_real(x) if isinstance(x, str) else  # YAML text, or the API's
+                      float(x) if isinstance(x, (int, float)) and not isinstance(x, bool)
+                      else None)
             if number is None:
                 raise _fail(where, f"{key}[{i}][{j}]", f"is not a number: {x!r}")
             out[i, j] = number

@@ -1,0 +1,47 @@
+"""The coupled analysis decides the orientation of hyperbolic pairs, as the 1-dof models do.
+
+An independent review found ``system: {hessian: [[0, 1], [1, 0]]}`` (H = q p) SAFE with
+pefrl at h = 1.65, where q contracts and p expands (the saddle reversed; the same H as
+``modes: saddle`` is UNSAFE from 1.6399), and a barrier with a 1e-9 q-p coupling SAFE where
+its uncoupled twin is not. Given as a system, a 1-dof saddle or barrier (coupled or not)
+must never get a larger safe step than its test model.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import stepsafe
+from stepsafe.methods.library import FAMILIES, builtin_names
+
+LIBRARY = [n for n in builtin_names() if n not in FAMILIES]
+
+
+def _h_max(report) -> float:
+    return np.inf if report.h_max is None else report.h_max
+
+
+@pytest.mark.parametrize("name", LIBRARY)
+def test_hessian_saddle_and_barrier_never_beyond_their_models(name):
+    method = stepsafe.method(name)
+    cases = [({"hessian": [[0.0, 1.0], [1.0, 0.0]]}, {"saddle": [1.0]}),
+             ({"hessian": [[-1.0, 1e-12], [1e-12, 1.0]]}, {"inverted": [1.0]})]
+    for system, modes in cases:
+        try:
+            model = stepsafe.advise(method, modes=modes)
+        except stepsafe.StepsafeError:
+            continue  # no form of this method for the model
+        coupled = stepsafe.advise(method, system=system)
+        assert _h_max(coupled) <= _h_max(model) * (1 + 1e-8) + 1e-300, (name, system)
+        h = _h_max(coupled)
+        if np.isfinite(h) and h > 0:
+            assert stepsafe.check(method, 0.999 * h, system=system).safe
+
+
+def test_the_review_case():
+    pefrl = stepsafe.method("pefrl")
+    system = {"hessian": [[0.0, 1.0], [1.0, 0.0]]}
+    assert not stepsafe.check(pefrl, 1.65, system=system).safe
+    assert stepsafe.advise(pefrl, system=system).h_max == pytest.approx(1.639907998996,
+                                                                         rel=1e-9)
