@@ -19,6 +19,7 @@ Integer and float arrays of any width are accepted and converted to float64.
 
 from __future__ import annotations
 
+import re
 import zipfile
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -292,10 +293,25 @@ def _finish_sparse(matrix: Any, n: int, label: str, sparse_ok: bool):
     return csr.toarray()
 
 
-def _read_mtx(fh, label: str, sparse_ok: bool):
-    import scipy.io
+_MM_BANNER = re.compile(r"%%matrixmarket\s+matrix\s+(coordinate|array)\s+(\S+)\s+(\S+)\s*",
+                        re.IGNORECASE | re.ASCII)
+_MM_INT = re.compile(r"[0-9]{1,12}", re.ASCII)
 
-    rows, cols, entries, fmt, field, symmetry = scipy.io.mminfo(fh)
+
+def _read_mtx(fh, label: str, sparse_ok: bool):
+    """A Matrix Market file, read by its definition (NIST): the banner, comment lines, the
+    size line, then the entries, every field a plain number (``np.loadtxt``: ``1_000``,
+    ``0x10`` or ``9abc`` are refused, never read by a prefix), each row with exactly the
+    fields its format has, indices integers in range, and as many rows as declared."""
+    import io
+
+    banner = fh.readline(256).decode("ascii", "replace")
+    match = _MM_BANNER.fullmatch(banner.strip())
+    if match is None:
+        raise _refuse(label, "not a Matrix Market file: the first line must be "
+                             "'%%MatrixMarket matrix coordinate|array real|integer "
+                             "general|symmetric'")
+    fmt, field, symmetry = (g.lower() for g in match.groups())
     if field == "complex":
         raise _refuse(label, "complex values are not allowed: a stiffness, mass or Hessian "
                              "matrix is real (the real part is never taken silently)")
@@ -303,19 +319,73 @@ def _read_mtx(fh, label: str, sparse_ok: bool):
         raise _refuse(label, "a pattern matrix (positions without values) is not allowed; "
                              "write the values")
     if field not in _MM_REAL_FIELDS:
-        raise _refuse(label, f"Matrix Market field {str(field)[:20]!r} is not allowed; use real "
+        raise _refuse(label, f"Matrix Market field {field[:20]!r} is not allowed; use real "
                              "or integer")
+    if symmetry not in ("general", "symmetric"):
+        raise _refuse(label, f"Matrix Market symmetry {symmetry[:20]!r} is not allowed: a "
+                             "stiffness, mass or Hessian matrix is general or symmetric")
+    line = 1
+    while True:
+        raw = fh.readline(1024)
+        line += 1
+        if not raw:
+            raise _refuse(label, "no size line after the banner")
+        text = raw.decode("ascii", "replace").strip()
+        if text and not text.startswith("%"):
+            break
+    sizes = text.split()
+    want = 3 if fmt == "coordinate" else 2
+    if len(sizes) != want or not all(_MM_INT.fullmatch(x) for x in sizes):
+        raise _refuse(label, f"line {line}: the size line must be {want} integers, got "
+                             f"{text[:60]!r}")
+    rows, cols = int(sizes[0]), int(sizes[1])
     n = _square((rows, cols), label)
-    if fmt != "coordinate":
-        _dense_budget(n, label)
+    if fmt == "coordinate":
+        entries = int(sizes[2])
+        _sparse_budget(n, entries * (1 if symmetry == "general" else 2), label)
+        expected = (entries, 3)
     else:
-        stored = int(entries) * (1 if symmetry == "general" else 2)
-        _sparse_budget(n, stored, label)
-    fh.seek(0)
-    matrix = scipy.io.mmread(fh)
-    if tuple(matrix.shape) != (n, n):
-        raise _refuse(label, f"the entries do not match the declared shape {n} x {n}")
-    check_dtype(matrix.dtype, label)
-    if fmt != "coordinate":
-        return _as_float(np.asarray(matrix))
+        _dense_budget(n, label)
+        entries = n * n if symmetry == "general" else n * (n + 1) // 2
+        expected = (entries, 1)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "input contained no data"
+        try:
+            body = np.loadtxt(io.BytesIO(fh.read()), dtype=float, comments="%", ndmin=2,
+                              encoding="ascii")
+        except ValueError as exc:
+            raise _refuse(label, f"an entry is not a plain number or a row has the wrong "
+                                 f"number of fields: {_first_line(exc)}") from None
+    if body.size == 0:
+        body = body.reshape(0, expected[1])
+    if body.shape != expected:
+        raise _refuse(label, f"{body.shape[0]} rows of {body.shape[1]} fields, the header "
+                             f"declares {expected[0]} of {expected[1]}")
+    if not np.all(np.isfinite(body)):
+        raise _refuse(label, "has a non-finite entry")
+    if fmt == "array":
+        values = body[:, 0]
+        if symmetry == "general":
+            return values.reshape(n, n, order="F").copy()
+        dense = np.zeros((n, n))
+        lower = np.tril_indices(n)
+        order = np.lexsort((lower[0], lower[1]))  # column by column, as the format stores
+        dense[lower[0][order], lower[1][order]] = values
+        return dense + np.tril(dense, -1).T
+    index = body[:, :2]
+    if np.any(index != np.floor(index)) or np.any(index < 1) or np.any(index > n):
+        raise _refuse(label, f"row and column indices must be integers from 1 to {n}")
+    i, j, v = index[:, 0].astype(np.int64) - 1, index[:, 1].astype(np.int64) - 1, body[:, 2]
+    if symmetry == "symmetric":
+        if np.any(j > i):
+            raise _refuse(label, "a symmetric Matrix Market file stores the lower triangle "
+                                 "only (row >= column)")
+        off = i != j
+        i, j, v = np.concatenate([i, j[off]]), np.concatenate([j, i[off]]), \
+            np.concatenate([v, v[off]])
+    import scipy.sparse as sp
+
+    matrix = sp.coo_matrix((v, (i, j)), shape=(n, n))
     return _finish_sparse(matrix, n, label, sparse_ok)
