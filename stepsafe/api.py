@@ -163,7 +163,9 @@ def _integrator(value: Integrator | str) -> Integrator:
 
 
 def _frozen(data: dict[str, Any]) -> Mapping[str, Any]:
-    return MappingProxyType(copy.deepcopy(data))
+    from stepsafe.core.records import json_ready
+
+    return MappingProxyType(json_ready(data))
 
 
 def _verification(integrator: Integrator, regions: Mapping[str, Any],
@@ -373,7 +375,8 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
     loaded = load_scene(scene, time_unit) if scene is not None else Scene(time_unit=time_unit)
     margin = validate_margin(margin if margin is not None else
                              (loaded.margin if loaded.margin is not None else 1.0))
-    zmax = zmax if zmax is not None else (loaded.zmax or DEFAULT_ZMAX)
+    zmax = zmax if zmax is not None else (
+        loaded.zmax if loaded.zmax is not None else DEFAULT_ZMAX)
     integrator = _scene_method(method, loaded, stages, base)
     converted = _converted({"frequency": frequency, "wavenumber": wavenumber,
                             "period": period}, loaded.time_unit)

@@ -230,3 +230,48 @@ def test_printed_limits_are_steps_check_accepts(name, betas, margin):
     code, _, _, _ = _invoke("check", "--method", name, *args, "--margin", margin, "--step",
                             repr(data["h_max"]))
     assert code == 1
+
+
+# ------------------------------------------------------------- cases from a hostile review
+
+REVIEW_SCENES = [
+    # (scene text, expected exit code, text the one-line error must contain)
+    ("method: verlet\nh: 0\nmodes: [{beta: 1}]\n", 2, "::$.h: must be > 0"),
+    ("method: verlet\nh: -1\nmodes: [{beta: 1}]\n", 2, "::$.h: must be > 0"),
+    ("method: verlet\nh: 1e-400\nmodes: [{beta: 1}]\n", 2, "::$.h"),
+    ("method: verlet\nh: 0.1\nmargin: 0\nmodes: [{beta: 1}]\n", 2, "::$.margin"),
+    ("method: verlet\nh: 0.1\nmargin: 1.5\nmodes: [{beta: 1}]\n", 2, "::$.margin"),
+    ("method: verlet\nh: 0.1\nzmax: 0\nmodes: [{beta: 1}]\n", 2, "::$.zmax"),
+    ("method: verlet\nh: 0.1\nzmax: -5\nmodes: [{beta: 1}]\n", 2, "::$.zmax"),
+    ("method: verlet\nh: 0.1\nmargin: 5e-324\nmodes: [{beta: 1}]\n", 2, "margin"),
+    ("method: verlet\nh: 0.1\nsystem: {hessian: [[0, 0], [0, 0]]}\n", 2, "zero"),
+    ("method: verlet\nh: 0.1\nsystem: {hamiltonian: '1e-320*q*p', "
+     "box: {q: [-1, 1], p: [-1, 1]}}\n", 0, ""),
+    ("method: verlet\nh: 0.1\nsystem: {hamiltonian: '1e300*p**2 + 1e300*q**2', "
+     "box: {q: [-1, 1], p: [-1, 1]}}\n", 1, ""),
+]
+
+
+def test_review_scenes(tmp_path):
+    """Out-of-range scene values name the file and key; a zero Hessian is nothing to
+    analyse (exit 2, never SAFE); limits beyond float64 are null in --json, never inf."""
+    for k, (text, expected, message) in enumerate(REVIEW_SCENES):
+        path = tmp_path / f"s{k}.yaml"
+        path.write_text(text)
+        for as_json in (False, True):
+            code, out, err, exc = _invoke("check", str(path), *(["--json"] if as_json else []))
+            _assert_contract(code, out, err, exc, as_json)
+            assert code == expected, (text, code, err)
+            assert message in err, (text, err)
+
+
+def test_closed_stderr_keeps_the_exit_code(tmp_path):
+    """With stderr closed (2>&-) a bad input is still exit 2, not an internal error."""
+    import subprocess
+    import sys
+
+    script = ("import sys\nfrom stepsafe.cli import main\n"
+              "main(['check', '--method', 'nope', '--step', '3', '--beta', '1'])\n")
+    result = subprocess.run(["bash", "-c", f'"{sys.executable}" -c "$0" 2>&-', script],
+                            capture_output=True, text=True)
+    assert result.returncode == 2

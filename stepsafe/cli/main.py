@@ -162,7 +162,7 @@ def _error_line(message: str, prefix: str = "stepsafe: error: ") -> None:
 
     try:
         click.echo(prefix + printable(" ".join(message.split())), err=True)
-    except OSError:  # stderr itself is closed or full: the exit code still tells
+    except (OSError, ValueError, AttributeError):  # stderr closed or full: the code tells
         pass
 
 

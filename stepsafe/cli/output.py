@@ -28,6 +28,8 @@ def reset() -> None:
     _state.update(code=0, message=None)
     if sys.stdout is None:  # started with stdout closed (>&-): as if the reader had gone
         sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - lives as long as the process
+    if sys.stderr is None:  # started with stderr closed (2>&-): messages go nowhere, the
+        sys.stderr = open(os.devnull, "w")  # noqa: SIM115 - exit code still tells
 
 
 def decided(code: int, message: str | None = None) -> None:

@@ -16,7 +16,11 @@ from typing import Any
 
 
 def print_json(data: Any) -> None:
-    sys.stdout.write(json.dumps(data, indent=2, allow_nan=False) + "\n")
+    """One JSON document; a non-finite number is null (see
+    :func:`stepsafe.core.records.json_ready`)."""
+    from stepsafe.core.records import json_ready
+
+    sys.stdout.write(json.dumps(json_ready(data), indent=2, allow_nan=False) + "\n")
 
 
 def print_tsv(columns: Sequence[str], rows: Iterable[Mapping[str, Any]]) -> None:
@@ -406,7 +410,8 @@ def print_system(system: dict[str, Any], every: bool = False, unit: str | None =
         beta = "" if item.get("beta") is None else f"beta = {fmt(item['beta'], 8)} "
         limit = item.get("h_limit")
         limit_text = "" if "h_limit" not in item else (
-            "no limit" if limit is None else f"h < {fmt_below(limit, 10)}"
+            "no limit" if limit is None or not math.isfinite(limit)
+            else f"h < {fmt_below(limit, 10)}"
             + (f" {unit}" if unit else ""))
         click.echo(f"  {where}{item['type']} {item.get('model') or ''} {beta}{limit_text}")
     for note in system["notes"]:

@@ -15,6 +15,20 @@ from stepsafe.core.regions import Interval, Point, Region
 from stepsafe.methods.residuals import residuals
 
 
+def json_ready(data: Any) -> Any:
+    """``data`` with every non-finite float replaced by None (JSON has no inf or NaN;
+    null is the records' 'no limit' / 'not defined')."""
+    if isinstance(data, float):
+        return data if math.isfinite(data) else None
+    if isinstance(data, dict):
+        return {k: json_ready(v) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [json_ready(v) for v in data]
+    if hasattr(data, "item") and not isinstance(data, (str, bytes)):  # numpy scalars
+        return json_ready(data.item())
+    return data
+
+
 def _num(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
 

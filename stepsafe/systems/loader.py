@@ -191,6 +191,9 @@ def _hessian(tree, where, folder, method, zmax, progress=None, deadline=None
     S = check_square(_matrix(tree["hessian"], where, "hessian", folder), "hessian")
     if S.shape[0] > 2 * DENSE_LIMIT:
         raise StepsafeError(f"a {S.shape[0]} x {S.shape[0]} Hessian is too large")
+    if not np.any(S):
+        raise StepsafeError("the Hessian is zero: H has no linear model, nothing to analyse "
+                            "(a step cannot be certified for it)")
     d = hessian_modes(S, method)
     if d is not None:
         return _report_modes(d.modes, d.analysis, [])

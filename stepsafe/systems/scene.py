@@ -251,7 +251,12 @@ def load_scene(path: str | Path, time_unit: str | None = None) -> Scene:
                                  _near_scene(ref.base, scene.folder))
     for key in ("h", "margin", "zmax"):
         if key in tree:
-            setattr(scene, key, number(tree[key], where, key))
+            value = number(tree[key], where, key)
+            if not value > 0:
+                raise _fail(where, key, f"must be > 0, got {tree[key]}")
+            if key == "margin" and value > 1:
+                raise _fail(where, key, f"must be in (0, 1], got {value}")
+            setattr(scene, key, value)
     scene.time_unit = time_unit
     if "time_unit" in tree:
         unit = tree["time_unit"]
