@@ -127,6 +127,32 @@ class Integrator:
             raise StepsafeError(exc.message, path) from None
 
 
+def _text(value: Any, name: str, optional: bool = False) -> Any:
+    """``value`` if it is a text (or None when ``optional``), else a StepsafeError."""
+    if value is None and optional:
+        return None
+    if isinstance(value, Path):
+        value = str(value)
+    if not isinstance(value, str) or "\x00" in value:
+        raise StepsafeError(f"{name} must be a text, got {type(value).__name__}"
+                            if not isinstance(value, str) else f"{name} contains a NUL byte")
+    return value
+
+
+def _flag(value: Any, name: str) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise StepsafeError(f"{name} must be True or False, got {type(value).__name__}")
+    return bool(value)
+
+
+def _stage_count(value: Any) -> int | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise StepsafeError(f"stages must be an integer, got {type(value).__name__}")
+    return int(value)
+
+
 def method(name: str, stages: int | None = None, base: str | None = None) -> Integrator:
     """A built-in method (``stepsafe methods`` lists them), a family member
     (``method("gauss", stages=3)``) or a method file given by path.
@@ -138,6 +164,8 @@ def method(name: str, stages: int | None = None, base: str | None = None) -> Int
     """
     from stepsafe.methods.library import resolve
 
+    name, base = _text(name, "method"), _text(base, "base", optional=True)
+    stages = _stage_count(stages)
     tableau, entry = resolve(name, stages, base)
     return Integrator(entry.name, tableau.kind, entry.title, tableau.order, tableau.stages,
                       entry.evaluations, entry.source, bool(tableau.explicit), tableau, entry,
@@ -249,6 +277,7 @@ def region(method: Integrator | str, model: str = "all", zmax: float = 10.0,
     from stepsafe.exceptions import positive_finite
 
     integrator = _integrator(method)
+    model, verify = _text(model, "model"), _flag(verify, "verify")
     if model != "all" and model not in REGION_MODELS:
         raise StepsafeError(f"unknown model {model!r}; choose one of "
                             f"{', '.join(REGION_MODELS)} or all")
@@ -306,8 +335,12 @@ def _converted(forms: Mapping[str, UnitValues | None], time_unit: str | None
     for form, values in forms.items():
         if values is None:
             continue
-        items = [values] if isinstance(values, (str, int, float)) else list(
-            np.asarray(values, dtype=object).ravel())
+        try:
+            items = [values] if isinstance(values, (str, int, float)) else list(
+                np.asarray(values, dtype=object).ravel())
+        except (TypeError, ValueError):
+            raise StepsafeError(f"{form} must be a number, a text with a unit or a list of "
+                                "them") from None
         out.append(np.array([quantity(v.item() if isinstance(v, np.generic) else v, form,
                                       time_unit) for v in items], dtype=float))
     return out
@@ -317,18 +350,24 @@ def _modes_dict(frequencies: ArrayLike | None, saddle: ArrayLike | None,
                 inverted: ArrayLike | None, modes: Mapping[str, ArrayLike] | None,
                 converted: Sequence[np.ndarray] = ()) -> dict[str, np.ndarray]:
     parts: dict[str, list[np.ndarray]] = {}
+    if modes is not None and not isinstance(modes, Mapping):
+        raise StepsafeError(f"modes must map model names to frequencies, got "
+                            f"{type(modes).__name__}")
     for model, values in (("oscillator", frequencies),
                           *(("oscillator", v) for v in converted), ("saddle", saddle),
                           ("inverted", inverted), *((modes or {}).items())):
         if values is None:
             continue
-        arr = np.asarray(values)
-        if arr.dtype.kind == "c":
-            raise StepsafeError(f"{model} frequencies must be real, got complex values")
         try:
+            arr = np.asarray(values)
+            if arr.dtype.kind == "c":
+                raise StepsafeError(f"{model} frequencies must be real, got complex values")
+            if arr.dtype.kind not in "biuf" and arr.dtype != object:
+                raise TypeError
             arr = np.atleast_1d(arr.astype(float)).ravel()
-        except (TypeError, ValueError):
-            raise StepsafeError(f"{model} frequencies must be numbers") from None
+        except (TypeError, ValueError, OverflowError):
+            raise StepsafeError(f"{model} frequencies must be a list or array of real "
+                                "numbers") from None
         if arr.size:
             parts.setdefault(model, []).append(arr)
     return {model: np.concatenate(v) for model, v in parts.items()}
@@ -372,7 +411,15 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
     from stepsafe.units import time_unit as known_time_unit
 
     time_unit = known_time_unit(time_unit)
-    loaded = load_scene(scene, time_unit) if scene is not None else Scene(time_unit=time_unit)
+    if isinstance(scene, Scene):
+        loaded = scene
+        if time_unit is not None and scene.time_unit not in (None, time_unit):
+            raise StepsafeError(f"the scene's time_unit is {scene.time_unit}, not {time_unit}")
+        scene = scene.where or None
+    elif scene is not None:
+        loaded = load_scene(_text(scene, "scene"), time_unit)
+    else:
+        loaded = Scene(time_unit=time_unit)
     margin = validate_margin(margin if margin is not None else
                              (loaded.margin if loaded.margin is not None else 1.0))
     zmax = zmax if zmax is not None else (
@@ -418,6 +465,13 @@ def _labels(labels: Mapping[str, Sequence[str | None]] | None,
                                 f"{len(arrays.get(model, ()))}")
         out[model] = tuple(names)
     return out
+
+
+def _given_problem(value: Any) -> Problem | None:
+    if value is not None and not isinstance(value, Problem):
+        raise StepsafeError(f"problem must be a stepsafe.Problem (from stepsafe.problem), got "
+                            f"{type(value).__name__}")
+    return value
 
 
 def _scene_method(method: Integrator | str | None, scene: Any, stages: int | None,
@@ -481,7 +535,7 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
     from stepsafe.core.advice import advise as core_advise
     from stepsafe.core.records import advice_data, tradeoff_data
 
-    p = inputs.pop("problem", None) or problem(method, frequencies, **inputs)
+    p = _given_problem(inputs.pop("problem", None)) or problem(method, frequencies, **inputs)
     integrator, result = p.integrator, None
     with integrator.naming_its_file():
         if p.system is not None:
@@ -513,7 +567,8 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
 
         label_limits(data, p.modes.betas, p.labels)
     data["time_unit"] = p.time_unit
-    verdict = _verification(integrator, result.regions) if verify and result else None
+    verdict = (_verification(integrator, result.regions)
+               if _flag(verify, "verify") and result else None)
     safe = tuple((float(lo), hi) for lo, hi in data["safe_h"])
     return AdviceReport(data["method"], data["h_max"], data["h_max_limited_by"], safe,
                         data["horizon"], _frozen(data), result,
@@ -543,7 +598,13 @@ def _fastest_resonances(integrator: Integrator, result: Any, p: Problem,
 
 
 def _tolerance(kind: str, value: float) -> float:
-    value = float(value)
+    try:
+        if isinstance(value, (bool, str)):
+            raise TypeError
+        value = float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise StepsafeError(f"--tol-{kind} must be a positive finite number, got "
+                            f"{str(value)[:40]}") from None
     if not (0 < value < float("inf")):
         raise StepsafeError(f"--tol-{kind} must be a positive finite number, got {value}")
     return value
@@ -589,7 +650,7 @@ def check(method: Integrator | str | None = None, h: float | None = None,
     from stepsafe.core.advice import check_step
     from stepsafe.core.records import check_data
 
-    p = inputs.pop("problem", None) or problem(method, frequencies, **inputs)
+    p = _given_problem(inputs.pop("problem", None)) or problem(method, frequencies, **inputs)
     step = h if h is not None else p.h
     if step is None:
         raise StepsafeError(f"{p.scene or 'check'}: no step: give --step H or h: in the "
@@ -608,7 +669,7 @@ def check(method: Integrator | str | None = None, h: float | None = None,
     data["scene"] = p.scene
     data["time_unit"] = p.time_unit
     verdict = None
-    if verify and result is not None:
+    if _flag(verify, "verify") and result is not None:
         top = max(float(b.max()) for b in p.modes.betas.values()) * float(step) / p.margin
         verdict = _verification(integrator, result.advice.regions, up_to=1.05 * top)
     return CheckReport(data["method"], float(step), bool(data["safe"]), data["h_max"],
@@ -663,9 +724,10 @@ def errors(method: Integrator | str, z: ArrayLike, model: str = "oscillator") ->
     from stepsafe.core.transfer import transfer_matrix
 
     integrator = _integrator(method)
+    model = _text(model, "model")
     if model not in REGION_MODELS:
         raise StepsafeError(f"unknown model {model!r}; choose one of {', '.join(REGION_MODELS)}")
-    zs = np.atleast_1d(np.asarray(z, dtype=float)).ravel()
+    zs = _z_values(z)
     if not zs.size or not np.all(np.isfinite(zs) & (zs > 0)):
         raise StepsafeError("z must be positive finite numbers")
     with np.errstate(all="ignore"):  # far out, M(z) overflows: those rows say so
@@ -678,6 +740,17 @@ def errors(method: Integrator | str, z: ArrayLike, model: str = "oscillator") ->
     for arr in (zs, phase, energy, overflow):
         arr.flags.writeable = False
     return ErrorTable(integrator.name, model, zs, phase, energy, overflow)
+
+
+def _z_values(z: Any) -> np.ndarray:
+    """z as a flat float array; complex, text or ragged input is a StepsafeError."""
+    try:
+        arr = np.asarray(z)
+        if arr.dtype.kind not in "biuf":
+            raise TypeError
+        return np.atleast_1d(arr.astype(float)).ravel()
+    except (TypeError, ValueError, OverflowError):
+        raise StepsafeError("z must be a number or a list or array of real numbers") from None
 
 
 def transfer_matrices(method: Integrator | str, z: ArrayLike,
@@ -695,9 +768,10 @@ def transfer_matrices(method: Integrator | str, z: ArrayLike,
     from stepsafe.core.transfer import transfer_matrix
 
     integrator = _integrator(method)
+    model = _text(model, "model")
     if model not in REGION_MODELS:
         raise StepsafeError(f"unknown model {model!r}; choose one of {', '.join(REGION_MODELS)}")
-    zs = np.atleast_1d(np.asarray(z, dtype=float)).ravel()
+    zs = _z_values(z)
     if not np.all(np.isfinite(zs) & (zs >= 0)):
         raise StepsafeError("z must be finite numbers >= 0")
     with np.errstate(all="ignore"), integrator.naming_its_file():
@@ -807,11 +881,13 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
 def _compared(methods: Sequence[Integrator | str] | str | None) -> list[Integrator]:
     from stepsafe.methods.library import FAMILIES, builtin_names
 
-    if methods == "all":
+    if isinstance(methods, str) and methods == "all":
         return ([method(n) for n in builtin_names() if n not in FAMILIES]
                 + [method(f, s) for f in FAMILIES for s in (2, 3)])
-    if isinstance(methods, str):
-        raise StepsafeError(f"methods must be a list of names or 'all', got {methods!r}")
+    if isinstance(methods, str) or (methods is not None and not isinstance(
+            methods, (list, tuple))):
+        raise StepsafeError(f"methods must be a list of names or 'all', got "
+                            f"{str(methods)[:40]}")
     out = []
     for item in COMPARE_DEFAULT if methods is None else methods:
         if not isinstance(item, str):
@@ -831,4 +907,4 @@ def load_scene(path: str | Path) -> Any:
     pass its path as ``scene=`` to :func:`advise` or :func:`check`."""
     from stepsafe.systems.scene import load_scene as _load
 
-    return _load(path)
+    return _load(_text(path, "path"))

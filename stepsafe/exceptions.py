@@ -26,10 +26,13 @@ def positive_finite(value, name: str) -> float:
     """``value`` as a float > 0 and finite, else a :class:`StepsafeError` naming ``name``."""
     import math
 
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)) and not hasattr(
+            value, "__float__"):
+        raise StepsafeError(f"{name} must be a number, got {type(value).__name__}")
     try:
         x = float(value)
-    except (TypeError, ValueError):
-        raise StepsafeError(f"{name} must be a number, got {value!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise StepsafeError(f"{name} must be a finite number, got {str(value)[:40]}") from None
     if not math.isfinite(x) or x <= 0:
         raise StepsafeError(f"{name} must be a positive finite number, got {x}")
     return x

@@ -55,8 +55,8 @@ def time_unit(name: str | None) -> str | None:
     """``name`` if it is a known time unit (None stays None)."""
     if name is None:
         return None
-    if name not in TIME_UNITS:
-        raise StepsafeError(f"unknown time unit {name!r}; choose one of "
+    if not isinstance(name, str) or name not in TIME_UNITS:
+        raise StepsafeError(f"unknown time unit {str(name)[:20]!r}; choose one of "
                             f"{', '.join(TIME_UNITS)}")
     return name
 
@@ -140,7 +140,12 @@ def quantity(value: object, form: str, time: str | None) -> float:
     if isinstance(value, bool):
         raise StepsafeError(f"{form} must be a number, got {value!r}")
     if isinstance(value, (int, float)):
-        return angular_frequency(form, float(value), None, time)
+        try:
+            number = float(value)
+        except OverflowError:
+            raise StepsafeError(f"{form} must be a finite number, got {str(value)[:40]}"
+                                ) from None
+        return angular_frequency(form, number, None, time)
     if isinstance(value, str):
         number, unit = parse_quantity(value)
         return angular_frequency(form, number, unit, time)

@@ -109,10 +109,13 @@ class Advice:
 
 
 def validate_margin(margin: float) -> float:
+    if isinstance(margin, bool):
+        raise StepsafeError("margin must be a number in (0, 1], got a bool")
     try:
         margin = float(margin)
-    except (TypeError, ValueError):
-        raise StepsafeError(f"margin must be a number in (0, 1], got {margin!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise StepsafeError(f"margin must be a number in (0, 1], got {str(margin)[:40]}"
+                            ) from None
     if not (0.0 < margin <= 1.0):
         raise StepsafeError(f"margin must be in (0, 1], got {margin}")
     return margin

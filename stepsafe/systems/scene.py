@@ -140,7 +140,11 @@ def number(value: Any, where: str, path: str) -> float:
         if x is None:
             raise _fail(where, path, f"must be a number, got {value!r}")
     elif isinstance(value, (int, float)) and not isinstance(value, bool):
-        x = float(value)
+        try:
+            x = float(value)
+        except OverflowError:
+            raise _fail(where, path, f"must be a finite number, got {str(value)[:40]}"
+                        ) from None
     else:
         raise _fail(where, path, f"must be a number, got {value!r}")
     if not np.isfinite(x):
