@@ -32,7 +32,7 @@ def test_fractions_are_the_reduced_ones_below_a_half():
 
 def test_verlet_closed_forms():
     """Verlet: tr M = 2 - z^2, so n theta = 2 pi m at z = 2 sin(pi m / n): 4:1 at sqrt 2,
-    3:1 at sqrt 3 (Mandziuk & Schlick 1995), 6:1 at 1, 5:1 and 5:2 at 2 sin(pi/5), 2 sin(2 pi/5)."""
+    3:1 at sqrt 3 (Schlick et al. 1998), 6:1 at 1, 5:1 and 5:2 at 2 sin(pi/5), 2 sin(2 pi/5)."""
     _, found = _found("verlet", None)
     expected = {f"{n}:{m}": 2 * math.sin(math.pi * m / n) for n, m in fractions((3, 4, 5, 6))}
     assert {r.name for r in found} == set(expected)

@@ -5,13 +5,15 @@ On the oscillator the step map is a rotation by theta(z) in its invariant ellips
 nonlinear (anharmonic) force couples the mode to itself and to others through the
 harmonics of theta: where ``n theta = 2 pi m`` the low-order terms of the perturbation
 are resonant and the discrete dynamics can be unstable although the linear map is stable
-(Mandziuk & Schlick 1995; Schlick, *Molecular Modeling and Simulation*, 2nd ed., ch. 14:
-for Verlet the 3:1 resonance at ``z = sqrt 3`` and the 4:1 at ``z = sqrt 2``, well below
-its linear limit ``z = 2``). The resonance of order n with ``0 < m < n/2`` (coprime) is
-where ``tr M = 2 cos(2 pi m / n)``: its roots are located on the region finder's grid and
-refined, with the float64 uncertainty ``16 eps scale / |d tr M / dz|`` of the region
-finder's own rounding bound. Order 2 (``theta = pi``, ``M = -I``) is the linear limit
-itself, and order 1 (``theta = 0``) is ``z = 0``.
+(Mandziuk & Schlick 1995 for the implicit midpoint rule; Schlick, Mandziuk, Skeel &
+Srinivas 1998, J. Comput. Phys. 140, "Nonlinear resonance artifacts in molecular dynamics
+simulations", for Verlet: the 3:1 resonance at ``z = sqrt 3`` and the 4:1 at
+``z = sqrt 2``, well below its linear limit ``z = 2``). The resonance of order n with
+``0 < m < n/2`` (coprime) is where ``tr M = 2 cos(2 pi m / n)``: its roots are located
+on the region finder's grid and refined, with the float64 uncertainty
+``16 eps scale / |d tr M / dz|`` of the region finder's own rounding bound. Order 2
+(``theta = pi``, ``M = -I``) is the linear limit itself, and order 1 (``theta = 0``) is
+``z = 0``.
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ from stepsafe.exceptions import StepsafeError
 
 MAX_BYTES = 1 << 20
 MAX_DEPTH = 32
-MAX_NODES = 200_000
+MAX_NODES = 20_000
 
 
 class QuotedText(str):
