@@ -377,7 +377,8 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
             saddle: ArrayLike | None = None, inverted: ArrayLike | None = None,
             modes: Mapping[str, ArrayLike] | None = None,
             frequency: UnitValues | None = None, wavenumber: UnitValues | None = None,
-            period: UnitValues | None = None, time_unit: str | None = None,
+            period: UnitValues | None = None, sigma: ArrayLike | None = None,
+            time_unit: str | None = None,
             labels: Mapping[str, Sequence[str | None]] | None = None,
             system: Mapping[str, Any] | None = None, scene: str | Path | None = None,
             stages: int | None = None, base: str | None = None, margin: float | None = None,
@@ -389,10 +390,12 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
     rates, ``modes`` by model name, and vibrations as ``frequency``, ``wavenumber`` (cm^-1)
     or ``period`` (numbers, or texts with a unit such as ``"100 THz"``, ``"9 fs"``; see
     :mod:`stepsafe.units`), converted to rad per ``time_unit`` (``"fs"``, ``"ps"``, ...: the
-    unit of every h in and out), all used together (``labels[model][i]`` names mode i of
+    unit of every h in and out), standard deviations ``sigma`` of a Gaussian target (HMC
+    with unit mass: beta = 1/sigma), all used together (``labels[model][i]`` names mode i of
     ``model`` in that order: ``frequencies``, ``frequency``, ``wavenumber``, ``period``,
-    ``saddle``, ``inverted``, then ``modes``); else the scene's ``modes:``; else a
-    ``system`` (``{"stiffness": K, "mass": M}``, ``{"hessian": H}``, or a scene's
+    ``sigma``, ``saddle``, ``inverted``, then ``modes``); else the scene's ``modes:``; else a
+    ``system`` (``{"stiffness": K, "mass": M}``, ``{"precision": P}`` or
+    ``{"covariance": C}`` with an optional mass, ``{"hessian": H}``, or a scene's
     ``system:``), analysed for the method. ``budget`` (seconds) stops a coupled analysis
     early; ``progress`` is called with the fraction done."""
     import time
@@ -426,7 +429,7 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
         loaded.zmax if loaded.zmax is not None else DEFAULT_ZMAX)
     integrator = _scene_method(method, loaded, stages, base)
     converted = _converted({"frequency": frequency, "wavenumber": wavenumber,
-                            "period": period}, loaded.time_unit)
+                            "period": period, "sigma": sigma}, loaded.time_unit)
     given = _modes_dict(frequencies, saddle, inverted, modes, converted)
     report = None
     if given:

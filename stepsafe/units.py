@@ -12,6 +12,7 @@ form            beta (rad per time unit)                    unit of the value
                                                             unit: Hz ... PHz, ``ps-1``
 ``wavenumber``  2 pi c k,  c = 299 792 458 m/s              cm^-1 (needs a time unit)
 ``period``      2 pi / T                                    time unit, or ``fs``, ``ps``
+``sigma``       1 / sigma (a Gaussian target, unit mass)    the units of q
 ==============  ==========================================  ===========================
 
 The speed of light is exact in the SI (since 1983), and so are the decimal prefixes, so the
@@ -45,8 +46,10 @@ FREQUENCY_UNITS: dict[str, Fraction] = {
     **{f"{t}-1": 1 / s for t, s in TIME_UNITS.items()},
 }
 
-#: The forms a frequency can take (keys of a ``modes:`` item, options on the command line).
-FORMS = ("beta", "frequency", "wavenumber", "period")
+#: The forms a frequency can take (keys of a ``modes:`` item, options on the command line);
+#: ``sigma`` is the standard deviation of a Gaussian target for HMC with unit mass
+#: (``H = p^2/2 + q^2/(2 sigma^2)``: beta = 1/sigma, no unit).
+FORMS = ("beta", "frequency", "wavenumber", "period", "sigma")
 
 _QUANTITY = re.compile(r"\s*([+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)\s*([A-Za-z/^\-0-9]*)\s*")
 
@@ -103,6 +106,15 @@ def angular_frequency(form: str, value: float, unit: str | None = None,
             raise StepsafeError(f"unknown frequency unit {unit!r}; choose one of "
                                 f"{', '.join(FREQUENCY_UNITS)}")
         return _scaled(value, 2 * FREQUENCY_UNITS[unit] * _needs(seconds, form))
+    if form == "sigma":
+        if unit is not None:
+            raise StepsafeError(f"a standard deviation takes no unit here, got {unit!r}")
+        if value == 0:
+            raise StepsafeError("a standard deviation must be > 0")
+        beta = 1.0 / value
+        if not math.isfinite(beta):
+            raise StepsafeError(f"1/sigma overflows: sigma = {value}")
+        return beta
     if form == "period":
         if value == 0:
             raise StepsafeError("a period must be > 0")

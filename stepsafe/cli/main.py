@@ -360,6 +360,9 @@ def frequency_options(func):
         click.option("--frequency", multiple=True, metavar="F",
                      help="Frequency of a vibration: cycles per time unit, or with a unit "
                           "('100THz', '3ps-1'); repeatable."),
+        click.option("--sigma", multiple=True, metavar="S",
+                     help="Standard deviation of a Gaussian target (HMC, unit mass): "
+                          "beta = 1/S; repeatable."),
         click.option("--beta", type=BETA, multiple=True, metavar="B",
                      help="Angular frequency of a vibration (q'=p, p'=-B^2 q), rad per "
                           "time unit; repeatable."),
@@ -418,7 +421,7 @@ def command_line_modes(options: dict) -> tuple[dict, dict[str, tuple[str | None,
 
     unit = options["time_unit"]
     vibrations = list(options["beta"])
-    for form in ("frequency", "wavenumber", "period"):
+    for form in ("frequency", "wavenumber", "period", "sigma"):
         vibrations += [_option_value(lambda v, f=form: quantity(v, f, unit), form, v)
                        for v in options[form]]
     parts: dict[str, list] = {"oscillator": vibrations, "saddle": list(options["saddle_beta"]),

@@ -125,6 +125,40 @@ def separable_modes(K, M=None) -> Decoupled:
                      "decoupled: separable H, generalised eigenproblem K v = w^2 M v")
 
 
+def gaussian_modes(C, M=None) -> Decoupled:
+    """Modes of HMC on a Gaussian target of covariance ``C`` with mass (preconditioner)
+    ``M``: ``H = p^T M^-1 p / 2 + q^T C^-1 q / 2``, so ``w^2`` are the eigenvalues of
+    ``C^-1`` against M, i.e. ``1/mu`` for the eigenvalues ``mu`` of ``L^T C L`` (``M = L
+    L^T``; ``C`` itself without a mass). Computed from C directly (no inverse): each
+    ``mu`` is known to ``16 n eps mu_max`` (times the condition of M at unit diagonal), so
+    ``beta = mu^-1/2`` to half that relative to ``mu``."""
+    C = check_square(C, "covariance")
+    n = C.shape[0]
+    with blas_threads_for(n):
+        if not is_positive_definite(C):
+            raise MatrixError("covariance", "covariance must be positive definite")
+        A = C
+        if M is not None:
+            M = check_square(M, "mass")
+            if M.shape != C.shape:
+                raise MatrixError("mass", f"mass is {M.shape[0]}x{M.shape[0]} but covariance "
+                                          f"is {n}x{n}")
+            if not is_positive_definite(M):
+                raise MatrixError("mass", "mass must be positive definite")
+            L = np.linalg.cholesky(M)
+            A = L.T @ C @ L
+        with np.errstate(all="ignore"):
+            mu = np.linalg.eigvalsh(0.5 * (A + A.T))
+    error = _eigenvalue_error(mu, n) * _cond(M)
+    if not np.all(np.isfinite(mu)) or not np.all(mu > error):
+        raise MatrixError("covariance", "a variance is within rounding of 0 (or beyond "
+                                        "float64): the frequency 1/sigma is not decided")
+    modes = tuple(LinearMode(float(1.0 / np.sqrt(m)), "oscillator", complex(1.0 / m), True,
+                             0.5 * error / m + 2 * EPS) for m in mu)
+    return Decoupled(modes, "decoupled: Gaussian target, frequencies 1/sqrt of the "
+                            "eigenvalues of the (mass-preconditioned) covariance")
+
+
 def _cond(M: np.ndarray | None) -> float:
     """Condition number of a positive definite mass scaled to unit diagonal (it amplifies
     K's rounding in the generalised eigenvalues; a diagonal scaling only changes units, so

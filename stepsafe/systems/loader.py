@@ -31,7 +31,8 @@ DENSE_LIMIT = 2000
 #: Relative uncertainty of an equilibrium's beta: its Hessian is exact to ~30 digits (see
 #: stepsafe.systems.nonlinear), the float64 square roots and products add a few ulps.
 EQUILIBRIUM_ERROR = 8 * float(np.finfo(float).eps)
-SYSTEM_KEYS = {"stiffness", "mass", "hessian", "hamiltonian", "parameters", "box"}
+SYSTEM_KEYS = {"stiffness", "precision", "covariance", "mass", "hessian", "hamiltonian",
+               "parameters", "box"}
 
 
 class SystemReport(NamedTuple):
@@ -116,13 +117,19 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
     if unknown:
         key = sorted(unknown)[0]
         raise _fail(where, key, unknown_key(key, sorted(SYSTEM_KEYS)))
-    kinds = [k for k in ("stiffness", "hessian", "hamiltonian") if k in tree]
+    kinds = [k for k in ("stiffness", "precision", "covariance", "hessian", "hamiltonian")
+             if k in tree]
     if len(kinds) != 1:
-        raise _fail(where, "", "give exactly one of stiffness (with optional mass), hessian or "
-                               "hamiltonian")
+        raise _fail(where, "", "give exactly one of stiffness, precision or covariance (each "
+                               "with an optional mass), hessian or hamiltonian")
+    if "mass" in tree and kinds[0] not in ("stiffness", "precision", "covariance"):
+        raise _fail(where, "mass", f"a mass goes with a stiffness, precision or covariance, "
+                                   f"not with {kinds[0]} (it would be ignored)")
     try:
-        if kinds[0] == "stiffness":
-            return _stiffness(tree, where, folder)
+        if kinds[0] in ("stiffness", "precision"):
+            return _stiffness(tree, where, folder, kinds[0])
+        if kinds[0] == "covariance":
+            return _covariance(tree, where, folder)
         if kinds[0] == "hessian":
             return _hessian(tree, where, folder, method, zmax, progress, deadline)
         return _hamiltonian(tree, where, method, zmax)
@@ -158,10 +165,31 @@ def _report_modes(modes, analysis: str, notes: list[str],
         {k: np.array(v) for k, v in errors.items()}), [], notes, primary_only)
 
 
-def _stiffness(tree, where, folder) -> SystemReport:
+def _covariance(tree, where, folder) -> SystemReport:
+    """A Gaussian target for HMC given by its covariance (and a mass matrix, the
+    preconditioner): the frequencies are ``1/sqrt(mu)`` for the eigenvalues ``mu`` of
+    ``L^T Sigma L`` (``M = L L^T``), i.e. those of the precision ``Sigma^-1`` against M."""
+    from stepsafe.systems.linear import gaussian_modes
+
+    C = _matrix(tree["covariance"], where, "covariance", folder, sparse_ok=True)
+    if hasattr(C, "toarray"):
+        if C.shape[0] > DENSE_LIMIT:
+            raise _fail(where, "covariance", f"a {C.shape[0]}-dimensional covariance is "
+                                             "analysed densely: give its (sparse) precision "
+                                             "instead")
+        C = C.toarray()
+    M = _matrix(tree["mass"], where, "mass", folder) if "mass" in tree else None
+    if C.shape[0] > DENSE_LIMIT:
+        raise _fail(where, "covariance", f"a {C.shape[0]}-dimensional dense covariance is "
+                                         f"larger than {DENSE_LIMIT}: give its precision")
+    d = gaussian_modes(C, M)
+    return _report_modes(d.modes, d.analysis, [])
+
+
+def _stiffness(tree, where, folder, key: str = "stiffness") -> SystemReport:
     from stepsafe.systems.linear import is_diagonal, separable_modes, sparse_extreme_modes
 
-    K = _matrix(tree["stiffness"], where, "stiffness", folder, sparse_ok=True)
+    K = _matrix(tree[key], where, key, folder, sparse_ok=True)
     M = _matrix(tree["mass"], where, "mass", folder, sparse_ok=True) if "mass" in tree else None
     if M is not None and K.shape[0] == K.shape[1] and M.shape != K.shape:
         # before any dense copy of a sparse mass

@@ -100,9 +100,13 @@ def json_schema() -> dict[str, Any]:
                                    "description": "cm-1 (needs time_unit): 3700"},
                     "period": {"type": ["number", "string"],
                                "description": "in time units, or with a unit: '9 fs'"},
+                    "sigma": {"type": "number", "exclusiveMinimum": 0,
+                              "description": "standard deviation of a Gaussian target "
+                                             "(HMC, unit mass): beta = 1/sigma"},
                     "model": {"enum": list(MODELS), "default": "oscillator"},
                     "label": {"type": "string"}}}},
             "system": {"type": "object", "description": "a whole system: {stiffness:, mass:}, "
+                       "{precision:, mass:} or {covariance:, mass:} (a Gaussian target), "
                        "{hessian:} or {hamiltonian:, parameters:, box: {q:, p:}}"},
         },
     }
@@ -188,7 +192,8 @@ def _modes_list(items: Any, where: str, path: str, time_unit: str | None = None
         forms = [f for f in FORMS if isinstance(item, dict) and f in item]
         if not isinstance(item, dict) or len(forms) != 1:
             raise _fail(where, f"{path}[{i}]", "must be a mapping with one of beta, "
-                                               "frequency, wavenumber or period (and model)")
+                                               "frequency, wavenumber, period or sigma (and "
+                                               "model)")
         unknown = set(item) - set(keys)
         if unknown:
             raise _fail(where, f"{path}[{i}].{sorted(unknown)[0]}",

@@ -1,0 +1,96 @@
+"""Gaussian targets for HMC: standard deviations, covariance, precision, mass matrix."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import stepsafe
+
+
+def _spd(n: int, seed: int, spread: float = 1e3) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    return (Q * np.geomspace(1.0, spread, n)) @ Q.T
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_covariance_precision_and_sigma_agree(seed):
+    """Verlet's h_max is 2 sigma_min: from the covariance, from its inverse (the
+    precision, a stiffness), and from the standard deviations of its eigenbasis."""
+    C = _spd(6, seed)
+    sigmas = np.sqrt(np.linalg.eigvalsh(C))
+    from_c = stepsafe.advise("verlet", system={"covariance": C}).h_max
+    from_p = stepsafe.advise("verlet", system={"precision": np.linalg.inv(C)}).h_max
+    from_s = stepsafe.advise("verlet", sigma=sigmas).h_max
+    # the covariance path knows its smallest variance only to 16 n eps of the largest
+    # (ratio 1e3 here): its h_max is lower by that much, never higher
+    assert from_c <= 2 * sigmas.min() and from_c == pytest.approx(2 * sigmas.min(), rel=1e-9)
+    assert from_p == pytest.approx(2 * sigmas.min(), rel=1e-12)
+    assert from_s == pytest.approx(2 * sigmas.min(), rel=1e-12)
+
+
+def test_mass_preconditions_the_covariance():
+    """With the mass M = C^-1 (the ideal preconditioner) every frequency is 1."""
+    C = _spd(5, 7)
+    report = stepsafe.advise("verlet", system={"covariance": C, "mass": np.linalg.inv(C)})
+    assert report.h_max == pytest.approx(2.0, rel=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_leapfrog_on_the_gaussian_measures_the_limit(seed):
+    """A real integration: leapfrog on H = p^T p/2 + q^T C^-1 q/2 keeps the energy error
+    bounded just below the predicted h_max and blows up just above it."""
+    C = _spd(4, seed, spread=100.0)
+    h_max = stepsafe.advise("verlet", system={"covariance": C}).h_max
+    P = np.linalg.inv(C)
+
+    def energy_growth(h: float) -> float:
+        q, p = np.ones(4), np.zeros(4)
+        e0 = 0.5 * (p @ p + q @ P @ q)
+        worst = 0.0
+        with np.errstate(over="ignore", invalid="ignore"):
+            for _ in range(2000):
+                p = p - 0.5 * h * P @ q
+                q = q + h * p
+                p = p - 0.5 * h * P @ q
+                worst = max(worst, abs(0.5 * (p @ p + q @ P @ q) - e0) / e0)
+                if not worst < 1e12:
+                    return np.inf
+        return worst
+
+    assert energy_growth(0.99 * h_max) < 1e2
+    assert energy_growth(1.01 * h_max) > 1e6
+
+
+def test_scene_and_command_line(run, tmp_path):
+    C = _spd(3, 3)
+    np.save(tmp_path / "cov.npy", C)
+    scene = tmp_path / "hmc.yaml"
+    scene.write_text("method: verlet\nh: 0.5\nsystem: {covariance: cov.npy}\n")
+    code, out, err = run("advise", str(scene), "--json")
+    assert code == 0, err
+    assert json.loads(out)["h_max"] == pytest.approx(2 * np.sqrt(np.linalg.eigvalsh(C).min()),
+                                                     rel=1e-10)
+    code, out, _ = run("advise", "--method", "verlet", "--sigma", "0.5", "--sigma", "2",
+                       "--json")
+    assert json.loads(out)["h_max"] == pytest.approx(1.0, rel=1e-12)
+    modes = tmp_path / "modes.yaml"
+    modes.write_text("method: verlet\nmodes:\n  - {sigma: 0.25, label: narrow}\n")
+    code, out, _ = run("advise", str(modes), "--json")
+    assert json.loads(out)["limiting"]["label"] == "narrow"
+
+
+@pytest.mark.parametrize("system, key", [
+    ("{covariance: [[1, 2], [2, 1]]}", "covariance"),
+    ("{covariance: [[1, 0], [0, 1]], hessian: [[1, 0], [0, 1]]}", "system"),
+    ("{hessian: [[1, 0], [0, 1]], mass: [[1, 0], [0, 1]]}", "mass"),
+    ("{covariance: [[1, 0], [0, 1]], mass: [[1, 0], [0, -1]]}", "mass"),
+])
+def test_bad_gaussians_are_refused(run, tmp_path, system, key):
+    scene = tmp_path / "bad.yaml"
+    scene.write_text(f"method: verlet\nh: 0.1\nsystem: {system}\n")
+    code, out, err = run("check", str(scene))
+    assert code == 2 and key in err and len(err.strip().splitlines()) == 1, err
