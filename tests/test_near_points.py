@@ -130,3 +130,17 @@ def test_random_splittings_near_their_points(tmp_path_factory, drift, data, big,
 
 def test_offsets_cover_both_sides():
     assert min(OFFSETS) < 0 < max(OFFSETS) and np.isclose(min(abs(o) for o in OFFSETS), 1e-13)
+
+
+def test_m_equals_identity_under_cancelling_composition_weights(tmp_path):
+    """A composition of pefrl with weights +-1e6: the M = +I touch near z = 2.9033627 was
+    placed 1e-9 too high with a stated uncertainty of 2e-11 (the rounding bound of
+    tr M - 2 vanishes at a touch); on the saddle the touch is the multiplier crossing 1,
+    placed only to the rounding of M_qq - 1 over its slope."""
+    path = tmp_path / "comp-cancel.yaml"
+    path.write_text("name: comp-cancel\nkind: composition\norder: 1\nsource: generated\n"
+                    "base: pefrl\nsymmetric: true\nweights: ['1000000.0', "
+                    "'-0.918483869638351', '-0.14219727462268272', '-999999.403516199', "
+                    "\"1 - 2*(1000000.0 + -0.918483869638351 + -0.14219727462268272 + "
+                    "-999999.403516199)\"]\n")
+    assert _false_safes(str(path), "saddle", 3.5) == []

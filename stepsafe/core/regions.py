@@ -495,6 +495,14 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
                    for r, u, L, t in zip(roots, width, root_levels, tol)]
     if not ELLIPTIC[model]:
         points += [_Candidate(p) for p in _orientation_switches(ev, z, f[:, 0], D, usable)]
+    if model in DIAGONAL_MODELS and resonances:
+        # M = +I on a saddle is where the multiplier R crosses 1: tr M - 2 = (R - 1)^2 / R
+        # only touches 0, and its rounding bound vanishes there, but R - 1 is wrong by
+        # eps sens: the touch is placed only to that over its slope (the orientation's)
+        at = np.array([c.point.z for c in resonances])
+        wide = _orientation_uncertainty(ev, at)
+        resonances = [c._replace(point=c.point._replace(
+            uncertainty=float(max(c.point.uncertainty, w)))) for c, w in zip(resonances, wide)]
     points += resonances
     spreads = _within_decided(points, z[~unc], zmax)
     spreads = _escalate(ev, spreads, Escalation(method, model), dz)
