@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import mpmath
 import pytest
@@ -168,3 +169,27 @@ def test_scene_with_units(run, tmp_path):
     two.write_text("method: verlet\nmodes:\n  - {beta: 1, wavenumber: 3700}\n")
     code, out, err = run("advise", str(two), "--time-unit", "fs")
     assert code == 2 and "modes[0]" in err and "one of beta" in err
+
+
+@pytest.mark.parametrize("scene, limits", [
+    ("protein-flexible.yaml", (2.949, 2.085, 2.554)),
+    ("protein-constrained.yaml", (6.434, 4.550, 5.572)),
+])
+def test_md_examples_as_the_readme_states(run, scene, limits):
+    """The README's table (rounded down): linear limit, below the 4:1 and the 3:1 resonance, fs
+    (each the closed form 2 sin(pi m / n) / beta for Verlet, beta = 2 pi c k)."""
+    from pathlib import Path
+
+    path = str(Path(__file__).resolve().parent.parent / "examples" / scene)
+    got = []
+    for order in (None, 4, 3):
+        extra = [] if order is None else ["--resonance-order", str(order)]
+        code, out, err = run("advise", path, *extra, "--json")
+        assert code == 0, err
+        got.append(json.loads(out)["h_max"])
+    assert [math.floor(h * 1000) / 1000 for h in got] == list(limits)
+    beta = quantity(json.loads(run("advise", path, "--json")[1])["limiting"]["beta"], "beta",
+                    None)
+    for h, z in zip(got, (2.0, math.sqrt(2), math.sqrt(3))):
+        assert h == pytest.approx(z / beta, rel=1e-12)
+    assert run("check", path, "--resonance-order", "4")[0] == 0
