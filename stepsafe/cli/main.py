@@ -483,13 +483,16 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, scene_files, 
     limits it, and any islands of safe h beyond it (outside the primary interval).
 
     A scene file gives the method and either modes: (frequencies with their models) or
-    system: (a stiffness/mass pair, a Hessian, or a 1-dof Hamiltonian whose equilibria
-    stepsafe finds and linearises); options on the command line override it.
+    system: (a stiffness/mass pair, a Gaussian's covariance or precision, a Hessian, or a
+    1-dof Hamiltonian whose equilibria stepsafe finds and linearises); options on the
+    command line override it. Steps are in --time-unit (else in the unit of 1/beta).
 
     \b
     Examples:
       stepsafe advise --method yoshida4 --beta 3.2 --inverted-beta 1.1
       stepsafe advise --method lobatto3ab -s 3 --beta 1 --json
+      stepsafe advise --method verlet --wavenumber 3700 --time-unit fs --resonance-order 4
+      stepsafe advise --method bcss2 --sigma 0.1 --sigma 2
       stepsafe advise scene.yaml --margin 0.8
       stepsafe advise examples/pendulum.yaml
     """
