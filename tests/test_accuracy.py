@@ -211,3 +211,27 @@ def test_tradeoff_example_measures_what_it_predicts(tmp_path):
         # ellipse); the exact comparison is test_simulated_energy_error_matches_prediction
         assert 0 <= 1 - float(r["osc_energy"]) / float(r["pred_energy"]) < 5e-3
         assert rel(float(r["top_rate"]), float(r["pred_rate"])) < 1e-3
+
+
+def test_energy_bound_is_not_reached_on_a_rational_rotation():
+    """kappa - 1 bounds the energy error of every orbit; on Verlet at z = 1 (rotation
+    pi/3, period 6) the worst start over a fine scan gives 0.2832 < 1/3, while at an
+    irrational rotation (z = 1.1) the scan approaches the bound."""
+    import stepsafe
+
+    for z, reached in ((1.0, False), (1.1, True)):
+        M = stepsafe.transfer_matrices("verlet", [z])[0]
+        bound = stepsafe.errors("verlet", [z]).energy[0]
+        worst = 0.0
+        for phi in np.linspace(0.0, np.pi, 2001):
+            x = np.array([np.cos(phi), np.sin(phi)])
+            energies = []
+            for _ in range(400):
+                energies.append(x @ x)
+                x = M @ x
+            worst = max(worst, max(energies) / min(energies) - 1)
+        assert worst <= bound * (1 + 1e-12)
+        if reached:
+            assert worst > 0.999 * bound
+        else:
+            assert bound == pytest.approx(1 / 3) and worst == pytest.approx(0.28320, abs=1e-4)
