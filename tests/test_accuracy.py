@@ -235,3 +235,23 @@ def test_energy_bound_is_not_reached_on_a_rational_rotation():
             assert worst > 0.999 * bound
         else:
             assert bound == pytest.approx(1 / 3) and worst == pytest.approx(0.28320, abs=1e-4)
+
+
+@pytest.mark.parametrize("args", [
+    ["advise", "--method", "gauss", "-s", "2", "--beta", "1", "--tol-energy", "1e-4"],
+    ["advise", "--method", "midpoint", "--beta", "1", "--tol-energy", "1e-4"],
+    ["compare", "--beta", "1", "--tol-energy", "1e-4"],
+])
+def test_energy_tolerance_alone_is_refused_for_energy_exact_methods(run, args):
+    """Exact energy on the linear model is not a recommendation: a phase tolerance is
+    required alongside; with it the answer comes back."""
+    code, out, err = run(*args)
+    assert code == 2 and "--tol-phase" in err and len(err.strip().splitlines()) == 1
+    code, _, err = run(*args, "--tol-phase", "1e-6")
+    assert code == 0, err
+
+
+def test_energy_tolerance_alone_still_works_for_other_methods(run_json):
+    data = run_json("advise", "--method", "lobatto3ab", "-s", "3", "--beta", "1",
+                    "--tol-energy", "1e-4")
+    assert data["bound_by"] == "accuracy"

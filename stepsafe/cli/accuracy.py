@@ -101,7 +101,8 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, tsv, as_json, **options) 
     \b
     Examples:
       stepsafe compare --beta 3.2 --tol-phase 1e-6
-      stepsafe compare --beta 1 --tol-energy 1e-4 --methods verlet,pefrl,yoshida4,gauss:2
+      stepsafe compare --beta 1 --tol-energy 1e-4 --methods verlet,pefrl,yoshida4,bcss2
+      stepsafe compare --beta 1 --tol-phase 1e-6 --tol-energy 1e-6 --methods pefrl,gauss:2
     """
     from stepsafe import api
     from stepsafe.cli.report import print_compare, print_json, print_tsv

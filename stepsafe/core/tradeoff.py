@@ -18,7 +18,19 @@ import numpy as np
 from stepsafe.core.accuracy import z_for_tolerance
 from stepsafe.core.advice import Advice, Modes, advise
 from stepsafe.core.models import ELLIPTIC
+from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import Method
+
+
+def energy_exact(method: Method) -> bool:
+    """Whether the method's energy error on the oscillator is 0 at every step (to rounding,
+    checked at z = 0.1, 0.5, 1): symplectic Runge-Kutta methods such as Gauss conserve
+    every quadratic invariant, the linear model's energy among them."""
+    from stepsafe.core.accuracy import errors
+
+    with np.errstate(all="ignore"):
+        energy = np.asarray(errors(method, np.array([0.1, 0.5, 1.0])).energy, dtype=float)
+    return bool(np.all(np.isfinite(energy)) and np.all(np.abs(energy) <= 1e-13))
 
 
 class Tolerance(NamedTuple):
@@ -50,6 +62,13 @@ def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (
              margin: float = 1.0, name: str | None = None,
              evaluations: int | None = None, zmax: float | None = None,
              resonance_order: int | None = None) -> Tradeoff:
+    kinds = {t.kind for t in tolerances}
+    if "energy" in kinds and "phase" not in kinds and energy_exact(method):
+        raise StepsafeError(
+            f"{name or method.name} keeps the energy of every linear model exactly (it "
+            "conserves quadratic invariants), so --tol-energy alone would recommend the "
+            "largest safe step, which says nothing about a nonlinear system: give "
+            "--tol-phase as well")
     adv = advise(method, modes, margin, name=name, resonance_order=resonance_order,
                  **({} if zmax is None else {"zmax": zmax}))
     limits: list[ToleranceLimit] = []
