@@ -45,3 +45,32 @@ def test_the_review_case():
     assert not stepsafe.check(pefrl, 1.65, system=system).safe
     assert stepsafe.advise(pefrl, system=system).h_max == pytest.approx(1.639907998996,
                                                                          rel=1e-9)
+
+
+KREIN = [[0.860544, None, -0.420883, 0.0], [None, -1.070946, 0.0, 0.131125],
+         [-0.420883, 0.0, 1.640329, None], [0.0, 0.131125, None, -0.527871]]
+
+
+def _krein_system(eps: float) -> dict:
+    """Two 1-dof blocks with elliptic pairs of opposite Krein sign whose pefrl rotation
+    angles cross at h0 = 2.48728162988 (50 digits), coupled by eps (an independent
+    review's case)."""
+    return {"hessian": [[eps if x is None else x for x in row] for row in KREIN]}
+
+
+@pytest.mark.parametrize("eps", [1e-9, 1e-11, 1e-6, 1e-2])
+def test_krein_collision_is_never_safe(eps):
+    """Where the multipliers of opposite Krein sign meet, any coupling opens a loxodromic
+    band (|nu| > 1): the crossing is not certified, and the interval from 0 ends before
+    it; below that, the map is elliptic (float64 eigenvalues on the circle)."""
+    from stepsafe.systems.coupled import one_step_matrix
+
+    pefrl = stepsafe.method("pefrl")
+    system = _krein_system(eps)
+    assert not stepsafe.check(pefrl, 2.4872816298802696, system=system).safe
+    h_max = stepsafe.advise(pefrl, system=system).h_max
+    assert h_max < 2.4872816298802696
+    S = np.array(system["hessian"])
+    for h in np.linspace(0.05, h_max, 60)[:-1]:
+        nu = np.linalg.eigvals(one_step_matrix(pefrl.tableau, S, h))
+        assert np.abs(nu).max() - 1 < 1e-12, (eps, h)

@@ -385,11 +385,38 @@ class CoupledSystem:
             return False  # Q singular within rounding: a multiplier at +-1, undecided
         krein = (int((lam > 0).sum()) - int((lam < 0).sum())) // 2
         ref = self.reference
+        if ref.elliptic_plus and ref.elliptic_minus and _near_collision(nu):
+            return False  # elliptic pairs of both Krein signs about to meet: undecided
         types = (flips == 0 and ell == ref.elliptic_plus + ref.elliptic_minus
                  and krein == ref.elliptic_plus - ref.elliptic_minus
                  and hyp == ref.hyperbolic and lox == ref.loxodromic
                  and par == ref.parabolic)
         return types and (ref.hyperbolic == 0 or self.oriented(D))
+
+    @property
+    def mixed_krein(self) -> bool:
+        """Whether the flow has elliptic pairs of both Krein signs (indefinite S): such
+        pairs become loxodromic where their multipliers meet (a Krein collision)."""
+        return not self.definite and self.reference.elliptic_plus > 0 \
+            and self.reference.elliptic_minus > 0
+
+    def krein_order(self, h: float) -> tuple[int, ...] | None:
+        """The Krein signs of the elliptic multipliers ordered by their angle in (0, pi):
+        it changes between two steps exactly when pairs of opposite sign have crossed,
+        i.e. met (None where the step is not unique)."""
+        out = self._evaluate(h)
+        if out is None:
+            return None
+        D = out[0]
+        nu, V = np.linalg.eig(D + np.eye(D.shape[0]))
+        upper = (np.abs(np.abs(nu) - 1) <= COLLISION_TOL) & (nu.imag > CIRCLE_TOL)
+        plus, _ = _krein_counts(V, upper)
+        n = self.n
+        Vu = V[:, upper]
+        form = ((np.conj(Vu[:n]) * Vu[n:]).sum(axis=0)
+                - (np.conj(Vu[n:]) * Vu[:n]).sum(axis=0)).imag
+        order = np.argsort(np.angle(nu[upper]))
+        return tuple(int(np.sign(form[k])) for k in order)
 
     @cached_property
     def poles(self) -> np.ndarray:
@@ -468,6 +495,20 @@ def _reciprocals(lam: np.ndarray) -> list[float]:
 #: Stage systems of more unknowns than this are not searched for poles (an eigenvalue
 #: problem of that size per PRK piece).
 MAX_POLE_SIZE = 400
+#: Elliptic multipliers of an indefinite S closer than this to each other (and to the unit
+#: circle) are about to collide: a weak coupling turns them loxodromic within a band of its
+#: size, below what float64 eigenvalues show, so such a step is not certified.
+COLLISION_TOL = 1e-6
+
+
+def _near_collision(nu: np.ndarray) -> bool:
+    upper = nu[(np.abs(np.abs(nu) - 1) <= COLLISION_TOL) & (nu.imag > CIRCLE_TOL)]
+    if upper.size < 2:
+        return False
+    gaps = np.abs(upper[:, None] - upper[None, :]) + np.eye(upper.size)
+    return bool(gaps.min() <= COLLISION_TOL)
+
+
 #: A step within this (relative) of a pole is treated as the pole (its float64 location).
 POLE_BAND = 1e-10
 #: Relative distances from a pole at which the scan samples on both sides.
@@ -517,6 +558,13 @@ def _safe_steps(method: Method, S: np.ndarray, zmax: float,
                    "S indefinite, multiplier types and the inertia of M^T J - J M")
                 + " against J S (the modes do not decouple for this method)")
     lo = 0.0
+    order = None
+    if system.mixed_krein:
+        # finer steps: an opposite-Krein crossing is seen as a change of the ordering
+        # between two samples, and the loxodromic band it opens can be narrow
+        hs = np.union1d(hs, horizon * np.arange(1, 10 * count + 1) / (10 * count))
+        count = hs.size
+        order = system.krein_order(hs[0] * 1e-3)
     for k, h in enumerate(hs):
         if deadline is not None and time.monotonic() > deadline and lo > 0:
             return CoupledResult(lo, lo, system.evaluations, analysis + "; stopped by the "
@@ -524,9 +572,11 @@ def _safe_steps(method: Method, S: np.ndarray, zmax: float,
         bad = _first_failure(system, lo, h, hs[k - 2] if k >= 2 else None)
         if bad is None and poles.size and lo < poles[0] <= h:
             bad = (lo, float(poles[0]))  # the first pole ends the interval from 0
+        if bad is None and order is not None and system.krein_order(h) != order:
+            bad = (lo, h)  # pairs of opposite Krein sign met in between
         if bad is not None:
             good, bad = bad
-            h_max = _boundary(system, good, bad)
+            h_max = _boundary(system, good, bad, order)
             if progress:
                 progress(1.0)
             return CoupledResult(h_max, horizon, system.evaluations, analysis)
@@ -566,7 +616,8 @@ def _first_failure(system: CoupledSystem, lo: float, h: float, before: float | N
     return None
 
 
-def _boundary(system: CoupledSystem, good: float, bad: float) -> float:
+def _boundary(system: CoupledSystem, good: float, bad: float,
+              order: tuple[int, ...] | None = None) -> float:
     """The last preserved h of ``(good, bad)``, to ``REL_TOL``: Brent on phi (definite S),
     bisection otherwise; the result is always an h that was found preserved (0 if none
     down to ``bad`` 1e-30 is)."""
@@ -596,7 +647,7 @@ def _boundary(system: CoupledSystem, good: float, bad: float) -> float:
             pass
     while bad - good > REL_TOL * bad:
         mid = 0.5 * (good + bad)
-        if system.preserved(mid):
+        if system.preserved(mid) and (order is None or system.krein_order(mid) == order):
             good = mid
         else:
             bad = mid
