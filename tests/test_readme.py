@@ -32,3 +32,9 @@ def test_quoted_outputs():
     units = _output("advise", "--method", "verlet", "--wavenumber", "3700", "--time-unit", "fs")
     assert "Safe: 0 < h < 2.86964186966 fs" in units and "0.696951079904" in units
     assert "`Safe: 0 < h < 2.86964186966 fs`" in README and "0.696951079904" in README
+
+
+def test_scene_schema_is_the_code_s():
+    start = README.index("```json\n", README.index("<summary>scene file JSON Schema</summary>"))
+    block = README[start + len("```json\n"):README.index("```", start + 8)]
+    assert block == _output("schema", "scene")
