@@ -520,13 +520,15 @@ class AdviceReport:
 
 def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None = None, *,
            tol_phase: float | None = None, tol_energy: float | None = None,
-           resonance_order: int | None = None, verify: bool = False,
-           **inputs: Any) -> AdviceReport:
+           resonance_order: int | None = None, solver: str = "fixed-point",
+           verify: bool = False, **inputs: Any) -> AdviceReport:
     """Safe step sizes for a method and frequencies (or a scene, or a system): see
     :func:`problem` for the inputs (``saddle``, ``inverted``, ``modes``, ``system``,
     ``scene``, ``stages``, ``base``, ``margin``, ``zmax``, ``budget``, ``progress``).
     ``tol_phase``/``tol_energy`` also bound the phase (growth-rate) and energy errors
-    and add the usable step and its cost. ``resonance_order`` N also keeps every
+    and add the usable step and its cost (implicit methods: the force evaluations of
+    fixed-point iteration, ``solver="nominal"`` for one per stage). ``resonance_order`` N
+    also keeps every
     vibration below its first nonlinear resonance n theta = 2 pi m with n <= N; the
     resonances of orders 3 to 6 (and up to N) of the fastest vibration are listed in
     ``record["nonlinear_resonances"]`` either way.
@@ -559,7 +561,8 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
             tols = tuple(Tolerance(k, _tolerance(k, v)) for k, v in
                          (("phase", tol_phase), ("energy", tol_energy)) if v is not None)
             res = tradeoff(integrator.tableau, p.modes, tols, p.margin, integrator.name,
-                           integrator.evaluations, p.zmax, _order(resonance_order))
+                           integrator.evaluations, p.zmax, _order(resonance_order),
+                           _solver(solver))
             result = res.advice
             data = tradeoff_data(res)
         if result is not None:
@@ -598,6 +601,15 @@ def _fastest_resonances(integrator: Integrator, result: Any, p: Problem,
     orders = tuple(range(3, max(order or 0, max(DEFAULT_ORDERS)) + 1))
     found = nonlinear_resonances(integrator.tableau, region, orders)
     return nonlinear_data(found, float(betas.max()), p.margin)
+
+
+def _solver(value: Any) -> str:
+    from stepsafe.core.tradeoff import SOLVERS
+
+    if not isinstance(value, str) or value not in SOLVERS:
+        raise StepsafeError(f"solver must be one of {', '.join(SOLVERS)}, got "
+                            f"{str(value)[:20]!r}")
+    return value
 
 
 def _tolerance(kind: str, value: float) -> float:
@@ -807,6 +819,7 @@ class CompareRow:
     h: float | None
     bound_by: str
     evaluations: int | None
+    solver_iterations: int | None
     cost: float | None
     rank: int | None
 
@@ -820,13 +833,14 @@ class CompareReport:
     tolerances: Mapping[str, float]
     margin: float
     time_unit: str | None = None
+    solver: str = "fixed-point"
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe compare ... --json`` prints."""
         from dataclasses import asdict
 
         return {"modes": dict(self.modes), "tolerances": dict(self.tolerances),
-                "margin": self.margin, "time_unit": self.time_unit,
+                "margin": self.margin, "time_unit": self.time_unit, "solver": self.solver,
                 "cost_unit": "force evaluations per unit of simulated time",
                 "methods": [{**asdict(r), "tolerance_status": list(r.tolerance_status)}
                             for r in self.rows]}
@@ -838,12 +852,14 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
             tol_phase: float | None = None, tol_energy: float | None = None,
             margin: float = 1.0, zmax: float | None = None,
             frequency: UnitValues | None = None, wavenumber: UnitValues | None = None,
-            period: UnitValues | None = None, time_unit: str | None = None
-            ) -> CompareReport:
+            period: UnitValues | None = None, time_unit: str | None = None,
+            solver: str = "fixed-point") -> CompareReport:
     """Rank ``methods`` (names, ``"family:N"`` such as ``"gauss:2"``, Integrators; ``"all"``:
     every built-in method with the families at s = 2 and 3; None: :data:`COMPARE_DEFAULT`)
     by the cost of the usable step h = min(safe, accurate) for the same frequencies
-    (given as for :func:`problem`; h in ``time_unit``).
+    (given as for :func:`problem`; h in ``time_unit``). Implicit methods cost the force
+    evaluations of fixed-point iteration of their stages at that h (``solver="nominal"``:
+    one per stage), and h stays below 0.9 of that iteration's convergence limit.
 
     >>> best = compare(["verlet", "pefrl"], [1.0], tol_phase=1e-6).rows[0]
     >>> best.method, best.bound_by
@@ -868,7 +884,7 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     for integrator in _compared(methods):
         with integrator.naming_its_file():
             res = tradeoff(integrator.tableau, grid, tolerances, margin, integrator.name,
-                           integrator.evaluations, zmax)
+                           integrator.evaluations, zmax, solver=_solver(solver))
         rows.append(compare_row(res, integrator.explicit))
     rows.sort(key=lambda r: (r["cost"] is None, r["cost"] or 0.0))
     ranked = []
@@ -878,7 +894,7 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     return CompareReport(tuple(ranked),
                          MappingProxyType({k: int(v.size) for k, v in grid.betas.items()}),
                          MappingProxyType({t.kind: t.value for t in tolerances}), margin,
-                         time_unit)
+                         time_unit, solver)
 
 
 def _compared(methods: Sequence[Integrator | str] | str | None) -> list[Integrator]:

@@ -88,15 +88,21 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json, tsv) 
               help="Largest |phase error| (|growth-rate error| for saddles and barriers).")
 @click.option("--tol-energy", type=FLOAT, default=None, metavar="T",
               help="Largest relative energy error (vibrations).")
+@click.option("--solver", type=click.Choice(("fixed-point", "nominal")), default="fixed-point",
+              show_default=True,
+              help="How implicit methods are costed: force evaluations of fixed-point "
+                   "iteration of their stages to 1e-14 at the step used, or one per stage.")
 @click.option("--tsv", is_flag=True, help="Print the table as tab-separated values.")
 @frequency_options
-def compare_cmd(names, use_all, tol_phase, tol_energy, tsv, as_json, **options) -> None:
+def compare_cmd(names, use_all, tol_phase, tol_energy, solver, tsv, as_json, **options) -> None:
     """Rank methods by cost per unit of simulated time for your frequencies.
 
     For each method: the first boundary, the largest safe h, the h that meets the
     tolerance, evaluations per step and the cost evaluations/h at the usable step
-    min(safe, accurate); ranked by cost (cheapest first). Steps are in the time unit of
-    1/beta.
+    min(safe, accurate); ranked by cost (cheapest first). Implicit methods cost what
+    fixed-point iteration of their stages costs at that step, which also stays below 0.9
+    of the iteration's convergence limit (bound by "solver"). Steps are in the time unit
+    of 1/beta.
 
     \b
     Examples:
@@ -115,12 +121,12 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, tsv, as_json, **options) 
     margin = options["margin"]
     data = api.compare(methods, modes=arrays, tol_phase=tol_phase, tol_energy=tol_energy,
                        margin=1.0 if margin is None else margin, zmax=options["zmax"],
-                       time_unit=options["time_unit"]).to_dict()
+                       time_unit=options["time_unit"], solver=solver).to_dict()
     if as_json:
         print_json(data)
     elif tsv:
         print_tsv(("rank", "method", "implicit", "first_boundary", "h_max", "h_tol", "h",
-                   "bound_by", "evaluations", "cost"), data["methods"])
+                   "bound_by", "evaluations", "solver_iterations", "cost"), data["methods"])
     else:
         print_compare(data)
 

@@ -378,8 +378,13 @@ def print_compare(data: dict[str, Any]) -> None:
             "-" if r["cost"] is None else fmt(r["cost"], 6))
     console = _console()
     console.print(table)
-    console.print("* implicit: evaluations count one per stage per nonlinear iteration; multiply "
-                  "by the iterations your solver needs.")
+    if data.get("solver", "fixed-point") == "fixed-point":
+        console.print("* implicit: force evaluations of fixed-point iteration of the stages to "
+                      "1e-14 at that h (iterations in --json); --solver nominal counts one per "
+                      "stage.")
+    else:
+        console.print("* implicit: one evaluation per stage (nominal); multiply by your "
+                      "solver's iterations (plus one for the update).")
 
 
 #: a system with more modes or equilibria than this lists only the most limiting

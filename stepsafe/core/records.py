@@ -201,6 +201,7 @@ def tradeoff_data(res) -> dict[str, Any]:
     data["h"] = _num(res.h)
     data["bound_by"] = res.bound_by
     data["evaluations"] = res.evaluations
+    data["solver_iterations"] = res.iterations
     data["cost_per_unit_time"] = _num(res.cost)
     return data
 
@@ -223,6 +224,7 @@ def compare_row(res, explicit: bool) -> dict[str, Any]:
         "h": _num(res.h),
         "bound_by": res.bound_by,
         "evaluations": res.evaluations,
+        "solver_iterations": res.iterations,
         "cost": _num(res.cost),
         "rank": None,
     }

@@ -5,8 +5,9 @@ For a method and modes, the usable step is ``h = min(h_safe, h_tol)``: ``h_safe`
 the largest frequency of each model (errors depend on z = beta h only and grow from 0, so
 the largest beta binds). The cost per unit of simulated time is ``evaluations / h``
 (= evaluations * beta / z): force evaluations per step as listed in the method file; for
-implicit methods this is one evaluation per stage per nonlinear iteration, so multiply by
-the iterations your solver needs.
+implicit methods, by default, those of fixed-point iteration of the stage equations to
+1e-14 at the largest beta h (:mod:`stepsafe.core.solver`), whose convergence limit also
+bounds h (``bound_by = "solver"``); ``solver="nominal"`` counts one per stage.
 """
 
 from __future__ import annotations
@@ -56,12 +57,21 @@ class Tradeoff(NamedTuple):
     bound_by: str  # "safety", "accuracy", "horizon" (the analysed range) or "nothing"
     evaluations: int | None
     cost: float | None  # evaluations per unit time at h
+    iterations: int | None = None  # fixed-point iterations per step (implicit methods)
+
+
+#: How an implicit method's cost is counted: its stages solved by fixed-point iteration
+#: (:mod:`stepsafe.core.solver`), or the nominal count of one evaluation per stage.
+SOLVERS = ("fixed-point", "nominal")
+#: Fixed-point iteration is used up to this fraction of its convergence limit (beyond, its
+#: iteration count grows without bound).
+SOLVER_REACH = 0.9
 
 
 def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (),
              margin: float = 1.0, name: str | None = None,
              evaluations: int | None = None, zmax: float | None = None,
-             resonance_order: int | None = None) -> Tradeoff:
+             resonance_order: int | None = None, solver: str = "fixed-point") -> Tradeoff:
     kinds = {t.kind for t in tolerances}
     if "energy" in kinds and "phase" not in kinds and energy_exact(method):
         raise StepsafeError(
@@ -102,5 +112,18 @@ def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (
         if bound == "safety" and adv.h_max_is_horizon:
             bound = "horizon"  # no boundary below the analysed range: not a safety limit
     evals = evaluations if evaluations is not None else getattr(method, "evaluations", None)
+    iterations = None
+    if solver == "fixed-point" and not method.explicit and h:
+        from stepsafe.core.solver import fixed_point_cost
+
+        top = max(float(b.max()) for b in modes.betas.values())
+        models = [m for m in modes.betas if m in ("oscillator", "inverted")] or ["oscillator"]
+        limit = min(fixed_point_cost(method, 1.0, m).limit for m in models)
+        if top > 0 and h * top > SOLVER_REACH * limit:
+            h, bound = SOLVER_REACH * limit / top, "solver"
+        costs = [fixed_point_cost(method, h * top, m) for m in models]
+        if all(c.evaluations is not None for c in costs):
+            evals = max(c.evaluations for c in costs)
+            iterations = max(c.iterations for c in costs)
     cost = None if (h is None or h == 0 or evals is None) else evals / h
-    return Tradeoff(adv.method, adv, tuple(limits), h, bound, evals, cost)
+    return Tradeoff(adv.method, adv, tuple(limits), h, bound, evals, cost, iterations)

@@ -1,0 +1,110 @@
+"""What an implicit method costs with fixed-point iteration of its stage equations.
+
+A (partitioned) Runge-Kutta step solves ``Q_i = q + h sum_j A_q[i, j] P_j``,
+``P_i = p + h sum_j A_p[i, j] f(Q_j)``. Fixed-point iteration starts from ``Q_i = q``,
+``P_i = p`` and repeats
+
+    F = f(Q)                      (one force evaluation per stage that varies)
+    Q, P = q + h A_q P, p + h A_p F
+
+until the largest change of a stage value is at most ``tol`` times the largest stage
+value (and 1); the step then takes one more force evaluation per stage for its update.
+On the test models this is the linear iteration ``X <- E + z K X`` (``K`` the stage
+operator of :func:`stepsafe.core.transfer.stage_operator`), whose changes are
+``(z K)^j z K E`` exactly: the count below is that of the algorithm above for the worse of
+the two unit states, not an estimate. It converges iff the spectral radius of ``z K`` is
+below 1, i.e. for ``z < 1 / rho(K)``: beyond, fixed-point iteration diverges and the
+method needs Newton's method (not modelled here).
+
+Force evaluations per step: the stages whose ``A_q`` row is zero have ``Q_i = q`` for
+good and cost one evaluation per step, none when the method reuses the previous step's
+last force (first same as last: a stage with ``A_q`` row equal to ``b_q`` ends at
+``q_{n+1}``, as in Lobatto IIIA-IIIB); every other stage costs one per iteration and one
+for the update.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta
+
+#: Default stopping tolerance (relative change of the stage values).
+DEFAULT_TOL = 1e-14
+#: Iterations beyond which the iteration counts as not converging.
+MAX_ITERATIONS = 1000
+
+
+@dataclass(frozen=True)
+class SolverCost:
+    """Fixed-point iterations and force evaluations of one step at ``z`` (None where the
+    iteration diverges or needs more than :data:`MAX_ITERATIONS`), and ``limit`` =
+    ``1 / rho(K)``, the z beyond which it diverges (inf for explicit methods)."""
+
+    z: float
+    iterations: int | None
+    evaluations: int | None
+    limit: float
+
+
+def _prk_of(method: Method) -> tuple[PartitionedRK, int] | None:
+    """The PRK tableau of an implicit method and its substeps per step (None: explicit)."""
+    if isinstance(method, Composition):
+        flat = method.flattened()
+        inner = _prk_of(flat.base)
+        return None if inner is None else (inner[0], inner[1] * int(flat.weights.size))
+    if isinstance(method, (RungeKutta, PartitionedRK)) and not method.explicit:
+        return method.as_prk(), 1
+    return None
+
+
+def evaluation_pattern(prk: PartitionedRK) -> tuple[int, int]:
+    """``(varying, fixed)``: stages evaluated every iteration, and force evaluations per
+    step for the stages fixed at ``q`` (0 when the last one is reused)."""
+    zero = ~np.any(prk.A_q != 0, axis=1)
+    scale = max(float(np.abs(prk.b_q).max()), 1e-300)
+    fsal = bool(np.any(np.all(np.abs(prk.A_q - prk.b_q[None, :]) <= 4e-16 * scale, axis=1)))
+    return int((~zero).sum()), (0 if fsal else int(zero.any()))
+
+
+def fixed_point_cost(method: Method, z: float, model: str = "oscillator",
+                     tol: float = DEFAULT_TOL) -> SolverCost:
+    """Iterations and force evaluations per step at ``z = beta h`` for the worse of the two
+    unit states (see the module docstring); explicit methods cost their nominal
+    evaluations and never diverge. A composition's substeps are all counted at its largest
+    substep (an upper bound)."""
+    from stepsafe.core.transfer import stage_operator
+
+    found = _prk_of(method)
+    if found is None:
+        return SolverCost(z, 0, getattr(method, "evaluations", None), np.inf)
+    prk, substeps = found
+    g = 1.0
+    if isinstance(method, Composition):
+        g = float(np.abs(method.flattened().weights).max())  # the largest substep binds
+    K, E, _ = stage_operator(prk, model)
+    rho = float(np.abs(np.linalg.eigvals(K)).max())
+    limit = np.inf if rho == 0 else 1.0 / (rho * g)
+    varying, fixed = evaluation_pattern(prk)
+    counts = [_iterations(K, E[:, k], z * g, tol) for k in range(E.shape[1])]
+    if any(c is None for c in counts):
+        return SolverCost(z, None, None, limit)
+    iterations = max(counts)
+    return SolverCost(z, iterations, (varying * (iterations + 1) + fixed) * substeps, limit)
+
+
+def _iterations(K: np.ndarray, e: np.ndarray, z: float, tol: float) -> int | None:
+    """Passes of ``x <- e + z K x`` from ``x = e`` until the change is at most ``tol``
+    times ``max(1, |x|)`` (max norms), as the solver runs them for the state ``e``."""
+    x = e.copy()
+    for iteration in range(1, MAX_ITERATIONS + 1):
+        x_new = e + z * (K @ x)
+        change = float(np.abs(x_new - x).max())
+        x = x_new
+        if not np.isfinite(change):
+            return None
+        if change <= tol * max(1.0, float(np.abs(x).max())):
+            return iteration
+    return None
