@@ -95,3 +95,9 @@ def test_compare_costs_implicit_methods_by_their_solver(run):
     code, out, _ = run("compare", "--beta", "1", "--methods", "gauss:2", "--solver", "nominal",
                        "--json")
     assert json.loads(out)["methods"][0]["evaluations"] == 2
+
+
+def test_advise_names_the_fixed_point_limit(run_json):
+    data = run_json("advise", "--method", "gauss", "-s", "2", "--beta", "2")
+    assert data["fixed_point_limit"] == pytest.approx(math.sqrt(3), rel=1e-12)  # 2 sqrt 3 / 2
+    assert run_json("advise", "--method", "pefrl", "--beta", "2")["fixed_point_limit"] is None

@@ -256,6 +256,10 @@ def print_advice(data: dict[str, Any]) -> None:
     if data["horizon"] is not None and data["h_max_limited_by"] != "horizon":
         console.print(f"Steps above {fmt(data['horizon'])}{u} (zmax / largest beta) were not "
                       "analysed.")
+    if data.get("fixed_point_limit") is not None:
+        console.print(f"Fixed-point iteration of the stages converges only for h < "
+                      f"{fmt_below(data['fixed_point_limit'])}{u} (a solver limit, not a "
+                      "structure limit: beyond it, solve the stages by Newton's method).")
     if data.get("nonlinear_resonances"):
         console.print("Nonlinear resonances of the fastest vibration (n theta = 2 pi m; "
                       "--resonance-order N keeps h below those of order <= N): " + ", ".join(
