@@ -17,7 +17,8 @@ form            beta (rad per time unit)                    unit of the value
 
 The speed of light is exact in the SI (since 1983), and so are the decimal prefixes, so the
 conversions carry no constant of limited precision: the scale factor is formed exactly as a
-fraction and rounded once (the result is within a few ulps of the exact product). Example:
+fraction, then rounded and multiplied by the value and pi (the result is within a few ulps
+of the exact product). Example:
 the O-H stretch of water at 3700 cm^-1 has beta = 2 pi c k = 0.69697... rad/fs.
 """
 

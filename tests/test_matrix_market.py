@@ -93,3 +93,23 @@ def test_a_typo_in_a_matrix_file_is_exit_2_not_safe(run, tmp_path):
     scene.write_text("method: verlet\nh: 0.1\nsystem: {stiffness: K.mtx}\n")
     code, out, err = run("check", str(scene))
     assert code == 2 and "K.mtx" in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("body, message", [
+    ("2 2 4\n1 1 1e20\n1 1 5000\n1 1 -1e20\n2 2 1\n", "more than once"),
+    ("2 2 3\n1 1 4\n1 1 4\n2 2 1\n", "more than once"),
+])
+def test_repeated_positions_are_refused(tmp_path, body, message):
+    """Summing repeated entries in float64 cancelled 5000 between +-1e20 (a review's false
+    SAFE): each position must be written once."""
+    path = tmp_path / "dup.mtx"
+    path.write_text(BANNER.format(fmt="coordinate", sym="general") + body)
+    with pytest.raises(StepsafeError, match=message):
+        read_matrix(path, "dup.mtx")
+
+
+def test_integer_field_holds_integers(tmp_path):
+    path = tmp_path / "int.mtx"
+    path.write_text("%%MatrixMarket matrix coordinate integer general\n1 1 1\n1 1 0.5\n")
+    with pytest.raises(StepsafeError, match="not an integer"):
+        read_matrix(path, "int.mtx")

@@ -365,6 +365,10 @@ def _read_mtx(fh, label: str, sparse_ok: bool):
                              f"declares {expected[0]} of {expected[1]}")
     if not np.all(np.isfinite(body)):
         raise _refuse(label, "has a non-finite entry")
+    values_column = body[:, -1]
+    if field in ("integer", "unsigned-integer") and np.any(values_column
+                                                           != np.floor(values_column)):
+        raise _refuse(label, f"an entry of an {field} matrix is not an integer")
     if fmt == "array":
         values = body[:, 0]
         if symmetry == "general":
@@ -378,6 +382,10 @@ def _read_mtx(fh, label: str, sparse_ok: bool):
     if np.any(index != np.floor(index)) or np.any(index < 1) or np.any(index > n):
         raise _refuse(label, f"row and column indices must be integers from 1 to {n}")
     i, j, v = index[:, 0].astype(np.int64) - 1, index[:, 1].astype(np.int64) - 1, body[:, 2]
+    if np.unique(i * n + j).size != i.size:
+        # summing repeated entries in float64 can cancel what they mean (1e20 + 5000 -
+        # 1e20 is 0): a matrix is written with each position once
+        raise _refuse(label, "a position is given more than once; write each entry once")
     if symmetry == "symmetric":
         if np.any(j > i):
             raise _refuse(label, "a symmetric Matrix Market file stores the lower triangle "
