@@ -486,8 +486,15 @@ def _scene_method(method: Integrator | str | None, scene: Any, stages: int | Non
     ref = scene.method
     if ref is None:
         raise StepsafeError("no method: give --method METHOD or a scene file with method:")
-    return globals()["method"](ref.name, stages if stages is not None else ref.stages,
-                               base if base is not None else ref.base)
+    try:
+        return globals()["method"](ref.name, stages if stages is not None else ref.stages,
+                                   base if base is not None else ref.base)
+    except StepsafeError as exc:
+        if exc.where or not scene.where:
+            raise
+        message = exc.message.replace("with -s N", "with method: {name: ..., stages: N} "
+                                                   "(or -s N)")
+        raise StepsafeError(message, f"{scene.where}::$.method") from None
 
 
 # --------------------------------------------------------------------------- advise

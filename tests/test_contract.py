@@ -275,3 +275,11 @@ def test_closed_stderr_keeps_the_exit_code(tmp_path):
     result = subprocess.run(["bash", "-c", f'"{sys.executable}" -c "$0" 2>&-', script],
                             capture_output=True, text=True)
     assert result.returncode == 2
+
+
+def test_family_without_stages_in_a_scene_names_the_key(tmp_path):
+    path = tmp_path / "g.yaml"
+    path.write_text("method: gauss\nh: 0.1\nmodes: [{beta: 1}]\n")
+    code, out, err, exc = _invoke("check", str(path))
+    _assert_contract(code, out, err, exc, False)
+    assert code == 2 and "g.yaml::$.method" in err and "stages:" in err

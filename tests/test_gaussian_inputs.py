@@ -94,3 +94,9 @@ def test_bad_gaussians_are_refused(run, tmp_path, system, key):
     scene.write_text(f"method: verlet\nh: 0.1\nsystem: {system}\n")
     code, out, err = run("check", str(scene))
     assert code == 2 and key in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_diagonal_covariance_at_extreme_scales():
+    """A diagonal covariance holds its variances exactly: 1e300 and 1e-300 together."""
+    report = stepsafe.advise("verlet", system={"covariance": [[1e300, 0.0], [0.0, 1e-300]]})
+    assert report.h_max == pytest.approx(2e-150, rel=1e-12)

@@ -147,9 +147,11 @@ def gaussian_modes(C, M=None) -> Decoupled:
                 raise MatrixError("mass", "mass must be positive definite")
             L = np.linalg.cholesky(M)
             A = L.T @ C @ L
+        diagonal = not np.count_nonzero(A - np.diag(np.diagonal(A)))
         with np.errstate(all="ignore"):
-            mu = np.linalg.eigvalsh(0.5 * (A + A.T))
-    error = _eigenvalue_error(mu, n) * _cond(M)
+            mu = np.diagonal(A).copy() if diagonal else np.linalg.eigvalsh(0.5 * (A + A.T))
+    # a diagonal covariance (without a mass) holds its variances exactly
+    error = 0.0 if diagonal and M is None else _eigenvalue_error(mu, n) * _cond(M)
     if not np.all(np.isfinite(mu)) or not np.all(mu > error):
         raise MatrixError("covariance", "a variance is within rounding of 0 (or beyond "
                                         "float64): the frequency 1/sigma is not decided")
