@@ -289,6 +289,15 @@ def _merge(z: np.ndarray, extra: np.ndarray, *pairs: tuple[np.ndarray, np.ndarra
             *(np.concatenate([v, e])[order] for v, e in pairs))
 
 
+def _with_samples(ev: _Evaluator, levels: tuple[float, ...], extra: np.ndarray, z, f, dt, D,
+                  unc):
+    """The samples ``(z, f, dt, D, unc)`` with ``extra`` points evaluated and merged in."""
+    jet = ev.jet(extra)
+    fe = _level_values(jet, levels)
+    return _merge(z, extra, (f, fe), (dt, jet.dtrace), (D, jet.D),
+                  (unc, _uncertain(ev, extra, fe, levels)))
+
+
 class _Samples(NamedTuple):
     z: np.ndarray
     f: np.ndarray  # (n, levels): tr M - level, each level from its accurate form
@@ -345,10 +354,7 @@ def _sample(ev: _Evaluator, grid: Grid, levels: tuple[float, ...]) -> _Samples:
             break
         frac = np.arange(1, REFINE_SPLIT) / REFINE_SPLIT
         extra = (z[cells, None] + np.diff(z)[cells, None] * frac[None, :]).ravel()
-        ej = ev.jet(extra)
-        fe = _level_values(ej, levels)
-        z, f, dt, D, unc = _merge(z, extra, (f, fe), (dt, ej.dtrace), (D, ej.D),
-                                  (unc, _uncertain(ev, extra, fe, levels)))
+        z, f, dt, D, unc = _with_samples(ev, levels, extra, z, f, dt, D, unc)
     return _Samples(z, f, dt, D, unc, end)
 
 
@@ -427,10 +433,7 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     if model in DIAGONAL_MODELS:
         extra = _orientation_extrema(ev, z, usable)
         if extra.size:
-            ej = ev.jet(extra)
-            fe = _level_values(ej, levels)
-            z, f, dt, D, unc = _merge(z, extra, (f, fe), (dt, ej.dtrace), (D, ej.D),
-                                      (unc, _uncertain(ev, extra, fe, levels)))
+            z, f, dt, D, unc = _with_samples(ev, levels, extra, z, f, dt, D, unc)
             usable = grid.cells(z)
     # extrema of tr M: roots of d(tr M)/dz, by Newton on its second derivative
     cells = _brackets(z, dt, usable)
@@ -486,10 +489,7 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
             beside = np.concatenate([roots - delta, roots + delta])
             beside = beside[(beside > 0) & (beside < z[-1])]
             if beside.size:
-                bj = ev.jet(beside)
-                fb = _level_values(bj, levels)
-                z, f, dt, D, unc = _merge(z, beside, (f, fb), (dt, bj.dtrace), (D, bj.D),
-                                          (unc, _uncertain(ev, beside, fb, levels)))
+                z, f, dt, D, unc = _with_samples(ev, levels, beside, z, f, dt, D, unc)
                 usable = grid.cells(z)
         points += [_Candidate(Point(float(r), "root", float(u), f"tr M = {L:+g}"), L, float(t))
                    for r, u, L, t in zip(roots, width, root_levels, tol)]
