@@ -193,3 +193,23 @@ def test_md_examples_as_the_readme_states(run, scene, limits):
     for h, z in zip(got, (2.0, math.sqrt(2), math.sqrt(3))):
         assert h == pytest.approx(z / beta, rel=1e-12)
     assert run("check", path, "--resonance-order", "4")[0] == 0
+
+
+@pytest.mark.parametrize("args, message", [
+    (["advise", "--method", "verlet", "--sigma", "abc"], "--sigma abc"),
+    (["advise", "--method", "verlet", "--sigma", "-1"], "--sigma -1"),
+    (["advise", "--method", "verlet", "--sigma", "0"], "> 0"),
+    (["region", "verlet", "--resonance-orders", "x"], "--resonance-orders"),
+    (["region", "verlet", "--resonance-orders", "2"], "3 to 50"),
+    (["compare", "--beta", "1", "--solver", "bogus"], "--solver"),
+])
+def test_new_options_refuse_bad_values(run, args, message):
+    code, out, err = run(*args)
+    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1 and message in err
+
+
+def test_scene_time_unit_must_be_known(run, tmp_path):
+    path = tmp_path / "tu.yaml"
+    path.write_text("method: verlet\ntime_unit: minutes\nmodes: [{beta: 1}]\n")
+    code, out, err = run("advise", str(path))
+    assert code == 2 and "tu.yaml::$.time_unit" in err

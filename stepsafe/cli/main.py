@@ -14,11 +14,12 @@ import sys
 import click
 
 from stepsafe import __version__
+from stepsafe.units import TIME_UNITS
 
 EXIT_OK, EXIT_UNSAFE, EXIT_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
 EXIT_INTERRUPTED = 130
 MODEL_CHOICES = ("oscillator", "saddle", "inverted", "saddle-p", "all")
-TIME_UNIT_NAMES = ("s", "ms", "us", "ns", "ps", "fs", "as")  # stepsafe.units.TIME_UNITS
+TIME_UNIT_NAMES = tuple(TIME_UNITS)
 PROG = "stepsafe"
 
 
