@@ -74,3 +74,20 @@ def test_krein_collision_is_never_safe(eps):
     for h in np.linspace(0.05, h_max, 60)[:-1]:
         nu = np.linalg.eigvals(one_step_matrix(pefrl.tableau, S, h))
         assert np.abs(nu).max() - 1 < 1e-12, (eps, h)
+
+
+@pytest.mark.parametrize("scale", [1e-200, 1e-40, 1e40, 1e200])
+@pytest.mark.parametrize("name", ["pefrl", "yoshida4", "bcss2"])
+def test_coupled_saddle_at_every_scale(name, scale):
+    """S scaled by c: the same verdicts at h / c (only z = beta h matters), for the
+    coupled saddle whose reversal the orientation check catches."""
+    method = stepsafe.method(name)
+    base = {"hessian": [[0.0, 1.0], [1.0, 0.0]]}
+    scaled = {"hessian": [[0.0, scale], [scale, 0.0]]}
+    h_max = stepsafe.advise(method, system=base).h_max
+    assert stepsafe.advise(method, system=scaled).h_max == pytest.approx(h_max / scale,
+                                                                        rel=1e-9)
+    for factor in (0.999, 1.001, 1.01):
+        assert (stepsafe.check(method, factor * h_max / scale, system=scaled).safe
+                == stepsafe.check(method, factor * h_max, system=base).safe)
+    assert not stepsafe.check(method, 1.001 * h_max / scale, system=scaled).safe

@@ -8,6 +8,8 @@ import math
 import mpmath
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import stepsafe
 from stepsafe.core.regions import find_region
@@ -174,3 +176,36 @@ def test_verify_checks_the_resonance_cap(run):
     assert code == 0, err
     verdict = json.loads(out)["verify"]
     assert verdict["ok"] and verdict["points"] >= 2
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=list(HealthCheck))
+@given(name=st.sampled_from(["verlet", "pefrl", "bcss2", "yoshida4", "blanes-moan6"]),
+       exponent=st.integers(-150, 150), offset=st.floats(-1e-6, 1e-6),
+       order=st.integers(3, 6))
+def test_resonance_order_verdicts_at_every_scale(name, exponent, offset, order):
+    """check --resonance-order at beta from 1e-150 to 1e150: a SAFE step lies below the
+    first resonance of order <= N at 50 digits; steps clearly above it are UNSAFE."""
+    beta = 10.0 ** exponent
+    region, found = _found(name, None, tuple(range(3, order + 1)))
+    if not found:
+        return
+    first = found[0]
+    Mfun = mp_transfer(mp_method(name, None, None, 50))
+    with mpmath.workdps(50):
+        level = 2 * mpmath.cos(2 * mpmath.pi * first.m / first.n)
+        lo = mpmath.mpf(first.z) * (1 - mpmath.mpf(1e-9))
+        hi = mpmath.mpf(first.z) * (1 + mpmath.mpf(1e-9))
+
+        def g(x):
+            M = Mfun(x, "oscillator")
+            return M[0, 0] + M[1, 1] - level
+
+        exact = mpmath.findroot(g, (lo, hi), solver="anderson")
+    h = first.z * (1 + offset) / beta
+    report = stepsafe.check(name, h, [beta], resonance_order=order)
+    with mpmath.workdps(50):
+        z = mpmath.mpf(h) * mpmath.mpf(beta)
+        if report.safe:
+            assert z < exact, (name, beta, offset)
+        if z > exact * (1 + mpmath.mpf(1e-12)):
+            assert not report.safe
