@@ -575,7 +575,9 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
         if result is not None:
             data["nonlinear_resonances"] = _fastest_resonances(
                 integrator, result, p, resonance_order)
-            data["fixed_point_limit"] = _fixed_point_limit(integrator, p)
+            from stepsafe.core.solver import step_limit
+
+            data["fixed_point_limit"] = step_limit(integrator.tableau, p.modes.betas)
     if result is not None and p.labels:
         from stepsafe.core.records import label_limits
 
@@ -618,21 +620,6 @@ def _solver(value: Any) -> str:
         raise StepsafeError(f"solver must be one of {', '.join(SOLVERS)}, got "
                             f"{str(value)[:20]!r}")
     return value
-
-
-def _fixed_point_limit(integrator: Integrator, p: Problem) -> float | None:
-    """The largest h at which fixed-point iteration of an implicit method's stages still
-    converges for every frequency (``1 / (rho(K) beta_max)``); None for explicit methods."""
-    from stepsafe.core.solver import fixed_point_cost
-
-    if integrator.explicit:
-        return None
-    models = [m for m in ("oscillator", "inverted") if m in p.modes.betas]
-    top = max(float(b.max()) for b in p.modes.betas.values())
-    if not models or not top > 0:
-        return None
-    limit = min(fixed_point_cost(integrator.tableau, 1.0, m).limit for m in models)
-    return float(limit / top) if np.isfinite(limit) else None
 
 
 def _tolerance(kind: str, value: float) -> float:

@@ -25,6 +25,7 @@ for the update.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,18 +82,46 @@ def fixed_point_cost(method: Method, z: float, model: str = "oscillator",
     if found is None:
         return SolverCost(z, 0, getattr(method, "evaluations", None), np.inf)
     prk, substeps = found
-    g = 1.0
-    if isinstance(method, Composition):
-        g = float(np.abs(method.flattened().weights).max())  # the largest substep binds
+    g = _largest_weight(method)
     K, E, _ = stage_operator(prk, model)
-    rho = float(np.abs(np.linalg.eigvals(K)).max())
-    limit = np.inf if rho == 0 else 1.0 / (rho * g)
+    limit = fixed_point_limit(method, model)
     varying, fixed = evaluation_pattern(prk)
     counts = [_iterations(K, E[:, k], z * g, tol) for k in range(E.shape[1])]
     if any(c is None for c in counts):
         return SolverCost(z, None, None, limit)
     iterations = max(counts)
     return SolverCost(z, iterations, (varying * (iterations + 1) + fixed) * substeps, limit)
+
+
+def _largest_weight(method: Method) -> float:
+    """The largest substep of a composition, in steps (1 otherwise): it binds."""
+    if isinstance(method, Composition):
+        return float(np.abs(method.flattened().weights).max())
+    return 1.0
+
+
+def fixed_point_limit(method: Method, model: str = "oscillator") -> float:
+    """``1 / rho(K)`` (over the largest substep): the z beyond which fixed-point iteration
+    of the stages diverges; inf for explicit methods."""
+    from stepsafe.core.transfer import stage_operator
+
+    found = _prk_of(method)
+    if found is None:
+        return np.inf
+    K, _, _ = stage_operator(found[0], model)
+    rho = float(np.abs(np.linalg.eigvals(K)).max())
+    return np.inf if rho == 0 else 1.0 / (rho * _largest_weight(method))
+
+
+def step_limit(method: Method, betas: Mapping[str, np.ndarray]) -> float | None:
+    """The largest h at which fixed-point iteration converges for every frequency of the
+    vibration and barrier models (None: explicit, or no such frequency)."""
+    models = [m for m in ("oscillator", "inverted") if m in betas]
+    top = max((float(np.max(b)) for b in betas.values()), default=0.0)
+    if not models or not top > 0:
+        return None
+    limit = min(fixed_point_limit(method, m) for m in models)
+    return float(limit / top) if np.isfinite(limit) else None
 
 
 def _iterations(K: np.ndarray, e: np.ndarray, z: float, tol: float) -> int | None:

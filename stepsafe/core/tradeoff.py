@@ -114,13 +114,13 @@ def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (
     evals = evaluations if evaluations is not None else getattr(method, "evaluations", None)
     iterations = None
     if solver == "fixed-point" and not method.explicit and h:
-        from stepsafe.core.solver import fixed_point_cost
+        from stepsafe.core.solver import fixed_point_cost, step_limit
 
         top = max(float(b.max()) for b in modes.betas.values())
         models = [m for m in modes.betas if m in ("oscillator", "inverted")] or ["oscillator"]
-        limit = min(fixed_point_cost(method, 1.0, m).limit for m in models)
-        if top > 0 and h * top > SOLVER_REACH * limit:
-            h, bound = SOLVER_REACH * limit / top, "solver"
+        h_limit = step_limit(method, modes.betas)
+        if h_limit is not None and h > SOLVER_REACH * h_limit:
+            h, bound = SOLVER_REACH * h_limit, "solver"
         costs = [fixed_point_cost(method, h * top, m) for m in models]
         if all(c.evaluations is not None for c in costs):
             evals = max(c.evaluations for c in costs)
