@@ -231,6 +231,10 @@ class RegionReport:
     verification: Mapping[str, Any] | None = None
     #: oscillator: the nonlinear resonances n theta = 2 pi m in the interval from 0
     nonlinear: tuple[Any, ...] = ()
+    #: ``structure`` or ``stability`` (see :func:`region`)
+    criterion: str = "structure"
+    #: under ``stability``: each model's first boundary under ``structure``
+    structure_boundaries: Mapping[str, float | None] = field(default_factory=dict)
 
     def first_boundary(self, model: str = "oscillator") -> float | None:
         """z*, the end of the preserved interval from 0 (None: none below zmax)."""
@@ -247,6 +251,9 @@ class RegionReport:
         out = {key: head[key] for key in ("method", "title", "kind", "stages", "order",
                                           "symplectic")}
         out["models"] = {m: models[m] for m in _ordered(models)}
+        out["criterion"] = self.criterion
+        for m, z_star in self.structure_boundaries.items():
+            out["models"][m]["structure_first_boundary"] = z_star
         if "oscillator" in self.regions and self.regions["oscillator"].symplectic:
             from stepsafe.core.records import nonlinear_data
 
@@ -262,21 +269,25 @@ def _ordered(models: Mapping[str, Any]) -> list[str]:
 
 
 def region(method: Integrator | str, model: str = "all", zmax: float = 10.0,
-           verify: bool = False, resonance_orders: Sequence[int] = (3, 4, 5, 6)
-           ) -> RegionReport:
+           verify: bool = False, resonance_orders: Sequence[int] = (3, 4, 5, 6),
+           criterion: str = "structure") -> RegionReport:
     """The regions of ``method`` for ``model`` (``"all"``: oscillator, saddle and inverted;
     a model the method has no form for is then listed in ``not_analysed``). On the
     oscillator, also the nonlinear resonances ``n theta = 2 pi m`` of the orders n in
-    ``resonance_orders`` below the first boundary.
+    ``resonance_orders`` below the first boundary. ``criterion``: ``structure`` keeps the
+    flow's type and orientation, ``stability`` the type only (for the oscillator
+    ``|tr M| <= 2``, the stability interval of the HMC literature; islands of reversed
+    orientation join the intervals).
 
     >>> round(region("verlet", "oscillator").first_boundary(), 12)
     2.0
     """
     from stepsafe.core.models import MAIN_MODELS
-    from stepsafe.core.regions import find_region
+    from stepsafe.core.regions import find_region, under_criterion, validate_criterion
     from stepsafe.exceptions import positive_finite
 
     integrator = _integrator(method)
+    criterion = validate_criterion(criterion)
     model, verify = _text(model, "model"), _flag(verify, "verify")
     if model != "all" and model not in REGION_MODELS:
         raise StepsafeError(f"unknown model {model!r}; choose one of "
@@ -299,8 +310,13 @@ def region(method: Integrator | str, model: str = "all", zmax: float = 10.0,
         orders = validate_orders(resonance_orders)
         nonlinear = nonlinear_resonances(integrator.tableau, regions["oscillator"], orders)
     verdict = _verification(integrator, regions) if verify else None
+    structure = {}
+    if criterion != "structure":
+        structure = {m: r.first_boundary for m, r in regions.items() if r.symplectic}
+        regions = {m: under_criterion(r, criterion) for m, r in regions.items()}
     return RegionReport(integrator, MappingProxyType(regions), MappingProxyType(skipped),
-                        None if verdict is None else _frozen(verdict), nonlinear)
+                        None if verdict is None else _frozen(verdict), nonlinear, criterion,
+                        MappingProxyType(structure))
 
 
 # --------------------------------------------------------------------------- inputs
@@ -528,7 +544,8 @@ class AdviceReport:
 def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None = None, *,
            tol_phase: float | None = None, tol_energy: float | None = None,
            resonance_order: int | None = None, solver: str = "fixed-point",
-           verify: bool = False, **inputs: Any) -> AdviceReport:
+           criterion: str = "structure", verify: bool = False, **inputs: Any
+           ) -> AdviceReport:
     """Safe step sizes for a method and frequencies (or a scene, or a system): see
     :func:`problem` for the inputs (``saddle``, ``inverted``, ``modes``, ``system``,
     ``scene``, ``stages``, ``base``, ``margin``, ``zmax``, ``budget``, ``progress``).
@@ -538,7 +555,9 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
     also keeps every
     vibration below its first nonlinear resonance n theta = 2 pi m with n <= N; the
     resonances of orders 3 to 6 (and up to N) of the fastest vibration are listed in
-    ``record["nonlinear_resonances"]`` either way.
+    ``record["nonlinear_resonances"]`` either way. ``criterion``: ``structure`` (type and
+    orientation) or ``stability`` (type only: ``|tr M| <= 2`` for vibrations); where the
+    other criterion gives another ``h_max``, ``record["other_criterion"]`` holds it.
 
     >>> report = advise("yoshida4", [3.2], inverted=[1.1])
     >>> report.h_max_limited_by, f"{report.h_max:.6f}"
@@ -546,7 +565,9 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
     """
     from stepsafe.core.advice import advise as core_advise
     from stepsafe.core.records import advice_data, tradeoff_data
+    from stepsafe.core.regions import validate_criterion
 
+    criterion = validate_criterion(criterion)
     p = _given_problem(inputs.pop("problem", None)) or problem(method, frequencies, **inputs)
     integrator, result = p.integrator, None
     with integrator.naming_its_file():
@@ -557,10 +578,10 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
                 raise StepsafeError("--tol-phase/--tol-energy apply to frequencies, not yet "
                                     "to system: scenes")
             data = system_advice(integrator.tableau, p.system, p.margin, p.zmax,
-                                 integrator.name)
+                                 integrator.name, criterion)
         elif tol_phase is None and tol_energy is None:
             result = core_advise(integrator.tableau, p.modes, p.margin, p.zmax, integrator.name,
-                                 resonance_order=_order(resonance_order))
+                                 resonance_order=_order(resonance_order), criterion=criterion)
             data = advice_data(result)
         else:
             from stepsafe.core.tradeoff import Tolerance, tradeoff
@@ -569,10 +590,13 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
                          (("phase", tol_phase), ("energy", tol_energy)) if v is not None)
             res = tradeoff(integrator.tableau, p.modes, tols, p.margin, integrator.name,
                            integrator.evaluations, p.zmax, _order(resonance_order),
-                           _solver(solver))
+                           _solver(solver), criterion)
             result = res.advice
             data = tradeoff_data(res)
         if result is not None:
+            other = _other_criterion(integrator, p, result, resonance_order)
+            if other is not None:
+                data["other_criterion"] = other
             data["nonlinear_resonances"] = _fastest_resonances(
                 integrator, result, p, resonance_order)
             from stepsafe.core.solver import step_limit
@@ -589,6 +613,29 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
     return AdviceReport(data["method"], data["h_max"], data["h_max_limited_by"], safe,
                         data["horizon"], _frozen(data), result,
                         None if verdict is None else _frozen(verdict))
+
+
+def _other_criterion(integrator: Integrator, p: Problem, result: Any,
+                     resonance_order: int | None, h: float | None = None
+                     ) -> dict[str, Any] | None:
+    """The safe steps under the criterion not asked for, when they differ (with ``h``:
+    whether that step is safe under it)."""
+    from stepsafe.core.advice import advise as core_advise
+    from stepsafe.core.records import advice_data
+    from stepsafe.core.regions import CRITERIA
+
+    other = next(c for c in CRITERIA if c != result.criterion)
+    zmax = max(r.zmax for r in result.regions.values())
+    alt = advice_data(core_advise(integrator.tableau, p.modes, p.margin, zmax,
+                                  integrator.name, resonance_order=_order(resonance_order),
+                                  criterion=other))
+    if alt["safe_h"] == [[float(lo), hi] for lo, hi in result.safe_h]:
+        return None
+    out = {key: alt[key] for key in ("criterion", "h_max", "h_max_limited_by", "limiting",
+                                     "safe_h")}
+    if h is not None:
+        out["safe"] = any(lo < h and (hi is None or h < hi) for lo, hi in alt["safe_h"])
+    return out
 
 
 def _order(order: int | None) -> int | None:
@@ -663,18 +710,21 @@ class CheckReport:
 
 def check(method: Integrator | str | None = None, h: float | None = None,
           frequencies: ArrayLike | None = None, *, resonance_order: int | None = None,
-          verify: bool = False, **inputs: Any) -> CheckReport:
+          criterion: str = "structure", verify: bool = False, **inputs: Any) -> CheckReport:
     """Is step ``h`` safe for every frequency (see :func:`problem` for the inputs)? A scene
     may give the step (``h:``). A step exactly on a resonance or a pole is unsafe. With
     ``resonance_order`` N, a vibration at or beyond its first nonlinear resonance of order
-    at most N is unsafe too.
+    at most N is unsafe too. ``criterion`` as for :func:`advise` (``record["other_criterion"]``
+    says whether ``h`` is safe under the other one, when its ``h_max`` differs).
 
     >>> check("verlet", 0.49, [4.0]).safe
     True
     """
     from stepsafe.core.advice import check_step
     from stepsafe.core.records import check_data
+    from stepsafe.core.regions import validate_criterion
 
+    criterion = validate_criterion(criterion)
     p = _given_problem(inputs.pop("problem", None)) or problem(method, frequencies, **inputs)
     step = h if h is not None else p.h
     if step is None:
@@ -686,11 +736,15 @@ def check(method: Integrator | str | None = None, h: float | None = None,
             from stepsafe.systems.advice import system_check
 
             data = system_check(integrator.tableau, p.system, step, p.margin, p.zmax,
-                                integrator.name)
+                                integrator.name, criterion)
         else:
             result = check_step(integrator.tableau, p.modes, step, p.margin, p.zmax,
-                                integrator.name, _order(resonance_order))
+                                integrator.name, _order(resonance_order), criterion)
             data = check_data(result, p.labels)
+            other = _other_criterion(integrator, p, result.advice, resonance_order,
+                                     float(step))
+            if other is not None:
+                data["other_criterion"] = other
     data["scene"] = p.scene
     data["time_unit"] = p.time_unit
     verdict = None
@@ -844,6 +898,7 @@ class CompareReport:
     margin: float
     time_unit: str | None = None
     solver: str = "fixed-point"
+    criterion: str = "structure"
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe compare ... --json`` prints."""
@@ -851,6 +906,7 @@ class CompareReport:
 
         return {"modes": dict(self.modes), "tolerances": dict(self.tolerances),
                 "margin": self.margin, "time_unit": self.time_unit, "solver": self.solver,
+                "criterion": self.criterion,
                 "cost_unit": "force evaluations per unit of simulated time",
                 "methods": [{**asdict(r), "tolerance_status": list(r.tolerance_status)}
                             for r in self.rows]}
@@ -863,13 +919,14 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
             margin: float = 1.0, zmax: float | None = None,
             frequency: UnitValues | None = None, wavenumber: UnitValues | None = None,
             period: UnitValues | None = None, time_unit: str | None = None,
-            solver: str = "fixed-point") -> CompareReport:
+            solver: str = "fixed-point", criterion: str = "structure") -> CompareReport:
     """Rank ``methods`` (names, ``"family:N"`` such as ``"gauss:2"``, Integrators; ``"all"``:
     every built-in method with the families at s = 2 and 3; None: :data:`COMPARE_DEFAULT`)
     by the cost of the usable step h = min(safe, accurate) for the same frequencies
     (given as for :func:`problem`; h in ``time_unit``). Implicit methods cost the force
     evaluations of fixed-point iteration of their stages at that h (``solver="nominal"``:
-    one per stage), and h stays below 0.9 of that iteration's convergence limit.
+    one per stage), and h stays below 0.9 of that iteration's convergence limit. The safe
+    step follows ``criterion`` (see :func:`advise`).
 
     >>> best = compare(["verlet", "pefrl"], [1.0], tol_phase=1e-6).rows[0]
     >>> best.method, best.bound_by
@@ -877,10 +934,12 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     """
     from stepsafe.core.advice import Modes, validate_margin
     from stepsafe.core.records import compare_row
+    from stepsafe.core.regions import validate_criterion
     from stepsafe.core.tradeoff import Tolerance, tradeoff
     from stepsafe.exceptions import positive_finite
     from stepsafe.units import time_unit as known_time_unit
 
+    criterion = validate_criterion(criterion)
     time_unit = known_time_unit(time_unit)
     converted = _converted({"frequency": frequency, "wavenumber": wavenumber,
                             "period": period}, time_unit)
@@ -894,7 +953,8 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     for integrator in _compared(methods):
         with integrator.naming_its_file():
             res = tradeoff(integrator.tableau, grid, tolerances, margin, integrator.name,
-                           integrator.evaluations, zmax, solver=_solver(solver))
+                           integrator.evaluations, zmax, solver=_solver(solver),
+                           criterion=criterion)
         rows.append(compare_row(res, integrator.explicit))
     rows.sort(key=lambda r: (r["cost"] is None, r["cost"] or 0.0))
     ranked = []
@@ -904,7 +964,7 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     return CompareReport(tuple(ranked),
                          MappingProxyType({k: int(v.size) for k, v in grid.betas.items()}),
                          MappingProxyType({t.kind: t.value for t in tolerances}), margin,
-                         time_unit, solver)
+                         time_unit, solver, criterion)
 
 
 def _compared(methods: Sequence[Integrator | str] | str | None) -> list[Integrator]:

@@ -152,3 +152,35 @@ def test_safe_at_any_scale_of_z(name, log_z, model):
     else:  # and an UNSAFE verdict at small z, where every consistent method is safe,
         # would be a bug too
         assert log_z > -6 or model not in ("oscillator", "inverted"), result.failures
+
+
+def _stable_type(Mfun, z, model) -> bool:
+    """The flow's type only (``--criterion stability``): elliptic for vibrations, hyperbolic
+    with positive multipliers (tr M > 2) for saddles and barriers."""
+    try:
+        M = Mfun(mp.mpf(z), model)
+    except ZeroDivisionError:
+        return False
+    tr = M[0, 0] + M[1, 1]
+    return bool(abs(tr) < 2) if model == "oscillator" else bool(tr > 2)
+
+
+@SETTINGS
+@given(scenes())
+def test_every_stable_verdict_holds_at_50_digits(case):
+    """Under --criterion stability a SAFE verdict keeps the type at 50 digits over the
+    whole margin range, and whatever is safe under structure is safe under stability."""
+    m, modes, h, margin = case
+    result = check_step(m, modes, h, margin, criterion="stability")
+    if check_step(m, modes, h, margin).safe:
+        assert result.safe
+    if not result.safe:
+        return
+    Mfun = _mp_function(m)
+    with mp.workdps(DPS):
+        for model, betas in modes.betas.items():
+            for beta in np.unique(betas[betas > 0]):
+                lo, hi = beta * h, beta * h / margin
+                zs = {lo, hi} | {lo + (hi - lo) * k / 8 for k in range(1, 8)}
+                for z in sorted(zs):
+                    assert _stable_type(Mfun, z, model), (m.name, model, beta, h, margin, z)

@@ -13,6 +13,7 @@ from stepsafe.cli.main import (
     INT,
     _input_error,
     command_line_modes,
+    criterion_option,
     frequency_options,
     main,
     method_options,
@@ -93,8 +94,10 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json, tsv) 
               help="How implicit methods are costed: force evaluations of fixed-point "
                    "iteration of their stages to 1e-14 at the step used, or one per stage.")
 @click.option("--tsv", is_flag=True, help="Print the table as tab-separated values.")
+@criterion_option()
 @frequency_options
-def compare_cmd(names, use_all, tol_phase, tol_energy, solver, tsv, as_json, **options) -> None:
+def compare_cmd(names, use_all, tol_phase, tol_energy, solver, tsv, criterion, as_json,
+                **options) -> None:
     """Rank methods by cost per unit of simulated time for your frequencies.
 
     For each method: the first boundary, the largest safe h, the h that meets the
@@ -121,7 +124,8 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, tsv, as_json, **o
     margin = options["margin"]
     data = api.compare(methods, modes=arrays, tol_phase=tol_phase, tol_energy=tol_energy,
                        margin=1.0 if margin is None else margin, zmax=options["zmax"],
-                       time_unit=options["time_unit"], solver=solver).to_dict()
+                       time_unit=options["time_unit"], solver=solver,
+                       criterion=criterion).to_dict()
     if as_json:
         print_json(data)
     elif tsv:

@@ -211,6 +211,17 @@ def main(debug: bool) -> None:
     """
 
 
+def criterion_option(default: str = "structure"):
+    """``--criterion``: what a safe step must keep (see stepsafe.core.regions.CRITERIA)."""
+    return click.option(
+        "--criterion", type=click.Choice(("structure", "stability")), default=default,
+        show_default=True,
+        help="structure: the flow's type and orientation are kept (a centre stays a centre "
+             "turning the same way); stability: the type only, |tr M| <= 2 for vibrations "
+             "(the stability interval of the HMC literature; bcss3 reaches 4.66 instead of "
+             "2.98). Where the other criterion gives other safe steps, both are printed.")
+
+
 def method_options(func):
     """METHOD argument with -s/--stages and --base."""
     func = click.option("--base", metavar="NAME",
@@ -295,8 +306,10 @@ def show_cmd(method: str, stages: int | None, base: str | None, as_json: bool) -
 @click.option("--verify", is_flag=True,
               help="Recompute every reported point with mpmath (40 digits); exit 3 if one is "
                    "off by more than 1e-10 relative.")
+@criterion_option()
 def region_cmd(method: str, stages: int | None, base: str | None, model: str,
-               zmax: float | None, resonance_orders: str, as_json: bool, verify: bool) -> None:
+               zmax: float | None, resonance_orders: str, as_json: bool, verify: bool,
+               criterion: str) -> None:
     """Every z = beta*h interval where METHOD preserves the equilibrium's structure.
 
     Reports the first boundary z* (the end of the interval from 0: the largest safe
@@ -317,14 +330,15 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
                            "3,4,5,6")
     report = api.region(api.method(method, stages, base), model,
                         DEFAULT_ZMAX if zmax is None else zmax, verify,
-                        tuple(int(item) for item in orders))
+                        tuple(int(item) for item in orders), criterion)
     data = report.to_dict()
     verdict = data.get("verify")
     _decide([verdict])
     if as_json:
         print_json(data)
     else:
-        head = {k: data[k] for k in ("method", "title", "kind", "stages", "order", "symplectic")}
+        head = {k: data[k] for k in ("method", "title", "kind", "stages", "order", "symplectic",
+                                     "criterion")}
         print_region(head, data["models"])
         if verdict:
             _print_verify(verdict)
@@ -474,9 +488,10 @@ def _input_error(message: str):
               help="Also keep every vibration below its first nonlinear resonance "
                    "n theta = 2 pi m of order n <= N (3 or more; Verlet: 4:1 at "
                    "beta*h = sqrt 2, 3:1 at sqrt 3).")
+@criterion_option()
 @scene_options
-def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, scene_files, as_json, verify,
-               **options) -> None:
+def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, criterion, scene_files,
+               as_json, verify, **options) -> None:
     """Safe step sizes h for your frequencies.
 
     Safe h keep every mode's structure: beta*h lies in the method's region for that mode's
@@ -504,7 +519,8 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, scene_files, 
         raise _input_error("advise takes at most one scene file")
     problem = _problem(scene_files[0] if scene_files else None, options, not as_json)
     data = api.advise(problem=problem, tol_phase=tol_phase, tol_energy=tol_energy,
-                      resonance_order=resonance_order, verify=verify).to_dict()
+                      resonance_order=resonance_order, criterion=criterion,
+                      verify=verify).to_dict()
     verdict = data.get("verify")
     _decide([verdict])
     print_json(data) if as_json else print_advice(data)
@@ -526,8 +542,9 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, scene_files, 
 @click.option("--resonance-order", type=INT, default=None, metavar="N",
               help="Also fail a vibration at or beyond its first nonlinear resonance "
                    "n theta = 2 pi m of order n <= N (3 or more).")
+@criterion_option()
 @scene_options
-def check_cmd(h, every_mode, resonance_order, scene_files, as_json, verify,
+def check_cmd(h, every_mode, resonance_order, criterion, scene_files, as_json, verify,
               **options) -> None:
     """Fail (exit 1) when the step h loses some mode's structure; for CI.
 
@@ -549,7 +566,7 @@ def check_cmd(h, every_mode, resonance_order, scene_files, as_json, verify,
     for scene_file in scene_files or (None,):
         problem = _problem(scene_file, options, not as_json)
         data = api.check(h=h, problem=problem, resonance_order=resonance_order,
-                         verify=verify).to_dict()
+                         criterion=criterion, verify=verify).to_dict()
         if "verify" in data:
             verdicts.append(data["verify"])
         outputs.append(data)

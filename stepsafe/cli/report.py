@@ -133,6 +133,10 @@ def print_region(head: dict[str, Any], models: dict[str, dict[str, Any]]) -> Non
     console.print(_lit((head["method"], "bold"), f" — {head['title']}  "
                        f"({head['kind']}, {head['stages']} stages, order {order}, "
                        f"{'symplectic' if head['symplectic'] else 'NOT symplectic'})"))
+    stability = head.get("criterion") == "stability"
+    if stability:
+        console.print("criterion: stability (the flow's type, either orientation; for the "
+                      "oscillator |tr M| <= 2)")
     for model, d in models.items():
         if "not_analysed" in d:
             console.print()
@@ -145,6 +149,10 @@ def print_region(head: dict[str, Any], models: dict[str, dict[str, Any]]) -> Non
             if d["first_boundary_kind"]:
                 first += f"  ({d['first_boundary_kind']}: {d['first_boundary_detail']})"
         console.print(f"\n[bold]{model}[/bold]  first boundary z* = {first}")
+        if stability and d.get("structure_first_boundary") != d["first_boundary"]:
+            z_s = d.get("structure_first_boundary")
+            console.print("  under the structure criterion (type and orientation): z* = "
+                          + ("none below zmax" if z_s is None else fmt(z_s)))
         if "classical_intervals" in d:
             console.print("  preserved: never (not symplectic: a centre becomes a spiral)")
             console.print("  classical |mu| <= 1: " + (", ".join(
@@ -154,10 +162,12 @@ def print_region(head: dict[str, Any], models: dict[str, dict[str, Any]]) -> Non
                 _fmt_interval(iv) for iv in d["intervals"]) or "nowhere"))
         if "stability_limit" in d and d["stability_limit"] != d["first_boundary"]:
             limit = "beyond zmax" if d["stability_limit"] is None else fmt(d["stability_limit"])
-            console.print(f"  classical stability limit (|tr M| <= 2, either orientation): {limit}")
+            console.print(f"  classical stability limit (|tr M| <= 2, either orientation): {limit}"
+                      + (" (resonances inside it excepted)" if d["resonances"] else ""))
         for i in d["islands"]:
             hi = "zmax" if i["hi"] is None else fmt(i["hi"])
-            console.print(f"  island ({fmt(i['lo'])}, {hi}) orientation {i['orientation']}")
+            turn = "" if i["orientation"] == "any" else f" orientation {i['orientation']}"
+            console.print(f"  island ({fmt(i['lo'])}, {hi}){turn}")
         for r in d["resonances"]:
             console.print(f"  resonance at {fmt(r['z'])} ± {r['uncertainty']:.1g} ({r['detail']})")
         if d["poles"]:
@@ -167,8 +177,11 @@ def print_region(head: dict[str, Any], models: dict[str, dict[str, Any]]) -> Non
         if d.get("nonlinear_resonances"):
             console.print("  nonlinear resonances n:m (n theta = 2 pi m) below z*: " + ", ".join(
                 f"{r['resonance']} at {fmt(r['z'])}" for r in d["nonlinear_resonances"]))
-    console.print("\nz = beta*h. Islands marked 'reversed' have the flow's type but the opposite "
-                  "orientation: not safe.")
+    console.print("\nz = beta*h. " + (
+        "Resonances (M = +-I within rounding) are excluded: float64 cannot tell a touch of "
+        "|tr M| = 2 from a gap narrower than their uncertainty." if stability else
+        "Islands marked 'reversed' have the flow's type but the opposite orientation: not "
+        "safe (--criterion stability accepts them)."))
 
 
 def print_method(data: dict[str, Any], coefficients: dict[str, Any]) -> None:
@@ -265,8 +278,25 @@ def print_advice(data: dict[str, Any]) -> None:
                       "--resonance-order N keeps h below those of order <= N): " + ", ".join(
                           f"{r['resonance']} at h = {fmt_below(r['h'])}{u}"
                           for r in data["nonlinear_resonances"]))
+    _print_other_criterion(console.print, data, u)
     if not unit and data["models"]:
         console.print("h is in the time unit of 1/beta (--time-unit names it).")
+
+
+def _print_other_criterion(echo, data: dict[str, Any], u: str) -> None:
+    """One line with the safe steps under the criterion not asked for, when they differ."""
+    other = data.get("other_criterion")
+    if not other:
+        return
+    steps = ", ".join(_fmt_steps(iv) + u for iv in other["safe_h"]) or "none"
+    verdict = "" if "safe" not in other else (
+        f"; h = {fmt(data['h'])}{u} is {'safe' if other['safe'] else 'unsafe'} under it")
+    echo(f"Under --criterion {other['criterion']} ({CRITERION_MEANING[other['criterion']]}) "
+         f"the safe steps are {steps}{verdict}.")
+
+
+CRITERION_MEANING = {"structure": "type and orientation",
+                     "stability": "type only, |tr M| <= 2"}
 
 
 def _styled(word: str, colour: str) -> str:
@@ -292,10 +322,13 @@ def print_check(data: dict[str, Any]) -> None:
         where = "" if data["in_primary_interval"] else \
             " (in an island outside the primary interval)"
         click.echo(scene + _styled("SAFE", "green") + f": {name} with h = {h} "
-                   f"preserves all {data['modes']} mode(s){where}.")
+                   f"preserves all {data['modes']} mode(s){where}"
+                   f"{_criterion_words(data)}.")
+        _print_other_criterion(click.echo, data, u)
         return
     click.echo(scene + _styled("UNSAFE", "red") + f": {name} with h = {h}: "
-               f"{data['failing']} of {data['modes']} mode(s) lose their structure.")
+               f"{data['failing']} of {data['modes']} mode(s) lose their structure"
+               f"{_criterion_words(data)}.")
     for f in data["failures"]:
         if f.get("label"):
             f = {**f, "model": f"{printable(f['label'])} ({f['model']})"}
@@ -312,6 +345,12 @@ def print_check(data: dict[str, Any]) -> None:
         click.echo(f"Safe steps for all modes: 0 < h < {fmt_below(data['h_max'])}{u}{horizon}")
     elif data["h_max"] is not None:
         click.echo("No step is safe for all modes.")
+    _print_other_criterion(click.echo, data, u)
+
+
+def _criterion_words(data: dict[str, Any]) -> str:
+    return (" (criterion: stability, the type only)"
+            if data.get("criterion") == "stability" else "")
 
 
 def _print_accuracy(console, data: dict[str, Any], u: str = "") -> None:

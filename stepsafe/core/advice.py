@@ -26,7 +26,14 @@ from typing import NamedTuple
 import numpy as np
 
 from stepsafe.core.models import MODELS
-from stepsafe.core.regions import DEFAULT_ZMAX, Point, Region, find_region
+from stepsafe.core.regions import (
+    DEFAULT_ZMAX,
+    Point,
+    Region,
+    find_region,
+    under_criterion,
+    validate_criterion,
+)
 from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.methods.tableaux import Method
 
@@ -99,6 +106,7 @@ class Advice:
     models: tuple[ModelLimit, ...]
     horizon: float | None  # steps above this were not analysed
     regions: dict[str, Region] = field(default_factory=dict)
+    criterion: str = "structure"
 
     @property
     def h_max_is_horizon(self) -> bool:
@@ -197,17 +205,21 @@ def _merge(intervals: np.ndarray) -> np.ndarray:
 
 def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFAULT_ZMAX,
            name: str | None = None, regions: dict[str, Region] | None = None,
-           resonance_order: int | None = None) -> Advice:
-    """Safe steps for ``modes`` under ``method`` (see the module docstring). With
-    ``resonance_order`` N, vibrations also keep below the first nonlinear resonance of
-    order at most N (:mod:`stepsafe.core.resonances`)."""
+           resonance_order: int | None = None, criterion: str = "structure") -> Advice:
+    """Safe steps for ``modes`` under ``method`` (see the module docstring), keeping what
+    ``criterion`` asks (:data:`stepsafe.core.regions.CRITERIA`; ``regions`` given are
+    structure regions). With ``resonance_order`` N, vibrations also keep below the first
+    nonlinear resonance of order at most N (:mod:`stepsafe.core.resonances`)."""
     margin = validate_margin(margin)
-    regions = dict(regions or {})
+    criterion = validate_criterion(criterion)
+    regions = {model: under_criterion(region, criterion)
+               for model, region in (regions or {}).items()}
+    for model in modes.betas:
+        if model not in regions:
+            regions[model] = under_criterion(find_region(method, model, zmax), criterion)
     if resonance_order is not None and "oscillator" in modes.betas:
         from stepsafe.core.resonances import capped_at_resonance
 
-        if "oscillator" not in regions:
-            regions["oscillator"] = find_region(method, "oscillator", zmax)
         regions["oscillator"] = capped_at_resonance(method, regions["oscillator"],
                                                     resonance_order)
     limits: list[ModelLimit] = []
@@ -216,8 +228,6 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
     tops = {model: _largest(betas, modes.errors.get(model))
             for model, betas in modes.betas.items()}
     for model in modes.betas:
-        if model not in regions:
-            regions[model] = find_region(method, model, zmax)
         if tops[model] > 0:
             horizon = min(horizon, margin * regions[model].zmax / tops[model])
     if horizon == 0.0:
@@ -253,7 +263,7 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
                    key=lambda lim: lim.h_limit, default=None)
     h_max = (safe[0][1] if safe[0][0] == 0.0 else 0.0) if safe else 0.0
     return Advice(name or method.name, margin, h_max, tuple(safe), limiting, tuple(limits),
-                  None if horizon == np.inf else float(horizon), regions)
+                  None if horizon == np.inf else float(horizon), regions, criterion)
 
 
 def _largest(betas: np.ndarray, errors: np.ndarray | None) -> float:
@@ -327,11 +337,13 @@ MAX_REPORTED = 50
 
 def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
                zmax: float = DEFAULT_ZMAX, name: str | None = None,
-               resonance_order: int | None = None) -> CheckResult:
-    """Is every mode's structure preserved at step ``h`` (with the margin)? With
-    ``resonance_order`` N, is every vibration also below its first nonlinear resonance of
-    order at most N?"""
+               resonance_order: int | None = None, criterion: str = "structure"
+               ) -> CheckResult:
+    """Is every mode's structure (under ``criterion``) preserved at step ``h`` (with the
+    margin)? With ``resonance_order`` N, is every vibration also below its first nonlinear
+    resonance of order at most N?"""
     margin = validate_margin(margin)
+    criterion = validate_criterion(criterion)
     h = positive_finite(h, "h")
     beta_top = max(float(b.max()) for b in modes.betas.values())
     with np.errstate(over="ignore"):
@@ -343,13 +355,14 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
         raise StepsafeError(f"z = beta*h = {beta_top:g} * {h:g} overflows float64: give the "
                             "frequencies and the step in units where their product is finite")
     zmax = max(zmax, z_top)
-    regions = {model: find_region(method, model, zmax) for model in modes.betas}
+    regions = {model: under_criterion(find_region(method, model, zmax), criterion)
+               for model in modes.betas}
     if resonance_order is not None and "oscillator" in regions:
         from stepsafe.core.resonances import capped_at_resonance
 
         regions["oscillator"] = capped_at_resonance(method, regions["oscillator"],
                                                     resonance_order)
-    adv = advise(method, modes, margin, zmax, name, regions)
+    adv = advise(method, modes, margin, zmax, name, regions, criterion=criterion)
     failures: list[Failure] = []
     n_failing = 0
     for model, betas in modes.betas.items():

@@ -52,13 +52,15 @@ def region_data(region: Region) -> dict[str, Any]:
         "first_boundary_uncertainty": _num(fb.uncertainty) if fb else None,
         "intervals": [_interval(iv) for iv in region.intervals],
         "islands": [{"lo": float(iv.lo), "hi": _num(iv.hi),
-                     "orientation": "same" if same else "reversed"}
+                     "orientation": ("any" if region.criterion == "stability" else
+                                     "same" if same else "reversed")}
                     for iv, same in region.islands],
         "resonances": [_point(p) for p in region.resonances],
         "poles": [float(p.z) for p in region.poles],
         "zmax": float(region.zmax),
         "resolution": float(region.resolution),
         "symplectic": region.symplectic,
+        "criterion": region.criterion,
     }
     if ELLIPTIC[region.model] and region.symplectic:
         data["stability_limit"] = _num(region.stability_limit)
@@ -142,6 +144,7 @@ def advice_data(adv) -> dict[str, Any]:
         "limiting": _limit(adv.limiting) if limited_by == "boundary" else None,
         "models": {lim.model: _limit(lim) for lim in adv.models},
         "horizon": _num(adv.horizon),
+        "criterion": adv.criterion,
     }
 
 
@@ -189,6 +192,7 @@ def check_data(result, labels: Mapping[str, Sequence[str | None]] | None = None
         "h_max": _num(result.advice.h_max) if result.advice.h_max is not None else None,
         "h_max_limited_by": advice_data(result.advice)["h_max_limited_by"],
         "safe_h": [[float(lo), _num(hi)] for lo, hi in result.advice.safe_h],
+        "criterion": result.advice.criterion,
     }
 
 

@@ -39,7 +39,7 @@ reported instead (for RK methods from the stability polynomials, :mod:`.rkstabil
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -112,6 +112,9 @@ class Region:
     #: stretches where float64 cannot decide the type (|tr M| within rounding of 2 over a
     #: range of z, where features the grid resolves could be rounding noise): not preserved
     undecided: tuple[Interval, ...] = ()
+    #: what ``intervals`` keep: ``structure`` (type and orientation) or ``stability`` (the
+    #: type only), see :func:`under_criterion`
+    criterion: str = "structure"
 
     @property
     def first_interval(self) -> Interval | None:
@@ -809,6 +812,48 @@ def _assemble(ev: _Evaluator, model: str, zmax: float, z_last: float,
                              and c.point.z <= zmax), key=lambda p: p.z))
     return Region(model, zmax, True, tuple(intervals), tuple(reversed_), tuple(kept), pole_pts,
                   dz, stability_limit=stability, notes=notes, undecided=tuple(undecided))
+
+
+#: ``structure``: the flow's type and orientation are kept (the default of every command
+#: but ``hmc``); ``stability``: the type only, for the oscillator ``|tr M| <= 2`` (bounded
+#: iterates: the stability interval quoted in the HMC and splitting literature).
+CRITERIA = ("structure", "stability")
+
+
+def validate_criterion(criterion: object) -> str:
+    if not isinstance(criterion, str) or criterion not in CRITERIA:
+        raise StepsafeError(f"criterion must be one of {', '.join(CRITERIA)}, got "
+                            f"{str(criterion)[:30]!r}")
+    return criterion
+
+
+def under_criterion(region: Region, criterion: str) -> Region:
+    """``region`` (computed for ``structure``) under ``criterion``.
+
+    ``stability`` keeps every stretch of the flow's type whatever its orientation: the
+    reversed islands join the preserved intervals, runs split only by an orientation switch
+    merge. Resonances (``M = +-I`` within rounding) stay points of their float64
+    uncertainty: a tangency of ``tr M`` to ``+-2`` cannot be told from a gap of width below
+    that uncertainty (bcss3's ``M = -I`` point at 2.97632 is, at 60 digits, a gap of width
+    1e-13), so it is never counted as stable. A method that is not symplectic keeps no type
+    (a centre becomes a spiral) and is returned unchanged.
+    """
+    criterion = validate_criterion(criterion)
+    if criterion == region.criterion or not region.symplectic:
+        return region
+    if criterion == "structure":
+        raise StepsafeError("a region under the stability criterion cannot give the "
+                            "structure region back: compute it with find_region")
+    runs = sorted(region.intervals + region.reversed, key=lambda iv: iv.lo)
+    merged: list[Interval] = []
+    for iv in runs:
+        last = merged[-1] if merged else None
+        if (last is not None and last.hi == iv.lo and iv.lo_point is not None
+                and iv.lo_point.kind == "orientation"):
+            merged[-1] = Interval(last.lo, iv.hi, last.lo_point, iv.hi_point)
+        else:
+            merged.append(iv)
+    return replace(region, intervals=tuple(merged), reversed=(), criterion=criterion)
 
 
 def spectral_radius(M: np.ndarray) -> np.ndarray:

@@ -71,7 +71,8 @@ SOLVER_REACH = 0.9
 def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (),
              margin: float = 1.0, name: str | None = None,
              evaluations: int | None = None, zmax: float | None = None,
-             resonance_order: int | None = None, solver: str = "fixed-point") -> Tradeoff:
+             resonance_order: int | None = None, solver: str = "fixed-point",
+             criterion: str = "structure") -> Tradeoff:
     kinds = {t.kind for t in tolerances}
     if "energy" in kinds and "phase" not in kinds and energy_exact(method):
         raise StepsafeError(
@@ -80,7 +81,7 @@ def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (
             "largest safe step, which says nothing about a nonlinear system: give "
             "--tol-phase as well")
     adv = advise(method, modes, margin, name=name, resonance_order=resonance_order,
-                 **({} if zmax is None else {"zmax": zmax}))
+                 criterion=criterion, **({} if zmax is None else {"zmax": zmax}))
     limits: list[ToleranceLimit] = []
     for tol in tolerances:
         if not (tol.value > 0):

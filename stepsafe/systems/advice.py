@@ -8,6 +8,7 @@ from typing import Any
 
 from stepsafe.core.advice import advise, check_step, validate_margin
 from stepsafe.core.threads import blas_threads_for
+from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import Method
 from stepsafe.systems.coupled import CoupledSystem
 from stepsafe.systems.loader import SystemReport
@@ -25,19 +26,29 @@ def _limit_items(report: SystemReport, regions, margin: float) -> list[dict[str,
     return out
 
 
+def _coupled_criterion(report: SystemReport, criterion: str) -> None:
+    if report.coupled and criterion != "structure":
+        raise StepsafeError(f"--criterion {criterion} is not available for a system whose "
+                            "modes couple (the coupled analysis keeps type and orientation): "
+                            "use --criterion structure")
+
+
 def system_advice(method: Method, report: SystemReport, margin: float = 1.0,
-                  zmax: float = 10.0, name: str | None = None) -> dict[str, Any]:
+                  zmax: float = 10.0, name: str | None = None,
+                  criterion: str = "structure") -> dict[str, Any]:
     """JSON-ready advice for a system (see advice_data for the common fields)."""
     from stepsafe.core.records import advice_data
 
     margin = validate_margin(margin)
+    _coupled_criterion(report, criterion)
     if report.modes is not None:
-        adv = advise(method, report.modes, margin, zmax, name)
+        adv = advise(method, report.modes, margin, zmax, name, criterion=criterion)
         data = advice_data(adv)
         regions = adv.regions
     else:
         data = {"method": name or method.name, "margin": margin, "h_max": None,
-                "safe_h": [[0.0, None]], "limiting": None, "models": {}, "horizon": None}
+                "safe_h": [[0.0, None]], "limiting": None, "models": {}, "horizon": None,
+                "criterion": criterion}
         regions = {}
     for result, _ in report.coupled:
         cap = margin * result.h_max
@@ -81,19 +92,21 @@ def _cap(safe: list, cap: float) -> list:
 
 
 def system_check(method: Method, report: SystemReport, h: float, margin: float = 1.0,
-                 zmax: float = 10.0, name: str | None = None) -> dict[str, Any]:
+                 zmax: float = 10.0, name: str | None = None,
+                 criterion: str = "structure") -> dict[str, Any]:
     """JSON-ready check of step h for a system (see check_data for the common fields)."""
     from stepsafe.core.records import check_data
 
     margin = validate_margin(margin)
+    _coupled_criterion(report, criterion)
     if report.modes is not None:
-        result = check_step(method, report.modes, h, margin, zmax, name)
+        result = check_step(method, report.modes, h, margin, zmax, name, criterion=criterion)
         data = check_data(result)
         regions = result.advice.regions
     else:
         data = {"method": name or method.name, "h": float(h), "margin": margin, "safe": True,
                 "in_primary_interval": True, "modes": 0, "failing": 0, "failures": [],
-                "h_max": None, "safe_h": [[0.0, None]]}
+                "h_max": None, "safe_h": [[0.0, None]], "criterion": criterion}
         regions = {}
     for result, S in report.coupled:
         with blas_threads_for(S.shape[0]):
