@@ -154,7 +154,6 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
     Example:
       stepsafe plot lobatto3ab -s 3 -o lobatto3.png --phase
     """
-    import logging
     import math
     import warnings
 
@@ -162,15 +161,7 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
     zmax = 6.0 if zmax is None else zmax
     if not (math.isfinite(zmax) and zmax > 0):
         raise _input_error(f"zmax must be a positive finite number, got {zmax}")
-    try:
-        logging.getLogger("matplotlib").setLevel(logging.ERROR)  # font cache, eps alpha notes
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        raise _input_error("plot needs matplotlib: pip install matplotlib (from a clone of "
-                           "stepsafe: pip install '.[plot]')") from None
+    plt = _pyplot()
     import numpy as np
 
     from stepsafe import api
@@ -219,6 +210,22 @@ def _draw(plt, integrator, model, region, z, half, zmax, with_phase):
     axes[-1, 0].set_xlabel("z = beta h")
     fig.tight_layout()
     return fig
+
+
+def _pyplot():
+    """matplotlib.pyplot on the Agg backend, or a one-line error when it is missing."""
+    import logging
+
+    try:
+        logging.getLogger("matplotlib").setLevel(logging.ERROR)  # font cache, eps alpha notes
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise _input_error("plotting needs matplotlib: pip install matplotlib (from a clone "
+                           "of stepsafe: pip install '.[plot]')") from None
+    return plt
 
 
 def _plot_format(output: str, plt) -> str:

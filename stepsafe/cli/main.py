@@ -696,6 +696,7 @@ def _is_pathlike(path: str) -> bool:
 
 
 from stepsafe.cli import accuracy as cli_accuracy  # noqa: E402,F401  (registers error, compare, plot)
+from stepsafe.cli import sampling as cli_sampling  # noqa: E402,F401  (registers hmc)
 
 if __name__ == "__main__":  # pragma: no cover
     main()

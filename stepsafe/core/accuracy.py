@@ -166,11 +166,9 @@ def errors(method: Method, z, model: str = "oscillator") -> Errors:
             diff = np.where(np.abs(ratio) <= 1, 2.0 * np.arcsin(ratio), theta - z)
             ok = (sin2 > 0) & (b > 0)
             phase = np.where(ok, diff / z, np.nan)
-            (bc_coef, bc_tol), (ad_coef, ad_tol), _ = _offset_series(method, model)
             # kappa - 1 = (l1 - l2) / l2, l1 - l2 = sqrt((s11 - s22)^2 + 4 s12^2) with
             # s11 - s22 = -(b + c) and s12 = (a - d)/2, both vanishing like powers of z
-            b_plus_c = _choose(bc_coef, bc_tol, z_valid, z, b + c, direct_err)
-            a_minus_d = _choose(ad_coef, ad_tol, z_valid, z, a - d, direct_err)
+            b_plus_c, a_minus_d = _offsets(method, model, z, M, direct_err)
             spread = np.sqrt(b_plus_c ** 2 + a_minus_d ** 2)
             lower = 0.5 * (b - c - spread)
             energy = np.where(ok, spread / lower, np.nan)
@@ -183,6 +181,36 @@ def errors(method: Method, z, model: str = "oscillator") -> Errors:
             phase = np.where((sin2 < 0) & (half_tr > 0), diff / z, np.nan)
             energy = np.full(z.shape, np.nan)
     return Errors(z, phase, energy)
+
+
+class Offsets(NamedTuple):
+    """The one-step matrix ``M = [[a, b], [c, d]]`` of the oscillator at each z with
+    ``b + c`` and ``a - d`` (both vanish like powers of z; summed from the Taylor series
+    where that is the more accurate) and ``sin2 = 1 - (tr M / 2)^2 = -bc - (a - d)^2 / 4``
+    (no cancellation; negative where M is hyperbolic)."""
+
+    M: np.ndarray
+    b_plus_c: np.ndarray
+    a_minus_d: np.ndarray
+    sin2: np.ndarray
+
+
+def offsets(method: Method, z) -> Offsets:
+    """:class:`Offsets` of the oscillator at each z (overflow gives inf or NaN entries)."""
+    z = np.atleast_1d(np.asarray(z, dtype=float))
+    M = transfer_matrix(method, z, "oscillator")
+    a, b, c, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1]
+    with np.errstate(invalid="ignore", over="ignore"):
+        direct_err = 4 * EPS * (np.abs(M).sum(axis=(1, 2)) + 1.0)
+        b_plus_c, a_minus_d = _offsets(method, "oscillator", z, M, direct_err)
+        return Offsets(M, b_plus_c, a_minus_d, -b * c - 0.25 * (a - d) ** 2)
+
+
+def _offsets(method: Method, model: str, z: np.ndarray, M: np.ndarray,
+             direct_err: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    (bc_coef, bc_tol), (ad_coef, ad_tol), z_valid = _offset_series(method, model)
+    return (_choose(bc_coef, bc_tol, z_valid, z, M[:, 0, 1] + M[:, 1, 0], direct_err),
+            _choose(ad_coef, ad_tol, z_valid, z, M[:, 0, 0] - M[:, 1, 1], direct_err))
 
 
 def _offset_series(method: Method, model: str):

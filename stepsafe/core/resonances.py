@@ -76,6 +76,13 @@ def nonlinear_resonances(method: Method, region: Region,
                          ) -> tuple[NonlinearResonance, ...]:
     """Every n:m resonance of the given orders in the preserved interval from 0 of the
     oscillator ``region`` (up to its ``zmax`` when it has no end), sorted by z."""
+    return rotations(method, region, fractions(orders))
+
+
+def rotations(method: Method, region: Region, pairs: list[tuple[int, int]]
+              ) -> tuple[NonlinearResonance, ...]:
+    """Every z in the preserved interval from 0 of the oscillator ``region`` where
+    ``n theta(z) = 2 pi m`` for the given ``(n, m)`` (``0 < 2 m < n``), sorted by z."""
     first = region.first_interval
     if region.model != "oscillator" or first is None:
         return ()
@@ -103,7 +110,7 @@ def nonlinear_resonances(method: Method, region: Region,
         t = np.concatenate([t, ej.trace])[order]
         usable = np.concatenate([usable, np.isfinite(ej.trace)])[order]
     found: list[NonlinearResonance] = []
-    for n, m in fractions(orders):
+    for n, m in pairs:
         level = 2.0 * math.cos(2.0 * math.pi * m / n)
         f = t - level
         cells = np.flatnonzero((f[:-1] * f[1:] < 0) & usable[:-1] & usable[1:])

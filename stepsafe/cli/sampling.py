@@ -1,0 +1,169 @@
+"""The ``hmc`` command: acceptance, step and cost of HMC on a Gaussian target."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import click
+
+from stepsafe.cli.main import (
+    FLOAT,
+    INT,
+    _input_error,
+    command_line_modes,
+    criterion_option,
+    frequency_options,
+    main,
+    one_format,
+)
+
+#: Steps per method on the acceptance curve drawn by --plot.
+PLOT_POINTS = 200
+
+
+@main.command("hmc")
+@click.argument("scene_file", required=False, metavar="[SCENE.yaml]")
+@click.option("--methods", "names", default=None, metavar="M1,M2,...",
+              help="Comma-separated methods [default: verlet, mclachlan2-min, bcss2, bcss3, "
+                   "yoshida4, pefrl].")
+@click.option("--all", "use_all", is_flag=True, help="Every built-in method (families s=2,3).")
+@click.option("--steps", type=INT, default=None, metavar="L",
+              help="Leapfrog-style steps per trajectory (fixed L).")
+@click.option("--length", type=FLOAT, default=None, metavar="T",
+              help="Integration time per trajectory: L = max(1, floor(T/h)) as Stan's static "
+                   "HMC. Without --steps or --length the acceptance is the bound over every L.")
+@click.option("--jitter", type=FLOAT, default=0.0, show_default=True, metavar="J",
+              help="Each step drawn uniformly from h(1-J, 1+J), L kept (Stan's "
+                   "stepsize_jitter); the acceptance is averaged over it.")
+@click.option("--target-accept", type=FLOAT, default=0.8, show_default=True, metavar="A",
+              help="Acceptance rate to reach (Stan's adapt_delta default).")
+@click.option("--step", "step", type=FLOAT, default=None, metavar="H",
+              help="Also predict the acceptance and cost at this step.")
+@click.option("--plot", "plot_file", default=None, metavar="FILE.png",
+              help="Draw the predicted acceptance against h for each method (needs "
+                   "matplotlib).")
+@click.option("--tsv", is_flag=True, help="Print the table as tab-separated values.")
+@criterion_option("stability")
+@frequency_options
+def hmc_cmd(scene_file, names, use_all, steps, length, jitter, target_accept, step,
+            plot_file, tsv, criterion, as_json, **options) -> None:
+    """HMC on a Gaussian target: acceptance rate, step size and cost per method.
+
+    The target: standard deviations (--sigma, unit mass), frequencies (--beta =
+    1/sigma), a modes file, or a scene whose system: gives a covariance or precision
+    (dense, or a Matrix Market file) and optionally a mass matrix. For each method:
+    the stability limit of the fastest mode, the predicted acceptance (exact for a
+    Gaussian target: 2 P(Delta < 0) of the energy error Delta, from the one-step matrix
+    of every mode), the largest h whose acceptance reaches --target-accept, and the
+    gradient evaluations per proposal, per accepted proposal and per accepted unit of
+    simulated time, by which methods are ranked. Steps are in the time unit of sigma.
+
+    \b
+    Examples:
+      stepsafe hmc --sigma 1 --sigma 0.1 --length 5
+      stepsafe hmc --sigma 1 --sigma 0.1 --steps 20 --jitter 0.1 --methods verlet,bcss2
+      stepsafe hmc target.yaml --all --json
+    """
+    from stepsafe.cli.report import print_json, print_tsv
+    from stepsafe.hmc_advice import hmc
+
+    one_format(as_json, tsv)
+    if use_all and names:
+        raise _input_error("give --methods or --all, not both")
+    if options["margin"] is not None:
+        raise _input_error("hmc has no --margin: the acceptance is predicted for the "
+                           "frequencies given")
+    arrays, labels = command_line_modes(options)
+    methods = "all" if use_all else (None if names is None else names.split(","))
+    report = hmc(methods, modes=arrays or None, labels=labels or None, scene=scene_file,
+                 steps=steps, length=length, jitter=jitter, target_accept=target_accept,
+                 step=step, criterion=criterion, time_unit=options["time_unit"],
+                 zmax=options["zmax"], curve=0 if plot_file is None else PLOT_POINTS)
+    data = report.to_dict()
+    if plot_file is not None:
+        _plot(data, plot_file)
+    if as_json:
+        print_json(data)
+    elif tsv:
+        print_tsv(("rank", "method", "evaluations", "stability_h", "structure_h", "h_target",
+                   "steps", "acceptance", "expected_error", "gradients_per_proposal",
+                   "gradients_per_accepted", "gradients_per_time"), data["methods"])
+    else:
+        print_hmc(data)
+
+
+def print_hmc(data: dict[str, Any]) -> None:
+    from rich.table import Table
+
+    from stepsafe.cli.report import _console, _lit, fmt
+
+    console = _console()
+    unit = data["time_unit"]
+    u = f" {unit}" if unit else ""
+    trajectory = (f"L = {data['steps']} steps" if data["steps"] else
+                  f"T = {fmt(data['length'])}{u} (L = floor(T/h))" if data["length"] else
+                  "any L (the bound over every trajectory length)")
+    jitter = f", steps jittered by ±{data['jitter']:g}" if data["jitter"] else ""
+    console.print(_lit(f"Gaussian target: {data['modes']} mode(s), beta from "
+                       f"{fmt(data['beta_min'], 6)} to {fmt(data['beta_max'], 6)}; "
+                       f"{trajectory}{jitter}; target acceptance {data['target_accept']:g}; "
+                       f"criterion {data['criterion']}"))
+    table = Table()
+    for col in ("rank", "method", "grads/step", f"stability h{u}", f"h at target{u}", "L",
+                "acceptance", "mean dH", "grads/accepted", f"grads/accepted time{u and ' unit'}"):
+        table.add_column(col, overflow="fold")
+    for r in data["methods"]:
+        def cell(x, digits=6):
+            return "-" if x is None else fmt(x, digits)
+
+        stab = cell(r["stability_h"])
+        if r["structure_h"] is not None and r["structure_h"] != r["stability_h"]:
+            stab += f" (structure {cell(r['structure_h'])})"
+        table.add_row("-" if r["rank"] is None else str(r["rank"]), r["method"],
+                      "-" if r["evaluations"] is None else str(r["evaluations"]), stab,
+                      cell(r["h_target"]), "-" if r["steps"] is None else str(r["steps"]),
+                      cell(r["acceptance"], 4), cell(r["expected_error"], 3),
+                      cell(r["gradients_per_accepted"], 5), cell(r["gradients_per_time"], 5))
+    console.print(table)
+    for r in data["methods"]:
+        lines = [f"M = ±I within rounding at h = {fmt(h)}{u} (excluded)"
+                 for h in r["resonance_h"]]
+        lines += [f"{s['steps']} steps turn the mode beta = {fmt(s['beta'], 6)} by exactly "
+                  f"{s['turns']} turn(s) at h = {fmt(s['h'])}{u}, {100 * s['from_target']:.2g}% "
+                  "from the step at target: there a fixed-L sampler does not move that mode "
+                  "(jitter the step by more than that)" for s in r["stalls"]]
+        lines += r["notes"]
+        at = r["at_step"]
+        if at:
+            lines.append(f"at h = {fmt(at['h'])}{u}: acceptance {at['acceptance']:.4f}, "
+                         f"mean dH = {at['expected_error']:.3g}"
+                         + (f", {fmt(at['gradients_per_accepted'], 5)} gradients per accepted "
+                            "proposal" if at["gradients_per_accepted"] is not None else ""))
+        for line in lines:
+            console.print(_lit(f"{r['method']}: {line}"))
+    console.print("h at target: the largest step whose acceptance reaches the target for "
+                  "every trajectory length; the acceptance shown is for the trajectory given. "
+                  "Ranked by gradient evaluations per accepted unit of simulated time there "
+                  "(equivalently per accepted proposal at a fixed integration time).")
+
+
+def _plot(data: dict[str, Any], output: str) -> None:
+    from stepsafe.cli.accuracy import _plot_format, _pyplot, _save
+
+    plt = _pyplot()
+    fmt = _plot_format(output, plt)
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for row in data["methods"]:
+        if row["curve"]:
+            hs, rates, bounds = zip(*row["curve"])
+            line, = ax.plot(hs, bounds, lw=1.6, label=row["method"])
+            if data["steps"] or data["length"]:
+                ax.plot(hs, rates, lw=0.6, alpha=0.6, color=line.get_color())
+    ax.axhline(data["target_accept"], color="k", lw=0.8, ls="--")
+    unit = f" ({data['time_unit']})" if data["time_unit"] else ""
+    ax.set_xlabel(f"step h{unit}")
+    ax.set_ylabel("predicted acceptance (bold: for every L)")
+    ax.set_ylim(0, 1.02)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    _save(fig, output, fmt)

@@ -1,0 +1,328 @@
+"""Hamiltonian Monte Carlo on a Gaussian target: energy error, acceptance rate, cost.
+
+Model. A Gaussian target with precision ``P`` and mass (preconditioner) ``M_mass``: in the
+normal coordinates of ``M_mass^-1 P`` every mode is an oscillator of frequency ``beta_k``
+(its standard deviation is ``1 / beta_k`` for unit mass), and one step of a splitting or
+Runge-Kutta method acts on ``x = (beta q, p)`` by the 2x2 matrix ``M(z)``, ``z = beta h``
+(:mod:`stepsafe.core.transfer`). HMC draws ``x ~ N(0, I)`` (the stationary state), runs
+``L`` steps and accepts with probability ``min(1, exp(-Delta))``, ``Delta = H(end) - H(start)``.
+
+Energy error of one mode after L steps, ``P_L = M^L``:
+``Delta = x^T (P_L^T P_L - I) x / 2``, so ``E[Delta] = (|P_L|_F^2 - 2) / 2``. By
+Cayley-Hamilton ``M^L = U_{L-1}(c) M - U_{L-2}(c) I`` (``c = tr M / 2``, ``U`` Chebyshev
+polynomials of the second kind), and with ``det M = 1``
+
+    E[Delta_L] = U_{L-1}(c)^2 E_1,   E_1 = ((M_qq - M_pp)^2 + (M_qp + M_pq)^2) / 2.
+
+On the elliptic range ``c = cos theta`` and ``U_{L-1} = sin(L theta) / sin theta``:
+``E[Delta_L] = rho(z) sin^2(L theta)`` with ``rho = E_1 / sin^2 theta`` the bound over all
+trajectory lengths (``rho(h)`` of Blanes, Casas & Sanz-Serna, SIAM J. Sci. Comput. 36
+(2014) A1556, for palindromic methods; this form holds for any symplectic one-step map).
+Where M is hyperbolic ``U_{L-1}`` grows like ``e^{L phi}``: acceptance collapses.
+
+Acceptance. ``P_L^T P_L`` has eigenvalues ``s^2, 1/s^2`` with ``s^2 + s^-2 = 2 + 2 E_k``,
+so ``Delta = sum_k (a_k u_k^2 + b_k v_k^2)`` with independent standard normals,
+``a_k = (E_k + r_k) / 2``, ``b_k = -E_k / (E_k + r_k)``, ``r_k = sqrt(E_k^2 + 2 E_k)``.
+Its moment generating function satisfies ``E[e^{t Delta}] = E[e^{-(1 + t) Delta}]``
+(true mode by mode since ``(1 + 2 a)(1 + 2 b) = 1``), hence
+``E[min(1, e^-Delta)] = 2 P(Delta < 0)`` exactly, and ``P(Delta < 0)`` is the Gil-Pelaez
+inversion ``1/2 - (1/pi) int_0^inf Im phi(u) / u du`` of the characteristic function
+``phi(u) = prod_k (1 - 2 i a_k u)^(-1/2) (1 - 2 i b_k u)^(-1/2)``, integrated by a
+double-exponential rule in ``log u`` (vectorised over nodes and modes). Beyond
+:data:`MAX_EXACT_MODES` distinct energy errors the smallest are lumped into one normal
+variable of the same mean and variance (their sum is then nearly Gaussian); the result
+says so (``approximate``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from stepsafe.core.accuracy import offsets
+from stepsafe.methods.tableaux import Method
+
+#: Stan's default target for the average acceptance statistic (``adapt_delta``).
+DEFAULT_TARGET = 0.8
+#: Distinct per-mode energy errors treated exactly; the rest are lumped (module docstring).
+MAX_EXACT_MODES = 2048
+#: Double-exponential rule for int_0^inf f(u) du/u in t, u = exp(pi/2 sinh t).
+_DE_STEP = 1.0 / 16.0
+_DE_T = np.arange(-4.5, 4.5 + _DE_STEP / 2, _DE_STEP)
+
+
+class OneStep(NamedTuple):
+    """At each z: ``E_1``, the expected energy error of one step from the stationary state
+    (inf where M overflows or the stage equations are singular), ``sin2 = 1 - c^2``
+    (negative where M is hyperbolic) and ``c = tr M / 2``."""
+
+    e1: np.ndarray
+    sin2: np.ndarray
+    half_trace: np.ndarray
+
+
+def one_step(method: Method, z) -> OneStep:
+    """:class:`OneStep` at each ``z = beta h``."""
+    with np.errstate(all="ignore"):
+        off = offsets(method, z)
+        e1 = 0.5 * (off.b_plus_c ** 2 + off.a_minus_d ** 2)
+        bad = ~np.isfinite(e1) | ~np.isfinite(off.sin2)
+        half_trace = 0.5 * (off.M[:, 0, 0] + off.M[:, 1, 1])
+        return OneStep(np.where(bad, np.inf, e1), np.where(bad, -np.inf, off.sin2), half_trace)
+
+
+def _chebyshev_u_squared(sin2: np.ndarray, half_trace: np.ndarray, steps: int) -> np.ndarray:
+    """``U_{L-1}(c)^2`` from ``sin2 = 1 - c^2`` without cancellation: ``sin^2(L theta) /
+    sin^2 theta`` (theta measured from the nearer of 0 and pi, so M near -I loses nothing)
+    or ``sinh^2(L phi) / sinh^2 phi`` where |c| > 1."""
+    with np.errstate(all="ignore"):
+        root = np.sqrt(np.abs(sin2))
+        elliptic = sin2 > 0
+        theta = np.arctan2(root, np.abs(half_trace))
+        phi = np.arcsinh(root)
+        u2 = np.where(elliptic, (np.sin(steps * theta) / np.where(elliptic, root, 1.0)) ** 2,
+                      (np.sinh(steps * phi) / np.where(root > 0, root, 1.0)) ** 2)
+        # where sin2 rounds to 0 (z -> 0, or M = +-I): the limit L^2
+        return np.where(root == 0, float(steps) ** 2, u2)
+
+
+def energy_errors(method: Method, z, steps: int | None = None) -> np.ndarray:
+    """Expected energy error ``E[Delta]`` of each mode at ``z = beta h`` after ``steps``
+    steps from the stationary state; with ``steps=None`` the bound over every trajectory
+    length, ``rho(z) = E_1 / sin^2 theta`` (inf where M is not elliptic)."""
+    return errors_after(one_step(method, z), steps)
+
+
+def errors_after(first: OneStep, steps: int | None) -> np.ndarray:
+    """:func:`energy_errors` from the one-step figures (steps None: the bound rho)."""
+    e1, sin2 = first.e1, first.sin2
+    with np.errstate(all="ignore"):
+        if steps is None:
+            out = np.where(sin2 > 0, e1 / np.where(sin2 > 0, sin2, 1.0), np.inf)
+        else:
+            out = e1 * _chebyshev_u_squared(sin2, first.half_trace, int(steps))
+        out = np.where(e1 == 0, 0.0, out)
+        return np.where(np.isnan(out), np.inf, out)
+
+
+@dataclass(frozen=True)
+class Acceptance:
+    """Expected acceptance probability ``E[min(1, e^-Delta)]`` and the expected energy
+    error ``E[Delta]`` of a proposal; ``approximate`` when small modes were lumped."""
+
+    rate: float
+    expected_error: float
+    approximate: bool = False
+
+
+def acceptance(errors: np.ndarray, counts: np.ndarray | None = None) -> Acceptance:
+    """The acceptance of a proposal whose modes have expected energy errors ``errors``
+    (``counts[i]`` modes with ``errors[i]``; see the module docstring)."""
+    errors = np.asarray(errors, dtype=float).ravel()
+    counts = (np.ones(errors.size) if counts is None
+              else np.asarray(counts, dtype=float).ravel())
+    return acceptances(errors[None, :], counts)[0]
+
+
+def acceptances(errors: np.ndarray, counts: np.ndarray) -> list[Acceptance]:
+    """:func:`acceptance` for each row of ``errors`` (shape (n, k), the same ``counts``
+    for every row), vectorised over rows when ``k <= MAX_EXACT_MODES``."""
+    errors = np.asarray(errors, dtype=float)
+    if np.isnan(errors).any() or (errors < 0).any():
+        raise ValueError("energy errors must be >= 0")
+    counts = np.asarray(counts, dtype=float)
+    totals = np.where(np.isinf(errors).any(axis=1), np.inf,
+                      np.nan_to_num(errors, posinf=0.0) @ counts)
+    if errors.shape[1] > MAX_EXACT_MODES:
+        return [_lumped(row, counts, total) for row, total in zip(errors, totals)]
+    finite = np.where(np.isfinite(errors), errors, 0.0)
+    a, b = _weights(finite)
+    rates = _gil_pelaez(a, b, counts, np.zeros(len(errors)), np.zeros(len(errors)))
+    rates = np.where(np.isinf(totals), 0.0, rates)
+    return [Acceptance(float(r), float(t)) for r, t in zip(rates, totals)]
+
+
+def _weights(errors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The weights ``a, b`` of ``Delta = a u^2 + b v^2`` for each expected error."""
+    root = np.sqrt(errors * (errors + 2.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        b = np.where(errors > 0, -errors / (errors + root), 0.0)
+    return 0.5 * (errors + root), b
+
+
+def _lumped(errors: np.ndarray, counts: np.ndarray, total: float) -> Acceptance:
+    """One row with more distinct modes than :data:`MAX_EXACT_MODES`: the largest exactly,
+    the rest as one normal variable of their mean and variance."""
+    if not np.isfinite(total):
+        return Acceptance(0.0, np.inf, True)
+    order = np.argsort(errors, kind="stable")
+    errors, counts = errors[order], counts[order]
+    a, b = _weights(errors)
+    cut = errors.size - MAX_EXACT_MODES
+    mean_g = float(np.sum(counts[:cut] * (a[:cut] + b[:cut])))
+    var_g = float(np.sum(counts[:cut] * 2.0 * (a[:cut] ** 2 + b[:cut] ** 2)))
+    rate = _gil_pelaez(a[None, cut:], b[None, cut:], counts[cut:], np.array([mean_g]),
+                       np.array([var_g]))[0]
+    return Acceptance(float(rate), total, True)
+
+
+def _gil_pelaez(a: np.ndarray, b: np.ndarray, counts: np.ndarray, mean_g: np.ndarray,
+                var_g: np.ndarray) -> np.ndarray:
+    """``2 P(Delta < 0)`` per row, ``Delta = sum_k counts_k (a_k u^2 + b_k v^2) + N(mean_g,
+    var_g)``: ``1 - (2/pi) int_0^inf Im phi(u) du / u`` by the double-exponential rule, u
+    scaled by each row's largest weight."""
+    scale = np.maximum(2.0 * a.max(axis=1, initial=0.0), np.sqrt(var_g))
+    rates = np.ones(len(a))
+    live = scale > 0
+    if not live.any():
+        return rates
+    a, b, mean_g, var_g = a[live], b[live], mean_g[live], var_g[live]
+    u = np.exp(0.5 * np.pi * np.sinh(_DE_T))[None, :] / scale[live][:, None]  # (n, nodes)
+    log_mod = -0.5 * var_g[:, None] * u ** 2
+    arg = mean_g[:, None] * u
+    for coef in (a, b):
+        x = 2.0 * coef[:, None, :] * u[:, :, None]  # (n, nodes, k)
+        log_mod -= 0.25 * (np.log1p(x * x) @ counts)
+        arg += 0.5 * (np.arctan(x) @ counts)
+    weight = 0.5 * np.pi * np.cosh(_DE_T) * _DE_STEP
+    integral = (np.exp(log_mod) * np.sin(arg)) @ weight
+    rates[live] = np.clip(1.0 - 2.0 / np.pi * integral, 0.0, 1.0)
+    return rates
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """How a sampler sets the number of steps L: fixed (``steps``), from an integration time
+    (``length``: ``L = max(1, floor(length / h))`` at the nominal step, as Stan's static
+    HMC), or unknown (neither: the bound over every L). ``jitter`` j draws each step
+    uniformly from ``h (1 - j, 1 + j)`` with L kept, as Stan's ``stepsize_jitter``."""
+
+    steps: int | None = None
+    length: float | None = None
+    jitter: float = 0.0
+
+    def steps_at(self, h: float) -> int | None:
+        if self.steps is not None:
+            return self.steps
+        if self.length is not None:
+            return max(1, int(self.length / h))
+        return None
+
+
+def _distinct(betas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    values, counts = np.unique(np.asarray(betas, dtype=float), return_counts=True)
+    keep = values > 0
+    return values[keep], counts[keep].astype(float)
+
+
+def acceptance_at(method: Method, betas: np.ndarray, h: float,
+                  trajectory: Trajectory = Trajectory()) -> Acceptance:
+    """Predicted acceptance of HMC with ``method`` at nominal step ``h`` on the Gaussian
+    whose modes have frequencies ``betas`` (jittered steps: the average over the jitter
+    interval by Gauss-Legendre quadrature, enough nodes for sin^2(L theta) to be resolved)."""
+    return acceptance_curve(method, betas, np.array([float(h)]), trajectory)[0]
+
+
+#: Nodes of the jitter average: at least this many, plus 8 per turn of L theta across it.
+JITTER_NODES = 16
+MAX_JITTER_NODES = 512
+
+
+def acceptance_curve(method: Method, betas: np.ndarray, hs: np.ndarray,
+                     trajectory: Trajectory = Trajectory()) -> list[Acceptance]:
+    """:func:`acceptance_at` at each nominal step of ``hs`` (vectorised)."""
+    values, counts = _distinct(betas)
+    hs = np.asarray(hs, dtype=float).ravel()
+    j = trajectory.jitter
+    if j == 0.0:
+        nodes, weights = np.zeros(1), np.full(1, 2.0)
+    else:
+        longest = max((trajectory.steps_at(h) or 1) * h for h in hs)
+        turns = j * float(values.max(initial=0.0)) * longest / np.pi
+        n = int(min(JITTER_NODES + 8 * np.ceil(turns), MAX_JITTER_NODES))
+        nodes, weights = np.polynomial.legendre.leggauss(n)
+    out = []
+    for h in hs:
+        steps = trajectory.steps_at(h)
+        z = np.outer(h * (1.0 + j * nodes), values)
+        errs = errors_after(one_step(method, z.ravel()), steps).reshape(z.shape)
+        found = acceptances(errs, counts)
+        rate = float(np.dot(weights, [a.rate for a in found])) / 2.0
+        with np.errstate(invalid="ignore"):
+            mean_error = float(np.dot(weights, [a.expected_error for a in found])) / 2.0
+        out.append(Acceptance(min(max(rate, 0.0), 1.0), mean_error,
+                              any(a.approximate for a in found)))
+    return out
+
+
+#: The target step is searched on this many grid points below the upper end, then bisected.
+TARGET_GRID = 64
+#: ... and bisected to this relative width (a prediction: finer says nothing more).
+TARGET_RTOL = 1e-7
+
+
+def target_step(method: Method, betas: np.ndarray, target: float, h_hi: float,
+                trajectory: Trajectory = Trajectory()) -> float | None:
+    """The largest h below ``h_hi`` such that the predicted acceptance is at least
+    ``target`` at every grid step from 0 to h (refined by bisection); None when even
+    ``h_hi / 2^60`` misses it. With an unknown trajectory length this uses the bound over
+    every L, so the acceptance holds whatever L the sampler takes."""
+    def ok(h: float) -> bool:
+        return acceptance_at(method, betas, h, trajectory).rate >= target
+
+    grid = h_hi * np.arange(1, TARGET_GRID + 1) / TARGET_GRID
+    good = np.array([a.rate >= target for a in acceptance_curve(method, betas, grid,
+                                                                 trajectory)])
+    if good.all():
+        return float(h_hi)
+    first_bad = int(np.argmin(good))
+    lo, hi = (0.0, float(grid[0])) if first_bad == 0 else (float(grid[first_bad - 1]),
+                                                           float(grid[first_bad]))
+    if lo == 0.0:
+        for _ in range(60):  # below the first grid step: geometric
+            if ok(hi / 2.0):
+                lo = hi / 2.0
+                break
+            hi /= 2.0
+        else:
+            return None
+    while hi - lo > TARGET_RTOL * hi:
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if ok(mid) else (lo, mid)
+    return lo
+
+
+@dataclass(frozen=True)
+class ModeError:
+    """The expected energy error of the ``count`` modes of frequency ``beta``."""
+
+    beta: float
+    count: int
+    expected_error: float
+
+
+def largest_errors(method: Method, betas: np.ndarray, h: float, steps: int | None,
+                   keep: int = 5) -> tuple[ModeError, ...]:
+    """The ``keep`` distinct frequencies whose modes add most to the expected energy error
+    at step h (L steps; None: the bound over every L), largest first."""
+    values, counts = _distinct(betas)
+    errs = errors_after(one_step(method, values * h), steps)
+    order = np.argsort(-(errs * counts), kind="stable")[:keep]
+    return tuple(ModeError(float(values[i]), int(counts[i]), float(errs[i] * counts[i]))
+                 for i in order)
+
+
+def stall_steps(method: Method, region, beta: float, steps: int, h_hi: float,
+                keep: int = 5) -> tuple[tuple[int, float], ...]:
+    """The first ``keep`` steps h below ``h_hi`` where L steps turn the mode of frequency
+    ``beta`` by a whole number m of turns, ``L theta(beta h) = 2 pi m``: its proposal is
+    its starting point (a fixed-L sampler does not move that mode; jitter avoids it)."""
+    from stepsafe.core.resonances import rotations
+
+    if steps < 3 or beta <= 0:
+        return ()
+    pairs = [(steps, m) for m in range(1, min(keep, (steps - 1) // 2) + 1) if 2 * m < steps]
+    found = rotations(method, region, pairs)
+    return tuple((r.m, r.z / beta) for r in found if r.z / beta < h_hi)[:keep]

@@ -1,0 +1,267 @@
+"""HMC advice for Gaussian targets: the public :func:`hmc` behind ``stepsafe hmc``.
+
+For each method: the stability limit of the fastest mode (and the structure limit where it
+differs), the predicted acceptance rate as a function of h (:mod:`stepsafe.core.hmc`), the
+largest step whose acceptance reaches the target (default 0.8, Stan's ``adapt_delta``), and
+the cost in gradient evaluations per proposal, per accepted proposal and per accepted unit
+of simulated time; methods are ranked by the last (at a fixed integration time it orders
+them as the cost per accepted proposal does).
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, fields
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from stepsafe.api import ArrayLike, Integrator, _compared, problem
+from stepsafe.exceptions import StepsafeError, positive_finite
+
+#: Stall steps (L theta = 2 pi m) are reported within this relative distance of the target
+#: step (or within the jitter, if wider).
+STALL_WINDOW = 0.1
+#: Methods compared when none are named: the integrators HMC codes ship.
+HMC_DEFAULT = ("verlet", "mclachlan2-min", "bcss2", "bcss3", "yoshida4", "pefrl")
+
+
+@dataclass(frozen=True)
+class HmcRow:
+    """One method's HMC figures (steps in the time unit of 1/beta; None where a figure
+    does not exist, e.g. no step reaches the target)."""
+
+    method: str
+    evaluations: int | None  # gradient evaluations per step (first same as last merged)
+    symmetric: bool
+    stability_h: float | None  # end of |tr M| <= 2 from 0 for the fastest mode
+    structure_h: float | None  # end of the structure-preserving interval from 0
+    resonance_h: tuple[float, ...]  # M = +-I points below stability_h (excluded steps)
+    h_target: float | None  # largest h whose acceptance reaches the target for every L
+    steps: int | None  # L at h_target (None: trajectory length not given)
+    acceptance: float | None  # at h_target, for the trajectory given (>= the target)
+    expected_error: float | None  # E[Delta] at h_target
+    gradients_per_proposal: float | None
+    gradients_per_accepted: float | None
+    gradients_per_time: float | None  # per accepted unit of simulated time
+    rank: int | None = None
+    at_step: Mapping[str, Any] | None = None
+    stalls: tuple[Mapping[str, Any], ...] = ()
+    notes: tuple[str, ...] = ()
+    #: (h, predicted acceptance, its bound over every L) up to the limit searched, if asked
+    curve: tuple[tuple[float, float, float], ...] = ()
+
+
+@dataclass(frozen=True)
+class HmcReport:
+    """Methods ranked by gradient evaluations per accepted unit of simulated time at the
+    largest step reaching ``target`` acceptance."""
+
+    rows: tuple[HmcRow, ...]
+    target: float
+    steps: int | None
+    length: float | None
+    jitter: float
+    criterion: str
+    modes: int
+    beta_range: tuple[float, float]
+    time_unit: str | None = None
+    approximate: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        """What ``stepsafe hmc ... --json`` prints."""
+        return {"target_accept": self.target, "steps": self.steps, "length": self.length,
+                "jitter": self.jitter, "criterion": self.criterion, "modes": self.modes,
+                "beta_min": self.beta_range[0], "beta_max": self.beta_range[1],
+                "time_unit": self.time_unit, "approximate": self.approximate,
+                "cost_unit": "gradient evaluations",
+                "methods": [copy.deepcopy(_row_dict(r)) for r in self.rows]}
+
+
+def _row_dict(row: HmcRow) -> dict[str, Any]:
+    from stepsafe.core.records import json_ready
+
+    out = {f.name: getattr(row, f.name) for f in fields(row)}
+    out["at_step"] = None if row.at_step is None else json_ready(dict(row.at_step))
+    out["stalls"] = [dict(s) for s in row.stalls]
+    out["resonance_h"] = list(row.resonance_h)
+    out["notes"] = list(row.notes)
+    out["curve"] = [list(point) for point in row.curve]
+    return out
+
+
+def _validated(target: float, steps: int | None, length: float | None,
+               jitter: float) -> tuple[float, int | None, float | None, float]:
+    if isinstance(target, bool) or not isinstance(target, (int, float)) or not (
+            0.0 < float(target) < 1.0):
+        raise StepsafeError(f"target acceptance must be a number in (0, 1), got {target!r}")
+    if steps is not None and length is not None:
+        raise StepsafeError("give the number of steps or the trajectory length, not both")
+    if steps is not None:
+        if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not (
+                1 <= steps <= 10**6):
+            raise StepsafeError(f"steps must be an integer from 1 to 1000000, got {steps!r}")
+        steps = int(steps)
+    if length is not None:
+        length = positive_finite(length, "trajectory length")
+    if isinstance(jitter, bool) or not isinstance(jitter, (int, float)) or not (
+            0.0 <= float(jitter) < 1.0):
+        raise StepsafeError(f"jitter must be a number in [0, 1), got {jitter!r}")
+    return float(target), steps, length, float(jitter)
+
+
+def hmc(methods: Sequence[Integrator | str] | str | None = None,
+        frequencies: ArrayLike | None = None, *, steps: int | None = None,
+        length: float | None = None, jitter: float = 0.0, target_accept: float = 0.8,
+        step: float | None = None, criterion: str = "stability", curve: int = 0,
+        **inputs: Any) -> HmcReport:
+    """HMC on a Gaussian target with each of ``methods`` (names, ``"all"``, or None for
+    :data:`HMC_DEFAULT`). The target is given as for :func:`stepsafe.problem`: ``sigma``
+    (standard deviations), ``frequencies`` (beta = 1/sigma for unit mass), a scene, or
+    ``system={"covariance": C}`` / ``{"precision": P}`` with an optional ``"mass"``.
+    ``steps`` L per trajectory, or ``length`` T (L = floor(T / h), as Stan), or neither (the
+    acceptance is then the bound over every L); ``jitter`` j draws each step from
+    ``h (1 +- j)``. The step at target is the largest whose acceptance reaches
+    ``target_accept`` for every trajectory length (each mode's energy error at its bound
+    over L, rho(h) of Blanes, Casas & Sanz-Serna 2014): the acceptance for one L
+    oscillates with h like sin^2(L theta), and is reported at that step. ``step`` also
+    evaluates that h. ``criterion`` bounds the search for h
+    (``stability``: |tr M| <= 2, the default here; ``structure``: type and orientation).
+    ``curve`` N adds the predicted acceptance at N steps up to that limit to each row.
+
+    >>> best = hmc(["verlet", "bcss2"], sigma=[1.0, 2.0, 5.0], length=5.0).rows[0]
+    >>> best.method
+    'bcss2'
+    """
+    from stepsafe.core.hmc import Trajectory
+    from stepsafe.core.regions import validate_criterion
+
+    target, steps, length, jitter = _validated(target_accept, steps, length, jitter)
+    criterion = validate_criterion(criterion)
+    if step is not None:
+        step = positive_finite(step, "step")
+    if isinstance(curve, bool) or not isinstance(curve, int) or not 0 <= curve <= 10_000:
+        raise StepsafeError(f"curve must be an integer from 0 to 10000, got {curve!r}")
+    integrators = _compared(HMC_DEFAULT if methods is None else methods)
+    p = problem(integrators[0], frequencies, **inputs)
+    if p.system is not None and p.system.modes is None:
+        raise StepsafeError("the target's modes do not decouple: a Gaussian target needs a "
+                            "symmetric positive definite precision (or covariance)")
+    others = [m for m in p.modes.betas if m != "oscillator"]
+    if others:
+        raise StepsafeError(f"a Gaussian target has only vibrations (sigma, covariance, "
+                            f"precision); {others[0]} modes have no place in HMC")
+    betas = np.asarray(p.modes.betas["oscillator"], dtype=float)
+    if not betas.max() > 0:
+        raise StepsafeError("every frequency is 0: a flat target has no step limit")
+    trajectory = Trajectory(steps, length, jitter)
+    rows = [_row(i, betas, trajectory, target, step, criterion, p.zmax, curve)
+            for i in integrators]
+    ranked = sorted(rows, key=lambda r: (r.gradients_per_time is None,
+                                         r.gradients_per_time or 0.0))
+    out, rank = [], 0
+    for r in ranked:
+        if r.gradients_per_time is not None:
+            rank += 1
+        out.append(HmcRow(**{**r.__dict__, "rank": rank if r.gradients_per_time else None}))
+    positive = betas[betas > 0]
+    from stepsafe.core.hmc import MAX_EXACT_MODES
+
+    return HmcReport(tuple(out), target, steps, length, jitter, criterion, int(betas.size),
+                     (float(positive.min()), float(positive.max())), p.time_unit,
+                     bool(np.unique(positive).size > MAX_EXACT_MODES))
+
+
+def _row(integrator: Integrator, betas: np.ndarray, trajectory: Any, target: float,
+         step: float | None, criterion: str, zmax: float, curve: int = 0) -> HmcRow:
+    from stepsafe.core import hmc as core
+    from stepsafe.core.regions import find_region, under_criterion
+    from stepsafe.core.solver import fixed_point_cost, step_limit
+    from stepsafe.core.tradeoff import SOLVER_REACH
+    from stepsafe.methods.families import is_symmetric
+
+    m = integrator.tableau
+    top = float(betas.max())
+    with integrator.naming_its_file():
+        region = find_region(m, "oscillator", zmax)
+    symmetric = is_symmetric(m)
+    notes: list[str] = []
+    empty = HmcRow(integrator.name, integrator.evaluations, symmetric, None, None, (), None,
+                   None, None, None, None, None, None)
+    if not region.symplectic:
+        return HmcRow(**{**empty.__dict__, "notes": (
+            "not symplectic: it does not preserve volume, so HMC with it does not sample "
+            "the target",)})
+    if not symmetric:
+        notes.append("not symmetric: the HMC chain is not reversible with it (alternate it "
+                     "with its adjoint); the acceptance is still as predicted")
+    z_stab = region.stability_limit if region.stability_limit is not None else region.zmax
+    z_struct = region.first_boundary if region.first_boundary is not None else region.zmax
+    stability_h, structure_h = z_stab / top, z_struct / top
+    h_hi = stability_h if criterion == "stability" else structure_h
+    solver_limit = None if integrator.explicit else step_limit(m, {"oscillator": betas})
+    if solver_limit is not None and SOLVER_REACH * solver_limit < h_hi:
+        h_hi = SOLVER_REACH * solver_limit
+        notes.append(f"the step is kept below 0.9 of the fixed-point iteration's "
+                     f"convergence limit h = {solver_limit:.6g}")
+    resonances = tuple(r.z / top for r in under_criterion(region, "stability").resonances
+                       if r.z < z_stab)
+
+    def gradients(h: float) -> float | None:
+        if integrator.explicit:
+            return None if integrator.evaluations is None else float(integrator.evaluations)
+        cost = fixed_point_cost(m, h * top)
+        return None if cost.evaluations is None else float(cost.evaluations)
+
+    def figures(h: float) -> dict[str, Any]:
+        acc = core.acceptance_at(m, betas, h, trajectory)
+        L = trajectory.steps_at(h)
+        e = gradients(h)
+        per_step = None if e is None else e
+        per_proposal = None if (L is None or e is None) else L * e
+        return {"h": h, "steps": L, "acceptance": acc.rate,
+                "expected_error": acc.expected_error,
+                "gradients_per_proposal": per_proposal,
+                "gradients_per_accepted": (None if per_proposal is None or acc.rate == 0
+                                           else per_proposal / acc.rate),
+                "gradients_per_time": (None if per_step is None or acc.rate == 0
+                                       else per_step / (acc.rate * h))}
+
+    # the step reaching the target for every trajectory length (the bound rho of each
+    # mode): the acceptance for a given L oscillates with h like sin^2(L theta)
+    bound = core.Trajectory(jitter=trajectory.jitter)
+    h_target = core.target_step(m, betas, target, h_hi, bound)
+    at_target = figures(h_target) if h_target else {}
+    at_step = None
+    if step is not None:
+        at_step = figures(step)
+        at_step["largest_errors"] = [asdict(e) for e in core.largest_errors(
+            m, betas, step, trajectory.steps_at(step))]
+        at_step = MappingProxyType(at_step)
+    stalls: list[Mapping[str, Any]] = []
+    L = trajectory.steps_at(h_target) if h_target else None
+    if L is not None and h_target:
+        window = max(STALL_WINDOW, trajectory.jitter)
+        for beta in sorted({float(betas[betas > 0].min()), top}):
+            near = [(abs(h / h_target - 1.0), turns, h) for turns, h in
+                    core.stall_steps(m, region, beta, L, h_hi, keep=L)
+                    if abs(h / h_target - 1.0) <= window]
+            stalls += [MappingProxyType({"beta": beta, "steps": L, "turns": turns, "h": h,
+                                         "from_target": gap})
+                       for gap, turns, h in sorted(near)[:1]]
+    points: tuple[tuple[float, float, float], ...] = ()
+    if curve:
+        hs = h_hi * np.arange(1, curve + 1) / curve
+        points = tuple((float(h), a.rate, b.rate) for h, a, b in zip(
+            hs, core.acceptance_curve(m, betas, hs, trajectory),
+            core.acceptance_curve(m, betas, hs, bound)))
+    return HmcRow(integrator.name, integrator.evaluations, symmetric, stability_h, structure_h,
+                  resonances, h_target, at_target.get("steps"), at_target.get("acceptance"),
+                  at_target.get("expected_error"), at_target.get("gradients_per_proposal"),
+                  at_target.get("gradients_per_accepted"), at_target.get("gradients_per_time"),
+                  None, at_step, tuple(stalls), tuple(notes), points)
+
+
+__all__ = ["HMC_DEFAULT", "HmcReport", "HmcRow", "hmc"]
