@@ -146,16 +146,7 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
         raise StepsafeError(f"curve must be an integer from 0 to 10000, got {curve!r}")
     integrators = _compared(HMC_DEFAULT if methods is None else methods)
     p = problem(integrators[0], frequencies, **inputs)
-    if p.system is not None and p.system.modes is None:
-        raise StepsafeError("the target's modes do not decouple: a Gaussian target needs a "
-                            "symmetric positive definite precision (or covariance)")
-    others = [m for m in p.modes.betas if m != "oscillator"]
-    if others:
-        raise StepsafeError(f"a Gaussian target has only vibrations (sigma, covariance, "
-                            f"precision); {others[0]} modes have no place in HMC")
-    betas = np.asarray(p.modes.betas["oscillator"], dtype=float)
-    if not betas.max() > 0:
-        raise StepsafeError("every frequency is 0: a flat target has no step limit")
+    betas = _gaussian_betas(p)
     trajectory = Trajectory(steps, length, jitter)
     rows = [_row(i, betas, trajectory, target, step, criterion, p.zmax, curve)
             for i in integrators]
@@ -264,4 +255,122 @@ def _row(integrator: Integrator, betas: np.ndarray, trajectory: Any, target: flo
                   None, at_step, tuple(stalls), tuple(notes), points)
 
 
-__all__ = ["HMC_DEFAULT", "HmcReport", "HmcRow", "hmc"]
+# --------------------------------------------------------------------------- design
+
+#: The fixed integrators a designed one is compared with.
+DESIGN_REFERENCES = ("verlet", "bcss2", "bcss3", "mclachlan2-min")
+
+
+@dataclass(frozen=True)
+class DesignReport:
+    """A 2- or 3-stage splitting designed for a Gaussian target at step ``step``, its method
+    file (``method_file``, YAML that every command accepts) and the figures that justify it:
+    for it and each of :data:`DESIGN_REFERENCES`, at the same gradient evaluations per unit
+    of simulated time (each method at step ``step * evaluations / stages``), the error bound
+    ``sum_k rho(beta_k h)`` over every trajectory length and the acceptance it guarantees."""
+
+    name: str
+    stages: int
+    params: Mapping[str, float]
+    step: float
+    method_file: str
+    comparison: tuple[Mapping[str, Any], ...]
+    modes: int
+    binned: bool = False
+    time_unit: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """What ``stepsafe design ... --json`` prints."""
+        return {"name": self.name, "stages": self.stages, "params": dict(self.params),
+                "step": self.step, "modes": self.modes, "binned": self.binned,
+                "time_unit": self.time_unit, "method_file": self.method_file,
+                "comparison": [dict(c) for c in self.comparison]}
+
+
+def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2,
+           jitter: float = 0.0, name: str | None = None, **inputs: Any) -> DesignReport:
+    """Design the palindromic ``stages``-stage splitting (2: parameter b; 3: b and a; see
+    :mod:`stepsafe.core.design`) that minimises the expected energy error summed over the
+    target's modes (the target as for :func:`hmc`) at ``step``, averaged over
+    ``step (1 +- jitter)``, every mode stable up to ``step (1 + jitter)``.
+
+    >>> report = design(sigma=[1.0, 0.5, 0.2], step=0.5)
+    >>> report.comparison[0]["method"], report.comparison[0]["acceptance"] > 0.99
+    ('designed-2stage', True)
+    """
+    from stepsafe.core import hmc as core
+    from stepsafe.core.design import PARAMETERS, family_member
+    from stepsafe.core.design import design as core_design
+
+    if isinstance(stages, bool) or stages not in PARAMETERS:
+        raise StepsafeError(f"stages must be 2 or 3, got {stages!r}")
+    step = positive_finite(step, "step")
+    _, _, _, jitter = _validated(0.5, None, None, jitter)
+    name = f"designed-{stages}stage" if name is None else name
+    if not isinstance(name, str) or not name or not all(
+            c.isascii() and (c.isalnum() or c in "-_.") for c in name) or len(name) > 60:
+        raise StepsafeError(f"name must be 1 to 60 letters, digits, '-', '_' or '.', got "
+                            f"{str(name)[:40]!r}")
+    p = problem("verlet", frequencies, **inputs)
+    betas = _gaussian_betas(p)
+    values, counts = np.unique(betas[betas > 0], return_counts=True)
+    found = core_design(stages, values, counts.astype(float), step, jitter)
+    if found is None:
+        raise StepsafeError(f"no {stages}-stage member keeps every mode stable up to h = "
+                            f"{step * (1.0 + jitter):g}: take a smaller step")
+    designed = family_member(stages, found.params, name)
+    params = dict(zip(PARAMETERS[stages], found.params))
+    rows = []
+    for label, tableau, evals in [(name, designed, stages)] + [
+            (ref, (i := _compared([ref])[0]).tableau, i.evaluations)
+            for ref in DESIGN_REFERENCES]:
+        h = step * evals / stages
+        bound = core.errors_after(core.one_step(tableau, values * h), None) @ counts
+        acc = core.acceptance(core.errors_after(core.one_step(tableau, values * h), None),
+                              counts)
+        rows.append(MappingProxyType({
+            "method": label, "evaluations": evals, "h": h, "error_bound": float(bound),
+            "acceptance": acc.rate,
+            "gradients_per_time": (None if acc.rate == 0 else evals / (acc.rate * h))}))
+    return DesignReport(name, stages, MappingProxyType(params), step,
+                        _method_file(name, stages, params, step, jitter, betas.size),
+                        tuple(rows), int(betas.size), found.binned, p.time_unit)
+
+
+def _gaussian_betas(p: Any) -> np.ndarray:
+    """The vibration frequencies of a Gaussian target (refusing anything else)."""
+    if p.system is not None and p.system.modes is None:
+        raise StepsafeError("the target's modes do not decouple: a Gaussian target needs a "
+                            "symmetric positive definite precision (or covariance)")
+    others = [m for m in p.modes.betas if m != "oscillator"]
+    if others:
+        raise StepsafeError(f"a Gaussian target has only vibrations (sigma, covariance, "
+                            f"precision); {others[0]} modes have no place in HMC")
+    betas = np.asarray(p.modes.betas["oscillator"], dtype=float)
+    if not betas.max() > 0:
+        raise StepsafeError("every frequency is 0: a flat target has no step limit")
+    return betas
+
+
+def _method_file(name: str, stages: int, params: Mapping[str, float], step: float,
+                 jitter: float, modes: int) -> str:
+    family = ("K(b h) D(h/2) K((1-2b) h) D(h/2) K(b h)" if stages == 2 else
+              "K(b h) D(a h) K((1/2-b) h) D((1-2a) h) K((1/2-b) h) D(a h) K(b h)")
+    constants = "\n".join(f'  {k}: "{v!r}"' for k, v in params.items())
+    shape = ('drift: [0, "1/2"]\nkick: [b, "1 - 2*b"]' if stages == 2 else
+             'drift: [0, a, "1 - 2*a"]\nkick: [b, "1/2 - b"]')
+    return (f"name: {name}\n"
+            f'title: "Palindromic {stages}-stage splitting designed for a Gaussian target"\n'
+            "kind: splitting\norder: 2\n"
+            f"evaluations: {stages}\n"
+            f'source: "stepsafe design: the {stages}-stage palindromic family {family} of '
+            "Blanes, Casas & Sanz-Serna, SIAM J. Sci. Comput. 36 (2014) A1556, with "
+            f"{', '.join(params)} minimising the sum over {modes} mode(s) of the expected "
+            f"energy error bound rho(beta h) at h = {step!r}"
+            + (f" (averaged over h (1 +- {jitter!r}))" if jitter else "") + '"\n'
+            f"constants:\n{constants}\n"
+            f"symmetric: true\n{shape}\n")
+
+
+__all__ = ["DESIGN_REFERENCES", "DesignReport", "HMC_DEFAULT", "HmcReport", "HmcRow",
+           "design", "hmc"]

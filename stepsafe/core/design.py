@@ -1,0 +1,177 @@
+"""Palindromic 2- and 3-stage splittings designed for a Gaussian target and a step.
+
+Families (velocity form, kicks outside, first same as last so s gradient evaluations per
+step; Blanes, Casas & Sanz-Serna, SIAM J. Sci. Comput. 36 (2014) A1556, section 4):
+
+* 2 stages, one parameter b: ``K(b h) D(h/2) K((1 - 2b) h) D(h/2) K(b h)``;
+* 3 stages, two parameters (b, a): ``K(b h) D(a h) K((1/2 - b) h) D((1 - 2a) h)
+  K((1/2 - b) h) D(a h) K(b h)``.
+
+Every member is symmetric, symplectic and of order 2. The design chooses the parameters that
+minimise the expected energy error of the target at the user's step h, summed over its modes:
+``sum_k rho(beta_k h)`` with ``rho`` the bound over trajectory lengths
+(:mod:`stepsafe.core.hmc`; averaged over L it is ``rho / 2``, so this is the average error
+a sampler sees), each term averaged over the step interval ``h (1 +- j)`` of a jittered
+sampler. Every mode must stay stable (M elliptic) for every step up to ``h (1 + j)``, checked
+on the modes' own z and :data:`SWEEP` points of that range. The search is a
+grid over the parameters (every candidate with an unstable mode discarded) refined by
+Nelder-Mead; the figures of the result are recomputed by the general path
+(:func:`stepsafe.core.hmc.one_step`).
+With more distinct frequencies than :data:`MAX_DESIGN_MODES` the search uses that many
+log-spaced bins (each bin's largest frequency, weighted by its count): an approximation
+of the objective, said in the result; the final figures use every mode.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize
+
+from stepsafe.methods.tableaux import Splitting
+
+#: Parameter names of each family, by stage count.
+PARAMETERS = {2: ("b",), 3: ("b", "a")}
+#: The search grid: this many values per parameter in (0, 1/2).
+GRID = {2: 400, 3: 80}
+MAX_DESIGN_MODES = 512
+#: Local searches start from this many of the best grid points ...
+STARTS = 6
+#: ... and from the published members: verlet as 2 or 3 substeps, BCSS 2014 (bcss2,
+#: bcss3), McLachlan's minimum-error 2-stage method in velocity form.
+KNOWN = {2: ((0.25,), (0.21178,), (0.19318332750378357,)),
+         3: ((1 / 6, 1 / 3), (0.11888010966548, 0.29619504261126))}
+
+
+def family_member(stages: int, params: tuple[float, ...], name: str = "designed") -> Splitting:
+    """The family member with parameters ``params`` (see the module docstring)."""
+    if stages == 2:
+        (b,) = params
+        return Splitting(np.array([0.0, 0.5, 0.5, 0.0]), np.array([b, 1.0 - 2.0 * b, b]),
+                         name=name, order=2, evaluations=2)
+    b, a = params
+    return Splitting(np.array([0.0, a, 1.0 - 2.0 * a, a, 0.0]),
+                     np.array([b, 0.5 - b, 0.5 - b, b]), name=name, order=2, evaluations=3)
+
+
+def _operations(stages: int, params: np.ndarray) -> list[tuple[str, np.ndarray]]:
+    """The kick/drift sequence for a batch of parameter rows (shape (n, p))."""
+    if stages == 2:
+        b = params[:, 0]
+        return [("k", b), ("d", np.full_like(b, 0.5)), ("k", 1.0 - 2.0 * b),
+                ("d", np.full_like(b, 0.5)), ("k", b)]
+    b, a = params[:, 0], params[:, 1]
+    return [("k", b), ("d", a), ("k", 0.5 - b), ("d", 1.0 - 2.0 * a), ("k", 0.5 - b),
+            ("d", a), ("k", b)]
+
+
+#: Points of (0, max z] besides the modes' own z where stability is required.
+SWEEP = 256
+#: Midpoints of the average over a jitter interval (rho can peak sharply near M = -I
+#: inside it, which a few Gauss nodes would step over).
+JITTER_NODES = 64
+
+
+def error_bounds(stages: int, params: np.ndarray, z: np.ndarray, weights: np.ndarray,
+                 jitter: float = 0.0) -> np.ndarray:
+    """``sum_k weights_k mean_{|u| <= 1} rho(z_k (1 + jitter u))`` for each parameter row;
+    inf where some mode is not elliptic at some step up to ``z (1 + jitter)``."""
+    z = np.asarray(z, dtype=float)
+    if jitter:
+        nodes = (np.arange(JITTER_NODES) + 0.5) / JITTER_NODES * 2.0 - 1.0
+        scaled = (z[None, :] * (1.0 + jitter * nodes[:, None])).ravel()
+        weights = (np.full(JITTER_NODES, 1.0 / JITTER_NODES)[:, None]
+                   * weights[None, :]).ravel()
+    else:
+        scaled = z
+    top = float(z.max()) * (1.0 + jitter)
+    sweep = top * np.arange(1, SWEEP + 1) / SWEEP
+    rho = rho_values(stages, params, np.concatenate([scaled, sweep]))
+    total = rho[:, :scaled.size] @ weights
+    return np.where(np.isfinite(rho[:, scaled.size:]).all(axis=1), total, np.inf)
+
+
+def rho_values(stages: int, params: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """``rho(z)`` for each parameter row and z (inf where M is not elliptic): the one-step
+    matrices multiplied out in float64, vectorised over both."""
+    params = np.atleast_2d(np.asarray(params, dtype=float))
+    n = params.shape[0]
+    m00 = np.ones((n, z.size))
+    m01 = np.zeros((n, z.size))
+    m10 = np.zeros((n, z.size))
+    m11 = np.ones((n, z.size))
+    for kind, c in _operations(stages, params):
+        cz = c[:, None] * z[None, :]
+        if kind == "d":  # [[1, c z], [0, 1]] @ M
+            m00, m01 = m00 + cz * m10, m01 + cz * m11
+        else:  # [[1, 0], [-c z, 1]] @ M
+            m10, m11 = m10 - cz * m00, m11 - cz * m01
+    half = 0.5 * (m00 + m11)
+    sin2 = -m01 * m10 - 0.25 * (m00 - m11) ** 2
+    e1 = 0.5 * ((m00 - m11) ** 2 + (m01 + m10) ** 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where((sin2 > 0) & (np.abs(half) < 1), e1 / sin2, np.inf)
+
+
+@dataclass(frozen=True)
+class Design:
+    """The chosen parameters and the objective they reach (module docstring)."""
+
+    stages: int
+    params: tuple[float, ...]
+    error_bound: float
+    binned: bool
+
+
+def _binned(betas: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    if betas.size <= MAX_DESIGN_MODES:
+        return betas, counts, False
+    edges = np.geomspace(betas.min(), betas.max(), MAX_DESIGN_MODES + 1)
+    index = np.clip(np.searchsorted(edges, betas, side="right") - 1, 0, MAX_DESIGN_MODES - 1)
+    top = np.zeros(MAX_DESIGN_MODES)
+    np.maximum.at(top, index, betas)
+    weight = np.bincount(index, weights=counts, minlength=MAX_DESIGN_MODES)
+    keep = weight > 0
+    return top[keep], weight[keep], True
+
+
+def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
+           jitter: float = 0.0) -> Design | None:
+    """The family member of ``stages`` stages minimising the objective of the module
+    docstring at step ``h`` for the frequencies ``betas`` (``counts`` modes each); None
+    when no member keeps every mode stable up to ``h (1 + jitter)``."""
+    betas, counts, binned = _binned(np.asarray(betas, float), np.asarray(counts, float))
+    z = betas * h
+    axis = (np.arange(GRID[stages]) + 0.5) / GRID[stages] * 0.5
+    grid = (axis[:, None] if stages == 2 else
+            np.stack(np.meshgrid(axis, axis, indexing="ij"), axis=-1).reshape(-1, 2))
+    values = np.concatenate([error_bounds(stages, chunk, z, counts, jitter)
+                             for chunk in np.array_split(grid, max(1, grid.size * z.size
+                                                                   // 4_000_000))])
+    if not np.isfinite(values).any():
+        return None
+
+    def objective(x: np.ndarray) -> float:
+        if np.any(x <= 0.0) or np.any(x >= 0.5):
+            return np.inf
+        return float(error_bounds(stages, x[None, :], z, counts, jitter)[0])
+
+    # Nelder-Mead from the best grid points and from the published members (the landscape
+    # has narrow valleys: bcss3 lies in one)
+    order = np.argsort(values, kind="stable")[:STARTS]
+    starts = [grid[i] for i in order if np.isfinite(values[i])]
+    starts += [np.array(m) for m in KNOWN[stages] if np.isfinite(objective(np.array(m)))]
+    step = 0.5 / GRID[stages]
+    best, best_value = starts[0], objective(starts[0])
+    for start in starts:
+        simplex = np.vstack([start] + [start + step * np.eye(start.size)[i]
+                                       for i in range(start.size)])
+        found = minimize(objective, start, method="Nelder-Mead",
+                         options={"initial_simplex": simplex, "xatol": 1e-10, "fatol": 0.0,
+                                  "maxiter": 400})
+        for x in (found.x, start):
+            value = objective(x)
+            if value < best_value:
+                best, best_value = x, value
+    return Design(stages, tuple(float(x) for x in best), objective(best), binned)
