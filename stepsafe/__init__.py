@@ -10,6 +10,8 @@ The public API (see :mod:`stepsafe.api`)::
     errors(method, z, model="oscillator")       phase and energy errors of one step
     compare(methods, frequencies, ...)          methods ranked by cost at the usable step
     transfer_matrices(method, z, model)         the one-step matrices M(z), shape (n, 2, 2)
+    hmc(methods, sigma=..., ...)                HMC on a Gaussian target: acceptance, step, cost
+    design(sigma=..., step=h, stages=2)         a 2- or 3-stage HMC splitting for your target
     problem(...), load_scene(path)              inputs merged from a scene file and arguments
     StepsafeError                               every error a caller can cause (bad input)
 
@@ -32,7 +34,9 @@ _API = ("Integrator", "PartitionedTableau", "RegionReport", "AdviceReport", "Che
         "ErrorTable", "CompareReport", "CompareRow", "Problem", "method", "method_from_file",
         "region", "advise", "check", "errors", "compare", "transfer_matrices", "problem",
         "load_scene")
-__all__ = [*_API, "StepsafeError", "MethodError", "__version__"]
+#: The HMC part of the API (stepsafe.hmc_advice), built on the same inputs.
+_HMC = ("hmc", "design", "HmcReport", "HmcRow", "DesignReport")
+__all__ = [*_API, *_HMC, "StepsafeError", "MethodError", "__version__"]
 
 if TYPE_CHECKING:  # pragma: no cover
     from stepsafe.api import (  # noqa: F401
@@ -56,6 +60,7 @@ if TYPE_CHECKING:  # pragma: no cover
         region,
         transfer_matrices,
     )
+    from stepsafe.hmc_advice import DesignReport, HmcReport, HmcRow, design, hmc  # noqa: F401
 
 
 def __getattr__(name: str) -> Any:
@@ -63,8 +68,12 @@ def __getattr__(name: str) -> Any:
         from stepsafe import api
 
         return getattr(api, name)
+    if name in _HMC:
+        from stepsafe import hmc_advice
+
+        return getattr(hmc_advice, name)
     raise AttributeError(f"module 'stepsafe' has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_API))
+    return sorted(set(globals()) | set(_API) | set(_HMC))

@@ -131,9 +131,9 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
     (``stability``: |tr M| <= 2, the default here; ``structure``: type and orientation).
     ``curve`` N adds the predicted acceptance at N steps up to that limit to each row.
 
-    >>> best = hmc(["verlet", "bcss2"], sigma=[1.0, 2.0, 5.0], length=5.0).rows[0]
-    >>> best.method
-    'bcss2'
+    >>> rows = hmc(["verlet", "bcss2"], sigma=list(np.linspace(0.5, 1.0, 20)), length=5.0).rows
+    >>> [(r.method, r.rank) for r in rows]   # bcss2 costs fewer gradients per accepted time
+    [('bcss2', 1), ('verlet', 2)]
     """
     from stepsafe.core.hmc import Trajectory
     from stepsafe.core.regions import validate_criterion
@@ -295,8 +295,8 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
     ``step (1 +- jitter)``, every mode stable up to ``step (1 + jitter)``.
 
     >>> report = design(sigma=[1.0, 0.5, 0.2], step=0.5)
-    >>> report.comparison[0]["method"], report.comparison[0]["acceptance"] > 0.99
-    ('designed-2stage', True)
+    >>> [(c["method"], round(c["acceptance"], 2)) for c in report.comparison[:3]]
+    [('designed-2stage', 0.98), ('verlet', 0.84), ('bcss2', 0.77)]
     """
     from stepsafe.core import hmc as core
     from stepsafe.core.design import PARAMETERS, family_member

@@ -21,6 +21,11 @@ ROOT = Path(__file__).resolve().parent.parent
 def test_docstring_examples_run():
     failures, tried = doctest.testmod(api, raise_on_error=False, verbose=False)
     assert tried >= 8 and failures == 0
+    from stepsafe import hmc_advice
+
+    failures, tried = doctest.testmod(hmc_advice, raise_on_error=False, verbose=False)
+    assert tried >= 2 and failures == 0
+    assert stepsafe.hmc is hmc_advice.hmc and "design" in dir(stepsafe)
 
 
 def test_import_stepsafe_is_light():

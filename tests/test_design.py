@@ -47,6 +47,11 @@ def test_the_bcss_coefficient_minimises_its_own_criterion():
     bs = np.linspace(0.2110, 0.2125, 1501)
     worst = rho_values(2, bs[:, None], z).max(axis=1)
     assert bs[int(np.argmin(worst))] == pytest.approx(0.21178, abs=2e-6)
+    # the other value in circulation (methods/bcss2.yaml) is a different member
+    other = rho_values(2, np.array([[(3 - np.sqrt(3)) / 6], [0.21178]]), z).max(axis=1)
+    assert other[0] == pytest.approx(5.17e-4, rel=1e-2)
+    assert other[1] == pytest.approx(3.99e-4, rel=1e-2)
+    assert float(_rho_mp(0.21178, 2.0)) == pytest.approx(other[1], rel=1e-9)
 
 
 def test_design_minimises_the_expected_error_of_one_mode():

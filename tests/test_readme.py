@@ -38,3 +38,30 @@ def test_scene_schema_is_the_code_s():
     start = README.index("```json\n", README.index("<summary>scene file JSON Schema</summary>"))
     block = README[start + len("```json\n"):README.index("```", start + 8)]
     assert block == _output("schema", "scene")
+
+
+def _block_after(marker: str) -> str:
+    start = README.index("```text\n", README.index(marker)) + len("```text\n")
+    return README[start:README.index("```", start)]
+
+
+def test_hmc_and_design_outputs(tmp_path):
+    target = str(ROOT / "examples/gaussian-1000.csv")
+    hmc = _output("hmc", "--modes", target, "--length", "5", "--jitter", "0.1", "--methods",
+                  "verlet,bcss2,bcss3,mclachlan2-min")
+    assert _block_after("stepsafe hmc --modes examples/gaussian-1000.csv --length 5") == hmc
+    out = tmp_path / "mine.yaml"
+    design = _output("design", "--modes", target, "--step", "0.2", "--jitter", "0.1", "-o",
+                     str(out))
+    assert _block_after("stepsafe design --modes examples/gaussian-1000.csv") == \
+        design.replace(str(out), "mine.yaml")
+    rows = {line.split("│")[2].strip(): line for line in hmc.splitlines()
+            if line.startswith("│")}
+    cost = {name: float(line.split("│")[-2]) for name, line in rows.items()}
+    assert f"verlet needs {cost['verlet'] / cost['bcss3']:.1f} times" in README
+
+
+def test_criterion_output():
+    out = _output("check", "--method", "bcss3", "--beta", "1", "--step", "3.5", "--criterion",
+                  "stability")
+    assert _block_after("stepsafe check --method bcss3 --beta 1 --step 3.5 --criterion") == out

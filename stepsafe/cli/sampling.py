@@ -128,10 +128,10 @@ def print_hmc(data: dict[str, Any]) -> None:
     for r in data["methods"]:
         lines = [f"M = ±I within rounding at h = {fmt(h)}{u} (excluded)"
                  for h in r["resonance_h"]]
-        lines += [f"{s['steps']} steps turn the mode beta = {fmt(s['beta'], 6)} by exactly "
-                  f"{s['turns']} turn(s) at h = {fmt(s['h'])}{u}, {100 * s['from_target']:.2g}% "
-                  "from the step at target: there a fixed-L sampler does not move that mode "
-                  "(jitter the step by more than that)" for s in r["stalls"]]
+        lines += [f"L = {s['steps']} turns the mode beta = {fmt(s['beta'], 6)} by exactly "
+                  f"{s['turns']} turn(s) at h = {fmt(s['h'], 6)}{u} "
+                  f"({100 * s['from_target']:.2g}% from h at target): a fixed-L sampler "
+                  "leaves that mode where it is; jitter by more" for s in r["stalls"]]
         lines += r["notes"]
         at = r["at_step"]
         if at:

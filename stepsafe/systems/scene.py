@@ -323,7 +323,17 @@ def _load_csv(data: bytes, where: str) -> ModesFile:
             raise _fail(where, "", f"not UTF-8 text (byte {exc.start})") from None
     body, first_line, header = _csv_header(data, where)
     rows = _CsvPart(data, body, len(data), first_line)
-    betas, codes = _csv_parse(rows, header, where)
+    sigma = "sigma" in header
+    if sigma:  # standard deviations (HMC, unit mass): parsed as the beta column, inverted
+        header = ["beta" if h == "sigma" else h for h in header]
+        try:
+            betas, codes = _csv_parse(rows, header, where)
+        except StepsafeError as exc:
+            raise StepsafeError(exc.message, (exc.where or "").replace(".beta", ".sigma")
+                                ) from None
+        betas = _inverted_sigmas(betas, rows, where)
+    else:
+        betas, codes = _csv_parse(rows, header, where)
     if not betas.size:
         raise _fail(where, "", "no rows after the header")
     labels: dict[str, tuple[str | None, ...]] = {}
@@ -335,6 +345,22 @@ def _load_csv(data: bytes, where: str) -> ModesFile:
                   if np.any(codes == k) and any(names[codes == k])}
     return ModesFile({m: betas[codes == k] for k, m in enumerate(MODELS) if np.any(codes == k)},
                      labels)
+
+
+def _inverted_sigmas(sigmas: np.ndarray, rows: _CsvPart, where: str) -> np.ndarray:
+    """beta = 1/sigma for a column of standard deviations, each > 0 with a finite inverse;
+    an error names the line of the first that is not."""
+    with np.errstate(divide="ignore", over="ignore"):
+        betas = 1.0 / sigmas
+    bad = np.flatnonzero(~(sigmas > 0) | ~np.isfinite(betas))
+    if bad.size:
+        rows_seen = -1
+        for number, text in rows.lines():
+            rows_seen += bool(text.strip())
+            if rows_seen == bad[0]:
+                raise _fail(where, f"line {number}.sigma", f"must be > 0 with a finite "
+                                                            f"inverse, got {sigmas[bad[0]]:g}")
+    return betas
 
 
 #: Parts of a CSV with at most this many lines are read row by row once np.loadtxt has
@@ -392,9 +418,11 @@ def _csv_header(data: bytes, where: str) -> tuple[int, int, list[str]]:
         if not text.strip():
             continue
         header = [h.strip().lower() for h in text.split(",")]
-        if "beta" not in header or set(header) - {"beta", "model", "label"} or \
+        if ("beta" in header) == ("sigma" in header) or \
+                set(header) - {"beta", "sigma", "model", "label"} or \
                 len(set(header)) != len(header):
-            raise _fail(where, "", "the CSV header must name the columns beta and (optionally) "
+            raise _fail(where, "", "the CSV header must name the column beta (or sigma, the "
+                                   "standard deviations of a Gaussian target) and optionally "
                                    f"model and label, each once, got {text.strip()[:60]!r}")
         return offset, number + 1, header
     raise _fail(where, "", "empty CSV file")
