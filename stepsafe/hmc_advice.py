@@ -129,7 +129,8 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
     oscillates with h like sin^2(L theta), and is reported at that step. ``step`` also
     evaluates that h. ``criterion`` bounds the search for h
     (``stability``: |tr M| <= 2, the default here; ``structure``: type and orientation).
-    ``curve`` N adds the predicted acceptance at N steps up to that limit to each row.
+    ``curve`` N adds the predicted acceptance at N steps up to that limit to each row;
+    ``progress`` is called with the fraction of methods done.
 
     >>> rows = hmc(["verlet", "bcss2"], sigma=list(np.linspace(0.5, 1.0, 20)), length=5.0).rows
     >>> [(r.method, r.rank) for r in rows]   # bcss2 costs fewer gradients per accepted time
@@ -145,11 +146,15 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
     if isinstance(curve, bool) or not isinstance(curve, int) or not 0 <= curve <= 10_000:
         raise StepsafeError(f"curve must be an integer from 0 to 10000, got {curve!r}")
     integrators = _compared(HMC_DEFAULT if methods is None else methods)
+    progress = inputs.pop("progress", None)  # called with the fraction of methods done
     p = problem(integrators[0], frequencies, **inputs)
     betas = _gaussian_betas(p)
     trajectory = Trajectory(steps, length, jitter)
-    rows = [_row(i, betas, trajectory, target, step, criterion, p.zmax, curve)
-            for i in integrators]
+    rows = []
+    for k, integrator in enumerate(integrators):
+        rows.append(_row(integrator, betas, trajectory, target, step, criterion, p.zmax, curve))
+        if progress is not None:
+            progress((k + 1) / len(integrators))
     ranked = sorted(rows, key=lambda r: (r.gradients_per_time is None,
                                          r.gradients_per_time or 0.0))
     out, rank = [], 0

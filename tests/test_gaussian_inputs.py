@@ -100,3 +100,26 @@ def test_diagonal_covariance_at_extreme_scales():
     """A diagonal covariance holds its variances exactly: 1e300 and 1e-300 together."""
     report = stepsafe.advise("verlet", system={"covariance": [[1e300, 0.0], [0.0, 1e-300]]})
     assert report.h_max == pytest.approx(2e-150, rel=1e-12)
+
+
+def test_a_csv_of_standard_deviations(tmp_path, run_json):
+    path = tmp_path / "sigmas.csv"
+    path.write_text("sigma,label\n0.5,a\n# a comment\n\n2,b\n")
+    data = run_json("advise", "--method", "verlet", "--modes", str(path))
+    same = run_json("advise", "--method", "verlet", "--sigma", "0.5", "--sigma", "2")
+    assert data["h_max"] == same["h_max"] == pytest.approx(1.0, rel=1e-12)
+
+
+@pytest.mark.parametrize("text, key", [
+    ("sigma\n1\n0\n", "line 3.sigma"),
+    ("sigma\n1\n\n-2\n", "line 4.sigma"),
+    ("sigma\n1e-320\n", "line 2.sigma"),
+    ("sigma\nx\n", "line 2.sigma"),
+    ("sigma,beta\n1,1\n", "header"),
+])
+def test_bad_standard_deviations_in_a_csv(tmp_path, run, text, key):
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    code, _, err = run("advise", "--method", "verlet", "--modes", str(path))
+    assert code == 2 and err.count("\n") == 1
+    assert key in err or (key == "header" and "CSV header" in err)

@@ -316,7 +316,7 @@ def test_a_target_with_saddles_is_refused():
         hmc(["verlet"], [1.0], inverted=[1.0])
 
 
-def test_cli_json_and_text(run, tmp_path):
+def test_cli_json_and_text(run, run_json):
     code, out, err = run("hmc", "--sigma", "1", "--sigma", "0.1", "--steps", "10",
                          "--methods", "verlet,bcss2", "--json")
     assert code == 0, err
@@ -325,7 +325,8 @@ def test_cli_json_and_text(run, tmp_path):
     assert data["criterion"] == "stability" and data["cost_unit"] == "gradient evaluations"
     assert {r["method"] for r in data["methods"]} == {"verlet", "bcss2"}
     code, out, _ = run("hmc", "--sigma", "1", "--length", "4", "--time-unit", "ps")
-    assert code == 0 and "h at target ps" in out and "Ranked by" in out
+    assert code == 0 and "T = 4 ps" in out and "Ranked by" in out
+    assert run_json("hmc", "--sigma", "1", "--time-unit", "ps")["time_unit"] == "ps"
     code, _, err = run("hmc", "--sigma", "1", "--margin", "0.9")
     assert code == 2 and "margin" in err
     code, _, err = run("hmc", "--sigma", "1", "--jitter", "2")

@@ -75,10 +75,14 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, target_accept, st
                            "frequencies given")
     arrays, labels = command_line_modes(options)
     methods = "all" if use_all else (None if names is None else names.split(","))
-    report = hmc(methods, modes=arrays or None, labels=labels or None, scene=scene_file,
-                 steps=steps, length=length, jitter=jitter, target_accept=target_accept,
-                 step=step, criterion=criterion, time_unit=options["time_unit"],
-                 zmax=options["zmax"], curve=0 if plot_file is None else PLOT_POINTS)
+    from stepsafe.cli.progressbar import progress_bar
+
+    with progress_bar("hmc", not as_json) as progress:
+        report = hmc(methods, modes=arrays or None, labels=labels or None, scene=scene_file,
+                     steps=steps, length=length, jitter=jitter, target_accept=target_accept,
+                     step=step, criterion=criterion, time_unit=options["time_unit"],
+                     zmax=options["zmax"], curve=0 if plot_file is None else PLOT_POINTS,
+                     progress=progress)
     data = report.to_dict()
     if plot_file is not None:
         _plot(data, plot_file)

@@ -421,7 +421,7 @@ def _csv_header(data: bytes, where: str) -> tuple[int, int, list[str]]:
         if ("beta" in header) == ("sigma" in header) or \
                 set(header) - {"beta", "sigma", "model", "label"} or \
                 len(set(header)) != len(header):
-            raise _fail(where, "", "the CSV header must name the column beta (or sigma, the "
+            raise _fail(where, "", "the CSV header must name the columns beta (or sigma, the "
                                    "standard deviations of a Gaussian target) and optionally "
                                    f"model and label, each once, got {text.strip()[:60]!r}")
         return offset, number + 1, header
