@@ -12,6 +12,7 @@ The public API (see :mod:`stepsafe.api`)::
     transfer_matrices(method, z, model)         the one-step matrices M(z), shape (n, 2, 2)
     hmc(methods, sigma=..., ...)                HMC on a Gaussian target: acceptance, step, cost
     design(sigma=..., step=h, stages=2)         a 2- or 3-stage HMC splitting for your target
+    impulse(outer, inner, substeps, fast=, slow=)  safe outer steps of r-RESPA / impulse MTS
     problem(...), load_scene(path)              inputs merged from a scene file and arguments
     StepsafeError                               every error a caller can cause (bad input)
 
@@ -36,7 +37,9 @@ _API = ("Integrator", "PartitionedTableau", "RegionReport", "AdviceReport", "Che
         "load_scene")
 #: The HMC part of the API (stepsafe.hmc_advice), built on the same inputs.
 _HMC = ("hmc", "design", "HmcReport", "HmcRow", "DesignReport")
-__all__ = [*_API, *_HMC, "StepsafeError", "MethodError", "__version__"]
+#: Multiple time stepping (stepsafe.respa_advice).
+_MTS = ("impulse", "ImpulseReport")
+__all__ = [*_API, *_HMC, *_MTS, "StepsafeError", "MethodError", "__version__"]
 
 if TYPE_CHECKING:  # pragma: no cover
     from stepsafe.api import (  # noqa: F401
@@ -61,6 +64,7 @@ if TYPE_CHECKING:  # pragma: no cover
         transfer_matrices,
     )
     from stepsafe.hmc_advice import DesignReport, HmcReport, HmcRow, design, hmc  # noqa: F401
+    from stepsafe.respa_advice import ImpulseReport, impulse  # noqa: F401
 
 
 def __getattr__(name: str) -> Any:
@@ -72,8 +76,12 @@ def __getattr__(name: str) -> Any:
         from stepsafe import hmc_advice
 
         return getattr(hmc_advice, name)
+    if name in _MTS:
+        from stepsafe import respa_advice
+
+        return getattr(respa_advice, name)
     raise AttributeError(f"module 'stepsafe' has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_API) | set(_HMC))
+    return sorted(set(globals()) | set(_API) | set(_HMC) | set(_MTS))

@@ -26,6 +26,10 @@ def test_docstring_examples_run():
     failures, tried = doctest.testmod(hmc_advice, raise_on_error=False, verbose=False)
     assert tried >= 2 and failures == 0
     assert stepsafe.hmc is hmc_advice.hmc and "design" in dir(stepsafe)
+    from stepsafe import respa_advice
+
+    failures, tried = doctest.testmod(respa_advice, raise_on_error=False, verbose=False)
+    assert tried >= 2 and failures == 0 and stepsafe.impulse is respa_advice.impulse
 
 
 def test_import_stepsafe_is_light():

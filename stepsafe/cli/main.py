@@ -696,7 +696,8 @@ def _is_pathlike(path: str) -> bool:
 
 
 from stepsafe.cli import accuracy as cli_accuracy  # noqa: E402,F401  (registers error, compare, plot)
-from stepsafe.cli import sampling as cli_sampling  # noqa: E402,F401  (registers hmc)
+from stepsafe.cli import respa as cli_respa  # noqa: E402,F401  (registers respa)
+from stepsafe.cli import sampling as cli_sampling  # noqa: E402,F401  (registers hmc, design)
 
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -300,24 +300,10 @@ class Composition:
         flat = self.flattened()
         if not isinstance(flat.base, Splitting):
             raise MethodError(f"{self.name}: the base is not a splitting method")
-        drift: list[float] = []
-        kick: list[float] = []
-        for g in flat.weights:
-            for kind, coef in flat.base.operations:
-                if kind == "drift":
-                    if len(drift) > len(kick):
-                        drift[-1] += g * coef
-                    else:
-                        drift.append(g * coef)
-                else:
-                    if len(drift) == len(kick):
-                        if kick:
-                            kick[-1] += g * coef
-                            continue
-                        drift.append(0.0)
-                    kick.append(g * coef)
-        return Splitting(drift or [0.0], kick or [0.0], name=self.name, order=self.order,
-                         evaluations=self.evaluations, title=self.title, exact=self.exact)
+        ops = [(kind, g * coef) for g in flat.weights for kind, coef in flat.base.operations]
+        return splitting_from_operations(ops, name=self.name, order=self.order,
+                                         evaluations=self.evaluations, title=self.title,
+                                         exact=self.exact)
 
     def flattened(self) -> Composition:
         """The same map with a non-composition base (nested weights multiplied out)."""
@@ -327,3 +313,25 @@ class Composition:
         weights = np.concatenate([g * inner.weights for g in self.weights])
         return Composition(inner.base, weights, name=self.name, order=self.order,
                            evaluations=self.evaluations, title=self.title, exact=self.exact)
+
+
+def splitting_from_operations(ops: list[tuple[str, float]], **fields: Any) -> Splitting:
+    """The splitting ``drift a_1, kick b_1, drift a_2, ...`` doing the ``("drift"|"kick",
+    coefficient)`` operations in order, adjacent operations of one kind merged (``fields``:
+    name, order, ... of :class:`Splitting`)."""
+    drift: list[float] = []
+    kick: list[float] = []
+    for kind, coef in ops:
+        if kind == "drift":
+            if len(drift) > len(kick):
+                drift[-1] += coef
+            else:
+                drift.append(coef)
+        else:
+            if len(drift) == len(kick):
+                if kick:
+                    kick[-1] += coef
+                    continue
+                drift.append(0.0)
+            kick.append(coef)
+    return Splitting(drift or [0.0], kick or [0.0], **fields)

@@ -1,0 +1,129 @@
+"""Impulse / r-RESPA: the outer step as a splitting, checked against closed forms and an
+independent 50-digit product of the slow kicks and fast substeps in (q, p)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import mpmath as mp
+import numpy as np
+import pytest
+
+from stepsafe.exceptions import StepsafeError
+from stepsafe.respa_advice import impulse
+
+
+def _respa_mp(fast, slow, k, H):
+    """K_slow(H/2) [Verlet_fast(H/k)]^k K_slow(H/2) on (q, p), at the working precision."""
+    F, S, H = mp.mpf(fast) ** 2, mp.mpf(slow) ** 2, mp.mpf(H)
+
+    def kick(c):
+        return mp.matrix([[1, 0], [-c, 1]])
+
+    def drift(c):
+        return mp.matrix([[1, c], [0, 1]])
+
+    h = H / k
+    inner = kick(F * h / 2) * drift(h) * kick(F * h / 2)
+    return kick(S * H / 2) * inner ** k * kick(S * H / 2)
+
+
+def _stable_mp(fast, slow, k, H) -> bool:
+    with mp.workdps(50):
+        M = _respa_mp(fast, slow, k, H)
+        return bool(abs(M[0, 0] + M[1, 1]) < 2)
+
+
+def test_one_substep_is_verlet_on_the_total_force():
+    report = impulse("verlet", "verlet", 1, fast=3.0, slow=4.0)
+    assert report.h_max == pytest.approx(2.0 / 5.0, rel=1e-12)
+
+
+def test_no_slow_force_is_the_inner_method_with_its_own_step():
+    """Five Verlet substeps of the fast force alone: stable up to Omega H / 5 = 2, passing
+    M = -I or +I wherever 5 theta = j pi (theta = 2 arcsin(Omega H / 10)): exact touches,
+    excluded as resonances since float64 cannot tell them from narrow gaps."""
+    report = impulse("verlet", "verlet", 5, fast=2.0, slow=0.0)
+    assert report.safe_h[-1][1] == pytest.approx(5.0, rel=1e-12)
+    touches = [5.0 * math.sin(j * math.pi / 10) for j in range(1, 5)]
+    assert [b["kind"] for b in report.bands] == ["resonance"] * 4 + ["unstable"]
+    for band, h in zip(report.bands, touches):
+        assert band["lo"] < h < band["hi"] and band["hi"] - band["lo"] < 1e-5
+
+
+@pytest.mark.parametrize("fast, slow, k", [(10.0, 1.0, 4), (0.697, 0.0565, 8),
+                                           (1e6, 3e4, 3), (1e-5, 1e-7, 16),
+                                           (1.0, 1e-9, 2)])
+def test_bands_and_safe_steps_at_50_digits(fast, slow, k):
+    report = impulse("verlet", "verlet", k, fast=fast, slow=slow)
+    rng = np.random.default_rng(k)
+    for lo, hi in report.safe_h:
+        top = report.horizon if hi is None else hi
+        for H in lo + (top - lo) * rng.uniform(0.0, 1.0, 12):
+            if H > 0:
+                assert _stable_mp(fast, slow, k, H), (lo, hi, H)
+    for band in report.bands:
+        if band["hi"] is None or band["kind"] == "resonance":
+            continue
+        mid = 0.5 * (band["lo"] + band["hi"])
+        assert not _stable_mp(fast, slow, k, mid), band
+    # every band sits just below a half-period resonance of the inner method (k theta_in =
+    # j pi, theta_in = 2 arcsin(Omega H / 2k))
+    for band in report.bands[:-1]:
+        if band["kind"] == "resonance":
+            continue
+        theta = 2 * math.asin(min(1.0, fast * band["hi"] / (2 * k)))
+        j = k * theta / math.pi
+        assert abs(j - round(j)) < 0.05, (band, j)
+
+
+def test_structure_is_stricter_than_stability():
+    both = [impulse("verlet", "verlet", 4, fast=10.0, slow=1.0, criterion=c)
+            for c in ("structure", "stability")]
+    assert both[0].h_max == both[1].h_max
+    assert len(both[1].safe_h) > len(both[0].safe_h)
+
+
+def test_a_check_of_a_step():
+    ok = impulse(fast=0.696951079904, slow=0.0565095470193, substeps=4, step=2.0)
+    assert ok.safe is True
+    bad = impulse(fast=10.0, slow=1.0, substeps=4, step=0.304)
+    assert bad.safe is False and bad.reason
+
+
+def test_other_outer_and_inner_splittings():
+    report = impulse("pefrl", "mclachlan2-min", 3, fast=5.0, slow=1.0)
+    assert 0 < report.h_max < 3 * 2.55 / 5.0
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"substeps": 0}, "substeps"),
+    ({"substeps": 2.5}, "substeps"),
+    ({"fast": 0.0}, "fast"),
+    ({"fast": float("nan")}, "fast"),
+    ({"slow": -1.0}, "slow"),
+    ({"inner": "gauss:2"}, "splitting"),
+    ({"outer": "midpoint"}, "splitting"),
+    ({"step": -1.0}, "step"),
+    ({"criterion": "both"}, "criterion"),
+])
+def test_bad_arguments(kwargs, match):
+    args = {"fast": 10.0, "slow": 1.0, "substeps": 4, **kwargs}
+    with pytest.raises(StepsafeError, match=match):
+        impulse(**args)
+
+
+def test_cli(run):
+    code, out, err = run("respa", "--fast-wavenumber", "3700", "--slow-wavenumber", "300",
+                         "--time-unit", "fs", "--substeps", "4", "--step", "2", "--json")
+    assert code == 0, err
+    data = json.loads(out)
+    assert data["safe"] is True and data["time_unit"] == "fs"
+    assert data["criterion"] == "stability"
+    code, out, _ = run("respa", "--fast-beta", "10", "--slow-beta", "1", "--step", "0.304")
+    assert code == 1 and "UNSAFE" in out
+    code, _, err = run("respa", "--slow-beta", "1")
+    assert code == 2 and "fast" in err
+    code, _, err = run("respa", "--fast-beta", "1", "--slow-beta", "1", "--inner", "rk4")
+    assert code == 2 and "splitting" in err
