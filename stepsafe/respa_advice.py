@@ -44,6 +44,10 @@ class ImpulseReport:
     reason: str | None = None
     time_unit: str | None = None
     method: Any = None
+    #: n:m nonlinear resonances of the outer step (n theta = 2 pi m) below h_max, as
+    #: ``{"resonance": "3:1", "h": ...}``: Ma, Izaguirre & Skeel's limit near a third of the
+    #: fast period is the 3:1
+    nonlinear: tuple[Mapping[str, Any], ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe respa ... --json`` prints."""
@@ -52,21 +56,28 @@ class ImpulseReport:
                 "h_max": self.h_max, "safe_h": [list(iv) for iv in self.safe_h],
                 "bands": [copy.deepcopy(dict(b)) for b in self.bands],
                 "horizon": self.horizon, "step": self.step, "safe": self.safe,
-                "reason": self.reason, "time_unit": self.time_unit}
+                "reason": self.reason, "time_unit": self.time_unit,
+                "nonlinear_resonances": [dict(r) for r in self.nonlinear]}
 
 
 def impulse(outer: Integrator | str = "verlet", inner: Integrator | str = "verlet",
             substeps: int = 4, *, fast: float, slow: float, step: float | None = None,
             criterion: str = "stability", zmax: float | None = None,
-            time_unit: str | None = None) -> ImpulseReport:
+            time_unit: str | None = None, resonance_order: int | None = None
+            ) -> ImpulseReport:
     """The safe outer steps of the impulse method ``outer``/``inner`` with ``substeps``
     inner steps per outer drift, for the fast and slow angular frequencies (rad per
     ``time_unit``); with ``step``, whether it is safe. ``criterion``: ``stability`` (the
     default: |tr M| <= 2, the unstable bands of the impulse literature) or ``structure``
     (also the sense of rotation, reversed by the outer step between Omega H = pi and 2 pi).
     ``zmax`` bounds ``beta H`` searched (default: max(40, 10 substeps)). A band of
-    ``kind`` ``resonance`` is where M = +-I within rounding: float64 cannot tell a touch of
+    ``kind`` ``nonlinear`` lies beyond the resonance order asked for, one of ``kind``
+    ``resonance`` is where M = +-I within rounding: float64 cannot tell a touch of
     |tr M| = 2 from a narrow gap there (with no slow force, M = -I is an exact touch).
+    The outer step rotates by theta(beta H); its nonlinear resonances n theta = 2 pi m
+    (orders 3 to 6) are listed, and ``resonance_order`` N keeps H below the first of
+    order at most N (the 3:1 is the limit near a third of the fast period that Ma,
+    Izaguirre & Skeel, SIAM J. Sci. Comput. 24 (2003) 1951, found for impulse methods).
 
     >>> report = impulse("verlet", "verlet", 4, fast=10.0, slow=1.0)
     >>> round(10.0 * report.h_max / 3.141592653589793, 4)   # just below Omega H = pi
@@ -74,7 +85,8 @@ def impulse(outer: Integrator | str = "verlet", inner: Integrator | str = "verle
     """
     from stepsafe.core.advice import Modes, advise, check_step
     from stepsafe.core.impulse import impulse_splitting, total_frequency
-    from stepsafe.core.regions import validate_criterion
+    from stepsafe.core.regions import find_region, validate_criterion
+    from stepsafe.core.resonances import DEFAULT_ORDERS, nonlinear_resonances, validate_orders
     from stepsafe.units import time_unit as known_time_unit
 
     criterion = validate_criterion(criterion)
@@ -89,31 +101,47 @@ def impulse(outer: Integrator | str = "verlet", inner: Integrator | str = "verle
         raise StepsafeError("the frequencies overflow float64 together: give them in units "
                             "nearer 1")
     zmax = max(40.0, 10.0 * substeps) if zmax is None else positive_finite(zmax, "zmax")
+    order = None if resonance_order is None else validate_orders((resonance_order,))[0]
     modes = Modes.from_arrays({"oscillator": [beta]})
     verdict, reason = None, None
     if step is not None:
         step = positive_finite(step, "step")
         result = check_step(split, modes, step, zmax=zmax, name=split.name,
-                            criterion=criterion)
+                            criterion=criterion, resonance_order=order)
         adv, verdict = result.advice, result.safe
         reason = None if verdict else result.failures[0].reason
     else:
-        adv = advise(split, modes, zmax=zmax, name=split.name, criterion=criterion)
+        adv = advise(split, modes, zmax=zmax, name=split.name, criterion=criterion,
+                     resonance_order=order)
     horizon = adv.horizon
     resonances = [r.z / beta for r in adv.regions["oscillator"].resonances]
     gaps = list(zip([hi for _, hi in adv.safe_h[:-1]], [lo for lo, _ in adv.safe_h[1:]]))
     if adv.safe_h and adv.safe_h[-1][1] is not None and (
             horizon is None or adv.safe_h[-1][1] < horizon * (1 - 1e-12)):
         gaps.append((adv.safe_h[-1][1], horizon))
+    first = adv.regions["oscillator"].first_boundary_point
+    capped = first is not None and first.kind == "nonlinear"
+
+    def kind(lo: float, hi: float | None) -> str:
+        if capped and lo == adv.h_max:
+            return "nonlinear"  # beyond the resonance order asked for
+        if hi is not None and any(lo <= r <= hi for r in resonances):
+            return "resonance"
+        return "unstable"
+
     bands = [MappingProxyType({
-        "lo": lo, "hi": hi,
-        "kind": ("resonance" if hi is not None and any(lo <= r <= hi for r in resonances)
-                 else "unstable"),
+        "lo": lo, "hi": hi, "kind": kind(lo, hi),
         "fast_phase_lo": fast * lo / math.pi,
         "fast_phase_hi": None if hi is None else fast * hi / math.pi}) for lo, hi in gaps]
     safe = tuple((float(lo), None if hi is None else float(hi)) for lo, hi in adv.safe_h)
+    orders = tuple(range(3, max(order or 0, max(DEFAULT_ORDERS)) + 1))
+    found = nonlinear_resonances(split, find_region(split, "oscillator", zmax), orders)
+    nonlinear = tuple(MappingProxyType({"resonance": r.name, "h": r.z / beta,
+                                        "uncertainty": r.uncertainty / beta})
+                      for r in found)
     return ImpulseReport(split.name, substeps, fast, slow, beta, criterion, adv.h_max, safe,
-                         tuple(bands), horizon, step, verdict, reason, time_unit, split)
+                         tuple(bands), horizon, step, verdict, reason, time_unit, split,
+                         nonlinear)
 
 
 def _frequency(value: Any, name: str) -> float:

@@ -127,3 +127,19 @@ def test_cli(run):
     assert code == 2 and "fast" in err
     code, _, err = run("respa", "--fast-beta", "1", "--slow-beta", "1", "--inner", "rk4")
     assert code == 2 and "splitting" in err
+
+
+def test_the_third_of_a_period_resonance_at_50_digits():
+    """Ma, Izaguirre & Skeel (2003): impulse methods are limited near a third of the fast
+    period by a nonlinear resonance; the outer step's 3:1 (tr M = 2 cos(2 pi / 3) = -1)."""
+    fast, slow, k = 0.696951079904, 0.0565095470193, 8
+    report = impulse(fast=fast, slow=slow, substeps=k, resonance_order=3)
+    with mp.workdps(50):
+        ref = mp.findroot(lambda H: (lambda M: M[0, 0] + M[1, 1] + 1)(
+            _respa_mp(fast, slow, k, H)), (2.9, 3.1), solver="anderson")
+    assert report.h_max == pytest.approx(float(ref), rel=1e-10)
+    assert abs(float(ref) - 2 * math.pi / fast / 3) < 0.1  # about T/3
+    assert report.bands[0]["kind"] == "nonlinear"
+    three = next(r for r in report.nonlinear if r["resonance"] == "3:1")
+    assert three["h"] == pytest.approx(float(ref), rel=1e-10)
+    assert impulse(fast=fast, slow=slow, substeps=k, step=3.1, resonance_order=3).safe is False

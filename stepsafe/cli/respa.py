@@ -53,10 +53,14 @@ def _frequency(beta, wavenumber, which: str, unit) -> float:
 @click.option("--zmax", type=FLOAT, default=None, metavar="Z",
               help="Search beta*H up to Z, beta = sqrt(fast^2 + slow^2) [default: "
                    "max(40, 10 K)].")
+@click.option("--resonance-order", type=INT, default=None, metavar="N",
+              help="Also keep H below the outer step's first nonlinear resonance "
+                   "n theta = 2 pi m of order n <= N (3: the limit near a third of the fast "
+                   "period).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @criterion_option("stability")
 def respa_cmd(outer, inner, substeps, fast_beta, slow_beta, fast_wavenumber, slow_wavenumber,
-              time_unit, step, zmax, as_json, criterion) -> None:
+              time_unit, step, zmax, resonance_order, as_json, criterion) -> None:
     """Safe outer steps of an impulse / r-RESPA multiple-time-step integrator.
 
     The test model is one coordinate with a fast force (frequency Omega alone) and a slow
@@ -81,7 +85,8 @@ def respa_cmd(outer, inner, substeps, fast_beta, slow_beta, fast_wavenumber, slo
     fast = _frequency(fast_beta, fast_wavenumber, "fast", time_unit)
     slow = _frequency(slow_beta, slow_wavenumber, "slow", time_unit)
     report = impulse(outer, inner, substeps, fast=fast, slow=slow, step=step,
-                     criterion=criterion, zmax=zmax, time_unit=time_unit)
+                     criterion=criterion, zmax=zmax, time_unit=time_unit,
+                     resonance_order=resonance_order)
     data = report.to_dict()
     if as_json:
         print_json(data)
@@ -108,12 +113,18 @@ def print_respa(data: dict[str, Any]) -> None:
     for band in data["bands"]:
         hi = "the horizon" if band["hi"] is None else f"{fmt(band['hi'])}{u}"
         phase_hi = "" if band["fast_phase_hi"] is None else f"{band['fast_phase_hi']:.4g}"
-        what = ("M = ±I within rounding (excluded)" if band["kind"] == "resonance"
-                else "unstable band")
+        what = {"resonance": "M = ±I within rounding (excluded)",
+                "nonlinear": "beyond the nonlinear resonance asked for",
+                "unstable": "unstable band"}[band["kind"]]
         click.echo(f"  {what}: {fmt(band['lo'])}{u} to {hi} "
                    f"(Omega H / pi from {band['fast_phase_lo']:.4g} to {phase_hi})")
     if data["horizon"] is not None:
         click.echo(f"Outer steps above {fmt(data['horizon'])}{u} were not analysed.")
+    if data["nonlinear_resonances"]:
+        click.echo("Nonlinear resonances of the outer step (n theta = 2 pi m; "
+                   "--resonance-order N keeps H below those of order <= N): " + ", ".join(
+                       f"{r['resonance']} at H = {fmt_below(r['h'])}{u}"
+                       for r in data["nonlinear_resonances"]))
     if data["step"] is not None:
         verdict = "SAFE" if data["safe"] else "UNSAFE"
         reason = "" if data["safe"] else f": {data['reason']}"
