@@ -218,7 +218,7 @@ def _row(integrator: Integrator, betas: np.ndarray, trajectory: Any, target: flo
         per_step = None if e is None else e
         per_proposal = None if (L is None or e is None) else L * e
         return {"h": h, "steps": L, "acceptance": acc.rate,
-                "expected_error": acc.expected_error,
+                "approximate": acc.approximate, "expected_error": acc.expected_error,
                 "gradients_per_proposal": per_proposal,
                 "gradients_per_accepted": (None if per_proposal is None or acc.rate == 0
                                            else per_proposal / acc.rate),
@@ -230,6 +230,9 @@ def _row(integrator: Integrator, betas: np.ndarray, trajectory: Any, target: flo
     bound = core.Trajectory(jitter=trajectory.jitter)
     h_target = core.target_step(m, betas, target, h_hi, bound)
     at_target = figures(h_target) if h_target else {}
+    if at_target.get("approximate"):
+        notes.append("the acceptance at h at target is approximate (more distinct modes or "
+                     "turns of L theta across the jitter than are integrated exactly)")
     at_step = None
     if step is not None:
         at_step = figures(step)
@@ -242,8 +245,7 @@ def _row(integrator: Integrator, betas: np.ndarray, trajectory: Any, target: flo
         window = max(STALL_WINDOW, trajectory.jitter)
         for beta in sorted({float(betas[betas > 0].min()), top}):
             near = [(abs(h / h_target - 1.0), turns, h) for turns, h in
-                    core.stall_steps(m, region, beta, L, h_hi, keep=L)
-                    if abs(h / h_target - 1.0) <= window]
+                    core.stall_steps(m, region, beta, L, h_target, window)]
             stalls += [MappingProxyType({"beta": beta, "steps": L, "turns": turns, "h": h,
                                          "from_target": gap})
                        for gap, turns, h in sorted(near)[:1]]

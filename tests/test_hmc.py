@@ -340,3 +340,51 @@ def test_cli_plot(run, tmp_path):
                        "--plot", str(out))
     assert code == 0, err
     assert out.read_bytes()[:4] == b"\x89PNG"
+
+
+# --------------------------------------------------------------------------- review cases
+
+
+def test_huge_energy_errors_accept_almost_never():
+    """E up to the largest float: the weights neither overflow nor turn into NaN (exact
+    acceptance for E = 1e200 is about 1e-200)."""
+    for e in (1e100, 1e154, 1e200, 1e308):
+        rate = H.acceptance(np.array([e])).rate
+        assert 0.0 <= rate < 1e-40
+    row = hmc(["verlet"], sigma=[1.0], steps=180, step=2.5).rows[0]
+    assert 0.0 <= row.at_step["acceptance"] < 1e-40
+
+
+@pytest.mark.parametrize("steps, jitter, h", [(10, 0.9, 1.5), (10, 0.5, 1.9), (300, 0.2, 1.5),
+                                              (3000, 0.01, 1.5)])
+def test_jitter_average_against_a_dense_uniform_average(steps, jitter, h):
+    """The composite Gauss rule against the plain mean over 20000 uniform steps of the
+    jitter interval (each acceptance exact for its step)."""
+    m = method("verlet")
+    hs = h * (1.0 + jitter * np.linspace(-1.0, 1.0, 20001))
+    errs = H.errors_after(H.one_step(m, hs), steps)
+    mean = np.mean([a.rate for a in H.acceptances(errs[:, None], np.ones(1))])
+    got = H.acceptance_at(m, np.array([1.0]), h, H.Trajectory(steps=steps, jitter=jitter))
+    assert abs(got.rate - mean) < 5e-4
+
+
+def test_a_bump_of_rho_between_grid_steps_is_not_stepped_over():
+    """triple-jump6's rho has a local maximum at z = 1.2347 (0.016980) between grid steps: a
+    target just above the acceptance there must stop h below it."""
+    row = hmc(["triple-jump6"], sigma=[1.0], target_accept=0.9416).rows[0]
+    assert row.h_target < 1.2347
+    m = method("triple-jump6")
+    for L in (1, 139, 1000):
+        for h in np.linspace(row.h_target / 50, row.h_target, 200):
+            assert H.acceptance_at(m, np.array([1.0]), h, H.Trajectory(steps=L)).rate \
+                >= 0.9416 - 1e-9
+
+
+def test_unstable_steps_and_huge_lengths_on_the_command_line(run):
+    code, out, err = run("hmc", "--sigma", "1", "--step", "2.5", "--methods", "verlet")
+    assert code == 0, err
+    assert "overflow (unstable)" in out
+    code, out, err = run("hmc", "--sigma", "1", "--length", "1e300", "--methods", "verlet",
+                         "--json")
+    assert code == 0, err
+    assert json.loads(out)["methods"][0]["steps"] == H.MAX_TRAJECTORY_STEPS

@@ -65,3 +65,13 @@ def test_criterion_output():
     out = _output("check", "--method", "bcss3", "--beta", "1", "--step", "3.5", "--criterion",
                   "stability")
     assert _block_after("stepsafe check --method bcss3 --beta 1 --step 3.5 --criterion") == out
+
+
+def test_respa_output():
+    out = _output("respa", "--fast-wavenumber", "3700", "--slow-wavenumber", "300",
+                  "--time-unit", "fs", "--substeps", "4", "--step", "2")
+    assert _block_after("stepsafe respa --fast-wavenumber 3700 --slow-wavenumber 300") == out
+    eight = _output("respa", "--fast-wavenumber", "3700", "--slow-wavenumber", "300",
+                    "--time-unit", "fs", "--substeps", "8", "--step", "4", "--resonance-order",
+                    "3")
+    assert "UNSAFE" in eight and "3:1 at H = 2.98" in eight

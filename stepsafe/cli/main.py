@@ -348,14 +348,20 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
 def frequency_options(func):
     """Frequencies, margin, zmax and --json: the options of every command that analyses
     frequencies (advise, check, compare)."""
+    func = click.option("--margin", type=FLOAT, default=None, metavar="F",
+                        help="0 < F <= 1: allow every frequency to be up to 1/F times larger "
+                             "(scales h_max by F) [default: 1].")(func)
+    return target_options(func)
+
+
+def target_options(func):
+    """The frequencies (in every form), zmax, the time unit and --json, without a margin
+    (hmc and design predict for the frequencies as given)."""
     opts = [
         click.option("--json", "as_json", is_flag=True, help="Print one JSON object."),
         click.option("--zmax", type=FLOAT, default=None, metavar="Z",
                      help="Analyse z = beta*h up to Z (islands beyond are not reported) "
                           "[default: 10]."),
-        click.option("--margin", type=FLOAT, default=None, metavar="F",
-                     help="0 < F <= 1: allow every frequency to be up to 1/F times larger "
-                          "(scales h_max by F) [default: 1]."),
         click.option("--modes", "modes_file", type=str, default=None, metavar="FILE",
                      help="Frequencies from a YAML list of {beta:, model:[, label:]} or a CSV "
                           "file with columns beta[,model][,label]."),

@@ -12,9 +12,9 @@ from stepsafe.cli.main import (
     _input_error,
     command_line_modes,
     criterion_option,
-    frequency_options,
     main,
     one_format,
+    target_options,
 )
 
 #: Steps per method on the acceptance curve drawn by --plot.
@@ -44,7 +44,7 @@ PLOT_POINTS = 200
                    "matplotlib).")
 @click.option("--tsv", is_flag=True, help="Print the table as tab-separated values.")
 @criterion_option("stability")
-@frequency_options
+@target_options
 def hmc_cmd(scene_file, names, use_all, steps, length, jitter, target_accept, step,
             plot_file, tsv, criterion, as_json, **options) -> None:
     """HMC on a Gaussian target: acceptance rate, step size and cost per method.
@@ -70,9 +70,6 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, target_accept, st
     one_format(as_json, tsv)
     if use_all and names:
         raise _input_error("give --methods or --all, not both")
-    if options["margin"] is not None:
-        raise _input_error("hmc has no --margin: the acceptance is predicted for the "
-                           "frequencies given")
     arrays, labels = command_line_modes(options)
     methods = "all" if use_all else (None if names is None else names.split(","))
     from stepsafe.cli.progressbar import progress_bar
@@ -126,7 +123,7 @@ def print_hmc(data: dict[str, Any]) -> None:
         table.add_row("-" if r["rank"] is None else str(r["rank"]), r["method"],
                       "-" if r["evaluations"] is None else str(r["evaluations"]), stab,
                       cell(r["h_target"]), "-" if r["steps"] is None else str(r["steps"]),
-                      cell(r["acceptance"], 4), cell(r["expected_error"], 3),
+                      cell(r["acceptance"], 4), _error_cell(r["expected_error"]),
                       cell(r["gradients_per_accepted"], 5), cell(r["gradients_per_time"], 5))
     console.print(table)
     for r in data["methods"]:
@@ -139,8 +136,8 @@ def print_hmc(data: dict[str, Any]) -> None:
         lines += r["notes"]
         at = r["at_step"]
         if at:
-            lines.append(f"at h = {fmt(at['h'])}{u}: acceptance {at['acceptance']:.4f}, "
-                         f"mean dH = {at['expected_error']:.3g}"
+            lines.append(f"at h = {fmt(at['h'])}{u}: acceptance {at['acceptance']:.4g}, "
+                         f"mean dH = {_error_cell(at['expected_error'])}"
                          + (f", {fmt(at['gradients_per_accepted'], 5)} gradients per accepted "
                             "proposal" if at["gradients_per_accepted"] is not None else ""))
         for line in lines:
@@ -149,6 +146,11 @@ def print_hmc(data: dict[str, Any]) -> None:
                   "every trajectory length; the acceptance shown is for the trajectory given. "
                   "Ranked by gradient evaluations per accepted unit of simulated time there "
                   "(equivalently per accepted proposal at a fixed integration time).")
+
+
+def _error_cell(x: float | None) -> str:
+    """An expected energy error; None stands for an overflow (an unstable mode)."""
+    return "overflow (unstable)" if x is None else f"{x:.3g}"
 
 
 def _plot(data: dict[str, Any], output: str) -> None:
@@ -185,7 +187,7 @@ def _plot(data: dict[str, Any], output: str) -> None:
               help="Name in the method file [default: designed-2stage / designed-3stage].")
 @click.option("-o", "--output", default=None, metavar="FILE.yaml",
               help="Write the method file here (else it is printed).")
-@frequency_options
+@target_options
 def design_cmd(scene_file, step, stages, jitter, name, output, as_json, **options) -> None:
     """Design a 2- or 3-stage HMC splitting for your Gaussian target and step.
 
@@ -204,8 +206,6 @@ def design_cmd(scene_file, step, stages, jitter, name, output, as_json, **option
     from stepsafe.cli.report import print_json
     from stepsafe.hmc_advice import design
 
-    if options["margin"] is not None:
-        raise _input_error("design has no --margin")
     arrays, labels = command_line_modes(options)
     report = design(modes=arrays or None, labels=labels or None, scene=scene_file, step=step,
                     stages=int(stages), jitter=jitter, name=name,

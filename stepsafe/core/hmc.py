@@ -85,7 +85,7 @@ def _chebyshev_u_squared(sin2: np.ndarray, half_trace: np.ndarray, steps: int) -
         u2 = np.where(elliptic, (np.sin(steps * theta) / np.where(elliptic, root, 1.0)) ** 2,
                       (np.sinh(steps * phi) / np.where(root > 0, root, 1.0)) ** 2)
         # where sin2 rounds to 0 (z -> 0, or M = +-I): the limit L^2
-        return np.where(root == 0, float(steps) ** 2, u2)
+        return np.where(root == 0, np.square(np.float64(steps)), u2)
 
 
 def energy_errors(method: Method, z, steps: int | None = None) -> np.ndarray:
@@ -145,11 +145,14 @@ def acceptances(errors: np.ndarray, counts: np.ndarray) -> list[Acceptance]:
 
 
 def _weights(errors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The weights ``a, b`` of ``Delta = a u^2 + b v^2`` for each expected error."""
-    root = np.sqrt(errors * (errors + 2.0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        b = np.where(errors > 0, -errors / (errors + root), 0.0)
-    return 0.5 * (errors + root), b
+    """The weights ``a, b`` of ``Delta = a u^2 + b v^2`` for each expected error E:
+    ``a = (E + r) / 2``, ``b = -E / (E + r) = -1 / (1 + sqrt(1 + 2/E))``, ``r = sqrt(E^2 +
+    2E)``, in forms that neither overflow (E up to the largest float) nor cancel."""
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        root = np.sqrt(errors) * np.sqrt(errors + 2.0)
+        a = 0.5 * errors + 0.5 * root
+        b = np.where(errors > 0, -1.0 / (1.0 + np.sqrt(1.0 + 2.0 / errors)), 0.0)
+    return a, b
 
 
 def _lumped(errors: np.ndarray, counts: np.ndarray, total: float) -> Acceptance:
@@ -181,7 +184,7 @@ def _gil_pelaez(a: np.ndarray, b: np.ndarray, counts: np.ndarray, mean_g: np.nda
     scaled by each row's largest weight. A node is skipped where its term is provably below
     :data:`NEGLIGIBLE`: ``|Im phi(u)| <= |arg phi(u)| <= u (sum |a| + |b| + |mean_g|)`` near
     0, and ``|phi(u)| <= prod (1 + 4 a^2 u^2)^(-1/4)`` over the largest weights alone."""
-    scale = np.maximum(2.0 * a.max(axis=1, initial=0.0), np.sqrt(var_g))
+    scale = np.maximum(a.max(axis=1, initial=0.0), np.sqrt(var_g))  # no 2a: a may be 1e308
     rates = np.ones(len(a))
     live_rows = np.flatnonzero(scale > 0)
     if not live_rows.size:
@@ -206,13 +209,18 @@ def _gil_pelaez(a: np.ndarray, b: np.ndarray, counts: np.ndarray, mean_g: np.nda
     log_mod = -0.5 * var_g[rows] * uu ** 2
     arg = mean_g[rows] * uu
     for coef in (a, b):
-        x = 2.0 * coef[rows] * uu[:, None]  # (live nodes, k)
+        x = coef[rows] * (2.0 * uu)[:, None]  # (live nodes, k); 2 a first could overflow
         log_mod -= 0.25 * (np.log1p(x * x) @ counts)
         arg += 0.5 * (np.arctan(x) @ counts)
     terms = weight[nodes] * np.exp(log_mod) * np.sin(arg)
     integral = np.bincount(rows, weights=terms, minlength=len(live_rows))
     rates[live_rows] = np.clip(1.0 - 2.0 / np.pi * integral, 0.0, 1.0)
     return rates
+
+
+#: L from an integration time is capped here (no sampler takes more steps; beyond, L theta
+#: has no digits left in float64 anyway).
+MAX_TRAJECTORY_STEPS = 10**12
 
 
 @dataclass(frozen=True)
@@ -230,7 +238,8 @@ class Trajectory:
         if self.steps is not None:
             return self.steps
         if self.length is not None:
-            return max(1, int(self.length / h))
+            with np.errstate(over="ignore"):
+                return max(1, int(min(self.length / h, MAX_TRAJECTORY_STEPS)))
         return None
 
 
@@ -244,39 +253,58 @@ def acceptance_at(method: Method, betas: np.ndarray, h: float,
                   trajectory: Trajectory = Trajectory()) -> Acceptance:
     """Predicted acceptance of HMC with ``method`` at nominal step ``h`` on the Gaussian
     whose modes have frequencies ``betas`` (jittered steps: the average over the jitter
-    interval by Gauss-Legendre quadrature, enough nodes for sin^2(L theta) to be resolved)."""
+    interval, see :func:`acceptance_curve`)."""
     return acceptance_curve(method, betas, np.array([float(h)]), trajectory)[0]
 
 
-#: Nodes of the jitter average: at least this many, plus 8 per turn of L theta across it.
-JITTER_NODES = 16
-MAX_JITTER_NODES = 512
+#: The jitter average is a composite 8-point Gauss-Legendre rule: at least this many panels,
+#: 4 more per half turn of L theta across the interval (for the mode that turns most), and
+#: at most :data:`MAX_JITTER_NODES` nodes (beyond, the result says ``approximate``).
+JITTER_PANELS = 4
+MAX_JITTER_NODES = 2048
+_GL8 = np.polynomial.legendre.leggauss(8)
+
+
+def _jitter_rule(method: Method, values: np.ndarray, h: float, jitter: float,
+                 steps: int | None) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Nodes u in [-1, 1] and weights (summing to 2) for the average over h (1 + jitter u)."""
+    ends = one_step(method, np.concatenate([values * h * (1.0 - jitter),
+                                            values * h * (1.0 + jitter)]))
+    with np.errstate(invalid="ignore"):
+        theta = np.arctan2(np.sqrt(np.maximum(ends.sin2, 0.0)), ends.half_trace)
+    swing = np.abs(theta[values.size:] - theta[:values.size])
+    turns = float((steps or 1) * swing.max(initial=0.0) / np.pi)
+    panels = int(np.ceil(JITTER_PANELS + 4 * turns))
+    approximate = 8 * panels > MAX_JITTER_NODES
+    panels = min(panels, MAX_JITTER_NODES // 8)
+    x, w = _GL8
+    edges = np.linspace(-1.0, 1.0, panels + 1)
+    half = 0.5 * np.diff(edges)
+    nodes = (0.5 * (edges[:-1] + edges[1:]))[:, None] + half[:, None] * x[None, :]
+    return nodes.ravel(), (half[:, None] * w[None, :]).ravel(), approximate
 
 
 def acceptance_curve(method: Method, betas: np.ndarray, hs: np.ndarray,
                      trajectory: Trajectory = Trajectory()) -> list[Acceptance]:
-    """:func:`acceptance_at` at each nominal step of ``hs`` (vectorised)."""
+    """:func:`acceptance_at` at each nominal step of ``hs``."""
     values, counts = _distinct(betas)
     hs = np.asarray(hs, dtype=float).ravel()
     j = trajectory.jitter
-    if j == 0.0:
-        nodes, weights = np.zeros(1), np.full(1, 2.0)
-    else:
-        longest = max((trajectory.steps_at(h) or 1) * h for h in hs)
-        turns = j * float(values.max(initial=0.0)) * longest / np.pi
-        n = int(min(JITTER_NODES + 8 * np.ceil(turns), MAX_JITTER_NODES))
-        nodes, weights = np.polynomial.legendre.leggauss(n)
     out = []
     for h in hs:
         steps = trajectory.steps_at(h)
+        if j == 0.0:
+            nodes, weights, rough = np.zeros(1), np.full(1, 2.0), False
+        else:
+            nodes, weights, rough = _jitter_rule(method, values, h, j, steps)
         z = np.outer(h * (1.0 + j * nodes), values)
         errs = errors_after(one_step(method, z.ravel()), steps).reshape(z.shape)
         found = acceptances(errs, counts)
         rate = float(np.dot(weights, [a.rate for a in found])) / 2.0
-        with np.errstate(invalid="ignore"):
+        with np.errstate(invalid="ignore", over="ignore"):
             mean_error = float(np.dot(weights, [a.expected_error for a in found])) / 2.0
         out.append(Acceptance(min(max(rate, 0.0), 1.0), mean_error,
-                              any(a.approximate for a in found)))
+                              rough or any(a.approximate for a in found)))
     return out
 
 
@@ -286,16 +314,24 @@ TARGET_GRID = 32
 TARGET_RTOL = 1e-6
 
 
+#: The bound's local maxima between grid points are found on this finer grid of steps.
+PEAK_GRID = 1024
+
+
 def target_step(method: Method, betas: np.ndarray, target: float, h_hi: float,
                 trajectory: Trajectory = Trajectory()) -> float | None:
     """The largest h below ``h_hi`` such that the predicted acceptance is at least
-    ``target`` at every grid step from 0 to h (refined by bisection); None when even
+    ``target`` at every step from 0 to h, checked on a grid of :data:`TARGET_GRID` steps and
+    at every local maximum of the total error bound ``sum_k rho(beta_k h)`` (located on
+    :data:`PEAK_GRID` steps and refined by a parabola), then bisected; None when even
     ``h_hi / 2^60`` misses it. With an unknown trajectory length this uses the bound over
     every L, so the acceptance holds whatever L the sampler takes."""
     def ok(h: float) -> bool:
         return acceptance_at(method, betas, h, trajectory).rate >= target
 
-    grid = h_hi * np.arange(1, TARGET_GRID + 1) / TARGET_GRID
+    grid = np.concatenate([h_hi * np.arange(1, TARGET_GRID + 1) / TARGET_GRID,
+                           _bound_peaks(method, betas, h_hi)])
+    grid = np.unique(grid[(grid > 0) & (grid <= h_hi)])
     good = np.array([a.rate >= target for a in acceptance_curve(method, betas, grid,
                                                                  trajectory)])
     if good.all():
@@ -315,6 +351,26 @@ def target_step(method: Method, betas: np.ndarray, target: float, h_hi: float,
         mid = 0.5 * (lo + hi)
         lo, hi = (mid, hi) if ok(mid) else (lo, mid)
     return lo
+
+
+def _bound_peaks(method: Method, betas: np.ndarray, h_hi: float) -> np.ndarray:
+    """The steps below ``h_hi`` where ``sum_k rho(beta_k h)`` has a local maximum: a dip of
+    the acceptance that a coarse grid could step over."""
+    values, counts = _distinct(betas)
+    h = h_hi * np.arange(1, PEAK_GRID + 1) / PEAK_GRID
+    with np.errstate(invalid="ignore", over="ignore"):
+        total = errors_after(one_step(method, np.outer(h, values).ravel()), None).reshape(
+            h.size, values.size) @ counts
+    i = np.flatnonzero((total[1:-1] > total[:-2]) & (total[1:-1] >= total[2:])
+                       & np.isfinite(total[1:-1])) + 1
+    if not i.size:
+        return i.astype(float)
+    y0, y1, y2 = total[i - 1], total[i], total[i + 1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shift = 0.5 * (y0 - y2) / (y0 - 2.0 * y1 + y2)
+    shift = np.where(np.isfinite(shift), np.clip(shift, -1.0, 1.0), 0.0)
+    step = h_hi / PEAK_GRID
+    return np.concatenate([h[i] + shift * step, h[i]])
 
 
 @dataclass(frozen=True)
@@ -337,15 +393,28 @@ def largest_errors(method: Method, betas: np.ndarray, h: float, steps: int | Non
                  for i in order)
 
 
-def stall_steps(method: Method, region, beta: float, steps: int, h_hi: float,
-                keep: int = 5) -> tuple[tuple[int, float], ...]:
-    """The first ``keep`` steps h below ``h_hi`` where L steps turn the mode of frequency
-    ``beta`` by a whole number m of turns, ``L theta(beta h) = 2 pi m``: its proposal is
-    its starting point (a fixed-L sampler does not move that mode; jitter avoids it)."""
+def stall_steps(method: Method, region, beta: float, steps: int, h_near: float,
+                window: float) -> tuple[tuple[int, float], ...]:
+    """The steps h within ``h_near (1 +- window)`` where L steps turn the mode of frequency
+    ``beta`` by a whole number m of turns, ``L theta(beta h) = 2 pi m``: its proposal is its
+    starting point (a fixed-L sampler does not move that mode; jitter avoids it). At most
+    :data:`MAX_STALLS` values of m nearest the middle are located."""
     from stepsafe.core.resonances import rotations
 
     if steps < 3 or beta <= 0:
         return ()
-    pairs = [(steps, m) for m in range(1, min(keep, (steps - 1) // 2) + 1) if 2 * m < steps]
+    first = one_step(method, beta * h_near * np.array([1.0 - window, 1.0 + window]))
+    with np.errstate(invalid="ignore"):
+        theta = np.arctan2(np.sqrt(np.maximum(first.sin2, 0.0)), first.half_trace)
+    turns = steps * theta / (2.0 * np.pi)
+    lo, hi = int(np.floor(turns.min())), int(np.ceil(turns.max()))
+    start = max(lo, 1, (lo + hi) // 2 - MAX_STALLS // 2)
+    pairs = [(steps, m) for m in range(start, min(hi, start + MAX_STALLS - 1) + 1)
+             if 2 * m < steps]
     found = rotations(method, region, pairs)
-    return tuple((r.m, r.z / beta) for r in found if r.z / beta < h_hi)[:keep]
+    return tuple((r.m, r.z / beta) for r in found
+                 if abs(r.z / beta / h_near - 1.0) <= window)
+
+
+#: How many stall steps (values of m) are located around a step.
+MAX_STALLS = 16
