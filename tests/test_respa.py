@@ -143,3 +143,32 @@ def test_the_third_of_a_period_resonance_at_50_digits():
     three = next(r for r in report.nonlinear if r["resonance"] == "3:1")
     assert three["h"] == pytest.approx(float(ref), rel=1e-10)
     assert impulse(fast=fast, slow=slow, substeps=k, step=3.1, resonance_order=3).safe is False
+
+
+def test_the_chart_is_the_trace_of_the_equivalent_splitting():
+    from stepsafe import method
+    from stepsafe.core.impulse import impulse_splitting, stability_chart
+    from stepsafe.core.transfer import transfer_matrix
+
+    outer, inner = method("verlet").tableau, method("pefrl").tableau
+    x, y = np.array([0.7, 2.9, 3.3, 6.0]), np.array([0.2, 1.1])
+    chart = stability_chart(outer, inner, 3, x, y)
+    for i, yy in enumerate(y):
+        for j, xx in enumerate(x):
+            split = impulse_splitting(outer, inner, 3, xx, yy)
+            M = transfer_matrix(split, [math.hypot(xx, yy)], "oscillator")[0]
+            assert chart[i, j] == pytest.approx(abs(M[0, 0] + M[1, 1]) / 2, rel=1e-12)
+    with mp.workdps(30):  # and the mp product in (q, p) for verlet/verlet
+        for xx, yy in ((3.05, 0.3), (2.0, 0.5)):
+            M = _respa_mp(xx, yy, 4, 1.0)
+            ref = abs(M[0, 0] + M[1, 1]) / 2
+            assert stability_chart(outer, outer, 4, np.array([xx]), np.array([yy]))[0, 0] \
+                == pytest.approx(float(ref), rel=1e-12)
+
+
+def test_cli_chart(run, tmp_path):
+    pytest.importorskip("matplotlib")
+    out = tmp_path / "chart.png"
+    code, _, err = run("respa", "--fast-beta", "10", "--slow-beta", "1", "--plot", str(out))
+    assert code == 0, err
+    assert out.read_bytes()[:4] == b"\x89PNG"

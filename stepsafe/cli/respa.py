@@ -57,10 +57,13 @@ def _frequency(beta, wavenumber, which: str, unit) -> float:
               help="Also keep H below the outer step's first nonlinear resonance "
                    "n theta = 2 pi m of order n <= N (3: the limit near a third of the fast "
                    "period).")
+@click.option("--plot", "plot_file", default=None, metavar="FILE.png",
+              help="Draw the stability chart in the plane (Omega H, omega H) with the ray of "
+                   "your frequency ratio (needs matplotlib).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @criterion_option("stability")
 def respa_cmd(outer, inner, substeps, fast_beta, slow_beta, fast_wavenumber, slow_wavenumber,
-              time_unit, step, zmax, resonance_order, as_json, criterion) -> None:
+              time_unit, step, zmax, resonance_order, plot_file, as_json, criterion) -> None:
     """Safe outer steps of an impulse / r-RESPA multiple-time-step integrator.
 
     The test model is one coordinate with a fast force (frequency Omega alone) and a slow
@@ -88,6 +91,8 @@ def respa_cmd(outer, inner, substeps, fast_beta, slow_beta, fast_wavenumber, slo
                      criterion=criterion, zmax=zmax, time_unit=time_unit,
                      resonance_order=resonance_order)
     data = report.to_dict()
+    if plot_file is not None:
+        _chart(outer, inner, substeps, fast, slow, plot_file)
     if as_json:
         print_json(data)
     else:
@@ -129,3 +134,49 @@ def print_respa(data: dict[str, Any]) -> None:
         verdict = "SAFE" if data["safe"] else "UNSAFE"
         reason = "" if data["safe"] else f": {data['reason']}"
         click.echo(f"{verdict}: H = {fmt(data['step'])}{u}{reason}")
+
+
+#: Pixels per side of the stability chart.
+CHART_PIXELS = 400
+
+
+def _chart(outer: str, inner: str, substeps: int, fast: float, slow: float,
+           output: str) -> None:
+    """The plane (Omega H, omega H): shaded where one outer step is unstable (|tr M| > 2),
+    up to 1.05 times the inner method's own limit in Omega H, with the ray of the ratio."""
+    import numpy as np
+
+    from stepsafe import api
+    from stepsafe.cli.accuracy import _plot_format, _pyplot, _save
+    from stepsafe.core.impulse import stability_chart
+
+    plt = _pyplot()
+    fmt = _plot_format(output, plt)
+    outer_t, inner_t = api.method(outer).tableau, api.method(inner).tableau
+    z_inner = api.region(api.method(inner), "oscillator").regions["oscillator"].first_boundary
+    x_top = 1.05 * substeps * (z_inner or 10.0)
+    y_top = 0.5 * x_top
+    x = np.linspace(x_top / CHART_PIXELS, x_top, CHART_PIXELS)
+    y = np.linspace(y_top / CHART_PIXELS, y_top, CHART_PIXELS)
+    unstable = stability_chart(outer_t, inner_t, substeps, x, y) >= 1.0
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    ax.imshow(unstable, origin="lower", extent=(0, x_top, 0, y_top), aspect="auto",
+              cmap="Greys", vmin=0, vmax=1.6, interpolation="nearest")
+    ray = np.array([0.0, x_top])
+    ax.plot(ray, ray * slow / fast, color="tab:red", lw=1.2, label="your ratio omega/Omega")
+    from stepsafe.core.regions import find_region
+    from stepsafe.core.resonances import rotations
+
+    # the inner method's half turns: K theta_in(Omega H / K) = j pi
+    inner_region = find_region(inner_t, "oscillator", x_top / substeps)
+    pairs = [(2 * substeps, j) for j in range(1, substeps)]
+    for r in rotations(inner_t, inner_region, pairs):
+        ax.axvline(substeps * r.z, color="tab:blue", lw=0.6, ls=":")
+    ax.set_xlim(0, x_top)
+    ax.set_ylim(0, y_top)
+    ax.set_xlabel("Omega H (fast)  [dotted: K inner steps turn by j pi]")
+    ax.set_ylabel("omega H (slow)")
+    ax.set_title(f"{outer}/{inner} x{substeps}: unstable where shaded")
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    _save(fig, output, fmt)

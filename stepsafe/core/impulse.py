@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import Composition, Method, Splitting, splitting_from_operations
 
@@ -76,3 +78,30 @@ def impulse_splitting(outer: Method, inner: Method, substeps: int, fast: float,
     return splitting_from_operations(ops, name=label, title=(
         f"impulse: outer {outer.name} over the slow force, {substeps} {inner.name} substeps "
         f"over the fast force (fast fraction {phi:.6g})"))
+
+
+def stability_chart(outer: Method, inner: Method, substeps: int, x: np.ndarray,
+                    y: np.ndarray) -> np.ndarray:
+    """``|tr M| / 2`` of one outer step on the grid ``x = Omega H`` (columns) by ``y = omega H``
+    (rows): below 1 the step is stable. In ``(q, H p)`` a kick of coefficient c by a force
+    of frequency w is ``H p -= c (w H)^2 q`` and a drift ``q += a (H p)``, so M depends on
+    ``x^2`` and ``y^2`` only (vectorised over the grid)."""
+    fx, sy = np.meshgrid(np.asarray(x, float) ** 2, np.asarray(y, float) ** 2)
+    ops: list[tuple[str, float, bool]] = []  # (kind, coefficient, fast force?)
+    inner_ops = _operations(inner, "inner")
+    for kind, coef in _operations(outer, "outer"):
+        if kind == "kick":
+            ops.append(("kick", coef, False))
+            continue
+        for _ in range(substeps):
+            ops += [(k, c * coef / substeps, True) for k, c in inner_ops]
+    m00, m01 = np.ones_like(fx), np.zeros_like(fx)
+    m10, m11 = np.zeros_like(fx), np.ones_like(fx)
+    with np.errstate(over="ignore", invalid="ignore"):
+        for kind, coef, fast_force in ops:
+            if kind == "drift":
+                m00, m01 = m00 + coef * m10, m01 + coef * m11
+            else:
+                k = coef * (fx if fast_force else sy)
+                m10, m11 = m10 - k * m00, m11 - k * m01
+        return np.abs(0.5 * (m00 + m11))
