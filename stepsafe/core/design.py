@@ -34,8 +34,8 @@ from stepsafe.methods.tableaux import Splitting
 #: Parameter names of each family, by stage count.
 PARAMETERS = {2: ("b",), 3: ("b", "a")}
 #: The search grid: this many values per parameter in (0, 1/2).
-GRID = {2: 400, 3: 80}
-MAX_DESIGN_MODES = 512
+GRID = {2: 200, 3: 48}
+MAX_DESIGN_MODES = 128
 #: Local searches start from this many of the best grid points ...
 STARTS = 6
 #: ... and from the published members: verlet as 2 or 3 substeps, BCSS 2014 (bcss2,
@@ -70,7 +70,7 @@ def _operations(stages: int, params: np.ndarray) -> list[tuple[str, np.ndarray]]
 SWEEP = 256
 #: Midpoints of the average over a jitter interval (rho can peak sharply near M = -I
 #: inside it, which a few Gauss nodes would step over).
-JITTER_NODES = 64
+JITTER_NODES = 32
 
 
 def error_bounds(stages: int, params: np.ndarray, z: np.ndarray, weights: np.ndarray,

@@ -257,10 +257,12 @@ def acceptance_at(method: Method, betas: np.ndarray, h: float,
     return acceptance_curve(method, betas, np.array([float(h)]), trajectory)[0]
 
 
-#: The jitter average is a composite 8-point Gauss-Legendre rule: at least this many panels,
-#: 4 more per half turn of L theta across the interval (for the mode that turns most), and
-#: at most :data:`MAX_JITTER_NODES` nodes (beyond, the result says ``approximate``).
-JITTER_PANELS = 4
+#: The jitter average is a composite 8-point Gauss-Legendre rule: at least this many panels
+#: (the bound over L, smooth in h) or four times as many (a given L, whose energy error
+#: turns like sin^2(L theta)), 4 more per half turn of L theta across the interval (for the
+#: mode that turns most), and at most :data:`MAX_JITTER_NODES` nodes (beyond, the result
+#: says ``approximate``).
+JITTER_PANELS = 2
 MAX_JITTER_NODES = 2048
 _GL8 = np.polynomial.legendre.leggauss(8)
 
@@ -274,7 +276,8 @@ def _jitter_rule(method: Method, values: np.ndarray, h: float, jitter: float,
         theta = np.arctan2(np.sqrt(np.maximum(ends.sin2, 0.0)), ends.half_trace)
     swing = np.abs(theta[values.size:] - theta[:values.size])
     turns = float((steps or 1) * swing.max(initial=0.0) / np.pi)
-    panels = int(np.ceil(JITTER_PANELS + 4 * turns))
+    base = JITTER_PANELS if steps is None else 4 * JITTER_PANELS  # the bound is smooth in h
+    panels = int(np.ceil(base + 4 * turns))
     approximate = 8 * panels > MAX_JITTER_NODES
     panels = min(panels, MAX_JITTER_NODES // 8)
     x, w = _GL8
