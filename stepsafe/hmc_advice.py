@@ -20,6 +20,7 @@ import numpy as np
 
 from stepsafe.api import ArrayLike, Integrator, _compared, problem
 from stepsafe.exceptions import StepsafeError, positive_finite
+from stepsafe.systems.loader import DENSE_LIMIT
 
 #: Stall steps (L theta = 2 pi m) are reported within this relative distance of the target
 #: step (or within the jitter, if wider).
@@ -349,10 +350,20 @@ def _gaussian_betas(p: Any) -> np.ndarray:
     if p.system is not None and p.system.modes is None:
         raise StepsafeError("the target's modes do not decouple: a Gaussian target needs a "
                             "symmetric positive definite precision (or covariance)")
+    if p.system is not None and p.system.primary_only:
+        raise StepsafeError(f"HMC's acceptance depends on every mode, and a matrix of more "
+                            f"than {DENSE_LIMIT} rows is reduced to its extreme eigenvalues: "
+                            "give the standard deviations of its modes (--modes FILE with a "
+                            "sigma column) or a smaller matrix")
+    if p.system is not None and any(item.get("type") == "free" for item in p.system.items):
+        raise StepsafeError("the precision is singular (a direction of zero precision): the "
+                            "target is not a proper Gaussian")
     others = [m for m in p.modes.betas if m != "oscillator"]
     if others:
-        raise StepsafeError(f"a Gaussian target has only vibrations (sigma, covariance, "
-                            f"precision); {others[0]} modes have no place in HMC")
+        why = ("the precision has a negative eigenvalue (an inverted mode)"
+               if "inverted" in others else f"{others[0]} modes have no place in HMC")
+        raise StepsafeError("a Gaussian target has only vibrations (sigma, covariance, "
+                            f"positive definite precision): {why}")
     betas = np.asarray(p.modes.betas["oscillator"], dtype=float)
     if not betas.max() > 0:
         raise StepsafeError("every frequency is 0: a flat target has no step limit")

@@ -267,24 +267,62 @@ MAX_JITTER_NODES = 2048
 _GL8 = np.polynomial.legendre.leggauss(8)
 
 
+#: Samples of theta across a jitter interval (for the turns of L theta and the stability
+#: edges), taken for at most this many of the fastest modes.
+JITTER_SAMPLES = 129
+JITTER_MODES = 32
+#: Levels of geometric refinement of the panels next to a stability edge.
+EDGE_LEVELS = 12
+
+
 def _jitter_rule(method: Method, values: np.ndarray, h: float, jitter: float,
                  steps: int | None) -> tuple[np.ndarray, np.ndarray, bool]:
-    """Nodes u in [-1, 1] and weights (summing to 2) for the average over h (1 + jitter u)."""
-    ends = one_step(method, np.concatenate([values * h * (1.0 - jitter),
-                                            values * h * (1.0 + jitter)]))
+    """Nodes u in [-1, 1] and weights (summing to 2) for the average over h (1 + jitter u):
+    the interval is split where a fast mode crosses a stability edge (sin^2 theta changes
+    sign: a cliff), and each piece gets panels for the total variation of L theta on it."""
+    u = np.linspace(-1.0, 1.0, JITTER_SAMPLES)
+    top = values[-JITTER_MODES:]
+    first = one_step(method, np.outer(h * (1.0 + jitter * u), top).ravel())
+    sin2 = first.sin2.reshape(u.size, top.size)
     with np.errstate(invalid="ignore"):
-        theta = np.arctan2(np.sqrt(np.maximum(ends.sin2, 0.0)), ends.half_trace)
-    swing = np.abs(theta[values.size:] - theta[:values.size])
-    turns = float((steps or 1) * swing.max(initial=0.0) / np.pi)
+        theta = np.arctan2(np.sqrt(np.maximum(sin2, 0.0)),
+                           first.half_trace.reshape(u.size, top.size))
+    theta = np.nan_to_num(theta)
+    # stability edges: where sin2 changes sign between samples, by linear interpolation
+    cuts = {-1.0, 1.0}
+    flips = np.argwhere(np.sign(sin2[:-1]) * np.sign(sin2[1:]) < 0)
+    for i, k in flips[:64]:
+        a, b = sin2[i, k], sin2[i + 1, k]
+        if np.isfinite(a) and np.isfinite(b):
+            cuts.add(float(u[i] + (u[i + 1] - u[i]) * a / (a - b)))
+    cuts_sorted = sorted(cuts)
     base = JITTER_PANELS if steps is None else 4 * JITTER_PANELS  # the bound is smooth in h
-    panels = int(np.ceil(base + 4 * turns))
-    approximate = 8 * panels > MAX_JITTER_NODES
-    panels = min(panels, MAX_JITTER_NODES // 8)
     x, w = _GL8
-    edges = np.linspace(-1.0, 1.0, panels + 1)
-    half = 0.5 * np.diff(edges)
-    nodes = (0.5 * (edges[:-1] + edges[1:]))[:, None] + half[:, None] * x[None, :]
-    return nodes.ravel(), (half[:, None] * w[None, :]).ravel(), approximate
+    plan = []
+    for lo, hi in zip(cuts_sorted[:-1], cuts_sorted[1:]):
+        inside = (u >= lo) & (u <= hi)
+        swing = np.abs(np.diff(theta[inside], axis=0)).sum(axis=0).max(initial=0.0)
+        turns = (steps or 1) * float(swing) / np.pi
+        plan.append((lo, hi, int(np.ceil(base * (hi - lo) / 2.0 + 4 * turns)) or 1))
+    total = sum(n for _, _, n in plan)
+    approximate = 8 * total > MAX_JITTER_NODES
+    if approximate:
+        plan = [(lo, hi, max(1, n * (MAX_JITTER_NODES // 8) // total)) for lo, hi, n in plan]
+    nodes, weights = [], []
+    grading = 0.5 ** np.arange(1, EDGE_LEVELS + 1)
+    for lo, hi, n in plan:
+        edges = [np.linspace(lo, hi, n + 1)]
+        # an energy error that grows like e^(2 L phi) past an edge turns the acceptance in a
+        # layer of width ~ 1/L^2 at it: panels shrink geometrically towards each edge
+        if lo > -1.0:
+            edges.append(lo + (hi - lo) * grading / max(n, 1))
+        if hi < 1.0:
+            edges.append(hi - (hi - lo) * grading / max(n, 1))
+        edges = np.unique(np.concatenate(edges))
+        half = 0.5 * np.diff(edges)
+        nodes.append(((0.5 * (edges[:-1] + edges[1:]))[:, None] + half[:, None] * x).ravel())
+        weights.append((half[:, None] * w[None, :]).ravel())
+    return np.concatenate(nodes), np.concatenate(weights), approximate
 
 
 def acceptance_curve(method: Method, betas: np.ndarray, hs: np.ndarray,
