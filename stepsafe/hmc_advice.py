@@ -275,7 +275,8 @@ class DesignReport:
     file (``method_file``, YAML that every command accepts) and the figures that justify it:
     for it and each of :data:`DESIGN_REFERENCES`, at the same gradient evaluations per unit
     of simulated time (each method at step ``step * evaluations / stages``), the error bound
-    ``sum_k rho(beta_k h)`` over every trajectory length and the acceptance it guarantees."""
+    ``sum_k rho(beta_k h)`` over every trajectory length and the acceptance it guarantees,
+    both averaged over the jitter interval (``error_bound`` None: a mode is unstable there)."""
 
     name: str
     stages: int
@@ -316,9 +317,9 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
     _, _, _, jitter = _validated(0.5, None, None, jitter)
     name = f"designed-{stages}stage" if name is None else name
     if not isinstance(name, str) or not name or not all(
-            c.isascii() and (c.isalnum() or c in "-_.") for c in name) or len(name) > 60:
-        raise StepsafeError(f"name must be 1 to 60 letters, digits, '-', '_' or '.', got "
-                            f"{str(name)[:40]!r}")
+            c.isascii() and (c.isalnum() or c == "-") for c in name) or len(name) > 60:
+        raise StepsafeError(f"name must be 1 to 60 letters, digits and '-' (as method files "
+                            f"require), got {str(name)[:40]!r}")
     p = problem("verlet", frequencies, **inputs)
     betas = _gaussian_betas(p)
     values, counts = np.unique(betas[betas > 0], return_counts=True)
@@ -329,15 +330,15 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
     designed = family_member(stages, found.params, name)
     params = dict(zip(PARAMETERS[stages], found.params))
     rows = []
+    over = core.Trajectory(jitter=jitter)  # the bound over L, averaged over the jitter
     for label, tableau, evals in [(name, designed, stages)] + [
             (ref, (i := _compared([ref])[0]).tableau, i.evaluations)
             for ref in DESIGN_REFERENCES]:
         h = step * evals / stages
-        bound = core.errors_after(core.one_step(tableau, values * h), None) @ counts
-        acc = core.acceptance(core.errors_after(core.one_step(tableau, values * h), None),
-                              counts)
+        acc = core.acceptance_at(tableau, betas, h, over)
         rows.append(MappingProxyType({
-            "method": label, "evaluations": evals, "h": h, "error_bound": float(bound),
+            "method": label, "evaluations": evals, "h": h,
+            "error_bound": None if not np.isfinite(acc.expected_error) else acc.expected_error,
             "acceptance": acc.rate,
             "gradients_per_time": (None if acc.rate == 0 else evals / (acc.rate * h))}))
     return DesignReport(name, stages, MappingProxyType(params), step,

@@ -20,6 +20,9 @@ from typing import Any
 from stepsafe.api import Integrator, _compared
 from stepsafe.exceptions import StepsafeError, positive_finite
 
+#: The default search in beta H stops here at most (a slow force 1e6 times the fast one).
+ZMAX_CAP = 1e6
+
 
 @dataclass(frozen=True)
 class ImpulseReport:
@@ -70,7 +73,8 @@ def impulse(outer: Integrator | str = "verlet", inner: Integrator | str = "verle
     ``time_unit``); with ``step``, whether it is safe. ``criterion``: ``stability`` (the
     default: |tr M| <= 2, the unstable bands of the impulse literature) or ``structure``
     (also the sense of rotation, reversed by the outer step between Omega H = pi and 2 pi).
-    ``zmax`` bounds ``beta H`` searched (default: max(40, 10 substeps)). A band of
+    ``zmax`` bounds ``beta H`` searched (default: 1.05 times the inner method's own limit,
+    ``Omega H = substeps z*_inner``). A band of
     ``kind`` ``nonlinear`` lies beyond the resonance order asked for, one of ``kind``
     ``resonance`` is where M = +-I within rounding: float64 cannot tell a touch of
     |tr M| = 2 from a narrow gap there (with no slow force, M = -I is an exact touch).
@@ -97,10 +101,14 @@ def impulse(outer: Integrator | str = "verlet", inner: Integrator | str = "verle
     outer_i, inner_i = _compared([outer])[0], _compared([inner])[0]
     split = impulse_splitting(outer_i.tableau, inner_i.tableau, substeps, fast, slow)
     beta = total_frequency(fast, slow)
-    if not math.isfinite(beta):
-        raise StepsafeError("the frequencies overflow float64 together: give them in units "
-                            "nearer 1")
-    zmax = max(40.0, 10.0 * substeps) if zmax is None else positive_finite(zmax, "zmax")
+    if not math.isfinite(beta) or beta < 1e-300:
+        raise StepsafeError(f"the frequencies {fast:g} and {slow:g} leave float64 together "
+                            "(their steps would overflow): give them in units nearer 1")
+    if zmax is None:  # up to just past the inner method's own limit, Omega H = K z*_inner
+        z_inner = find_region(inner_i.tableau, "oscillator", 40.0).first_boundary or 40.0
+        zmax = min(max(4.0, 1.05 * substeps * z_inner * beta / fast), ZMAX_CAP)
+    else:
+        zmax = positive_finite(zmax, "zmax")
     order = None if resonance_order is None else validate_orders((resonance_order,))[0]
     modes = Modes.from_arrays({"oscillator": [beta]})
     verdict, reason = None, None
@@ -114,7 +122,8 @@ def impulse(outer: Integrator | str = "verlet", inner: Integrator | str = "verle
         adv = advise(split, modes, zmax=zmax, name=split.name, criterion=criterion,
                      resonance_order=order)
     horizon = adv.horizon
-    resonances = [r.z / beta for r in adv.regions["oscillator"].resonances]
+    resonances = [(r.z / beta, r.uncertainty / beta)
+                  for r in adv.regions["oscillator"].resonances]
     gaps = list(zip([hi for _, hi in adv.safe_h[:-1]], [lo for lo, _ in adv.safe_h[1:]]))
     if adv.safe_h and adv.safe_h[-1][1] is not None and (
             horizon is None or adv.safe_h[-1][1] < horizon * (1 - 1e-12)):
@@ -125,7 +134,9 @@ def impulse(outer: Integrator | str = "verlet", inner: Integrator | str = "verle
     def kind(lo: float, hi: float | None) -> str:
         if capped and lo == adv.h_max:
             return "nonlinear"  # beyond the resonance order asked for
-        if hi is not None and any(lo <= r <= hi for r in resonances):
+        # a gap no wider than a resonance's own uncertainty window around it
+        if hi is not None and any(lo <= r <= hi and hi - lo <= 2.0 * u * (1.0 + 1e-9)
+                                  for r, u in resonances):
             return "resonance"
         return "unstable"
 

@@ -172,3 +172,26 @@ def test_cli_chart(run, tmp_path):
     code, _, err = run("respa", "--fast-beta", "10", "--slow-beta", "1", "--plot", str(out))
     assert code == 0, err
     assert out.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_extreme_ratios_and_scales():
+    """Ratios beyond 1e154 do not overflow the force fractions (the slow force alone binds:
+    outer Verlet, omega H < 2); frequencies leaving float64 are refused."""
+    report = impulse(fast=1e-160, slow=1.0, substeps=4)
+    assert report.h_max == pytest.approx(2.0, rel=1e-10)
+    report = impulse(fast=1e-200, slow=1e200, substeps=4)
+    assert report.h_max == pytest.approx(2e-200, rel=1e-10)
+    for fast, slow in ((1e-310, 0.0), (1e-320, 1e-320)):
+        with pytest.raises(StepsafeError, match="float64"):
+            impulse(fast=fast, slow=slow)
+
+
+def test_wide_structure_failures_are_not_called_resonances():
+    report = impulse(fast=10.0, slow=1e-6, substeps=4, criterion="structure")
+    wide = [b for b in report.bands if b["hi"] is not None and b["hi"] - b["lo"] > 1e-3]
+    assert wide and all(b["kind"] == "unstable" for b in wide)
+
+
+def test_the_work_is_bounded():
+    with pytest.raises(StepsafeError, match="operations"):
+        impulse("pefrl", "yoshida8", 200, fast=10.0, slow=1.0)

@@ -51,8 +51,8 @@ def _frequency(beta, wavenumber, which: str, unit) -> float:
 @click.option("--step", "step", type=FLOAT, default=None, metavar="H",
               help="Check this outer step: exit 0 if safe, 1 if not.")
 @click.option("--zmax", type=FLOAT, default=None, metavar="Z",
-              help="Search beta*H up to Z, beta = sqrt(fast^2 + slow^2) [default: "
-                   "max(40, 10 K)].")
+              help="Search beta*H up to Z, beta = sqrt(fast^2 + slow^2) [default: just "
+                   "past the inner method's own limit, Omega H = K z*_inner].")
 @click.option("--resonance-order", type=INT, default=None, metavar="N",
               help="Also keep H below the outer step's first nonlinear resonance "
                    "n theta = 2 pi m of order n <= N (3: the limit near a third of the fast "

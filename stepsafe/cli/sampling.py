@@ -251,7 +251,7 @@ def print_design(data: dict[str, Any], output: str | None) -> None:
         table.add_column(col, overflow="fold")
     for r in data["comparison"]:
         table.add_row(r["method"], str(r["evaluations"]), fmt(r["h"], 6),
-                      f"{r['error_bound']:.4g}", f"{r['acceptance']:.4f}",
+                      _error_cell(r["error_bound"]), f"{r['acceptance']:.4f}",
                       "-" if r["gradients_per_time"] is None else fmt(r["gradients_per_time"], 5))
     console.print(table)
     if output:

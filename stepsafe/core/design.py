@@ -36,6 +36,8 @@ PARAMETERS = {2: ("b",), 3: ("b", "a")}
 #: The search grid: this many values per parameter in (0, 1/2).
 GRID = {2: 200, 3: 48}
 MAX_DESIGN_MODES = 128
+#: At most this many grid points are confirmed by the region finder when no local optimum is.
+CONFIRM_LIMIT = 400
 #: Local searches start from this many of the best grid points ...
 STARTS = 6
 #: ... and from the published members: verlet as 2 or 3 substeps, BCSS 2014 (bcss2,
@@ -124,6 +126,17 @@ class Design:
     binned: bool
 
 
+def _stable_up_to(stages: int, params: np.ndarray, top: float) -> bool:
+    """Whether the member keeps |tr M| < 2 for every z in (0, top], by the region finder
+    (float64 uncertainties included; an M = +-I resonance inside counts as unstable)."""
+    from stepsafe.core.regions import find_region, under_criterion
+
+    region = under_criterion(find_region(family_member(stages, tuple(params)), "oscillator",
+                                         top * 1.001), "stability")
+    first = region.first_interval
+    return first is not None and (first.hi is None or first.hi > top)
+
+
 def _binned(betas: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
     if betas.size <= MAX_DESIGN_MODES:
         return betas, counts, False
@@ -163,15 +176,24 @@ def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
     starts = [grid[i] for i in order if np.isfinite(values[i])]
     starts += [np.array(m) for m in KNOWN[stages] if np.isfinite(objective(np.array(m)))]
     step = 0.5 / GRID[stages]
-    best, best_value = starts[0], objective(starts[0])
+    found_points = []
     for start in starts:
         simplex = np.vstack([start] + [start + step * np.eye(start.size)[i]
                                        for i in range(start.size)])
         found = minimize(objective, start, method="Nelder-Mead",
                          options={"initial_simplex": simplex, "xatol": 1e-10, "fatol": 0.0,
                                   "maxiter": 400})
-        for x in (found.x, start):
-            value = objective(x)
-            if value < best_value:
-                best, best_value = x, value
+        found_points += [found.x, start]
+    # the sampled stability check can step over a narrow gap (|tr M| > 2 on 1e-3 of z):
+    # the best candidate the region finder confirms stable up to the top z wins
+    top = float(z.max()) * (1.0 + jitter)
+    ranked = sorted(((objective(x), i) for i, x in enumerate(found_points)), key=lambda t: t[0])
+    best = next((found_points[i] for value, i in ranked
+                 if np.isfinite(value) and _stable_up_to(stages, found_points[i], top)), None)
+    if best is None:  # then the best grid points the region finder confirms
+        finite = [i for i in np.argsort(values, kind="stable") if np.isfinite(values[i])]
+        best = next((grid[i] for i in finite[:CONFIRM_LIMIT]
+                     if _stable_up_to(stages, grid[i], top)), None)
+    if best is None:
+        return None
     return Design(stages, tuple(float(x) for x in best), objective(best), binned)

@@ -26,8 +26,10 @@ import numpy as np
 from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import Composition, Method, Splitting, splitting_from_operations
 
-#: Substep counts accepted (each costs one inner step per outer drift).
+#: Substep counts accepted (each costs one inner step per outer drift) ...
 MAX_SUBSTEPS = 1000
+#: ... and drift/kick operations in one outer step (the region finder's cost grows with it).
+MAX_OPERATIONS = 1000
 
 
 def _operations(method: Method, role: str) -> list[tuple[str, float]]:
@@ -47,8 +49,11 @@ def force_fractions(fast: float, slow: float) -> tuple[float, float]:
     if not (fast > 0 and math.isfinite(fast)) or not (slow >= 0 and math.isfinite(slow)):
         raise StepsafeError(f"the fast frequency must be > 0 and the slow one >= 0 (finite), "
                             f"got {fast:g} and {slow:g}")
-    r2 = (slow / fast) ** 2
-    return 1.0 / (1.0 + r2), r2 / (1.0 + r2)
+    if slow <= fast:
+        r2 = (slow / fast) * (slow / fast)
+        return 1.0 / (1.0 + r2), r2 / (1.0 + r2)
+    s2 = (fast / slow) * (fast / slow)  # the fast force is the smaller one
+    return s2 / (1.0 + s2), 1.0 / (1.0 + s2)
 
 
 def total_frequency(fast: float, slow: float) -> float:
@@ -74,6 +79,12 @@ def impulse_splitting(outer: Method, inner: Method, substeps: int, fast: float,
         for _ in range(substeps):
             ops += [(k, c * coef / substeps * (phi if k == "kick" else 1.0))
                     for k, c in inner_ops]
+    count = sum(1 for _ in ops)
+    if count > MAX_OPERATIONS:
+        raise StepsafeError(f"one outer step of {outer.name}/{inner.name} with {substeps} "
+                            f"substeps has {count} drift/kick operations, more than the "
+                            f"{MAX_OPERATIONS} analysed in bounded time: fewer substeps or a "
+                            "shorter inner method")
     label = name or f"{outer.name}/{inner.name}x{substeps}"
     return splitting_from_operations(ops, name=label, title=(
         f"impulse: outer {outer.name} over the slow force, {substeps} {inner.name} substeps "
