@@ -112,3 +112,17 @@ def test_coupled_systems_refuse_the_stability_criterion(tmp_path, run):
     assert code == 2 and "couple" in err
     code, out, _ = run("advise", str(scene), "--json")
     assert code == 0 and json.loads(out)["criterion"] == "structure"
+
+
+@pytest.mark.parametrize("scale", [1e-300, 1e-150, 1e150, 1e300])
+def test_stability_verdicts_are_scale_free(scale):
+    """The same z = beta h gives the same stability verdict at every scale, including the
+    island past bcss3's M = -I point and steps past the stability limit (beta h to 1e12)."""
+    for z in (1.0, 2.9763, 3.5, 4.7, 1e3, 1e12):
+        if not math.isfinite(z / scale):
+            continue
+        ref = stepsafe.check("bcss3", z, [1.0], criterion="stability").safe
+        got = stepsafe.check("bcss3", z / scale, [scale], criterion="stability").safe
+        assert got == ref, (scale, z)
+    assert stepsafe.check("bcss3", 3.5, [1.0], criterion="stability").safe
+    assert not stepsafe.check("bcss3", 4.7, [1.0], criterion="stability").safe
