@@ -183,11 +183,22 @@ def method_from_file(path: str | Path, base: str | None = None) -> Integrator:
 
 def _integrator(value: Integrator | str) -> Integrator:
     if isinstance(value, Integrator):
-        return value
+        return single_force(value)
     if isinstance(value, str):
-        return method(value)
+        return single_force(method(value))
     raise StepsafeError(f"method must be a name, a path or a stepsafe.Integrator, "
                         f"got {type(value).__name__}")
+
+
+def single_force(integrator: Integrator) -> Integrator:
+    """``integrator`` if one force drives it; an impulse method needs two (a
+    :class:`StepsafeError` that points to :func:`stepsafe.impulse`)."""
+    if integrator.kind == "impulse":
+        raise StepsafeError(f"{integrator.name} is an impulse (multiple time stepping) method: "
+                            "it needs a fast and a slow frequency per mode (stepsafe respa, "
+                            "region --ratio, a scene whose modes give fast: and slow:, or "
+                            "stepsafe.impulse)")
+    return integrator
 
 
 def _frozen(data: dict[str, Any]) -> Mapping[str, Any]:
@@ -496,15 +507,16 @@ def _given_problem(value: Any) -> Problem | None:
 def _scene_method(method: Integrator | str | None, scene: Any, stages: int | None,
                   base: str | None) -> Integrator:
     if isinstance(method, Integrator):
-        return method
+        return single_force(method)
     if method is not None:
-        return globals()["method"](method, stages, base)
+        return single_force(globals()["method"](method, stages, base))
     ref = scene.method
     if ref is None:
         raise StepsafeError("no method: give --method METHOD or a scene file with method:")
     try:
-        return globals()["method"](ref.name, stages if stages is not None else ref.stages,
-                                   base if base is not None else ref.base)
+        return single_force(globals()["method"](
+            ref.name, stages if stages is not None else ref.stages,
+            base if base is not None else ref.base))
     except StepsafeError as exc:
         if exc.where or not scene.where:
             raise
@@ -967,11 +979,19 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
                          time_unit, solver, criterion)
 
 
+def named_method(item: str) -> Integrator:
+    """A method by name, path or ``family:N`` (``"gauss:2"``)."""
+    name, _, stages = _text(item, "method").strip().partition(":")
+    if stages and not (stages.isascii() and stages.isdigit() and len(stages) <= 30):
+        raise StepsafeError(f"bad stage count in {item!r} (use family:N)")
+    return method(name, int(stages) if stages else None)
+
+
 def _compared(methods: Sequence[Integrator | str] | str | None) -> list[Integrator]:
     from stepsafe.methods.library import FAMILIES, builtin_names
 
     if isinstance(methods, str) and methods == "all":
-        return ([method(n) for n in builtin_names() if n not in FAMILIES]
+        return ([method(n) for n in builtin_names(single_force=True) if n not in FAMILIES]
                 + [method(f, s) for f in FAMILIES for s in (2, 3)])
     if isinstance(methods, str) or (methods is not None and not isinstance(
             methods, (list, tuple))):
@@ -982,10 +1002,7 @@ def _compared(methods: Sequence[Integrator | str] | str | None) -> list[Integrat
         if not isinstance(item, str):
             out.append(_integrator(item))
             continue
-        name, _, stages = item.strip().partition(":")
-        if stages and not (stages.isascii() and stages.isdigit() and len(stages) <= 30):
-            raise StepsafeError(f"bad stage count in {item!r} (use family:N)")
-        out.append(method(name, int(stages) if stages else None))
+        out.append(single_force(named_method(item)))
     if not out:
         raise StepsafeError("no methods to compare")
     return out

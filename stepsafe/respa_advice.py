@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
-from stepsafe.api import Integrator, _compared
+from stepsafe.api import Integrator
 from stepsafe.exceptions import StepsafeError, positive_finite
 
 #: The default search in beta H stops here at most (a slow force 1e6 times the fast one).
@@ -63,14 +63,17 @@ class ImpulseReport:
                 "nonlinear_resonances": [dict(r) for r in self.nonlinear]}
 
 
-def impulse(outer: Integrator | str = "verlet", inner: Integrator | str = "verlet",
-            substeps: int = 4, *, fast: float, slow: float, step: float | None = None,
-            criterion: str = "stability", zmax: float | None = None,
-            time_unit: str | None = None, resonance_order: int | None = None
-            ) -> ImpulseReport:
+def impulse(outer: Integrator | str = "verlet", inner: Integrator | str | None = None,
+            substeps: int | None = None, *, fast: float, slow: float,
+            step: float | None = None, criterion: str = "stability",
+            zmax: float | None = None, time_unit: str | None = None,
+            resonance_order: int | None = None) -> ImpulseReport:
     """The safe outer steps of the impulse method ``outer``/``inner`` with ``substeps``
     inner steps per outer drift, for the fast and slow angular frequencies (rad per
-    ``time_unit``); with ``step``, whether it is safe. ``criterion``: ``stability`` (the
+    ``time_unit``); with ``step``, whether it is safe. ``outer`` may also be an impulse
+    method (a method file of kind ``impulse``, e.g. ``"respa-verlet"``): then it brings its
+    inner method and substep count (``substeps`` overrides the count); otherwise ``inner``
+    defaults to ``"verlet"`` and ``substeps`` to 4. ``criterion``: ``stability`` (the
     default: |tr M| <= 2, the unstable bands of the impulse literature) or ``structure``
     (also the sense of rotation, reversed by the outer step between Omega H = pi and 2 pi).
     ``zmax`` bounds ``beta H`` searched (default: 1.05 times the inner method's own limit,
@@ -86,7 +89,57 @@ def impulse(outer: Integrator | str = "verlet", inner: Integrator | str = "verle
     >>> report = impulse("verlet", "verlet", 4, fast=10.0, slow=1.0)
     >>> round(10.0 * report.h_max / 3.141592653589793, 4)   # just below Omega H = pi
     0.9649
+    >>> impulse("respa-verlet", fast=10.0, slow=1.0).h_max == report.h_max
+    True
     """
+    method = impulse_method(outer, inner, substeps)
+    return _impulse(method, fast, slow, step, criterion, zmax, time_unit, resonance_order)
+
+
+def impulse_method(outer: Integrator | str = "verlet", inner: Integrator | str | None = None,
+                   substeps: int | None = None) -> Any:
+    """The :class:`stepsafe.methods.tableaux.Impulse` of an impulse method (name, path or
+    :class:`Integrator` of kind ``impulse``) or of an outer and an inner splitting."""
+    from stepsafe.api import named_method as load_method
+    from stepsafe.core.impulse import impulse_method as build
+
+    outer_i = outer if isinstance(outer, Integrator) else load_method(_name(outer, "outer"))
+    if outer_i.kind == "impulse":
+        if inner is not None:
+            raise StepsafeError(f"{outer_i.name} is an impulse method with its own inner "
+                                "method: give no inner method")
+        return _substeps_of(outer_i.tableau, substeps)
+    inner_i = inner if isinstance(inner, Integrator) else load_method(
+        _name("verlet" if inner is None else inner, "inner"))
+    if inner_i.kind == "impulse":
+        raise StepsafeError(f"the inner method {inner_i.name} is itself an impulse method")
+    return build(outer_i.tableau, inner_i.tableau, _substeps(4 if substeps is None
+                                                             else substeps))
+
+
+def _substeps_of(method: Any, substeps: int | None) -> Any:
+    return method.with_substeps(None if substeps is None else _substeps(substeps))
+
+
+def _substeps(value: Any) -> int:
+    from stepsafe.methods.tableaux import MAX_SUBSTEPS
+
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= MAX_SUBSTEPS:
+        raise StepsafeError(f"substeps must be an integer from 1 to {MAX_SUBSTEPS}, got "
+                            f"{value!r}")
+    return value
+
+
+def _name(value: Any, role: str) -> str:
+    if not isinstance(value, str):
+        raise StepsafeError(f"the {role} method must be a name, a path or a "
+                            f"stepsafe.Integrator, got {type(value).__name__}")
+    return value
+
+
+def _impulse(method: Any, fast: Any, slow: Any, step: float | None, criterion: str,
+             zmax: float | None, time_unit: str | None, resonance_order: int | None
+             ) -> ImpulseReport:
     from stepsafe.core.advice import Modes, advise, check_step
     from stepsafe.core.impulse import impulse_splitting, total_frequency
     from stepsafe.core.regions import find_region, validate_criterion
@@ -96,17 +149,21 @@ def impulse(outer: Integrator | str = "verlet", inner: Integrator | str = "verle
     criterion = validate_criterion(criterion)
     time_unit = known_time_unit(time_unit)
     fast, slow = _frequency(fast, "fast"), _frequency(slow, "slow")
-    if not fast > 0:
-        raise StepsafeError("the fast frequency must be > 0")
-    outer_i, inner_i = _compared([outer])[0], _compared([inner])[0]
-    split = impulse_splitting(outer_i.tableau, inner_i.tableau, substeps, fast, slow)
+    if fast == slow == 0:
+        raise StepsafeError("the fast and slow frequencies are both 0: nothing to analyse")
+    split = impulse_splitting(method, fast, slow)
     beta = total_frequency(fast, slow)
     if not math.isfinite(beta) or beta < 1e-300:
         raise StepsafeError(f"the frequencies {fast:g} and {slow:g} leave float64 together "
                             "(their steps would overflow): give them in units nearer 1")
     if zmax is None:  # up to just past the inner method's own limit, Omega H = K z*_inner
-        z_inner = find_region(inner_i.tableau, "oscillator", 40.0).first_boundary or 40.0
-        zmax = min(max(4.0, 1.05 * substeps * z_inner * beta / fast), ZMAX_CAP)
+        if fast > 0:
+            z_in = find_region(method.inner, "oscillator", 40.0).first_boundary or 40.0
+            zmax = 1.05 * method.substeps * z_in * beta / fast
+        else:  # the outer method alone, on the slow force
+            zmax = 1.05 * (find_region(method.outer, "oscillator", 40.0).first_boundary
+                           or 40.0)
+        zmax = min(max(4.0, zmax), ZMAX_CAP)
     else:
         zmax = positive_finite(zmax, "zmax")
     order = None if resonance_order is None else validate_orders((resonance_order,))[0]
@@ -150,7 +207,7 @@ def impulse(outer: Integrator | str = "verlet", inner: Integrator | str = "verle
     nonlinear = tuple(MappingProxyType({"resonance": r.name, "h": r.z / beta,
                                         "uncertainty": r.uncertainty / beta})
                       for r in found)
-    return ImpulseReport(split.name, substeps, fast, slow, beta, criterion, adv.h_max, safe,
+    return ImpulseReport(split.name, method.substeps, fast, slow, beta, criterion, adv.h_max, safe,
                          tuple(bands), horizon, step, verdict, reason, time_unit, split,
                          nonlinear)
 
@@ -168,4 +225,130 @@ def _frequency(value: Any, name: str) -> float:
     return value
 
 
-__all__ = ["ImpulseReport", "impulse"]
+@dataclass(frozen=True)
+class ImpulseModesReport:
+    """Safe outer steps H of an impulse method for several modes, each with its own fast
+    and slow frequency (``modes[i]`` is mode i's :class:`ImpulseReport`): ``safe_h`` is
+    the intersection of their safe sets up to the nearest ``horizon``, ``h_max`` the end
+    of its interval from 0 and ``limiting`` the mode that ends it; with a ``step``,
+    ``safe`` and the ``failures`` (mode index, label, reason)."""
+
+    name: str
+    substeps: int
+    criterion: str
+    modes: tuple[ImpulseReport, ...]
+    labels: tuple[str | None, ...]
+    h_max: float | None
+    safe_h: tuple[tuple[float, float | None], ...]
+    horizon: float | None
+    limiting: int | None
+    step: float | None = None
+    safe: bool | None = None
+    failures: tuple[Mapping[str, Any], ...] = ()
+    time_unit: str | None = None
+    scene: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """What ``stepsafe advise`` / ``check`` print with ``--json`` for an impulse method."""
+        modes = []
+        for label, mode in zip(self.labels, self.modes):
+            row = mode.to_dict()
+            for key in ("method", "substeps", "criterion", "time_unit", "step"):
+                row.pop(key)
+            modes.append({"label": label, **row})
+        return {"method": self.name, "kind": "impulse", "substeps": self.substeps,
+                "criterion": self.criterion, "time_unit": self.time_unit,
+                "scene": self.scene, "h_max": self.h_max,
+                "safe_h": [list(iv) for iv in self.safe_h], "horizon": self.horizon,
+                "limiting_mode": self.limiting, "step": self.step, "safe": self.safe,
+                "failures": [dict(f) for f in self.failures], "modes": modes}
+
+
+def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
+                   labels: Any = None, scene: str | None = None,
+                   substeps: int | None = None, step: float | None = None,
+                   time_unit: str | None = None, criterion: str = "stability",
+                   resonance_order: int | None = None,
+                   use_scene_step: bool = False) -> ImpulseModesReport:
+    """The safe outer steps of an impulse method for every mode of a system: ``pairs`` is
+    a list of ``(fast, slow)`` angular frequencies (rad per ``time_unit``), or a ``scene``
+    file gives them (its ``modes:`` with ``fast:`` and ``slow:``, or ``system:`` with
+    ``stiffness_fast``, ``stiffness_slow`` and ``mass``), with the method, ``substeps``,
+    the time unit and, when ``use_scene_step``, the step ``h`` to check. Arguments given
+    here win over the scene's. Each mode is its own oscillator of frequency
+    ``sqrt(fast^2 + slow^2)`` (:func:`impulse`); H is safe when it is safe for every mode.
+
+    >>> report = impulse_advice("respa-verlet", [(10.0, 1.0), (4.0, 2.0)])
+    >>> report.limiting, round(report.h_max, 6)   # the fastest mode's band near Omega H = pi
+    (0, 0.303118)
+    """
+    import numpy as np
+
+    from stepsafe.systems.scene import Scene, load_scene
+    from stepsafe.units import time_unit as known_time_unit
+
+    time_unit = known_time_unit(time_unit)
+    loaded = load_scene(scene, time_unit) if scene is not None else Scene(time_unit=time_unit)
+    if method is None:
+        if loaded.method is None:
+            raise StepsafeError("no method: give an impulse method (or a scene with method:)")
+        method = loaded.method.name
+    chosen = impulse_method(method, None, substeps if substeps is not None
+                            else loaded.substeps)
+    if pairs is None:
+        if loaded.pairs is not None:
+            pairs, labels = loaded.pairs, (labels or loaded.pair_labels)
+        elif loaded.system is not None:
+            from stepsafe.systems.multiple import impulse_pairs
+
+            pairs = impulse_pairs(loaded.system, loaded.where, loaded.folder)
+        else:
+            raise StepsafeError("no modes: an impulse method needs a fast and a slow "
+                                "frequency per mode (modes: [{fast:, slow:}] or system: "
+                                "{stiffness_fast:, stiffness_slow:} in a scene file)",
+                                loaded.where or None)
+    try:
+        table = np.array(pairs, dtype=float).reshape(-1, 2)
+    except (TypeError, ValueError):
+        raise StepsafeError("pairs must be a list of (fast, slow) frequencies") from None
+    if table.shape[0] == 0:
+        raise StepsafeError("pairs is empty: give at least one (fast, slow) pair")
+    labels = tuple(labels) if labels is not None else (None,) * table.shape[0]
+    if len(labels) != table.shape[0]:
+        raise StepsafeError(f"{len(labels)} labels for {table.shape[0]} modes")
+    if step is None and use_scene_step:
+        step = loaded.h
+    if step is not None:
+        step = positive_finite(step, "step")
+    reports = tuple(_impulse(chosen, fast, slow, step, criterion, None,
+                             loaded.time_unit, resonance_order) for fast, slow in table)
+    horizon = min((r.horizon for r in reports if r.horizon is not None), default=None)
+    safe_h = _intersection([r.safe_h for r in reports], [r.horizon for r in reports],
+                           horizon)
+    first = safe_h[0] if safe_h and safe_h[0][0] == 0.0 else None
+    h_max = None if first is None else horizon if first[1] is None else first[1]
+    limiting = None if not reports else int(np.argmin(
+        [np.inf if r.h_max is None else r.h_max for r in reports]))
+    failures = tuple(MappingProxyType({"mode": i, "label": labels[i], "reason": r.reason})
+                     for i, r in enumerate(reports) if r.safe is False)
+    verdict = None if step is None else not failures
+    return ImpulseModesReport(chosen.name, chosen.substeps, reports[0].criterion, reports,
+                              labels, h_max, safe_h, horizon, limiting, step, verdict,
+                              failures, loaded.time_unit, loaded.where or None)
+
+
+def _intersection(sets: list, horizons: list, horizon: float | None
+                  ) -> tuple[tuple[float, float | None], ...]:
+    """The common part of interval lists (``hi`` None: up to that list's horizon), as
+    intervals up to ``horizon`` (the last ``hi`` None when it reaches it)."""
+    top = math.inf if horizon is None else horizon
+    current = [(0.0, top)]
+    for intervals, own in zip(sets, horizons):
+        ends = [(lo, (own if own is not None else math.inf) if hi is None else hi)
+                for lo, hi in intervals]
+        current = [(max(a, c), min(b, d)) for a, b in current for c, d in ends
+                   if max(a, c) < min(b, d)]
+    return tuple((lo, None if hi >= top else hi) for lo, hi in sorted(current))
+
+
+__all__ = ["ImpulseModesReport", "ImpulseReport", "impulse", "impulse_advice"]

@@ -164,3 +164,15 @@ def quantity(value: object, form: str, time: str | None) -> float:
         return angular_frequency(form, number, unit, time)
     raise StepsafeError(f"{form} must be a number or a text such as '3700 cm-1', got "
                         f"{type(value).__name__}")
+
+
+def any_frequency(value: object, time: str | None) -> float:
+    """beta (rad per ``time`` unit) of a frequency whose unit names its form: a plain
+    number is an angular frequency (rad per time unit), ``"3700 cm-1"`` a wavenumber,
+    ``"100 THz"`` or ``"3 ps-1"`` a frequency, ``"9 fs"`` a period."""
+    if isinstance(value, str):
+        number, unit = parse_quantity(value)
+        form = ("beta" if unit is None else "wavenumber" if unit == "cm-1"
+                else "period" if unit in TIME_UNITS else "frequency")
+        return angular_frequency(form, number, unit, time)
+    return quantity(value, "beta", time)

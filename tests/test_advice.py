@@ -17,7 +17,7 @@ from stepsafe.core.regions import find_region
 from stepsafe.methods.library import builtin_names
 
 ROOT = Path(__file__).resolve().parent.parent
-LIBRARY = [n for n in builtin_names() if n not in ("gauss", "lobatto3ab", "rk4")]
+LIBRARY = [n for n in builtin_names(single_force=True) if n not in ("gauss", "lobatto3ab", "rk4")]
 BETA_SETS = [(1.0,), (3.2, 0.7, 0.01), (2.0, 2.0, 1e-3)]
 
 

@@ -15,7 +15,7 @@ import pytest
 import stepsafe
 from stepsafe.methods.library import FAMILIES, builtin_names
 
-LIBRARY = [n for n in builtin_names() if n not in FAMILIES]
+LIBRARY = [n for n in builtin_names(single_force=True) if n not in FAMILIES]
 
 
 def _h_max(report) -> float:

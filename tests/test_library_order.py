@@ -18,7 +18,7 @@ from integrate import integrate, mp_method
 from stepsafe.methods.library import builtin_names
 
 ROOT = Path(__file__).resolve().parent.parent
-LIBRARY = [n for n in builtin_names() if n not in ("gauss", "lobatto3ab")]
+LIBRARY = [n for n in builtin_names(single_force=True) if n not in ("gauss", "lobatto3ab")]
 T = 1
 Q0, P0 = 1, "0.5"
 DPS = 40

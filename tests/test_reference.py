@@ -27,7 +27,7 @@ from stepsafe.reference.verify import points as _points
 
 DPS = 50
 REL = 1e-12
-LIBRARY = [n for n in builtin_names() if n not in ("gauss", "lobatto3ab", "rk4")]
+LIBRARY = [n for n in builtin_names(single_force=True) if n not in ("gauss", "lobatto3ab", "rk4")]
 FAMILIES = [("gauss", s) for s in (1, 2, 3, 4, 6)] + [("lobatto3ab", s) for s in (2, 3, 4, 5, 6)]
 
 

@@ -17,7 +17,7 @@ from stepsafe.core.resonances import fractions, nonlinear_resonances
 from stepsafe.methods.library import FAMILIES, builtin_names, resolve
 from stepsafe.reference.verify import mp_method, mp_transfer
 
-LIBRARY = [(n, None) for n in builtin_names() if n not in FAMILIES]
+LIBRARY = [(n, None) for n in builtin_names(single_force=True) if n not in FAMILIES]
 FAMILY = [(f, s) for f in FAMILIES for s in (2, 3, 4, 5)]
 
 

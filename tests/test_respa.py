@@ -100,7 +100,7 @@ def test_other_outer_and_inner_splittings():
 @pytest.mark.parametrize("kwargs, match", [
     ({"substeps": 0}, "substeps"),
     ({"substeps": 2.5}, "substeps"),
-    ({"fast": 0.0}, "fast"),
+    ({"fast": 0.0, "slow": 0.0}, "both 0"),
     ({"fast": float("nan")}, "fast"),
     ({"slow": -1.0}, "slow"),
     ({"inner": "gauss:2"}, "splitting"),
@@ -147,22 +147,23 @@ def test_the_third_of_a_period_resonance_at_50_digits():
 
 def test_the_chart_is_the_trace_of_the_equivalent_splitting():
     from stepsafe import method
-    from stepsafe.core.impulse import impulse_splitting, stability_chart
+    from stepsafe.core.impulse import impulse_method, impulse_splitting, stability_chart
     from stepsafe.core.transfer import transfer_matrix
 
     outer, inner = method("verlet").tableau, method("pefrl").tableau
     x, y = np.array([0.7, 2.9, 3.3, 6.0]), np.array([0.2, 1.1])
-    chart = stability_chart(outer, inner, 3, x, y)
+    chart = stability_chart(impulse_method(outer, inner, 3), x, y)
     for i, yy in enumerate(y):
         for j, xx in enumerate(x):
-            split = impulse_splitting(outer, inner, 3, xx, yy)
+            split = impulse_splitting(impulse_method(outer, inner, 3), xx, yy)
             M = transfer_matrix(split, [math.hypot(xx, yy)], "oscillator")[0]
             assert chart[i, j] == pytest.approx(abs(M[0, 0] + M[1, 1]) / 2, rel=1e-12)
     with mp.workdps(30):  # and the mp product in (q, p) for verlet/verlet
         for xx, yy in ((3.05, 0.3), (2.0, 0.5)):
             M = _respa_mp(xx, yy, 4, 1.0)
             ref = abs(M[0, 0] + M[1, 1]) / 2
-            assert stability_chart(outer, outer, 4, np.array([xx]), np.array([yy]))[0, 0] \
+            assert stability_chart(impulse_method(outer, outer, 4), np.array([xx]),
+                                   np.array([yy]))[0, 0] \
                 == pytest.approx(float(ref), rel=1e-12)
 
 

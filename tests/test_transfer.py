@@ -13,7 +13,7 @@ from stepsafe.methods.library import builtin_names
 from stepsafe.methods.residuals import residuals
 from stepsafe.methods.tableaux import PartitionedRK, Splitting
 
-LIBRARY = [n for n in builtin_names() if n not in ("gauss", "lobatto3ab")]
+LIBRARY = [n for n in builtin_names(single_force=True) if n not in ("gauss", "lobatto3ab")]
 FAMILY = [gauss(s) for s in (1, 2, 3, 5, 8)] + [lobatto3ab(s) for s in (2, 3, 4, 6, 9)]
 Z = np.concatenate([np.linspace(0.01, 1.5, 40), np.linspace(1.5, 6, 40)])
 

@@ -144,11 +144,18 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, tsv, criterion, a
               help="Where to write: exactly this path; its extension picks the format (png, "
                    "pdf, svg, eps, ...; an unknown or missing extension is refused) "
                    "[default: METHOD-MODEL.png in the current folder].")
-def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
+@click.option("--ratio", type=FLOAT, default=None, metavar="R",
+              help="Impulse (r-RESPA) methods: draw the ray of this ratio omega/Omega.")
+@click.option("--substeps", type=INT, default=None, metavar="K",
+              help="Impulse methods: inner steps per outer drift [default: the file's].")
+def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, substeps) -> None:
     """Draw tr M(z)/2 with the band [-1, 1] and the preserved intervals (needs matplotlib).
 
     The file is written at exactly the path given, in the format its extension names; no
     extension is ever added. Without -o it is METHOD-MODEL.png (e.g. verlet-oscillator.png).
+
+    For an impulse (r-RESPA) METHOD the stability chart in the plane (Omega H, omega H) is
+    drawn instead (METHOD-chart.png), with the ray of --ratio when given.
 
     \b
     Example:
@@ -167,6 +174,18 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output) -> None:
     from stepsafe import api
 
     integrator = api.method(method, stages, base)
+    if integrator.kind == "impulse" or ratio is not None or substeps is not None:
+        from stepsafe.cli.respa import draw_chart
+        from stepsafe.respa_advice import impulse_method
+
+        if integrator.kind != "impulse":
+            raise _input_error(f"--ratio and --substeps apply to impulse methods; "
+                               f"{integrator.name} is a {integrator.kind} method")
+        if ratio is not None and not (math.isfinite(ratio) and ratio >= 0):
+            raise _input_error(f"--ratio must be a finite number >= 0, got {ratio}")
+        draw_chart(impulse_method(integrator, None, substeps), ratio,
+                   output or f"{integrator.name}-chart.png")
+        return
     if output is None:
         safe_name = "".join(c if c.isalnum() or c in "-_." else "_" for c in integrator.name)
         output = f"{safe_name}-{model}.png"

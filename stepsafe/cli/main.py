@@ -306,10 +306,15 @@ def show_cmd(method: str, stages: int | None, base: str | None, as_json: bool) -
 @click.option("--verify", is_flag=True,
               help="Recompute every reported point with mpmath (40 digits); exit 3 if one is "
                    "off by more than 1e-10 relative.")
+@click.option("--ratio", type=FLOAT, default=None, metavar="R",
+              help="Impulse (r-RESPA) methods: the slow/fast frequency ratio omega/Omega; "
+                   "steps are then Omega H (the fast frequency is 1).")
+@click.option("--substeps", type=INT, default=None, metavar="K",
+              help="Impulse methods: inner steps per outer drift [default: the file's].")
 @criterion_option()
 def region_cmd(method: str, stages: int | None, base: str | None, model: str,
                zmax: float | None, resonance_orders: str, as_json: bool, verify: bool,
-               criterion: str) -> None:
+               ratio: float | None, substeps: int | None, criterion: str) -> None:
     """Every z = beta*h interval where METHOD preserves the equilibrium's structure.
 
     Reports the first boundary z* (the end of the interval from 0: the largest safe
@@ -319,16 +324,27 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
     -s N, or a path to a method file. With --model all, a model the method cannot be
     applied to (a splitting whose drift and kick sums differ has no form for the saddle)
     is listed as not analysed, with the reason.
+
+    An impulse (r-RESPA) METHOD is analysed at a frequency ratio --ratio omega/Omega:
+    its unstable bands in Omega H (see stepsafe respa).
     """
     from stepsafe import api
     from stepsafe.cli.report import print_json, print_region
     from stepsafe.core.regions import DEFAULT_ZMAX
 
+    integrator = api.method(method, stages, base)
+    if integrator.kind == "impulse" or ratio is not None or substeps is not None:
+        from stepsafe.cli.respa import impulse_region
+
+        impulse_region(integrator, ratio, substeps, zmax, criterion, as_json,
+                       verify or model != "all")
+        return
+
     orders = [item.strip() for item in resonance_orders.split(",")]
     if not all(item.isascii() and item.isdigit() and len(item) <= 3 for item in orders):
         raise _input_error(f"--resonance-orders {resonance_orders}: give integers such as "
                            "3,4,5,6")
-    report = api.region(api.method(method, stages, base), model,
+    report = api.region(integrator, model,
                         DEFAULT_ZMAX if zmax is None else zmax, verify,
                         tuple(int(item) for item in orders), criterion)
     data = report.to_dict()
@@ -404,6 +420,9 @@ def scene_options(func):
                           "reached are then not analysed (reported as the horizon). A bar "
                           "on stderr shows its progress when it takes over a second."),
         frequency_options,
+        click.option("--substeps", type=INT, default=None, metavar="K",
+                     help="Impulse (r-RESPA) methods: inner steps per outer drift "
+                          "[default: the scene's, else the method file's]."),
         click.option("--base", metavar="NAME", help="Swap the base method of a composition "
                                                     "(a family member as gauss:2)."),
         click.option("-s", "--stages", type=INT, metavar="N", help="Stage count of a family."),
@@ -520,9 +539,19 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, criterion, sc
     """
     from stepsafe import api
     from stepsafe.cli.report import print_advice, print_json
+    from stepsafe.cli.respa import impulse_of, impulse_report, print_impulse_modes
 
     if len(scene_files) > 1:
         raise _input_error("advise takes at most one scene file")
+    scene_file = scene_files[0] if scene_files else None
+    impulse = impulse_of(scene_file, {**options, "verify": verify})
+    if impulse is not None:
+        if tol_phase is not None or tol_energy is not None:
+            raise _input_error("--tol-phase/--tol-energy do not apply to impulse methods")
+        data = impulse_report(impulse, scene_file, options, step=None, criterion=criterion,
+                              resonance_order=resonance_order)
+        print_json(data) if as_json else print_impulse_modes(data, check=False)
+        return
     problem = _problem(scene_files[0] if scene_files else None, options, not as_json)
     data = api.advise(problem=problem, tol_phase=tol_phase, tol_energy=tol_energy,
                       resonance_order=resonance_order, criterion=criterion,
@@ -567,9 +596,19 @@ def check_cmd(h, every_mode, resonance_order, criterion, scene_files, as_json, v
     """
     from stepsafe import api
     from stepsafe.cli.report import print_check, print_json, print_system
+    from stepsafe.cli.respa import impulse_of, impulse_report, print_impulse_modes
 
     outputs, verdicts = [], []
     for scene_file in scene_files or (None,):
+        impulse = impulse_of(scene_file, {**options, "verify": verify})
+        if impulse is not None:
+            data = impulse_report(impulse, scene_file, options, step=h, criterion=criterion,
+                                  resonance_order=resonance_order)
+            if data["step"] is None:
+                raise _input_error(f"{scene_file}: no step to check: give --step H or h: in "
+                                   "the scene")
+            outputs.append(data)
+            continue
         problem = _problem(scene_file, options, not as_json)
         data = api.check(h=h, problem=problem, resonance_order=resonance_order,
                          criterion=criterion, verify=verify).to_dict()
@@ -582,6 +621,9 @@ def check_cmd(h, every_mode, resonance_order, criterion, scene_files, as_json, v
         print_json({"safe": not unsafe, "checks": outputs})
     else:
         for data in outputs:
+            if data.get("kind") == "impulse":
+                print_impulse_modes(data, check=True)
+                continue
             print_check(data)
             if "system" in data:
                 print_system(data["system"], every_mode, data.get("time_unit"))

@@ -32,12 +32,15 @@ def _frequency(beta, wavenumber, which: str, unit) -> float:
 
 
 @main.command("respa")
-@click.option("--outer", default="verlet", show_default=True, metavar="METHOD",
-              help="Splitting over the slow force (its kicks) at the outer step H.")
-@click.option("--inner", default="verlet", show_default=True, metavar="METHOD",
-              help="Splitting over the fast force, run SUBSTEPS times per outer drift.")
-@click.option("--substeps", type=INT, default=4, show_default=True, metavar="K",
-              help="Inner steps per outer drift (inner step H/K).")
+@click.argument("method", required=False, metavar="[METHOD]")
+@click.option("--outer", default=None, metavar="METHOD",
+              help="Splitting over the slow force (its kicks) at the outer step H "
+                   "[default: verlet].")
+@click.option("--inner", default=None, metavar="METHOD",
+              help="Splitting over the fast force, run SUBSTEPS times per outer drift "
+                   "[default: verlet].")
+@click.option("--substeps", type=INT, default=None, metavar="K",
+              help="Inner steps per outer drift (inner step H/K) [default: METHOD's, else 4].")
 @click.option("--fast-beta", type=FLOAT, default=None, metavar="B",
               help="Angular frequency of the fast force alone (rad per time unit).")
 @click.option("--slow-beta", type=FLOAT, default=None, metavar="B",
@@ -62,11 +65,14 @@ def _frequency(beta, wavenumber, which: str, unit) -> float:
                    "your frequency ratio (needs matplotlib).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @criterion_option("stability")
-def respa_cmd(outer, inner, substeps, fast_beta, slow_beta, fast_wavenumber, slow_wavenumber,
-              time_unit, step, zmax, resonance_order, plot_file, as_json, criterion) -> None:
+def respa_cmd(method, outer, inner, substeps, fast_beta, slow_beta, fast_wavenumber,
+              slow_wavenumber, time_unit, step, zmax, resonance_order, plot_file, as_json,
+              criterion) -> None:
     """Safe outer steps of an impulse / r-RESPA multiple-time-step integrator.
 
-    The test model is one coordinate with a fast force (frequency Omega alone) and a slow
+    METHOD is an impulse method file (kind: impulse, e.g. respa-verlet) bringing its outer
+    and inner methods and substep count; or give --outer and --inner. The test model is
+    one coordinate with a fast force (frequency Omega alone) and a slow
     one (omega): the outer splitting kicks with the slow force at step H, each of its
     drifts is SUBSTEPS inner steps over the fast force. Impulse methods go unstable in
     bands near Omega H = j pi (half periods of the fast vibration), long before the inner
@@ -79,20 +85,24 @@ def respa_cmd(outer, inner, substeps, fast_beta, slow_beta, fast_wavenumber, slo
     \b
     Examples:
       stepsafe respa --fast-beta 10 --slow-beta 1 --substeps 4
+      stepsafe respa respa-verlet --fast-beta 10 --slow-beta 1
       stepsafe respa --fast-wavenumber 3700 --slow-wavenumber 300 --time-unit fs \\
           --substeps 4 --step 2
     """
     from stepsafe.cli.report import print_json
-    from stepsafe.respa_advice import impulse
+    from stepsafe.respa_advice import impulse, impulse_method
 
+    if method is not None and (outer is not None or inner is not None):
+        raise _input_error(f"give the impulse method {method} or --outer/--inner, not both")
+    impulse_obj = impulse_method(method or outer or "verlet", inner, substeps)
     fast = _frequency(fast_beta, fast_wavenumber, "fast", time_unit)
     slow = _frequency(slow_beta, slow_wavenumber, "slow", time_unit)
-    report = impulse(outer, inner, substeps, fast=fast, slow=slow, step=step,
-                     criterion=criterion, zmax=zmax, time_unit=time_unit,
-                     resonance_order=resonance_order)
+    report = impulse(method or outer or "verlet", inner, impulse_obj.substeps, fast=fast,
+                     slow=slow, step=step, criterion=criterion, zmax=zmax,
+                     time_unit=time_unit, resonance_order=resonance_order)
     data = report.to_dict()
     if plot_file is not None:
-        _chart(outer, inner, substeps, fast, slow, plot_file)
+        draw_chart(impulse_obj, slow / fast if fast > 0 else None, plot_file)
     if as_json:
         print_json(data)
     else:
@@ -140,43 +150,158 @@ def print_respa(data: dict[str, Any]) -> None:
 CHART_PIXELS = 400
 
 
-def _chart(outer: str, inner: str, substeps: int, fast: float, slow: float,
-           output: str) -> None:
-    """The plane (Omega H, omega H): shaded where one outer step is unstable (|tr M| > 2),
-    up to 1.05 times the inner method's own limit in Omega H, with the ray of the ratio."""
+def draw_chart(method: Any, ratio: float | None, output: str) -> None:
+    """The plane (Omega H, omega H) of the impulse method: shaded where one outer step is
+    unstable (|tr M| > 2), up to 1.05 times the inner method's own limit in Omega H, with
+    the ray of the frequency ratio omega / Omega when given."""
     import numpy as np
 
-    from stepsafe import api
     from stepsafe.cli.accuracy import _plot_format, _pyplot, _save
     from stepsafe.core.impulse import stability_chart
-
-    plt = _pyplot()
-    fmt = _plot_format(output, plt)
-    outer_t, inner_t = api.method(outer).tableau, api.method(inner).tableau
-    z_inner = api.region(api.method(inner), "oscillator").regions["oscillator"].first_boundary
-    x_top = 1.05 * substeps * (z_inner or 10.0)
-    y_top = 0.5 * x_top
-    x = np.linspace(x_top / CHART_PIXELS, x_top, CHART_PIXELS)
-    y = np.linspace(y_top / CHART_PIXELS, y_top, CHART_PIXELS)
-    unstable = stability_chart(outer_t, inner_t, substeps, x, y) >= 1.0
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    ax.imshow(unstable, origin="lower", extent=(0, x_top, 0, y_top), aspect="auto",
-              cmap="Greys", vmin=0, vmax=1.6, interpolation="nearest")
-    ray = np.array([0.0, x_top])
-    ax.plot(ray, ray * slow / fast, color="tab:red", lw=1.2, label="your ratio omega/Omega")
     from stepsafe.core.regions import find_region
     from stepsafe.core.resonances import rotations
 
+    plt = _pyplot()
+    fmt = _plot_format(output, plt)
+    k = method.substeps
+    z_inner = find_region(method.inner, "oscillator", 40.0).first_boundary
+    x_top = 1.05 * k * (z_inner or 10.0)
+    y_top = 0.5 * x_top
+    x = np.linspace(x_top / CHART_PIXELS, x_top, CHART_PIXELS)
+    y = np.linspace(y_top / CHART_PIXELS, y_top, CHART_PIXELS)
+    unstable = stability_chart(method, x, y) >= 1.0
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    ax.imshow(unstable, origin="lower", extent=(0, x_top, 0, y_top), aspect="auto",
+              cmap="Greys", vmin=0, vmax=1.6, interpolation="nearest")
+    if ratio is not None:
+        ray = np.array([0.0, x_top])
+        ax.plot(ray, ray * ratio, color="tab:red", lw=1.2, label="your ratio omega/Omega")
+        ax.legend(fontsize=8, loc="upper left")
     # the inner method's half turns: K theta_in(Omega H / K) = j pi
-    inner_region = find_region(inner_t, "oscillator", x_top / substeps)
-    pairs = [(2 * substeps, j) for j in range(1, substeps)]
-    for r in rotations(inner_t, inner_region, pairs):
-        ax.axvline(substeps * r.z, color="tab:blue", lw=0.6, ls=":")
+    inner_region = find_region(method.inner, "oscillator", x_top / k)
+    for r in rotations(method.inner, inner_region, [(2 * k, j) for j in range(1, k)]):
+        ax.axvline(k * r.z, color="tab:blue", lw=0.6, ls=":")
     ax.set_xlim(0, x_top)
     ax.set_ylim(0, y_top)
     ax.set_xlabel("Omega H (fast)  [dotted: K inner steps turn by j pi]")
     ax.set_ylabel("omega H (slow)")
-    ax.set_title(f"{outer}/{inner} x{substeps}: unstable where shaded")
-    ax.legend(fontsize=8, loc="upper left")
+    ax.set_title(f"{method.name} with {k} substeps: unstable where shaded")
     fig.tight_layout()
     _save(fig, output, fmt)
+
+
+#: advise/check options that an impulse method cannot take (its frequencies come in
+#: fast/slow pairs from a scene file).
+_SINGLE_FORCE_OPTIONS = ("beta", "frequency", "wavenumber", "period", "sigma", "saddle_beta",
+                         "inverted_beta", "modes_file", "margin", "zmax", "budget", "verify")
+
+
+def impulse_of(scene_file: str | None, options: dict) -> Any:
+    """The impulse method advise/check were asked about (by --method or the scene's
+    method:), or None for any other method. --substeps is refused for other methods."""
+    from stepsafe import api
+    from stepsafe.systems.scene import load_scene
+
+    name = options["method_name"]
+    if name is None and scene_file is not None:
+        ref = load_scene(scene_file, options["time_unit"]).method
+        name = None if ref is None else ref.name
+    integrator = None
+    if name is not None and options["stages"] is None and options["base"] is None:
+        integrator = api.method(name)
+    if integrator is None or integrator.kind != "impulse":
+        if options.get("substeps") is not None:
+            raise _input_error("--substeps applies to impulse (multiple time stepping) "
+                               "methods only")
+        return None
+    given = [key for key in _SINGLE_FORCE_OPTIONS if options.get(key) not in (None, (), False)]
+    if given:
+        raise _input_error(f"--{given[0].replace('_', '-')} does not apply to the impulse "
+                           f"method {integrator.name}: its modes come as fast: and slow: "
+                           "frequencies in a scene file (or use stepsafe respa for one pair)")
+    if scene_file is None:
+        raise _input_error(f"{integrator.name} is an impulse method: give a scene file whose "
+                           "modes give fast: and slow: frequencies (or use stepsafe respa)")
+    return integrator
+
+
+def impulse_report(integrator: Any, scene_file: str, options: dict, *, step: float | None,
+                   criterion: str, resonance_order: int | None) -> dict[str, Any]:
+    """advise (``step`` None and no scene h) or check of an impulse method on a scene."""
+    from stepsafe.respa_advice import impulse_advice
+
+    return impulse_advice(integrator, scene=scene_file, substeps=options.get("substeps"),
+                          step=step, time_unit=options["time_unit"], criterion=criterion,
+                          resonance_order=resonance_order,
+                          use_scene_step=step is None).to_dict()
+
+
+def print_impulse_modes(data: dict[str, Any], check: bool) -> None:
+    """The text form of :meth:`stepsafe.respa_advice.ImpulseModesReport.to_dict`."""
+    from stepsafe.cli.report import fmt, fmt_below
+
+    unit = data["time_unit"]
+    u = f" {unit}" if unit else ""
+    per = f"rad/{unit}" if unit else "rad per time unit"
+    modes = data["modes"]
+    click.echo(f"{data['method']} with {data['substeps']} substep(s) per outer drift, "
+               f"{len(modes)} mode(s) (criterion: {data['criterion']})")
+    if not check or data["safe"] is None:
+        if data["h_max"]:
+            lim = modes[data["limiting_mode"]]
+            name = lim["label"] or f"mode {data['limiting_mode']}"
+            click.echo(f"Safe outer steps: 0 < H < {fmt_below(data['h_max'])}{u}, limited by "
+                       f"{name} (fast {fmt(lim['fast'])}, slow {fmt(lim['slow'])} {per}; "
+                       f"Omega H / pi = {lim['fast'] * data['h_max'] / 3.141592653589793:.4g})")
+        else:
+            click.echo("No safe outer step from 0.")
+        for lo, hi in data["safe_h"][1:]:
+            end = "the horizon" if hi is None else f"{fmt(hi)}{u}"
+            click.echo(f"  also safe: {fmt(lo)}{u} < H < {end}")
+        if data["horizon"] is not None:
+            click.echo(f"Outer steps above {fmt(data['horizon'])}{u} were not analysed.")
+    click.echo(f"  {'mode':<18} {'fast':>10} {'slow':>10}  {'H max':>10}  first band "
+               f"(frequencies in {per}, H in {unit or 'time units'})")
+    for i, mode in enumerate(modes):
+        band = mode["bands"][0] if mode["bands"] else None
+        first = "-"
+        if band is not None:
+            end = "the horizon" if band["hi"] is None else f"{band['hi']:.6g}"
+            first = f"{band['lo']:.6g} to {end} ({band['kind']})"
+        hmax = "none" if mode["h_max"] is None else f"{mode['h_max']:.6g}"
+        click.echo(f"  {(mode['label'] or f'mode {i}')[:18]:<18} {mode['fast']:>10.6g} "
+                   f"{mode['slow']:>10.6g}  {hmax:>10}  {first}")
+    if data["step"] is not None:
+        if data["safe"]:
+            click.echo(f"SAFE: H = {fmt(data['step'])}{u} for every mode")
+        else:
+            click.echo(f"UNSAFE: H = {fmt(data['step'])}{u}")
+            for failure in data["failures"]:
+                name = failure["label"] or f"mode {failure['mode']}"
+                click.echo(f"  {name}: {failure['reason']}")
+
+
+def impulse_region(integrator: Any, ratio: float | None, substeps: int | None,
+                   zmax: float | None, criterion: str, as_json: bool, other: bool) -> None:
+    """``stepsafe region`` of an impulse method at the frequency ratio ``ratio``."""
+    from stepsafe.cli.report import print_json
+    from stepsafe.respa_advice import impulse
+
+    if integrator.kind != "impulse":
+        raise _input_error(f"--ratio and --substeps apply to impulse methods; "
+                           f"{integrator.name} is a {integrator.kind} method")
+    if other:
+        raise _input_error("--model and --verify do not apply to impulse methods (their test "
+                           "model is the oscillator with a fast and a slow force)")
+    if ratio is None:
+        raise _input_error(f"{integrator.name} is an impulse method: give the frequency ratio "
+                           "--ratio omega/Omega (slow over fast), e.g. --ratio 0.1")
+    report = impulse(integrator, None, substeps, fast=1.0, slow=ratio, criterion=criterion,
+                     zmax=None if zmax is None else zmax * (1.0 + ratio * ratio) ** 0.5)
+    data = {**report.to_dict(), "ratio": ratio, "units": "Omega H (fast frequency 1)"}
+    if as_json:
+        print_json(data)
+    else:
+        click.echo(f"Steps are Omega H, the outer step in units of 1/Omega (ratio omega/Omega "
+                   f"= {ratio:g}).")
+        print_respa(data)

@@ -4,7 +4,7 @@ A method file is a YAML mapping (read by :mod:`stepsafe.files.yamlio`, all scala
 
     name: pefrl                      # CLI name
     title: "Position-extended Forest-Ruth-like"
-    kind: splitting                  # rk | prk | splitting | composition
+    kind: splitting                  # rk | prk | splitting | composition | impulse
     order: 4
     evaluations: 4                   # force evaluations per step, first-same-as-last merged
     source: "Omelyan, Mryglod, Folk, Comput. Phys. Commun. 146 (2002) 188, eq. (20)"
@@ -17,7 +17,8 @@ A method file is a YAML mapping (read by :mod:`stepsafe.files.yamlio`, all scala
 Coefficient fields by kind: ``rk``: ``A``, ``b``, optional ``c``; ``prk``: ``A_q``,
 ``b_q``, ``A_p``, ``b_p``; ``splitting``: ``drift``, ``kick``; ``composition``: ``base``
 (a method name, or ``{name:, stages:}``) and either ``weights`` or ``recipe``
-(``triple-jump`` | ``suzuki``). Coefficients are numbers or expressions
+(``triple-jump`` | ``suzuki``); ``impulse`` (multiple time stepping): ``outer`` and ``inner``
+(splitting methods, each a name or a path) and ``substeps``. Coefficients are numbers or expressions
 (:mod:`stepsafe.files.expressions`). With ``symmetric: true`` the listed operation sequence
 (``drift a_1, kick b_1, drift a_2, ...``, or the weights) is the first half including the
 middle operation; the rest is its mirror image.
@@ -45,7 +46,7 @@ from stepsafe.files.expressions import (
     parse,
 )
 
-KINDS = ("rk", "prk", "splitting", "composition")
+KINDS = ("rk", "prk", "splitting", "composition", "impulse")
 MAX_STAGES = 200
 MAX_WEIGHTS = 200
 #: RK and PRK tableaux: each sample of M(z) solves a 2s x 2s stage system, so the cost grows
@@ -90,6 +91,12 @@ FIELDS: dict[str, Field] = {
                      kinds=("composition",)),
     "recipe": Field("enum", "build the weights from the base's order instead",
                     kinds=("composition",), choices=("triple-jump", "suzuki")),
+    "outer": Field("ref", "splitting over the slow force at the outer step H: a name or path",
+                   kinds=("impulse",), required=True),
+    "inner": Field("ref", "splitting over the fast force, run substeps times per outer drift",
+                   kinds=("impulse",), required=True),
+    "substeps": Field("int", "inner steps per outer drift (commands may override it)",
+                      kinds=("impulse",), required=True),
     "published_stability": Field("map", "a stability threshold stated by a source "
                                         "({value:, source:})"),
     "notes": Field("text", "free text"),
@@ -308,6 +315,13 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
     base = tree.get("base")
     if kind == "composition":
         base = _base_ref(base, where)
+    extras: dict[str, Any] = {}
+    if kind == "impulse":
+        from stepsafe.methods.tableaux import MAX_SUBSTEPS
+
+        extras = {"outer": _base_ref(tree["outer"], where, "outer"),
+                  "inner": _base_ref(tree["inner"], where, "inner"),
+                  "substeps": _int(tree["substeps"], where, "substeps", 1, MAX_SUBSTEPS)}
     stability = tree.get("published_stability")
     if stability is not None:
         if not isinstance(stability, dict) or "value" not in stability:
@@ -322,7 +336,7 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
         order=_int(tree["order"], where, "order", 0, 100), evaluations=evaluations,
         source=_text(tree["source"], where, "source"), aliases=tuple(aliases),
         coefficients=coefficients, base=base,
-        recipe=tree.get("recipe"), published_stability=stability, where=where)
+        recipe=tree.get("recipe"), published_stability=stability, where=where, extras=extras)
 
 
 def _check_shapes(kind: str, co: dict[str, Any], where: str, symmetric: bool) -> None:
@@ -350,19 +364,19 @@ def _check_shapes(kind: str, co: dict[str, Any], where: str, symmetric: bool) ->
                                         "or one more")
 
 
-def _base_ref(base: Any, where: str) -> Any:
+def _base_ref(base: Any, where: str, key: str = "base") -> Any:
     if isinstance(base, str) and base:
         return base
     if isinstance(base, dict) and isinstance(base.get("name"), str):
         unknown = set(base) - {"name", "stages"}
         if unknown:
-            raise _fail(where, f"base.{sorted(unknown)[0]}",
+            raise _fail(where, f"{key}.{sorted(unknown)[0]}",
                         unknown_key(sorted(unknown)[0], ("name", "stages")))
         out = {"name": base["name"]}
         if "stages" in base:
-            out["stages"] = _int(base["stages"], where, "base.stages", 1, 1000)
+            out["stages"] = _int(base["stages"], where, f"{key}.stages", 1, 1000)
         return out
-    raise _fail(where, "base", "must be a method name or {name:, stages:}")
+    raise _fail(where, key, "must be a method name or {name:, stages:}")
 
 
 def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
@@ -381,6 +395,9 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
         return m.PartitionedRK(co["A_q"], co["b_q"], co["A_p"], co["b_p"], **common)
     if data.kind == "splitting":
         return m.Splitting(co["drift"], co["kick"], **common)
+    if data.kind == "impulse":
+        return m.Impulse(resolve_base(data.extras["outer"]), resolve_base(data.extras["inner"]),
+                         data.extras["substeps"], **common)
     base = resolve_base(data.base)
     if data.recipe:
         from stepsafe.methods.families import RECIPES

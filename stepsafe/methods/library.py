@@ -64,9 +64,25 @@ def _alias_index() -> dict[str, Path]:
     return index
 
 
-def builtin_names() -> list[str]:
-    """Names of the built-in method files and families."""
-    return sorted([p.stem for p in builtin_dir().glob("*.yaml")] + list(FAMILIES))
+def builtin_names(single_force: bool = False) -> list[str]:
+    """Names of the built-in method files and families; with ``single_force`` without the
+    impulse (multiple time stepping) methods, which need a fast and a slow force."""
+    files = [p.stem for p in builtin_dir().glob("*.yaml")]
+    if single_force:
+        files = [name for name in files if _file_kinds().get(name) != "impulse"]
+    return sorted(files + list(FAMILIES))
+
+
+@lru_cache(maxsize=1)
+def _file_kinds() -> dict[str, str]:
+    """The ``kind:`` of every built-in file, by name."""
+    from stepsafe.files.yamlio import load_yaml
+
+    kinds = {}
+    for path in builtin_dir().glob("*.yaml"):
+        tree = load_yaml(path)
+        kinds[path.stem] = str(tree.get("kind")) if isinstance(tree, dict) else ""
+    return kinds
 
 
 def _looks_like_path(name: str) -> bool:

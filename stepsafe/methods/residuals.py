@@ -4,7 +4,8 @@
 * PRK: ``B_q A_p + A_q^T B_p - b_q b_p^T = 0`` makes the method symplectic for separable
   Hamiltonians ``T(p) + V(q)`` (the ``oscillator`` and ``inverted`` models); a general H
   (the ``saddle`` model) also needs ``b_q = b_p`` (Hairer–Lubich–Wanner, Thm VI.4.6).
-* Splitting methods are symplectic by construction; compositions inherit from the base.
+* Splitting methods are symplectic by construction; compositions inherit from the base,
+  impulse methods from their outer and inner splittings.
 * Consistency (order >= 1): ``sum(b) = 1`` (RK, PRK), ``sum(drift) = sum(kick) = 1``
   (splitting), ``sum(weights) = 1`` (composition; the base consistent too).
 
@@ -21,6 +22,7 @@ import numpy as np
 from stepsafe.methods.tableaux import (
     RESIDUAL_TOL,
     Composition,
+    Impulse,
     Method,
     PartitionedRK,
     RungeKutta,
@@ -58,13 +60,17 @@ class Residuals(NamedTuple):
         return self.symplectic if model == "saddle" else self.symplectic_for_separable
 
 
-def residuals(method: Method) -> Residuals:
+def residuals(method: Method | Impulse) -> Residuals:
     """Compute the :class:`Residuals` of ``method`` from its coefficients."""
     if isinstance(method, Composition):
         base = residuals(method.base)
         cons = max(base.consistency, abs(float(method.weights.sum()) - 1.0))
         mag = max(base.magnitude, float(np.abs(method.weights).max()))
         return Residuals(base.symplectic_separable, base.weights_equal, cons, None, mag)
+    if isinstance(method, Impulse):  # every force's kicks and the drifts sum to 1 iff both do
+        outer, inner = residuals(method.outer), residuals(method.inner)
+        return Residuals(0.0, 0.0, max(outer.consistency, inner.consistency), None,
+                         max(outer.magnitude, inner.magnitude))
     if isinstance(method, Splitting):
         cons = max(abs(float(method.drift.sum()) - 1.0), abs(float(method.kick.sum()) - 1.0))
         mag = float(max(np.abs(method.drift).max(), np.abs(method.kick).max()))

@@ -1,4 +1,5 @@
-"""One-step methods as data: Runge–Kutta, partitioned RK, splitting and composition.
+"""One-step methods as data: Runge–Kutta, partitioned RK, splitting, composition and
+impulse (multiple time stepping).
 
 Conventions (DESIGN §5). Phase space is ``x = (q, p)``; a partitioned method integrates
 ``q' = f(q, p)`` with the tableau ``(A_q, b_q)`` and ``p' = g(q, p)`` with ``(A_p, b_p)``::
@@ -335,3 +336,101 @@ def splitting_from_operations(ops: list[tuple[str, float]], **fields: Any) -> Sp
                 drift.append(0.0)
             kick.append(coef)
     return Splitting(drift or [0.0], kick or [0.0], **fields)
+
+
+#: Inner steps per outer drift an impulse method may take.
+MAX_SUBSTEPS = 1000
+
+
+def splitting_operations(method: Any, role: str) -> list[tuple[str, float]]:
+    """The drift/kick operations of a splitting method or of a composition of one;
+    a :class:`~stepsafe.exceptions.MethodError` naming ``role`` for any other method."""
+    if isinstance(method, Composition) and isinstance(method.flattened().base, Splitting):
+        method = method.as_splitting()
+    if not isinstance(method, Splitting):
+        kind = getattr(method, "kind", type(method).__name__)
+        raise MethodError(f"the {role} method of an impulse (r-RESPA) integrator must be a "
+                          f"splitting (drift/kick) method; {getattr(method, 'name', '?')} is "
+                          f"a {kind} method")
+    return method.operations
+
+
+@dataclass(frozen=True, eq=False)
+class Impulse:
+    """Impulse / r-RESPA multiple time stepping for ``H = T(p) + V_fast(q) + V_slow(q)``.
+
+    One outer step H applies the ``outer`` splitting with its kicks by the slow force only;
+    each of its drifts ``drift(a H)`` becomes ``substeps`` steps of the ``inner`` splitting
+    of size ``a H / substeps`` over ``T + V_fast`` (Tuckerman, Berne & Martyna, J. Chem.
+    Phys. 97 (1992) 1990). Outer and inner Verlet make r-RESPA / Verlet-I:
+    ``K_slow(H/2) [K_fast(h/2) D(h) K_fast(h/2)]^k K_slow(H/2)``, ``h = H/k``.
+    """
+
+    outer: Any
+    inner: Any
+    substeps: int
+    name: str = "impulse"
+    order: int | None = None
+    evaluations: int | None = None
+    title: str = ""
+    exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
+
+    kind = "impulse"
+
+    def __post_init__(self) -> None:
+        splitting_operations(self.outer, "outer")
+        splitting_operations(self.inner, "inner")
+        if isinstance(self.substeps, bool) or not isinstance(self.substeps, (int, np.integer)) \
+                or not 1 <= self.substeps <= MAX_SUBSTEPS:
+            raise MethodError(f"substeps must be an integer from 1 to {MAX_SUBSTEPS}, got "
+                              f"{self.substeps!r}")
+        object.__setattr__(self, "substeps", int(self.substeps))
+
+    def with_substeps(self, substeps: int | None) -> Impulse:
+        """The same method with another substep count (None: unchanged)."""
+        if substeps is None or substeps == self.substeps:
+            return self
+        return Impulse(self.outer, self.inner, substeps, name=self.name, order=self.order,
+                       title=self.title)
+
+    @property
+    def operations(self) -> list[tuple[str, float, bool]]:
+        """One outer step (H = 1) as ``(kind, coefficient, fast)``: ``fast`` tells a kick by
+        the fast force from one by the slow force (drifts have ``fast`` True)."""
+        inner_ops = splitting_operations(self.inner, "inner")
+        ops: list[tuple[str, float, bool]] = []
+        for kind, coef in splitting_operations(self.outer, "outer"):
+            if kind == "kick":
+                ops.append(("kick", coef, False))
+                continue
+            for _ in range(self.substeps):
+                ops += [(k, c * coef / self.substeps, True) for k, c in inner_ops]
+        return ops
+
+    @property
+    def stages(self) -> int:
+        """Kicks in one outer step, fast and slow (before first-same-as-last merging)."""
+        return sum(1 for kind, _, _ in self.operations if kind == "kick")
+
+    @property
+    def force_evaluations(self) -> tuple[int, int]:
+        """``(fast, slow)`` force evaluations per outer step as run: a kick that follows
+        another kick of the same force with no drift between (the end of one step and the
+        start of the next included) reuses its force."""
+        ops = self.operations
+        counts = {True: 0, False: 0}
+        for i, (kind, _, fast) in enumerate(ops):
+            if kind != "kick":
+                continue
+            j = i - 1
+            while ops[j % len(ops)][0] == "kick" and (j % len(ops)) != i:
+                if ops[j % len(ops)][2] == fast:
+                    break
+                j -= 1
+            else:
+                counts[fast] += 1
+        return counts[True], counts[False]
+
+    @property
+    def explicit(self) -> bool:
+        return True

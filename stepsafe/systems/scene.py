@@ -12,6 +12,19 @@ A scene file::
 
 ``system:`` describes a whole system instead (see :mod:`stepsafe.systems.loader`).
 
+For an impulse (multiple time stepping) method each mode gives the frequency of its fast
+and of its slow force (a number in rad per time unit, or a text with a unit:
+``3700 cm-1``, ``100 THz``, ``9 fs``), and ``substeps:`` may override the method's::
+
+    method: respa-verlet
+    time_unit: fs
+    substeps: 4
+    modes:
+      - {fast: 3700 cm-1, slow: 300 cm-1, label: O-H stretch}
+
+``system: {stiffness_fast:, stiffness_slow:, mass:}`` splits a stiffness into the two
+forces instead (see :mod:`stepsafe.systems.multiple`).
+
 A modes file (``--modes FILE``) is YAML (a list of ``{beta:, model:}``, or a mapping with
 ``modes:``) or CSV with a header row naming the columns ``beta`` and optionally ``model``
 (default ``oscillator``) and ``label`` (names the mode in verdicts; may be empty). CSV
@@ -35,9 +48,11 @@ from stepsafe.exceptions import StepsafeError, unknown_key
 from stepsafe.files.yamlio import QuotedText, load_yaml, read_bytes
 from stepsafe.units import FORMS, TIME_UNITS, quantity
 
-SCENE_KEYS = ("method", "h", "time_unit", "margin", "zmax", "modes", "system")
+SCENE_KEYS = ("method", "h", "time_unit", "margin", "zmax", "modes", "system", "substeps")
 MAX_CSV_BYTES = 256 << 20
 MAX_CSV_ROWS = 10_000_000  # rows of a modes CSV, counted (newlines) before parsing
+#: Modes of an impulse scene: each (fast, slow) pair is a region of its own.
+MAX_IMPULSE_MODES = 200
 
 
 @dataclass
@@ -59,6 +74,10 @@ class Scene:
     labels: dict[str, tuple[str | None, ...]] = field(default_factory=dict)  # per model,
     # in the order of modes[model]: the modes' label: (None where a mode has none)
     time_unit: str | None = None  # the unit of h (and of the modes' beta: rad per unit)
+    #: impulse methods: (fast, slow) angular frequencies per mode, rows in file order
+    pairs: np.ndarray | None = None
+    pair_labels: tuple[str | None, ...] = ()
+    substeps: int | None = None
 
     @property
     def folder(self) -> Path:
@@ -87,10 +106,18 @@ def json_schema() -> dict[str, Any]:
             "margin": {"type": "number", "exclusiveMinimum": 0, "maximum": 1,
                        "description": "frequencies may be up to 1/margin times larger"},
             "zmax": {**positive, "description": "analyse z = beta*h up to zmax (default 10)"},
+            "substeps": {"type": "integer", "minimum": 1,
+                         "description": "inner steps per outer drift (impulse methods)"},
             "modes": {"type": "array", "minItems": 1, "items": {
                 "type": "object", "additionalProperties": False,
-                "oneOf": [{"required": [form]} for form in FORMS],
+                "oneOf": [{"required": [form]} for form in FORMS]
+                + [{"required": ["fast", "slow"]}],
                 "properties": {
+                    "fast": {"type": ["number", "string"],
+                             "description": "impulse methods: the fast force's frequency, "
+                                            "rad per time unit or with a unit ('3700 cm-1')"},
+                    "slow": {"type": ["number", "string"],
+                             "description": "impulse methods: the slow force's frequency"},
                     "beta": {"type": "number", "minimum": 0,
                              "description": "angular frequency, rad per time unit"},
                     "frequency": {"type": ["number", "string"],
@@ -276,9 +303,58 @@ def load_scene(path: str | Path, time_unit: str | None = None) -> Scene:
             raise _fail(where, "time_unit", f"is {unit}, but --time-unit {time_unit} was "
                                             "given (h and the modes are in the file's unit)")
         scene.time_unit = unit
+    if "substeps" in tree:
+        value = number(tree["substeps"], where, "substeps")
+        if value != int(value) or not 1 <= value <= 1000:
+            raise _fail(where, "substeps", f"must be a whole number from 1 to 1000, got "
+                                           f"{tree['substeps']}")
+        scene.substeps = int(value)
     if "modes" in tree:
-        scene.modes, scene.labels = _modes_list(tree["modes"], where, "modes", scene.time_unit)
+        items = tree["modes"]
+        if isinstance(items, list) and any(isinstance(i, dict) and ("fast" in i or "slow" in i)
+                                           for i in items):
+            scene.pairs, scene.pair_labels = _pairs_list(items, where, scene.time_unit)
+        else:
+            scene.modes, scene.labels = _modes_list(items, where, "modes", scene.time_unit)
     return scene
+
+
+def _pairs_list(items: list, where: str, time_unit: str | None
+                ) -> tuple[np.ndarray, tuple[str | None, ...]]:
+    """The (fast, slow) angular frequencies of an impulse scene's modes, and their labels."""
+    from stepsafe.units import any_frequency
+
+    keys = ("fast", "slow", "label")
+    pairs, labels = [], []
+    for i, item in enumerate(items):
+        if not isinstance(item, dict) or "fast" not in item or "slow" not in item:
+            raise _fail(where, f"modes[{i}]", "every mode of an impulse scene gives fast: and "
+                                              "slow: (write slow: 0 for a fast force alone)")
+        unknown = set(item) - set(keys)
+        if unknown:
+            raise _fail(where, f"modes[{i}].{sorted(unknown)[0]}",
+                        unknown_key(sorted(unknown)[0], keys))
+        pair = []
+        for key in ("fast", "slow"):
+            value = item[key]
+            if isinstance(value, QuotedText) and parse_real(value) is not None or \
+                    not isinstance(value, str):
+                value = number(value, where, f"modes[{i}].{key}")
+            try:
+                pair.append(any_frequency(value, time_unit))
+            except StepsafeError as exc:
+                raise _fail(where, f"modes[{i}].{key}", exc.message) from None
+        if pair[0] == pair[1] == 0:
+            raise _fail(where, f"modes[{i}]", "fast and slow are both 0")
+        label = item.get("label")
+        if label is not None and not isinstance(label, str):
+            raise _fail(where, f"modes[{i}].label", f"must be text, got {label!r}")
+        pairs.append(pair)
+        labels.append(label)
+    if len(pairs) > MAX_IMPULSE_MODES:
+        raise _fail(where, "modes", f"{len(pairs)} modes; an impulse scene takes at most "
+                                    f"{MAX_IMPULSE_MODES} (each is its own region)")
+    return np.array(pairs, dtype=float), tuple(labels)
 
 
 @dataclass(frozen=True)
