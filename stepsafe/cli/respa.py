@@ -202,13 +202,18 @@ def impulse_of(scene_file: str | None, options: dict) -> Any:
     from stepsafe import api
     from stepsafe.systems.scene import load_scene
 
+    from stepsafe.exceptions import StepsafeError
+
     name = options["method_name"]
     if name is None and scene_file is not None:
         ref = load_scene(scene_file, options["time_unit"]).method
-        name = None if ref is None else ref.name
+        name = None if ref is None or ref.stages or ref.base else ref.name
     integrator = None
     if name is not None and options["stages"] is None and options["base"] is None:
-        integrator = api.method(name)
+        try:
+            integrator = api.method(name)
+        except StepsafeError:
+            integrator = None  # the analysis of any other method reports it in context
     if integrator is None or integrator.kind != "impulse":
         if options.get("substeps") is not None:
             raise _input_error("--substeps applies to impulse (multiple time stepping) "

@@ -236,8 +236,19 @@ def compare_row(res, explicit: bool) -> dict[str, Any]:
 
 def coefficients(method) -> dict[str, Any]:
     """The coefficient arrays of a method (``show --json``)."""
-    from stepsafe.methods.tableaux import Composition, PartitionedRK, RungeKutta, Splitting
+    from stepsafe.methods.tableaux import (
+        Composition,
+        Impulse,
+        PartitionedRK,
+        RungeKutta,
+        Splitting,
+    )
 
+    if isinstance(method, Impulse):
+        fast, slow = method.force_evaluations
+        return {"outer": method.outer.name, "inner": method.inner.name,
+                "substeps": method.substeps,
+                "force_evaluations_per_outer_step": {"fast": fast, "slow": slow}}
     if isinstance(method, RungeKutta):
         return {"A": method.A.tolist(), "b": method.b.tolist(), "c": method.c.tolist()}
     if isinstance(method, PartitionedRK):

@@ -198,10 +198,13 @@ def is_symmetric(method: Method, tol: float = 1e-12) -> bool:
 
     RK: ``a_ij + a_{s+1-i, s+1-j} = b_j`` and ``b`` palindromic (after the standard
     stage reversal). Splitting: the merged drift/kick sequence is a palindrome.
-    Composition: palindromic weights over a symmetric base.
+    Composition: palindromic weights over a symmetric base. Impulse: symmetric outer and
+    inner splittings (each outer drift is then K steps of a symmetric map).
     """
-    from stepsafe.methods.tableaux import Splitting
+    from stepsafe.methods.tableaux import Impulse, Splitting
 
+    if isinstance(method, Impulse):
+        return is_symmetric(method.outer, tol) and is_symmetric(method.inner, tol)
     if isinstance(method, Composition):
         w = method.weights
         return bool(np.allclose(w, w[::-1], rtol=0, atol=tol)) and is_symmetric(method.base, tol)

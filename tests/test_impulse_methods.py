@@ -1,0 +1,319 @@
+"""Impulse (r-RESPA) method files, scenes with fast and slow frequencies, split stiffness
+matrices: checked against an independent 50-digit product of the kicks and drifts in
+(q, p), against real r-RESPA integrations, and for their errors on bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import mpmath as mp
+import numpy as np
+import pytest
+
+from stepsafe.exceptions import StepsafeError
+from stepsafe.respa_advice import impulse, impulse_advice
+
+
+def _respa_mp(fast, slow, k, H):
+    """K_slow(H/2) [K_fast(h/2) D(h) K_fast(h/2)]^k K_slow(H/2), h = H/k, in (q, p)."""
+    F, S, H = mp.mpf(fast) ** 2, mp.mpf(slow) ** 2, mp.mpf(H)
+
+    def kick(c):
+        return mp.matrix([[1, 0], [-c, 1]])
+
+    def drift(c):
+        return mp.matrix([[1, c], [0, 1]])
+
+    h = H / k
+    inner = kick(F * h / 2) * drift(h) * kick(F * h / 2)
+    return kick(S * H / 2) * inner ** k * kick(S * H / 2)
+
+
+def _stable(fast, slow, k, H) -> bool:
+    with mp.workdps(50):
+        M = _respa_mp(fast, slow, k, H)
+        return bool(abs(M[0, 0] + M[1, 1]) < 2)
+
+
+def _respa_run(q, p, H, steps, k, fast_force, slow_force):
+    """Velocity Verlet r-RESPA on arrays (independent of stepsafe): the forces are
+    callables of q; unit masses (the caller works in mass-weighted coordinates)."""
+    h = H / k
+    f_slow, f_fast = slow_force(q), fast_force(q)
+    for _ in range(steps):
+        p = p + 0.5 * H * f_slow
+        for _ in range(k):
+            p = p + 0.5 * h * f_fast
+            q = q + h * p
+            f_fast = fast_force(q)
+            p = p + 0.5 * h * f_fast
+        f_slow = slow_force(q)
+        p = p + 0.5 * H * f_slow
+    return q, p
+
+
+# ---------------------------------------------------------------- the method file
+
+
+def test_the_file_is_verlet_over_verlet_with_its_substeps():
+    from stepsafe import method
+
+    m = method("respa-verlet")
+    assert (m.kind, m.order, m.tableau.substeps) == ("impulse", 2, 4)
+    assert m.tableau.force_evaluations == (4, 1)
+    for k in (4, 7):
+        by_file = impulse("respa-verlet", substeps=k, fast=10.0, slow=1.0)
+        by_parts = impulse("verlet", "verlet", k, fast=10.0, slow=1.0)
+        assert by_file.safe_h == by_parts.safe_h and by_file.substeps == k
+    assert method("verlet-i").name == "respa-verlet"
+
+
+def test_force_evaluations_count_reused_forces():
+    from stepsafe import method
+    from stepsafe.core.impulse import impulse_method
+
+    verlet, pefrl = method("verlet").tableau, method("pefrl").tableau
+    assert impulse_method(verlet, verlet, 1).force_evaluations == (1, 1)
+    # PEFRL starts and ends with a drift: 4 fresh fast forces per inner step
+    assert impulse_method(verlet, pefrl, 2).force_evaluations == (8, 1)
+    # outer PEFRL: each of its 4 slow kicks follows a drift
+    assert impulse_method(pefrl, verlet, 3).force_evaluations == (15, 4)
+
+
+def test_order_two_measured_on_a_split_pendulum():
+    """H = p^2/2 - a cos q - b cos q, fast a = 25, slow b = 1: the error at t = 2 falls
+    like H^2 (the file's order), against an independent adaptive reference."""
+    from scipy.integrate import solve_ivp
+
+    a, b, k, T = 25.0, 1.0, 4, 2.0
+    ref = solve_ivp(lambda t, y: [y[1], -(a + b) * math.sin(y[0])], (0, T), [1.0, 0.0],
+                    method="DOP853", rtol=1e-13, atol=1e-13).y[:, -1]
+    errors = []
+    for n in (40, 80, 160, 320):
+        q, p = _respa_run(np.array([1.0]), np.array([0.0]), T / n, n, k,
+                          lambda q: -a * np.sin(q), lambda q: -b * np.sin(q))
+        errors.append(math.hypot(q[0] - ref[0], p[0] - ref[1]))
+    orders = [math.log2(e1 / e2) for e1, e2 in zip(errors, errors[1:])]
+    assert all(abs(o - 2.0) < 0.15 for o in orders[1:]), orders
+
+
+def test_other_analyses_refuse_an_impulse_method(run):
+    import stepsafe
+
+    for call in (lambda: stepsafe.advise("respa-verlet", frequencies=[1.0]),
+                 lambda: stepsafe.region("respa-verlet"),
+                 lambda: stepsafe.compare(["verlet", "respa-verlet"], frequencies=[1.0],
+                                          tol_phase=1e-3)):
+        with pytest.raises(StepsafeError, match="impulse"):
+            call()
+    for args in (("advise", "--method", "respa-verlet", "--beta", "1"),
+                 ("compare", "verlet", "respa-verlet", "--beta", "1", "--tol-phase", "1e-3"),
+                 ("region", "respa-verlet"), ("region", "verlet", "--ratio", "0.1"),
+                 ("advise", "--method", "verlet", "--beta", "1", "--substeps", "3")):
+        code, _, err = run(*args)
+        assert code == 2 and err.count("\n") == 1, (args, err)
+    code, out, err = run("compare", "--beta", "1", "--tol-phase", "1e-3")
+    assert code == 0 and "respa" not in out, err
+
+
+# ---------------------------------------------------------------- several modes
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_modes_together_at_50_digits(seed):
+    """H is reported safe exactly where every mode's outer step is stable (|tr M| < 2,
+    50-digit products), away from the boundaries' rounding."""
+    rng = np.random.default_rng(seed)
+    k = int(rng.integers(2, 7))
+    pairs = [(float(10 ** rng.uniform(-1, 1)), float(10 ** rng.uniform(-2, 0)))
+             for _ in range(int(rng.integers(1, 4)))]
+    report = impulse_advice("respa-verlet", pairs, substeps=k, criterion="stability")
+    ends = [x for iv in report.safe_h for x in iv if x is not None]
+    for H in np.linspace(0, report.horizon, 400)[1:-1]:
+        if any(abs(H - e) < 1e-8 * e for e in ends):
+            continue
+        inside = any(lo < H < (report.horizon if hi is None else hi)
+                     for lo, hi in report.safe_h)
+        assert inside == all(_stable(f, s, k, H) for f, s in pairs), (pairs, k, H)
+    assert report.h_max == min(r.h_max for r in report.modes)
+    assert report.modes[report.limiting].h_max == report.h_max
+
+
+def test_a_step_is_checked_in_every_mode():
+    pairs = [(10.0, 1.0), (4.0, 2.0)]
+    ok = impulse_advice("respa-verlet", pairs, labels=["a", "b"], step=0.25)
+    assert ok.safe is True and not ok.failures
+    bad = impulse_advice("respa-verlet", pairs, labels=["a", "b"], step=0.304)
+    assert bad.safe is False and [f["label"] for f in bad.failures] == ["a"]
+    data = bad.to_dict()
+    assert data["failures"][0]["reason"] and data["kind"] == "impulse"
+
+
+# ---------------------------------------------------------------- scenes
+
+
+WATER = """\
+method: respa-verlet
+time_unit: fs
+substeps: 4
+modes:
+  - {fast: 3700 cm-1, slow: 300 cm-1, label: O-H stretch}
+  - {fast: 1600 cm-1, slow: "300 cm-1", label: bend}
+  - {fast: 0, slow: 60 cm-1}
+"""
+
+
+def test_a_scene_with_fast_and_slow_frequencies(tmp_path, run):
+    from stepsafe.units import quantity
+
+    scene = tmp_path / "water.yaml"
+    scene.write_text(WATER)
+    report = impulse_advice(scene=str(scene))
+    oh = impulse("respa-verlet", fast=quantity("3700", "wavenumber", "fs"),
+                 slow=quantity("300", "wavenumber", "fs"))
+    assert report.h_max == oh.h_max and report.limiting == 0
+    assert report.modes[2].fast == 0 and report.time_unit == "fs"
+    code, out, err = run("advise", str(scene), "--json")
+    assert code == 0, err
+    data = json.loads(out)
+    assert data["h_max"] == report.h_max and data["modes"][0]["label"] == "O-H stretch"
+    code, out, _ = run("advise", str(scene))
+    assert "limited by O-H stretch" in out and " fs" in out
+    code, out, _ = run("check", str(scene), "--step", "2")
+    assert code == 0 and "SAFE: H = 2 fs" in out
+    code, out, _ = run("check", str(scene), "--step", "5")
+    assert code == 1 and "UNSAFE" in out and "O-H stretch" in out
+    code, out, _ = run("check", str(scene), "--step", "3.5", "--resonance-order", "3")
+    assert code == 1 and "3:1" in out
+    code, out, _ = run("check", str(scene), "--step", "5", "--substeps", "1")
+    assert code == 1
+    eight = impulse_advice(scene=str(scene), substeps=8)
+    assert eight.substeps == 8 and eight.h_max != report.h_max
+
+
+@pytest.mark.parametrize("text, key", [
+    ("modes:\n  - {fast: 1, label: a}\n", "modes[0]"),
+    ("modes:\n  - {fast: 1, slow: 1, model: inverted}\n", "modes[0].model"),
+    ("modes:\n  - {fast: 0, slow: 0}\n", "modes[0]"),
+    ("modes:\n  - {fast: -1, slow: 1}\n", "modes[0].fast"),
+    ("modes:\n  - {fast: 1e400, slow: 1}\n", "modes[0].fast"),
+    ("modes:\n  - {fast: 3700 cm-1, slow: 1}\n", "modes[0].fast"),  # no time unit
+    ("modes:\n  - {fast: 1 furlong, slow: 1}\n", "modes[0].fast"),
+    ("modes:\n  - {fast: 1, slow: 1, label: [x]}\n", "modes[0].label"),
+    ("substeps: 0\nmodes:\n  - {fast: 1, slow: 1}\n", "substeps"),
+    ("substeps: 2.5\nmodes:\n  - {fast: 1, slow: 1}\n", "substeps"),
+    ("system: {stiffness_fast: [[1]], stiffnes_slow: [[1]]}\n", "system.stiffnes_slow"),
+    ("system: {stiffness_fast: [[1]]}\n", "system.stiffness_slow"),
+    ("system: {stiffness_fast: [[1, 0], [0, 2]], stiffness_slow: [[1]]}\n",
+     "system.stiffness_slow"),
+    ("system: {stiffness_fast: [[2, 1], [1, 2]], stiffness_slow: [[1, 0], [0, 3]]}\n",
+     "system.stiffness_slow"),
+    ("system: {stiffness_fast: [[1]], stiffness_slow: [[-1]]}\n", "system.stiffness_slow"),
+    ("system: {stiffness_fast: [[1]], stiffness_slow: [[1]], mass: [[-1]]}\n",
+     "system.mass"),
+])
+def test_bad_scenes_name_the_key(tmp_path, run, text, key):
+    scene = tmp_path / "bad.yaml"
+    scene.write_text("method: respa-verlet\nh: 0.1\n" + text)
+    code, out, err = run("check", str(scene))
+    assert code == 2 and err.count("\n") == 1 and out == "", err
+    assert f"bad.yaml::$.{key}" in err, err
+
+
+def test_command_line_frequencies_do_not_apply(tmp_path, run):
+    scene = tmp_path / "s.yaml"
+    scene.write_text("method: respa-verlet\nmodes:\n  - {fast: 1, slow: 0.1}\n")
+    for extra in (("--beta", "1"), ("--margin", "0.9"), ("--verify",), ("--zmax", "4"),
+                  ("--tol-phase", "1e-3")):
+        code, _, err = run("advise", str(scene), *extra)
+        assert code == 2 and err.count("\n") == 1, (extra, err)
+    code, _, err = run("advise", "--method", "respa-verlet")
+    assert code == 2 and "scene" in err
+
+
+# ---------------------------------------------------------------- split stiffness
+
+
+def _split_system(rng, n):
+    """Commuting mass-weighted parts with known modes: K = L Q diag(w^2) Q^T L^T."""
+    Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    B = rng.normal(size=(n, n))
+    M = B @ B.T + n * np.eye(n)
+    L = np.linalg.cholesky(M)
+    fast = 10 ** rng.uniform(0, 1, n)
+    slow = 10 ** rng.uniform(-1.5, -0.5, n)
+    K_f = L @ Q @ np.diag(fast ** 2) @ Q.T @ L.T
+    K_s = L @ Q @ np.diag(slow ** 2) @ Q.T @ L.T
+    return K_f, K_s, M, L, Q, fast, slow
+
+
+def test_a_split_stiffness_decouples_into_its_modes(tmp_path):
+    from stepsafe.systems.multiple import impulse_pairs
+
+    rng = np.random.default_rng(3)
+    K_f, K_s, M, _, _, fast, slow = _split_system(rng, 5)
+    pairs = impulse_pairs({"stiffness_fast": K_f, "stiffness_slow": K_s, "mass": M}, "s",
+                          tmp_path)
+    expected = np.column_stack([fast, slow])[np.argsort(fast ** 2 + slow ** 2)]
+    assert np.allclose(pairs, expected, rtol=1e-9)
+    scene = tmp_path / "split.yaml"
+    np.save(tmp_path / "kf.npy", K_f)
+    np.save(tmp_path / "ks.npy", K_s)
+    np.save(tmp_path / "m.npy", M)
+    scene.write_text("method: respa-verlet\nsystem: {stiffness_fast: kf.npy, "
+                     "stiffness_slow: ks.npy, mass: m.npy}\n")
+    report = impulse_advice(scene=str(scene))
+    direct = impulse_advice("respa-verlet", expected)
+    assert report.h_max == pytest.approx(direct.h_max, rel=1e-9)
+
+
+def test_the_predicted_limit_is_measured_in_a_real_integration():
+    """r-RESPA on a 3-dof system with a mass matrix (forces -K_f q and -K_s q): the
+    energy stays bounded at 0.97 h_max; inside the first unstable band it grows at the
+    rate the 50-digit trace predicts (lam = |tr|/2 + sqrt(tr^2/4 - 1) per step)."""
+    rng = np.random.default_rng(11)
+    n, k = 3, 4
+    Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    B = rng.normal(size=(n, n))
+    L = np.linalg.cholesky(B @ B.T + n * np.eye(n))
+    fast, slow = np.array([3.0, 2.0, 1.0]), np.array([1.2, 0.8, 0.5])
+    K_f = L @ Q @ np.diag(fast ** 2) @ Q.T @ L.T
+    K_s = L @ Q @ np.diag(slow ** 2) @ Q.T @ L.T
+    report = impulse_advice("respa-verlet", np.column_stack([fast, slow]), substeps=k,
+                            criterion="stability")
+    Li = np.linalg.inv(L)  # mass-weighted coordinates y = L^T q have unit masses
+    A_f, A_s = Li @ K_f @ Li.T, Li @ K_s @ Li.T
+    A = A_f + A_s
+
+    def energy(steps, H):
+        y0 = np.ones(n)
+        y, v = _respa_run(y0, np.zeros(n), H, steps, k, lambda y: -A_f @ y,
+                          lambda y: -A_s @ y)
+        return (0.5 * v @ v + 0.5 * y @ A @ y) / (0.5 * y0 @ A @ y0)
+
+    assert report.limiting == 0 and energy(3000, 0.97 * report.h_max) < 3.0
+    band = report.modes[0].bands[0]
+    H = 0.5 * (band["lo"] + band["hi"])
+    assert all(any(lo < H < hi for lo, hi in m.safe_h if hi) for m in report.modes[1:])
+    with mp.workdps(50):
+        M2 = _respa_mp(fast[0], slow[0], k, H)
+        half = abs(M2[0, 0] + M2[1, 1]) / 2
+        lam = float(half + mp.sqrt(half ** 2 - 1))
+    steps = max(10, min(2000, int(60 / math.log(lam))))  # e^120 in energy at most
+    # the rate between N and 2N steps (the start's projection on the growing direction
+    # cancels)
+    measured = math.log(energy(2 * steps, H) / energy(steps, H)) / (2 * steps)
+    assert measured == pytest.approx(math.log(lam), rel=0.05), (lam, steps)
+
+
+def test_region_ratio_and_the_chart(run, tmp_path):
+    code, out, err = run("region", "respa-verlet", "--ratio", "0.1", "--json")
+    assert code == 0, err
+    data = json.loads(out)
+    assert data["h_max"] == impulse("respa-verlet", fast=1.0, slow=0.1).h_max
+    assert data["units"].startswith("Omega H")
+    pytest.importorskip("matplotlib")
+    png = tmp_path / "chart.png"
+    code, _, err = run("plot", "respa-verlet", "--ratio", "0.1", "-o", str(png))
+    assert code == 0 and png.read_bytes()[:4] == b"\x89PNG", err
