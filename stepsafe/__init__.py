@@ -13,6 +13,7 @@ The public API (see :mod:`stepsafe.api`)::
     hmc(methods, sigma=..., ...)                HMC on a Gaussian target: acceptance, step, cost
     design(sigma=..., step=h, stages=2)         a 2- or 3-stage HMC splitting for your target
     impulse(outer, inner, substeps, fast=, slow=)  safe outer steps of r-RESPA / impulse MTS
+    impulse_advice(method, pairs)               ... for several modes (fast, slow) together
     problem(...), load_scene(path)              inputs merged from a scene file and arguments
     StepsafeError                               every error a caller can cause (bad input)
 
@@ -38,7 +39,7 @@ _API = ("Integrator", "PartitionedTableau", "RegionReport", "AdviceReport", "Che
 #: The HMC part of the API (stepsafe.hmc_advice), built on the same inputs.
 _HMC = ("hmc", "design", "HmcReport", "HmcRow", "DesignReport")
 #: Multiple time stepping (stepsafe.respa_advice).
-_MTS = ("impulse", "ImpulseReport")
+_MTS = ("impulse", "impulse_advice", "ImpulseReport", "ImpulseModesReport")
 __all__ = [*_API, *_HMC, *_MTS, "StepsafeError", "MethodError", "__version__"]
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -64,7 +65,12 @@ if TYPE_CHECKING:  # pragma: no cover
         transfer_matrices,
     )
     from stepsafe.hmc_advice import DesignReport, HmcReport, HmcRow, design, hmc  # noqa: F401
-    from stepsafe.respa_advice import ImpulseReport, impulse  # noqa: F401
+    from stepsafe.respa_advice import (  # noqa: F401
+        ImpulseModesReport,
+        ImpulseReport,
+        impulse,
+        impulse_advice,
+    )
 
 
 def __getattr__(name: str) -> Any:

@@ -174,7 +174,9 @@ def _impulse(method: Any, fast: Any, slow: Any, step: float | None, criterion: s
         result = check_step(split, modes, step, zmax=zmax, name=split.name,
                             criterion=criterion, resonance_order=order)
         adv, verdict = result.advice, result.safe
-        reason = None if verdict else result.failures[0].reason
+        reason = None if verdict else (
+            f"{result.failures[0].reason}; z = beta H, beta = sqrt(fast^2 + slow^2) = "
+            f"{beta:.12g} rad per {time_unit or 'time unit'}")
     else:
         adv = advise(split, modes, zmax=zmax, name=split.name, criterion=criterion,
                      resonance_order=order)

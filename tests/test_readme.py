@@ -67,6 +67,16 @@ def test_criterion_output():
     assert _block_after("stepsafe check --method bcss3 --beta 1 --step 3.5 --criterion") == out
 
 
+def test_impulse_method_outputs():
+    assert _block_after("stepsafe region respa-verlet --ratio 0.1") == _output(
+        "region", "respa-verlet", "--ratio", "0.1")
+    scene = str(ROOT / "examples/respa-water.yaml")
+    assert _block_after("stepsafe check examples/respa-water.yaml") == _output(
+        "check", scene)
+    assert _block_after("stepsafe advise examples/respa-water.yaml --substeps 8") == _output(
+        "advise", scene, "--substeps", "8", "--resonance-order", "3")
+
+
 def test_respa_output():
     out = _output("respa", "--fast-wavenumber", "3700", "--slow-wavenumber", "300",
                   "--time-unit", "fs", "--substeps", "4", "--step", "2")

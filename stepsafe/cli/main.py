@@ -549,7 +549,7 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, criterion, sc
         if tol_phase is not None or tol_energy is not None:
             raise _input_error("--tol-phase/--tol-energy do not apply to impulse methods")
         data = impulse_report(impulse, scene_file, options, step=None, criterion=criterion,
-                              resonance_order=resonance_order)
+                              resonance_order=resonance_order, check=False)
         print_json(data) if as_json else print_impulse_modes(data, check=False)
         return
     problem = _problem(scene_files[0] if scene_files else None, options, not as_json)
@@ -603,7 +603,7 @@ def check_cmd(h, every_mode, resonance_order, criterion, scene_files, as_json, v
         impulse = impulse_of(scene_file, {**options, "verify": verify})
         if impulse is not None:
             data = impulse_report(impulse, scene_file, options, step=h, criterion=criterion,
-                                  resonance_order=resonance_order)
+                                  resonance_order=resonance_order, check=True)
             if data["step"] is None:
                 raise _input_error(f"{scene_file}: no step to check: give --step H or h: in "
                                    "the scene")

@@ -200,9 +200,8 @@ def impulse_of(scene_file: str | None, options: dict) -> Any:
     """The impulse method advise/check were asked about (by --method or the scene's
     method:), or None for any other method. --substeps is refused for other methods."""
     from stepsafe import api
-    from stepsafe.systems.scene import load_scene
-
     from stepsafe.exceptions import StepsafeError
+    from stepsafe.systems.scene import load_scene
 
     name = options["method_name"]
     if name is None and scene_file is not None:
@@ -231,14 +230,15 @@ def impulse_of(scene_file: str | None, options: dict) -> Any:
 
 
 def impulse_report(integrator: Any, scene_file: str, options: dict, *, step: float | None,
-                   criterion: str, resonance_order: int | None) -> dict[str, Any]:
-    """advise (``step`` None and no scene h) or check of an impulse method on a scene."""
+                   criterion: str, resonance_order: int | None, check: bool
+                   ) -> dict[str, Any]:
+    """advise or check (``step``, else the scene's h) of an impulse method on a scene."""
     from stepsafe.respa_advice import impulse_advice
 
     return impulse_advice(integrator, scene=scene_file, substeps=options.get("substeps"),
                           step=step, time_unit=options["time_unit"], criterion=criterion,
                           resonance_order=resonance_order,
-                          use_scene_step=step is None).to_dict()
+                          use_scene_step=check and step is None).to_dict()
 
 
 def print_impulse_modes(data: dict[str, Any], check: bool) -> None:
@@ -265,14 +265,16 @@ def print_impulse_modes(data: dict[str, Any], check: bool) -> None:
             click.echo(f"  also safe: {fmt(lo)}{u} < H < {end}")
         if data["horizon"] is not None:
             click.echo(f"Outer steps above {fmt(data['horizon'])}{u} were not analysed.")
-    click.echo(f"  {'mode':<18} {'fast':>10} {'slow':>10}  {'H max':>10}  first band "
+    click.echo(f"  {'mode':<18} {'fast':>10} {'slow':>10}  {'H max':>10}  first unsafe H "
                f"(frequencies in {per}, H in {unit or 'time units'})")
     for i, mode in enumerate(modes):
         band = mode["bands"][0] if mode["bands"] else None
         first = "-"
         if band is not None:
             end = "the horizon" if band["hi"] is None else f"{band['hi']:.6g}"
-            first = f"{band['lo']:.6g} to {end} ({band['kind']})"
+            what = {"unstable": "unstable", "resonance": "M = ±I within rounding",
+                    "nonlinear": "past the resonance order asked for"}[band["kind"]]
+            first = f"{band['lo']:.6g} to {end} ({what})"
         hmax = "none" if mode["h_max"] is None else f"{mode['h_max']:.6g}"
         click.echo(f"  {(mode['label'] or f'mode {i}')[:18]:<18} {mode['fast']:>10.6g} "
                    f"{mode['slow']:>10.6g}  {hmax:>10}  {first}")
