@@ -102,7 +102,10 @@ def impulse_method(outer: Integrator | str = "verlet", inner: Integrator | str |
     :class:`Integrator` of kind ``impulse``) or of an outer and an inner splitting."""
     from stepsafe.api import named_method as load_method
     from stepsafe.core.impulse import impulse_method as build
+    from stepsafe.methods.tableaux import Impulse
 
+    if isinstance(outer, Impulse) and inner is None:
+        return _substeps_of(outer, substeps)
     outer_i = outer if isinstance(outer, Integrator) else load_method(_name(outer, "outer"))
     if outer_i.kind == "impulse":
         if inner is not None:
@@ -249,6 +252,9 @@ class ImpulseModesReport:
     failures: tuple[Mapping[str, Any], ...] = ()
     time_unit: str | None = None
     scene: str | None = None
+    #: how the modes were analysed: each on its own, or (``coupled``) the 2n x 2n step of a
+    #: split stiffness whose parts do not commute (then ``modes`` is empty)
+    analysis: str = "decoupled: each mode's outer step on its own oscillator"
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe advise`` / ``check`` print with ``--json`` for an impulse method."""
@@ -263,7 +269,8 @@ class ImpulseModesReport:
                 "scene": self.scene, "h_max": self.h_max,
                 "safe_h": [list(iv) for iv in self.safe_h], "horizon": self.horizon,
                 "limiting_mode": self.limiting, "step": self.step, "safe": self.safe,
-                "failures": [dict(f) for f in self.failures], "modes": modes}
+                "failures": [dict(f) for f in self.failures], "analysis": self.analysis,
+                "modes": modes}
 
 
 def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
@@ -301,9 +308,15 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
         if loaded.pairs is not None:
             pairs, labels = loaded.pairs, (labels or loaded.pair_labels)
         elif loaded.system is not None:
-            from stepsafe.systems.multiple import impulse_pairs
+            from stepsafe.systems.multiple import read_split
 
-            pairs = impulse_pairs(loaded.system, loaded.where, loaded.folder)
+            split = read_split(loaded.system, loaded.where, loaded.folder)
+            if split.pairs is None:
+                if step is None and use_scene_step:
+                    step = loaded.h
+                return _coupled_advice(chosen, split, step, criterion, resonance_order,
+                                       loaded)
+            pairs = split.pairs
         else:
             raise StepsafeError("no modes: an impulse method needs a fast and a slow "
                                 "frequency per mode (modes: [{fast:, slow:}] or system: "
@@ -337,6 +350,45 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
     return ImpulseModesReport(chosen.name, chosen.substeps, reports[0].criterion, reports,
                               labels, h_max, safe_h, horizon, limiting, step, verdict,
                               failures, loaded.time_unit, loaded.where or None)
+
+
+def _coupled_advice(method: Any, split: Any, step: float | None, criterion: str,
+                    resonance_order: int | None, scene: Any) -> ImpulseModesReport:
+    """advise/check on a split stiffness whose parts do not commute: the coupled analysis
+    of the 2n x 2n outer step (its safe interval from 0; islands are not analysed)."""
+    from stepsafe.core.regions import validate_criterion
+    from stepsafe.systems.multiple import coupled_impulse, coupled_impulse_preserved
+
+    where = f"{split.where}::$.system"
+    if validate_criterion(criterion) != "structure":
+        raise StepsafeError("the fast and slow parts do not commute, so the modes couple: the "
+                            "coupled analysis decides the structure criterion only (give "
+                            "--criterion structure)", where)
+    if resonance_order is not None:
+        raise StepsafeError("the fast and slow parts do not commute: the modes couple and "
+                            "have no rotation angle each, so --resonance-order does not "
+                            "apply", where)
+    result = coupled_impulse(method, split)
+    safe_h = ((0.0, None if result.h_max >= result.horizon else result.h_max),)
+    verdict, failures = None, ()
+    if step is not None:
+        step = positive_finite(step, "step")
+        reason = None
+        if step > result.h_max:
+            reason = (f"H = {step:.12g} is beyond the end {result.h_max:.12g} of the safe "
+                      "interval from 0" if result.h_max < result.horizon else
+                      f"H = {step:.12g} is beyond the horizon {result.horizon:.12g} analysed")
+        elif not coupled_impulse_preserved(method, split, step):
+            reason = f"the outer step H = {step:.12g} does not keep the structure"
+        verdict = reason is None
+        if reason:
+            failures = (MappingProxyType({"mode": None, "label": None, "reason": reason}),)
+    return ImpulseModesReport(method.name, method.substeps, "structure", (), (),
+                              result.h_max, safe_h, result.horizon, None, step, verdict,
+                              failures, scene.time_unit, scene.where or None,
+                              result.analysis.replace(
+                                  "(the modes do not decouple for this method)",
+                                  "(the fast and slow parts do not commute)"))
 
 
 def _intersection(sets: list, horizons: list, horizon: float | None

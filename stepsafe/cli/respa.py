@@ -249,10 +249,13 @@ def print_impulse_modes(data: dict[str, Any], check: bool) -> None:
     u = f" {unit}" if unit else ""
     per = f"rad/{unit}" if unit else "rad per time unit"
     modes = data["modes"]
+    size = f"{len(modes)} mode(s)" if modes else "coupled modes"
     click.echo(f"{data['method']} with {data['substeps']} substep(s) per outer drift, "
-               f"{len(modes)} mode(s) (criterion: {data['criterion']})")
+               f"{size} (criterion: {data['criterion']})")
     if not check or data["safe"] is None:
-        if data["h_max"]:
+        if data["h_max"] and not modes:
+            click.echo(f"Safe outer steps: 0 < H < {fmt_below(data['h_max'])}{u}")
+        elif data["h_max"]:
             lim = modes[data["limiting_mode"]]
             name = lim["label"] or f"mode {data['limiting_mode']}"
             click.echo(f"Safe outer steps: 0 < H < {fmt_below(data['h_max'])}{u}, limited by "
@@ -265,6 +268,22 @@ def print_impulse_modes(data: dict[str, Any], check: bool) -> None:
             click.echo(f"  also safe: {fmt(lo)}{u} < H < {end}")
         if data["horizon"] is not None:
             click.echo(f"Outer steps above {fmt(data['horizon'])}{u} were not analysed.")
+    if not modes:
+        click.echo(f"  {data['analysis']}")
+    else:
+        _mode_table(modes, per, unit)
+    if data["step"] is not None:
+        if data["safe"]:
+            click.echo(f"SAFE: H = {fmt(data['step'])}{u} for every mode")
+        else:
+            click.echo(f"UNSAFE: H = {fmt(data['step'])}{u}")
+            for failure in data["failures"]:
+                name = failure["label"] or (f"mode {failure['mode']}"
+                                            if failure["mode"] is not None else "the system")
+                click.echo(f"  {name}: {failure['reason']}")
+
+
+def _mode_table(modes: list, per: str, unit: str | None) -> None:
     click.echo(f"  {'mode':<18} {'fast':>10} {'slow':>10}  {'H max':>10}  first unsafe H "
                f"(frequencies in {per}, H in {unit or 'time units'})")
     for i, mode in enumerate(modes):
@@ -278,14 +297,6 @@ def print_impulse_modes(data: dict[str, Any], check: bool) -> None:
         hmax = "none" if mode["h_max"] is None else f"{mode['h_max']:.6g}"
         click.echo(f"  {(mode['label'] or f'mode {i}')[:18]:<18} {mode['fast']:>10.6g} "
                    f"{mode['slow']:>10.6g}  {hmax:>10}  {first}")
-    if data["step"] is not None:
-        if data["safe"]:
-            click.echo(f"SAFE: H = {fmt(data['step'])}{u} for every mode")
-        else:
-            click.echo(f"UNSAFE: H = {fmt(data['step'])}{u}")
-            for failure in data["failures"]:
-                name = failure["label"] or f"mode {failure['mode']}"
-                click.echo(f"  {name}: {failure['reason']}")
 
 
 def impulse_region(integrator: Any, ratio: float | None, substeps: int | None,

@@ -242,9 +242,13 @@ def one_step_matrix(method: Method, S: np.ndarray, h: float) -> np.ndarray:
 
 
 class CoupledSystem:
-    """One method on one S, with what every h shares computed once."""
+    """One method on one S, with what every h shares computed once. ``steps`` (optional)
+    builds the one-step matrices instead of ``method``: called with the scale ``unit`` by
+    which S is divided, it returns an object with ``deviation(h)`` (``M(h / unit) - I``
+    and its rounding bound, as :class:`_Steps`) and ``pieces`` (for the poles)."""
 
-    def __init__(self, method: Method, S: np.ndarray) -> None:
+    def __init__(self, method: Method | None, S: np.ndarray,
+                 steps: Callable[[float], object] | None = None) -> None:
         # work on S / |S|_max and h |S|_max (the same one-step matrices), so neither S nor
         # its norms over- or underflow whatever its units
         largest = float(np.abs(S).max()) if S.size else 0.0
@@ -252,7 +256,7 @@ class CoupledSystem:
         S = S / self.unit
         self.S = S
         self.n = S.shape[0] // 2
-        self.steps = _Steps(method, S)
+        self.steps = steps(self.unit) if steps is not None else _Steps(method, S)
         self.top = self.unit * float(np.abs(np.linalg.eigvals(hamiltonian_matrix(S))).max())
         self.sign, self.chol = 0, None
         for sign in (1, -1):
@@ -517,9 +521,10 @@ NEAR_POLE = 10.0 ** -np.arange(2, 14)
 # ---------------------------------------------------------------- the safe interval
 
 
-def coupled_safe_steps(method: Method, S: np.ndarray, zmax: float = 10.0,
+def coupled_safe_steps(method: Method | None, S: np.ndarray, zmax: float = 10.0,
                        progress: Callable[[float], None] | None = None,
-                       deadline: float | None = None) -> CoupledResult:
+                       deadline: float | None = None,
+                       steps: Callable[[float], object] | None = None) -> CoupledResult:
     """The safe interval from 0 of ``method`` on ``x' = J S x``, up to the horizon
     ``zmax / |mu|_max``.
 
@@ -531,16 +536,17 @@ def coupled_safe_steps(method: Method, S: np.ndarray, zmax: float = 10.0,
 
     ``progress(fraction)`` is called after each scan sample (the fraction of the horizon
     scanned). At ``deadline`` (a ``time.monotonic()`` value) the scan stops: the horizon
-    becomes the last h scanned, every h below it having been found preserved.
+    becomes the last h scanned, every h below it having been found preserved. ``steps``:
+    see :class:`CoupledSystem`.
     """
     with blas_threads_for(S.shape[0]):
-        return _safe_steps(method, S, zmax, progress, deadline)
+        return _safe_steps(method, S, zmax, progress, deadline, steps)
 
 
-def _safe_steps(method: Method, S: np.ndarray, zmax: float,
-                progress: Callable[[float], None] | None, deadline: float | None
-                ) -> CoupledResult:
-    system = CoupledSystem(method, S)
+def _safe_steps(method: Method | None, S: np.ndarray, zmax: float,
+                progress: Callable[[float], None] | None, deadline: float | None,
+                steps: Callable[[float], object] | None = None) -> CoupledResult:
+    system = CoupledSystem(method, S, steps)
     if system.top == 0:
         return CoupledResult(np.inf, np.inf, 0, "coupled: S = 0, no limit")
     horizon = zmax / system.top

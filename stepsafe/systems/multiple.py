@@ -7,11 +7,15 @@ methods: ``system: {stiffness_fast: K_f, stiffness_slow: K_s, mass: M}`` in a sc
 orthogonal basis diagonalises both, that is when ``A_f A_s = A_s A_f``; mode i then has
 the fast frequency ``sqrt(v_i^T A_f v_i)`` and the slow one ``sqrt(v_i^T A_s v_i)``. Parts
 that do not commute couple the modes through the impulse step (the slow kicks mix the
-fast modes) and are refused rather than analysed mode by mode, which would be wrong.
+fast modes): a mode-by-mode answer would be wrong, and the coupled analysis of
+:mod:`stepsafe.systems.coupled` runs on the 2n x 2n outer step instead, in the
+mass-weighted coordinates ``(L^T q, L^-1 p)`` (a symplectic change of variables, so the
+multipliers and their types are those of the step in ``(q, p)``).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -19,22 +23,36 @@ import numpy as np
 
 from stepsafe.exceptions import StepsafeError, unknown_key
 
+EPS = float(np.finfo(float).eps)
+
 KEYS = ("stiffness_fast", "stiffness_slow", "mass")
-#: Largest dense system decoupled here (each mode is then a region of its own).
+#: Largest dense split stiffness analysed (each mode a region of its own, or the coupled
+#: 2n x 2n analysis).
 MAX_DOF = 200
 #: Relative size of what a common eigenbasis leaves off the diagonals of A_f and A_s
 #: (rounding of the eigensolver is ~n eps): above it the parts do not commute.
 COMMUTE_TOL = 1e-9
+#: The coupled scan's reach in z = H sqrt(lambda_max): 5e4 samples of the 2n x 2n step.
+MAX_COUPLED_Z = 1e4
 #: A generic weight: eigenvectors of A_f + GENERIC A_s split the degenerate eigenspaces of
 #: A_f + A_s that A_f and A_s do not share.
 GENERIC = 0.7548776662466927
 
 
-def impulse_pairs(tree: Any, where: str, folder: Path) -> np.ndarray:
-    """``(fast, slow)`` angular frequencies of the modes of a split stiffness (rows), in
-    ascending total frequency."""
-    from scipy.linalg import eigh
+@dataclass(frozen=True)
+class SplitStiffness:
+    """The mass-weighted fast and slow stiffness ``A_f``, ``A_s`` (n x n, symmetric) and,
+    when they commute, their common modes as ``(fast, slow)`` rows (else None)."""
 
+    A_f: np.ndarray
+    A_s: np.ndarray
+    pairs: np.ndarray | None
+    where: str
+
+
+def read_split(tree: Any, where: str, folder: Path) -> SplitStiffness:
+    """Read ``system: {stiffness_fast:, stiffness_slow:, mass:}`` and decouple it when the
+    mass-weighted parts commute (rows in ascending total frequency)."""
     from stepsafe.systems.linear import check_square, is_positive_definite
     from stepsafe.systems.loader import _matrix
 
@@ -60,7 +78,7 @@ def impulse_pairs(tree: Any, where: str, folder: Path) -> np.ndarray:
         except StepsafeError as exc:
             raise fail(key, exc.message) from None
         if parts[key].shape[0] > MAX_DOF:
-            raise fail(key, f"{parts[key].shape[0]} rows; a split stiffness is decoupled "
+            raise fail(key, f"{parts[key].shape[0]} rows; a split stiffness is analysed "
                             f"densely up to {MAX_DOF} dof")
     K_f, K_s = parts["stiffness_fast"], parts["stiffness_slow"]
     if K_s.shape != K_f.shape:
@@ -74,8 +92,8 @@ def impulse_pairs(tree: Any, where: str, folder: Path) -> np.ndarray:
         if not is_positive_definite(M):
             raise fail("mass", "must be positive definite")
         L = np.linalg.cholesky(M)
-        A_f = _whitened(K_f, L)
-        A_s = _whitened(K_s, L)
+        with np.errstate(all="ignore"):
+            A_f, A_s = _whitened(K_f, L), _whitened(K_s, L)
     else:
         A_f, A_s = K_f, K_s
     scale_f, scale_s = float(np.abs(A_f).max()), float(np.abs(A_s).max())
@@ -83,27 +101,121 @@ def impulse_pairs(tree: Any, where: str, folder: Path) -> np.ndarray:
         raise fail("stiffness_fast", "the stiffness is zero or beyond float64 once "
                                      "mass-weighted; rescale the units")
     unit = max(scale_f, scale_s)
+    floor = 64 * n * EPS
+    for key, A in (("stiffness_fast", A_f), ("stiffness_slow", A_s)):
+        low = float(np.linalg.eigvalsh(A / unit)[0])
+        if low < -floor:
+            raise fail(key, f"has a negative mode ({low * unit:.6g} once mass-weighted): both "
+                            "parts must be positive semi-definite for the oscillator model")
+    if float(np.linalg.eigvalsh((A_f + A_s) / unit)[0]) <= floor:
+        raise fail("stiffness_fast", "fast plus slow stiffness is singular: a zero mode has "
+                                     "no force and nothing limits its step; remove it")
+    return SplitStiffness(A_f, A_s, _common_modes(A_f, A_s, unit), where)
+
+
+def _common_modes(A_f: np.ndarray, A_s: np.ndarray, unit: float) -> np.ndarray | None:
+    """``(fast, slow)`` of the common normal modes, or None if the parts do not commute."""
+    from scipy.linalg import eigh
+
+    n = A_f.shape[0]
     _, V = eigh((A_f + GENERIC * A_s) / unit)
     D_f, D_s = V.T @ (A_f / unit) @ V, V.T @ (A_s / unit) @ V
     off = max(float(np.abs(D - np.diag(np.diag(D))).max()) for D in (D_f, D_s))
     if off > COMMUTE_TOL * max(1.0, n / 10):
-        raise fail("stiffness_slow", "the fast and slow parts do not commute (once "
-                                     "mass-weighted): the impulse step couples the modes, "
-                                     f"off-diagonal {off:.2g} of the largest entry; give "
-                                     "parts with common normal modes")
-    w2 = np.column_stack([np.diag(D_f), np.diag(D_s)]) * unit
-    floor = 64 * n * np.finfo(float).eps * unit
-    if np.any(w2 < -floor):
-        i, j = np.argwhere(w2 < -floor)[0]
-        raise fail(KEYS[j], f"mode {i} has a negative {'fast' if j == 0 else 'slow'} "
-                            f"stiffness {w2[i, j]:.6g}: both parts must be positive "
-                            "semi-definite for the oscillator model")
-    w2 = np.clip(w2, 0.0, None)
-    w2 = w2[np.argsort(w2.sum(axis=1))]
-    if np.any(w2.sum(axis=1) == 0):
-        raise fail("stiffness_fast", "a mode has neither a fast nor a slow force (a zero "
-                                     "mode): nothing limits its step, remove it")
-    return np.sqrt(w2)
+        return None
+    w2 = np.clip(np.column_stack([np.diag(D_f), np.diag(D_s)]), 0.0, None) * unit
+    return np.sqrt(w2[np.argsort(w2.sum(axis=1))])
+
+
+def impulse_pairs(tree: Any, where: str, folder: Path) -> np.ndarray:
+    """``(fast, slow)`` angular frequencies of the modes of a split stiffness whose parts
+    commute (rows, in ascending total frequency); an error naming the key otherwise."""
+    split = read_split(tree, where, folder)
+    if split.pairs is None:
+        raise StepsafeError("the fast and slow parts do not commute (once mass-weighted): the "
+                            "impulse step couples the modes", f"{where}::$.system."
+                                                              "stiffness_slow")
+    return split.pairs
+
+
+class ImpulseSteps:
+    """``M(h) - I`` of one outer step of an impulse method on ``y'' = -(A_f + A_s) y`` (unit
+    masses) for :class:`stepsafe.systems.coupled.CoupledSystem`, in its scaled units: S is
+    ``blockdiag(A_f + A_s, I) / unit`` and h is ``h * unit``. Each drift adds
+    ``c h S_pp p`` to q, each kick ``-c h A q / unit`` to p (A the fast or the slow part),
+    accumulated on ``D = M - I`` as the splitting factors are."""
+
+    pieces: tuple = ()  # no implicit stage equations: no poles
+
+    def __init__(self, method: Any, A_f: np.ndarray, A_s: np.ndarray, unit: float) -> None:
+        self.ops = method.operations
+        self.A = {True: A_f / unit, False: A_s / unit}
+        self.norm = {key: float(np.linalg.norm(A)) for key, A in self.A.items()}
+        self.inv_unit = 1.0 / unit
+        self.n = A_f.shape[0]
+
+    def deviation(self, h: float) -> tuple[np.ndarray, float]:
+        n = self.n
+        D = np.zeros((2 * n, 2 * n))
+        eye = np.eye(n)
+        err = 0.0
+        for kind, coef, fast in self.ops:
+            if kind == "drift":
+                P = D[n:].copy()
+                P[:, n:] += eye
+                c = coef * h * self.inv_unit
+                D[:n] += c * P
+                err += 2 * n * EPS * abs(c) * float(np.linalg.norm(P))
+            else:
+                Q = D[:n].copy()
+                Q[:, :n] += eye
+                c = coef * h
+                D[n:] -= c * (self.A[fast] @ Q)
+                err += 2 * n * EPS * abs(c) * self.norm[fast] * float(np.linalg.norm(Q))
+            if not np.all(np.isfinite(D)):
+                return np.full_like(D, np.nan), np.inf
+        return D, err
+
+
+def _coupled_matrix(split: SplitStiffness) -> np.ndarray:
+    n = split.A_f.shape[0]
+    zero = np.zeros((n, n))
+    return np.block([[split.A_f + split.A_s, zero], [zero, np.eye(n)]])
+
+
+def coupled_impulse(method: Any, split: SplitStiffness, zmax: float | None = None):
+    """The safe interval from 0 of the impulse method on the coupled split stiffness
+    (:class:`stepsafe.systems.coupled.CoupledResult`), the structure criterion: S is
+    positive definite, so ``Q(h) = M^T J - J M > 0`` decides. ``zmax`` in
+    ``z = H sqrt(lambda_max(A_f + A_s))`` (default: just past the inner method's own
+    limit for the fastest fast frequency)."""
+    from stepsafe.core.regions import find_region
+    from stepsafe.systems.coupled import coupled_safe_steps
+
+    if zmax is None:
+        top = float(np.sqrt(np.linalg.eigvalsh(split.A_f + split.A_s)[-1]))
+        fast = float(np.sqrt(max(np.linalg.eigvalsh(split.A_f)[-1], 0.0)))
+        if fast > 0:
+            z_in = find_region(method.inner, "oscillator", 40.0).first_boundary or 40.0
+            zmax = 1.05 * method.substeps * z_in * top / fast
+        else:
+            zmax = 1.05 * (find_region(method.outer, "oscillator", 40.0).first_boundary
+                           or 40.0)
+        zmax = min(max(4.0, zmax), MAX_COUPLED_Z)
+    return coupled_safe_steps(None, _coupled_matrix(split), zmax, steps=lambda unit:
+                              ImpulseSteps(method, split.A_f, split.A_s, unit))
+
+
+def coupled_impulse_preserved(method: Any, split: SplitStiffness, h: float) -> bool:
+    """Whether one outer step H = h keeps the structure of the coupled system."""
+    from stepsafe.core.threads import blas_threads_for
+    from stepsafe.systems.coupled import CoupledSystem
+
+    S = _coupled_matrix(split)
+    with blas_threads_for(S.shape[0]):
+        system = CoupledSystem(None, S, lambda unit: ImpulseSteps(method, split.A_f,
+                                                                  split.A_s, unit))
+        return system.preserved(h)
 
 
 def _whitened(K: np.ndarray, L: np.ndarray) -> np.ndarray:
