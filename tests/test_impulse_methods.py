@@ -370,8 +370,11 @@ def test_parts_that_do_not_commute_get_the_coupled_analysis(seed, tmp_path, run)
     assert coupled_impulse(method, commuting).h_max == pytest.approx(decoupled.h_max,
                                                                       rel=1e-9)
     scene = tmp_path / "coupled.yaml"
-    rows = lambda A: "[" + ", ".join("[" + ", ".join(repr(float(x)) for x in r) + "]"
-                                     for r in A) + "]"  # noqa: E731
+
+    def rows(A):
+        return "[" + ", ".join("[" + ", ".join(repr(float(x)) for x in r) + "]"
+                               for r in A) + "]"
+
     scene.write_text(f"method: respa-verlet\nsubsteps: {k}\nsystem:\n  stiffness_fast: "
                      f"{rows(K_f)}\n  stiffness_slow: {rows(K_s)}\n")
     code, out, err = run("advise", str(scene), "--json")
