@@ -233,6 +233,18 @@ def method_options(func):
     return click.argument("method", metavar="METHOD", shell_complete=_complete_method)(func)
 
 
+def method_options_optional(func):
+    """--method METHOD (default: the scene's) with -s/--stages and --base."""
+    func = click.option("--base", metavar="NAME",
+                        help="Swap the base method of a composition.")(func)
+    func = click.option("-s", "--stages", type=INT, metavar="N",
+                        help="Stage count for the families gauss and lobatto3ab.")(func)
+    return click.option("--method", "method", default=None, metavar="METHOD",
+                        shell_complete=_complete_method,
+                        help="Built-in name, family (with -s) or method file [default: the "
+                             "scene's method:].")(func)
+
+
 def _complete_method(ctx, param, incomplete: str) -> list:
     """Shell completion of METHOD: built-in names and aliases, then method files."""
     from click.shell_completion import CompletionItem
@@ -744,6 +756,7 @@ def _is_pathlike(path: str) -> bool:
 
 
 from stepsafe.cli import accuracy as cli_accuracy  # noqa: E402,F401  (registers error, compare, plot)
+from stepsafe.cli import measure as cli_measure  # noqa: E402,F401  (registers measure)
 from stepsafe.cli import respa as cli_respa  # noqa: E402,F401  (registers respa)
 from stepsafe.cli import sampling as cli_sampling  # noqa: E402,F401  (registers hmc, design)
 

@@ -1,0 +1,162 @@
+"""Run a method on a Hamiltonian system: one engine driven by the method's data.
+
+A :class:`System` gives the gradients of ``H(q, p)`` on arrays of shape ``(m, d)``: m
+initial conditions of d degrees of freedom advance together. One step of size h:
+
+* splitting methods (and compositions of them) need ``H = T(p) + V(q)``: ``drift(a h)``
+  is ``q += a h dH/dp``, ``kick(b h)`` is ``p -= b h dH/dq``, in the file's order. A kick
+  at a position the previous kick already saw reuses that force (first same as last), so
+  the evaluations counted are those of the method as run in practice;
+* Runge-Kutta and partitioned RK methods (and compositions of them) solve their stage
+  equations ``Q_i = q + h sum_j A_q[i, j] dH/dp(Q_j, P_j)``,
+  ``P_i = p - h sum_j A_p[i, j] dH/dq(Q_j, P_j)`` by fixed-point iteration from ``Q = q``,
+  ``P = p`` until the largest change of a stage value is at most ``tol`` times the largest
+  stage value (and 1), as :mod:`stepsafe.core.solver` models it; a stage whose ``A_q`` row
+  is zero keeps ``Q_i = q`` and its force is evaluated once (none if the previous step's
+  last stage ended there). Each iteration evaluates the forces of the stages that vary;
+  the update evaluates them once more.
+
+Force evaluations (``dH/dq``) and solver iterations are counted; a step whose iteration
+does not converge in ``max_iterations`` marks the run as failed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
+
+Gradient = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class System:
+    """``H(q, p)`` through its gradients, on arrays of shape ``(m, d)``; ``separable``
+    when ``dH/dq`` depends on q only and ``dH/dp`` on p only."""
+
+    dH_dq: Gradient
+    dH_dp: Gradient
+    energy: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    separable: bool
+    dimension: int
+    #: ``(dq/dt, dp/dt)`` in one evaluation, when cheaper than the two gradients
+    vector_field: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
+
+    def rates(self, q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(dH/dp, -dH/dq)``."""
+        if self.vector_field is not None:
+            return self.vector_field(q, p)
+        return self.dH_dp(q, p), -self.dH_dq(q, p)
+
+
+class SolverFailure(ArithmeticError):
+    """The stage equations' fixed-point iteration did not converge."""
+
+
+class Engine:
+    """Steps of one method on one system, with the work counted."""
+
+    def __init__(self, method: Method, system: System, tol: float = 1e-14,
+                 max_iterations: int = 200) -> None:
+        self.system = system
+        self.tol, self.max_iterations = tol, max_iterations
+        self.force_evaluations = 0
+        self.iterations = 0
+        self.solves = 0
+        self._cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self.pieces = _pieces(method)
+        if not system.separable and any(kind == "ops" for kind, _, _ in self.pieces):
+            raise ValueError("a splitting method needs a separable H = T(p) + V(q)")
+
+    def _force(self, q: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """``dH/dq`` at (q, p), reused when the same arrays were just evaluated."""
+        c = self._cache
+        if c is not None and c[0] is q and (self.system.separable or c[1] is p):
+            return c[2]
+        g = self.system.dH_dq(q, p)
+        self.force_evaluations += 1
+        self._cache = (q, p, g)
+        return g
+
+    def step(self, q: np.ndarray, p: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+        for kind, weight, data in self.pieces:
+            if kind == "ops":
+                for op, coef in data:
+                    if op == "drift":
+                        q = q + (coef * weight * h) * self.system.dH_dp(q, p)
+                    else:
+                        p = p - (coef * weight * h) * self._force(q, p)
+            else:
+                q, p = self._prk_step(data, q, p, weight * h)
+        return q, p
+
+    def _prk_step(self, prk: PartitionedRK, q: np.ndarray, p: np.ndarray, h: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        A_q, A_p, b_q, b_p = prk.A_q, prk.A_p, prk.b_q, prk.b_p
+        s = b_q.size
+        fixed = ~A_q.any(axis=1)  # stages with Q_i = q for good
+        Q = [q] * s
+        P = [p] * s
+        sys = self.system
+        F: list[np.ndarray] = [np.zeros_like(q)] * s
+        implicit = bool(np.triu(A_q).any() or np.triu(A_p).any())
+        if not implicit:  # explicit: one sweep in stage order
+            for i in range(s):
+                Q[i] = q + h * sum(A_q[i, j] * sys.dH_dp(Q[j], P[j]) for j in range(i))
+                P[i] = p - h * sum(A_p[i, j] * F[j] for j in range(i))
+                F[i] = self._force(Q[i], P[i])
+            V = [sys.dH_dp(Q[j], P[j]) for j in range(s)]
+            return (q + h * sum(b_q[j] * V[j] for j in range(s)),
+                    p - h * sum(b_p[j] * F[j] for j in range(s)))
+        self.solves += 1
+        for _ in range(self.max_iterations):
+            F = [self._force(q, p) if fixed[j] else self._stage_force(Q[j], P[j])
+                 for j in range(s)]
+            V = [sys.dH_dp(Q[j], P[j]) for j in range(s)]
+            Qn = [q if fixed[i] else q + h * sum(A_q[i, j] * V[j] for j in range(s)
+                                                 if A_q[i, j])
+                  for i in range(s)]
+            Pn = [p - h * sum(A_p[i, j] * F[j] for j in range(s) if A_p[i, j])
+                  for i in range(s)]
+            self.iterations += 1
+            change = max(float(np.max(np.abs(a - b))) for a, b in zip(Qn + Pn, Q + P))
+            size = max(1.0, max(float(np.max(np.abs(x))) for x in Qn + Pn))
+            Q, P = Qn, Pn
+            if not np.isfinite(change):
+                raise SolverFailure("the stage iteration overflowed")
+            if change <= self.tol * size:
+                break
+        else:
+            raise SolverFailure(f"the stage iteration did not converge in "
+                                f"{self.max_iterations} iterations")
+        F = [self._force(q, p) if fixed[j] else self._stage_force(Q[j], P[j])
+             for j in range(s)]
+        V = [sys.dH_dp(Q[j], P[j]) for j in range(s)]
+        q1 = q + h * sum(b_q[j] * V[j] for j in range(s) if b_q[j])
+        p1 = p - h * sum(b_p[j] * F[j] for j in range(s) if b_p[j])
+        last = s - 1
+        if np.array_equal(A_q[last], b_q) and self.system.separable:
+            self._cache = (q1, p1, F[last])  # the last stage ended at q1 (Lobatto IIIA)
+        return q1, p1
+
+    def _stage_force(self, Q: np.ndarray, P: np.ndarray) -> np.ndarray:
+        self.force_evaluations += 1
+        return self.system.dH_dq(Q, P)
+
+
+def _pieces(method: Method) -> list[tuple[str, float, object]]:
+    """The step as ``("ops", weight, operations)`` (splittings) and ``("prk", weight, prk)``
+    pieces, in the order applied."""
+    if isinstance(method, Composition):
+        flat = method.flattened()
+        return [piece[:1] + (float(g) * piece[1],) + piece[2:]
+                for g in flat.weights for piece in _pieces(flat.base)]
+    if isinstance(method, Splitting):
+        return [("ops", 1.0, tuple(method.operations))]
+    if isinstance(method, (RungeKutta, PartitionedRK)):
+        return [("prk", 1.0, method.as_prk())]
+    raise ValueError(f"{getattr(method, 'name', method)!r} cannot be integrated here "
+                     f"({getattr(method, 'kind', type(method).__name__)})")

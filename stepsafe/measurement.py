@@ -1,0 +1,426 @@
+"""Measure the trade on the user's own system: the public :func:`measure` behind
+``stepsafe measure``.
+
+The scene's actual system (a 1-dof Hamiltonian expression, or a linear system: stiffness
+and mass, Hessian, Gaussian precision or covariance) is integrated with the method at each
+step h for a time T from one initial condition, by the engine of
+:mod:`stepsafe.core.integrator`. Measured per h: the largest relative energy error
+``max_t |H(t) - H(0)| / |H(0) - H_e|`` (``H_e`` the energy of the equilibrium the start
+orbits, 0 for linear systems), the energy drift (least-squares slope of the relative
+error against t, per unit time), the trajectory error at T relative to the size of the
+exact state (the reference: ``expm(J S T)`` for linear systems, an adaptive 8th-order
+Dormand-Prince run at tolerance 1e-13 for expressions), force evaluations per unit time as
+counted (implicit methods: with their fixed-point iterations), and the status (``ok``;
+``unstable`` when the state or its energy error leaves [0, 1]; ``solver failed`` when the
+stage iteration did not converge).
+
+Beside each, the linear prediction for the vibration the start orbits (z = beta h): the
+energy error bound ``kappa - 1`` (relative to the energy above that equilibrium) and the
+trajectory error ``2 |sin(delta / 2)|`` of a phase drift ``delta = |theta/z - 1| beta T``
+(``delta`` itself while small; at most 2, a run half a turn out of phase), and the ratio
+measured / predicted: the nonlinear calibration of the linear model.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stepsafe.api import Integrator
+from stepsafe.exceptions import StepsafeError, positive_finite
+
+#: Steps of one run at most (each costs the method's evaluations in Python).
+MAX_STEPS = 2_000_000
+#: Energies sampled per run at most (every step when there are fewer steps).
+ENERGY_SAMPLES = 20_000
+#: Steps h measured in one call at most.
+MAX_STEP_SIZES = 200
+#: Default length of a run, in periods of the vibration the start orbits.
+DEFAULT_PERIODS = 100
+
+
+@dataclass(frozen=True)
+class MeasureRow:
+    """What one step size h did on the system (None where not measured or predicted)."""
+
+    h: float
+    steps: int
+    time: float
+    status: str
+    energy_error: float | None
+    energy_drift: float | None
+    trajectory_error: float | None
+    evaluations_per_time: float | None
+    iterations_per_step: float | None
+    predicted_energy_error: float | None
+    predicted_trajectory_error: float | None
+
+    @property
+    def energy_ratio(self) -> float | None:
+        return _ratio(self.energy_error, self.predicted_energy_error)
+
+    @property
+    def trajectory_ratio(self) -> float | None:
+        return _ratio(self.trajectory_error, self.predicted_trajectory_error)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"h": self.h, "steps": self.steps, "time": self.time, "status": self.status,
+                "energy_error": self.energy_error, "energy_drift": self.energy_drift,
+                "trajectory_error": self.trajectory_error,
+                "evaluations_per_time": self.evaluations_per_time,
+                "iterations_per_step": self.iterations_per_step,
+                "predicted_energy_error": self.predicted_energy_error,
+                "predicted_trajectory_error": self.predicted_trajectory_error,
+                "energy_ratio": self.energy_ratio, "trajectory_ratio": self.trajectory_ratio}
+
+
+@dataclass(frozen=True)
+class MeasureReport:
+    """Measured errors and cost of ``method`` on the system for each h (``rows``), from
+    ``initial`` (q then p), with the linear predictions for the vibration of angular
+    frequency ``beta`` the start orbits (None: no prediction)."""
+
+    method: str
+    system: str
+    initial: tuple[float, ...]
+    energy: float
+    beta: float | None
+    reference: str
+    rows: tuple[MeasureRow, ...]
+    time_unit: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """What ``stepsafe measure --json`` prints."""
+        return copy.deepcopy({"method": self.method, "system": self.system,
+                              "initial": list(self.initial), "energy": self.energy,
+                              "beta": self.beta, "reference": self.reference,
+                              "time_unit": self.time_unit,
+                              "rows": [r.to_dict() for r in self.rows]})
+
+
+#: Predicted errors below this are rounding of an exact 0 (a method that conserves every
+#: quadratic invariant has no energy error on a linear model): no ratio is formed.
+NEGLIGIBLE = 1e-13
+
+
+def _ratio(measured: float | None, predicted: float | None) -> float | None:
+    if measured is None or predicted is None or predicted <= NEGLIGIBLE:
+        return None
+    return measured / predicted
+
+
+@dataclass(frozen=True)
+class _Problem:
+    system: Any  # stepsafe.core.integrator.System
+    q0: np.ndarray
+    p0: np.ndarray
+    beta: float | None
+    description: str
+    reference: Callable[[list[float]], list[np.ndarray]]  # times -> exact states (q, p)
+    reference_text: str
+    equilibrium_energy: float = 0.0  # H at the equilibrium the start orbits
+
+
+def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Path | None = None,
+            system: Mapping[str, Any] | None = None, time: float | None = None,
+            initial: Sequence[float] | None = None, energy: float | None = None,
+            time_unit: str | None = None,
+            progress: Callable[[float], None] | None = None) -> MeasureReport:
+    """Integrate the system of ``scene`` (or ``system``: the mapping a scene's ``system:``
+    holds) with ``method`` at each step h of ``steps`` for a time ``time`` (default: 100
+    periods of the vibration the start orbits), from ``initial`` (q then p) or, for a
+    1-dof Hamiltonian, from the elliptic equilibrium with momentum raised to the
+    ``energy`` given (default start: q displaced from that equilibrium by a tenth of the
+    box). See the module docstring for what is measured.
+
+    >>> report = measure("verlet", [0.1], system={"hamiltonian": "p**2/2 + q**2/2",
+    ...                  "box": {"q": [-1, 1], "p": [-1, 1]}}, initial=[1.0, 0.0])
+    >>> row = report.rows[0]
+    >>> round(row.energy_ratio, 3), row.status   # the linear bound is attained here
+    (1.0, 'ok')
+    """
+    from stepsafe.api import _integrator
+    from stepsafe.core.integrator import Engine
+    from stepsafe.units import time_unit as known_time_unit
+
+    integrator = _integrator(method)
+    time_unit = known_time_unit(time_unit)
+    hs = _steps(steps)
+    problem = _problem(integrator, scene, system, initial, energy)
+    if time is None:
+        if problem.beta is None:
+            raise StepsafeError("give the time to integrate (--time T): the start orbits no "
+                                "vibration whose period would set it")
+        time = DEFAULT_PERIODS * 2 * math.pi / problem.beta
+    time = positive_finite(time, "time")
+    counts = [max(1, math.ceil(time / h * (1 - 1e-12))) for h in hs]
+    if max(counts) > MAX_STEPS:
+        raise StepsafeError(f"T / h = {max(counts)} steps exceeds the {MAX_STEPS} measured in "
+                            "one run: a shorter --time or larger steps")
+    try:
+        Engine(integrator.tableau, problem.system)
+    except ValueError as exc:
+        raise StepsafeError(f"{integrator.name}: {exc}") from None
+    total, done = float(sum(counts)), 0
+    exact = problem.reference([n * h for h, n in zip(hs, counts)])
+    rows = []
+    for h, n, state in zip(hs, counts, exact):
+        def tick(k: int, done=done) -> None:
+            if progress:
+                progress((done + k) / total)
+
+        rows.append(_run(integrator, problem, h, n, state, tick))
+        done += n
+    state = np.concatenate([problem.q0[0], problem.p0[0]])
+    return MeasureReport(integrator.name, problem.description, tuple(map(float, state)),
+                         float(problem.system.energy(problem.q0, problem.p0)[0]),
+                         problem.beta, problem.reference_text, tuple(rows), time_unit)
+
+
+def _steps(steps: Sequence[float]) -> list[float]:
+    if isinstance(steps, (int, float)):
+        steps = [steps]
+    try:
+        items = list(steps)
+    except TypeError:
+        raise StepsafeError("steps must be a list of step sizes h") from None
+    if not items:
+        raise StepsafeError("no step sizes: give --h H (repeatable) or --h-range LO,HI,N")
+    if len(items) > MAX_STEP_SIZES:
+        raise StepsafeError(f"{len(items)} step sizes; at most {MAX_STEP_SIZES} per run")
+    return [positive_finite(h, "h") for h in items]
+
+
+def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.ndarray,
+         tick: Callable[[int], None]) -> MeasureRow:
+    from stepsafe.core.integrator import Engine, SolverFailure
+
+    engine = Engine(integrator.tableau, problem.system)
+    system = problem.system
+    q, p = problem.q0.copy(), problem.p0.copy()
+    e0 = float(system.energy(q, p)[0])
+    scale = abs(e0 - problem.equilibrium_energy) or 1.0
+    stride = max(1, n // ENERGY_SAMPLES)
+    times, errors = [0.0], [0.0]
+    status = "ok"
+    with np.errstate(all="ignore"):
+        for k in range(1, n + 1):
+            try:
+                q, p = engine.step(q, p, h)
+            except SolverFailure:
+                status = "solver failed"
+                break
+            if k % stride == 0 or k == n:
+                e = float(system.energy(q, p)[0])
+                err = abs(e - e0) / scale
+                if not (np.all(np.isfinite(q)) and np.all(np.isfinite(p))) or not \
+                        math.isfinite(err) or err > 1.0:
+                    status = "unstable"
+                    break
+                times.append(k * h)
+                errors.append((e - e0) / scale)
+            if k % 4096 == 0:
+                tick(k)
+    tick(n)
+    T = n * h
+    prediction = _prediction(integrator, problem.beta, h, T)
+    if status != "ok":
+        return MeasureRow(h, n, T, status, None, None, None, None, None, *prediction)
+    t, err = np.array(times), np.array(errors)
+    drift = float(np.polyfit(t, err, 1)[0]) if t.size > 2 else None
+    state = np.concatenate([q[0], p[0]])
+    size = max(float(np.linalg.norm(exact)), 1e-300)
+    traj = float(np.linalg.norm(state - exact) / size)
+    iterations = engine.iterations / n if engine.solves else None
+    return MeasureRow(h, n, T, status, float(np.abs(err).max()), drift, traj,
+                      engine.force_evaluations / T, iterations, *prediction)
+
+
+def _prediction(integrator: Integrator, beta: float | None, h: float, T: float
+                ) -> tuple[float | None, float | None]:
+    """The linear model's energy error bound and phase drift over T (None beyond the
+    method's first boundary or without a vibration)."""
+    if beta is None:
+        return None, None
+    from stepsafe.core.accuracy import errors
+    from stepsafe.core.regions import find_region
+
+    z = beta * h
+    boundary = find_region(integrator.tableau, "oscillator", max(10.0, 1.1 * z)).first_boundary
+    if boundary is not None and z >= boundary:
+        return None, None
+    e = errors(integrator.tableau, np.array([z]), "oscillator")
+    energy, phase = float(np.asarray(e.energy)[0]), float(np.asarray(e.phase)[0])
+    if not (math.isfinite(energy) and math.isfinite(phase)):
+        return None, None
+    drift = abs(phase) * beta * T  # the phase the run falls behind (or ahead) by
+    energy = abs(energy) if abs(energy) > NEGLIGIBLE else 0.0
+    return energy, 2.0 * abs(math.sin(min(drift, math.pi) / 2))
+
+
+# ---------------------------------------------------------------- the system
+
+
+def _problem(integrator: Integrator, scene: Any, system: Mapping[str, Any] | None,
+             initial: Sequence[float] | None, energy: float | None) -> _Problem:
+    from stepsafe.systems.scene import load_scene
+
+    if system is not None:
+        tree, where, folder = system, "system", Path(".")
+    elif scene is not None:
+        loaded = load_scene(scene)
+        if loaded.system is None:
+            raise StepsafeError("measure needs a scene with system: (a Hamiltonian "
+                                "expression or a linear system), not modes:", loaded.where)
+        tree, where, folder = loaded.system, loaded.where, loaded.folder
+    else:
+        raise StepsafeError("no system: give a scene file with system: (or system= in "
+                            "Python)")
+    if not isinstance(tree, Mapping):
+        raise StepsafeError("system: must be a mapping", where)
+    if "hamiltonian" in tree:
+        return _expression_problem(integrator, tree, where, folder, initial, energy)
+    if energy is not None:
+        raise StepsafeError("--energy applies to Hamiltonian expressions; give --initial for "
+                            "a linear system")
+    return _linear_problem(tree, where, folder, initial)
+
+
+def _expression_problem(integrator, tree, where, folder, initial, energy) -> _Problem:
+    from stepsafe.systems.dynamics import check_finite_start, hamiltonian_system
+    from stepsafe.systems.loader import analyse_system
+    from stepsafe.systems.nonlinear import parse_hamiltonian
+
+    report = analyse_system(tree, where, folder, integrator.tableau)
+    params = {k: float(v) for k, v in (tree.get("parameters") or {}).items()}
+    H = parse_hamiltonian(tree["hamiltonian"], params)
+    system = hamiltonian_system(H)
+    centres = [item for item in report.items if item["model"] == "oscillator"]
+    box_q = [float(x) for x in tree["box"]["q"]]
+    if initial is not None:
+        if energy is not None:
+            raise StepsafeError("give --initial or --energy, not both")
+        q0, p0 = _pair(initial)
+    else:
+        if not centres:
+            raise StepsafeError("no elliptic equilibrium in the box to start near: give "
+                                "--initial q,p", where)
+        c = centres[0]
+        if energy is None:
+            q0, p0 = c["q"] + 0.1 * (box_q[1] - box_q[0]) / 2, c["p"]
+        else:
+            q0, p0 = c["q"], _momentum_for(system, c["q"], c["p"], float(energy))
+    q, p = np.array([[q0]]), np.array([[p0]])
+    check_finite_start(system, q, p)
+    beta = None
+    if centres:
+        nearest = min(centres, key=lambda c: math.hypot(c["q"] - q0, c["p"] - p0))
+        beta = float(nearest["beta"])
+
+    def reference(times: list[float]) -> list[np.ndarray]:
+        from scipy.integrate import solve_ivp
+
+        def rhs(_, y):
+            dq, dp = system.rates(np.array([[y[0]]]), np.array([[y[1]]]))
+            return [dq[0, 0], dp[0, 0]]
+
+        scale = max(abs(q0), abs(p0), 1e-300)
+        sol = solve_ivp(rhs, (0.0, max(times)), [q0, p0], method="DOP853", rtol=1e-13,
+                        atol=1e-13 * scale, t_eval=sorted(set(times)))
+        if sol.status != 0 or sol.y.shape[1] != len(set(times)):
+            raise StepsafeError(f"the reference integration failed: {sol.message}")
+        at = dict(zip(sol.t, sol.y.T))
+        return [np.array(at[t]) for t in times]
+
+    centre_energy = 0.0
+    if beta is not None:
+        centre_energy = float(system.energy(np.array([[nearest["q"]]]),
+                                            np.array([[nearest["p"]]]))[0])
+    return _Problem(system, q, p, beta, f"H = {tree['hamiltonian']}", reference,
+                    "adaptive 8th-order Dormand-Prince (scipy DOP853), tolerance 1e-13",
+                    centre_energy)
+
+
+def _pair(initial: Sequence[float]) -> tuple[float, float]:
+    try:
+        values = [float(v) for v in initial]
+    except (TypeError, ValueError):
+        raise StepsafeError("the initial condition must be numbers q, p") from None
+    if len(values) != 2 or not all(map(math.isfinite, values)):
+        raise StepsafeError("the initial condition of a 1-dof system is two finite numbers "
+                            "q, p")
+    return values[0], values[1]
+
+
+def _momentum_for(system, q: float, p: float, energy: float) -> float:
+    """p > p_equilibrium with H(q, p) = energy (bisection on a bracket grown outwards)."""
+    def f(x: float) -> float:
+        return float(system.energy(np.array([[q]]), np.array([[x]]))[0]) - energy
+
+    if not math.isfinite(energy) or f(p) > 0:
+        raise StepsafeError(f"--energy {energy:g} is below the energy {f(p) + energy:g} of "
+                            "the equilibrium started from")
+    step = max(abs(p), 1.0)
+    hi = p + step
+    for _ in range(200):
+        if f(hi) >= 0:
+            break
+        hi = p + (hi - p) * 2
+    else:
+        raise StepsafeError(f"no momentum reaches the energy {energy:g}")
+    lo = p
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if mid in (lo, hi):
+            break
+        lo, hi = (mid, hi) if f(mid) < 0 else (lo, mid)
+    return hi
+
+
+def _linear_problem(tree, where, folder, initial) -> _Problem:
+    from stepsafe.systems.dynamics import exact_linear, linear_system, stiffness_hessian
+    from stepsafe.systems.linear import check_square
+    from stepsafe.systems.loader import _matrix
+
+    keys = set(tree)
+    if "hessian" in keys:
+        S = check_square(_matrix(tree["hessian"], where, "hessian", folder), "hessian")
+    else:
+        key = next((k for k in ("stiffness", "precision", "covariance") if k in keys), None)
+        if key is None:
+            raise StepsafeError("measure runs Hamiltonian expressions and linear systems "
+                                "(stiffness, precision, covariance or hessian)", where)
+        A = check_square(_matrix(tree[key], where, key, folder), key)
+        if key == "covariance":
+            A = np.linalg.inv(A)
+        M = check_square(_matrix(tree["mass"], where, "mass", folder), "mass") \
+            if "mass" in tree else None
+        S = stiffness_hessian(A, M)
+    n = S.shape[0] // 2
+    if n > 2000:
+        raise StepsafeError(f"{n} degrees of freedom: measure runs dense systems up to 2000",
+                            where)
+    if initial is None:
+        x0 = np.concatenate([np.random.default_rng(0).normal(size=n), np.zeros(n)])
+    else:
+        x0 = np.array([float(v) for v in initial], dtype=float)
+        if x0.size != 2 * n or not np.all(np.isfinite(x0)):
+            raise StepsafeError(f"the initial condition must be {2 * n} finite numbers "
+                                "(q then p)")
+    w2 = np.linalg.eigvals(np.block([[np.zeros((n, n)), np.eye(n)],
+                                     [-np.eye(n), np.zeros((n, n))]]) @ S)
+    vib = np.abs(w2[np.abs(w2.real) <= 1e-9 * np.abs(w2).max()].imag)
+    beta = float(vib.max()) if vib.size else None
+    return _Problem(linear_system(S), x0[None, :n].copy(), x0[None, n:].copy(), beta,
+                    f"linear, {n} dof",
+                    lambda times: [exact_linear(S, x0[None, :], t)[0] for t in times],
+                    "the exact flow expm(J S T)")
+
+
+__all__ = ["MeasureReport", "MeasureRow", "measure"]
