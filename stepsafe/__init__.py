@@ -14,6 +14,7 @@ The public API (see :mod:`stepsafe.api`)::
     design(sigma=..., step=h, stages=2)         a 2- or 3-stage HMC splitting for your target
     impulse(outer, inner, substeps, fast=, slow=)  safe outer steps of r-RESPA / impulse MTS
     impulse_advice(method, pairs)               ... for several modes (fast, slow) together
+    measure(method, steps, scene=...)           run the method on the scene's own system
     problem(...), load_scene(path)              inputs merged from a scene file and arguments
     StepsafeError                               every error a caller can cause (bad input)
 
@@ -40,7 +41,9 @@ _API = ("Integrator", "PartitionedTableau", "RegionReport", "AdviceReport", "Che
 _HMC = ("hmc", "design", "HmcReport", "HmcRow", "DesignReport")
 #: Multiple time stepping (stepsafe.respa_advice).
 _MTS = ("impulse", "impulse_advice", "ImpulseReport", "ImpulseModesReport")
-__all__ = [*_API, *_HMC, *_MTS, "StepsafeError", "MethodError", "__version__"]
+#: Measurement on the user's own system (stepsafe.measurement).
+_MEASURE = ("measure", "MeasureReport", "MeasureRow")
+__all__ = [*_API, *_HMC, *_MTS, *_MEASURE, "StepsafeError", "MethodError", "__version__"]
 
 if TYPE_CHECKING:  # pragma: no cover
     from stepsafe.api import (  # noqa: F401
@@ -65,6 +68,7 @@ if TYPE_CHECKING:  # pragma: no cover
         transfer_matrices,
     )
     from stepsafe.hmc_advice import DesignReport, HmcReport, HmcRow, design, hmc  # noqa: F401
+    from stepsafe.measurement import MeasureReport, MeasureRow, measure  # noqa: F401
     from stepsafe.respa_advice import (  # noqa: F401
         ImpulseModesReport,
         ImpulseReport,
@@ -86,8 +90,12 @@ def __getattr__(name: str) -> Any:
         from stepsafe import respa_advice
 
         return getattr(respa_advice, name)
+    if name in _MEASURE:
+        from stepsafe import measurement
+
+        return getattr(measurement, name)
     raise AttributeError(f"module 'stepsafe' has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_API) | set(_HMC) | set(_MTS))
+    return sorted(set(globals()) | set(_API) | set(_HMC) | set(_MTS) | set(_MEASURE))

@@ -30,6 +30,10 @@ def test_docstring_examples_run():
 
     failures, tried = doctest.testmod(respa_advice, raise_on_error=False, verbose=False)
     assert tried >= 2 and failures == 0 and stepsafe.impulse is respa_advice.impulse
+    from stepsafe import measurement
+
+    failures, tried = doctest.testmod(measurement, raise_on_error=False, verbose=False)
+    assert tried >= 2 and failures == 0 and stepsafe.measure is measurement.measure
 
 
 def test_import_stepsafe_is_light():

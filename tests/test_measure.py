@@ -1,0 +1,225 @@
+"""stepsafe measure: the engine against closed forms, the mpmath reference integrator of
+tests/integrate.py and the solver model; the measured figures against an independent run."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import mpmath as mp
+import numpy as np
+import pytest
+
+from stepsafe import method
+from stepsafe.core.integrator import Engine
+from stepsafe.exceptions import StepsafeError
+from stepsafe.measurement import measure
+from stepsafe.systems.dynamics import hamiltonian_system, linear_system
+from stepsafe.systems.nonlinear import parse_hamiltonian
+
+PENDULUM = {"hamiltonian": "p**2/2 - cos(q)", "box": {"q": [-4, 4], "p": [-1, 1]}}
+
+
+def _pendulum():
+    return hamiltonian_system(parse_hamiltonian("p**2/2 - cos(q)"))
+
+
+def _run(name, system, q, p, h, n, stages=None):
+    engine = Engine(method(name, stages).tableau, system)
+    for _ in range(n):
+        q, p = engine.step(q, p, h)
+    return q, p, engine
+
+
+@pytest.mark.parametrize("name, stages, order", [
+    ("verlet", None, 2), ("yoshida4", None, 4), ("pefrl", None, 4), ("rk4", None, 4),
+    ("gauss", 2, 4), ("lobatto3ab", 3, 4), ("midpoint", None, 2)])
+def test_order_on_the_pendulum(name, stages, order):
+    from scipy.integrate import solve_ivp
+
+    T, q0 = 2.0, 1.0
+    ref = solve_ivp(lambda t, y: [y[1], -math.sin(y[0])], (0, T), [q0, 0.0],
+                    method="DOP853", rtol=1e-13, atol=1e-14).y[:, -1]
+    errs = []
+    for n in (20, 40):
+        q, p, _ = _run(name, _pendulum(), np.array([[q0]]), np.array([[0.0]]), T / n, n,
+                       stages)
+        errs.append(math.hypot(q[0, 0] - ref[0], p[0, 0] - ref[1]))
+    assert abs(math.log2(errs[0] / errs[1]) - order) < 0.3, errs
+
+
+def test_vectorised_over_initial_conditions_and_against_mpmath():
+    """Three starts at once give each start's own run; Verlet matches the 40-digit
+    integrator of tests/integrate.py to rounding."""
+    from tests.integrate import integrate, mp_method
+
+    starts = np.array([[0.3], [1.0], [2.5]])
+    q, p, engine = _run("verlet", _pendulum(), starts, np.zeros((3, 1)), 0.1, 200)
+    with mp.workdps(40):
+        m = mp_method("verlet")
+        for k in range(3):
+            qr, pr = integrate(m, starts[k, 0], 0, 20, 200, lambda x: -mp.sin(x))
+            assert q[k, 0] == pytest.approx(float(qr), abs=1e-12)
+            assert p[k, 0] == pytest.approx(float(pr), abs=1e-12)
+    assert engine.force_evaluations == 201  # first same as last: one per step, plus the first
+
+
+def test_linear_systems_follow_the_transfer_matrices():
+    """On x' = J S x the engine's n steps are M(h)^n x0 (the coupled module's one-step
+    matrix, built independently of the engine)."""
+    from stepsafe.systems.coupled import one_step_matrix
+
+    rng = np.random.default_rng(2)
+    n = 3
+    B = rng.normal(size=(n, n))
+    K = B @ B.T + np.eye(n)
+    S = np.block([[K, np.zeros((n, n))], [np.zeros((n, n)), np.eye(n)]])
+    system = linear_system(S)
+    x0 = rng.normal(size=2 * n)
+    for name, stages in (("yoshida4", None), ("gauss", 2), ("lobatto3ab", 3)):
+        M = one_step_matrix(method(name, stages).tableau, S, 0.05)
+        q, p, _ = _run(name, system, x0[None, :n], x0[None, n:], 0.05, 30, stages)
+        expected = np.linalg.matrix_power(M, 30) @ x0
+        assert np.allclose(np.concatenate([q[0], p[0]]), expected, rtol=0, atol=1e-11)
+
+
+@pytest.mark.parametrize("name, stages", [("gauss", 2), ("gauss", 3), ("lobatto3ab", 3)])
+@pytest.mark.parametrize("z", [0.3, 1.0, 2.0])
+def test_iterations_are_those_of_the_solver_model(name, stages, z):
+    """On the oscillator (beta = 1) from the unit states, the engine's fixed-point
+    iterations and force evaluations per step are the solver model's counts."""
+    from stepsafe.core.solver import fixed_point_cost
+
+    tableau = method(name, stages).tableau
+    cost = fixed_point_cost(tableau, z)
+    S = np.eye(2)
+    counts = []
+    for x0 in ((1.0, 0.0), (0.0, 1.0)):
+        engine = Engine(tableau, linear_system(S))
+        engine.step(np.array([[x0[0]]]), np.array([[x0[1]]]), z)
+        counts.append((engine.iterations, engine.force_evaluations))
+    assert max(c[0] for c in counts) == cost.iterations
+    worst = max(counts)
+    assert worst[1] == cost.evaluations + (1 if name == "lobatto3ab" else 0)
+
+
+def test_a_splitting_method_needs_a_separable_h():
+    system = hamiltonian_system(parse_hamiltonian("(p + q)**2/2 + q**2"))
+    assert not system.separable and _pendulum().separable
+    with pytest.raises(ValueError, match="separable"):
+        Engine(method("verlet").tableau, system)
+    with pytest.raises(StepsafeError, match="separable"):
+        measure("verlet", [0.1], system={"hamiltonian": "(p + q)**2/2 + q**2",
+                                         "box": {"q": [-1, 1], "p": [-1, 1]}},
+                initial=[0.1, 0.0], time=1.0)
+    report = measure(method("gauss", 2), [0.1], time=5.0,
+                     system={"hamiltonian": "(p + q)**2/2 + q**2",
+                             "box": {"q": [-1, 1], "p": [-1, 1]}}, initial=[0.1, 0.0])
+    assert report.rows[0].status == "ok"
+
+
+def test_the_linear_bound_is_measured_on_the_oscillator():
+    """Harmonic oscillator: from the lowest energy of its invariant ellipse (q = 0 for
+    kick-drift-kick Verlet, whose modified energy is p^2 + (1 - h^2/4) q^2), the largest
+    relative energy error of a long run reaches the linear bound kappa - 1 (irrational
+    rotation); from q = 1, p = 0 it is h^2/4 = (kappa - 1)(1 - h^2/4). The trajectory
+    error is the phase drift, as predicted."""
+    h = 0.3
+    system = {"hamiltonian": "p**2/2 + q**2/2", "box": {"q": [-1, 1], "p": [-1, 1]}}
+    other = measure("verlet", [h], system=system, initial=[1.0, 0.0], time=500.0)
+    assert other.rows[0].energy_error == pytest.approx(h * h / 4, rel=1e-6)
+    report = measure("verlet", [h], system=system, initial=[0.0, 1.0], time=1000.0)
+    row = report.rows[0]
+    assert row.energy_ratio == pytest.approx(1.0, abs=2e-4)
+    assert row.predicted_trajectory_error == 2.0  # more than half a turn out of phase
+    short = measure("verlet", [h], system=system, initial=[0.0, 1.0], time=100.0).rows[0]
+    theta = math.acos(1 - h * h / 2)
+    drift = (theta / h - 1) * short.time
+    assert short.predicted_trajectory_error == pytest.approx(2 * abs(math.sin(drift / 2)),
+                                                             rel=1e-9)
+    assert short.trajectory_ratio == pytest.approx(1.0, abs=5e-3)
+    assert abs(row.energy_drift) < 1e-6  # bounded oscillation, no drift
+    assert row.evaluations_per_time == pytest.approx((row.steps + 1) / row.time)
+
+
+def test_small_amplitude_pendulum_approaches_the_linear_prediction():
+    """From q = 0 (the lowest energy of Verlet's invariant curve) the measured energy error
+    tends to the linear bound as the amplitude shrinks."""
+    ratios = []
+    for amplitude in (0.4, 0.1):
+        report = measure("verlet", [0.2], system=PENDULUM, initial=[0.0, amplitude],
+                         time=200.0)
+        ratios.append(report.rows[0].energy_ratio)
+    assert abs(ratios[1] - 1) < abs(ratios[0] - 1) and abs(ratios[1] - 1) < 0.01
+
+
+def test_measured_figures_agree_with_an_independent_run():
+    """The trajectory error measure reports is the distance between an independent
+    40-digit Verlet run and a scipy reference (to 1e-6 relative)."""
+    from scipy.integrate import solve_ivp
+
+    from tests.integrate import integrate, mp_method
+
+    h, T = 0.25, 30.0
+    report = measure("verlet", [h], system=PENDULUM, initial=[1.0, 0.0], time=T)
+    n = report.rows[0].steps
+    with mp.workdps(40):
+        qr, pr = integrate(mp_method("verlet"), 1.0, 0, n * h, n, lambda x: -mp.sin(x))
+    ref = solve_ivp(lambda t, y: [y[1], -math.sin(y[0])], (0, n * h), [1.0, 0.0],
+                    method="DOP853", rtol=1e-13, atol=1e-14).y[:, -1]
+    independent = math.hypot(float(qr) - ref[0], float(pr) - ref[1]) / math.hypot(*ref)
+    assert report.rows[0].trajectory_error == pytest.approx(independent, rel=1e-6)
+
+
+def test_an_unstable_step_and_a_failing_solver_are_reported():
+    report = measure("verlet", [2.1], system=PENDULUM, initial=[0.1, 0.0], time=200.0)
+    assert report.rows[0].status == "unstable" and report.rows[0].energy_error is None
+    report = measure(method("gauss", 2), [3.6], system=PENDULUM, initial=[0.1, 0.0],
+                     time=20.0)
+    assert report.rows[0].status == "solver failed"
+
+
+def test_linear_scene_from_a_stiffness(tmp_path):
+    scene = tmp_path / "chain.yaml"
+    scene.write_text("method: verlet\nsystem:\n  stiffness: [[2, -1, 0], [-1, 2, -1], "
+                     "[0, -1, 2]]\n")
+    report = measure("verlet", [0.1, 0.5], scene=str(scene), time=50.0)
+    assert report.beta == pytest.approx(math.sqrt(2 + math.sqrt(2)), rel=1e-12)
+    assert all(r.status == "ok" for r in report.rows)
+    assert report.rows[1].energy_error > report.rows[0].energy_error
+
+
+def test_cli(run, tmp_path):
+    code, out, err = run("measure", "examples/pendulum.yaml", "--h", "0.1", "--h", "2.1",
+                         "--time", "50")
+    assert code == 0, err
+    assert "unstable" in out and "energy err" in out
+    code, out, err = run("measure", "examples/pendulum.yaml", "--method", "gauss", "-s", "2",
+                         "--h-range", "0.1,1,3", "--time", "20", "--json")
+    assert code == 0, err
+    data = json.loads(out)
+    assert [r["h"] for r in data["rows"]] == pytest.approx([0.1, 10 ** -0.5, 1.0])
+    assert all(r["iterations_per_step"] > 1 for r in data["rows"])
+    code, out, _ = run("measure", "examples/pendulum.yaml", "--h", "0.5", "--time", "20",
+                       "--tsv")
+    assert code == 0 and out.splitlines()[0].startswith("h\tsteps")
+
+
+@pytest.mark.parametrize("args", [
+    ("--h", "-1"), ("--h-range", "1,0.1,3"), ("--h-range", "0.1,1,1000"),
+    ("--h-range", "a,b,c"), ("--h", "0.1", "--initial", "1,2,3"),
+    ("--h", "0.1", "--initial", "1,2", "--energy", "1"),
+    ("--h", "0.1", "--energy", "-5"), ("--h", "1e-9", "--time", "100"),
+    ("--h", "0.1", "--method", "respa-verlet"), ("--h", "0.1", "--time", "0"),
+    ("--h", "0.1", "--json", "--tsv"),
+])
+def test_bad_input(run, args):
+    code, out, err = run("measure", "examples/pendulum.yaml", *args)
+    assert code == 2 and err.count("\n") == 1 and out == "", (args, err)
+
+
+def test_scenes_without_a_system_are_refused(run, tmp_path):
+    scene = tmp_path / "modes.yaml"
+    scene.write_text("method: verlet\nmodes:\n  - {beta: 1}\n")
+    code, _, err = run("measure", str(scene), "--h", "0.1")
+    assert code == 2 and "modes.yaml" in err
