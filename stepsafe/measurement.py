@@ -4,15 +4,19 @@
 The scene's actual system (a 1-dof Hamiltonian expression, or a linear system: stiffness
 and mass, Hessian, Gaussian precision or covariance) is integrated with the method at each
 step h for a time T from one initial condition, by the engine of
-:mod:`stepsafe.core.integrator`. Measured per h: the largest relative energy error
-``max_t |H(t) - H(0)| / |H(0) - H_e|`` (``H_e`` the energy of the equilibrium the start
-orbits, 0 for linear systems), the energy drift (least-squares slope of the relative
-error against t, per unit time), the trajectory error at T relative to the size of the
-exact state (the reference: ``expm(J S T)`` for linear systems, an adaptive 8th-order
+:mod:`stepsafe.core.integrator`. Measured per h: the relative energy error, the spread
+``(max_t H - min_t H) / (min_t H - H_e)`` of the energy over the run (``H_e`` the energy of
+the equilibrium the start orbits, 0 for linear systems; the quantity the linear bound
+``kappa - 1`` describes, whatever the start), the energy drift (least-squares slope of
+``(H(t) - H(0)) / |H(0) - H_e|`` against t, per unit time), the trajectory error at T
+relative to the size of the exact state (the reference: ``expm(J S T)`` for linear systems, an adaptive 8th-order
 Dormand-Prince run at tolerance 1e-13 for expressions), force evaluations per unit time as
 counted (implicit methods: with their fixed-point iterations), and the status (``ok``;
-``unstable`` when the state or its energy error leaves [0, 1]; ``solver failed`` when the
-stage iteration did not converge).
+``unstable`` when the state overflows or its energy moves by more than
+:data:`UNSTABLE` times the start's energy above the equilibrium; ``solver failed`` when the
+stage iteration did not converge; ``beyond z*`` when the run stayed finite but z = beta h
+is past the method's first boundary for the vibration the start orbits, where the linear
+model predicts nothing).
 
 Beside each, the linear prediction for the vibration the start orbits (z = beta h): the
 energy error bound ``kappa - 1`` (relative to the energy above that equilibrium) and the
@@ -41,6 +45,9 @@ MAX_STEPS = 2_000_000
 ENERGY_SAMPLES = 20_000
 #: Steps h measured in one call at most.
 MAX_STEP_SIZES = 200
+#: A run whose energy moves by more than this many times the start's energy above the
+#: equilibrium has grown without bound (bounded linear runs stay within kappa - 1).
+UNSTABLE = 1e6
 #: Default length of a run, in periods of the vibration the start orbits.
 DEFAULT_PERIODS = 100
 
@@ -220,7 +227,7 @@ def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.
                 e = float(system.energy(q, p)[0])
                 err = abs(e - e0) / scale
                 if not (np.all(np.isfinite(q)) and np.all(np.isfinite(p))) or not \
-                        math.isfinite(err) or err > 1.0:
+                        math.isfinite(err) or err > UNSTABLE:
                     status = "unstable"
                     break
                 times.append(k * h)
@@ -230,7 +237,9 @@ def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.
     tick(n)
     T = n * h
     prediction = _prediction(integrator, problem.beta, h, T)
-    if status != "ok":
+    if status == "ok" and problem.beta is not None and prediction[0] is None:
+        status = "beyond z*"  # ran, but past the linear model's first boundary
+    if status not in ("ok", "beyond z*"):
         return MeasureRow(h, n, T, status, None, None, None, None, None, *prediction)
     t, err = np.array(times), np.array(errors)
     drift = float(np.polyfit(t, err, 1)[0]) if t.size > 2 else None
@@ -238,7 +247,11 @@ def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.
     size = max(float(np.linalg.norm(exact)), 1e-300)
     traj = float(np.linalg.norm(state - exact) / size)
     iterations = engine.iterations / n if engine.solves else None
-    return MeasureRow(h, n, T, status, float(np.abs(err).max()), drift, traj,
+    # the spread of the energy over the run relative to its lowest value above the
+    # equilibrium: the quantity the linear bound kappa - 1 describes, whatever the start
+    low = float(err.min()) + (e0 - problem.equilibrium_energy) / scale
+    spread = float(err.max() - err.min()) / low if low > 0 else None
+    return MeasureRow(h, n, T, status, spread, drift, traj,
                       engine.force_evaluations / T, iterations, *prediction)
 
 

@@ -119,15 +119,14 @@ def test_a_splitting_method_needs_a_separable_h():
 
 
 def test_the_linear_bound_is_measured_on_the_oscillator():
-    """Harmonic oscillator: from the lowest energy of its invariant ellipse (q = 0 for
-    kick-drift-kick Verlet, whose modified energy is p^2 + (1 - h^2/4) q^2), the largest
-    relative energy error of a long run reaches the linear bound kappa - 1 (irrational
-    rotation); from q = 1, p = 0 it is h^2/4 = (kappa - 1)(1 - h^2/4). The trajectory
-    error is the phase drift, as predicted."""
+    """Harmonic oscillator: the energy's spread over a long run, (max - min) / min, reaches
+    the linear bound kappa - 1 (irrational rotation) from any start (kick-drift-kick
+    Verlet conserves p^2 + (1 - h^2/4) q^2: kappa = 1 / (1 - h^2/4)). The trajectory error
+    is the phase drift, as predicted."""
     h = 0.3
     system = {"hamiltonian": "p**2/2 + q**2/2", "box": {"q": [-1, 1], "p": [-1, 1]}}
     other = measure("verlet", [h], system=system, initial=[1.0, 0.0], time=500.0)
-    assert other.rows[0].energy_error == pytest.approx(h * h / 4, rel=1e-6)
+    assert other.rows[0].energy_error == pytest.approx(1 / (1 - h * h / 4) - 1, rel=1e-6)
     report = measure("verlet", [h], system=system, initial=[0.0, 1.0], time=1000.0)
     row = report.rows[0]
     assert row.energy_ratio == pytest.approx(1.0, abs=2e-4)
@@ -143,8 +142,7 @@ def test_the_linear_bound_is_measured_on_the_oscillator():
 
 
 def test_small_amplitude_pendulum_approaches_the_linear_prediction():
-    """From q = 0 (the lowest energy of Verlet's invariant curve) the measured energy error
-    tends to the linear bound as the amplitude shrinks."""
+    """The measured energy spread tends to the linear bound as the amplitude shrinks."""
     ratios = []
     for amplitude in (0.4, 0.1):
         report = measure("verlet", [0.2], system=PENDULUM, initial=[0.0, amplitude],
@@ -172,8 +170,13 @@ def test_measured_figures_agree_with_an_independent_run():
 
 
 def test_an_unstable_step_and_a_failing_solver_are_reported():
-    report = measure("verlet", [2.1], system=PENDULUM, initial=[0.1, 0.0], time=200.0)
+    oscillator = {"hamiltonian": "p**2/2 + q**2/2", "box": {"q": [-1, 1], "p": [-1, 1]}}
+    report = measure("verlet", [2.1], system=oscillator, initial=[0.1, 0.0], time=200.0)
     assert report.rows[0].status == "unstable" and report.rows[0].energy_error is None
+    # the pendulum past z* = 2 stays finite (its force is bounded): measured, no prediction
+    row = measure("verlet", [2.1], system=PENDULUM, initial=[0.4, 0.0], time=200.0).rows[0]
+    assert row.status == "beyond z*" and row.energy_error > 1
+    assert row.predicted_energy_error is None
     report = measure(method("gauss", 2), [3.6], system=PENDULUM, initial=[0.1, 0.0],
                      time=20.0)
     assert report.rows[0].status == "solver failed"
@@ -193,7 +196,7 @@ def test_cli(run, tmp_path):
     code, out, err = run("measure", "examples/pendulum.yaml", "--h", "0.1", "--h", "2.1",
                          "--time", "50")
     assert code == 0, err
-    assert "unstable" in out and "energy err" in out
+    assert "beyond z*" in out and "energy err" in out
     code, out, err = run("measure", "examples/pendulum.yaml", "--method", "gauss", "-s", "2",
                          "--h-range", "0.1,1,3", "--time", "20", "--json")
     assert code == 0, err

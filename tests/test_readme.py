@@ -67,6 +67,16 @@ def test_criterion_output():
     assert _block_after("stepsafe check --method bcss3 --beta 1 --step 3.5 --criterion") == out
 
 
+def test_measure_outputs():
+    pendulum = str(ROOT / "examples/pendulum.yaml")
+    assert _block_after("stepsafe measure examples/pendulum.yaml --h 0.1") == _output(
+        "measure", pendulum, "--h", "0.1", "--h", "0.5", "--h", "1.9", "--h", "2.1",
+        "--time", "200")
+    assert _block_after("stepsafe measure examples/pendulum.yaml --method gauss") == _output(
+        "measure", pendulum, "--method", "gauss", "-s", "2", "--h", "0.5", "--h", "2",
+        "--h", "3.6", "--time", "200")
+
+
 def test_impulse_method_outputs():
     assert _block_after("stepsafe region respa-verlet --ratio 0.1") == _output(
         "region", "respa-verlet", "--ratio", "0.1")

@@ -8,7 +8,9 @@ rotation by ``theta`` with ``cos theta = tr M / 2`` and ``sin theta = sqrt(-bc -
 * energy error: orbits of M lie on the invariant ellipse ``x^T S x = const`` with
   ``S = [[-c, (a-d)/2], [(a-d)/2, b]]`` (``M^T S M = S``); the exact energy ``|x|^2 / 2``
   varies along it by the ratio of the eigenvalues of S, so ``e_energy = kappa(S) - 1``
-  bounds the relative energy error (and is attained by a suitable initial point).
+  bounds the relative energy error (approached from the lowest-energy point of the ellipse
+  when theta / 2 pi is irrational; a rotation by a rational part of a turn visits finitely
+  many points and can stay below it).
 
 Hyperbolic models: the flow grows by ``e^z`` per step, M by ``mu = tr/2 + sqrt(tr^2/4 - 1)``,
 so ``e_rate = log(mu) / z - 1``.
