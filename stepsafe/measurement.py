@@ -4,19 +4,22 @@
 The scene's actual system (a 1-dof Hamiltonian expression, or a linear system: stiffness
 and mass, Hessian, Gaussian precision or covariance) is integrated with the method at each
 step h for a time T from one initial condition, by the engine of
-:mod:`stepsafe.core.integrator`. Measured per h: the relative energy error, the spread
-``(max_t H - min_t H) / (min_t H - H_e)`` of the energy over the run (``H_e`` the energy of
-the equilibrium the start orbits, 0 for linear systems; the quantity the linear bound
-``kappa - 1`` describes, whatever the start), the energy drift (least-squares slope of
-``(H(t) - H(0)) / |H(0) - H_e|`` against t, per unit time), the trajectory error at T
-relative to the size of the exact state (the reference: ``expm(J S T)`` for linear systems, an adaptive 8th-order
-Dormand-Prince run at tolerance 1e-13 for expressions), force evaluations per unit time as
-counted (implicit methods: with their fixed-point iterations), and the status (``ok``;
-``unstable`` when the state overflows or its energy moves by more than
-:data:`UNSTABLE` times the start's energy above the equilibrium; ``solver failed`` when the
-stage iteration did not converge; ``beyond z*`` when the run stayed finite but z = beta h
-is past the method's first boundary for the vibration the start orbits, where the linear
-model predicts nothing).
+:mod:`stepsafe.core.integrator`. Measured per h:
+
+* the energy error: the spread ``(max_t H - min_t H) / (min_t H - H_e)`` of the energy over
+  the run (``H_e`` the energy of the equilibrium the start orbits, 0 for linear systems):
+  the quantity the linear bound ``kappa - 1`` describes, whatever the start;
+* the energy drift: the least-squares slope of ``(H(t) - H(0)) / |H(0) - H_e|`` against t;
+* the trajectory error at T relative to the size of the exact state (the reference:
+  ``expm(J S T)`` for linear systems, an adaptive 8th-order Dormand-Prince run at
+  tolerance 1e-13 for expressions);
+* force evaluations per unit time as counted (implicit methods: with their fixed-point
+  iterations);
+* the status: ``ok``; ``unstable`` when the state overflows or its energy moves by more
+  than :data:`UNSTABLE` times the start's energy above the equilibrium; ``solver failed``
+  when the stage iteration did not converge; ``beyond z*`` when the run stayed finite but
+  z = beta h is past the method's first boundary for the vibration the start orbits,
+  where the linear model predicts nothing.
 
 Beside each, the linear prediction for the vibration the start orbits (z = beta h): the
 energy error bound ``kappa - 1`` (relative to the energy above that equilibrium) and the
