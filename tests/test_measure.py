@@ -226,3 +226,18 @@ def test_scenes_without_a_system_are_refused(run, tmp_path):
     scene.write_text("method: verlet\nmodes:\n  - {beta: 1}\n")
     code, _, err = run("measure", str(scene), "--h", "0.1")
     assert code == 2 and "modes.yaml" in err
+
+
+def test_work_precision_plot(run, tmp_path):
+    pytest.importorskip("matplotlib")
+    png = tmp_path / "wp.png"
+    code, out, err = run("plot", "--work-precision", "examples/pendulum.yaml", "--methods",
+                         "verlet,gauss:2", "--h-range", "0.2,1,3", "--time", "20", "-o",
+                         str(png))
+    assert code == 0 and png.read_bytes()[:4] == b"\x89PNG", err
+    for args in (("plot",), ("plot", "verlet", "--work-precision", "examples/pendulum.yaml"),
+                 ("plot", "--work-precision", "examples/pendulum.yaml", "--methods", "verlet"),
+                 ("plot", "--work-precision", "examples/pendulum.yaml", "--methods", ",",
+                  "--h-range", "0.1,1,2")):
+        code, _, err = run(*args)
+        assert code == 2 and err.count("\n") == 1, (args, err)

@@ -136,7 +136,7 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, tsv, criterion, a
 
 
 @main.command("plot")
-@method_options
+@method_options(required=False)
 @click.option("--model", type=MODEL_ONE, default="oscillator", show_default=True)
 @click.option("--zmax", type=FLOAT, default=None, metavar="Z", help="Plot z up to Z [default: 6].")
 @click.option("--phase", "with_phase", is_flag=True, help="Add the phase error (log scale).")
@@ -148,7 +148,21 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, tsv, criterion, a
               help="Impulse (r-RESPA) methods: draw the ray of this ratio omega/Omega.")
 @click.option("--substeps", type=INT, default=None, metavar="K",
               help="Impulse methods: inner steps per outer drift [default: the file's].")
-def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, substeps) -> None:
+@click.option("--work-precision", "scene_file", default=None, metavar="SCENE.yaml",
+              help="Instead: measured error against force evaluations per unit time on the "
+                   "scene's system, one curve per method of --methods (see stepsafe "
+                   "measure).")
+@click.option("--methods", default=None, metavar="M1,M2,...",
+              help="--work-precision: the methods (family members as gauss:2).")
+@click.option("--h-range", default=None, metavar="LO,HI,N",
+              help="--work-precision: N steps spaced evenly in log h from LO to HI.")
+@click.option("--time", "duration", type=FLOAT, default=None, metavar="T",
+              help="--work-precision: integrate up to T [default: 100 periods].")
+@click.option("--error", "which", type=click.Choice(("trajectory", "energy")),
+              default="trajectory", show_default=True,
+              help="--work-precision: the measured error drawn.")
+def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, substeps,
+             scene_file, methods, h_range, duration, which) -> None:
     """Draw tr M(z)/2 with the band [-1, 1] and the preserved intervals (needs matplotlib).
 
     The file is written at exactly the path given, in the format its extension names; no
@@ -157,12 +171,33 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, subst
     For an impulse (r-RESPA) METHOD the stability chart in the plane (Omega H, omega H) is
     drawn instead (METHOD-chart.png), with the ray of --ratio when given.
 
+    With --work-precision SCENE (no METHOD) it draws the measured error of each method of
+    --methods against its force evaluations per unit time on the scene's own system, one
+    point per step of --h-range (default file: work-precision.png).
+
     \b
-    Example:
+    Examples:
       stepsafe plot lobatto3ab -s 3 -o lobatto3.png --phase
+      stepsafe plot --work-precision examples/pendulum.yaml --methods verlet,pefrl,gauss:2 \\
+          --h-range 0.05,1,8
     """
     import math
     import warnings
+
+    if scene_file is not None or methods is not None or h_range is not None:
+        from stepsafe.cli.measure import work_precision_plot
+
+        if method is not None:
+            raise _input_error("give METHOD or --work-precision SCENE --methods M1,M2, not both")
+        if scene_file is None or methods is None or h_range is None:
+            raise _input_error("--work-precision needs SCENE, --methods M1,M2,... and "
+                               "--h-range LO,HI,N")
+        work_precision_plot(scene_file, methods, h_range, duration, which,
+                            output or "work-precision.png")
+        return
+    if method is None:
+        raise _input_error("missing METHOD (or --work-precision SCENE); see 'stepsafe plot "
+                           "--help'")
 
     # the arguments are checked before matplotlib is looked for
     zmax = 6.0 if zmax is None else zmax

@@ -222,15 +222,19 @@ def criterion_option(default: str = "structure"):
              "2.98). Where the other criterion gives other safe steps, both are printed.")
 
 
-def method_options(func):
-    """METHOD argument with -s/--stages and --base."""
+def method_options(func=None, *, required: bool = True):
+    """METHOD argument with -s/--stages and --base (``required=False``: METHOD may be
+    omitted, for commands with another mode)."""
+    if func is None:
+        return lambda f: method_options(f, required=required)
     func = click.option("--base", metavar="NAME",
                         help="Swap the base method of a composition (e.g. midpoint, or "
                              "gauss:2 for a family member).")(func)
     func = click.option("-s", "--stages", type=INT, metavar="N",
                         help="Stage count for the families gauss (N>=1) and "
                              "lobatto3ab (N>=2).")(func)
-    return click.argument("method", metavar="METHOD", shell_complete=_complete_method)(func)
+    return click.argument("method", metavar="METHOD" if required else "[METHOD]",
+                          required=required, shell_complete=_complete_method)(func)
 
 
 def method_options_optional(func):

@@ -18,6 +18,8 @@ from stepsafe.cli.main import (
 
 #: Step sizes of --h-range at most.
 MAX_RANGE = 200
+#: Methods in one work-precision diagram at most.
+MAX_METHODS = 20
 
 
 def _numbers(text: str, option: str) -> list[float]:
@@ -137,3 +139,47 @@ def print_measure(data: dict[str, Any]) -> None:
                    f"{g(r['trajectory_ratio'], 2):>6}  {r['status']}"
                    + (f" ({r['iterations_per_step']:.3g} solver iterations per step)"
                       if r["iterations_per_step"] else ""))
+
+
+def work_precision_plot(scene_file: str, methods: str, h_range: str, duration: float | None,
+                        which: str, output: str) -> None:
+    """Measure every method at every step of the range; draw error against cost."""
+    from stepsafe import api
+    from stepsafe.cli.accuracy import _plot_format, _pyplot, _save
+    from stepsafe.cli.progressbar import progress_bar
+    from stepsafe.measurement import measure
+
+    hs = _range(h_range)
+    names = [item.strip() for item in methods.split(",") if item.strip()]
+    if not names or len(names) > MAX_METHODS:
+        raise _input_error(f"--methods {methods}: give 1 to {MAX_METHODS} names separated by "
+                           "commas")
+    integrators = [api.named_method(name) for name in names]
+    plt = _pyplot()
+    fmt = _plot_format(output, plt)
+    reports = []
+    with progress_bar("measuring") as progress:
+        for k, integrator in enumerate(integrators):
+            def part(f: float, k=k) -> None:
+                if progress:
+                    progress((k + f) / len(integrators))
+
+            reports.append(measure(integrator, hs, scene=scene_file, time=duration,
+                                   progress=part))
+    key = "trajectory_error" if which == "trajectory" else "energy_error"
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for report in reports:
+        points = [(r.evaluations_per_time, getattr(r, key)) for r in report.rows
+                  if getattr(r, key) and r.evaluations_per_time]
+        if points:
+            x, y = zip(*points)
+            ax.loglog(x, y, marker="o", ms=3, lw=1, label=report.method)
+    ax.set_xlabel("force evaluations per unit time (measured)")
+    ax.set_ylabel("trajectory error at T (relative)" if which == "trajectory"
+                  else "energy spread (max - min) / min")
+    ax.set_title(f"work-precision on {reports[0].system}")
+    ax.grid(True, which="both", lw=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    _save(fig, output, fmt)
+    click.echo(f"wrote {output}")
