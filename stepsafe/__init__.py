@@ -15,6 +15,7 @@ The public API (see :mod:`stepsafe.api`)::
     impulse(outer, inner, substeps, fast=, slow=)  safe outer steps of r-RESPA / impulse MTS
     impulse_advice(method, pairs)               ... for several modes (fast, slow) together
     measure(method, steps, scene=...)           run the method on the scene's own system
+    refine(method, "energy", tol, scene=...)    the largest h whose measured error meets tol
     problem(...), load_scene(path)              inputs merged from a scene file and arguments
     StepsafeError                               every error a caller can cause (bad input)
 
@@ -42,7 +43,7 @@ _HMC = ("hmc", "design", "HmcReport", "HmcRow", "DesignReport")
 #: Multiple time stepping (stepsafe.respa_advice).
 _MTS = ("impulse", "impulse_advice", "ImpulseReport", "ImpulseModesReport")
 #: Measurement on the user's own system (stepsafe.measurement).
-_MEASURE = ("measure", "MeasureReport", "MeasureRow")
+_MEASURE = ("measure", "refine", "MeasureReport", "MeasureRow", "Refinement")
 __all__ = [*_API, *_HMC, *_MTS, *_MEASURE, "StepsafeError", "MethodError", "__version__"]
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -68,7 +69,13 @@ if TYPE_CHECKING:  # pragma: no cover
         transfer_matrices,
     )
     from stepsafe.hmc_advice import DesignReport, HmcReport, HmcRow, design, hmc  # noqa: F401
-    from stepsafe.measurement import MeasureReport, MeasureRow, measure  # noqa: F401
+    from stepsafe.measurement import (  # noqa: F401
+        MeasureReport,
+        MeasureRow,
+        Refinement,
+        measure,
+        refine,
+    )
     from stepsafe.respa_advice import (  # noqa: F401
         ImpulseModesReport,
         ImpulseReport,

@@ -444,4 +444,133 @@ def _linear_problem(tree, where, folder, initial) -> _Problem:
                     "the exact flow expm(J S T)")
 
 
-__all__ = ["MeasureReport", "MeasureRow", "measure"]
+# ---------------------------------------------------------------- refinement by measurement
+
+#: Measurement runs of one refinement at most, and the relative bracket it stops at.
+MAX_REFINE_RUNS = 24
+REFINE_REL = 1e-3
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """The largest step ``h`` (within the safe steps for the vibration the start orbits)
+    whose measured ``quantity`` (``energy``: the energy spread; ``trajectory``: the
+    trajectory error at T) is at most ``tol``, found by bisection on measurements
+    (``runs``: every run made, in order), beside ``predicted``, the h the linear model
+    gives for the same tolerance. ``limited_by``: ``tolerance``, ``safety`` (met up to the
+    safe limit) or ``unreachable`` (not met down to the smallest h tried)."""
+
+    quantity: str
+    tol: float
+    h: float | None
+    error: float | None
+    predicted: float | None
+    h_safe: float | None
+    limited_by: str
+    runs: MeasureReport
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"quantity": self.quantity, "tol": self.tol, "h": self.h, "error": self.error,
+                "predicted_h": self.predicted, "h_safe": self.h_safe,
+                "limited_by": self.limited_by, "runs": self.runs.to_dict()}
+
+
+def refine(method: Integrator | str, quantity: str, tol: float, *,
+           scene: str | Path | None = None, system: Mapping[str, Any] | None = None,
+           time: float | None = None, initial: Sequence[float] | None = None,
+           energy: float | None = None, time_unit: str | None = None,
+           progress: Callable[[float], None] | None = None) -> Refinement:
+    """The largest h whose measured error meets ``tol`` on the scene's own system, by
+    bisection on measurements started from the linear prediction (what
+    ``advise --tol-*`` predicts, checked and corrected by running the method).
+    ``quantity``: ``energy`` or ``trajectory`` (see :class:`MeasureRow`).
+
+    >>> r = refine("verlet", "energy", 1e-3, system={"hamiltonian": "p**2/2 - cos(q)",
+    ...            "box": {"q": [-4, 4], "p": [-1, 1]}}, initial=[0.0, 0.5], time=20.0)
+    >>> r.limited_by, round(r.h / r.predicted, 2)   # the pendulum allows a little more
+    ('tolerance', 1.01)
+    """
+    from stepsafe.api import _integrator
+    from stepsafe.core.accuracy import z_for_tolerance
+    from stepsafe.core.regions import find_region
+
+    if quantity not in ("energy", "trajectory"):
+        raise StepsafeError(f"quantity must be energy or trajectory, got {quantity!r}")
+    tol = positive_finite(tol, f"the {quantity} tolerance")
+    integrator = _integrator(method)
+    problem = _problem(integrator, scene, system, initial, energy)
+    if problem.beta is None:
+        raise StepsafeError("the start orbits no vibration: nothing to predict h from")
+    beta = problem.beta
+    if time is None:
+        time = DEFAULT_PERIODS * 2 * math.pi / beta
+    time = positive_finite(time, "time")
+    z_star = find_region(integrator.tableau, "oscillator").first_boundary or 10.0
+    h_safe = z_star / beta
+    if quantity == "energy":
+        step = z_for_tolerance(integrator.tableau, tol, z_star, kind="energy")
+    else:  # the phase error whose drift over T gives that trajectory error
+        phase_tol = 2 * math.asin(min(tol, 2.0) / 2) / (beta * time)
+        step = z_for_tolerance(integrator.tableau, phase_tol, z_star, kind="phase")
+    predicted = None if step.z is None else step.z / beta
+    key = "energy_error" if quantity == "energy" else "trajectory_error"
+    top = h_safe * (1 - 1e-9)
+    rows: list[MeasureRow] = []
+
+    def error_at(h: float) -> float:
+        if len(rows) >= MAX_REFINE_RUNS:
+            raise _Exhausted
+        report = measure(integrator, [h], scene=scene, system=system, time=time,
+                         initial=initial, energy=energy, time_unit=time_unit)
+        row = report.rows[0]
+        rows.append(row)
+        if progress:
+            progress(len(rows) / MAX_REFINE_RUNS)
+        value = getattr(row, key)
+        return math.inf if row.status != "ok" or value is None else value
+
+    lo = hi = None
+    h = min(predicted or h_safe / 10, top)
+    limited = "tolerance"
+    try:
+        if error_at(h) <= tol:
+            lo = h
+            while hi is None:
+                if lo >= top:
+                    limited = "safety"
+                    break
+                h = min(2 * lo, top)
+                if error_at(h) <= tol:
+                    lo = h
+                else:
+                    hi = h
+        else:
+            hi = h
+            while lo is None:
+                h = hi / 4
+                if error_at(h) <= tol:
+                    lo = h
+                else:
+                    hi = h
+        while hi is not None and hi / lo > 1 + REFINE_REL:
+            mid = math.sqrt(lo * hi)
+            if error_at(mid) <= tol:
+                lo = mid
+            else:
+                hi = mid
+    except _Exhausted:
+        if lo is None:
+            limited = "unreachable"
+    best = None if lo is None else next(getattr(r, key) for r in rows if r.h == lo)
+    runs = MeasureReport(integrator.name, problem.description,
+                         tuple(map(float, np.concatenate([problem.q0[0], problem.p0[0]]))),
+                         float(problem.system.energy(problem.q0, problem.p0)[0]), beta,
+                         problem.reference_text, tuple(rows), time_unit)
+    return Refinement(quantity, tol, lo, best, predicted, h_safe, limited, runs)
+
+
+class _Exhausted(Exception):
+    """The refinement used all its runs."""
+
+
+__all__ = ["MeasureReport", "MeasureRow", "Refinement", "measure", "refine"]

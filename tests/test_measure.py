@@ -241,3 +241,36 @@ def test_work_precision_plot(run, tmp_path):
                   "--h-range", "0.1,1,2")):
         code, _, err = run(*args)
         assert code == 2 and err.count("\n") == 1, (args, err)
+
+
+def test_refinement_finds_the_measured_step():
+    """On the oscillator the measured energy spread is the linear bound, so the refined h
+    is the predicted one; on the pendulum the refined h meets the tolerance and twice it
+    (or the next run up) does not."""
+    from stepsafe.measurement import refine
+
+    oscillator = {"stiffness": np.eye(1)}
+    r = refine("verlet", "energy", 1e-3, system=oscillator, initial=[0.0, 1.0], time=200.0)
+    assert r.limited_by == "tolerance" and r.h == pytest.approx(r.predicted, rel=3e-3)
+    r = refine("pefrl", "trajectory", 1e-4, system=PENDULUM, initial=[0.0, 1.0], time=15.0)
+    assert r.error <= 1e-4 and r.limited_by == "tolerance"
+    above = [row for row in r.runs.rows if row.h > r.h]
+    assert above and all(row.trajectory_error > 1e-4 for row in above
+                         if row.h >= r.h * (1 + 1e-3))
+    loose = refine("verlet", "energy", 1e3, system=PENDULUM, initial=[0.0, 0.5], time=10.0)
+    assert loose.limited_by == "safety" and loose.h == pytest.approx(2.0, rel=1e-6)
+
+
+def test_refinement_on_the_command_line(run):
+    code, out, err = run("measure", "examples/pendulum.yaml", "--tol-energy", "1e-3",
+                         "--time", "20", "--json")
+    assert code == 0, err
+    data = json.loads(out)
+    assert data["quantity"] == "energy" and data["h"] and data["runs"]["rows"]
+    code, out, _ = run("measure", "examples/pendulum.yaml", "--tol-energy", "1e-3",
+                       "--time", "20")
+    assert "Measured: h = " in out and "predicted h = " in out
+    for extra in (("--tol-energy", "1e-3", "--tol-trajectory", "1e-3"),
+                  ("--tol-energy", "1e-3", "--h", "0.1"), ("--tol-energy", "-1")):
+        code, _, err = run("measure", "examples/pendulum.yaml", *extra)
+        assert code == 2 and err.count("\n") == 1, (extra, err)

@@ -64,10 +64,16 @@ def _range(text: str) -> list[float]:
                    "this energy H.")
 @click.option("--time-unit", type=click.Choice(TIME_UNIT_NAMES), default=None,
               help="The unit of h and T (stated in the output).")
+@click.option("--tol-energy", type=FLOAT, default=None, metavar="T",
+              help="Instead of given steps: find the largest h whose measured energy spread "
+                   "is at most T (bisection on runs, from the linear prediction).")
+@click.option("--tol-trajectory", type=FLOAT, default=None, metavar="T",
+              help="Instead of given steps: the largest h whose measured trajectory error at "
+                   "the time T is at most this.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @click.option("--tsv", is_flag=True, help="Print the rows as tab-separated values.")
 def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, initial, energy,
-                time_unit, as_json, tsv) -> None:
+                time_unit, tol_energy, tol_trajectory, as_json, tsv) -> None:
     """Run the method on the scene's own system and measure what each h buys and costs.
 
     The scene's system: (a 1-dof Hamiltonian expression, or a linear system) is
@@ -79,9 +85,14 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
     model's prediction for the vibration the start orbits and the ratio measured /
     predicted, the nonlinear calibration of `advise --tol-...`.
 
+    With --tol-energy or --tol-trajectory it refines instead: the largest h (within the
+    safe steps) whose measured error meets the tolerance, by bisection on runs started
+    from the h the linear model predicts (what advise --tol-* would give), both printed.
+
     \b
     Examples:
       stepsafe measure examples/pendulum.yaml --h 0.1 --h 0.5
+      stepsafe measure examples/pendulum.yaml --method pefrl --tol-trajectory 1e-4 --time 60
       stepsafe measure examples/pendulum.yaml --method yoshida4 --h-range 0.05,1,6 --energy 0
     """
     from stepsafe.cli.progressbar import progress_bar
@@ -101,6 +112,25 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
 
     integrator = api.method(method, stages, base)
     start = None if initial is None else _numbers(initial, "initial")
+    if tol_energy is not None or tol_trajectory is not None:
+        if tol_energy is not None and tol_trajectory is not None:
+            raise _input_error("give --tol-energy or --tol-trajectory, not both")
+        if hs or tsv:
+            raise _input_error("--tol-* finds the step itself: give no --h, --h-range or --tsv")
+        from stepsafe.measurement import refine
+
+        quantity, tol = (("energy", tol_energy) if tol_energy is not None
+                         else ("trajectory", tol_trajectory))
+        with progress_bar("refining", not as_json) as progress:
+            result = refine(integrator, quantity, tol, scene=scene_file, time=duration,
+                            initial=start, energy=energy, time_unit=loaded.time_unit,
+                            progress=progress)
+        if as_json:
+            print_json(result.to_dict())
+        else:
+            print_measure(result.runs.to_dict())
+            print_refinement(result.to_dict())
+        return
     with progress_bar("measuring", not (as_json or tsv)) as progress:
         report = measure(integrator, hs or ([loaded.h] if loaded.h else []), scene=scene_file,
                          time=duration, initial=start, energy=energy,
@@ -183,3 +213,22 @@ def work_precision_plot(scene_file: str, methods: str, h_range: str, duration: f
     fig.tight_layout()
     _save(fig, output, fmt)
     click.echo(f"wrote {output}")
+
+
+def print_refinement(data: dict[str, Any]) -> None:
+    """The text form of :meth:`stepsafe.measurement.Refinement.to_dict`."""
+    unit = data["runs"]["time_unit"]
+    u = f" {unit}" if unit else ""
+    what = "energy spread" if data["quantity"] == "energy" else "trajectory error"
+    predicted = "none" if data["predicted_h"] is None else f"{data['predicted_h']:.6g}{u}"
+    if data["h"] is None:
+        click.echo(f"No step meets {what} <= {data['tol']:g} in the runs made (the linear "
+                   f"model predicted h = {predicted}).")
+        return
+    tail = {"tolerance": "", "safety": f", up to the safe limit {data['h_safe']:.6g}{u}",
+            "unreachable": ""}[data["limited_by"]]
+    ratio = "" if data["predicted_h"] is None else \
+        f" ({data['h'] / data['predicted_h']:.3g} times the prediction)"
+    click.echo(f"Measured: h = {data['h']:.6g}{u} keeps the {what} at {data['error']:.3g} <= "
+               f"{data['tol']:g}{tail}; the linear model predicted h = {predicted}{ratio}; "
+               f"{len(data['runs']['rows'])} runs.")
