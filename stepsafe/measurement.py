@@ -140,14 +140,16 @@ class _Problem:
 def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Path | None = None,
             system: Mapping[str, Any] | None = None, time: float | None = None,
             initial: Sequence[float] | None = None, energy: float | None = None,
-            time_unit: str | None = None,
+            time_unit: str | None = None, solver: str = "fixed-point",
             progress: Callable[[float], None] | None = None) -> MeasureReport:
     """Integrate the system of ``scene`` (or ``system``: the mapping a scene's ``system:``
     holds) with ``method`` at each step h of ``steps`` for a time ``time`` (default: 100
     periods of the vibration the start orbits), from ``initial`` (q then p) or, for a
     1-dof Hamiltonian, from the elliptic equilibrium with momentum raised to the
     ``energy`` given (default start: q displaced from that equilibrium by a tenth of the
-    box). See the module docstring for what is measured.
+    box). Implicit methods solve their stages by ``solver``: ``fixed-point`` iteration or
+    simplified ``newton`` (the Jacobian from the Hessian at each step's start). See the
+    module docstring for what is measured.
 
     >>> report = measure("verlet", [0.1], system={"hamiltonian": "p**2/2 + q**2/2",
     ...                  "box": {"q": [-1, 1], "p": [-1, 1]}}, initial=[0.0, 1.0])
@@ -173,8 +175,10 @@ def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Pa
     if max(counts) > MAX_STEPS:
         raise StepsafeError(f"T / h = {max(counts)} steps exceeds the {MAX_STEPS} measured in "
                             "one run: a shorter --time or larger steps")
+    if solver not in ("fixed-point", "newton"):
+        raise StepsafeError(f"solver must be fixed-point or newton, got {str(solver)[:20]!r}")
     try:
-        Engine(integrator.tableau, problem.system)
+        Engine(integrator.tableau, problem.system, solver=solver)
     except ValueError as exc:
         raise StepsafeError(f"{integrator.name}: {exc}") from None
     total, done = float(sum(counts)), 0
@@ -185,7 +189,7 @@ def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Pa
             if progress:
                 progress((done + k) / total)
 
-        rows.append(_run(integrator, problem, h, n, state, tick))
+        rows.append(_run(integrator, problem, h, n, state, tick, solver))
         done += n
     state = np.concatenate([problem.q0[0], problem.p0[0]])
     return MeasureReport(integrator.name, problem.description, tuple(map(float, state)),
@@ -208,10 +212,10 @@ def _steps(steps: Sequence[float]) -> list[float]:
 
 
 def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.ndarray,
-         tick: Callable[[int], None]) -> MeasureRow:
+         tick: Callable[[int], None], solver: str = "fixed-point") -> MeasureRow:
     from stepsafe.core.integrator import Engine, SolverFailure
 
-    engine = Engine(integrator.tableau, problem.system)
+    engine = Engine(integrator.tableau, problem.system, solver=solver)
     system = problem.system
     q, p = problem.q0.copy(), problem.p0.copy()
     e0 = float(system.energy(q, p)[0])
@@ -479,6 +483,7 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
            scene: str | Path | None = None, system: Mapping[str, Any] | None = None,
            time: float | None = None, initial: Sequence[float] | None = None,
            energy: float | None = None, time_unit: str | None = None,
+           solver: str = "fixed-point",
            progress: Callable[[float], None] | None = None) -> Refinement:
     """The largest h whose measured error meets ``tol`` on the scene's own system, by
     bisection on measurements started from the linear prediction (what
@@ -521,7 +526,7 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
         if len(rows) >= MAX_REFINE_RUNS:
             raise _Exhausted
         report = measure(integrator, [h], scene=scene, system=system, time=time,
-                         initial=initial, energy=energy, time_unit=time_unit)
+                         initial=initial, energy=energy, time_unit=time_unit, solver=solver)
         row = report.rows[0]
         rows.append(row)
         if progress:

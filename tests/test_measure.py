@@ -274,3 +274,49 @@ def test_refinement_on_the_command_line(run):
                   ("--tol-energy", "1e-3", "--h", "0.1"), ("--tol-energy", "-1")):
         code, _, err = run("measure", "examples/pendulum.yaml", *extra)
         assert code == 2 and err.count("\n") == 1, (extra, err)
+
+
+@pytest.mark.parametrize("name, stages", [("gauss", 2), ("gauss", 3), ("lobatto3ab", 3),
+                                          ("midpoint", None)])
+@pytest.mark.parametrize("z", [0.3, 3.0, 10.0])
+def test_newton_counts_are_those_of_the_solver_model(name, stages, z):
+    """Simplified Newton on the oscillator: 2 passes at every z (also beyond fixed-point
+    iteration's limit), the model's force evaluations, one Jacobian per step, and the same
+    step as the exact one-step matrix."""
+    from stepsafe.core.solver import NEWTON_ITERATIONS, newton_cost
+    from stepsafe.core.transfer import transfer_matrix
+
+    tableau = method(name, stages).tableau
+    engine = Engine(tableau, linear_system(np.eye(2)), solver="newton")
+    q, p = engine.step(np.array([[1.0]]), np.array([[0.0]]), z)
+    cost = newton_cost(tableau, z)
+    assert engine.iterations == NEWTON_ITERATIONS == cost.iterations
+    first_step = 1 if name == "lobatto3ab" else 0  # its fixed stage is reused afterwards
+    assert engine.force_evaluations == cost.evaluations + first_step
+    assert engine.jacobians == 1
+    M = transfer_matrix(tableau, [z], "oscillator")[0]
+    assert np.allclose([q[0, 0], p[0, 0]], M[:, 0], rtol=0, atol=1e-12)
+
+
+def test_newton_on_the_pendulum_and_in_compare(run):
+    from scipy.integrate import solve_ivp
+
+    T = 2.0
+    ref = solve_ivp(lambda t, y: [y[1], -math.sin(y[0])], (0, T), [1.0, 0.0],
+                    method="DOP853", rtol=1e-13, atol=1e-14).y[:, -1]
+    errs = []
+    for n in (20, 40):
+        engine = Engine(method("gauss", 2).tableau, _pendulum(), solver="newton")
+        q, p = np.array([[1.0]]), np.array([[0.0]])
+        for _ in range(n):
+            q, p = engine.step(q, p, T / n)
+        errs.append(math.hypot(q[0, 0] - ref[0], p[0, 0] - ref[1]))
+    assert abs(math.log2(errs[0] / errs[1]) - 4) < 0.3
+    code, out, err = run("compare", "--beta", "1", "--tol-phase", "1e-6", "--methods",
+                         "pefrl,gauss:2", "--solver", "newton", "--json")
+    assert code == 0, err
+    rows = {r["method"]: r for r in json.loads(out)["methods"]}
+    assert rows["gauss-s2"]["evaluations"] == 6  # 2 stages x (2 passes + the update)
+    code, out, _ = run("measure", "examples/pendulum.yaml", "--method", "gauss", "-s", "2",
+                       "--h", "3", "--time", "30", "--solver", "newton", "--json")
+    assert json.loads(out)["rows"][0]["status"] == "ok"

@@ -89,10 +89,13 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json, tsv) 
               help="Largest |phase error| (|growth-rate error| for saddles and barriers).")
 @click.option("--tol-energy", type=FLOAT, default=None, metavar="T",
               help="Largest relative energy error (vibrations).")
-@click.option("--solver", type=click.Choice(("fixed-point", "nominal")), default="fixed-point",
-              show_default=True,
+@click.option("--solver", type=click.Choice(("fixed-point", "newton", "nominal")),
+              default="fixed-point", show_default=True,
               help="How implicit methods are costed: force evaluations of fixed-point "
-                   "iteration of their stages to 1e-14 at the step used, or one per stage.")
+                   "iteration of their stages to 1e-14 at the step used (which also caps h "
+                   "below its convergence limit), of simplified Newton's method (plus one "
+                   "Jacobian and factorisation per step, not counted as evaluations), or "
+                   "one per stage.")
 @click.option("--tsv", is_flag=True, help="Print the table as tab-separated values.")
 @criterion_option()
 @frequency_options

@@ -70,10 +70,14 @@ def _range(text: str) -> list[float]:
 @click.option("--tol-trajectory", type=FLOAT, default=None, metavar="T",
               help="Instead of given steps: the largest h whose measured trajectory error at "
                    "the time T is at most this.")
+@click.option("--solver", type=click.Choice(("fixed-point", "newton")), default="fixed-point",
+              show_default=True,
+              help="How implicit methods solve their stages: fixed-point iteration, or "
+                   "simplified Newton (the Jacobian from the Hessian at each step's start).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @click.option("--tsv", is_flag=True, help="Print the rows as tab-separated values.")
 def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, initial, energy,
-                time_unit, tol_energy, tol_trajectory, as_json, tsv) -> None:
+                time_unit, tol_energy, tol_trajectory, solver, as_json, tsv) -> None:
     """Run the method on the scene's own system and measure what each h buys and costs.
 
     The scene's system: (a 1-dof Hamiltonian expression, or a linear system) is
@@ -124,7 +128,7 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
         with progress_bar("refining", not as_json) as progress:
             result = refine(integrator, quantity, tol, scene=scene_file, time=duration,
                             initial=start, energy=energy, time_unit=loaded.time_unit,
-                            progress=progress)
+                            solver=solver, progress=progress)
         if as_json:
             print_json(result.to_dict())
         else:
@@ -134,7 +138,7 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
     with progress_bar("measuring", not (as_json or tsv)) as progress:
         report = measure(integrator, hs or ([loaded.h] if loaded.h else []), scene=scene_file,
                          time=duration, initial=start, energy=energy,
-                         time_unit=loaded.time_unit, progress=progress)
+                         time_unit=loaded.time_unit, solver=solver, progress=progress)
     data = report.to_dict()
     if as_json:
         print_json(data)

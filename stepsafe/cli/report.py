@@ -425,9 +425,13 @@ def print_compare(data: dict[str, Any]) -> None:
         console.print("* implicit: force evaluations of fixed-point iteration of the stages to "
                       "1e-14 at that h (iterations in --json); --solver nominal counts one per "
                       "stage.")
+    elif data.get("solver") == "newton":
+        console.print("* implicit: force evaluations of simplified Newton's method on the "
+                      "stages (2 iterations on a linear model at any h, and the update); each "
+                      "step also evaluates one Jacobian and factorises it once per distinct "
+                      "substep, not counted in the cost.")
     else:
-        console.print("* implicit: one evaluation per stage (nominal); multiply by your "
-                      "solver's iterations (plus one for the update).")
+        console.print("* implicit: one evaluation per stage (nominal); no solver is counted.")
 
 
 #: a system with more modes or equilibria than this lists only the most limiting

@@ -14,7 +14,9 @@ initial conditions of d degrees of freedom advance together. One step of size h:
   stage value (and 1), as :mod:`stepsafe.core.solver` models it; a stage whose ``A_q`` row
   is zero keeps ``Q_i = q`` and its force is evaluated once (none if the previous step's
   last stage ended there). Each iteration evaluates the forces of the stages that vary;
-  the update evaluates them once more.
+  the update evaluates them once more. With ``solver="newton"`` each pass is a simplified
+  Newton step ``X - J^-1 G(X)`` instead, J the stage system's Jacobian from the Hessian at
+  the step's start (one per step and implicit substep, counted in ``jacobians``).
 
 Force evaluations (``dH/dq``) and solver iterations are counted; a step whose iteration
 does not converge in ``max_iterations`` marks the run as failed.
@@ -44,6 +46,8 @@ class System:
     dimension: int
     #: ``(dq/dt, dp/dt)`` in one evaluation, when cheaper than the two gradients
     vector_field: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
+    #: ``(H_qq, H_qp, H_pp)``, each of shape ``(m, d, d)`` (Newton's method needs it)
+    hessian: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, ...]] | None = None
 
     def rates(self, q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(dH/dp, -dH/dq)``."""
@@ -60,12 +64,18 @@ class Engine:
     """Steps of one method on one system, with the work counted."""
 
     def __init__(self, method: Method, system: System, tol: float = 1e-14,
-                 max_iterations: int = 200) -> None:
+                 max_iterations: int = 200, solver: str = "fixed-point") -> None:
+        if solver not in ("fixed-point", "newton"):
+            raise ValueError(f"solver must be fixed-point or newton, got {solver!r}")
+        if solver == "newton" and system.hessian is None:
+            raise ValueError("Newton's method needs the system's Hessian")
         self.system = system
+        self.solver = solver
         self.tol, self.max_iterations = tol, max_iterations
         self.force_evaluations = 0
         self.iterations = 0
         self.solves = 0
+        self.jacobians = 0
         self._cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.pieces = _pieces(method)
         if not system.separable and any(kind == "ops" for kind, _, _ in self.pieces):
@@ -112,6 +122,7 @@ class Engine:
             return (q + h * sum(b_q[j] * V[j] for j in range(s)),
                     p - h * sum(b_p[j] * F[j] for j in range(s)))
         self.solves += 1
+        inverse = self._newton_matrix(prk, q, p, h) if self.solver == "newton" else None
         for _ in range(self.max_iterations):
             F = [self._force(q, p) if fixed[j] else self._stage_force(Q[j], P[j])
                  for j in range(s)]
@@ -121,6 +132,8 @@ class Engine:
                   for i in range(s)]
             Pn = [p - h * sum(A_p[i, j] * F[j] for j in range(s) if A_p[i, j])
                   for i in range(s)]
+            if inverse is not None:  # X - J^-1 G(X), G(X) = X - (the fixed-point map)
+                Qn, Pn = self._newton_update(inverse, Q, P, Qn, Pn)
             self.iterations += 1
             change = max(float(np.max(np.abs(a - b))) for a, b in zip(Qn + Pn, Q + P))
             size = max(1.0, max(float(np.max(np.abs(x))) for x in Qn + Pn))
@@ -141,6 +154,43 @@ class Engine:
         if np.array_equal(A_q[last], b_q) and self.system.separable:
             self._cache = (q1, p1, F[last])  # the last stage ended at q1 (Lobatto IIIA)
         return q1, p1
+
+    def _newton_matrix(self, prk: PartitionedRK, q: np.ndarray, p: np.ndarray, h: float
+                       ) -> np.ndarray:
+        """``J^-1`` of the stage system at the step's start, one per initial condition:
+        ``J = I - h [[A_q x H_pq, A_q x H_pp], [-A_p x H_qq, -A_p x H_qp]]`` on the
+        unknowns ``(Q_1..Q_s, P_1..P_s)`` (simplified Newton: taken once per step)."""
+        H_qq, H_qp, H_pp = self.system.hessian(q, p)
+        self.jacobians += 1
+        H_pq = np.swapaxes(H_qp, 1, 2)
+        A_q, A_p = prk.A_q, prk.A_p
+        m, d = q.shape
+        s = A_q.shape[0]
+        kron = np.einsum  # (s, s) x (m, d, d) -> (m, s d, s d)
+
+        def block(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+            return kron("ij,mab->miajb", A, B).reshape(m, s * d, s * d)
+
+        top = np.concatenate([block(A_q, H_pq), block(A_q, H_pp)], axis=2)
+        bottom = np.concatenate([-block(A_p, H_qq), -block(A_p, H_qp)], axis=2)
+        J = np.eye(2 * s * d)[None] - h * np.concatenate([top, bottom], axis=1)
+        try:
+            return np.linalg.inv(J)
+        except np.linalg.LinAlgError:
+            raise SolverFailure("the stage system's Jacobian is singular") from None
+
+    @staticmethod
+    def _newton_update(inverse: np.ndarray, Q: list, P: list, Qf: list, Pf: list
+                       ) -> tuple[list, list]:
+        """One simplified Newton step from the fixed-point map's image ``(Qf, Pf)``:
+        ``X - J^-1 (X - Phi(X))``."""
+        s = len(Q)
+        X = np.concatenate([np.stack(Q, 1), np.stack(P, 1)], axis=1)  # (m, 2s, d)
+        G = X - np.concatenate([np.stack(Qf, 1), np.stack(Pf, 1)], axis=1)
+        m, _, d = X.shape
+        step = np.einsum("mij,mj->mi", inverse, G.reshape(m, -1)).reshape(m, 2 * s, d)
+        Xn = X - step
+        return [Xn[:, i] for i in range(s)], [Xn[:, s + i] for i in range(s)]
 
     def _stage_force(self, Q: np.ndarray, P: np.ndarray) -> np.ndarray:
         self.force_evaluations += 1

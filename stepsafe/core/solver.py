@@ -14,7 +14,14 @@ operator of :func:`stepsafe.core.transfer.stage_operator`), whose changes are
 ``(z K)^j z K E`` exactly: the count below is that of the algorithm above for the worse of
 the two unit states, not an estimate. It converges iff the spectral radius of ``z K`` is
 below 1, i.e. for ``z < 1 / rho(K)``: beyond, fixed-point iteration diverges and the
-method needs Newton's method (not modelled here).
+method needs Newton's method.
+
+Simplified Newton's method (``newton_cost``) iterates ``X <- X - J^-1 G(X)`` with the stage
+system's Jacobian ``J`` taken once per step (one Hessian evaluation and one factorisation
+per distinct substep). On the test models G is linear and J exact, so the first iteration
+lands on the solution and the second sees a change at rounding level: 2 iterations at every
+z, with the same stopping rule and evaluation count as fixed-point iteration, and no
+convergence limit (only the poles, where J is singular).
 
 Force evaluations per step: the stages whose ``A_q`` row is zero have ``Q_i = q`` for
 good and cost one evaluation per step, none when the method reuses the previous step's
@@ -36,6 +43,8 @@ from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeK
 DEFAULT_TOL = 1e-14
 #: Iterations beyond which the iteration counts as not converging.
 MAX_ITERATIONS = 1000
+#: Simplified Newton passes per step on a linear model: the solving one and the check.
+NEWTON_ITERATIONS = 2
 
 
 @dataclass(frozen=True)
@@ -91,6 +100,29 @@ def fixed_point_cost(method: Method, z: float, model: str = "oscillator",
         return SolverCost(z, None, None, limit)
     iterations = max(counts)
     return SolverCost(z, iterations, (varying * (iterations + 1) + fixed) * substeps, limit)
+
+
+def newton_cost(method: Method, z: float) -> SolverCost:
+    """Iterations and force evaluations per step of simplified Newton's method at any z
+    (see the module docstring); ``limit`` is inf. Explicit methods cost their nominal
+    evaluations."""
+    found = _prk_of(method)
+    if found is None:
+        return SolverCost(z, 0, getattr(method, "evaluations", None), np.inf)
+    prk, substeps = found
+    varying, fixed = evaluation_pattern(prk)
+    return SolverCost(z, NEWTON_ITERATIONS, (varying * (NEWTON_ITERATIONS + 1) + fixed)
+                      * substeps, np.inf)
+
+
+def factorizations(method: Method) -> int:
+    """Jacobians factorised per step by simplified Newton's method: one per distinct
+    substep size of an implicit method (0 for explicit methods)."""
+    if _prk_of(method) is None:
+        return 0
+    if isinstance(method, Composition):
+        return int(np.unique(np.abs(method.flattened().weights)).size)
+    return 1
 
 
 def _largest_weight(method: Method) -> float:

@@ -7,7 +7,9 @@ the largest beta binds). The cost per unit of simulated time is ``evaluations / 
 (= evaluations * beta / z): force evaluations per step as listed in the method file; for
 implicit methods, by default, those of fixed-point iteration of the stage equations to
 1e-14 at the largest beta h (:mod:`stepsafe.core.solver`), whose convergence limit also
-bounds h (``bound_by = "solver"``); ``solver="nominal"`` counts one per stage.
+bounds h (``bound_by = "solver"``); ``solver="newton"`` counts simplified Newton's
+method (2 iterations on the test models, any h; its Jacobians are not force evaluations and
+are reported apart); ``solver="nominal"`` counts one per stage.
 """
 
 from __future__ import annotations
@@ -60,9 +62,10 @@ class Tradeoff(NamedTuple):
     iterations: int | None = None  # fixed-point iterations per step (implicit methods)
 
 
-#: How an implicit method's cost is counted: its stages solved by fixed-point iteration
-#: (:mod:`stepsafe.core.solver`), or the nominal count of one evaluation per stage.
-SOLVERS = ("fixed-point", "nominal")
+#: How an implicit method's cost is counted: its stages solved by fixed-point iteration or
+#: by simplified Newton's method (:mod:`stepsafe.core.solver`; Newton adds a Jacobian and
+#: a factorisation per step, counted apart), or the nominal count of one per stage.
+SOLVERS = ("fixed-point", "newton", "nominal")
 #: Fixed-point iteration is used up to this fraction of its convergence limit (beyond, its
 #: iteration count grows without bound).
 SOLVER_REACH = 0.9
@@ -126,5 +129,10 @@ def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (
         if all(c.evaluations is not None for c in costs):
             evals = max(c.evaluations for c in costs)
             iterations = max(c.iterations for c in costs)
+    elif solver == "newton" and not method.explicit and h:
+        from stepsafe.core.solver import newton_cost
+
+        cost_n = newton_cost(method, h)
+        evals, iterations = cost_n.evaluations, cost_n.iterations
     cost = None if (h is None or h == 0 or evals is None) else evals / h
     return Tradeoff(adv.method, adv, tuple(limits), h, bound, evals, cost, iterations)

@@ -145,10 +145,17 @@ def hamiltonian_system(H: Hamiltonian) -> System:
         d = jet(q, p)
         return full(d.dp, p), -full(d.dq, q)
 
+    def hessian(q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Second derivatives by the second-order jets of stepsafe.systems.nonlinear."""
+        blocks = np.empty((3, q.shape[0], 1, 1))
+        for k in range(q.shape[0]):
+            blocks[:, k, 0, 0] = H.jet(float(q[k, 0]), float(p[k, 0])).H
+        return blocks[0], blocks[1], blocks[2]
+
     return System(dH_dq=lambda q, p: full(jet(q, p).dq, q),
                   dH_dp=lambda q, p: full(jet(q, p).dp, p),
                   energy=lambda q, p: full(jet(q, p).v, q)[:, 0], separable=_separable(tree),
-                  dimension=1, vector_field=vector_field)
+                  dimension=1, vector_field=vector_field, hessian=hessian)
 
 
 def linear_system(S: np.ndarray) -> System:
@@ -161,9 +168,13 @@ def linear_system(S: np.ndarray) -> System:
         x = np.hstack([q, p])
         return 0.5 * np.einsum("mi,ij,mj->m", x, S, x)
 
+    def hessian(q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, ...]:
+        m = q.shape[0]
+        return tuple(np.broadcast_to(B, (m, n, n)) for B in (S_qq, S_qp, S_pp))
+
     return System(dH_dq=lambda q, p: q @ S_qq.T + p @ S_pq.T,
                   dH_dp=lambda q, p: q @ S_qp.T + p @ S_pp.T,
-                  energy=energy, separable=separable, dimension=n)
+                  energy=energy, separable=separable, dimension=n, hessian=hessian)
 
 
 def stiffness_hessian(K: np.ndarray, M: np.ndarray | None) -> np.ndarray:
