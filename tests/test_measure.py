@@ -320,3 +320,13 @@ def test_newton_on_the_pendulum_and_in_compare(run):
     code, out, _ = run("measure", "examples/pendulum.yaml", "--method", "gauss", "-s", "2",
                        "--h", "3", "--time", "30", "--solver", "newton", "--json")
     assert json.loads(out)["rows"][0]["status"] == "ok"
+
+
+def test_advise_counts_the_solver_asked_for(run):
+    counts = {}
+    for solver in ("fixed-point", "newton", "nominal"):
+        code, out, err = run("advise", "--method", "gauss", "-s", "2", "--beta", "1",
+                             "--tol-phase", "1e-6", "--solver", solver, "--json")
+        assert code == 0, err
+        counts[solver] = json.loads(out)["evaluations"]
+    assert counts == {"fixed-point": 24, "newton": 6, "nominal": 2}

@@ -529,10 +529,15 @@ def _input_error(message: str):
               help="Also keep every vibration below its first nonlinear resonance "
                    "n theta = 2 pi m of order n <= N (3 or more; Verlet: 4:1 at "
                    "beta*h = sqrt 2, 3:1 at sqrt 3).")
+@click.option("--solver", type=click.Choice(("fixed-point", "newton", "nominal")),
+              default="fixed-point", show_default=True,
+              help="With --tol-*: how implicit methods' evaluations per step are counted "
+                   "(fixed-point iteration of the stages, which also caps h below its "
+                   "convergence limit; simplified Newton; or one per stage).")
 @criterion_option()
 @scene_options
-def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, criterion, scene_files,
-               as_json, verify, **options) -> None:
+def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, criterion,
+               scene_files, as_json, verify, **options) -> None:
     """Safe step sizes h for your frequencies.
 
     Safe h keep every mode's structure: beta*h lies in the method's region for that mode's
@@ -570,7 +575,7 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, criterion, sc
         return
     problem = _problem(scene_files[0] if scene_files else None, options, not as_json)
     data = api.advise(problem=problem, tol_phase=tol_phase, tol_energy=tol_energy,
-                      resonance_order=resonance_order, criterion=criterion,
+                      resonance_order=resonance_order, criterion=criterion, solver=solver,
                       verify=verify).to_dict()
     verdict = data.get("verify")
     _decide([verdict])
