@@ -672,6 +672,12 @@ def _fastest_resonances(integrator: Integrator, result: Any, p: Problem,
     return nonlinear_data(found, float(betas.max()), p.margin)
 
 
+def _check_solver(value: Any) -> str:
+    if value not in ("fixed-point", "newton"):
+        raise StepsafeError(f"solver must be fixed-point or newton, got {str(value)[:20]!r}")
+    return value
+
+
 def _solver(value: Any) -> str:
     from stepsafe.core.tradeoff import SOLVERS
 
@@ -722,12 +728,16 @@ class CheckReport:
 
 def check(method: Integrator | str | None = None, h: float | None = None,
           frequencies: ArrayLike | None = None, *, resonance_order: int | None = None,
-          criterion: str = "structure", verify: bool = False, **inputs: Any) -> CheckReport:
+          criterion: str = "structure", verify: bool = False, solver: str = "fixed-point",
+          **inputs: Any) -> CheckReport:
     """Is step ``h`` safe for every frequency (see :func:`problem` for the inputs)? A scene
     may give the step (``h:``). A step exactly on a resonance or a pole is unsafe. With
     ``resonance_order`` N, a vibration at or beyond its first nonlinear resonance of order
     at most N is unsafe too. ``criterion`` as for :func:`advise` (``record["other_criterion"]``
-    says whether ``h`` is safe under the other one, when its ``h_max`` differs).
+    says whether ``h`` is safe under the other one, when its ``h_max`` differs). With
+    ``solver="fixed-point"`` (the default) an implicit method's step must also lie below
+    the convergence limit of fixed-point iteration of its stages for every vibration and
+    barrier (``record["solver_failure"]`` says why not); ``"newton"`` has no such limit.
 
     >>> check("verlet", 0.49, [4.0]).safe
     True
@@ -757,6 +767,16 @@ def check(method: Integrator | str | None = None, h: float | None = None,
                                      float(step))
             if other is not None:
                 data["other_criterion"] = other
+            if _check_solver(solver) == "fixed-point":
+                from stepsafe.core.solver import step_limit
+
+                limit = step_limit(integrator.tableau, p.modes.betas)
+                if limit is not None and float(step) >= p.margin * limit:
+                    data["safe"] = False
+                    data["solver_failure"] = (
+                        f"fixed-point iteration of the stages diverges at this step (it "
+                        f"converges for h < {p.margin * limit:.12g}); solve them by Newton's "
+                        "method (--solver newton) or take a smaller step")
     data["scene"] = p.scene
     data["time_unit"] = p.time_unit
     verdict = None

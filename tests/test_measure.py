@@ -330,3 +330,18 @@ def test_advise_counts_the_solver_asked_for(run):
         assert code == 0, err
         counts[solver] = json.loads(out)["evaluations"]
     assert counts == {"fixed-point": 24, "newton": 6, "nominal": 2}
+
+
+def test_check_names_the_solver_limit(run):
+    """Midpoint keeps every oscillator's structure, but fixed-point iteration of its stage
+    converges only for beta h < 2: check fails there and says why, unless Newton."""
+    code, out, _ = run("check", "--method", "midpoint", "--beta", "1", "--step", "3")
+    assert code == 1 and "fixed-point iteration" in out and "h < 2" in out
+    assert run("check", "--method", "midpoint", "--beta", "1", "--step", "1.99")[0] == 0
+    assert run("check", "--method", "midpoint", "--beta", "1", "--step", "3", "--solver",
+               "newton")[0] == 0
+    import stepsafe
+
+    report = stepsafe.check("midpoint", 3.0, [1.0])
+    assert not report.safe and "fixed-point" in report.record["solver_failure"]
+    assert stepsafe.check("midpoint", 3.0, [1.0], solver="newton").safe

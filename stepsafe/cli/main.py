@@ -598,10 +598,15 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, crite
 @click.option("--resonance-order", type=INT, default=None, metavar="N",
               help="Also fail a vibration at or beyond its first nonlinear resonance "
                    "n theta = 2 pi m of order n <= N (3 or more).")
+@click.option("--solver", type=click.Choice(("fixed-point", "newton")), default="fixed-point",
+              show_default=True,
+              help="How an implicit method's stages are solved: with fixed-point iteration a "
+                   "step at or beyond its convergence limit fails too (reason given); "
+                   "Newton's method has no such limit.")
 @criterion_option()
 @scene_options
-def check_cmd(h, every_mode, resonance_order, criterion, scene_files, as_json, verify,
-              **options) -> None:
+def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as_json,
+              verify, **options) -> None:
     """Fail (exit 1) when the step h loses some mode's structure; for CI.
 
     Exit 0: every mode is preserved at h (with the margin); 1: not, with the reason for
@@ -632,7 +637,7 @@ def check_cmd(h, every_mode, resonance_order, criterion, scene_files, as_json, v
             continue
         problem = _problem(scene_file, options, not as_json)
         data = api.check(h=h, problem=problem, resonance_order=resonance_order,
-                         criterion=criterion, verify=verify).to_dict()
+                         criterion=criterion, verify=verify, solver=solver).to_dict()
         if "verify" in data:
             verdicts.append(data["verify"])
         outputs.append(data)

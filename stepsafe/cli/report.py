@@ -326,9 +326,15 @@ def print_check(data: dict[str, Any]) -> None:
                    f"{_criterion_words(data)}.")
         _print_other_criterion(click.echo, data, u)
         return
+    if data.get("solver_failure") and not data["failing"]:
+        click.echo(scene + _styled("UNSAFE", "red") + f": {name} with h = {h}: every mode "
+                   f"keeps its structure, but {data['solver_failure']}.")
+        return
     click.echo(scene + _styled("UNSAFE", "red") + f": {name} with h = {h}: "
                f"{data['failing']} of {data['modes']} mode(s) lose their structure"
                f"{_criterion_words(data)}.")
+    if data.get("solver_failure"):
+        click.echo(f"  and {data['solver_failure']}")
     for f in data["failures"]:
         if f.get("label"):
             f = {**f, "model": f"{printable(f['label'])} ({f['model']})"}
