@@ -19,7 +19,8 @@ step h for a time T from one initial condition, by the engine of
   than :data:`UNSTABLE` times the start's energy above the equilibrium; ``solver failed``
   when the stage iteration did not converge; ``beyond z*`` when the run stayed finite but
   z = beta h is past the method's first boundary for the vibration the start orbits,
-  where the linear model predicts nothing.
+  where the linear model predicts nothing; ``budget`` when the time budget ran out during
+  the run, ``not run`` after it.
 
 Beside each, the linear prediction for the vibration the start orbits (z = beta h): the
 energy error bound ``kappa - 1`` (relative to the energy above that equilibrium) and the
@@ -32,6 +33,7 @@ from __future__ import annotations
 
 import copy
 import math
+import time as _time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,8 +44,10 @@ import numpy as np
 from stepsafe.api import Integrator
 from stepsafe.exceptions import StepsafeError, positive_finite
 
-#: Steps of one run at most (each costs the method's evaluations in Python).
+#: Steps of one run at most by default (each costs the method's evaluations in Python)...
 MAX_STEPS = 2_000_000
+#: ... and at most when asked (``max_steps``).
+MAX_STEPS_CAP = 100_000_000
 #: Energies sampled per run at most (every step when there are fewer steps).
 ENERGY_SAMPLES = 20_000
 #: Steps h measured in one call at most.
@@ -141,6 +145,7 @@ def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Pa
             system: Mapping[str, Any] | None = None, time: float | None = None,
             initial: Sequence[float] | None = None, energy: float | None = None,
             time_unit: str | None = None, solver: str = "fixed-point",
+            max_steps: int = MAX_STEPS, budget: float | None = None,
             progress: Callable[[float], None] | None = None) -> MeasureReport:
     """Integrate the system of ``scene`` (or ``system``: the mapping a scene's ``system:``
     holds) with ``method`` at each step h of ``steps`` for a time ``time`` (default: 100
@@ -148,8 +153,10 @@ def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Pa
     1-dof Hamiltonian, from the elliptic equilibrium with momentum raised to the
     ``energy`` given (default start: q displaced from that equilibrium by a tenth of the
     box). Implicit methods solve their stages by ``solver``: ``fixed-point`` iteration or
-    simplified ``newton`` (the Jacobian from the Hessian at each step's start). See the
-    module docstring for what is measured.
+    simplified ``newton`` (the Jacobian from the Hessian at each step's start). A run of
+    more than ``max_steps`` steps is refused; after ``budget`` seconds the run under way
+    stops (status ``budget``) and the rest are not run (``not run``). See the module
+    docstring for what is measured.
 
     >>> report = measure("verlet", [0.1], system={"hamiltonian": "p**2/2 + q**2/2",
     ...                  "box": {"q": [-1, 1], "p": [-1, 1]}}, initial=[0.0, 1.0])
@@ -171,10 +178,15 @@ def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Pa
                                 "vibration whose period would set it")
         time = DEFAULT_PERIODS * 2 * math.pi / problem.beta
     time = positive_finite(time, "time")
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or \
+            not 1 <= max_steps <= MAX_STEPS_CAP:
+        raise StepsafeError(f"max_steps must be an integer from 1 to {MAX_STEPS_CAP}")
+    deadline = None if budget is None else _time.monotonic() + positive_finite(budget,
+                                                                                 "budget")
     counts = [max(1, math.ceil(time / h * (1 - 1e-12))) for h in hs]
-    if max(counts) > MAX_STEPS:
-        raise StepsafeError(f"T / h = {max(counts)} steps exceeds the {MAX_STEPS} measured in "
-                            "one run: a shorter --time or larger steps")
+    if max(counts) > max_steps:
+        raise StepsafeError(f"T / h = {max(counts)} steps exceeds the {max_steps} allowed in "
+                            "one run: a shorter --time, larger steps or --max-steps")
     if solver not in ("fixed-point", "newton"):
         raise StepsafeError(f"solver must be fixed-point or newton, got {str(solver)[:20]!r}")
     try:
@@ -189,7 +201,10 @@ def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Pa
             if progress:
                 progress((done + k) / total)
 
-        rows.append(_run(integrator, problem, h, n, state, tick, solver))
+        if deadline is not None and _time.monotonic() > deadline:
+            rows.append(MeasureRow(h, n, n * h, "not run", *(None,) * 7))
+            continue
+        rows.append(_run(integrator, problem, h, n, state, tick, solver, deadline))
         done += n
     state = np.concatenate([problem.q0[0], problem.p0[0]])
     return MeasureReport(integrator.name, problem.description, tuple(map(float, state)),
@@ -212,7 +227,8 @@ def _steps(steps: Sequence[float]) -> list[float]:
 
 
 def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.ndarray,
-         tick: Callable[[int], None], solver: str = "fixed-point") -> MeasureRow:
+         tick: Callable[[int], None], solver: str = "fixed-point",
+         deadline: float | None = None) -> MeasureRow:
     from stepsafe.core.integrator import Engine, SolverFailure
 
     engine = Engine(integrator.tableau, problem.system, solver=solver)
@@ -239,8 +255,11 @@ def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.
                     break
                 times.append(k * h)
                 errors.append((e - e0) / scale)
-            if k % 4096 == 0:
+            if k % 1024 == 0:
                 tick(k)
+                if deadline is not None and _time.monotonic() > deadline:
+                    status = "budget"
+                    break
     tick(n)
     T = n * h
     prediction = _prediction(integrator, problem.beta, h, T)

@@ -345,3 +345,16 @@ def test_check_names_the_solver_limit(run):
     report = stepsafe.check("midpoint", 3.0, [1.0])
     assert not report.safe and "fixed-point" in report.record["solver_failure"]
     assert stepsafe.check("midpoint", 3.0, [1.0], solver="newton").safe
+
+
+def test_budgets(run):
+    code, out, err = run("measure", "examples/pendulum.yaml", "--h", "0.1", "--time", "50",
+                         "--budget", "1e-9", "--json")
+    assert code == 0, err
+    assert [r["status"] for r in json.loads(out)["rows"]] == ["not run"]
+    code, _, err = run("measure", "examples/pendulum.yaml", "--h", "0.1", "--time", "50",
+                       "--max-steps", "100")
+    assert code == 2 and "100" in err
+    report = measure("verlet", [1e-4], system={"stiffness": np.eye(1)}, time=1000.0,
+                     budget=0.3, max_steps=10_000_000)
+    assert report.rows[0].status == "budget" and report.rows[0].energy_error is None

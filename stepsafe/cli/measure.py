@@ -9,6 +9,7 @@ import click
 
 from stepsafe.cli.main import (
     FLOAT,
+    INT,
     TIME_UNIT_NAMES,
     _input_error,
     main,
@@ -74,10 +75,16 @@ def _range(text: str) -> list[float]:
               show_default=True,
               help="How implicit methods solve their stages: fixed-point iteration, or "
                    "simplified Newton (the Jacobian from the Hessian at each step's start).")
+@click.option("--max-steps", type=INT, default=None, metavar="N",
+              help="Refuse runs of more than N steps [default: 2000000].")
+@click.option("--budget", type=FLOAT, default=None, metavar="SECONDS",
+              help="Stop after SECONDS: the run under way reports 'budget', the rest "
+                   "'not run'.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @click.option("--tsv", is_flag=True, help="Print the rows as tab-separated values.")
 def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, initial, energy,
-                time_unit, tol_energy, tol_trajectory, solver, as_json, tsv) -> None:
+                time_unit, tol_energy, tol_trajectory, solver, max_steps, budget, as_json,
+                tsv) -> None:
     """Run the method on the scene's own system and measure what each h buys and costs.
 
     The scene's system: (a 1-dof Hamiltonian expression, or a linear system) is
@@ -119,8 +126,9 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
     if tol_energy is not None or tol_trajectory is not None:
         if tol_energy is not None and tol_trajectory is not None:
             raise _input_error("give --tol-energy or --tol-trajectory, not both")
-        if hs or tsv:
-            raise _input_error("--tol-* finds the step itself: give no --h, --h-range or --tsv")
+        if hs or tsv or max_steps is not None or budget is not None:
+            raise _input_error("--tol-* finds the step itself: give no --h, --h-range, --tsv, "
+                               "--max-steps or --budget")
         from stepsafe.measurement import refine
 
         quantity, tol = (("energy", tol_energy) if tol_energy is not None
@@ -138,7 +146,9 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
     with progress_bar("measuring", not (as_json or tsv)) as progress:
         report = measure(integrator, hs or ([loaded.h] if loaded.h else []), scene=scene_file,
                          time=duration, initial=start, energy=energy,
-                         time_unit=loaded.time_unit, solver=solver, progress=progress)
+                         time_unit=loaded.time_unit, solver=solver, budget=budget,
+                         progress=progress, **({} if max_steps is None
+                                               else {"max_steps": max_steps}))
     data = report.to_dict()
     if as_json:
         print_json(data)
