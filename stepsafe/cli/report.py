@@ -465,6 +465,16 @@ def print_system(system: dict[str, Any], every: bool = False, unit: str | None =
     for item in items:
         where = (f"(q, p) = ({fmt(item['q'], 8)}, {fmt(item['p'], 8)}) "
                  if "q" in item else "")
+        if "names" in item:  # an equilibrium of an n-dof Hamiltonian
+            point = ", ".join(f"{printable(n)} = {x:.6g}" for n, x in zip(item["names"],
+                                                                           item["x"]))
+            where = f"({point}) energy {item['energy']:.6g} "
+            kind = item["type"] + (f" (index {item['index']})" if item["type"] == "mixed"
+                                   else "")
+            freqs = ", ".join(f"{w:.6g}" for w in item["frequencies"])
+            rates = ", ".join(f"{r:.6g}" for r in item["rates"])
+            item = {**item, "type": kind, "model": (f"frequencies {freqs}" if freqs else "")
+                    + ("; " if freqs and rates else "") + (f"rates {rates}" if rates else "")}
         beta = "" if item.get("beta") is None else f"beta = {fmt(item['beta'], 8)} "
         limit = item.get("h_limit")
         limit_text = "" if "h_limit" not in item else (

@@ -17,6 +17,7 @@ with more than :data:`DENSE_LIMIT` rows are analysed through their extreme eigen
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -32,7 +33,7 @@ DENSE_LIMIT = 2000
 #: stepsafe.systems.nonlinear), the float64 square roots and products add a few ulps.
 EQUILIBRIUM_ERROR = 8 * float(np.finfo(float).eps)
 SYSTEM_KEYS = {"stiffness", "precision", "covariance", "mass", "hessian", "hamiltonian",
-               "parameters", "box"}
+               "parameters", "box", "q", "p", "energy_below", "starts"}
 
 
 class SystemReport(NamedTuple):
@@ -239,6 +240,12 @@ def _hamiltonian(tree, where, method, zmax) -> SystemReport:
     from stepsafe.systems.linear import hessian_modes
     from stepsafe.systems.nonlinear import find_equilibria, parse_hamiltonian
 
+    if "q" in tree or "p" in tree:
+        return _hamiltonian_many(tree, where, method, zmax)
+    for key in ("energy_below", "starts"):
+        if key in tree:
+            raise _fail(where, key, "applies to Hamiltonians with named variables (q: and "
+                                    "p: lists)")
     text = tree["hamiltonian"]
     if not isinstance(text, str):
         raise _fail(where, "hamiltonian", "must be an expression in q and p")
@@ -298,3 +305,100 @@ def _hamiltonian(tree, where, method, zmax) -> SystemReport:
                               {k: np.array(v) for k, v in errors.items()}) if grouped else None
     return SystemReport("equilibria of H found in the box and linearised exactly "
                         "(automatic differentiation)", items, modes, coupled, notes)
+
+
+def read_many(tree, where):
+    """The n-dof Hamiltonian of a ``system:`` with ``q:`` and ``p:`` lists and its box."""
+    from stepsafe.systems.manydof import parse_many
+
+    params_tree = tree.get("parameters", {})
+    if not isinstance(params_tree, dict):
+        raise _fail(where, "parameters", "must be a mapping of names to numbers")
+    params = {k: _float(v, where, f"parameters.{k}") for k, v in params_tree.items()}
+    H = parse_many(tree["hamiltonian"], tree.get("q"), tree.get("p"), params, where)
+    box = tree.get("box")
+    if not isinstance(box, dict):
+        raise _fail(where, "box", "must map every variable to [lo, hi]")
+    missing = [name for name in H.names if name not in box]
+    extra = sorted(set(box) - set(H.names))
+    if missing or extra:
+        raise _fail(where, "box", f"must give [lo, hi] for exactly the variables "
+                                  f"{', '.join(H.names)}"
+                    + (f" (missing {missing[0]})" if missing else f" (unknown {extra[0]})"))
+    lo, hi = [], []
+    for name in H.names:
+        pair = box[name]
+        if not isinstance(pair, list) or len(pair) != 2:
+            raise _fail(where, f"box.{name}", "must be [lo, hi]")
+        a, b = (_float(pair[0], where, f"box.{name}[0]"), _float(pair[1], where,
+                                                                 f"box.{name}[1]"))
+        if not a < b:
+            raise _fail(where, f"box.{name}", f"needs lo < hi, got [{a:g}, {b:g}]")
+        if not math.isfinite(b - a):
+            raise _fail(where, f"box.{name}", "is wider than float64 can hold")
+        lo.append(a)
+        hi.append(b)
+    return H, np.array(lo), np.array(hi)
+
+
+def _hamiltonian_many(tree, where, method, zmax) -> SystemReport:
+    """Equilibria of an n-dof Hamiltonian, each linearised exactly and analysed: decoupled
+    where its Hessian separates for this method, the coupled analysis otherwise."""
+    from stepsafe.systems.coupled import coupled_safe_steps
+    from stepsafe.systems.linear import hessian_modes
+    from stepsafe.systems.manydof import MAX_STARTS, find_many
+
+    H, lo, hi = read_many(tree, where)
+    starts = None
+    if "starts" in tree:
+        starts = _float(tree["starts"], where, "starts")
+        if starts != int(starts) or not 1 <= starts <= MAX_STARTS:
+            raise _fail(where, "starts", f"must be a whole number from 1 to {MAX_STARTS}")
+        starts = int(starts)
+    below = _float(tree["energy_below"], where, "energy_below") if "energy_below" in tree \
+        else None
+    search = find_many(H, lo, hi, starts)
+    if not search.equilibria:
+        raise _fail(where, "box", f"no equilibrium of H found in the box ({search.explain()})")
+    items, grouped, errors, coupled, notes = [], {}, {}, [], []
+    reached = [e for e in search.equilibria if below is None or e.energy < below]
+    for e in search.equilibria:
+        if below is not None and not e.energy < below:
+            notes.append(f"equilibrium at {_point(H, e.x)} has energy {e.energy:.6g}, not "
+                         f"below {below:g}: not reached, not analysed")
+    if not reached:
+        raise _fail(where, "energy_below", f"no equilibrium has energy below {below:g} (the "
+                                           f"lowest: {search.equilibria[0].energy:.6g})")
+    for e in reached:
+        item = {"x": [float(v) for v in e.x], "names": list(H.names), "type": e.kind,
+                "index": e.index, "energy": e.energy, "frequencies": list(e.frequencies),
+                "rates": list(e.rates), "model": None}
+        if e.kind == "degenerate":
+            notes.append(f"degenerate equilibrium at {_point(H, e.x)}: no linear model, not "
+                         "analysed")
+            items.append(item)
+            continue
+        d = hessian_modes(e.hessian, method)
+        if d is not None:
+            for m in d.modes:
+                if m.model != "free":
+                    grouped.setdefault(m.model, []).append(m.beta)
+                    errors.setdefault(m.model, []).append(m.rel_error + EQUILIBRIUM_ERROR)
+            item["model"] = ",".join(sorted({m.model for m in d.modes}))
+            item["analysis"] = d.analysis
+        else:
+            result = coupled_safe_steps(method, e.hessian, zmax)
+            coupled.append((result, e.hessian))
+            item["h_limit"] = result.h_max
+            item["model"] = "coupled"
+            item["analysis"] = f"coupled {2 * len(H.q)}x{2 * len(H.q)}"
+        items.append(item)
+    modes = Modes.from_arrays({k: np.array(v) for k, v in grouped.items()},
+                              {k: np.array(v) for k, v in errors.items()}) if grouped else None
+    return SystemReport(f"{len(search.equilibria)} equilibria of H found in the box "
+                        f"({search.explain()}), linearised exactly (automatic "
+                        "differentiation)", items, modes, coupled, notes)
+
+
+def _point(H, x) -> str:
+    return "(" + ", ".join(f"{n} = {v:.6g}" for n, v in zip(H.names, x)) + ")"

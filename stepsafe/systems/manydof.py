@@ -1,0 +1,460 @@
+"""Nonlinear systems of n degrees of freedom: named coordinates and momenta, equilibria in a
+box, their exact linearisation and type.
+
+::
+
+    system:
+      hamiltonian: "(px**2 + py**2)/2 + (x**2 + y**2)/2 + x**2*y - y**3/3"
+      q: [x, y]
+      p: [px, py]
+      box: {x: [-1.2, 1.2], y: [-1.2, 1.2], px: [-1, 1], py: [-1, 1]}
+      energy_below: 0.2          # optional: only equilibria the motion can reach
+
+H is the restricted expression language of :mod:`stepsafe.files.expressions` (never
+``eval``) in the named variables and parameters. Derivatives are exact: H is evaluated on
+second-order jets (value, gradient, Hessian in all 2n variables), forward-mode automatic
+differentiation, never finite differences.
+
+Equilibria (``grad H = 0``) are found by Newton's method from a Halton set of starts in
+the box (box coordinates, each variable scaled to [-1, 1], Newton steps damped so that
+``|grad H|`` decreases), merged when they coincide, and each verified: its scaled
+residual ``max_i |dH/dx_i| w_i`` (``w_i`` the half-width of the box in variable i) is at
+most ``1e-9`` times the spread of H over the starts. The type comes from the eigenvalues
+``mu`` of ``J S`` (S the Hessian): pairs ``+-i omega`` are elliptic, ``+-lambda`` hyperbolic,
+quadruplets ``+-a +-ib`` loxodromic, an eigenvalue within rounding of 0 degenerate (no
+linear model): ``elliptic`` (a centre: all elliptic), ``hyperbolic`` (all hyperbolic),
+``mixed`` (``index`` k hyperbolic pairs among elliptic ones, as transition states have),
+``loxodromic`` or ``degenerate``.
+"""
+
+from __future__ import annotations
+
+import ast
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+
+from stepsafe.exceptions import StepsafeError
+from stepsafe.files.expressions import ExpressionError, parse
+
+FUNCTIONS = ("sin", "cos", "exp", "log", "sqrt", "cosh", "sinh", "tanh")
+#: Degrees of freedom at most (2n variables, a 2n x 2n Hessian per Newton step).
+MAX_DOF = 20
+#: Newton starts at most, and by default per variable.
+MAX_STARTS = 4096
+STARTS_PER_VARIABLE = 32
+NEWTON_ITERATIONS = 40
+#: Scaled residual (relative to the spread of H over the starts) an equilibrium must reach.
+RESIDUAL = 1e-9
+
+_F = {"sin": (np.sin, np.cos, lambda x: -np.sin(x)),
+      "cos": (np.cos, lambda x: -np.sin(x), lambda x: -np.cos(x)),
+      "exp": (np.exp, np.exp, np.exp),
+      "log": (np.log, lambda x: 1 / x, lambda x: -1 / x ** 2),
+      "sqrt": (np.sqrt, lambda x: 0.5 / np.sqrt(x), lambda x: -0.25 / x ** 1.5),
+      "cosh": (np.cosh, np.sinh, np.cosh),
+      "sinh": (np.sinh, np.cosh, np.sinh),
+      "tanh": (np.tanh, lambda x: 1 - np.tanh(x) ** 2,
+               lambda x: -2 * np.tanh(x) * (1 - np.tanh(x) ** 2))}
+
+
+class Jet:
+    """A value with its gradient (N,) and Hessian (N, N): second-order forward AD."""
+
+    __slots__ = ("v", "g", "h")
+
+    def __init__(self, v: float, g: np.ndarray, h: np.ndarray) -> None:
+        self.v, self.g, self.h = v, g, h
+
+    def __add__(self, o: Jet) -> Jet:
+        return Jet(self.v + o.v, self.g + o.g, self.h + o.h)
+
+    def __sub__(self, o: Jet) -> Jet:
+        return Jet(self.v - o.v, self.g - o.g, self.h - o.h)
+
+    def __neg__(self) -> Jet:
+        return Jet(-self.v, -self.g, -self.h)
+
+    def __mul__(self, o: Jet) -> Jet:
+        cross = np.outer(self.g, o.g)
+        return Jet(self.v * o.v, self.v * o.g + o.v * self.g,
+                   self.v * o.h + o.v * self.h + cross + cross.T)
+
+    def chain(self, f0: float, f1: float, f2: float) -> Jet:
+        if f2 == 0.0:
+            return Jet(f0, f1 * self.g, f1 * self.h)
+        return Jet(f0, f1 * self.g, f1 * self.h + f2 * np.outer(self.g, self.g))
+
+    def __truediv__(self, o: Jet) -> Jet:
+        if o.v == 0:
+            raise ZeroDivisionError("division by zero")
+        return self * o.chain(1 / o.v, -1 / o.v ** 2, 2 / o.v ** 3)
+
+    def power(self, o: Jet, constant: bool) -> Jet:
+        if constant:
+            n, x = o.v, self.v
+            if x <= 0 and n != int(n):
+                raise ValueError("power of a non-positive base")
+            if x == 0 and n == int(n) and n >= 0:
+                k = int(n)
+                return self.chain(0.0 if k else 1.0, 1.0 if k == 1 else 0.0,
+                                  2.0 if k == 2 else 0.0)
+            return self.chain(x ** n, n * x ** (n - 1), n * (n - 1) * x ** (n - 2))
+        if self.v <= 0:
+            raise ValueError("power of a non-positive base")
+        log = self.chain(math.log(self.v), 1 / self.v, -1 / self.v ** 2)
+        e = math.exp((o * log).v)
+        return (o * log).chain(e, e, e)
+
+    def call(self, name: str) -> Jet:
+        if name in ("log", "sqrt") and self.v <= 0:
+            raise ValueError(f"{name} of a non-positive number")
+        f0, f1, f2 = _F[name]
+        x = self.v
+        return self.chain(float(f0(x)), float(f1(x)), float(f2(x)))
+
+
+class Dual:
+    """Values of shape (m,) with their gradients (N, m): first-order forward AD over m
+    points at once (the integration engine's force evaluations)."""
+
+    __slots__ = ("v", "d")
+
+    def __init__(self, v: Any, d: Any) -> None:
+        self.v, self.d = v, d
+
+    def __add__(self, o: Dual) -> Dual:
+        return Dual(self.v + o.v, self.d + o.d)
+
+    def __sub__(self, o: Dual) -> Dual:
+        return Dual(self.v - o.v, self.d - o.d)
+
+    def __neg__(self) -> Dual:
+        return Dual(-self.v, -self.d)
+
+    def __mul__(self, o: Dual) -> Dual:
+        return Dual(self.v * o.v, self.v * o.d + o.v * self.d)
+
+    def __truediv__(self, o: Dual) -> Dual:
+        r = 1.0 / o.v
+        return Dual(self.v * r, (self.d * o.v - self.v * o.d) * r * r)
+
+    def power(self, o: Dual, constant: bool) -> Dual:
+        if constant:
+            n = o.v
+            return Dual(self.v ** n, n * self.v ** (n - 1) * self.d)
+        value = self.v ** o.v
+        return Dual(value, value * (o.d * np.log(self.v) + o.v * self.d / self.v))
+
+    def call(self, name: str) -> Dual:
+        f0, f1, _ = _F[name]
+        return Dual(f0(self.v), f1(self.v) * self.d)
+
+
+def _constant(node: ast.AST, variables: set[str]) -> bool:
+    return not any(isinstance(n, ast.Name) and n.id in variables for n in ast.walk(node))
+
+
+@dataclass(frozen=True, eq=False)
+class ManyDofHamiltonian:
+    """``H(q, p)`` in the named coordinates and momenta (``q`` and ``p`` lists of names)."""
+
+    text: str
+    q: tuple[str, ...]
+    p: tuple[str, ...]
+    parameters: dict[str, float]
+    tree: Any = field(repr=False)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.q + self.p
+
+    @cached_property
+    def _program(self) -> Callable[[dict[str, Any], Callable[[float], Any]], Any]:
+        """H as nested closures of (env, make): parsed once (constants read, exponents
+        classified), then evaluated on jets or duals without walking the tree."""
+        variables = set(self.names)
+
+        def build(node: ast.AST):
+            if isinstance(node, ast.Constant):
+                value = float(ast.get_source_segment(self.text, node))
+                return lambda env, make: make(value)
+            if isinstance(node, ast.Name):
+                name = node.id
+                return lambda env, make: env[name]
+            if isinstance(node, ast.UnaryOp):
+                inner = build(node.operand)
+                if isinstance(node.op, ast.USub):
+                    return lambda env, make: -inner(env, make)
+                return inner
+            if isinstance(node, ast.Call):
+                arg, fname = build(node.args[0]), node.func.id
+                return lambda env, make: arg(env, make).call(fname)
+            assert isinstance(node, ast.BinOp)
+            left, right = build(node.left), build(node.right)
+            if isinstance(node.op, ast.Add):
+                return lambda env, make: left(env, make) + right(env, make)
+            if isinstance(node.op, ast.Sub):
+                return lambda env, make: left(env, make) - right(env, make)
+            if isinstance(node.op, ast.Mult):
+                return lambda env, make: left(env, make) * right(env, make)
+            if isinstance(node.op, ast.Div):
+                return lambda env, make: left(env, make) / right(env, make)
+            constant = _constant(node.right, variables)
+
+            def power(env, make):
+                b = right(env, make)
+                if constant and isinstance(b, Jet) and abs(b.v) > 64:
+                    raise ValueError("exponent above 64")
+                return left(env, make).power(b, constant)
+
+            return power
+
+        return build(self.tree)
+
+    def jet(self, x: np.ndarray) -> Jet:
+        """Value, gradient and Hessian at x (the 2n variables, q then p)."""
+        N = len(self.names)
+        zero_g, zero_h = np.zeros(N), np.zeros((N, N))
+        env: dict[str, Any] = {name: Jet(float(x[i]), np.eye(N)[i], zero_h)
+                               for i, name in enumerate(self.names)}
+        env.update({k: Jet(float(v), zero_g, zero_h) for k, v in self.parameters.items()})
+        env["pi"] = Jet(math.pi, zero_g, zero_h)
+        try:
+            with np.errstate(all="raise"):
+                out = self._program(env, lambda c: Jet(c, zero_g, zero_h))
+        except (ZeroDivisionError, ValueError, OverflowError, FloatingPointError) as exc:
+            raise ExpressionError(str(exc) or type(exc).__name__) from None
+        if not (math.isfinite(out.v) and np.all(np.isfinite(out.g))
+                and np.all(np.isfinite(out.h))):
+            raise ExpressionError("H or its derivatives are not finite here")
+        return out
+
+    def dual(self, X: np.ndarray) -> Dual:
+        """Values and gradients at the rows of X (shape (m, 2n))."""
+        m, N = X.shape
+        env: dict[str, Any] = {name: Dual(X[:, i], np.eye(N)[i][:, None] * np.ones(m))
+                               for i, name in enumerate(self.names)}
+        zero = np.zeros((N, m))
+        env.update({k: Dual(np.full(m, float(v)), zero) for k, v in self.parameters.items()})
+        env["pi"] = Dual(np.full(m, math.pi), zero)
+        with np.errstate(all="ignore"):
+            return self._program(env, lambda c: Dual(np.full(m, c), zero))
+
+    @property
+    def separable(self) -> bool:
+        """Whether every term of H is in the coordinates alone or the momenta alone."""
+        terms = [self.tree]
+        out = []
+        while terms:
+            node = terms.pop()
+            if isinstance(node, ast.BinOp) and isinstance(node.op, (ast.Add, ast.Sub)):
+                terms += [node.left, node.right]
+            elif isinstance(node, ast.UnaryOp):
+                terms.append(node.operand)
+            else:
+                out.append(node)
+        for node in out:
+            names = {n.id for n in ast.walk(node) if isinstance(n, ast.Name)}
+            if names & set(self.q) and names & set(self.p):
+                return False
+        return True
+
+
+def parse_many(text: Any, q: Any, p: Any, parameters: dict[str, float],
+               where: str) -> ManyDofHamiltonian:
+    """Validate the variable lists and the expression (errors name the key)."""
+    def fail(key: str, message: str) -> StepsafeError:
+        return StepsafeError(message, f"{where}::$.system.{key}")
+
+    if not isinstance(text, str):
+        raise fail("hamiltonian", "must be an expression in the named variables")
+    lists = {}
+    for key, names in (("q", q), ("p", p)):
+        if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+            raise fail(key, "must be a non-empty list of names")
+        for name in names:
+            if not name.isidentifier() or name in FUNCTIONS or name == "pi" \
+                    or name.startswith("_"):
+                raise fail(key, f"{name!r} is not an allowed variable name")
+        lists[key] = tuple(names)
+    if len(lists["q"]) != len(lists["p"]):
+        raise fail("p", f"{len(lists['p'])} momenta for {len(lists['q'])} coordinates")
+    if len(lists["q"]) > MAX_DOF:
+        raise fail("q", f"{len(lists['q'])} degrees of freedom; at most {MAX_DOF}")
+    names = lists["q"] + lists["p"]
+    if len(set(names)) != len(names):
+        raise fail("p", "a name appears twice among q and p")
+    clash = set(names) & set(parameters)
+    if clash:
+        raise fail("parameters", f"{sorted(clash)[0]!r} is also a variable")
+    try:
+        expr = parse(text, FUNCTIONS)
+    except ExpressionError as exc:
+        raise fail("hamiltonian", f"{exc} in {text[:60]!r}") from None
+    unknown = expr.names - set(names) - set(parameters) - {"pi"}
+    if unknown:
+        raise fail("hamiltonian", f"unknown name {sorted(unknown)[0]!r} (use the names of q, "
+                                  "p, the parameters and pi)")
+    return ManyDofHamiltonian(text, lists["q"], lists["p"], dict(parameters), expr.tree)
+
+
+@dataclass(frozen=True, eq=False)
+class ManyDofEquilibrium:
+    x: np.ndarray  # q then p
+    energy: float
+    hessian: np.ndarray
+    kind: str  # elliptic | hyperbolic | mixed | loxodromic | degenerate
+    index: int  # hyperbolic pairs
+    frequencies: tuple[float, ...]  # elliptic pairs' omega
+    rates: tuple[float, ...]  # hyperbolic pairs' lambda
+
+
+def halton(count: int, dim: int) -> np.ndarray:
+    """The first ``count`` points of the Halton sequence in [-1, 1]^dim."""
+    primes = [2, 3, 5, 7, 11, 13, 17, 19, 23, 29, 31, 37, 41, 43, 47, 53, 59, 61, 67, 71, 73,
+              79, 83, 89, 97, 101, 103, 107, 109, 113, 127, 131, 137, 139, 149, 151, 157,
+              163, 167, 173][:dim]
+    out = np.empty((count, dim))
+    for j, base in enumerate(primes):
+        for i in range(count):
+            f, r, k = 1.0, 0.0, i + 1
+            while k:
+                f /= base
+                r += f * (k % base)
+                k //= base
+            out[i, j] = r
+    return 2 * out - 1
+
+
+@dataclass(frozen=True)
+class ManyDofSearch:
+    equilibria: tuple[ManyDofEquilibrium, ...]
+    starts: int
+    failed: int  # starts that did not converge in the box
+
+    def explain(self) -> str:
+        return (f"{self.starts} Newton starts, {self.failed} did not converge to a point of "
+                "the box")
+
+
+def find_many(H: ManyDofHamiltonian, lo: np.ndarray, hi: np.ndarray,
+              starts: int | None = None) -> ManyDofSearch:
+    """Every equilibrium Newton's method reaches from a Halton set of starts in the box."""
+    N = lo.size
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    count = min(MAX_STARTS, starts or STARTS_PER_VARIABLE * N)
+    points = halton(count, N)
+    values = []
+    for u in points[: min(count, 256)]:
+        try:
+            values.append(H.jet(centre + half * u).v)
+        except ExpressionError:
+            continue
+    spread = (max(values) - min(values)) if len(values) > 1 else 1.0
+    spread = spread if spread > 0 and math.isfinite(spread) else 1.0
+    found: list[np.ndarray] = []
+    failed = 0
+    for u in points:
+        x = _newton(H, u, centre, half, spread)
+        if x is None:
+            failed += 1
+            continue
+        if not any(np.all(np.abs(x - y) <= 1e-7 * half) for y in found):
+            found.append(x)
+    equilibria = tuple(sorted((_classify(H, x) for x in found),
+                              key=lambda e: (e.energy, tuple(e.x))))
+    return ManyDofSearch(equilibria, count, failed)
+
+
+def _newton(H: ManyDofHamiltonian, u: np.ndarray, centre: np.ndarray, half: np.ndarray,
+            spread: float) -> np.ndarray | None:
+    """Damped Newton on grad H in box coordinates; the verified point or None."""
+    def state(u):
+        j = H.jet(centre + half * u)
+        return j.g * half, j.h * np.outer(half, half)
+
+    try:
+        g, A = state(u)
+    except ExpressionError:
+        return None
+    for _ in range(NEWTON_ITERATIONS):
+        try:
+            step = np.linalg.lstsq(A, g, rcond=1e-13)[0]
+        except np.linalg.LinAlgError:
+            return None
+        norm = float(np.abs(g).max())
+        t = 1.0
+        for _ in range(16):
+            trial = u - t * step
+            if np.abs(trial).max() <= 1.5:
+                try:
+                    g2, A2 = state(trial)
+                    if float(np.abs(g2).max()) < norm or t * np.abs(step).max() < 1e-12:
+                        break
+                except ExpressionError:
+                    pass
+            t /= 2
+        else:
+            return None
+        u, g, A = trial, g2, A2
+        if t * np.abs(step).max() <= 1e-14:
+            break
+    if np.abs(u).max() > 1 + 1e-9 or float(np.abs(g).max()) > RESIDUAL * spread:
+        return None
+    x = centre + half * u
+    # a coordinate within the location's rounding of 0 is 0 (the origin, not 1e-34)
+    return np.where(np.abs(x) <= 1e-12 * half, 0.0, x)
+
+
+def _classify(H: ManyDofHamiltonian, x: np.ndarray) -> ManyDofEquilibrium:
+    from stepsafe.systems.linear import hamiltonian_matrix
+
+    jet = H.jet(x)
+    S = 0.5 * (jet.h + jet.h.T)
+    mu = np.linalg.eigvals(hamiltonian_matrix(S))
+    tol = 1e-8 * max(float(np.abs(mu).max()), 1e-300)
+    upper = mu[(mu.imag > tol) | ((np.abs(mu.imag) <= tol) & (mu.real > tol))]
+    zero = int((np.abs(mu) <= tol).sum())
+    freqs = tuple(sorted(float(m.imag) for m in upper if abs(m.real) <= tol))
+    rates = tuple(sorted(float(m.real) for m in upper if abs(m.imag) <= tol))
+    lox = sum(1 for m in upper if abs(m.real) > tol and abs(m.imag) > tol)
+    if zero:
+        kind = "degenerate"
+    elif lox:
+        kind = "loxodromic"
+    elif not rates:
+        kind = "elliptic"
+    elif not freqs:
+        kind = "hyperbolic"
+    else:
+        kind = "mixed"
+    return ManyDofEquilibrium(x, float(jet.v), S, kind, len(rates), freqs, rates)
+
+
+def system_of(H: ManyDofHamiltonian):
+    """The equations of motion for :mod:`stepsafe.core.integrator`."""
+    from stepsafe.core.integrator import System
+
+    n = len(H.q)
+
+    def grads(q: np.ndarray, p: np.ndarray) -> np.ndarray:
+        d = H.dual(np.hstack([q, p]))
+        return np.asarray(d.d).T  # (m, 2n)
+
+    def hessian(q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, ...]:
+        X = np.hstack([q, p])
+        S = np.stack([H.jet(row).h for row in X])
+        return S[:, :n, :n], S[:, :n, n:], S[:, n:, n:]
+
+    def field(q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        g = grads(q, p)
+        return g[:, n:], -g[:, :n]
+
+    return System(dH_dq=lambda q, p: grads(q, p)[:, :n], dH_dp=lambda q, p: grads(q, p)[:, n:],
+                  energy=lambda q, p: np.asarray(H.dual(np.hstack([q, p])).v, dtype=float),
+                  separable=H.separable, dimension=n, vector_field=field, hessian=hessian)
