@@ -323,6 +323,8 @@ def _problem(integrator: Integrator, scene: Any, system: Mapping[str, Any] | Non
                             "Python)")
     if not isinstance(tree, Mapping):
         raise StepsafeError("system: must be a mapping", where)
+    if "hamiltonian" in tree and ("q" in tree or "p" in tree):
+        return _many_problem(tree, where, initial, energy)
     if "hamiltonian" in tree:
         return _expression_problem(integrator, tree, where, folder, initial, energy)
     if energy is not None:
@@ -387,6 +389,59 @@ def _expression_problem(integrator, tree, where, folder, initial, energy) -> _Pr
         centre_energy = float(system.energy(np.array([[nearest["q"]]]),
                                             np.array([[nearest["p"]]]))[0])
     return _Problem(system, q, p, beta, f"H = {tree['hamiltonian']}", reference,
+                    "adaptive 8th-order Dormand-Prince (scipy DOP853), tolerance 1e-13",
+                    centre_energy)
+
+
+def _many_problem(tree, where, initial, energy) -> _Problem:
+    """An n-dof Hamiltonian expression: the start given, or the lowest elliptic equilibrium
+    with its first coordinate moved by a tenth of the box; the prediction for its fastest
+    frequency."""
+    from stepsafe.systems.dynamics import check_finite_start
+    from stepsafe.systems.loader import read_many
+    from stepsafe.systems.manydof import find_many, system_of
+
+    if energy is not None:
+        raise StepsafeError("--energy applies to 1-dof Hamiltonians; give --initial for "
+                            "named coordinates")
+    H, lo, hi = read_many(tree, where)
+    n = len(H.q)
+    centres = [e for e in find_many(H, lo, hi).equilibria if e.kind == "elliptic"]
+    if initial is not None:
+        x0 = np.array([float(v) for v in initial], dtype=float)
+        if x0.size != 2 * n or not np.all(np.isfinite(x0)):
+            raise StepsafeError(f"the initial condition must be {2 * n} finite numbers "
+                                f"({', '.join(H.names)})")
+    elif centres:
+        x0 = centres[0].x.copy()
+        x0[0] += 0.1 * (hi[0] - lo[0]) / 2
+    else:
+        raise StepsafeError("no elliptic equilibrium in the box to start near: give "
+                            "--initial", where)
+    system = system_of(H)
+    q, p = x0[None, :n].copy(), x0[None, n:].copy()
+    check_finite_start(system, q, p)
+    beta, centre_energy = None, 0.0
+    if centres:
+        nearest = min(centres, key=lambda e: float(np.linalg.norm((e.x - x0) / (hi - lo))))
+        beta, centre_energy = max(nearest.frequencies), nearest.energy
+
+    def reference(times: list[float]) -> list[np.ndarray]:
+        from scipy.integrate import solve_ivp
+
+        def rhs(_, y):
+            dq, dp = system.rates(y[None, :n], y[None, n:])
+            return np.concatenate([dq[0], dp[0]])
+
+        scale = max(float(np.abs(x0).max()), 1e-300)
+        sol = solve_ivp(rhs, (0.0, max(times)), x0, method="DOP853", rtol=1e-13,
+                        atol=1e-13 * scale, t_eval=sorted(set(times)))
+        if sol.status != 0 or sol.y.shape[1] != len(set(times)):
+            raise StepsafeError(f"the reference integration failed: {sol.message}")
+        at = dict(zip(sol.t, sol.y.T))
+        return [np.array(at[t]) for t in times]
+
+    return _Problem(system, q, p, beta, f"H = {H.text} ({n} dof)", reference,
                     "adaptive 8th-order Dormand-Prince (scipy DOP853), tolerance 1e-13",
                     centre_energy)
 

@@ -1,0 +1,159 @@
+"""n-dof Hamiltonian expressions: equilibria, their type and frequencies against closed
+forms (Henon-Heiles, an FPU-alpha chain, the Lagrange points), the step limits they set,
+measurement on them, and bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import stepsafe
+from stepsafe.exceptions import StepsafeError
+
+ROOT = Path(__file__).resolve().parent.parent
+HH = ROOT / "examples/henon-heiles.yaml"
+
+
+def _items(scene, **extra):
+    report = stepsafe.advise(scene=str(scene), **extra)
+    return report, report.record["system"]["items"]
+
+
+def test_henon_heiles_closed_forms():
+    report, items = _items(HH)
+    assert len(items) == 4
+    origin = items[0]
+    assert origin["type"] == "elliptic" and origin["x"] == [0.0] * 4
+    assert origin["frequencies"] == pytest.approx([1.0, 1.0], rel=1e-12)
+    saddles = sorted(tuple(i["x"][:2]) for i in items[1:])
+    expected = sorted([(0.0, 1.0), (-math.sqrt(3) / 2, -0.5), (math.sqrt(3) / 2, -0.5)])
+    assert np.allclose(saddles, expected, rtol=0, atol=1e-12)
+    for item in items[1:]:
+        assert item["type"] == "mixed" and item["index"] == 1
+        assert item["energy"] == pytest.approx(1 / 6, rel=1e-13)
+        assert item["frequencies"] == pytest.approx([math.sqrt(3)], rel=1e-12)
+        assert item["rates"] == pytest.approx([1.0], rel=1e-12)
+    # the saddles' sqrt(3) limits Verlet: h < 2 / sqrt 3, unless they cannot be reached
+    assert report.h_max == pytest.approx(2 / math.sqrt(3), rel=1e-12)
+
+
+def test_energy_below_drops_unreachable_equilibria(tmp_path):
+    scene = tmp_path / "hh.yaml"
+    scene.write_text(HH.read_text().replace("  box:", "  energy_below: 0.1\n  box:"))
+    report, items = _items(scene)
+    assert len(items) == 1 and report.h_max == pytest.approx(2.0, rel=1e-12)
+    notes = report.record["system"]["notes"]
+    assert len(notes) == 3 and all("not below 0.1" in n for n in notes)
+
+
+def test_fpu_chain_frequencies():
+    report, items = _items(ROOT / "examples/fpu-alpha.yaml")
+    assert len(items) == 1 and items[0]["type"] == "elliptic"
+    expected = [2 * math.sin(k * math.pi / 10) for k in range(1, 5)]
+    assert items[0]["frequencies"] == pytest.approx(expected, rel=1e-12)
+    assert report.h_max == pytest.approx(2 / expected[-1], rel=1e-12)
+
+
+@pytest.mark.parametrize("mu", [0.01, 0.1])
+def test_lagrange_points(mu, tmp_path):
+    """L4/L5 at (1/2 - mu, +-sqrt(3)/2), momenta (-y, x); their eigenvalues solve
+    lambda^4 + lambda^2 + (27/4) mu (1 - mu) = 0: two frequencies below Routh's mass ratio
+    0.0385, a loxodromic quadruplet above. L1-L3 have one hyperbolic pair."""
+    scene = tmp_path / "l.yaml"
+    scene.write_text((ROOT / "examples/lagrange-points.yaml").read_text()
+                     .replace("mu: 0.01", f"mu: {mu}"))
+    _, items = _items(scene, stages=2)
+    triangular = [i for i in items if abs(i["x"][1]) > 0.5]
+    collinear = [i for i in items if abs(i["x"][1]) < 1e-12]
+    assert len(triangular) == 2 and len(collinear) == 3
+    for item in triangular:
+        x, y, px, py = item["x"]
+        assert (x, abs(y)) == pytest.approx((0.5 - mu, math.sqrt(3) / 2), abs=1e-11)
+        assert (px, py) == pytest.approx((-y, x), abs=1e-11)
+        d = 1 - 27 * mu * (1 - mu)
+        if d > 0:
+            w2 = sorted([(1 - math.sqrt(d)) / 2, (1 + math.sqrt(d)) / 2])
+            assert item["type"] == "elliptic"
+            assert item["frequencies"] == pytest.approx([math.sqrt(w) for w in w2],
+                                                        rel=1e-10)
+        else:
+            assert item["type"] == "loxodromic"
+    assert all(i["type"] == "mixed" and i["index"] == 1 for i in collinear)
+
+
+@pytest.mark.parametrize("change, key", [
+    (("q: [x, y]", "q: [x]"), "system.p"),
+    (("p: [px, py]", "p: [px, x]"), "system.p"),
+    (("p: [px, py]", "p: px"), "system.p"),
+    (("- y**3/3", "- z**3/3"), "system.hamiltonian"),
+    (("- y**3/3", "- y**3/"), "system.hamiltonian"),
+    (("py: [-1, 1]}", "py: [-1, 1], pz: [0, 1]}"), "system.box"),
+    ((", py: [-1, 1]}", "}"), "system.box"),
+    (("px: [-1, 1]", "px: [1, -1]"), "system.box.px"),
+    (("px: [-1, 1]", "px: [-1, .inf]"), "system.box.px[1]"),
+    (("px: [-1, 1]", "px: [-1e308, 1e308]"), "system.box.px"),
+    (("  box:", "  starts: 0\n  box:"), "system.starts"),
+    (("  box:", "  energy_below: -1\n  box:"), "system.energy_below"),
+    (("  box:", "  parameters: {x: 1}\n  box:"), "system.parameters"),
+])
+def test_bad_input_names_the_key(run, tmp_path, change, key):
+    scene = tmp_path / "bad.yaml"
+    text = HH.read_text()
+    assert change[0] in text
+    scene.write_text(text.replace(change[0], change[1]))
+    code, out, err = run("advise", str(scene))
+    assert code == 2 and err.count("\n") == 1 and out == "", err
+    assert f"bad.yaml::$.{key}" in err, err
+
+
+def test_too_many_degrees_of_freedom(run, tmp_path):
+    n = 21
+    qs, ps = [f"q{i}" for i in range(n)], [f"p{i}" for i in range(n)]
+    H = " + ".join(f"{p}**2/2 + {q}**2/2" for q, p in zip(qs, ps))
+    box = ", ".join(f"{v}: [-1, 1]" for v in qs + ps)
+    scene = tmp_path / "big.yaml"
+    scene.write_text(f"method: verlet\nsystem:\n  hamiltonian: \"{H}\"\n  q: [{', '.join(qs)}]"
+                     f"\n  p: [{', '.join(ps)}]\n  box: {{{box}}}\n")
+    code, _, err = run("advise", str(scene))
+    assert code == 2 and "big.yaml::$.system.q" in err
+
+
+def test_measure_on_henon_heiles(run):
+    """Near the centre the measured energy spread follows the linear model; the engine's
+    order on the 2-dof system is 2 for Verlet and 4 for Yoshida against DOP853."""
+    from scipy.integrate import solve_ivp
+
+    from stepsafe.core.integrator import Engine
+    from stepsafe.files.yamlio import load_yaml
+    from stepsafe.systems.loader import read_many
+    from stepsafe.systems.manydof import system_of
+
+    code, out, err = run("measure", str(HH), "--h", "0.1", "--time", "50", "--json")
+    assert code == 0, err
+    row = json.loads(out)["rows"][0]
+    assert row["status"] == "ok" and abs(row["energy_ratio"] - 1) < 0.03
+    H, _, _ = read_many(load_yaml(HH)["system"], "hh")
+    system = system_of(H)
+    x0 = np.array([0.3, 0.1, 0.0, 0.2])
+    T = 3.0
+
+    def rhs(_, y):
+        x, yy, px, py = y
+        return [px, py, -(x + 2 * x * yy), -(yy + x * x - yy * yy)]
+
+    ref = solve_ivp(rhs, (0, T), x0, method="DOP853", rtol=1e-13, atol=1e-14).y[:, -1]
+    for name, order in (("verlet", 2), ("yoshida4", 4)):
+        errs = []
+        for n in (30, 60):
+            engine = Engine(stepsafe.method(name).tableau, system)
+            q, p = x0[None, :2].copy(), x0[None, 2:].copy()
+            for _ in range(n):
+                q, p = engine.step(q, p, T / n)
+            errs.append(float(np.linalg.norm(np.concatenate([q[0], p[0]]) - ref)))
+        assert abs(math.log2(errs[0] / errs[1]) - order) < 0.3, (name, errs)
+    with pytest.raises(StepsafeError, match="1-dof"):
+        stepsafe.measure("verlet", [0.1], scene=str(HH), energy=0.1)
