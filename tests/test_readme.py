@@ -67,6 +67,13 @@ def test_criterion_output():
     assert _block_after("stepsafe check --method bcss3 --beta 1 --step 3.5 --criterion") == out
 
 
+def test_many_dof_output():
+    block = _block_after("stepsafe advise examples/henon-heiles.yaml")
+    out = _output("advise", str(ROOT / "examples/henon-heiles.yaml"))
+    assert block[:-2] == "".join("  " + line if line.strip() else line
+                            for line in out.splitlines(True))
+
+
 def test_measure_outputs():
     pendulum = str(ROOT / "examples/pendulum.yaml")
     assert _block_after("stepsafe measure examples/pendulum.yaml --h 0.1") == _output(

@@ -134,7 +134,10 @@ def json_schema() -> dict[str, Any]:
                     "label": {"type": "string"}}}},
             "system": {"type": "object", "description": "a whole system: {stiffness:, mass:}, "
                        "{precision:, mass:} or {covariance:, mass:} (a Gaussian target), "
-                       "{hessian:} or {hamiltonian:, parameters:, box: {q:, p:}}"},
+                       "{hessian:}, {hamiltonian:, parameters:, box: {q:, p:}} (1 dof), "
+                       "{hamiltonian:, q: [names], p: [names], parameters:, box: {name: "
+                       "[lo, hi]}, energy_below:, starts:} (n dof), or for an impulse method "
+                       "{stiffness_fast:, stiffness_slow:, mass:}"},
         },
     }
 
