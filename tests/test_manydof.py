@@ -157,3 +157,23 @@ def test_measure_on_henon_heiles(run):
         assert abs(math.log2(errs[0] / errs[1]) - order) < 0.3, (name, errs)
     with pytest.raises(StepsafeError, match="1-dof"):
         stepsafe.measure("verlet", [0.1], scene=str(HH), energy=0.1)
+
+
+def test_double_pendulum_closed_forms():
+    """Hanging: omega^2 = 2 -+ sqrt 2; one arm up: omega^4 = 2 (a frequency and a rate
+    2^(1/4)); both up: rates sqrt(2 -+ sqrt 2); energies -3, -1, 1, 3."""
+    _, items = _items(ROOT / "examples/double-pendulum.yaml")
+    by_energy: dict[float, list] = {}
+    for item in items:
+        by_energy.setdefault(round(item["energy"], 9), []).append(item)
+    assert sorted(by_energy) == [-3.0, -1.0, 1.0, 3.0]
+    (hanging,) = by_energy[-3.0]
+    assert hanging["type"] == "elliptic" and hanging["frequencies"] == pytest.approx(
+        [math.sqrt(2 - math.sqrt(2)), math.sqrt(2 + math.sqrt(2))], rel=1e-12)
+    for item in by_energy[-1.0] + by_energy[1.0]:
+        assert item["type"] == "mixed" and item["index"] == 1
+        assert item["frequencies"] == pytest.approx([2 ** 0.25], rel=1e-12)
+        assert item["rates"] == pytest.approx([2 ** 0.25], rel=1e-12)
+    for item in by_energy[3.0]:
+        assert item["type"] == "hyperbolic" and item["rates"] == pytest.approx(
+            [math.sqrt(2 - math.sqrt(2)), math.sqrt(2 + math.sqrt(2))], rel=1e-12)
