@@ -177,3 +177,40 @@ def test_double_pendulum_closed_forms():
     for item in by_energy[3.0]:
         assert item["type"] == "hyperbolic" and item["rates"] == pytest.approx(
             [math.sqrt(2 - math.sqrt(2)), math.sqrt(2 + math.sqrt(2))], rel=1e-12)
+
+
+BOX = {"x": [-1.2, 1.2], "y": [-1.2, 1.2], "px": [-1, 1], "py": [-1, 1]}
+
+
+def test_a_python_function_as_the_hamiltonian():
+    """H given in code (the API): the same equilibria and limits as the expression; ops
+    gives the elementary functions; mixed terms are detected; errors become
+    StepsafeError."""
+    def henon_heiles(q, p, ops):
+        x, y = q
+        px, py = p
+        return (px ** 2 + py ** 2) / 2 + (x ** 2 + y ** 2) / 2 + x ** 2 * y - y ** 3 / 3
+
+    system = {"hamiltonian": henon_heiles, "q": ["x", "y"], "p": ["px", "py"], "box": BOX}
+    report = stepsafe.advise("verlet", system=system)
+    _, items = _items(HH)
+    assert report.h_max == stepsafe.advise(scene=str(HH)).h_max
+    mine = report.record["system"]["items"]
+    assert [i["type"] for i in mine] == [i["type"] for i in items]
+    assert np.allclose([i["x"] for i in mine], [i["x"] for i in items], atol=1e-12)
+
+    def coupled(q, p, ops):
+        return (p[0] ** 2 + p[1] ** 2) / 2 - ops.cos(q[0]) - 2 * ops.cos(q[1]) + \
+            0.01 * q[0] * p[1]
+
+    mixed = {"hamiltonian": coupled, "q": ["x", "y"], "p": ["px", "py"], "box": BOX}
+    with pytest.raises(StepsafeError, match="separable"):
+        stepsafe.measure("verlet", [0.1], system=mixed, time=1.0)
+    assert stepsafe.measure(stepsafe.method("gauss", 2), [0.1], system=mixed,
+                            time=1.0).rows[0].status == "ok"
+
+    def broken(q, p, ops):
+        return ops.nosuch(q[0]) + p[0] ** 2
+
+    with pytest.raises(StepsafeError):
+        stepsafe.advise("verlet", system={**system, "hamiltonian": broken})

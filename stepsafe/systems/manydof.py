@@ -70,16 +70,43 @@ class Jet:
     def __init__(self, v: float, g: np.ndarray, h: np.ndarray) -> None:
         self.v, self.g, self.h = v, g, h
 
-    def __add__(self, o: Jet) -> Jet:
+    def lift(self, o: Any) -> Jet:
+        """A number as a constant jet (Python callables mix numbers with jets)."""
+        if isinstance(o, Jet):
+            return o
+        if isinstance(o, (int, float)) and not isinstance(o, bool):
+            return Jet(float(o), np.zeros_like(self.g), np.zeros_like(self.h))
+        raise TypeError(f"cannot combine a jet with {type(o).__name__}")
+
+    def __add__(self, o: Any) -> Jet:
+        o = self.lift(o)
         return Jet(self.v + o.v, self.g + o.g, self.h + o.h)
 
-    def __sub__(self, o: Jet) -> Jet:
+    def __sub__(self, o: Any) -> Jet:
+        o = self.lift(o)
         return Jet(self.v - o.v, self.g - o.g, self.h - o.h)
+
+    def __radd__(self, o: Any) -> Jet:
+        return self.lift(o) + self
+
+    def __rsub__(self, o: Any) -> Jet:
+        return self.lift(o) - self
+
+    def __rmul__(self, o: Any) -> Jet:
+        return self.lift(o) * self
+
+    def __rtruediv__(self, o: Any) -> Jet:
+        return self.lift(o) / self
+
+    def __pow__(self, o: Any) -> Jet:
+        constant = not isinstance(o, Jet) or (not o.g.any() and not o.h.any())
+        return self.power(self.lift(o), constant)
 
     def __neg__(self) -> Jet:
         return Jet(-self.v, -self.g, -self.h)
 
-    def __mul__(self, o: Jet) -> Jet:
+    def __mul__(self, o: Any) -> Jet:
+        o = self.lift(o)
         cross = np.outer(self.g, o.g)
         return Jet(self.v * o.v, self.v * o.g + o.v * self.g,
                    self.v * o.h + o.v * self.h + cross + cross.T)
@@ -89,7 +116,8 @@ class Jet:
             return Jet(f0, f1 * self.g, f1 * self.h)
         return Jet(f0, f1 * self.g, f1 * self.h + f2 * np.outer(self.g, self.g))
 
-    def __truediv__(self, o: Jet) -> Jet:
+    def __truediv__(self, o: Any) -> Jet:
+        o = self.lift(o)
         if o.v == 0:
             raise ZeroDivisionError("division by zero")
         return self * o.chain(1 / o.v, -1 / o.v ** 2, 2 / o.v ** 3)
@@ -127,19 +155,45 @@ class Dual:
     def __init__(self, v: Any, d: Any) -> None:
         self.v, self.d = v, d
 
-    def __add__(self, o: Dual) -> Dual:
+    def lift(self, o: Any) -> Dual:
+        if isinstance(o, Dual):
+            return o
+        if isinstance(o, (int, float)) and not isinstance(o, bool):
+            return Dual(np.full_like(self.v, float(o)), np.zeros_like(self.d))
+        raise TypeError(f"cannot combine a dual number with {type(o).__name__}")
+
+    def __add__(self, o: Any) -> Dual:
+        o = self.lift(o)
         return Dual(self.v + o.v, self.d + o.d)
 
-    def __sub__(self, o: Dual) -> Dual:
+    def __sub__(self, o: Any) -> Dual:
+        o = self.lift(o)
         return Dual(self.v - o.v, self.d - o.d)
+
+    def __radd__(self, o: Any) -> Dual:
+        return self.lift(o) + self
+
+    def __rsub__(self, o: Any) -> Dual:
+        return self.lift(o) - self
+
+    def __rmul__(self, o: Any) -> Dual:
+        return self.lift(o) * self
+
+    def __rtruediv__(self, o: Any) -> Dual:
+        return self.lift(o) / self
+
+    def __pow__(self, o: Any) -> Dual:
+        return self.power(self.lift(o), not isinstance(o, Dual) or not np.any(o.d))
 
     def __neg__(self) -> Dual:
         return Dual(-self.v, -self.d)
 
-    def __mul__(self, o: Dual) -> Dual:
+    def __mul__(self, o: Any) -> Dual:
+        o = self.lift(o)
         return Dual(self.v * o.v, self.v * o.d + o.v * self.d)
 
-    def __truediv__(self, o: Dual) -> Dual:
+    def __truediv__(self, o: Any) -> Dual:
+        o = self.lift(o)
         r = 1.0 / o.v
         return Dual(self.v * r, (self.d * o.v - self.v * o.d) * r * r)
 
@@ -168,6 +222,8 @@ class ManyDofHamiltonian:
     p: tuple[str, ...]
     parameters: dict[str, float]
     tree: Any = field(repr=False)
+    #: a Python function ``H(q, p, ops)`` instead of an expression (see :func:`from_callable`)
+    function: Callable[..., Any] | None = field(default=None, repr=False)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -177,6 +233,9 @@ class ManyDofHamiltonian:
     def _program(self) -> Callable[[dict[str, Any], Callable[[float], Any]], Any]:
         """H as nested closures of (env, make): parsed once (constants read, exponents
         classified), then evaluated on jets or duals without walking the tree."""
+        if self.function is not None:
+            return self._call
+
         variables = set(self.names)
 
         def build(node: ast.AST):
@@ -216,6 +275,19 @@ class ManyDofHamiltonian:
 
         return build(self.tree)
 
+    def _call(self, env: dict[str, Any], make: Callable[[float], Any]) -> Any:
+        """The user's function on jets or duals; numbers it returns are lifted."""
+        q = [env[name] for name in self.q]
+        p = [env[name] for name in self.p]
+        try:
+            out = self.function(q, p, OPS)
+        except (ZeroDivisionError, ValueError, OverflowError, FloatingPointError):
+            raise
+        except Exception as exc:  # the user's code: report, do not crash
+            raise ValueError(f"the Hamiltonian function raised {type(exc).__name__}: "
+                             f"{exc}") from None
+        return out if isinstance(out, (Jet, Dual)) else make(float(out))
+
     def jet(self, x: np.ndarray) -> Jet:
         """Value, gradient and Hessian at x (the 2n variables, q then p)."""
         N = len(self.names)
@@ -247,7 +319,16 @@ class ManyDofHamiltonian:
 
     @property
     def separable(self) -> bool:
-        """Whether every term of H is in the coordinates alone or the momenta alone."""
+        """Whether every term of H is in the coordinates alone or the momenta alone (for a
+        function: whether H_qp is exactly 0 at sixteen pseudo-random points of [-1, 1]^2n,
+        which forward AD gives exactly when no term mixes them)."""
+        if self.function is not None:
+            n = len(self.q)
+            points = np.random.default_rng(0).uniform(-1, 1, (16, 2 * n))
+            try:
+                return all(not self.jet(x).h[:n, n:].any() for x in points)
+            except ExpressionError:
+                return False
         terms = [self.tree]
         out = []
         while terms:
@@ -265,14 +346,58 @@ class ManyDofHamiltonian:
         return True
 
 
+class _Ops:
+    """The elementary functions for Hamiltonians given as Python functions: each works on
+    stepsafe's jets and dual numbers and on plain numbers."""
+
+    pi = math.pi
+
+    def __getattr__(self, name: str) -> Callable[[Any], Any]:
+        if name not in _F:
+            raise AttributeError(f"ops has no function {name!r}; it has "
+                                 f"{', '.join(sorted(_F))}")
+
+        def apply(x: Any) -> Any:
+            if isinstance(x, (Jet, Dual)):
+                return x.call(name)
+            return float(_F[name][0](float(x)))
+
+        return apply
+
+
+OPS = _Ops()
+
+
 def parse_many(text: Any, q: Any, p: Any, parameters: dict[str, float],
                where: str) -> ManyDofHamiltonian:
-    """Validate the variable lists and the expression (errors name the key)."""
+    """Validate the variable lists and the expression (errors name the key); ``text`` may
+    be a Python function ``H(q, p, ops)`` (from the API): ``q`` and ``p`` are lists of
+    stepsafe's AD numbers supporting + - * / ** with each other and with numbers, ``ops``
+    gives sin, cos, exp, log, sqrt, cosh, sinh, tanh and pi for them."""
     def fail(key: str, message: str) -> StepsafeError:
         return StepsafeError(message, f"{where}::$.system.{key}")
 
+    if callable(text):
+        qs, ps = _names(q, p, parameters, fail)
+        return ManyDofHamiltonian(getattr(text, "__name__", "H"), qs, ps, dict(parameters),
+                                  None, text)
     if not isinstance(text, str):
         raise fail("hamiltonian", "must be an expression in the named variables")
+    qs, ps = _names(q, p, parameters, fail)
+    names = qs + ps
+    try:
+        expr = parse(text, FUNCTIONS)
+    except ExpressionError as exc:
+        raise fail("hamiltonian", f"{exc} in {text[:60]!r}") from None
+    unknown = expr.names - set(names) - set(parameters) - {"pi"}
+    if unknown:
+        raise fail("hamiltonian", f"unknown name {sorted(unknown)[0]!r} (use the names of q, "
+                                  "p, the parameters and pi)")
+    return ManyDofHamiltonian(text, qs, ps, dict(parameters), expr.tree)
+
+
+def _names(q: Any, p: Any, parameters: dict[str, float], fail
+           ) -> tuple[tuple[str, ...], tuple[str, ...]]:
     lists = {}
     for key, names in (("q", q), ("p", p)):
         if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
@@ -292,15 +417,7 @@ def parse_many(text: Any, q: Any, p: Any, parameters: dict[str, float],
     clash = set(names) & set(parameters)
     if clash:
         raise fail("parameters", f"{sorted(clash)[0]!r} is also a variable")
-    try:
-        expr = parse(text, FUNCTIONS)
-    except ExpressionError as exc:
-        raise fail("hamiltonian", f"{exc} in {text[:60]!r}") from None
-    unknown = expr.names - set(names) - set(parameters) - {"pi"}
-    if unknown:
-        raise fail("hamiltonian", f"unknown name {sorted(unknown)[0]!r} (use the names of q, "
-                                  "p, the parameters and pi)")
-    return ManyDofHamiltonian(text, lists["q"], lists["p"], dict(parameters), expr.tree)
+    return lists["q"], lists["p"]
 
 
 @dataclass(frozen=True, eq=False)
