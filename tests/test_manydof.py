@@ -214,3 +214,38 @@ def test_a_python_function_as_the_hamiltonian():
 
     with pytest.raises(StepsafeError):
         stepsafe.advise("verlet", system={**system, "hamiltonian": broken})
+
+
+def test_indexed_chains(tmp_path):
+    """q[i] with sums over i: an FPU chain of N = 8 gives 2 sin(k pi / 18)."""
+    text = (ROOT / "examples/fpu-alpha.yaml").read_text().replace("{N: 4}", "{N: 8}")
+    scene = tmp_path / "fpu8.yaml"
+    scene.write_text(text)
+    report, items = _items(scene)
+    expected = [2 * math.sin(k * math.pi / 18) for k in range(1, 9)]
+    assert items[0]["frequencies"] == pytest.approx(expected, rel=1e-12)
+    assert items[0]["names"][:2] == ["q_1", "q_2"]
+    assert report.h_max == pytest.approx(2 / expected[-1], rel=1e-12)
+
+
+@pytest.mark.parametrize("change, key", [
+    (('"q[0]": 0, ', ""), "system.hamiltonian"),  # q[0] neither a variable nor fixed
+    (('"q[0]": 0', '"q[1]": 0'), "system.fixed.q[1]"),
+    (('q: "q[1..N]"', 'q: "q[N..1]"'), "system.q"),
+    (('q: "q[1..N]"', 'q: "q(1..N)"'), "system.q"),
+    (("{N: 4}", "{N: -1}"), "system.sizes.N"),
+    (("sum(i, 1, N, p[i]**2/2)", "sum(i, 1, N, sum(i, 1, 2, p[i]**2/2))"),
+     "system.hamiltonian"),
+    (("sum(i, 1, N, p[i]**2/2)", "sum(i, 1, N, p[i/2]**2/2)"), "system.hamiltonian"),
+    (("sum(i, 1, N, p[i]**2/2)", "sum(i, 1, N, x[i]**2/2)"), "system.hamiltonian"),
+    (("box: {q: [-0.5, 0.5], p: [-0.5, 0.5]}", "box: {q: [-0.5, 0.5]}"), "system.box"),
+    (("{N: 4}", "{N: 40}"), "system.q"),
+])
+def test_bad_indexed_input(run, tmp_path, change, key):
+    text = (ROOT / "examples/fpu-alpha.yaml").read_text()
+    assert change[0] in text
+    scene = tmp_path / "bad.yaml"
+    scene.write_text(text.replace(change[0], change[1]))
+    code, out, err = run("advise", str(scene))
+    assert code == 2 and err.count("\n") == 1 and out == "", err
+    assert f"bad.yaml::$.{key}" in err, err

@@ -33,7 +33,7 @@ DENSE_LIMIT = 2000
 #: stepsafe.systems.nonlinear), the float64 square roots and products add a few ulps.
 EQUILIBRIUM_ERROR = 8 * float(np.finfo(float).eps)
 SYSTEM_KEYS = {"stiffness", "precision", "covariance", "mass", "hessian", "hamiltonian",
-               "parameters", "box", "q", "p", "energy_below", "starts"}
+               "parameters", "box", "q", "p", "energy_below", "starts", "sizes", "fixed"}
 
 
 class SystemReport(NamedTuple):
@@ -242,7 +242,7 @@ def _hamiltonian(tree, where, method, zmax) -> SystemReport:
 
     if "q" in tree or "p" in tree:
         return _hamiltonian_many(tree, where, method, zmax)
-    for key in ("energy_below", "starts"):
+    for key in ("energy_below", "starts", "sizes", "fixed"):
         if key in tree:
             raise _fail(where, key, "applies to Hamiltonians with named variables (q: and "
                                     "p: lists)")
@@ -315,8 +315,27 @@ def read_many(tree, where):
     if not isinstance(params_tree, dict):
         raise _fail(where, "parameters", "must be a mapping of names to numbers")
     params = {k: _float(v, where, f"parameters.{k}") for k, v in params_tree.items()}
-    H = parse_many(tree["hamiltonian"], tree.get("q"), tree.get("p"), params, where)
-    box = tree.get("box")
+    if isinstance(tree.get("q"), str) or isinstance(tree.get("p"), str):
+        from stepsafe.systems.indexed import read_indexed
+        from stepsafe.systems.manydof import MAX_DOF, ManyDofHamiltonian
+
+        expanded, qs, ps, box = read_indexed(tree, where,
+                                             lambda v, key: _float(v, where, key))
+        if len(qs) != len(ps):
+            raise _fail(where, "p", f"{len(ps)} momenta for {len(qs)} coordinates")
+        if len(qs) > MAX_DOF:
+            raise _fail(where, "q", f"{len(qs)} degrees of freedom; at most {MAX_DOF}")
+        clash = (set(qs) | set(ps)) & set(params)
+        if clash:
+            raise _fail(where, "parameters", f"{sorted(clash)[0]!r} is also a variable")
+        H = ManyDofHamiltonian(str(tree["hamiltonian"]), tuple(qs), tuple(ps), params,
+                               expanded)
+    else:
+        for key in ("sizes", "fixed"):
+            if key in tree:
+                raise _fail(where, key, "applies to indexed variables (q: \"q[1..N]\")")
+        H = parse_many(tree["hamiltonian"], tree.get("q"), tree.get("p"), params, where)
+        box = tree.get("box")
     if not isinstance(box, dict):
         raise _fail(where, "box", "must map every variable to [lo, hi]")
     missing = [name for name in H.names if name not in box]

@@ -240,7 +240,7 @@ class ManyDofHamiltonian:
 
         def build(node: ast.AST):
             if isinstance(node, ast.Constant):
-                value = float(ast.get_source_segment(self.text, node))
+                value = float(node.value)  # Python reads a decimal literal as float() does
                 return lambda env, make: make(value)
             if isinstance(node, ast.Name):
                 name = node.id

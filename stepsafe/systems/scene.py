@@ -136,7 +136,9 @@ def json_schema() -> dict[str, Any]:
                        "{precision:, mass:} or {covariance:, mass:} (a Gaussian target), "
                        "{hessian:}, {hamiltonian:, parameters:, box: {q:, p:}} (1 dof), "
                        "{hamiltonian:, q: [names], p: [names], parameters:, box: {name: "
-                       "[lo, hi]}, energy_below:, starts:} (n dof), or for an impulse method "
+                       "[lo, hi]}, energy_below:, starts:} (n dof; or q: 'q[1..N]' with "
+                       "sizes:, fixed: and sum(i, lo, hi, body) in H), or for an impulse "
+                       "method "
                        "{stiffness_fast:, stiffness_slow:, mass:}"},
         },
     }
