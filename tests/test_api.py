@@ -176,8 +176,10 @@ def test_readme_python_examples_run(monkeypatch):
     blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
     assert blocks
     monkeypatch.chdir(ROOT)
+    import textwrap
+
     for block in blocks:
-        exec(compile(block, "README.md", "exec"), {})
+        exec(compile(textwrap.dedent(block), "README.md", "exec"), {})
 
 
 @pytest.mark.parametrize("args", [

@@ -218,7 +218,8 @@ def test_a_python_function_as_the_hamiltonian():
 
 def test_indexed_chains(tmp_path):
     """q[i] with sums over i: an FPU chain of N = 8 gives 2 sin(k pi / 18)."""
-    text = (ROOT / "examples/fpu-alpha.yaml").read_text().replace("{N: 4}", "{N: 8}")
+    text = (ROOT / "examples/fpu-alpha.yaml").read_text().replace(
+        "{N: 4}", "{N: 8}").replace("  box:", "  starts: 24\n  box:")
     scene = tmp_path / "fpu8.yaml"
     scene.write_text(text)
     report, items = _items(scene)
