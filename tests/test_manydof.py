@@ -39,6 +39,9 @@ def test_henon_heiles_closed_forms():
         assert item["rates"] == pytest.approx([1.0], rel=1e-12)
     # the saddles' sqrt(3) limits Verlet: h < 2 / sqrt 3, unless they cannot be reached
     assert report.h_max == pytest.approx(2 / math.sqrt(3), rel=1e-12)
+    limits = [item["h_limit"] for item in items]
+    assert limits == pytest.approx([2.0] + [2 / math.sqrt(3)] * 3, rel=1e-12)
+    assert report.record["system"]["limiting_item"] == 1
 
 
 def test_energy_below_drops_unreachable_equilibria(tmp_path):

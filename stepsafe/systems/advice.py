@@ -15,6 +15,9 @@ from stepsafe.systems.loader import SystemReport
 
 
 def _limit_items(report: SystemReport, regions, margin: float) -> list[dict[str, Any]]:
+    """Each item with the h limit it sets: a mode or 1-dof equilibrium through its model,
+    an n-dof equilibrium through all its frequencies (``oscillator``) and rates (the
+    barrier or saddle model its Hessian was analysed with)."""
     out = []
     for item in report.items:
         item = dict(item)
@@ -22,8 +25,22 @@ def _limit_items(report: SystemReport, regions, margin: float) -> list[dict[str,
         if model in regions and beta:
             z_star = regions[model].first_boundary
             item["h_limit"] = None if z_star is None else margin * z_star / beta
+        elif "frequencies" in item and model and model != "coupled":
+            limits = []
+            for name in model.split(","):
+                values = item["frequencies"] if name == "oscillator" else item["rates"]
+                z_star = regions[name].first_boundary if name in regions else None
+                limits += [margin * z_star / v for v in values if z_star is not None and v]
+            item["h_limit"] = min(limits) if limits else None
         out.append(item)
     return out
+
+
+def _limiting_item(items: list[dict[str, Any]]) -> int | None:
+    """The index of the item with the smallest h limit (None if none sets one)."""
+    limits = [(item["h_limit"], i) for i, item in enumerate(items)
+              if item.get("h_limit") is not None]
+    return min(limits)[1] if limits else None
 
 
 def _coupled_criterion(report: SystemReport, criterion: str) -> None:
@@ -66,8 +83,9 @@ def system_advice(method: Method, report: SystemReport, margin: float = 1.0,
             and data["h_max"] < data["limiting"]["h_limit"])):
         data["limiting"] = {"model": "coupled", "beta": None, "h_limit": data["h_max"]}
     data["h_max_limited_by"] = _limited_by(data)
-    data["system"] = {"analysis": report.analysis, "items": _limit_items(report, regions, margin),
-                      "notes": report.notes}
+    items = _limit_items(report, regions, margin)
+    data["system"] = {"analysis": report.analysis, "items": items, "notes": report.notes,
+                      "limiting_item": _limiting_item(items)}
     return data
 
 
@@ -140,7 +158,8 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
     data["h_max"] = safe[0][1] if safe and safe[0][0] == 0.0 else 0.0
     data["in_primary_interval"] = bool(data["safe"] and (data["h_max"] is None
                                                          or h < data["h_max"]))
-    data["system"] = {"analysis": report.analysis, "items": _limit_items(report, regions, margin),
-                      "notes": report.notes}
+    items = _limit_items(report, regions, margin)
+    data["system"] = {"analysis": report.analysis, "items": items, "notes": report.notes,
+                      "limiting_item": _limiting_item(items)}
     return data
 
