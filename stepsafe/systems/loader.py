@@ -393,10 +393,9 @@ def _hamiltonian_many(tree, where, method, zmax) -> SystemReport:
                 "index": e.index, "energy": e.energy, "frequencies": list(e.frequencies),
                 "rates": list(e.rates), "model": None}
         if e.kind == "degenerate":
-            notes.append(f"degenerate equilibrium at {_point(H, e.x)}: no linear model, not "
-                         "analysed")
-            items.append(item)
-            continue
+            notes.append(f"equilibrium at {_point(H, e.x)} has a zero mode (a symmetry or a "
+                         "family of equilibria), which sets no step limit; its other modes "
+                         "are analysed")
         d = hessian_modes(e.hessian, method)
         if d is not None:
             for m in d.modes:
@@ -414,6 +413,9 @@ def _hamiltonian_many(tree, where, method, zmax) -> SystemReport:
         items.append(item)
     modes = Modes.from_arrays({k: np.array(v) for k, v in grouped.items()},
                               {k: np.array(v) for k, v in errors.items()}) if grouped else None
+    notes.append(f"equilibria found by Newton's method from {search.starts} starts: one "
+                 "whose basin no start reaches (a narrow well) can be missed; starts: "
+                 "raises their number")
     return SystemReport(f"{len(search.equilibria)} equilibria of H found in the box "
                         f"({search.explain()}), linearised exactly (automatic "
                         "differentiation)", items, modes, coupled, notes)

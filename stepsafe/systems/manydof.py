@@ -16,15 +16,17 @@ second-order jets (value, gradient, Hessian in all 2n variables), forward-mode a
 differentiation, never finite differences.
 
 Equilibria (``grad H = 0``) are found by Newton's method from a Halton set of starts in
-the box (box coordinates, each variable scaled to [-1, 1], Newton steps damped so that
-``|grad H|`` decreases), merged when they coincide, and each verified: its scaled
-residual ``max_i |dH/dx_i| w_i`` (``w_i`` the half-width of the box in variable i) is at
-most ``1e-9`` times the spread of H over the starts. The type comes from the eigenvalues
+the box (box coordinates, each variable scaled to [-1, 1]; plain Newton steps, then
+steps damped so that ``|grad H|`` decreases), merged when they coincide, and each
+verified: the linear change of H along every variable is negligible next to its local
+change (:func:`_verified`). The search can miss an equilibrium whose basin no start
+reaches (a narrow well); ``starts:`` raises their number. The type comes from the eigenvalues
 ``mu`` of ``J S`` (S the Hessian): pairs ``+-i omega`` are elliptic, ``+-lambda`` hyperbolic,
 quadruplets ``+-a +-ib`` loxodromic, an eigenvalue within rounding of 0 degenerate (no
 linear model): ``elliptic`` (a centre: all elliptic), ``hyperbolic`` (all hyperbolic),
 ``mixed`` (``index`` k hyperbolic pairs among elliptic ones, as transition states have),
-``loxodromic`` or ``degenerate``.
+``loxodromic`` or ``degenerate`` (a zero mode: a symmetry, or a continuous family of
+equilibria; its other modes are still analysed).
 """
 
 from __future__ import annotations
@@ -48,8 +50,9 @@ MAX_DOF = 20
 MAX_STARTS = 4096
 STARTS_PER_VARIABLE = 32
 NEWTON_ITERATIONS = 40
-#: Scaled residual (relative to the spread of H over the starts) an equilibrium must reach.
-RESIDUAL = 1e-9
+#: The linear change of H an equilibrium may show, relative to its local change (see
+#: :func:`_verified`).
+RESIDUAL = 1e-7
 
 _F = {"sin": (np.sin, np.cos, lambda x: -np.sin(x)),
       "cos": (np.cos, lambda x: -np.sin(x), lambda x: -np.cos(x)),
@@ -297,7 +300,7 @@ class ManyDofHamiltonian:
         env.update({k: Jet(float(v), zero_g, zero_h) for k, v in self.parameters.items()})
         env["pi"] = Jet(math.pi, zero_g, zero_h)
         try:
-            with np.errstate(all="raise"):
+            with np.errstate(over="raise", divide="raise", invalid="raise", under="ignore"):
                 out = self._program(env, lambda c: Jet(c, zero_g, zero_h))
         except (ZeroDivisionError, ValueError, OverflowError, FloatingPointError) as exc:
             raise ExpressionError(str(exc) or type(exc).__name__) from None
@@ -453,31 +456,36 @@ class ManyDofSearch:
     equilibria: tuple[ManyDofEquilibrium, ...]
     starts: int
     failed: int  # starts that did not converge in the box
+    reason: str | None = None  # why H could not be evaluated, when that stopped starts
 
     def explain(self) -> str:
-        return (f"{self.starts} Newton starts, {self.failed} did not converge to a point of "
+        text = (f"{self.starts} Newton starts, {self.failed} did not converge to a point of "
                 "the box")
+        return text + (f"; H could not be evaluated: {self.reason}" if self.reason else "")
 
 
 def find_many(H: ManyDofHamiltonian, lo: np.ndarray, hi: np.ndarray,
               starts: int | None = None) -> ManyDofSearch:
-    """Every equilibrium Newton's method reaches from a Halton set of starts in the box."""
+    """Every equilibrium Newton's method reaches from a Halton set of starts in the box:
+    from each start plain Newton steps first (they jump into narrow basins), then damped
+    ones if those fail."""
     N = lo.size
     centre, half = (lo + hi) / 2, (hi - lo) / 2
     count = min(MAX_STARTS, starts or STARTS_PER_VARIABLE * N)
     points = halton(count, N)
-    values = []
-    for u in points[: min(count, 256)]:
-        try:
-            values.append(H.jet(centre + half * u).v)
-        except ExpressionError:
-            continue
-    spread = (max(values) - min(values)) if len(values) > 1 else 1.0
-    spread = spread if spread > 0 and math.isfinite(spread) else 1.0
     found: list[np.ndarray] = []
     failed = 0
+    reasons: list[str] = []
     for u in points:
-        x = _newton(H, u, centre, half, spread)
+        x = None
+        for damped in (False, True):
+            try:
+                x = _newton(H, u, centre, half, damped)
+            except ExpressionError as exc:
+                reasons.append(str(exc))
+                x = None
+            if x is not None:
+                break
         if x is None:
             failed += 1
             continue
@@ -485,56 +493,97 @@ def find_many(H: ManyDofHamiltonian, lo: np.ndarray, hi: np.ndarray,
             found.append(x)
     equilibria = tuple(sorted((_classify(H, x) for x in found),
                               key=lambda e: (e.energy, tuple(e.x))))
-    return ManyDofSearch(equilibria, count, failed)
+    reason = reasons[0] if reasons and len(reasons) >= failed > 0 and not found else None
+    return ManyDofSearch(equilibria, count, failed, reason)
 
 
 def _newton(H: ManyDofHamiltonian, u: np.ndarray, centre: np.ndarray, half: np.ndarray,
-            spread: float) -> np.ndarray | None:
-    """Damped Newton on grad H in box coordinates; the verified point or None."""
+            damped: bool) -> np.ndarray | None:
+    """Newton's method on grad H in box coordinates (``damped``: steps halved until
+    ``|grad H|`` decreases); the verified point (:func:`_verified`) or None. An
+    ExpressionError at the start propagates (it says why H cannot be evaluated)."""
     def state(u):
         j = H.jet(centre + half * u)
         return j.g * half, j.h * np.outer(half, half)
 
-    try:
-        g, A = state(u)
-    except ExpressionError:
-        return None
+    g, A = state(u)
+    converged = False
     for _ in range(NEWTON_ITERATIONS):
+        diag = np.sqrt(np.abs(np.diag(A)))  # equilibrate: any units, any anisotropy
+        diag = np.where(diag > 0, diag, max(float(np.sqrt(np.abs(A).max())), 1e-300))
         try:
-            step = np.linalg.lstsq(A, g, rcond=1e-13)[0]
+            step = np.linalg.lstsq(A / np.outer(diag, diag), g / diag, rcond=1e-13)[0] / diag
         except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(step)):
             return None
         norm = float(np.abs(g).max())
         t = 1.0
-        for _ in range(16):
+        for _ in range(16 if damped else 1):
             trial = u - t * step
             if np.abs(trial).max() <= 1.5:
                 try:
                     g2, A2 = state(trial)
-                    if float(np.abs(g2).max()) < norm or t * np.abs(step).max() < 1e-12:
+                    if not damped or float(np.abs(g2).max()) < norm \
+                            or t * np.abs(step).max() < 1e-12:
                         break
                 except ExpressionError:
                     pass
             t /= 2
         else:
             return None
+        if np.abs(trial).max() > 1.5:
+            return None
         u, g, A = trial, g2, A2
         if t * np.abs(step).max() <= 1e-14:
+            converged = True
             break
-    if np.abs(u).max() > 1 + 1e-9 or float(np.abs(g).max()) > RESIDUAL * spread:
+    if not converged or np.abs(u).max() > 1 + 1e-9:
         return None
     x = centre + half * u
     # a coordinate within the location's rounding of 0 is 0 (the origin, not 1e-34)
-    return np.where(np.abs(x) <= 1e-12 * half, 0.0, x)
+    x = np.where(np.abs(x) <= 1e-12 * half, 0.0, x)
+    return x if _verified(H, x, half) else None
+
+
+def _verified(H: ManyDofHamiltonian, x: np.ndarray, half: np.ndarray) -> bool:
+    """Whether grad H vanishes at x on the scale of H there: along each variable the
+    linear change ``|dH/dx_i| d_i`` over ``d_i = 1e-3 w_i`` is at most ``RESIDUAL`` times
+    the change of H over that distance in the direction where H changes most (so a point
+    where Newton stalled on a least-squares step, with a gradient left in a flat
+    direction, is refused whatever the size of H over the box)."""
+    try:
+        g = H.jet(x).g
+        h0 = H.jet(x).v
+        d = 1e-3 * half
+        changes = []
+        for i in range(x.size):
+            e = np.zeros(x.size)
+            e[i] = d[i]
+            changes += [abs(H.jet(x + e).v - h0), abs(H.jet(x - e).v - h0)]
+    except ExpressionError:
+        return False
+    top = max(changes)
+    for i in range(x.size):
+        # along each variable: the linear part of H's change next to the whole change
+        # there, or (a flat direction) next to the largest change in any direction
+        local = max(changes[2 * i], changes[2 * i + 1]) or top
+        if abs(g[i] * d[i]) > RESIDUAL * local / 1e-3:
+            return False
+    return True
 
 
 def _classify(H: ManyDofHamiltonian, x: np.ndarray) -> ManyDofEquilibrium:
+    """The type from the eigenvalues of J S; an eigenvalue within the rounding of the
+    eigensolver (a few 1e3 (2n) eps |mu|_max, as stepsafe.systems.linear counts it) of a
+    zero real or imaginary part has that part zero, one within it of 0 is a zero mode."""
     from stepsafe.systems.linear import hamiltonian_matrix
 
     jet = H.jet(x)
     S = 0.5 * (jet.h + jet.h.T)
     mu = np.linalg.eigvals(hamiltonian_matrix(S))
-    tol = 1e-8 * max(float(np.abs(mu).max()), 1e-300)
+    tol = 1e3 * S.shape[0] * float(np.finfo(float).eps) * max(float(np.abs(mu).max()),
+                                                              1e-300)
     upper = mu[(mu.imag > tol) | ((np.abs(mu.imag) <= tol) & (mu.real > tol))]
     zero = int((np.abs(mu) <= tol).sum())
     freqs = tuple(sorted(float(m.imag) for m in upper if abs(m.real) <= tol))
