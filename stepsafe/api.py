@@ -591,6 +591,7 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
                                     "to system: scenes")
             data = system_advice(integrator.tableau, p.system, p.margin, p.zmax,
                                  integrator.name, criterion)
+            data["fixed_point_limit"] = _system_solver_limit(integrator, p)
         elif tol_phase is None and tol_energy is None:
             result = core_advise(integrator.tableau, p.modes, p.margin, p.zmax, integrator.name,
                                  resonance_order=_order(resonance_order), criterion=criterion)
@@ -670,6 +671,19 @@ def _fastest_resonances(integrator: Integrator, result: Any, p: Problem,
     orders = tuple(range(3, max(order or 0, max(DEFAULT_ORDERS)) + 1))
     found = nonlinear_resonances(integrator.tableau, region, orders)
     return nonlinear_data(found, float(betas.max()), p.margin)
+
+
+def _system_solver_limit(integrator: Integrator, p: Problem) -> float | None:
+    """The step beyond which fixed-point iteration of an implicit method's stages diverges
+    for the problem's frequencies or system (None: explicit, or no limit)."""
+    from stepsafe.core.solver import system_step_limit
+
+    if integrator.explicit:
+        return None
+    if p.system is None:
+        return system_step_limit(integrator.tableau, p.modes.betas, [])
+    betas = p.system.modes.betas if p.system.modes is not None else None
+    return system_step_limit(integrator.tableau, betas, [S for _, S in p.system.coupled])
 
 
 def _check_solver(value: Any) -> str:
@@ -767,16 +781,14 @@ def check(method: Integrator | str | None = None, h: float | None = None,
                                      float(step))
             if other is not None:
                 data["other_criterion"] = other
-            if _check_solver(solver) == "fixed-point":
-                from stepsafe.core.solver import step_limit
-
-                limit = step_limit(integrator.tableau, p.modes.betas)
-                if limit is not None and float(step) >= p.margin * limit:
-                    data["safe"] = False
-                    data["solver_failure"] = (
-                        f"fixed-point iteration of the stages diverges at this step (it "
-                        f"converges for h < {p.margin * limit:.12g}); solve them by Newton's "
-                        "method (--solver newton) or take a smaller step")
+        if _check_solver(solver) == "fixed-point":
+            limit = _system_solver_limit(integrator, p)
+            if limit is not None and float(step) >= p.margin * limit:
+                data["safe"] = False
+                data["solver_failure"] = (
+                    f"fixed-point iteration of the stages diverges at this step (it "
+                    f"converges for h < {p.margin * limit:.12g}); solve them by Newton's "
+                    "method (--solver newton) or take a smaller step")
     data["scene"] = p.scene
     data["time_unit"] = p.time_unit
     verdict = None

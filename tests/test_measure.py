@@ -358,3 +358,22 @@ def test_budgets(run):
     report = measure("verlet", [1e-4], system={"stiffness": np.eye(1)}, time=1000.0,
                      budget=0.3, max_steps=10_000_000)
     assert report.rows[0].status == "budget" and report.rows[0].energy_error is None
+
+
+@pytest.mark.parametrize("system", [
+    "{stiffness: [[4]]}",
+    '{hamiltonian: "p**2/2 + 4*q**2/2", box: {q: [-1, 1], p: [-1, 1]}}',
+    '{hamiltonian: "(px**2 + py**2)/2 + 2*x**2 + y**2/2 + 0.1*x*py", q: [x, y], '
+    "p: [px, py], box: {x: [-1, 1], y: [-1, 1], px: [-1, 1], py: [-1, 1]}}",
+])
+def test_system_scenes_apply_the_solver_limit(run, tmp_path, system):
+    """Midpoint at omega = 2: fixed-point iteration converges only for h < 1 (about 1 for
+    the coupled one), whatever the form of the scene."""
+    scene = tmp_path / "s.yaml"
+    scene.write_text(f"method: midpoint\nsystem: {system}\n")
+    code, out, _ = run("check", str(scene), "--step", "1.5")
+    assert code == 1 and "fixed-point iteration" in out
+    assert run("check", str(scene), "--step", "1.5", "--solver", "newton")[0] == 0
+    assert run("check", str(scene), "--step", "0.9")[0] == 0
+    code, out, _ = run("advise", str(scene), "--json")
+    assert 0.9 < json.loads(out)["fixed_point_limit"] < 1.1

@@ -156,6 +156,27 @@ def step_limit(method: Method, betas: Mapping[str, np.ndarray]) -> float | None:
     return float(limit / top) if np.isfinite(limit) else None
 
 
+def system_step_limit(method: Method, betas: Mapping[str, np.ndarray] | None,
+                      hessians: list[np.ndarray]) -> float | None:
+    """:func:`step_limit` for a whole system: its decoupled frequencies, and for each
+    coupled piece (Hessian S) the largest |eigenvalue| of ``J S`` taken as a vibration and
+    as a barrier of that rate (fixed-point iteration of the stages is the linear iteration
+    ``X <- E + h (A x J S) X``, whose spectral radius grows with that of J S)."""
+    limits = []
+    if betas:
+        limit = step_limit(method, betas)
+        if limit is not None:
+            limits.append(limit)
+    for S in hessians:
+        n = S.shape[0] // 2
+        top = float(np.abs(np.linalg.eigvals(np.vstack([S[n:], -S[:n]]))).max())
+        if top > 0:
+            unit = min(fixed_point_limit(method, m) for m in ("oscillator", "inverted"))
+            if np.isfinite(unit):
+                limits.append(unit / top)
+    return min(limits) if limits else None
+
+
 def _iterations(K: np.ndarray, e: np.ndarray, z: float, tol: float) -> int | None:
     """Passes of ``x <- e + z K x`` from ``x = e`` until the change is at most ``tol``
     times ``max(1, |x|)`` (max norms), as the solver runs them for the state ``e``."""
