@@ -350,8 +350,9 @@ def test_check_names_the_solver_limit(run):
 def test_budgets(run):
     code, out, err = run("measure", "examples/pendulum.yaml", "--h", "0.1", "--time", "50",
                          "--budget", "1e-9", "--json")
-    assert code == 0, err
-    assert [r["status"] for r in json.loads(out)["rows"]] == ["not run"]
+    assert code == 2 and "budget" in err  # not even the reference run fits
+    code, _, err = run("measure", "examples/pendulum.yaml", "--h", "1e6")
+    assert code == 2 and "longer than the run" in err
     code, _, err = run("measure", "examples/pendulum.yaml", "--h", "0.1", "--time", "50",
                        "--max-steps", "100")
     assert code == 2 and "100" in err
