@@ -8,11 +8,14 @@ step h for a time T from one initial condition, by the engine of
 
 * the energy error: the spread ``(max_t H - min_t H) / (min_t H - H_e)`` of the energy over
   the run (``H_e`` the energy of the equilibrium the start orbits, 0 for linear systems):
-  the quantity the linear bound ``kappa - 1`` describes, whatever the start;
+  the quantity the linear bound ``kappa - 1`` describes, whatever the start (with no
+  equilibrium, the spread over ``|H(0)|``);
 * the energy drift: the least-squares slope of ``(H(t) - H(0)) / |H(0) - H_e|`` against t;
-* the trajectory error at T relative to the size of the exact state (the reference:
-  ``expm(J S T)`` for linear systems, an adaptive 8th-order Dormand-Prince run at
-  tolerance 1e-13 for expressions);
+* the trajectory error at T: ``|x - x_exact|`` over ``|x_exact - x_e|`` in the energy
+  norm of the Hessian at the equilibrium the start orbits, where the linear model's
+  orbits are circles (the Euclidean norm where that Hessian is not definite or there is
+  no equilibrium); the reference is ``expm(J S T)`` for linear systems, an adaptive
+  8th-order Dormand-Prince run at tolerance 1e-13 for expressions;
 * force evaluations per unit time as counted (implicit methods: with their fixed-point
   iterations);
 * the status: ``ok``; ``unstable`` when the state overflows or its energy moves by more
@@ -25,8 +28,9 @@ step h for a time T from one initial condition, by the engine of
 Beside each, the linear prediction for the vibration the start orbits (z = beta h): the
 energy error bound ``kappa - 1`` (relative to the energy above that equilibrium) and the
 trajectory error ``2 |sin(delta / 2)|`` of a phase drift ``delta = |theta/z - 1| beta T``
-(``delta`` itself while small; at most 2, a run half a turn out of phase), and the ratio
-measured / predicted: the nonlinear calibration of the linear model.
+(``delta`` itself while small; 2 once the run is half a turn out of phase, and then no
+ratio is formed), and the ratio measured / predicted: the nonlinear calibration of the
+linear model.
 """
 
 from __future__ import annotations
@@ -81,6 +85,11 @@ class MeasureRow:
 
     @property
     def trajectory_ratio(self) -> float | None:
+        """None once the predicted phase drift reaches half a turn (the prediction is then
+        the largest error, 2, not the error)."""
+        if self.predicted_trajectory_error is not None and \
+                self.predicted_trajectory_error >= 2.0:
+            return None
         return _ratio(self.trajectory_error, self.predicted_trajectory_error)
 
     def to_dict(self) -> dict[str, Any]:
@@ -139,7 +148,11 @@ class _Problem:
     #: (times, deadline) -> the exact states (q then p) at those times
     reference: Callable[[list[float], float | None], list[np.ndarray]]
     reference_text: str
-    equilibrium_energy: float = 0.0  # H at the equilibrium the start orbits
+    equilibrium_energy: float | None = 0.0  # H at the equilibrium the start orbits
+    #: the Hessian at that equilibrium when positive definite (the energy norm in which
+    #: trajectory errors are measured), and the equilibrium's state
+    metric: np.ndarray | None = None
+    centre: np.ndarray | None = None
 
 
 def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Path | None = None,
@@ -240,7 +253,7 @@ def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.
     system = problem.system
     q, p = problem.q0.copy(), problem.p0.copy()
     e0 = float(system.energy(q, p)[0])
-    scale = abs(e0 - problem.equilibrium_energy) or 1.0
+    scale = abs(e0 - (problem.equilibrium_energy or 0.0)) or 1.0
     stride = max(1, n // ENERGY_SAMPLES)
     times, errors = [0.0], [0.0]
     status = "ok"
@@ -275,15 +288,43 @@ def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.
     t, err = np.array(times), np.array(errors)
     drift = float(np.polyfit(t, err, 1)[0]) if t.size > 2 else None
     state = np.concatenate([q[0], p[0]])
-    size = max(float(np.linalg.norm(exact)), 1e-300)
-    traj = float(np.linalg.norm(state - exact) / size)
+    traj = _trajectory_error(state, exact, problem)
     iterations = engine.iterations / n if engine.solves else None
     # the spread of the energy over the run relative to its lowest value above the
-    # equilibrium: the quantity the linear bound kappa - 1 describes, whatever the start
-    low = float(err.min()) + (e0 - problem.equilibrium_energy) / scale
-    spread = float(err.max() - err.min()) / low if low > 0 else None
+    # equilibrium (the quantity the linear bound kappa - 1 describes, whatever the start);
+    # with no equilibrium, relative to |H(0)|
+    if problem.equilibrium_energy is None:
+        spread = float(err.max() - err.min())
+    else:
+        low = float(err.min()) + (e0 - problem.equilibrium_energy) / scale
+        spread = float(err.max() - err.min()) / low if low > 0 else None
     return MeasureRow(h, n, T, status, spread, drift, traj,
                       engine.force_evaluations / T, iterations, *prediction)
+
+
+def _trajectory_error(state: np.ndarray, exact: np.ndarray, problem: _Problem) -> float:
+    """``|x - x_exact| / |x_exact - x_e|`` in the energy norm of the equilibrium's Hessian
+    (where a phase error delta is the chord 2 |sin(delta / 2)| of a circle), or the
+    Euclidean norm without one."""
+    centre = problem.centre if problem.centre is not None else np.zeros_like(exact)
+    if problem.metric is None:
+        size = float(np.linalg.norm(exact - centre))
+        return float(np.linalg.norm(state - exact)) / max(size, 1e-300)
+    d, r = state - exact, exact - centre
+    return float(math.sqrt(max(d @ problem.metric @ d, 0.0))
+                 / max(math.sqrt(max(r @ problem.metric @ r, 0.0)), 1e-300))
+
+
+def _definite(S: np.ndarray | None) -> np.ndarray | None:
+    """S (symmetrised) if positive definite, else None."""
+    if S is None:
+        return None
+    S = 0.5 * (S + S.T)
+    try:
+        np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        return None
+    return S
 
 
 def _prediction(integrator: Integrator, beta: float | None, h: float, T: float
@@ -381,13 +422,16 @@ def _expression_problem(integrator, tree, where, folder, initial, energy) -> _Pr
 
         return _reference(rhs, np.array([q0, p0]), times, deadline)
 
-    centre_energy = 0.0
+    centre_energy, metric, centre = None, None, None
     if beta is not None:
         centre_energy = float(system.energy(np.array([[nearest["q"]]]),
                                             np.array([[nearest["p"]]]))[0])
+        hqq, hqp, hpp = H.jet(float(nearest["q"]), float(nearest["p"])).H
+        metric = _definite(np.array([[hqq, hqp], [hqp, hpp]], dtype=float))
+        centre = np.array([nearest["q"], nearest["p"]], dtype=float)
     return _Problem(system, q, p, beta, f"H = {tree['hamiltonian']}", reference,
                     "adaptive 8th-order Dormand-Prince (scipy DOP853), tolerance 1e-13",
-                    centre_energy)
+                    centre_energy, metric, centre)
 
 
 def _many_problem(tree, where, initial, energy) -> _Problem:
@@ -418,10 +462,11 @@ def _many_problem(tree, where, initial, energy) -> _Problem:
     system = system_of(H)
     q, p = x0[None, :n].copy(), x0[None, n:].copy()
     check_finite_start(system, q, p)
-    beta, centre_energy = None, 0.0
+    beta, centre_energy, metric, centre = None, None, None, None
     if centres:
         nearest = min(centres, key=lambda e: float(np.linalg.norm((e.x - x0) / (hi - lo))))
         beta, centre_energy = max(nearest.frequencies), nearest.energy
+        metric, centre = _definite(nearest.hessian), nearest.x
 
     def reference(times: list[float], deadline: float | None) -> list[np.ndarray]:
         def rhs(_, y):
@@ -432,7 +477,7 @@ def _many_problem(tree, where, initial, energy) -> _Problem:
 
     return _Problem(system, q, p, beta, f"H = {H.text} ({n} dof)", reference,
                     "adaptive 8th-order Dormand-Prince (scipy DOP853), tolerance 1e-13",
-                    centre_energy)
+                    centre_energy, metric, centre)
 
 
 #: Steps of the reference run at most (it takes about a second per 4000 in Python).
@@ -544,7 +589,7 @@ def _linear_problem(tree, where, folder, initial) -> _Problem:
                     f"linear, {n} dof",
                     lambda times, deadline: [exact_linear(S, x0[None, :], t)[0]
                                              for t in times],
-                    "the exact flow expm(J S T)")
+                    "the exact flow expm(J S T)", 0.0, _definite(S), np.zeros(2 * n))
 
 
 # ---------------------------------------------------------------- refinement by measurement

@@ -378,3 +378,14 @@ def test_system_scenes_apply_the_solver_limit(run, tmp_path, system):
     assert run("check", str(scene), "--step", "0.9")[0] == 0
     code, out, _ = run("advise", str(scene), "--json")
     assert 0.9 < json.loads(out)["fixed_point_limit"] < 1.1
+
+
+def test_trajectory_error_in_the_energy_norm():
+    """omega = 2 (not 1): the measured trajectory error equals the predicted phase chord
+    (the energy norm makes the orbit a circle), and no ratio once half a turn is lost."""
+    row = measure(method("gauss", 2), [0.466731], system={"stiffness": 4 * np.eye(1)},
+                  time=100.0, initial=[1.0, 0.0], solver="newton").rows[0]
+    assert row.trajectory_ratio == pytest.approx(1.0, abs=1e-3)
+    wrapped = measure(method("gauss", 2), [1.5], system={"stiffness": 4 * np.eye(1)},
+                      time=100.0, initial=[1.0, 0.0], solver="newton").rows[0]
+    assert wrapped.predicted_trajectory_error == 2.0 and wrapped.trajectory_ratio is None
