@@ -669,8 +669,12 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
     def error_at(h: float) -> float:
         if len(rows) >= MAX_REFINE_RUNS:
             raise _Exhausted
-        report = measure(integrator, [h], scene=scene, system=system, time=time,
-                         initial=initial, energy=energy, time_unit=time_unit, solver=solver)
+        try:
+            report = measure(integrator, [h], scene=scene, system=system, time=time,
+                             initial=initial, energy=energy, time_unit=time_unit,
+                             solver=solver)
+        except StepsafeError:
+            raise _Exhausted from None  # a run too long for the step budget: stop here
         row = report.rows[0]
         rows.append(row)
         if progress:
@@ -681,6 +685,10 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
     lo = hi = None
     h = min(predicted or h_safe / 10, top)
     limited = "tolerance"
+    if predicted is None:  # the linear model meets the tolerance at no step: say so
+        return Refinement(quantity, tol, None, None, None, h_safe, "unreachable",
+                          MeasureReport(integrator.name, problem.description, (), float("nan"),
+                                        beta, problem.reference_text, (), time_unit))
     try:
         if error_at(h) <= tol:
             lo = h

@@ -12,7 +12,6 @@ import pytest
 
 from stepsafe import method
 from stepsafe.core.integrator import Engine
-from stepsafe.exceptions import StepsafeError
 from stepsafe.measurement import measure
 from stepsafe.systems.dynamics import hamiltonian_system, linear_system
 from stepsafe.systems.nonlinear import parse_hamiltonian
@@ -103,19 +102,33 @@ def test_iterations_are_those_of_the_solver_model(name, stages, z):
     assert worst[1] == cost.evaluations + (1 if name == "lobatto3ab" else 0)
 
 
-def test_a_splitting_method_needs_a_separable_h():
-    system = hamiltonian_system(parse_hamiltonian("(p + q)**2/2 + q**2"))
-    assert not system.separable and _pendulum().separable
-    with pytest.raises(ValueError, match="separable"):
-        Engine(method("verlet").tableau, system)
-    with pytest.raises(StepsafeError, match="separable"):
-        measure("verlet", [0.1], system={"hamiltonian": "(p + q)**2/2 + q**2",
-                                         "box": {"q": [-1, 1], "p": [-1, 1]}},
-                initial=[0.1, 0.0], time=1.0)
-    report = measure(method("gauss", 2), [0.1], time=5.0,
-                     system={"hamiltonian": "(p + q)**2/2 + q**2",
-                             "box": {"q": [-1, 1], "p": [-1, 1]}}, initial=[0.1, 0.0])
-    assert report.rows[0].status == "ok"
+@pytest.mark.parametrize("name, stages, order", [("verlet", None, 2), ("yoshida4", None, 4),
+                                                  ("lobatto3ab", 3, 4), ("gauss", 2, 4)])
+def test_order_on_a_non_separable_h(name, stages, order):
+    """H = (1 + q^2) p^2 / 2 + q^2 / 2 mixes q and p: splittings run as their (implicit) PRK
+    form of symplectic Euler factors and keep their order, as the PRKs do (a stage with
+    Q_i = q still sees its own P_i)."""
+    from scipy.integrate import solve_ivp
+
+    system = hamiltonian_system(parse_hamiltonian("(1 + q**2)*p**2/2 + q**2/2"))
+    assert not system.separable
+    T, x0 = 2.0, (0.8, 0.3)
+    ref = solve_ivp(lambda t, y: [(1 + y[0] ** 2) * y[1], -(y[0] * y[1] ** 2 + y[0])],
+                    (0, T), x0, method="DOP853", rtol=1e-13, atol=1e-14).y[:, -1]
+    errs = []
+    for n in (20, 40):
+        q, p, _ = _run(name, system, np.array([[x0[0]]]), np.array([[x0[1]]]), T / n, n,
+                       stages)
+        errs.append(math.hypot(q[0, 0] - ref[0], p[0, 0] - ref[1]))
+    assert abs(math.log2(errs[0] / errs[1]) - order) < 0.3, errs
+    with pytest.raises(ValueError, match="sums differ"):
+        Engine(_unequal(), system)
+
+
+def _unequal():
+    from stepsafe.methods.tableaux import Splitting
+
+    return Splitting([0.5, 0.5], [0.7], name="unequal")
 
 
 def test_the_linear_bound_is_measured_on_the_oscillator():

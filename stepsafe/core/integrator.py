@@ -3,8 +3,10 @@
 A :class:`System` gives the gradients of ``H(q, p)`` on arrays of shape ``(m, d)``: m
 initial conditions of d degrees of freedom advance together. One step of size h:
 
-* splitting methods (and compositions of them) need ``H = T(p) + V(q)``: ``drift(a h)``
-  is ``q += a h dH/dp``, ``kick(b h)`` is ``p -= b h dH/dq``, in the file's order. A kick
+* splitting methods (and compositions of them) on ``H = T(p) + V(q)``: ``drift(a h)``
+  is ``q += a h dH/dp``, ``kick(b h)`` is ``p -= b h dH/dq``, in the file's order (on an H
+  that mixes q and p they run as their PRK form of symplectic Euler factors, implicit, as
+  the analysis treats them). A kick
   at a position the previous kick already saw reuses that force (first same as last), so
   the evaluations counted are those of the method as run in practice;
 * Runge-Kutta and partitioned RK methods (and compositions of them) solve their stage
@@ -29,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stepsafe.exceptions import MethodError
 from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
 
 Gradient = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -78,8 +81,13 @@ class Engine:
         self.jacobians = 0
         self._cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.pieces = _pieces(method)
-        if not system.separable and any(kind == "ops" for kind, _, _ in self.pieces):
-            raise ValueError("a splitting method needs a separable H = T(p) + V(q)")
+        if not system.separable:  # a splitting on H(q, p) runs as its PRK form (implicit)
+            try:
+                self.pieces = [("prk", w, _as_prk(data)) if kind == "ops" else (kind, w, data)
+                               for kind, w, data in self.pieces]
+            except MethodError:
+                raise ValueError("this splitting method's drift and kick sums differ: it has "
+                                 "no form for an H that mixes q and p") from None
 
     def _force(self, q: np.ndarray, p: np.ndarray) -> np.ndarray:
         """``dH/dq`` at (q, p), reused when the same arrays were just evaluated."""
@@ -107,7 +115,9 @@ class Engine:
                   ) -> tuple[np.ndarray, np.ndarray]:
         A_q, A_p, b_q, b_p = prk.A_q, prk.A_p, prk.b_q, prk.b_p
         s = b_q.size
-        fixed = ~A_q.any(axis=1)  # stages with Q_i = q for good
+        # stages with Q_i = q for good: their force is that at q (and the step's p) only
+        # when dH/dq does not depend on p
+        fixed = ~A_q.any(axis=1) & self.system.separable
         Q = [q] * s
         P = [p] * s
         sys = self.system
@@ -195,6 +205,14 @@ class Engine:
     def _stage_force(self, Q: np.ndarray, P: np.ndarray) -> np.ndarray:
         self.force_evaluations += 1
         return self.system.dH_dq(Q, P)
+
+
+def _as_prk(operations: tuple) -> PartitionedRK:
+    """The PRK form of a splitting given by its operations (symplectic Euler factors: on a
+    non-separable H each drift and kick is an implicit half of a symplectic Euler step)."""
+    from stepsafe.methods.tableaux import splitting_from_operations
+
+    return splitting_from_operations(list(operations)).as_prk()
 
 
 def _pieces(method: Method) -> list[tuple[str, float, object]]:
