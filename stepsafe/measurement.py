@@ -203,7 +203,7 @@ def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Pa
                             f"{time:.6g}: give a longer --time or a smaller step")
     counts = [max(1, math.ceil(time / h * (1 - 1e-12))) for h in hs]
     if max(counts) > max_steps:
-        raise StepsafeError(f"T / h = {max(counts)} steps exceeds the {max_steps} allowed in "
+        raise StepsafeError(f"T / h = {max(counts):.3g} steps exceeds the {max_steps} allowed in "
                             "one run: a shorter --time, larger steps or --max-steps")
     if solver not in ("fixed-point", "newton"):
         raise StepsafeError(f"solver must be fixed-point or newton, got {str(solver)[:20]!r}")
@@ -451,7 +451,7 @@ def _many_problem(tree, where, initial, energy) -> _Problem:
     if initial is not None:
         x0 = np.array([float(v) for v in initial], dtype=float)
         if x0.size != 2 * n or not np.all(np.isfinite(x0)):
-            raise StepsafeError(f"the initial condition must be {2 * n} finite numbers "
+            raise StepsafeError(f"--initial: the initial condition must be {2 * n} finite numbers "
                                 f"({', '.join(H.names)})")
     elif centres:
         x0 = centres[0].x.copy()
@@ -519,9 +519,10 @@ def _pair(initial: Sequence[float]) -> tuple[float, float]:
     try:
         values = [float(v) for v in initial]
     except (TypeError, ValueError):
-        raise StepsafeError("the initial condition must be numbers q, p") from None
+        raise StepsafeError("--initial: the initial condition must be numbers q, p") from None
     if len(values) != 2 or not all(map(math.isfinite, values)):
-        raise StepsafeError("the initial condition of a 1-dof system is two finite numbers "
+        raise StepsafeError("--initial: the initial condition of a 1-dof system is two finite "
+                            "numbers "
                             "q, p")
     return values[0], values[1]
 
@@ -531,7 +532,9 @@ def _momentum_for(system, q: float, p: float, energy: float) -> float:
     def f(x: float) -> float:
         return float(system.energy(np.array([[q]]), np.array([[x]]))[0]) - energy
 
-    if not math.isfinite(energy) or f(p) > 0:
+    if not math.isfinite(energy):
+        raise StepsafeError(f"--energy must be a finite number, got {energy}")
+    if f(p) > 0:
         raise StepsafeError(f"--energy {energy:g} is below the energy {f(p) + energy:g} of "
                             "the equilibrium started from")
     step = max(abs(p), 1.0)
@@ -579,7 +582,7 @@ def _linear_problem(tree, where, folder, initial) -> _Problem:
     else:
         x0 = np.array([float(v) for v in initial], dtype=float)
         if x0.size != 2 * n or not np.all(np.isfinite(x0)):
-            raise StepsafeError(f"the initial condition must be {2 * n} finite numbers "
+            raise StepsafeError(f"--initial: the initial condition must be {2 * n} finite numbers "
                                 "(q then p)")
     w2 = np.linalg.eigvals(np.block([[np.zeros((n, n)), np.eye(n)],
                                      [-np.eye(n), np.zeros((n, n))]]) @ S)

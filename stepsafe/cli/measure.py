@@ -87,14 +87,16 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
                 tsv) -> None:
     """Run the method on the scene's own system and measure what each h buys and costs.
 
-    The scene's system: (a 1-dof Hamiltonian expression, or a linear system) is
-    integrated at each step h for a time T. Measured: the largest relative energy error,
-    the energy drift per unit time, the trajectory error at T against a reference (the
-    exact flow for linear systems, an adaptive 8th-order run at tolerance 1e-13 for
-    expressions), force evaluations per unit time as counted (implicit methods with their
-    fixed-point iterations) and whether the run stayed bounded. Beside them: the linear
-    model's prediction for the vibration the start orbits and the ratio measured /
-    predicted, the nonlinear calibration of `advise --tol-...`.
+    The scene's system: (a Hamiltonian expression in q and p, or with named variables for
+    n degrees of freedom, or a linear system) is integrated at each step h for a time T.
+    Measured: the spread of the energy over the run (relative to the energy above the
+    equilibrium the start orbits), the energy drift per unit time, the trajectory error at
+    T against a reference (the exact flow for linear systems, an adaptive 8th-order run at
+    tolerance 1e-13 for expressions) in the energy norm of that equilibrium, force
+    evaluations per unit time as counted (implicit methods with their solver's
+    iterations) and whether the run stayed bounded. Beside them: the linear model's
+    prediction for the vibration the start orbits and the ratio measured / predicted, the
+    nonlinear calibration of `advise --tol-...`.
 
     With --tol-energy or --tol-trajectory it refines instead: the largest h (within the
     safe steps) whose measured error meets the tolerance, by bisection on runs started
@@ -114,14 +116,19 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
     one_format(as_json, tsv)
     hs = list(steps) + (_range(h_range) if h_range else [])
     loaded = load_scene(scene_file, time_unit)
+    from stepsafe import api
+    from stepsafe.exceptions import StepsafeError
+
     if method is None:
         if loaded.method is None:
             raise _input_error("no method: give --method METHOD or method: in the scene")
-        method, stages = loaded.method.name, stages or loaded.method.stages
-        base = base or loaded.method.base
-    from stepsafe import api
-
-    integrator = api.method(method, stages, base)
+        try:
+            integrator = api.method(loaded.method.name, stages or loaded.method.stages,
+                                    base or loaded.method.base)
+        except StepsafeError as exc:
+            raise StepsafeError(exc.message, exc.where or f"{scene_file}::$.method") from None
+    else:
+        integrator = api.method(method, stages, base)
     start = None if initial is None else _numbers(initial, "initial")
     if tol_energy is not None or tol_trajectory is not None:
         if tol_energy is not None and tol_trajectory is not None:
