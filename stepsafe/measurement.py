@@ -78,6 +78,9 @@ class MeasureRow:
     iterations_per_step: float | None
     predicted_energy_error: float | None
     predicted_trajectory_error: float | None
+    #: Hessian evaluations (and stage-matrix factorisations) per unit time: simplified
+    #: Newton's method takes one per implicit step, on top of the force evaluations
+    jacobians_per_time: float | None = None
 
     @property
     def energy_ratio(self) -> float | None:
@@ -100,7 +103,8 @@ class MeasureRow:
                 "iterations_per_step": self.iterations_per_step,
                 "predicted_energy_error": self.predicted_energy_error,
                 "predicted_trajectory_error": self.predicted_trajectory_error,
-                "energy_ratio": self.energy_ratio, "trajectory_ratio": self.trajectory_ratio}
+                "energy_ratio": self.energy_ratio, "trajectory_ratio": self.trajectory_ratio,
+                "jacobians_per_time": self.jacobians_per_time}
 
 
 @dataclass(frozen=True)
@@ -299,7 +303,8 @@ def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.
         low = float(err.min()) + (e0 - problem.equilibrium_energy) / scale
         spread = float(err.max() - err.min()) / low if low > 0 else None
     return MeasureRow(h, n, T, status, spread, drift, traj,
-                      engine.force_evaluations / T, iterations, *prediction)
+                      engine.force_evaluations / T, iterations, *prediction,
+                      engine.jacobians / T if engine.jacobians else None)
 
 
 def _trajectory_error(state: np.ndarray, exact: np.ndarray, problem: _Problem) -> float:

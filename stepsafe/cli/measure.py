@@ -188,7 +188,9 @@ def print_measure(data: dict[str, Any]) -> None:
                    f"{g(r['energy_ratio'], 2):>6}  {g(r['energy_drift'], 2):>10}  "
                    f"{g(r['trajectory_error']):>9} {g(r['predicted_trajectory_error']):>9} "
                    f"{g(r['trajectory_ratio'], 2):>6}  {r['status']}"
-                   + (f" ({r['iterations_per_step']:.3g} solver iterations per step)"
+                   + (f" ({r['iterations_per_step']:.3g} solver iterations per step"
+                      + (f", {r['jacobians_per_time']:.4g} Hessians per {unit}"
+                         if r.get("jacobians_per_time") else "") + ")"
                       if r["iterations_per_step"] else ""))
 
 
