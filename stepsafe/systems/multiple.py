@@ -30,8 +30,10 @@ KEYS = ("stiffness_fast", "stiffness_slow", "mass")
 #: 2n x 2n analysis).
 MAX_DOF = 200
 #: Relative size of what a common eigenbasis leaves off the diagonals of A_f and A_s
-#: (rounding of the eigensolver is ~n eps): above it the parts do not commute.
-COMMUTE_TOL = 1e-9
+#: (rounding of the eigensolver is ~n eps): above it the parts are taken as not commuting
+#: and the exact coupled analysis runs (parts that commute only nearly would shift the
+#: decoupled band edges by about that much).
+COMMUTE_TOL = 1e-12
 #: The coupled scan's reach in z = H sqrt(lambda_max): 5e4 samples of the 2n x 2n step.
 MAX_COUPLED_Z = 1e4
 #: A generic weight: eigenvectors of A_f + GENERIC A_s split the degenerate eigenspaces of
