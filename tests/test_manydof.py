@@ -287,3 +287,9 @@ def test_bad_indexed_input(run, tmp_path, change, key):
     code, out, err = run("advise", str(scene))
     assert code == 2 and err.count("\n") == 1 and out == "", err
     assert f"bad.yaml::$.{key}" in err, err
+
+
+def test_the_search_honours_the_time_budget(run):
+    code, _, err = run("advise", str(ROOT / "examples/lagrange-points.yaml"), "-s", "2",
+                       "--budget", "1e-6")
+    assert code == 2 and "time budget" in err and "lagrange-points.yaml::$.system" in err

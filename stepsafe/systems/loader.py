@@ -133,7 +133,7 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
             return _covariance(tree, where, folder)
         if kinds[0] == "hessian":
             return _hessian(tree, where, folder, method, zmax, progress, deadline)
-        return _hamiltonian(tree, where, method, zmax)
+        return _hamiltonian(tree, where, method, zmax, deadline)
     except _E as exc:
         if exc.where:
             raise
@@ -234,14 +234,14 @@ def _hessian(tree, where, folder, method, zmax, progress=None, deadline=None
         "are not analysed"])
 
 
-def _hamiltonian(tree, where, method, zmax) -> SystemReport:
+def _hamiltonian(tree, where, method, zmax, deadline=None) -> SystemReport:
     from stepsafe.files.expressions import ExpressionError
     from stepsafe.systems.coupled import coupled_safe_steps
     from stepsafe.systems.linear import hessian_modes
     from stepsafe.systems.nonlinear import find_equilibria, parse_hamiltonian
 
     if "q" in tree or "p" in tree:
-        return _hamiltonian_many(tree, where, method, zmax)
+        return _hamiltonian_many(tree, where, method, zmax, deadline)
     for key in ("energy_below", "starts", "sizes", "fixed"):
         if key in tree:
             raise _fail(where, key, "applies to Hamiltonians with named variables (q: and "
@@ -360,7 +360,7 @@ def read_many(tree, where):
     return H, np.array(lo), np.array(hi)
 
 
-def _hamiltonian_many(tree, where, method, zmax) -> SystemReport:
+def _hamiltonian_many(tree, where, method, zmax, deadline=None) -> SystemReport:
     """Equilibria of an n-dof Hamiltonian, each linearised exactly and analysed: decoupled
     where its Hessian separates for this method, the coupled analysis otherwise."""
     from stepsafe.systems.coupled import coupled_safe_steps
@@ -376,7 +376,12 @@ def _hamiltonian_many(tree, where, method, zmax) -> SystemReport:
         starts = int(starts)
     below = _float(tree["energy_below"], where, "energy_below") if "energy_below" in tree \
         else None
-    search = find_many(H, lo, hi, starts)
+    search = find_many(H, lo, hi, starts, deadline)
+    if search.stopped is not None:
+        raise _fail(where, "starts", f"the equilibrium search stopped at the time budget after "
+                                     f"{search.stopped} of {search.starts} starts: an "
+                                     "equilibrium may be missing (a larger --budget, or fewer "
+                                     "starts:)")
     if not search.equilibria:
         raise _fail(where, "box", f"no equilibrium of H found in the box ({search.explain()})")
     items, grouped, errors, coupled, notes = [], {}, {}, [], []

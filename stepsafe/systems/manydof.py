@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import ast
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -457,6 +458,7 @@ class ManyDofSearch:
     starts: int
     failed: int  # starts that did not converge in the box
     reason: str | None = None  # why H could not be evaluated, when that stopped starts
+    stopped: int | None = None  # starts tried before the time budget ran out (None: all)
 
     def explain(self) -> str:
         text = (f"{self.starts} Newton starts, {self.failed} did not converge to a point of "
@@ -465,7 +467,7 @@ class ManyDofSearch:
 
 
 def find_many(H: ManyDofHamiltonian, lo: np.ndarray, hi: np.ndarray,
-              starts: int | None = None) -> ManyDofSearch:
+              starts: int | None = None, deadline: float | None = None) -> ManyDofSearch:
     """Every equilibrium Newton's method reaches from a Halton set of starts in the box:
     from each start plain Newton steps first (they jump into narrow basins), then damped
     ones if those fail."""
@@ -476,7 +478,9 @@ def find_many(H: ManyDofHamiltonian, lo: np.ndarray, hi: np.ndarray,
     found: list[np.ndarray] = []
     failed = 0
     reasons: list[str] = []
-    for u in points:
+    for k, u in enumerate(points):
+        if deadline is not None and time.monotonic() > deadline:
+            return ManyDofSearch((), count, failed, None, k)
         x = None
         for damped in (False, True):
             try:
