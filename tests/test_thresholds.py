@@ -77,7 +77,8 @@ def _weights(name: str) -> list:
 
 
 @pytest.mark.parametrize("name, digits", [("kahan-li6", 26), ("kahan-li8", 26),
-                                          ("sofroniou-spaletta10", 31), ("mclachlan8", 25)])
+                                          ("sofroniou-spaletta10", 31), ("mclachlan8", 25),
+                                          ("kahan-li10", 19)])
 def test_published_middle_weight_against_the_sum_of_the_others(name, digits):
     """The comments state to how many digits the published middle weight equals
     1 - 2 (sum of the others); the files ship the published value."""
