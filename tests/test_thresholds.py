@@ -142,3 +142,16 @@ def test_bad_thresholds_are_refused(value, message):
 
 def test_readme_documents_the_key():
     assert "`thresholds:`" in (Path(__file__).resolve().parent.parent / "README.md").read_text()
+
+
+def test_every_name_and_alias_finds_one_file():
+    """Aliases (the names other libraries use) are unique and never another file's name."""
+    from stepsafe.methods.library import FAMILIES, resolve
+
+    owner: dict[str, str] = {}
+    for path in FILES:
+        for name in (path.stem, *load_file(path).aliases):
+            assert name not in owner and name not in FAMILIES, (name, path.stem, owner.get(name))
+            owner[name] = path.stem
+    for name, stem in owner.items():
+        assert resolve(name)[1].name == stem
