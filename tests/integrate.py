@@ -16,7 +16,7 @@ import mpmath as mp
 
 from stepsafe.reference.verify import MPMethod, mp_method
 
-__all__ = ["integrate", "mp_method", "step"]
+__all__ = ["MPMethod", "integrate", "mp_method", "step"]
 
 
 def step(m: MPMethod, q, p, h, force: Callable):

@@ -45,7 +45,11 @@ def observed_order(m, reference, steps) -> float:
 
 
 def steps_for(order: int) -> tuple[int, int]:
-    # the finest pair keeps the error well above 1e-40 and in the asymptotic regime
+    # the finest pair keeps the error well above 1e-40 and in the asymptotic regime; at
+    # order 10 it stays far above the ~1e-20 to which kahan-li10's published 20-digit
+    # weights satisfy the order conditions (its error at h = 1/16 is 7e-20)
+    if order >= 10:
+        return (4, 8)
     return {1: (512, 1024), 2: (128, 256), 3: (64, 128), 4: (32, 64)}.get(order, (16, 32))
 
 
@@ -65,12 +69,43 @@ def test_family_order(family, s, reference):
     assert abs(observed_order(m, reference, steps_for(m.order)) - m.order) <= 0.3
 
 
+def test_kahan_li10_error_floor(reference):
+    """kahan-li10's published 20 digits hold its order conditions to about 1e-20: in
+    40-digit arithmetic the error stops falling near 3e-20 (stated in the file and the
+    README), which is why order 10 is measured at h = 1/4, 1/8."""
+    with mp.workdps(DPS):
+        m = mp_method("kahan-li10")
+        errors = []
+        for n in (16, 32):
+            q, p = integrate(m, Q0, P0, T, n, force)
+            errors.append(mp.sqrt((q - reference[0]) ** 2 + (p - reference[1]) ** 2))
+    assert 1e-20 < errors[1] < 1e-19 and errors[0] / errors[1] < 4
+
+
+@pytest.mark.parametrize("name, order", [("calvo-sanz-serna4", 3), ("mclachlan-atela4", 3),
+                                         ("mclachlan-atela5", 3), ("ruth3", 3)])
+def test_drift_kick_swapped_assignment(name, order, reference):
+    """The files' comments state the order of the drift/kick-swapped assignment (what
+    OrdinaryDiffEq.jl runs): RKN methods lose an order on the pendulum, Ruth's general
+    splitting keeps its order 3. Swapped: the kicks become drifts, the drifts after the
+    opening zero drift become kicks."""
+    from integrate import MPMethod
+
+    with mp.workdps(DPS):
+        m = mp_method(name)
+        drift, kick = m.data["drift"], m.data["kick"]
+        assert drift[0] == 0
+        swapped = MPMethod("splitting", order, {"drift": list(kick), "kick": list(drift[1:])})
+    assert abs(observed_order(swapped, reference, steps_for(order)) - order) <= 0.3
+
+
 def test_method_files_carry_facts_not_development_notes():
     """Sources and comments of the shipped files are third-person facts: no first-person
     notes, no reminders of what was not checked."""
     import re
 
-    notes = re.compile(r"\bI [a-z]|\b(we|We|our)\b|brief|re-checked|not checked|TODO|FIXME")
+    notes = re.compile(r"\bI [a-z]|\b(we|We|our)\b|brief|re-checked|not checked|TODO|FIXME"
+                       r"|scratch|computed here|[Vv]erified|FOUND")
     for path in sorted((ROOT / "methods").glob("*.yaml")):
         for number, line in enumerate(path.read_text().splitlines(), 1):
             assert not notes.search(line), f"{path.name}:{number}: {line.strip()[:80]}"

@@ -102,3 +102,12 @@ def test_respa_output():
                     "--time-unit", "fs", "--substeps", "8", "--step", "4", "--resonance-order",
                     "3")
     assert "UNSAFE" in eight and "3:1 at H = 2.98" in eight
+
+
+def test_method_library_table_is_generated_from_the_files():
+    from stepsafe.methods.table import markdown
+
+    start = README.index("<!-- generated: python -m stepsafe.methods.table -->\n")
+    start = README.index("\n", start) + 1
+    block = README[start:README.index("<!-- end of generated table -->", start)]
+    assert block == markdown()

@@ -99,6 +99,10 @@ FIELDS: dict[str, Field] = {
                       kinds=("impulse",), required=True),
     "published_stability": Field("map", "a stability threshold stated by a source "
                                         "({value:, source:})"),
+    "thresholds": Field("map", "harmonic-oscillator thresholds of these coefficients as "
+                               "decimals, checked against the computed region by the tests: "
+                               "{structure: first boundary z*, stability: classical limit "
+                               "|tr M| <= 2}"),
     "notes": Field("text", "free text"),
 }
 
@@ -118,6 +122,7 @@ class MethodData:
     base: Any = None  # str or {"name":, "stages":} for compositions
     recipe: str | None = None
     published_stability: dict[str, Any] | None = None
+    thresholds: dict[str, str] | None = None  # decimal text as written (its digits count)
     where: str = ""
     extras: dict[str, Any] = field(default_factory=dict)
 
@@ -329,6 +334,7 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
         stability = {"value": _Scope(FLOAT).value(stability["value"], where,
                                                   "published_stability.value"),
                      "source": str(stability.get("source", ""))}
+    thresholds = _thresholds(tree.get("thresholds"), where)
     evaluations = _int(tree["evaluations"], where, "evaluations", 0) if "evaluations" in tree \
         else None
     return MethodData(
@@ -336,7 +342,32 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
         order=_int(tree["order"], where, "order", 0, 100), evaluations=evaluations,
         source=_text(tree["source"], where, "source"), aliases=tuple(aliases),
         coefficients=coefficients, base=base,
-        recipe=tree.get("recipe"), published_stability=stability, where=where, extras=extras)
+        recipe=tree.get("recipe"), published_stability=stability, thresholds=thresholds,
+        where=where, extras=extras)
+
+
+#: the keys of ``thresholds:`` (harmonic oscillator, z = omega h)
+THRESHOLD_KEYS = ("structure", "stability")
+
+
+def _thresholds(value: Any, where: str) -> dict[str, str] | None:
+    """``thresholds:`` as written: positive decimals (digits 0-9 and one point), so the
+    number of stated digits is known to whoever compares them."""
+    if value is None:
+        return None
+    if not isinstance(value, dict) or not value:
+        raise _fail(where, "thresholds", "must be a mapping with structure and/or stability")
+    out = {}
+    for key, text in value.items():
+        if key not in THRESHOLD_KEYS:
+            raise _fail(where, f"thresholds.{key}", unknown_key(key, THRESHOLD_KEYS))
+        digits = text.replace(".", "", 1) if isinstance(text, str) else ""
+        if not (digits.isascii() and digits.isdigit() and len(text) <= 40) \
+                or float(text) <= 0:
+            raise _fail(where, f"thresholds.{key}", f"must be a positive decimal such as "
+                                                    f"3.1410819, got {text!r}")
+        out[key] = text
+    return out
 
 
 def _check_shapes(kind: str, co: dict[str, Any], where: str, symmetric: bool) -> None:
