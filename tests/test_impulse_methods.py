@@ -415,3 +415,24 @@ def test_region_ratio_and_the_chart(run, tmp_path):
     png = tmp_path / "chart.png"
     code, _, err = run("plot", "respa-verlet", "--ratio", "0.1", "-o", str(png))
     assert code == 0 and png.read_bytes()[:4] == b"\x89PNG", err
+
+
+def test_review_8_inputs(run, tmp_path):
+    """An impulse method as the base of a composition is refused (exit 2); substeps up to
+    the merged-operation limit are accepted; a slow part 1e-9 of the fast one that does
+    not commute with it goes to the coupled analysis; plot options that do not apply are
+    refused."""
+    from stepsafe.systems.multiple import read_split
+
+    comp = tmp_path / "c.yaml"
+    comp.write_text("name: c\nkind: composition\norder: 2\nsource: test\nbase: respa-verlet\n"
+                    "weights: [1]\n")
+    for args in (("region", str(comp)), ("region", "yoshida4", "--base", "respa-verlet"),
+                 ("plot", "respa-verlet", "--ratio", "0.1", "--model", "saddle")):
+        code, _, err = run(*args)
+        assert code == 2 and err.count("\n") == 1, (args, err)
+    assert impulse("respa-verlet", substeps=400, fast=10.0, slow=1.0).h_max > 0
+    split = read_split({"stiffness_fast": np.diag([1.0, 4.0]),
+                        "stiffness_slow": np.array([[1e-9, 0.9e-9], [0.9e-9, 1e-9]])},
+                       "s", tmp_path)
+    assert split.pairs is None

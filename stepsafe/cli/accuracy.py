@@ -203,6 +203,7 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, subst
                            "--help'")
 
     # the arguments are checked before matplotlib is looked for
+    zmax_given = zmax is not None
     zmax = 6.0 if zmax is None else zmax
     if not (math.isfinite(zmax) and zmax > 0):
         raise _input_error(f"zmax must be a positive finite number, got {zmax}")
@@ -219,6 +220,9 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, subst
         if integrator.kind != "impulse":
             raise _input_error(f"--ratio and --substeps apply to impulse methods; "
                                f"{integrator.name} is a {integrator.kind} method")
+        if model != "oscillator" or with_phase or zmax_given:
+            raise _input_error("--model, --zmax and --phase do not apply to the stability "
+                               "chart of an impulse method")
         if ratio is not None and not (math.isfinite(ratio) and ratio >= 0):
             raise _input_error(f"--ratio must be a finite number >= 0, got {ratio}")
         draw_chart(impulse_method(integrator, None, substeps), ratio,

@@ -75,7 +75,8 @@ def respa_cmd(method, outer, inner, substeps, fast_beta, slow_beta, fast_wavenum
     one coordinate with a fast force (frequency Omega alone) and a slow
     one (omega): the outer splitting kicks with the slow force at step H, each of its
     drifts is SUBSTEPS inner steps over the fast force. Impulse methods go unstable in
-    bands near Omega H = j pi (half periods of the fast vibration), long before the inner
+    bands just below the steps where the inner steps turn the fast vibration by j pi (near
+    Omega H = j pi, half periods of the fast vibration), long before the inner
     method's own limit; the bands are listed with Omega H / pi. At a fixed ratio the outer
     step is exactly a splitting on the oscillator of frequency sqrt(Omega^2 + omega^2), so
     the analysis is that of `stepsafe advise`. The default criterion here is stability

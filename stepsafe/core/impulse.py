@@ -65,16 +65,22 @@ def impulse_splitting(method: Impulse, fast: float, slow: float) -> Splitting:
     :func:`total_frequency` (see the module docstring)."""
     phi, slow_part = force_fractions(fast, slow)
     ops = method.operations
-    if len(ops) > MAX_OPERATIONS:
+    if len(ops) > 4 * MAX_OPERATIONS:  # before merging: bounded work to build it at all
         raise StepsafeError(f"one outer step of {method.name} with {method.substeps} "
-                            f"substeps has {len(ops)} drift/kick operations, more than the "
-                            f"{MAX_OPERATIONS} analysed in bounded time: fewer substeps or a "
-                            "shorter inner method")
+                            f"substeps has {len(ops)} drift/kick operations: fewer substeps "
+                            "or a shorter inner method")
     scaled = [(kind, coef * (1.0 if kind == "drift" else phi if fast_force else slow_part))
               for kind, coef, fast_force in ops]
     title = (f"impulse {method.name}: {method.substeps} inner steps per outer drift (fast "
              f"fraction {phi:.6g})")
-    return splitting_from_operations(scaled, name=method.name, title=title)
+    split = splitting_from_operations(scaled, name=method.name, title=title)
+    count = split.drift.size + split.kick.size  # adjacent kicks merged
+    if count > MAX_OPERATIONS:
+        raise StepsafeError(f"one outer step of {method.name} with {method.substeps} "
+                            f"substeps has {count} drift/kick operations, more than the "
+                            f"{MAX_OPERATIONS} analysed in bounded time: fewer substeps or a "
+                            "shorter inner method")
+    return split
 
 
 def stability_chart(method: Impulse, x: np.ndarray, y: np.ndarray) -> np.ndarray:

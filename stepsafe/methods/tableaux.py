@@ -258,6 +258,10 @@ class Composition:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "weights", _vector(self.weights, "weights"))
+        if getattr(self.base, "kind", "") == "impulse":
+            raise MethodError(f"{self.name}: the base of a composition must be a one-force "
+                              f"method; {self.base.name} is an impulse (multiple time "
+                              "stepping) method")
         if self.base_steps > MAX_BASE_STEPS:
             raise MethodError(
                 f"{self.name}: {self.base_steps} steps of the base method once the nested "
