@@ -304,6 +304,7 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
         method = loaded.method.name
     chosen = impulse_method(method, None, substeps if substeps is not None
                             else loaded.substeps)
+    errors = None
     if pairs is None:
         if loaded.pairs is not None:
             pairs, labels = loaded.pairs, (labels or loaded.pair_labels)
@@ -316,7 +317,7 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
                     step = loaded.h
                 return _coupled_advice(chosen, split, step, criterion, resonance_order,
                                        loaded)
-            pairs = split.pairs
+            pairs, errors = split.pairs, split.errors
         else:
             raise StepsafeError("no modes: an impulse method needs a fast and a slow "
                                 "frequency per mode (modes: [{fast:, slow:}] or system: "
@@ -337,6 +338,8 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
         step = positive_finite(step, "step")
     reports = tuple(_impulse(chosen, fast, slow, step, criterion, None,
                              loaded.time_unit, resonance_order) for fast, slow in table)
+    if errors is not None:  # frequencies known to a relative error: shrink the safe sets
+        reports = tuple(_uncertain(r, float(e)) for r, e in zip(reports, errors))
     horizon = min((r.horizon for r in reports if r.horizon is not None), default=None)
     safe_h = _intersection([r.safe_h for r in reports], [r.horizon for r in reports],
                            horizon)
@@ -369,12 +372,19 @@ def _coupled_advice(method: Any, split: Any, step: float | None, criterion: str,
                             "have no rotation angle each, so --resonance-order does not "
                             "apply", where)
     result = coupled_impulse(method, split)
-    safe_h = ((0.0, None if result.h_max >= result.horizon else result.h_max),)
+    # the matrices analysed carry the whitening's rounding: the boundary is known to a
+    # relative EDGE_FACTOR * coupled_error, so h_max is taken that much lower
+    h_max = result.h_max * (1 - EDGE_FACTOR * split.coupled_error) \
+        if result.h_max < result.horizon else result.h_max
+    safe_h = ((0.0, None if result.h_max >= result.horizon else h_max),)
     verdict, failures = None, ()
     if step is not None:
         step = positive_finite(step, "step")
         reason = None
-        if step > result.h_max:
+        if step >= h_max and result.h_max < result.horizon:
+            reason = (f"H = {step:.12g} is at or beyond the end {h_max:.12g} of the safe "
+                      "interval from 0 (less the frequencies' float64 uncertainty)")
+        elif step > result.h_max:
             reason = (f"H = {step:.12g} is beyond the end {result.h_max:.12g} of the safe "
                       "interval from 0" if result.h_max < result.horizon else
                       f"H = {step:.12g} is beyond the horizon {result.horizon:.12g} analysed")
@@ -384,11 +394,38 @@ def _coupled_advice(method: Any, split: Any, step: float | None, criterion: str,
         if reason:
             failures = (MappingProxyType({"mode": None, "label": None, "reason": reason}),)
     return ImpulseModesReport(method.name, method.substeps, "structure", (), (),
-                              result.h_max, safe_h, result.horizon, None, step, verdict,
+                              h_max, safe_h, result.horizon, None, step, verdict,
                               failures, scene.time_unit, scene.where or None,
                               result.analysis.replace(
                                   "(the modes do not decouple for this method)",
                                   "(the fast and slow parts do not commute)"))
+
+
+#: Band edges move by at most this many times the frequencies' relative error (both
+#: frequencies and their ratio change).
+EDGE_FACTOR = 4.0
+
+
+def _uncertain(report: ImpulseReport, error: float) -> ImpulseReport:
+    """``report`` for frequencies known to a relative ``error``: every safe interval shrunk
+    by ``EDGE_FACTOR * error`` at both ends, and the step's verdict with it."""
+    import dataclasses
+
+    if error <= 0:
+        return report
+    d = EDGE_FACTOR * error
+    safe = tuple((lo * (1 + d), None if hi is None else hi * (1 - d))
+                 for lo, hi in report.safe_h if hi is None or hi * (1 - d) > lo * (1 + d))
+    h_max = safe[0][1] if safe and safe[0][0] == 0.0 else None
+    verdict, reason = report.safe, report.reason
+    if report.step is not None and verdict:
+        inside = any(lo < report.step < (report.horizon if hi is None else hi)
+                     for lo, hi in safe)
+        if not inside:
+            verdict = False
+            reason = (f"within the frequencies' relative uncertainty {error:.2g} of a band "
+                      "edge (from the mass matrix's conditioning)")
+    return dataclasses.replace(report, safe_h=safe, h_max=h_max, safe=verdict, reason=reason)
 
 
 def _intersection(sets: list, horizons: list, horizon: float | None

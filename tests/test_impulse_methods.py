@@ -379,7 +379,8 @@ def test_parts_that_do_not_commute_get_the_coupled_analysis(seed, tmp_path, run)
                      f"{rows(K_f)}\n  stiffness_slow: {rows(K_s)}\n")
     code, out, err = run("advise", str(scene), "--json")
     assert code == 0, err
-    assert json.loads(out)["h_max"] == result.h_max
+    printed = json.loads(out)["h_max"]  # less the matrices' float64 uncertainty
+    assert printed <= result.h_max and printed == pytest.approx(result.h_max, rel=1e-10)
     assert run("check", str(scene), "--step", repr(0.99 * result.h_max))[0] == 0
     assert run("check", str(scene), "--step", repr(1.01 * result.h_max))[0] == 1
     for extra in (("--criterion", "stability"), ("--resonance-order", "3")):
@@ -415,6 +416,33 @@ def test_region_ratio_and_the_chart(run, tmp_path):
     png = tmp_path / "chart.png"
     code, _, err = run("plot", "respa-verlet", "--ratio", "0.1", "-o", str(png))
     assert code == 0 and png.read_bytes()[:4] == b"\x89PNG", err
+
+
+def test_an_ill_conditioned_mass_widens_the_margin(tmp_path):
+    """Mass condition 1e6: the whitened parts carry ~1e-10 relative errors, so the printed
+    h_max sits below the analysis's boundary by that much, and the edge is not SAFE."""
+    from stepsafe.respa_advice import impulse_method
+    from stepsafe.systems.multiple import coupled_impulse, read_split
+
+    rng = np.random.default_rng(4)
+    Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    M = Q @ np.diag([1.0, 1e3, 1e6]) @ Q.T
+    K_f, K_s = np.diag([10.0, 20.0, 30.0]), np.diag([0.5, 0.2, 0.1]) + 0.05
+    system = {"stiffness_fast": K_f, "stiffness_slow": K_s, "mass": M}
+    split = read_split(system, "s", tmp_path)
+    assert split.coupled_error > 1e-10
+    scene = tmp_path / "m.yaml"
+    np.save(tmp_path / "kf.npy", K_f)
+    np.save(tmp_path / "ks.npy", K_s)
+    np.save(tmp_path / "m.npy", M)
+    scene.write_text("method: respa-verlet\nsystem: {stiffness_fast: kf.npy, stiffness_slow: "
+                     "ks.npy, mass: m.npy}\n")
+    report = impulse_advice(scene=str(scene), criterion="structure")
+    if split.pairs is None:
+        raw = coupled_impulse(impulse_method("respa-verlet"), split).h_max
+        assert report.h_max < raw * (1 - split.coupled_error)
+    assert impulse_advice(scene=str(scene), step=report.h_max * (1 + 1e-12),
+                          criterion="structure").safe is False
 
 
 def test_review_8_inputs(run, tmp_path):

@@ -34,6 +34,8 @@ MAX_DOF = 200
 #: and the exact coupled analysis runs (parts that commute only nearly would shift the
 #: decoupled band edges by about that much).
 COMMUTE_TOL = 1e-12
+#: Largest relative error of a decoupled mode's frequencies that is accepted.
+MAX_RELATIVE_ERROR = 1e-3
 #: The coupled scan's reach in z = H sqrt(lambda_max): 5e4 samples of the 2n x 2n step.
 MAX_COUPLED_Z = 1e4
 #: A generic weight: eigenvectors of A_f + GENERIC A_s split the degenerate eigenspaces of
@@ -50,6 +52,11 @@ class SplitStiffness:
     A_s: np.ndarray
     pairs: np.ndarray | None
     where: str
+    #: per mode (rows of ``pairs``), a bound on the relative error of its frequencies
+    #: from the whitening and the eigensolver (grows with the mass's condition number)
+    errors: np.ndarray | None = None
+    #: the same bound for the fastest frequency of A_f + A_s (the coupled analysis)
+    coupled_error: float = 0.0
 
 
 def read_split(tree: Any, where: str, folder: Path) -> SplitStiffness:
@@ -112,7 +119,29 @@ def read_split(tree: Any, where: str, folder: Path) -> SplitStiffness:
     if float(np.linalg.eigvalsh((A_f + A_s) / unit)[0]) <= floor:
         raise fail("stiffness_fast", "fast plus slow stiffness is singular: a zero mode has "
                                      "no force and nothing limits its step; remove it")
-    return SplitStiffness(A_f, A_s, _common_modes(A_f, A_s, unit), where)
+    pairs = _common_modes(A_f, A_s, unit)
+    errors = None
+    from stepsafe.systems.linear import _cond
+
+    # the fastest frequency (which sets h_max) to a relative 16 n eps cond(M) / 2
+    coupled_error = 16 * n * EPS * _cond(M) / 2
+    if coupled_error > MAX_RELATIVE_ERROR:
+        raise fail("mass", "the frequencies are not determined to 1e-3 in float64 (the mass "
+                           "is too badly conditioned): rescale")
+    if pairs is not None:
+        # absolute rounding of each part's eigenvalues (16 n eps |A|, times the mass's
+        # condition), relative to each frequency squared, halved by the square root
+        amplify = 16 * n * EPS * _cond(M)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel = np.column_stack([amplify * scale_f / pairs[:, 0] ** 2,
+                                   amplify * scale_s / pairs[:, 1] ** 2]) / 2
+        rel = np.where(pairs > 0, rel, 0.0)  # an absent force has no error
+        errors = rel.max(axis=1)
+        if np.any(~np.isfinite(errors)) or np.any(errors > MAX_RELATIVE_ERROR):
+            raise fail("mass", "a mode's frequencies are not determined to 1e-3 in float64 "
+                               "(the mass is too badly conditioned, or a part's mode is at "
+                               "rounding level): rescale, or give the modes as fast:/slow:")
+    return SplitStiffness(A_f, A_s, pairs, where, errors, coupled_error)
 
 
 def _common_modes(A_f: np.ndarray, A_s: np.ndarray, unit: float) -> np.ndarray | None:
