@@ -50,7 +50,7 @@ def test_order_on_the_pendulum(name, stages, order):
 def test_vectorised_over_initial_conditions_and_against_mpmath():
     """Three starts at once give each start's own run; Verlet matches the 40-digit
     integrator of tests/integrate.py to rounding."""
-    from tests.integrate import integrate, mp_method
+    from integrate import integrate, mp_method
 
     starts = np.array([[0.3], [1.0], [2.5]])
     q, p, engine = _run("verlet", _pendulum(), starts, np.zeros((3, 1)), 0.1, 200)
@@ -169,7 +169,7 @@ def test_measured_figures_agree_with_an_independent_run():
     40-digit Verlet run and a scipy reference (to 1e-6 relative)."""
     from scipy.integrate import solve_ivp
 
-    from tests.integrate import integrate, mp_method
+    from integrate import integrate, mp_method
 
     h, T = 0.25, 30.0
     report = measure("verlet", [h], system=PENDULUM, initial=[1.0, 0.0], time=T)
