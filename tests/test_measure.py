@@ -167,9 +167,8 @@ def test_small_amplitude_pendulum_approaches_the_linear_prediction():
 def test_measured_figures_agree_with_an_independent_run():
     """The trajectory error measure reports is the distance between an independent
     40-digit Verlet run and a scipy reference (to 1e-6 relative)."""
-    from scipy.integrate import solve_ivp
-
     from integrate import integrate, mp_method
+    from scipy.integrate import solve_ivp
 
     h, T = 0.25, 30.0
     report = measure("verlet", [h], system=PENDULUM, initial=[1.0, 0.0], time=T)
