@@ -336,8 +336,17 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
         step = loaded.h
     if step is not None:
         step = positive_finite(step, "step")
-    reports = tuple(_impulse(chosen, fast, slow, step, criterion, None,
-                             loaded.time_unit, resonance_order) for fast, slow in table)
+    from_scene = pairs is loaded.pairs and loaded.pairs is not None
+    reports_list = []
+    for i, (fast, slow) in enumerate(table):
+        try:
+            reports_list.append(_impulse(chosen, fast, slow, step, criterion, None,
+                                         loaded.time_unit, resonance_order))
+        except StepsafeError as exc:
+            if exc.where or not from_scene:
+                raise
+            raise StepsafeError(exc.message, f"{loaded.where}::$.modes[{i}]") from None
+    reports = tuple(reports_list)
     if errors is not None:  # frequencies known to a relative error: shrink the safe sets
         reports = tuple(_uncertain(r, float(e)) for r, e in zip(reports, errors))
     horizon = min((r.horizon for r in reports if r.horizon is not None), default=None)

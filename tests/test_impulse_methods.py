@@ -464,3 +464,26 @@ def test_review_8_inputs(run, tmp_path):
                         "stiffness_slow": np.array([[1e-9, 0.9e-9], [0.9e-9, 1e-9]])},
                        "s", tmp_path)
     assert split.pairs is None
+
+
+@pytest.mark.parametrize("text, key", [
+    ("name: r\nkind: impulse\norder: 2\nsource: x\nouter: nosuch\ninner: verlet\n"
+     "substeps: 2\n", "outer"),
+    ("name: r\nkind: impulse\norder: 2\nsource: x\nouter: verlet\ninner: gauss\n"
+     "substeps: 2\n", "inner"),
+    ("name: r\nkind: composition\norder: 2\nsource: x\nbase: nosuch\nweights: [1]\n",
+     "base"),
+])
+def test_unknown_referenced_methods_name_the_key(run, tmp_path, text, key):
+    path = tmp_path / "m.yaml"
+    path.write_text(text)
+    code, _, err = run("show", str(path))
+    assert code == 2 and f"m.yaml::$.{key}" in err, err
+
+
+def test_a_mode_out_of_range_names_it(run, tmp_path):
+    scene = tmp_path / "s.yaml"
+    scene.write_text("method: respa-verlet\nh: 0.1\nmodes:\n  - {fast: 1, slow: 0}\n"
+                     "  - {fast: 5e-324, slow: 0}\n")
+    code, _, err = run("check", str(scene))
+    assert code == 2 and "s.yaml::$.modes[1]" in err, err

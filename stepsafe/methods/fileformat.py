@@ -426,10 +426,22 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
         return m.PartitionedRK(co["A_q"], co["b_q"], co["A_p"], co["b_p"], **common)
     if data.kind == "splitting":
         return m.Splitting(co["drift"], co["kick"], **common)
+    def resolved(ref: Any, key: str):
+        """The referenced method, an error naming this file's key otherwise."""
+        from stepsafe.exceptions import StepsafeError
+
+        try:
+            return resolve_base(ref)
+        except StepsafeError as exc:
+            if exc.where:
+                raise
+            raise StepsafeError(exc.message, f"{data.where}::$.{key}") from None
+
     if data.kind == "impulse":
-        return m.Impulse(resolve_base(data.extras["outer"]), resolve_base(data.extras["inner"]),
-                         data.extras["substeps"], **common)
-    base = resolve_base(data.base)
+        return m.Impulse(resolved(data.extras["outer"], "outer"),
+                         resolved(data.extras["inner"], "inner"), data.extras["substeps"],
+                         **common)
+    base = resolved(data.base, "base")
     if data.recipe:
         from stepsafe.methods.families import RECIPES
 

@@ -348,7 +348,8 @@ def _pairs_list(items: list, where: str, time_unit: str | None
             try:
                 pair.append(any_frequency(value, time_unit))
             except StepsafeError as exc:
-                raise _fail(where, f"modes[{i}].{key}", exc.message) from None
+                message = exc.message.replace("beta must be", "must be")
+                raise _fail(where, f"modes[{i}].{key}", message) from None
         if pair[0] == pair[1] == 0:
             raise _fail(where, f"modes[{i}]", "fast and slow are both 0")
         label = item.get("label")
