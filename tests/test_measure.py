@@ -401,3 +401,24 @@ def test_trajectory_error_in_the_energy_norm():
     wrapped = measure(method("gauss", 2), [1.5], system={"stiffness": 4 * np.eye(1)},
                       time=100.0, initial=[1.0, 0.0], solver="newton").rows[0]
     assert wrapped.predicted_trajectory_error == 2.0 and wrapped.trajectory_ratio is None
+
+
+def test_kepler_without_an_equilibrium(run, tmp_path):
+    """The planar Kepler problem has no equilibrium: measured from --initial, the energy
+    spread over |H(0)|, no prediction; the work-precision plot takes --initial too."""
+    scene = tmp_path / "kepler.yaml"
+    scene.write_text("method: verlet\nsystem:\n  hamiltonian: \"(px**2 + py**2)/2 - "
+                     "1/sqrt(x**2 + y**2)\"\n  q: [x, y]\n  p: [px, py]\n  box: {x: [0.5, 1.5], "
+                     "y: [-0.5, 0.5], px: [-0.5, 0.5], py: [0.5, 1.5]}\n")
+    report = measure("yoshida4", [0.05, 0.1], scene=str(scene), time=20.0,
+                     initial=[1.0, 0.0, 0.0, 1.2])
+    assert report.beta is None and all(r.predicted_energy_error is None for r in report.rows)
+    small, large = report.rows
+    assert 0 < small.energy_error < large.energy_error
+    assert large.energy_error / small.energy_error == pytest.approx(16, rel=0.25)
+    pytest.importorskip("matplotlib")
+    png = tmp_path / "k.png"
+    code, _, err = run("plot", "--work-precision", str(scene), "--methods", "verlet",
+                       "--h-range", "0.05,0.1,2", "--time", "10", "--initial", "1,0,0,1.2",
+                       "-o", str(png))
+    assert code == 0 and png.exists(), err

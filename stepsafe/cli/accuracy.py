@@ -164,8 +164,10 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, tsv, criterion, a
 @click.option("--error", "which", type=click.Choice(("trajectory", "energy")),
               default="trajectory", show_default=True,
               help="--work-precision: the measured error drawn.")
+@click.option("--initial", default=None, metavar="Q,P",
+              help="--work-precision: the initial condition (as for stepsafe measure).")
 def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, substeps,
-             scene_file, methods, h_range, duration, which) -> None:
+             scene_file, methods, h_range, duration, which, initial) -> None:
     """Draw tr M(z)/2 with the band [-1, 1] and the preserved intervals (needs matplotlib).
 
     The file is written at exactly the path given, in the format its extension names; no
@@ -187,7 +189,8 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, subst
     import math
     import warnings
 
-    if scene_file is not None or methods is not None or h_range is not None:
+    if scene_file is not None or methods is not None or h_range is not None \
+            or initial is not None:
         from stepsafe.cli.measure import work_precision_plot
 
         if method is not None:
@@ -196,7 +199,7 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, subst
             raise _input_error("--work-precision needs SCENE, --methods M1,M2,... and "
                                "--h-range LO,HI,N")
         work_precision_plot(scene_file, methods, h_range, duration, which,
-                            output or "work-precision.png")
+                            output or "work-precision.png", initial)
         return
     if method is None:
         raise _input_error("missing METHOD (or --work-precision SCENE); see 'stepsafe plot "

@@ -195,7 +195,7 @@ def print_measure(data: dict[str, Any]) -> None:
 
 
 def work_precision_plot(scene_file: str, methods: str, h_range: str, duration: float | None,
-                        which: str, output: str) -> None:
+                        which: str, output: str, initial: str | None = None) -> None:
     """Measure every method at every step of the range; draw error against cost."""
     from stepsafe import api
     from stepsafe.cli.accuracy import _plot_format, _pyplot, _save
@@ -208,6 +208,7 @@ def work_precision_plot(scene_file: str, methods: str, h_range: str, duration: f
         raise _input_error(f"--methods {methods}: give 1 to {MAX_METHODS} names separated by "
                            "commas")
     integrators = [api.named_method(name) for name in names]
+    start = None if initial is None else _numbers(initial, "initial")
     plt = _pyplot()
     fmt = _plot_format(output, plt)
     reports = []
@@ -218,7 +219,7 @@ def work_precision_plot(scene_file: str, methods: str, h_range: str, duration: f
                     progress((k + f) / len(integrators))
 
             reports.append(measure(integrator, hs, scene=scene_file, time=duration,
-                                   progress=part))
+                                   initial=start, progress=part))
     key = "trajectory_error" if which == "trajectory" else "energy_error"
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for report in reports:
