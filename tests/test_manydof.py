@@ -114,25 +114,40 @@ def test_bad_input_names_the_key(run, tmp_path, change, key):
 
 
 @pytest.mark.parametrize("hamiltonian, h_max", [
-    # a ring (translation: a zero mode) of 4 masses: frequencies sqrt 2, sqrt 2, 2
-    ("(p1**2 + p2**2 + p3**2 + p4**2)/2 + ((q2 - q1)**2 + (q3 - q2)**2 + (q4 - q3)**2"
-     " + (q1 - q4)**2)/2", 1.0),
-    ("(p1**2 + p2**2)/2 + 50*(q1 - q2)**2", 2 / math.sqrt(200)),
+    # an isolated degenerate minimum (x^4): its other mode is still analysed
+    ("(p1**2 + p2**2)/2 + q1**4 + 50*q2**2", 2 / math.sqrt(100)),
     # frequencies 1e6 and 1e-6: the slow one is no zero mode
     ("(p1**2 + p2**2)/2 + 1e12*q1**2/2 + 1e-12*q2**2/2", 2e-6),
 ])
 def test_zero_and_slow_modes_do_not_hide_the_others(hamiltonian, h_max, tmp_path):
-    """An equilibrium with a zero mode (a symmetry) still has its other modes analysed,
-    and a slow mode is not taken for a zero one."""
-    n = 4 if "p4" in hamiltonian else 2
-    qs, ps = [f"q{i}" for i in range(1, n + 1)], [f"p{i}" for i in range(1, n + 1)]
-    box = ", ".join(f"{v}: [-0.5, 0.5]" for v in qs + ps)
+    """An isolated equilibrium with a zero mode still has its other modes analysed, and a
+    slow mode is not taken for a zero one."""
     scene = tmp_path / "s.yaml"
     scene.write_text(f"method: verlet\nsystem:\n  hamiltonian: \"{hamiltonian}\"\n"
-                     f"  q: [{', '.join(qs)}]\n  p: [{', '.join(ps)}]\n  box: {{{box}}}\n")
+                     "  q: [q1, q2]\n  p: [p1, p2]\n  box: {q1: [-0.5, 0.5], q2: [-0.5, 0.5], "
+                     "p1: [-0.5, 0.5], p2: [-0.5, 0.5]}\n")
     report = stepsafe.advise(scene=str(scene))
     assert report.h_max == pytest.approx(h_max, rel=1e-9)
     assert not stepsafe.check(h=1.01 * h_max, scene=str(scene)).safe
+
+
+@pytest.mark.parametrize("hamiltonian", [
+    # a ring of 4 masses: every translate is an equilibrium
+    "(p1**2 + p2**2 + p3**2 + p4**2)/2 + ((q2 - q1)**2 + (q3 - q2)**2 + (q4 - q3)**2"
+    " + (q1 - q4)**2)/2",
+    # a line of equilibria q1 = q2 whose frequency grows along it (review 10): members
+    # Newton does not reach would set the limit
+    "(p1**2 + p2**2)/2 + (q1 - q2)**2*(1 + q1**2)",
+])
+def test_families_of_equilibria_are_refused(run, tmp_path, hamiltonian):
+    n = 4 if "p4" in hamiltonian else 2
+    qs, ps = [f"q{i}" for i in range(1, n + 1)], [f"p{i}" for i in range(1, n + 1)]
+    box = ", ".join(f"{v}: [-3, 3]" for v in qs + ps)
+    scene = tmp_path / "fam.yaml"
+    scene.write_text(f"method: verlet\nsystem:\n  hamiltonian: \"{hamiltonian}\"\n"
+                     f"  q: [{', '.join(qs)}]\n  p: [{', '.join(ps)}]\n  box: {{{box}}}\n")
+    code, out, err = run("check", str(scene), "--step", "0.01")
+    assert code == 2 and "family" in err and "fam.yaml::$.system.hamiltonian" in err, err
 
 
 def test_points_where_newton_stalls_are_no_equilibria(tmp_path):

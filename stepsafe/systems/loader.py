@@ -393,14 +393,22 @@ def _hamiltonian_many(tree, where, method, zmax, deadline=None) -> SystemReport:
     if not reached:
         raise _fail(where, "energy_below", f"no equilibrium has energy below {below:g} (the "
                                            f"lowest: {search.equilibria[0].energy:.6g})")
+    family = next((e for e in reached if e.family), None)
+    if family is not None:
+        raise _fail(where, "hamiltonian", f"the equilibria form a family (a line or ring "
+                                          f"through {_point(H, family.x)} along a zero mode): "
+                                          "only isolated equilibria are analysed, and the "
+                                          "family's members across the box may set other "
+                                          "limits; remove the symmetry (fix a coordinate, "
+                                          "or use relative coordinates)")
     for e in reached:
         item = {"x": [float(v) for v in e.x], "names": list(H.names), "type": e.kind,
                 "index": e.index, "energy": e.energy, "frequencies": list(e.frequencies),
                 "rates": list(e.rates), "model": None}
         if e.kind == "degenerate":
-            notes.append(f"equilibrium at {_point(H, e.x)} has a zero mode (a symmetry or a "
-                         "family of equilibria), which sets no step limit; its other modes "
-                         "are analysed")
+            notes.append(f"equilibrium at {_point(H, e.x)} is degenerate (a zero mode, "
+                         "isolated: no family continues along it), which sets no step limit; "
+                         "its other modes are analysed")
         d = hessian_modes(e.hessian, method)
         if d is not None:
             for m in d.modes:

@@ -25,13 +25,15 @@ reaches (a narrow well); ``starts:`` raises their number. The type comes from th
 quadruplets ``+-a +-ib`` loxodromic, an eigenvalue within rounding of 0 degenerate (no
 linear model): ``elliptic`` (a centre: all elliptic), ``hyperbolic`` (all hyperbolic),
 ``mixed`` (``index`` k hyperbolic pairs among elliptic ones, as transition states have),
-``loxodromic`` or ``degenerate`` (a zero mode: a symmetry, or a continuous family of
-equilibria; its other modes are still analysed).
+``loxodromic`` or ``degenerate`` (a zero mode; when no family of equilibria continues along
+it, its other modes are still analysed; a family, a line or ring of equilibria from a
+symmetry, is flagged: its members across the box are not all reached).
 """
 
 from __future__ import annotations
 
 import ast
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -433,6 +435,7 @@ class ManyDofEquilibrium:
     index: int  # hyperbolic pairs
     frequencies: tuple[float, ...]  # elliptic pairs' omega
     rates: tuple[float, ...]  # hyperbolic pairs' lambda
+    family: bool = False  # a zero mode along which the equilibria continue (a line, a ring)
 
 
 def halton(count: int, dim: int) -> np.ndarray:
@@ -495,8 +498,13 @@ def find_many(H: ManyDofHamiltonian, lo: np.ndarray, hi: np.ndarray,
             continue
         if not any(np.all(np.abs(x - y) <= 1e-7 * half) for y in found):
             found.append(x)
-    equilibria = tuple(sorted((_classify(H, x) for x in found),
-                              key=lambda e: (e.energy, tuple(e.x))))
+    classified = []
+    for x in found:
+        e = _classify(H, x)
+        if e.kind == "degenerate" and _is_family(H, e, centre, half):
+            e = dataclasses.replace(e, family=True)
+        classified.append(e)
+    equilibria = tuple(sorted(classified, key=lambda e: (e.energy, tuple(e.x))))
     reason = reasons[0] if reasons and len(reasons) >= failed > 0 and not found else None
     return ManyDofSearch(equilibria, count, failed, reason)
 
@@ -550,6 +558,30 @@ def _newton(H: ManyDofHamiltonian, u: np.ndarray, centre: np.ndarray, half: np.n
     return x if _verified(H, x, half) else None
 
 
+def _is_family(H: ManyDofHamiltonian, e: ManyDofEquilibrium, centre: np.ndarray,
+               half: np.ndarray) -> bool:
+    """Whether the equilibria continue along the zero mode: Newton's method from a point
+    a little way along the Hessian's null direction (box units) ends at another
+    equilibrium there, not back at this one."""
+    w, V = np.linalg.eigh(e.hessian * np.outer(half, half))
+    v = V[:, int(np.argmin(np.abs(w)))]
+    u0 = (e.x - centre) / half
+    for sign in (1.0, -1.0):
+        u = u0 + sign * 1e-3 * v
+        if np.abs(u).max() > 1:
+            continue
+        try:
+            x = _newton(H, u, centre, half, damped=True)
+        except ExpressionError:
+            continue
+        # back at this point (an isolated degenerate zero, where Newton creeps back) or
+        # still about as far as the step went (the family)
+        if x is not None and float(np.abs((x - e.x) / half).max()) \
+                > 0.25 * 1e-3 * float(np.abs(v).max()):
+            return True
+    return False
+
+
 def _verified(H: ManyDofHamiltonian, x: np.ndarray, half: np.ndarray) -> bool:
     """Whether grad H vanishes at x on the scale of H there: along each variable the
     linear change ``|dH/dx_i| d_i`` over ``d_i = 1e-3 w_i`` is at most ``RESIDUAL`` times
@@ -590,6 +622,11 @@ def _classify(H: ManyDofHamiltonian, x: np.ndarray) -> ManyDofEquilibrium:
                                                               1e-300)
     upper = mu[(mu.imag > tol) | ((np.abs(mu.imag) <= tol) & (mu.real > tol))]
     zero = int((np.abs(mu) <= tol).sum())
+    # a zero mode makes S singular; its eigenvalues (symmetric, well conditioned) tell it
+    # even where J S has a Jordan block at 0, whose eigenvalues rounding moves by sqrt(eps)
+    s_eig = np.abs(np.linalg.eigvalsh(S))
+    if s_eig.min() <= 1e3 * S.shape[0] * float(np.finfo(float).eps) * s_eig.max():
+        zero = max(zero, 2)
     freqs = tuple(sorted(float(m.imag) for m in upper if abs(m.real) <= tol))
     rates = tuple(sorted(float(m.real) for m in upper if abs(m.imag) <= tol))
     lox = sum(1 for m in upper if abs(m.real) > tol and abs(m.imag) > tol)
