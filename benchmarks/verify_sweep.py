@@ -51,7 +51,7 @@ def main() -> None:
     args = parser.parse_args()
     index, count = (int(x) for x in args.shard.split("/"))
     cases = [(f, s) for f in FAMILIES for s in range(2, args.max_stages + 1)]
-    cases += [(n, None) for n in builtin_names() if n not in FAMILIES]
+    cases += [(n, None) for n in builtin_names(single_force=True) if n not in FAMILIES]
     rows = []
     for name, stages in cases[index - 1::count]:
         for zmax in ZMAXES:
