@@ -10,30 +10,10 @@ import math
 import mpmath as mp
 import numpy as np
 import pytest
+from support import respa_mp, respa_stable_mp
 
 from stepsafe.exceptions import StepsafeError
 from stepsafe.respa_advice import impulse, impulse_advice
-
-
-def _respa_mp(fast, slow, k, H):
-    """K_slow(H/2) [K_fast(h/2) D(h) K_fast(h/2)]^k K_slow(H/2), h = H/k, in (q, p)."""
-    F, S, H = mp.mpf(fast) ** 2, mp.mpf(slow) ** 2, mp.mpf(H)
-
-    def kick(c):
-        return mp.matrix([[1, 0], [-c, 1]])
-
-    def drift(c):
-        return mp.matrix([[1, c], [0, 1]])
-
-    h = H / k
-    inner = kick(F * h / 2) * drift(h) * kick(F * h / 2)
-    return kick(S * H / 2) * inner ** k * kick(S * H / 2)
-
-
-def _stable(fast, slow, k, H) -> bool:
-    with mp.workdps(50):
-        M = _respa_mp(fast, slow, k, H)
-        return bool(abs(M[0, 0] + M[1, 1]) < 2)
 
 
 def _respa_run(q, p, H, steps, k, fast_force, slow_force):
@@ -135,7 +115,7 @@ def test_modes_together_at_50_digits(seed):
             continue
         inside = any(lo < H < (report.horizon if hi is None else hi)
                      for lo, hi in report.safe_h)
-        assert inside == all(_stable(f, s, k, H) for f, s in pairs), (pairs, k, H)
+        assert inside == all(respa_stable_mp(f, s, k, H) for f, s in pairs), (pairs, k, H)
     assert report.h_max == min(r.h_max for r in report.modes)
     assert report.modes[report.limiting].h_max == report.h_max
 
@@ -295,7 +275,7 @@ def test_the_predicted_limit_is_measured_in_a_real_integration():
     H = 0.5 * (band["lo"] + band["hi"])
     assert all(any(lo < H < hi for lo, hi in m.safe_h if hi) for m in report.modes[1:])
     with mp.workdps(50):
-        M2 = _respa_mp(fast[0], slow[0], k, H)
+        M2 = respa_mp(fast[0], slow[0], k, H)
         half = abs(M2[0, 0] + M2[1, 1]) / 2
         lam = float(half + mp.sqrt(half ** 2 - 1))
     steps = max(10, min(2000, int(60 / math.log(lam))))  # e^120 in energy at most

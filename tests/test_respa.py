@@ -9,30 +9,10 @@ import math
 import mpmath as mp
 import numpy as np
 import pytest
+from support import respa_mp, respa_stable_mp
 
 from stepsafe.exceptions import StepsafeError
 from stepsafe.respa_advice import impulse
-
-
-def _respa_mp(fast, slow, k, H):
-    """K_slow(H/2) [Verlet_fast(H/k)]^k K_slow(H/2) on (q, p), at the working precision."""
-    F, S, H = mp.mpf(fast) ** 2, mp.mpf(slow) ** 2, mp.mpf(H)
-
-    def kick(c):
-        return mp.matrix([[1, 0], [-c, 1]])
-
-    def drift(c):
-        return mp.matrix([[1, c], [0, 1]])
-
-    h = H / k
-    inner = kick(F * h / 2) * drift(h) * kick(F * h / 2)
-    return kick(S * H / 2) * inner ** k * kick(S * H / 2)
-
-
-def _stable_mp(fast, slow, k, H) -> bool:
-    with mp.workdps(50):
-        M = _respa_mp(fast, slow, k, H)
-        return bool(abs(M[0, 0] + M[1, 1]) < 2)
 
 
 def test_one_substep_is_verlet_on_the_total_force():
@@ -62,12 +42,12 @@ def test_bands_and_safe_steps_at_50_digits(fast, slow, k):
         top = report.horizon if hi is None else hi
         for H in lo + (top - lo) * rng.uniform(0.0, 1.0, 12):
             if H > 0:
-                assert _stable_mp(fast, slow, k, H), (lo, hi, H)
+                assert respa_stable_mp(fast, slow, k, H), (lo, hi, H)
     for band in report.bands:
         if band["hi"] is None or band["kind"] == "resonance":
             continue
         mid = 0.5 * (band["lo"] + band["hi"])
-        assert not _stable_mp(fast, slow, k, mid), band
+        assert not respa_stable_mp(fast, slow, k, mid), band
     # every band sits just below a half-period resonance of the inner method (k theta_in =
     # j pi, theta_in = 2 arcsin(Omega H / 2k))
     for band in report.bands[:-1]:
@@ -136,7 +116,7 @@ def test_the_third_of_a_period_resonance_at_50_digits():
     report = impulse(fast=fast, slow=slow, substeps=k, resonance_order=3)
     with mp.workdps(50):
         ref = mp.findroot(lambda H: (lambda M: M[0, 0] + M[1, 1] + 1)(
-            _respa_mp(fast, slow, k, H)), (2.9, 3.1), solver="anderson")
+            respa_mp(fast, slow, k, H)), (2.9, 3.1), solver="anderson")
     assert report.h_max == pytest.approx(float(ref), rel=1e-10)
     assert abs(float(ref) - 2 * math.pi / fast / 3) < 0.1  # about T/3
     assert report.bands[0]["kind"] == "nonlinear"
@@ -160,7 +140,7 @@ def test_the_chart_is_the_trace_of_the_equivalent_splitting():
             assert chart[i, j] == pytest.approx(abs(M[0, 0] + M[1, 1]) / 2, rel=1e-12)
     with mp.workdps(30):  # and the mp product in (q, p) for verlet/verlet
         for xx, yy in ((3.05, 0.3), (2.0, 0.5)):
-            M = _respa_mp(xx, yy, 4, 1.0)
+            M = respa_mp(xx, yy, 4, 1.0)
             ref = abs(M[0, 0] + M[1, 1]) / 2
             assert stability_chart(impulse_method(outer, outer, 4), np.array([xx]),
                                    np.array([yy]))[0, 0] \

@@ -236,8 +236,6 @@ def _hessian(tree, where, folder, method, zmax, progress=None, deadline=None
 
 def _hamiltonian(tree, where, method, zmax, deadline=None) -> SystemReport:
     from stepsafe.files.expressions import ExpressionError
-    from stepsafe.systems.coupled import coupled_safe_steps
-    from stepsafe.systems.linear import hessian_modes
     from stepsafe.systems.nonlinear import find_equilibria, parse_hamiltonian
 
     if "q" in tree or "p" in tree:
@@ -284,19 +282,10 @@ def _hamiltonian(tree, where, method, zmax, deadline=None) -> SystemReport:
             notes.append(f"degenerate equilibrium at (q, p) = ({e.q:.6g}, {e.p:.6g}): no linear "
                          "model, not analysed")
         elif e.model == "coupled":
-            S = e.hessian
-            d = hessian_modes(S, method)
-            if d is not None:
-                for m in d.modes:
-                    if m.model != "free":
-                        grouped.setdefault(m.model, []).append(m.beta)
-                        errors.setdefault(m.model, []).append(m.rel_error + EQUILIBRIUM_ERROR)
-                item["model"] = ",".join(sorted({m.model for m in d.modes}))
-            else:
-                result = coupled_safe_steps(method, S, zmax)
-                coupled.append((result, S))
-                item["h_limit"] = result.h_max
+            if _analyse_hessian(e.hessian, method, zmax, item, grouped, errors, coupled):
                 item["analysis"] = "coupled 2x2 (mixed q-p terms with a partitioned method)"
+            else:
+                item.pop("analysis")
         else:
             grouped.setdefault(e.model, []).append(e.beta)
             errors.setdefault(e.model, []).append(EQUILIBRIUM_ERROR)
@@ -363,8 +352,6 @@ def read_many(tree, where):
 def _hamiltonian_many(tree, where, method, zmax, deadline=None) -> SystemReport:
     """Equilibria of an n-dof Hamiltonian, each linearised exactly and analysed: decoupled
     where its Hessian separates for this method, the coupled analysis otherwise."""
-    from stepsafe.systems.coupled import coupled_safe_steps
-    from stepsafe.systems.linear import hessian_modes
     from stepsafe.systems.manydof import MAX_STARTS, find_many
 
     H, lo, hi = read_many(tree, where)
@@ -409,18 +396,7 @@ def _hamiltonian_many(tree, where, method, zmax, deadline=None) -> SystemReport:
             notes.append(f"equilibrium at {_point(H, e.x)} is degenerate (a zero mode, "
                          "isolated: no family continues along it), which sets no step limit; "
                          "its other modes are analysed")
-        d = hessian_modes(e.hessian, method)
-        if d is not None:
-            for m in d.modes:
-                if m.model != "free":
-                    grouped.setdefault(m.model, []).append(m.beta)
-                    errors.setdefault(m.model, []).append(m.rel_error + EQUILIBRIUM_ERROR)
-            item["model"] = ",".join(sorted({m.model for m in d.modes}))
-            item["analysis"] = d.analysis
-        else:
-            result = coupled_safe_steps(method, e.hessian, zmax)
-            coupled.append((result, e.hessian))
-            item["h_limit"] = result.h_max
+        if _analyse_hessian(e.hessian, method, zmax, item, grouped, errors, coupled):
             item["model"] = "coupled"
             item["analysis"] = f"coupled {2 * len(H.q)}x{2 * len(H.q)}"
         items.append(item)
@@ -432,6 +408,28 @@ def _hamiltonian_many(tree, where, method, zmax, deadline=None) -> SystemReport:
     return SystemReport(f"{len(search.equilibria)} equilibria of H found in the box "
                         f"({search.explain()}), linearised exactly (automatic "
                         "differentiation)", items, modes, coupled, notes)
+
+
+def _analyse_hessian(S, method, zmax, item, grouped, errors, coupled) -> bool:
+    """An equilibrium's exact linearisation ``S``: its decoupled modes added to
+    ``grouped``/``errors`` (the item's ``model`` lists their models, ``analysis`` how), or
+    the coupled analysis appended to ``coupled`` (the item's ``h_limit``); True if coupled."""
+    from stepsafe.systems.coupled import coupled_safe_steps
+    from stepsafe.systems.linear import hessian_modes
+
+    d = hessian_modes(S, method)
+    if d is None:
+        result = coupled_safe_steps(method, S, zmax)
+        coupled.append((result, S))
+        item["h_limit"] = result.h_max
+        return True
+    for m in d.modes:
+        if m.model != "free":
+            grouped.setdefault(m.model, []).append(m.beta)
+            errors.setdefault(m.model, []).append(m.rel_error + EQUILIBRIUM_ERROR)
+    item["model"] = ",".join(sorted({m.model for m in d.modes}))
+    item["analysis"] = d.analysis
+    return False
 
 
 def _point(H, x) -> str:
