@@ -467,3 +467,20 @@ def test_a_mode_out_of_range_names_it(run, tmp_path):
                      "  - {fast: 5e-324, slow: 0}\n")
     code, _, err = run("check", str(scene))
     assert code == 2 and "s.yaml::$.modes[1]" in err, err
+
+
+@pytest.mark.parametrize("scale", [1e-150, 1e-20, 1e20, 1e150])
+def test_modes_together_are_scale_free(scale):
+    """Scaling every frequency by s scales every safe H by 1/s (the outer step depends on
+    beta H only), from 1e-150 to 1e150; the edge stays unsafe at 50 digits."""
+    pairs = [(10.0, 1.0), (4.0, 2.0), (0.0, 3.0)]
+    base = impulse_advice("respa-verlet", pairs)
+    scaled = impulse_advice("respa-verlet", [(f * scale, s * scale) for f, s in pairs])
+    assert scaled.h_max == pytest.approx(base.h_max / scale, rel=1e-12)
+    assert len(scaled.safe_h) == len(base.safe_h)
+    scaled_pairs = [(f * scale, s * scale) for f, s in pairs]
+    assert impulse_advice("respa-verlet", scaled_pairs,
+                          step=scaled.h_max * (1 + 1e-9)).safe is False
+    inside = scaled.h_max * (1 - 1e-6)
+    assert impulse_advice("respa-verlet", scaled_pairs, step=inside).safe is True
+    assert all(respa_stable_mp(f, s, 4, inside) for f, s in scaled_pairs)

@@ -308,3 +308,15 @@ def test_the_search_honours_the_time_budget(run):
     code, _, err = run("advise", str(ROOT / "examples/lagrange-points.yaml"), "-s", "2",
                        "--budget", "1e-6")
     assert code == 2 and "time budget" in err and "lagrange-points.yaml::$.system" in err
+
+
+@pytest.mark.parametrize("a", [1e-100, 1e100])
+def test_n_dof_limits_at_extreme_scales(a, tmp_path):
+    """H = (px^2 + py^2)/2 + (a x)^2/2 + (2 a y)^2/2: Verlet's limit 2 / (2a) at any scale."""
+    scene = tmp_path / "s.yaml"
+    scene.write_text("method: verlet\nsystem:\n  hamiltonian: \"(px**2 + py**2)/2 + (a*x)**2/2"
+                     " + (2*a*y)**2/2\"\n  q: [x, y]\n  p: [px, py]\n  parameters: {a: "
+                     f"{a!r}}}\n  box: {{x: [-1, 1], y: [-1, 1], px: [-1, 1], py: [-1, 1]}}\n")
+    report = stepsafe.advise(scene=str(scene))
+    assert report.h_max == pytest.approx(1 / a, rel=1e-12)
+    assert not stepsafe.check(h=1.0001 / a, scene=str(scene)).safe
