@@ -42,6 +42,12 @@ import scipy.linalg as sla
 
 from stepsafe.core.threads import blas_threads_for
 from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
+from stepsafe.systems.frame import (
+    DiagonalFrame,
+    diagonal_frame,
+    equilibrated,
+    euler_deviation,
+)
 from stepsafe.systems.linear import ZERO_TOL, hamiltonian_matrix
 
 EPS = float(np.finfo(float).eps)
@@ -137,7 +143,8 @@ def discrete_signature(M: np.ndarray) -> Signature | None:
 class _Steps:
     """Builds ``D(h) = M(h) - I`` for one method on one S (see module docstring)."""
 
-    def __init__(self, method: Method, S: np.ndarray) -> None:
+    def __init__(self, method: Method, S: np.ndarray, frame: DiagonalFrame | None = None
+                 ) -> None:
         n = S.shape[0] // 2
         self.n = n
         self.S = S
@@ -145,11 +152,15 @@ class _Steps:
         self.S_pq, self.S_pp = S[n:, :n], S[n:, n:]
         self.norm_S = float(np.linalg.norm(S))
         self.pieces = _pieces(method)
+        self.frame = frame
 
     def deviation(self, h: float) -> tuple[np.ndarray, float]:
         """``(D, err)``: ``D = M(h) - I`` and a first-order bound on its rounding error
-        (Frobenius); D is NaN where the step is not unique (a singular stage system)."""
+        (Frobenius); D is NaN where the step is not unique (a singular stage system).
+        Splittings in a :class:`DiagonalFrame` take :func:`euler_deviation`."""
         n = self.n
+        if self.frame is not None and len(self.pieces) == 1 and self.pieces[0][0] == "euler":
+            return euler_deviation(self.frame, self.pieces[0][1], h, self.norm_S)
         D = np.zeros((2 * n, 2 * n))
         err = 0.0
         for kind, item in self.pieces:
@@ -254,10 +265,7 @@ class CoupledSystem:
         largest = float(np.abs(S).max()) if S.size else 0.0
         self.unit = largest if largest > 0 and np.isfinite(largest) else 1.0
         S = S / self.unit
-        self.S = S
         self.n = S.shape[0] // 2
-        self.steps = steps(self.unit) if steps is not None else _Steps(method, S)
-        self.top = self.unit * float(np.abs(np.linalg.eigvals(hamiltonian_matrix(S))).max())
         self.sign, self.chol = 0, None
         for sign in (1, -1):
             try:
@@ -266,6 +274,24 @@ class CoupledSystem:
                 break
             except np.linalg.LinAlgError:
                 continue
+        # definite S, a method on S: masses brought to O(1) by an exact power-of-two
+        # scaling, then the diagonal frame where it is accurate (the criterion and the
+        # types are invariant under both); the margin is then weighted by diag(sign S~)
+        # instead of the Cholesky factor of sign S (which stays that of the scaled S, for
+        # the largest frequency)
+        if self.sign and steps is None:
+            scaled = equilibrated(S)
+            if scaled is not S:
+                S = scaled
+                self.chol = np.linalg.cholesky(self.sign * S)
+        frame = diagonal_frame(S) if self.sign and steps is None else None
+        self.weight = None
+        if frame is not None:
+            S = frame.S
+            self.weight = self.sign * np.concatenate([frame.a, frame.b])
+        self.S = S
+        self.steps = steps(self.unit) if steps is not None else _Steps(method, S, frame)
+        self.top = self.unit * _largest_frequency(S, self.chol if self.sign else None)
         self.evaluations = 0
         self._cache: dict[float, float] = {}
         self._built: dict[float, tuple | None] = {}
@@ -303,8 +329,10 @@ class CoupledSystem:
         n = self.n
         JD = np.vstack([D[n:], -D[:n]])  # J D
         # the symplecticity defect M^T J M - J = D^T J + J D + D^T J D (0 in exact
-        # arithmetic) measures what the stage solves' conditioning did to M
-        defect = float(np.linalg.norm(JD - JD.T + D.T @ JD))
+        # arithmetic) measures what the stage solves' conditioning did to M;
+        # D^T J D = G - G^T with G = D_q^T D_p (half the work of the full product)
+        G = D[:n].T @ D[n:]
+        defect = float(np.linalg.norm(JD - JD.T + G - G.T))
         return D, -JD.T - JD, ROUNDING_FACTOR * (2 * err + defect)  # Q = D^T J - J D
 
     def margin(self, h: float) -> float:
@@ -346,13 +374,20 @@ class CoupledSystem:
         if out is None:
             return -np.inf
         _, Q, err = out
-        L = self.chol
-        W = sla.solve_triangular(L, self.sign * Q, lower=True)
-        W = sla.solve_triangular(L, W.T, lower=True)
-        low = float(sla.eigh(0.5 * (W + W.T), eigvals_only=True, subset_by_index=[0, 0],
+        if self.weight is not None:
+            scale = 1.0 / np.sqrt(self.weight)
+            W = (self.sign * scale[:, None]) * Q * scale[None, :]
+            inverse_norm2 = float(scale.max()) ** 2
+        else:
+            L = self.chol
+            W = sla.solve_triangular(L, self.sign * Q, lower=True)
+            W = sla.solve_triangular(L, W.T, lower=True)
+            inverse_norm2 = self.inv_chol_norm2
+        low = float(sla.eigh(W, eigvals_only=True, subset_by_index=[0, 0],
                              check_finite=False)[0])
-        # |delta lambda| <= ||L^-1||_2^2 ||delta Q||_2
-        bound = err * self.inv_chol_norm2
+        # |delta lambda| <= ||L^-1||_2^2 ||delta Q||_2 (L = diag(weight)^1/2 in the frame),
+        # plus the eigensolver's own backward error
+        bound = err * inverse_norm2 + 4 * self.n * EPS * float(np.linalg.norm(W))
         return (low - bound) / (2 * h * self.unit)
 
     @cached_property
@@ -434,16 +469,12 @@ class CoupledSystem:
         S = self.S
         n = self.n
         S_qq, S_qp, S_pq, S_pp = S[:n, :n], S[:n, n:], S[n:, :n], S[n:, n:]
-        eig_pq = eig_qp = None
+        eig_pq = None  # -S_qp = -S_pq^T has the eigenvalues of -S_pq
         for kind, item in self.steps.pieces:
             if kind == "euler":
                 for label, c in item:
-                    if label == "DK":
-                        eig_pq = np.linalg.eigvals(S_pq) if eig_pq is None else eig_pq
-                        lam = eig_pq
-                    else:
-                        eig_qp = np.linalg.eigvals(-S_qp) if eig_qp is None else eig_qp
-                        lam = eig_qp
+                    eig_pq = np.linalg.eigvals(S_pq) if eig_pq is None else eig_pq
+                    lam = eig_pq if label == "DK" else -eig_pq
                     found += _reciprocals(c * lam)
             else:
                 g, prk = item
@@ -485,6 +516,21 @@ class CoupledSystem:
             if not u - s > 1e-8 * (u + s):
                 return False
         return True
+
+
+def _largest_frequency(S: np.ndarray, chol: np.ndarray | None) -> float:
+    """``max |mu|`` over the eigenvalues of ``J S``. For definite S (``sign S = L L^T``)
+    ``J S`` is similar to the antisymmetric ``K = L^T J L``, whose eigenvalues ``+-i w`` have
+    ``w^2`` the eigenvalues of ``K^T K``: one symmetric eigenvalue instead of a
+    nonsymmetric eigenproblem."""
+    if chol is None:
+        return float(np.abs(np.linalg.eigvals(hamiltonian_matrix(S))).max())
+    n = S.shape[0] // 2
+    JL = np.vstack([chol[n:], -chol[:n]])
+    K = chol.T @ JL
+    top = sla.eigh(K.T @ K, eigvals_only=True, subset_by_index=[2 * n - 1, 2 * n - 1],
+                   check_finite=False)[0]
+    return float(np.sqrt(max(top, 0.0)))
 
 
 def _reciprocals(lam: np.ndarray) -> list[float]:
@@ -642,7 +688,9 @@ def _boundary(system: CoupledSystem, good: float, bad: float,
         try:
             root = brentq(system.margin, good, bad, xtol=REL_TOL * bad * 0.25, rtol=4 * EPS,
                           maxiter=60)
-            step = REL_TOL * root
+            # the root is within xtol = REL_TOL bad / 4 of brentq's: a bracket of
+            # root -+ REL_TOL root / 2 is accepted as it stands
+            step = 0.5 * REL_TOL * root
             for candidate in (root - step, root - 4 * step, root - 16 * step):
                 if good < candidate and system.preserved(candidate):
                     good = candidate
