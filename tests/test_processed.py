@@ -67,6 +67,18 @@ def test_the_region_is_the_kernels_and_the_full_map_has_its_trace():
             assert abs(mp.det(a) - 1) < mp.mpf(10) ** -45 * size ** 2
 
 
+@pytest.mark.parametrize("model", ["saddle", "saddle-p", "inverted"])
+def test_hyperbolic_models_keep_the_kernels_boundaries(model):
+    """Diagonal models: drifts and kicks are diagonal, P commutes with K. The barrier
+    (inverted) is analysed on the full map (its orientation compares eigenvectors), with
+    the kernel's trace boundaries all the same."""
+    method, _ = resolve(NAME)
+    full, kernel = find_region(method, model, 10.0), find_region(method.kernel, model, 10.0)
+    assert len(full.intervals) == len(kernel.intervals) >= 1
+    for a, b in zip(full.intervals, kernel.intervals):
+        assert a.lo == pytest.approx(b.lo, abs=1e-12) and a.hi == pytest.approx(b.hi, rel=1e-12)
+
+
 def test_stated_threshold_is_the_full_maps_at_50_digits():
     stated = load_yaml(builtin_dir() / f"{NAME}.yaml")["thresholds"]
     with mp.workdps(50):

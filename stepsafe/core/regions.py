@@ -378,7 +378,7 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     """
     check_model(model)
     zmax = _validate_zmax(zmax)
-    method = region_method(method, ELLIPTIC[model])  # processed: the kernel (see there)
+    method = region_method(method, model)  # processed: the kernel (see there)
     dz = default_resolution(method) if resolution is None else float(resolution)
     ev = _Evaluator(method, model)
     symplectic = residuals(method).symplectic_for(model)
@@ -877,7 +877,7 @@ def classical_interval(method: Method, model: str = "oscillator", zmax: float = 
     """
     check_model(model)
     zmax = _validate_zmax(zmax)
-    method = region_method(method, ELLIPTIC[model])
+    method = region_method(method, model)
     return _classical(_Evaluator(method, model), zmax, resolution)
 
 

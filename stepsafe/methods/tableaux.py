@@ -531,18 +531,20 @@ class Processed:
         return True
 
 
-def region_method(method: Any, elliptic: bool = True) -> Any:
-    """The method whose M(z) the region finder analyses: for a processed method on an
-    elliptic model (the oscillator) its kernel, whose region is the processed method's
-    (same trace, same sense of rotation, see :class:`Processed`); on a hyperbolic model
-    the full one-step map ``P^-1 K P``, since there the orientation indicator compares
-    M's eigenvectors with the flow's and conjugation by P moves them (the trace, and with
-    it every boundary of the type, is still the kernel's). The substitute carries the
-    processed method's high-precision ``exact`` (the full map, of the same trace) when it
-    has none of its own. Any other method is returned as it is."""
+def region_method(method: Any, model: str = "oscillator") -> Any:
+    """The method whose M(z) the region finder analyses: for a processed method its
+    kernel, except on the ``inverted`` model. On the oscillator the kernel's region is the
+    processed method's (same trace, same sense of rotation, see :class:`Processed`); on the
+    diagonal models (``saddle``, ``saddle-p``) every drift and kick is a diagonal matrix
+    (a symplectic Euler factor), so P commutes with K and ``P^-1 K P = K`` exactly. On the
+    ``inverted`` model the orientation indicator compares M's eigenvectors with the flow's
+    and conjugation by P moves them, so the full one-step map ``P^-1 K P`` is analysed (the
+    trace, and with it every boundary of the type, is still the kernel's). The substitute
+    carries the processed method's high-precision ``exact`` (the full map, of the same
+    trace) when it has none of its own. Any other method is returned as it is."""
     if not isinstance(method, Processed):
         return method
-    target = method.kernel_splitting if elliptic else method.per_step()
+    target = method.per_step() if model == "inverted" else method.kernel_splitting
     if target.exact is None and method.exact is not None:
         from dataclasses import replace
 

@@ -188,7 +188,16 @@ def _operations(m: MPMethod, scale=1) -> list[list]:
 
 def mp_processed_splitting(m: MPMethod) -> tuple[list, list]:
     """drift/kick lists of the one-step map ``P^-1 K P`` of a processed method: P's
-    operations, the kernel's, then P's reversed with negated coefficients."""
+    operations, the kernel's, then P's reversed with negated coefficients. The merged
+    coefficients are summed at 512 bits or more, whatever the caller's precision, so that
+    the sums stay those of the coefficients (exact for decimals read at up to 150 digits)."""
+    import mpmath as mp
+
+    with mp.workprec(max(mp.mp.prec, 512)):
+        return _processed_splitting(m)
+
+
+def _processed_splitting(m: MPMethod) -> tuple[list, list]:
     pre = _operations(m.data["processor"])
     ops = pre + _operations(m.data["kernel"]) + [[k, -c] for k, c in reversed(pre)]
     drift: list = []
