@@ -75,8 +75,11 @@ class Series(NamedTuple):
 
 def taylor_series(method: Method, model: str, terms: int = SERIES_TERMS) -> Series:
     """The :class:`Series` of M(z): ``M = I + sum_k z^(k+1) B K^k E``."""
-    if isinstance(method, Processed):  # the full one-step map P^-1 K P
-        return taylor_series(method.per_step(), model, terms)
+    if isinstance(method, Processed):  # the full one-step map P^-1 K P (the kernel's on
+        # the diagonal saddle models, where P commutes with K)
+        diagonal = model in ("saddle", "saddle-p")
+        return taylor_series(method.kernel_splitting if diagonal else method.per_step(),
+                             model, terms)
     if isinstance(method, Composition):
         flat = method.flattened()
         if isinstance(flat.base, Splitting):
