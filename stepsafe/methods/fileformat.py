@@ -21,7 +21,7 @@ name, or ``{name:, stages:}``) and either ``weights`` or ``recipe`` (``triple-ju
 methods, each a name or a path) and ``substeps``; ``processed`` (``psi = P^-1 o K o P``):
 ``kernel`` (a method name or path, ``{name:, stages:}``, or inline ``{drift:, kick:,
 symmetric:}``; a splitting or a composition of one) and ``processor`` (inline ``{drift:,
-kick:}``: P applies ``drift(y_1 h), kick(z_1 h), drift(y_2 h), ...``, sums free; or the name
+kick:}``: P applies ``drift(c_1 h), kick(d_1 h), drift(c_2 h), ...``, sums free; or the name
 of a splitting method file); ``order`` is then the processed method's order and
 ``evaluations`` the kernel's per step (P and P^-1 are counted apart). Coefficients are
 numbers or expressions (:mod:`stepsafe.files.expressions`). With ``symmetric: true`` the

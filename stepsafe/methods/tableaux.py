@@ -445,7 +445,7 @@ class Processed:
     """Processed method ``psi_h = P_h^-1 o K_h o P_h``: a kernel K and a processor P.
 
     The kernel is a splitting method (or a composition of one) and the processor a
-    drift/kick sequence ``drift(y_1 h), kick(z_1 h), ...`` whose sums need not be 1 (it
+    drift/kick sequence ``drift(c_1 h), kick(d_1 h), ...`` whose sums need not be 1 (it
     is a near-identity change of variables, not a step). Over n steps
     ``psi^n = P^-1 K^n P``: P runs once at the start, K every step, and P^-1 only when an
     output is wanted (on a copy, the run continues from ``K^n P x``). The processor's cost
