@@ -87,17 +87,34 @@ class Integrator:
     def operations(self) -> tuple[tuple[str, float], ...] | None:
         """One step of a splitting method (or a composition of one) as its sequence of
         ``("drift", a)`` (q += a h dT/dp) and ``("kick", b)`` (p -= b h dV/dq), zero
-        coefficients dropped and neighbours merged; None for Runge–Kutta methods.
+        coefficients dropped and neighbours merged; None for Runge–Kutta methods. For a
+        processed method ``P^-1 K P`` the kernel K's step (see :attr:`processor`).
 
         >>> method("verlet").operations
         (('kick', 0.5), ('drift', 1.0), ('kick', 0.5))
         """
-        from stepsafe.methods.tableaux import Composition, Splitting
+        from stepsafe.methods.tableaux import Composition, Processed, Splitting
 
         m = self.tableau
+        if isinstance(m, Processed):
+            m = m.kernel_splitting
         if isinstance(m, Composition) and isinstance(m.flattened().base, Splitting):
             m = m.as_splitting()
         return tuple(m.operations) if isinstance(m, Splitting) else None
+
+    @property
+    def processor(self) -> tuple[tuple[str, float], ...] | None:
+        """A processed method's processor P as drift/kick operations (run once before the
+        first step; ``P^-1``, the same reversed with negated coefficients, at each output);
+        None for any other method.
+
+        >>> method("bcr764").processor[-1]
+        ('kick', -0.5)
+        """
+        from stepsafe.methods.tableaux import Processed
+
+        m = self.tableau
+        return tuple(m.processor_operations) if isinstance(m, Processed) else None
 
     @property
     def partitioned_tableau(self) -> PartitionedTableau | None:
@@ -808,7 +825,10 @@ def check(method: Integrator | str | None = None, h: float | None = None,
 class ErrorTable:
     """Accuracy of one step at each z: ``phase`` (theta/z - 1 for a vibration, log(mu)/z - 1
     for a saddle or barrier) and ``energy`` (relative energy error bound, vibrations), NaN
-    where the structure is lost; ``overflow`` where M(z) leaves float64."""
+    where the structure is lost; ``overflow`` where M(z) leaves float64. A processed method
+    ``P^-1 K P`` also has ``kernel_energy``, the energy error bound of its kernel run alone
+    (its phase error is the kernel's: the processor changes the invariant ellipse, not the
+    rotation); None for other methods."""
 
     method: str
     model: str
@@ -816,13 +836,18 @@ class ErrorTable:
     phase: np.ndarray = field(repr=False)
     energy: np.ndarray = field(repr=False)
     overflow: np.ndarray = field(repr=False)
+    kernel_energy: np.ndarray | None = field(repr=False, default=None)
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe error METHOD --json`` prints."""
+        oscillator = self.model == "oscillator"
         rows = [{"z": float(zz), "phase_error": None if over else _finite(p),
-                 "energy_error": _finite(en) if self.model == "oscillator" and not over
+                 "energy_error": _finite(en) if oscillator and not over
                  else None, "overflow": bool(over)}
                 for zz, p, en, over in zip(self.z, self.phase, self.energy, self.overflow)]
+        if self.kernel_energy is not None and oscillator:
+            for row, en, over in zip(rows, self.kernel_energy, self.overflow):
+                row["kernel_energy_error"] = None if over else _finite(en)
         return {"method": self.method, "model": self.model,
                 "phase_error": "theta/z - 1" if self.model == "oscillator"
                 else "log(mu)/z - 1", "rows": rows}
@@ -844,6 +869,7 @@ def errors(method: Integrator | str, z: ArrayLike, model: str = "oscillator") ->
     '4.171e-04'
     """
     from stepsafe.core.accuracy import errors as core_errors
+    from stepsafe.core.accuracy import kernel_errors
     from stepsafe.core.transfer import transfer_matrix
 
     integrator = _integrator(method)
@@ -857,12 +883,16 @@ def errors(method: Integrator | str, z: ArrayLike, model: str = "oscillator") ->
         e = core_errors(integrator.tableau, zs, model)
         M = np.asarray(transfer_matrix(integrator.tableau, zs, model))
         size = np.abs(M).max(axis=(1, 2))
+        kernel = kernel_errors(integrator.tableau, zs, model)
     overflow = ~(np.isfinite(M).all(axis=(1, 2)) & (size <= OVERFLOW))
     phase = np.where(overflow, np.nan, np.asarray(e.phase, dtype=float))
     energy = np.where(overflow, np.nan, np.asarray(e.energy, dtype=float))
-    for arr in (zs, phase, energy, overflow):
+    kernel_energy = None if kernel is None else \
+        np.where(overflow, np.nan, np.asarray(kernel.energy, dtype=float))
+    for arr in (zs, phase, energy, overflow) + (() if kernel_energy is None
+                                                 else (kernel_energy,)):
         arr.flags.writeable = False
-    return ErrorTable(integrator.name, model, zs, phase, energy, overflow)
+    return ErrorTable(integrator.name, model, zs, phase, energy, overflow, kernel_energy)
 
 
 def _z_values(z: Any) -> np.ndarray:
@@ -916,7 +946,9 @@ class CompareRow:
     ``h_max`` the safe limit, ``h_tol`` the largest step meeting the tolerances (0: none
     does), ``h`` the step to use (``bound_by`` says which limit), ``cost`` force
     evaluations per unit of simulated time at ``h``, ``rank`` (cheapest first; None when
-    there is no cost)."""
+    there is no cost). A processed method also has ``processor_evaluations``, the forces
+    of its processor P, spent once before the first step, and as many for P^-1 at each
+    output (not in ``cost``; JSON: ``{"start": n, "per_output": n}``)."""
 
     method: str
     implicit: bool
@@ -930,6 +962,7 @@ class CompareRow:
     solver_iterations: int | None
     cost: float | None
     rank: int | None
+    processor_evaluations: int | None = None
 
 
 @dataclass(frozen=True)
@@ -952,8 +985,17 @@ class CompareReport:
                 "margin": self.margin, "time_unit": self.time_unit, "solver": self.solver,
                 "criterion": self.criterion,
                 "cost_unit": "force evaluations per unit of simulated time",
-                "methods": [{**asdict(r), "tolerance_status": list(r.tolerance_status)}
-                            for r in self.rows]}
+                "methods": [_compare_row_dict(asdict(r)) for r in self.rows]}
+
+
+def _compare_row_dict(row: dict[str, Any]) -> dict[str, Any]:
+    row["tolerance_status"] = list(row["tolerance_status"])
+    if row["processor_evaluations"] is None:
+        del row["processor_evaluations"]  # only processed methods have one
+    else:
+        n = row["processor_evaluations"]
+        row["processor_evaluations"] = {"start": n, "per_output": n}
+    return row
 
 
 def compare(methods: Sequence[Integrator | str] | str | None = None,
@@ -1004,6 +1046,8 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     ranked = []
     for i, r in enumerate(rows, 1):
         r["rank"] = i if r["cost"] is not None else None
+        if "processor_evaluations" in r:
+            r["processor_evaluations"] = r["processor_evaluations"]["start"]
         ranked.append(CompareRow(**{**r, "tolerance_status": tuple(r["tolerance_status"])}))
     return CompareReport(tuple(ranked),
                          MappingProxyType({k: int(v.size) for k, v in grid.betas.items()}),

@@ -6,6 +6,16 @@ largest step whose acceptance reaches the target (default 0.8, Stan's ``adapt_de
 the cost in gradient evaluations per proposal, per accepted proposal and per accepted unit
 of simulated time; methods are ranked by the last (at a fixed integration time it orders
 them as the cost per accepted proposal does).
+
+A processed method ``P^-1 K P`` proposes ``x -> P^-1 K^L P x``: its one-step matrix is the
+full map ``P^-1 M_K P`` (:mod:`stepsafe.core.transfer`), whose L-th power is the proposal,
+so the energy errors and acceptance of :mod:`stepsafe.core.hmc` are the processed
+trajectory's. Each proposal pays P and P^-1 once: ``2 n_P`` gradient evaluations on top of
+``L`` kernel steps (per accepted unit of time too, when L is known). The proposal is
+reversible only when the processor commutes with the momentum flip (a symmetric processor,
+Blanes, Calvo, Casas & Sanz-Serna, SIAM J. Sci. Comput. 43(5) (2021),
+arXiv:2011.04401); the method is
+flagged as not symmetric otherwise.
 """
 
 from __future__ import annotations
@@ -212,12 +222,21 @@ def _row(integrator: Integrator, betas: np.ndarray, trajectory: Any, target: flo
         cost = fixed_point_cost(m, h * top)
         return None if cost.evaluations is None else float(cost.evaluations)
 
+    # a processed method runs P and P^-1 once per trajectory
+    overhead = 2.0 * getattr(m, "processor_evaluations", 0)
+    if overhead:
+        notes.append(f"processed: P and P^-1 cost {overhead:g} gradient evaluations per "
+                     "proposal besides the kernel's steps (included in the costs when the "
+                     "trajectory is given)")
+
     def figures(h: float) -> dict[str, Any]:
         acc = core.acceptance_at(m, betas, h, trajectory)
         L = trajectory.steps_at(h)
         e = gradients(h)
         per_step = None if e is None else e
-        per_proposal = None if (L is None or e is None) else L * e
+        per_proposal = None if (L is None or e is None) else L * e + overhead
+        if per_proposal is not None and L:
+            per_step = per_proposal / L
         return {"h": h, "steps": L, "acceptance": acc.rate,
                 "approximate": acc.approximate, "expected_error": acc.expected_error,
                 "gradients_per_proposal": per_proposal,

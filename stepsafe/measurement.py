@@ -257,6 +257,7 @@ def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.
     system = problem.system
     q, p = problem.q0.copy(), problem.p0.copy()
     e0 = float(system.energy(q, p)[0])
+    q, p = engine.start(q, p, h)  # processed methods: P once (else the identity)
     scale = abs(e0 - (problem.equilibrium_energy or 0.0)) or 1.0
     stride = max(1, n // ENERGY_SAMPLES)
     times, errors = [0.0], [0.0]
@@ -269,7 +270,7 @@ def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.
                 status = "solver failed"
                 break
             if k % stride == 0 or k == n:
-                e = float(system.energy(q, p)[0])
+                e = float(system.energy(*engine.output(q, p, h))[0])
                 err = abs(e - e0) / scale
                 if not (np.all(np.isfinite(q)) and np.all(np.isfinite(p))) or not \
                         math.isfinite(err) or err > UNSTABLE:
@@ -291,8 +292,12 @@ def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.
         return MeasureRow(h, n, T, status, None, None, None, None, None, *prediction)
     t, err = np.array(times), np.array(errors)
     drift = float(np.polyfit(t, err, 1)[0]) if t.size > 2 else None
+    q, p = engine.output(q, p, h)
     state = np.concatenate([q[0], p[0]])
     traj = _trajectory_error(state, exact, problem)
+    # the processor's cost: P once and P^-1 once for the final state (the energy samples'
+    # outputs are monitoring, not part of the integration)
+    outputs = engine.output_evaluations // max(1, engine.output_calls)
     iterations = engine.iterations / n if engine.solves else None
     # the spread of the energy over the run relative to its lowest value above the
     # equilibrium (the quantity the linear bound kappa - 1 describes, whatever the start);
@@ -303,7 +308,7 @@ def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.
         low = float(err.min()) + (e0 - problem.equilibrium_energy) / scale
         spread = float(err.max() - err.min()) / low if low > 0 else None
     return MeasureRow(h, n, T, status, spread, drift, traj,
-                      engine.force_evaluations / T, iterations, *prediction,
+                      (engine.force_evaluations + outputs) / T, iterations, *prediction,
                       engine.jacobians / T if engine.jacobians else None)
 
 

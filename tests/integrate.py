@@ -2,10 +2,12 @@
 
 One step of a method on the pendulum-type problem H = p^2/2 + V(q), independent of
 stepsafe's transfer matrices: splitting methods apply their drifts and kicks, compositions
-apply the base with scaled steps, RK/PRK methods solve the nonlinear stage equations by
-fixed-point iteration. Coefficients come from :func:`stepsafe.reference.verify.mp_method` (method
-files read with the mpmath backend, decimal literals exactly), so errors far below float64
-rounding can be measured: high-order methods need that to show their order.
+apply the base with scaled steps, processed methods ``P^-1 K P`` apply the processor once,
+the kernel every step and the inverse processor at the end, RK/PRK methods solve the
+nonlinear stage equations by fixed-point iteration. Coefficients come from
+:func:`stepsafe.reference.verify.mp_method` (method files read with the mpmath backend,
+decimal literals exactly), so errors far below float64 rounding can be measured: high-order
+methods need that to show their order.
 """
 
 from __future__ import annotations
@@ -21,6 +23,10 @@ __all__ = ["MPMethod", "integrate", "mp_method", "step"]
 
 def step(m: MPMethod, q, p, h, force: Callable):
     """(q, p) after one step of size h; ``force(q) = -V'(q)``."""
+    if m.kind == "processed":  # the full one-step map P^-1 K P
+        q, p = step(m.data["processor"], q, p, h, force)
+        q, p = step(m.data["kernel"], q, p, h, force)
+        return unprocess(m, q, p, h, force)
     if m.kind == "composition":
         for g in m.data["weights"]:
             q, p = step(m.data["base"], q, p, g * h, force)
@@ -49,9 +55,24 @@ def step(m: MPMethod, q, p, h, force: Callable):
             p + h * mp.fsum(b_p[j] * F[j] for j in range(s)))
 
 
+def unprocess(m: MPMethod, q, p, h, force: Callable):
+    """``P^-1`` of a processed method: P's drifts and kicks undone in reverse order."""
+    proc = m.data["processor"].data
+    drift, kick = proc["drift"], proc["kick"]
+    for i in reversed(range(len(drift))):
+        if i < len(kick):
+            p = p - kick[i] * h * force(q)
+        q = q - drift[i] * h * p
+    return q, p
+
+
 def integrate(m: MPMethod, q0, p0, T, n: int, force: Callable):
     h = mp.mpf(T) / n
     q, p = mp.mpf(q0), mp.mpf(p0)
+    processed = m.kind == "processed"
+    if processed:  # P once, the kernel every step, P^-1 at the output
+        q, p = step(m.data["processor"], q, p, h, force)
+        m, kernel = m, m.data["kernel"]
     for _ in range(n):
-        q, p = step(m, q, p, h, force)
-    return q, p
+        q, p = step(kernel if processed else m, q, p, h, force)
+    return unprocess(m, q, p, h, force) if processed else (q, p)

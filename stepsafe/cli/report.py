@@ -197,6 +197,10 @@ def print_method(data: dict[str, Any], coefficients: dict[str, Any]) -> None:
         value = "unknown" if data[key] is None and key in ("order", "evaluations") \
             else data[key]
         table.add_row(key, _lit(value))
+    if "processor_evaluations" in data:
+        cost = data["processor_evaluations"]
+        table.add_row("processor evaluations", f"{cost['start']} once before the first step, "
+                                               f"{cost['per_output']} per output (P^-1)")
     for key, value in data["residuals"].items():
         table.add_row(f"residual: {key}", f"{value:.3g}")
     console.print(table)
@@ -388,14 +392,22 @@ def print_errors(data: dict[str, Any]) -> None:
     table = Table(title=_lit(f"{data['method']} on the {data['model']} model"))
     table.add_column("z = beta*h", overflow="fold")
     table.add_column(data["phase_error"], overflow="fold")
+    kernel = any("kernel_energy_error" in r for r in data["rows"])
     if data["model"] == "oscillator":
         table.add_column("energy error bound", overflow="fold")
+        if kernel:
+            table.add_column("kernel alone: energy", overflow="fold")
     for r in data["rows"]:
         cells = [fmt(r["z"]), _fmt_err(r["phase_error"], r.get("overflow"))]
         if data["model"] == "oscillator":
             cells.append(_fmt_err(r["energy_error"], r.get("overflow")))
+            if kernel:
+                cells.append(_fmt_err(r["kernel_energy_error"], r.get("overflow")))
         table.add_row(*cells)
     _console().print(table)
+    if kernel:
+        _console().print("processed method P^-1 K P: the phase error is the kernel's; the "
+                         "energy error is that of the outputs P^-1 K^n P x")
 
 
 def _fmt_err(x: float | None, overflow: bool = False) -> str:
@@ -423,10 +435,17 @@ def print_compare(data: dict[str, Any]) -> None:
             "-" if r["h_tol"] is None else ("unreachable" if r["h_tol"] == 0 else
                                             fmt_below(r["h_tol"], 6)),
             "-" if r["h"] is None else fmt_below(r["h"], 6), r["bound_by"],
-            "-" if r["evaluations"] is None else str(r["evaluations"]),
+            "-" if r["evaluations"] is None else str(r["evaluations"]) + (
+                " +P" if "processor_evaluations" in r else ""),
             "-" if r["cost"] is None else fmt(r["cost"], 6))
     console = _console()
     console.print(table)
+    processed = [r for r in data["methods"] if "processor_evaluations" in r]
+    for r in processed:
+        cost = r["processor_evaluations"]
+        console.print(_lit(f"+P {r['method']} (processed): {cost['start']} force evaluations "
+                           f"once before the first step and {cost['per_output']} per output "
+                           "(P^-1), not in the cost per unit time"))
     if data.get("solver", "fixed-point") == "fixed-point":
         console.print("* implicit: force evaluations of fixed-point iteration of the stages to "
                       "1e-14 at that h (iterations in --json); --solver nominal counts one per "

@@ -42,7 +42,14 @@ import numpy as np
 from stepsafe.core.models import ELLIPTIC
 from stepsafe.core.roots import EPS, refine_brackets
 from stepsafe.core.transfer import stage_operator, transfer_matrix
-from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
+from stepsafe.methods.tableaux import (
+    Composition,
+    Method,
+    PartitionedRK,
+    Processed,
+    RungeKutta,
+    Splitting,
+)
 
 SERIES_TERMS = 64
 SERIES_Z = 0.5
@@ -68,6 +75,11 @@ class Series(NamedTuple):
 
 def taylor_series(method: Method, model: str, terms: int = SERIES_TERMS) -> Series:
     """The :class:`Series` of M(z): ``M = I + sum_k z^(k+1) B K^k E``."""
+    if isinstance(method, Processed):  # the full one-step map P^-1 K P (the kernel's on
+        # the diagonal saddle models, where P commutes with K)
+        diagonal = model in ("saddle", "saddle-p")
+        return taylor_series(method.kernel_splitting if diagonal else method.per_step(),
+                             model, terms)
     if isinstance(method, Composition):
         flat = method.flattened()
         if isinstance(flat.base, Splitting):
@@ -150,8 +162,17 @@ def _horner(coef: np.ndarray, z: np.ndarray) -> np.ndarray:
 
 
 def errors(method: Method, z, model: str = "oscillator") -> Errors:
-    """Phase (or growth-rate) and energy errors at each z (see the module docstring)."""
+    """Phase (or growth-rate) and energy errors at each z (see the module docstring).
+
+    A processed method ``P^-1 K P`` has its kernel's phase (growth-rate) error, a function
+    of the trace, which conjugation keeps (taken from the kernel: fewer roundings), and the
+    energy error of its own invariant ellipse, that of the full one-step map: the states
+    it outputs, ``P^-1 K^n P x``, lie on that ellipse. :func:`kernel_errors` gives the
+    kernel's own."""
     z = np.atleast_1d(np.asarray(z, dtype=float))
+    if isinstance(method, Processed):
+        full = errors(method.per_step(), z, model)
+        return Errors(z, errors(method.kernel_splitting, z, model).phase, full.energy)
     M = transfer_matrix(method, z, model)
     a, b, c, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1]
     half_tr = 0.5 * (a + d)
@@ -183,6 +204,15 @@ def errors(method: Method, z, model: str = "oscillator") -> Errors:
             phase = np.where((sin2 < 0) & (half_tr > 0), diff / z, np.nan)
             energy = np.full(z.shape, np.nan)
     return Errors(z, phase, energy)
+
+
+def kernel_errors(method: Method, z, model: str = "oscillator") -> Errors | None:
+    """The errors of a processed method's kernel run alone (its outputs taken without
+    P^-1), None for any other method: the processor leaves the phase error as it is and
+    changes the energy error (:func:`errors`)."""
+    if not isinstance(method, Processed):
+        return None
+    return errors(method.kernel_splitting, z, model)
 
 
 class Offsets(NamedTuple):

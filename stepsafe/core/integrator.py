@@ -22,6 +22,13 @@ initial conditions of d degrees of freedom advance together. One step of size h:
 
 Force evaluations (``dH/dq``) and solver iterations are counted; a step whose iteration
 does not converge in ``max_iterations`` marks the run as failed.
+
+Processed methods ``P^-1 K P`` (:class:`~stepsafe.methods.tableaux.Processed`): the engine's
+:meth:`Engine.step` is the kernel K; :meth:`Engine.start` applies the processor P once to
+the initial state and :meth:`Engine.output` returns ``P^-1`` of the current state (on a
+copy: the run continues from the kernel's variables). ``start`` counts its forces among
+``force_evaluations``; ``output`` counts them in ``output_evaluations`` (the one-off cost
+of each output), apart from the per-step work. For other methods both are the identity.
 """
 
 from __future__ import annotations
@@ -32,7 +39,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from stepsafe.exceptions import MethodError
-from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
+from stepsafe.methods.tableaux import (
+    Composition,
+    Method,
+    PartitionedRK,
+    Processed,
+    RungeKutta,
+    Splitting,
+)
 
 Gradient = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -79,7 +93,18 @@ class Engine:
         self.iterations = 0
         self.solves = 0
         self.jacobians = 0
+        self.output_evaluations = 0
+        self.output_calls = 0
         self._cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._processor: tuple[tuple, tuple] | None = None
+        if isinstance(method, Processed):
+            if not system.separable:
+                raise ValueError("a processed method's processor is a drift/kick sequence "
+                                 "whose sums are not 1: it has no form for an H that mixes "
+                                 "q and p")
+            self._processor = (tuple(method.processor_operations),
+                               tuple(method.inverse_operations))
+            method = method.kernel
         self.pieces = _pieces(method)
         if not system.separable:  # a splitting on H(q, p) runs as its PRK form (implicit)
             try:
@@ -98,6 +123,36 @@ class Engine:
         self.force_evaluations += 1
         self._cache = (q, p, g)
         return g
+
+    def start(self, q: np.ndarray, p: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+        """The processor P applied to the initial state (the identity for other methods);
+        its forces count in ``force_evaluations``."""
+        if self._processor is None:
+            return q, p
+        return self._ops(self._processor[0], q, p, h)
+
+    def output(self, q: np.ndarray, p: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+        """``P^-1`` of the state (the identity for other methods), counted in
+        ``output_evaluations``; the kernel's reused force is left as it was."""
+        if self._processor is None:
+            return q, p
+        self.output_calls += 1
+        for op, coef in self._processor[1]:
+            if op == "drift":
+                q = q + (coef * h) * self.system.dH_dp(q, p)
+            else:
+                p = p - (coef * h) * self.system.dH_dq(q, p)
+                self.output_evaluations += 1
+        return q, p
+
+    def _ops(self, ops: tuple, q: np.ndarray, p: np.ndarray, h: float
+             ) -> tuple[np.ndarray, np.ndarray]:
+        for op, coef in ops:
+            if op == "drift":
+                q = q + (coef * h) * self.system.dH_dp(q, p)
+            else:
+                p = p - (coef * h) * self._force(q, p)
+        return q, p
 
     def step(self, q: np.ndarray, p: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
         for kind, weight, data in self.pieces:

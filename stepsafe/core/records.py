@@ -94,7 +94,20 @@ def method_data(method, entry) -> dict[str, Any]:
             **({"row_sums": res.row_sums} if res.row_sums is not None else {}),
         },
         "source": entry.source,
+        **processor_data(method),
     }
+
+
+def processor_data(method) -> dict[str, Any]:
+    """A processed method's one-off cost: ``{"processor_evaluations": {"start": n,
+    "per_output": n}}`` (P once before the first step, P^-1 for each output); {} for any
+    other method."""
+    from stepsafe.methods.tableaux import Processed
+
+    if not isinstance(method, Processed):
+        return {}
+    n = method.processor_evaluations
+    return {"processor_evaluations": {"start": n, "per_output": n}}
 
 
 def _limit(lim) -> dict[str, Any] | None:
@@ -207,6 +220,9 @@ def tradeoff_data(res) -> dict[str, Any]:
     data["evaluations"] = res.evaluations
     data["solver_iterations"] = res.iterations
     data["cost_per_unit_time"] = _num(res.cost)
+    if res.processor_evaluations is not None:
+        data["processor_evaluations"] = {"start": res.processor_evaluations,
+                                         "per_output": res.processor_evaluations}
     return data
 
 
@@ -231,6 +247,8 @@ def compare_row(res, explicit: bool) -> dict[str, Any]:
         "solver_iterations": res.iterations,
         "cost": _num(res.cost),
         "rank": None,
+        **({} if res.processor_evaluations is None else {"processor_evaluations": {
+            "start": res.processor_evaluations, "per_output": res.processor_evaluations}}),
     }
 
 
@@ -240,10 +258,16 @@ def coefficients(method) -> dict[str, Any]:
         Composition,
         Impulse,
         PartitionedRK,
+        Processed,
         RungeKutta,
         Splitting,
     )
 
+    if isinstance(method, Processed):
+        kernel = method.kernel_splitting
+        return {"kernel": {"drift": kernel.drift.tolist(), "kick": kernel.kick.tolist()},
+                "processor": {"drift": method.processor.drift.tolist(),
+                              "kick": method.processor.kick.tolist()}}
     if isinstance(method, Impulse):
         fast, slow = method.force_evaluations
         return {"outer": method.outer.name, "inner": method.inner.name,

@@ -58,7 +58,7 @@ from stepsafe.core.roots import EPS, HermiteCubic, hermite_extremum, hermite_roo
 from stepsafe.core.transfer import TOL_FACTOR, Jet, pole_locations, poles, transfer_jet
 from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.methods.residuals import residuals
-from stepsafe.methods.tableaux import Method, RungeKutta
+from stepsafe.methods.tableaux import Method, RungeKutta, region_method
 
 DEFAULT_ZMAX = 10.0
 #: Cells whose Hermite interpolant hides extrema are split this many times per level.
@@ -378,6 +378,7 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     """
     check_model(model)
     zmax = _validate_zmax(zmax)
+    method = region_method(method, model)  # processed: the kernel (see there)
     dz = default_resolution(method) if resolution is None else float(resolution)
     ev = _Evaluator(method, model)
     symplectic = residuals(method).symplectic_for(model)
@@ -876,6 +877,7 @@ def classical_interval(method: Method, model: str = "oscillator", zmax: float = 
     """
     check_model(model)
     zmax = _validate_zmax(zmax)
+    method = region_method(method, model)
     return _classical(_Evaluator(method, model), zmax, resolution)
 
 

@@ -10,6 +10,12 @@ implicit methods, by default, those of fixed-point iteration of the stage equati
 bounds h (``bound_by = "solver"``); ``solver="newton"`` counts simplified Newton's
 method (2 iterations on the test models, any h; its Jacobians are not force evaluations and
 are reported apart); ``solver="nominal"`` counts one per stage.
+
+A processed method ``P^-1 K P`` costs its kernel's evaluations per step plus a one-off
+``processor_evaluations``: P once before the first step and P^-1 for each output (each as
+many forces as P has kicks). Over a run of T with outputs every ``T_out`` it adds
+``2 n_P / T`` at most per unit time when ``T_out = T``, ``n_P / T_out`` per output otherwise;
+the cost column stays the per-step cost and the one-off part is reported beside it.
 """
 
 from __future__ import annotations
@@ -60,6 +66,8 @@ class Tradeoff(NamedTuple):
     evaluations: int | None
     cost: float | None  # evaluations per unit time at h
     iterations: int | None = None  # fixed-point iterations per step (implicit methods)
+    #: processed methods: forces of P (once) and of P^-1 (each output); None otherwise
+    processor_evaluations: int | None = None
 
 
 #: How an implicit method's cost is counted: its stages solved by fixed-point iteration or
@@ -135,4 +143,6 @@ def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (
         cost_n = newton_cost(method, h)
         evals, iterations = cost_n.evaluations, cost_n.iterations
     cost = None if (h is None or h == 0 or evals is None) else evals / h
-    return Tradeoff(adv.method, adv, tuple(limits), h, bound, evals, cost, iterations)
+    processor = getattr(method, "processor_evaluations", None)
+    return Tradeoff(adv.method, adv, tuple(limits), h, bound, evals, cost, iterations,
+                    processor)

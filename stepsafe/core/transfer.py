@@ -14,6 +14,9 @@ One place turns every method kind into ``M(z)`` (DESIGN §1):
   :meth:`Splitting.euler_factors` (diagonal: ``DK(c) = diag(1/(1-cz), 1-cz)``,
   ``KD(d) = diag(1+dz, 1/(1+dz))``).
 * composition: ``M_base(g_k z) ... M_base(g_1 z)``.
+* processed ``P^-1 K P``: the splitting of its full one-step map
+  (:meth:`~stepsafe.methods.tableaux.Processed.per_step`), similar to the kernel's M;
+  on the diagonal (saddle) models every factor is diagonal and the map is the kernel's.
 
 Everything is vectorised over an array of z. The jet carries ``dM/dz`` and, on request,
 ``d2M/dz2`` (the region finder locates extrema of ``tr M`` by Newton's method), and
@@ -29,7 +32,14 @@ from typing import NamedTuple
 import numpy as np
 
 from stepsafe.core.models import GENERATORS, KICK_SIGN, check_model
-from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
+from stepsafe.methods.tableaux import (
+    Composition,
+    Method,
+    PartitionedRK,
+    Processed,
+    RungeKutta,
+    Splitting,
+)
 
 EPS = float(np.finfo(float).eps)
 
@@ -94,6 +104,10 @@ def transfer_jet(method: Method, z, model: str = "oscillator", scale: bool = Tru
     methods pay one extra stage solve per order."""
     check_model(model)
     z = np.atleast_1d(np.asarray(z, dtype=float))
+    if isinstance(method, Processed):  # the full one-step map P^-1 K P
+        if model in ("saddle", "saddle-p"):  # diagonal factors: P commutes with K
+            return transfer_jet(method.kernel_splitting, z, model, scale, order)
+        return transfer_jet(method.per_step(), z, model, scale, order)
     if isinstance(method, Composition):
         flat = method.flattened()
         if isinstance(flat.base, Splitting):
@@ -481,6 +495,10 @@ def pole_locations(method: Method, model: str) -> tuple[np.ndarray, np.ndarray]:
     rounding. Composition: the base's poles divided by each weight.
     """
     check_model(model)
+    if isinstance(method, Processed):  # the map analysed (region_method): no poles of P's
+        from stepsafe.methods.tableaux import region_method
+
+        return pole_locations(region_method(method, model), model)
     if isinstance(method, Composition):
         flat = method.flattened()
         base, unc = pole_locations(flat.base, model)

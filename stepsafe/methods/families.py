@@ -201,8 +201,10 @@ def is_symmetric(method: Method, tol: float = 1e-12) -> bool:
     Composition: palindromic weights over a symmetric base. Impulse: symmetric outer and
     inner splittings (each outer drift is then K steps of a symmetric map).
     """
-    from stepsafe.methods.tableaux import Impulse, Splitting
+    from stepsafe.methods.tableaux import Impulse, Processed, Splitting
 
+    if isinstance(method, Processed):  # P^-1 K P: its one-step map, operation by operation
+        return is_symmetric(method.per_step(), tol)
     if isinstance(method, Impulse):
         return is_symmetric(method.outer, tol) and is_symmetric(method.inner, tol)
     if isinstance(method, Composition):

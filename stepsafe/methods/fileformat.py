@@ -4,7 +4,7 @@ A method file is a YAML mapping (read by :mod:`stepsafe.files.yamlio`, all scala
 
     name: pefrl                      # CLI name
     title: "Position-extended Forest-Ruth-like"
-    kind: splitting                  # rk | prk | splitting | composition | impulse
+    kind: splitting                  # rk | prk | splitting | composition | impulse | processed
     order: 4
     evaluations: 4                   # force evaluations per step, first-same-as-last merged
     source: "Omelyan, Mryglod, Folk, Comput. Phys. Commun. 146 (2002) 188, eq. (20)"
@@ -14,14 +14,19 @@ A method file is a YAML mapping (read by :mod:`stepsafe.files.yamlio`, all scala
     drift: [xi, "1/2 - xi"]
     kick: ["(1 - 2*lam)/2", lam]
 
-Coefficient fields by kind: ``rk``: ``A``, ``b``, optional ``c``; ``prk``: ``A_q``,
-``b_q``, ``A_p``, ``b_p``; ``splitting``: ``drift``, ``kick``; ``composition``: ``base``
-(a method name, or ``{name:, stages:}``) and either ``weights`` or ``recipe``
-(``triple-jump`` | ``suzuki``); ``impulse`` (multiple time stepping): ``outer`` and ``inner``
-(splitting methods, each a name or a path) and ``substeps``. Coefficients are numbers or expressions
-(:mod:`stepsafe.files.expressions`). With ``symmetric: true`` the listed operation sequence
-(``drift a_1, kick b_1, drift a_2, ...``, or the weights) is the first half including the
-middle operation; the rest is its mirror image.
+Coefficient fields by kind: ``rk``: ``A``, ``b``, optional ``c``; ``prk``: ``A_q``, ``b_q``,
+``A_p``, ``b_p``; ``splitting``: ``drift``, ``kick``; ``composition``: ``base`` (a method
+name, or ``{name:, stages:}``) and either ``weights`` or ``recipe`` (``triple-jump`` |
+``suzuki``); ``impulse`` (multiple time stepping): ``outer`` and ``inner`` (splitting
+methods, each a name or a path) and ``substeps``; ``processed`` (``psi = P^-1 o K o P``):
+``kernel`` (a method name or path, ``{name:, stages:}``, or inline ``{drift:, kick:,
+symmetric:}``; a splitting or a composition of one) and ``processor`` (inline ``{drift:,
+kick:}``: P applies ``drift(c_1 h), kick(d_1 h), drift(c_2 h), ...``, sums free; or the name
+of a splitting method file); ``order`` is then the processed method's order and
+``evaluations`` the kernel's per step (P and P^-1 are counted apart). Coefficients are
+numbers or expressions (:mod:`stepsafe.files.expressions`). With ``symmetric: true`` the
+listed operation sequence (``drift a_1, kick b_1, drift a_2, ...``, or the weights) is the
+first half including the middle operation; the rest is its mirror image.
 
 :data:`FIELDS` is the single description of the format: :func:`validate_tree` enforces it
 and :func:`json_schema` renders it as a JSON Schema for editors and the README.
@@ -46,7 +51,7 @@ from stepsafe.files.expressions import (
     parse,
 )
 
-KINDS = ("rk", "prk", "splitting", "composition", "impulse")
+KINDS = ("rk", "prk", "splitting", "composition", "impulse", "processed")
 MAX_STAGES = 200
 MAX_WEIGHTS = 200
 #: RK and PRK tableaux: each sample of M(z) solves a 2s x 2s stage system, so the cost grows
@@ -97,6 +102,13 @@ FIELDS: dict[str, Field] = {
                    kinds=("impulse",), required=True),
     "substeps": Field("int", "inner steps per outer drift (commands may override it)",
                       kinds=("impulse",), required=True),
+    "kernel": Field("kernel", "kernel K of psi = P^-1 K P: a method name or path, "
+                              "{name:, stages:}, or inline {drift:, kick:, symmetric:}",
+                    kinds=("processed",), required=True),
+    "processor": Field("processor", "processor P, run once before the first step (P^-1 at "
+                                    "each output): inline {drift:, kick:} (drift first, sums "
+                                    "free) or a splitting method's name",
+                       kinds=("processed",), required=True),
     "published_stability": Field("map", "a stability threshold stated by a source "
                                         "({value:, source:})"),
     "thresholds": Field("map", "harmonic-oscillator thresholds of these coefficients as "
@@ -321,6 +333,10 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
     if kind == "composition":
         base = _base_ref(base, where)
     extras: dict[str, Any] = {}
+    if kind == "processed":
+        extras = {"kernel": _sequence_or_ref(tree["kernel"], where, "kernel", scope, True),
+                  "processor": _sequence_or_ref(tree["processor"], where, "processor", scope,
+                                                False)}
     if kind == "impulse":
         from stepsafe.methods.tableaux import MAX_SUBSTEPS
 
@@ -395,6 +411,39 @@ def _check_shapes(kind: str, co: dict[str, Any], where: str, symmetric: bool) ->
                                         "or one more")
 
 
+def _sequence_or_ref(value: Any, where: str, key: str, scope: _Scope,
+                     stages_allowed: bool) -> Any:
+    """A method reference (as ``base:``), or an inline drift/kick sequence returned as
+    ``{"drift": [...], "kick": [...]}`` (mirrored when ``symmetric: true``), its entries
+    named ``key.drift[i]`` in errors."""
+    if isinstance(value, str) or (isinstance(value, dict) and "name" in value):
+        if isinstance(value, dict) and not stages_allowed:
+            raise _fail(where, key, "must be inline {drift:, kick:} or a method name")
+        return _base_ref(value, where, key)
+    if not isinstance(value, dict):
+        raise _fail(where, key, "must be a method name, or inline {drift:, kick:}")
+    allowed = ("drift", "kick", "symmetric")
+    for sub in value:
+        if sub not in allowed:
+            raise _fail(where, f"{key}.{sub}", unknown_key(sub, allowed))
+    for sub in ("drift", "kick"):
+        if sub not in value:
+            raise _fail(where, f"{key}.{sub}", "missing (an inline sequence needs drift and "
+                                               "kick)")
+    drift = _vector(value["drift"], where, f"{key}.drift", scope, MAX_STAGES)
+    kick = _vector(value["kick"], where, f"{key}.kick", scope, MAX_STAGES)
+    if len(drift) not in (len(kick), len(kick) + 1):
+        raise _fail(where, f"{key}.drift", f"has {len(drift)} entries; it needs as many as "
+                                           f"kick ({len(kick)}) or one more")
+    if "symmetric" in value and _bool(value["symmetric"], where, f"{key}.symmetric"):
+        drift, kick = _mirror_splitting(drift, kick)
+    for sub, values in (("drift", drift), ("kick", kick)):
+        if not math.isfinite(sum(abs(float(v)) for v in values)):
+            raise _fail(where, f"{key}.{sub}", "coefficients too large: their sum overflows "
+                                               "float64")
+    return {"drift": drift, "kick": kick}
+
+
 def _base_ref(base: Any, where: str, key: str = "base") -> Any:
     if isinstance(base, str) and base:
         return base
@@ -437,6 +486,23 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
                 raise
             raise StepsafeError(exc.message, f"{data.where}::$.{key}") from None
 
+    if data.kind == "processed":
+        def part(key: str, role: str):
+            ref = data.extras[key]
+            if isinstance(ref, dict) and "drift" in ref:
+                return m.Splitting(np.array(ref["drift"], dtype=float),
+                                   np.array(ref["kick"], dtype=float),
+                                   name=f"{data.name} {role}")
+            return resolved(ref, key)
+
+        processor = part("processor", "processor")
+        if not isinstance(processor, m.Splitting):
+            from stepsafe.exceptions import StepsafeError
+
+            raise StepsafeError(f"the processor must be a splitting (drift/kick) method; "
+                                f"{processor.name} is a {processor.kind} method",
+                                f"{data.where}::$.processor")
+        return m.Processed(part("kernel", "kernel"), processor, **common)
     if data.kind == "impulse":
         return m.Impulse(resolved(data.extras["outer"], "outer"),
                          resolved(data.extras["inner"], "inner"), data.extras["substeps"],
@@ -464,6 +530,11 @@ def json_schema() -> dict[str, Any]:
             "required": ["name"], "additionalProperties": False}]},
         "map": {"type": "object"},
     }
+    sequence = {"type": "object", "properties": {
+        "drift": types["vector"], "kick": types["vector"], "symmetric": {"type": "boolean"}},
+        "required": ["drift", "kick"], "additionalProperties": False}
+    types["kernel"] = {"oneOf": [*types["ref"]["oneOf"], sequence]}
+    types["processor"] = {"oneOf": [{"type": "string"}, sequence]}
     props = {}
     for key, spec in FIELDS.items():
         schema = {"enum": list(spec.choices)} if spec.type == "enum" else dict(types[spec.type])

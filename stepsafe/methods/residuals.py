@@ -62,6 +62,10 @@ class Residuals(NamedTuple):
 
 def residuals(method: Method | Impulse) -> Residuals:
     """Compute the :class:`Residuals` of ``method`` from its coefficients."""
+    from stepsafe.methods.tableaux import Processed
+
+    if isinstance(method, Processed):  # P^-1 K P: the kernel's sums, symplectic as it is
+        return residuals(method.per_step())
     if isinstance(method, Composition):
         base = residuals(method.base)
         cons = max(base.consistency, abs(float(method.weights.sum()) - 1.0))
@@ -89,6 +93,10 @@ def residuals(method: Method | Impulse) -> Residuals:
 
 def is_partitioned(method: Method) -> bool:
     """True when the method treats q and p differently (PRK, splitting, or built on one)."""
+    from stepsafe.methods.tableaux import Processed
+
+    if isinstance(method, Processed):
+        return True
     if isinstance(method, Composition):
         return is_partitioned(method.base)
     return isinstance(method, (PartitionedRK, Splitting))

@@ -6,6 +6,9 @@ kind, order, force evaluations per step, the harmonic-oscillator threshold z* = 
 :func:`~stepsafe.core.regions.find_region`), z* per evaluation (the step per force
 evaluation, the cost measure for comparing methods), the classical stability limit
 |tr M| <= 2 where it differs from z*, and the first author(s) and year of the source.
+A processed method ``P^-1 K P`` counts its kernel's evaluations per step (z* per
+evaluation uses them, z* is the kernel's); its processor's, spent once at the start and
+once per output, are listed beside them.
 ``tests/test_readme.py`` checks that the README holds exactly this text.
 """
 
@@ -64,6 +67,7 @@ def rows() -> list[dict]:
             classical = region.stability_limit
         out.append({"name": name, "kind": entry.kind, "order": entry.order,
                     "evaluations": entry.evaluations, "preserved": first is not None,
+                    "processor": getattr(method, "processor_evaluations", None),
                     "z_star": z_star, "stability": classical,
                     "source": short_source(entry.source)})
     return sorted(out, key=lambda r: (r["order"], r["name"]))
@@ -82,6 +86,9 @@ def markdown() -> str:
         evaluations = r["evaluations"]
         if r["kind"] == "rk" and r["preserved"]:
             evaluations = f"{evaluations} per stage iteration (implicit)"
+        if r.get("processor"):
+            evaluations = (f"{evaluations} per step + {r['processor']} at the start and "
+                           f"{r['processor']} per output (processor)")
         if not r["preserved"]:
             z_star, per = "never (not symplectic)", ""
         elif r["z_star"] is None:

@@ -238,7 +238,7 @@ class Splitting:
                              exact=self.exact)
 
 
-Method = Union[RungeKutta, PartitionedRK, Splitting, "Composition"]
+Method = Union[RungeKutta, PartitionedRK, Splitting, "Composition", "Processed"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -438,3 +438,115 @@ class Impulse:
     @property
     def explicit(self) -> bool:
         return True
+
+
+@dataclass(frozen=True, eq=False)
+class Processed:
+    """Processed method ``psi_h = P_h^-1 o K_h o P_h``: a kernel K and a processor P.
+
+    The kernel is a splitting method (or a composition of one) and the processor a
+    drift/kick sequence ``drift(c_1 h), kick(d_1 h), ...`` whose sums need not be 1 (it
+    is a near-identity change of variables, not a step). Over n steps
+    ``psi^n = P^-1 K^n P``: P runs once at the start, K every step, and P^-1 only when an
+    output is wanted (on a copy, the run continues from ``K^n P x``). The processor's cost
+    is therefore one-off: :attr:`processor_evaluations` forces for P and as many for
+    P^-1, apart from the kernel's ``evaluations`` per step.
+
+    Linear analysis (why the kernel alone decides the region). On a test model every map
+    is a 2x2 matrix and ``M_psi(z) = P(z)^-1 M_K(z) P(z)`` with ``det P = 1`` (drifts
+    and kicks are shears), so ``M_psi`` is similar to ``M_K``: same trace, same
+    eigenvalues, and ``M_psi^n = P^-1 M_K^n P`` is bounded exactly when ``M_K^n`` is.
+    The structure boundaries (``tr M = +-2``), poles and resonances are functions of the
+    trace, and the orientation of an elliptic matrix (the sense of rotation, the sign of
+    ``M_qp``'s side of the invariant ellipse) is unchanged by conjugation with a matrix
+    of determinant +1. Hence :func:`region_method` hands the region finder the kernel.
+    What the processor changes are the invariant ellipse (``M_psi``'s energy error, and
+    the HMC energy error ``E_1``) and, on nonlinear problems, the error constants:
+    a kernel of *effective* order r with a suitable P gives a method of order r.
+    """
+
+    kernel: Any
+    processor: Splitting
+    name: str = "processed"
+    order: int | None = None
+    evaluations: int | None = None
+    title: str = ""
+    exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
+
+    kind = "processed"
+
+    def __post_init__(self) -> None:
+        kernel = self.kernel
+        if isinstance(kernel, Composition) and isinstance(kernel.flattened().base, Splitting):
+            kernel = kernel.as_splitting()
+        if not isinstance(kernel, Splitting):
+            kind = getattr(self.kernel, "kind", type(self.kernel).__name__)
+            raise MethodError(f"{self.name}: the kernel of a processed method must be a "
+                              f"splitting (drift/kick) method or a composition of one; "
+                              f"{getattr(self.kernel, 'name', '?')} is a {kind} method")
+        if not isinstance(self.processor, Splitting):
+            raise MethodError(f"{self.name}: the processor must be a drift/kick sequence")
+        if not self.processor.operations:
+            raise MethodError(f"{self.name}: the processor has no nonzero coefficient (it "
+                              "would be the identity: give the kernel alone)")
+
+    @property
+    def kernel_splitting(self) -> Splitting:
+        """The kernel as one splitting (a composition multiplied out)."""
+        k = self.kernel
+        return k.as_splitting() if isinstance(k, Composition) else k
+
+    @property
+    def processor_operations(self) -> list[tuple[str, float]]:
+        """P as ``("drift"|"kick", coefficient)`` in the order applied."""
+        return self.processor.operations
+
+    @property
+    def inverse_operations(self) -> list[tuple[str, float]]:
+        """P^-1: P's operations in reverse order with negated coefficients (a drift or
+        kick of ``-c h`` undoes one of ``c h`` exactly)."""
+        return [(kind, -coef) for kind, coef in reversed(self.processor.operations)]
+
+    @property
+    def processor_evaluations(self) -> int:
+        """Force evaluations of P (P^-1 costs as many): its kicks."""
+        return sum(1 for kind, _ in self.processor.operations if kind == "kick")
+
+    def per_step(self) -> Splitting:
+        """The full one-step map ``P^-1 K P`` as one splitting (P's operations, the
+        kernel's, then P^-1's, adjacent ones merged). Its drift and kick sums are the
+        kernel's (P and P^-1 cancel), so it has a PRK form whenever the kernel has."""
+        ops = (self.processor_operations + self.kernel_splitting.operations
+               + self.inverse_operations)
+        return splitting_from_operations(ops, name=self.name, order=self.order,
+                                         title=self.title)
+
+    @property
+    def stages(self) -> int:
+        """The kernel's stages (the processor is not part of a step)."""
+        return self.kernel_splitting.stages
+
+    @property
+    def explicit(self) -> bool:
+        return True
+
+
+def region_method(method: Any, model: str = "oscillator") -> Any:
+    """The method whose M(z) the region finder analyses: for a processed method its
+    kernel, except on the ``inverted`` model. On the oscillator the kernel's region is the
+    processed method's (same trace, same sense of rotation, see :class:`Processed`); on the
+    diagonal models (``saddle``, ``saddle-p``) every drift and kick is a diagonal matrix
+    (a symplectic Euler factor), so P commutes with K and ``P^-1 K P = K`` exactly. On the
+    ``inverted`` model the orientation indicator compares M's eigenvectors with the flow's
+    and conjugation by P moves them, so the full one-step map ``P^-1 K P`` is analysed (the
+    trace, and with it every boundary of the type, is still the kernel's). The substitute
+    carries the processed method's high-precision ``exact`` (the full map, of the same
+    trace) when it has none of its own. Any other method is returned as it is."""
+    if not isinstance(method, Processed):
+        return method
+    target = method.per_step() if model == "inverted" else method.kernel_splitting
+    if target.exact is None and method.exact is not None:
+        from dataclasses import replace
+
+        target = replace(target, exact=method.exact)
+    return target

@@ -97,6 +97,21 @@ def mp_method(name: str, stages: int | None = None, base: str | None = None,
                     co["weights"] = _recipe_weights(data.recipe, inner.order)
                 out = MPMethod("composition", data.order, {"base": inner,
                                                            "weights": co["weights"]})
+            elif data.kind == "processed":
+                folder = Path(data.where).parent
+
+                def part(ref):
+                    if isinstance(ref, dict) and "drift" in ref:
+                        return MPMethod("splitting", None, dict(ref))
+                    ref_name = ref if isinstance(ref, str) else ref["name"]
+                    if _looks_like_path(ref_name) and not Path(ref_name).is_absolute():
+                        ref_name = str(folder / ref_name)
+                    return mp_method(ref_name, None if isinstance(ref, str)
+                                     else ref.get("stages"), dps=dps)
+
+                out = MPMethod("processed", data.order,
+                               {"kernel": part(data.extras["kernel"]),
+                                "processor": part(data.extras["processor"])})
             elif data.kind in ("rk", "prk"):
                 if data.kind == "rk":
                     co = {"A_q": co["A"], "b_q": co["b"], "A_p": co["A"], "b_p": co["b"]}
@@ -128,6 +143,9 @@ def mp_transfer(m: MPMethod) -> Callable:
     """``Mfun(z, model)``: the mpmath transfer matrix of ``m``."""
     from stepsafe.reference import highprec as reference
 
+    if m.kind == "processed":  # the full one-step map P^-1 K P (the kernel's trace)
+        drift, kick = mp_processed_splitting(m)
+        return lambda z, model: reference.transfer_matrix_splitting(drift, kick, z, model)
     if m.kind == "composition" and m.data["base"].kind == "splitting":
         # a composition of a splitting is a splitting: one pass of scalar updates (its
         # coefficients multiplied out once per working precision)
@@ -152,6 +170,53 @@ def mp_transfer(m: MPMethod) -> Callable:
         d, k = m.data["drift"], m.data["kick"]
         return lambda z, model: reference.transfer_matrix_splitting(d, k, z, model)
     return reference.prk_transfer(*(m.data[key] for key in ("A_q", "b_q", "A_p", "b_p")))
+
+
+def _operations(m: MPMethod, scale=1) -> list[list]:
+    """``[kind, coefficient]`` of a splitting or of a composition of one, in order."""
+    if m.kind == "composition":
+        return [op for g in m.data["weights"] for op in _operations(m.data["base"], g * scale)]
+    if m.kind != "splitting":
+        raise ValueError("a processed method's kernel and processor are splittings")
+    out = []
+    for i, a in enumerate(m.data["drift"]):
+        out.append(["drift", scale * a])
+        if i < len(m.data["kick"]):
+            out.append(["kick", scale * m.data["kick"][i]])
+    return out
+
+
+def mp_processed_splitting(m: MPMethod) -> tuple[list, list]:
+    """drift/kick lists of the one-step map ``P^-1 K P`` of a processed method: P's
+    operations, the kernel's, then P's reversed with negated coefficients. The merged
+    coefficients are summed at 512 bits or more, whatever the caller's precision, so that
+    the sums stay those of the coefficients (exact for decimals read at up to 150 digits)."""
+    import mpmath as mp
+
+    with mp.workprec(max(mp.mp.prec, 512)):
+        return _processed_splitting(m)
+
+
+def _processed_splitting(m: MPMethod) -> tuple[list, list]:
+    pre = _operations(m.data["processor"])
+    ops = pre + _operations(m.data["kernel"]) + [[k, -c] for k, c in reversed(pre)]
+    drift: list = []
+    kick: list = []
+    for kind, c in ops:
+        if kind == "drift":
+            if len(drift) > len(kick):
+                drift[-1] += c
+            else:
+                drift.append(c)
+        elif len(drift) == len(kick):
+            if kick:
+                kick[-1] += c
+            else:
+                drift.append(0)
+                kick.append(c)
+        else:
+            kick.append(c)
+    return drift, kick
 
 
 def _flat_splitting(weights, drift, kick) -> tuple[list, list]:

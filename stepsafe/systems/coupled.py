@@ -229,7 +229,14 @@ class _Steps:
 
 def _pieces(method: Method) -> list[tuple[str, object]]:
     """The step as Euler factors (splittings, compositions of them) or weighted PRK
-    steps (``("prk", (g, prk))``), in the order they are applied."""
+    steps (``("prk", (g, prk))``), in the order they are applied. A processed method
+    ``P^-1 K P`` is analysed as its full one-step map, a splitting with the kernel's drift
+    and kick sums, taken in its PRK form of symplectic Euler factors like every splitting
+    on an H that mixes q and p."""
+    from stepsafe.methods.tableaux import Processed
+
+    if isinstance(method, Processed):
+        method = method.per_step()
     if isinstance(method, Composition):
         flat = method.flattened()
         if isinstance(flat.base, Splitting):
