@@ -11,11 +11,14 @@ A processed method ``P^-1 K P`` proposes ``x -> P^-1 K^L P x``: its one-step mat
 full map ``P^-1 M_K P`` (:mod:`stepsafe.core.transfer`), whose L-th power is the proposal,
 so the energy errors and acceptance of :mod:`stepsafe.core.hmc` are the processed
 trajectory's. Each proposal pays P and P^-1 once: ``2 n_P`` gradient evaluations on top of
-``L`` kernel steps (per accepted unit of time too, when L is known). The proposal is
-reversible only when the processor commutes with the momentum flip (a symmetric processor,
-Blanes, Calvo, Casas & Sanz-Serna, SIAM J. Sci. Comput. 43(5) (2021),
-arXiv:2011.04401); the method is
-flagged as not symmetric otherwise.
+``L`` kernel steps (per accepted unit of time too, when L is known). With the momentum
+flip ``S`` and a palindromic kernel (``S K S = K^-1``), ``S (P^-1 K^L P) S`` is the
+inverse of the proposal only when ``S P S = P``; a drift/kick processor has
+``S P_h S = P_-h``, so the proposal is reversible only for a processor even in h, and an
+HMC chain with any other does not satisfy detailed balance (the acceptance is still as
+predicted). ``P* K^L P`` with ``P* = S P^-1 S`` (the processor's adjoint) would be
+reversible for every P; it is not the L-th power of one map and is not offered here.
+Such methods are flagged as not symmetric.
 """
 
 from __future__ import annotations
@@ -201,7 +204,11 @@ def _row(integrator: Integrator, betas: np.ndarray, trajectory: Any, target: flo
         return HmcRow(**{**empty.__dict__, "notes": (
             "not symplectic: it does not preserve volume, so HMC with it does not sample "
             "the target",)})
-    if not symmetric:
+    if not symmetric and getattr(m, "kind", "") == "processed":
+        notes.append("not reversible: with the momentum flip S, S P^-1 K^L P S is not the "
+                     "inverse of the proposal unless S P S = P, so an HMC chain with it does "
+                     "not satisfy detailed balance; the acceptance is still as predicted")
+    elif not symmetric:
         notes.append("not symmetric: the HMC chain is not reversible with it (alternate it "
                      "with its adjoint); the acceptance is still as predicted")
     z_stab = region.stability_limit if region.stability_limit is not None else region.zmax

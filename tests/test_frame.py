@@ -164,20 +164,21 @@ def test_without_a_frame_the_analysis_stays_in_the_original_coordinates(monkeypa
         assert _kept_mp(m, S, got * (1 - 1e-9))
 
 
-@pytest.mark.parametrize("seed", [0, 2])
-def test_the_ill_conditioned_kinetic_block_in_the_frame_is_exact_at_40_digits(seed):
+@pytest.mark.parametrize("seed", range(3))
+def test_the_ill_conditioned_kinetic_block_is_exact_at_40_digits(seed):
     """Frequencies over six decades (the float eigenvector scan classifies the slow modes'
-    multipliers, within 1e-8 of 1, as parabolic, so it cannot be the reference): the
-    criterion at 40 digits holds just inside h_max, and fails 2% beyond it (the rounding
-    bound, weighted by modes six decades apart, costs up to 1.3% here)."""
+    multipliers, within 1e-8 of 1, as parabolic, so it cannot be the reference): in
+    whichever coordinates the analysis chooses, the criterion at 40 digits holds inside
+    h_max, and fails 25% beyond it (the rounding bound, weighted by modes six decades
+    apart, costs up to 22% here)."""
     rng = np.random.default_rng(seed)
     S = _rotated_kinetic(rng)
     m = method("pefrl")
-    assert CoupledSystem(m, S).weight is not None
     got = coupled_safe_steps(m, S, 6.0).h_max
     assert got > 0
-    assert _kept_mp(m, S, got * (1 - 1e-9))
-    assert not _kept_mp(m, S, got * 1.02)
+    for fraction in (1e-6, 0.5, 1 - 1e-9):
+        assert _kept_mp(m, S, got * fraction)
+    assert not _kept_mp(m, S, got * 1.25)
 
 
 @settings(max_examples=12, deadline=None)
@@ -218,3 +219,16 @@ def test_gyroscopic_systems_in_the_frame_match_the_straightforward_scan(seed):
     got = coupled_safe_steps(m, S, 8.0).h_max
     want = _straightforward_h_max(m, S, 8.0)
     assert want * (1 - 1e-6) <= got <= want * (1 + 1e-8)
+
+
+def test_a_boundary_brent_cannot_converge_on_is_bisected():
+    """A nearly semidefinite 1-dof S (eigenvalues -72 and -6e-11) with strong mixing: the
+    margin is too rough for Brent's method at the boundary (no convergence in 60 steps),
+    so bisection decides; the result is kept at 40 digits (review 11)."""
+    h = float.fromhex
+    S = np.array([[h("-0x1.19a590cbad062p+6"), h("-0x1.2a80d37e047ffp+3")],
+                  [h("-0x1.2a80d37e047ffp+3"), h("-0x1.3c5e5a9b7f8e2p+0")]])
+    m = method("mclachlan4")
+    got = coupled_safe_steps(m, S, 10.0).h_max
+    assert got > 0.1
+    assert _kept_mp(m, S, got * (1 - 1e-9))

@@ -281,21 +281,12 @@ class CoupledSystem:
                 break
             except np.linalg.LinAlgError:
                 continue
-        # definite S, a method on S: masses brought to O(1) by an exact power-of-two
-        # scaling, then the diagonal frame where it is accurate (the criterion and the
-        # types are invariant under both); the margin is then weighted by diag(sign S~)
-        # instead of the Cholesky factor of sign S (which stays that of the scaled S, for
-        # the largest frequency)
-        if self.sign and steps is None:
-            scaled = equilibrated(S)
-            if scaled is not S:
-                S = scaled
-                self.chol = np.linalg.cholesky(self.sign * S)
-        frame = diagonal_frame(S) if self.sign and steps is None else None
+        frame = None
         self.weight = None
-        if frame is not None:
-            S = frame.S
-            self.weight = self.sign * np.concatenate([frame.a, frame.b])
+        if self.sign and steps is None:
+            S, self.chol, frame = _definite_coordinates(S, self.sign, method)
+            if frame is not None:
+                self.weight = self.sign * np.concatenate([frame.a, frame.b])
         self.S = S
         self.steps = steps(self.unit) if steps is not None else _Steps(method, S, frame)
         self.top = self.unit * _largest_frequency(S, self.chol if self.sign else None)
@@ -525,6 +516,57 @@ class CoupledSystem:
         return True
 
 
+def _definite_coordinates(S: np.ndarray, sign: int, method: Method
+                          ) -> tuple[np.ndarray, np.ndarray, DiagonalFrame | None]:
+    """``(S', chol, frame)``: the coordinates a definite S is analysed in. Masses brought
+    to O(1) by an exact power-of-two scaling, then the diagonal frame where its error
+    leaves the margin room (:func:`_frame_pays`); the criterion and the types are invariant
+    under both, and the margin is then weighted by ``diag(sign S~)``. Otherwise the
+    original S or its q/p-balanced scaling, whichever has the larger
+    ``lambda_min(sign S) / max |S|`` (the original coordinates' margin is weighted by the
+    Cholesky factor of ``sign S``, and its rounding bound by ``1 / lambda_min``); ``chol``
+    is the Cholesky factor of ``sign S'`` (also for the largest frequency)."""
+    scaled = equilibrated(S)
+    frame = diagonal_frame(scaled)
+    if frame is not None and _frame_pays(frame, method, sign):
+        return frame.S, np.linalg.cholesky(sign * scaled), frame
+    best, best_ratio = S, -np.inf
+    for candidate in (S, equilibrated(S, balance=True)):
+        low = float(sla.eigh(sign * candidate, eigvals_only=True, subset_by_index=[0, 0],
+                             check_finite=False)[0])
+        ratio = low / float(np.abs(candidate).max())
+        if ratio > best_ratio:
+            best, best_ratio = candidate, ratio
+    return best, np.linalg.cholesky(sign * best), None
+
+
+#: The frame's error may take at most this fraction of the margin at h -> 0.
+FRAME_SHARE = 1e-3
+
+
+def _frame_pays(frame: DiagonalFrame, method: Method, sign: int) -> bool:
+    """Whether the frame's error leaves the margin room: at h -> 0 the weighted margin is
+    ``lambda_min(W^-1/2 sign S~ W^-1/2)`` (``W = sign diag S~``) and the frame's error
+    takes about ``ROUNDING_FACTOR 2 error sqrt(2n) sum |c| / min W`` of it (each Euler
+    factor of weight c adds ``|c| h error |I + D|_F`` to the bound on Q). On a nearly
+    semidefinite S (condition 1e9 and beyond) that can be all of it, and the analysis in
+    the original coordinates, whose bound has no frame term, is kept instead."""
+    weight = sign * np.concatenate([frame.a, frame.b])
+    if not np.all(weight > 0):
+        return False
+    scale = 1.0 / np.sqrt(weight)
+    low = float(sla.eigh((sign * scale[:, None]) * frame.S * scale[None, :],
+                         eigvals_only=True, subset_by_index=[0, 0], check_finite=False)[0])
+    pieces = _pieces(method)
+    reach = sum(abs(c) for kind, item in pieces if kind == "euler" for _, c in item) \
+        if all(kind == "euler" for kind, _ in pieces) else 0.0
+    if reach == 0.0:
+        return False  # only splittings run in the frame
+    n = frame.a.size
+    cost = ROUNDING_FACTOR * 2 * frame.error * np.sqrt(2 * n) * reach / float(weight.min())
+    return bool(low > 0 and cost <= FRAME_SHARE * low)
+
+
 def _largest_frequency(S: np.ndarray, chol: np.ndarray | None) -> float:
     """``max |mu|`` over the eigenvalues of ``J S``. For definite S (``sign S = L L^T``)
     ``J S`` is similar to the antisymmetric ``K = L^T J L``, whose eigenvalues ``+-i w`` have
@@ -704,8 +746,8 @@ def _boundary(system: CoupledSystem, good: float, bad: float,
                     break
             if system.preserved(min(bad, root + step)) is False:
                 bad = min(bad, root + step)
-        except ValueError:
-            pass
+        except (ValueError, RuntimeError):
+            pass  # no sign change seen, or no convergence: bisection below decides
     while bad - good > REL_TOL * bad:
         mid = 0.5 * (good + bad)
         if system.preserved(mid) and (order is None or system.krein_order(mid) == order):

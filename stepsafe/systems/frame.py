@@ -96,19 +96,24 @@ def diagonal_frame(S: np.ndarray) -> DiagonalFrame | None:
     return DiagonalFrame(a, b, C, error, R)
 
 
-def equilibrated(S: np.ndarray) -> np.ndarray:
-    """``T^T S T`` for ``T = diag(d, 1/d)`` with ``d_i`` the power of two nearest
-    ``|S_pp[i, i]|^(1/2)`` (so that ``S_pp`` has a diagonal of order 1): a symplectic point
-    transformation (masses over decades brought to O(1)) that floating point applies exactly,
-    so the result is the same system in other units of each coordinate, with no rounding.
-    S itself where a diagonal entry of ``S_pp`` is 0 or the scaled matrix would leave the
-    float range."""
+def equilibrated(S: np.ndarray, balance: bool = False) -> np.ndarray:
+    """``T^T S T`` for ``T = diag(d, 1/d)`` with ``d_i`` a power of two: nearest
+    ``|S_pp[i, i]|^(1/2)`` (so that ``S_pp`` has a diagonal of order 1), or with ``balance``
+    nearest ``|S_pp[i, i] / S_qq[i, i]|^(1/4)`` (so that each coordinate's two diagonal
+    entries agree). A symplectic point transformation (masses over decades brought to
+    O(1)) that floating point applies exactly, so the result is the same system in other
+    units of each coordinate, with no rounding. S itself where a diagonal entry needed is 0
+    or the scaled matrix would leave the float range."""
     n = S.shape[0] // 2
     kinetic = np.abs(np.diagonal(S)[n:])
-    if n == 0 or not np.all(kinetic > 0):
+    potential = np.abs(np.diagonal(S)[:n])
+    if n == 0 or not np.all(kinetic > 0) or (balance and not np.all(potential > 0)):
         return S
-    exponent = np.round(0.5 * np.log2(kinetic))
-    d = np.ldexp(1.0, exponent.astype(int))
+    with np.errstate(over="ignore"):
+        target = 0.25 * np.log2(kinetic / potential) if balance else 0.5 * np.log2(kinetic)
+    if not np.all(np.isfinite(target)):
+        return S
+    d = np.ldexp(1.0, np.round(target).astype(int))
     scale = np.concatenate([d, 1.0 / d])
     with np.errstate(over="ignore", under="ignore"):
         # one multiplication by a power of two per entry: exact unless it leaves the
