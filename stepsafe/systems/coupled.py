@@ -717,6 +717,19 @@ def _first_failure(system: CoupledSystem, lo: float, h: float, before: float | N
     return None
 
 
+def _tightest(system: CoupledSystem, good: float, bad: float) -> tuple[float, float]:
+    """The narrowest ``(good, bad)`` among the steps already evaluated: the last preserved
+    one inside and the first not preserved after it (no new one-step matrix)."""
+    inside = sorted(h for h in system._cache if good < h < bad)
+    for h in inside:
+        if system.margin(h) > 0 and system.preserved(h):
+            good = h
+    for h in inside:
+        if h > good and not system.preserved(h):
+            return good, h
+    return good, bad
+
+
 def _boundary(system: CoupledSystem, good: float, bad: float,
               order: tuple[int, ...] | None = None) -> float:
     """The last preserved h of ``(good, bad)``, to ``REL_TOL``: Brent on phi (definite S),
@@ -737,14 +750,18 @@ def _boundary(system: CoupledSystem, good: float, bad: float,
         try:
             root = brentq(system.margin, good, bad, xtol=REL_TOL * bad * 0.25, rtol=4 * EPS,
                           maxiter=60)
-            # the root is within xtol = REL_TOL bad / 4 of brentq's: a bracket of
-            # root -+ REL_TOL root / 2 is accepted as it stands
+            # Brent's own last samples usually bracket the root to REL_TOL already (the
+            # margin changes sign once between good and bad, as Brent assumes)
+            good, bad = _tightest(system, good, bad)
+            # otherwise: the root is within xtol = REL_TOL bad / 4 of brentq's, and a
+            # bracket of root -+ REL_TOL root / 2 is accepted as it stands
             step = 0.5 * REL_TOL * root
-            for candidate in (root - step, root - 4 * step, root - 16 * step):
-                if good < candidate and system.preserved(candidate):
-                    good = candidate
-                    break
-            if system.preserved(min(bad, root + step)) is False:
+            if bad - good > REL_TOL * bad:
+                for candidate in (root - step, root - 4 * step, root - 16 * step):
+                    if good < candidate and system.preserved(candidate):
+                        good = candidate
+                        break
+            if bad - good > REL_TOL * bad and system.preserved(min(bad, root + step)) is False:
                 bad = min(bad, root + step)
         except (ValueError, RuntimeError):
             pass  # no sign change seen, or no convergence: bisection below decides
