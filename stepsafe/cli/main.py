@@ -222,6 +222,16 @@ def criterion_option(default: str = "structure"):
              "2.98). Where the other criterion gives other safe steps, both are printed.")
 
 
+def gradient_cost_option(func):
+    """``--gradient-cost``: force evaluations one force-gradient term costs."""
+    return click.option(
+        "--gradient-cost", type=FLOAT, default=1.0, show_default=True, metavar="R",
+        help="Force-gradient methods: the cost of one force-gradient term (a Hessian-vector "
+             "product) in force evaluations; a step costs its forces plus R per term. 1: "
+             "reverse-mode AD forms V''(q) v at about the cost of one more gradient "
+             "(Hessian-free methods count their displaced force as a force).")(func)
+
+
 def method_options(func=None, *, required: bool = True):
     """METHOD argument with -s/--stages and --base (``required=False``: METHOD may be
     omitted, for commands with another mode)."""
@@ -534,10 +544,11 @@ def _input_error(message: str):
               help="With --tol-*: how implicit methods' evaluations per step are counted "
                    "(fixed-point iteration of the stages, which also caps h below its "
                    "convergence limit; simplified Newton; or one per stage).")
+@gradient_cost_option
 @criterion_option()
 @scene_options
 def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, criterion,
-               scene_files, as_json, verify, **options) -> None:
+               scene_files, as_json, verify, gradient_cost, **options) -> None:
     """Safe step sizes h for your frequencies.
 
     Safe h keep every mode's structure: beta*h lies in the method's region for that mode's
@@ -576,7 +587,7 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, crite
     problem = _problem(scene_files[0] if scene_files else None, options, not as_json)
     data = api.advise(problem=problem, tol_phase=tol_phase, tol_energy=tol_energy,
                       resonance_order=resonance_order, criterion=criterion, solver=solver,
-                      verify=verify).to_dict()
+                      verify=verify, gradient_cost=gradient_cost).to_dict()
     verdict = data.get("verify")
     _decide([verdict])
     print_json(data) if as_json else print_advice(data)

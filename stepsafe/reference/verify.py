@@ -128,7 +128,8 @@ def mp_transfer(m: MPMethod) -> Callable:
     """``Mfun(z, model)``: the mpmath transfer matrix of ``m``."""
     from stepsafe.reference import highprec as reference
 
-    if m.kind == "composition" and m.data["base"].kind == "splitting":
+    if m.kind == "composition" and m.data["base"].kind == "splitting" \
+            and "gradient" not in m.data["base"].data:
         # a composition of a splitting is a splitting: one pass of scalar updates (its
         # coefficients multiplied out once per working precision)
         from mpmath import mp
@@ -149,8 +150,8 @@ def mp_transfer(m: MPMethod) -> Callable:
         return lambda z, model: reference.transfer_matrix_composition(
             lambda x: inner(x, model), weights, z)
     if m.kind == "splitting":
-        d, k = m.data["drift"], m.data["kick"]
-        return lambda z, model: reference.transfer_matrix_splitting(d, k, z, model)
+        d, k, g = m.data["drift"], m.data["kick"], m.data.get("gradient")
+        return lambda z, model: reference.transfer_matrix_splitting(d, k, z, model, g)
     return reference.prk_transfer(*(m.data[key] for key in ("A_q", "b_q", "A_p", "b_p")))
 
 
