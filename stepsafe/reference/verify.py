@@ -102,6 +102,8 @@ def mp_method(name: str, stages: int | None = None, base: str | None = None,
                     co = {"A_q": co["A"], "b_q": co["b"], "A_p": co["A"], "b_p": co["b"]}
                 out = MPMethod("prk", data.order, co)
             else:
+                if "gradient" in co:  # how integrations evaluate the force-gradient kick
+                    co["displaced"] = data.extras.get("gradient_form") == "displaced-force"
                 out = MPMethod("splitting", data.order, co)
         if base is not None:
             if out.kind != "composition":
