@@ -996,7 +996,9 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     """Rank ``methods`` (names, ``"family:N"`` such as ``"gauss:2"``, Integrators; ``"all"``:
     every built-in method with the families at s = 2 and 3; None: :data:`COMPARE_DEFAULT`)
     by the cost of the usable step h = min(safe, accurate) for the same frequencies
-    (given as for :func:`problem`; h in ``time_unit``). Implicit methods cost the force
+    (given as for :func:`problem`; h in ``time_unit``; ``"all"`` leaves out the methods
+    with no form for a given model: force-gradient methods on saddles). Implicit methods
+    cost the force
     evaluations of fixed-point iteration of their stages at that h (``solver="nominal"``:
     one per stage), and h stays below 0.9 of that iteration's convergence limit. The safe
     step follows ``criterion`` (see :func:`advise`). A force-gradient method costs its
@@ -1023,8 +1025,14 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     margin = validate_margin(margin)
     if zmax is not None:
         zmax = positive_finite(zmax, "zmax")
+    from stepsafe.core.transfer import has_form
+
     rows = []
-    for integrator in _compared(methods):
+    compared = _compared(methods)
+    if isinstance(methods, str) and methods == "all":  # every method that applies to the modes
+        compared = [i for i in compared if all(has_form(i.tableau, model)
+                                               for model in grid.betas)]
+    for integrator in compared:
         with integrator.naming_its_file():
             res = tradeoff(integrator.tableau, grid, tolerances, margin, integrator.name,
                            _step_cost(integrator, gradient_cost), zmax, solver=_solver(solver),

@@ -176,3 +176,49 @@ def test_n_dof_limit_is_the_fastest_mode():
         M = one_step_matrix(resolve("chin-4a")[0], S, h)
         assert (np.abs(np.linalg.eigvals(M)).max() < 1 + 1e-9) == stable
         assert (_growth("chin-4a", S, h, 3000) < 1e3) == stable
+
+
+def test_gradient_cost_changes_the_ranking_and_bad_values_are_refused():
+    import stepsafe
+    from stepsafe.exceptions import StepsafeError
+
+    def order(cost):
+        rows = stepsafe.compare(["chin-4b", "pefrl"], [1.0], tol_phase=1e-8,
+                                gradient_cost=cost).rows
+        return [r.method for r in rows]
+
+    assert order(1.0) == ["chin-4b", "pefrl"]  # 2 forces + 2 gradients at 1 force each
+    assert order(2.0) == ["pefrl", "chin-4b"]
+    for bad in (-1.0, float("nan"), "x"):
+        with pytest.raises(StepsafeError, match="gradient cost"):
+            stepsafe.compare(["chin-4b"], [1.0], tol_phase=1e-8, gradient_cost=bad)
+
+
+@pytest.mark.parametrize("text, where", [
+    ("gradient: [0]\n", "$.gradient: has 1 entries; it needs one per kick (2)"),
+    ("gradient_form: displaced-force\n", "$.gradient_form: applies only"),
+    ('gradient: ["1/72", 0]\ngradient_form: displaced-force\n', "$.gradient[0]"),
+])
+def test_bad_gradient_keys_name_the_key(tmp_path, text, where):
+    from stepsafe.exceptions import StepsafeError
+    from stepsafe.methods.library import load_file
+
+    path = tmp_path / "fg.yaml"
+    path.write_text('name: fg\nkind: splitting\norder: 2\nsource: "test"\n'
+                    'drift: [0, 1]\nkick: [0, 1]\n' + text)
+    with pytest.raises(StepsafeError) as info:
+        load_file(path)
+    assert where in f"{info.value.where}: {info.value.message}"
+
+
+def test_impulse_and_non_separable_systems_refuse_force_gradient_methods():
+    from stepsafe.core.integrator import System
+    from stepsafe.methods.tableaux import Impulse
+
+    fg = resolve("chin-4a")[0]
+    with pytest.raises(MethodError, match="force-gradient"):
+        Impulse(fg, resolve("verlet")[0], 2)
+    mixed = System(dH_dq=lambda q, p: p, dH_dp=lambda q, p: q, energy=lambda q, p: q[:, 0],
+                   separable=False, dimension=1)
+    with pytest.raises(ValueError, match="separable"):
+        Engine(fg, mixed)

@@ -87,6 +87,18 @@ def _jet(D, dM, d2M, sens=None) -> Jet:
     return Jet(D, dM, d2M, dev, scale, sens, dev + 4.0, scale + 4.0)
 
 
+def has_form(method: Method, model: str) -> bool:
+    """Whether ``method`` has a transfer matrix on ``model``: a force-gradient splitting
+    (or a composition of one) needs ``T(p) + V(q)`` with quadratic T, so it has none on
+    the saddles (``H = +-beta p q``)."""
+    check_model(model)
+    if model not in ("saddle", "saddle-p"):
+        return True
+    if isinstance(method, Composition):
+        method = method.flattened().base
+    return not (isinstance(method, Splitting) and method.force_gradient)
+
+
 def transfer_matrix(method: Method, z, model: str = "oscillator") -> np.ndarray:
     """``M(z)`` for every z in ``z`` (array of shape (n, 2, 2); NaN where no unique step)."""
     return transfer_jet(method, z, model, scale=False, order=0).M
