@@ -278,6 +278,7 @@ def methods_cmd(as_json: bool, tsv: bool) -> None:
     from stepsafe.cli.report import print_json, print_methods, print_tsv
     from stepsafe.methods.library import FAMILIES, builtin_names, resolve
     from stepsafe.methods.residuals import residuals
+    from stepsafe.methods.tableaux import gradient_evaluations
 
     rows = []
     for name in builtin_names():
@@ -286,20 +287,25 @@ def methods_cmd(as_json: bool, tsv: bool) -> None:
             order = "2s" if name == "gauss" else "2s-2"
             rows.append({"name": f"{name} -s N", "kind": "rk" if name == "gauss" else "prk",
                          "order": order, "stages": f"N>={smallest}",
-                         "evaluations": "implicit", "symplectic": True, "title": title,
-                         "aliases": []})
+                         "evaluations": "implicit", "force_gradients": 0, "symplectic": True,
+                         "title": title, "aliases": []})
             continue
         method, entry = resolve(name)
         rows.append({"name": name, "kind": method.kind, "order": method.order,
                      "stages": method.stages, "evaluations": entry.evaluations,
+                     # force-gradient terms per step, besides the forces
+                     "force_gradients": gradient_evaluations(method),
                      "symplectic": residuals(method).symplectic, "title": entry.title,
                      "aliases": list(entry.aliases)})
     if as_json:
         print_json(rows)
     elif tsv:
-        print_tsv(("name", "kind", "order", "stages", "evaluations", "symplectic", "title",
-                   "aliases"), rows)
+        print_tsv(("name", "kind", "order", "stages", "evaluations", "force_gradients",
+                   "symplectic", "title", "aliases"), rows)
     else:
+        for row in rows:  # the table shows "forces + force gradients"
+            if row["force_gradients"] and row["evaluations"] is not None:
+                row["evaluations"] = f"{row['evaluations']} + {row['force_gradients']} FG"
         print_methods(rows)
 
 
