@@ -75,6 +75,19 @@ class Integrator:
     tableau: Any = field(repr=False, compare=False)
     entry: Any = field(repr=False, compare=False)
     reference: tuple[str, int | None, str | None] = field(repr=False, default=("", None, None))
+    #: force-gradient terms (Hessian-vector products) per step, besides ``evaluations``
+    gradient_evaluations: int = 0
+
+    def cost_per_step(self, gradient_cost: float = 1.0) -> float | int | None:
+        """Work per step in force evaluations: ``evaluations + gradient_cost *
+        gradient_evaluations`` (see :data:`stepsafe.methods.tableaux.GRADIENT_COST`); the
+        plain ``evaluations`` for methods without force-gradient terms."""
+        if self.evaluations is None or not self.gradient_evaluations:
+            return self.evaluations
+        from stepsafe.methods.tableaux import validate_gradient_cost
+
+        return self.evaluations + validate_gradient_cost(gradient_cost) * \
+            self.gradient_evaluations
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe show METHOD --json`` prints."""
@@ -180,13 +193,14 @@ def method(name: str, stages: int | None = None, base: str | None = None) -> Int
     4
     """
     from stepsafe.methods.library import resolve
+    from stepsafe.methods.tableaux import gradient_evaluations
 
     name, base = _text(name, "method"), _text(base, "base", optional=True)
     stages = _stage_count(stages)
     tableau, entry = resolve(name, stages, base)
     return Integrator(entry.name, tableau.kind, entry.title, tableau.order, tableau.stages,
                       entry.evaluations, entry.source, bool(tableau.explicit), tableau, entry,
-                      (name, stages, base))
+                      (name, stages, base), gradient_evaluations(tableau))
 
 
 def method_from_file(path: str | Path, base: str | None = None) -> Integrator:
@@ -573,8 +587,8 @@ class AdviceReport:
 def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None = None, *,
            tol_phase: float | None = None, tol_energy: float | None = None,
            resonance_order: int | None = None, solver: str = "fixed-point",
-           criterion: str = "structure", verify: bool = False, **inputs: Any
-           ) -> AdviceReport:
+           criterion: str = "structure", verify: bool = False, gradient_cost: float = 1.0,
+           **inputs: Any) -> AdviceReport:
     """Safe step sizes for a method and frequencies (or a scene, or a system): see
     :func:`problem` for the inputs (``saddle``, ``inverted``, ``modes``, ``system``,
     ``scene``, ``stages``, ``base``, ``margin``, ``zmax``, ``budget``, ``progress``).
@@ -587,6 +601,8 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
     ``record["nonlinear_resonances"]`` either way. ``criterion``: ``structure`` (type and
     orientation) or ``stability`` (type only: ``|tr M| <= 2`` for vibrations); where the
     other criterion gives another ``h_max``, ``record["other_criterion"]`` holds it.
+    ``gradient_cost``: force evaluations one force-gradient term costs (force-gradient
+    methods; see :data:`stepsafe.methods.tableaux.GRADIENT_COST`).
 
     >>> report = advise("yoshida4", [3.2], inverted=[1.1])
     >>> report.h_max_limited_by, f"{report.h_max:.6f}"
@@ -619,7 +635,8 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
             tols = tuple(Tolerance(k, _tolerance(k, v)) for k, v in
                          (("phase", tol_phase), ("energy", tol_energy)) if v is not None)
             res = tradeoff(integrator.tableau, p.modes, tols, p.margin, integrator.name,
-                           integrator.evaluations, p.zmax, _order(resonance_order),
+                           _step_cost(integrator, gradient_cost), p.zmax,
+                           _order(resonance_order),
                            _solver(solver), criterion)
             result = res.advice
             data = tradeoff_data(res)
@@ -933,6 +950,17 @@ def transfer_matrices(method: Integrator | str, z: ArrayLike,
     return M
 
 
+def _step_cost(integrator: Integrator, gradient_cost: float) -> float | int | None:
+    """:meth:`Integrator.cost_per_step`, a bad ``gradient_cost`` as a StepsafeError."""
+    from stepsafe.methods.tableaux import validate_gradient_cost
+
+    try:
+        validate_gradient_cost(gradient_cost)
+    except StepsafeError as exc:
+        raise StepsafeError(exc.message) from None
+    return integrator.cost_per_step(gradient_cost)
+
+
 # --------------------------------------------------------------------------- compare
 
 #: What ``compare`` ranks when no methods are named.
@@ -1005,14 +1033,18 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
             margin: float = 1.0, zmax: float | None = None,
             frequency: UnitValues | None = None, wavenumber: UnitValues | None = None,
             period: UnitValues | None = None, time_unit: str | None = None,
-            solver: str = "fixed-point", criterion: str = "structure") -> CompareReport:
+            solver: str = "fixed-point", criterion: str = "structure",
+            gradient_cost: float = 1.0) -> CompareReport:
     """Rank ``methods`` (names, ``"family:N"`` such as ``"gauss:2"``, Integrators; ``"all"``:
     every built-in method with the families at s = 2 and 3; None: :data:`COMPARE_DEFAULT`)
     by the cost of the usable step h = min(safe, accurate) for the same frequencies
-    (given as for :func:`problem`; h in ``time_unit``). Implicit methods cost the force
+    (given as for :func:`problem`; h in ``time_unit``; ``"all"`` leaves out the methods
+    with no form for a given model: force-gradient methods on saddles). Implicit methods
+    cost the force
     evaluations of fixed-point iteration of their stages at that h (``solver="nominal"``:
     one per stage), and h stays below 0.9 of that iteration's convergence limit. The safe
-    step follows ``criterion`` (see :func:`advise`).
+    step follows ``criterion`` (see :func:`advise`). A force-gradient method costs its
+    forces plus ``gradient_cost`` forces per force-gradient term.
 
     >>> best = compare(["verlet", "pefrl"], [1.0], tol_phase=1e-6).rows[0]
     >>> best.method, best.bound_by
@@ -1035,11 +1067,17 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     margin = validate_margin(margin)
     if zmax is not None:
         zmax = positive_finite(zmax, "zmax")
+    from stepsafe.core.transfer import has_form
+
     rows = []
-    for integrator in _compared(methods):
+    compared = _compared(methods)
+    if isinstance(methods, str) and methods == "all":  # every method that applies to the modes
+        compared = [i for i in compared if all(has_form(i.tableau, model)
+                                               for model in grid.betas)]
+    for integrator in compared:
         with integrator.naming_its_file():
             res = tradeoff(integrator.tableau, grid, tolerances, margin, integrator.name,
-                           integrator.evaluations, zmax, solver=_solver(solver),
+                           _step_cost(integrator, gradient_cost), zmax, solver=_solver(solver),
                            criterion=criterion)
         rows.append(compare_row(res, integrator.explicit))
     rows.sort(key=lambda r: (r["cost"] is None, r["cost"] or 0.0))

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from stepsafe.api import ArrayLike, Integrator, _compared, problem
+from stepsafe.api import ArrayLike, Integrator, _compared, _step_cost, problem
 from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.systems.loader import DENSE_LIMIT
 
@@ -130,7 +130,7 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
         frequencies: ArrayLike | None = None, *, steps: int | None = None,
         length: float | None = None, jitter: float = 0.0, target_accept: float = 0.8,
         step: float | None = None, criterion: str = "stability", curve: int = 0,
-        **inputs: Any) -> HmcReport:
+        gradient_cost: float = 1.0, **inputs: Any) -> HmcReport:
     """HMC on a Gaussian target with each of ``methods`` (names, ``"all"``, or None for
     :data:`HMC_DEFAULT`). The target is given as for :func:`stepsafe.problem`: ``sigma``
     (standard deviations), ``frequencies`` (beta = 1/sigma for unit mass), a scene, or
@@ -144,7 +144,8 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
     evaluates that h. ``criterion`` bounds the search for h
     (``stability``: |tr M| <= 2, the default here; ``structure``: type and orientation).
     ``curve`` N adds the predicted acceptance at N steps up to that limit to each row;
-    ``progress`` is called with the fraction of methods done.
+    ``progress`` is called with the fraction of methods done. A force-gradient method's
+    step costs its forces plus ``gradient_cost`` gradients per force-gradient term.
 
     >>> rows = hmc(["verlet", "bcss2"], sigma=list(np.linspace(0.5, 1.0, 20)), length=5.0).rows
     >>> [(r.method, r.rank) for r in rows]   # bcss2 costs fewer gradients per accepted time
@@ -154,6 +155,9 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
     from stepsafe.core.regions import validate_criterion
 
     target, steps, length, jitter = _validated(target_accept, steps, length, jitter)
+    from stepsafe.methods.tableaux import validate_gradient_cost
+
+    validate_gradient_cost(gradient_cost)  # a bad value fails before any work
     criterion = validate_criterion(criterion)
     if step is not None:
         step = positive_finite(step, "step")
@@ -166,7 +170,8 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
     trajectory = Trajectory(steps, length, jitter)
     rows = []
     for k, integrator in enumerate(integrators):
-        rows.append(_row(integrator, betas, trajectory, target, step, criterion, p.zmax, curve))
+        rows.append(_row(integrator, betas, trajectory, target, step, criterion, p.zmax, curve,
+                         gradient_cost))
         if progress is not None:
             progress((k + 1) / len(integrators))
     ranked = sorted(rows, key=lambda r: (r.gradients_per_time is None,
@@ -185,7 +190,8 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
 
 
 def _row(integrator: Integrator, betas: np.ndarray, trajectory: Any, target: float,
-         step: float | None, criterion: str, zmax: float, curve: int = 0) -> HmcRow:
+         step: float | None, criterion: str, zmax: float, curve: int = 0,
+         gradient_cost: float = 1.0) -> HmcRow:
     from stepsafe.core import hmc as core
     from stepsafe.core.regions import find_region, under_criterion
     from stepsafe.core.solver import fixed_point_cost, step_limit
@@ -225,7 +231,8 @@ def _row(integrator: Integrator, betas: np.ndarray, trajectory: Any, target: flo
 
     def gradients(h: float) -> float | None:
         if integrator.explicit:
-            return None if integrator.evaluations is None else float(integrator.evaluations)
+            per_step = _step_cost(integrator, gradient_cost)
+            return None if per_step is None else float(per_step)
         cost = fixed_point_cost(m, h * top)
         return None if cost.evaluations is None else float(cost.evaluations)
 

@@ -81,6 +81,8 @@ class MeasureRow:
     #: Hessian evaluations (and stage-matrix factorisations) per unit time: simplified
     #: Newton's method takes one per implicit step, on top of the force evaluations
     jacobians_per_time: float | None = None
+    #: force-gradient terms (Hessian-vector products) per unit time, on top of the forces
+    gradients_per_time: float | None = None
 
     @property
     def energy_ratio(self) -> float | None:
@@ -104,7 +106,8 @@ class MeasureRow:
                 "predicted_energy_error": self.predicted_energy_error,
                 "predicted_trajectory_error": self.predicted_trajectory_error,
                 "energy_ratio": self.energy_ratio, "trajectory_ratio": self.trajectory_ratio,
-                "jacobians_per_time": self.jacobians_per_time}
+                "jacobians_per_time": self.jacobians_per_time,
+                "gradients_per_time": self.gradients_per_time}
 
 
 @dataclass(frozen=True)
@@ -309,7 +312,8 @@ def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.
         spread = float(err.max() - err.min()) / low if low > 0 else None
     return MeasureRow(h, n, T, status, spread, drift, traj,
                       (engine.force_evaluations + outputs) / T, iterations, *prediction,
-                      engine.jacobians / T if engine.jacobians else None)
+                      engine.jacobians / T if engine.jacobians else None,
+                      engine.gradient_evaluations / T if engine.gradient_evaluations else None)
 
 
 def _trajectory_error(state: np.ndarray, exact: np.ndarray, problem: _Problem) -> float:

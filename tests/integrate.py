@@ -33,10 +33,17 @@ def step(m: MPMethod, q, p, h, force: Callable):
         return q, p
     if m.kind == "splitting":
         drift, kick = m.data["drift"], m.data["kick"]
+        gradient = m.data.get("gradient") or [0] * len(kick)
         for i, a in enumerate(drift):
             q = q + a * h * p
-            if i < len(kick):
-                p = p + kick[i] * h * force(q)
+            if i < len(kick) and gradient[i] and m.data.get("displaced"):
+                # Hessian-free: the force at q + (2 c h^2 / b) F(q) (unit mass)
+                shifted = q + 2 * gradient[i] * h ** 2 / kick[i] * force(q)
+                p = p + kick[i] * h * force(shifted)
+            elif i < len(kick):
+                # force-gradient kick: p += b h F + c h^3 d/dq (F^2), F^2' = 2 F F'
+                fg = 2 * force(q) * mp.diff(force, q) if gradient[i] else 0
+                p = p + kick[i] * h * force(q) + gradient[i] * h ** 3 * fg
         return q, p
     A_q, b_q, A_p, b_p = (m.data[k] for k in ("A_q", "b_q", "A_p", "b_p"))
     s = len(b_q)

@@ -14,6 +14,8 @@ from support import method
 from stepsafe.core.advice import Modes, advise, check_step
 from stepsafe.core.models import MODELS
 from stepsafe.core.regions import find_region
+from stepsafe.core.transfer import has_form
+from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.library import builtin_names
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -25,6 +27,10 @@ BETA_SETS = [(1.0,), (3.2, 0.7, 0.01), (2.0, 2.0, 1e-3)]
 def test_advise_agrees_with_region(name):
     m = method(name)
     for model in MODELS:
+        if not has_form(m, model):  # force-gradient methods: no saddle form
+            with pytest.raises(StepsafeError, match="force-gradient"):
+                advise(m, Modes.from_arrays({model: np.array([1.0])}))
+            continue
         region = find_region(m, model)
         for betas in BETA_SETS:
             adv = advise(m, Modes.from_arrays({model: np.array(betas)}))

@@ -19,7 +19,7 @@ from support import method
 
 from stepsafe.core.models import MODELS
 from stepsafe.core.regions import find_region
-from stepsafe.core.transfer import transfer_jet
+from stepsafe.core.transfer import has_form, transfer_jet
 from stepsafe.methods.library import builtin_names
 from stepsafe.reference import highprec as mpref
 from stepsafe.reference.verify import check_point
@@ -51,6 +51,8 @@ def _dense_crossings(m, model, zmax, poles):
 def _cross_check(m, Mfun, zmax: float = 10.0, most: int = 4):
     """At most ``most`` points per model (the smallest z) at 50 digits, all by sampling."""
     for model in MODELS:
+        if not has_form(m, model):  # force-gradient methods: no saddle form
+            continue
         region = find_region(m, model, zmax)
         with mp.workdps(DPS):
             for p in sorted(_points(region), key=lambda p: p.z)[:most]:

@@ -15,6 +15,7 @@ from stepsafe.cli.main import (
     command_line_modes,
     criterion_option,
     frequency_options,
+    gradient_cost_option,
     main,
     method_options,
     one_format,
@@ -98,9 +99,10 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json, tsv) 
                    "one per stage.")
 @click.option("--tsv", is_flag=True, help="Print the table as tab-separated values.")
 @criterion_option()
+@gradient_cost_option
 @frequency_options
 def compare_cmd(names, use_all, tol_phase, tol_energy, solver, tsv, criterion, as_json,
-                **options) -> None:
+                gradient_cost, **options) -> None:
     """Rank methods by cost per unit of simulated time for your frequencies.
 
     For each method: the first boundary, the largest safe h, the h that meets the
@@ -128,7 +130,7 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, tsv, criterion, a
     data = api.compare(methods, modes=arrays, tol_phase=tol_phase, tol_energy=tol_energy,
                        margin=1.0 if margin is None else margin, zmax=options["zmax"],
                        time_unit=options["time_unit"], solver=solver,
-                       criterion=criterion).to_dict()
+                       criterion=criterion, gradient_cost=gradient_cost).to_dict()
     if as_json:
         print_json(data)
     elif tsv:

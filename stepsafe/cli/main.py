@@ -222,6 +222,16 @@ def criterion_option(default: str = "structure"):
              "2.98). Where the other criterion gives other safe steps, both are printed.")
 
 
+def gradient_cost_option(func):
+    """``--gradient-cost``: force evaluations one force-gradient term costs."""
+    return click.option(
+        "--gradient-cost", type=FLOAT, default=1.0, show_default=True, metavar="R",
+        help="Force-gradient methods: the cost of one force-gradient term (a Hessian-vector "
+             "product) in force evaluations; a step costs its forces plus R per term. 1: "
+             "reverse-mode AD forms V''(q) v at about the cost of one more gradient "
+             "(Hessian-free methods count their displaced force as a force).")(func)
+
+
 def method_options(func=None, *, required: bool = True):
     """METHOD argument with -s/--stages and --base (``required=False``: METHOD may be
     omitted, for commands with another mode)."""
@@ -268,6 +278,7 @@ def methods_cmd(as_json: bool, tsv: bool) -> None:
     from stepsafe.cli.report import print_json, print_methods, print_tsv
     from stepsafe.methods.library import FAMILIES, builtin_names, resolve
     from stepsafe.methods.residuals import residuals
+    from stepsafe.methods.tableaux import gradient_evaluations
 
     rows = []
     for name in builtin_names():
@@ -276,20 +287,25 @@ def methods_cmd(as_json: bool, tsv: bool) -> None:
             order = "2s" if name == "gauss" else "2s-2"
             rows.append({"name": f"{name} -s N", "kind": "rk" if name == "gauss" else "prk",
                          "order": order, "stages": f"N>={smallest}",
-                         "evaluations": "implicit", "symplectic": True, "title": title,
-                         "aliases": []})
+                         "evaluations": "implicit", "force_gradients": 0, "symplectic": True,
+                         "title": title, "aliases": []})
             continue
         method, entry = resolve(name)
         rows.append({"name": name, "kind": method.kind, "order": method.order,
                      "stages": method.stages, "evaluations": entry.evaluations,
+                     # force-gradient terms per step, besides the forces
+                     "force_gradients": gradient_evaluations(method),
                      "symplectic": residuals(method).symplectic, "title": entry.title,
                      "aliases": list(entry.aliases)})
     if as_json:
         print_json(rows)
     elif tsv:
-        print_tsv(("name", "kind", "order", "stages", "evaluations", "symplectic", "title",
-                   "aliases"), rows)
+        print_tsv(("name", "kind", "order", "stages", "evaluations", "force_gradients",
+                   "symplectic", "title", "aliases"), rows)
     else:
+        for row in rows:  # the table shows "forces + force gradients"
+            if row["force_gradients"] and row["evaluations"] is not None:
+                row["evaluations"] = f"{row['evaluations']} + {row['force_gradients']} FG"
         print_methods(rows)
 
 
@@ -534,10 +550,11 @@ def _input_error(message: str):
               help="With --tol-*: how implicit methods' evaluations per step are counted "
                    "(fixed-point iteration of the stages, which also caps h below its "
                    "convergence limit; simplified Newton; or one per stage).")
+@gradient_cost_option
 @criterion_option()
 @scene_options
 def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, criterion,
-               scene_files, as_json, verify, **options) -> None:
+               scene_files, as_json, verify, gradient_cost, **options) -> None:
     """Safe step sizes h for your frequencies.
 
     Safe h keep every mode's structure: beta*h lies in the method's region for that mode's
@@ -576,7 +593,7 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, crite
     problem = _problem(scene_files[0] if scene_files else None, options, not as_json)
     data = api.advise(problem=problem, tol_phase=tol_phase, tol_energy=tol_energy,
                       resonance_order=resonance_order, criterion=criterion, solver=solver,
-                      verify=verify).to_dict()
+                      verify=verify, gradient_cost=gradient_cost).to_dict()
     verdict = data.get("verify")
     _decide([verdict])
     print_json(data) if as_json else print_advice(data)

@@ -191,7 +191,9 @@ def print_measure(data: dict[str, Any]) -> None:
                    + (f" ({r['iterations_per_step']:.3g} solver iterations per step"
                       + (f", {r['jacobians_per_time']:.4g} Hessians per {unit}"
                          if r.get("jacobians_per_time") else "") + ")"
-                      if r["iterations_per_step"] else ""))
+                      if r["iterations_per_step"] else "")
+                   + (f" ({r['gradients_per_time']:.4g} force gradients per {unit})"
+                      if r.get("gradients_per_time") else ""))
 
 
 def work_precision_plot(scene_file: str, methods: str, h_range: str, duration: float | None,

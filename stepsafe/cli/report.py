@@ -192,8 +192,10 @@ def print_method(data: dict[str, Any], coefficients: dict[str, Any]) -> None:
     table = Table(show_header=False)
     table.add_column("field")
     table.add_column("value")
-    for key in ("kind", "order", "stages", "evaluations", "explicit", "symmetric",
-                "symplectic", "symplectic_for_separable", "source"):
+    for key in ("kind", "order", "stages", "evaluations", "force_gradients", "gradient_form",
+                "explicit", "symmetric", "symplectic", "symplectic_for_separable", "source"):
+        if key in ("force_gradients", "gradient_form") and key not in data:
+            continue
         value = "unknown" if data[key] is None and key in ("order", "evaluations") \
             else data[key]
         table.add_row(key, _lit(value))

@@ -12,6 +12,7 @@ from stepsafe.cli.main import (
     _input_error,
     command_line_modes,
     criterion_option,
+    gradient_cost_option,
     main,
     one_format,
     target_options,
@@ -44,9 +45,10 @@ PLOT_POINTS = 200
                    "matplotlib).")
 @click.option("--tsv", is_flag=True, help="Print the table as tab-separated values.")
 @criterion_option("stability")
+@gradient_cost_option
 @target_options
 def hmc_cmd(scene_file, names, use_all, steps, length, jitter, target_accept, step,
-            plot_file, tsv, criterion, as_json, **options) -> None:
+            plot_file, tsv, criterion, as_json, gradient_cost, **options) -> None:
     """HMC on a Gaussian target: acceptance rate, step size and cost per method.
 
     The target: standard deviations (--sigma, unit mass), frequencies (--beta =
@@ -79,7 +81,7 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, target_accept, st
                      steps=steps, length=length, jitter=jitter, target_accept=target_accept,
                      step=step, criterion=criterion, time_unit=options["time_unit"],
                      zmax=options["zmax"], curve=0 if plot_file is None else PLOT_POINTS,
-                     progress=progress)
+                     gradient_cost=gradient_cost, progress=progress)
     data = report.to_dict()
     if plot_file is not None:
         _plot(data, plot_file)

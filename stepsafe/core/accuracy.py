@@ -73,6 +73,28 @@ class Series(NamedTuple):
     z_valid: float
 
 
+def _polynomial_series(method: Splitting, model: str, terms: int) -> Series:
+    """A force-gradient splitting (no PRK form) on the oscillator or the barrier top: M(z)
+    is the exact matrix polynomial ``prod (I + c z^k e_dst e_src^T)`` of
+    :func:`stepsafe.core.transfer.row_ops`, expanded (with absolute values alongside) and
+    cut at ``terms``; it has no saddle form (a MethodError, as for the region)."""
+    from stepsafe.core.transfer import row_ops
+
+    if model not in ("oscillator", "inverted"):
+        method.euler_factors()  # raises: no saddle form
+    ops = row_ops(method, model)
+    degree = max(terms, sum(k for _, _, _, k in ops))
+    P = np.zeros((degree + 1, 2, 2))
+    P[0] = np.eye(2)
+    A = P.copy()
+    for src, dst, c, k in ops:
+        P[k:, dst, :] += c * P[:-k, src, :]
+        A[k:, dst, :] += abs(c) * A[:-k, src, :]
+    A = A * (4.0 * (len(ops) + 1))  # each coefficient's rounding, in units of EPS
+    exact = not P[terms + 1:].any()  # higher powers are all zero: the series is M itself
+    return Series(P[:terms + 1].copy(), A[:terms + 1].copy(), np.inf if exact else 0.0)
+
+
 def taylor_series(method: Method, model: str, terms: int = SERIES_TERMS) -> Series:
     """The :class:`Series` of M(z): ``M = I + sum_k z^(k+1) B K^k E``."""
     if isinstance(method, Processed):  # the full one-step map P^-1 K P (the kernel's on
@@ -94,6 +116,8 @@ def taylor_series(method: Method, model: str, terms: int = SERIES_TERMS) -> Seri
             scaled_abs = base_abs * (abs(g) ** powers)[:, None, None]
             out, out_abs = _series_product(scaled, out), _series_product(scaled_abs, out_abs)
         return Series(out, out_abs, base_valid / float(np.abs(flat.weights).max()))
+    if isinstance(method, Splitting) and method.force_gradient:
+        return _polynomial_series(method, model, terms)
     prk = method.as_prk() if isinstance(method, (RungeKutta, Splitting)) else method
     assert isinstance(prk, PartitionedRK)
     K, E, B = stage_operator(prk, model)

@@ -65,7 +65,8 @@ def reference_of(method: Method) -> Reference:
                                                               weights, z)
     if isinstance(method, Splitting):
         drift, kick = method.drift.tolist(), method.kick.tolist()
-        return lambda z, model: R.transfer_matrix_splitting(drift, kick, z, model)
+        gradient = None if method.gradient is None else method.gradient.tolist()
+        return lambda z, model: R.transfer_matrix_splitting(drift, kick, z, model, gradient)
     prk = method.as_prk() if isinstance(method, RungeKutta) else method
     assert isinstance(prk, PartitionedRK)
     return R.prk_transfer(prk.A_q.tolist(), prk.b_q.tolist(), prk.A_p.tolist(),

@@ -38,7 +38,10 @@ def reach(method: Method) -> float:
         flat = method.flattened()
         return float(np.abs(flat.weights).sum()) * reach(flat.base)
     if isinstance(method, Splitting):
-        return float(max(np.abs(method.drift).sum(), np.abs(method.kick).sum(), 1.0))
+        kicks = float(np.abs(method.kick).sum())
+        if method.gradient is not None:  # 2 c z^3 = (cbrt(2 c) z)^3 on top of the kick's b z
+            kicks += float(np.cbrt(2.0 * np.abs(method.gradient)).sum())
+        return float(max(np.abs(method.drift).sum(), kicks, 1.0))
     if isinstance(method, (RungeKutta, PartitionedRK)):
         prk = method.as_prk()
         return float(max(1.0, np.abs(prk.A_q).sum(axis=1).max(), np.abs(prk.A_p).sum(axis=1).max()))
@@ -53,7 +56,8 @@ def sample_work(method: Method) -> float:
         flat = method.flattened()
         return float(flat.weights.size) * sample_work(flat.base)
     if isinstance(method, Splitting):
-        return float(max(1, method.drift.size + method.kick.size))
+        extra = 0 if method.gradient is None else int(np.count_nonzero(method.gradient))
+        return float(max(1, method.drift.size + method.kick.size + extra))
     if isinstance(method, (RungeKutta, PartitionedRK)):
         s = method.stages
         return float((2 * s) ** 3 if not method.explicit else s * s)
@@ -90,18 +94,19 @@ def far_bound(method: Method, model: str) -> float:
         method = flat.as_splitting()
     if not isinstance(method, Splitting):
         return np.inf
-    ops = method.operations
+    from stepsafe.core.transfer import row_ops
+
+    ops = row_ops(method, model)  # factors I + c z^k e_dst e_src^T
     if len(ops) > 4000:
         return np.inf
-    sign = KICK_SIGN[model]
-    P = np.zeros((2, 2, len(ops) + 1))
+    degree = sum(k for _, _, _, k in ops)
+    P = np.zeros((2, 2, degree + 1))
     P[0, 0, 0] = P[1, 1, 0] = 1.0
     A = P.copy()
     with np.errstate(over="ignore", invalid="ignore"):
-        for kind, c in ops:
-            src, dst, c = (1, 0, c) if kind == "drift" else (0, 1, sign * c)
-            P[dst, :, 1:] += c * P[src, :, :-1]
-            A[dst, :, 1:] += abs(c) * A[src, :, :-1]
+        for src, dst, c, k in ops:
+            P[dst, :, k:] += c * P[src, :, :-k]
+            A[dst, :, k:] += abs(c) * A[src, :, :-k]
     if not (np.all(np.isfinite(P)) and np.all(np.isfinite(A))):
         return np.inf  # coefficients beyond float64: no bound
     err = 4.0 * (len(ops) + 1) * EPS * A

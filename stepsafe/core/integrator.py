@@ -20,6 +20,13 @@ initial conditions of d degrees of freedom advance together. One step of size h:
   Newton step ``X - J^-1 G(X)`` instead, J the stage system's Jacobian from the Hessian at
   the step's start (one per step and implicit substep, counted in ``jacobians``).
 
+Force-gradient splittings (:class:`~stepsafe.methods.tableaux.Splitting` with ``gradient``)
+need a separable H with ``T = p^T M^-1 p / 2``: a gradient term ``("gradient", c)`` is
+``p += c h^3 grad |F|^2_{M^-1} = p - 2 c h^3 V''(q) M^-1 F`` with ``F = -dH/dq`` (one
+Hessian evaluation, counted in ``gradient_evaluations``; ``M^-1 F = dH/dp(q, F)``); in the
+displaced-force form a kick ``b`` with its gradient ``c`` is instead ``p += b h F(q')`` at
+``q' = q + (2 c h^2 / b) M^-1 F(q)`` (two forces, no Hessian).
+
 Force evaluations (``dH/dq``) and solver iterations are counted; a step whose iteration
 does not converge in ``max_iterations`` marks the run as failed.
 
@@ -95,6 +102,7 @@ class Engine:
         self.jacobians = 0
         self.output_evaluations = 0
         self.output_calls = 0
+        self.gradient_evaluations = 0
         self._cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._processor: tuple[tuple, tuple] | None = None
         if isinstance(method, Processed):
@@ -106,6 +114,15 @@ class Engine:
                                tuple(method.inverse_operations))
             method = method.kernel
         self.pieces = _pieces(method)
+        gradient = any(kind == "ops" and any(op[0] in ("gradient", "displaced") for op in data)
+                       for kind, _, data in self.pieces)
+        if gradient and not system.separable:
+            raise ValueError("a force-gradient method needs a separable H = p^T M^-1 p / 2 + "
+                             "V(q); this H mixes q and p")
+        if gradient and system.hessian is None and any(
+                op[0] == "gradient" for kind, _, data in self.pieces if kind == "ops"
+                for op in data):
+            raise ValueError("a force-gradient method needs the system's Hessian")
         if not system.separable:  # a splitting on H(q, p) runs as its PRK form (implicit)
             try:
                 self.pieces = [("prk", w, _as_prk(data)) if kind == "ops" else (kind, w, data)
@@ -160,11 +177,27 @@ class Engine:
                 for op, coef in data:
                     if op == "drift":
                         q = q + (coef * weight * h) * self.system.dH_dp(q, p)
-                    else:
+                    elif op == "kick":
                         p = p - (coef * weight * h) * self._force(q, p)
+                    elif op == "gradient":
+                        p = p + (coef * (weight * h) ** 3) * self._force_gradient(q, p)
+                    else:  # displaced: coef = (b, c)
+                        b, c = coef
+                        t = weight * h
+                        F = -self._force(q, p)
+                        shifted = q + (2.0 * c * t * t / b) * self.system.dH_dp(q, F)
+                        self.force_evaluations += 1
+                        p = p - (b * t) * self.system.dH_dq(shifted, p)
             else:
                 q, p = self._prk_step(data, q, p, weight * h)
         return q, p
+
+    def _force_gradient(self, q: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """``grad |F|^2_{M^-1} = 2 V''(q) M^-1 V'(q)`` (rows: initial conditions)."""
+        g = self._force(q, p)
+        H_qq = self.system.hessian(q, p)[0]
+        self.gradient_evaluations += 1
+        return 2.0 * np.einsum("mij,mj->mi", H_qq, self.system.dH_dp(q, g))
 
     def _prk_step(self, prk: PartitionedRK, q: np.ndarray, p: np.ndarray, h: float
                   ) -> tuple[np.ndarray, np.ndarray]:
@@ -278,7 +311,16 @@ def _pieces(method: Method) -> list[tuple[str, float, object]]:
         return [piece[:1] + (float(g) * piece[1],) + piece[2:]
                 for g in flat.weights for piece in _pieces(flat.base)]
     if isinstance(method, Splitting):
-        return [("ops", 1.0, tuple(method.operations))]
+        ops = method.operations
+        if method.displaced:  # each kick with its gradient becomes one displaced force
+            merged: list[tuple[str, object]] = []
+            for op, coef in ops:
+                if op == "gradient":
+                    merged[-1] = ("displaced", (merged[-1][1], coef))
+                else:
+                    merged.append((op, coef))
+            ops = merged
+        return [("ops", 1.0, tuple(ops))]
     if isinstance(method, (RungeKutta, PartitionedRK)):
         return [("prk", 1.0, method.as_prk())]
     raise ValueError(f"{getattr(method, 'name', method)!r} cannot be integrated here "

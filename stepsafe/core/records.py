@@ -74,8 +74,13 @@ def region_data(region: Region) -> dict[str, Any]:
 def method_data(method, entry) -> dict[str, Any]:
     """Identity and coefficient checks of a method."""
     from stepsafe.methods.families import is_symmetric
+    from stepsafe.methods.tableaux import Composition, Splitting, gradient_evaluations
 
     res = residuals(method)
+    flat = method.flattened().base if isinstance(method, Composition) else method
+    fg = isinstance(flat, Splitting) and flat.force_gradient
+    extra = {"force_gradients": gradient_evaluations(method),
+             "gradient_form": "displaced-force" if flat.displaced else "hessian"} if fg else {}
     return {
         "method": entry.name,
         "title": entry.title,
@@ -83,6 +88,7 @@ def method_data(method, entry) -> dict[str, Any]:
         "order": method.order,
         "stages": method.stages,
         "evaluations": entry.evaluations,
+        **extra,
         "symplectic": res.symplectic,
         "symplectic_for_separable": res.symplectic_for_separable,
         "symmetric": is_symmetric(method),
@@ -278,7 +284,10 @@ def coefficients(method) -> dict[str, Any]:
     if isinstance(method, PartitionedRK):
         return {k: getattr(method, k).tolist() for k in ("A_q", "b_q", "A_p", "b_p")}
     if isinstance(method, Splitting):
-        return {"drift": method.drift.tolist(), "kick": method.kick.tolist()}
+        out = {"drift": method.drift.tolist(), "kick": method.kick.tolist()}
+        if method.gradient is not None:
+            out["gradient"] = method.gradient.tolist()
+        return out
     if not isinstance(method, Composition):
         raise TypeError(f"not a method: {type(method).__name__}")
     return {"base": method.base.name, "weights": method.weights.tolist()}

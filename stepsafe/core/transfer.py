@@ -9,7 +9,12 @@ One place turns every method kind into ``M(z)`` (DESIGN §1):
   ``dX/dz = (I - z K)^-1 K X``. The stage system is singular exactly at ``z = 1/lambda``
   for the real eigenvalues ``lambda`` of ``K`` (the poles).
 * splitting, ``oscillator`` / ``inverted``: the product of drift ``[[1, a z], [0, 1]]`` and
-  kick ``[[1, 0], [-+ b z, 1]]`` factors in the order applied.
+  kick ``[[1, 0], [-+ b z, 1]]`` factors in the order applied; a force-gradient term
+  (``p += c h^3 grad |V'|^2_{M^-1}``, :class:`Splitting`) is ``[[1, 0], [2 c z^3, 1]]`` on
+  both (``V = +-beta^2 q^2 / 2``: ``|V'|^2 = beta^4 q^2`` whatever the sign), so an FG kick
+  on the oscillator has the coefficient ``b - 2 c z^2`` (``p~ -= (b - 2 c z^2) z q``), on
+  the barrier top ``b + 2 c z^2`` (``p~ += (b + 2 c z^2) z q``; the same as the oscillator's
+  at ``z -> i z`` with ``p~ -> i p~``).
 * splitting, ``saddle``: the product of the symplectic Euler factors of
   :meth:`Splitting.euler_factors` (diagonal: ``DK(c) = diag(1/(1-cz), 1-cz)``,
   ``KD(d) = diag(1+dz, 1/(1+dz))``).
@@ -90,6 +95,18 @@ def _jet(D, dM, d2M, sens=None) -> Jet:
     dev = D[:, 0, 0] + D[:, 1, 1]
     scale = sens[:, 0, 0] + sens[:, 1, 1]
     return Jet(D, dM, d2M, dev, scale, sens, dev + 4.0, scale + 4.0)
+
+
+def has_form(method: Method, model: str) -> bool:
+    """Whether ``method`` has a transfer matrix on ``model``: a force-gradient splitting
+    (or a composition of one) needs ``T(p) + V(q)`` with quadratic T, so it has none on
+    the saddles (``H = +-beta p q``)."""
+    check_model(model)
+    if model not in ("saddle", "saddle-p"):
+        return True
+    if isinstance(method, Composition):
+        method = method.flattened().base
+    return not (isinstance(method, Splitting) and method.force_gradient)
 
 
 def transfer_matrix(method: Method, z, model: str = "oscillator") -> np.ndarray:
@@ -335,25 +352,28 @@ def _splitting_jet(method: Splitting, z: np.ndarray, model: str, with_scale: boo
         return _in_batches(lambda zb: _splitting_jet(method, zb, model, with_scale, order),
                            z, batch)
     T = np.zeros((order + 1, 2, 2, n))
-    cz = np.array([c for _, _, c in ops])[:, None] * z[None, :]
+    # the factor's entry f(z) = c z^k with its Taylor coefficients f'(z) and f''(z) / 2
+    cz = np.array([c * z ** k for _, _, c, k in ops]).reshape(len(ops), n)
     rows = np.empty((len(ops), 2, n)) if with_scale else None
-    for k, (src, dst, c) in enumerate(ops):
+    for j, (src, dst, c, power) in enumerate(ops):
         old = T[0, src].copy()
         old[src] += 1.0  # row src of M = I + D
+        f1 = c if power == 1 else power * c * z ** (power - 1)
         if order >= 2:
-            T[2, dst] += cz[k] * T[2, src] + c * T[1, src]
+            f2 = 0.0 if power == 1 else power * (power - 1) / 2 * c * z ** (power - 2)
+            T[2, dst] += cz[j] * T[2, src] + f1 * T[1, src] + f2 * old
         if order >= 1:
-            T[1, dst] += cz[k] * T[1, src] + c * old
-        T[0, dst] += cz[k] * old
+            T[1, dst] += cz[j] * T[1, src] + f1 * old
+        T[0, dst] += cz[j] * old
         if rows is not None:
-            rows[k] = np.abs(T[0, dst]) + np.abs(cz[k]) * np.abs(old)
+            rows[j] = np.abs(T[0, dst]) + np.abs(cz[j]) * np.abs(old)
     sens = None
     if rows is not None:
         sens = np.zeros((2, 2, n))
         L = np.zeros((2, 2, n))
         L[0, 0] = L[1, 1] = 1.0
         for k in range(len(ops) - 1, -1, -1):
-            src, dst, _ = ops[k]
+            src, dst = ops[k][:2]
             sens += np.abs(L[:, dst])[:, None, :] * rows[k][None, :, :]
             L[:, src] += cz[k] * L[:, dst]
         sens = 3.0 * sens.transpose(2, 0, 1)
@@ -363,12 +383,26 @@ def _splitting_jet(method: Splitting, z: np.ndarray, model: str, with_scale: boo
     return _jet(jet[0], jet[1], jet[2], sens)
 
 
-def _row_ops(method: Splitting, model: str) -> list[tuple[int, int, float]]:
-    """``(src, dst, c)`` per factor: drift adds ``c z`` times row p to row q, a kick adds
-    ``-+ c z`` times row q to row p (``-`` for the oscillator, ``+`` for the inverted)."""
+def row_ops(method: Splitting, model: str) -> list[tuple[int, int, float, int]]:
+    """``(src, dst, c, k)`` per factor ``I + c z^k e_dst e_src^T``: a drift adds ``a z`` times
+    row p to row q, a kick ``-+ b z`` times row q to row p (``-`` for the oscillator, ``+``
+    for the inverted), a force-gradient term ``+2 c z^3`` times row q to row p (either
+    model: ``grad |V'|^2 = 2 beta^4 q``)."""
     sign = KICK_SIGN[model]
-    return [(1, 0, coef) if kind == "drift" else (0, 1, sign * coef)
-            for kind, coef in method.operations]
+    out = []
+    for kind, coef in method.operations:
+        if kind == "drift":
+            out.append((1, 0, coef, 1))
+        elif kind == "kick":
+            out.append((0, 1, sign * coef, 1))
+        elif kind == "gradient":
+            out.append((0, 1, 2.0 * coef, 3))
+        else:
+            raise ValueError(f"unknown operation {kind!r}")
+    return out
+
+
+_row_ops = row_ops
 
 
 def _euler_factor_jet(method: Splitting, z: np.ndarray) -> Jet:

@@ -211,8 +211,15 @@ def is_symmetric(method: Method, tol: float = 1e-12) -> bool:
         w = method.weights
         return bool(np.allclose(w, w[::-1], rtol=0, atol=tol)) and is_symmetric(method.base, tol)
     if isinstance(method, Splitting):
-        ops = method.operations
-        return all(k1 == k2 and abs(c1 - c2) <= tol for (k1, c1), (k2, c2) in zip(ops, ops[::-1]))
+        # each kick group (a kick and its gradient term, at one q) is one symbol
+        ops: list[tuple[str, float, float]] = []
+        for kind, c in method.operations:
+            if kind == "gradient" and ops and ops[-1][0] == "kick":
+                ops[-1] = ("kick", ops[-1][1], c)
+            else:
+                ops.append((kind, c, 0.0) if kind != "gradient" else ("kick", 0.0, c))
+        return all(k1 == k2 and abs(b1 - b2) <= tol and abs(c1 - c2) <= tol
+                   for (k1, b1, c1), (k2, b2, c2) in zip(ops, ops[::-1]))
     prk = method.as_prk()
     ok = True
     for A, b in ((prk.A_q, prk.b_q), (prk.A_p, prk.b_p)):

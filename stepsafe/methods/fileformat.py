@@ -90,6 +90,16 @@ FIELDS: dict[str, Field] = {
                    required=True),
     "kick": Field("vector", "kick coefficients b_i (p -= b_i h V'(q))", kinds=("splitting",),
                   required=True),
+    "gradient": Field("vector", "force-gradient coefficients c_i, one per kick, zeros allowed: "
+                                "kick i is p += b_i h F + c_i h^3 grad(|F|^2_{M^-1}) with "
+                                "F = -V'(q), i.e. Chin's exp(b_i h (V + (c_i/b_i) h^2 "
+                                "[V,[T,V]])) with classical Lie operators",
+                      kinds=("splitting",)),
+    "gradient_form": Field("enum", "how integrations evaluate a force-gradient kick: hessian "
+                                   "(a Hessian-vector product) or displaced-force (the force at "
+                                   "q - (2 c_i h^2 / b_i) M^-1 V'(q), Hessian-free; identical on "
+                                   "quadratic V) [default: hessian]",
+                           kinds=("splitting",), choices=("hessian", "displaced-force")),
     "base": Field("ref", "base method: a name or {name:, stages:}", kinds=("composition",),
                   required=True),
     "weights": Field("vector", "substep fractions g_i (sum 1, negative allowed)",
@@ -319,6 +329,9 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
         raise _fail(where, "weights", "all weights are zero: the composition would not move "
                                       "(a zero weight among others is allowed)")
     if symmetric and kind == "splitting":
+        if "gradient" in coefficients:  # mirrored with the kicks it belongs to
+            coefficients["gradient"] = _mirror_splitting(coefficients["drift"],
+                                                         coefficients["gradient"])[1]
         coefficients["drift"], coefficients["kick"] = _mirror_splitting(coefficients["drift"],
                                                                        coefficients["kick"])
     elif symmetric and "weights" in coefficients:
@@ -337,6 +350,15 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
         extras = {"kernel": _sequence_or_ref(tree["kernel"], where, "kernel", scope, True),
                   "processor": _sequence_or_ref(tree["processor"], where, "processor", scope,
                                                 False)}
+    if "gradient_form" in tree:
+        if "gradient" not in tree:
+            raise _fail(where, "gradient_form", "applies only to a method with gradient:")
+        extras["gradient_form"] = tree["gradient_form"]
+        if tree["gradient_form"] == "displaced-force":
+            for i, (b, c) in enumerate(zip(coefficients["kick"], coefficients["gradient"])):
+                if float(c) != 0 and float(b) == 0:
+                    raise _fail(where, f"gradient[{i}]", "a displaced-force kick needs a "
+                                                         "nonzero kick coefficient")
     if kind == "impulse":
         from stepsafe.methods.tableaux import MAX_SUBSTEPS
 
@@ -409,6 +431,9 @@ def _check_shapes(kind: str, co: dict[str, Any], where: str, symmetric: bool) ->
         if nd not in (nk, nk + 1):
             raise _fail(where, "drift", f"has {nd} entries; it needs as many as kick ({nk}) "
                                         "or one more")
+        if "gradient" in co and len(co["gradient"]) != nk:
+            raise _fail(where, "gradient", f"has {len(co['gradient'])} entries; it needs one "
+                                           f"per kick ({nk})")
 
 
 def _sequence_or_ref(value: Any, where: str, key: str, scope: _Scope,
@@ -474,7 +499,9 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
     if data.kind == "prk":
         return m.PartitionedRK(co["A_q"], co["b_q"], co["A_p"], co["b_p"], **common)
     if data.kind == "splitting":
-        return m.Splitting(co["drift"], co["kick"], **common)
+        return m.Splitting(co["drift"], co["kick"], gradient=co.get("gradient"),
+                           displaced=data.extras.get("gradient_form") == "displaced-force",
+                           **common)
     def resolved(ref: Any, key: str):
         """The referenced method, an error naming this file's key otherwise."""
         from stepsafe.exceptions import StepsafeError

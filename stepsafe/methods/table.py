@@ -4,7 +4,8 @@
 kind, order, force evaluations per step, the harmonic-oscillator threshold z* = omega h
 (end of the first interval where the structure is preserved, computed by
 :func:`~stepsafe.core.regions.find_region`), z* per evaluation (the step per force
-evaluation, the cost measure for comparing methods), the classical stability limit
+evaluation, the cost measure for comparing methods; a force-gradient term counts as
+:data:`~stepsafe.methods.tableaux.GRADIENT_COST` forces), the classical stability limit
 |tr M| <= 2 where it differs from z*, and the first author(s) and year of the source.
 A processed method ``P^-1 K P`` counts its kernel's evaluations per step (z* per
 evaluation uses them, z* is the kernel's); its processor's, spent once at the start and
@@ -59,6 +60,7 @@ def rows() -> list[dict]:
             continue
         method, entry = resolve(name)
         region = find_region(method, "oscillator", ZMAX)
+        from stepsafe.methods.tableaux import gradient_evaluations
         first = region.first_interval
         z_star = None if first is None else first.hi  # None: preserved up to ZMAX
         if first is None:
@@ -68,6 +70,7 @@ def rows() -> list[dict]:
         out.append({"name": name, "kind": entry.kind, "order": entry.order,
                     "evaluations": entry.evaluations, "preserved": first is not None,
                     "processor": getattr(method, "processor_evaluations", None),
+                    "gradients": gradient_evaluations(method),
                     "z_star": z_star, "stability": classical,
                     "source": short_source(entry.source)})
     return sorted(out, key=lambda r: (r["order"], r["name"]))
@@ -79,6 +82,8 @@ def _number(x: float | None, digits: int) -> str:
 
 def markdown() -> str:
     """The table as Markdown lines, ending with a newline."""
+    from stepsafe.methods.tableaux import GRADIENT_COST
+
     lines = ["| method | kind | order | evaluations | z* | z* per evaluation | "
              "stability limit, where different | source |",
              "|---|---|---|---|---|---|---|---|"]
@@ -86,6 +91,11 @@ def markdown() -> str:
         evaluations = r["evaluations"]
         if r["kind"] == "rk" and r["preserved"]:
             evaluations = f"{evaluations} per stage iteration (implicit)"
+        cost = r["evaluations"]
+        if r["gradients"] and cost is not None:  # force gradients at GRADIENT_COST forces
+            evaluations = f"{evaluations} + {r['gradients']} force gradient" + \
+                ("s" if r["gradients"] > 1 else "")
+            cost = cost + GRADIENT_COST * r["gradients"]
         if r.get("processor"):
             evaluations = (f"{evaluations} per step + {r['processor']} at the start and "
                            f"{r['processor']} per output (processor)")
@@ -95,7 +105,7 @@ def markdown() -> str:
             z_star, per = f"none up to {ZMAX:g}", ""
         else:
             z_star = _number(r["z_star"], 6)
-            per = _number(r["z_star"] / r["evaluations"], 4) if r["evaluations"] else ""
+            per = _number(r["z_star"] / cost, 4) if cost else ""
         limit = r["stability"]
         shown = "" if limit is None or (r["z_star"] is not None
                                         and abs(limit - r["z_star"]) <= 1e-9 * limit) \

@@ -147,6 +147,21 @@ class Splitting:
 
     ``drift`` has as many entries as ``kick`` or one more; zero coefficients are allowed
     (a method that starts with a kick has ``a_1 = 0``).
+
+    Force-gradient methods carry ``gradient`` (one coefficient ``c_i`` per kick, zeros
+    allowed): with ``F = -V'(q)`` and ``T = p^T M^-1 p / 2`` kick i is then
+    ``p += b_i h F + c_i h^3 grad(|F|^2_{M^-1})``, the kick by the potential
+    ``b_i V - c_i h^2 |grad V|^2_{M^-1}``; ``grad |F|^2_{M^-1} = 2 V''(q) M^-1 V'(q)``.
+    This is Chin's ``exp(b_i h V~)``, ``V~ = V + (c_i / b_i) h^2 [V, [T, V]]``, with the
+    double commutator of the classical Lie operators (``T = p M^-1 d/dq``,
+    ``V = F d/dp``): ``[V, [T, V]] = grad(|F|^2_{M^-1}) d/dp``, the kick of the potential
+    ``-sum_j (d_j V)^2 / m_j`` (the quantum ``[V, [T, V]] = sum_j (d_j V)^2 / m_j`` of
+    ``T = -nabla^2 / 2m`` enters ``exp(-h H)`` with the opposite sign: the published
+    positive coefficients, e.g. Chin's 4A ``c = (2/3)(1/48) = 1/72``, keep their sign
+    here). Such a method has
+    no PRK form (:meth:`euler_factors` refuses it): it needs a separable H with a quadratic
+    kinetic energy. ``displaced`` marks the Hessian-free evaluation of the same kick (a force
+    at a displaced position, see :mod:`stepsafe.core.integrator`), identical on quadratic V.
     """
 
     drift: np.ndarray
@@ -156,6 +171,8 @@ class Splitting:
     evaluations: int | None = None
     title: str = ""
     exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
+    gradient: np.ndarray | None = None
+    displaced: bool = False
 
     kind = "splitting"
 
@@ -168,21 +185,61 @@ class Splitting:
             )
         object.__setattr__(self, "drift", a)
         object.__setattr__(self, "kick", b)
+        if self.gradient is not None:
+            c = _vector(self.gradient, "gradient")
+            if c.size != b.size:
+                raise MethodError(f"gradient must have one entry per kick, got {c.size} "
+                                  f"for {b.size} kicks")
+            object.__setattr__(self, "gradient", c if c.any() else None)
+        if self.displaced and self.gradient is not None:
+            bad = [i for i in range(b.size) if self.gradient[i] != 0 and b[i] == 0]
+            if bad:
+                raise MethodError(f"kick {bad[0]}: a displaced-force (Hessian-free) kick "
+                                  "needs a nonzero kick coefficient where its gradient "
+                                  "coefficient is nonzero")
+
+    @property
+    def force_gradient(self) -> bool:
+        """True when some kick carries a force-gradient term."""
+        return self.gradient is not None
 
     @property
     def operations(self) -> list[tuple[str, float]]:
-        """The step as a list of ``("drift"|"kick", coefficient)``, zeros dropped, merged."""
+        """The step as a list of ``("drift"|"kick"|"gradient", coefficient)``, zeros dropped,
+        merged. ``("gradient", c)`` is ``p += c h^3 grad |grad V|^2_{M^-1}``; it commutes
+        with the kick at the same q, so the kicks and gradients between two drifts are
+        merged into one ``kick`` followed by one ``gradient``. Without a gradient the list
+        alternates drift and kick."""
         ops: list[tuple[str, float]] = []
+        grad = self.gradient
         for i, a in enumerate(self.drift):
-            seq = [("drift", a)] + ([("kick", self.kick[i])] if i < self.kick.size else [])
+            seq = [("drift", a)]
+            if i < self.kick.size:
+                seq.append(("kick", self.kick[i]))
+                if grad is not None:
+                    seq.append(("gradient", grad[i]))
             for kind, coef in seq:
                 if coef == 0.0:
                     continue
-                if ops and ops[-1][0] == kind:
-                    ops[-1] = (kind, ops[-1][1] + coef)
-                else:
-                    ops.append((kind, float(coef)))
-        return ops
+                ops.append((kind, float(coef)))
+        return merge_operations(ops)
+
+    @property
+    def gradient_evaluations(self) -> int:
+        """Force-gradient terms per step as run (Hessian-vector products): one per kick
+        group with a gradient, the step's last and the next step's first merged when no
+        drift separates them; 0 without a gradient, and for the displaced-force form,
+        whose extra forces the file counts as forces."""
+        if self.displaced or self.gradient is None:
+            return 0
+        ops = self.operations
+        count = sum(1 for kind, _ in ops if kind == "gradient")
+        head = [kind for kind, _ in ops[:2]]
+        tail = [kind for kind, _ in ops[-2:]]
+        if count > 1 and ops[0][0] != "drift" and ops[-1][0] != "drift" \
+                and "gradient" in head and "gradient" in tail:
+            count -= 1  # the closing gradient is the next step's opening one
+        return count
 
     @property
     def stages(self) -> int:
@@ -205,6 +262,11 @@ class Splitting:
         (DESIGN §1): kick-drift-kick Verlet becomes ``KD(1/2) DK(1/2)``, the 2-stage
         Lobatto IIIA–IIIB pair. Zero-weight factors are dropped.
         """
+        if self.force_gradient:
+            raise MethodError(
+                f"{self.name} is a force-gradient method: its kicks use grad |grad V|^2 of a "
+                "separable H = p^T M^-1 p / 2 + V(q), so it has no PRK form and no form for "
+                "an H that mixes q and p (such as the saddle model)")
         m = self.kick.size
         a = np.zeros(m + 1)
         a[: self.drift.size] = self.drift
@@ -305,10 +367,11 @@ class Composition:
         flat = self.flattened()
         if not isinstance(flat.base, Splitting):
             raise MethodError(f"{self.name}: the base is not a splitting method")
-        ops = [(kind, g * coef) for g in flat.weights for kind, coef in flat.base.operations]
+        ops = [(kind, (g ** 3 if kind == "gradient" else g) * coef) for g in flat.weights
+               for kind, coef in flat.base.operations]  # a gradient term scales as h^3
         return splitting_from_operations(ops, name=self.name, order=self.order,
                                          evaluations=self.evaluations, title=self.title,
-                                         exact=self.exact)
+                                         exact=self.exact, displaced=flat.base.displaced)
 
     def flattened(self) -> Composition:
         """The same map with a non-composition base (nested weights multiplied out)."""
@@ -320,26 +383,84 @@ class Composition:
                            evaluations=self.evaluations, title=self.title, exact=self.exact)
 
 
-def splitting_from_operations(ops: list[tuple[str, float]], **fields: Any) -> Splitting:
-    """The splitting ``drift a_1, kick b_1, drift a_2, ...`` doing the ``("drift"|"kick",
-    coefficient)`` operations in order, adjacent operations of one kind merged (``fields``:
-    name, order, ... of :class:`Splitting`)."""
-    drift: list[float] = []
-    kick: list[float] = []
+def merge_operations(ops: list[tuple[str, float]]) -> list[tuple[str, float]]:
+    """``ops`` with adjacent drifts added and each run of kicks and gradients between two
+    drifts (all functions of the same q, so they commute) merged into one ``kick`` then one
+    ``gradient``; zero coefficients dropped before merging."""
+    out: list[tuple[str, float]] = []
+    group: dict[str, float] = {}
+
+    def close() -> None:
+        for kind in ("kick", "gradient"):
+            if kind in group:
+                out.append((kind, group[kind]))
+        group.clear()
+
     for kind, coef in ops:
         if kind == "drift":
-            if len(drift) > len(kick):
-                drift[-1] += coef
-            else:
-                drift.append(coef)
+            close()
+            if out and out[-1][0] == "drift":
+                out[-1] = ("drift", out[-1][1] + coef)
+            elif coef != 0.0:
+                out.append(("drift", coef))
+        elif coef != 0.0:
+            group[kind] = group.get(kind, 0.0) + coef
+    close()
+    return out
+
+
+def splitting_from_operations(ops: list[tuple[str, float]], **fields: Any) -> Splitting:
+    """The splitting ``drift a_1, kick b_1, drift a_2, ...`` doing the ``("drift"|"kick"|
+    "gradient", coefficient)`` operations in order, adjacent operations merged as in
+    :func:`merge_operations` (``fields``: name, order, ... of :class:`Splitting`)."""
+    drift: list[float] = []
+    kick: list[float] = []
+    gradient: list[float] = []
+    previous = "drift"
+    for kind, coef in merge_operations(ops):
+        if kind == "drift":
+            drift.append(coef)
+        elif kind == "gradient" and previous == "kick":  # the group the kick opened
+            gradient[-1] = coef
         else:
-            if len(drift) == len(kick):
-                if kick:
-                    kick[-1] += coef
-                    continue
+            if len(drift) == len(kick):  # no drift before this group: a zero drift
                 drift.append(0.0)
-            kick.append(coef)
+            kick.append(coef if kind == "kick" else 0.0)
+            gradient.append(coef if kind == "gradient" else 0.0)
+        previous = kind
+    if any(gradient):
+        fields["gradient"] = gradient
+    else:
+        fields.pop("displaced", None)
     return Splitting(drift or [0.0], kick or [0.0], **fields)
+
+
+#: Default cost of one force-gradient term (a Hessian-vector product ``V''(q) v``) in force
+#: evaluations. Reverse-mode automatic differentiation gives ``V''(q) v`` as the gradient
+#: of ``V'(q) . v`` at a small constant multiple of the cost of ``V'`` (Griewank &
+#: Walther, Evaluating Derivatives, 2nd ed., Sec. 5.4), and lattice-QCD force-gradient
+#: codes form it from one extra force at a displaced position (the displaced-force form,
+#: whose cost is exactly one force and is counted among the forces); so 1 by default,
+#: changeable where costs are compared (``--gradient-cost``).
+GRADIENT_COST = 1.0
+
+
+def validate_gradient_cost(value: float) -> float:
+    """``value`` if it is a finite number >= 0, else a :class:`MethodError`."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise MethodError(f"the gradient cost must be a number, got {value!r}") from None
+    if isinstance(value, bool) or not np.isfinite(number) or number < 0:
+        raise MethodError(f"the gradient cost must be a finite number >= 0, got {value!r}")
+    return number
+
+
+def gradient_evaluations(method: Any) -> int:
+    """Force-gradient terms per step of ``method`` as run (0 for methods without)."""
+    if isinstance(method, Composition) and isinstance(method.flattened().base, Splitting):
+        method = method.as_splitting()
+    return method.gradient_evaluations if isinstance(method, Splitting) else 0
 
 
 #: Inner steps per outer drift an impulse method may take.
@@ -356,6 +477,9 @@ def splitting_operations(method: Any, role: str) -> list[tuple[str, float]]:
         raise MethodError(f"the {role} method of an impulse (r-RESPA) integrator must be a "
                           f"splitting (drift/kick) method; {getattr(method, 'name', '?')} is "
                           f"a {kind} method")
+    if method.force_gradient:
+        raise MethodError(f"the {role} method of an impulse (r-RESPA) integrator must be a "
+                          f"drift/kick splitting; {method.name} is a force-gradient method")
     return method.operations
 
 

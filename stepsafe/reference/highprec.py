@@ -257,21 +257,28 @@ def transfer_matrix_rk(A, b, z, model: str):
 
 
 def transfer_matrix_splitting(drift: Sequence, kick: Sequence, z,
-                              model: str):
+                              model: str, gradient: Sequence | None = None):
     """Splitting drift(a1 z) kick(b1 z) drift(a2 z) ... : product of
     [[1, a z],[0, 1]] and [[1, 0],[-+b z, 1]] (oscillator -, inverted +), applied to the
-    rows of M as scalars; on the saddle through the equivalent PRK (see splitting_to_prk)."""
+    rows of M as scalars; on the saddle through the equivalent PRK (see splitting_to_prk).
+
+    ``gradient`` (force-gradient methods, one c_i per kick): kick i is
+    p -= b_i h V'(q) - c_i h^3 d/dq (V'(q)^2); with V = +-q^2/2 (scaled) that adds
+    +2 c_i z^3 q to p on either model. Force-gradient methods have no saddle form."""
     if model in ("saddle", "saddle-p"):
+        if gradient is not None and any(gradient):
+            raise ValueError("a force-gradient splitting has no form for the saddle")
         return _diagonal_splitting(drift, kick, z, model)
     sign = -1 if model == "oscillator" else 1
     z = mp.mpf(z)
+    grads = list(gradient) if gradient is not None else [0] * len(kick)
     a, b, c, d = mp.one, mp.zero, mp.zero, mp.one  # rows (a, b) for q and (c, d) for p
-    for x, y in zip_longest(drift, kick, fillvalue=0):
+    for x, y, w in zip_longest(drift, kick, grads, fillvalue=0):
         if x:
             t = x * z
             a, b = a + t * c, b + t * d
-        if y:
-            t = sign * y * z
+        if y or w:
+            t = sign * y * z + 2 * w * z ** 3
             c, d = c + t * a, d + t * b
     return mp.matrix([[a, b], [c, d]])
 

@@ -117,6 +117,8 @@ def mp_method(name: str, stages: int | None = None, base: str | None = None,
                     co = {"A_q": co["A"], "b_q": co["b"], "A_p": co["A"], "b_p": co["b"]}
                 out = MPMethod("prk", data.order, co)
             else:
+                if "gradient" in co:  # how integrations evaluate the force-gradient kick
+                    co["displaced"] = data.extras.get("gradient_form") == "displaced-force"
                 out = MPMethod("splitting", data.order, co)
         if base is not None:
             if out.kind != "composition":
@@ -146,7 +148,8 @@ def mp_transfer(m: MPMethod) -> Callable:
     if m.kind == "processed":  # the full one-step map P^-1 K P (the kernel's trace)
         drift, kick = mp_processed_splitting(m)
         return lambda z, model: reference.transfer_matrix_splitting(drift, kick, z, model)
-    if m.kind == "composition" and m.data["base"].kind == "splitting":
+    if m.kind == "composition" and m.data["base"].kind == "splitting" \
+            and "gradient" not in m.data["base"].data:
         # a composition of a splitting is a splitting: one pass of scalar updates (its
         # coefficients multiplied out once per working precision)
         from mpmath import mp
@@ -167,8 +170,8 @@ def mp_transfer(m: MPMethod) -> Callable:
         return lambda z, model: reference.transfer_matrix_composition(
             lambda x: inner(x, model), weights, z)
     if m.kind == "splitting":
-        d, k = m.data["drift"], m.data["kick"]
-        return lambda z, model: reference.transfer_matrix_splitting(d, k, z, model)
+        d, k, g = m.data["drift"], m.data["kick"], m.data.get("gradient")
+        return lambda z, model: reference.transfer_matrix_splitting(d, k, z, model, g)
     return reference.prk_transfer(*(m.data[key] for key in ("A_q", "b_q", "A_p", "b_p")))
 
 

@@ -41,6 +41,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from stepsafe.core.threads import blas_threads_for
+from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
 from stepsafe.systems.frame import (
     DiagonalFrame,
@@ -153,6 +154,10 @@ class _Steps:
         self.norm_S = float(np.linalg.norm(S))
         self.pieces = _pieces(method)
         self.frame = frame
+        if any(kind == "ops" for kind, _ in self.pieces) and (self.S_qp.any()
+                                                              or self.S_pq.any()):
+            raise StepsafeError("a force-gradient method needs a separable H = p^T M^-1 p / 2 "
+                                "+ V(q); this system couples q and p")
 
     def deviation(self, h: float) -> tuple[np.ndarray, float]:
         """``(D, err)``: ``D = M(h) - I`` and a first-order bound on its rounding error
@@ -167,6 +172,9 @@ class _Steps:
             if kind == "euler":
                 for label, c in item:
                     err += self._euler(D, label, c * h)
+            elif kind == "ops":
+                for label, c in item:
+                    err += self._operation(D, label, c, h)
             else:
                 g, prk = item
                 Df, e = self._prk(prk, g * h)
@@ -176,6 +184,27 @@ class _Steps:
             if not np.all(np.isfinite(D)):
                 return np.full_like(D, np.nan), np.inf
         return D, err
+
+    def _operation(self, D: np.ndarray, label: str, c: float, h: float) -> float:
+        """Apply one operation of a force-gradient splitting to ``X = I + D`` in place
+        (separable S: ``K = S_qq``, ``M^-1 = S_pp``): a drift ``q += c h M^-1 p``, a kick
+        ``p -= c h K q``, a gradient term ``p += c h^3 grad |K q|^2_{M^-1} = p + 2 c h^3
+        K M^-1 K q``; returns the rounding bound of the increment."""
+        n = self.n
+        X = D.copy()
+        X[np.arange(2 * n), np.arange(2 * n)] += 1.0
+        q, p = X[:n], X[n:]
+        if label == "drift":
+            D[:n] += (c * h) * (self.S_pp @ p)
+            scale = abs(c * h) * float(np.linalg.norm(self.S_pp))
+        elif label == "kick":
+            D[n:] -= (c * h) * (self.S_qq @ q)
+            scale = abs(c * h) * float(np.linalg.norm(self.S_qq))
+        else:
+            D[n:] += (2.0 * c * h ** 3) * (self.S_qq @ (self.S_pp @ (self.S_qq @ q)))
+            scale = 2.0 * abs(c * h ** 3) * float(np.linalg.norm(self.S_qq)) ** 2 * \
+                float(np.linalg.norm(self.S_pp))
+        return 3 * n * EPS * scale * float(np.linalg.norm(X))
 
     def _euler(self, D: np.ndarray, label: str, c: float) -> float:
         """Apply one symplectic Euler factor to ``X = I + D`` in place (on D); returns the
@@ -239,10 +268,14 @@ def _pieces(method: Method) -> list[tuple[str, object]]:
         method = method.per_step()
     if isinstance(method, Composition):
         flat = method.flattened()
+        if isinstance(flat.base, Splitting) and flat.base.force_gradient:
+            return [("ops", flat.as_splitting().operations)]
         if isinstance(flat.base, Splitting):
             return [("euler", flat.as_splitting().euler_factors())]
         base = flat.base.as_prk() if isinstance(flat.base, RungeKutta) else flat.base
         return [("prk", (float(g), base)) for g in flat.weights]
+    if isinstance(method, Splitting) and method.force_gradient:
+        return [("ops", method.operations)]
     if isinstance(method, Splitting):
         return [("euler", method.euler_factors())]
     prk = method.as_prk() if isinstance(method, RungeKutta) else method
@@ -469,6 +502,8 @@ class CoupledSystem:
         S_qq, S_qp, S_pq, S_pp = S[:n, :n], S[:n, n:], S[n:, :n], S[n:, n:]
         eig_pq = None  # -S_qp = -S_pq^T has the eigenvalues of -S_pq
         for kind, item in self.steps.pieces:
+            if kind == "ops":  # explicit: no stage equations, no poles
+                continue
             if kind == "euler":
                 for label, c in item:
                     eig_pq = np.linalg.eigvals(S_pq) if eig_pq is None else eig_pq
