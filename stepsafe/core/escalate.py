@@ -29,6 +29,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
+import numpy as np
+
 from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
 
 DPS = 40
@@ -44,11 +46,12 @@ Reference = Callable[[Any, str], Any]
 
 
 class Decision(NamedTuple):
-    """What high precision found in a bracket: ``roots`` (floats), or a resonance at
-    ``touch`` (its extremum), or neither (a near miss)."""
+    """What high precision found in a bracket: ``roots`` (floats) with their certified
+    ``widths``, or a resonance at ``touch`` (its extremum), or neither (a near miss)."""
 
     roots: tuple[float, ...] = ()
     touch: float | None = None
+    widths: tuple[float, ...] = ()
 
 
 def reference_of(method: Method) -> Reference:
@@ -115,7 +118,8 @@ class Escalation:
                 a, b = mp.mpf(lo), mp.mpf(hi)
                 ga, gb = g(a), g(b)
                 if (ga > 0) != (gb > 0):
-                    return Decision((float(refine_root(g, a, b, tol=_digits(b))),))
+                    root, width = self._certified_root(level, a, b)
+                    return Decision((root,), widths=(width,))
                 step = mp.mpf(10) ** (-(DPS // 3)) * max(1, abs(b))
 
                 def dg(x):
@@ -131,9 +135,39 @@ class Escalation:
             if abs(gm) <= band:
                 return Decision(touch=float(zm))
             if (gm > 0) != (ga > 0):
-                return Decision((float(refine_root(g, a, zm, tol=_digits(b))),
-                                 float(refine_root(g, zm, b, tol=_digits(b)))))
+                (r1, w1), (r2, w2) = (self._certified_root(level, a, zm),
+                                      self._certified_root(level, zm, b))
+                return Decision((r1, r2), widths=(w1, w2))
             return Decision()
+
+    def _certified_root(self, level: float, a, b) -> tuple[float, float]:
+        """The root of ``tr M = level`` in ``(a, b)`` (a sign change) and a width the
+        evaluation vouches for: the smallest ``u`` (from one ulp, growing 4x) at which
+        ``tr M - level`` at ``r -+ u`` clears the working precision's noise with opposite
+        signs. At a multiple root (``M = -I`` where ``tr M + 2`` has a triple root,
+        Chin's 4A at 2 sqrt 3) the trace is flat to ``(z - r)^k``, so 40 digits place it
+        only to about ``10^(-40 / k)``: the root is then redone at three times the digits.
+        """
+        import mpmath as mp
+
+        from stepsafe.reference.highprec import refine_root
+
+        def g(x):
+            return self._trace(x) - level
+
+        for digits in (DPS, 3 * DPS):
+            with mp.workdps(digits):
+                r = refine_root(g, mp.mpf(a), mp.mpf(b), tol=_digits(b))
+                noise = mp.mpf(10) ** (8 - digits) * max(1, abs(level))
+                root = float(r)
+                u = float(np.spacing(root))
+                while u < ESCALATE_REL * root and not self.exhausted:
+                    lo, hi = g(mp.mpf(root) - u), g(mp.mpf(root) + u)
+                    if abs(lo) > noise and abs(hi) > noise and (lo > 0) != (hi > 0):
+                        return root, u
+                    u *= 4.0
+            a, b = max(a, mp.mpf(root) - u), min(b, mp.mpf(root) + u)
+        return root, u
 
 
     def pole(self, z0: float, width: float) -> float | None:

@@ -712,8 +712,8 @@ def _escalate(ev: _Evaluator, spreads: list[_Spread], esc: Escalation,
             if any(abs(decision.touch - t) <= max(u, 1e-9 * t) for t, u in touches):
                 continue  # a resonance and rounding noise next to it were one touch
             touches.append((decision.touch, 0.0))
-        for r in decision.roots:
-            u = float(np.spacing(r))
+        widths = decision.widths or tuple(float(np.spacing(r)) for r in decision.roots)
+        for r, u in zip(decision.roots, widths):
             out.append(_Spread(Point(r, "root", u, f"tr M = {c.level:+g}"), r - u, r + u,
                                c.level, c.band))
         if decision.touch is not None:
