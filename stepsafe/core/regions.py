@@ -488,7 +488,8 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
             # root, where tr M - 2 clears its rounding bound, so that an axis crossing
             # between a root and the next sample is bracketed; the root's band covers the
             # stretch in between (2.5e-13 of it, below the escalation threshold)
-            delta = np.maximum(4.0 * np.nan_to_num(width, nan=0.0), 2.5e-13 * roots)
+            with np.errstate(over="ignore"):  # a flat root's width may be ~1e308
+                delta = np.maximum(4.0 * np.nan_to_num(width, nan=0.0), 2.5e-13 * roots)
             width = np.maximum(width, delta)
             beside = np.concatenate([roots - delta, roots + delta])
             beside = beside[(beside > 0) & (beside < z[-1])]
