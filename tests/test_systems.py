@@ -334,6 +334,36 @@ def test_large_systems_list_the_most_limiting_modes(tmp_path, run):
     assert code == 0 and "all 3 mode(s)" in out
 
 
+def test_all_modes_analyses_the_islands_of_a_large_stiffness(tmp_path, run, run_json,
+                                                             monkeypatch):
+    """Above DENSE_LIMIT only the extreme modes are analysed (no islands, and the note says
+    how to ask); `all_modes: true` analyses every mode: the same safe steps, islands
+    included, as the frequencies given as modes. A bad value names the key."""
+    from stepsafe.systems import loader as sysfile
+
+    monkeypatch.setattr(sysfile, "DENSE_LIMIT", 40)
+    betas = np.concatenate([np.linspace(0.2, 0.6, 59), [1.0]])
+    np.save(tmp_path / "K.npy", np.diag(betas ** 2))
+    scene = tmp_path / "s.yaml"
+    scene.write_text("method: yoshida6\nsystem:\n  stiffness: K.npy\n")
+    extremes = run_json("advise", str(scene))
+    assert "extreme eigenvalues" in extremes["system"]["analysis"]
+    assert any("all_modes: true" in note for note in extremes["system"]["notes"])
+    scene.write_text("method: yoshida6\nsystem:\n  stiffness: K.npy\n  all_modes: true\n")
+    every = run_json("advise", str(scene))
+    modes = tmp_path / "m.yaml"
+    modes.write_text("method: yoshida6\nmodes:\n"
+                     + "".join(f"  - beta: {float(b)!r}\n" for b in betas))
+    want = run_json("advise", str(modes))
+    flat = [x for pair in every["safe_h"] for x in pair]
+    assert flat == pytest.approx([x for pair in want["safe_h"] for x in pair], rel=1e-12)
+    assert len(every["safe_h"]) > 1 and len(extremes["safe_h"]) == 1  # islands
+    assert extremes["h_max"] == pytest.approx(every["h_max"], rel=1e-12)
+    scene.write_text("method: yoshida6\nsystem:\n  stiffness: K.npy\n  all_modes: maybe\n")
+    code, _, err = run("advise", str(scene))
+    assert code == 2 and "$.system.all_modes" in err
+
+
 @pytest.mark.parametrize("barrier", [False, True])
 def test_large_dense_stiffness_uses_the_extreme_eigenvalues_only(tmp_path, run_json,
                                                                  monkeypatch, barrier):

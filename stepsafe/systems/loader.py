@@ -33,7 +33,8 @@ DENSE_LIMIT = 2000
 #: stepsafe.systems.nonlinear), the float64 square roots and products add a few ulps.
 EQUILIBRIUM_ERROR = 8 * float(np.finfo(float).eps)
 SYSTEM_KEYS = {"stiffness", "precision", "covariance", "mass", "hessian", "hamiltonian",
-               "parameters", "box", "q", "p", "energy_below", "starts", "sizes", "fixed"}
+               "parameters", "box", "q", "p", "energy_below", "starts", "sizes", "fixed",
+               "all_modes"}
 
 
 class SystemReport(NamedTuple):
@@ -123,12 +124,19 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
     if len(kinds) != 1:
         raise _fail(where, "", "give exactly one of stiffness, precision or covariance (each "
                                "with an optional mass), hessian or hamiltonian")
+    all_modes = False
+    if "all_modes" in tree:
+        flag = str(tree["all_modes"]).lower()
+        if kinds[0] not in ("stiffness", "precision") or flag not in ("true", "false"):
+            raise _fail(where, "all_modes", "must be true or false, beside a stiffness or "
+                                            f"precision, got {tree['all_modes']!r}")
+        all_modes = flag == "true"
     if "mass" in tree and kinds[0] not in ("stiffness", "precision", "covariance"):
         raise _fail(where, "mass", f"a mass goes with a stiffness, precision or covariance, "
                                    f"not with {kinds[0]} (it would be ignored)")
     try:
         if kinds[0] in ("stiffness", "precision"):
-            return _stiffness(tree, where, folder, kinds[0])
+            return _stiffness(tree, where, folder, kinds[0], all_modes)
         if kinds[0] == "covariance":
             return _covariance(tree, where, folder)
         if kinds[0] == "hessian":
@@ -187,7 +195,8 @@ def _covariance(tree, where, folder) -> SystemReport:
     return _report_modes(d.modes, d.analysis, [])
 
 
-def _stiffness(tree, where, folder, key: str = "stiffness") -> SystemReport:
+def _stiffness(tree, where, folder, key: str = "stiffness", all_modes: bool = False
+               ) -> SystemReport:
     from stepsafe.systems.linear import is_diagonal, separable_modes, sparse_extreme_modes
 
     K = _matrix(tree[key], where, key, folder, sparse_ok=True)
@@ -198,16 +207,20 @@ def _stiffness(tree, where, folder, key: str = "stiffness") -> SystemReport:
                                    f"{'x'.join(map(str, K.shape))}")
     notes: list[str] = []
     sparse = hasattr(K, "tocsr")
-    if K.shape[0] > DENSE_LIMIT and (sparse or M is None or is_diagonal(M)):
+    if K.shape[0] > DENSE_LIMIT and not all_modes and \
+            (sparse or M is None or is_diagonal(M)):
         d = sparse_extreme_modes(K, M)
         notes.append(f"{K.shape[0]} dof{' sparse' if sparse else ''}: only the extreme modes "
-                     "were computed; islands beyond h_max are not analysed")
+                     "were computed; islands beyond h_max are not analysed (all_modes: true "
+                     "analyses them)")
     else:
+        if K.shape[0] > 4 * DENSE_LIMIT:
+            raise StepsafeError(f"a dense {K.shape[0]} x {K.shape[0]} stiffness is too large"
+                                + ("" if sparse else "; save it as a sparse .npz or .mtx")
+                                + (f" (all_modes: up to {4 * DENSE_LIMIT} rows)"
+                                   if all_modes else ""))
         K = K.toarray() if hasattr(K, "toarray") else K
         M = M.toarray() if hasattr(M, "toarray") else M
-        if K.shape[0] > 4 * DENSE_LIMIT:
-            raise StepsafeError(f"a dense {K.shape[0]} x {K.shape[0]} stiffness is too large; "
-                                "save it as a sparse .npz or .mtx")
         d = separable_modes(K, M)
     return _report_modes(d.modes, d.analysis, notes, d.extremes_only)
 

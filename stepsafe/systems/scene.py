@@ -133,6 +133,8 @@ def json_schema() -> dict[str, Any]:
                     "model": {"enum": list(MODELS), "default": "oscillator"},
                     "label": {"type": "string"}}}},
             "system": {"type": "object", "description": "a whole system: {stiffness:, mass:}, "
+                       "with all_modes: true to analyse every mode of a stiffness over 2000 "
+                       "rows (islands too; a dense eigendecomposition), "
                        "{precision:, mass:} or {covariance:, mass:} (a Gaussian target), "
                        "{hessian:}, {hamiltonian:, parameters:, box: {q:, p:}} (1 dof), "
                        "{hamiltonian:, q: [names], p: [names], parameters:, box: {name: "
