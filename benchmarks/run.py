@@ -242,10 +242,10 @@ def bench_scale(big: bool) -> None:
         if dof == 200:
             import stepsafe.core.threads
 
-            pin, stepsafe.core.threads.PIN_MAX_SIZE = stepsafe.core.threads.PIN_MAX_SIZE, 0
+            pin, stepsafe.core.threads.THREADS = stepsafe.core.threads.THREADS, 0
             with threadpool_limits(2, "blas"):  # (stepsafe's own pinning switched off)
                 two = interleaved({"ours": lambda S=S: coupled_safe_steps(m, S)}, repeat=3)
-            stepsafe.core.threads.PIN_MAX_SIZE = pin
+            stepsafe.core.threads.THREADS = pin
             row("  the same with two BLAS threads (stepsafe pins one)", f"{two['ours']:.2f} s",
                 f"{two['ours'] / t['ours']:.2f}x", "")
     if big:
