@@ -235,3 +235,50 @@ def test_a_triple_root_is_placed_and_its_uncertainty_is_honest():
     with mp.workdps(50):
         miss = abs(mp.mpf(point.z) - 2 * mp.sqrt(3))
     assert miss <= point.uncertainty <= 4 * np.spacing(point.z)
+
+
+@settings(max_examples=12, deadline=None)
+@given(exponent=st.integers(30, 300))
+def test_huge_gradient_coefficients_keep_their_tiny_boundary(tmp_path_factory, exponent):
+    """Chin 4A's shape with the gradient coefficient c = 10^k (k up to 300): the middle
+    kick's coefficient 2/3 - 2 c z^2 and the outer ones sum to 1 - 2 c z^2, so tr M - 2 =
+    -z^2 (1 - 2 c z^2) + O(z^4) changes sign at z = 1/sqrt(2c) (to 1e-60 relative here).
+    The term 2 c z^3 must be formed without z^3 alone, which underflows at z ~ 1e-150
+    (review 12: the region was reported preserved up to 1.4e-108 for k = 300)."""
+    from stepsafe.core.regions import find_region
+
+    folder = tmp_path_factory.mktemp("fg")
+    path = folder / "fg.yaml"
+    path.write_text("name: fgx\ntitle: x\nkind: splitting\norder: 4\nsource: test\n"
+                    "symmetric: true\ndrift: [0, '1/2']\nkick: ['1/6', '2/3']\n"
+                    f"gradient: [0, 1e{exponent}]\n")
+    z = find_region(resolve(str(path))[0], "oscillator", 10.0).first_boundary
+    with mp.workdps(30):
+        want = 1 / mp.sqrt(2 * mp.mpf(10) ** exponent)
+    assert z == pytest.approx(float(want), rel=1e-12)
+
+
+@pytest.mark.parametrize("hamiltonian", ["p**2/2*(1 + q**2) + q**2/2",
+                                         "p**2/2*exp(q**2) + q**2/2",
+                                         "p**2/2 + q**2/2 + q**2*p**2"])
+def test_a_hamiltonian_mixing_q_and_p_is_refused(tmp_path, run, hamiltonian):
+    """Its linearisation at (0, 0) separates, but a force-gradient kick is not defined for
+    such an H: check refuses (exit 2, naming the key) as measure does (review 12: check
+    said SAFE)."""
+    scene = tmp_path / "s.yaml"
+    scene.write_text(f"method: chin-4a\nh: 0.5\nsystem:\n  hamiltonian: \"{hamiltonian}\"\n"
+                     "  box: {q: [-1, 1], p: [-1, 1]}\n")
+    code, _, err = run("check", str(scene))
+    assert code == 2 and "$.system.hamiltonian" in err and "separable" in err
+    scene.write_text("method: chin-4a\nh: 0.5\nsystem:\n  hamiltonian: \"p**2/2 + q**2/2\"\n"
+                     "  box: {q: [-1, 1], p: [-1, 1]}\n")
+    assert run("check", str(scene))[0] == 0
+
+
+def test_a_processor_with_force_gradient_terms_is_refused(tmp_path, run):
+    """The processor's cost and inverse are those of a plain drift/kick sequence."""
+    path = tmp_path / "p.yaml"
+    path.write_text("name: px\ntitle: x\nkind: processed\norder: 2\nsource: test\n"
+                    "kernel: verlet\nprocessor: chin-4a\n")
+    code, _, err = run("region", str(path))
+    assert code == 2 and "::$.processor" in err and "force-gradient" in err

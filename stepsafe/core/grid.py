@@ -39,8 +39,14 @@ def reach(method: Method) -> float:
         return float(np.abs(flat.weights).sum()) * reach(flat.base)
     if isinstance(method, Splitting):
         kicks = float(np.abs(method.kick).sum())
-        if method.gradient is not None:  # 2 c z^3 = (cbrt(2 c) z)^3 on top of the kick's b z
-            kicks += float(np.cbrt(2.0 * np.abs(method.gradient)).sum())
+        if method.gradient is not None:
+            # a kick's coefficient b - 2 c z^2 turns at z = sqrt(|b| / 2|c|); with no kick the
+            # term 2 c z^3 = (cbrt(2 c) z)^3 (cube roots taken apart: c may be ~1e308)
+            c = np.abs(method.gradient)
+            b = np.abs(method.kick[: c.size])
+            with np.errstate(divide="ignore", over="ignore"):
+                turn = np.where(b > 0, np.sqrt(2.0) * np.sqrt(c) / np.sqrt(b), 0.0)
+            kicks += float(np.cbrt(2.0) * np.cbrt(c).sum()) + float(turn.max(initial=0.0))
         return float(max(np.abs(method.drift).sum(), kicks, 1.0))
     if isinstance(method, (RungeKutta, PartitionedRK)):
         prk = method.as_prk()

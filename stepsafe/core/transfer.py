@@ -353,14 +353,16 @@ def _splitting_jet(method: Splitting, z: np.ndarray, model: str, with_scale: boo
                            z, batch)
     T = np.zeros((order + 1, 2, 2, n))
     # the factor's entry f(z) = c z^k with its Taylor coefficients f'(z) and f''(z) / 2
-    cz = np.array([c * z ** k for _, _, c, k in ops]).reshape(len(ops), n)
+    # c z^k as ((c z) z) z: z^3 alone underflows at z = 1e-150 where c = 1e300 makes the
+    # term O(z)
+    cz = np.array([_scaled_power(c, z, k) for _, _, c, k in ops]).reshape(len(ops), n)
     rows = np.empty((len(ops), 2, n)) if with_scale else None
     for j, (src, dst, c, power) in enumerate(ops):
         old = T[0, src].copy()
         old[src] += 1.0  # row src of M = I + D
-        f1 = c if power == 1 else power * c * z ** (power - 1)
+        f1 = c if power == 1 else power * _scaled_power(c, z, power - 1)
         if order >= 2:
-            f2 = 0.0 if power == 1 else power * (power - 1) / 2 * c * z ** (power - 2)
+            f2 = 0.0 if power == 1 else power * (power - 1) / 2 * _scaled_power(c, z, power - 2)
             T[2, dst] += cz[j] * T[2, src] + f1 * T[1, src] + f2 * old
         if order >= 1:
             T[1, dst] += cz[j] * T[1, src] + f1 * old
@@ -381,6 +383,16 @@ def _splitting_jet(method: Splitting, z: np.ndarray, model: str, with_scale: boo
     nan = np.full((n, 2, 2), np.nan)
     jet += [nan] * (3 - len(jet))
     return _jet(jet[0], jet[1], jet[2], sens)
+
+
+def _scaled_power(c: float, z: np.ndarray, k: int) -> np.ndarray:
+    """``c z^k`` multiplied out from c (no intermediate ``z^k`` to underflow or overflow
+    while the product is representable)."""
+    out = np.full(np.shape(z), c, dtype=float)
+    with np.errstate(over="ignore", under="ignore"):
+        for _ in range(k):
+            out = out * z
+    return out
 
 
 def row_ops(method: Splitting, model: str) -> list[tuple[int, int, float, int]]:

@@ -523,11 +523,13 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
             return resolved(ref, key)
 
         processor = part("processor", "processor")
-        if not isinstance(processor, m.Splitting):
+        if not isinstance(processor, m.Splitting) or processor.force_gradient:
             from stepsafe.exceptions import StepsafeError
 
-            raise StepsafeError(f"the processor must be a splitting (drift/kick) method; "
-                                f"{processor.name} is a {processor.kind} method",
+            what = ("has force-gradient terms" if isinstance(processor, m.Splitting)
+                    else f"is a {processor.kind} method")
+            raise StepsafeError(f"the processor must be a plain splitting (drift/kick) "
+                                f"method; {processor.name} {what}",
                                 f"{data.where}::$.processor")
         return m.Processed(part("kernel", "kernel"), processor, **common)
     if data.kind == "impulse":

@@ -456,6 +456,16 @@ def validate_gradient_cost(value: float) -> float:
     return number
 
 
+def uses_force_gradient(method: Any) -> bool:
+    """Whether ``method`` takes force-gradient kicks (then it needs a separable
+    ``H = p^T M^-1 p / 2 + V(q)``)."""
+    if isinstance(method, Processed):
+        return uses_force_gradient(method.kernel)
+    if isinstance(method, Composition):
+        return uses_force_gradient(method.flattened().base)
+    return isinstance(method, Splitting) and method.force_gradient
+
+
 def gradient_evaluations(method: Any) -> int:
     """Force-gradient terms per step of ``method`` as run (0 for methods without)."""
     if isinstance(method, Composition) and isinstance(method.flattened().base, Splitting):
@@ -610,6 +620,9 @@ class Processed:
                               f"{getattr(self.kernel, 'name', '?')} is a {kind} method")
         if not isinstance(self.processor, Splitting):
             raise MethodError(f"{self.name}: the processor must be a drift/kick sequence")
+        if self.processor.force_gradient:
+            raise MethodError(f"{self.name}: the processor must be a plain drift/kick "
+                              f"sequence; {self.processor.name} has force-gradient terms")
         if not self.processor.operations:
             raise MethodError(f"{self.name}: the processor has no nonzero coefficient (it "
                               "would be the identity: give the kernel alone)")

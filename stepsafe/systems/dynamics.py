@@ -115,7 +115,7 @@ def _terms(node: ast.AST) -> list[ast.AST]:
     return [node]
 
 
-def _separable(tree: ast.AST) -> bool:
+def separable_terms(tree: ast.AST) -> bool:
     """Whether every term of H involves q alone or p alone (then ``H_qp = 0``)."""
     for term in _terms(tree):
         names = {n.id for n in ast.walk(term) if isinstance(n, ast.Name)}
@@ -154,7 +154,7 @@ def hamiltonian_system(H: Hamiltonian) -> System:
 
     return System(dH_dq=lambda q, p: full(jet(q, p).dq, q),
                   dH_dp=lambda q, p: full(jet(q, p).dp, p),
-                  energy=lambda q, p: full(jet(q, p).v, q)[:, 0], separable=_separable(tree),
+                  energy=lambda q, p: full(jet(q, p).v, q)[:, 0], separable=separable_terms(tree),
                   dimension=1, vector_field=vector_field, hessian=hessian)
 
 

@@ -249,6 +249,7 @@ def _hessian(tree, where, folder, method, zmax, progress=None, deadline=None
 
 def _hamiltonian(tree, where, method, zmax, deadline=None) -> SystemReport:
     from stepsafe.files.expressions import ExpressionError
+    from stepsafe.systems.dynamics import separable_terms
     from stepsafe.systems.nonlinear import find_equilibria, parse_hamiltonian
 
     if "q" in tree or "p" in tree:
@@ -276,6 +277,7 @@ def _hamiltonian(tree, where, method, zmax, deadline=None) -> SystemReport:
                        _float(pair[1], where, f"box.{axis}[1]")))
     try:
         H = parse_hamiltonian(text, params)
+        _force_gradient_needs_separable(method, separable_terms(H.expression.tree), where)
         search = find_equilibria(H, bounds[0], bounds[1])
     except ExpressionError as exc:
         raise _fail(where, "hamiltonian", f"{exc} in {text[:60]!r}") from None
@@ -368,6 +370,7 @@ def _hamiltonian_many(tree, where, method, zmax, deadline=None) -> SystemReport:
     from stepsafe.systems.manydof import MAX_STARTS, find_many
 
     H, lo, hi = read_many(tree, where)
+    _force_gradient_needs_separable(method, H.separable, where)
     starts = None
     if "starts" in tree:
         starts = _float(tree["starts"], where, "starts")
@@ -421,6 +424,18 @@ def _hamiltonian_many(tree, where, method, zmax, deadline=None) -> SystemReport:
     return SystemReport(f"{len(search.equilibria)} equilibria of H found in the box "
                         f"({search.explain()}), linearised exactly (automatic "
                         "differentiation)", items, modes, coupled, notes)
+
+
+def _force_gradient_needs_separable(method, separable: bool, where: str) -> None:
+    """A force-gradient method is defined only for ``H = p^T M^-1 p / 2 + V(q)``: refuse a
+    Hamiltonian with a term in both coordinates and momenta (its linearisation at an
+    equilibrium may separate, but the method cannot be run on H)."""
+    from stepsafe.methods.tableaux import uses_force_gradient
+
+    if method is not None and uses_force_gradient(method) and not separable:
+        raise _fail(where, "hamiltonian", f"{method.name} is a force-gradient method: it needs "
+                                          "a separable H = T(p) + V(q), and this H has a term "
+                                          "in both coordinates and momenta")
 
 
 def _analyse_hessian(S, method, zmax, item, grouped, errors, coupled) -> bool:
