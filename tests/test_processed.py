@@ -326,3 +326,11 @@ def test_the_processed_proposal_is_not_reversible_and_the_report_says_so():
         assert flip_twice(pre, post) > 1e-6
     row = hmc([NAME], sigma=[1.0] * 4, steps=L, step=0.4).rows[0]
     assert any(note.startswith("not reversible") for note in row.notes)
+
+
+def test_a_kernel_that_is_not_a_splitting_is_refused_naming_the_key(tmp_path, run):
+    path = tmp_path / "p.yaml"
+    path.write_text("name: px\ntitle: x\nkind: processed\norder: 2\nsource: test\n"
+                    "kernel: rk4\nprocessor: {drift: [0.1, -0.1], kick: [0.2, -0.2]}\n")
+    code, _, err = run("region", str(path))
+    assert code == 2 and "::$.kernel" in err

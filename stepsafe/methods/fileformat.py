@@ -35,7 +35,8 @@ and :func:`json_schema` renders it as a JSON Schema for editors and the README.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -531,11 +532,13 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
             raise StepsafeError(f"the processor must be a plain splitting (drift/kick) "
                                 f"method; {processor.name} {what}",
                                 f"{data.where}::$.processor")
-        return m.Processed(part("kernel", "kernel"), processor, **common)
+        with _naming_the_key(data.where, ("kernel",)):
+            return m.Processed(part("kernel", "kernel"), processor, **common)
     if data.kind == "impulse":
-        return m.Impulse(resolved(data.extras["outer"], "outer"),
-                         resolved(data.extras["inner"], "inner"), data.extras["substeps"],
-                         **common)
+        with _naming_the_key(data.where, ("outer", "inner")):
+            return m.Impulse(resolved(data.extras["outer"], "outer"),
+                             resolved(data.extras["inner"], "inner"), data.extras["substeps"],
+                             **common)
     base = resolved(data.base, "base")
     if data.recipe:
         from stepsafe.methods.families import RECIPES
@@ -543,6 +546,22 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
         built = RECIPES[data.recipe](base, name=data.name)
         return m.Composition(built.base, built.weights, base_order=built.base_order, **common)
     return m.Composition(base, co["weights"], base_order=getattr(base, "order", None), **common)
+
+
+@contextmanager
+def _naming_the_key(where: str, keys: tuple[str, ...]) -> Iterator[None]:
+    """A :class:`MethodError` about one of ``keys`` (``the outer method ...``, ``the kernel
+    of ...``) re-raised naming ``file::$.key``."""
+    from stepsafe.exceptions import MethodError, StepsafeError
+
+    try:
+        yield
+    except MethodError as exc:
+        text = str(exc)
+        key = next((k for k in keys if f"the {k} " in text), None)
+        if key is None:
+            raise
+        raise StepsafeError(text, f"{where}::$.{key}") from None
 
 
 def json_schema() -> dict[str, Any]:
