@@ -15,7 +15,12 @@ from test_coupled import _gyroscopic, _straightforward_h_max
 
 import stepsafe.systems.coupled as coupled
 from stepsafe.systems.coupled import CoupledSystem, _pieces, coupled_safe_steps, one_step_matrix
-from stepsafe.systems.frame import diagonal_frame, equilibrated, euler_deviation
+from stepsafe.systems.frame import (
+    MAX_RELATIVE_ERROR,
+    diagonal_frame,
+    equilibrated,
+    euler_deviation,
+)
 
 
 def _definite(rng, n, sign=1.0, kinetic_cond=1.0):
@@ -108,7 +113,7 @@ def test_error_estimate_holds_against_a_40_digit_product(case):
         exact = T.T * Sm * T
         diff = exact - mp.matrix(frame.S.tolist())
         size = mp.sqrt(sum(diff[i, j] ** 2 for i in range(2 * n) for j in range(2 * n)))
-    assert float(size) <= frame.error <= 1e-10 * np.linalg.norm(frame.S)
+    assert float(size) <= frame.error <= MAX_RELATIVE_ERROR * np.linalg.norm(frame.S)
 
 
 @pytest.mark.parametrize("name", ["verlet", "pefrl", "yoshida4", "symplectic-euler"])
