@@ -282,3 +282,12 @@ def test_a_processor_with_force_gradient_terms_is_refused(tmp_path, run):
                     "kernel: verlet\nprocessor: chin-4a\n")
     code, _, err = run("region", str(path))
     assert code == 2 and "::$.processor" in err and "force-gradient" in err
+
+
+def test_a_force_gradient_outer_method_of_an_impulse_file_is_refused_naming_the_key(tmp_path,
+                                                                                   run):
+    path = tmp_path / "i.yaml"
+    path.write_text("name: ix\ntitle: x\nkind: impulse\norder: 2\nsource: test\n"
+                    "outer: chin-4a\ninner: verlet\nsubsteps: 4\n")
+    code, _, err = run("show", str(path))
+    assert code == 2 and "::$.outer" in err and "force-gradient" in err
