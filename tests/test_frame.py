@@ -14,9 +14,17 @@ from support import method
 from test_coupled import _gyroscopic, _straightforward_h_max
 
 import stepsafe.systems.coupled as coupled
-from stepsafe.systems.coupled import CoupledSystem, _pieces, coupled_safe_steps, one_step_matrix
+from stepsafe.systems.coupled import (
+    CoupledSystem,
+    _pieces,
+    coupled_safe_steps,
+    criterion_matrix,
+    one_step_matrix,
+)
 from stepsafe.systems.frame import (
+    FOLD_RATIO,
     MAX_RELATIVE_ERROR,
+    DiagonalFrame,
     diagonal_frame,
     equilibrated,
     euler_deviation,
@@ -237,3 +245,57 @@ def test_a_boundary_brent_cannot_converge_on_is_bisected():
     got = coupled_safe_steps(m, S, 10.0).h_max
     assert got > 0.1
     assert _kept_mp(m, S, got * (1 - 1e-9))
+
+
+def _frame_step_mp(a, b, C, factors, h, digits: int = 40) -> np.ndarray:
+    """``M~(h) - I`` of the Euler factors on ``S~ = [[diag(a), C], [C^T, diag(b)]]`` at
+    ``digits`` (the factors' stage equations solved directly)."""
+    n = a.size
+    with mp.workdps(digits):
+        A, B = mp.diag([mp.mpf(x) for x in a]), mp.diag([mp.mpf(x) for x in b])
+        Cm = mp.matrix(C.tolist())
+        eye = mp.eye(n)
+        q = mp.matrix(n, 2 * n)
+        p = mp.matrix(n, 2 * n)
+        for i in range(n):
+            q[i, i] = p[i, n + i] = 1
+        for label, weight in factors:
+            c = mp.mpf(weight) * mp.mpf(h)
+            if label == "DK":  # q1 = q + c (C^T q1 + B p), p1 = p - c (A q1 + C p)
+                q = mp.inverse(eye - c * Cm.T) * (q + c * B * p)
+                p = p - c * (A * q + Cm * p)
+            else:  # p1 = p - c (A q + C p1), q1 = q + c (C^T q + B p1)
+                p = mp.inverse(eye + c * Cm) * (p - c * A * q)
+                q = q + c * (Cm.T * q + B * p)
+        for i in range(n):  # the identity taken off before rounding to float
+            q[i, i] -= 1
+            p[i, n + i] -= 1
+        return np.array([[float(x) for x in row] for row in (q.tolist() + p.tolist())])
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 4), count=st.integers(2, 9),
+       log_h=st.floats(-6.0, 0.5), fold=st.booleans())
+def test_the_rounding_bound_of_a_frame_step_holds_at_40_digits(seed, n, count, log_h, fold):
+    """The criterion matrix ``Q = M^T J - J M`` of the frame's factor-by-factor step is
+    within the analysis' bound of Q at 40 digits, with the products
+    folded into the next solve (weights' ratios drawn up to 2 FOLD_RATIO, so both the fold
+    and the explicit product are taken) and with folding switched off; the factors'
+    weights span four decades and change sign."""
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(0.2, 2.0, n)
+    b = rng.uniform(0.2, 2.0, n)
+    C = rng.normal(size=(n, n)) * 0.5
+    labels = ["DK", "KD"] if rng.random() < 0.5 else ["KD", "DK"]
+    factors = [(labels[k % 2] if rng.random() < 0.9 else labels[0],
+                float(rng.choice([-1.0, 1.0]) * 10.0 ** rng.uniform(-2, 2) / count))
+               for k in range(count)]
+    frame = DiagonalFrame(a, b, C, 0.0, np.eye(n))
+    h = 10.0 ** log_h
+    D, err = euler_deviation(frame, factors, h, float(np.linalg.norm(frame.S)),
+                             FOLD_RATIO if fold else 0.0)
+    if not np.isfinite(err):
+        return  # a singular stage matrix: no unique step
+    Q, bound = criterion_matrix(D, err)
+    exact, _ = criterion_matrix(_frame_step_mp(a, b, C, factors, h), 0.0)
+    assert np.linalg.norm(Q - exact) <= bound

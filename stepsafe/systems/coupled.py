@@ -292,6 +292,19 @@ def one_step_matrix(method: Method, S: np.ndarray, h: float) -> np.ndarray:
 # ---------------------------------------------------------------- criteria
 
 
+def criterion_matrix(D: np.ndarray, err: float) -> tuple[np.ndarray, float]:
+    """``(Q, bound)``: ``Q = D^T J - J D = M^T J - J M`` for ``D = M - I``, and a bound on
+    its error (Frobenius) from the bound ``err`` on D's rounding and the symplecticity
+    defect ``M^T J M - J = D^T J + J D + D^T J D`` (0 in exact arithmetic), which measures
+    what the stage solves' conditioning did to M."""
+    n = D.shape[0] // 2
+    JD = np.vstack([D[n:], -D[:n]])  # J D
+    # D^T J D = G - G^T with G = D_q^T D_p (half the work of the full product)
+    G = D[:n].T @ D[n:]
+    defect = float(np.linalg.norm(JD - JD.T + G - G.T))
+    return -JD.T - JD, ROUNDING_FACTOR * (2 * err + defect)
+
+
 class CoupledSystem:
     """One method on one S, with what every h shares computed once. ``steps`` (optional)
     builds the one-step matrices instead of ``method``: called with the scale ``unit`` by
@@ -357,14 +370,7 @@ class CoupledSystem:
         D, err = self.steps.deviation(h * self.unit)
         if not np.all(np.isfinite(D)):
             return None
-        n = self.n
-        JD = np.vstack([D[n:], -D[:n]])  # J D
-        # the symplecticity defect M^T J M - J = D^T J + J D + D^T J D (0 in exact
-        # arithmetic) measures what the stage solves' conditioning did to M;
-        # D^T J D = G - G^T with G = D_q^T D_p (half the work of the full product)
-        G = D[:n].T @ D[n:]
-        defect = float(np.linalg.norm(JD - JD.T + G - G.T))
-        return D, -JD.T - JD, ROUNDING_FACTOR * (2 * err + defect)  # Q = D^T J - J D
+        return (D, *criterion_matrix(D, err))
 
     def margin(self, h: float) -> float:
         """A continuous function of h that is > 0 where the structure is kept and must

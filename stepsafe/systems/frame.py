@@ -42,6 +42,9 @@ EPS = float(np.finfo(float).eps)
 #: random well-conditioned S); whether it leaves the margin room is decided by the coupled
 #: analysis (``coupled._frame_pays``).
 MAX_RELATIVE_ERROR = 1e-8
+#: A factor's leftover product is folded into the next solve only when the weights'
+#: ratio |c_prev / c| is at most this (the fold's rounding grows with it).
+FOLD_RATIO = 4.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,7 +135,8 @@ def _symmetric(X: np.ndarray) -> np.ndarray:
 
 
 def euler_deviation(frame: DiagonalFrame, factors: list[tuple[str, float]], h: float,
-                    norm_S: float) -> tuple[np.ndarray, float]:
+                    norm_S: float, fold_ratio: float = FOLD_RATIO
+                    ) -> tuple[np.ndarray, float]:
     """``(D, err)``: ``D = M~(h) - I`` of the symplectic Euler factors ``("DK" | "KD", c)``
     (applied in order, weights ``c h``) in the frame, and a first-order bound on the
     Frobenius error of D (rounding, and the frame's ``error`` as a perturbation of S).
@@ -141,17 +145,23 @@ def euler_deviation(frame: DiagonalFrame, factors: list[tuple[str, float]], h: f
     (dH/dp) and ``g = -(A q + C p)``:
 
     * ``DK(c)``: ``(I - c C^T) y = f(q, p)`` gives ``y = f(q1, p)``, ``q1 = q + c y``, then
-      ``p1 = p - c (A q1 + C p)``; ``C^T q1 = y - B p`` comes free, ``C p1`` is one product.
+      ``p1 = p - c u``, ``u = A q1 + C p``; ``C^T q1 = y - B p`` comes free, ``C p1`` is
+      ``C p - c C u``.
     * ``KD(c)``: ``(I + c C) w = A q + C p`` gives ``w = -g(q, p1)``, ``p1 = p - c w``,
-      ``C p1 = w - A q`` free, then ``q1 = q + c (C^T q + B p1)`` and one product for
-      ``C^T q1``.
+      ``C p1 = w - A q`` free, then ``q1 = q + c v``, ``v = C^T q + B p1``; ``C^T q1`` is
+      ``C^T q + c C^T v``.
 
-    A step whose stage matrix is singular (no unique step) gives a NaN D.
+    The product a factor leaves (``C u`` or ``C^T v``) is folded into the next factor's
+    solve when that factor is of the other kind: with ``r = c_prev / c``,
+    ``(I + c C)^-1 C = (I - (I + c C)^-1) / c`` turns the next right-hand side into
+    ``(1 + r) u`` and its solution into ``(I + c C)^-1 (1 + r) u - r u`` (likewise
+    ``(I - c C^T)^-1 (1 + r) v - r v``). Each factor then costs one n x n inverse and one
+    product. The fold multiplies the rounding of that solution by about ``1 + 2 |r|``, so it
+    is taken only for ``|r| <= fold_ratio`` (:data:`FOLD_RATIO`; else the product is formed) and the
+    bound is widened by that factor.
 
-    The products ``C^T q`` and ``C p`` are carried between factors, so each factor costs
-    one n x n inverse and two products (none carried out of the last factor, and the first
-    one's solve acts on ``[C^T, B]``, half of it diagonal); the increments are accumulated
-    on D, never on ``I + D``.
+    A step whose stage matrix is singular (no unique step) gives a NaN D. The increments
+    are accumulated on D, never on ``I + D``.
     """
     a, b, C = frame.a[:, None], frame.b[:, None], frame.C
     n = C.shape[0]
@@ -166,49 +176,51 @@ def euler_deviation(frame: DiagonalFrame, factors: list[tuple[str, float]], h: f
     right = diag + n  # the p block's identity columns
     err = 0.0
     size = float(np.sqrt(2 * n))  # |I + D|_F
-    last = len(factors) - 1
-    for k, (label, weight) in enumerate(factors):
-        c = weight * h
+    weights = [h * weight for _, weight in factors]
+    r = 0.0  # c_prev / c when the previous factor's product is folded into this one
+    for k, (label, _) in enumerate(factors):
+        c = weights[k]
+        following = weights[k + 1] if k + 1 < len(factors) else 0.0
+        fold_next = (following != 0.0 and factors[k + 1][0] != label
+                     and abs(c) <= fold_ratio * abs(following))
+        inverse = _inverse(eye - c * C.T if label == "DK" else eye + c * C)
+        if inverse is None:
+            return np.full((2 * n, 2 * n), np.nan), np.inf
         if label == "DK":
-            inverse = _inverse(eye - c * C.T)
-            if inverse is None:
-                return np.full((2 * n, 2 * n), np.nan), np.inf
             if k == 0:  # f0 = [C^T, B]
                 y = np.asfortranarray(np.hstack([inverse @ C.T, inverse * b[:, 0]]))
             else:
-                f0 = Ctq + b * Dp
-                f0[diag, right] += b[:, 0]
-                y = inverse @ f0
+                v = Ctq + b * Dp
+                v[diag, right] += b[:, 0]
+                y = _solved(inverse, v, r)
             Ctq = y - b * Dp
             Ctq[diag, right] -= b[:, 0]
             y *= c  # dq
             Dq += y
-            dp = a * Dq
-            dp[diag, diag] += a[:, 0]
-            dp += Cp
-            dp *= -c
-            Dp += dp
-            if k < last:
-                Cp += C @ dp
+            u = a * Dq
+            u[diag, diag] += a[:, 0]
+            u += Cp
+            if k + 1 < len(factors) and not fold_next:
+                Cp -= c * (C @ u)
+            Dp -= c * u
         else:
-            inverse = _inverse(eye + c * C)
-            if inverse is None:
-                return np.full((2 * n, 2 * n), np.nan), np.inf
-            g0 = a * Dq
-            g0[diag, diag] += a[:, 0]
-            g0 += Cp
-            w = inverse @ g0
-            Cp = w - g0 + Cp  # C p1 = w - A q
-            w *= -c  # dp
-            Dp += w
-            dq = Ctq + b * Dp
-            dq[diag, right] += b[:, 0]
-            dq *= c
-            Dq += dq
-            if k < last:
-                Ctq += C.T @ dq
-        # rounding of this factor and of the products carried into it, plus the frame
+            u = a * Dq
+            u[diag, diag] += a[:, 0]
+            u += Cp  # A q + C p
+            w = _solved(inverse, u, r)
+            Cp = w - u + Cp  # C p1 = w - A q
+            Dp -= c * w
+            v = Ctq + b * Dp
+            v[diag, right] += b[:, 0]
+            if k + 1 < len(factors) and not fold_next:
+                Ctq += c * (C.T @ v)
+            Dq += c * v
+        # rounding of this factor and of the products carried into it, plus the frame; a
+        # folded solve's rounding reaches D through c and the next factor's weight
         err += abs(c) * ((4 * n + 2 * k) * EPS * norm_S + frame.error) * size
+        if r:
+            err += (abs(c) + abs(following)) * (1 + 2 * abs(r)) * n * EPS * norm_S * size
+        r = c / following if fold_next else 0.0
         # |I + D|_F^2 = |D|_F^2 + 2 trace(D) + 2n
         trace = float(np.trace(Dq[:, :n]) + np.trace(Dp[:, n:]))
         size = float(np.sqrt(max(np.linalg.norm(Dq) ** 2 + np.linalg.norm(Dp) ** 2
@@ -216,6 +228,16 @@ def euler_deviation(frame: DiagonalFrame, factors: list[tuple[str, float]], h: f
     if not (np.all(np.isfinite(Dq)) and np.all(np.isfinite(Dp))):
         return np.full((2 * n, 2 * n), np.nan), np.inf
     return np.vstack([Dq, Dp]), err
+
+
+def _solved(inverse: np.ndarray, rhs: np.ndarray, r: float) -> np.ndarray:
+    """``inverse @ rhs``, or with a folded product (``r != 0``, see
+    :func:`euler_deviation`) ``inverse @ ((1 + r) rhs) - r rhs``."""
+    if not r:
+        return inverse @ rhs
+    out = inverse @ ((1.0 + r) * rhs)
+    out -= r * rhs
+    return out
 
 
 def _inverse(A: np.ndarray) -> np.ndarray | None:
