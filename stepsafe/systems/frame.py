@@ -168,11 +168,11 @@ def euler_deviation(frame: DiagonalFrame, factors: list[tuple[str, float]], h: f
     eye = np.eye(n)
     diag = np.arange(n)
     # q = [I, 0] + Dq, p = [0, I] + Dp are never formed: the identity's contribution is
-    # added on the diagonal of the block it sits in. Column-major throughout.
-    Dq = np.zeros((n, 2 * n), order="F")
-    Dp = np.zeros((n, 2 * n), order="F")
-    Ctq = np.asfortranarray(np.hstack([C.T, np.zeros((n, n))]))  # C^T q
-    Cp = np.asfortranarray(np.hstack([np.zeros((n, n)), C]))  # C p
+    # added on the diagonal of the block it sits in.
+    Dq = np.zeros((n, 2 * n))
+    Dp = np.zeros((n, 2 * n))
+    Ctq = np.hstack([C.T, np.zeros((n, n))])  # C^T q
+    Cp = np.hstack([np.zeros((n, n)), C])  # C p
     right = diag + n  # the p block's identity columns
     err = 0.0
     size = float(np.sqrt(2 * n))  # |I + D|_F
@@ -188,7 +188,7 @@ def euler_deviation(frame: DiagonalFrame, factors: list[tuple[str, float]], h: f
             return np.full((2 * n, 2 * n), np.nan), np.inf
         if label == "DK":
             if k == 0:  # f0 = [C^T, B]
-                y = np.asfortranarray(np.hstack([inverse @ C.T, inverse * b[:, 0]]))
+                y = np.hstack([inverse @ C.T, inverse * b[:, 0]])
             else:
                 v = Ctq + b * Dp
                 v[diag, right] += b[:, 0]
