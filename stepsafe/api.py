@@ -565,7 +565,9 @@ class AdviceReport:
     ``boundary``, ``horizon`` when no boundary was found below how far the analysis
     looked, ``none`` when no step is safe); ``safe_h`` lists every safe interval of h
     (islands included, ``None`` for no upper end). ``advice`` is the core result (with
-    the regions used) for decoupled modes."""
+    the regions used) for decoupled modes. ``undecided_h``: intervals of h that float64
+    could not decide in the coupled analysis of a nearly semidefinite system too large for
+    the high-precision criterion (neither certified nor certainly unsafe)."""
 
     method: str
     h_max: float | None
@@ -575,6 +577,7 @@ class AdviceReport:
     record: Mapping[str, Any] = field(repr=False)
     advice: Any = field(repr=False, default=None)
     verification: Mapping[str, Any] | None = None
+    undecided_h: tuple[tuple[float, float], ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe advise ... --json`` prints."""
@@ -659,7 +662,8 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
     safe = tuple((float(lo), hi) for lo, hi in data["safe_h"])
     return AdviceReport(data["method"], data["h_max"], data["h_max_limited_by"], safe,
                         data["horizon"], _frozen(data), result,
-                        None if verdict is None else _frozen(verdict))
+                        None if verdict is None else _frozen(verdict),
+                        tuple((float(lo), float(hi)) for lo, hi in data.get("undecided_h", ())))
 
 
 def _other_criterion(integrator: Integrator, p: Problem, result: Any,

@@ -40,12 +40,14 @@ def _definite(rng, n, sign=1.0, kinetic_cond=1.0):
     return sign * (T @ S @ T)
 
 
-def _kept_mp(m, S, h, digits: int = 40) -> bool:
-    """The definite criterion at ``digits``: ``Q = M^T J - J M`` (times the sign of S)
-    positive definite, M built from the exact floats of S by the method's symplectic Euler
-    factors solved at that precision (an mpmath Cholesky decides)."""
+def _kept_mp(m, S, h, digits: int = 40, sign: int | None = None) -> bool:
+    """The definite criterion at ``digits``: ``Q = M^T J - J M`` (times the sign of S,
+    from its float eigenvalues unless given) positive definite, M built from the exact
+    floats of S by the method's symplectic Euler factors solved at that precision (an
+    mpmath Cholesky decides)."""
     n = S.shape[0] // 2
-    sign = 1 if np.all(np.linalg.eigvalsh(S) > 0) else -1
+    if sign is None:
+        sign = 1 if np.all(np.linalg.eigvalsh(S) > 0) else -1
     with mp.workdps(digits):
         def block(rows, cols):
             return mp.matrix([[S[i, j] for j in cols] for i in rows])

@@ -251,7 +251,11 @@ def print_advice(data: dict[str, Any]) -> None:
     safe = data["safe_h"]
     if "accuracy" in data:
         _print_accuracy(console, data, u)
-    if data["h_max_limited_by"] == "none":
+    undecided = data.get("undecided_h") or []
+    if data["h_max_limited_by"] == "none" and undecided:
+        console.print("[red]No step certified from 0:[/red] float64 cannot decide the coupled "
+                      f"analysis up to h = {fmt(min(b for _, b in undecided))}{u} (see the note).")
+    elif data["h_max_limited_by"] == "none":
         console.print("[red]No safe step from 0:[/red] the method never preserves this structure.")
     elif safe[0][1] is None:
         console.print("[green]Safe for every h[/green] (no frequency limits the step).")
@@ -268,6 +272,9 @@ def print_advice(data: dict[str, Any]) -> None:
         if lim and lim.get("resonance"):
             by += f" (its {lim['resonance']} nonlinear resonance)"
         console.print(_lit((f"Safe: 0 < h < {fmt_below(safe[0][1])}{u}", "green"), by))
+        for low, high in undecided:
+            console.print(f"[yellow]Undecided:[/yellow] float64 cannot decide h in "
+                          f"({fmt(low)}, {fmt(high)}){u} (see the note).")
     islands = [iv for iv in safe if iv[0] != 0.0]
     if islands:
         console.print("Also safe (islands outside the primary interval; any error in beta can "

@@ -83,6 +83,9 @@ def system_advice(method: Method, report: SystemReport, margin: float = 1.0,
             and data["h_max"] < data["limiting"]["h_limit"])):
         data["limiting"] = {"model": "coupled", "beta": None, "h_limit": data["h_max"]}
     data["h_max_limited_by"] = _limited_by(data)
+    # steps float64 could not decide in a coupled analysis (neither certified nor lost)
+    data["undecided_h"] = [[margin * r.h_max, margin * r.undecided_to]
+                           for r, _ in report.coupled if r.undecided_to is not None]
     items = _limit_items(report, regions, margin)
     data["system"] = {"analysis": report.analysis, "items": items, "notes": report.notes,
                       "limiting_item": _limiting_item(items)}
@@ -129,7 +132,7 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
     for result, S in report.coupled:
         with blas_threads_for(S.shape[0]):
             system = CoupledSystem(method, S)
-            ok = all(system.preserved(step) for step in (h, h / margin))
+            ok = all(system.certified(step) for step in (h, h / margin))
         dof = S.shape[0] // 2  # analysed together: they keep their structure or not as one
         data["modes"] += dof
         cap = margin * result.h_max
@@ -137,10 +140,14 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
         if not ok:
             data["failing"] += dof
             data["safe"] = False
+            undecided = result.undecided_to is not None and h / margin < result.undecided_to
             data["failures"].append({
                 "model": "coupled", "beta": None, "z": float(h),
-                "reason": f"the one-step matrix of the coupled {dof}-dof system does not keep "
-                          "the eigen-structure of J S at this h",
+                "reason": (f"float64 cannot decide whether the one-step matrix of the coupled "
+                           f"{dof}-dof system keeps the eigen-structure of J S at this h (S "
+                           "nearly semidefinite; see the note): not certified" if undecided
+                           else f"the one-step matrix of the coupled {dof}-dof system does "
+                           "not keep the eigen-structure of J S at this h"),
                 "largest_safe_h": cap})
     if report.primary_only:
         data["safe_h"] = data["safe_h"][:1] if data["safe_h"] and data["safe_h"][0][0] == 0.0 \

@@ -43,6 +43,7 @@ import scipy.linalg as sla
 from stepsafe.core.threads import blas_threads_for
 from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
+from stepsafe.systems import coupled_exact
 from stepsafe.systems.frame import (
     DiagonalFrame,
     diagonal_frame,
@@ -83,6 +84,10 @@ class CoupledResult:
     horizon: float  #: zmax / |mu|_max: steps beyond it were not analysed
     evaluations: int  #: one-step matrices built
     analysis: str
+    #: where float64 could not decide: steps in (h_max, undecided_to) are neither certified
+    #: nor certainly lost (the rounding bound of Q reaches its margin; a system too large
+    #: for the high-precision criterion); None when the boundary was decided
+    undecided_to: float | None = None
 
     @property
     def safe_h(self) -> tuple[tuple[float, float | None], ...]:
@@ -313,6 +318,7 @@ class CoupledSystem:
 
     def __init__(self, method: Method | None, S: np.ndarray,
                  steps: Callable[[float], object] | None = None) -> None:
+        self.method, self.given = method, S
         # work on S / |S|_max and h |S|_max (the same one-step matrices), so neither S nor
         # its norms over- or underflow whatever its units
         largest = float(np.abs(S).max()) if S.size else 0.0
@@ -338,6 +344,7 @@ class CoupledSystem:
         self.top = self.unit * _largest_frequency(S, self.chol if self.sign else None)
         self.evaluations = 0
         self._cache: dict[float, float] = {}
+        self._slack: dict[float, float] = {}  # the rounding bound in the units of the margin
         self._built: dict[float, tuple | None] = {}
 
     @property
@@ -425,7 +432,29 @@ class CoupledSystem:
         # |delta lambda| <= ||L^-1||_2^2 ||delta Q||_2 (L = diag(weight)^1/2 in the frame),
         # plus the eigensolver's own backward error
         bound = err * inverse_norm2 + 4 * self.n * EPS * float(np.linalg.norm(W))
+        self._slack[h] = bound / (2 * h * self.unit)
         return (low - bound) / (2 * h * self.unit)
+
+    def certainly_lost(self, h: float) -> bool:
+        """Definite S: whether the structure is lost at h beyond rounding (``Q`` has an
+        eigenvalue below minus its rounding bound), at a pole, or the step is not unique."""
+        poles = self.poles
+        if poles.size and float(np.min(np.abs(poles - h))) <= POLE_BAND * h:
+            return True
+        value = self.margin(h)
+        return value == -np.inf or value + 2 * self._slack.get(h, 0.0) < 0
+
+    def certified(self, h: float) -> bool:
+        """:meth:`preserved`, and where float64 cannot decide a small definite system,
+        the criterion at high precision (:mod:`stepsafe.systems.coupled_exact`)."""
+        if self.preserved(h):
+            return True
+        if not (self.definite and coupled_exact.exact_capable(self.method, self.given)):
+            return False
+        if self.certainly_lost(h):
+            return False
+        factors = coupled_exact.euler_factors(self.method)
+        return coupled_exact.kept_exactly(factors, self.given, self.sign, h)
 
     @cached_property
     def inv_chol_norm2(self) -> float:
@@ -719,9 +748,17 @@ def _safe_steps(method: Method | None, S: np.ndarray, zmax: float,
         if bad is not None:
             good, bad = bad
             h_max = _boundary(system, good, bad, order)
+            undecided = _undecided(system, h_max, hs, horizon)
+            if undecided is not None and coupled_exact.exact_capable(method, S):
+                h_max = max(h_max, coupled_exact.exact_boundary(
+                    coupled_exact.euler_factors(method), S, system.sign, h_max, undecided,
+                    REL_TOL, hs))
+                analysis += (f"; the boundary decided at {coupled_exact.PRECISION} digits "
+                             "(float64's rounding bound reached the margin)")
+                undecided = None
             if progress:
                 progress(1.0)
-            return CoupledResult(h_max, horizon, system.evaluations, analysis)
+            return CoupledResult(h_max, horizon, system.evaluations, analysis, undecided)
         lo = h
         if progress:
             progress((k + 1) / count)
@@ -756,6 +793,23 @@ def _first_failure(system: CoupledSystem, lo: float, h: float, before: float | N
         else:
             a, b = (a, x) if x > m else (x, b)
     return None
+
+
+def _undecided(system: CoupledSystem, h_max: float, hs: np.ndarray, horizon: float
+               ) -> float | None:
+    """Definite S: None if the first step found not preserved after ``h_max`` is
+    certainly lost; else the first step, among those evaluated and the scan's, that is
+    (the horizon if none is): float64 decides nothing between."""
+    if not system.definite:
+        return None
+    after = sorted(h for h in system._cache if h > h_max)
+    first = next((h for h in after if not system.preserved(h)), None)
+    if first is None or system.certainly_lost(first):
+        return None
+    for h in sorted(set(after) | {float(x) for x in hs if x > first}):
+        if h > first and system.certainly_lost(h):
+            return h
+    return horizon
 
 
 def _tightest(system: CoupledSystem, good: float, bad: float) -> tuple[float, float]:

@@ -240,11 +240,12 @@ def _hessian(tree, where, folder, method, zmax, progress=None, deadline=None
     if d is not None:
         return _report_modes(d.modes, d.analysis, [])
     result = coupled_safe_steps(method, S, zmax, progress, deadline)
-    items = [{"type": "coupled", "dof": S.shape[0] // 2, "h_limit": result.h_max}]
+    items = [_with_undecided({"type": "coupled", "dof": S.shape[0] // 2,
+                              "h_limit": result.h_max}, result)]
     return SystemReport(result.analysis, items, None, [(result, S)], [
         "the modes do not decouple for this method (partitioned method, non-separable H, "
         "or loxodromic modes): h_max comes from the full one-step matrix; islands beyond it "
-        "are not analysed"])
+        "are not analysed", *_undecided_notes([(result, S)])])
 
 
 def _hamiltonian(tree, where, method, zmax, deadline=None) -> SystemReport:
@@ -308,7 +309,8 @@ def _hamiltonian(tree, where, method, zmax, deadline=None) -> SystemReport:
     modes = Modes.from_arrays({k: np.array(v) for k, v in grouped.items()},
                               {k: np.array(v) for k, v in errors.items()}) if grouped else None
     return SystemReport("equilibria of H found in the box and linearised exactly "
-                        "(automatic differentiation)", items, modes, coupled, notes)
+                        "(automatic differentiation)", items, modes, coupled,
+                        notes + _undecided_notes(coupled))
 
 
 def read_many(tree, where):
@@ -423,7 +425,8 @@ def _hamiltonian_many(tree, where, method, zmax, deadline=None) -> SystemReport:
                  "raises their number")
     return SystemReport(f"{len(search.equilibria)} equilibria of H found in the box "
                         f"({search.explain()}), linearised exactly (automatic "
-                        "differentiation)", items, modes, coupled, notes)
+                        "differentiation)", items, modes, coupled,
+                        notes + _undecided_notes(coupled))
 
 
 def _force_gradient_needs_separable(method, separable: bool, where: str) -> None:
@@ -450,6 +453,7 @@ def _analyse_hessian(S, method, zmax, item, grouped, errors, coupled) -> bool:
         result = coupled_safe_steps(method, S, zmax)
         coupled.append((result, S))
         item["h_limit"] = result.h_max
+        _with_undecided(item, result)
         return True
     for m in d.modes:
         if m.model != "free":
@@ -458,6 +462,33 @@ def _analyse_hessian(S, method, zmax, item, grouped, errors, coupled) -> bool:
     item["model"] = ",".join(sorted({m.model for m in d.modes}))
     item["analysis"] = d.analysis
     return False
+
+
+def _with_undecided(item: dict[str, Any], result) -> dict[str, Any]:
+    """The item with ``h_undecided_to`` when float64 left the coupled boundary open."""
+    if result.undecided_to is not None:
+        item["h_undecided_to"] = result.undecided_to
+    return item
+
+
+def _undecided_notes(coupled: list[Any]) -> list[str]:
+    """One note per coupled analysis whose boundary float64 could not place."""
+    from stepsafe.systems.coupled_exact import EXACT_SIZE
+
+    notes = []
+    for result, S in coupled:
+        if result.undecided_to is None:
+            continue
+        low, high = result.h_max, result.undecided_to
+        certified = f"steps below {low:.6g} are certified" if low > 0 else "no step is certified"
+        lost = (f"the structure is lost at {high:.6g}" if high < result.horizon else
+                f"no loss is certain up to the horizon {high:.6g}")
+        notes.append(f"float64 cannot decide the coupled {S.shape[0]}x{S.shape[0]} analysis for "
+                     f"h in ({low:.6g}, {high:.6g}): S is nearly semidefinite (the rounding "
+                     "bound of the criterion reaches its margin) and has more than "
+                     f"{EXACT_SIZE} rows, the most decided at high precision; {certified}, "
+                     f"{lost}")
+    return notes
 
 
 def _point(H, x) -> str:
