@@ -743,3 +743,23 @@ def test_advise_names_the_limiting_mode_by_its_label(run, tmp_path):
     assert "label" not in data["models"]["inverted"]
     code, out, err = run("advise", str(scene))
     assert "limited by fast [red]stretch (oscillator) beta = 7" in out
+
+
+@pytest.mark.parametrize("name, wrong", [("pefrl", 3), ("blanes-casas-ros764", 4),
+                                         ("yoshida4", 1)])
+def test_validate_warns_when_the_stated_evaluations_are_not_the_coefficients(run, tmp_path,
+                                                                             name, wrong):
+    """A copy of a library file with another ``evaluations:`` (a splitting, a processed
+    method's kernel, a composition) is valid but warned about, naming both counts."""
+    from stepsafe.methods.library import builtin_dir, resolve
+
+    text = (builtin_dir() / f"{name}.yaml").read_text()
+    right = resolve(name)[1].evaluations
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(text.replace(f"evaluations: {right}\n", f"evaluations: {wrong}\n"))
+    code, out, _ = run("validate", str(path))
+    assert code == 0
+    assert (f"evaluations: {wrong} stated, the coefficients make {right} force evaluations"
+            in out)
+    path.write_text(text)
+    assert "evaluations:" not in run("validate", str(path))[1]

@@ -12,6 +12,7 @@ import pytest
 
 from stepsafe import method
 from stepsafe.core.integrator import Engine
+from stepsafe.exceptions import StepsafeError
 from stepsafe.measurement import measure
 from stepsafe.systems.dynamics import hamiltonian_system, linear_system
 from stepsafe.systems.nonlinear import parse_hamiltonian
@@ -422,3 +423,41 @@ def test_kepler_without_an_equilibrium(run, tmp_path):
                        "--h-range", "0.05,0.1,2", "--time", "10", "--initial", "1,0,0,1.2",
                        "-o", str(png))
     assert code == 0 and png.exists(), err
+
+
+def _builtin_splittings():
+    from stepsafe.methods.library import builtin_names, resolve
+    from stepsafe.methods.tableaux import natural_evaluations
+
+    out = []
+    for name in builtin_names():
+        try:
+            m, entry = resolve(name)
+        except StepsafeError:
+            continue  # a family (needs a stage count)
+        if natural_evaluations(m) is not None or entry.evaluations is not None:
+            out.append(name)
+    return out
+
+
+@pytest.mark.parametrize("name", _builtin_splittings())
+def test_every_stated_evaluation_count_is_what_the_engine_makes_per_step(name):
+    """A method file's ``evaluations:`` (what compare, hmc and the cost model use) equals
+    the forces the engine evaluates per step, measured as the difference between 40 and 20
+    steps on the pendulum (a processor's one-off forces cancel); and equals what
+    ``stepsafe validate`` derives from the coefficients."""
+    from stepsafe.methods.library import resolve
+    from stepsafe.methods.tableaux import natural_evaluations
+
+    m, entry = resolve(name)
+    counts = []
+    for n in (20, 40):
+        engine = Engine(m, _pendulum())
+        q, p = engine.start(np.array([[0.5]]), np.array([[0.0]]), 0.1)
+        for _ in range(n):
+            q, p = engine.step(q, p, 0.1)
+        counts.append(engine.force_evaluations)
+    if not m.kind == "rk":  # (an RK's implicit solve counts iterations, not stages)
+        assert (counts[1] - counts[0]) / 20 == entry.evaluations
+    natural = natural_evaluations(m)
+    assert natural is None or natural == entry.evaluations

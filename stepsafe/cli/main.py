@@ -737,6 +737,7 @@ def validate_cmd(files: tuple[str, ...]) -> None:
     from stepsafe.exceptions import StepsafeError
     from stepsafe.methods.library import resolve
     from stepsafe.methods.residuals import residuals
+    from stepsafe.methods.tableaux import natural_evaluations
 
     lines, invalid = [], None
     for path in files:  # all files first: a reader that stops early keeps the exit code
@@ -758,6 +759,11 @@ def validate_cmd(files: tuple[str, ...]) -> None:
         if not res.consistent:
             lines.append(f"warning: {path}: not consistent (weight sums off by "
                          f"{res.consistency:.3g})")
+        natural = natural_evaluations(method)
+        if natural is not None and entry.evaluations not in (None, natural):
+            lines.append(f"warning: {path}: evaluations: {entry.evaluations} stated, the "
+                         f"coefficients make {natural} force evaluations per step (kicks, "
+                         "first same as last merged)")
     if invalid is not None:
         decided(EXIT_INPUT, str(invalid))
     for line in lines:

@@ -242,6 +242,20 @@ class Splitting:
         return count
 
     @property
+    def forces_per_step(self) -> int | None:
+        """Force evaluations per step as run: the kicks, the step's closing kick and the
+        next step's opening one merged when no drift separates them (both at the same q);
+        None for the displaced-force form, whose extra forces depend on how the file
+        counts them."""
+        if self.displaced:
+            return None
+        ops = self.operations
+        kicks = sum(1 for kind, _ in ops if kind == "kick")
+        if kicks > 1 and ops[0][0] != "drift" and ops[-1][0] != "drift":
+            kicks -= 1
+        return kicks
+
+    @property
     def stages(self) -> int:
         """Number of kicks (force evaluations before first-same-as-last merging)."""
         return sum(1 for kind, _ in self.operations if kind == "kick")
@@ -464,6 +478,20 @@ def uses_force_gradient(method: Any) -> bool:
     if isinstance(method, Composition):
         return uses_force_gradient(method.flattened().base)
     return isinstance(method, Splitting) and method.force_gradient
+
+
+def natural_evaluations(method: Any) -> int | None:
+    """Force evaluations per step that a splitting (a composition of one, a processed
+    method's kernel) makes as run (:attr:`Splitting.forces_per_step`); None for other
+    methods."""
+    if isinstance(method, Processed):
+        method = method.kernel
+    if isinstance(method, Composition):
+        flat = method.flattened()
+        if not isinstance(flat.base, Splitting):
+            return None
+        method = flat.as_splitting()
+    return method.forces_per_step if isinstance(method, Splitting) else None
 
 
 def gradient_evaluations(method: Any) -> int:
