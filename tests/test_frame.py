@@ -277,10 +277,12 @@ def _frame_step_mp(a, b, C, factors, h, digits: int = 40) -> np.ndarray:
 
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 4), count=st.integers(2, 9),
-       log_h=st.floats(-6.0, 0.5), fold=st.booleans())
-def test_the_rounding_bound_of_a_frame_step_holds_at_40_digits(seed, n, count, log_h, fold):
+       log_h=st.floats(-6.0, 0.5), fold=st.booleans(), lu=st.booleans())
+def test_the_rounding_bound_of_a_frame_step_holds_at_40_digits(seed, n, count, log_h, fold,
+                                                              lu):
     """The criterion matrix ``Q = M^T J - J M`` of the frame's factor-by-factor step is
-    within the analysis' bound of Q at 40 digits, with the products
+    within the analysis' bound of Q at 40 digits, by explicit inverses or LU solves, with
+    the products
     folded into the next solve (weights' ratios drawn up to 2 FOLD_RATIO, so both the fold
     and the explicit product are taken) and with folding switched off; the factors'
     weights span four decades and change sign."""
@@ -294,10 +296,28 @@ def test_the_rounding_bound_of_a_frame_step_holds_at_40_digits(seed, n, count, l
                for k in range(count)]
     frame = DiagonalFrame(a, b, C, 0.0, np.eye(n))
     h = 10.0 ** log_h
-    D, err = euler_deviation(frame, factors, h, float(np.linalg.norm(frame.S)),
-                             FOLD_RATIO if fold else 0.0)
+    with pytest.MonkeyPatch.context() as patch:
+        if lu:  # the factors applied by triangular solves, as for large n
+            patch.setattr("stepsafe.systems.frame.SOLVE_FROM", 1)
+        D, err = euler_deviation(frame, factors, h, float(np.linalg.norm(frame.S)),
+                                 FOLD_RATIO if fold else 0.0)
     if not np.isfinite(err):
         return  # a singular stage matrix: no unique step
     Q, bound = criterion_matrix(D, err)
     exact, _ = criterion_matrix(_frame_step_mp(a, b, C, factors, h), 0.0)
     assert np.linalg.norm(Q - exact) <= bound
+
+
+@pytest.mark.parametrize("name", ["pefrl", "blanes-moan4"])
+def test_the_lu_solves_of_large_systems_give_the_same_safe_interval(name, monkeypatch):
+    """From ``SOLVE_FROM`` on the factors are applied by LU solves instead of explicit
+    inverses: the same h_max (to the analysis' tolerance) on one system both ways, and
+    kept at 40 digits."""
+    rng = np.random.default_rng(11)
+    S = _definite(rng, 6, kinetic_cond=1e2)
+    m = method(name)
+    inverses = coupled_safe_steps(m, S, 6.0).h_max
+    monkeypatch.setattr("stepsafe.systems.frame.SOLVE_FROM", 1)
+    solves = coupled_safe_steps(m, S, 6.0).h_max
+    assert solves == pytest.approx(inverses, rel=1e-9)
+    assert _kept_mp(m, S, min(solves, inverses))
