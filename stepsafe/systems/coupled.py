@@ -304,10 +304,14 @@ def criterion_matrix(D: np.ndarray, err: float) -> tuple[np.ndarray, float]:
     what the stage solves' conditioning did to M."""
     n = D.shape[0] // 2
     JD = np.vstack([D[n:], -D[:n]])  # J D
-    # D^T J D = G - G^T with G = D_q^T D_p (half the work of the full product)
+    Q = np.add(JD, JD.T)
+    Q *= -1.0
+    # D^T J D = G - G^T with G = D_q^T D_p (half the work of the full product), so the
+    # defect is X - X^T with X = J D + G
     G = D[:n].T @ D[n:]
-    defect = float(np.linalg.norm(JD - JD.T + G - G.T))
-    return -JD.T - JD, ROUNDING_FACTOR * (2 * err + defect)
+    JD += G
+    np.subtract(JD, JD.T, out=G)
+    return Q, ROUNDING_FACTOR * (2 * err + float(np.linalg.norm(G)))
 
 
 class CoupledSystem:
