@@ -23,7 +23,11 @@ Two criteria, both exact, chosen by S:
 Euler factor of a splitting adds its increment ``c (...)`` (one n x n solve and one matrix
 product, the products ``S_qq q`` and ``S_pp p`` reused between factors), so ``Q = D^T J -
 J D`` with ``D = M - I`` has no cancellation at small h. A decision within the rounding
-bound of Q is not a pass: such an h counts as not preserved.
+bound of Q is not a pass: such an h counts as not preserved. Where that bound reaches the
+margin before the structure is lost (a nearly semidefinite S), the first failure is not a
+certain loss: a small splitting system is then decided at high precision
+(:mod:`stepsafe.systems.coupled_exact`), a larger one reports the band float64 leaves open
+(:attr:`CoupledResult.undecided_to`).
 
 The scan runs only until the first failure (the safe interval from 0 is what limits h;
 islands beyond it are not analysed), in steps of ``SCAN_DZ`` in z = h |mu|_max, and looks
