@@ -626,7 +626,7 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
                 raise StepsafeError("--tol-phase/--tol-energy apply to frequencies, not yet "
                                     "to system: scenes")
             data = system_advice(integrator.tableau, p.system, p.margin, p.zmax,
-                                 integrator.name, criterion)
+                                 integrator.name, criterion, _order(resonance_order))
             data["fixed_point_limit"] = _system_solver_limit(integrator, p)
         elif tol_phase is None and tol_energy is None:
             result = core_advise(integrator.tableau, p.modes, p.margin, p.zmax, integrator.name,
@@ -810,7 +810,7 @@ def check(method: Integrator | str | None = None, h: float | None = None,
             from stepsafe.systems.advice import system_check
 
             data = system_check(integrator.tableau, p.system, step, p.margin, p.zmax,
-                                integrator.name, criterion)
+                                integrator.name, criterion, _order(resonance_order))
         else:
             result = check_step(integrator.tableau, p.modes, step, p.margin, p.zmax,
                                 integrator.name, _order(resonance_order), criterion)

@@ -209,3 +209,43 @@ def test_resonance_order_verdicts_at_every_scale(name, exponent, offset, order):
             assert z < exact, (name, beta, offset)
         if z > exact * (1 + mpmath.mpf(1e-12)):
             assert not report.safe
+
+
+def _fpu_stiffness(n: int = 4) -> list[list[float]]:
+    """The FPU chain's linear stiffness (unit masses, fixed walls): frequencies
+    2 sin(k pi / (2 (n + 1)))."""
+    return (2 * np.eye(n) - np.eye(n, k=1) - np.eye(n, k=-1)).tolist()
+
+
+@pytest.mark.parametrize("order, resonant", [(4, math.sqrt(2)), (3, math.sqrt(3))])
+def test_resonance_order_applies_to_system_scenes(run, tmp_path, order, resonant):
+    """A system: scene (a Hamiltonian with its equilibria, or a stiffness with or without
+    all_modes) keeps below the fastest mode's n:1 resonance, z = 2 sin(pi/n) for Verlet,
+    as the same frequencies given as modes do; the step just above it fails."""
+    top = 2 * math.sin(4 * math.pi / 10)  # the FPU chain's fastest mode
+    limit = resonant / top
+    stiffness = tmp_path / "fpu-k.json"
+    stiffness.write_text(json.dumps({"method": "verlet",
+                                     "system": {"stiffness": _fpu_stiffness()}}))
+    dense = tmp_path / "fpu-all.json"
+    dense.write_text(json.dumps({"method": "verlet", "system": {
+        "stiffness": _fpu_stiffness(), "all_modes": True}}))
+    for scene in ("examples/fpu-alpha.yaml", str(stiffness), str(dense)):
+        data = json.loads(run("advise", scene, "--resonance-order", str(order), "--json")[1])
+        assert data["h_max"] == pytest.approx(limit, rel=1e-9) and data["h_max"] <= limit
+        code, out, _ = run("check", scene, "--step", repr(limit * (1 + 1e-6)),
+                           "--resonance-order", str(order))
+        assert code == 1 and f"{order}:1 nonlinear resonance" in out
+        assert run("check", scene, "--step", repr(limit * (1 - 1e-6)),
+                   "--resonance-order", str(order))[0] == 0
+
+
+def test_resonance_order_is_refused_for_a_coupled_system(run, tmp_path):
+    """A system whose modes do not decouple has no per-mode rotation angle: the option is
+    refused (exit 2) rather than ignored."""
+    scene = tmp_path / "gyro.json"
+    scene.write_text(json.dumps({"method": "verlet", "system": {
+        "hessian": [[2, 0, 0, -0.5], [0, 2, 0.5, 0], [0, 0.5, 1, 0], [-0.5, 0, 0, 1]]}}))
+    code, _, err = run("check", str(scene), "--step", "0.1", "--resonance-order", "4")
+    assert code == 2 and "--resonance-order is not available" in err
+    assert run("advise", str(scene), "--resonance-order", "4")[0] == 2

@@ -50,16 +50,28 @@ def _coupled_criterion(report: SystemReport, criterion: str) -> None:
                             "use --criterion structure")
 
 
+def _coupled_resonances(report: SystemReport, resonance_order: int | None) -> None:
+    if report.coupled and resonance_order is not None:
+        raise StepsafeError("--resonance-order is not available for a system whose modes "
+                            "couple (the coupled analysis has no per-mode rotation angle to "
+                            "test for n theta = 2 pi m): give the frequencies as modes")
+
+
 def system_advice(method: Method, report: SystemReport, margin: float = 1.0,
                   zmax: float = 10.0, name: str | None = None,
-                  criterion: str = "structure") -> dict[str, Any]:
-    """JSON-ready advice for a system (see advice_data for the common fields)."""
+                  criterion: str = "structure", resonance_order: int | None = None
+                  ) -> dict[str, Any]:
+    """JSON-ready advice for a system (see advice_data for the common fields); with
+    ``resonance_order`` N its vibrations also keep below their first nonlinear resonance
+    of order at most N (decoupled modes only)."""
     from stepsafe.core.records import advice_data
 
     margin = validate_margin(margin)
     _coupled_criterion(report, criterion)
+    _coupled_resonances(report, resonance_order)
     if report.modes is not None:
-        adv = advise(method, report.modes, margin, zmax, name, criterion=criterion)
+        adv = advise(method, report.modes, margin, zmax, name, resonance_order=resonance_order,
+                     criterion=criterion)
         data = advice_data(adv)
         regions = adv.regions
     else:
@@ -114,14 +126,18 @@ def _cap(safe: list, cap: float) -> list:
 
 def system_check(method: Method, report: SystemReport, h: float, margin: float = 1.0,
                  zmax: float = 10.0, name: str | None = None,
-                 criterion: str = "structure") -> dict[str, Any]:
-    """JSON-ready check of step h for a system (see check_data for the common fields)."""
+                 criterion: str = "structure", resonance_order: int | None = None
+                 ) -> dict[str, Any]:
+    """JSON-ready check of step h for a system (see check_data for the common fields);
+    ``resonance_order``: see :func:`system_advice`."""
     from stepsafe.core.records import check_data
 
     margin = validate_margin(margin)
     _coupled_criterion(report, criterion)
+    _coupled_resonances(report, resonance_order)
     if report.modes is not None:
-        result = check_step(method, report.modes, h, margin, zmax, name, criterion=criterion)
+        result = check_step(method, report.modes, h, margin, zmax, name, resonance_order,
+                            criterion)
         data = check_data(result)
         regions = result.advice.regions
     else:
