@@ -454,7 +454,8 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
     ``sigma``, ``saddle``, ``inverted``, then ``modes``); else the scene's ``modes:``; else a
     ``system`` (``{"stiffness": K, "mass": M}``, ``{"precision": P}`` or
     ``{"covariance": C}`` with an optional mass, ``{"hessian": H}``, or a scene's
-    ``system:``), analysed for the method. ``budget`` (seconds) stops a coupled analysis
+    ``system:``), analysed for the method; an explicit ``system`` replaces the scene's
+    ``modes:`` or ``system:``, and is refused together with explicit frequencies. ``budget`` (seconds) stops a coupled analysis
     early; ``progress`` is called with the fraction done."""
     import time
 
@@ -489,10 +490,13 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
     converted = _converted({"frequency": frequency, "wavenumber": wavenumber,
                             "period": period, "sigma": sigma}, loaded.time_unit)
     given = _modes_dict(frequencies, saddle, inverted, modes, converted)
+    if given and system is not None:
+        raise StepsafeError("give either frequencies (or modes) or a system, not both (one "
+                            "would be ignored)")
     report = None
     if given:
         arrays, labels = given, _labels(labels, given)
-    elif loaded.modes:
+    elif loaded.modes and system is None:
         arrays, labels = loaded.modes, loaded.labels
     elif system is not None or loaded.system is not None:
         from stepsafe.systems.loader import analyse_system

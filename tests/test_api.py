@@ -14,6 +14,7 @@ import pytest
 
 import stepsafe
 from stepsafe import api
+from stepsafe.exceptions import StepsafeError
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -263,3 +264,19 @@ def test_examples_use_only_the_public_api():
             names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
                      [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
             assert not any(n.startswith("stepsafe.") for n in names), (path, names)
+
+
+def test_an_explicit_system_is_never_dropped(tmp_path):
+    """An explicit ``system`` with explicit frequencies is refused (one would be ignored);
+    against a scene's ``modes:`` it wins, as arguments do (it used to be dropped: a
+    stiffness of 1e6 at h = 0.05, z = 50, was checked safe)."""
+    with pytest.raises(StepsafeError, match="not both"):
+        stepsafe.check("verlet", 1.0, frequencies=[1.0], system={"stiffness": [[100.0]]})
+    with pytest.raises(StepsafeError, match="not both"):
+        stepsafe.hmc(["verlet"], sigma=[1.0], system={"covariance": [[1e-6]]})
+    scene = tmp_path / "modes.yaml"
+    scene.write_text("method: verlet\nmodes: [{beta: 1.0, model: oscillator}]\nh: 0.05\n")
+    report = stepsafe.check(scene=scene, system={"stiffness": [[1e6]]})
+    assert not report.safe  # beta = 1000, z = 50
+    assert stepsafe.check(scene=scene).safe
+    assert stepsafe.advise(scene=scene, system={"stiffness": [[1e6]]}).h_max <= 2e-3
