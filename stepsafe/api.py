@@ -455,8 +455,9 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
     ``system`` (``{"stiffness": K, "mass": M}``, ``{"precision": P}`` or
     ``{"covariance": C}`` with an optional mass, ``{"hessian": H}``, or a scene's
     ``system:``), analysed for the method; an explicit ``system`` replaces the scene's
-    ``modes:`` or ``system:``, and is refused together with explicit frequencies. ``budget`` (seconds) stops a coupled analysis
-    early; ``progress`` is called with the fraction done."""
+    ``modes:`` or ``system:``, and is refused together with explicit frequencies.
+    ``budget`` (seconds) stops a coupled analysis early; ``progress`` is called with the
+    fraction done."""
     import time
 
     from stepsafe.core.advice import Modes, validate_margin

@@ -763,3 +763,20 @@ def test_validate_warns_when_the_stated_evaluations_are_not_the_coefficients(run
             in out)
     path.write_text(text)
     assert "evaluations:" not in run("validate", str(path))[1]
+
+
+@pytest.mark.parametrize("args", [["--beta", "1e-310"], ["--beta", "5e-324"],
+                                  ["--beta", "1e-310", "--beta", "1"]])
+def test_a_frequency_whose_limit_is_beyond_every_float(run, args):
+    """beta ~ 1e-310 puts its boundary 2/beta past the largest float: it limits no step
+    (advise says so, exit 0, JSON consistent), and check passes any finite step it allows;
+    it used to exit 3 (review 13, F3)."""
+    code, out, err = run("advise", "--method", "verlet", *args)
+    assert code == 0, err
+    data = json.loads(run("advise", "--method", "verlet", *args, "--json")[1])
+    if len(args) == 2:
+        assert data["h_max"] is None and data["h_max_limited_by"] == "horizon"
+        assert "Safe for every h" in out
+        assert run("check", "--method", "verlet", *args, "--step", "1e300")[0] == 0
+    else:
+        assert data["h_max"] == pytest.approx(2.0) and data["h_max_limited_by"] == "boundary"

@@ -144,7 +144,8 @@ class _Group(click.Group):
                 raise
             message = str(exc).splitlines()[0] if str(exc) else ""
             _error_line(f"internal error: {type(exc).__name__}: {message} "
-                        "(rerun with --debug for the traceback)", prefix="stepsafe: ")
+                        "(rerun as stepsafe --debug COMMAND ... for the traceback)",
+                        prefix="stepsafe: ")
             ctx.exit(EXIT_INTERNAL)
 
 
@@ -692,7 +693,7 @@ def _print_verify(verdict: dict) -> None:
 
 def _unverified_message(verdict: dict) -> str:
     return ("verification failed: a float answer is off by more than "
-            f"{verdict['tolerance']:g} (rerun with --debug and report it)")
+            f"{verdict['tolerance']:g} (rerun as stepsafe --debug COMMAND ... and report it)")
 
 
 def _decide(verdicts, unsafe: bool = False) -> None:

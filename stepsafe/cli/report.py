@@ -286,11 +286,12 @@ def print_advice(data: dict[str, Any]) -> None:
         console.print(f"Fixed-point iteration of the stages converges only for h < "
                       f"{fmt_below(data['fixed_point_limit'])}{u} (a solver limit, not a "
                       "structure limit: beyond it, solve the stages by Newton's method).")
-    if data.get("nonlinear_resonances"):
+    resonances = [r for r in data.get("nonlinear_resonances") or () if r.get("h") is not None]
+    if resonances:
         console.print("Nonlinear resonances of the fastest vibration (n theta = 2 pi m; "
                       "--resonance-order N keeps h below those of order <= N): " + ", ".join(
                           f"{r['resonance']} at h = {fmt_below(r['h'])}{u}"
-                          for r in data["nonlinear_resonances"]))
+                          for r in resonances))
     _print_other_criterion(console.print, data, u)
     if not unit and data["models"]:
         console.print("h is in the time unit of 1/beta (--time-unit names it).")

@@ -227,9 +227,10 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
     horizon = np.inf
     tops = {model: _largest(betas, modes.errors.get(model))
             for model, betas in modes.betas.items()}
-    for model in modes.betas:
-        if tops[model] > 0:
-            horizon = min(horizon, margin * regions[model].zmax / tops[model])
+    with np.errstate(over="ignore"):  # beta ~ 1e-310: the horizon is past every float
+        for model in modes.betas:
+            if tops[model] > 0:
+                horizon = min(horizon, margin * regions[model].zmax / tops[model])
     if horizon == 0.0:
         raise StepsafeError("margin * zmax / beta underflows to 0: no step can be analysed "
                             "(give the frequencies in units nearer 1)")
@@ -237,8 +238,11 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
         region = regions[model]
         beta_max = float(betas.max())
         z_star = region.first_boundary
-        h_limit = (margin * first_unsafe_z(region) / tops[model]
-                   if tops[model] > 0 and z_star is not None else None)
+        with np.errstate(over="ignore"):
+            h_limit = (margin * first_unsafe_z(region) / tops[model]
+                       if tops[model] > 0 and z_star is not None else None)
+        if h_limit is not None and not np.isfinite(h_limit):
+            h_limit = None  # beyond every float: no finite step reaches it
         limits.append(ModelLimit(model, int(betas.size), beta_max, z_star,
                                  region.first_boundary_point, h_limit))
         g = gaps(region)
@@ -255,8 +259,9 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
             with np.errstate(divide="ignore", over="ignore"):  # beta ~ 1e-320: gaps at inf
                 lo = (margin * g[:, 0])[None, :] / top[:, None]
                 hi = g[:, 1][None, :] / low[:, None]
-            # a mode cuts the safe set only below the horizon: skip gaps that start above it
-            keep = lo <= horizon
+            # a mode cuts the safe set only below the horizon (and below every float): skip
+            # gaps that start above it
+            keep = (lo <= horizon) & np.isfinite(lo)
             unsafe.append(np.column_stack([lo[keep], hi[keep]]))
     safe = _complement(_merge(np.concatenate(unsafe)))
     limiting = min((lim for lim in limits if lim.h_limit is not None),

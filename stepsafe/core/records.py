@@ -138,8 +138,8 @@ def nonlinear_data(found, beta: float | None = None, margin: float = 1.0
     for r in found:
         item = {"resonance": r.name, "n": r.n, "m": r.m, "z": r.z,
                 "uncertainty": _num(r.uncertainty)}
-        if beta:
-            item["h"] = _num(margin * max(r.z - r.uncertainty, 0.0) / beta)
+        if beta:  # (Python floats: a step beyond every float is inf, recorded as None)
+            item["h"] = _num(margin * max(r.z - r.uncertainty, 0.0) / float(beta))
         out.append(item)
     return out
 
