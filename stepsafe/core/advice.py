@@ -402,6 +402,9 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
             if gap.boundary is not None and z_hi[i] / margin < gap.boundary:
                 why = (f"within the float64 uncertainty (±{gap.uncertainty:.1g}) below a "
                        f"boundary, which cannot be certified: {gap.reason}")
+            elif err[i] > 0 and z[i] / margin < gap.a:
+                why = (f"with beta known to ±{err[i]:.2g} (relative: the rounding of the "
+                       f"system's eigenvalues), z may be up to {z_hi[i]:.12g}: {gap.reason}")
             failures.append(Failure(model, float(betas[i]), float(z[i]), why, limit, int(i)))
     failures.sort(key=lambda f: -f.z)
     in_primary = adv.h_max is not None and (h < adv.h_max if adv.h_max else False)
