@@ -156,7 +156,9 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
         if not ok:
             data["failing"] += dof
             data["safe"] = False
-            undecided = result.undecided_to is not None and h / margin < result.undecided_to
+            undecided = system.definite and any(
+                not system.certified(step) and not system.certainly_lost(step)
+                for step in (h, h / margin))
             data["failures"].append({
                 "model": "coupled", "beta": None, "z": float(h),
                 "reason": (f"float64 cannot decide whether the one-step matrix of the coupled "

@@ -457,12 +457,20 @@ class CoupledSystem:
         the criterion at high precision (:mod:`stepsafe.systems.coupled_exact`)."""
         if self.preserved(h):
             return True
-        if not (self.definite and coupled_exact.exact_capable(self.method, self.given)):
+        if not (self.definite and self.exact_sign == self.sign):
             return False
         if self.certainly_lost(h):
             return False
         factors = coupled_exact.euler_factors(self.method)
         return coupled_exact.kept_exactly(factors, self.given, self.sign, h)
+
+    @cached_property
+    def exact_sign(self) -> int:
+        """The sign of the exact floats of S if they are definite and the criterion can be
+        decided at high precision (a splitting, at most ``EXACT_SIZE`` rows); else 0."""
+        if not coupled_exact.exact_capable(self.method, self.given):
+            return 0
+        return coupled_exact.definite_sign(self.given)
 
     @cached_property
     def inv_chol_norm2(self) -> float:
@@ -725,6 +733,18 @@ def _safe_steps(method: Method | None, S: np.ndarray, zmax: float,
     horizon = zmax / system.top
     count = max(2, int(np.ceil(zmax / SCAN_DZ)))
     hs = horizon * np.arange(1, count + 1) / count
+    if not system.definite and system.exact_sign:
+        # float64's Cholesky could not tell S definite, its exact floats are: every step
+        # is decided at high precision
+        h_max = coupled_exact.exact_boundary(coupled_exact.euler_factors(method), S,
+                                             system.exact_sign, 0.0, horizon, REL_TOL, hs,
+                                             progress)
+        if progress:
+            progress(1.0)
+        return CoupledResult(h_max, horizon, system.evaluations,
+                             "coupled: full 2n x 2n one-step matrix; S definite at "
+                             f"{coupled_exact.PRECISION} digits (float64 could not tell), "
+                             "Q(h) = M^T J - J M positive definite decided at that precision")
     poles = system.poles[system.poles < horizon]
     if poles.size:
         near = (poles[:, None] * (1.0 + np.concatenate([-NEAR_POLE, NEAR_POLE])[None, :]))
@@ -757,10 +777,10 @@ def _safe_steps(method: Method | None, S: np.ndarray, zmax: float,
             good, bad = bad
             h_max = _boundary(system, good, bad, order)
             undecided = _undecided(system, h_max, hs, horizon)
-            if undecided is not None and coupled_exact.exact_capable(method, S):
+            if undecided is not None and system.exact_sign == system.sign:
                 h_max = max(h_max, coupled_exact.exact_boundary(
                     coupled_exact.euler_factors(method), S, system.sign, h_max, undecided,
-                    REL_TOL, hs))
+                    REL_TOL, hs, _rescaled(progress, undecided / horizon)))
                 analysis += (f"; the boundary decided at {coupled_exact.PRECISION} digits "
                              "(float64's rounding bound reached the margin)")
                 undecided = None
@@ -803,21 +823,39 @@ def _first_failure(system: CoupledSystem, lo: float, h: float, before: float | N
     return None
 
 
+#: A boundary is taken as decided by float64 when the criterion is certainly lost within
+#: this (relative) of the first step found not preserved (every boundary has such a band,
+#: of the size of the rounding bound: about 1e-11 on a well-conditioned S).
+BAND_MIN = 1e-8
+
+
 def _undecided(system: CoupledSystem, h_max: float, hs: np.ndarray, horizon: float
                ) -> float | None:
-    """Definite S: None if the first step found not preserved after ``h_max`` is
-    certainly lost; else the first step, among those evaluated and the scan's, that is
-    (the horizon if none is): float64 decides nothing between."""
+    """Definite S: None if the boundary after ``h_max`` is decided (the criterion is
+    certainly lost within :data:`BAND_MIN` of the first step found not preserved: among the
+    steps evaluated, or at that distance, one more one-step matrix); else the first step,
+    among those evaluated and the scan's, that is certainly lost (the horizon if none is):
+    float64 decides nothing between."""
     if not system.definite:
         return None
     after = sorted(h for h in system._cache if h > h_max)
     first = next((h for h in after if not system.preserved(h)), None)
-    if first is None or system.certainly_lost(first):
+    if first is None:
+        return None
+    near = first * (1.0 + BAND_MIN)
+    if any(h <= near and system.certainly_lost(h) for h in after) or \
+            system.certainly_lost(near):
         return None
     for h in sorted(set(after) | {float(x) for x in hs if x > first}):
         if h > first and system.certainly_lost(h):
             return h
     return horizon
+
+
+def _rescaled(progress: Callable[[float], None] | None, scale: float
+              ) -> Callable[[float], None] | None:
+    """``progress`` called with its fraction times ``scale``."""
+    return None if progress is None else (lambda fraction: progress(fraction * scale))
 
 
 def _tightest(system: CoupledSystem, good: float, bad: float) -> tuple[float, float]:
