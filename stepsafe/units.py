@@ -28,6 +28,8 @@ import math
 import re
 from fractions import Fraction
 
+import numpy as np
+
 from stepsafe.exceptions import StepsafeError
 
 #: The speed of light in vacuum, m/s (exact by the definition of the metre).
@@ -145,6 +147,26 @@ def _scaled(value: float, factor: Fraction) -> float:
         raise StepsafeError(f"the angular frequency overflows: {value} x {float(factor):g} "
                             "x pi")
     return result
+
+
+def angular_frequencies(form: str, values: np.ndarray, time: str | None) -> np.ndarray:
+    """:func:`angular_frequency` of an array of values in the form's default unit (the
+    same roundings, element by element); entries that are not finite positive frequencies
+    come out NaN or inf for the caller to name."""
+    seconds = None if time is None else TIME_UNITS[time]
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+        if form == "beta":
+            return values
+        if form == "sigma":
+            return 1.0 / values
+        if form == "wavenumber":
+            factor = 2 * Fraction(SPEED_OF_LIGHT * 100) * _needs(seconds, form)
+            return values * float(factor) * math.pi
+        if form == "frequency":
+            return values * float(Fraction(2)) * math.pi
+        if form == "period":
+            return (1 / values) * float(Fraction(2)) * math.pi
+    raise ValueError(form)
 
 
 def quantity(value: object, form: str, time: str | None) -> float:

@@ -213,3 +213,34 @@ def test_scene_time_unit_must_be_known(run, tmp_path):
     path.write_text("method: verlet\ntime_unit: minutes\nmodes: [{beta: 1}]\n")
     code, out, err = run("advise", str(path))
     assert code == 2 and "tu.yaml::$.time_unit" in err
+
+
+@pytest.mark.parametrize("form, unit_text", [("wavenumber", "cm-1"), ("frequency", None),
+                                             ("period", None), ("sigma", None)])
+def test_a_modes_csv_column_in_any_form_gives_the_same_betas_as_the_command_line(
+        run, tmp_path, form, unit_text):
+    """A CSV spectrum in cm-1 (or frequencies, periods, standard deviations) is read as the
+    same modes given one by one: identical betas, hence identical advice (review 13)."""
+    from stepsafe.systems.scene import load_modes
+    from stepsafe.units import quantity
+
+    values = [3700.0, 1600.5, 0.25, 1e-3] if form != "period" else [9.0, 20.0, 1e3, 0.5]
+    path = tmp_path / "spectrum.csv"
+    path.write_text(f"{form},label\n" + "".join(f"{v!r},m{i}\n" for i, v in enumerate(values)))
+    loaded = load_modes(path, "fs")
+    want = sorted(quantity(v, form, "fs") for v in values)
+    assert sorted(loaded.betas["oscillator"].tolist()) == want
+    code, out, _ = run("advise", "--method", "verlet", "--modes", str(path), "--time-unit",
+                       "fs", "--json")
+    assert code == 0
+    assert json.loads(out)["h_max"] == pytest.approx(2 / max(want), rel=1e-9)
+
+
+def test_a_wavenumber_csv_needs_a_time_unit_and_names_a_bad_line(run, tmp_path):
+    path = tmp_path / "spectrum.csv"
+    path.write_text("wavenumber\n3700\n")
+    code, _, err = run("advise", "--method", "verlet", "--modes", str(path))
+    assert code == 2 and "needs a time unit" in err
+    path.write_text("wavenumber\n3700\n-3\n")
+    code, _, err = run("advise", "--method", "verlet", "--modes", str(path), "--time-unit", "fs")
+    assert code == 2 and "spectrum.csv::$.line 3.wavenumber" in err

@@ -379,14 +379,14 @@ def load_modes(path: str | Path, time_unit: str | None = None) -> ModesFile:
     file's frequency, wavenumber and period items are converted to rad per ``time_unit``."""
     where = str(path)
     if str(path).lower().endswith(".csv"):
-        return _load_csv(read_bytes(path, MAX_CSV_BYTES), where)
+        return _load_csv(read_bytes(path, MAX_CSV_BYTES), where, time_unit)
     tree = load_yaml(path)
     if isinstance(tree, dict) and "modes" in tree:
         return ModesFile(*_modes_list(tree["modes"], where, "modes", time_unit))
     return ModesFile(*_modes_list(tree, where, "", time_unit))
 
 
-def _load_csv(data: bytes, where: str) -> ModesFile:
+def _load_csv(data: bytes, where: str, time_unit: str | None = None) -> ModesFile:
     """A modes CSV. Parsed by ``np.loadtxt`` (C speed); where it refuses a part of the file,
     that part is bisected down to blocks read row by row by :func:`_csv_rows`, which decides
     and names the first bad line. Memory and time stay linear in the file size."""
@@ -407,15 +407,15 @@ def _load_csv(data: bytes, where: str) -> ModesFile:
             raise _fail(where, "", f"not UTF-8 text (byte {exc.start})") from None
     body, first_line, header = _csv_header(data, where)
     rows = _CsvPart(data, body, len(data), first_line)
-    sigma = "sigma" in header
-    if sigma:  # standard deviations (HMC, unit mass): parsed as the beta column, inverted
-        header = ["beta" if h == "sigma" else h for h in header]
+    form = next(h for h in header if h in FORMS)
+    if form != "beta":  # parsed as the beta column, then converted
+        header = ["beta" if h == form else h for h in header]
         try:
-            betas, codes = _csv_parse(rows, header, where)
+            values, codes = _csv_parse(rows, header, where)
         except StepsafeError as exc:
-            raise StepsafeError(exc.message, (exc.where or "").replace(".beta", ".sigma")
+            raise StepsafeError(exc.message, (exc.where or "").replace(".beta", f".{form}")
                                 ) from None
-        betas = _inverted_sigmas(betas, rows, where)
+        betas = _converted(values, form, time_unit, rows, where)
     else:
         betas, codes = _csv_parse(rows, header, where)
     if not betas.size:
@@ -431,19 +431,28 @@ def _load_csv(data: bytes, where: str) -> ModesFile:
                      labels)
 
 
-def _inverted_sigmas(sigmas: np.ndarray, rows: _CsvPart, where: str) -> np.ndarray:
-    """beta = 1/sigma for a column of standard deviations, each > 0 with a finite inverse;
-    an error names the line of the first that is not."""
-    with np.errstate(divide="ignore", over="ignore"):
-        betas = 1.0 / sigmas
-    bad = np.flatnonzero(~(sigmas > 0) | ~np.isfinite(betas))
+def _converted(values: np.ndarray, form: str, time_unit: str | None, rows: _CsvPart,
+               where: str) -> np.ndarray:
+    """beta (rad per time unit) of a column of sigma (1/sigma), wavenumber (cm-1),
+    frequency (cycles per time unit) or period (time units), as the same entry of a
+    ``modes:`` list gives; an error names the line of the first value that has none."""
+    from stepsafe.units import angular_frequencies
+
+    try:
+        betas = angular_frequencies(form, values, time_unit)
+    except StepsafeError as exc:
+        raise _fail(where, form, exc.message) from None
+    positive = form != "wavenumber" and form != "frequency"
+    bad = np.flatnonzero(~((values > 0) if positive else (values >= 0)) | ~np.isfinite(betas))
     if bad.size:
         rows_seen = -1
         for number, text in rows.lines():
             rows_seen += bool(text.strip())
             if rows_seen == bad[0]:
-                raise _fail(where, f"line {number}.sigma", f"must be > 0 with a finite "
-                                                            f"inverse, got {sigmas[bad[0]]:g}")
+                need = ("> 0 with a finite inverse" if positive else
+                        ">= 0 with a finite angular frequency")
+                raise _fail(where, f"line {number}.{form}",
+                            f"must be {need}, got {values[bad[0]]:g}")
     return betas
 
 
@@ -502,12 +511,14 @@ def _csv_header(data: bytes, where: str) -> tuple[int, int, list[str]]:
         if not text.strip():
             continue
         header = [h.strip().lower() for h in text.split(",")]
-        if ("beta" in header) == ("sigma" in header) or \
-                set(header) - {"beta", "sigma", "model", "label"} or \
+        if sum(h in FORMS for h in header) != 1 or \
+                set(header) - {*FORMS, "model", "label"} or \
                 len(set(header)) != len(header):
-            raise _fail(where, "", "the CSV header must name the columns beta (or sigma, the "
-                                   "standard deviations of a Gaussian target) and optionally "
-                                   f"model and label, each once, got {text.strip()[:60]!r}")
+            raise _fail(where, "", "the CSV header must name one frequency column, beta (rad "
+                                   "per time unit), sigma (standard deviations of a Gaussian "
+                                   "target), wavenumber (cm-1), frequency (cycles per time "
+                                   "unit) or period, and optionally model and label, each "
+                                   f"once, got {text.strip()[:60]!r}")
         return offset, number + 1, header
     raise _fail(where, "", "empty CSV file")
 
