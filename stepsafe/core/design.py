@@ -154,7 +154,7 @@ def stable_b(top: float) -> tuple[float, float] | None:
     """The 2-stage members stable (``|tr M| < 2``, or ``M = -I`` exactly) for every z in
     (0, top], exactly (module docstring): the open interval ``(lo, hi)`` of b, ``(1/4,
     1/4)`` when b = 1/4 alone is (``2 sqrt 2 <= top < 4``), None when none is
-    (``top >= 4``). Endpoints are rounded inwards."""
+    (``top >= 4``). Endpoints are moved 1e-15 inwards."""
     w = top * top
     if w >= 16.0:
         return None
@@ -162,8 +162,8 @@ def stable_b(top: float) -> tuple[float, float] | None:
         return QUARTER, QUARTER
     if w <= 4.0:
         return 0.0, 0.5
-    lo, hi = 0.5 - 2.0 / w, 2.0 / w
-    return float(np.nextafter(lo, 1.0)), float(np.nextafter(hi, 0.0))
+    # 1e-15 inwards: more than the few ulps of 1/2 that w, 2/w and 1/2 - 2/w round by
+    return 0.5 - 2.0 / w + 1e-15, 2.0 / w - 1e-15
 
 
 @dataclass(frozen=True)
