@@ -341,7 +341,7 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
     [('designed-2stage', 0.98), ('verlet', 0.84), ('bcss2', 0.77)]
     """
     from stepsafe.core import hmc as core
-    from stepsafe.core.design import PARAMETERS, family_member
+    from stepsafe.core.design import PARAMETERS, STABLE_LIMIT, family_member
     from stepsafe.core.design import design as core_design
 
     if isinstance(stages, bool) or stages not in PARAMETERS:
@@ -359,7 +359,8 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
     found = core_design(stages, values, counts.astype(float), step, jitter)
     if found is None:
         raise StepsafeError(f"no {stages}-stage member keeps every mode stable up to h = "
-                            f"{step * (1.0 + jitter):g}: take a smaller step")
+                            f"{step * (1.0 + jitter):g} (the family's stable steps end at "
+                            f"h = {STABLE_LIMIT[stages] / values.max():g}): take a smaller step")
     designed = family_member(stages, found.params, name)
     params = dict(zip(PARAMETERS[stages], found.params))
     rows = []

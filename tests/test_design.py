@@ -176,3 +176,118 @@ def test_the_comparison_averages_over_the_jitter():
     rows = {r["method"]: r for r in report.comparison}
     assert rows["bcss2"]["error_bound"] is None  # unstable beyond z = 2.634 < 2.76
     assert rows["designed-2stage"]["acceptance"] > rows["bcss2"]["acceptance"]
+
+
+# --- review 13 F4: design's refusals against the family's exact stable set --------------
+
+def _tr_half_mp(stages, params, z):
+    """tr M / 2 and M at 50 digits, straight from the kick/drift product (no formula)."""
+    with mp.workdps(50):
+        z = mp.mpf(z)
+        if stages == 2:
+            b = mp.mpf(params[0])
+            ops = (("k", b), ("d", mp.mpf(1) / 2), ("k", 1 - 2 * b), ("d", mp.mpf(1) / 2),
+                   ("k", b))
+        else:
+            b, a = (mp.mpf(p) for p in params)
+            ops = (("k", b), ("d", a), ("k", mp.mpf(1) / 2 - b), ("d", 1 - 2 * a),
+                   ("k", mp.mpf(1) / 2 - b), ("d", a), ("k", b))
+        M = mp.eye(2)
+        for kind, c in ops:
+            M = (mp.matrix([[1, c * z], [0, 1]]) if kind == "d" else
+                 mp.matrix([[1, 0], [-c * z, 1]])) * M
+        return (M[0, 0] + M[1, 1]) / 2, M
+
+
+def _bounded_at(stages, params, z):
+    """|tr M| < 2, or M = +-I exactly (the stability criterion), at 50 digits."""
+    half, M = _tr_half_mp(stages, params, z)
+    if abs(half) < 1:
+        return True
+    return abs(half) == 1 and M[0, 1] == 0 and M[1, 0] == 0
+
+
+def test_the_quarter_member_is_bounded_up_to_4_and_only_it_beyond_2_sqrt_2():
+    """b = 1/4 (two half-step leapfrogs): tr M/2 = -0.96875 at z = 3, M = -I exactly at
+    z = 2 sqrt 2 (50 digits), unstable at 4; every other b is unstable at 2 sqrt 2; its rho
+    (closed form through the resonance) against 40 digits."""
+    from stepsafe.core.design import stable_b
+
+    with mp.workdps(50):
+        assert _tr_half_mp(2, (0.25,), 3)[0] == mp.mpf("-0.96875")
+        half, M = _tr_half_mp(2, (0.25,), mp.sqrt(8))
+        assert abs(half + 1) < mp.mpf(10) ** -45 and mp.norm(M + mp.eye(2)) < mp.mpf(10) ** -45
+        assert not _bounded_at(2, (0.25,), 4)
+        for b in (0.25 - 1e-9, 0.25 + 1e-9, 0.2, 0.3):
+            assert _tr_half_mp(2, (b,), mp.sqrt(8))[0] < -1
+    for z in (1.0, 2.8, 2.83, 3.5, 3.99):
+        assert rho_values(2, np.array([[0.25]]), np.array([z]))[0, 0] == pytest.approx(
+            float(_rho_mp(0.25, z)), rel=1e-9)
+    assert stable_b(3.0) == (0.25, 0.25) and stable_b(4.0) is None
+    # the interval's ends are the roots in b of tr M = -2 at Z: just inside stable, outside not
+    for Z in (2.2, 2.5, 2.8):
+        lo, hi = stable_b(Z)
+        for b, inside in ((lo, True), (hi, True), (lo - 1e-9, False), (hi + 1e-9, False)):
+            assert _bounded_at(2, (b,), Z) is inside
+
+
+def _refusal_is_true(stages, top):  # stages == 2
+    """No member of the family is bounded for every z up to top: a grid of members plus
+    the exact roots (b = 2/Z^2, 1/2 - 2/Z^2, 1/4), each shown unbounded at 50 digits at
+    z = top or 2 sqrt 2 (where the stable set closes: module docstring)."""
+    members = [(b,) for b in np.linspace(1e-3, 0.5 - 1e-3, 400)]
+    members += [(2 / top ** 2,), (0.5 - 2 / top ** 2,), (0.25,)]
+    zs = (top, mp.sqrt(8))
+    return all(not all(_bounded_at(stages, m, z) for z in zs if z <= top) for m in members)
+
+
+def _design_is_stable(stages, params, zs, jitter):
+    """Every mode bounded over its whole jitter interval at 50 digits."""
+    return all(_bounded_at(stages, params, z * (1 + jitter * u))
+               for z in zs for u in np.linspace(-1.0, 1.0, 21))
+
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=25, deadline=None)
+@given(scale=st.floats(-3.0, 3.0), spread=st.floats(1.0, 20.0),
+       top=st.floats(2.4, 4.4), jitter=st.sampled_from((0.0, 0.1, 0.3, 0.6)))
+def test_two_stage_design_refuses_only_when_no_member_is_stable(scale, spread, top, jitter):
+    sigma = [10.0 ** scale, 10.0 ** scale * spread]
+    step = top * 10.0 ** scale / (1.0 + jitter)
+    zs = [step / s for s in sigma]
+    try:
+        report = design(sigma=sigma, step=step, jitter=jitter)
+    except StepsafeError as exc:
+        assert "no 2-stage member" in str(exc)
+        assert top >= 4.0 * (1 - 1e-12) and _refusal_is_true(2, top)
+        return
+    assert top < 4.0 * (1 + 1e-12)
+    assert _design_is_stable(2, tuple(report.params.values()), zs, jitter)
+
+
+@pytest.mark.parametrize("step, jitter", [(3.0, 0.0), (2.0, 0.6), (3.99, 0.0)])
+def test_the_review_cases_get_the_quarter_member(step, jitter, run):
+    code, text, err = run("design", "--sigma", "1", "--step", str(step), "--jitter",
+                          str(jitter), "--json")
+    assert code == 0, err
+    assert json.loads(text)["params"] == {"b": 0.25}
+    code, _, err = run("design", "--sigma", "1", "--step", "4")
+    assert code == 2 and "end at h = 4" in err
+
+
+@pytest.mark.parametrize("top, jitter", [(2.9, 0.0), (2.7, 0.1), (3.2, 0.0)])
+def test_three_stage_design_against_the_end_of_its_stable_range(top, jitter):
+    """Below z = 3 the design is bounded over its jitter interval at 50 digits; from 3 on it
+    is refused, and the member approaching the end, (b, a) = (1/6, 1/3) in float, is
+    unbounded at z = 3 (|tr M| - 2 ~ 1e-33: its exact M = -I is not representable)."""
+    step = top / (1.0 + jitter)
+    if top < 3.0:
+        report = design(sigma=[1.0], step=step, stages=3, jitter=jitter)
+        assert _design_is_stable(3, tuple(report.params.values()), [step], jitter)
+        return
+    with pytest.raises(StepsafeError, match="no 3-stage member.*end at h = 3"):
+        design(sigma=[1.0], step=step, stages=3, jitter=jitter)
+    assert not _bounded_at(3, (1 / 6, 1 / 3), 3)

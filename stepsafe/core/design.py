@@ -17,6 +17,28 @@ on the modes' own z and :data:`SWEEP` points of that range. The search is a
 grid over the parameters (every candidate with an unstable mode discarded) refined by
 Nelder-Mead; the figures of the result are recomputed by the general path
 (:func:`stepsafe.core.hmc.one_step`).
+
+2 stages, exactly (:func:`stable_b`): with ``tr M / 2 = 1 - z^2/2 + b (1 - 2b) z^4 / 4``,
+``tr M / 2 - 1 = -z^2 (2 - b (1 - 2b) z^2) / 4`` and
+``tr M / 2 + 1 = -(b z^2 - 2) (2 b z^2 - z^2 + 4) / 4``. As ``b (1 - 2b) <= 1/8``, the first
+never vanishes for z < 4; the second vanishes at ``b = 2 / z^2`` and ``b = 1/2 - 2 / z^2``,
+so the members with ``|tr M| < 2`` for every z in (0, Z] are ``1/2 - 2/Z^2 < b < 2/Z^2``
+(all of (0, 1/2) for Z <= 2), an interval shrinking to b = 1/4 at Z = 2 sqrt 2. There the
+member b = 1/4, two half-step leapfrogs (``M(z) = V(z/2)^2``), has ``tr M / 2 + 1 =
+(z^2 - 8)^2 / 32 >= 0`` and ``M = V(sqrt 2)^2 = -I`` exactly at z = 2 sqrt 2 (bounded: its
+powers are +-I and the energy error is 0, the literature's stability interval, as ``hmc``
+counts it); it is stable on (0, 4) and the only member stable up to any Z in
+[2 sqrt 2, 4), and none is for Z >= 4. The search runs on that interval; for
+Z >= 2 sqrt 2 the answer is b = 1/4 (exact in binary, so the written method file is
+that member). Its rho is ``z^4 / (32 (16 - z^2))``, the leapfrog's at z/2, through the
+resonance.
+
+3 stages: ``tr M / 2 + 1`` and ``tr M / 2 - 1`` factor into polynomials of degree <= 2 in
+z^2, whose exact roots over a 1500 x 1500 grid of (b, a) leave no member stable beyond
+z = 3: the supremum is approached at (b, a) = (1/6, 1/3), three third-step leapfrogs,
+whose M = -I at z = 3 exactly (its float coefficients are not exact and leave a gap
+``|tr M| - 2 ~ 1e-33`` there), so 3-stage designs end below h (1 + j) = 3 (the search
+finds members up to 2.9999).
 With more distinct frequencies than :data:`MAX_DESIGN_MODES` the search uses that many
 log-spaced bins (each bin's largest frequency, weighted by its count): an approximation
 of the objective, said in the result; the final figures use every mode.
@@ -113,7 +135,35 @@ def rho_values(stages: int, params: np.ndarray, z: np.ndarray) -> np.ndarray:
     sin2 = -m01 * m10 - 0.25 * (m00 - m11) ** 2
     e1 = 0.5 * ((m00 - m11) ** 2 + (m01 + m10) ** 2)
     with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where((sin2 > 0) & (np.abs(half) < 1), e1 / sin2, np.inf)
+        rho = np.where((sin2 > 0) & (np.abs(half) < 1), e1 / sin2, np.inf)
+        if stages == 2:  # b = 1/4: the leapfrog's rho at z/2, through M = -I at 2 sqrt 2
+            quarter = params[:, 0] == 0.25
+            if quarter.any():
+                z2 = z * z
+                rho[quarter] = np.where(z2 < 16.0, z2 * z2 / (32.0 * (16.0 - z2)), np.inf)
+    return rho
+
+
+#: The end of each family's stable range in z (module docstring): no member beyond.
+STABLE_LIMIT = {2: 4.0, 3: 3.0}
+#: The 2-stage member that alone stays stable beyond z = 2 sqrt 2 (module docstring).
+QUARTER = 0.25
+
+
+def stable_b(top: float) -> tuple[float, float] | None:
+    """The 2-stage members stable (``|tr M| < 2``, or ``M = -I`` exactly) for every z in
+    (0, top], exactly (module docstring): the open interval ``(lo, hi)`` of b, ``(1/4,
+    1/4)`` when b = 1/4 alone is (``2 sqrt 2 <= top < 4``), None when none is
+    (``top >= 4``). Endpoints are moved 1e-15 inwards."""
+    w = top * top
+    if w >= 16.0:
+        return None
+    if w >= 8.0:
+        return QUARTER, QUARTER
+    if w <= 4.0:
+        return 0.0, 0.5
+    # 1e-15 inwards: more than the few ulps of 1/2 that w, 2/w and 1/2 - 2/w round by
+    return 0.5 - 2.0 / w + 1e-15, 2.0 / w - 1e-15
 
 
 @dataclass(frozen=True)
@@ -156,7 +206,17 @@ def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
     when no member keeps every mode stable up to ``h (1 + jitter)``."""
     betas, counts, binned = _binned(np.asarray(betas, float), np.asarray(counts, float))
     z = betas * h
-    axis = (np.arange(GRID[stages]) + 0.5) / GRID[stages] * 0.5
+    top = float(z.max()) * (1.0 + jitter)
+    lo, hi = 0.0, 0.5
+    if stages == 2:  # the stable members, exactly (module docstring)
+        interval = stable_b(top)
+        if interval is None:
+            return None
+        lo, hi = interval
+        if lo == hi:  # b = 1/4 alone
+            value = float(error_bounds(2, np.array([[lo]]), z, counts, jitter)[0])
+            return Design(2, (lo,), value, binned)
+    axis = lo + (np.arange(GRID[stages]) + 0.5) / GRID[stages] * (hi - lo)
     grid = (axis[:, None] if stages == 2 else
             np.stack(np.meshgrid(axis, axis, indexing="ij"), axis=-1).reshape(-1, 2))
     values = np.concatenate([error_bounds(stages, chunk, z, counts, jitter)
@@ -166,7 +226,7 @@ def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
         return None
 
     def objective(x: np.ndarray) -> float:
-        if np.any(x <= 0.0) or np.any(x >= 0.5):
+        if np.any(x <= lo) or np.any(x >= hi):
             return np.inf
         return float(error_bounds(stages, x[None, :], z, counts, jitter)[0])
 
@@ -175,7 +235,7 @@ def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
     order = np.argsort(values, kind="stable")[:STARTS]
     starts = [grid[i] for i in order if np.isfinite(values[i])]
     starts += [np.array(m) for m in KNOWN[stages] if np.isfinite(objective(np.array(m)))]
-    step = 0.5 / GRID[stages]
+    step = (hi - lo) / GRID[stages]
     found_points = []
     for start in starts:
         simplex = np.vstack([start] + [start + step * np.eye(start.size)[i]
@@ -186,7 +246,6 @@ def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
         found_points += [found.x, start]
     # the sampled stability check can step over a narrow gap (|tr M| > 2 on 1e-3 of z):
     # the best candidate the region finder confirms stable up to the top z wins
-    top = float(z.max()) * (1.0 + jitter)
     ranked = sorted(((objective(x), i) for i, x in enumerate(found_points)), key=lambda t: t[0])
     best = next((found_points[i] for value, i in ranked
                  if np.isfinite(value) and _stable_up_to(stages, found_points[i], top)), None)
