@@ -98,7 +98,10 @@ def _row_dict(row: HmcRow) -> dict[str, Any]:
     from stepsafe.core.records import json_ready
 
     out = {f.name: getattr(row, f.name) for f in fields(row)}
-    out["at_step"] = None if row.at_step is None else json_ready(dict(row.at_step))
+    at_step = None if row.at_step is None else dict(row.at_step)
+    if at_step is not None and "largest_errors" in at_step:
+        at_step["largest_errors"] = [dict(e) for e in at_step["largest_errors"]]
+    out["at_step"] = None if at_step is None else json_ready(at_step)
     out["stalls"] = [dict(s) for s in row.stalls]
     out["resonance_h"] = list(row.resonance_h)
     out["notes"] = list(row.notes)
@@ -108,7 +111,9 @@ def _row_dict(row: HmcRow) -> dict[str, Any]:
 
 def _validated(target: float, steps: int | None, length: float | None,
                jitter: float) -> tuple[float, int | None, float | None, float]:
-    if isinstance(target, bool) or not isinstance(target, (int, float)) or not (
+    from numbers import Real
+
+    if isinstance(target, (bool, np.bool_)) or not isinstance(target, Real) or not (
             0.0 < float(target) < 1.0):
         raise StepsafeError(f"target acceptance must be a number in (0, 1), got {target!r}")
     if steps is not None and length is not None:
@@ -120,7 +125,7 @@ def _validated(target: float, steps: int | None, length: float | None,
         steps = int(steps)
     if length is not None:
         length = positive_finite(length, "trajectory length")
-    if isinstance(jitter, bool) or not isinstance(jitter, (int, float)) or not (
+    if isinstance(jitter, (bool, np.bool_)) or not isinstance(jitter, Real) or not (
             0.0 <= float(jitter) < 1.0):
         raise StepsafeError(f"jitter must be a number in [0, 1), got {jitter!r}")
     return float(target), steps, length, float(jitter)
@@ -166,12 +171,12 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
     integrators = _compared(HMC_DEFAULT if methods is None else methods)
     progress = inputs.pop("progress", None)  # called with the fraction of methods done
     p = problem(integrators[0], frequencies, **inputs)
-    betas = _gaussian_betas(p)
+    betas, errors = _gaussian_betas(p)
     trajectory = Trajectory(steps, length, jitter)
     rows = []
     for k, integrator in enumerate(integrators):
-        rows.append(_row(integrator, betas, trajectory, target, step, criterion, p.zmax, curve,
-                         gradient_cost))
+        rows.append(_row(integrator, betas, errors, trajectory, target, step, criterion,
+                         p.zmax, curve, gradient_cost))
         if progress is not None:
             progress((k + 1) / len(integrators))
     ranked = sorted(rows, key=lambda r: (r.gradients_per_time is None,
@@ -189,10 +194,31 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
                      bool(np.unique(positive).size > MAX_EXACT_MODES))
 
 
-def _row(integrator: Integrator, betas: np.ndarray, trajectory: Any, target: float,
-         step: float | None, criterion: str, zmax: float, curve: int = 0,
+def _quotient_below(z: float, beta: float) -> float:
+    """``z / beta`` rounded towards 0: the largest float q with ``q beta <= z`` exactly
+    (the float quotient is rounded to nearest and may lie just above)."""
+    from fractions import Fraction
+
+    q = z / beta
+    if np.isfinite(q) and q > 0 and Fraction(q) * Fraction(beta) > Fraction(z):
+        q = float(np.nextafter(q, 0.0))
+    return float(q)
+
+
+def _first_unsafe(region: Any, z: float) -> float:
+    """Where the gap that the boundary ``z`` of ``region`` starts begins: ``z`` less its
+    float64 uncertainty (:func:`stepsafe.core.advice.labelled_gaps`)."""
+    from stepsafe.core.advice import labelled_gaps
+
+    starts = [g.a for g in labelled_gaps(region) if g.boundary == z]
+    return min(starts) if starts else z
+
+
+def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajectory: Any,
+         target: float, step: float | None, criterion: str, zmax: float, curve: int = 0,
          gradient_cost: float = 1.0) -> HmcRow:
     from stepsafe.core import hmc as core
+    from stepsafe.core.advice import first_unsafe_z
     from stepsafe.core.regions import find_region, under_criterion
     from stepsafe.core.solver import fixed_point_cost, step_limit
     from stepsafe.core.tradeoff import SOLVER_REACH
@@ -218,8 +244,19 @@ def _row(integrator: Integrator, betas: np.ndarray, trajectory: Any, target: flo
         notes.append("not symmetric: the HMC chain is not reversible with it (alternate it "
                      "with its adjoint); the acceptance is still as predicted")
     z_stab = region.stability_limit if region.stability_limit is not None else region.zmax
-    z_struct = region.first_boundary if region.first_boundary is not None else region.zmax
-    stability_h, structure_h = z_stab / top, z_struct / top
+    # the limits as advise computes them: each boundary less its float64 uncertainty, over
+    # the largest beta (1 + r) the rounding of a computed eigenvalue allows, rounded down
+    stab_lo = (_first_unsafe(under_criterion(region, "stability"), z_stab)
+               if region.stability_limit is not None else region.zmax)
+    struct_lo = (first_unsafe_z(region) if region.first_boundary is not None
+                 else region.zmax)
+    widest = float((betas * (1.0 + errors)).max())
+    stability_h, structure_h = _quotient_below(stab_lo, widest), _quotient_below(
+        struct_lo, widest)
+    if not (np.isfinite(stability_h) and np.isfinite(structure_h)):
+        raise StepsafeError(f"the step limit z / beta = {stab_lo:.6g} / {widest:.3g} "
+                            "overflows float64: give sigma, the frequencies or the "
+                            "covariance in units nearer 1")
     h_hi = stability_h if criterion == "stability" else structure_h
     solver_limit = None if integrator.explicit else step_limit(m, {"oscillator": betas})
     if solver_limit is not None and SOLVER_REACH * solver_limit < h_hi:
@@ -267,11 +304,19 @@ def _row(integrator: Integrator, betas: np.ndarray, trajectory: Any, target: flo
     if at_target.get("approximate"):
         notes.append("the acceptance at h at target is approximate (more distinct modes or "
                      "turns of L theta across the jitter than are integrated exactly)")
+    for where, h in (("h at target", h_target), ("the step asked for", step)):
+        wanted = trajectory.capped(h) if h else None
+        if wanted is not None:
+            notes.append(f"L = floor(T/h) = {wanted:.3g} at {where} is capped at "
+                         f"{core.MAX_TRAJECTORY_STEPS:.0e} steps: the acceptance and costs "
+                         f"shown there are for L = {core.MAX_TRAJECTORY_STEPS:.0e} (no "
+                         "sampler runs more)")
     at_step = None
     if step is not None:
         at_step = figures(step)
-        at_step["largest_errors"] = [asdict(e) for e in core.largest_errors(
-            m, betas, step, trajectory.steps_at(step))]
+        at_step["largest_errors"] = tuple(MappingProxyType(asdict(e)) for e in
+                                          core.largest_errors(m, betas, step,
+                                                              trajectory.steps_at(step)))
         at_step = MappingProxyType(at_step)
     stalls: list[Mapping[str, Any]] = []
     L = trajectory.steps_at(h_target) if h_target else None
@@ -285,7 +330,7 @@ def _row(integrator: Integrator, betas: np.ndarray, trajectory: Any, target: flo
                        for gap, turns, h in sorted(near)[:1]]
     points: tuple[tuple[float, float, float], ...] = ()
     if curve:
-        hs = h_hi * np.arange(1, curve + 1) / curve
+        hs = h_hi * (np.arange(1, curve + 1) / curve)
         points = tuple((float(h), a.rate, b.rate) for h, a, b in zip(
             hs, core.acceptance_curve(m, betas, hs, trajectory),
             core.acceptance_curve(m, betas, hs, bound)))
@@ -354,7 +399,7 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
         raise StepsafeError(f"name must be 1 to 60 letters, digits and '-' (as method files "
                             f"require), got {str(name)[:40]!r}")
     p = problem("verlet", frequencies, **inputs)
-    betas = _gaussian_betas(p)
+    betas, _ = _gaussian_betas(p)
     values, counts = np.unique(betas[betas > 0], return_counts=True)
     found = core_design(stages, values, counts.astype(float), step, jitter)
     if found is None:
@@ -380,30 +425,64 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
                         tuple(rows), int(betas.size), found.binned, p.time_unit)
 
 
-def _gaussian_betas(p: Any) -> np.ndarray:
-    """The vibration frequencies of a Gaussian target (refusing anything else)."""
+def _gaussian_betas(p: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The vibration frequencies of a Gaussian target (refusing anything else) and the
+    relative uncertainty of each (0 for frequencies given; the rounding bound of the
+    eigenvalue for those computed from a covariance or precision, as advise widens them).
+
+    A precision eigenvalue that float64 cannot tell from 0 (within its rounding bound
+    ``16 n eps |P|``, :mod:`stepsafe.systems.linear`) is refused as undecided, naming the
+    file and key; only a certainly negative one is called negative."""
+    from stepsafe.core.advice import Modes
+
+    source = None if p.system is None else (p.system.source or None)
     if p.system is not None and p.system.modes is None:
         raise StepsafeError("the target's modes do not decouple: a Gaussian target needs a "
-                            "symmetric positive definite precision (or covariance)")
+                            "symmetric positive definite precision (or covariance)", source)
     if p.system is not None and p.system.primary_only:
         raise StepsafeError(f"HMC's acceptance depends on every mode, and a matrix of more "
                             f"than {DENSE_LIMIT} rows is reduced to its extreme eigenvalues: "
                             "give the standard deviations of its modes (--modes FILE with a "
-                            "sigma column) or a smaller matrix")
+                            "sigma column) or a smaller matrix", source)
     if p.system is not None and any(item.get("type") == "free" for item in p.system.items):
         raise StepsafeError("the precision is singular (a direction of zero precision): the "
-                            "target is not a proper Gaussian")
+                            "target is not a proper Gaussian", source)
+    if p.system is not None and any(item.get("type") == "undecided"
+                                    for item in p.system.items):
+        raise StepsafeError("an eigenvalue of the precision is within rounding of 0 (its "
+                            "condition number is beyond what float64 resolves), so its sign "
+                            "is not decided and the target is not certainly a Gaussian: give "
+                            "the covariance, or a better-conditioned precision (a mass matrix "
+                            "as preconditioner)", source)
     others = [m for m in p.modes.betas if m != "oscillator"]
     if others:
-        why = ("the precision has a negative eigenvalue (an inverted mode)"
-               if "inverted" in others else f"{others[0]} modes have no place in HMC")
+        if p.system is None:
+            why = (f"{others[0]} modes (given as such) are not modes of a Gaussian "
+                   "target")
+        elif "inverted" in others:
+            why = "the precision has a negative eigenvalue (an inverted mode)"
+        else:
+            why = f"{others[0]} modes have no place in HMC"
         raise StepsafeError("a Gaussian target has only vibrations (sigma, covariance, "
-                            f"positive definite precision): {why}")
+                            f"positive definite precision): {why}", source)
     betas = np.asarray(p.modes.betas["oscillator"], dtype=float)
+    modes = p.system.modes if p.system is not None else p.modes
+    errors = (modes.error("oscillator") if isinstance(modes, Modes) else
+              np.zeros(betas.size))
+    errors = np.asarray(errors, dtype=float)
+    if errors.shape != betas.shape:
+        errors = np.zeros(betas.size)
     if not betas.max() > 0:
-        raise StepsafeError("every frequency is 0: a flat target has no step limit")
-    return betas
-
+        raise StepsafeError("every frequency is 0: a flat target has no step limit", source)
+    tiny = float(np.finfo(float).tiny)
+    positive = betas[betas > 0]
+    if positive.min() < tiny:
+        # 1/beta overflows past the stability limit, and beta h loses digits (subnormal)
+        raise StepsafeError(f"a frequency 1/sigma = {positive.min():.3g} is below float64's "
+                            f"normal range ({tiny:.3g}; sigma above {1 / tiny:.3g}): its "
+                            "steps overflow. Give sigma, the frequencies or the covariance "
+                            "in units nearer 1", source)
+    return betas, errors
 
 def _method_file(name: str, stages: int, params: Mapping[str, float], step: float,
                  jitter: float, modes: int) -> str:

@@ -98,7 +98,7 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, target_accept, st
 def print_hmc(data: dict[str, Any]) -> None:
     from rich.table import Table
 
-    from stepsafe.cli.report import _console, _lit, fmt
+    from stepsafe.cli.report import _console, _lit, fmt, fmt_below
 
     console = _console()
     unit = data["time_unit"]
@@ -119,12 +119,15 @@ def print_hmc(data: dict[str, Any]) -> None:
         def cell(x, digits=6):
             return "-" if x is None else fmt(x, digits)
 
-        stab = cell(r["stability_h"])
+        def limit(x):  # step limits rounded towards 0: a step shown is one that keeps it
+            return "-" if x is None else fmt_below(x, 6)
+
+        stab = limit(r["stability_h"])
         if r["structure_h"] is not None and r["structure_h"] != r["stability_h"]:
-            stab += f" (structure {cell(r['structure_h'])})"
+            stab += f" (structure {limit(r['structure_h'])})"
         table.add_row("-" if r["rank"] is None else str(r["rank"]), r["method"],
                       "-" if r["evaluations"] is None else str(r["evaluations"]), stab,
-                      cell(r["h_target"]), "-" if r["steps"] is None else str(r["steps"]),
+                      limit(r["h_target"]), "-" if r["steps"] is None else str(r["steps"]),
                       cell(r["acceptance"], 4), _error_cell(r["expected_error"]),
                       cell(r["gradients_per_accepted"], 5), cell(r["gradients_per_time"], 5))
     console.print(table)

@@ -234,7 +234,18 @@ class Trajectory:
     length: float | None = None
     jitter: float = 0.0
 
+    def capped(self, h: float) -> float | None:
+        """``length / h`` where it exceeds :data:`MAX_TRAJECTORY_STEPS` (the L that
+        :meth:`steps_at` caps), else None."""
+        if self.steps is not None or self.length is None:
+            return None
+        with np.errstate(over="ignore"):
+            wanted = self.length / h
+        return float(wanted) if wanted > MAX_TRAJECTORY_STEPS else None
+
     def steps_at(self, h: float) -> int | None:
+        """L at nominal step h (capped at :data:`MAX_TRAJECTORY_STEPS`, see
+        :meth:`capped`); None when the trajectory length is not given."""
         if self.steps is not None:
             return self.steps
         if self.length is not None:
@@ -340,9 +351,14 @@ def acceptance_curve(method: Method, betas: np.ndarray, hs: np.ndarray,
             nodes, weights, rough = np.zeros(1), np.full(1, 2.0), False
         else:
             nodes, weights, rough = _jitter_rule(method, values, h, j, steps)
-        z = np.outer(h * (1.0 + j * nodes), values)
-        errs = errors_after(one_step(method, z.ravel()), steps).reshape(z.shape)
-        found = acceptances(errs, counts)
+        # rows of the jitter rule in pieces: (nodes x modes) matrices, and the
+        # characteristic function's (rows x quadrature nodes x modes), stay bounded
+        k = max(values.size, 1)
+        rows = max(1, min(CHUNK_ELEMENTS // k, (16 * CHUNK_ELEMENTS) // (_DE_T.size * k)))
+        found = []
+        for start in range(0, nodes.size, rows):
+            z = np.outer(h * (1.0 + j * nodes[start:start + rows]), values)
+            found += acceptances(_errors(method, z, steps), counts)
         rate = float(np.dot(weights, [a.rate for a in found])) / 2.0
         with np.errstate(invalid="ignore", over="ignore"):
             mean_error = float(np.dot(weights, [a.expected_error for a in found])) / 2.0
@@ -372,7 +388,7 @@ def target_step(method: Method, betas: np.ndarray, target: float, h_hi: float,
     def ok(h: float) -> bool:
         return acceptance_at(method, betas, h, trajectory).rate >= target
 
-    grid = np.concatenate([h_hi * np.arange(1, TARGET_GRID + 1) / TARGET_GRID,
+    grid = np.concatenate([h_hi * (np.arange(1, TARGET_GRID + 1) / TARGET_GRID),
                            _bound_peaks(method, betas, h_hi)])
     grid = np.unique(grid[(grid > 0) & (grid <= h_hi)])
     good = np.array([a.rate >= target for a in acceptance_curve(method, betas, grid,
@@ -398,12 +414,22 @@ def target_step(method: Method, betas: np.ndarray, target: float, h_hi: float,
 
 def _bound_peaks(method: Method, betas: np.ndarray, h_hi: float) -> np.ndarray:
     """The steps below ``h_hi`` where ``sum_k rho(beta_k h)`` has a local maximum: a dip of
-    the acceptance that a coarse grid could step over."""
-    values, counts = _distinct(betas)
-    h = h_hi * np.arange(1, PEAK_GRID + 1) / PEAK_GRID
+    the acceptance that a coarse grid could step over. Beyond :data:`PEAK_MODES` distinct
+    frequencies the fastest are kept and the others merged into :data:`PEAK_BINS`
+    geometric bins (each at its largest beta, with the bin's count): the peaks are only
+    extra steps at which the acceptance is then evaluated in full, so this bounds the
+    search's cost (``PEAK_GRID`` times at most ``PEAK_MODES + PEAK_BINS`` matrices)
+    without changing any reported figure's definition."""
+    values, counts = _binned(*_distinct(betas))
+    h = h_hi * (np.arange(1, PEAK_GRID + 1) / PEAK_GRID)
+    total = np.zeros(h.size)
+    rows = max(1, CHUNK_ELEMENTS // max(values.size, 1))
     with np.errstate(invalid="ignore", over="ignore"):
-        total = errors_after(one_step(method, np.outer(h, values).ravel()), None).reshape(
-            h.size, values.size) @ counts
+        for start in range(0, h.size, rows):
+            part = h[start:start + rows]
+            total[start:start + rows] = errors_after(
+                one_step(method, np.outer(part, values).ravel()), None).reshape(
+                part.size, values.size) @ counts
     i = np.flatnonzero((total[1:-1] > total[:-2]) & (total[1:-1] >= total[2:])
                        & np.isfinite(total[1:-1])) + 1
     if not i.size:
@@ -414,6 +440,44 @@ def _bound_peaks(method: Method, betas: np.ndarray, h_hi: float) -> np.ndarray:
     shift = np.where(np.isfinite(shift), np.clip(shift, -1.0, 1.0), 0.0)
     step = h_hi / PEAK_GRID
     return np.concatenate([h[i] + shift * step, h[i]])
+
+
+#: The peak search keeps this many of the fastest distinct frequencies exactly ...
+PEAK_MODES = 1024
+#: ... and merges the slower ones into this many geometric bins.
+PEAK_BINS = 1024
+#: Arrays of z are evaluated in pieces of at most this many elements (memory bound).
+CHUNK_ELEMENTS = 2**18
+
+
+def _binned(values: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted distinct ``values`` with ``counts``: the :data:`PEAK_MODES` largest as they
+    are, the rest merged into at most :data:`PEAK_BINS` geometric bins (largest value,
+    summed count)."""
+    if values.size <= PEAK_MODES + PEAK_BINS:
+        return values, counts
+    cut = values.size - PEAK_MODES
+    slow, slow_counts = values[:cut], counts[:cut]
+    edges = np.geomspace(slow[0], slow[-1], PEAK_BINS + 1)
+    index = np.clip(np.searchsorted(edges, slow, side="right") - 1, 0, PEAK_BINS - 1)
+    top = np.zeros(PEAK_BINS)
+    np.maximum.at(top, index, slow)
+    summed = np.bincount(index, weights=slow_counts, minlength=PEAK_BINS)
+    keep = summed > 0
+    return (np.concatenate([top[keep], values[cut:]]),
+            np.concatenate([summed[keep], counts[cut:]]))
+
+
+def _errors(method: Method, z: np.ndarray, steps: int | None) -> np.ndarray:
+    """:func:`energy_errors` of an array of z, evaluated in pieces of
+    :data:`CHUNK_ELEMENTS` (the one-step matrices of 10^7 modes at once would take
+    gigabytes)."""
+    flat = z.ravel()
+    out = np.empty(flat.size)
+    for start in range(0, flat.size, CHUNK_ELEMENTS):
+        out[start:start + CHUNK_ELEMENTS] = errors_after(
+            one_step(method, flat[start:start + CHUNK_ELEMENTS]), steps)
+    return out.reshape(z.shape)
 
 
 @dataclass(frozen=True)
@@ -430,7 +494,7 @@ def largest_errors(method: Method, betas: np.ndarray, h: float, steps: int | Non
     """The ``keep`` distinct frequencies whose modes add most to the expected energy error
     at step h (L steps; None: the bound over every L), largest first."""
     values, counts = _distinct(betas)
-    errs = errors_after(one_step(method, values * h), steps)
+    errs = _errors(method, values * h, steps)
     order = np.argsort(-(errs * counts), kind="stable")[:keep]
     return tuple(ModeError(float(values[i]), int(counts[i]), float(errs[i] * counts[i]))
                  for i in order)

@@ -46,6 +46,7 @@ class SystemReport(NamedTuple):
     coupled: list[Any]  # CoupledResult per coupled piece (with its Hessian)
     notes: list[str]
     primary_only: bool = False  # only the safe interval from 0 was analysed (no islands)
+    source: str = ""  # the file and key the modes came from (``file::$.system.precision``)
 
 
 def _fail(where: str, path: str, message: str) -> StepsafeError:
@@ -136,12 +137,14 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
                                    f"not with {kinds[0]} (it would be ignored)")
     try:
         if kinds[0] in ("stiffness", "precision"):
-            return _stiffness(tree, where, folder, kinds[0], all_modes)
-        if kinds[0] == "covariance":
-            return _covariance(tree, where, folder)
-        if kinds[0] == "hessian":
-            return _hessian(tree, where, folder, method, zmax, progress, deadline)
-        return _hamiltonian(tree, where, method, zmax, deadline)
+            report = _stiffness(tree, where, folder, kinds[0], all_modes)
+        elif kinds[0] == "covariance":
+            report = _covariance(tree, where, folder)
+        elif kinds[0] == "hessian":
+            report = _hessian(tree, where, folder, method, zmax, progress, deadline)
+        else:
+            report = _hamiltonian(tree, where, method, zmax, deadline)
+        return report._replace(source=f"{where}::$.system.{kinds[0]}")
     except _E as exc:
         if exc.where:
             raise
