@@ -27,8 +27,8 @@ from __future__ import annotations
 import math
 import re
 from fractions import Fraction
+from typing import Any
 
-import numpy as np
 
 from stepsafe.exceptions import StepsafeError
 
@@ -149,10 +149,12 @@ def _scaled(value: float, factor: Fraction) -> float:
     return result
 
 
-def angular_frequencies(form: str, values: np.ndarray, time: str | None) -> np.ndarray:
+def angular_frequencies(form: str, values: Any, time: str | None) -> Any:
     """:func:`angular_frequency` of an array of values in the form's default unit (the
     same roundings, element by element); entries that are not finite positive frequencies
     come out NaN or inf for the caller to name."""
+    import numpy as np  # (only for arrays: the command line's import stays light)
+
     seconds = None if time is None else TIME_UNITS[time]
     with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
         if form == "beta":
