@@ -29,7 +29,6 @@ import re
 from fractions import Fraction
 from typing import Any
 
-
 from stepsafe.exceptions import StepsafeError
 
 #: The speed of light in vacuum, m/s (exact by the definition of the metre).
