@@ -163,7 +163,7 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
                 "model": "coupled", "beta": None, "z": float(h),
                 "reason": (f"float64 cannot decide whether the one-step matrix of the coupled "
                            f"{dof}-dof system keeps the eigen-structure of J S at this h (S "
-                           "nearly semidefinite; see the note): not certified" if undecided
+                           "ill-conditioned for float64; see the note): not certified" if undecided
                            else f"the one-step matrix of the coupled {dof}-dof system does "
                            "not keep the eigen-structure of J S at this h"),
                 "largest_safe_h": cap})

@@ -824,18 +824,20 @@ def _first_failure(system: CoupledSystem, lo: float, h: float, before: float | N
 
 
 #: A boundary is taken as decided by float64 when the criterion is certainly lost within
-#: this (relative) of the first step found not preserved (every boundary has such a band,
-#: of the size of the rounding bound: about 1e-11 on a well-conditioned S).
-BAND_MIN = 1e-8
+#: this (relative) of the first step found not preserved. Every boundary has such a band,
+#: of the size of the rounding bound: about 1e-11 on a well-conditioned S of a few rows,
+#: 1e-6 at 200 dof (the accuracy the analysis states for h_max); a wider one means the
+#: bound reaches the margin before the structure is lost.
+BAND_MIN = 1e-4
 
 
 def _undecided(system: CoupledSystem, h_max: float, hs: np.ndarray, horizon: float
                ) -> float | None:
-    """Definite S: None if the boundary after ``h_max`` is decided (the criterion is
-    certainly lost within :data:`BAND_MIN` of the first step found not preserved: among the
-    steps evaluated, or at that distance, one more one-step matrix); else the first step,
-    among those evaluated and the scan's, that is certainly lost (the horizon if none is):
-    float64 decides nothing between."""
+    """Definite S: None if the boundary after ``h_max`` is decided, i.e. the criterion is
+    certainly lost within :data:`BAND_MIN` of the first step found not preserved (among
+    the steps evaluated, by the margin's slope there, or at that distance: one more
+    one-step matrix); else the first step found certainly lost beyond it (the horizon if
+    none is): float64 decides nothing between."""
     if not system.definite:
         return None
     after = sorted(h for h in system._cache if h > h_max)
@@ -843,13 +845,31 @@ def _undecided(system: CoupledSystem, h_max: float, hs: np.ndarray, horizon: flo
     if first is None:
         return None
     near = first * (1.0 + BAND_MIN)
-    if any(h <= near and system.certainly_lost(h) for h in after) or \
-            system.certainly_lost(near):
+    if any(h <= near and system.certainly_lost(h) for h in after):
         return None
-    for h in sorted(set(after) | {float(x) for x in hs if x > first}):
-        if h > first and system.certainly_lost(h):
-            return h
-    return horizon
+    # where the margin, falling at the slope between the two nearest steps whose margins
+    # are decided far beyond their rounding bounds (its slope, not its noise), is certainly
+    # lost: within half of BAND_MIN is taken as decided without another one-step matrix
+    clear = sorted((abs(h - first), h) for h in system._cache
+                   if np.isfinite(system.margin(h))
+                   and abs(system.margin(h)) > 100 * system._slack.get(h, np.inf))
+    estimate = None
+    if len(clear) >= 2 and np.isfinite(system.margin(first)):
+        (_, a), (_, b) = clear[:2]
+        slope = (system.margin(b) - system.margin(a)) / (b - a)
+        if slope < 0:
+            estimate = first + (system.margin(first) + 2 * system._slack.get(first, 0.0)
+                                ) / -slope
+            if estimate <= first * (1.0 + 0.5 * BAND_MIN):
+                return None
+    if system.certainly_lost(near):
+        return None
+    lost = next((h for h in sorted(set(after) | {float(x) for x in hs if x > first})
+                 if h > first and system.certainly_lost(h)), horizon)
+    if estimate is not None and near < 2 * estimate - first < lost and \
+            system.certainly_lost(2 * estimate - first):
+        lost = 2 * estimate - first  # a tighter end, found at twice the estimated distance
+    return lost
 
 
 def _rescaled(progress: Callable[[float], None] | None, scale: float

@@ -487,8 +487,9 @@ def _undecided_notes(coupled: list[Any]) -> list[str]:
         lost = (f"the structure is lost at {high:.6g}" if high < result.horizon else
                 f"no loss is certain up to the horizon {high:.6g}")
         notes.append(f"float64 cannot decide the coupled {S.shape[0]}x{S.shape[0]} analysis for "
-                     f"h in ({low:.6g}, {high:.6g}): S is nearly semidefinite (the rounding "
-                     "bound of the criterion reaches its margin), and the high-precision "
+                     f"h in ({low:.6g}, {high:.6g}): S is too ill-conditioned for float64 "
+                     "there (the rounding bound of the criterion reaches its margin), and "
+                     "the high-precision "
                      f"criterion applies only to a splitting method on at most {EXACT_SIZE} "
                      f"rows whose S is definite at 40 digits; {certified}, {lost}")
     return notes
