@@ -394,8 +394,11 @@ def _converted(forms: Mapping[str, UnitValues | None], time_unit: str | None
         if values is None:
             continue
         try:
-            items = [values] if isinstance(values, (str, int, float)) else list(
-                np.asarray(values, dtype=object).ravel())
+            array = np.asarray(values, dtype=object)
+            if array.ndim > 1:
+                raise StepsafeError(f"{form} must be one-dimensional, got an array of shape "
+                                    f"{array.shape}")
+            items = [values] if isinstance(values, (str, int, float)) else list(array.ravel())
         except (TypeError, ValueError):
             raise StepsafeError(f"{form} must be a number, a text with a unit or a list of "
                                 "them") from None
@@ -420,9 +423,16 @@ def _modes_dict(frequencies: ArrayLike | None, saddle: ArrayLike | None,
             arr = np.asarray(values)
             if arr.dtype.kind == "c":
                 raise StepsafeError(f"{model} frequencies must be real, got complex values")
-            if arr.dtype.kind not in "biuf" and arr.dtype != object:
+            if arr.dtype.kind not in "biuf" and not (
+                    arr.dtype == object and all(isinstance(v, (int, float, np.integer,
+                                                               np.floating))
+                                                and not isinstance(v, bool)
+                                                for v in arr.ravel())):
                 raise TypeError
-            arr = np.atleast_1d(arr.astype(float)).ravel()
+            if arr.ndim > 1:
+                raise StepsafeError(f"{model} frequencies must be one-dimensional, got an "
+                                    f"array of shape {arr.shape}")
+            arr = np.atleast_1d(arr.astype(float))
         except (TypeError, ValueError, OverflowError):
             raise StepsafeError(f"{model} frequencies must be a list or array of real "
                                 "numbers") from None

@@ -280,3 +280,13 @@ def test_an_explicit_system_is_never_dropped(tmp_path):
     assert not report.safe  # beta = 1000, z = 50
     assert stepsafe.check(scene=scene).safe
     assert stepsafe.advise(scene=scene, system={"stiffness": [[1e6]]}).h_max <= 2e-3
+
+
+@pytest.mark.parametrize("kwargs", [{"frequencies": np.ones((2, 2))},
+                                    {"sigma": np.ones((2, 2))},
+                                    {"frequencies": np.array(["1"], dtype=object)}])
+def test_frequencies_are_one_dimensional_real_numbers(kwargs):
+    """A 2-D array is refused (it used to be flattened silently), and so is a text in an
+    object array where texts are not accepted (review 13, F9)."""
+    with pytest.raises(StepsafeError):
+        stepsafe.check("verlet", 0.1, **kwargs)
