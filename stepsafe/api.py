@@ -543,11 +543,24 @@ def _labels(labels: Mapping[str, Sequence[str | None]] | None,
     return out
 
 
-def _given_problem(value: Any) -> Problem | None:
-    if value is not None and not isinstance(value, Problem):
+def _problem_of(method: Integrator | str | None, frequencies: ArrayLike | None,
+                inputs: dict[str, Any]) -> Problem:
+    """A ``problem=`` given (it already holds the method, frequencies and options: any of
+    them given beside it would be ignored, so that is refused), else :func:`problem` of
+    the inputs."""
+    given = inputs.pop("problem", None)
+    if given is None:
+        return problem(method, frequencies, **inputs)
+    if not isinstance(given, Problem):
         raise StepsafeError(f"problem must be a stepsafe.Problem (from stepsafe.problem), got "
-                            f"{type(value).__name__}")
-    return value
+                            f"{type(given).__name__}")
+    extra = ([name for name, value in (("method", method), ("frequencies", frequencies))
+              if value is not None] + sorted(k for k, v in inputs.items() if v is not None))
+    if extra:
+        raise StepsafeError(f"problem= already holds the method, frequencies and options: "
+                            f"give {', '.join(extra)} to stepsafe.problem instead (beside "
+                            "problem= it would be ignored)")
+    return given
 
 
 def _scene_method(method: Integrator | str | None, scene: Any, stages: int | None,
@@ -631,7 +644,7 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
     from stepsafe.core.regions import validate_criterion
 
     criterion = validate_criterion(criterion)
-    p = _given_problem(inputs.pop("problem", None)) or problem(method, frequencies, **inputs)
+    p = _problem_of(method, frequencies, inputs)
     integrator, result = p.integrator, None
     with integrator.naming_its_file():
         if p.system is not None:
@@ -814,7 +827,7 @@ def check(method: Integrator | str | None = None, h: float | None = None,
     from stepsafe.core.regions import validate_criterion
 
     criterion = validate_criterion(criterion)
-    p = _given_problem(inputs.pop("problem", None)) or problem(method, frequencies, **inputs)
+    p = _problem_of(method, frequencies, inputs)
     step = h if h is not None else p.h
     if step is None:
         raise StepsafeError(f"{p.scene or 'check'}: no step: give --step H or h: in the "

@@ -290,3 +290,17 @@ def test_frequencies_are_one_dimensional_real_numbers(kwargs):
     object array where texts are not accepted (review 13, F9)."""
     with pytest.raises(StepsafeError):
         stepsafe.check("verlet", 0.1, **kwargs)
+
+
+def test_a_problem_is_not_combined_with_other_inputs():
+    """problem= already holds the method, frequencies and options: any of them beside it
+    is refused (it used to be ignored: yoshida4 checked as verlet's problem said safe at
+    z = 1.9; review 15)."""
+    p = stepsafe.problem("verlet", [1.0])
+    for args, kwargs in ((("yoshida4", 1.9), {}), ((), {"h": 1.9, "margin": 0.5}),
+                         ((), {"h": 0.05, "system": {"stiffness": [[1e6]]}})):
+        with pytest.raises(StepsafeError, match="problem= already holds"):
+            stepsafe.check(*args, problem=p, **kwargs)
+    with pytest.raises(StepsafeError, match="problem= already holds"):
+        stepsafe.advise("yoshida4", problem=p)
+    assert stepsafe.check(h=1.9, problem=p).safe

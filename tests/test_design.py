@@ -5,6 +5,7 @@ own target by sampling."""
 from __future__ import annotations
 
 import json
+import math
 
 import mpmath as mp
 import numpy as np
@@ -291,3 +292,20 @@ def test_three_stage_design_against_the_end_of_its_stable_range(top, jitter):
     with pytest.raises(StepsafeError, match="no 3-stage member.*end at h = 3"):
         design(sigma=[1.0], step=step, stages=3, jitter=jitter)
     assert not _bounded_at(3, (1 / 6, 1 / 3), 3)
+
+
+@pytest.mark.parametrize("relative", [0.0, 1e-16, 2e-16, 3e-13, 2e-10, 6e-10])
+def test_steps_just_below_two_root_two_get_a_stable_design(run, relative):
+    """Just below z = 2 sqrt 2 the stable interval of b is narrower than the rounding of
+    its ends, or its members too close to M = -I for float64's error bound: b = 1/4
+    (stable on all of (0, 4)) is designed instead of a refusal (review 15)."""
+    import mpmath as mp
+
+    step = 2 * math.sqrt(2) * (1 - relative)
+    code, out, err = run("design", "--sigma", "1", "--step", repr(step))
+    assert code == 0, err
+    b = float(out.split("b = ")[1].split(",")[0])
+    with mp.workdps(50):
+        z, bb = mp.mpf(step), mp.mpf(b)
+        half_trace = 1 - z ** 2 / 2 + bb * (1 - 2 * bb) * z ** 4 / 4
+        assert abs(half_trace) <= 1

@@ -213,9 +213,8 @@ def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
         if interval is None:
             return None
         lo, hi = interval
-        if lo == hi:  # b = 1/4 alone
-            value = float(error_bounds(2, np.array([[lo]]), z, counts, jitter)[0])
-            return Design(2, (lo,), value, binned)
+        if lo >= hi:  # b = 1/4 alone (or the interval narrower than its rounding)
+            return _quarter(z, counts, jitter, binned)
     axis = lo + (np.arange(GRID[stages]) + 0.5) / GRID[stages] * (hi - lo)
     grid = (axis[:, None] if stages == 2 else
             np.stack(np.meshgrid(axis, axis, indexing="ij"), axis=-1).reshape(-1, 2))
@@ -223,7 +222,9 @@ def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
                              for chunk in np.array_split(grid, max(1, grid.size * z.size
                                                                    // 4_000_000))])
     if not np.isfinite(values).any():
-        return None
+        # (near top = 2 sqrt 2 the interval's members are stable, but too close to their
+        # M = -I point for float64's error bound: b = 1/4 is stable on all of (0, 4))
+        return _quarter(z, counts, jitter, binned) if stages == 2 else None
 
     def objective(x: np.ndarray) -> float:
         if np.any(x <= lo) or np.any(x >= hi):
@@ -254,5 +255,11 @@ def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
         best = next((grid[i] for i in finite[:CONFIRM_LIMIT]
                      if _stable_up_to(stages, grid[i], top)), None)
     if best is None:
-        return None
+        return _quarter(z, counts, jitter, binned) if stages == 2 else None
     return Design(stages, tuple(float(x) for x in best), objective(best), binned)
+
+
+def _quarter(z: np.ndarray, counts: np.ndarray, jitter: float, binned: bool) -> Design:
+    """The member b = 1/4 (two half-step leapfrogs), stable for every z < 4."""
+    value = float(error_bounds(2, np.array([[QUARTER]]), z, counts, jitter)[0])
+    return Design(2, (QUARTER,), value, binned)
