@@ -780,3 +780,19 @@ def test_a_frequency_whose_limit_is_beyond_every_float(run, args):
         assert run("check", "--method", "verlet", *args, "--step", "1e300")[0] == 0
     else:
         assert data["h_max"] == pytest.approx(2.0) and data["h_max_limited_by"] == "boundary"
+
+
+@pytest.mark.parametrize("tol", [["--tol-phase", "1e-3"], ["--tol-energy", "1e-3"]])
+def test_a_tolerance_on_a_frequency_beyond_every_float(run, tol):
+    """Its accuracy limit is past the largest float too: advise says the tolerance holds
+    for every float step (it exited 3), compare leaves the method unranked with no step
+    and no cost (it ranked it 'bound by accuracy' at cost 0; review 15)."""
+    code, out, err = run("advise", "--method", "verlet", "--beta", "1e-310", *tol)
+    assert code == 0, err
+    assert "for every float step" in out
+    data = json.loads(run("compare", "--beta", "1e-310", "--methods", "verlet,bcss2", *tol,
+                          "--json")[1])
+    rows = data["methods"]
+    for row in rows:
+        assert row["h"] is None and row["cost_per_unit_time"] is None
+        assert row["bound_by"] == "nothing" and row["h_tol"] is None

@@ -380,6 +380,9 @@ def _print_accuracy(console, data: dict[str, Any], u: str = "") -> None:
         if lim["limited_by"] == "unreachable":
             console.print(f"{lim['model']} beta = {fmt(lim['beta'])}: no step keeps the {what} "
                           f"below {lim['tolerance']:g}.")
+        elif lim["limited_by"] == "beyond-float":
+            console.print(f"{lim['model']} beta = {fmt(lim['beta'])}: the {what} stays below "
+                          f"{lim['tolerance']:g} for every float step.")
         elif lim["limited_by"] == "boundary":
             console.print(f"{lim['model']} beta = {fmt(lim['beta'])}: the {what} stays below "
                           f"{lim['tolerance']:g} up to the first boundary "

@@ -238,7 +238,7 @@ def compare_row(res, explicit: bool) -> dict[str, Any]:
     (``rank`` is set by the caller once every row is known)."""
     first = next((lim for lim in res.advice.models if lim.model == "oscillator"),
                  res.advice.models[0])
-    h_tol = [lim.h for lim in res.limits]
+    h_tol = [lim.h for lim in res.limits if lim.limited_by != "beyond-float"]
     return {
         "method": res.method,
         "implicit": not explicit,

@@ -53,8 +53,9 @@ class ToleranceLimit(NamedTuple):
     tol: float
     beta: float
     z: float | None
-    h: float | None  # None when no step meets it
-    limited_by: str  # "tolerance", "boundary" (met up to z*), "unreachable"
+    h: float | None  # None when no step meets it, or every float step does
+    limited_by: str  # "tolerance", "boundary" (met up to z*), "unreachable", or
+    #                  "beyond-float" (its step is past the largest float: no limit)
 
 
 class Tradeoff(NamedTuple):
@@ -106,12 +107,15 @@ def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (
             z_star = region.first_boundary if region.first_boundary is not None else region.zmax
             step = z_for_tolerance(method, tol.value, z_star, lim.model, tol.kind)
             h = None if step.z is None else margin * step.z / lim.beta_max
+            limited_by = step.limited_by
+            if h is not None and not np.isfinite(h):  # beta ~ 1e-310: past every float
+                h, limited_by = None, "beyond-float"
             limits.append(ToleranceLimit(lim.model, tol.kind, tol.value, lim.beta_max, step.z,
-                                         h, step.limited_by))
+                                         h, limited_by))
     # the safe interval is open: a step to use lies strictly inside it
     h_safe = None if adv.h_max is None else float(np.nextafter(adv.h_max, 0.0))
     h_tol = min((lim.h for lim in limits if lim.h is not None), default=None)
-    if any(lim.h is None for lim in limits):
+    if any(lim.limited_by == "unreachable" for lim in limits):
         h_tol = 0.0
     candidates = [(h_safe, "safety"), (h_tol, "accuracy")]
     candidates = [(h, why) for h, why in candidates if h is not None]
