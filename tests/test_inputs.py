@@ -794,5 +794,5 @@ def test_a_tolerance_on_a_frequency_beyond_every_float(run, tol):
                           "--json")[1])
     rows = data["methods"]
     for row in rows:
-        assert row["h"] is None and row["cost_per_unit_time"] is None
+        assert row["h"] is None and row["cost"] is None and row["rank"] is None
         assert row["bound_by"] == "nothing" and row["h_tol"] is None
