@@ -399,8 +399,11 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
         raise StepsafeError(f"name must be 1 to 60 letters, digits and '-' (as method files "
                             f"require), got {str(name)[:40]!r}")
     p = problem("verlet", frequencies, **inputs)
-    betas, _ = _gaussian_betas(p)
-    values, counts = np.unique(betas[betas > 0], return_counts=True)
+    betas, errors = _gaussian_betas(p)
+    # designed for each frequency at the largest it may be (the rounding of the
+    # eigenvalues it came from), as hmc and advise limit the step
+    widest = betas * (1.0 + errors)
+    values, counts = np.unique(widest[betas > 0], return_counts=True)
     found = core_design(stages, values, counts.astype(float), step, jitter)
     if found is None:
         raise StepsafeError(f"no {stages}-stage member keeps every mode stable up to h = "

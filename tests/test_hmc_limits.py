@@ -186,3 +186,29 @@ def test_api_numpy_scalars_sparse_and_frozen_rows():
     sparse = hmc(["verlet"], system={"covariance": sp.csr_matrix(np.diag([1.0, 4.0, 9.0]))})
     # sigma_min = 1 exactly (diagonal): Verlet's limit z = 2 less its float64 uncertainty
     assert 2.0 * (1 - 1e-12) < sparse.rows[0].stability_h < 2.0
+
+
+@pytest.mark.parametrize("matrix", [C28, _ill_conditioned(4, 3e11, 1.0, 1)],
+                         ids=["c28", "cond3e11"])
+@pytest.mark.parametrize("near_the_limit", [True, False])
+def test_a_design_is_stable_for_the_true_frequencies_of_a_covariance(matrix, near_the_limit):
+    """design widens each frequency by the rounding of the eigenvalue it came from, as hmc
+    does. Here float64's smallest standard deviation is 3e-6 and 2e-5 above the 50-digit
+    one: a step 1e-7 below the family's limit z = 4 for the float64 frequency is past it
+    for the true one, and is refused (b = 1/4 used to be designed, |tr M| = 2.0001 at the
+    true frequency); a step well inside gets a member with |tr M| <= 2 at 50 digits."""
+    from stepsafe.hmc_advice import design
+
+    nominal = float(np.sqrt(np.linalg.eigvalsh(np.asarray(matrix)).min()))
+    with mp.workdps(50):
+        sigma_min = mp.sqrt(min(_mp_eigenvalues(matrix)))
+    step = 4 * nominal * (1 - 1e-7) if near_the_limit else float(2.8 * sigma_min)
+    system = {"covariance": np.asarray(matrix).tolist()}
+    if near_the_limit:
+        with pytest.raises(StepsafeError, match="no 2-stage member"):
+            design(system=system, step=step)
+        return
+    b = design(system=system, step=step).params["b"]
+    with mp.workdps(50):
+        z, bb = mp.mpf(step) / sigma_min, mp.mpf(b)
+        assert abs(1 - z ** 2 / 2 + bb * (1 - 2 * bb) * z ** 4 / 4) <= 1
