@@ -230,9 +230,13 @@ def test_resonance_order_applies_to_system_scenes(run, tmp_path, order, resonant
     dense = tmp_path / "fpu-all.json"
     dense.write_text(json.dumps({"method": "verlet", "system": {
         "stiffness": _fpu_stiffness(), "all_modes": True}}))
-    for scene in ("examples/fpu-alpha.yaml", str(stiffness), str(dense)):
-        data = json.loads(run("advise", scene, "--resonance-order", str(order), "--json")[1])
-        assert data["h_max"] == pytest.approx(limit, rel=1e-9) and data["h_max"] <= limit
+    # (the Hamiltonian scene, whose equilibria are searched on every run, at order 4 only)
+    scenes = [str(stiffness), str(dense)] + (["examples/fpu-alpha.yaml"] if order == 4 else [])
+    for scene in scenes:
+        if scene != "examples/fpu-alpha.yaml":
+            data = json.loads(run("advise", scene, "--resonance-order", str(order),
+                                  "--json")[1])
+            assert data["h_max"] == pytest.approx(limit, rel=1e-9) and data["h_max"] <= limit
         code, out, _ = run("check", scene, "--step", repr(limit * (1 + 1e-6)),
                            "--resonance-order", str(order))
         assert code == 1 and f"{order}:1 nonlinear resonance" in out
