@@ -177,6 +177,9 @@ def test_a_trap_float64_calls_indefinite_is_decided_at_high_precision():
         assert "definite at 40 digits" in result.analysis
         assert _kept_mp(method("verlet"), S, result.h_max, 60, sign=sign)
         assert not _kept_mp(method("verlet"), S, result.h_max * (1 + 1e-9), 60, sign=sign)
+        system = CoupledSystem(method("verlet"), S)  # check agrees
+        assert system.certified(0.5 * result.h_max)
+        assert not system.certified(result.h_max * (1 + 1e-9))
         decided += 1
         if decided == 3:
             break

@@ -457,12 +457,13 @@ class CoupledSystem:
         the criterion at high precision (:mod:`stepsafe.systems.coupled_exact`)."""
         if self.preserved(h):
             return True
-        if not (self.definite and self.exact_sign == self.sign):
+        if not self.exact_sign or (self.definite and self.exact_sign != self.sign):
             return False
-        if self.certainly_lost(h):
+        if self.definite and self.certainly_lost(h):
             return False
+        # (also where float64's Cholesky could not tell S definite and its floats are)
         factors = coupled_exact.euler_factors(self.method)
-        return coupled_exact.kept_exactly(factors, self.given, self.sign, h)
+        return coupled_exact.kept_exactly(factors, self.given, self.exact_sign, h)
 
     @cached_property
     def exact_sign(self) -> int:
