@@ -12,6 +12,13 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import pytest  # noqa: E402
 from click.testing import CliRunner  # noqa: E402
+from hypothesis import settings  # noqa: E402
+
+# CI (.ci/run sets CI) draws the same examples on every run, so a red run is reproducible
+# and a green one is not luck; without CI every run draws new ones
+settings.register_profile("ci", derandomize=True, print_blob=True)
+if os.environ.get("CI"):
+    settings.load_profile("ci")
 
 from stepsafe.cli import main  # noqa: E402
 

@@ -201,11 +201,13 @@ def _tr_half_mp(stages, params, z):
 
 
 def _bounded_at(stages, params, z):
-    """|tr M| < 2, or M = +-I exactly (the stability criterion), at 50 digits."""
+    """|tr M| < 2, or M = +-I exactly (the stability criterion), at 50 digits (the
+    comparisons too: abs() outside the context would round 1 - 5e-17 to 1)."""
     half, M = _tr_half_mp(stages, params, z)
-    if abs(half) < 1:
-        return True
-    return abs(half) == 1 and M[0, 1] == 0 and M[1, 0] == 0
+    with mp.workdps(50):
+        if abs(half) < 1:
+            return True
+        return abs(half) == 1 and M[0, 1] == 0 and M[1, 0] == 0
 
 
 def test_the_quarter_member_is_bounded_up_to_4_and_only_it_beyond_2_sqrt_2():
