@@ -55,6 +55,7 @@ from stepsafe.core.grid import (
 from stepsafe.core.models import ELLIPTIC, check_model
 from stepsafe.core.rkstability import imaginary_axis_crossings, stability_function
 from stepsafe.core.roots import EPS, HermiteCubic, hermite_extremum, hermite_root, refine_brackets
+from stepsafe.core.sets import contains, difference, distinct, union
 from stepsafe.core.transfer import TOL_FACTOR, Jet, pole_locations, poles, transfer_jet
 from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.methods.residuals import residuals
@@ -351,7 +352,7 @@ def _sample(ev: _Evaluator, grid: Grid, levels: tuple[float, ...]) -> _Samples:
     unc = _uncertain(ev, z, f, levels)
     for _ in range(REFINE_LEVELS):
         usable = grid.cells(z) & ~unc[:-1] & ~unc[1:]
-        cells = np.unique(np.concatenate([_hidden_extrema(z, f[:, i], dt, usable, (0.0,))
+        cells = distinct(np.concatenate([_hidden_extrema(z, f[:, i], dt, usable, (0.0,))
                                           for i in range(len(levels))]))
         if cells.size == 0:
             break
@@ -418,7 +419,7 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
         pole_z = pole_z[pole_z < zmax]
         pole_pts = tuple(p for p in pole_pts if p.z < zmax)
     grid = Grid.between_poles(pole_z, z_end, dz)
-    grid.z = np.union1d(grid.z, _near_poles(pole_z, pole_u[inside][:pole_z.size], z_end))
+    grid.z = union(grid.z, _near_poles(pole_z, pole_u[inside][:pole_z.size], z_end))
     work = grid.z.size * sample_work(method)
     if work > SAMPLE_WORK_BUDGET:
         raise StepsafeError(
@@ -475,7 +476,7 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
         roots.append(found)
         root_levels.append(np.full(found.size, L))
     roots, root_levels = np.concatenate(roots), np.concatenate(root_levels)
-    keep = ~np.isin(roots, [r.point.z for r in resonances])
+    keep = ~contains([r.point.z for r in resonances], roots)
     roots, root_levels = roots[keep], root_levels[keep]
     points = [_Candidate(p) for p in pole_pts]
     if roots.size:
@@ -529,7 +530,7 @@ def _near_poles(pole_z: np.ndarray, pole_u: np.ndarray, z_end: float) -> np.ndar
     offsets = pole_z[:, None] * NEAR_POLE[None, :]
     keep = offsets > 2.0 * pole_u[:, None]
     z = np.concatenate([(pole_z[:, None] - offsets)[keep], (pole_z[:, None] + offsets)[keep]])
-    return z[(z > 0) & (z < z_end) & ~np.isin(z, pole_z)]
+    return z[(z > 0) & (z < z_end) & ~contains(pole_z, z)]
 
 
 def _splitting_on_diagonal(method: Method, model: str) -> bool:
@@ -576,7 +577,7 @@ def _orientation_extrema(ev: _Evaluator, z: np.ndarray, usable: np.ndarray) -> n
     frac = np.arange(1, REFINE_SPLIT) / REFINE_SPLIT
     split = (z[hidden, None] + np.diff(z)[hidden, None] * frac[None, :]).ravel()
     extra = np.concatenate([ext[np.isfinite(ext)], split])
-    return np.setdiff1d(extra, z)
+    return difference(extra, z)
 
 
 def _orientation_switches(ev: _Evaluator, z, dev, D, usable) -> list[Point]:

@@ -27,6 +27,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from stepsafe.core.sets import distinct
 from stepsafe.core.transfer import batched_solve
 from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import RungeKutta
@@ -116,4 +117,4 @@ def imaginary_axis_crossings(method: RungeKutta, ymax: float) -> np.ndarray:
         with np.errstate(divide="ignore", invalid="ignore"):
             step = np.where(df != 0, f / df, 0.0)
         y = np.where(np.abs(step) < 1e-3 * y, y - step, y)
-    return np.unique(y[(y > 0) & (y <= ymax)])
+    return distinct(y[(y > 0) & (y <= ymax)])

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stepsafe.core.sets import distinct
 from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta
 
 #: Default stopping tolerance (relative change of the stage values).
@@ -121,7 +122,7 @@ def factorizations(method: Method) -> int:
     if _prk_of(method) is None:
         return 0
     if isinstance(method, Composition):
-        return int(np.unique(np.abs(method.flattened().weights)).size)
+        return int(distinct(np.abs(method.flattened().weights)).size)
     return 1
 
 
