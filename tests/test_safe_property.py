@@ -30,6 +30,9 @@ SETTINGS = settings(max_examples=60, deadline=None, derandomize=True,
 BUILTIN = ["verlet", "pefrl", "yoshida4", "bcss3", "mclachlan2-min", "kahan-li6", "ruth3",
            "symplectic-euler", "midpoint", "blanes-moan6"]
 MODEL_NAMES = ("oscillator", "saddle", "inverted", "saddle-p")
+#: |det M - 1| allowed: rounding of symplectic coefficients gives ~1e-16 times the size of
+#: M's entries; a method that is not symplectic is off by far more at any z it is checked
+DET_TOL = 1e-6
 
 
 def _mp_function(m):
@@ -52,13 +55,22 @@ def _mp_function(m):
 
 
 def _preserved(Mfun, z, model) -> bool:
-    """Type and orientation of the flow (the reference's constraints, all > 0). Float
-    coefficients are symplectic only to rounding, so det M = 1 is not demanded to 50
-    digits; that moves the boundaries by ~1e-16, inside every stated uncertainty."""
+    """Type and orientation of the flow (the reference's constraints, all > 0), and
+    det M = 1. Float coefficients are symplectic only to rounding, so det M = 1 is demanded
+    to DET_TOL, not to 50 digits; that moves the boundaries by ~1e-16, inside every
+    stated uncertainty."""
     try:
         M = Mfun(mp.mpf(z), model)
     except ZeroDivisionError:
         return False  # a pole: no unique step
+    size = max(abs(x) for x in M)
+    if size > 1:  # det M cancels products of size^2: that many more digits
+        with mp.workdps(mp.mp.dps + 2 * int(mp.log10(size)) + 10):
+            det = mp.det(Mfun(mp.mpf(z), model))
+    else:
+        det = mp.det(M)
+    if not abs(det - 1) <= DET_TOL:
+        return False  # a sink or a source: not the flow's type, whatever its trace
     if model == "saddle-p":  # H = -beta p q: p expands
         return bool(M[1, 1] > 1 > M[0, 0] > 0)
     return all(g > 0 for g in R.constraints(M, model))
@@ -94,7 +106,7 @@ def random_splitting(draw):
 
 
 @st.composite
-def random_prk(draw):
+def random_prk(draw, symplectic: bool = True):
     s = draw(st.integers(1, 3))
     coef = st.floats(-1.0, 1.0, allow_nan=False)
     A_q = np.array(draw(st.lists(st.lists(coef, min_size=s, max_size=s), min_size=s,
@@ -102,10 +114,27 @@ def random_prk(draw):
     b = np.array(draw(st.lists(st.floats(0.1, 1.0), min_size=s, max_size=s)))
     b = b / b.sum()
     A_p = b[None, :] * (1.0 - A_q.T / b[:, None])
+    if not symplectic:
+        A_p = A_p + np.array(draw(st.lists(st.lists(st.floats(0.01, 0.5), min_size=s,
+                                                    max_size=s), min_size=s, max_size=s)))
     return PartitionedRK(A_q, b, A_p, b.copy(), name="random-prk")
 
 
+@st.composite
+def scaled_tableau(draw, lowest: int = -14, highest: int = 2):
+    """RK4, Gauss s = 2, a random symplectic PRK or a random PRK that is not symplectic,
+    with every coefficient times 10^k: the same method at another step, symplectic iff
+    unscaled (RK4 times 1e-7 was called symplectic: review 16)."""
+    base = draw(st.one_of(st.sampled_from([("rk4",), ("gauss", 2)]).map(lambda a: method(*a)),
+                          random_prk(), random_prk(symplectic=False)))
+    scale = 10.0 ** draw(st.integers(lowest, highest))
+    prk = base.as_prk()
+    return PartitionedRK(prk.A_q * scale, prk.b_q * scale, prk.A_p * scale, prk.b_p * scale,
+                         name="scaled")
+
+
 methods = st.one_of(
+    scaled_tableau(),
     st.sampled_from(BUILTIN).map(method),
     st.tuples(st.sampled_from(["gauss", "lobatto3ab"]), st.integers(2, 5)).map(
         lambda fs: method(*fs)),
@@ -152,6 +181,19 @@ def test_safe_at_any_scale_of_z(name, log_z, model):
     else:  # and an UNSAFE verdict at small z, where every consistent method is safe,
         # would be a bug too
         assert log_z > -6 or model not in ("oscillator", "inverted"), result.failures
+
+
+@SETTINGS
+@given(scaled_tableau(-14, -3), st.floats(-1.0, 0.6),
+       st.sampled_from(["oscillator", "inverted"]), st.sampled_from(["structure", "stability"]))
+def test_a_scaled_tableau_is_safe_only_where_the_unscaled_one_is(m, log_z, model, criterion):
+    """Every coefficient times 10^k (k down to -14) at a step where the unscaled method's z
+    is 0.1 to 4: RK4 there is a sink, never SAFE, however small its coefficients."""
+    beta = 1e3
+    h = 10 ** log_z / float(np.abs(m.b_q).max()) / beta
+    modes = Modes.from_pairs([(beta, model)])
+    if check_step(m, modes, h, criterion=criterion).safe:
+        _confirm(m, modes, h, 1.0)
 
 
 def _stable_type(Mfun, z, model) -> bool:

@@ -9,8 +9,15 @@
 * Consistency (order >= 1): ``sum(b) = 1`` (RK, PRK), ``sum(drift) = sum(kick) = 1``
   (splitting), ``sum(weights) = 1`` (composition; the base consistent too).
 
-Residuals are max-norms; a residual below :data:`~stepsafe.methods.tableaux.RESIDUAL_TOL` times the
-size of the coefficients counts as zero.
+The symplecticity residuals are relative: the max-norm of the condition over the largest
+sum of the absolute values of the products it is made of (``|b_q,i| |a_p,ij| + |a_q,ji|
+|b_p,j| + |b_q,i| |b_p,j|``; for ``b_q = b_p``, over ``max |b|``), so that scaling every
+coefficient (the same method at another step) changes nothing: RK4 with its coefficients
+times 1e-7 is as far from symplectic as RK4. The consistency residual is absolute (the sums
+are compared with 1). A residual below :data:`~stepsafe.methods.tableaux.RESIDUAL_TOL`
+(consistency: times ``max(1, size of the coefficients)``) counts as zero: coefficients
+given to about 12 digits or more pass, which is what a method file's decimals of a
+symplectic method can promise.
 """
 
 from __future__ import annotations
@@ -33,27 +40,24 @@ from stepsafe.methods.tableaux import (
 class Residuals(NamedTuple):
     """Max-norm residuals of the coefficient conditions (0.0 where exact by construction)."""
 
-    symplectic_separable: float  # B_q A_p + A_q^T B_p - b_q b_p^T
-    weights_equal: float  # |b_q - b_p|, needed for non-separable H
+    symplectic_separable: float  # B_q A_p + A_q^T B_p - b_q b_p^T, relative
+    weights_equal: float  # |b_q - b_p| over max |b|, needed for non-separable H
     consistency: float  # distance of the weight sums from 1
     row_sums: float | None  # |A 1 - c| for RK methods with given nodes
-    magnitude: float  # size of the coefficients, for the relative test
-
-    def _zero(self, value: float) -> bool:
-        return value <= RESIDUAL_TOL * max(1.0, self.magnitude)
+    magnitude: float  # size of the coefficients, for the consistency test
 
     @property
     def symplectic_for_separable(self) -> bool:
-        return self._zero(self.symplectic_separable)
+        return bool(self.symplectic_separable <= RESIDUAL_TOL)  # (NaN: not symplectic)
 
     @property
     def symplectic(self) -> bool:
         """Symplectic for every Hamiltonian."""
-        return self.symplectic_for_separable and self._zero(self.weights_equal)
+        return self.symplectic_for_separable and bool(self.weights_equal <= RESIDUAL_TOL)
 
     @property
     def consistent(self) -> bool:
-        return self._zero(self.consistency)
+        return bool(self.consistency <= RESIDUAL_TOL * max(1.0, self.magnitude))
 
     def symplectic_for(self, model: str) -> bool:
         """Symplectic on the given test model (``saddle`` is not of the form T + V)."""
@@ -83,12 +87,29 @@ def residuals(method: Method | Impulse) -> Residuals:
     if isinstance(method, RungeKutta):
         row_sums = float(np.abs(method.A.sum(axis=1) - method.c).max())
     prk = method.as_prk()
-    sym = (np.diag(prk.b_q) @ prk.A_p + prk.A_q.T @ np.diag(prk.b_p)
-           - np.outer(prk.b_q, prk.b_p))
+    coefficients = (prk.A_q, prk.A_p, prk.b_q, prk.b_p)
+    mag = float(max(np.abs(c).max() for c in coefficients))
     cons = max(abs(float(prk.b_q.sum()) - 1.0), abs(float(prk.b_p.sum()) - 1.0))
-    mag = float(max(np.abs(prk.A_q).max(), np.abs(prk.A_p).max(), np.abs(prk.b_q).max()))
-    return Residuals(float(np.abs(sym).max()), float(np.abs(prk.b_q - prk.b_p).max()), cons,
-                     row_sums, mag)
+    if not np.isfinite(mag):
+        return Residuals(np.nan, np.nan, cons, row_sums, mag)
+    # divided by the power of two of the largest coefficient (exact), so that neither the
+    # products nor their sizes over- or underflow
+    exponent = int(np.frexp(mag)[1])
+    A_q, A_p, b_q, b_p = (np.ldexp(c, -exponent) for c in coefficients)
+    sym = b_q[:, None] * A_p + A_q.T * b_p[None, :] - np.outer(b_q, b_p)
+    size = (np.abs(b_q)[:, None] * np.abs(A_p) + np.abs(A_q.T) * np.abs(b_p)[None, :]
+            + np.outer(np.abs(b_q), np.abs(b_p)))
+    return Residuals(_relative(float(np.abs(sym).max()), float(size.max())),
+                     _relative(float(np.abs(b_q - b_p).max()),
+                               float(max(np.abs(b_q).max(), np.abs(b_p).max()))),
+                     cons, row_sums, mag)
+
+
+def _relative(residual: float, size: float) -> float:
+    """``residual / size`` (0 for 0 / 0: an exact zero)."""
+    if residual == 0.0:
+        return 0.0
+    return residual / size if size > 0 else np.inf
 
 
 def is_partitioned(method: Method) -> bool:

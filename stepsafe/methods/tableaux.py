@@ -285,7 +285,7 @@ class Splitting:
         a = np.zeros(m + 1)
         a[: self.drift.size] = self.drift
         mismatch = abs(a.sum() - self.kick.sum())
-        if mismatch > RESIDUAL_TOL * max(1.0, np.abs(a).sum()):
+        if not mismatch <= RESIDUAL_TOL * max(np.abs(a).sum(), np.abs(self.kick).sum()):
             raise MethodError(
                 f"sum(drift) - sum(kick) = {a.sum() - self.kick.sum():.3g}: a splitting method "
                 "with unequal drift and kick sums has no PRK form for non-separable models"
