@@ -70,13 +70,20 @@ def _directed(x: float, digits: int, below: bool) -> str:
 
     if not math.isfinite(x) or x == 0:
         return fmt(x, digits)
-    exact = Decimal(x)
-    unit = Decimal(1).scaleb(exact.adjusted() - (digits - 1))
-    rounded = exact.quantize(unit, rounding=ROUND_FLOOR if below else ROUND_CEILING)
-    # strictly beyond x, also once read back as a float (1e-12 reads as 2/2e12 itself)
-    while (float(rounded) >= x) if below else (float(rounded) <= x):
-        rounded += -unit if below else unit
-    text = f"{rounded:.{digits}g}"
+    rounding, outwards = (ROUND_FLOOR, -math.inf) if below else (ROUND_CEILING, math.inf)
+    # strictly beyond x, also once read back as a float (1e-12 reads as 1e-12 itself): if
+    # not, the float next to x is rounded instead (at most twice: a decimal rounded away
+    # from x from that float reads back as it or beyond, even where the floats are coarser
+    # than the digits, as for subnormal x)
+    target = x
+    while True:
+        exact = Decimal(target)
+        rounded = exact.quantize(Decimal(1).scaleb(exact.adjusted() - (digits - 1)),
+                                 rounding=rounding)
+        text = f"{rounded:.{digits}g}" if rounded else "0"  # exact: at most `digits` digits
+        if (float(text) < x) if below else (float(text) > x):
+            break
+        target = math.nextafter(target, outwards)
     mantissa, e, exponent = text.partition("e")
     if "." in mantissa:  # no trailing zeros (they would suggest more digits than shown)
         mantissa = mantissa.rstrip("0").rstrip(".")
