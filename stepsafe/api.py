@@ -423,7 +423,7 @@ def _modes_dict(frequencies: ArrayLike | None, saddle: ArrayLike | None,
             arr = np.asarray(values)
             if arr.dtype.kind == "c":
                 raise StepsafeError(f"{model} frequencies must be real, got complex values")
-            if arr.dtype.kind not in "biuf" and not (
+            if arr.dtype.kind not in "iuf" and not (
                     arr.dtype == object and all(isinstance(v, (int, float, np.integer,
                                                                np.floating))
                                                 and not isinstance(v, bool)
@@ -948,7 +948,7 @@ def _z_values(z: Any) -> np.ndarray:
     """z as a flat float array; complex, text or ragged input is a StepsafeError."""
     try:
         arr = np.asarray(z)
-        if arr.dtype.kind not in "biuf":
+        if arr.dtype.kind not in "iuf":
             raise TypeError
         return np.atleast_1d(arr.astype(float)).ravel()
     except (TypeError, ValueError, OverflowError):

@@ -38,6 +38,23 @@ def positive_finite(value, name: str) -> float:
     return x
 
 
+def finite_real(value, name: str) -> float:
+    """``value``, a real number (not a bool, not text), as a finite float, else a
+    :class:`StepsafeError` naming ``name``."""
+    import math
+    from numbers import Real
+
+    if isinstance(value, bool) or not isinstance(value, Real):
+        raise StepsafeError(f"{name} must be a number, got {type(value).__name__}")
+    try:
+        x = float(value)
+    except OverflowError:
+        raise StepsafeError(f"{name} must be a finite number, got {str(value)[:40]}") from None
+    if not math.isfinite(x):
+        raise StepsafeError(f"{name} must be a finite number, got {x}")
+    return x
+
+
 def unknown_key(key: object, valid: tuple[str, ...] | list[str]) -> str:
     """``unknown key`` with the closest valid key, if one is close, and the valid keys."""
     import difflib

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from stepsafe.api import ArrayLike, Integrator, _compared, _step_cost, problem
-from stepsafe.exceptions import StepsafeError, positive_finite
+from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
 from stepsafe.systems.loader import DENSE_LIMIT
 
 #: Stall steps (L theta = 2 pi m) are reported within this relative distance of the target
@@ -111,10 +111,7 @@ def _row_dict(row: HmcRow) -> dict[str, Any]:
 
 def _validated(target: float, steps: int | None, length: float | None,
                jitter: float) -> tuple[float, int | None, float | None, float]:
-    from numbers import Real
-
-    if isinstance(target, (bool, np.bool_)) or not isinstance(target, Real) or not (
-            0.0 < float(target) < 1.0):
+    if not 0.0 < finite_real(target, "target acceptance") < 1.0:
         raise StepsafeError(f"target acceptance must be a number in (0, 1), got {target!r}")
     if steps is not None and length is not None:
         raise StepsafeError("give the number of steps or the trajectory length, not both")
@@ -125,8 +122,7 @@ def _validated(target: float, steps: int | None, length: float | None,
         steps = int(steps)
     if length is not None:
         length = positive_finite(length, "trajectory length")
-    if isinstance(jitter, (bool, np.bool_)) or not isinstance(jitter, Real) or not (
-            0.0 <= float(jitter) < 1.0):
+    if not 0.0 <= finite_real(jitter, "jitter") < 1.0:
         raise StepsafeError(f"jitter must be a number in [0, 1), got {jitter!r}")
     return float(target), steps, length, float(jitter)
 
@@ -389,7 +385,8 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
     from stepsafe.core.design import PARAMETERS, STABLE_LIMIT, family_member
     from stepsafe.core.design import design as core_design
 
-    if isinstance(stages, bool) or stages not in PARAMETERS:
+    if isinstance(stages, bool) or not isinstance(stages, (int, np.integer)) or \
+            stages not in PARAMETERS:
         raise StepsafeError(f"stages must be 2 or 3, got {stages!r}")
     step = positive_finite(step, "step")
     _, _, _, jitter = _validated(0.5, None, None, jitter)
@@ -417,12 +414,16 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
             (ref, (i := _compared([ref])[0]).tableau, i.evaluations)
             for ref in DESIGN_REFERENCES]:
         h = step * evals / stages
+        if h == 0:
+            raise StepsafeError(f"step: {step:g} is so small that {label}'s step at equal "
+                                "cost, step * evaluations / stages, underflows to 0: give "
+                                "sigma and the step in units nearer 1")
         acc = core.acceptance_at(tableau, betas, h, over)
         rows.append(MappingProxyType({
             "method": label, "evaluations": evals, "h": h,
             "error_bound": None if not np.isfinite(acc.expected_error) else acc.expected_error,
             "acceptance": acc.rate,
-            "gradients_per_time": (None if acc.rate == 0 else evals / (acc.rate * h))}))
+            "gradients_per_time": (None if acc.rate == 0 else evals / acc.rate / h)}))
     return DesignReport(name, stages, MappingProxyType(params), step,
                         _method_file(name, stages, params, step, jitter, betas.size),
                         tuple(rows), int(betas.size), found.binned, p.time_unit)

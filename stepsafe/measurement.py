@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from stepsafe.api import Integrator
-from stepsafe.exceptions import StepsafeError, positive_finite
+from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
 
 #: Steps of one run at most by default (each costs the method's evaluations in Python)...
 MAX_STEPS = 2_000_000
@@ -208,10 +208,11 @@ def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Pa
     if longest > time:
         raise StepsafeError(f"the step h = {longest:.6g} is longer than the run time "
                             f"{time:.6g}: give a longer --time or a smaller step")
-    counts = [max(1, math.ceil(time / h * (1 - 1e-12))) for h in hs]
-    if max(counts) > max_steps:
-        raise StepsafeError(f"T / h = {max(counts):.3g} steps exceeds the {max_steps} allowed in "
-                            "one run: a shorter --time, larger steps or --max-steps")
+    ratios = [time / h * (1 - 1e-12) for h in hs]  # (inf where T / h overflows)
+    if not max(ratios) <= max_steps:
+        raise StepsafeError(f"T / h = {max(ratios):.3g} steps exceeds the {max_steps} allowed "
+                            "in one run: a shorter --time, larger steps or --max-steps")
+    counts = [max(1, math.ceil(r)) for r in ratios]
     if solver not in ("fixed-point", "newton"):
         raise StepsafeError(f"solver must be fixed-point or newton, got {str(solver)[:20]!r}")
     try:
@@ -370,6 +371,8 @@ def _problem(integrator: Integrator, scene: Any, system: Mapping[str, Any] | Non
              initial: Sequence[float] | None, energy: float | None) -> _Problem:
     from stepsafe.systems.scene import load_scene
 
+    if energy is not None:
+        energy = finite_real(energy, "energy")
     if system is not None:
         tree, where, folder = system, "system", Path(".")
     elif scene is not None:
@@ -463,7 +466,7 @@ def _many_problem(tree, where, initial, energy) -> _Problem:
     n = len(H.q)
     centres = [e for e in find_many(H, lo, hi).equilibria if e.kind == "elliptic"]
     if initial is not None:
-        x0 = np.array([float(v) for v in initial], dtype=float)
+        x0 = _start(initial)
         if x0.size != 2 * n or not np.all(np.isfinite(x0)):
             raise StepsafeError(f"--initial: the initial condition must be {2 * n} finite numbers "
                                 f"({', '.join(H.names)})")
@@ -529,16 +532,24 @@ def _reference(rhs: Callable, x0: np.ndarray, times: list[float],
     return [np.array(found[t]) for t in times]
 
 
-def _pair(initial: Sequence[float]) -> tuple[float, float]:
+def _start(initial: Sequence[float]) -> np.ndarray:
+    """The initial condition as finite floats (q then p), else a StepsafeError."""
+    if isinstance(initial, (str, bytes)):
+        raise StepsafeError("--initial: the initial condition must be a list of numbers")
     try:
-        values = [float(v) for v in initial]
-    except (TypeError, ValueError):
-        raise StepsafeError("--initial: the initial condition must be numbers q, p") from None
-    if len(values) != 2 or not all(map(math.isfinite, values)):
+        items = list(initial)
+    except TypeError:
+        raise StepsafeError("--initial: the initial condition must be a list of numbers") \
+            from None
+    return np.array([finite_real(v, "--initial") for v in items], dtype=float)
+
+
+def _pair(initial: Sequence[float]) -> tuple[float, float]:
+    values = _start(initial)
+    if values.size != 2:
         raise StepsafeError("--initial: the initial condition of a 1-dof system is two finite "
-                            "numbers "
-                            "q, p")
-    return values[0], values[1]
+                            "numbers q, p")
+    return float(values[0]), float(values[1])
 
 
 def _momentum_for(system, q: float, p: float, energy: float) -> float:
@@ -594,7 +605,7 @@ def _linear_problem(tree, where, folder, initial) -> _Problem:
     if initial is None:
         x0 = np.concatenate([np.random.default_rng(0).normal(size=n), np.zeros(n)])
     else:
-        x0 = np.array([float(v) for v in initial], dtype=float)
+        x0 = _start(initial)
         if x0.size != 2 * n or not np.all(np.isfinite(x0)):
             raise StepsafeError(f"--initial: the initial condition must be {2 * n} finite numbers "
                                 "(q then p)")
@@ -660,7 +671,7 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
     from stepsafe.core.accuracy import z_for_tolerance
     from stepsafe.core.regions import find_region
 
-    if quantity not in ("energy", "trajectory"):
+    if not isinstance(quantity, str) or quantity not in ("energy", "trajectory"):
         raise StepsafeError(f"quantity must be energy or trajectory, got {quantity!r}")
     tol = positive_finite(tol, f"the {quantity} tolerance")
     integrator = _integrator(method)

@@ -325,7 +325,7 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
                                 loaded.where or None)
     try:
         table = np.array(pairs, dtype=float).reshape(-1, 2)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise StepsafeError("pairs must be a list of (fast, slow) frequencies") from None
     if table.shape[0] == 0:
         raise StepsafeError("pairs is empty: give at least one (fast, slow) pair")

@@ -6,12 +6,16 @@ text, bytes, complex, huge ints, arrays of the wrong shape or dtype, mappings, o
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import stepsafe
+
+PENDULUM = str(Path(__file__).resolve().parent.parent / "examples" / "pendulum.yaml")
 
 JUNK = st.one_of(
     st.none(), st.booleans(), st.text(max_size=8), st.binary(max_size=4),
@@ -47,7 +51,30 @@ CALLS = {
     "transfer.z": lambda v: stepsafe.transfer_matrices("verlet", v),
     "compare.methods": lambda v: stepsafe.compare(v, [1.0]),
     "load_scene": lambda v: stepsafe.load_scene(v),
+    "advise.stiffness": lambda v: stepsafe.advise("verlet", system={"stiffness": [[v]]}),
+    "measure.scene": lambda v: stepsafe.measure("verlet", [0.5], scene=v, time=1.0),
+    "refine.quantity": lambda v: stepsafe.refine("verlet", v, 1e-3, scene=PENDULUM),
+    "design.stages": lambda v: stepsafe.design(sigma=[1.0], step=1.0, stages=v),
+    "design.jitter": lambda v: stepsafe.design(sigma=[1.0], step=1.0, jitter=v),
+    "hmc.jitter": lambda v: stepsafe.hmc(["verlet"], sigma=[1.0], steps=4, jitter=v),
+    "hmc.target_accept": lambda v: stepsafe.hmc(["verlet"], sigma=[1.0], steps=4,
+                                                target_accept=v),
+    "impulse_advice.pairs": lambda v: stepsafe.impulse_advice("respa-verlet", pairs=v),
 }
+
+
+#: a valid energy or start runs an integration: these take the wrong kinds only
+NOT_NUMBERS = ["abc", 10**400, -10**400, True, [1.0], 1 + 2j, float("nan"), float("inf"),
+               np.array([1.0, 2.0]), None, b"1"]
+
+
+@pytest.mark.parametrize("value", NOT_NUMBERS, ids=repr)
+def test_measure_refuses_a_start_that_is_not_a_number(value):
+    for start in ({"energy": value}, {"initial": [value, 0.0]}):
+        if value is None and "energy" in start:
+            continue  # (no energy given: the scene's own start)
+        with pytest.raises(stepsafe.StepsafeError):
+            stepsafe.measure("verlet", [0.5], scene=PENDULUM, time=1.0, **start)
 
 
 @pytest.mark.parametrize("where", sorted(CALLS))

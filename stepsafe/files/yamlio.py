@@ -97,6 +97,9 @@ def open_regular(path: str | os.PathLike, max_bytes: int, where: str | None = No
     again with ``os.fstat`` on the descriptor, opened non-blocking, so a file swapped in
     between is refused too. Errors name ``where`` (default: the path).
     """
+    if isinstance(path, bool) or not isinstance(path, (str, os.PathLike)):
+        # (not a file descriptor: it may be a terminal)
+        raise StepsafeError(f"a file path must be a string or path, got {type(path).__name__}")
     where = str(path) if where is None else where
     try:
         info = os.stat(path)
@@ -104,6 +107,8 @@ def open_regular(path: str | os.PathLike, max_bytes: int, where: str | None = No
         raise StepsafeError("no such file", where) from None
     except OSError as exc:
         raise StepsafeError(f"cannot read: {exc.strerror or exc}", where) from None
+    except ValueError:  # a NUL character: no file can have that name
+        raise StepsafeError(f"not a file name: {where[:60]!r}") from None
     if stat.S_ISDIR(info.st_mode):
         raise StepsafeError("is a directory, not a file", where)
     if not stat.S_ISREG(info.st_mode):

@@ -463,8 +463,8 @@ def validate_gradient_cost(value: float) -> float:
     """``value`` if it is a finite number >= 0, else a :class:`MethodError`."""
     try:
         number = float(value)
-    except (TypeError, ValueError):
-        raise MethodError(f"the gradient cost must be a number, got {value!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise MethodError(f"the gradient cost must be a number, got {str(value)[:40]}") from None
     if isinstance(value, bool) or not np.isfinite(number) or number < 0:
         raise MethodError(f"the gradient cost must be a finite number >= 0, got {value!r}")
     return number

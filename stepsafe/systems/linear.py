@@ -62,7 +62,7 @@ def check_square(A: np.ndarray, name: str, symmetric: bool = True) -> np.ndarray
         raise MatrixError(name, f"{name} must hold real numbers, got dtype {A.dtype}")
     try:
         A = np.asarray(A, dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise MatrixError(name, f"{name} must hold real numbers") from None
     if A.ndim != 2 or A.shape[0] != A.shape[1] or A.size == 0:
         raise MatrixError(name, f"{name} must be a non-empty square matrix, got shape {A.shape}")

@@ -73,11 +73,14 @@ def _matrix(value: Any, where: str, key: str, folder: Path, sparse_ok: bool = Fa
             raise _fail(where, f"{key}[{i}]", f"has {len(row)} entries, row 0 has "
                                                f"{out.shape[1]}")
         for j, x in enumerate(row):
-            number = (parse_real(x) if isinstance(x, str) else  # YAML text, or the API's
-                      float(x) if isinstance(x, (int, float)) and not isinstance(x, bool)
-                      else None)
+            try:
+                number = (parse_real(x) if isinstance(x, str) else  # YAML text, or the API's
+                          float(x) if isinstance(x, (int, float)) and not isinstance(x, bool)
+                          else None)
+            except OverflowError:
+                number = np.inf  # an int beyond float64: refused below as non-finite
             if number is None:
-                raise _fail(where, f"{key}[{i}][{j}]", f"is not a number: {x!r}")
+                raise _fail(where, f"{key}[{i}][{j}]", f"is not a number: {str(x)[:40]}")
             out[i, j] = number
     if not np.all(np.isfinite(out)):
         raise _fail(where, key, "has a non-finite entry")
@@ -91,7 +94,7 @@ def _array(value: Any, where: str, key: str, sparse_ok: bool):
         value = value.toarray()
         sparse = False
     data = value.data if sparse else value
-    if np.asarray(data).dtype.kind not in "biuf":
+    if np.asarray(data).dtype.kind not in "iuf":
         raise _fail(where, key, f"must hold real numbers, got dtype {np.asarray(data).dtype}")
     if value.ndim != 2 or value.shape[0] != value.shape[1] or value.shape[0] == 0:
         raise _fail(where, key, f"must be a non-empty square matrix, got shape {value.shape}")
