@@ -53,6 +53,13 @@ def fmt(x: float | None, digits: int = 12) -> str:
     return f"{x:.{digits}g}"
 
 
+def fmt_exact(x: float) -> str:
+    """The shortest decimal that reads back as ``x`` (a value the user gave, echoed as it
+    is: 1.9999999999999998 is not shown as 2)."""
+    text = repr(float(x))
+    return text[:-2] if text.endswith(".0") else text
+
+
 def fmt_below(x: float, digits: int = 12) -> str:
     """``x`` to ``digits`` significant digits, rounded towards zero and strictly below a
     positive ``x``: a step limit shown to the user is one the user may take (an ``h_max``
@@ -337,7 +344,7 @@ def print_check(data: dict[str, Any]) -> None:
     from stepsafe.text import printable
 
     u = f" {data['time_unit']}" if data.get("time_unit") else ""
-    h, name = fmt(data["h"]) + u, printable(data["method"])
+    h, name = fmt_exact(data["h"]) + u, printable(data["method"])
     scene = f"{printable(data['scene'])}: " if data.get("scene") else ""
     if data["safe"]:
         where = "" if data["in_primary_interval"] else \

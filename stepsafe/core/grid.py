@@ -44,7 +44,7 @@ def reach(method: Method) -> float:
             # term 2 c z^3 = (cbrt(2 c) z)^3 (cube roots taken apart: c may be ~1e308)
             c = np.abs(method.gradient)
             b = np.abs(method.kick[: c.size])
-            with np.errstate(divide="ignore", over="ignore"):
+            with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
                 turn = np.where(b > 0, np.sqrt(2.0) * np.sqrt(c) / np.sqrt(b), 0.0)
             kicks += float(np.cbrt(2.0) * np.cbrt(c).sum()) + float(turn.max(initial=0.0))
         return float(max(np.abs(method.drift).sum(), kicks, 1.0))
