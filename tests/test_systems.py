@@ -217,6 +217,9 @@ def _hamiltonian_scene(tmp_path, text: str, box: str = "{q: [-1, 1], p: [-1, 1]}
     ("1e12*p**2 + 1e12*q**2", "oscillator", 2e12),
     ("sin(q)/q + p**2", "inverted", math.sqrt(2 / 3)),  # removable singularity at 0
     ("p**2/2 - cos(q)", "oscillator", 1.0),
+    # a stiff quartic term: Newton creeps towards 0 before it converges quadratically
+    ("p**2/2 + q**2/2 + 1e30*q**4", "oscillator", 1.0),
+    ("p**2/2 + 1e20*(q - 0.3)**2 + 1e40*(q - 0.3)**4", "oscillator", math.sqrt(2e20)),
 ])
 def test_hamiltonians_at_any_scale(tmp_path, text, model, beta):
     """The linearisation at the equilibrium, whatever the units: beta^2 = |H_qq H_pp|."""

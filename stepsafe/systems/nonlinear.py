@@ -56,6 +56,9 @@ VERIFY_DPS = 120
 #: mpmath Newton stops when its step falls below this (box units); the cancellations near
 #: a removable singularity at that distance (~1/x^3) leave ~30 of the working digits.
 VERIFY_STEP = 1e-30
+#: Newton steps allowed in the verification (a stiff zero, 1e308 q^4 + q^2, creeps by 2/3
+#: per step for ~900 steps before it converges quadratically)
+VERIFY_ITERATIONS = 2000
 GRID = 13
 
 
@@ -355,7 +358,7 @@ def _verify(H: Hamiltonian, u: np.ndarray, centre, half) -> Equilibrium | None:
         w = [mp.mpf(float(x)) for x in half]
         x = [c[0] + w[0] * mp.mpf(float(u[0])), c[1] + w[1] * mp.mpf(float(u[1]))]
         steps: list[Any] = []
-        for _ in range(200):
+        for _ in range(VERIFY_ITERATIONS):
             jet = _mp_jet(H, x, w)
             if jet is None:
                 return None
@@ -369,14 +372,24 @@ def _verify(H: Hamiltonian, u: np.ndarray, centre, half) -> Equilibrium | None:
             steps.append(size)
             if size <= VERIFY_STEP:
                 break
-        if not steps or steps[-1] > mp.mpf(10) ** (-12):
+        if not steps or steps[-1] > (mp.mpf(10) ** -12 if det == 0 else VERIFY_STEP):
             return None  # did not converge: not an equilibrium we can vouch for
         uq, up = (x[0] - c[0]) / w[0], (x[1] - c[1]) / w[1]
         if max(abs(uq), abs(up)) > 1 + mp.mpf(10) ** -9:
             return None
+        # Newton converges quadratically to a zero where the Hessian is regular and only
+        # linearly where it is singular (q^4 at 0: each step 2/3 of the last). A stiff
+        # regular zero (q^2 + 1e30 q^4) also creeps at first, far from it, so only the
+        # end counts: the last steps did not collapse
+        tail = steps[-4:]
+        linear = len(tail) == 4 and all(b > mp.mpf("1e-3") * a for a, b in zip(tail, tail[1:]))
         # location uncertainty (box units): a few times the last steps (linear convergence
-        # at a degenerate zero leaves an error comparable to the last step)
-        dx = 4 * max(steps[-3:]) + VERIFY_STEP
+        # at a degenerate zero leaves an error comparable to the last step; after a
+        # quadratic one the error is far below the last step)
+        # (at least VERIFY_STEP, even where the gradient vanishes exactly: at 1e-76 of
+        # sin(q)/q, cancellation makes both the gradient and the Hessian noise; a stiff
+        # term, 1e308 q^4, then makes the Hessian over that distance, a bound, 4.8e249)
+        dx = (4 * max(steps[-3:]) if linear else 4 * steps[-1]) + VERIFY_STEP
         shifted = [_mp_jet(H, [x[0] + sq * dx * w[0], x[1] + sp * dx * w[1]], w)
                    for sq, sp in ((1, 1), (-1, -1), (1, -1), (-1, 1))]
         if any(s is None for s in shifted):
@@ -393,9 +406,6 @@ def _verify(H: Hamiltonian, u: np.ndarray, centre, half) -> Equilibrium | None:
         spread = max(abs((s.H[1] ** 2 - s.H[0] * s.H[2]) - D) for s in shifted)
         terms = max(hqp * hqp, abs(hqq * hpp))
         undecided = abs(D) <= 2 * spread + mp.mpf(10) ** (-(VERIFY_DPS // 2)) * terms
-        # Newton converges quadratically to a zero where the Hessian is regular (three
-        # steps from 1e-8 to VERIFY_STEP) and only linearly where it is singular
-        linear = sum(1 for size in steps if size < mp.mpf("1e-8")) > 6
         # a coordinate within the location's uncertainty of 0 is 0 (the equilibrium at the
         # origin, not at 1e-87)
         q, p = (mp.mpf(0) if abs(xi) <= dx * wi else xi for xi, wi in zip(x, w))
