@@ -113,3 +113,14 @@ def test_integer_field_holds_integers(tmp_path):
     path.write_text("%%MatrixMarket matrix coordinate integer general\n1 1 1\n1 1 0.5\n")
     with pytest.raises(StepsafeError, match="not an integer"):
         read_matrix(path, "int.mtx")
+
+
+@pytest.mark.parametrize("length", [1023, 1024, 1025, 5000, 100_000])
+def test_long_comment_lines_are_comments(tmp_path, length):
+    """A comment line longer than the size line's read is skipped whole (review 18)."""
+    path = tmp_path / "k.mtx"
+    path.write_text("%%MatrixMarket matrix coordinate real symmetric\n%" + "x" * length
+                    + "\n% short\n2 2 2\n1 1 4.0\n2 2 9.0\n")
+    matrix = read_matrix(path, "k.mtx")
+    dense = matrix.toarray() if hasattr(matrix, "toarray") else np.asarray(matrix)
+    np.testing.assert_array_equal(dense, [[4.0, 0.0], [0.0, 9.0]])

@@ -324,15 +324,19 @@ def _read_mtx(fh, label: str, sparse_ok: bool):
     if symmetry not in ("general", "symmetric"):
         raise _refuse(label, f"Matrix Market symmetry {symmetry[:20]!r} is not allowed: a "
                              "stiffness, mass or Hessian matrix is general or symmetric")
-    line = 1
+    line, comment_goes_on = 1, False
     while True:
-        raw = fh.readline(1024)
-        line += 1
+        raw = fh.readline(1024)  # (a comment line longer than this is read in pieces)
         if not raw:
             raise _refuse(label, "no size line after the banner")
+        if comment_goes_on:
+            comment_goes_on = not raw.endswith(b"\n")
+            continue
+        line += 1
         text = raw.decode("ascii", "replace").strip()
         if text and not text.startswith("%"):
             break
+        comment_goes_on = not raw.endswith(b"\n")
     sizes = text.split()
     want = 3 if fmt == "coordinate" else 2
     if len(sizes) != want or not all(_MM_INT.fullmatch(x) for x in sizes):
