@@ -310,7 +310,9 @@ def _hp_series_parts(prk: PartitionedRK, model: str, series: Series) -> Parts:
                 if np.any(~below & (np.abs(v) * 1e-20 < bound)):
                     settled = False  # partly resolved: more digits needed
                 v = np.where(below, 0.0, v)
-                out += [v, np.where(below, bound, EPS * np.abs(v))]
+                # those before the first resolved one are the order conditions: exactly 0
+                first = int(np.argmax(~below)) if (~below).any() else n
+                out += [v, np.where(below, np.where(k < first, 0.0, bound), EPS * np.abs(v))]
         if settled:
             break
     return Parts(*out, series.z_valid)
@@ -322,10 +324,9 @@ def _choose(coef, err, z_valid, z, direct, direct_err, shift: int = 0):
     Dividing the series by ``z^shift`` term by term keeps tiny z from underflowing."""
     k = np.arange(coef.size)
     az = np.abs(z)
-    low = sum((coef[j] * z ** float(j - shift) for j in range(min(shift, coef.size))),
-              np.zeros_like(z))
-    low_err = sum((err[j] * az ** float(j - shift) for j in range(min(shift, coef.size))),
-                  np.zeros_like(z))
+    lead = [j for j in range(min(shift, coef.size)) if coef[j] != 0 or err[j] != 0]
+    low = sum((coef[j] * z ** float(j - shift) for j in lead), np.zeros_like(z))
+    low_err = sum((err[j] * az ** float(j - shift) for j in lead), np.zeros_like(z))
     series_val = low + _horner(coef[shift:], z)
     series_err = (low_err + _horner(err[shift:], az)
                   + 4 * EPS * _horner((np.abs(coef) * (k + 1))[shift:], az))
@@ -413,7 +414,7 @@ def _escalate(method: Method, model: str, z: np.ndarray, where: np.ndarray,
                 if not (sin2 > 0 and b > 0):
                     continue
                 theta = mp.atan2(mp.sqrt(sin2), half)
-                theta += two_pi * mp.nint((zz - theta) / two_pi)
+                theta += two_pi * mp.nint((zz - theta) / two_pi)  # as in float64
                 bound = unit * size / (zz * abs(mp.sin((theta + zz) / 2)))
                 if bound < phase_err[i]:
                     phase[i] = float(theta / zz - 1)
@@ -452,7 +453,9 @@ def _float_errors(method: Method, z: np.ndarray, model: str):
             theta_err = 8 * EPS * np.abs(theta) + (
                 direct_err * y + z * z * s2_err / (2 * y) * np.abs(half_tr)) / (
                 y * y + half_tr * half_tr)
-            # the rotation M performs is theta + 2 pi n: the branch nearest the flow's z
+            # M^n sees its rotation only modulo 2 pi: of theta + 2 pi n, the phase error
+            # is that of the branch nearest the flow's z (on the islands beyond 2 pi,
+            # theta + 2 pi; the principal theta - z would be -0.9 at z = 7)
             theta = theta + 2 * np.pi * np.round((z - theta) / (2 * np.pi))
             half = 0.5 * (theta + z)
             sh = np.sin(half)
