@@ -24,9 +24,13 @@ the identity ``cos theta - cos z = -2 sin((theta+z)/2) sin((theta-z)/2)`` (``cos
 turns ``delta`` into ``theta - z`` with full relative accuracy. The series is used where it is
 valid (always for explicit methods, whose series is the exact polynomial; within half its
 radius of convergence otherwise) and its rounding bound beats the direct formula's, which
-loses ~1e-16 / |e| relative. Coefficients that vanish to rounding are taken as exactly zero:
-for methods given by rounded decimals, whose order conditions hold only to ~1e-17, this is
-the error of the ideal method (it differs from the decimals' own by ~1e-17 / z^2 absolute).
+loses ~1e-16 / |e| relative. Coefficients that vanish to rounding before the first that does
+not are the order conditions, taken as exactly zero: for methods given by rounded decimals,
+whose order conditions hold only to ~1e-17, this is the error of the ideal method (it
+differs from the decimals' own by ~1e-17 / z^2 absolute). Later ones keep their rounding
+bound; implicit (P)RK methods get theirs at high precision from their definition
+(:func:`_hp_parts`). Every figure carries a float64 bound and is recomputed from the
+high-precision transfer matrix where that bound exceeds :data:`ESCALATE_REL` of it.
 
 The inverse problem (largest z meeting a tolerance) is the first crossing of ``|e| = tol``
 from 0, never beyond the first boundary.
