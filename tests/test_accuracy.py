@@ -255,3 +255,125 @@ def test_energy_tolerance_alone_still_works_for_other_methods(run_json):
     data = run_json("advise", "--method", "lobatto3ab", "-s", "3", "--beta", "1",
                     "--tol-energy", "1e-4")
     assert data["bound_by"] == "accuracy"
+
+
+# --- independent high-precision references (review 18): Gauss from its stability function
+# (the diagonal Pade approximant of exp), Lobatto IIIA-IIIB from its stage equations with a
+# tableau built here (Legendre nodes, collocation by Vandermonde solve at raised precision)
+
+def _gauss_phase(s, z):
+    """theta / z - 1 of Gauss s: R(iz) = P(iz) / P(-iz), theta = 2 arg P(iz)."""
+    w = 1j * z
+    P = mp.fsum(mp.factorial(2 * s - k) * mp.factorial(s)
+                / (mp.factorial(2 * s) * mp.factorial(k) * mp.factorial(s - k)) * w ** k
+                for k in range(s + 1))
+    theta = 2 * mp.atan2(P.imag, P.real)
+    if mp.sin(theta) <= 0:  # rotates against the flow's sense: not preserved (b < 0)
+        return None
+    theta += 2 * mp.pi * mp.nint((z - theta) / (2 * mp.pi))  # M^n sees theta mod 2 pi
+    return theta / z - 1
+
+
+def _lobatto_tableau(s):
+    n = s - 1  # nodes 0, 1 and the roots of P'_n(2x - 1)
+    leg = [mp.mpf(0)] * (n + 1)  # P_n(x) = 2^-n sum (-1)^k C(n,k) C(2n-2k, n) x^(n-2k)
+    for k in range(n // 2 + 1):
+        leg[n - 2 * k] = (-1) ** k * mp.binomial(n, k) * mp.binomial(2 * n - 2 * k, n) / 2 ** n
+    dleg = [j * leg[j] for j in range(1, n + 1)]  # P'_n, ascending powers
+    inner = sorted((mp.re(r) + 1) / 2 for r in mp.polyroots(dleg[::-1], maxsteps=400,
+                                                             extraprec=400)) if n > 1 else []
+    c = [mp.mpf(0)] + inner + [mp.mpf(1)]
+    V = mp.matrix([[ci ** k for k in range(s)] for ci in c])
+    Vinv = V ** -1
+    A = mp.matrix([[ci ** (k + 1) / (k + 1) for k in range(s)] for ci in c]) * Vinv
+    b = [mp.fsum(Vinv[k, j] / (k + 1) for k in range(s)) for j in range(s)]
+    B = [[b[j] * (1 - A[j, i] / b[i]) for j in range(s)] for i in range(s)]
+    return [[A[i, j] for j in range(s)] for i in range(s)], B, b
+
+
+def _prk_errors(tableau, z):
+    """(phase, energy) of the PRK on q' = p, p' = -q from its stage equations; None where
+    the step does not preserve the vibration."""
+    Aq, Ap, b = tableau
+    s = len(b)
+    cols = []
+    for q0, p0 in ((1, 0), (0, 1)):
+        N = mp.eye(2 * s)
+        rhs = mp.matrix([q0] * s + [p0] * s)
+        for i in range(s):
+            for j in range(s):
+                N[i, s + j] -= z * Aq[i][j]  # Q_i = q0 + z sum Aq_ij P_j
+                N[s + i, j] += z * Ap[i][j]  # P_i = p0 - z sum Ap_ij Q_j
+        X = mp.lu_solve(N, rhs)
+        cols.append((q0 + z * mp.fsum(b[j] * X[s + j] for j in range(s)),
+                     p0 - z * mp.fsum(b[j] * X[j] for j in range(s))))
+    a, c = cols[0]
+    bb, d = cols[1]
+    sin2 = -bb * c - (a - d) ** 2 / 4
+    if sin2 <= 0 or bb <= 0:
+        return None, None
+    theta = mp.atan2(mp.sqrt(sin2), (a + d) / 2)
+    theta += 2 * mp.pi * mp.nint((z - theta) / (2 * mp.pi))  # M^n sees theta mod 2 pi
+    spread = mp.sqrt((bb + c) ** 2 + (a - d) ** 2)
+    return theta / z - 1, spread / ((bb - c - spread) / 2)
+
+
+ZS_FAMILY = [0.1, 1.0, 2.0, 2.9, 3.1, 3.13, 3.1415, 7.0, 8.0]
+
+
+def _agree(got, truth):
+    if truth is None:
+        return np.isnan(got)
+    t = float(truth)
+    if abs(t) < 1e-290:  # below float64's normal range: only its size can be checked
+        return abs(got) <= 1e-290 and not np.isnan(got)
+    return abs(got - t) <= 1e-9 * abs(t)
+
+
+def test_gauss_phase_matches_its_pade_form_to_the_boundary_and_tiny_z():
+    import stepsafe
+
+    tiny = [1e-300, 1e-200, 1e-150]
+    for s in range(1, 13):
+        e = stepsafe.errors(stepsafe.method("gauss", stages=s), ZS_FAMILY + tiny)
+        # a Runge-Kutta method keeps the oscillator's energy
+        assert np.all((e.energy == 0) | np.isnan(e.phase)), s
+        for z, got in zip(ZS_FAMILY + tiny, e.phase):
+            with mp.workdps(60 if z > 0.5 else 100 if z > 1e-3 else 700):
+                truth = _gauss_phase(s, mp.mpf(z))
+            assert _agree(got, truth), (s, z, got, mp.nstr(truth, 12))
+
+
+def test_lobatto_errors_match_its_stage_equations_on_islands_and_at_tiny_z():
+    """Lobatto IIIA-IIIB s = 2..12 (s >= 10 printed energy 0 where the truth is 2e-16 to
+    3e-6; the phase had the wrong sign on islands beyond 2 pi)."""
+    import stepsafe
+
+    for s in range(2, 13):
+        with mp.workdps(100):  # the phase error at z = 0.1 is 2.5e-52 for s = 12
+            tableau = _lobatto_tableau(s)
+            truths = [_prk_errors(tableau, mp.mpf(z)) for z in ZS_FAMILY[:1]]
+        with mp.workdps(45):
+            truths += [_prk_errors(tableau, mp.mpf(z)) for z in ZS_FAMILY[1:]]
+        e = stepsafe.errors(stepsafe.method("lobatto3ab", stages=s), ZS_FAMILY)
+        for i, (z, (phase, energy)) in enumerate(zip(ZS_FAMILY, truths)):
+            assert _agree(e.phase[i], phase), (s, z, e.phase[i], phase and mp.nstr(phase, 12))
+            assert _agree(e.energy[i], energy), (s, z, e.energy[i],
+                                                 energy and mp.nstr(energy, 12))
+    for s in (2,):  # tiny z: preserved, and z^2/24 (Stormer-Verlet)
+        with mp.workdps(700):
+            tableau = _lobatto_tableau(s)
+            truths = [_prk_errors(tableau, mp.mpf(z)) for z in (1e-300, 1e-150)]
+        e = stepsafe.errors(stepsafe.method("lobatto3ab", stages=s), [1e-300, 1e-150])
+        for i, (phase, energy) in enumerate(truths):
+            assert _agree(e.phase[i], phase) and _agree(e.energy[i], energy), (s, i)
+
+
+def test_advise_energy_tolerance_of_lobatto10_stops_where_the_truth_does(run_json):
+    """Review 18 A1: the energy error of Lobatto s = 10 was 0 to the boundary; it reaches
+    1e-12 at z = 2.91907987402 (50-digit stage equations)."""
+    data = run_json("advise", "--method", "lobatto3ab", "-s", "10", "--beta", "1",
+                    "--tol-energy", "1e-12", "--tol-phase", "1e-3")
+    energy = [a for a in data["accuracy"] if a["kind"] == "energy"][0]
+    assert energy["limited_by"] == "tolerance"
+    assert energy["h"] == pytest.approx(2.91907987402, rel=1e-10)

@@ -24,9 +24,13 @@ the identity ``cos theta - cos z = -2 sin((theta+z)/2) sin((theta-z)/2)`` (``cos
 turns ``delta`` into ``theta - z`` with full relative accuracy. The series is used where it is
 valid (always for explicit methods, whose series is the exact polynomial; within half its
 radius of convergence otherwise) and its rounding bound beats the direct formula's, which
-loses ~1e-16 / |e| relative. Coefficients that vanish to rounding are taken as exactly zero:
-for methods given by rounded decimals, whose order conditions hold only to ~1e-17, this is
-the error of the ideal method (it differs from the decimals' own by ~1e-17 / z^2 absolute).
+loses ~1e-16 / |e| relative. Coefficients that vanish to rounding before the first that does
+not are the order conditions, taken as exactly zero: for methods given by rounded decimals,
+whose order conditions hold only to ~1e-17, this is the error of the ideal method (it
+differs from the decimals' own by ~1e-17 / z^2 absolute). Later ones keep their rounding
+bound; implicit (P)RK methods get theirs at high precision from their definition
+(:func:`_hp_parts`). Every figure carries a float64 bound and is recomputed from the
+high-precision transfer matrix where that bound exceeds :data:`ESCALATE_REL` of it.
 
 The inverse problem (largest z meeting a tolerance) is the first crossing of ``|e| = tol``
 from 0, never beyond the first boundary.
@@ -35,7 +39,8 @@ from 0, never beyond the first boundary.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from functools import partial
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -53,6 +58,13 @@ from stepsafe.methods.tableaux import (
 
 SERIES_TERMS = 64
 SERIES_Z = 0.5
+#: A figure whose float64 error bound exceeds this (relative) is recomputed from the
+#: method's high-precision transfer matrix (the printed 7 digits need < 5e-8).
+ESCALATE_REL = 1e-9
+#: Implicit (P)RK methods up to this many stages get their Taylor coefficients at high
+#: precision from their definition (the family tableau at raised precision); larger ones
+#: keep the float64 series, whose tiny coefficients carry their rounding bound.
+HP_MAX_STAGES = 20
 
 
 class Errors(NamedTuple):
@@ -145,37 +157,191 @@ def _series_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _trim(value: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Zero the coefficients that vanish to rounding; return them with their bounds."""
+    """Zero the coefficients that vanish to rounding; return the values and each one's error
+    bound. Those below rounding before the first that is not are the order conditions,
+    exactly zero for the ideal method (error 0); a later one below rounding may be a
+    genuinely tiny term (an implicit method's series has infinitely many) and keeps its
+    rounding bound; a kept one carries ``(k + 1) eps`` times its absolute-value series."""
     k = np.arange(value.size)
     tol = 64 * EPS * bound * (k + 1)
-    return np.where(np.abs(value) <= tol, 0.0, value), tol
+    small = np.abs(value) <= tol
+    kept = np.flatnonzero(~small)
+    first = int(kept[0]) if kept.size else value.size
+    err = np.where(small, np.where(k < first, 0.0, tol), EPS * bound * (k + 1))
+    return np.where(small, 0.0, value), err
 
 
-def _delta_series(method: Method, model: str):
-    """Coefficients of ``tr M / 2 - cos z`` (oscillator) or ``- cosh z`` (hyperbolic), their
-    rounding bounds and the series' range of validity."""
-    series = taylor_series(method, model)
-    half_trace = 0.5 * (series.coef[:, 0, 0] + series.coef[:, 1, 1])
-    bound = 0.5 * (series.coef_abs[:, 0, 0] + series.coef_abs[:, 1, 1])
-    k = np.arange(half_trace.size)
+class Parts(NamedTuple):
+    """Taylor coefficients (with error bounds) of ``delta = tr M / 2 - cos z`` (``cosh`` for
+    hyperbolic models), ``b + c`` and ``a - d``, and the largest z where they are summed."""
+
+    delta: np.ndarray
+    delta_err: np.ndarray
+    bc: np.ndarray
+    bc_err: np.ndarray
+    ad: np.ndarray
+    ad_err: np.ndarray
+    z_valid: float
+
+
+def _reference_coefficients(model: str, n: int) -> np.ndarray:
+    k = np.arange(n)
     fact = np.array([math.factorial(int(j)) for j in k], dtype=float)
     ref = np.where(k % 2 == 0, 1.0 / fact, 0.0)
     if ELLIPTIC[model]:
         ref = ref * np.where(k % 4 == 2, -1.0, 1.0)
-    coef, tol = _trim(half_trace - ref, bound + np.abs(ref))
-    return coef, tol, series.z_valid
+    return ref
 
 
-def _choose(coef, tol, z_valid, z, direct, direct_err):
-    """Series value where it is valid and its rounding bound beats the direct formula's."""
-    series_val = _horner(coef, z)
-    # coefficients trimmed to zero are exactly zero for the ideal method: no error from them;
-    # the kept ones carry about eps times their absolute-value series (tol / (64 (k+1)))
+def _parts(method: Method, model: str) -> Parts:
+    series = taylor_series(method, model)
+    hp = _hp_parts(method, model, series)
+    if hp is not None:
+        return hp
+    c, a = series.coef, series.coef_abs
+    ref = _reference_coefficients(model, c.shape[0])
+    half_trace = 0.5 * (c[:, 0, 0] + c[:, 1, 1])
+    bound = 0.5 * (a[:, 0, 0] + a[:, 1, 1])
+    delta = _trim(half_trace - ref, bound + np.abs(ref))
+    bc = _trim(c[:, 0, 1] + c[:, 1, 0], a[:, 0, 1] + a[:, 1, 0])
+    ad = _trim(c[:, 0, 0] - c[:, 1, 1], a[:, 0, 0] + a[:, 1, 1])
+    return Parts(*delta, *bc, *ad, series.z_valid)
+
+
+_HP_CACHE: dict[Any, Parts] = {}
+
+
+def _hp_parts(method: Method, model: str, series: Series) -> Parts | None:
+    """:class:`Parts` of an implicit (P)RK method from its definition at high precision
+    (the family tableau computed at raised precision, a file's decimals read exactly):
+    every coefficient, however tiny, is then the ideal method's to float rounding. None for
+    other methods (explicit ones have the exact polynomial) and for more than
+    :data:`HP_MAX_STAGES` stages."""
+    if not isinstance(method, (RungeKutta, PartitionedRK)) or not np.isfinite(series.z_valid):
+        return None
+    prk = method.as_prk()
+    if prk.stages > HP_MAX_STAGES:
+        return None
+    ex = prk.exact
+    key = (model, series.coef.shape[0], prk.A_q.tobytes(), prk.b_q.tobytes(),
+           prk.A_p.tobytes(), prk.b_p.tobytes(),
+           (ex.func.__module__, ex.func.__name__, ex.args) if isinstance(ex, partial) else None)
+    if key not in _HP_CACHE:
+        if len(_HP_CACHE) > 32:
+            _HP_CACHE.clear()
+        _HP_CACHE[key] = _hp_series_parts(prk, model, series)
+    return _HP_CACHE[key]
+
+
+def _hp_tableau(prk: PartitionedRK) -> tuple[list, list, list, list]:
+    """``(A_q, b_q, A_p, b_p)`` as mpmath numbers at the working precision: a Gauss or
+    Lobatto family member's tableau computed at that precision, a library file's decimals
+    read exactly, else the float coefficients taken as exact."""
+    import mpmath as mp
+
+    def rows(A):
+        return [[A[i, j] for j in range(A.cols)] for i in range(A.rows)] \
+            if isinstance(A, mp.matrix) else [list(r) for r in A]
+
+    ex = prk.exact
+    if isinstance(ex, partial):
+        from stepsafe.methods import families, library
+        from stepsafe.reference import highprec as R
+
+        if ex.func is families._exact:
+            family, s = ex.args
+            if family == "gauss":
+                A, b, _ = R.gauss_tableau(s)
+                return rows(A), list(b), rows(A), list(b)
+            A, b, _ = R.lobatto_IIIA_tableau(s)
+            B, _, _ = R.lobatto_IIIB_tableau(s)
+            return rows(A), list(b), rows(B), list(b)
+        if ex.func is library._exact:
+            from stepsafe.reference.verify import mp_method
+
+            m = mp_method(*ex.args, dps=mp.mp.dps)
+            if m.kind == "prk" and len(m.data["b_q"]) == prk.stages:
+                d = m.data
+                return rows(d["A_q"]), list(d["b_q"]), rows(d["A_p"]), list(d["b_p"])
+    return ([[mp.mpf(float(x)) for x in r] for r in prk.A_q], [mp.mpf(float(x)) for x in prk.b_q],
+            [[mp.mpf(float(x)) for x in r] for r in prk.A_p], [mp.mpf(float(x)) for x in prk.b_p])
+
+
+def _hp_series_parts(prk: PartitionedRK, model: str, series: Series) -> Parts:
+    """``M_(k+1) = B K^k E`` summed at rising precision until every coefficient is either
+    known to float accuracy or below the working precision's rounding bound (then 0 with
+    that bound, negligible: at least 60 digits)."""
+    import mpmath as mp
+
+    from stepsafe.core.models import GENERATORS
+
+    L = [[int(x) for x in row] for row in GENERATORS[model]]
+    n = series.coef.shape[0]
+    a = series.coef_abs
+    ref_abs = np.abs(_reference_coefficients(model, n))
+    scales = (0.5 * (a[:, 0, 0] + a[:, 1, 1]) + ref_abs, a[:, 0, 1] + a[:, 1, 0],
+              a[:, 0, 0] + a[:, 1, 1])
+    k = np.arange(n)
+    for dps in (60, 120, 240, 480):
+        with mp.workdps(dps):
+            Aq, bq, Ap, bp = _hp_tableau(prk)
+            s = len(bq)
+            Xq = [[mp.mpf(1)] * s, [mp.mpf(0)] * s]  # stage vectors of the columns (q0, p0)
+            Xp = [[mp.mpf(0)] * s, [mp.mpf(1)] * s]
+            half, bc, ad = [mp.mpf(1)], [mp.mpf(0)], [mp.mpf(0)]
+            for _ in range(n - 1):
+                Yq = [[L[0][0] * x + L[0][1] * y for x, y in zip(Xq[col], Xp[col])]
+                      for col in range(2)]
+                Yp = [[L[1][0] * x + L[1][1] * y for x, y in zip(Xq[col], Xp[col])]
+                      for col in range(2)]
+                m00, m01 = mp.fdot(bq, Yq[0]), mp.fdot(bq, Yq[1])
+                m10, m11 = mp.fdot(bp, Yp[0]), mp.fdot(bp, Yp[1])
+                half.append((m00 + m11) / 2)
+                bc.append(m01 + m10)
+                ad.append(m00 - m11)
+                Xq = [[mp.fdot(row, Yq[col]) for row in Aq] for col in range(2)]
+                Xp = [[mp.fdot(row, Yp[col]) for row in Ap] for col in range(2)]
+            exact_ref = []
+            for j in range(n):
+                r = 1 / mp.factorial(j) if j % 2 == 0 else mp.mpf(0)
+                exact_ref.append(-r if ELLIPTIC[model] and j % 4 == 2 else r)
+            delta = [h - r for h, r in zip(half, exact_ref)]
+            out, settled = [], True
+            for values, scale in zip((delta, bc, ad), scales):
+                v = np.array([float(x) for x in values])
+                bound = 10.0 ** (3 - dps) * scale * (k + 1)
+                below = np.abs(v) <= bound
+                if np.any(~below & (np.abs(v) * 1e-20 < bound)):
+                    settled = False  # partly resolved: more digits needed
+                v = np.where(below, 0.0, v)
+                # those before the first resolved one are the order conditions: exactly 0
+                first = int(np.argmax(~below)) if (~below).any() else n
+                out += [v, np.where(below, np.where(k < first, 0.0, bound), EPS * np.abs(v))]
+        if settled:
+            break
+    return Parts(*out, series.z_valid)
+
+
+def _choose(coef, err, z_valid, z, direct, direct_err, shift: int = 0):
+    """``(value / z^shift, bound / z^shift)``: the series where it is valid and its error
+    bound beats the direct formula's (always at z <= SERIES_Z), else the direct value.
+    Dividing the series by ``z^shift`` term by term keeps tiny z from underflowing."""
     k = np.arange(coef.size)
-    kept_tol = np.where(coef != 0, tol / (64.0 * (k + 1)), 0.0)
-    series_err = _horner(kept_tol, np.abs(z)) + EPS * _horner(np.abs(coef), np.abs(z))
-    use = (z <= z_valid) & ((series_err <= direct_err) | (z <= SERIES_Z))
-    return np.where(use, series_val, direct)
+    az = np.abs(z)
+    lead = [j for j in range(min(shift, coef.size)) if coef[j] != 0 or err[j] != 0]
+    low = sum((coef[j] * z ** float(j - shift) for j in lead), np.zeros_like(z))
+    low_err = sum((err[j] * az ** float(j - shift) for j in lead), np.zeros_like(z))
+    series_val = low + _horner(coef[shift:], z)
+    series_err = (low_err + _horner(err[shift:], az)
+                  + 4 * EPS * _horner((np.abs(coef) * (k + 1))[shift:], az))
+    if np.isfinite(z_valid):  # the first terms left off, with room for the tail
+        n = coef.size
+        for j in (n - 2, n - 1):
+            series_err = series_err + 4 * (np.abs(coef[j]) + err[j]) * az ** float(j - shift)
+    scale = az ** float(shift)
+    d_val, d_err = direct / scale, direct_err / scale
+    use = (z <= z_valid) & ((series_err <= d_err) | (z <= SERIES_Z))
+    return np.where(use, series_val, d_val), np.where(use, series_err, d_err)
 
 
 def _horner(coef: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -185,6 +351,14 @@ def _horner(coef: np.ndarray, z: np.ndarray) -> np.ndarray:
     return out
 
 
+def _ratio_factor(r: np.ndarray, hyperbolic: bool) -> np.ndarray:
+    """``arcsin(r) / r`` (``arcsinh`` when hyperbolic), 1 at r = 0."""
+    r2 = r * r
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f = np.arcsinh(r) / r if hyperbolic else np.arcsin(r) / r
+    return np.where(np.abs(r) < 1e-4, 1.0 + (-r2 if hyperbolic else r2) / 6.0, f)
+
+
 def errors(method: Method, z, model: str = "oscillator") -> Errors:
     """Phase (or growth-rate) and energy errors at each z (see the module docstring).
 
@@ -192,42 +366,165 @@ def errors(method: Method, z, model: str = "oscillator") -> Errors:
     of the trace, which conjugation keeps (taken from the kernel: fewer roundings), and the
     energy error of its own invariant ellipse, that of the full one-step map: the states
     it outputs, ``P^-1 K^n P x``, lie on that ellipse. :func:`kernel_errors` gives the
-    kernel's own."""
+    kernel's own.
+
+    Each figure carries a float64 error bound; where it exceeds :data:`ESCALATE_REL` of the
+    figure, the figure is recomputed from the method's high-precision transfer matrix
+    (:func:`stepsafe.core.escalate.reference_of`), within a work budget."""
     z = np.atleast_1d(np.asarray(z, dtype=float))
     if isinstance(method, Processed):
         full = errors(method.per_step(), z, model)
         return Errors(z, errors(method.kernel_splitting, z, model).phase, full.energy)
+    phase, phase_err, energy, energy_err = _float_errors(method, z, model)
+    with np.errstate(invalid="ignore"):
+        vague = (np.isfinite(phase) & ~(phase_err <= ESCALATE_REL * np.abs(phase))) | \
+            (np.isfinite(energy) & ~(energy_err <= ESCALATE_REL * np.abs(energy)))
+    vague &= np.abs(z) > 1e-100  # (there the series is exact to float rounding)
+    if vague.any():
+        phase, energy = phase.copy(), energy.copy()
+        _escalate(method, model, z, np.flatnonzero(vague), phase, energy, phase_err,
+                  energy_err)
+    return Errors(z, phase, energy)
+
+
+def _escalate(method: Method, model: str, z: np.ndarray, where: np.ndarray,
+              phase: np.ndarray, energy: np.ndarray, phase_err: np.ndarray,
+              energy_err: np.ndarray) -> None:
+    """Recompute the figures at ``z[where]`` from the high-precision transfer matrix, as
+    many as the work budget of :mod:`stepsafe.core.escalate` allows (the rest keep their
+    float64 values), each kept only where its own bound (the reference's coefficients are
+    good to about DPS digits) beats float64's: at tiny z the float series is the better."""
+    import mpmath as mp
+
+    from stepsafe.core.escalate import DPS, MP_WORK_BUDGET, reference_of
+    from stepsafe.core.grid import sample_work
+
+    limit = int(max(16, MP_WORK_BUDGET / sample_work(method)))
+    ref = reference_of(method)
+    with mp.workdps(DPS):
+        two_pi = 2 * mp.pi
+        unit = mp.mpf(10) ** (8 - DPS)  # the reference's coefficients: ~DPS digits
+        for i in where[:limit]:
+            zz = mp.mpf(float(z[i]))
+            try:
+                M = ref(zz, model)
+            except ZeroDivisionError:
+                continue
+            a, b, c, d = M[0, 0], M[0, 1], M[1, 0], M[1, 1]
+            sin2 = -b * c - (a - d) ** 2 / 4
+            half = (a + d) / 2
+            size = abs(a) + abs(b) + abs(c) + abs(d) + 1
+            if ELLIPTIC[model]:
+                if not (sin2 > 0 and b > 0):
+                    continue
+                theta = mp.atan2(mp.sqrt(sin2), half)
+                theta += two_pi * mp.nint((zz - theta) / two_pi)  # as in float64
+                bound = unit * size / (zz * abs(mp.sin((theta + zz) / 2)))
+                if bound < phase_err[i]:
+                    phase[i] = float(theta / zz - 1)
+                if np.isfinite(energy[i]):
+                    spread = mp.sqrt((b + c) ** 2 + (a - d) ** 2)
+                    lower = (b - c - spread) / 2
+                    if unit * size * (1 + abs(spread / lower)) / lower < energy_err[i]:
+                        energy[i] = float(spread / lower)
+            elif sin2 < 0 and half > 0:
+                mu = half + mp.sqrt(-sin2)
+                lam = mp.log(mu)
+                if unit * size / (zz * abs(mp.sinh((lam + zz) / 2))) < phase_err[i]:
+                    phase[i] = float(lam / zz - 1)
+
+
+def _float_errors(method: Method, z: np.ndarray, model: str):
+    """Phase and energy errors with their float64 error bounds (absolute)."""
     M = transfer_matrix(method, z, model)
     a, b, c, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1]
     half_tr = 0.5 * (a + d)
     direct_err = 4 * EPS * (np.abs(M).sum(axis=(1, 2)) + 1.0)
-    coef, tol, z_valid = _delta_series(method, model)
-    # sin^2(theta) = 1 - (tr/2)^2 = -bc - (a-d)^2/4 when det M = 1: no cancellation
-    sin2 = -b * c - 0.25 * (a - d) ** 2
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+    parts = _parts(method, model)
+    nan = np.full(z.shape, np.nan)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore", under="ignore"):
+        # sin^2(theta) / z^2 = (-bc - (a-d)^2/4) / z^2 when det M = 1: no cancellation,
+        # and scaled by z^2 so that tiny z does not underflow
+        bz, cz, adz = b / z, c / z, (a - d) / z
+        s2 = -bz * cz - 0.25 * adz ** 2
+        s2_err = 8 * EPS * (np.abs(bz * cz) + 0.25 * adz ** 2)
         if ELLIPTIC[model]:
-            delta = _choose(coef, tol, z_valid, z, half_tr - np.cos(z), direct_err)
-            theta = np.arctan2(np.sqrt(sin2), half_tr)
-            # cos(theta) - cos(z) = -2 sin((theta+z)/2) sin((theta-z)/2)
-            ratio = -delta / (2.0 * np.sin(0.5 * (theta + z)))
-            diff = np.where(np.abs(ratio) <= 1, 2.0 * np.arcsin(ratio), theta - z)
-            ok = (sin2 > 0) & (b > 0)
-            phase = np.where(ok, diff / z, np.nan)
+            D, D_err = _choose(parts.delta, parts.delta_err, parts.z_valid, z,
+                               half_tr - np.cos(z), direct_err, 2)  # delta / z^2
+            y = z * np.sqrt(s2)
+            theta = np.arctan2(y, half_tr)  # in (0, pi)
+            # atan2's error from those of y (relative; s2 may cancel) and x = tr/2
+            theta_err = 8 * EPS * np.abs(theta) + (
+                direct_err * y + z * z * s2_err / (2 * y) * np.abs(half_tr)) / (
+                y * y + half_tr * half_tr)
+            # M^n sees its rotation only modulo 2 pi: of theta + 2 pi n, the phase error
+            # is that of the branch nearest the flow's z (on the islands beyond 2 pi,
+            # theta + 2 pi; the principal theta - z would be -0.9 at z = 7)
+            theta = theta + 2 * np.pi * np.round((z - theta) / (2 * np.pi))
+            half = 0.5 * (theta + z)
+            sh = np.sin(half)
+            # cos(theta) - cos(z) = -2 sin((theta+z)/2) sin((theta-z)/2): with
+            # r = -delta / (2 sh), (theta - z) / z = 2 arcsin(r) / z = -D (z / sh) f(r)
+            ratio = -(D * z) * (z / (2.0 * sh))
+            lever = np.abs(z / sh)
+            via_delta = -D * (z / sh) * _ratio_factor(ratio, False)
+            err_delta = D_err * lever * 1.01 + np.abs(via_delta) * (
+                theta_err * np.abs(np.cos(half) / sh) + 16 * EPS)
+            fine = np.abs(ratio) <= 0.5
+            phase = np.where(fine, via_delta, (theta - z) / z)
+            phase_err = np.where(fine, err_delta, theta_err / z + 2 * EPS * np.abs(theta / z))
+            ok = (s2 > 0) & (b > 0)
+            phase = np.where(ok, phase, nan)
             # kappa - 1 = (l1 - l2) / l2, l1 - l2 = sqrt((s11 - s22)^2 + 4 s12^2) with
             # s11 - s22 = -(b + c) and s12 = (a - d)/2, both vanishing like powers of z
-            b_plus_c, a_minus_d = _offsets(method, model, z, M, direct_err)
-            spread = np.sqrt(b_plus_c ** 2 + a_minus_d ** 2)
-            lower = 0.5 * (b - c - spread)
-            energy = np.where(ok, spread / lower, np.nan)
+            # (all divided by z: tiny z neither underflows)
+            if _energy_exact(method, model):
+                energy, energy_err = np.where(ok, 0.0, nan), np.zeros(z.shape)
+            else:
+                BC, BC_err = _choose(parts.bc, parts.bc_err, parts.z_valid, z, b + c,
+                                     direct_err, 1)
+                AD, AD_err = _choose(parts.ad, parts.ad_err, parts.z_valid, z, a - d,
+                                     direct_err, 1)
+                spread = np.hypot(BC, AD)
+                spread_err = np.maximum(BC_err, AD_err) + 4 * EPS * spread
+                lower = 0.5 * (bz - cz - spread)
+                energy = np.where(ok, spread / lower, nan)
+                energy_err = (spread_err + np.abs(energy) * (
+                    spread_err + 4 * EPS * (np.abs(bz) + np.abs(cz)) + direct_err / z)) / lower \
+                    + 4 * EPS * np.abs(energy)
         else:
-            delta = _choose(coef, tol, z_valid, z, half_tr - np.cosh(z), direct_err)
+            D, D_err = _choose(parts.delta, parts.delta_err, parts.z_valid, z,
+                               half_tr - np.cosh(z), direct_err, 2)
+            delta = D * z * z
             # mu - 1 = (tr/2 - 1) + sqrt(tr^2/4 - 1), both parts without cancellation
-            mu_minus_1 = delta + 2.0 * np.sinh(0.5 * z) ** 2 + np.sqrt(np.maximum(-sin2, 0.0))
+            mu_minus_1 = delta + 2.0 * np.sinh(0.5 * z) ** 2 + z * np.sqrt(np.maximum(-s2, 0.0))
             lam = np.log1p(mu_minus_1)
-            diff = 2.0 * np.arcsinh(delta / (2.0 * np.sinh(0.5 * (lam + z))))
-            phase = np.where((sin2 < 0) & (half_tr > 0), diff / z, np.nan)
-            energy = np.full(z.shape, np.nan)
-    return Errors(z, phase, energy)
+            sh = np.sinh(0.5 * (lam + z))
+            ratio = (D * z) * (z / (2.0 * sh))
+            phase = 2.0 * D * (z / (2.0 * sh)) * _ratio_factor(ratio, True)
+            root = z * np.sqrt(np.maximum(-s2, 0.0))
+            lam_err = 8 * EPS * np.abs(lam) + (D_err * z * z + 8 * EPS * (
+                np.abs(delta) + 2.0 * np.sinh(0.5 * z) ** 2 + root)
+                + z * z * s2_err / (2 * root)) / (1 + mu_minus_1)
+            phase_err = D_err * np.abs(z / sh) * 1.01 + np.abs(phase) * (
+                lam_err * np.abs(np.cosh(0.5 * (lam + z)) / sh) + 16 * EPS)
+            phase = np.where((s2 < 0) & (half_tr > 0), phase, nan)
+            energy, energy_err = nan, np.zeros(z.shape)
+    return phase, phase_err, energy, energy_err
+
+
+def _energy_exact(method: Method, model: str) -> bool:
+    """A Runge–Kutta method (not partitioned) maps the oscillator by ``R(z J)``, a
+    multiple of a rotation plus one of the identity: ``a = d``, ``b = -c`` exactly, and its
+    invariant ellipse is a circle (energy error 0)."""
+    if model != "oscillator":
+        return False
+    if isinstance(method, RungeKutta):
+        return True
+    if isinstance(method, PartitionedRK):
+        return bool(np.array_equal(method.A_q, method.A_p) and
+                    np.array_equal(method.b_q, method.b_p))
+    return False
 
 
 def kernel_errors(method: Method, z, model: str = "oscillator") -> Errors | None:
@@ -258,25 +555,10 @@ def offsets(method: Method, z) -> Offsets:
     a, b, c, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1]
     with np.errstate(invalid="ignore", over="ignore"):
         direct_err = 4 * EPS * (np.abs(M).sum(axis=(1, 2)) + 1.0)
-        b_plus_c, a_minus_d = _offsets(method, "oscillator", z, M, direct_err)
+        parts = _parts(method, "oscillator")
+        b_plus_c = _choose(parts.bc, parts.bc_err, parts.z_valid, z, b + c, direct_err)[0]
+        a_minus_d = _choose(parts.ad, parts.ad_err, parts.z_valid, z, a - d, direct_err)[0]
         return Offsets(M, b_plus_c, a_minus_d, -b * c - 0.25 * (a - d) ** 2)
-
-
-def _offsets(method: Method, model: str, z: np.ndarray, M: np.ndarray,
-             direct_err: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    (bc_coef, bc_tol), (ad_coef, ad_tol), z_valid = _offset_series(method, model)
-    return (_choose(bc_coef, bc_tol, z_valid, z, M[:, 0, 1] + M[:, 1, 0], direct_err),
-            _choose(ad_coef, ad_tol, z_valid, z, M[:, 0, 0] - M[:, 1, 1], direct_err))
-
-
-def _offset_series(method: Method, model: str):
-    """Coefficients (with rounding bounds) of ``b + c = M_qp + M_pq`` and ``a - d =
-    M_qq - M_pp``, which vanish like powers of z on the oscillator."""
-    series = taylor_series(method, model)
-    c, a = series.coef, series.coef_abs
-    bc = _trim(c[:, 0, 1] + c[:, 1, 0], a[:, 0, 1] + a[:, 1, 0])
-    ad = _trim(c[:, 0, 0] - c[:, 1, 1], a[:, 0, 0] + a[:, 1, 1])
-    return bc, ad, series.z_valid
 
 
 class ToleranceStep(NamedTuple):
