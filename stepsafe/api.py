@@ -252,7 +252,8 @@ def _verification(integrator: Integrator, regions: Mapping[str, Any],
               for c in checks if not c.ok]
     return {"digits": DPS, "points": len(checks),
             "largest_discrepancy": None if worst == float("inf") else worst,
-            "tolerance": TOLERANCE, "ok": not failed, "failed": failed}
+            "tolerance": TOLERANCE, "ok": not failed, "failed": failed,
+            "conservative": sum(c.conservative for c in checks)}
 
 
 # --------------------------------------------------------------------------- region

@@ -686,6 +686,10 @@ def _print_verify(verdict: dict) -> None:
                f"{verdict['digits']} digits; largest relative discrepancy {worst_text} "
                f"({'ok' if verdict['ok'] else 'FAILED'}; allowed: {verdict['tolerance']:g} plus "
                "each point's stated uncertainty)")
+    if verdict.get("conservative"):
+        click.echo(f"  {verdict['conservative']} status point(s) claimed 'not preserved' next "
+                   "to bands float64 cannot decide, where mpmath finds the structure "
+                   "preserved: conservative, not a failure")
     for f in verdict["failed"]:
         click.echo(f"  {f['model']} {f['kind']} at {f['z']!r}: reference {f['reference']!r}",
                    err=True)

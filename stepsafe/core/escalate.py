@@ -76,6 +76,13 @@ def reference_of(method: Method) -> Reference:
                           prk.b_p.tolist())
 
 
+class _Undecided(Exception):
+    """High precision cannot decide the bracket: the reference refused the method (e.g. a
+    splitting whose drift and kick sums differ beyond the tolerance has no form on a
+    non-separable model), or ``tr M - L`` at the bracket's ends is within the rounding
+    noise even at three times the digits (far out, where ``M`` tends to a limit)."""
+
+
 class Escalation:
     """Decides brackets at high precision for one method and model, within a budget."""
 
@@ -98,12 +105,24 @@ class Escalation:
         if self._reference is None:
             self._reference = reference_of(self.method)
         self.evaluations += 1
-        M = self._reference(mp.mpf(z), self.model)
+        try:
+            M = self._reference(mp.mpf(z), self.model)
+        except ValueError as exc:  # the reference has no form for the method on this model
+            self.evaluations = self.limit  # nothing more to ask it
+            raise _Undecided from exc
         return M[0, 0] + M[1, 1]
 
     def decide(self, lo: float, hi: float, level: float, band: float) -> Decision | None:
         """Roots of ``tr M = level`` in ``(lo, hi)``, or a touch within ``band`` of it
-        (None when the budget ran out or the bracket holds a pole)."""
+        (None when the budget ran out, the bracket holds a pole, or the high-precision
+        reference cannot treat the method: then the point keeps its float64 uncertainty,
+        which is conservative)."""
+        try:
+            return self._decide(lo, hi, level, band)
+        except _Undecided:
+            return None
+
+    def _decide(self, lo: float, hi: float, level: float, band: float) -> Decision | None:
         import mpmath as mp
 
         from stepsafe.reference.highprec import refine_root
@@ -117,6 +136,16 @@ class Escalation:
             try:
                 a, b = mp.mpf(lo), mp.mpf(hi)
                 ga, gb = g(a), g(b)
+                if min(abs(ga), abs(gb)) <= _noise(level, DPS):
+                    # an end's sign is rounding noise here: ask three times the digits,
+                    # and decide nothing more from DPS digits (conservative: None)
+                    with mp.workdps(3 * DPS):
+                        ga, gb = g(a), g(b)
+                    if min(abs(ga), abs(gb)) <= _noise(level, 3 * DPS) \
+                            or (ga > 0) == (gb > 0):
+                        return None
+                    root, width = self._certified_root(level, a, b, (3 * DPS,))
+                    return Decision((root,), widths=(width,))
                 if (ga > 0) != (gb > 0):
                     root, width = self._certified_root(level, a, b)
                     return Decision((root,), widths=(width,))
@@ -140,7 +169,8 @@ class Escalation:
                 return Decision((r1, r2), widths=(w1, w2))
             return Decision()
 
-    def _certified_root(self, level: float, a, b) -> tuple[float, float]:
+    def _certified_root(self, level: float, a, b,
+                        precisions: tuple[int, ...] = (DPS, 3 * DPS)) -> tuple[float, float]:
         """The root of ``tr M = level`` in ``(a, b)`` (a sign change) and a width the
         evaluation vouches for: the smallest ``u`` (from one ulp, growing 4x) at which
         ``tr M - level`` at ``r -+ u`` clears the working precision's noise with opposite
@@ -155,10 +185,17 @@ class Escalation:
         def g(x):
             return self._trace(x) - level
 
-        for digits in (DPS, 3 * DPS):
+        a0, b0 = a, b
+        for digits in precisions:
             with mp.workdps(digits):
+                if (a, b) != (a0, b0) and _same_sign(g(mp.mpf(a)), g(mp.mpf(b))):
+                    # the narrowed bracket lost its sign change at more digits (the root
+                    # at fewer digits was rounding noise): back to the whole bracket
+                    a, b = a0, b0
+                    if _same_sign(g(mp.mpf(a)), g(mp.mpf(b))):
+                        raise _Undecided
                 r = refine_root(g, mp.mpf(a), mp.mpf(b), tol=_digits(b))
-                noise = mp.mpf(10) ** (8 - digits) * max(1, abs(level))
+                noise = _noise(level, digits)
                 root = float(r)
                 u = float(np.spacing(root))
                 while u < ESCALATE_REL * root and not self.exhausted:
@@ -175,7 +212,14 @@ class Escalation:
         (``tr M`` passes through infinity), the sign change nearest ``z0`` when the
         bracket is narrow, else the nearest found on a geometric scan of it (an
         ill-conditioned eigenvalue can be off by percent: Gauss s = 27, 37.2 for 36.45).
-        None if no pole is found or the budget ran out."""
+        None if no pole is found, the budget ran out or the reference cannot treat the
+        method."""
+        try:
+            return self._pole(z0, width)
+        except _Undecided:
+            return None
+
+    def _pole(self, z0: float, width: float) -> float | None:
         import mpmath as mp
 
         from stepsafe.reference.highprec import locate_pole, refine_root
@@ -213,6 +257,18 @@ class Escalation:
 
 #: Samples of a wide pole bracket scanned for sign changes of 1/tr M.
 POLE_SCAN = 48
+
+
+def _same_sign(ga, gb) -> bool:
+    """True when ``ga`` and ``gb`` bracket no root (both nonzero, of one sign)."""
+    return ga != 0 and gb != 0 and (ga > 0) == (gb > 0)
+
+
+def _noise(level, digits: int):
+    """Size below which ``tr M - level`` at ``digits`` digits is rounding noise."""
+    import mpmath as mp
+
+    return mp.mpf(10) ** (8 - digits) * max(1, abs(level))
 
 
 def _digits(z):

@@ -141,16 +141,35 @@ def splitting_to_prk(drift: Sequence, kick: Sequence) -> tuple:
     return A_q, b, A_p, list(b)
 
 
+#: Relative tolerance of ``sum(drift) = sum(kick)`` for a splitting's PRK form: the float
+#: path's (``RESIDUAL_TOL`` in :mod:`stepsafe.methods.tableaux`, kept equal by the tests).
+#: The coefficients are float64 values or decimals computed at some precision, so their
+#: sums agree only to that rounding, whatever the precision the reference works at.
+SUM_TOL = 1e-12
+
+
 def _euler_pieces(drift: Sequence, kick: Sequence) -> list[tuple]:
-    """The pieces (c_k, is_phi) of :func:`splitting_to_prk`, zero weights dropped."""
-    x = [v for pair in zip_longest(drift, kick, fillvalue=0) for v in pair]
+    """The pieces (c_k, is_phi) of :func:`splitting_to_prk`, zero weights dropped.
+
+    The sums must agree to :data:`SUM_TOL` relative to the size of the coefficients (else
+    ValueError: no PRK form); a difference within it is taken as the float path takes it
+    (:meth:`stepsafe.methods.tableaux.Splitting.euler_factors`): the last drift becomes
+    ``sum(kick)`` minus the other drifts. (The pieces after the last kick, Phi_e then
+    Phi*_-e = Phi_e^-1 with e the difference, are the identity and are dropped; a splitting
+    that ends with a kick keeps a trailing drift of the difference, as the float path.)"""
+    x = [mp.mpf(v) for pair in zip_longest(drift, kick, fillvalue=0) for v in pair]
+    size = max(mp.fsum(abs(v) for v in x[0::2]), mp.fsum(abs(v) for v in x[1::2]))
+    mismatch = abs(mp.fsum(x[0::2]) - mp.fsum(x[1::2]))
+    if not mismatch <= SUM_TOL * size:
+        raise ValueError(f"inconsistent splitting: sum(drift) - sum(kick) = "
+                         f"{mp.nstr(mismatch, 3)}: no PRK form")
     pieces, prev = [], mp.zero
     for k, xk in enumerate(x):
-        ck = mp.mpf(xk) - prev
+        ck = xk - prev
         pieces.append((ck, k % 2 == 0))  # True: Phi (drift-kick)
         prev = ck
-    if abs(prev) > mp.eps * 2 ** 10 * (1 + sum(abs(v) for v in x)):
-        raise ValueError("inconsistent splitting: sum(drift) != sum(kick)")
+    if x and x[-1] == 0:  # Phi_e Phi*_-e: the identity (see above)
+        pieces = pieces[:-2]
     return [pc for pc in pieces if pc[0] != 0]
 
 
