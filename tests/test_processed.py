@@ -143,6 +143,23 @@ def test_processor_changes_the_energy_error_not_the_phase():
     assert kernel_errors(resolve("verlet")[0], z) is None
 
 
+def test_energy_error_bound_is_the_full_maps_at_50_digits():
+    """kappa - 1 of P^-1 K P from the file's decimals at 50 digits, from z = 1e-3 up (below,
+    the decimals' own rounding, ~1e-17, is the larger part): the float figure is the series
+    of the ideal method, never a reference of its rounded coefficients."""
+    method, _ = resolve(NAME)
+    zs = [1e-3, 1e-2, 0.1, 0.5, 1.0]
+    got = errors(method, np.array(zs)).energy
+    with mp.workdps(50):
+        F = mp_transfer(mp_method(NAME, None, None, 50))
+        for z, value in zip(zs, got):
+            M = F(mp.mpf(z), "oscillator")
+            a, b, c, d = M[0, 0], M[0, 1], M[1, 0], M[1, 1]
+            spread = mp.sqrt((b + c) ** 2 + (a - d) ** 2)
+            truth = spread / ((b - c - spread) / 2)
+            assert abs(value / truth - 1) < 1e-4, (z, value, truth)
+
+
 def test_the_engine_runs_P_once_the_kernel_per_step_and_P_inverse_at_the_output(tmp_path):
     kernel = tmp_path / "kernel.yaml"
     k = resolve(NAME)[0].kernel
