@@ -185,3 +185,21 @@ def test_budget_on_the_command_line_caps_the_analysed_steps(tmp_path, run, run_j
     assert code == 0 and "limited by the coupled analysis" in out, err
     for step, code in ((0.5 * (cut["h_max"] + full["h_max"]), 0), (1.01 * full["h_max"], 1)):
         assert run("check", str(scene), "--step", str(step), "--budget", "1e-9")[0] == code
+
+
+@pytest.mark.parametrize("h", [-1.0, 0.0, float("nan"), float("inf"), -1e-300])
+def test_a_step_that_is_not_positive_is_refused_on_a_coupled_system(h):
+    """check on a coupled Hessian called h = -1 SAFE (the coupled criterion holds trivially
+    for h <= 0): it is bad input, as for modes (review 17)."""
+    import stepsafe
+
+    with pytest.raises(stepsafe.StepsafeError, match="positive finite"):
+        stepsafe.check("verlet", h, system={"hessian": [[2.0, 0.3], [0.3, 1.0]]})
+
+
+def test_a_singular_hessian_at_1e300_ends_with_no_safe_step():
+    """(q + p)^2 1e300 / 2: the boundary search from 0 went below the subnormals and its
+    bisection never ended (REL_TOL * h underflows to 0: review 17)."""
+    S = np.full((2, 2), 1e300)
+    result = coupled_safe_steps(method("verlet"), S)
+    assert result.h_max == 0.0

@@ -8,7 +8,7 @@ from typing import Any
 
 from stepsafe.core.advice import advise, check_step, validate_margin
 from stepsafe.core.threads import blas_threads_for
-from stepsafe.exceptions import StepsafeError
+from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.methods.tableaux import Method
 from stepsafe.systems.coupled import CoupledSystem
 from stepsafe.systems.loader import SystemReport
@@ -133,6 +133,7 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
     from stepsafe.core.records import check_data
 
     margin = validate_margin(margin)
+    h = positive_finite(h, "h")  # (the coupled analysis calls h <= 0 kept: no step at all)
     _coupled_criterion(report, criterion)
     _coupled_resonances(report, resonance_order)
     if report.modes is not None:

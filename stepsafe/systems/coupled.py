@@ -900,6 +900,8 @@ def _boundary(system: CoupledSystem, good: float, bad: float,
     if good == 0.0:
         for _ in range(30):
             trial = bad / 10
+            if trial == 0.0:  # (below the subnormals: no step is known to be kept)
+                return 0.0
             if system.preserved(trial):
                 good = trial
                 break
@@ -929,6 +931,8 @@ def _boundary(system: CoupledSystem, good: float, bad: float,
             pass  # no sign change seen, or no convergence: bisection below decides
     while bad - good > REL_TOL * bad:
         mid = 0.5 * (good + bad)
+        if not good < mid < bad:
+            break  # adjacent floats (subnormal h: REL_TOL * bad underflows to 0)
         if system.preserved(mid) and (order is None or system.krein_order(mid) == order):
             good = mid
         else:

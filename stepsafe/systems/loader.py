@@ -80,7 +80,7 @@ def _matrix(value: Any, where: str, key: str, folder: Path, sparse_ok: bool = Fa
             except OverflowError:
                 number = np.inf  # an int beyond float64: refused below as non-finite
             if number is None:
-                raise _fail(where, f"{key}[{i}][{j}]", f"is not a number: {str(x)[:40]}")
+                raise _fail(where, f"{key}[{i}][{j}]", f"is not a number: {str(x)[:40]!r}")
             out[i, j] = number
     if not np.all(np.isfinite(out)):
         raise _fail(where, key, "has a non-finite entry")
