@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from stepsafe.api import ArrayLike, Integrator, _compared, _step_cost, problem
+from stepsafe.core.roots import EPS
 from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
 from stepsafe.systems.loader import DENSE_LIMIT
 
@@ -431,8 +432,9 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
 
 def _gaussian_betas(p: Any) -> tuple[np.ndarray, np.ndarray]:
     """The vibration frequencies of a Gaussian target (refusing anything else) and the
-    relative uncertainty of each (0 for frequencies given; the rounding bound of the
-    eigenvalue for those computed from a covariance or precision, as advise widens them).
+    relative uncertainty of each (2 eps for frequencies given, the rounding of 1/sigma or of
+    a unit's conversion; the rounding bound of the eigenvalue for those computed from a
+    covariance or precision, as advise widens them).
 
     A precision eigenvalue that float64 cannot tell from 0 (within its rounding bound
     ``16 n eps |P|``, :mod:`stepsafe.systems.linear`) is refused as undecided, naming the
@@ -476,6 +478,9 @@ def _gaussian_betas(p: Any) -> tuple[np.ndarray, np.ndarray]:
     errors = np.asarray(errors, dtype=float)
     if errors.shape != betas.shape:
         errors = np.zeros(betas.size)
+    # at least the rounding of 1/sigma (or of a unit's conversion), so that a step whose
+    # z = h / sigma is the family's limit within an ulp is not designed for
+    errors = np.maximum(errors, 2 * EPS)
     if not betas.max() > 0:
         raise StepsafeError("every frequency is 0: a flat target has no step limit", source)
     tiny = float(np.finfo(float).tiny)

@@ -311,3 +311,11 @@ def test_steps_just_below_two_root_two_get_a_stable_design(run, relative):
         z, bb = mp.mpf(step), mp.mpf(b)
         half_trace = 1 - z ** 2 / 2 + bb * (1 - 2 * bb) * z ** 4 / 4
         assert abs(half_trace) <= 1
+
+
+def test_a_step_at_the_familys_limit_within_an_ulp_is_refused():
+    """sigma = 10^1.5, h = 4 sigma: z = h / sigma rounds to 4, where b = 1/4 is not stable,
+    while 1/sigma rounded down made z = 4 - 4e-16 (hypothesis found it)."""
+    sigma = 10.0 ** 1.5
+    with pytest.raises(StepsafeError, match="no 2-stage member"):
+        design(sigma=[sigma, sigma], step=4.0 * sigma)

@@ -405,3 +405,20 @@ def test_targets_hmc_cannot_answer_exactly_are_refused():
         hmc(["verlet"], system={"precision": [[1.0, 0.0], [0.0, 0.0]]})
     with pytest.raises(StepsafeError, match="negative eigenvalue"):
         hmc(["verlet"], system={"precision": [[1.0, 0.0], [0.0, -1.0]]})
+
+
+@pytest.mark.parametrize("name, steps, jitter, h", [
+    ("verlet", 10, 0.5, 1.9), ("verlet", 20, 0.2, 1.8), ("kahan-li6", 5, 0.95, 1.6807)])
+def test_jitter_average_to_1e7_where_the_rule_says_exact(name, steps, jitter, h):
+    """The acceptance of a given L goes like |sin(L theta)|: kinks at L theta = k pi, which
+    the panels now end on (the rule was off by 1.3e-4 before, review 17). Reference: the
+    midpoint rule on 40000 steps of the exact fixed-step acceptance."""
+    m = method(name)
+    n = 40000
+    hs = h * (1.0 + jitter * ((np.arange(n) + 0.5) / n * 2 - 1))
+    errs = H.errors_after(H.one_step(m, hs), steps)
+    a, b = H._weights(np.where(np.isfinite(errs), errs, 0.0)[:, None])
+    rates = H._gil_pelaez(a, b, np.ones(1), np.zeros(hs.size), np.zeros(hs.size))
+    mean = np.mean(np.where(np.isinf(errs), 0.0, rates))
+    got = H.acceptance_at(m, np.array([1.0]), h, H.Trajectory(steps=steps, jitter=jitter))
+    assert not got.approximate and abs(got.rate - mean) < 1e-7, (got.rate, mean)

@@ -42,6 +42,7 @@ from typing import NamedTuple
 import numpy as np
 
 from stepsafe.core.accuracy import offsets
+from stepsafe.core.sets import distinct
 from stepsafe.methods.tableaux import Method
 
 #: Stan's default target for the average acceptance statistic (``adapt_delta``).
@@ -270,16 +271,16 @@ def acceptance_at(method: Method, betas: np.ndarray, h: float,
 
 #: The jitter average is a composite 8-point Gauss-Legendre rule: at least this many panels
 #: (the bound over L, smooth in h) or four times as many (a given L, whose energy error
-#: turns like sin^2(L theta)), 4 more per half turn of L theta across the interval (for the
-#: mode that turns most), and at most :data:`MAX_JITTER_NODES` nodes (beyond, the result
-#: says ``approximate``).
+#: turns like sin^2(L theta)), halved where L theta turns by more than
+#: :data:`PANEL_TURN` across one, and at most :data:`MAX_JITTER_NODES` nodes (beyond, the
+#: result says ``approximate``).
 JITTER_PANELS = 2
 MAX_JITTER_NODES = 2048
 _GL8 = np.polynomial.legendre.leggauss(8)
 
 
-#: Samples of theta across a jitter interval (for the turns of L theta and the stability
-#: edges), taken for at most this many of the fastest modes.
+#: Samples across a jitter interval that locate the stability edges; the edges and the
+#: turns of L theta are followed for at most this many of the fastest modes.
 JITTER_SAMPLES = 129
 JITTER_MODES = 32
 #: Levels of geometric refinement of the panels next to a stability edge.
@@ -290,52 +291,123 @@ def _jitter_rule(method: Method, values: np.ndarray, h: float, jitter: float,
                  steps: int | None) -> tuple[np.ndarray, np.ndarray, bool]:
     """Nodes u in [-1, 1] and weights (summing to 2) for the average over h (1 + jitter u):
     the interval is split where a fast mode crosses a stability edge (sin^2 theta changes
-    sign: a cliff), and each piece gets panels for the total variation of L theta on it."""
+    sign: a cliff), each piece gets panels graded towards its cliffs, and for a given L
+    panels are halved until L theta turns little across each (:func:`_follow_turns`)."""
     u = np.linspace(-1.0, 1.0, JITTER_SAMPLES)
     top = values[-JITTER_MODES:]
     first = one_step(method, np.outer(h * (1.0 + jitter * u), top).ravel())
     sin2 = first.sin2.reshape(u.size, top.size)
-    with np.errstate(invalid="ignore"):
-        theta = np.arctan2(np.sqrt(np.maximum(sin2, 0.0)),
-                           first.half_trace.reshape(u.size, top.size))
-    theta = np.nan_to_num(theta)
-    # stability edges: where sin2 changes sign between samples, by linear interpolation
+    # stability edges: where sin2 changes sign between samples, located to rounding (a cut
+    # off the edge leaves the kink inside a panel: 1e-3 of acceptance at L = 20)
     cuts = {-1.0, 1.0}
     # the fastest mode's edges (the others' cliffs are lower: fewer modes fall off them)
     flips = np.argwhere(np.sign(sin2[:-1, -1:]) * np.sign(sin2[1:, -1:]) < 0)
-    for i, k in flips[:4]:
-        k = top.size - 1
-        a, b = sin2[i, k], sin2[i + 1, k]
+    for i, _ in flips[:4]:
+        a, b = sin2[i, -1], sin2[i + 1, -1]
         if np.isfinite(a) and np.isfinite(b):
-            cuts.add(float(u[i] + (u[i + 1] - u[i]) * a / (a - b)))
+            cuts.add(_edge(method, h * top[-1], jitter, float(u[i]), float(u[i + 1])))
     cuts_sorted = sorted(cuts)
     base = JITTER_PANELS if steps is None else 4 * JITTER_PANELS  # the bound is smooth in h
     x, w = _GL8
-    plan = []
-    for lo, hi in zip(cuts_sorted[:-1], cuts_sorted[1:]):
-        inside = (u >= lo) & (u <= hi)
-        swing = np.abs(np.diff(theta[inside], axis=0)).sum(axis=0).max(initial=0.0)
-        turns = (steps or 1) * float(swing) / np.pi
-        plan.append((lo, hi, int(np.ceil(base * (hi - lo) / 2.0 + 4 * turns)) or 1))
-    total = sum(n for _, _, n in plan)
-    approximate = 8 * total > MAX_JITTER_NODES
-    if approximate:
-        plan = [(lo, hi, max(1, n * (MAX_JITTER_NODES // 8) // total)) for lo, hi, n in plan]
-    nodes, weights = [], []
     grading = 0.5 ** np.arange(1, EDGE_LEVELS + 1)
-    for lo, hi, n in plan:
-        edges = [np.linspace(lo, hi, n + 1)]
+    edges = []
+    for lo, hi in zip(cuts_sorted[:-1], cuts_sorted[1:]):
+        n = max(1, int(np.ceil(base * (hi - lo) / 2.0)))
+        piece = [np.linspace(lo, hi, n + 1)]
         # an energy error that grows like e^(2 L phi) past an edge turns the acceptance in a
         # layer of width ~ 1/L^2 at it: panels shrink geometrically towards each edge
         if lo > -1.0:
-            edges.append(lo + (hi - lo) * grading / max(n, 1))
+            piece.append(lo + (hi - lo) * grading / n)
         if hi < 1.0:
-            edges.append(hi - (hi - lo) * grading / max(n, 1))
-        edges = np.unique(np.concatenate(edges if not approximate else edges[:1]))
-        half = 0.5 * np.diff(edges)
-        nodes.append(((0.5 * (edges[:-1] + edges[1:]))[:, None] + half[:, None] * x).ravel())
-        weights.append((half[:, None] * w[None, :]).ravel())
-    return np.concatenate(nodes), np.concatenate(weights), approximate
+            piece.append(hi - (hi - lo) * grading / n)
+        edges.append(np.concatenate(piece))
+    edges = distinct(np.concatenate(edges))
+    approximate = False
+    if steps is not None:
+        edges, approximate = _follow_turns(method, top, h, jitter, steps, edges)
+    half = 0.5 * np.diff(edges)
+    nodes = ((0.5 * (edges[:-1] + edges[1:]))[:, None] + half[:, None] * x).ravel()
+    return nodes, (half[:, None] * w[None, :]).ravel(), approximate
+
+
+#: A panel of the jitter rule is split until ``L theta`` turns by at most this (radians)
+#: across it, for every mode sampled: the acceptance of a given L goes like sin^2(L theta),
+#: and 8 Gauss-Legendre nodes integrate a turn of 2 rad to ~1e-9.
+PANEL_TURN = 1.0
+#: Past a stability edge the energy error grows like sinh^2(L phi): beyond L phi = this,
+#: the acceptance it leaves is below e^-GROWTH_CAP and needs no finer panels.
+GROWTH_CAP = 30.0
+
+
+def _follow_turns(method: Method, top: np.ndarray, h: float, jitter: float, steps: int,
+                  edges: np.ndarray) -> tuple[np.ndarray, bool]:
+    """``edges`` with panels halved until ``steps * theta`` of each mode of ``top`` turns by
+    at most :data:`PANEL_TURN` across each (theta has a square-root edge where a mode
+    turns unstable, so the panels shrink towards it), within :data:`MAX_JITTER_NODES`;
+    and whether that budget cut it short."""
+    def angle(us: np.ndarray, betas: np.ndarray) -> np.ndarray:
+        """``L theta`` (0 where a mode is not stable) at ``h (1 + jitter u)`` for each pair
+        of ``us`` and ``betas``."""
+        first = one_step(method, h * (1.0 + jitter * us) * betas)
+        with np.errstate(invalid="ignore"):
+            t = np.arctan2(np.sqrt(np.maximum(first.sin2, 0.0)), first.half_trace)
+        return steps * np.nan_to_num(np.where(first.sin2 > 0, t, 0.0))
+
+    def turning(us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``L theta`` and ``L theta + L phi``: past its edge a mode's growth (capped where
+        the acceptance it leaves is nil) turns the acceptance too."""
+        grid_u, grid_b = np.repeat(us, top.size), np.tile(top, us.size)
+        first = one_step(method, h * (1.0 + jitter * grid_u) * grid_b)
+        with np.errstate(invalid="ignore", over="ignore"):
+            growth = np.minimum(steps * np.arcsinh(np.sqrt(np.maximum(-first.sin2, 0.0))),
+                                GROWTH_CAP)
+        t = angle(grid_u, grid_b).reshape(us.size, top.size)
+        return t, t + np.nan_to_num(growth).reshape(us.size, top.size)
+
+    panels = MAX_JITTER_NODES // 8
+    turns, at = turning(edges)
+    short = False
+    while True:
+        mids = 0.5 * (edges[:-1] + edges[1:])
+        turns_mid, at_mid = turning(mids)
+        turn = (np.abs(at_mid - at[:-1]) + np.abs(at[1:] - at_mid)).max(axis=1)
+        split = (turn > PANEL_TURN) & (mids > edges[:-1]) & (mids < edges[1:])
+        if not split.any():
+            break
+        if edges.size - 1 + int(split.sum()) > panels:
+            short = True
+            break
+        order = np.argsort(np.concatenate([edges, mids[split]]), kind="stable")
+        edges = np.concatenate([edges, mids[split]])[order]
+        at = np.concatenate([at, at_mid[split]])[order]
+        turns = np.concatenate([turns, turns_mid[split]])[order]
+    # the acceptance of a given L depends on |sin(L theta)|: it has a kink wherever
+    # L theta = k pi. An edge there, found by bisection, leaves every panel smooth
+    k_lo, k_hi = np.floor(turns[:-1] / np.pi), np.floor(turns[1:] / np.pi)
+    panel, mode = np.nonzero((k_lo != k_hi) & (turns[:-1] > 0) & (turns[1:] > 0))
+    if panel.size == 0 or edges.size - 1 + panel.size > panels:
+        return edges, short or panel.size > 0
+    target = np.pi * np.maximum(k_lo, k_hi)[panel, mode]
+    a, b, betas = edges[panel], edges[panel + 1], top[mode]
+    below = turns[panel, mode] < target  # the side of a that lies below k pi
+    for _ in range(60):
+        mid = 0.5 * (a + b)
+        left = (angle(mid, betas) < target) == below
+        a, b = np.where(left, mid, a), np.where(left, b, mid)
+    return distinct(np.concatenate([edges, 0.5 * (a + b)])), short
+
+
+def _edge(method: Method, z: float, jitter: float, lo: float, hi: float) -> float:
+    """The u in (lo, hi) where sin^2 theta at ``z (1 + jitter u)`` changes sign (Brent)."""
+    from scipy.optimize import brentq
+
+    def sin2(x: float) -> float:
+        return float(one_step(method, np.array([z * (1.0 + jitter * x)])).sin2[0])
+
+    try:
+        return float(brentq(sin2, lo, hi, xtol=1e-15, rtol=1e-15))
+    except ValueError:  # (no sign change at float precision: the sampled one is the edge)
+        return 0.5 * (lo + hi)
 
 
 def acceptance_curve(method: Method, betas: np.ndarray, hs: np.ndarray,
