@@ -319,3 +319,13 @@ def test_a_step_at_the_familys_limit_within_an_ulp_is_refused():
     sigma = 10.0 ** 1.5
     with pytest.raises(StepsafeError, match="no 2-stage member"):
         design(sigma=[sigma, sigma], step=4.0 * sigma)
+
+
+@pytest.mark.parametrize("slow", [1.0, 1e6, 1e150])
+def test_a_mode_far_slower_than_the_rest_does_not_change_the_design(slow):
+    """rho of a mode at z = 1.5e-12 rounded tr M / 2 to 1 and came out inf: every member
+    scored inf and the design fell back to b = 1/4 (review 17); such a mode adds ~z^4."""
+    fast = 1e-12 * slow
+    alone = design(sigma=[fast], step=1.5 * fast).params["b"]
+    both = design(sigma=[slow, fast], step=1.5 * fast).params["b"]
+    assert abs(both - alone) < 1e-9 and abs(alone - 0.25) > 0.01

@@ -135,7 +135,10 @@ def rho_values(stages: int, params: np.ndarray, z: np.ndarray) -> np.ndarray:
     sin2 = -m01 * m10 - 0.25 * (m00 - m11) ** 2
     e1 = 0.5 * ((m00 - m11) ** 2 + (m01 + m10) ** 2)
     with np.errstate(divide="ignore", invalid="ignore"):
-        rho = np.where((sin2 > 0) & (np.abs(half) < 1), e1 / sin2, np.inf)
+        # (below z = 1e-4 every member is elliptic, and tr M / 2 = 1 - O(z^2) rounds to 1
+        # below z ~ 1e-8: there sin2 ~ z^2, free of cancellation, decides alone)
+        elliptic = (sin2 > 0) & ((np.abs(half) < 1) | (z < 1e-4)[None, :])
+        rho = np.where(elliptic, e1 / sin2, np.inf)
         if stages == 2:  # b = 1/4: the leapfrog's rho at z/2, through M = -I at 2 sqrt 2
             quarter = params[:, 0] == 0.25
             if quarter.any():
