@@ -203,3 +203,22 @@ def test_a_singular_hessian_at_1e300_ends_with_no_safe_step():
     S = np.full((2, 2), 1e300)
     result = coupled_safe_steps(method("verlet"), S)
     assert result.h_max == 0.0
+
+
+@pytest.mark.parametrize("kind", ["definite", "indefinite", "loxodromic"])
+@pytest.mark.parametrize("k", [-40, -12, 12, 40])
+def test_h_max_in_other_units_of_q_and_p(kind, k):
+    """S_pp times 2^(2k) and S_qp times 2^k: S' = D S D with D = diag(I, 2^k I), and
+    J S' = 2^k D^-1 (J S) D, the same system in other units of p and time, whose step
+    limits are exactly 2^-k times. The rounding bounds, made of |S|, swamped the small
+    block and an indefinite system was "never safe" (review 19)."""
+    S = KINDS[kind](np.random.default_rng(3), 3)
+    n = 3
+    scaled = S.copy()
+    scaled[n:, n:] *= 2.0 ** (2 * k)
+    scaled[:n, n:] *= 2.0 ** k
+    scaled[n:, :n] *= 2.0 ** k
+    m = method("yoshida4")
+    base = coupled_safe_steps(m, S).h_max
+    other = coupled_safe_steps(m, scaled).h_max
+    assert base > 0 and other == pytest.approx(base * 2.0 ** -k, rel=1e-9), (base, other)

@@ -50,6 +50,7 @@ from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeK
 from stepsafe.systems import coupled_exact
 from stepsafe.systems.frame import (
     DiagonalFrame,
+    balanced_blocks,
     diagonal_frame,
     equilibrated,
     euler_deviation,
@@ -327,6 +328,12 @@ class CoupledSystem:
     def __init__(self, method: Method | None, S: np.ndarray,
                  steps: Callable[[float], object] | None = None) -> None:
         self.method, self.given = method, S
+        if steps is None and S.size:
+            # q and p in units where the two diagonal blocks are of one size: an exact
+            # power-of-two point transformation (the criteria are invariant), so that
+            # rounding bounds made of |S| do not swamp a block given in small units (S_pp
+            # times 2^40 left an indefinite system "never safe")
+            S = balanced_blocks(S)
         # work on S / |S|_max and h |S|_max (the same one-step matrices), so neither S nor
         # its norms over- or underflow whatever its units
         largest = float(np.abs(S).max()) if S.size else 0.0

@@ -130,6 +130,32 @@ def equilibrated(S: np.ndarray, balance: bool = False) -> np.ndarray:
     return scaled if exact else S
 
 
+#: :func:`balanced_blocks` rescales only blocks this far apart (a power of two).
+BLOCK_RATIO = 2.0 ** 8
+
+
+def balanced_blocks(S: np.ndarray) -> np.ndarray:
+    """``T^T S T`` for ``T = diag(d I, I / d)``, ``d`` the power of two nearest
+    ``(|S_pp|_F / |S_qq|_F)^(1/4)``, which brings the two diagonal blocks to one size (the
+    same system with q in units d times larger and p d times smaller; applied exactly);
+    S itself when they are within :data:`BLOCK_RATIO`, a block is 0, or the scaled matrix
+    would leave the float range."""
+    n = S.shape[0] // 2
+    with np.errstate(over="ignore"):
+        potential, kinetic = np.linalg.norm(S[:n, :n]), np.linalg.norm(S[n:, n:])
+    if not (np.isfinite(potential) and np.isfinite(kinetic) and potential > 0 and kinetic > 0):
+        return S
+    if 1.0 / BLOCK_RATIO <= kinetic / potential <= BLOCK_RATIO:
+        return S
+    d = float(np.ldexp(1.0, round(0.25 * (np.log2(kinetic) - np.log2(potential)))))
+    scale = np.concatenate([np.full(n, d), np.full(n, 1.0 / d)])
+    with np.errstate(over="ignore", under="ignore"):
+        scaled = S * np.outer(scale, scale)
+    exact = bool(np.all(np.isfinite(scaled))
+                 and not np.any((S != 0) & (np.abs(scaled) < np.finfo(float).tiny)))
+    return scaled if exact else S
+
+
 def _symmetric(X: np.ndarray) -> np.ndarray:
     return 0.5 * (X + X.T)
 
