@@ -241,6 +241,9 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
         notes.append("not symmetric: the HMC chain is not reversible with it (alternate it "
                      "with its adjoint); the acceptance is still as predicted")
     z_stab = region.stability_limit if region.stability_limit is not None else region.zmax
+    if region.stability_limit is None:
+        notes.append(f"stable up to z = {region.zmax:g}, as far as analysed: the stability h "
+                     "shown is that end, not the method's limit (--zmax analyses further)")
     # the limits as advise computes them: each boundary less its float64 uncertainty, over
     # the largest beta (1 + r) the rounding of a computed eigenvalue allows, rounded down
     stab_lo = (_first_unsafe(under_criterion(region, "stability"), z_stab)

@@ -422,3 +422,17 @@ def test_jitter_average_to_1e7_where_the_rule_says_exact(name, steps, jitter, h)
     mean = np.mean(np.where(np.isinf(errs), 0.0, rates))
     got = H.acceptance_at(m, np.array([1.0]), h, H.Trajectory(steps=steps, jitter=jitter))
     assert not got.approximate and abs(got.rate - mean) < 1e-7, (got.rate, mean)
+
+
+def test_a_stability_limit_beyond_zmax_is_said_to_be_the_analysed_end(tmp_path):
+    """Eight Verlet substeps of h/8 are stable to z = 16: at zmax 10 the stability h shown
+    is the analysed end, and the row says so (review 19)."""
+    path = tmp_path / "verlet8.yaml"
+    path.write_text("name: verlet8\nkind: composition\nbase: verlet\norder: 2\n"
+                    "source: \"eight Verlet substeps of h/8\"\n"
+                    "weights: [0.125, 0.125, 0.125, 0.125, 0.125, 0.125, 0.125, 0.125]\n")
+    row = hmc([str(path)], sigma=[1.0]).rows[0]
+    assert row.stability_h == pytest.approx(10.0, rel=1e-6)
+    assert any("as far as analysed" in note for note in row.notes)
+    assert not any("as far as analysed" in note
+                   for note in hmc(["verlet"], sigma=[1.0]).rows[0].notes)

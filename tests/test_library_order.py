@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import mpmath as mp
+import numpy as np
 import pytest
 from integrate import integrate, mp_method
 
@@ -109,3 +110,15 @@ def test_method_files_carry_facts_not_development_notes():
     for path in sorted((ROOT / "methods").glob("*.yaml")):
         for number, line in enumerate(path.read_text().splitlines(), 1):
             assert not notes.search(line), f"{path.name}:{number}: {line.strip()[:80]}"
+
+
+@pytest.mark.parametrize("k", [-42, -10, 0, 10, 42])
+def test_symmetry_does_not_depend_on_the_scale_of_the_coefficients(k):
+    """drift 0.3, kick 1, drift 0.7 is not its own adjoint at any step: every coefficient
+    times 2^-42 was called symmetric by an absolute 1e-12 (review 19, F3); Verlet is."""
+    from stepsafe.methods.families import is_symmetric
+    from stepsafe.methods.tableaux import Splitting
+
+    s = 2.0 ** k
+    assert not is_symmetric(Splitting(np.array([0.3, 0.7]) * s, np.array([1.0]) * s))
+    assert is_symmetric(Splitting(np.array([0.5, 0.5]) * s, np.array([1.0]) * s))
