@@ -352,11 +352,12 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
     h = positive_finite(h, "h")
     beta_top = max(float(b.max()) for b in modes.betas.values())
     with np.errstate(over="ignore"):
-        z_top = 1.05 * beta_top * h / margin
+        z_top = 1.05 * (beta_top * h / margin)  # (analysed 5% beyond z / margin)
     if not np.isfinite(z_top):
         if np.isfinite(beta_top * h):
-            raise StepsafeError(f"z / margin = {beta_top:g} * {h:g} / {margin:g} overflows "
-                                "float64: the margin is too small")
+            raise StepsafeError(f"z / margin = {beta_top:g} * {h:g} / {margin:g} is too near "
+                                "float64's largest number to analyse beyond it: give the "
+                                "frequencies and the step in units where z is nearer 1")
         raise StepsafeError(f"z = beta*h = {beta_top:g} * {h:g} overflows float64: give the "
                             "frequencies and the step in units where their product is finite")
     zmax = max(zmax, z_top)
