@@ -436,3 +436,16 @@ def test_a_stability_limit_beyond_zmax_is_said_to_be_the_analysed_end(tmp_path):
     assert any("as far as analysed" in note for note in row.notes)
     assert not any("as far as analysed" in note
                    for note in hmc(["verlet"], sigma=[1.0]).rows[0].notes)
+
+
+@pytest.mark.parametrize("log_error", [-3.0, 0.0, 1.0, 2.0, 4.0, 6.5, 7.2, 9.0, 12.0])
+def test_one_mode_acceptance_against_its_closed_form(log_error):
+    """One mode: Delta H = a X - |b| Y with X, Y independent chi^2_1, so the acceptance
+    2 P(Delta H < 0) = (4 / pi) atan sqrt(|b| / a) (X / Y is F(1, 1)). The README's
+    accuracy: 1e-12 up to an expected error of 100, 2e-8 absolute beyond."""
+    e = 10.0 ** log_error
+    with mp.workdps(40):
+        E = mp.mpf(e)
+        root = mp.sqrt(E * E + 2 * E)
+        exact = float(4 / mp.pi * mp.atan(mp.sqrt((E / (E + root)) / ((E + root) / 2))))
+    assert abs(H.acceptance(np.array([e])).rate - exact) < (1e-12 if e <= 100 else 2e-8)

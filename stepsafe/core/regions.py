@@ -391,7 +391,8 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     # bound of an implicit method's poles is a worst case over perturbations, and its
     # poles far beyond zmax are not this kind)
     vague = (pole_z > 0) & (pole_u >= pole_z) & _splitting_on_diagonal(method, model)
-    undecided_from = float(np.min(pole_z[vague] ** 2 / (pole_z[vague] + pole_u[vague]),
+    # (z / (1 + u / z): z^2 overflows beyond 1e154, and a NaN would skip the stop)
+    undecided_from = float(np.min(pole_z[vague] / (1.0 + pole_u[vague] / pole_z[vague]),
                                   initial=np.inf))
     vague_note: tuple[str, ...] = ()
     if undecided_from < zmax:
