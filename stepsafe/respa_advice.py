@@ -324,6 +324,8 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
                                 "{stiffness_fast:, stiffness_slow:} in a scene file)",
                                 loaded.where or None)
     try:
+        if np.iscomplexobj(np.asarray(pairs)):
+            raise TypeError
         table = np.array(pairs, dtype=float).reshape(-1, 2)
     except (TypeError, ValueError, OverflowError):
         raise StepsafeError("pairs must be a list of (fast, slow) frequencies") from None
