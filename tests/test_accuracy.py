@@ -274,14 +274,22 @@ def _gauss_phase(s, z):
     return theta / z - 1
 
 
+
+def _roots(ascending: list) -> list:
+    """The roots of sum ascending[k] x^k (mpmath 1.4 wants asc=True, older the reverse)."""
+    import inspect
+
+    if "asc" in inspect.signature(mp.polyroots).parameters:
+        return mp.polyroots(ascending, asc=True, maxsteps=400, extraprec=400)
+    return mp.polyroots(ascending[::-1], maxsteps=400, extraprec=400)
+
 def _lobatto_tableau(s):
     n = s - 1  # nodes 0, 1 and the roots of P'_n(2x - 1)
     leg = [mp.mpf(0)] * (n + 1)  # P_n(x) = 2^-n sum (-1)^k C(n,k) C(2n-2k, n) x^(n-2k)
     for k in range(n // 2 + 1):
         leg[n - 2 * k] = (-1) ** k * mp.binomial(n, k) * mp.binomial(2 * n - 2 * k, n) / 2 ** n
     dleg = [j * leg[j] for j in range(1, n + 1)]  # P'_n, ascending powers
-    inner = sorted((mp.re(r) + 1) / 2 for r in mp.polyroots(dleg[::-1], maxsteps=400,
-                                                             extraprec=400)) if n > 1 else []
+    inner = sorted((mp.re(r) + 1) / 2 for r in _roots(dleg)) if n > 1 else []
     c = [mp.mpf(0)] + inner + [mp.mpf(1)]
     V = mp.matrix([[ci ** k for k in range(s)] for ci in c])
     Vinv = V ** -1
