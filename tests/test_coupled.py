@@ -222,3 +222,17 @@ def test_h_max_in_other_units_of_q_and_p(kind, k):
     base = coupled_safe_steps(m, S).h_max
     other = coupled_safe_steps(m, scaled).h_max
     assert base > 0 and other == pytest.approx(base * 2.0 ** -k, rel=1e-9), (base, other)
+
+
+def test_no_certified_step_is_not_called_never_preserved(run, tmp_path):
+    """Two pairs of opposite Krein sign 2e-6 apart: the coupled analysis certifies no step
+    (pairs that close are undecided), which is not "never preserves" (review 17: the truth
+    keeps the structure up to h = 2.92564)."""
+    S = [[11.021789487585378, 1.7918652946710565, -0.49636227185660786, -1.3996632628869785],
+         [1.7918652946710565, -2.326987080311353, 0.12990600967649873, 0.522245307202353],
+         [-0.49636227185660786, 0.12990600967649873, 0.08542399419854464, 0.06433478850948521],
+         [-1.3996632628869785, 0.522245307202353, 0.06433478850948521, -0.41594351150809433]]
+    scene = tmp_path / "close.yaml"
+    scene.write_text("method: bcss3\nsystem:\n  hessian: " + repr(S) + "\n")
+    code, out, _ = run("advise", str(scene))
+    assert code == 0 and "could be certified" in out and "never preserves" not in out

@@ -269,6 +269,12 @@ def print_advice(data: dict[str, Any]) -> None:
     if data["h_max_limited_by"] == "none" and undecided:
         console.print("[red]No step certified from 0:[/red] float64 cannot decide the coupled "
                       f"analysis up to h = {fmt(min(b for _, b in undecided))}{u} (see the note).")
+    elif data["h_max_limited_by"] == "none" and any(
+            item.get("type") == "coupled" for item in (data.get("system") or {}).get("items", [])):
+        # (the coupled analysis certifies steps; it does not prove the others unsafe: pairs
+        # of opposite Krein sign within 1e-6 of each other are left undecided)
+        console.print("[red]No safe step from 0:[/red] no step the coupled analysis examined "
+                      "could be certified to keep this structure (see the analysis below).")
     elif data["h_max_limited_by"] == "none":
         console.print("[red]No safe step from 0:[/red] the method never preserves this structure.")
     elif safe[0][1] is None:
