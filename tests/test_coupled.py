@@ -236,3 +236,13 @@ def test_no_certified_step_is_not_called_never_preserved(run, tmp_path):
     scene.write_text("method: bcss3\nsystem:\n  hessian: " + repr(S) + "\n")
     code, out, _ = run("advise", str(scene))
     assert code == 0 and "could be certified" in out and "never preserves" not in out
+
+
+def test_check_at_the_coupled_h_max_is_in_the_primary_interval(run_json, tmp_path):
+    """The coupled analysis's h_max is a certified step: check there is SAFE, and in the
+    interval from 0, not "in an island" (review 17)."""
+    scene = tmp_path / "c.yaml"
+    scene.write_text("method: verlet\nsystem:\n  hessian: [[1.0, 0.3], [0.3, 2.0]]\n")
+    h_max = run_json("advise", str(scene))["h_max"]
+    (data,) = run_json("check", str(scene), "--step", repr(h_max))["checks"]
+    assert data["safe"] and data["in_primary_interval"]

@@ -182,8 +182,9 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
                 "largest_safe_h": top})
     safe = data["safe_h"]
     data["h_max"] = safe[0][1] if safe and safe[0][0] == 0.0 else 0.0
+    # (h = h_max is safe only where h_max is a certified step, the coupled analysis's end)
     data["in_primary_interval"] = bool(data["safe"] and (data["h_max"] is None
-                                                         or h < data["h_max"]))
+                                                         or h <= data["h_max"]))
     items = _limit_items(report, regions, margin)
     data["system"] = {"analysis": report.analysis, "items": items, "notes": report.notes,
                       "limiting_item": _limiting_item(items)}
