@@ -393,3 +393,19 @@ def test_large_dense_stiffness_uses_the_extreme_eigenvalues_only(tmp_path, run_j
     if barrier:  # the barrier's rate is there too, and h_max is the smaller limit
         rates = [item["beta"] for item in data["system"]["items"] if item["model"] != "oscillator"]
         assert max(rates) == pytest.approx(float(np.sqrt(-w2.min())), rel=1e-10)
+
+
+def test_constant_powers_are_numbers_and_powers_of_q_are_capped(tmp_path):
+    """2**65 is a number (it was refused as a power above 64, reported as 'H cannot be
+    evaluated' at every start: review 19); q**65 is refused as itself."""
+    from stepsafe.exceptions import StepsafeError
+    from stepsafe.systems.loader import analyse_system
+
+    box = {"q": ["-1", "1"], "p": ["-1", "1"]}
+    report = analyse_system({"hamiltonian": "2**65*p**2 + q**2", "box": box}, "h.yaml",
+                            tmp_path, method("verlet"))
+    (item,) = report.items
+    assert item["beta"] == pytest.approx(2.0 ** 33.5, rel=1e-12)
+    with pytest.raises(StepsafeError, match="go up to 64"):
+        analyse_system({"hamiltonian": "q**65 + p**2", "box": box}, "h.yaml", tmp_path,
+                       method("verlet"))

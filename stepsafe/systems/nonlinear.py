@@ -207,6 +207,15 @@ def parse_hamiltonian(text: str, parameters: dict[str, float] | None = None) -> 
     if unknown:
         raise ExpressionError(f"unknown name {sorted(unknown)[0]!r} (use q, p, pi and the "
                               "parameters)")
+    for node in ast.walk(expr.tree):  # (said here, not as 'cannot be evaluated' everywhere)
+        if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Pow) and \
+                isinstance(node.right, ast.Constant) and \
+                any(isinstance(n, ast.Name) and n.id in ("q", "p")
+                    for n in ast.walk(node.left)):
+            exponent = float(ast.get_source_segment(expr.text.strip(), node.right) or 0)
+            if abs(exponent) > 64:
+                raise ExpressionError(f"{ast.get_source_segment(expr.text.strip(), node)}: "
+                                      "powers of an expression in q or p go up to 64")
     return Hamiltonian(expr, parameters)
 
 
@@ -232,9 +241,10 @@ def _eval(node: ast.AST, source: str, env: dict[str, Jet2], number):
     if isinstance(node.op, ast.Div):
         return lift(a) / b
     bv = b.v if isinstance(b, Jet2) else b
-    if not isinstance(b, Jet2) or b._constant():
+    constant_base = not isinstance(a, Jet2) or a._constant()
+    if (not isinstance(b, Jet2) or b._constant()) and not constant_base:
         if abs(bv) > 64:
-            raise ValueError("exponent above 64")
+            raise ValueError("exponent above 64")  # (of q or p; 2**65 is a number)
     return lift(a) ** b
 
 
