@@ -122,3 +122,6 @@ def test_symmetry_does_not_depend_on_the_scale_of_the_coefficients(k):
     s = 2.0 ** k
     assert not is_symmetric(Splitting(np.array([0.3, 0.7]) * s, np.array([1.0]) * s))
     assert is_symmetric(Splitting(np.array([0.5, 0.5]) * s, np.array([1.0]) * s))
+    # a large palindromic coefficient does not hide a mismatch between two small ones
+    hidden = np.array([0.5 - 1e-10, 1e3, -2e3, 1e3, 0.5 + 1e-10]) * s
+    assert not is_symmetric(Splitting(hidden, np.full(4, 0.25) * s))

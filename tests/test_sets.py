@@ -1,5 +1,5 @@
-"""stepsafe.core.sets against numpy's set routines, on arrays with repeats, signed zeros,
-infinities and subnormals."""
+"""stepsafe.core.sets against numpy's set routines, on arrays with repeats, zeros of both
+signs (equal, so either may stand for both), infinities and subnormals."""
 
 from __future__ import annotations
 

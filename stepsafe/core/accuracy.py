@@ -30,7 +30,7 @@ whose order conditions hold only to ~1e-17, this is the error of the ideal metho
 differs from the decimals' own by ~1e-17 / z^2 absolute). Later ones keep their rounding
 bound; implicit (P)RK methods get theirs at high precision from their definition
 (:func:`_hp_parts`). Every figure carries a float64 bound and is recomputed from the
-high-precision transfer matrix where that bound exceeds :data:`ESCALATE_REL` of it.
+high-precision transfer matrix where that bound exceeds :data:`RECOMPUTE_REL` of it.
 
 The inverse problem (largest z meeting a tolerance) is the first crossing of ``|e| = tol``
 from 0, never beyond the first boundary.
@@ -60,7 +60,7 @@ SERIES_TERMS = 64
 SERIES_Z = 0.5
 #: A figure whose float64 error bound exceeds this (relative) is recomputed from the
 #: method's high-precision transfer matrix (the printed 7 digits need < 5e-8).
-ESCALATE_REL = 1e-9
+RECOMPUTE_REL = 1e-9
 #: Implicit (P)RK methods up to this many stages get their Taylor coefficients at high
 #: precision from their definition (the family tableau at raised precision); larger ones
 #: keep the float64 series, whose tiny coefficients carry their rounding bound.
@@ -368,7 +368,7 @@ def errors(method: Method, z, model: str = "oscillator") -> Errors:
     it outputs, ``P^-1 K^n P x``, lie on that ellipse. :func:`kernel_errors` gives the
     kernel's own.
 
-    Each figure carries a float64 error bound; where it exceeds :data:`ESCALATE_REL` of the
+    Each figure carries a float64 error bound; where it exceeds :data:`RECOMPUTE_REL` of the
     figure, the figure is recomputed from the method's high-precision transfer matrix
     (:func:`stepsafe.core.escalate.reference_of`), within a work budget."""
     z = np.atleast_1d(np.asarray(z, dtype=float))
@@ -377,8 +377,8 @@ def errors(method: Method, z, model: str = "oscillator") -> Errors:
         return Errors(z, errors(method.kernel_splitting, z, model).phase, full.energy)
     phase, phase_err, energy, energy_err = _float_errors(method, z, model)
     with np.errstate(invalid="ignore"):
-        vague = (np.isfinite(phase) & ~(phase_err <= ESCALATE_REL * np.abs(phase))) | \
-            (np.isfinite(energy) & ~(energy_err <= ESCALATE_REL * np.abs(energy)))
+        vague = (np.isfinite(phase) & ~(phase_err <= RECOMPUTE_REL * np.abs(phase))) | \
+            (np.isfinite(energy) & ~(energy_err <= RECOMPUTE_REL * np.abs(energy)))
     vague &= np.abs(z) > 1e-100  # (there the series is exact to float rounding)
     # an explicit method's series is its exact polynomial, its bound a worst case: its
     # figures are the ideal method's (a reference from the float coefficients would give
