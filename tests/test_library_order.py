@@ -125,3 +125,21 @@ def test_symmetry_does_not_depend_on_the_scale_of_the_coefficients(k):
     # a large palindromic coefficient does not hide a mismatch between two small ones
     hidden = np.array([0.5 - 1e-10, 1e3, -2e3, 1e3, 0.5 + 1e-10]) * s
     assert not is_symmetric(Splitting(hidden, np.full(4, 0.25) * s))
+
+
+def test_a_huge_coefficient_does_not_hide_a_non_symplectic_entry():
+    """b = (0.999, 0.001), a21 = 1e15, a12 cancelling entry (1, 2) of the condition: entry
+    (1, 1), 2 b1 a11 - b1^2 = -0.998, is as far from 0 as it can be, but was 5e-13 of the
+    largest product (review 20). Scaled Gauss s = 2 stays symplectic."""
+    from support import method
+
+    from stepsafe.methods.residuals import residuals
+    from stepsafe.methods.tableaux import RungeKutta
+
+    b = np.array([0.999, 0.001])
+    a21, a22 = 1e15, b[1] / 2
+    a12 = (b[0] * b[1] - b[1] * a21) / b[0]
+    assert not residuals(RungeKutta(np.array([[0.0, a12], [a21, a22]]), b)).symplectic
+    gauss = method("gauss", 2)
+    for s in (2.0 ** -40, 1.0, 2.0 ** 40):
+        assert residuals(RungeKutta(gauss.A * s, gauss.b * s)).symplectic
