@@ -345,32 +345,32 @@ def _follow_turns(method: Method, top: np.ndarray, h: float, jitter: float, step
     at most :data:`PANEL_TURN` across each (theta has a square-root edge where a mode
     turns unstable, so the panels shrink towards it), within :data:`MAX_JITTER_NODES`;
     and whether that budget cut it short."""
-    def angle(us: np.ndarray, betas: np.ndarray) -> np.ndarray:
-        """``L theta`` (0 where a mode is not stable) at ``h (1 + jitter u)`` for each pair
-        of ``us`` and ``betas``."""
-        first = one_step(method, h * (1.0 + jitter * us) * betas)
+    def angle(first: OneStep) -> np.ndarray:
+        """``L theta`` of each one-step matrix (0 where it is not stable)."""
         with np.errstate(invalid="ignore"):
             t = np.arctan2(np.sqrt(np.maximum(first.sin2, 0.0)), first.half_trace)
         return steps * np.nan_to_num(np.where(first.sin2 > 0, t, 0.0))
 
+    def at(us: np.ndarray, betas: np.ndarray) -> OneStep:
+        return one_step(method, h * (1.0 + jitter * us) * betas)
+
     def turning(us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``L theta`` and ``L theta + L phi``: past its edge a mode's growth (capped where
         the acceptance it leaves is nil) turns the acceptance too."""
-        grid_u, grid_b = np.repeat(us, top.size), np.tile(top, us.size)
-        first = one_step(method, h * (1.0 + jitter * grid_u) * grid_b)
+        first = at(np.repeat(us, top.size), np.tile(top, us.size))
         with np.errstate(invalid="ignore", over="ignore"):
             growth = np.minimum(steps * np.arcsinh(np.sqrt(np.maximum(-first.sin2, 0.0))),
                                 GROWTH_CAP)
-        t = angle(grid_u, grid_b).reshape(us.size, top.size)
+        t = angle(first).reshape(us.size, top.size)
         return t, t + np.nan_to_num(growth).reshape(us.size, top.size)
 
     panels = MAX_JITTER_NODES // 8
-    turns, at = turning(edges)
+    turns, total = turning(edges)
     short = False
     while True:
         mids = 0.5 * (edges[:-1] + edges[1:])
-        turns_mid, at_mid = turning(mids)
-        turn = (np.abs(at_mid - at[:-1]) + np.abs(at[1:] - at_mid)).max(axis=1)
+        turns_mid, total_mid = turning(mids)
+        turn = (np.abs(total_mid - total[:-1]) + np.abs(total[1:] - total_mid)).max(axis=1)
         split = (turn > PANEL_TURN) & (mids > edges[:-1]) & (mids < edges[1:])
         if not split.any():
             break
@@ -379,7 +379,7 @@ def _follow_turns(method: Method, top: np.ndarray, h: float, jitter: float, step
             break
         order = np.argsort(np.concatenate([edges, mids[split]]), kind="stable")
         edges = np.concatenate([edges, mids[split]])[order]
-        at = np.concatenate([at, at_mid[split]])[order]
+        total = np.concatenate([total, total_mid[split]])[order]
         turns = np.concatenate([turns, turns_mid[split]])[order]
     # the acceptance of a given L depends on |sin(L theta)|: it has a kink wherever
     # L theta = k pi. An edge there, found by bisection, leaves every panel smooth
@@ -392,7 +392,7 @@ def _follow_turns(method: Method, top: np.ndarray, h: float, jitter: float, step
     below = turns[panel, mode] < target  # the side of a that lies below k pi
     for _ in range(60):
         mid = 0.5 * (a + b)
-        left = (angle(mid, betas) < target) == below
+        left = (angle(at(mid, betas)) < target) == below
         a, b = np.where(left, mid, a), np.where(left, b, mid)
     return distinct(np.concatenate([edges, 0.5 * (a + b)])), short
 

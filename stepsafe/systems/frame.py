@@ -119,11 +119,14 @@ def equilibrated(S: np.ndarray, balance: bool = False) -> np.ndarray:
         target = 0.25 * np.log2(kinetic / potential) if balance else 0.5 * np.log2(kinetic)
     if not np.all(np.isfinite(target)):
         return S
-    d = np.ldexp(1.0, np.round(target).astype(int))
+    return _point_scaled(S, np.ldexp(1.0, np.round(target).astype(int)))
+
+
+def _point_scaled(S: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``T^T S T`` for ``T = diag(d, 1/d)``, ``d`` powers of two: one multiplication by a
+    power of two per entry, exact unless it leaves the normal range (then S itself)."""
     scale = np.concatenate([d, 1.0 / d])
     with np.errstate(over="ignore", under="ignore"):
-        # one multiplication by a power of two per entry: exact unless it leaves the
-        # normal range
         scaled = S * np.outer(scale, scale)
     exact = bool(np.all(np.isfinite(scaled))
                  and not np.any((S != 0) & (np.abs(scaled) < np.finfo(float).tiny)))
@@ -148,12 +151,7 @@ def balanced_blocks(S: np.ndarray) -> np.ndarray:
     if 1.0 / BLOCK_RATIO <= kinetic / potential <= BLOCK_RATIO:
         return S
     d = float(np.ldexp(1.0, round(0.25 * (np.log2(kinetic) - np.log2(potential)))))
-    scale = np.concatenate([np.full(n, d), np.full(n, 1.0 / d)])
-    with np.errstate(over="ignore", under="ignore"):
-        scaled = S * np.outer(scale, scale)
-    exact = bool(np.all(np.isfinite(scaled))
-                 and not np.any((S != 0) & (np.abs(scaled) < np.finfo(float).tiny)))
-    return scaled if exact else S
+    return _point_scaled(S, np.full(n, d))
 
 
 def _symmetric(X: np.ndarray) -> np.ndarray:
