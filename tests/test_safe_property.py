@@ -182,7 +182,7 @@ def test_safe_at_any_scale_of_z(name, log_z, model):
         assert log_z > -6 or model not in ("oscillator", "inverted"), result.failures
 
 
-@settings(SETTINGS, max_examples=40)
+@settings(SETTINGS, max_examples=25)
 @given(scaled_tableau(-14, -3), st.floats(-1.0, 0.6),
        st.sampled_from(["oscillator", "inverted"]), st.sampled_from(["structure", "stability"]))
 def test_a_scaled_tableau_is_safe_only_where_the_unscaled_one_is(m, log_z, model, criterion):
