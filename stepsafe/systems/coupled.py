@@ -56,6 +56,7 @@ from stepsafe.systems.frame import (
     euler_deviation,
 )
 from stepsafe.systems.linear import ZERO_TOL, hamiltonian_matrix
+from stepsafe.systems.smallest import smallest
 
 EPS = float(np.finfo(float).eps)
 #: |nu| within this of 1 is on the unit circle (indefinite S only)
@@ -360,6 +361,8 @@ class CoupledSystem:
         self.evaluations = 0
         self._cache: dict[float, float] = {}
         self._slack: dict[float, float] = {}  # the rounding bound in the units of the margin
+        self._certified: dict[float, bool] = {}  # lambda_min(W) above it proved (definite S)
+        self._ritz: np.ndarray | None = None  # the last Lanczos vector, to start the next
         self._built: dict[float, tuple | None] = {}
 
     @property
@@ -442,13 +445,15 @@ class CoupledSystem:
             W = sla.solve_triangular(L, self.sign * Q, lower=True)
             W = sla.solve_triangular(L, W.T, lower=True)
             inverse_norm2 = self.inv_chol_norm2
-        low = float(sla.eigh(W, eigvals_only=True, subset_by_index=[0, 0],
-                             check_finite=False)[0])
-        # |delta lambda| <= ||L^-1||_2^2 ||delta Q||_2 (L = diag(weight)^1/2 in the frame),
-        # plus the eigensolver's own backward error
-        bound = err * inverse_norm2 + 4 * self.n * EPS * float(np.linalg.norm(W))
-        self._slack[h] = bound / (2 * h * self.unit)
-        return (low - bound) / (2 * h * self.unit)
+        # |delta lambda| <= ||L^-1||_2^2 ||delta Q||_2 (L = diag(weight)^1/2 in the frame);
+        # lambda_min(W) above that is proved by a Cholesky factorisation
+        found = smallest(W, err * inverse_norm2, self._ritz)
+        if found.vector is not None:
+            self._ritz = found.vector
+        self._certified[h] = found.certified
+        self._slack[h] = found.shift / (2 * h * self.unit)
+        value = found.value if found.certified else min(found.value, 0.0)
+        return value / (2 * h * self.unit)
 
     def certainly_lost(self, h: float) -> bool:
         """Definite S: whether the structure is lost at h beyond rounding (``Q`` has an
@@ -502,7 +507,7 @@ class CoupledSystem:
         if poles.size and float(np.min(np.abs(poles - h))) <= POLE_BAND * h:
             return False
         if self.definite:
-            return self.margin(h) > 0
+            return self.margin(h) > 0 and self._certified.get(h, False)
         out = self._evaluate(h)
         if out is None:
             return False
