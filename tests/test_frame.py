@@ -297,8 +297,9 @@ def test_the_rounding_bound_of_a_frame_step_holds_at_40_digits(seed, n, count, l
     frame = DiagonalFrame(a, b, C, 0.0, np.eye(n))
     h = 10.0 ** log_h
     with pytest.MonkeyPatch.context() as patch:
-        if lu:  # the factors applied by triangular solves, as for large n
+        if lu:  # the factors applied by LU block substitution, as for large n
             patch.setattr("stepsafe.systems.frame.SOLVE_FROM", 1)
+            patch.setattr("stepsafe.systems.frame.SOLVE_BLOCK", int(rng.integers(1, 4)))
         D, err = euler_deviation(frame, factors, h, float(np.linalg.norm(frame.S)),
                                  FOLD_RATIO if fold else 0.0)
     if not np.isfinite(err):
@@ -310,14 +311,15 @@ def test_the_rounding_bound_of_a_frame_step_holds_at_40_digits(seed, n, count, l
 
 @pytest.mark.parametrize("name", ["pefrl", "blanes-moan4"])
 def test_the_lu_solves_of_large_systems_give_the_same_safe_interval(name, monkeypatch):
-    """From ``SOLVE_FROM`` on the factors are applied by LU solves instead of explicit
-    inverses: the same h_max (to the analysis' tolerance) on one system both ways, and
+    """From ``SOLVE_FROM`` on the factors are applied by LU block substitution instead of
+    explicit inverses: the same h_max (to the analysis' tolerance) on one system both ways, and
     kept at 40 digits."""
     rng = np.random.default_rng(11)
     S = _definite(rng, 6, kinetic_cond=1e2)
     m = method(name)
     inverses = coupled_safe_steps(m, S, 6.0).h_max
     monkeypatch.setattr("stepsafe.systems.frame.SOLVE_FROM", 1)
+    monkeypatch.setattr("stepsafe.systems.frame.SOLVE_BLOCK", 4)  # (6 rows: two blocks)
     solves = coupled_safe_steps(m, S, 6.0).h_max
     assert solves == pytest.approx(inverses, rel=1e-9)
     assert _kept_mp(m, S, min(solves, inverses))
