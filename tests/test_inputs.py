@@ -796,3 +796,24 @@ def test_a_tolerance_on_a_frequency_beyond_every_float(run, tol):
     for row in rows:
         assert row["h"] is None and row["cost"] is None and row["rank"] is None
         assert row["bound_by"] == "nothing" and row["h_tol"] is None
+
+
+def test_a_modes_file_is_read_in_its_own_time_unit(run, tmp_path):
+    """A scene file given to --modes keeps its time_unit: a 9 fs period is
+    2 pi / 9 rad/fs = 698.13 rad/ps, so verlet's limit is 2 / 698.13 ps = 2.8648 fs
+    whatever unit the command line uses; without --time-unit the file's becomes the
+    command's; keys a scene file does not have are refused."""
+    path = tmp_path / "modes.yaml"
+    path.write_text("time_unit: fs\nmethod: yoshida4\nmodes: [{period: 9}]\n")
+    limit_fs = 2 / (2 * math.pi / 9)
+    for unit, scale in (("ps", 1e-3), ("fs", 1.0), ("ns", 1e-6), (None, 1.0)):
+        option = ("--time-unit", unit) if unit else ()
+        for factor, code in ((0.999, 0), (1.001, 1)):
+            step = repr(factor * limit_fs * scale)
+            got, out, err = run("check", "--method", "verlet", "--modes", str(path),
+                                "--step", step, *option)
+            assert got == code, (unit, factor, out, err)
+            assert f"h = {step} {unit or 'fs'}" in out, out
+    path.write_text("time_unit: fs\nperiods: 9\nmodes: [{period: 9}]\n")
+    code, _, err = run("check", "--method", "verlet", "--modes", str(path), "--step", "1")
+    assert code == 2 and "periods" in err and "unknown key" in err, err

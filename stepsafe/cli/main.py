@@ -412,8 +412,9 @@ def target_options(func):
                      help="Analyse z = beta*h up to Z (islands beyond are not reported) "
                           "[default: 10]."),
         click.option("--modes", "modes_file", type=str, default=None, metavar="FILE",
-                     help="Frequencies from a YAML list of {beta:, model:[, label:]} or a CSV "
-                          "file with columns beta[,model][,label]."),
+                     help="Frequencies from a YAML list of {beta:, model:[, label:]} (or a "
+                          "scene file's modes:, in its time_unit:) or a CSV file with "
+                          "columns beta[,model][,label]."),
         click.option("--inverted-beta", type=FLOAT, multiple=True, metavar="R",
                      help="Rate of a barrier top (q'=p, p'=+R^2 q); repeatable."),
         click.option("--saddle-beta", type=FLOAT, multiple=True, metavar="R",
@@ -492,6 +493,13 @@ def command_line_modes(options: dict) -> tuple[dict, dict[str, tuple[str | None,
 
     from stepsafe.units import quantity
 
+    loaded = None
+    if options["modes_file"]:
+        from stepsafe.systems.scene import load_modes
+
+        # in --time-unit, else in the file's time_unit:, which then is the command's
+        loaded = load_modes(options["modes_file"], options["time_unit"])
+        options["time_unit"] = options["time_unit"] or loaded.time_unit
     unit = options["time_unit"]
     vibrations = list(options["beta"])
     for form in ("frequency", "wavenumber", "period", "sigma"):
@@ -500,10 +508,7 @@ def command_line_modes(options: dict) -> tuple[dict, dict[str, tuple[str | None,
     parts: dict[str, list] = {"oscillator": vibrations, "saddle": list(options["saddle_beta"]),
                               "inverted": list(options["inverted_beta"])}
     labels: dict[str, tuple[str | None, ...]] = {}
-    if options["modes_file"]:
-        from stepsafe.systems.scene import load_modes
-
-        loaded = load_modes(options["modes_file"], unit)
+    if loaded is not None:
         for model, values in loaded.betas.items():
             if model in loaded.labels:
                 labels[model] = (None,) * len(parts.get(model, ())) + loaded.labels[model]

@@ -370,20 +370,47 @@ class ModesFile:
     """A modes file's frequencies grouped by model, and per model the modes' labels in the
     same order (None where a mode has none; a model without labels is absent)."""
 
-    betas: dict[str, np.ndarray]
+    betas: dict[str, np.ndarray]  #: rad per ``time_unit``
     labels: dict[str, tuple[str | None, ...]]
+    #: the unit of time the frequencies are per: the one asked for, else the file's
+    #: ``time_unit:`` (None if neither names one)
+    time_unit: str | None = None
 
 
 def load_modes(path: str | Path, time_unit: str | None = None) -> ModesFile:
-    """Frequencies (and labels) from a YAML or CSV modes file, grouped by model; a YAML
-    file's frequency, wavenumber and period items are converted to rad per ``time_unit``."""
+    """Frequencies (and labels) from a YAML or CSV modes file, grouped by model, as beta in
+    rad per ``time_unit``. A YAML mapping (a scene file) gives them under ``modes:``, in
+    its own ``time_unit:`` when it names one (converted to ``time_unit`` when that is
+    another; the scene's other keys are not read here, unknown keys are refused)."""
     where = str(path)
     if str(path).lower().endswith(".csv"):
         return _load_csv(read_bytes(path, MAX_CSV_BYTES), where, time_unit)
     tree = load_yaml(path)
-    if isinstance(tree, dict) and "modes" in tree:
-        return ModesFile(*_modes_list(tree["modes"], where, "modes", time_unit))
-    return ModesFile(*_modes_list(tree, where, "", time_unit))
+    if not isinstance(tree, dict):
+        return ModesFile(*_modes_list(tree, where, "", time_unit), time_unit)
+    for key in tree:
+        if key not in SCENE_KEYS:
+            raise _fail(where, str(key), unknown_key(key, SCENE_KEYS))
+    if "modes" not in tree:
+        raise _fail(where, "modes", "missing: a modes file lists its frequencies under "
+                                    "modes: (a scene's system: is read as SCENE.yaml)")
+    own = tree.get("time_unit")
+    if own is not None and (not isinstance(own, str) or own not in TIME_UNITS):
+        raise _fail(where, "time_unit", f"must be one of {', '.join(TIME_UNITS)}, got "
+                                        f"{own!r}")
+    betas, labels = _modes_list(tree["modes"], where, "modes", own or time_unit)
+    if own is None or time_unit is None or own == time_unit:
+        return ModesFile(betas, labels, own or time_unit)
+    # rad per file unit to rad per --time-unit: times (seconds per --time-unit) / (seconds
+    # per file unit), an exact ratio of powers of ten
+    ratio = float(TIME_UNITS[time_unit] / TIME_UNITS[own])
+    with np.errstate(over="ignore", under="ignore"):
+        converted = {model: values * ratio for model, values in betas.items()}
+    for model, values in converted.items():
+        if not np.all(np.isfinite(values)) or np.any((values == 0) & (betas[model] != 0)):
+            raise _fail(where, "modes", f"a frequency leaves the float range in rad/"
+                                        f"{time_unit} (the file's are in rad/{own})")
+    return ModesFile(converted, labels, time_unit)
 
 
 def _load_csv(data: bytes, where: str, time_unit: str | None = None) -> ModesFile:
@@ -428,7 +455,7 @@ def _load_csv(data: bytes, where: str, time_unit: str | None = None) -> ModesFil
         labels = {m: tuple(names[codes == k]) for k, m in enumerate(MODELS)
                   if np.any(codes == k) and any(names[codes == k])}
     return ModesFile({m: betas[codes == k] for k, m in enumerate(MODELS) if np.any(codes == k)},
-                     labels)
+                     labels, time_unit)
 
 
 def _converted(values: np.ndarray, form: str, time_unit: str | None, rows: _CsvPart,
