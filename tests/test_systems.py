@@ -409,3 +409,31 @@ def test_constant_powers_are_numbers_and_powers_of_q_are_capped(tmp_path):
     with pytest.raises(StepsafeError, match="go up to 64"):
         analyse_system({"hamiltonian": "q**65 + p**2", "box": box}, "h.yaml", tmp_path,
                        method("verlet"))
+
+
+@pytest.mark.parametrize("n", [2, 2500])
+def test_a_nearly_symmetric_stiffness_is_analysed_as_its_symmetric_part(tmp_path, run_json,
+                                                                       n):
+    """q^T K q / 2 sees (K + K^T) / 2 only: an asymmetry within the accepted 1e-12 gives
+    the same h_max whichever triangle holds it, dense (n = 2) or on the large-system path
+    (n = 2500), and never above the limit of the symmetric part (the largest eigenvalue
+    1 + 5e-13 for n = 2, the chain's plus at most 5e-13 for n = 2500)."""
+    import scipy.sparse as sp
+
+    if n == 2:
+        K = np.array([[1.0, 1e-12], [0.0, 1.0]])
+        top = 1 + 5e-13  # eigenvalues of the symmetric part: 1 +- 5e-13
+    else:
+        K = sp.diags([-np.ones(n - 1), 2 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tolil()
+        K[0, 1] += 1e-12  # only above the diagonal
+        K = K.tocsr()
+        # the chain's largest eigenvalue, plus at most 5e-13 (Weyl) for the symmetric part
+        top = 2 - 2 * math.cos(n * math.pi / (n + 1)) + 5e-13
+    got = []
+    for name, matrix in (("upper", K), ("lower", K.T)):
+        sp.save_npz(tmp_path / f"{name}.npz", sp.csr_matrix(matrix))
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(f"method: verlet\nsystem: {{stiffness: {name}.npz}}\n")
+        got.append(run_json("advise", str(path))["h_max"])
+    assert got[0] == got[1]
+    assert got[0] <= 2 / np.sqrt(top)

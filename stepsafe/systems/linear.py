@@ -70,7 +70,22 @@ def check_square(A: np.ndarray, name: str, symmetric: bool = True) -> np.ndarray
         raise MatrixError(name, f"{name} has a non-finite entry")
     if symmetric and not np.allclose(A, A.T, rtol=1e-12, atol=1e-12 * np.abs(A).max()):
         raise MatrixError(name, f"{name} must be symmetric")
-    return A
+    return symmetric_part(A) if symmetric else A
+
+
+def symmetric_part(A):
+    """``(A + A^T) / 2``, what a quadratic form ``x^T A x / 2`` sees (dense or sparse): the
+    entries that differ from their mirror replaced by their mean (halved first, so nothing
+    overflows), the others kept exactly. Solvers that read one triangle, or a matrix
+    product with A, then analyse the same matrix."""
+    if not isinstance(A, np.ndarray):  # a scipy.sparse matrix
+        A = A.tocsr()
+        return A if (A != A.T).nnz == 0 else (0.5 * A + 0.5 * A.T).tocsr()
+    differ = A != A.T
+    if not differ.any():
+        return A
+    mean = 0.5 * A + 0.5 * A.T
+    return np.where(differ, mean, A)
 
 
 def is_positive_definite(M: np.ndarray) -> bool:
@@ -228,6 +243,7 @@ def sparse_extreme_modes(K, M=None) -> Decoupled:
         raise MatrixError("stiffness", "stiffness has a non-finite entry")
     if n and abs(K - K.T).max() > 1e-12 * abs(K).max():
         raise MatrixError("stiffness", "stiffness must be symmetric")
+    K = symmetric_part(K)
     if M is not None:
         M = sp.csr_matrix(M, dtype=float)
         if M.shape != K.shape:
