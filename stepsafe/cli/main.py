@@ -550,7 +550,8 @@ def _input_error(message: str):
 @click.option("--resonance-order", type=INT, default=None, metavar="N",
               help="Also keep every vibration below its first nonlinear resonance "
                    "n theta = 2 pi m of order n <= N (3 or more; Verlet: 4:1 at "
-                   "beta*h = sqrt 2, 3:1 at sqrt 3).")
+                   "beta*h = sqrt 2, 3:1 at sqrt 3). The points only: the band around "
+                   "each widens with amplitude; resonances between modes are not analysed.")
 @click.option("--solver", type=click.Choice(("fixed-point", "newton", "nominal")),
               default="fixed-point", show_default=True,
               help="With --tol-*: how implicit methods' evaluations per step are counted "
@@ -607,6 +608,10 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, crite
         from stepsafe.cli.report import print_system
 
         print_system(data["system"], every_mode, data.get("time_unit"))
+    if resonance_order is not None and not as_json:
+        from stepsafe.cli.report import RESONANCE_CAVEAT
+
+        click.echo(RESONANCE_CAVEAT)
     if verdict and not as_json:
         _print_verify(verdict)
     _exit_if_unverified(verdict)
@@ -620,7 +625,9 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, crite
                    "limiting when there are more).")
 @click.option("--resonance-order", type=INT, default=None, metavar="N",
               help="Also fail a vibration at or beyond its first nonlinear resonance "
-                   "n theta = 2 pi m of order n <= N (3 or more).")
+                   "n theta = 2 pi m of order n <= N (3 or more). The points only: the "
+                   "band around each widens with amplitude; resonances between modes are "
+                   "not analysed.")
 @click.option("--solver", type=click.Choice(("fixed-point", "newton")), default="fixed-point",
               show_default=True,
               help="How an implicit method's stages are solved: with fixed-point iteration a "
@@ -678,6 +685,10 @@ def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as
                 print_system(data["system"], every_mode, data.get("time_unit"))
             if "verify" in data:
                 _print_verify(data["verify"])
+        if resonance_order is not None:
+            from stepsafe.cli.report import RESONANCE_CAVEAT
+
+            click.echo(RESONANCE_CAVEAT)
     for verdict in verdicts:
         _exit_if_unverified(verdict)
     if unsafe:

@@ -388,6 +388,13 @@ def print_check(data: dict[str, Any]) -> None:
     _print_other_criterion(click.echo, data, u)
 
 
+#: What ``--resonance-order`` does not cover, printed under its verdicts.
+RESONANCE_CAVEAT = ("Note: --resonance-order excludes the resonance points; the unstable band "
+                    "around each widens with the amplitude of the motion, and resonances "
+                    "between modes (n1 theta1 + n2 theta2 = 2 pi m) are not analysed: keep a "
+                    "margin below them.")
+
+
 def _criterion_words(data: dict[str, Any]) -> str:
     return (" (criterion: stability, the type only)"
             if data.get("criterion") == "stability" else "")
