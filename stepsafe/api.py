@@ -517,7 +517,7 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
         tree, where, folder = ((system, "system", Path(".")) if system is not None
                                else (loaded.system, loaded.where, loaded.folder))
         report = analyse_system(tree, where, folder, integrator.tableau, zmax, progress,
-                                deadline)
+                                deadline, loaded.time_unit)
         arrays = report.modes.betas if report.modes is not None else {"oscillator": [0.0]}
         labels = {}
     else:

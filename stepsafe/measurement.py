@@ -192,7 +192,7 @@ def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Pa
     integrator = _integrator(method)
     time_unit = known_time_unit(time_unit)
     hs = _steps(steps)
-    problem = _problem(integrator, scene, system, initial, energy)
+    problem = _problem(integrator, scene, system, initial, energy, time_unit)
     if time is None:
         if problem.beta is None:
             raise StepsafeError("give the time to integrate (--time T): the start orbits no "
@@ -368,7 +368,8 @@ def _prediction(integrator: Integrator, beta: float | None, h: float, T: float
 
 
 def _problem(integrator: Integrator, scene: Any, system: Mapping[str, Any] | None,
-             initial: Sequence[float] | None, energy: float | None) -> _Problem:
+             initial: Sequence[float] | None, energy: float | None,
+             time_unit: str | None = None) -> _Problem:
     from stepsafe.systems.scene import load_scene
 
     if energy is not None:
@@ -376,7 +377,8 @@ def _problem(integrator: Integrator, scene: Any, system: Mapping[str, Any] | Non
     if system is not None:
         tree, where, folder = system, "system", Path(".")
     elif scene is not None:
-        loaded = load_scene(scene)
+        loaded = load_scene(scene, time_unit)
+        time_unit = loaded.time_unit
         if loaded.system is None:
             raise StepsafeError("measure needs a scene with system: (a Hamiltonian "
                                 "expression or a linear system), not modes:", loaded.where)
@@ -393,7 +395,7 @@ def _problem(integrator: Integrator, scene: Any, system: Mapping[str, Any] | Non
     if energy is not None:
         raise StepsafeError("--energy applies to Hamiltonian expressions; give --initial for "
                             "a linear system")
-    return _linear_problem(tree, where, folder, initial)
+    return _linear_problem(tree, where, folder, initial, time_unit)
 
 
 def _expression_problem(integrator, tree, where, folder, initial, energy) -> _Problem:
@@ -579,10 +581,11 @@ def _momentum_for(system, q: float, p: float, energy: float) -> float:
     return hi
 
 
-def _linear_problem(tree, where, folder, initial) -> _Problem:
+def _linear_problem(tree, where, folder, initial, time_unit: str | None = None
+                    ) -> _Problem:
     from stepsafe.systems.dynamics import exact_linear, linear_system, stiffness_hessian
     from stepsafe.systems.linear import check_square
-    from stepsafe.systems.loader import _matrix
+    from stepsafe.systems.loader import _matrix, units_scale
 
     keys = set(tree)
     if "hessian" in keys:
@@ -593,6 +596,13 @@ def _linear_problem(tree, where, folder, initial) -> _Problem:
             raise StepsafeError("measure runs Hamiltonian expressions and linear systems "
                                 "(stiffness, precision, covariance or hessian)", where)
         A = check_square(_matrix(tree[key], where, key, folder), key)
+        scale = units_scale(tree, where, time_unit) if key == "stiffness" else None
+        if scale is not None:
+            with np.errstate(over="ignore"):
+                A = A * scale
+            if not np.all(np.isfinite(A)):
+                raise StepsafeError("the stiffness overflows in rad per time unit (units:)",
+                                    f"{where}::$.system.{key}")
         if key == "covariance":
             A = np.linalg.inv(A)
         M = check_square(_matrix(tree["mass"], where, "mass", folder), "mass") \

@@ -199,3 +199,37 @@ def any_frequency(value: object, time: str | None) -> float:
                 else "period" if unit in TIME_UNITS else "frequency")
         return angular_frequency(form, number, unit, time)
     return quantity(value, "beta", time)
+
+
+# ------------------------------------------------------------------ units of K and M
+
+#: The Avogadro constant, 1/mol (exact in the SI since 2019).
+AVOGADRO = Fraction(602_214_076) * 10**15
+#: Energy units of a stiffness (per length squared), in joules: the calorie is 4.184 J and
+#: the electronvolt 1.602176634e-19 J exactly; the hartree is CODATA 2022's.
+ENERGY_UNITS: dict[str, Fraction] = {
+    "J": Fraction(1), "kJ/mol": Fraction(1000) / AVOGADRO,
+    "kcal/mol": Fraction(4184) / AVOGADRO, "eV": Fraction("1.602176634e-19"),
+    "hartree": Fraction("4.3597447222060e-18"),
+}
+#: Length units, in metres (the bohr radius is CODATA 2022's).
+LENGTH_UNITS: dict[str, Fraction] = {
+    "m": Fraction(1), "nm": Fraction(1, 10**9), "angstrom": Fraction(1, 10**10),
+    "pm": Fraction(1, 10**12), "bohr": Fraction("5.29177210544e-11"),
+}
+#: Mass units, in kilograms: the atomic mass constant (``amu``, also ``u``, ``Da``) and the
+#: electron mass are CODATA 2022's; ``g/mol`` is 1e-3 kg over the Avogadro constant.
+MASS_UNITS: dict[str, Fraction] = {
+    "kg": Fraction(1), "amu": Fraction("1.66053906892e-27"),
+    "u": Fraction("1.66053906892e-27"), "Da": Fraction("1.66053906892e-27"),
+    "g/mol": Fraction(1, 1000) / AVOGADRO, "me": Fraction("9.1093837139e-31"),
+}
+
+
+def stiffness_scale(energy: str, length: str, mass: str, time: str) -> Fraction:
+    """The factor that brings a stiffness in ``energy/length^2`` against a mass in
+    ``mass`` to rad per ``time`` unit: ``K M^-1`` has the unit ``1 / t0^2`` with
+    ``t0^2 = mass length^2 / energy``, so ``omega^2`` in rad^2 per ``time^2`` is the
+    eigenvalue times ``(time / t0)^2 = time^2 energy / (mass length^2)`` (exact)."""
+    return (TIME_UNITS[time] ** 2 * ENERGY_UNITS[energy]
+            / (MASS_UNITS[mass] * LENGTH_UNITS[length] ** 2))

@@ -244,3 +244,55 @@ def test_a_wavenumber_csv_needs_a_time_unit_and_names_a_bad_line(run, tmp_path):
     path.write_text("wavenumber\n3700\n-3\n")
     code, _, err = run("advise", "--method", "verlet", "--modes", str(path), "--time-unit", "fs")
     assert code == 2 and "spectrum.csv::$.line 3.wavenumber" in err
+
+
+def _t0_squared_mp(energy: str, length: str, mass: str) -> mpmath.mpf:
+    """t0^2 = mass length^2 / energy in s^2, from the SI definitions and CODATA 2022
+    values written out here (independent of stepsafe.units)."""
+    with mpmath.workdps(50):
+        avogadro = mpmath.mpf("6.02214076e23")
+        joules = {"J": 1, "kJ/mol": 1000 / avogadro, "kcal/mol": mpmath.mpf(4184) / avogadro,
+                  "eV": mpmath.mpf("1.602176634e-19"), "hartree": mpmath.mpf("4.3597447222060e-18")}
+        metres = {"m": 1, "nm": mpmath.mpf("1e-9"), "angstrom": mpmath.mpf("1e-10"),
+                  "pm": mpmath.mpf("1e-12"), "bohr": mpmath.mpf("5.29177210544e-11")}
+        kilograms = {"kg": 1, "amu": mpmath.mpf("1.66053906892e-27"),
+                     "g/mol": mpmath.mpf("1e-3") / avogadro, "me": mpmath.mpf("9.1093837139e-31")}
+        return kilograms[mass] * metres[length] ** 2 / joules[energy]
+
+
+@pytest.mark.parametrize("energy, length, mass, unit", [
+    ("kcal/mol", "angstrom", "amu", "fs"), ("kJ/mol", "nm", "g/mol", "ps"),
+    ("eV", "angstrom", "amu", "fs"), ("hartree", "bohr", "me", "as"), ("J", "m", "kg", "s")])
+def test_a_stiffness_in_md_units_gives_h_in_the_scene_time_unit(run_json, tmp_path, energy,
+                                                                length, mass, unit):
+    """K = 900 and M = 0.94 in the given units: verlet's h_max = 2 / omega with
+    omega^2 = (K / M) / t0^2 converted to the scene's time unit, against 50 digits
+    (kcal/mol, angstrom, amu: t0 = 48.888212934 fs, h_max = 3.1619022 fs)."""
+    K, M = 900.0, 0.9411764705882353
+    path = tmp_path / "scene.yaml"
+    path.write_text(f"method: verlet\ntime_unit: {unit}\nsystem:\n  stiffness: [[{K!r}]]\n"
+                    f"  mass: [[{M!r}]]\n  units: {{energy: {energy}, length: {length}, "
+                    f"mass: {mass}}}\n")
+    seconds = {"fs": mpmath.mpf("1e-15"), "ps": mpmath.mpf("1e-12"), "as": mpmath.mpf("1e-18"), "s": 1}
+    with mpmath.workdps(50):
+        omega = mpmath.sqrt(mpmath.mpf(K) / mpmath.mpf(M) / _t0_squared_mp(energy, length, mass))
+        want = 2 / (omega * seconds[unit])
+    got = run_json("advise", str(path))["h_max"]
+    assert got == pytest.approx(float(want), rel=1e-12) and got <= want
+    if (energy, length, mass) == ("kcal/mol", "angstrom", "amu"):
+        assert float(mpmath.sqrt(_t0_squared_mp(energy, length, mass))) == \
+            pytest.approx(48.888212934e-15, rel=1e-10)
+
+
+@pytest.mark.parametrize("units, key", [
+    ("{energy: kcal/mol, length: angstrom, mass: amu}", "units"),  # no time_unit
+    ("{energy: kcal, length: angstrom, mass: amu}", "units.energy"),
+    ("{energy: eV, length: A, mass: amu}", "units.length"),
+    ("{energy: eV, length: nm}", "units")])
+def test_bad_units_name_the_key(run, tmp_path, units, key):
+    path = tmp_path / "scene.yaml"
+    unit = "" if key == "units" and "mass" in units else "time_unit: fs\n"
+    path.write_text(f"method: verlet\nh: 1\n{unit}system:\n  stiffness: [[900.0]]\n"
+                    f"  units: {units}\n")
+    code, _, err = run("check", str(path))
+    assert code == 2 and f"$.system.{key}:" in err and len(err.strip().splitlines()) == 1, err

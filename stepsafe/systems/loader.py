@@ -34,7 +34,7 @@ DENSE_LIMIT = 2000
 EQUILIBRIUM_ERROR = 8 * float(np.finfo(float).eps)
 SYSTEM_KEYS = {"stiffness", "precision", "covariance", "mass", "hessian", "hamiltonian",
                "parameters", "box", "q", "p", "energy_below", "starts", "sizes", "fixed",
-               "all_modes"}
+               "all_modes", "units"}
 
 
 class SystemReport(NamedTuple):
@@ -112,9 +112,11 @@ def _float(value: Any, where: str, key: str) -> float:
 
 def analyse_system(tree: Any, where: str, folder: Path, method: Method,
                    zmax: float = 10.0, progress: Callable[[float], None] | None = None,
-                   deadline: float | None = None) -> SystemReport:
+                   deadline: float | None = None, time_unit: str | None = None
+                   ) -> SystemReport:
     """Read a ``system:`` mapping and decide the analysis for ``method`` (``progress`` and
-    ``deadline``: see :func:`stepsafe.systems.coupled.coupled_safe_steps`)."""
+    ``deadline``: see :func:`stepsafe.systems.coupled.coupled_safe_steps`; ``time_unit``:
+    the scene's, which a stiffness given with ``units:`` is converted to)."""
     from stepsafe.exceptions import StepsafeError as _E
 
     if not isinstance(tree, dict):
@@ -135,12 +137,15 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
             raise _fail(where, "all_modes", "must be true or false, beside a stiffness or "
                                             f"precision, got {tree['all_modes']!r}")
         all_modes = flag == "true"
+    if "units" in tree and kinds[0] != "stiffness":
+        raise _fail(where, "units", f"units: go with a stiffness (and mass), not with "
+                                    f"{kinds[0]}")
     if "mass" in tree and kinds[0] not in ("stiffness", "precision", "covariance"):
         raise _fail(where, "mass", f"a mass goes with a stiffness, precision or covariance, "
                                    f"not with {kinds[0]} (it would be ignored)")
     try:
         if kinds[0] in ("stiffness", "precision"):
-            report = _stiffness(tree, where, folder, kinds[0], all_modes)
+            report = _stiffness(tree, where, folder, kinds[0], all_modes, time_unit)
         elif kinds[0] == "covariance":
             report = _covariance(tree, where, folder)
         elif kinds[0] == "hessian":
@@ -201,17 +206,50 @@ def _covariance(tree, where, folder) -> SystemReport:
     return _report_modes(d.modes, d.analysis, [])
 
 
-def _stiffness(tree, where, folder, key: str = "stiffness", all_modes: bool = False
-               ) -> SystemReport:
+def units_scale(tree: dict, where: str, time_unit: str | None) -> float | None:
+    """The factor a stiffness given with ``units: {energy:, length:, mass:}`` is multiplied
+    by so that its frequencies (against the mass) are in rad per ``time_unit``
+    (:func:`stepsafe.units.stiffness_scale`); None without ``units:``."""
+    from stepsafe.units import ENERGY_UNITS, LENGTH_UNITS, MASS_UNITS, stiffness_scale
+
+    if "units" not in tree:
+        return None
+    units = tree["units"]
+    table = {"energy": ENERGY_UNITS, "length": LENGTH_UNITS, "mass": MASS_UNITS}
+    if not isinstance(units, dict) or set(units) != set(table):
+        raise _fail(where, "units", "must be a mapping {energy:, length:, mass:}, e.g. "
+                                    "{energy: kcal/mol, length: angstrom, mass: amu}")
+    for part, known in table.items():
+        if units[part] not in known:
+            raise _fail(where, f"units.{part}", f"must be one of {', '.join(known)}, got "
+                                                f"{units[part]!r}")
+    if time_unit is None:
+        raise _fail(where, "units", "give the scene's time_unit: (or --time-unit): the "
+                                    "frequencies of K and M in these units are per it")
+    return float(stiffness_scale(units["energy"], units["length"], units["mass"], time_unit))
+
+
+def _stiffness(tree, where, folder, key: str = "stiffness", all_modes: bool = False,
+               time_unit: str | None = None) -> SystemReport:
     from stepsafe.systems.linear import is_diagonal, separable_modes, sparse_extreme_modes
 
     K = _matrix(tree[key], where, key, folder, sparse_ok=True)
+    scale = units_scale(tree, where, time_unit)
+    if scale is not None:
+        with np.errstate(over="ignore"):
+            K = K * scale
+        if not np.all(np.isfinite(K.data if hasattr(K, "tocsr") else K)):
+            raise _fail(where, key, "overflows in rad per time unit (units:)")
+        units = tree["units"]
+        notes = [f"K in {units['energy']}/{units['length']}^2 against M in {units['mass']}: "
+                 f"frequencies in rad/{time_unit}"]
+    else:
+        notes = []
     M = _matrix(tree["mass"], where, "mass", folder, sparse_ok=True) if "mass" in tree else None
     if M is not None and K.shape[0] == K.shape[1] and M.shape != K.shape:
         # before any dense copy of a sparse mass
         raise _fail(where, "mass", f"mass is {'x'.join(map(str, M.shape))} but stiffness is "
                                    f"{'x'.join(map(str, K.shape))}")
-    notes: list[str] = []
     sparse = hasattr(K, "tocsr")
     if K.shape[0] > DENSE_LIMIT and not all_modes and \
             (sparse or M is None or is_diagonal(M)):
