@@ -273,9 +273,11 @@ def test_a_stiffness_in_md_units_gives_h_in_the_scene_time_unit(run_json, tmp_pa
     path.write_text(f"method: verlet\ntime_unit: {unit}\nsystem:\n  stiffness: [[{K!r}]]\n"
                     f"  mass: [[{M!r}]]\n  units: {{energy: {energy}, length: {length}, "
                     f"mass: {mass}}}\n")
-    seconds = {"fs": mpmath.mpf("1e-15"), "ps": mpmath.mpf("1e-12"), "as": mpmath.mpf("1e-18"), "s": 1}
+    seconds = {"fs": mpmath.mpf("1e-15"), "ps": mpmath.mpf("1e-12"),
+               "as": mpmath.mpf("1e-18"), "s": 1}
     with mpmath.workdps(50):
-        omega = mpmath.sqrt(mpmath.mpf(K) / mpmath.mpf(M) / _t0_squared_mp(energy, length, mass))
+        omega = mpmath.sqrt(mpmath.mpf(K) / mpmath.mpf(M)
+                            / _t0_squared_mp(energy, length, mass))
         want = 2 / (omega * seconds[unit])
     got = run_json("advise", str(path))["h_max"]
     assert got == pytest.approx(float(want), rel=1e-12) and got <= want

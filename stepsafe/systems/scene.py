@@ -134,7 +134,8 @@ def json_schema() -> dict[str, Any]:
                     "label": {"type": "string"}}}},
             "system": {"type": "object", "description":
                        "a whole system: {stiffness:, mass:}, with units: {energy:, length:, "
-                       "mass:} to convert them to rad per time_unit, with all_modes: true to analyse every mode of a stiffness over 2000 "
+                       "mass:} to convert them to rad per time_unit, with all_modes: true "
+                       "to analyse every mode of a stiffness over 2000 "
                        "rows (islands too; a dense eigendecomposition), "
                        "{precision:, mass:} or {covariance:, mass:} (a Gaussian target), "
                        "{hessian:}, {hamiltonian:, parameters:, box: {q:, p:}} (1 dof), "
