@@ -437,3 +437,33 @@ def test_a_nearly_symmetric_stiffness_is_analysed_as_its_symmetric_part(tmp_path
         got.append(run_json("advise", str(path))["h_max"])
     assert got[0] == got[1]
     assert got[0] <= 2 / np.sqrt(top)
+
+
+@pytest.mark.parametrize("barrier", [False, True])
+def test_a_large_sparse_stiffness_has_a_barrier_only_if_it_has_one(tmp_path, run_json,
+                                                                   barrier):
+    """A 2500-dof chain with springs over six decades: its smallest eigenvalue sits in a
+    cluster the eigensolver does not resolve within its budget. A sparse LDL^T (all
+    pivots positive) proves there is no barrier; with one spring negative enough to make
+    K indefinite, the barrier is kept (its rate the Gershgorin bound, conservatively, or
+    the eigensolver's)."""
+    import scipy.sparse as sp
+
+    n = 2500
+    k = 10.0 ** np.random.default_rng(3).uniform(-3, 3, n + 1)  # springs, both ends fixed
+    if barrier:
+        k[n // 2] = -0.5 * min(k[n // 2 - 1], k[n // 2 + 1])  # a negative curvature
+    K = sp.diags([-k[1:n], k[:n] + k[1:], -k[1:n]], [-1, 0, 1], format="csr")
+    from scipy.linalg import eigvalsh_tridiagonal
+
+    lowest = float(eigvalsh_tridiagonal(k[:n] + k[1:], -k[1:n], select="i",
+                                        select_range=(0, 0))[0])
+    sp.save_npz(tmp_path / "K.npz", K)
+    path = tmp_path / "scene.yaml"
+    path.write_text("method: verlet\nsystem: {stiffness: K.npz}\n")
+    items = run_json("advise", str(path))["system"]["items"]
+    barriers = [i for i in items if i["type"] == "hyperbolic"]
+    if barrier:
+        assert lowest < 0 and barriers and barriers[0]["beta"] >= np.sqrt(-lowest) * (1 - 1e-9)
+    else:
+        assert lowest > 0 and not barriers, items

@@ -261,7 +261,8 @@ def sparse_extreme_modes(K, M=None) -> Decoupled:
     scale = max(abs(upper), abs(lower), 1e-300)
     w2, bounded = [], False
     for bound, sign in ((upper, 1.0), (lower, -1.0)):
-        if sign < 0 and (lower >= 0 or (dense and _positive_definite(K))):
+        if sign < 0 and (lower >= 0 or (_positive_definite(K) if dense
+                                        else _sparse_positive_definite(K))):
             break  # no negative w^2: the smallest mode cannot limit h
         sigma = bound + sign * 1e-6 * scale
         try:
@@ -299,6 +300,25 @@ def _positive_definite(K: np.ndarray) -> bool:
     except np.linalg.LinAlgError:
         return False
     return True
+
+
+def _sparse_positive_definite(K) -> bool:
+    """Whether a sparse symmetric K factorises as ``P K P^T = L D L^T`` with every pivot
+    of D positive (SuperLU with a symmetric fill-reducing order and diagonal pivots only,
+    the sparse counterpart of a Cholesky factorisation; by Sylvester's law of inertia K
+    then has no negative eigenvalue). False when the factorisation pivoted off the
+    diagonal or failed: nothing is then ruled out."""
+    from scipy.sparse.linalg import splu
+
+    try:
+        lu = splu(K.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                  options={"SymmetricMode": True})
+    except (RuntimeError, ValueError, MemoryError):
+        return False
+    if not np.array_equal(lu.perm_r, lu.perm_c):
+        return False
+    pivots = lu.U.diagonal()
+    return bool(np.all(np.isfinite(pivots)) and np.all(pivots > 0))
 
 
 def is_diagonal(M) -> bool:
