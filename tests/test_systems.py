@@ -442,25 +442,29 @@ def test_a_nearly_symmetric_stiffness_is_analysed_as_its_symmetric_part(tmp_path
 @pytest.mark.parametrize("barrier", [False, True])
 def test_a_large_sparse_stiffness_has_a_barrier_only_if_it_has_one(tmp_path, run_json,
                                                                    barrier):
-    """A 2500-dof chain with springs over six decades: its smallest eigenvalue sits in a
-    cluster the eigensolver does not resolve within its budget. A sparse LDL^T (all
-    pivots positive) proves there is no barrier; with one spring negative enough to make
-    K indefinite, the barrier is kept (its rate the Gershgorin bound, conservatively, or
-    the eigensolver's)."""
+    """A 2500-dof chain, springs over 12 decades and masses over 6: its lowest
+    eigenvalues cluster near 0 and the eigensolver does not resolve them within its
+    budget. A sparse LDL^T (all pivots positive) proves there is no barrier; with one
+    spring negative enough to make K indefinite, the barrier is kept (its rate the
+    eigensolver's or, conservatively, the Gershgorin bound's)."""
     import scipy.sparse as sp
-
-    n = 2500
-    k = 10.0 ** np.random.default_rng(3).uniform(-3, 3, n + 1)  # springs, both ends fixed
-    if barrier:
-        k[n // 2] = -0.5 * min(k[n // 2 - 1], k[n // 2 + 1])  # a negative curvature
-    K = sp.diags([-k[1:n], k[:n] + k[1:], -k[1:n]], [-1, 0, 1], format="csr")
+    from scipy.io import mmwrite
     from scipy.linalg import eigvalsh_tridiagonal
 
-    lowest = float(eigvalsh_tridiagonal(k[:n] + k[1:], -k[1:n], select="i",
-                                        select_range=(0, 0))[0])
-    sp.save_npz(tmp_path / "K.npz", K)
+    n = 2500
+    rng = np.random.default_rng(1)
+    k = 10.0 ** rng.uniform(-6, 6, n + 1)  # springs, both ends fixed
+    m = 10.0 ** rng.uniform(-3, 3, n)
+    if barrier:
+        k[n // 2] = -2 * max(k[n // 2 - 1], k[n // 2 + 1])  # a negative curvature
+    K = sp.diags([-k[1:n], k[:n] + k[1:], -k[1:n]], [-1, 0, 1], format="csr")
+    # the lowest w^2 of K v = w^2 M v, from the tridiagonal M^-1/2 K M^-1/2
+    lowest = float(eigvalsh_tridiagonal((k[:n] + k[1:]) / m, -k[1:n] / np.sqrt(m[1:] * m[:-1]),
+                                        select="i", select_range=(0, 0))[0])
+    mmwrite(tmp_path / "K.mtx", K, symmetry="symmetric", precision=17)
+    mmwrite(tmp_path / "M.mtx", sp.diags(m, format="csr"), symmetry="symmetric", precision=17)
     path = tmp_path / "scene.yaml"
-    path.write_text("method: verlet\nsystem: {stiffness: K.npz}\n")
+    path.write_text("method: verlet\nsystem: {stiffness: K.mtx, mass: M.mtx}\n")
     items = run_json("advise", str(path))["system"]["items"]
     barriers = [i for i in items if i["type"] == "hyperbolic"]
     if barrier:

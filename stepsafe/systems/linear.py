@@ -267,8 +267,12 @@ def sparse_extreme_modes(K, M=None) -> Decoupled:
         sigma = bound + sign * 1e-6 * scale
         try:
             with blas_threads_for(n):
+                # a fixed start vector: ARPACK's own is drawn from a generator whose state
+                # carries over between calls, so the answer would depend on the history
+                # of the process (the budget can run out on one start and not another)
+                start = np.random.default_rng(0).standard_normal(n)
                 vals = eigsh(K if dense else K.tocsc(), k=1, sigma=sigma, which="LM",
-                             return_eigenvectors=False, tol=1e-13,
+                             v0=start, return_eigenvectors=False, tol=1e-13,
                              maxiter=int(min(500, max(3, EIGSH_WORK / (20 * max(n, 1))))))
             w2.append(float(vals[0]))
         except (ArpackNoConvergence, RuntimeError):
