@@ -46,7 +46,7 @@ def _check_certified_floor(seed, N, log_scale, offset):
     scale = 10.0**log_scale
     W = _symmetric_with(rng, N, 0.0, scale)
     floor = float(rng.uniform(0, 1e-3)) * scale
-    W[np.diag_indices(N)] += floor + offset * allowance(W)
+    W[np.diag_indices(N)] += floor + offset * allowance(W, floor)
     found = smallest(W, floor)
     truth = _lambda_min_mp(W)
     if found.certified:

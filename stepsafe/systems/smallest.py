@@ -35,7 +35,7 @@ UNIT_ROUNDOFF = 2.0**-53
 #: factorisation 0.04 s and 40 Lanczos steps 0.05 s).
 LANCZOS_FROM = 256
 #: Relative error estimate at which a Lanczos Ritz value is accepted.
-LANCZOS_TOL = 1e-12
+LANCZOS_TOL = 1e-10
 #: Lanczos steps at most (the value is then the last Ritz value, still an upper bound).
 LANCZOS_STEPS = 120
 
@@ -50,16 +50,17 @@ class Smallest:
     vector: np.ndarray | None = None  #: the Ritz vector (Lanczos only), for a warm start
 
 
-def allowance(W: np.ndarray) -> float:
-    """A bound on what a completed Cholesky factorisation of ``W - tau I`` (``tau >= 0``)
-    can hide: ``gamma_(N+1) trace^+ / (1 - gamma_(N+1))`` plus the rounding of the
-    shifted diagonal (see module); at least the eigensolver's ``4 N u ||W||_F``."""
+def allowance(W: np.ndarray, floor: float = 0.0) -> float:
+    """A bound on what a completed Cholesky factorisation of ``W - tau I`` (``tau`` the
+    floor plus this, ``floor >= 0``) can hide: ``gamma_(N+1) trace^+ / (1 - gamma_(N+1))``
+    plus the rounding of the shifted diagonal (see module); at least the eigensolver's
+    ``4 N u ||W||_F``."""
     N = W.shape[0]
     diagonal = np.diagonal(W)
     gamma = (N + 1) * UNIT_ROUNDOFF / (1 - (N + 1) * UNIT_ROUNDOFF)
     trace = float(np.maximum(diagonal, 0.0).sum())
     factorisation = 1.01 * gamma / (1 - gamma) * trace
-    shifted = 2 * UNIT_ROUNDOFF * float(np.abs(diagonal).max(initial=0.0))
+    shifted = 2 * UNIT_ROUNDOFF * (float(np.abs(diagonal).max(initial=0.0)) + floor)
     largest = max(float(W.max(initial=0.0)), -float(W.min(initial=0.0)))
     if 1e-150 < largest < 1e150:
         frobenius = float(np.linalg.norm(W))
@@ -76,7 +77,7 @@ def smallest(W: np.ndarray, floor: float, start: np.ndarray | None = None) -> Sm
     vector of a nearby W). W is not modified; a W that is not finite has value -inf."""
     if not np.all(np.isfinite(W)):
         return Smallest(-np.inf, False, floor)
-    shift = floor + allowance(W)
+    shift = floor + allowance(W, floor)
     A = np.array(W, order="F")  # (Fortran order: LAPACK and BLAS take it without a copy)
     A[np.diag_indices_from(A)] -= shift
     R, info = lapack.dpotrf(A, lower=0, clean=0, overwrite_a=1)
