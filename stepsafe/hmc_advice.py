@@ -15,8 +15,9 @@ trajectory's. Each proposal pays P and P^-1 once: ``2 n_P`` gradient evaluations
 flip ``S`` and a palindromic kernel (``S K S = K^-1``), ``S (P^-1 K^L P) S`` is the
 inverse of the proposal only when ``S P S = P``; a drift/kick processor has
 ``S P_h S = P_-h``, so the proposal is reversible only for a processor even in h, and an
-HMC chain with any other does not satisfy detailed balance (the acceptance is still as
-predicted). ``P* K^L P`` with ``P* = S P^-1 S`` (the processor's adjoint) would be
+HMC chain with any other does not satisfy detailed balance: it drifts away from the
+target, and the predicted acceptance is only that of a proposal from the target. Such
+methods are listed but not ranked. ``P* K^L P`` with ``P* = S P^-1 S`` (the processor's adjoint) would be
 reversible for every P; it is not the L-th power of one map and is not offered here.
 Such methods are flagged as not symmetric.
 """
@@ -176,13 +177,14 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
                          p.zmax, curve, gradient_cost))
         if progress is not None:
             progress((k + 1) / len(integrators))
-    ranked = sorted(rows, key=lambda r: (r.gradients_per_time is None,
-                                         r.gradients_per_time or 0.0))
+    # a method that is not reversible does not sample the target: listed, not ranked
+    usable = [r.gradients_per_time is not None and r.symmetric for r in rows]
+    order = sorted(range(len(rows)), key=lambda k: (not usable[k],
+                                                    rows[k].gradients_per_time or 0.0))
     out, rank = [], 0
-    for r in ranked:
-        if r.gradients_per_time is not None:
-            rank += 1
-        out.append(HmcRow(**{**r.__dict__, "rank": rank if r.gradients_per_time else None}))
+    for k in order:
+        rank += usable[k]
+        out.append(HmcRow(**{**rows[k].__dict__, "rank": rank if usable[k] else None}))
     positive = betas[betas > 0]
     from stepsafe.core.hmc import MAX_EXACT_MODES
 
@@ -236,10 +238,12 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
     if not symmetric and getattr(m, "kind", "") == "processed":
         notes.append("not reversible: with the momentum flip S, S P^-1 K^L P S is not the "
                      "inverse of the proposal unless S P S = P, so an HMC chain with it does "
-                     "not satisfy detailed balance; the acceptance is still as predicted")
+                     "not satisfy detailed balance and drifts away from the target; the "
+                     "acceptance shown is that of a proposal from the target (not ranked)")
     elif not symmetric:
-        notes.append("not symmetric: the HMC chain is not reversible with it (alternate it "
-                     "with its adjoint); the acceptance is still as predicted")
+        notes.append("not symmetric: the HMC chain is not reversible with it and drifts away "
+                     "from the target (alternate it with its adjoint); the acceptance shown "
+                     "is that of a proposal from the target (not ranked)")
     z_stab = region.stability_limit if region.stability_limit is not None else region.zmax
     if region.stability_limit is None:
         notes.append(f"stable up to z = {region.zmax:g}, as far as analysed: the stability h "

@@ -351,3 +351,39 @@ def test_a_kernel_that_is_not_a_splitting_is_refused_naming_the_key(tmp_path, ru
                     "kernel: rk4\nprocessor: {drift: [0.1, -0.1], kick: [0.2, -0.2]}\n")
     code, _, err = run("region", str(path))
     assert code == 2 and "::$.kernel" in err
+
+
+def test_an_hmc_chain_with_the_processed_method_drifts_from_the_target():
+    """Measured (review 22): with P^-1 K^L P as the proposal, the first transition from
+    the target accepts as predicted, but the chain is not reversible and leaves the
+    target (the whitened variance of q grows); a verlet chain on the same target, moving
+    as much, stays on it. hmc says so and does not rank the processed method."""
+    sigmas = np.array([1.0, 0.3, 0.01])
+    L, chains, transitions = 20, 4000, 150
+    report = hmc([NAME, "verlet"], sigma=list(sigmas), steps=L, step=0.0204357)
+    rows = {r.method: r for r in report.rows}
+    assert rows[NAME].rank is None and rows["verlet"].rank == 1
+
+    def chain(name, h):
+        m = resolve(name)[0]
+        proposal = [np.linalg.matrix_power(transfer_matrix(m, h / s)[0], L) for s in sigmas]
+        rng = np.random.default_rng(5)
+        x = rng.standard_normal((chains, 3, 2))  # whitened (q / sigma, p), from the target
+        first = None
+        for k in range(transitions):
+            x[:, :, 1] = rng.standard_normal((chains, 3))
+            new = np.stack([x[:, i] @ proposal[i].T for i in range(3)], axis=1)
+            dH = 0.5 * ((new ** 2).sum(axis=(1, 2)) - (x ** 2).sum(axis=(1, 2)))
+            accept = rng.random(chains) < np.exp(-np.maximum(dH, 0.0))
+            x[accept] = new[accept]
+            if k == 0:
+                first = np.minimum(1.0, np.exp(-dH))
+        return first, (x[:, :, 0] ** 2).mean()
+
+    first, variance = chain(NAME, 0.0204357)
+    predicted = rows[NAME].at_step["acceptance"]
+    assert abs(first.mean() - predicted) < 4 * first.std() / np.sqrt(chains)
+    se = np.sqrt(2.0 / (3 * chains))  # of a mean of 3 chains x 4000 chi^2_1 / 1 draws
+    assert variance > 1 + 10 * se, variance
+    first, variance = chain("verlet", 0.015)  # (z = 1.5 on the fastest mode)
+    assert first.mean() > 0.3 and abs(variance - 1) < 4 * se, (first.mean(), variance)
