@@ -17,9 +17,9 @@ inverse of the proposal only when ``S P S = P``; a drift/kick processor has
 ``S P_h S = P_-h``, so the proposal is reversible only for a processor even in h, and an
 HMC chain with any other does not satisfy detailed balance: it drifts away from the
 target, and the predicted acceptance is only that of a proposal from the target. Such
-methods are listed but not ranked. ``P* K^L P`` with ``P* = S P^-1 S`` (the processor's adjoint) would be
-reversible for every P; it is not the L-th power of one map and is not offered here.
-Such methods are flagged as not symmetric.
+methods are listed but not ranked. ``P* K^L P`` with ``P* = S P^-1 S`` (the processor's
+adjoint) would be reversible for every P; it is not the L-th power of one map and is not
+offered here.
 """
 
 from __future__ import annotations
