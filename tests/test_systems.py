@@ -282,11 +282,17 @@ def test_stiff_matrix_keeps_its_slow_barrier(run, tmp_path):
 def test_eigenvalue_within_rounding_of_zero_is_analysed_as_both_types():
     from stepsafe.systems.linear import separable_modes
 
-    K = np.diag([1e12, 1e-9])  # 1e-9 is far below the rounding of 1e12 (~3e-3)
+    c, s = np.cos(0.3), np.sin(0.3)
+    Q = np.array([[c, -s], [s, c]])
+    K = Q @ np.diag([1e12, 1e-9]) @ Q.T  # 1e-9 is far below the rounding of 1e12 (~3e-3)
     modes = separable_modes(K).modes
     undecided = [m for m in modes if not m.decided]
     assert {m.model for m in undecided} == {"oscillator", "inverted"}
     assert all(m.beta >= np.sqrt(1e-9) for m in undecided)
+    # a diagonal K is decoupled already: its entries are the eigenvalues, exactly
+    modes = separable_modes(np.diag([1e12, 1e-9]), np.diag([2.0, 1e-300])).modes
+    assert all(m.decided and m.model == "oscillator" for m in modes)
+    assert sorted(m.beta for m in modes) == [np.sqrt(1e12 / 2.0), np.sqrt(1e-9 / 1e-300)]
 
 
 def test_large_sparse_system_is_safe_only_from_zero(run, tmp_path):

@@ -127,6 +127,16 @@ def separable_modes(K, M=None) -> Decoupled:
         with blas_threads_for(n):
             if not is_positive_definite(M):
                 raise MatrixError("mass", "mass must be positive definite")
+    if is_diagonal(K) and (M is None or is_diagonal(M)):
+        # decoupled already: w^2 = k_i / m_i, one rounding each (an eigensolver's absolute
+        # bound, n eps |K|, would leave 1e-16 of a 1e16-conditioned diagonal undecided)
+        with np.errstate(all="ignore"):
+            w2 = np.diagonal(K) / (1.0 if M is None else np.diagonal(M))
+        if not np.all(np.isfinite(w2)) or np.any((w2 == 0) & (np.diagonal(K) != 0)):
+            raise MatrixError("stiffness", "the eigenvalues w^2 of K v = w^2 M v are beyond "
+                                           "the float64 range; rescale the units of K or M")
+        return Decoupled(_modes_from_w2(np.sort(w2), 0.0),
+                         "decoupled: separable H, diagonal K and M (w^2 = k_i / m_i)")
     try:
         with np.errstate(all="ignore"), blas_threads_for(n):
             w2 = eigh(K, M, eigvals_only=True)  # M None: the standard problem
@@ -192,14 +202,14 @@ def _modes_from_w2(w2: np.ndarray, error: float) -> tuple[LinearMode, ...]:
     """Modes from the eigenvalues ``w^2``, each known to ``error`` (absolute). An
     eigenvalue within ``error`` of 0 has no decided sign: it might be a slow vibration or
     a slow barrier of rate up to ``sqrt(error)``, so it is analysed as both at that rate
-    (zero, a free mode, only when exactly 0). A stiff system keeps its slow modes: in
+    (a free mode only when exactly 0 with no rounding: a diagonal K). A stiff system keeps its slow modes: in
     ``diag(1e12, -1)`` the barrier of rate 1 is far above the rounding (~1e-3)."""
     out = []
     for value in w2:
         rel = 0.5 * error / abs(value) + 2 * EPS if value else 0.0  # of sqrt|w^2|
-        if value == 0:
+        if value == 0 and error == 0:
             out.append(LinearMode(0.0, "free", complex(value)))
-        elif abs(value) <= error:
+        elif abs(value) <= error:  # (a computed 0 too: its sign is not decided either)
             rate = float(np.sqrt(error))  # the rate is anywhere in [0, rate]
             out += [LinearMode(rate, "oscillator", complex(value), False, 1.0),
                     LinearMode(rate, "inverted", complex(value), False, 1.0)]
