@@ -202,8 +202,9 @@ def _modes_from_w2(w2: np.ndarray, error: float) -> tuple[LinearMode, ...]:
     """Modes from the eigenvalues ``w^2``, each known to ``error`` (absolute). An
     eigenvalue within ``error`` of 0 has no decided sign: it might be a slow vibration or
     a slow barrier of rate up to ``sqrt(error)``, so it is analysed as both at that rate
-    (a free mode only when exactly 0 with no rounding: a diagonal K). A stiff system keeps its slow modes: in
-    ``diag(1e12, -1)`` the barrier of rate 1 is far above the rounding (~1e-3)."""
+    (a free mode only when exactly 0 with no rounding: a diagonal K). A stiff system keeps
+    its slow modes: in ``diag(1e12, -1)`` the barrier of rate 1 is far above the rounding
+    (~1e-3)."""
     out = []
     for value in w2:
         rel = 0.5 * error / abs(value) + 2 * EPS if value else 0.0  # of sqrt|w^2|
