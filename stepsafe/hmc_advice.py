@@ -44,6 +44,10 @@ STALL_WINDOW = 0.1
 HMC_DEFAULT = ("verlet", "mclachlan2-min", "bcss2", "bcss3", "yoshida4", "pefrl")
 
 
+class TargetError(StepsafeError):
+    """The frequencies given are not those of a Gaussian target HMC can sample."""
+
+
 @dataclass(frozen=True)
 class HmcRow:
     """One method's HMC figures (steps in the time unit of 1/beta; None where a figure
@@ -448,21 +452,22 @@ def _gaussian_betas(p: Any) -> tuple[np.ndarray, np.ndarray]:
     file and key; only a certainly negative one is called negative."""
     from stepsafe.core.advice import Modes
 
-    source = None if p.system is None else (p.system.source or None)
+    source = (p.system.source or None) if p.system is not None else \
+        (f"{p.scene}::$.modes" if p.scene is not None else None)
     if p.system is not None and p.system.modes is None:
-        raise StepsafeError("the target's modes do not decouple: a Gaussian target needs a "
+        raise TargetError("the target's modes do not decouple: a Gaussian target needs a "
                             "symmetric positive definite precision (or covariance)", source)
     if p.system is not None and p.system.primary_only:
-        raise StepsafeError(f"HMC's acceptance depends on every mode, and a matrix of more "
+        raise TargetError(f"HMC's acceptance depends on every mode, and a matrix of more "
                             f"than {DENSE_LIMIT} rows is reduced to its extreme eigenvalues: "
                             "give the standard deviations of its modes (--modes FILE with a "
                             "sigma column) or a smaller matrix", source)
     if p.system is not None and any(item.get("type") == "free" for item in p.system.items):
-        raise StepsafeError("the precision is singular (a direction of zero precision): the "
+        raise TargetError("the precision is singular (a direction of zero precision): the "
                             "target is not a proper Gaussian", source)
     if p.system is not None and any(item.get("type") == "undecided"
                                     for item in p.system.items):
-        raise StepsafeError("an eigenvalue of the precision is within rounding of 0 (its "
+        raise TargetError("an eigenvalue of the precision is within rounding of 0 (its "
                             "condition number is beyond what float64 resolves), so its sign "
                             "is not decided and the target is not certainly a Gaussian: give "
                             "the covariance, or a better-conditioned precision (a mass matrix "
@@ -476,7 +481,7 @@ def _gaussian_betas(p: Any) -> tuple[np.ndarray, np.ndarray]:
             why = "the precision has a negative eigenvalue (an inverted mode)"
         else:
             why = f"{others[0]} modes have no place in HMC"
-        raise StepsafeError("a Gaussian target has only vibrations (sigma, covariance, "
+        raise TargetError("a Gaussian target has only vibrations (sigma, covariance, "
                             f"positive definite precision): {why}", source)
     betas = np.asarray(p.modes.betas["oscillator"], dtype=float)
     modes = p.system.modes if p.system is not None else p.modes
@@ -489,12 +494,12 @@ def _gaussian_betas(p: Any) -> tuple[np.ndarray, np.ndarray]:
     # z = h / sigma is the family's limit within an ulp is not designed for
     errors = np.maximum(errors, 2 * EPS)
     if not betas.max() > 0:
-        raise StepsafeError("every frequency is 0: a flat target has no step limit", source)
+        raise TargetError("every frequency is 0: a flat target has no step limit", source)
     tiny = float(np.finfo(float).tiny)
     positive = betas[betas > 0]
     if positive.min() < tiny:
         # 1/beta overflows past the stability limit, and beta h loses digits (subnormal)
-        raise StepsafeError(f"a frequency 1/sigma = {positive.min():.3g} is below float64's "
+        raise TargetError(f"a frequency 1/sigma = {positive.min():.3g} is below float64's "
                             f"normal range ({tiny:.3g}; sigma above {1 / tiny:.3g}): its "
                             "steps overflow. Give sigma, the frequencies or the covariance "
                             "in units nearer 1", source)

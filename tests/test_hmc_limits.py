@@ -212,3 +212,21 @@ def test_a_design_is_stable_for_the_true_frequencies_of_a_covariance(matrix, nea
     with mp.workdps(50):
         z, bb = mp.mpf(step) / sigma_min, mp.mpf(b)
         assert abs(1 - z ** 2 / 2 + bb * (1 - 2 * bb) * z ** 4 / 4) <= 1
+
+
+@pytest.mark.parametrize("command", ["hmc", "design"])
+def test_a_refused_target_names_the_file_it_came_from(run, tmp_path, command):
+    """A scene's or a --modes file's target that HMC cannot take (a sigma whose 1/sigma
+    is subnormal, an inverted mode) is one line naming the file and key, exit 2."""
+    extra = ["--steps", "10"] if command == "hmc" else ["--step", "1"]
+    csv = tmp_path / "modes.csv"
+    csv.write_text("sigma\n1e308\n1\n")
+    scene = tmp_path / "scene.yaml"
+    scene.write_text("modes: [{beta: 1, model: inverted}, {sigma: 1}]\n")
+    for args in (["--modes", str(csv)], [str(scene)]):
+        code, _, err = run(command, *args, *extra)
+        name = csv if args[0] == "--modes" else scene
+        assert code == 2 and f"{name}::$.modes:" in err, err
+        assert len(err.strip().splitlines()) == 1
+    code, _, err = run(command, "--modes", str(csv), "--sigma", "2", *extra)
+    assert code == 2 and "modes.csv" not in err  # (two sources: neither is named)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import click
@@ -76,7 +78,7 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, target_accept, st
     methods = "all" if use_all else (None if names is None else names.split(","))
     from stepsafe.cli.progressbar import progress_bar
 
-    with progress_bar("hmc", not as_json) as progress:
+    with progress_bar("hmc", not as_json) as progress, _naming_the_modes_file(options):
         report = hmc(methods, modes=arrays or None, labels=labels or None, scene=scene_file,
                      steps=steps, length=length, jitter=jitter, target_accept=target_accept,
                      step=step, criterion=criterion, time_unit=options["time_unit"],
@@ -212,10 +214,10 @@ def design_cmd(scene_file, step, stages, jitter, name, output, as_json, **option
     from stepsafe.hmc_advice import design
 
     arrays, labels = command_line_modes(options)
-    report = design(modes=arrays or None, labels=labels or None, scene=scene_file, step=step,
-                    stages=int(stages), jitter=jitter, name=name,
-                    time_unit=options["time_unit"],
-                    zmax=options["zmax"])
+    with _naming_the_modes_file(options):
+        report = design(modes=arrays or None, labels=labels or None, scene=scene_file,
+                        step=step, stages=int(stages), jitter=jitter, name=name,
+                        time_unit=options["time_unit"], zmax=options["zmax"])
     data = report.to_dict()
     if output is not None:
         _write_new_text(output, report.method_file)
@@ -223,6 +225,24 @@ def design_cmd(scene_file, step, stages, jitter, name, output, as_json, **option
         print_json(data)
         return
     print_design(data, output)
+
+
+@contextmanager
+def _naming_the_modes_file(options: dict) -> Iterator[None]:
+    """A refusal of the target that names no file is about the --modes file when that
+    file gave every frequency: it then names it."""
+    from stepsafe.exceptions import StepsafeError
+    from stepsafe.hmc_advice import TargetError
+
+    only_file = options["modes_file"] and not any(
+        options[key] for key in ("beta", "frequency", "wavenumber", "period", "sigma",
+                                 "saddle_beta", "inverted_beta"))
+    try:
+        yield
+    except TargetError as exc:
+        if exc.where or not only_file:
+            raise
+        raise StepsafeError(exc.message, f"{options['modes_file']}::$.modes") from None
 
 
 def _write_new_text(path: str, text: str) -> None:
