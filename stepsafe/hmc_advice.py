@@ -54,7 +54,9 @@ class HmcRow:
     does not exist, e.g. no step reaches the target)."""
 
     method: str
-    evaluations: int | None  # gradient evaluations per step (first same as last merged)
+    #: gradient evaluations per step (first same as last merged; a force gradient counted
+    #: at ``gradient_cost``; None for an implicit method, whose count depends on h)
+    evaluations: float | None
     symmetric: bool
     stability_h: float | None  # end of |tr M| <= 2 from 0 for the fastest mode
     structure_h: float | None  # end of the structure-preserving interval from 0
@@ -342,7 +344,8 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
         points = tuple((float(h), a.rate, b.rate) for h, a, b in zip(
             hs, core.acceptance_curve(m, betas, hs, trajectory),
             core.acceptance_curve(m, betas, hs, bound)))
-    return HmcRow(integrator.name, integrator.evaluations, symmetric, stability_h, structure_h,
+    per_step = _step_cost(integrator, gradient_cost) if integrator.explicit else None
+    return HmcRow(integrator.name, per_step, symmetric, stability_h, structure_h,
                   resonances, h_target, at_target.get("steps"), at_target.get("acceptance"),
                   at_target.get("expected_error"), at_target.get("gradients_per_proposal"),
                   at_target.get("gradients_per_accepted"), at_target.get("gradients_per_time"),

@@ -128,7 +128,7 @@ def print_hmc(data: dict[str, Any]) -> None:
         if r["structure_h"] is not None and r["structure_h"] != r["stability_h"]:
             stab += f" (structure {limit(r['structure_h'])})"
         table.add_row("-" if r["rank"] is None else str(r["rank"]), r["method"],
-                      "-" if r["evaluations"] is None else str(r["evaluations"]), stab,
+                      "-" if r["evaluations"] is None else f"{r['evaluations']:g}", stab,
                       limit(r["h_target"]), "-" if r["steps"] is None else str(r["steps"]),
                       cell(r["acceptance"], 4), _error_cell(r["expected_error"]),
                       cell(r["gradients_per_accepted"], 5), cell(r["gradients_per_time"], 5))
