@@ -329,3 +329,15 @@ def test_a_mode_far_slower_than_the_rest_does_not_change_the_design(slow):
     alone = design(sigma=[fast], step=1.5 * fast).params["b"]
     both = design(sigma=[slow, fast], step=1.5 * fast).params["b"]
     assert abs(both - alone) < 1e-9 and abs(alone - 0.25) > 0.01
+
+
+def test_a_mode_resolved_beyond_float_range_does_not_change_the_design():
+    """A slow mode with z = beta h = 1e-200 has rho = O(z^4) = 0 in float64 (its z^2
+    underflowed and made every member 'not elliptic', so b fell back to 1/4: review 22):
+    the design is the fast mode's alone."""
+    import stepsafe
+
+    alone = stepsafe.design(sigma=[1e-200], step=1e-200)
+    both = stepsafe.design(sigma=[1e-200, 1.0], step=1e-200)
+    assert both.params == pytest.approx(alone.params, rel=1e-12)
+    assert both.params["b"] != 0.25

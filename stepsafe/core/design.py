@@ -139,6 +139,9 @@ def rho_values(stages: int, params: np.ndarray, z: np.ndarray) -> np.ndarray:
         # below z ~ 1e-8: there sin2 ~ z^2, free of cancellation, decides alone)
         elliptic = (sin2 > 0) & ((np.abs(half) < 1) | (z < 1e-4)[None, :])
         rho = np.where(elliptic, e1 / sin2, np.inf)
+        # rho = O(z^4) (C z^4 with C of order 1 for the family): below z = 1e-80 it is
+        # below the smallest float, where sin2 ~ z^2 itself underflows to 0
+        rho[:, z < RESOLVED_Z] = 0.0
         if stages == 2:  # b = 1/4: the leapfrog's rho at z/2, through M = -I at 2 sqrt 2
             quarter = params[:, 0] == 0.25
             if quarter.any():
@@ -147,6 +150,8 @@ def rho_values(stages: int, params: np.ndarray, z: np.ndarray) -> np.ndarray:
     return rho
 
 
+#: Below this z a mode's rho is 0 in float64 (see :func:`rho_values`).
+RESOLVED_Z = 1e-80
 #: The end of each family's stable range in z (module docstring): no member beyond.
 STABLE_LIMIT = {2: 4.0, 3: 3.0}
 #: The 2-stage member that alone stays stable beyond z = 2 sqrt 2 (module docstring).
