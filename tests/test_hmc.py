@@ -377,6 +377,22 @@ def test_jitter_average_against_a_dense_uniform_average(name, steps, jitter, h):
     assert abs(got.rate - mean) < (2e-3 if got.approximate else 3e-4)
 
 
+@pytest.mark.parametrize("name, jitter, h", [("bcss2", 0.5, 1.5), ("bcss3", 0.3, 2.2)])
+def test_jitter_average_of_the_bound_across_a_zero_of_the_energy_error(name, jitter, h):
+    """The bound over every L (no L given): where a symmetric method's step is a pure
+    rotation its energy error has a double zero and the acceptance a kink; against the
+    midpoint mean of the one-mode closed form (4/pi) atan sqrt(|b|/a) over 40000 steps,
+    to 1e-7
+    (bcss2 at h = 1.5, jitter 0.5 was 6e-5 off: review 22)."""
+    m = method(name)
+    hs = h * (1.0 + jitter * ((np.arange(40000) + 0.5) / 20000 - 1.0))  # midpoints
+    a, b = H._weights(H.errors_after(H.one_step(m, hs), None))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        closed = np.where(a > 0, 4 / np.pi * np.arctan(np.sqrt(np.abs(b) / a)), 1.0)
+    got = H.acceptance_at(m, np.array([1.0]), h, H.Trajectory(jitter=jitter))
+    assert abs(got.rate - closed.mean()) < 1e-7, (got.rate, closed.mean())
+
+
 def test_a_bump_of_rho_between_grid_steps_is_not_stepped_over():
     """triple-jump6's rho has a local maximum at z = 1.2347 (0.016980) between grid steps: a
     target just above the acceptance there must stop h below it."""

@@ -320,6 +320,16 @@ def _jitter_rule(method: Method, values: np.ndarray, h: float, jitter: float,
         a, b = sin2[i, -1], sin2[i + 1, -1]
         if np.isfinite(a) and np.isfinite(b):
             cuts.add(_edge(method, h * top[-1], jitter, float(u[i]), float(u[i + 1])))
+    # zeros of the energy error: a symmetric method's M = [[a, b], [c, a]] is a pure
+    # rotation where b + c = 0, and there rho ~ (z - z0)^2 puts a kink |z - z0| in the
+    # acceptance (1 - sqrt(2 E) / (pi/2)...); a cut there keeps it off a panel's interior
+    fast = offsets(method, h * top[-1] * (1.0 + jitter * u))
+    zero = np.argwhere((np.sign(fast.b_plus_c[:-1]) * np.sign(fast.b_plus_c[1:]) < 0)
+                       & (sin2[:-1, -1] > 0) & (sin2[1:, -1] > 0)).ravel()
+    for i in zero[:4]:
+        cut = _rotation(method, h * top[-1], jitter, float(u[i]), float(u[i + 1]))
+        if cut is not None:
+            cuts.add(cut)
     cuts_sorted = sorted(cuts)
     base = JITTER_PANELS if steps is None else 4 * JITTER_PANELS  # the bound is smooth in h
     x, w = _GL8
@@ -409,6 +419,25 @@ def _follow_turns(method: Method, top: np.ndarray, h: float, jitter: float, step
         left = (angle(at(mid, betas)) < target) == below
         a, b = np.where(left, mid, a), np.where(left, b, mid)
     return distinct(np.concatenate([edges, 0.5 * (a + b)])), short
+
+
+def _rotation(method: Method, z: float, jitter: float, lo: float, hi: float
+              ) -> float | None:
+    """The u in (lo, hi) where ``b + c`` of M at ``z (1 + jitter u)`` changes sign (Brent),
+    if M is a pure rotation there (``a - d`` within rounding of 0: a symmetric method);
+    else None (the energy error has no zero, only a minimum)."""
+    from scipy.optimize import brentq
+
+    def b_plus_c(x: float) -> float:
+        return float(offsets(method, np.array([z * (1.0 + jitter * x)])).b_plus_c[0])
+
+    try:
+        x = float(brentq(b_plus_c, lo, hi, xtol=1e-15, rtol=1e-15))
+    except ValueError:
+        return None
+    at = offsets(method, np.array([z * (1.0 + jitter * x)]))
+    size = float(np.abs(at.M[0]).max())
+    return x if abs(float(at.a_minus_d[0])) <= 1e-12 * size else None
 
 
 def _edge(method: Method, z: float, jitter: float, lo: float, hi: float) -> float:
