@@ -312,8 +312,9 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
     h_target = core.target_step(m, betas, target, h_hi, bound)
     at_target = figures(h_target) if h_target else {}
     if at_target.get("approximate"):
-        notes.append("the acceptance at h at target is approximate (more distinct modes or "
-                     "turns of L theta across the jitter than are integrated exactly)")
+        notes.append("the acceptance at h at target is approximate (more distinct modes, "
+                     "turns of L theta across the jitter, or steps L than float64 integrates "
+                     "exactly: above 1e6 steps L theta carries an error of eps L pi)")
     for where, h in (("h at target", h_target), ("the step asked for", step)):
         wanted = trajectory.capped(h) if h else None
         if wanted is not None:

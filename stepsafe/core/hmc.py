@@ -477,9 +477,16 @@ def acceptance_curve(method: Method, betas: np.ndarray, hs: np.ndarray,
         rate = float(np.dot(weights, [a.rate for a in found])) / 2.0
         with np.errstate(invalid="ignore", over="ignore"):
             mean_error = float(np.dot(weights, [a.expected_error for a in found])) / 2.0
+        # sin(L theta) from float64's L theta: an absolute error near eps L theta
+        long = steps is not None and steps > EXACT_STEPS
         out.append(Acceptance(min(max(rate, 0.0), 1.0), mean_error,
-                              rough or any(a.approximate for a in found)))
+                              rough or long or any(a.approximate for a in found)))
     return out
+
+
+#: Above this many steps per trajectory, ``L theta`` carries an error beyond 1e-9 rad
+#: (eps L pi) and the figures are marked approximate (L reaches 1e12 from a long length).
+EXACT_STEPS = 10**6
 
 
 #: The target step is searched on this many grid points below the upper end, then bisected.
