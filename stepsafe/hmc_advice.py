@@ -117,6 +117,19 @@ def _row_dict(row: HmcRow) -> dict[str, Any]:
     return out
 
 
+def _target_inputs(inputs: dict[str, Any]) -> dict[str, Any]:
+    """``inputs`` if every key is an argument of :func:`stepsafe.problem` (the target), else
+    a StepsafeError naming the first that is not."""
+    import inspect
+
+    known = set(inspect.signature(problem).parameters) - {"method", "frequencies"}
+    for key in inputs:
+        if key not in known:
+            raise StepsafeError(f"unknown argument {key!r} (the target takes "
+                                f"{', '.join(sorted(known))})")
+    return inputs
+
+
 def _validated(target: float, steps: int | None, length: float | None,
                jitter: float) -> tuple[float, int | None, float | None, float]:
     if not 0.0 < finite_real(target, "target acceptance") < 1.0:
@@ -174,7 +187,7 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
         raise StepsafeError(f"curve must be an integer from 0 to 10000, got {curve!r}")
     integrators = _compared(HMC_DEFAULT if methods is None else methods)
     progress = inputs.pop("progress", None)  # called with the fraction of methods done
-    p = problem(integrators[0], frequencies, **inputs)
+    p = problem(integrators[0], frequencies, **_target_inputs(inputs))
     betas, errors = _gaussian_betas(p)
     trajectory = Trajectory(steps, length, jitter)
     rows = []
@@ -411,7 +424,7 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
             c.isascii() and (c.isalnum() or c == "-") for c in name) or len(name) > 60:
         raise StepsafeError(f"name must be 1 to 60 letters, digits and '-' (as method files "
                             f"require), got {str(name)[:40]!r}")
-    p = problem("verlet", frequencies, **inputs)
+    p = problem("verlet", frequencies, **_target_inputs(inputs))
     betas, errors = _gaussian_betas(p)
     # designed for each frequency at the largest it may be (the rounding of the
     # eigenvalues it came from), as hmc and advise limit the step
@@ -499,6 +512,9 @@ def _gaussian_betas(p: Any) -> tuple[np.ndarray, np.ndarray]:
     errors = np.maximum(errors, 2 * EPS)
     if not betas.max() > 0:
         raise TargetError("every frequency is 0: a flat target has no step limit", source)
+    if np.any(betas == 0):
+        raise TargetError("a frequency is 0 (sigma = inf): a flat direction, so the target is "
+                          "not a proper Gaussian", source)
     tiny = float(np.finfo(float).tiny)
     positive = betas[betas > 0]
     if positive.min() < tiny:
