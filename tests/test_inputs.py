@@ -691,6 +691,28 @@ def test_nested_composition_budget_counts_without_flattening():
         Composition(inner, [1 / 30] * 30)
 
 
+def test_a_composition_over_a_long_splitting_is_bounded(run, tmp_path):
+    """A composition's work is its steps times its base's drifts and kicks: 399 steps of
+    a 799-operation splitting ran for more than 15 minutes (review 23); refused at once,
+    exit 2, while the library's largest (105 operations) and 5 steps of that splitting
+    (3995) are analysed."""
+    from stepsafe.methods.tableaux import MAX_COMPOSED_OPERATIONS
+
+    values = ", ".join(['"0.0025"'] * 200)
+    (tmp_path / "long.yaml").write_text(
+        f"name: long\nkind: splitting\norder: 1\nsource: test\nsymmetric: true\n"
+        f"drift: [{values}]\nkick: [{values}]\n")
+    for steps, code in ((5, 0), (6, 2)):
+        weights = ", ".join([f'"1/{steps}"'] * steps)
+        path = tmp_path / f"c{steps}.yaml"
+        path.write_text(f"name: c{steps}\nkind: composition\norder: 1\nsource: test\n"
+                        f"base: long.yaml\nweights: [{weights}]\n")
+        got, _, err = run("check", "--method", str(path), "--beta", "1", "--step", "0.01")
+        assert got in ((0, 1) if code == 0 else (2,)), err
+        if code == 2:
+            assert f"more than the {MAX_COMPOSED_OPERATIONS} analysed" in err
+
+
 def test_nested_composition_files_are_refused_from_their_counts(tmp_path):
     """Four nested files of 100 weights would flatten to 10^8 steps (gigabytes): refused
     while the second level is built, naming the file and the budget."""

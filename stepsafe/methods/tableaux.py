@@ -39,6 +39,10 @@ RESIDUAL_TOL = 1e-12
 #: (checked when it is built, before :meth:`Composition.flattened` allocates anything):
 #: three nested files of 100 weights would be 10^6 steps and gigabytes.
 MAX_BASE_STEPS = 1000
+#: Most drifts and kicks a composition over a splitting may apply a step, once multiplied
+#: out (the library's largest: 105, sofroniou-spaletta10); the work of every analysis is in
+#: proportion (399 steps of a 400-operation base ran for more than 15 minutes).
+MAX_COMPOSED_OPERATIONS = 4000
 #: A composition of an RK/PRK base solves one stage system per base step and per sample of
 #: M(z), and needs samples in proportion to how far its substeps reach: at most this much
 #: work, counted as base steps x stages^3 x sum |weights| (yoshida4 over Gauss s = 40:
@@ -345,6 +349,12 @@ class Composition:
         inner = self.base
         while isinstance(inner, Composition):
             inner = inner.base
+        if isinstance(inner, Splitting) and \
+                self.base_steps * len(inner.operations) > MAX_COMPOSED_OPERATIONS:
+            raise MethodError(
+                f"{self.name}: {self.base_steps} steps of a base of {len(inner.operations)} "
+                f"drifts and kicks: {self.base_steps * len(inner.operations)} operations a "
+                f"step, more than the {MAX_COMPOSED_OPERATIONS} analysed in bounded time")
         if isinstance(inner, (RungeKutta, PartitionedRK)) and not inner.explicit:
             work = self.base_steps * inner.stages ** 3 * max(1.0, self.reach)
             if work > MAX_IMPLICIT_WORK:
