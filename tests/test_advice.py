@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
 from pathlib import Path
 
 import numpy as np
@@ -185,10 +184,11 @@ def test_a_million_frequencies_from_csv(run_json, tmp_path):
     betas = np.random.default_rng(2).uniform(0.1, 10.0, 10**6)
     path = tmp_path / "many.csv"
     path.write_text("beta\n" + "\n".join(f"{b:.17g}" for b in betas) + "\n")
-    start = time.perf_counter()
     data = run_json("advise", "--method", "pefrl", "--modes", str(path))
     assert data["models"]["oscillator"]["count"] == 10**6
-    assert time.perf_counter() - start < 30  # generous: a correctness test, not a benchmark
+    # the largest frequency alone sets the limit (every other z is below pefrl's z*)
+    alone = run_json("advise", "--method", "pefrl", "--beta", repr(float(betas.max())))
+    assert data["h_max"] == alone["h_max"]
 
 
 @pytest.mark.parametrize("args, message", [

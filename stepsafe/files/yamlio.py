@@ -33,7 +33,8 @@ class QuotedText(str):
 
 
 class _StrictLoader(yaml.SafeLoader):
-    """SafeLoader without implicit typing, aliases or duplicate keys; bounded in size."""
+    """SafeLoader without implicit typing, aliases, merge keys or duplicate keys; bounded in
+    size."""
 
     yaml_implicit_resolvers: dict = {}
 
@@ -70,6 +71,9 @@ class _StrictLoader(yaml.SafeLoader):
             if not isinstance(key_node, yaml.ScalarNode):
                 line = key_node.start_mark.line + 1
                 raise StepsafeError(f"line {line}: keys must be plain names")
+            if key_node.tag == "tag:yaml.org,2002:merge":  # (<< would override keys unseen)
+                raise StepsafeError(f"line {key_node.start_mark.line + 1}: YAML merge keys "
+                                    "are not allowed")
             if key_node.value in seen:
                 raise StepsafeError(f"line {key_node.start_mark.line + 1}: duplicate key "
                                     f"{key_node.value!r}")
