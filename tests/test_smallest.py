@@ -84,3 +84,35 @@ def test_an_indefinite_matrix_is_not_certified_and_its_value_is_exact():
     found = smallest(W, 0.0)
     assert not found.certified
     assert found.value + found.shift == pytest.approx(-0.1, rel=1e-10)
+
+
+def test_an_extreme_eigenvalue_of_a_tight_cluster():
+    """LAPACK's syevr for one eigenvalue can fail on a cluster within rounding (a 200 x 200
+    Hessian that is the identity rotated: exit 3 before, review 24): the coupled analysis
+    then takes every eigenvalue, and verlet's limit on S = I is 2."""
+    from stepsafe.methods.library import resolve
+    from stepsafe.systems.coupled import coupled_safe_steps
+
+    rng = np.random.default_rng(3)
+    Q, _ = np.linalg.qr(rng.standard_normal((200, 200)))
+    S = Q @ Q.T
+    S = 0.5 * (S + S.T)
+    h_max = coupled_safe_steps(resolve("verlet")[0], S, 4.0).h_max
+    assert 2 * (1 - 1e-6) < h_max <= 2
+
+
+def test_extreme_eigenvalue_falls_back_to_every_eigenvalue(monkeypatch):
+    import scipy.linalg as sla
+
+    A = _symmetric_with(np.random.default_rng(1), 6, 0.5, 2.0)
+    want = np.linalg.eigvalsh(A)
+    original = sla.eigh
+
+    def failing_subset(*args, **kwargs):
+        if "subset_by_index" in kwargs:
+            raise np.linalg.LinAlgError("Internal Error.")
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(module.sla, "eigh", failing_subset)
+    assert module.extreme_eigenvalue(A) == pytest.approx(want[0], rel=1e-14)
+    assert module.extreme_eigenvalue(A, highest=True) == pytest.approx(want[-1], rel=1e-14)

@@ -56,7 +56,7 @@ from stepsafe.systems.frame import (
     euler_deviation,
 )
 from stepsafe.systems.linear import ZERO_TOL, hamiltonian_matrix
-from stepsafe.systems.smallest import smallest
+from stepsafe.systems.smallest import extreme_eigenvalue, smallest
 
 EPS = float(np.finfo(float).eps)
 #: |nu| within this of 1 is on the unit circle (indefinite S only)
@@ -490,8 +490,7 @@ class CoupledSystem:
         """An upper bound on ``||L^-1||_2^2 = 1 / lambda_min(sign S)``: the computed smallest
         eigenvalue less its rounding bound (``4 (2n) eps |S|_F``), or, if that leaves
         nothing, ``||L^-1||_F^2``."""
-        low = float(sla.eigh(self.sign * self.S, eigvals_only=True, subset_by_index=[0, 0],
-                             check_finite=False)[0])
+        low = extreme_eigenvalue(self.sign * self.S)
         low -= 8 * self.n * EPS * float(np.linalg.norm(self.S))
         if low > 0:
             return 1.0 / low
@@ -631,8 +630,7 @@ def _definite_coordinates(S: np.ndarray, sign: int, method: Method
         return frame.S, np.linalg.cholesky(sign * scaled), frame
     best, best_ratio = S, -np.inf
     for candidate in (S, equilibrated(S, balance=True)):
-        low = float(sla.eigh(sign * candidate, eigvals_only=True, subset_by_index=[0, 0],
-                             check_finite=False)[0])
+        low = extreme_eigenvalue(sign * candidate)
         ratio = low / float(np.abs(candidate).max())
         if ratio > best_ratio:
             best, best_ratio = candidate, ratio
@@ -654,8 +652,7 @@ def _frame_pays(frame: DiagonalFrame, method: Method, sign: int) -> bool:
     if not np.all(weight > 0):
         return False
     scale = 1.0 / np.sqrt(weight)
-    low = float(sla.eigh((sign * scale[:, None]) * frame.S * scale[None, :],
-                         eigvals_only=True, subset_by_index=[0, 0], check_finite=False)[0])
+    low = extreme_eigenvalue((sign * scale[:, None]) * frame.S * scale[None, :])
     pieces = _pieces(method)
     reach = sum(abs(c) for kind, item in pieces if kind == "euler" for _, c in item) \
         if all(kind == "euler" for kind, _ in pieces) else 0.0
@@ -676,8 +673,7 @@ def _largest_frequency(S: np.ndarray, chol: np.ndarray | None) -> float:
     n = S.shape[0] // 2
     JL = np.vstack([chol[n:], -chol[:n]])
     K = chol.T @ JL
-    top = sla.eigh(K.T @ K, eigvals_only=True, subset_by_index=[2 * n - 1, 2 * n - 1],
-                   check_finite=False)[0]
+    top = extreme_eigenvalue(K.T @ K, highest=True)
     return float(np.sqrt(max(top, 0.0)))
 
 

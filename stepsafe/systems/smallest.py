@@ -87,9 +87,19 @@ def smallest(W: np.ndarray, floor: float, start: np.ndarray | None = None) -> Sm
             value, vector = _lanczos(R, start)
         if np.isfinite(value) and np.all(np.isfinite(vector)):
             return Smallest(value, True, shift, vector)
-    low = float(sla.eigh(W, eigvals_only=True, subset_by_index=[0, 0],
-                         check_finite=False)[0])
-    return Smallest(low - shift, certified, shift)
+    return Smallest(extreme_eigenvalue(W) - shift, certified, shift)
+
+
+def extreme_eigenvalue(A: np.ndarray, highest: bool = False) -> float:
+    """The smallest (or largest) eigenvalue of the symmetric A: LAPACK's ``syevr`` for that
+    one alone, or, where it fails (it can on a tight cluster, all eigenvalues within
+    rounding of one another), every eigenvalue by divide and conquer."""
+    index = A.shape[0] - 1 if highest else 0
+    try:
+        return float(sla.eigh(A, eigvals_only=True, subset_by_index=[index, index],
+                              check_finite=False)[0])
+    except np.linalg.LinAlgError:
+        return float(sla.eigh(A, eigvals_only=True, driver="evd", check_finite=False)[index])
 
 
 def _lanczos(R: np.ndarray, start: np.ndarray | None) -> tuple[float, np.ndarray]:
