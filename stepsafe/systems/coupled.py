@@ -362,7 +362,6 @@ class CoupledSystem:
         self._cache: dict[float, float] = {}
         self._slack: dict[float, float] = {}  # the rounding bound in the units of the margin
         self._certified: dict[float, bool] = {}  # lambda_min(W) above it proved (definite S)
-        self._ritz: np.ndarray | None = None  # the last Lanczos vector, to start the next
         self._built: dict[float, tuple | None] = {}
 
     @property
@@ -447,9 +446,7 @@ class CoupledSystem:
             inverse_norm2 = self.inv_chol_norm2
         # |delta lambda| <= ||L^-1||_2^2 ||delta Q||_2 (L = diag(weight)^1/2 in the frame);
         # lambda_min(W) above that is proved by a Cholesky factorisation
-        found = smallest(W, err * inverse_norm2, self._ritz)
-        if found.vector is not None:
-            self._ritz = found.vector
+        found = smallest(W, err * inverse_norm2)
         self._certified[h] = found.certified
         self._slack[h] = found.shift / (2 * h * self.unit)
         value = found.value if found.certified else min(found.value, 0.0)

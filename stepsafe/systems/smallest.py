@@ -47,36 +47,45 @@ class Smallest:
     value: float  #: lambda_min(W) - shift: eigensolver's, or a Lanczos upper bound
     certified: bool  #: a Cholesky factorisation of W - shift I completed
     shift: float  #: floor + the factorisation's allowance
-    vector: np.ndarray | None = None  #: the Ritz vector (Lanczos only), for a warm start
 
 
 def allowance(W: np.ndarray, floor: float = 0.0) -> float:
     """A bound on what a completed Cholesky factorisation of ``W - tau I`` (``tau`` the
     floor plus this, ``floor >= 0``) can hide: ``gamma_(N+1) trace^+ / (1 - gamma_(N+1))``
     plus the rounding of the shifted diagonal (see module); at least the eigensolver's
-    ``4 N u ||W||_F``."""
+    ``4 N u ||W||_F``. For W of order 1 (:func:`smallest` scales it so): the bound
+    assumes no underflow."""
     N = W.shape[0]
     diagonal = np.diagonal(W)
     gamma = (N + 1) * UNIT_ROUNDOFF / (1 - (N + 1) * UNIT_ROUNDOFF)
     trace = float(np.maximum(diagonal, 0.0).sum())
     factorisation = 1.01 * gamma / (1 - gamma) * trace
     shifted = 2 * UNIT_ROUNDOFF * (float(np.abs(diagonal).max(initial=0.0)) + floor)
-    largest = max(float(W.max(initial=0.0)), -float(W.min(initial=0.0)))
-    if 1e-150 < largest < 1e150:
-        frobenius = float(np.linalg.norm(W))
-    else:  # (scaled, so that the sum of squares neither over- nor underflows)
-        frobenius = largest * float(np.linalg.norm(W / largest)) if largest > 0 else 0.0
-    solver = 4 * N * UNIT_ROUNDOFF * frobenius
+    solver = 4 * N * UNIT_ROUNDOFF * float(np.linalg.norm(W))
     return max(factorisation + shifted, solver)
 
 
-def smallest(W: np.ndarray, floor: float, start: np.ndarray | None = None) -> Smallest:
+def smallest(W: np.ndarray, floor: float) -> Smallest:
     """``lambda_min(W) - shift`` (``shift = floor + allowance(W)``) and whether
     ``lambda_min(W) > floor`` is proved by a completed Cholesky factorisation of
-    ``W - shift I``. ``start``: a vector to begin the Lanczos iterations with (the Ritz
-    vector of a nearby W). W is not modified; a W that is not finite has value -inf."""
+    ``W - shift I``. W is first multiplied by the power of two that brings its largest
+    entry to [1/2, 1) (exact, and the statement is the same for the scaled W and floor), so
+    that nothing in the factorisation over- or underflows; the results are scaled back.
+    W is not modified; a W that is not finite has value -inf."""
     if not np.all(np.isfinite(W)):
         return Smallest(-np.inf, False, floor)
+    largest = max(float(W.max(initial=0.0)), -float(W.min(initial=0.0)))
+    if largest == 0.0:  # (lambda_min = 0: nothing above a floor >= 0)
+        return Smallest(-floor, False, floor)
+    exponent = int(np.frexp(largest)[1])
+    scaled = np.ldexp(W, -exponent)
+    found = _smallest(scaled, float(np.ldexp(floor, -exponent)))
+    return Smallest(float(np.ldexp(found.value, exponent)), found.certified,
+                    float(np.ldexp(found.shift, exponent)))
+
+
+def _smallest(W: np.ndarray, floor: float) -> Smallest:
+    """:func:`smallest` of a W whose largest entry is in [1/2, 1)."""
     shift = floor + allowance(W, floor)
     A = np.array(W, order="F")  # (Fortran order: LAPACK and BLAS take it without a copy)
     A[np.diag_indices_from(A)] -= shift
@@ -84,9 +93,9 @@ def smallest(W: np.ndarray, floor: float, start: np.ndarray | None = None) -> Sm
     certified = info == 0 and bool(np.all(np.isfinite(np.diagonal(R))))
     if certified and W.shape[0] >= LANCZOS_FROM:
         with np.errstate(over="ignore", invalid="ignore"):
-            value, vector = _lanczos(R, start)
-        if np.isfinite(value) and np.all(np.isfinite(vector)):
-            return Smallest(value, True, shift, vector)
+            value = _lanczos(R)
+        if np.isfinite(value):
+            return Smallest(value, True, shift)
     return Smallest(extreme_eigenvalue(W) - shift, certified, shift)
 
 
@@ -102,19 +111,18 @@ def extreme_eigenvalue(A: np.ndarray, highest: bool = False) -> float:
         return float(sla.eigh(A, eigvals_only=True, driver="evd", check_finite=False)[index])
 
 
-def _lanczos(R: np.ndarray, start: np.ndarray | None) -> tuple[float, np.ndarray]:
-    """``(1 / theta, x)``: theta the largest Ritz value of ``(R^T R)^-1`` (R upper
-    triangular, only its upper triangle read), x its Ritz vector."""
+def _lanczos(R: np.ndarray) -> float:
+    """``1 / theta``, theta the largest Ritz value of ``(R^T R)^-1`` (R upper triangular,
+    only its upper triangle read), from a fixed random start (a start taken from a nearby
+    W's Ritz vector can lack the direction of a new lowest eigenvalue, and stop on the
+    next one)."""
     N = R.shape[0]
     steps = min(LANCZOS_STEPS, N)
     basis = np.zeros((steps + 1, N))
     v = np.random.default_rng(0).standard_normal(N)
-    if start is not None and start.shape == (N,) and np.all(np.isfinite(start)):
-        v = start + 1e-3 * np.linalg.norm(start) / np.sqrt(N) * v
     basis[0] = v / np.linalg.norm(v)
     alpha, beta = np.zeros(steps), np.zeros(steps)
-    theta, y = 0.0, np.ones(1)
-    k = 0
+    theta = 0.0
     for k in range(steps):
         w = blas.dtrsv(R, basis[k], lower=0, trans=1)  # R^-T v
         w = blas.dtrsv(R, w, lower=0, trans=0, overwrite_x=1)  # R^-1 R^-T v
@@ -123,14 +131,13 @@ def _lanczos(R: np.ndarray, start: np.ndarray | None) -> tuple[float, np.ndarray
             w -= basis[:k + 1].T @ (basis[:k + 1] @ w)
         beta[k] = np.linalg.norm(w)
         if not (np.isfinite(alpha[k]) and np.isfinite(beta[k])):
-            return np.nan, w  # (out of the float range: the caller's eigensolver decides)
+            return np.nan  # (out of the float range: the caller's eigensolver decides)
         ritz, vectors = sla.eigh_tridiagonal(alpha[:k + 1], beta[:k])
-        theta, y = float(ritz[-1]), vectors[:, -1]
-        residual = beta[k] * abs(y[-1])
+        theta = float(ritz[-1])
+        residual = beta[k] * abs(vectors[-1, -1])
         gap = theta - float(ritz[-2]) if k > 0 else theta
         if beta[k] == 0.0 or min(residual, residual**2 / max(gap, 1e-300)) \
                 <= LANCZOS_TOL * theta:
             break
         basis[k + 1] = w / beta[k]
-    x = basis[:y.size].T @ y
-    return 1.0 / theta, x
+    return 1.0 / theta
