@@ -42,3 +42,17 @@ def test_a_wrong_float_answer_fails_verification(run, monkeypatch):
     assert code == 3
     assert json.loads(out)["verify"]["ok"] is False
     assert "verification failed" in err and "Traceback" not in err
+
+
+def test_verify_at_tiny_z_and_on_a_processed_saddle(run, tmp_path):
+    """--verify raises its precision where the deciding quantity is tiny (2 - tr M = z^2 =
+    1e-42 at z = 1e-21 was 'reference None', exit 3), and takes a processed method on the
+    saddle as its kernel, as the float analysis does (P commutes with K there): review 23."""
+    code, out, err = run("region", "verlet", "--zmax", "1e-12", "--verify")
+    assert code == 0, out + err
+    path = tmp_path / "proc.yaml"
+    path.write_text('name: proc1\nkind: processed\norder: 2\nsource: test\nkernel: verlet\n'
+                    'processor: {drift: ["0.25"], kick: ["0"]}\n')
+    code, out, err = run("check", "--method", str(path), "--saddle-beta", "1", "--step", "1",
+                         "--verify")
+    assert code == 0 and "SAFE" in out, out + err

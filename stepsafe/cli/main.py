@@ -699,7 +699,7 @@ def _print_verify(verdict: dict) -> None:
     worst = verdict["largest_discrepancy"]
     worst_text = "not confirmed" if worst is None else f"{worst:.1e}"
     click.echo(f"verify: {verdict['points']} point(s) recomputed with mpmath at "
-               f"{verdict['digits']} digits; largest relative discrepancy {worst_text} "
+               f"{verdict['digits']} digits or more; largest relative discrepancy {worst_text} "
                f"({'ok' if verdict['ok'] else 'FAILED'}; allowed: {verdict['tolerance']:g} plus "
                "each point's stated uncertainty)")
     if verdict.get("conservative"):
