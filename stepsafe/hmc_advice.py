@@ -213,14 +213,11 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
 
 
 def _quotient_below(z: float, beta: float) -> float:
-    """``z / beta`` rounded towards 0: the largest float q with ``q beta <= z`` exactly
-    (the float quotient is rounded to nearest and may lie just above)."""
-    from fractions import Fraction
+    """``z / beta`` taken :data:`stepsafe.core.advice.SHRINK` lower, as advise and check
+    take a gap's start in h: below it ``beta h < z`` exactly and as check computes it."""
+    from stepsafe.core.advice import SHRINK
 
-    q = z / beta
-    if np.isfinite(q) and q > 0 and Fraction(q) * Fraction(beta) > Fraction(z):
-        q = float(np.nextafter(q, 0.0))
-    return float(q)
+    return float(z / beta * SHRINK)
 
 
 def _first_unsafe(region: Any, z: float) -> float:

@@ -22,6 +22,7 @@ from stepsafe.exceptions import StepsafeError, positive_finite
 
 #: The default search in beta H stops here at most (a slow force 1e6 times the fast one).
 ZMAX_CAP = 1e6
+EPS = 2.0**-52
 
 
 @dataclass(frozen=True)
@@ -196,8 +197,10 @@ def _impulse(method: Any, fast: Any, slow: Any, step: float | None, criterion: s
     def kind(lo: float, hi: float | None) -> str:
         if capped and lo == adv.h_max:
             return "nonlinear"  # beyond the resonance order asked for
-        # a gap no wider than a resonance's own uncertainty window around it
-        if hi is not None and any(lo <= r <= hi and hi - lo <= 2.0 * u * (1.0 + 1e-9)
+        # a gap no wider than a resonance's own uncertainty window around it (and the few
+        # ulps by which advise takes a gap's start lower: SHRINK)
+        if hi is not None and any(lo <= r <= hi and
+                                  hi - lo <= 2.0 * u * (1.0 + 1e-9) + 16 * EPS * hi
                                   for r, u in resonances):
             return "resonance"
         return "unstable"

@@ -13,7 +13,7 @@ import json
 import math
 
 from click.testing import CliRunner
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from stepsafe.cli import main
@@ -283,3 +283,28 @@ def test_family_without_stages_in_a_scene_names_the_key(tmp_path):
     code, out, err, exc = _invoke("check", str(path))
     _assert_contract(code, out, err, exc, False)
     assert code == 2 and "g.yaml::$.method" in err and "stages:" in err
+
+
+@settings(max_examples=60, deadline=None)
+@example(name="sofroniou-spaletta10", log_betas=[math.log10(13350.168537322375)],
+         margin=1.0)
+@example(name="bcss2", log_betas=[math.log10(12468.303216891742)], margin=1.0)
+@given(name=st.sampled_from(["verlet", "pefrl", "yoshida4", "bcss2", "blanes-moan6",
+                             "kahan-li8", "midpoint", "rk4", "chin-4a",
+                             "sofroniou-spaletta10"]),
+       log_betas=st.lists(st.floats(-6.0, 6.0), min_size=1, max_size=4),
+       margin=st.sampled_from([1.0, 0.9, 0.5]))
+def test_the_float_just_below_h_max_passes_check_and_h_max_does_not(name, log_betas,
+                                                                   margin):
+    """The JSON/API h_max is the open end of the safe interval: check passes the next
+    float below it (bcss2 and sofroniou-spaletta10 failed there: beta h rounded up into
+    the uncertainty band, review 23) and fails h_max itself."""
+    import stepsafe
+
+    betas = [10.0 ** x for x in log_betas]
+    advice = stepsafe.advise(name, betas, margin=margin)
+    if advice.h_max_limited_by != "boundary":
+        return
+    below = math.nextafter(advice.h_max, 0.0)
+    assert stepsafe.check(name, below, betas, margin=margin).safe
+    assert not stepsafe.check(name, advice.h_max, betas, margin=margin).safe

@@ -257,7 +257,10 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
             # widens to (F a / (beta (1 + r)), b / (beta (1 - r)))
             low = np.maximum(positive * (1.0 - err), 0.0)
             with np.errstate(divide="ignore", over="ignore"):  # beta ~ 1e-320: gaps at inf
-                lo = (margin * g[:, 0])[None, :] / top[:, None]
+                # (the two roundings of F a / top, and beta h's in check, may each lift a
+                # step by half an ulp: a step below the start taken SHRINK lower has its
+                # product beta h below F a, in exact arithmetic and as check computes it)
+                lo = (margin * g[:, 0])[None, :] / top[:, None] * SHRINK
                 hi = g[:, 1][None, :] / low[:, None]
             # a mode cuts the safe set only below the horizon (and below every float): skip
             # gaps that start above it
@@ -340,6 +343,11 @@ class CheckResult:
 MAX_REPORTED = 50
 
 
+#: A gap's start in h is taken this much lower (relative) than its float quotient, so that
+#: every step below it is safe whatever the rounding of the quotient and of beta h.
+SHRINK = 1.0 - 4 * float(np.finfo(float).eps)
+
+
 def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
                zmax: float = DEFAULT_ZMAX, name: str | None = None,
                resonance_order: int | None = None, criterion: str = "structure"
@@ -385,7 +393,7 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
             # rounding of beta*h may put h = h_max, the open end advise prints, just below
             # the gap's start in z
             with np.errstate(divide="ignore", over="ignore"):
-                enters = (z_hi / margin >= gap.a) | (h >= (margin * gap.a) / top)
+                enters = (z_hi / margin >= gap.a) | (h >= (margin * gap.a) / top * SHRINK)
             hit = (z_lo <= gap.b) & enters & (betas > 0) & ~failing
             failing |= hit
             reason[hit] = k
@@ -396,7 +404,7 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
         for i in idx:
             # the largest safe h in the interval from 0: the first gap's start (the boundary
             # less its uncertainty), for the largest beta this mode may have
-            limit = (float(margin * first_gap / (betas[i] * (1.0 + err[i])))
+            limit = (float(margin * first_gap / (betas[i] * (1.0 + err[i])) * SHRINK)
                      if region.first_boundary is not None else None)
             gap = gap_list[reason[i]]
             why = gap.reason
