@@ -55,6 +55,7 @@ from stepsafe.systems.frame import (
     diagonal_frame,
     equilibrated,
     euler_deviation,
+    norm_2,
 )
 from stepsafe.systems.linear import ZERO_TOL, hamiltonian_matrix
 from stepsafe.systems.smallest import extreme_eigenvalue, smallest
@@ -171,6 +172,15 @@ class _Steps:
             raise StepsafeError("a force-gradient method needs a separable H = p^T M^-1 p / 2 "
                                 "+ V(q); this system couples q and p")
 
+    @cached_property
+    def S_pq_norm(self) -> float:
+        """A bound on ``||S_pq||_2`` (for the stage matrices' condition)."""
+        return norm_2(self.S_pq)
+
+    @cached_property
+    def S_qp_norm(self) -> float:
+        return norm_2(self.S_qp)
+
     def deviation(self, h: float) -> tuple[np.ndarray, float]:
         """``(D, err)``: ``D = M(h) - I`` and a first-order bound on its rounding error
         (Frobenius); D is NaN where the step is not unique (a singular stage system).
@@ -227,7 +237,7 @@ class _Steps:
         q, p = X[:n], X[n:]
         eye = np.eye(n)
         A = eye - c * self.S_pq if label == "DK" else eye + c * self.S_qp
-        solver = Solver.of(A)
+        solver = Solver.of(A, abs(c) * (self.S_pq_norm if label == "DK" else self.S_qp_norm))
         if solver is None:
             D[:] = np.nan
             return np.inf

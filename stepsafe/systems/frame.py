@@ -31,6 +31,7 @@ rounding bound of every factor, so a decision it makes holds for ``T^T S T`` its
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.linalg as sla
@@ -56,6 +57,12 @@ class DiagonalFrame:
     C: np.ndarray  #: the mixed block S~_qp (S~_pq is its transpose)
     error: float  #: bound on |S~ - T^T S T|_F for the float R
     R: np.ndarray  #: the point transformation q = R q~ (p = R^-T p~)
+
+    @cached_property
+    def C_norm(self) -> float:
+        """A bound on ``||C||_2`` (the largest eigenvalue of ``C^T C``, widened by its
+        rounding)."""
+        return norm_2(self.C)
 
     @property
     def S(self) -> np.ndarray:
@@ -213,7 +220,8 @@ def euler_deviation(frame: DiagonalFrame, factors: list[tuple[str, float]], h: f
         fold_next = (following != 0.0 and factors[k + 1][0] != label
                      and abs(c) <= fold_ratio * abs(following))
         carry = k + 1 < len(factors) and not fold_next
-        solver = Solver.of(eye - c * C.T if label == "DK" else eye + c * C)
+        solver = Solver.of(eye - c * C.T if label == "DK" else eye + c * C,
+                           abs(c) * frame.C_norm)
         if solver is None:
             return np.full((2 * n, 2 * n), np.nan), np.inf
         if label == "DK":
@@ -256,9 +264,12 @@ def euler_deviation(frame: DiagonalFrame, factors: list[tuple[str, float]], h: f
             Dq += work
         # rounding of this factor and of the products carried into it, plus the frame; a
         # folded solve's rounding reaches D through c and the next factor's weight
-        # (a stage solve amplifies rounding near a pole, where its matrix turns singular)
+        # (a solve's rounding grows with its matrix's condition times its inverse's size;
+        # the frame's error, a perturbation of C and of the right-hand side, with the
+        # inverse's size: both large only near a pole, where the stage matrix is singular)
         grow = solver.amplification
-        err += abs(c) * ((4 * n + 2 * k) * EPS * norm_S + frame.error) * size * grow
+        err += abs(c) * ((4 * n + 2 * k) * EPS * norm_S * grow
+                         + frame.error * solver.inverse_norm) * size
         if r:
             err += (abs(c) + abs(following)) * (1 + 2 * abs(r)) * n * EPS * norm_S * size \
                 * grow
@@ -296,10 +307,17 @@ class Solver:
     blocks: tuple[tuple[int, int, np.ndarray, np.ndarray], ...] = ()  #: (a, b, L^-1, U^-1)
     #: what the rounding of a solve is multiplied by (:func:`_amplification`)
     amplification: float = 1.0
+    #: a bound on ``max(1, ||A^-1||_2)``
+    inverse_norm: float = 1.0
 
     @staticmethod
-    def of(A: np.ndarray) -> Solver | None:
-        """None if A is singular to working precision (no unique step)."""
+    def of(A: np.ndarray, offset: float | None = None) -> Solver | None:
+        """None if A is singular to working precision (no unique step). ``offset``: a bound
+        on ``||A - I||_2`` (the stage matrices are ``I -+ c C``); below 1 it bounds A's
+        condition rigorously and closely (Neumann: ``||A^-1|| <= 1 / (1 - offset)``)."""
+        close = offset is not None and offset < 1.0
+        neumann = _amplification(1.0 + offset, 1.0 / (1.0 - offset)) if close else np.inf
+        neumann_inverse = 1.0 / (1.0 - offset) if close else np.inf
         if A.shape[0] < SOLVE_FROM:
             inverse = _inverse(A)
             if inverse is None:
@@ -308,7 +326,9 @@ class Solver:
             size = float(np.sqrt(absolute.sum(axis=0).max() * absolute.sum(axis=1).max()))
             inverse_size = float(np.sqrt(inverse_absolute.sum(axis=0).max()
                                          * inverse_absolute.sum(axis=1).max()))
-            return Solver(inverse, amplification=_amplification(size, inverse_size))
+            return Solver(inverse, amplification=min(neumann,
+                                                     _amplification(size, inverse_size)),
+                          inverse_norm=max(1.0, min(neumann_inverse, inverse_size)))
         absolute = np.abs(A)
         norm_1, norm_inf = float(absolute.sum(axis=0).max()), float(absolute.sum(axis=1).max())
         lu, piv, info = lapack.dgetrf(A)
@@ -334,7 +354,8 @@ class Solver:
         size = float(np.sqrt(norm_1 * norm_inf))
         condition = 1.0 / float(np.sqrt(estimates[0][0] * estimates[1][0]))
         return Solver(None, lu, rows, tuple(blocks),
-                       ESTIMATE_SAFETY * _amplification(size, condition / size))
+                      min(neumann, ESTIMATE_SAFETY * _amplification(size, condition / size)),
+                      max(1.0, min(neumann_inverse, ESTIMATE_SAFETY * condition / size)))
 
     def solve(self, rhs: np.ndarray, r: float, out: np.ndarray) -> None:
         """``out = A^-1 rhs``, or with a folded product (``r != 0``, see
@@ -355,6 +376,19 @@ class Solver:
         if r:
             out *= 1.0 + r
             out -= r * rhs
+
+
+def norm_2(X: np.ndarray) -> float:
+    """A bound on ``||X||_2``: the square root of the largest eigenvalue of ``X^T X``,
+    widened by that eigenvalue's rounding (``4 n eps ||X^T X||_F``)."""
+    from stepsafe.systems.smallest import extreme_eigenvalue
+
+    if not X.size or not np.any(X):
+        return 0.0
+    gram = X.T @ X
+    top = extreme_eigenvalue(gram, highest=True)
+    top += 4 * X.shape[0] * EPS * float(np.linalg.norm(gram))
+    return float(np.sqrt(max(top, 0.0)))
 
 
 def _amplification(size: float, inverse_size: float) -> float:
