@@ -322,6 +322,8 @@ class Solver:
             inverse = _inverse(A)
             if inverse is None:
                 return None
+            if close:  # (the norms below could only do better near offset = 1)
+                return Solver(inverse, amplification=neumann, inverse_norm=neumann_inverse)
             absolute, inverse_absolute = np.abs(A), np.abs(inverse)
             size = float(np.sqrt(absolute.sum(axis=0).max() * absolute.sum(axis=1).max()))
             inverse_size = float(np.sqrt(inverse_absolute.sum(axis=0).max()
@@ -329,14 +331,12 @@ class Solver:
             return Solver(inverse, amplification=min(neumann,
                                                      _amplification(size, inverse_size)),
                           inverse_norm=max(1.0, min(neumann_inverse, inverse_size)))
-        absolute = np.abs(A)
-        norm_1, norm_inf = float(absolute.sum(axis=0).max()), float(absolute.sum(axis=1).max())
+        if not close:
+            absolute = np.abs(A)
+            norm_1 = float(absolute.sum(axis=0).max())
+            norm_inf = float(absolute.sum(axis=1).max())
         lu, piv, info = lapack.dgetrf(A)
         if info != 0 or not np.all(np.isfinite(lu)):
-            return None
-        estimates = [lapack.dgecon(lu, norm, norm=kind)
-                     for norm, kind in ((norm_1, "1"), (norm_inf, "I"))]
-        if any(info != 0 or not reciprocal > 0 for reciprocal, info in estimates):
             return None
         n = A.shape[0]
         rows = np.arange(n)
@@ -350,12 +350,18 @@ class Solver:
             if info_l != 0 or info_u != 0:
                 return None
             blocks.append((a, b, np.tril(lower, -1) + np.eye(b - a), np.triu(upper)))
+        if close:
+            return Solver(None, lu, rows, tuple(blocks), neumann, neumann_inverse)
+        estimates = [lapack.dgecon(lu, norm, norm=kind)
+                     for norm, kind in ((norm_1, "1"), (norm_inf, "I"))]
+        if any(info != 0 or not reciprocal > 0 for reciprocal, info in estimates):
+            return None
         # kappa_2 <= sqrt(kappa_1 kappa_inf), ||A||_2 <= sqrt(||A||_1 ||A||_inf)
         size = float(np.sqrt(norm_1 * norm_inf))
         condition = 1.0 / float(np.sqrt(estimates[0][0] * estimates[1][0]))
         return Solver(None, lu, rows, tuple(blocks),
-                      min(neumann, ESTIMATE_SAFETY * _amplification(size, condition / size)),
-                      max(1.0, min(neumann_inverse, ESTIMATE_SAFETY * condition / size)))
+                      ESTIMATE_SAFETY * _amplification(size, condition / size),
+                      max(1.0, ESTIMATE_SAFETY * condition / size))
 
     def solve(self, rhs: np.ndarray, r: float, out: np.ndarray) -> None:
         """``out = A^-1 rhs``, or with a folded product (``r != 0``, see
