@@ -320,12 +320,15 @@ def _jitter_rule(method: Method, values: np.ndarray, h: float, jitter: float,
         a, b = sin2[i, -1], sin2[i + 1, -1]
         if np.isfinite(a) and np.isfinite(b):
             cuts.add(_edge(method, h * top[-1], jitter, float(u[i]), float(u[i + 1])))
-    # zeros of the energy error: a symmetric method's M = [[a, b], [c, a]] is a pure
-    # rotation where b + c = 0, and there rho ~ (z - z0)^2 puts a kink |z - z0| in the
+    # zeros of the bound rho: a symmetric method's M = [[a, b], [c, a]] is a pure rotation
+    # where b + c = 0, and there rho ~ (z - z0)^2 puts a kink |z - z0| in the bound's
     # acceptance (1 - sqrt(2 E) / (pi/2)...); a cut there keeps it off a panel's interior
-    fast = offsets(method, h * top[-1] * (1.0 + jitter * u))
-    zero = np.argwhere((np.sign(fast.b_plus_c[:-1]) * np.sign(fast.b_plus_c[1:]) < 0)
-                       & (sin2[:-1, -1] > 0) & (sin2[1:, -1] > 0)).ravel()
+    # (for a given L the panels follow the turns of L theta, which resolves it anyway)
+    zero = np.zeros(0, dtype=int)
+    if steps is None:
+        fast = offsets(method, h * top[-1] * (1.0 + jitter * u))
+        zero = np.argwhere((np.sign(fast.b_plus_c[:-1]) * np.sign(fast.b_plus_c[1:]) < 0)
+                           & (sin2[:-1, -1] > 0) & (sin2[1:, -1] > 0)).ravel()
     for i in zero[:4]:
         cut = _rotation(method, h * top[-1], jitter, float(u[i]), float(u[i + 1]))
         if cut is not None:
