@@ -265,8 +265,10 @@ def euler_deviation(frame: DiagonalFrame, factors: list[tuple[str, float]], h: f
         # rounding of this factor and of the products carried into it, plus the frame; a
         # folded solve's rounding reaches D through c and the next factor's weight
         # (a solve's rounding grows with its matrix's condition times its inverse's size;
-        # the frame's error, a perturbation of C and of the right-hand side, with the
-        # inverse's size: both large only near a pole, where the stage matrix is singular)
+        # the frame's error, as a perturbation of the right-hand side, with the inverse's
+        # size: both large only near a pole, where the stage matrix is singular. Its
+        # second route, through the stage matrix, c ||A^-1||^2 ||dC|| ||y||, is not
+        # carried: it matters only near such a pole)
         grow = solver.amplification
         err += abs(c) * ((4 * n + 2 * k) * EPS * norm_S * grow
                          + frame.error * solver.inverse_norm) * size
