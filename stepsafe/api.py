@@ -551,6 +551,13 @@ def _problem_of(method: Integrator | str | None, frequencies: ArrayLike | None,
     the inputs."""
     given = inputs.pop("problem", None)
     if given is None:
+        import inspect
+
+        known = set(inspect.signature(problem).parameters) - {"method", "frequencies"}
+        for key in inputs:
+            if key not in known:
+                raise StepsafeError(f"unknown argument {key!r} (the problem takes "
+                                    f"{', '.join(sorted(known))})")
         return problem(method, frequencies, **inputs)
     if not isinstance(given, Problem):
         raise StepsafeError(f"problem must be a stepsafe.Problem (from stepsafe.problem), got "

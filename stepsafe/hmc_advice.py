@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from stepsafe.api import ArrayLike, Integrator, _compared, _step_cost, problem
+from stepsafe.api import ArrayLike, Integrator, _compared, _problem_of, _step_cost
 from stepsafe.core.roots import EPS
 from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
 from stepsafe.systems.loader import DENSE_LIMIT
@@ -117,19 +117,6 @@ def _row_dict(row: HmcRow) -> dict[str, Any]:
     return out
 
 
-def _target_inputs(inputs: dict[str, Any]) -> dict[str, Any]:
-    """``inputs`` if every key is an argument of :func:`stepsafe.problem` (the target), else
-    a StepsafeError naming the first that is not."""
-    import inspect
-
-    known = set(inspect.signature(problem).parameters) - {"method", "frequencies"}
-    for key in inputs:
-        if key not in known:
-            raise StepsafeError(f"unknown argument {key!r} (the target takes "
-                                f"{', '.join(sorted(known))})")
-    return inputs
-
-
 def _validated(target: float, steps: int | None, length: float | None,
                jitter: float) -> tuple[float, int | None, float | None, float]:
     if not 0.0 < finite_real(target, "target acceptance") < 1.0:
@@ -187,7 +174,7 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
         raise StepsafeError(f"curve must be an integer from 0 to 10000, got {curve!r}")
     integrators = _compared(HMC_DEFAULT if methods is None else methods)
     progress = inputs.pop("progress", None)  # called with the fraction of methods done
-    p = problem(integrators[0], frequencies, **_target_inputs(inputs))
+    p = _problem_of(integrators[0], frequencies, inputs)
     betas, errors = _gaussian_betas(p)
     trajectory = Trajectory(steps, length, jitter)
     rows = []
@@ -421,7 +408,7 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
             c.isascii() and (c.isalnum() or c == "-") for c in name) or len(name) > 60:
         raise StepsafeError(f"name must be 1 to 60 letters, digits and '-' (as method files "
                             f"require), got {str(name)[:40]!r}")
-    p = problem("verlet", frequencies, **_target_inputs(inputs))
+    p = _problem_of("verlet", frequencies, inputs)
     betas, errors = _gaussian_betas(p)
     # designed for each frequency at the largest it may be (the rounding of the
     # eigenvalues it came from), as hmc and advise limit the step

@@ -88,7 +88,8 @@ def test_wrong_arguments_raise_stepsafe_error(where, value):
 
 
 def test_hmc_and_design_refuse_unknown_arguments_and_flat_directions():
-    """An unknown keyword is a StepsafeError naming it (it was a TypeError from problem());
+    """An unknown keyword is a StepsafeError naming it, in every function that builds a
+    problem (it was a TypeError from problem());
     a zero frequency (sigma = inf) is an improper target (review 22)."""
     import stepsafe
     from stepsafe.hmc_advice import hmc
@@ -97,5 +98,9 @@ def test_hmc_and_design_refuse_unknown_arguments_and_flat_directions():
         hmc(["verlet"], sigma=[1.0], foo=1)
     with pytest.raises(stepsafe.StepsafeError, match="unknown argument 'bar'"):
         stepsafe.design(sigma=[1.0], step=0.1, bar=2)
+    with pytest.raises(stepsafe.StepsafeError, match="unknown argument 'baz'"):
+        stepsafe.advise("verlet", [1.0], baz=3)
+    with pytest.raises(stepsafe.StepsafeError, match="unknown argument 'qux'"):
+        stepsafe.check("verlet", 0.1, [1.0], qux=4)
     with pytest.raises(stepsafe.StepsafeError, match="flat direction"):
         hmc(["verlet"], frequencies=[0.0, 1.0])
