@@ -6,16 +6,20 @@ and mass, Hessian, Gaussian precision or covariance) is integrated with the meth
 step h for a time T from one initial condition, by the engine of
 :mod:`stepsafe.core.integrator`. Measured per h:
 
-* the energy error: the spread ``(max_t H - min_t H) / (min_t H - H_e)`` of the energy over
-  the run (``H_e`` the energy of the equilibrium the start orbits, 0 for linear systems):
-  the quantity the linear bound ``kappa - 1`` describes, whatever the start (with no
-  equilibrium, the spread over ``|H(0)|``);
-* the energy drift: the least-squares slope of ``(H(t) - H(0)) / |H(0) - H_e|`` against t;
-* the trajectory error at T: ``|x - x_exact|`` over ``|x_exact - x_e|`` in the energy
-  norm of the Hessian at the equilibrium the start orbits, where the linear model's
-  orbits are circles (the Euclidean norm where that Hessian is not definite or there is
-  no equilibrium); the reference is ``expm(J S T)`` for linear systems, an adaptive
-  8th-order Dormand-Prince run at tolerance 1e-13 for expressions;
+* the energy error: the spread ``(max_k H - min_k H) / (min_k H - H_e)`` of the energy
+  over every step k = 0 .. n of the run (``H_e`` the energy of the equilibrium the start
+  orbits, 0 for linear systems): the quantity the linear bound ``kappa - 1`` describes,
+  whatever the start (with no equilibrium, the spread over ``|H(0)|``);
+* the energy drift: the least-squares slope of ``(H(t_k) - H(0)) / |H(0) - H_e|`` against
+  ``t_k = k h``, fitted through every step. Both are reduced on the fly, chunk by chunk,
+  nothing stored (:class:`_EnergyTrace`): a sample every few steps would alias with the
+  orbit's rotation (a stride of 3 steps on an orbit of period 6 steps sees one energy);
+* the trajectory error at T (from the final state alone, no sampling):
+  ``|x - x_exact|`` over ``|x_exact - x_e|`` in the energy norm of the Hessian at the
+  equilibrium the start orbits, where the linear model's orbits are circles (the
+  Euclidean norm where that Hessian is not definite or there is no equilibrium); the
+  reference is ``expm(J S T)`` for linear systems, an adaptive 8th-order Dormand-Prince
+  run at tolerance 1e-13 for expressions;
 * force evaluations per unit time as counted (implicit methods: with their fixed-point
   iterations);
 * the status: ``ok``; ``unstable`` when the state overflows or its energy moves by more
@@ -52,8 +56,11 @@ from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
 MAX_STEPS = 2_000_000
 #: ... and at most when asked (``max_steps``).
 MAX_STEPS_CAP = 100_000_000
-#: Energies sampled per run at most (every step when there are fewer steps).
-ENERGY_SAMPLES = 20_000
+#: States buffered between two vectorised energy evaluations at most (the energy is
+#: evaluated at every step, in chunks of this many steps, and not stored)...
+ENERGY_CHUNK = 1024
+#: ... and state values buffered at most (fewer steps per chunk for many dof).
+CHUNK_VALUES = 1 << 20
 #: Steps h measured in one call at most.
 MAX_STEP_SIZES = 200
 #: A run whose energy moves by more than this many times the start's energy above the
@@ -263,25 +270,18 @@ def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.
     e0 = float(system.energy(q, p)[0])
     q, p = engine.start(q, p, h)  # processed methods: P once (else the identity)
     scale = abs(e0 - (problem.equilibrium_energy or 0.0)) or 1.0
-    stride = max(1, n // ENERGY_SAMPLES)
-    times, errors = [0.0], [0.0]
+    trace = _EnergyTrace(engine, h, e0, scale, q.shape[1])
     status = "ok"
     with np.errstate(all="ignore"):
         for k in range(1, n + 1):
             try:
                 q, p = engine.step(q, p, h)
-            except SolverFailure:
-                status = "solver failed"
+            except SolverFailure:  # (a state that grew without bound first is unstable)
+                status = "solver failed" if trace.flush() else "unstable"
                 break
-            if k % stride == 0 or k == n:
-                e = float(system.energy(*engine.output(q, p, h))[0])
-                err = abs(e - e0) / scale
-                if not (np.all(np.isfinite(q)) and np.all(np.isfinite(p))) or not \
-                        math.isfinite(err) or err > UNSTABLE:
-                    status = "unstable"
-                    break
-                times.append(k * h)
-                errors.append((e - e0) / scale)
+            if not trace.push(q, p, last=k == n):
+                status = "unstable"
+                break
             if k % 1024 == 0:
                 tick(k)
                 if deadline is not None and _time.monotonic() > deadline:
@@ -294,27 +294,95 @@ def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.
         status = "beyond z*"  # ran, but past the linear model's first boundary
     if status not in ("ok", "beyond z*"):
         return MeasureRow(h, n, T, status, None, None, None, None, None, *prediction)
-    t, err = np.array(times), np.array(errors)
-    drift = float(np.polyfit(t, err, 1)[0]) if t.size > 2 else None
+    drift = trace.slope()
     q, p = engine.output(q, p, h)
     state = np.concatenate([q[0], p[0]])
     traj = _trajectory_error(state, exact, problem)
-    # the processor's cost: P once and P^-1 once for the final state (the energy samples'
-    # outputs are monitoring, not part of the integration)
+    # the processor's cost: P once and P^-1 once for the final state (the outputs the
+    # energy trace evaluates are monitoring, not part of the integration)
     outputs = engine.output_evaluations // max(1, engine.output_calls)
     iterations = engine.iterations / n if engine.solves else None
     # the spread of the energy over the run relative to its lowest value above the
     # equilibrium (the quantity the linear bound kappa - 1 describes, whatever the start);
     # with no equilibrium, relative to |H(0)|
+    spread: float | None
     if problem.equilibrium_energy is None:
-        spread = float(err.max() - err.min())
+        spread = trace.high - trace.low
     else:
-        low = float(err.min()) + (e0 - problem.equilibrium_energy) / scale
-        spread = float(err.max() - err.min()) / low if low > 0 else None
+        low = trace.low + (e0 - problem.equilibrium_energy) / scale
+        spread = (trace.high - trace.low) / low if low > 0 else None
     return MeasureRow(h, n, T, status, spread, drift, traj,
                       (engine.force_evaluations + outputs) / T, iterations, *prediction,
                       engine.jacobians / T if engine.jacobians else None,
                       engine.gradient_evaluations / T if engine.gradient_evaluations else None)
+
+
+class _EnergyTrace:
+    """The relative energy error ``e_k = (H(x_k) - H(x_0)) / scale`` at every step
+    k = 0 .. n of a run (``x_k`` the output state: ``P^-1`` of the kernel's for processed
+    methods), reduced on the fly: its least and greatest values (``low``, ``high``) and
+    the least-squares slope of ``e_k`` against ``t_k = k h``. No step is skipped (a
+    sample every few steps can lock onto the rotation of the orbit and miss the
+    extremes) and none is stored: the states of up to :data:`ENERGY_CHUNK` steps are
+    buffered, their energies evaluated in one vectorised call, and the chunk's means and
+    co-moments merged into the totals by the pairwise update of Chan, Golub and LeVeque
+    (``n = n_a + n_b``, ``d = mean_b - mean_a``,
+    ``S_tt = S_tt,a + S_tt,b + d_t^2 n_a n_b / n``, likewise ``S_te``), so that the slope
+    ``S_te / S_tt`` is that of the fit through every step, without the cancellation of
+    raw sums."""
+
+    def __init__(self, engine: Any, h: float, e0: float, scale: float, dof: int) -> None:
+        self.engine, self.h, self.e0, self.scale = engine, h, e0, scale
+        size = max(1, min(ENERGY_CHUNK, CHUNK_VALUES // (2 * dof)))
+        self.Q, self.P = np.empty((size, dof)), np.empty((size, dof))
+        self.filled = 0  # steps buffered
+        self.step = 0  # steps pushed
+        # the start: k = 0, e_0 = 0
+        self.count, self.t_mean, self.e_mean, self.S_tt, self.S_te = 1, 0.0, 0.0, 0.0, 0.0
+        self.low = self.high = 0.0
+
+    def push(self, q: np.ndarray, p: np.ndarray, last: bool = False) -> bool:
+        """Buffer the state after the next step (rows of shape ``(1, dof)``); evaluate the
+        buffer when full or ``last``. False once a state evaluated is unstable."""
+        self.Q[self.filled], self.P[self.filled] = q[0], p[0]
+        self.filled += 1
+        self.step += 1
+        if self.filled == self.Q.shape[0] or last:
+            return self.flush()
+        return True
+
+    def flush(self) -> bool:
+        """Evaluate the buffered steps: False when a state is not finite or its energy
+        moved by more than :data:`UNSTABLE` times the scale (nothing is then added)."""
+        m, self.filled = self.filled, 0
+        if m == 0:
+            return True
+        Q, P = self.Q[:m], self.P[:m]
+        e = (self.engine.system.energy(*self.engine.output(Q, P, self.h)) - self.e0) \
+            / self.scale
+        stable = np.isfinite(Q).all(axis=1) & np.isfinite(P).all(axis=1) & \
+            (np.abs(e) <= UNSTABLE)  # (nan compares False)
+        if not stable.all():
+            return False
+        t = self.h * np.arange(self.step - m + 1, self.step + 1, dtype=float)
+        t_mean, e_mean = float(t.mean()), float(e.mean())
+        dt = t - t_mean
+        total = self.count + m
+        shift_t, shift_e = t_mean - self.t_mean, e_mean - self.e_mean
+        weight = self.count * m / total
+        self.S_tt += float(dt @ dt) + shift_t * shift_t * weight
+        self.S_te += float(dt @ (e - e_mean)) + shift_t * shift_e * weight
+        self.t_mean += shift_t * m / total
+        self.e_mean += shift_e * m / total
+        self.count = total
+        self.low, self.high = min(self.low, float(e.min())), max(self.high, float(e.max()))
+        return True
+
+    def slope(self) -> float | None:
+        """The least-squares slope of e against t over every step (None below 3 points)."""
+        if self.count < 3 or not self.S_tt > 0:
+            return None
+        return self.S_te / self.S_tt
 
 
 def _trajectory_error(state: np.ndarray, exact: np.ndarray, problem: _Problem) -> float:

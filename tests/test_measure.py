@@ -461,3 +461,78 @@ def test_every_stated_evaluation_count_is_what_the_engine_makes_per_step(name):
         assert (counts[1] - counts[0]) / 20 == entry.evaluations
     natural = natural_evaluations(m)
     assert natural is None or natural == entry.evaluations
+
+
+def _verlet_energies(h, q, p, n):
+    """The energy ``(q^2 + p^2) / 2`` after each of n kick-drift-kick steps (and at the
+    start) on the oscillator ``H = (q^2 + p^2) / 2``: a plain float loop, independent of
+    the engine."""
+    out = np.empty(n + 1)
+    out[0] = 0.5 * (q * q + p * p)
+    for k in range(1, n + 1):
+        p -= 0.5 * h * q
+        q += h * p
+        p -= 0.5 * h * q
+        out[k] = 0.5 * (q * q + p * p)
+    return out
+
+
+def test_energy_spread_is_the_extreme_over_every_step_when_the_orbit_repeats():
+    """At h = 1 Verlet turns the oscillator's state by exactly pi/3 per step (cos theta =
+    1 - h^2/2 = 1/2): the orbit repeats every 6 steps, with energies 1/8, 13/128, 13/128
+    from (0.5, 0) (exact in rationals), so the spread over every step is exactly
+    (1/8 - 13/128) / (13/128) = 3/13; any fixed subset of the 6 phases misses it (every
+    third step sees 1/8 alone)."""
+    from fractions import Fraction
+
+    q, p, energies = Fraction(1, 2), Fraction(0), []
+    for _ in range(6):
+        energies.append((q * q + p * p) / 2)
+        p -= q / 2
+        q += p
+        p -= q / 2
+    assert (q, p) == (Fraction(1, 2), 0)  # period 6
+    exact = (max(energies) - min(energies)) / min(energies)
+    assert exact == Fraction(3, 13)
+    row = measure("verlet", [1.0], system={"hessian": np.eye(2)}, initial=[0.5, 0.0],
+                  time=60000.0).rows[0]
+    assert row.steps == 60000 and row.status == "ok"
+    assert row.energy_error == pytest.approx(float(exact), rel=1e-12)
+
+
+def test_energy_spread_and_drift_are_those_of_every_step_near_a_resonant_stride():
+    """z = 1.414224669 (theta within 1e-5 of pi/2): every other step sees nearly one
+    energy, so a sample of every other step misses the spread (kappa - 1 = 1.000 here);
+    the spread and the least-squares drift through every one of the 40001 steps are those
+    of an independent float loop and numpy's fit of every step."""
+    h, T = 1.414224669, 56570.0
+    row = measure("verlet", [h], system={"hessian": np.eye(2)}, initial=[0.5, 0.0],
+                  time=T).rows[0]
+    n = row.steps
+    assert n == math.ceil(T / h * (1 - 1e-12)) and row.status == "ok"
+    e = _verlet_energies(h, 0.5, 0.0, n)
+    assert row.energy_error == pytest.approx((e.max() - e.min()) / e.min(), rel=1e-9)
+    assert row.energy_error == pytest.approx(1 / (1 - h * h / 4) - 1, rel=1e-3)
+    slope = np.polyfit(h * np.arange(n + 1), (e - e[0]) / e[0], 1)[0]
+    assert row.energy_drift == pytest.approx(slope, rel=1e-6, abs=1e-15)
+
+
+def test_drift_is_the_fit_through_every_step_when_a_stride_would_beat():
+    """theta = (pi + eps) / 3 with eps = pi / 40000: three steps turn the state by pi + eps,
+    so the state every third step drifts through a quarter turn over the 60000 steps and
+    its energies fall steadily from the largest to the smallest: a fit through them shows
+    a drift of about -spread / T where the energy only oscillates. The drift reported is
+    numpy's least-squares slope through every step of an independent float loop."""
+    n = 60000
+    theta = (math.pi + math.pi / 2 / (n / 3)) / 3
+    h = math.sqrt(2 - 2 * math.cos(theta))  # Verlet: cos theta = 1 - h^2 / 2
+    row = measure("verlet", [h], system={"hessian": np.eye(2)}, initial=[0.5, 0.0],
+                  time=n * h).rows[0]
+    assert row.steps == n and row.status == "ok"
+    e = _verlet_energies(h, 0.5, 0.0, n)
+    err = (e - e[0]) / e[0]
+    slope = np.polyfit(h * np.arange(n + 1), err, 1)[0]
+    strided = np.polyfit(h * np.arange(0, n + 1, 3), err[::3], 1)[0]
+    assert abs(strided) > 1e3 * abs(slope)  # the beat a stride of 3 would fit
+    assert row.energy_drift == pytest.approx(slope, rel=1e-6, abs=1e-15)
+    assert row.energy_error == pytest.approx((e.max() - e.min()) / e.min(), rel=1e-9)

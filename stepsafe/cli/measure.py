@@ -89,9 +89,10 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
 
     The scene's system: (a Hamiltonian expression in q and p, or with named variables for
     n degrees of freedom, or a linear system) is integrated at each step h for a time T.
-    Measured: the spread of the energy over the run (relative to the energy above the
-    equilibrium the start orbits), the energy drift per unit time (relative in the same
-    way), the trajectory error at T against a reference (the exact flow for linear
+    Measured: the spread of the energy over every step of the run (relative to the energy
+    above the equilibrium the start orbits), the energy drift per unit time (the
+    least-squares slope through every step, relative in the same way), the trajectory
+    error at T against a reference (the exact flow for linear
     systems, an adaptive 8th-order run at tolerance 1e-13 for expressions: errors below
     about 1e-13 are that run's own) in the energy norm of that equilibrium, force
     evaluations per unit time as counted (implicit methods with their solver's

@@ -166,7 +166,7 @@ def linear_system(S: np.ndarray) -> System:
 
     def energy(q: np.ndarray, p: np.ndarray) -> np.ndarray:
         x = np.hstack([q, p])
-        return 0.5 * np.einsum("mi,ij,mj->m", x, S, x)
+        return 0.5 * np.einsum("mi,mi->m", x @ S, x)  # (a matrix product: BLAS)
 
     def hessian(q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, ...]:
         m = q.shape[0]
