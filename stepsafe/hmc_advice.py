@@ -7,6 +7,15 @@ the cost in gradient evaluations per proposal, per accepted proposal and per acc
 of simulated time; methods are ranked by the last (at a fixed integration time it orders
 them as the cost per accepted proposal does).
 
+Jitter. A sampler with jitter J draws each step from ``h (1 - J, 1 + J)``: the step at
+target is searched below ``limit / (1 + J)`` (rounded down so that ``h (1 + J)`` computed in
+float64 stays within it), ``limit`` the criterion's step limit of the fastest mode, so that
+no jittered step is unstable. A step whose longest draws pass the stability limit makes the
+trajectories that draw them grow without bound (Stan's divergent transitions), while the
+acceptance averaged over the jitter can still look fine. ``allow_unstable_jitter`` searches
+up to ``limit`` itself, as for a fixed step; the fraction of unstable draws,
+``(1 + J - limit / h) / (2 J)``, is then stated wherever it is not 0.
+
 A processed method ``P^-1 K P`` proposes ``x -> P^-1 K^L P x``: its one-step matrix is the
 full map ``P^-1 M_K P`` (:mod:`stepsafe.core.transfer`), whose L-th power is the proposal,
 so the energy errors and acceptance of :mod:`stepsafe.core.hmc` are the processed
@@ -33,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from stepsafe.api import ArrayLike, Integrator, _compared, _problem_of, _step_cost
+from stepsafe.core.regions import ROUNDING_GAP_RULE
 from stepsafe.core.roots import EPS
 from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
 from stepsafe.systems.loader import DENSE_LIMIT
@@ -91,14 +101,17 @@ class HmcReport:
     beta_range: tuple[float, float]
     time_unit: str | None = None
     approximate: bool = False
+    #: False: the step at target keeps ``h (1 + jitter)`` within the criterion's limit
+    allow_unstable_jitter: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe hmc ... --json`` prints."""
         return {"target_accept": self.target, "steps": self.steps, "length": self.length,
-                "jitter": self.jitter, "criterion": self.criterion, "modes": self.modes,
+                "jitter": self.jitter, "allow_unstable_jitter": self.allow_unstable_jitter,
+                "criterion": self.criterion, "modes": self.modes,
                 "beta_min": self.beta_range[0], "beta_max": self.beta_range[1],
                 "time_unit": self.time_unit, "approximate": self.approximate,
-                "cost_unit": "gradient evaluations",
+                "cost_unit": "gradient evaluations", "rounding_gaps": ROUNDING_GAP_RULE,
                 "methods": [copy.deepcopy(_row_dict(r)) for r in self.rows]}
 
 
@@ -139,14 +152,17 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
         frequencies: ArrayLike | None = None, *, steps: int | None = None,
         length: float | None = None, jitter: float = 0.0, target_accept: float = 0.8,
         step: float | None = None, criterion: str = "stability", curve: int = 0,
-        gradient_cost: float = 1.0, **inputs: Any) -> HmcReport:
+        gradient_cost: float = 1.0, allow_unstable_jitter: bool = False,
+        **inputs: Any) -> HmcReport:
     """HMC on a Gaussian target with each of ``methods`` (names, ``"all"``, or None for
     :data:`HMC_DEFAULT`). The target is given as for :func:`stepsafe.problem`: ``sigma``
     (standard deviations), ``frequencies`` (beta = 1/sigma for unit mass), a scene, or
     ``system={"covariance": C}`` / ``{"precision": P}`` with an optional ``"mass"``.
     ``steps`` L per trajectory, or ``length`` T (L = floor(T / h), as Stan), or neither (the
     acceptance is then the bound over every L); ``jitter`` j draws each step from
-    ``h (1 +- j)``. The step at target is the largest whose acceptance reaches
+    ``h (1 +- j)``: the step at target keeps ``h (1 + j)`` within the criterion's step limit
+    (no jittered step unstable) unless ``allow_unstable_jitter`` is True (see the module
+    docstring). The step at target is the largest whose acceptance reaches
     ``target_accept`` for every trajectory length (each mode's energy error at its bound
     over L, rho(h) of Blanes, Casas & Sanz-Serna 2014): the acceptance for one L
     oscillates with h like sin^2(L theta), and is reported at that step. ``step`` also
@@ -168,6 +184,9 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
 
     validate_gradient_cost(gradient_cost)  # a bad value fails before any work
     criterion = validate_criterion(criterion)
+    if not isinstance(allow_unstable_jitter, (bool, np.bool_)):
+        raise StepsafeError("allow_unstable_jitter must be True or False, got "
+                            f"{str(allow_unstable_jitter)[:20]!r}")
     if step is not None:
         step = positive_finite(step, "step")
     if isinstance(curve, bool) or not isinstance(curve, int) or not 0 <= curve <= 10_000:
@@ -180,7 +199,7 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
     rows = []
     for k, integrator in enumerate(integrators):
         rows.append(_row(integrator, betas, errors, trajectory, target, step, criterion,
-                         p.zmax, curve, gradient_cost))
+                         p.zmax, curve, gradient_cost, bool(allow_unstable_jitter)))
         if progress is not None:
             progress((k + 1) / len(integrators))
     # a method that is not reversible does not sample the target: listed, not ranked
@@ -196,7 +215,8 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
 
     return HmcReport(tuple(out), target, steps, length, jitter, criterion, int(betas.size),
                      (float(positive.min()), float(positive.max())), p.time_unit,
-                     bool(np.unique(positive).size > MAX_EXACT_MODES))
+                     bool(np.unique(positive).size > MAX_EXACT_MODES),
+                     bool(allow_unstable_jitter))
 
 
 def _quotient_below(z: float, beta: float) -> float:
@@ -207,21 +227,30 @@ def _quotient_below(z: float, beta: float) -> float:
     return float(z / beta * SHRINK)
 
 
-def _first_unsafe(region: Any, z: float) -> float:
-    """Where the gap that the boundary ``z`` of ``region`` starts begins: ``z`` less its
-    float64 uncertainty (:func:`stepsafe.core.advice.labelled_gaps`)."""
-    from stepsafe.core.advice import labelled_gaps
+def _quotient_within(h: float, factor: float) -> float:
+    """The largest float q <= h / factor with ``q * factor <= h`` in float64: a step whose
+    longest jittered draw, as a sampler computes it, stays within ``h``."""
+    q = h / factor
+    while q * factor > h:
+        q = float(np.nextafter(q, 0.0))
+    return q
 
-    starts = [g.a for g in labelled_gaps(region) if g.boundary == z]
-    return min(starts) if starts else z
+
+def unstable_fraction(h: float, jitter: float, limit: float) -> float:
+    """The fraction of steps drawn uniformly from ``h (1 - jitter, 1 + jitter)`` that pass
+    ``limit``: ``(1 + jitter - limit / h) / (2 jitter)`` clipped to [0, 1] (0 or 1 without
+    jitter, as h is within the limit or not)."""
+    if jitter == 0.0:
+        return 0.0 if h <= limit else 1.0
+    return float(min(max((1.0 + jitter - limit / h) / (2.0 * jitter), 0.0), 1.0))
 
 
 def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajectory: Any,
          target: float, step: float | None, criterion: str, zmax: float, curve: int = 0,
-         gradient_cost: float = 1.0) -> HmcRow:
+         gradient_cost: float = 1.0, allow_unstable_jitter: bool = False) -> HmcRow:
     from stepsafe.core import hmc as core
     from stepsafe.core.advice import first_unsafe_z
-    from stepsafe.core.regions import find_region, under_criterion
+    from stepsafe.core.regions import find_region, stable_run
     from stepsafe.core.solver import fixed_point_cost, step_limit
     from stepsafe.core.tradeoff import SOLVER_REACH
     from stepsafe.methods.families import is_symmetric
@@ -247,14 +276,15 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
         notes.append("not symmetric: the HMC chain is not reversible with it and drifts away "
                      "from the target (alternate it with its adjoint); the acceptance shown "
                      "is that of a proposal from the target (not ranked)")
-    z_stab = region.stability_limit if region.stability_limit is not None else region.zmax
-    if region.stability_limit is None:
+    # the stable steps, resonances (rounding gaps) excluded but not ending them: the rule
+    # design uses too (stepsafe.core.regions.stable_run)
+    run = stable_run(region)
+    if run.end is None:
         notes.append(f"stable up to z = {region.zmax:g}, as far as analysed: the stability h "
                      "shown is that end, not the method's limit (--zmax analyses further)")
     # the limits as advise computes them: each boundary less its float64 uncertainty, over
     # the largest beta (1 + r) the rounding of a computed eigenvalue allows, rounded down
-    stab_lo = (_first_unsafe(under_criterion(region, "stability"), z_stab)
-               if region.stability_limit is not None else region.zmax)
+    stab_lo = run.first_unsafe if run.first_unsafe is not None else region.zmax
     struct_lo = (first_unsafe_z(region) if region.first_boundary is not None
                  else region.zmax)
     widest = float((betas * (1.0 + errors)).max())
@@ -270,8 +300,11 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
         h_hi = SOLVER_REACH * solver_limit
         notes.append(f"the step is kept below 0.9 of the fixed-point iteration's "
                      f"convergence limit h = {solver_limit:.6g}")
-    resonances = tuple(r.z / top for r in under_criterion(region, "stability").resonances
-                       if r.z < z_stab)
+    jitter = trajectory.jitter
+    h_fixed = h_hi  # the limit for a fixed step
+    if jitter and not allow_unstable_jitter:
+        h_hi = _quotient_within(h_hi, 1.0 + jitter)  # every draw h (1 + jitter u) within it
+    resonances = tuple(r.z / top for r in run.resonances)
 
     def gradients(h: float) -> float | None:
         if integrator.explicit:
@@ -305,9 +338,26 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
 
     # the step reaching the target for every trajectory length (the bound rho of each
     # mode): the acceptance for a given L oscillates with h like sin^2(L theta)
-    bound = core.Trajectory(jitter=trajectory.jitter)
+    bound = core.Trajectory(jitter=jitter)
     h_target = core.target_step(m, betas, target, h_hi, bound)
     at_target = figures(h_target) if h_target else {}
+    if jitter and h_target is not None and h_target == h_hi and not allow_unstable_jitter:
+        notes.append(f"h at target is capped at h = {h_hi:.6g}, the {criterion} limit "
+                     f"{h_fixed:.6g} over 1 + J = {1.0 + jitter:g}, so that no jittered step "
+                     "passes it (--allow-unstable-jitter, allow_unstable_jitter=True in "
+                     "Python, searches up to the limit itself)")
+    for where, h in (("the step at target", h_target), ("the step asked for", step)):
+        unstable = (unstable_fraction(h, jitter, stability_h)
+                    if h and jitter and run.end is not None else 0.0)
+        if unstable > 0.0:
+            share = ("every jittered step h (1 +- {j:g}) passes" if unstable == 1.0 else
+                     f"{100 * unstable:.3g}% of the jittered steps h (1 +- {{j:g}}) pass"
+                     ).format(j=jitter)
+            notes.append(f"at {where} h = {h:.6g}, {share} the "
+                         f"stability limit {stability_h:.6g}: the trajectories that draw them "
+                         "grow without bound (divergent transitions)"
+                         + (", which the acceptance averaged over the jitter hides"
+                            if unstable < 1.0 else ""))
     if at_target.get("approximate"):
         notes.append("the acceptance at h at target is approximate (more distinct modes, "
                      "turns of L theta across the jitter, or steps L than float64 integrates "
@@ -363,7 +413,10 @@ class DesignReport:
     for it and each of :data:`DESIGN_REFERENCES`, at the same gradient evaluations per unit
     of simulated time (each method at step ``step * evaluations / stages``), the error bound
     ``sum_k rho(beta_k h)`` over every trajectory length and the acceptance it guarantees,
-    both averaged over the jitter interval (``error_bound`` None: a mode is unstable there)."""
+    both averaged over the jitter interval (``error_bound`` None: a mode is unstable there),
+    and ``resonance_h``, the steps up to the jitter interval's top where the fastest mode
+    meets an M = +-I resonance, which does not end the stable steps
+    (:data:`~stepsafe.core.regions.ROUNDING_GAP_RULE`, as ``hmc`` counts it)."""
 
     name: str
     stages: int
@@ -380,7 +433,9 @@ class DesignReport:
         return {"name": self.name, "stages": self.stages, "params": dict(self.params),
                 "step": self.step, "modes": self.modes, "binned": self.binned,
                 "time_unit": self.time_unit, "method_file": self.method_file,
-                "comparison": [dict(c) for c in self.comparison]}
+                "rounding_gaps": ROUNDING_GAP_RULE,
+                "comparison": [{**c, "resonance_h": list(c["resonance_h"])}
+                               for c in self.comparison]}
 
 
 def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2,
@@ -388,7 +443,9 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
     """Design the palindromic ``stages``-stage splitting (2: parameter b; 3: b and a; see
     :mod:`stepsafe.core.design`) that minimises the expected energy error summed over the
     target's modes (the target as for :func:`hmc`) at ``step``, averaged over
-    ``step (1 +- jitter)``, every mode stable up to ``step (1 + jitter)``.
+    ``step (1 +- jitter)``, every mode stable up to ``step (1 + jitter)`` (an M = +-I
+    resonance does not end the stable steps: the rule ``hmc`` uses,
+    :func:`stepsafe.core.regions.stable_run`).
 
     >>> report = design(sigma=[1.0, 0.5, 0.2], step=0.5)
     >>> [(c["method"], round(c["acceptance"], 2)) for c in report.comparison[:3]]
@@ -397,6 +454,7 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
     from stepsafe.core import hmc as core
     from stepsafe.core.design import PARAMETERS, STABLE_LIMIT, family_member
     from stepsafe.core.design import design as core_design
+    from stepsafe.core.regions import find_region, stable_run
 
     if isinstance(stages, bool) or not isinstance(stages, (int, np.integer)) or \
             stages not in PARAMETERS:
@@ -416,9 +474,12 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
     values, counts = np.unique(widest[betas > 0], return_counts=True)
     found = core_design(stages, values, counts.astype(float), step, jitter)
     if found is None:
+        top = values.max()
+        past = (f"; past h = {3.0 / top:g} only members with an M = -I point are, of which "
+                "the design tries bcss3 and (1/6, 1/3)" if stages == 3 else "")
         raise StepsafeError(f"no {stages}-stage member keeps every mode stable up to h = "
                             f"{step * (1.0 + jitter):g} (the family's stable steps end at "
-                            f"h = {STABLE_LIMIT[stages] / values.max():g}): take a smaller step")
+                            f"h = {STABLE_LIMIT[stages] / top:g}{past}): take a smaller step")
     designed = family_member(stages, found.params, name)
     params = dict(zip(PARAMETERS[stages], found.params))
     rows = []
@@ -432,8 +493,12 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
                                 "cost, step * evaluations / stages, underflows to 0: give "
                                 "sigma and the step in units nearer 1")
         acc = core.acceptance_at(tableau, betas, h, over)
+        reach = float(widest.max()) * h * (1.0 + jitter)
+        run = stable_run(find_region(tableau, "oscillator", max(reach * 1.001, 10.0)))
         rows.append(MappingProxyType({
             "method": label, "evaluations": evals, "h": h,
+            "resonance_h": tuple(r.z / float(betas.max()) for r in run.resonances
+                                 if r.z <= reach),
             "error_bound": None if not np.isfinite(acc.expected_error) else acc.expected_error,
             "acceptance": acc.rate,
             "gradients_per_time": (None if acc.rate == 0 else evals / acc.rate / h)}))

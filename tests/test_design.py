@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import mpmath as mp
 import numpy as np
@@ -16,7 +17,7 @@ import stepsafe
 from stepsafe.core.design import design as core_design
 from stepsafe.core.design import family_member, rho_values
 from stepsafe.exceptions import StepsafeError
-from stepsafe.hmc_advice import design
+from stepsafe.hmc_advice import design, hmc
 
 
 def _rho_mp(b, z):
@@ -101,8 +102,7 @@ def test_designed_beats_its_family_on_its_own_target(stages, rivals):
     at h * evaluations / stages) the designed member has the smallest error bound of its
     family, and HMC chains with it accept at least as often."""
     sigmas = np.linspace(0.1, 1.0, 40)
-    # 3-stage members pass near M = -I at z ~ 2.98, where none is certified stable: the
-    # fastest mode stays below it
+    # past z ~ 2.98 only members through M = -I are stable: the fastest mode stays below
     h = 0.2 if stages == 2 else 0.23
     report = design(sigma=list(sigmas), step=h, stages=stages, jitter=0.25)
     # the objective recomputed on its own: rho averaged over the jitter interval (400
@@ -281,19 +281,101 @@ def test_the_review_cases_get_the_quarter_member(step, jitter, run):
     assert code == 2 and "end at h = 4" in err
 
 
-@pytest.mark.parametrize("top, jitter", [(2.9, 0.0), (2.7, 0.1), (3.2, 0.0)])
+BCSS3 = (0.11888010966548, 0.29619504261126)
+THIRDS = (1 / 6, 1 / 3)  # three third-step leapfrogs
+
+
+def _touch(params, near):
+    """The least ``tr M / 2 + 1`` at 50 digits near z = ``near`` (golden-section search
+    on [near - 0.05, near + 0.05], where ``tr M / 2`` has one minimum): negative by the
+    depth of the gap the member's float coefficients leave at its M = -I point."""
+    with mp.workdps(50):
+        lo, hi = mp.mpf(near) - mp.mpf("0.05"), mp.mpf(near) + mp.mpf("0.05")
+        ratio = (mp.sqrt(5) - 1) / 2
+        for _ in range(200):
+            a, b = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
+            if _tr_half_mp(3, params, a)[0] < _tr_half_mp(3, params, b)[0]:
+                hi = b
+            else:
+                lo = a
+        return _tr_half_mp(3, params, (lo + hi) / 2)[0] + 1
+
+
+@pytest.mark.parametrize("top, jitter", [(2.9, 0.0), (2.7, 0.1), (3.2, 0.0), (4.2, 0.1),
+                                         (5.9, 0.0), (6.0, 0.0)])
 def test_three_stage_design_against_the_end_of_its_stable_range(top, jitter):
-    """Below z = 3 the design is bounded over its jitter interval at 50 digits; from 3 on it
-    is refused, and the member approaching the end, (b, a) = (1/6, 1/3) in float, is
-    unbounded at z = 3 (|tr M| - 2 ~ 1e-33: its exact M = -I is not representable)."""
+    """Below z = 3 the design is bounded over its jitter interval at 50 digits. From 3 to 6
+    only members whose tr M touches -2 (M = -I) are stable, and the design is one of the
+    two known ones, bcss3 (to 4.66) or three third-step leapfrogs (1/6, 1/3) (to 6): at 50
+    digits their float coefficients leave a gap at the touch, 3.2e-27 deep for bcss3 and
+    1e-33 for (1/6, 1/3) (their exact M = -I is not representable), within the rounding
+    that the rule hmc and design share passes over; elsewhere on the jitter interval they
+    are bounded. From 6 = 2s on the design is refused."""
     step = top / (1.0 + jitter)
-    if top < 3.0:
-        report = design(sigma=[1.0], step=step, stages=3, jitter=jitter)
-        assert _design_is_stable(3, tuple(report.params.values()), [step], jitter)
+    if top >= 6.0:
+        with pytest.raises(StepsafeError, match="no 3-stage member.*end at h = 6"):
+            design(sigma=[1.0], step=step, stages=3, jitter=jitter)
         return
-    with pytest.raises(StepsafeError, match="no 3-stage member.*end at h = 3"):
-        design(sigma=[1.0], step=step, stages=3, jitter=jitter)
-    assert not _bounded_at(3, (1 / 6, 1 / 3), 3)
+    params = tuple(design(sigma=[1.0], step=step, stages=3, jitter=jitter).params.values())
+    if top < 3.0:
+        assert _design_is_stable(3, params, [step], jitter)
+        return
+    assert params in (BCSS3, THIRDS)
+    near = 2.9763246405798 if params == BCSS3 else 3.0
+    assert -mp.mpf("1e-25") < _touch(params, near) < 0
+    if params == THIRDS:
+        assert not _bounded_at(3, params, 3)  # the gap at z = 3 itself
+    assert all(_bounded_at(3, params, step * (1 + jitter * u))
+               for u in np.linspace(-1.0, 1.0, 21) if abs(step * (1 + jitter * u) - near) > 1e-6)
+
+
+@settings(max_examples=6, deadline=None)
+@given(exponent=st.floats(-200.0, 200.0), spread=st.floats(1.0, 10.0),
+       count=st.integers(1, 4), top=st.floats(2.5, 4.6),
+       jitter=st.sampled_from((0.0, 0.1, 0.25)))
+def test_design_and_hmc_apply_one_rule_to_rounding_gaps(exponent, spread, count, top, jitter):
+    """Where hmc finds bcss3 stable for every jittered step (its M = -I point at z = 2.976,
+    a rounding gap, excluded but not an end), design --stages 3 designs a member (bcss3
+    is one); a design it makes, hmc finds stable for every jittered step; a refusal comes
+    only where hmc finds bcss3 unstable too."""
+    sigmas = list(10.0 ** exponent * np.geomspace(1.0, spread, count))
+    step = top * min(sigmas) / (1.0 + jitter)
+    bcss3 = hmc(["bcss3"], sigma=sigmas).rows[0]
+    try:
+        report = design(sigma=sigmas, step=step, stages=3, jitter=jitter)
+    except StepsafeError as exc:
+        assert "no 3-stage member" in str(exc)
+        assert bcss3.stability_h < step * (1.0 + jitter)
+        return
+    params = tuple(report.params.values())
+    designed = stepsafe.api.Integrator("designed", "splitting", "", 2, 4, 3, "", True,
+                                       family_member(3, params), None)
+    row = hmc([designed], sigma=sigmas).rows[0]
+    assert row.stability_h >= step * (1.0 + jitter) * (1 - 1e-12)
+    resonances = report.comparison[0]["resonance_h"]
+    assert list(resonances) == [h for h in row.resonance_h
+                                if h <= step * (1.0 + jitter) * (1 + 1e-12)]
+
+
+def test_the_rule_for_rounding_gaps_is_stated_by_both_commands(run):
+    """The README's target at bcss3's step at target there (0.354016, z = 3.54, past its
+    M = -I point at 2.976, where hmc ranks it first): design --stages 3 designs, and both
+    commands state the rule in text and JSON."""
+    target = str(Path(__file__).parents[1] / "examples" / "gaussian-1000.csv")
+    code, out, err = run("design", "--modes", target, "--step", "0.354016", "--stages", "3",
+                         "--jitter", "0.1", "--json")
+    assert code == 0, err
+    data = json.loads(out)
+    assert "continue past it" in data["rounding_gaps"]
+    assert data["comparison"][0]["resonance_h"] == pytest.approx([0.2976324640579853])
+    code, out, err = run("design", "--sigma", "0.1", "--sigma", "1", "--step", "0.354016",
+                         "--stages", "3", "--jitter", "0.1")
+    assert code == 0 and "M = ±I within rounding" in out and "as hmc counts it" in out
+    code, out, err = run("hmc", "--sigma", "0.1", "--sigma", "1", "--methods", "bcss3",
+                         "--json")
+    assert "continue past it" in json.loads(out)["rounding_gaps"]
+    code, out, err = run("hmc", "--sigma", "0.1", "--sigma", "1", "--methods", "bcss3")
+    assert "M = ±I within rounding" in out and "as design counts it" in out
 
 
 @pytest.mark.parametrize("relative", [0.0, 1e-16, 2e-16, 3e-13, 2e-10, 6e-10])

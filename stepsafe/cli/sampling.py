@@ -37,7 +37,13 @@ PLOT_POINTS = 200
                    "HMC. Without --steps or --length the acceptance is the bound over every L.")
 @click.option("--jitter", type=FLOAT, default=0.0, show_default=True, metavar="J",
               help="Each step drawn uniformly from h(1-J, 1+J), L kept (Stan's "
-                   "stepsize_jitter); the acceptance is averaged over it.")
+                   "stepsize_jitter); the acceptance is averaged over it, and h at target "
+                   "keeps h(1+J) within the stability (or structure) limit, so that no "
+                   "jittered step is unstable.")
+@click.option("--allow-unstable-jitter", is_flag=True,
+              help="Search h at target up to the limit itself, as without jitter: the "
+                   "longest jittered steps may then be unstable (their share is noted; "
+                   "Stan reports such trajectories as divergent transitions).")
 @click.option("--target-accept", type=FLOAT, default=0.8, show_default=True, metavar="A",
               help="Acceptance rate to reach (Stan's adapt_delta default).")
 @click.option("--step", "step", type=FLOAT, default=None, metavar="H",
@@ -49,8 +55,9 @@ PLOT_POINTS = 200
 @criterion_option("stability")
 @gradient_cost_option
 @target_options
-def hmc_cmd(scene_file, names, use_all, steps, length, jitter, target_accept, step,
-            plot_file, tsv, criterion, as_json, gradient_cost, **options) -> None:
+def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_jitter,
+            target_accept, step, plot_file, tsv, criterion, as_json, gradient_cost,
+            **options) -> None:
     """HMC on a Gaussian target: acceptance rate, step size and cost per method.
 
     The target: standard deviations (--sigma, unit mass), frequencies (--beta =
@@ -80,7 +87,8 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, target_accept, st
 
     with progress_bar("hmc", not as_json) as progress, _naming_the_modes_file(options):
         report = hmc(methods, modes=arrays or None, labels=labels or None, scene=scene_file,
-                     steps=steps, length=length, jitter=jitter, target_accept=target_accept,
+                     steps=steps, length=length, jitter=jitter,
+                     allow_unstable_jitter=allow_unstable_jitter, target_accept=target_accept,
                      step=step, criterion=criterion, time_unit=options["time_unit"],
                      zmax=options["zmax"], curve=0 if plot_file is None else PLOT_POINTS,
                      gradient_cost=gradient_cost, progress=progress)
@@ -153,6 +161,17 @@ def print_hmc(data: dict[str, Any]) -> None:
                   "every trajectory length; the acceptance shown is for the trajectory given. "
                   "Ranked by gradient evaluations per accepted unit of simulated time there "
                   "(equivalently per accepted proposal at a fixed integration time).")
+    if data["jitter"]:
+        console.print(_lit(
+            f"Jitter: h at target keeps h(1 + {data['jitter']:g}) within the "
+            f"{data['criterion']} limit, so that no jittered step is unstable"
+            if not data["allow_unstable_jitter"] else
+            f"Jitter: h at target may put h(1 + {data['jitter']:g}) past the "
+            f"{data['criterion']} limit (--allow-unstable-jitter); the unstable share of the "
+            "jittered steps is noted per method"))
+    if any(r["resonance_h"] for r in data["methods"]):
+        console.print(_lit(f"M = ±I within rounding: {data['rounding_gaps']} (as design "
+                           "counts it)."))
 
 
 def _error_cell(x: float | None) -> str:
@@ -279,6 +298,13 @@ def print_design(data: dict[str, Any], output: str | None) -> None:
                       _error_cell(r["error_bound"]), f"{r['acceptance']:.4f}",
                       "-" if r["gradients_per_time"] is None else fmt(r["gradients_per_time"], 5))
     console.print(table)
+    for r in data["comparison"]:
+        for h in r["resonance_h"]:
+            console.print(_lit(f"{r['method']}: M = ±I within rounding at h = {fmt(h)}{u} "
+                               "for the fastest mode (excluded; stable past it)"))
+    if any(r["resonance_h"] for r in data["comparison"]):
+        console.print(_lit(f"M = ±I within rounding: {data['rounding_gaps']} (as hmc counts "
+                           "it)."))
     if output:
         console.print(_lit(f"Method file written to {output}"))
     else:

@@ -34,11 +34,24 @@ that member). Its rho is ``z^4 / (32 (16 - z^2))``, the leapfrog's at z/2, throu
 resonance.
 
 3 stages: ``tr M / 2 + 1`` and ``tr M / 2 - 1`` factor into polynomials of degree <= 2 in
-z^2, whose exact roots over a 1500 x 1500 grid of (b, a) leave no member stable beyond
-z = 3: the supremum is approached at (b, a) = (1/6, 1/3), three third-step leapfrogs,
-whose M = -I at z = 3 exactly (its float coefficients are not exact and leave a gap
-``|tr M| - 2 ~ 1e-33`` there), so 3-stage designs end below h (1 + j) = 3 (the search
-finds members up to 2.9999).
+z^2, whose exact roots over a 1500 x 1500 grid of (b, a) leave no member with ``|tr M| < 2``
+beyond z = 3: that end is approached at (b, a) = (1/6, 1/3), three third-step leapfrogs,
+whose M = -I at z = 3 exactly. Past z = 3 only members whose ``tr M`` touches -2 (an
+M = -I point, a curve in (b, a)) stay stable: bcss3 (M = -I at z = 2.97632, stable to
+4.66185) and (1/6, 1/3) itself, stable to z = 6 through M = -I at 3 and M = +I at
+3 sqrt 3. 6 = 2s is the end for every s-stage member: ``tr M / 2`` is a polynomial of
+degree s in z^2 with slope -1/2 at 0, and the Chebyshev polynomial ``T_s(1 - 2 z^2 / Z^2)``
+is the one that stays within [-1, 1] longest, up to ``Z^2 = 4 s^2``.
+
+Rounding gaps. Stability is the rule ``hmc`` uses (:func:`stepsafe.core.regions.stable_run`,
+:data:`~stepsafe.core.regions.ROUNDING_GAP_RULE`): a touch of ``tr M`` to ``+-2`` within the
+rounding of the coefficients is a resonance, which does not end the stable steps. The
+float coefficients of a member on the touching curve miss it by their rounding: bcss3's
+``tr M`` dips 3.2e-27 below -2 over a width of 1e-13 at 50 digits, (1/6, 1/3)'s 1e-33 at
+z = 3. Under the rule both are stable past those points, as ``hmc`` ranks them. A
+parameter search in the plane cannot follow a curve: past z = 3 the design is the best of
+the known members on it (bcss3 and (1/6, 1/3), :data:`KNOWN`) that is stable up to
+h (1 + j).
 With more distinct frequencies than :data:`MAX_DESIGN_MODES` the search uses that many
 log-spaced bins (each bin's largest frequency, weighted by its count): an approximation
 of the objective, said in the result; the final figures use every mode.
@@ -152,8 +165,8 @@ def rho_values(stages: int, params: np.ndarray, z: np.ndarray) -> np.ndarray:
 
 #: Below this z a mode's rho is 0 in float64 (see :func:`rho_values`).
 RESOLVED_Z = 1e-80
-#: The end of each family's stable range in z (module docstring): no member beyond.
-STABLE_LIMIT = {2: 4.0, 3: 3.0}
+#: The end of each family's stable range in z (module docstring): no member beyond (2s).
+STABLE_LIMIT = {2: 4.0, 3: 6.0}
 #: The 2-stage member that alone stays stable beyond z = 2 sqrt 2 (module docstring).
 QUARTER = 0.25
 
@@ -185,14 +198,13 @@ class Design:
 
 
 def _stable_up_to(stages: int, params: np.ndarray, top: float) -> bool:
-    """Whether the member keeps |tr M| < 2 for every z in (0, top], by the region finder
-    (float64 uncertainties included; an M = +-I resonance inside counts as unstable)."""
-    from stepsafe.core.regions import find_region, under_criterion
+    """Whether the member keeps |tr M| <= 2 for every z in (0, top], by the region finder
+    (float64 uncertainties included), under the rule for rounding gaps that ``hmc`` uses
+    (:func:`stepsafe.core.regions.stable_run`: an M = +-I resonance does not end it)."""
+    from stepsafe.core.regions import find_region, stable_run
 
-    region = under_criterion(find_region(family_member(stages, tuple(params)), "oscillator",
-                                         top * 1.001), "stability")
-    first = region.first_interval
-    return first is not None and (first.hi is None or first.hi > top)
+    return stable_run(find_region(family_member(stages, tuple(params)), "oscillator",
+                                  top * 1.001)).reaches(top)
 
 
 def _binned(betas: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -229,10 +241,10 @@ def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
     values = np.concatenate([error_bounds(stages, chunk, z, counts, jitter)
                              for chunk in np.array_split(grid, max(1, grid.size * z.size
                                                                    // 4_000_000))])
-    if not np.isfinite(values).any():
+    if stages == 2 and not np.isfinite(values).any():
         # (near top = 2 sqrt 2 the interval's members are stable, but too close to their
         # M = -I point for float64's error bound: b = 1/4 is stable on all of (0, 4))
-        return _quarter(z, counts, jitter, binned) if stages == 2 else None
+        return _quarter(z, counts, jitter, binned)
 
     def objective(x: np.ndarray) -> float:
         if np.any(x <= lo) or np.any(x >= hi):

@@ -860,6 +860,58 @@ def under_criterion(region: Region, criterion: str) -> Region:
     return replace(region, intervals=tuple(merged), reversed=(), criterion=criterion)
 
 
+#: The rule for rounding gaps that ``hmc`` and ``design`` share (:func:`stable_run`), as
+#: their output states it.
+ROUNDING_GAP_RULE = (
+    "|tr M| past 2 by no more than the float64 rounding of the coefficients (a touch: "
+    "M = +-I within rounding, as where the rounded coefficients of a method with an exact "
+    "M = -I leave a gap of 1e-13) is a resonance: the steps within its uncertainty are "
+    "excluded and listed, and the stable steps continue past it")
+
+
+class StableRun(NamedTuple):
+    """The stable steps from 0 of :func:`stable_run`: they end at ``end`` in z (None:
+    stable up to the region's ``zmax``), known to float64's ``uncertainty``; the
+    resonances below ``end`` are excluded points, not ends."""
+
+    end: float | None
+    uncertainty: float
+    resonances: tuple[Point, ...]
+
+    @property
+    def first_unsafe(self) -> float | None:
+        """``end`` less its uncertainty: every z below it is in the run (resonances
+        excepted); None when the run reaches ``zmax``."""
+        return None if self.end is None else max(self.end - self.uncertainty, 0.0)
+
+    def reaches(self, z: float) -> bool:
+        """Whether every step up to ``z`` is in the run (resonances excepted)."""
+        return self.end is None or self.first_unsafe > z
+
+
+def stable_run(region: Region) -> StableRun:
+    """The run of steps from 0 where ``|tr M| <= 2`` (the oscillator's stability
+    criterion), under the one rule for rounding gaps that ``hmc`` and ``design`` use
+    (:data:`ROUNDING_GAP_RULE`): an extremum of ``tr M`` within the rounding bound of
+    ``+-2`` (:func:`touches`) is a resonance, whether float64 shows a touch, a near miss or
+    a gap of width below its uncertainty, and it does not end the run. bcss3's published
+    coefficients are rounded to 14 digits: at 50 digits their ``tr M`` dips 3.2e-27 below
+    -2 over a width of 1e-13 at z = 2.97632, where the ideal method's ``M = -I``; under
+    this rule its stable steps end at z = 4.66185 (the literature's interval), the
+    resonance excluded. A gap wider than the uncertainty, or a stretch float64 cannot
+    decide, ends the run (``Region.stability_limit``, assembled by :func:`find_region`).
+    """
+    if not region.symplectic or not ELLIPTIC.get(region.model, False):
+        raise StepsafeError("a stable run is defined for a symplectic method on an "
+                            "elliptic model")
+    end = region.stability_limit
+    runs = under_criterion(region, "stability")
+    uncertainty = next((iv.hi_point.uncertainty for iv in runs.intervals
+                        if end is not None and iv.hi == end and iv.hi_point is not None), 0.0)
+    resonances = tuple(r for r in runs.resonances if end is None or r.z < end)
+    return StableRun(end, float(uncertainty), resonances)
+
+
 def spectral_radius(M: np.ndarray) -> np.ndarray:
     """Largest eigenvalue modulus of each 2x2 matrix, in closed form."""
     t = M[:, 0, 0] + M[:, 1, 1]
