@@ -20,6 +20,8 @@ from types import MappingProxyType
 import mpmath as mp
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 from reference_methods import mp_transfer
 
 from stepsafe.core import hmc as core
@@ -240,3 +242,49 @@ def test_a_trajectory_beyond_a_million_steps_is_approximate():
     assert any("approximate" in note for note in far.notes)
     near = hmc(["bcss3"], sigma=[1.0, 0.5], steps=10**6, step=0.3).rows[0]
     assert near.at_step["approximate"] is False
+
+
+def test_unstable_jittered_steps_raise_no_floating_point_warning():
+    """sigma = 1e-100 at step 1 (z = 1e100): the one-step matrices overflow, which reads
+    as unstable (acceptance 0), and no RuntimeWarning reaches the caller."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        report = hmc(["verlet", "bcss2", "bcss3"], sigma=[1e-100, 1.0], jitter=0.1, step=1.0)
+    for row in report.rows:
+        assert row.at_step["acceptance"] == 0.0 and row.at_step["expected_error"] == np.inf
+
+
+@settings(max_examples=10, deadline=None)
+@given(exponent=st.integers(-960, 960), log_z=st.floats(-3.0, 300.0),
+       shape=st.lists(st.floats(1.0, 100.0), max_size=3),
+       jitter=st.sampled_from((0.0, 0.1, 0.5)),
+       trajectory=st.sampled_from(("any", "steps", "length")),
+       name=st.sampled_from(("verlet", "bcss2", "bcss3", "yoshida4")))
+def test_hmc_at_any_scale_and_step_is_scale_free_and_warns_of_nothing(
+        exponent, log_z, shape, jitter, trajectory, name):
+    """sigma, the step and the length scaled by 2^e (exactly, so z = beta h and L =
+    floor(T / h) are the unit target's to the bit) give the unit target's figures, for
+    any z up to 1e300, with every floating-point warning an error; where every jittered
+    step of the fastest mode is past its stability limit (z (1 - J) > 10 for these
+    methods) the acceptance bound over every L is 0 (that mode's rho is infinite)."""
+    import warnings
+
+    scale = 2.0 ** exponent
+    step = 10.0 ** log_z
+    assume(step * scale < 1e300 and 100.0 * scale < 1e300 and scale > 1e-290)
+    base = [1.0, *shape]
+    extra = {"any": {}, "steps": {"steps": 10}, "length": {"length": 3.0}}[trajectory]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        unit = hmc([name], sigma=base, step=step, jitter=jitter, **extra).rows[0]
+        scaled_extra = {k: v * scale if k == "length" else v for k, v in extra.items()}
+        scaled = hmc([name], sigma=[s * scale for s in base], step=step * scale,
+                     jitter=jitter, **scaled_extra).rows[0]
+    assert scaled.at_step["acceptance"] == pytest.approx(unit.at_step["acceptance"],
+                                                         abs=1e-12)
+    assert scaled.stability_h / scale == unit.stability_h
+    assert scaled.h_target / scale == pytest.approx(unit.h_target, rel=1e-12)
+    if step * (1.0 - jitter) > 10.0 and trajectory == "any":
+        assert unit.at_step["acceptance"] == scaled.at_step["acceptance"] == 0.0

@@ -553,11 +553,12 @@ class Offsets(NamedTuple):
 
 
 def offsets(method: Method, z) -> Offsets:
-    """:class:`Offsets` of the oscillator at each z (overflow gives inf or NaN entries)."""
+    """:class:`Offsets` of the oscillator at each z (overflow gives inf or NaN entries, and
+    no floating-point warning: the callers read them as unstable)."""
     z = np.atleast_1d(np.asarray(z, dtype=float))
-    M = transfer_matrix(method, z, "oscillator")
-    a, b, c, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1]
     with np.errstate(invalid="ignore", over="ignore"):
+        M = transfer_matrix(method, z, "oscillator")
+        a, b, c, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1]
         direct_err = 4 * EPS * (np.abs(M).sum(axis=(1, 2)) + 1.0)
         parts = _parts(method, "oscillator")
         b_plus_c = _choose(parts.bc, parts.bc_err, parts.z_valid, z, b + c, direct_err)[0]
