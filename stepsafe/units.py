@@ -84,10 +84,18 @@ def parse_quantity(text: str) -> tuple[float, str | None]:
     return value, (_unit_name(unit) if unit else None)
 
 
+#: What a standard deviation may be, as every refusal of one says (the option or key
+#: named before it).
+SIGMA_RULE = ("a standard deviation, a finite number > 0 (0, negative numbers, inf and nan "
+              "are refused)")
+
+
 def angular_frequency(form: str, value: float, unit: str | None = None,
                       time: str | None = None) -> float:
     """beta in radians per ``time`` unit of a frequency given as ``form`` (see the module
     table) with value ``value`` in ``unit`` (None: the form's default)."""
+    if form == "sigma" and not (math.isfinite(value) and value > 0):
+        raise StepsafeError(f"sigma must be {SIGMA_RULE}, got {value:g}")
     if not (math.isfinite(value) and value >= 0):
         raise StepsafeError(f"{form} must be a finite number >= 0, got {value}")
     seconds = None if time is None else TIME_UNITS[time]
@@ -111,8 +119,6 @@ def angular_frequency(form: str, value: float, unit: str | None = None,
     if form == "sigma":
         if unit is not None:
             raise StepsafeError(f"a standard deviation takes no unit here, got {unit!r}")
-        if value == 0:
-            raise StepsafeError("a standard deviation must be > 0")
         beta = 1.0 / value
         if not math.isfinite(beta):
             raise StepsafeError(f"1/sigma overflows: sigma = {value}")
@@ -170,6 +176,10 @@ def angular_frequencies(form: str, values: Any, time: str | None) -> Any:
     raise ValueError(form)
 
 
+#: inf and nan as a command line or YAML spells them (``inf``, ``-Infinity``, ``.nan``).
+_NON_FINITE = re.compile(r"[+-]?\.?(inf|infinity|nan)", re.IGNORECASE)
+
+
 def quantity(value: object, form: str, time: str | None) -> float:
     """beta of one value as read from a file or the command line: a number (in the form's
     default unit) or a text with a unit (``"3700 cm-1"``)."""
@@ -183,6 +193,8 @@ def quantity(value: object, form: str, time: str | None) -> float:
                                 ) from None
         return angular_frequency(form, number, None, time)
     if isinstance(value, str):
+        if _NON_FINITE.fullmatch(value.strip()):  # inf or nan, refused by the form's rule
+            return angular_frequency(form, float(value.strip().replace(".", "")), None, time)
         number, unit = parse_quantity(value)
         return angular_frequency(form, number, unit, time)
     raise StepsafeError(f"{form} must be a number or a text such as '3700 cm-1', got "

@@ -123,3 +123,64 @@ def test_bad_standard_deviations_in_a_csv(tmp_path, run, text, key):
     code, _, err = run("advise", "--method", "verlet", "--modes", str(path))
     assert code == 2 and err.count("\n") == 1
     assert key in err or (key == "header" and "CSV header" in err)
+
+
+#: Every refusal of a standard deviation says what one may be.
+SIGMA_SAYS = ("a standard deviation, a finite number > 0 (0, negative numbers, inf and nan "
+              "are refused)")
+
+
+def _not_a_standard_deviation():
+    """Values no standard deviation can have, spelled as a user would: negative numbers
+    of any size, zeros, infinities and nans in the spellings Python, YAML and spreadsheets
+    use."""
+    from hypothesis import strategies as st
+
+    negative = st.floats(max_value=-5e-324, allow_infinity=False).map(repr)
+    zero = st.sampled_from(["0", "-0", "0.0", "-0.0", "0e5", "0.000"])
+    spelled = st.sampled_from(["inf", "-inf", "+inf", "Infinity", "-Infinity", "nan", "NaN",
+                               "-nan"])
+    return negative | zero | spelled
+
+
+@pytest.mark.parametrize("route", ["option", "scene", "csv"])
+def test_a_sigma_that_is_no_standard_deviation_is_refused_saying_what_is_allowed(
+        tmp_path, run, route):
+    """--sigma, a scene's modes: entry and a sigma column: one line naming the option or
+    the file and key, exit 2, saying what a standard deviation may be (never '>= 0')."""
+    from hypothesis import given, settings
+
+    @settings(max_examples=25, deadline=None)
+    @given(text=_not_a_standard_deviation())
+    def check(text):
+        yaml_text = {"inf": ".inf", "-inf": "-.inf", "+inf": ".inf", "nan": ".nan",
+                     "NaN": ".nan", "-nan": ".nan", "Infinity": ".inf",
+                     "-Infinity": "-.inf"}.get(text, text)
+        if route == "option":
+            code, _, err = run("hmc", "--sigma", "1", "--sigma", text, "--methods", "verlet")
+            named = f"--sigma {text}:"
+        elif route == "scene":
+            scene = tmp_path / "target.yaml"
+            scene.write_text(f"modes:\n  - {{sigma: 1}}\n  - {{sigma: {yaml_text}}}\n")
+            code, _, err = run("hmc", str(scene), "--methods", "verlet")
+            named = f"{scene}::$.modes[1].sigma:"
+        else:
+            table = tmp_path / "sigmas.csv"
+            table.write_text(f"sigma\n1\n{text}\n")
+            code, _, err = run("hmc", "--modes", str(table), "--methods", "verlet")
+            named = f"{table}::$.line 3.sigma:"
+        assert code == 2, err
+        assert err.count("\n") == 1 and named in err and SIGMA_SAYS in err, err
+        assert ">= 0" not in err
+
+    check()
+
+
+@pytest.mark.parametrize("value", [-1.0, 0.0, -0.0, float("inf"), float("-inf"), float("nan"),
+                                   "-1", "inf", "nan"])
+def test_the_api_says_what_a_standard_deviation_may_be(value):
+    for call in (lambda: stepsafe.hmc(["verlet"], sigma=[1.0, value]),
+                 lambda: stepsafe.advise("verlet", sigma=[value])):
+        with pytest.raises(stepsafe.StepsafeError, match=r"sigma must be a standard "
+                                                          r"deviation, a finite number > 0"):
+            call()

@@ -886,7 +886,8 @@ class StableRun(NamedTuple):
 
     def reaches(self, z: float) -> bool:
         """Whether every step up to ``z`` is in the run (resonances excepted)."""
-        return self.end is None or self.first_unsafe > z
+        first = self.first_unsafe
+        return first is None or first > z
 
 
 def stable_run(region: Region) -> StableRun:

@@ -46,7 +46,7 @@ import numpy as np
 from stepsafe.core.models import MODELS
 from stepsafe.exceptions import StepsafeError, unknown_key
 from stepsafe.files.yamlio import QuotedText, load_yaml, read_bytes
-from stepsafe.units import FORMS, TIME_UNITS, quantity
+from stepsafe.units import FORMS, SIGMA_RULE, TIME_UNITS, quantity
 
 SCENE_KEYS = ("method", "h", "time_unit", "margin", "zmax", "modes", "system", "substeps")
 MAX_CSV_BYTES = 256 << 20
@@ -253,6 +253,9 @@ def _frequency(value: Any, form: str, time_unit: str | None, where: str, path: s
     """beta (rad per time unit) of one mode's value; a text is a number with a unit."""
     if form == "beta" or not isinstance(value, str) or (
             isinstance(value, QuotedText) and parse_real(value) is not None):
+        if form == "sigma" and isinstance(value, (int, float)) and \
+                not isinstance(value, bool) and not 0 < value < np.inf:  # (nan too)
+            raise _fail(where, path, f"must be {SIGMA_RULE}, got {value!r}")
         value = number(value, where, path)
         if value < 0:
             raise _fail(where, path, f"must be >= 0, got {value}")
@@ -440,7 +443,7 @@ def _load_csv(data: bytes, where: str, time_unit: str | None = None) -> ModesFil
     if form != "beta":  # parsed as the beta column, then converted
         header = ["beta" if h == form else h for h in header]
         try:
-            values, codes = _csv_parse(rows, header, where)
+            values, codes = _csv_parse(rows, header, where, form)
         except StepsafeError as exc:
             raise StepsafeError(exc.message, (exc.where or "").replace(".beta", f".{form}")
                                 ) from None
@@ -478,10 +481,11 @@ def _converted(values: np.ndarray, form: str, time_unit: str | None, rows: _CsvP
         for number, text in rows.lines():
             rows_seen += bool(text.strip())
             if rows_seen == bad[0]:
-                need = ("> 0 with a finite inverse" if positive else
+                value = values[bad[0]]
+                need = (SIGMA_RULE if form == "sigma" and not value > 0 else
+                        "> 0 with a finite inverse" if positive else
                         ">= 0 with a finite angular frequency")
-                raise _fail(where, f"line {number}.{form}",
-                            f"must be {need}, got {values[bad[0]]:g}")
+                raise _fail(where, f"line {number}.{form}", f"must be {need}, got {value:g}")
     return betas
 
 
@@ -552,21 +556,23 @@ def _csv_header(data: bytes, where: str) -> tuple[int, int, list[str]]:
     raise _fail(where, "", "empty CSV file")
 
 
-def _csv_parse(part: _CsvPart, header: list[str], where: str):
+def _csv_parse(part: _CsvPart, header: list[str], where: str, form: str = "beta"):
+    """(betas, model codes) of the part, its frequency column read as ``beta`` (the values
+    of ``form``: a sigma column is refused by the rule for standard deviations)."""
     fast = _csv_table(part, header)
     if isinstance(fast, tuple):
         return fast
     if isinstance(fast, int):
         # parsed, but row `fast` failed a check; every line is a row, so it is that line
         bad = part.line(fast)
-        _csv_rows(bad, header, where)  # raises with the exact message, unless row by row
+        _csv_rows(bad, header, where, form)  # raises with the exact message, unless row by row
         # reading accepts what the check refused: then read the whole part that way
     halves = None
     if part.data.count(b"\n", part.start, part.end) > _CSV_ROW_BY_ROW:
         halves = part.halves()
     if halves is None:
-        return _csv_rows(part, header, where)
-    (b1, c1), (b2, c2) = (_csv_parse(half, header, where) for half in halves)
+        return _csv_rows(part, header, where, form)
+    (b1, c1), (b2, c2) = (_csv_parse(half, header, where, form) for half in halves)
     return np.concatenate([b1, b2]), np.concatenate([c1, c2])
 
 
@@ -608,9 +614,11 @@ def _csv_table(part: _CsvPart, header: list[str]):
     return betas, codes
 
 
-def _csv_rows(part: _CsvPart, header: list[str], where: str):
+def _csv_rows(part: _CsvPart, header: list[str], where: str, form: str = "beta"):
     """The exact reader, row by row: betas and model codes of the part, or an error naming
-    its first bad line (``$.line N.beta``). Fields are not quoted; ``#`` starts a comment."""
+    its first bad line (``$.line N.beta``). Fields are not quoted; ``#`` starts a comment.
+    The values are of ``form``: a sigma column is refused by the rule for standard
+    deviations, any other by ``>= 0`` (finite)."""
     from array import array
 
     ib = header.index("beta")
@@ -626,6 +634,9 @@ def _csv_rows(part: _CsvPart, header: list[str], where: str):
         beta = parse_real(fields[ib])
         if beta is None:
             raise _fail(where, f"line {number}.beta", f"is not a number: {fields[ib].strip()!r}")
+        if form == "sigma" and not (np.isfinite(beta) and beta > 0):
+            raise _fail(where, f"line {number}.beta", f"must be {SIGMA_RULE}, got "
+                                                      f"{fields[ib].strip()}")
         if not np.isfinite(beta) or beta < 0:
             raise _fail(where, f"line {number}.beta", f"must be a finite number >= 0, got "
                                                       f"{fields[ib].strip()}")
