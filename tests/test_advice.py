@@ -228,18 +228,22 @@ def test_bad_scene_files(run, tmp_path):
 
 
 def test_one_ulp_around_a_boundary_is_consistent_with_region():
-    """One ulp above z*: region and check agree it is lost. One ulp below: region puts it
-    inside, within the boundary's stated float64 uncertainty; check refuses to certify it
-    and says so (never a 'safe' that the uncertainty cannot back)."""
+    """One ulp above z*: region and check agree it is lost. One ulp below: within the
+    boundary's stated float64 uncertainty, which the interval leaves out; check refuses to
+    certify it and says so (never a 'safe' that the uncertainty cannot back). Just inside
+    the interval's end both say preserved."""
     m = method("pefrl")
     region = find_region(m, "oscillator")
     z_star, unc = region.first_boundary, region.first_boundary_point.uncertainty
+    end = region.intervals[0].hi
+    assert unc > 0 and end == z_star - unc
     modes = Modes.from_pairs([(1.0, "oscillator")])
     above = check_step(m, modes, np.nextafter(z_star, np.inf))
     assert not above.safe and not region.intervals[0].contains(np.nextafter(z_star, np.inf))
     below = check_step(m, modes, np.nextafter(z_star, 0))
-    assert region.intervals[0].contains(np.nextafter(z_star, 0))
+    assert not region.intervals[0].contains(np.nextafter(z_star, 0))
     assert not below.safe and "uncertainty" in below.failures[0].reason
+    assert region.intervals[0].contains(z_star - 2 * unc)
     assert check_step(m, modes, z_star - 2 * unc).safe
 
 

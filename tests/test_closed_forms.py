@@ -41,7 +41,8 @@ def test_gauss2_resonance_at_2_sqrt3():
     assert close(region.first_boundary, 2 * math.sqrt(3))
     # elliptic on both sides: the rest of (0, zmax) is one reversed island
     (island, same), = region.islands
-    assert island.lo == res.z and island.hi is None and same is False
+    assert island.lo_point == res and island.lo == res.z + res.uncertainty
+    assert island.hi is None and same is False
 
 
 def test_symplectic_euler():

@@ -324,6 +324,7 @@ def test_uncertainty_wider_than_the_safe_interval_leaves_no_safe_step(monkeypatc
 
     from stepsafe.core import advice
     from stepsafe.core.advice import Modes, check_step
+    from stepsafe.core.regions import Interval, clear_of_bands
 
     real = advice.find_region
 
@@ -331,9 +332,11 @@ def test_uncertainty_wider_than_the_safe_interval_leaves_no_safe_step(monkeypatc
         region = real(m, model, zmax)
         first = region.intervals[0]
         wide = first.hi_point._replace(uncertainty=5.0)
-        rest = tuple(iv._replace(lo_point=wide) if iv.lo_point == first.hi_point else iv
-                     for iv in region.intervals[1:])
-        return dataclasses.replace(region, intervals=(first._replace(hi_point=wide),) + rest)
+        rest = tuple(iv._replace(lo=wide.z + wide.uncertainty, lo_point=wide)
+                     if iv.lo_point == first.hi_point else iv for iv in region.intervals[1:])
+        # the interval from 0 stops the band short of its end: nothing is left of it
+        assert clear_of_bands([Interval(0.0, wide.z, None, wide)]) == []
+        return dataclasses.replace(region, intervals=rest)
 
     monkeypatch.setattr(advice, "find_region", vague)
     result = check_step(method("verlet"), Modes.from_pairs([(1.0, "oscillator")]), 1.0)

@@ -125,8 +125,9 @@ def test_bcss4_is_minus_the_identity_at_its_structure_threshold():
 def test_sofroniou_spaletta10_instability_band_past_the_structure_threshold():
     """tr M < -2 just past z* on a band of width 7.6e-4, then a reversed island."""
     region = find_region(method("sofroniou-spaletta10"), "oscillator")
-    band = region.reversed[0].lo - region.first_interval.hi
-    assert 7.5e-4 < band < 7.7e-4 and region.stability_limit == region.first_interval.hi
+    band = region.reversed[0].lo_point.z - region.first_boundary
+    assert 7.5e-4 < band < 7.7e-4 and region.stability_limit == region.first_boundary
+    assert region.first_interval.hi_point.z == region.first_boundary
 
 
 @pytest.mark.parametrize("value, message", [

@@ -140,25 +140,24 @@ class Gap(NamedTuple):
 
 
 def labelled_gaps(region: Region) -> list[Gap]:
-    """The complement in ``[0, inf)`` of the preserved intervals, each shrunk by the float64
-    uncertainty of its end points (a resonance of uncertainty ``u`` is a gap of width
-    ``2u``); everything from ``zmax`` on is a gap, since it was not analysed."""
+    """The complement in ``[0, inf)`` of the preserved intervals, which stop short of their
+    end points by the points' float64 uncertainty (a resonance of uncertainty ``u`` is a gap
+    of width ``2u``); everything from ``zmax`` on is a gap, since it was not analysed."""
     out: list[Gap] = []
     cursor, why = 0.0, ("not symplectic: never preserved" if not region.symplectic
                         else "not preserved for small z")
     point: tuple[float | None, float] = (None, 0.0)
     for k, iv in enumerate(region.intervals):
-        lo = iv.lo + (iv.lo_point.uncertainty if iv.lo_point else 0.0)
-        if lo > cursor:
-            out.append(Gap(cursor, lo, why, *point))
+        if iv.lo > cursor:
+            out.append(Gap(cursor, iv.lo, why, *point))
         if iv.hi is None:
             cursor, why = region.zmax, f"beyond the analysed range zmax = {region.zmax:.6g}"
             point = (None, 0.0)
             break
         p = iv.hi_point
-        cursor = max(iv.hi - (p.uncertainty if p else 0.0), 0.0)  # (a vague boundary)
+        cursor = iv.hi
         why = _reason(p, first=k == 0 and iv.lo == 0.0)
-        point = (iv.hi, p.uncertainty if p else 0.0)
+        point = (iv.hi, 0.0) if p is None else (p.z, p.uncertainty)
     out.append(Gap(cursor, np.inf, why, *point))
     return out
 

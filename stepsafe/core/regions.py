@@ -82,7 +82,14 @@ class Point(NamedTuple):
 
 
 class Interval(NamedTuple):
-    """An open interval ``(lo, hi)`` of z; ``hi`` is None when it reaches zmax."""
+    """An open interval ``(lo, hi)`` of z; ``hi`` is None when it reaches zmax.
+
+    ``lo_point`` and ``hi_point`` are the points that end it (None: 0 and zmax). The
+    interval stops short of each by that point's float64 uncertainty, ``lo = lo_point.z +
+    lo_point.uncertainty`` and ``hi = hi_point.z - hi_point.uncertainty``: every z inside
+    is decided, none lies in the band of a resonance, a root or a pole (nor in an
+    undecided stretch, whose edges have no uncertainty). The points themselves (the first
+    boundary ``z*`` among them) keep their own z."""
 
     lo: float
     hi: float | None
@@ -126,9 +133,12 @@ class Region:
 
     @property
     def first_boundary(self) -> float | None:
-        """``z*``: end of the interval from 0; None if it reaches zmax, 0 if there is none."""
+        """``z*``: the point that ends the interval from 0 (the interval itself stops its
+        uncertainty short of it); None if it reaches zmax, 0 if there is none."""
         first = self.first_interval
-        return 0.0 if first is None else first.hi
+        if first is None:
+            return 0.0
+        return first.hi_point.z if first.hi_point is not None else first.hi
 
     @property
     def islands(self) -> tuple[tuple[Interval, bool], ...]:
@@ -814,8 +824,24 @@ def _assemble(ev: _Evaluator, model: str, zmax: float, z_last: float,
                      None if run_end == len(status) else pts[run_end - 1].z)
     pole_pts = tuple(sorted((c.point for c in points if c.point.kind == "pole"
                              and c.point.z <= zmax), key=lambda p: p.z))
+    intervals, reversed_ = clear_of_bands(intervals), clear_of_bands(reversed_)
     return Region(model, zmax, True, tuple(intervals), tuple(reversed_), tuple(kept), pole_pts,
                   dz, stability_limit=stability, notes=notes, undecided=tuple(undecided))
+
+
+def clear_of_bands(intervals: list[Interval]) -> list[Interval]:
+    """Each interval shrunk by the uncertainty of the points that end it (see
+    :class:`Interval`); one that nothing is left of is dropped (its end points' bands
+    overlap: no z in it is decided)."""
+    out = []
+    for iv in intervals:
+        lo = iv.lo + (iv.lo_point.uncertainty if iv.lo_point is not None else 0.0)
+        hi = iv.hi
+        if hi is not None and iv.hi_point is not None:
+            hi = max(hi - iv.hi_point.uncertainty, 0.0)
+        if hi is None or lo < hi:
+            out.append(iv._replace(lo=lo, hi=hi))
+    return out
 
 
 #: ``structure``: the flow's type and orientation are kept (the default of every command
@@ -852,8 +878,8 @@ def under_criterion(region: Region, criterion: str) -> Region:
     merged: list[Interval] = []
     for iv in runs:
         last = merged[-1] if merged else None
-        if (last is not None and last.hi == iv.lo and iv.lo_point is not None
-                and iv.lo_point.kind == "orientation"):
+        if (last is not None and last.hi_point is not None and iv.lo_point is not None
+                and iv.lo_point.kind == "orientation" and last.hi_point.z == iv.lo_point.z):
             merged[-1] = Interval(last.lo, iv.hi, last.lo_point, iv.hi_point)
         else:
             merged.append(iv)

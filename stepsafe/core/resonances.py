@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from stepsafe.core.grid import Grid, default_resolution
-from stepsafe.core.regions import Interval, Point, Region
+from stepsafe.core.regions import Interval, Point, Region, clear_of_bands
 from stepsafe.core.roots import EPS, refine_brackets
 from stepsafe.core.transfer import TOL_FACTOR, transfer_jet
 from stepsafe.methods.tableaux import Method
@@ -148,5 +148,6 @@ def capped_at_resonance(method: Method, region: Region, order: int) -> Region:
                   + (f" {res.m}" if res.m > 1 else ""))
     first = region.first_interval
     assert first is not None  # a resonance lies inside it
-    return replace(region, intervals=(Interval(0.0, res.z, first.lo_point, point),),
+    capped = clear_of_bands([Interval(0.0, res.z, first.lo_point, point)])
+    return replace(region, intervals=tuple(capped),
                    reversed=(), resonances=tuple(p for p in region.resonances if p.z < res.z))

@@ -62,7 +62,7 @@ def rows() -> list[dict]:
         region = find_region(method, "oscillator", ZMAX)
         from stepsafe.methods.tableaux import gradient_evaluations
         first = region.first_interval
-        z_star = None if first is None else first.hi  # None: preserved up to ZMAX
+        z_star = None if first is None else region.first_boundary  # None: up to ZMAX
         if first is None:
             classical = region.classical[0].hi if region.classical else None
         else:

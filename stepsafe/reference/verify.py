@@ -333,9 +333,13 @@ def points(region: Region) -> list[Point]:
 
 
 def stretches(region: Region) -> list[tuple[float, float, int | None]]:
-    """The region cut at its points into ``(lo, hi, status)``: 1 preserved, -1 the flow's
-    type with reversed orientation, 0 not preserved, None undecided (not claimed)."""
-    cuts = sorted({0.0, region.zmax} | {p.z for p in points(region) if 0 < p.z < region.zmax}
+    """The region cut at its points and at the edges of their uncertainty bands into
+    ``(lo, hi, status)``: 1 preserved, -1 the flow's type with reversed orientation, 0 not
+    preserved, None not claimed (an undecided stretch, or within a point's band)."""
+    found = points(region)
+    bands = [(p.z - p.uncertainty, p.z + p.uncertainty) for p in found if p.uncertainty > 0]
+    edges = {p.z for p in found} | {x for band in bands for x in band}
+    cuts = sorted({0.0, region.zmax} | {x for x in edges if 0 < x < region.zmax}
                   | {iv.lo for iv in region.undecided}
                   | {iv.hi for iv in region.undecided if iv.hi is not None})
     out = []
@@ -346,6 +350,8 @@ def stretches(region: Region) -> list[tuple[float, float, int | None]]:
                            (region.undecided, None)):
             if any(iv.lo <= mid and (iv.hi is None or mid <= iv.hi) for iv in ivs):
                 status = value
+        if any(a < mid < b for a, b in bands):
+            status = None
         out.append((lo, hi, status))
     return out
 
