@@ -773,10 +773,12 @@ def validate_cmd(files: tuple[str, ...]) -> None:
                      f"{method.stages} stages)")
         if not res.symplectic_for_separable:
             lines.append(f"warning: {path}: not symplectic "
-                         f"(residual {res.symplectic_separable:.3g})")
+                         f"(residual {res.symplectic_separable:.3g}, beyond the "
+                         f"{res.symplectic_tolerance:.3g} the written digits allow)")
         elif not res.symplectic:
             lines.append(f"warning: {path}: symplectic only for separable H "
-                         f"(|b_q - b_p| = {res.weights_equal:.3g})")
+                         f"(|b_q - b_p| = {res.weights_equal:.3g}, beyond the "
+                         f"{res.weights_tolerance:.3g} the written digits allow)")
         if not res.consistent:
             lines.append(f"warning: {path}: not consistent (weight sums off by "
                          f"{res.consistency:.3g})")

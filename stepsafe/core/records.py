@@ -95,7 +95,9 @@ def method_data(method, entry) -> dict[str, Any]:
         "explicit": method.explicit,
         "residuals": {
             "symplecticity": res.symplectic_separable,
+            "symplecticity_allowed": res.symplectic_tolerance,
             "weights_equal": res.weights_equal,
+            "weights_equal_allowed": res.weights_tolerance,
             "consistency": res.consistency,
             **({"row_sums": res.row_sums} if res.row_sums is not None else {}),
         },

@@ -188,18 +188,59 @@ def _eval(node: ast.AST, source: str, env: dict[str, Any], bk: Backend) -> Any:
     return left ** right
 
 
+#: A decimal literal with at least this many significant digits is taken as the rounding of
+#: the value its author meant (see :func:`written_rounding`); a shorter one is exact.
+ROUNDED_DIGITS = 10
+#: ... to its last digit, or to this many ulps of float64, whichever is coarser: a float64
+#: printed to 17 digits is within an ulp of the value it rounds, itself computed with a few
+#: roundings.
+ROUNDED_ULPS = 4
+
+
+def significant_digits(literal: str) -> int:
+    """Significant digits a decimal literal is written with: from its first nonzero digit
+    to its last written one (``0.0250`` has 3, ``1e-12`` 1; an integer's trailing zeros do
+    not count, ``1000`` has 1)."""
+    mantissa = literal.lower().split("e")[0]
+    if "." not in mantissa:
+        mantissa = mantissa.rstrip("0")
+    digits = mantissa.replace(".", "").lstrip("0")
+    return max(len(digits), 1)
+
+
+def written_rounding(literal: str) -> float:
+    """How far the value a decimal literal was written for may lie from the literal: 0 for
+    a literal of fewer than :data:`ROUNDED_DIGITS` significant digits (``0.5``, ``1e-12``,
+    ``3``: exact as written), else half a unit of its last digit or
+    :data:`ROUNDED_ULPS` ulps of float64, whichever is larger."""
+    if significant_digits(literal) < ROUNDED_DIGITS:
+        return 0.0
+    value = abs(float(literal))
+    mantissa, _, exponent = literal.lower().partition("e")
+    decimals = len(mantissa.partition(".")[2])
+    last_digit = 10.0 ** (int(exponent or 0) - decimals)
+    return max(0.5 * last_digit, ROUNDED_ULPS * EPS * value)
+
+
 def evaluate_with_bound(expr: Expression, names: dict[str, float],
-                        errors: dict[str, float]) -> tuple[float, float]:
+                        errors: dict[str, float], written: bool = False
+                        ) -> tuple[float, float]:
     """Float value of ``expr`` and a first-order bound on its distance from the exact value
     of the decimal text (``errors`` bound the names' values alike). Cancellation shows up as
     a bound large against the value: ``((1e16 + 0.25) - 1e16) + 0.75`` is 0.75 in float64
-    with a bound of about 2, the exact value being 1."""
-    half = EPS / 2
+    with a bound of about 2, the exact value being 1.
+
+    With ``written``, the bound is instead on the distance of the exact value of the text
+    from the value its author meant: each literal may be off by its
+    :func:`written_rounding`, the arithmetic and ``pi`` are exact (the float value is only
+    used to scale the bound)."""
+    half = 0.0 if written else EPS / 2
 
     def go(node: ast.AST) -> tuple[float, float]:
         if isinstance(node, ast.Constant):
-            v = float(ast.get_source_segment(expr.text, node))
-            return v, half * abs(v)
+            text = ast.get_source_segment(expr.text, node) or repr(node.value)
+            v = float(text)
+            return v, (written_rounding(text) if written else half * abs(v))
         if isinstance(node, ast.Name):
             if node.id == "pi":
                 return math.pi, half * math.pi
@@ -232,8 +273,9 @@ def evaluate_with_bound(expr: Expression, names: dict[str, float],
         if not isinstance(v, float) or not math.isfinite(v):
             return float("nan"), math.inf
         log_a = math.log(abs(a)) if a else 0.0
-        rel = (abs(b) * ea / abs(a) if a else math.inf) + abs(log_a) * eb
-        return v, abs(v) * (rel + (abs(b) + 1) * EPS)
+        rel = (abs(b) * ea / abs(a) if a else (0.0 if ea == 0 else math.inf)) \
+            + abs(log_a) * eb
+        return v, abs(v) * (rel + (abs(b) + 1) * 2 * half)
 
     try:
         return go(expr.tree)

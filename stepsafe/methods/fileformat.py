@@ -199,13 +199,14 @@ class _Scope:
         self.errors: dict[str, float] = {}
         self.values: dict[str, Any] = {}
         self.texts: dict[str, Any] = {}
+        #: how far each constant's exact value may lie from the value its author meant
+        #: (:func:`~stepsafe.files.expressions.written_rounding` of its literals)
+        self.allowances: dict[str, float] = {}
         self._exact: dict[str, Any] | None = None
 
-    def _float(self, expr, text: str) -> float:
-        guard = evaluate(expr, self.floats, FLOAT)
-        value, bound = evaluate_with_bound(expr, self.floats, self.errors)
-        if not bound > EXACT_ULPS * EPS * abs(guard):
-            return guard
+    def _precise(self, expr) -> Any:
+        """The exact value of ``expr``'s text at :data:`EXACT_DPS` digits (an mpf; imports
+        mpmath)."""
         import mpmath
 
         with mpmath.workdps(EXACT_DPS):
@@ -215,8 +216,21 @@ class _Scope:
             for name, known in self.texts.items():
                 if name not in self._exact:
                     self._exact[name] = evaluate(known, self._exact, backend)
-            exact = float(evaluate(expr, self._exact, backend))
-        return FLOAT.check(exact)
+            return evaluate(expr, self._exact, backend)
+
+    def _float(self, expr, text: str) -> float:
+        guard = evaluate(expr, self.floats, FLOAT)
+        value, bound = evaluate_with_bound(expr, self.floats, self.errors)
+        if not bound > EXACT_ULPS * EPS * abs(guard):
+            return guard
+        return FLOAT.check(float(self._precise(expr)))
+
+    def written(self, text: str) -> tuple[Any, float]:
+        """An already validated coefficient as written: its exact value at
+        :data:`EXACT_DPS` digits, and how far that may lie from the value meant."""
+        expr = parse(text)
+        allowance = evaluate_with_bound(expr, self.floats, self.allowances, written=True)[1]
+        return self._precise(expr), allowance
 
     def value(self, text: Any, where: str, path: str) -> Any:
         if not isinstance(text, str):
@@ -235,6 +249,8 @@ class _Scope:
         self.floats[name] = self.values[name] if self.backend is FLOAT else \
             self._float(parse(text), text)
         self.errors[name] = EPS / 2 * abs(self.floats[name])
+        self.allowances[name] = evaluate_with_bound(parse(text), self.floats, self.allowances,
+                                                    written=True)[1]
         self.texts[name] = parse(text)
 
 
@@ -366,6 +382,8 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
         extras = {"outer": _base_ref(tree["outer"], where, "outer"),
                   "inner": _base_ref(tree["inner"], where, "inner"),
                   "substeps": _int(tree["substeps"], where, "substeps", 1, MAX_SUBSTEPS)}
+    if kind in WRITTEN and backend is FLOAT:  # the symplecticity at the digits' precision
+        extras["written"] = {key: _written(tree[key], scope) for key in WRITTEN[kind]}
     stability = tree.get("published_stability")
     if stability is not None:
         if not isinstance(stability, dict) or "value" not in stability:
@@ -383,6 +401,17 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
         coefficients=coefficients, base=base,
         recipe=tree.get("recipe"), published_stability=stability, thresholds=thresholds,
         where=where, extras=extras)
+
+
+#: The tableaux whose symplecticity condition is decided on the coefficients as written
+#: (:func:`stepsafe.methods.residuals.written_residuals`), by kind.
+WRITTEN = {"rk": ("A", "b"), "prk": ("A_q", "b_q", "A_p", "b_p")}
+
+
+def _written(value: list, scope: _Scope) -> list:
+    """A validated vector or matrix of coefficient texts as ``(exact value, allowance)``
+    pairs (:meth:`_Scope.written`), in the same nesting."""
+    return [_written(v, scope) if isinstance(v, list) else scope.written(v) for v in value]
 
 
 #: the keys of ``thresholds:`` (harmonic oscillator, z = omega h)
@@ -495,6 +524,15 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
     co = {k: np.array(v, dtype=float) for k, v in data.coefficients.items()}
     common = dict(name=data.name, order=data.order, evaluations=data.evaluations,
                   title=data.title)
+    if data.kind in WRITTEN and "written" in data.extras:
+        from stepsafe.methods.residuals import written_residuals
+
+        tableaux = data.extras["written"]
+        if data.kind == "rk":
+            tableaux = {"A_q": tableaux["A"], "b_q": tableaux["b"], "A_p": tableaux["A"],
+                        "b_p": tableaux["b"]}
+        common["written"] = written_residuals(
+            *(tableaux[key] for key in ("A_q", "b_q", "A_p", "b_p")))
     if data.kind == "rk":
         return m.RungeKutta(co["A"], co["b"], co.get("c"), **common)
     if data.kind == "prk":

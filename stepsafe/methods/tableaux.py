@@ -82,6 +82,9 @@ class PartitionedRK:
     evaluations: int | None = None
     title: str = ""
     exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
+    #: the symplecticity residuals of the coefficients as a method file writes them
+    #: (:func:`stepsafe.methods.residuals.written_residuals`); None: the floats as given
+    written: Any = field(default=None, compare=False, repr=False)
 
     kind = "prk"
 
@@ -120,6 +123,8 @@ class RungeKutta:
     evaluations: int | None = None
     title: str = ""
     exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
+    #: as :attr:`PartitionedRK.written`
+    written: Any = field(default=None, compare=False, repr=False)
 
     kind = "rk"
 
@@ -142,7 +147,7 @@ class RungeKutta:
 
     def as_prk(self) -> PartitionedRK:
         return PartitionedRK(self.A, self.b, self.A, self.b, name=self.name, order=self.order,
-                             exact=self.exact)
+                             exact=self.exact, written=self.written)
 
 
 @dataclass(frozen=True, eq=False)
