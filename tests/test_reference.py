@@ -14,6 +14,8 @@ from __future__ import annotations
 import mpmath as mp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from reference_methods import mp_transfer
 from support import method
 
@@ -122,3 +124,65 @@ def test_splitting_on_the_saddles_equals_its_prk_stage_solve(seed):
                 got = mpref.transfer_matrix_splitting(a, k, z, model)
                 assert mp.mnorm(got - want, 1) <= mp.mpf(10) ** (8 - DPS) * (
                     1 + mp.mnorm(want, 1))
+
+
+@pytest.mark.parametrize("s", [1, 2, 3, 4, 7, 12, 21])
+def test_legendre_nodes_by_newton_are_the_polynomial_roots(s):
+    """The Gauss nodes (roots of P_s) and Lobatto's interior nodes (roots of P_s'), found
+    by Newton's method and certified by sign changes, against mpmath.polyroots on the
+    shifted Legendre polynomial's coefficients, at 60 digits."""
+    with mp.workdps(60):
+        gauss = [(1 + x) / 2 for x in mpref._gauss_nodes(s)]
+        lobatto = [(1 + x) / 2 for x in mpref._lobatto_interior(s)]
+        leg = mpref._shifted_legendre(s)
+        for found, roots, count in (
+                (gauss, mpref._real_roots(leg, s), s),
+                (lobatto, mpref._real_roots([k * leg[k] for k in range(1, len(leg))], s),
+                 s - 1)):
+            assert len(found) == len(roots) == count
+            assert all(abs(a - b) < mp.mpf(10) ** -55 for a, b in zip(found, roots))
+
+
+@settings(max_examples=40, deadline=None)
+@given(s=st.integers(1, 8), seed=st.integers(0, 2 ** 32 - 1),
+       model=st.sampled_from(sorted(MODELS)), z=st.floats(0.05, 20.0),
+       explicit=st.booleans())
+def test_prk_transfer_equals_the_dense_stage_solve(s, seed, model, z, explicit):
+    """M(z) of prk_transfer (a Householder-Hessenberg form, or forward substitution for
+    explicit tableaux) against the full 2s x 2s stage system of Q and P solved by mpmath's
+    LU, at 50 digits, within the rounding the system's condition allows."""
+    rng = np.random.default_rng(seed)
+    with mp.workdps(DPS):
+        def tableau():
+            A = rng.uniform(-1, 1, (s, s))
+            return [[mp.mpf(float(A[i, j])) if not explicit or j < i else mp.mpf(0)
+                     for j in range(s)] for i in range(s)]
+
+        A_q, A_p = tableau(), tableau()
+        b_q, b_p = ([mp.mpf(float(x)) for x in rng.uniform(0, 1, s)] for _ in range(2))
+        (lqq, lqp), (lpq, lpp) = mpref.MODELS[model]
+        z = mp.mpf(z)
+        S = mp.matrix(2 * s, 2 * s)  # unknowns (Q, P): Q = q0 e + z A_q (lqq Q + lqp P), ...
+        for i in range(s):
+            for j in range(s):
+                S[i, j] = (i == j) - z * A_q[i][j] * lqq
+                S[i, s + j] = -z * A_q[i][j] * lqp
+                S[s + i, j] = -z * A_p[i][j] * lpq
+                S[s + i, s + j] = (i == j) - z * A_p[i][j] * lpp
+        try:
+            inverse = mp.inverse(S)
+        except ZeroDivisionError:
+            return
+        want = mp.matrix(2, 2)
+        for col, (q0, p0) in enumerate(((1, 0), (0, 1))):
+            X = inverse * mp.matrix([q0] * s + [p0] * s)
+            Q, P = X[:s], X[s:]
+            want[0, col] = q0 + z * mp.fsum(b_q[j] * (lqq * Q[j] + lqp * P[j]) for j in range(s))
+            want[1, col] = p0 + z * mp.fsum(b_p[j] * (lpq * Q[j] + lpp * P[j]) for j in range(s))
+        try:
+            got = mpref.prk_transfer(A_q, b_q, A_p, b_p)(z, model)
+        except ZeroDivisionError:
+            return
+        condition = mp.mnorm(S, 1) * mp.mnorm(inverse, 1)
+        assert mp.mnorm(got - want, 1) <= mp.mpf(10) ** (10 - DPS) * condition * (
+            1 + mp.mnorm(want, 1))

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from itertools import zip_longest
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from mpmath import mp
 
@@ -63,16 +63,106 @@ def _real_roots(coeffs: list, n: int) -> list:
     return sorted(mp.re(r) for r in roots)
 
 
+def _legendre(n: int, x) -> tuple:
+    """``(P_n(x), P_n'(x))`` on [-1, 1] by the three-term recurrence
+    ``(k+1) P_{k+1} = (2k+1) x P_k - k P_{k-1}`` and ``(1 - x^2) P_n' = n (P_{n-1} - x P_n)``
+    (``P_n'(+-1) = (+-1)^{n-1} n(n+1)/2``)."""
+    p0, p1 = mp.one, x
+    if n == 0:
+        return p0, mp.zero
+    for k in range(1, n):
+        p0, p1 = p1, ((2 * k + 1) * x * p1 - k * p0) / (k + 1)
+    if abs(x) == 1:
+        return p1, x ** (n - 1) * n * (n + 1) / 2
+    return p1, n * (p0 - x * p1) / (1 - x * x)
+
+
+def _certified(f: Callable, roots: list, count: int) -> bool:
+    """Whether ``roots`` (sorted) are ``count`` distinct roots of ``f`` in (-1, 1), each
+    certified by a sign change of ``f`` over ``r -+ d`` (``d`` half the working digits) on
+    disjoint intervals: ``f`` has exactly ``count`` roots there, so these are all of them."""
+    if len(roots) != count:
+        return False
+    d = mp.mpf(2) ** (-mp.prec // 2)
+    edges = [-mp.one] + [x for r in roots for x in (r - d, r + d)] + [mp.one]
+    if any(a >= b for a, b in zip(edges, edges[1:])):
+        return False
+    return all((f(r - d) > 0) != (f(r + d) > 0) for r in roots)
+
+
+def _newton(f_df: Callable, x, lo=None, hi=None):
+    """Newton's method on ``f_df(x) = (f, f')`` from ``x`` to the working precision; with a
+    bracket ``(lo, hi)`` whose ends ``f`` takes with opposite signs, a step that leaves it
+    bisects instead and the bracket follows the signs (so it converges to the root inside)."""
+    f_lo = None if lo is None else f_df(lo)[0]
+    tol = mp.eps * 4
+    settled = 0
+    for _ in range(4 * mp.prec):
+        f, df = f_df(x)
+        if f == 0:
+            return x
+        if lo is not None:
+            if (f > 0) == (f_lo > 0):
+                lo, f_lo = x, f
+            else:
+                hi = x
+        step = f / df if df else mp.inf
+        new = x - step
+        if lo is not None and not lo <= new <= hi:
+            new = (lo + hi) / 2
+        settled = settled + 1 if abs(new - x) <= tol * max(1, abs(x)) else 0
+        x = new
+        if settled >= 2:
+            break
+    return x
+
+
+def _gauss_nodes(n: int) -> list:
+    """The roots of ``P_n`` on [-1, 1], ascending: Newton's method from Tricomi's
+    ``cos(pi (k - 1/4) / (n + 1/2))``, certified by :func:`_certified` (else the roots of
+    the polynomial's coefficients, :func:`_real_roots`)."""
+    def f_df(x):
+        return _legendre(n, x)
+
+    roots = sorted(_newton(f_df, mp.cos(mp.pi * (k - mp.mpf(1) / 4) / (n + mp.mpf(1) / 2)))
+                   for k in range(1, n + 1))
+    if _certified(lambda x: _legendre(n, x)[0], roots, n):
+        return roots
+    return [2 * r - 1 for r in _real_roots(_shifted_legendre(n), n)]
+
+
+def _lobatto_interior(n: int) -> list:
+    """The roots of ``P_n'`` on (-1, 1), ascending: one between each two consecutive roots
+    of ``P_n`` (they interlace), by Newton's method kept inside that bracket
+    (``(1 - x^2) P_n'' = 2 x P_n' - n (n+1) P_n``), certified by :func:`_certified`."""
+    def f_df(x):
+        p, dp = _legendre(n, x)
+        return dp, (2 * x * dp - n * (n + 1) * p) / (1 - x * x)
+
+    nodes = _gauss_nodes(n)
+    roots = [_newton(f_df, (a + b) / 2, a, b) for a, b in zip(nodes, nodes[1:])]
+    if _certified(lambda x: _legendre(n, x)[1], roots, n - 1):
+        return roots
+    leg = _shifted_legendre(n)
+    return [2 * r - 1 for r in _real_roots([k * leg[k] for k in range(1, len(leg))], n)]
+
+
 def _collocation(c: list) -> tuple:
     """Moment (Vandermonde) solve: b_j with sum_j b_j c_j^k = 1/(k+1) and
     A[i,j] = int_0^{c_i} l_j(t) dt, i.e. sum_j A[i,j] c_j^k = c_i^{k+1}/(k+1),
     k = 0..s-1 (simplifying conditions B(s), C(s))."""
     s = len(c)
-    vinv = mp.inverse(mp.matrix([[cj ** k for cj in c] for k in range(s)]))
-    b = [sum(vinv[j, k] / (k + 1) for k in range(s)) for j in range(s)]
+    powers = [[mp.one] for _ in c]  # powers[i][k] = c_i^k, k = 0..s
+    for i, ci in enumerate(c):
+        for _ in range(s):
+            powers[i].append(powers[i][-1] * ci)
+    vinv = mp.inverse(mp.matrix([[powers[j][k] for j in range(s)] for k in range(s)]))
+    b = [mp.fsum(vinv[j, k] / (k + 1) for k in range(s)) for j in range(s)]
     A = mp.matrix(s, s)
-    for i, j in ((i, j) for i in range(s) for j in range(s)):
-        A[i, j] = sum(vinv[j, k] * c[i] ** (k + 1) / (k + 1) for k in range(s))
+    for j in range(s):
+        scaled = [vinv[j, k] / (k + 1) for k in range(s)]
+        for i in range(s):
+            A[i, j] = mp.fsum(scaled[k] * powers[i][k + 1] for k in range(s))
     return A, b
 
 
@@ -80,41 +170,65 @@ def _round(A, b: list, c: list) -> tuple:  # to the caller's precision
     return +A, [+x for x in b], [+x for x in c]
 
 
+#: Tableaux computed so far, by (family, s): (the caller's precision in bits, A, b, c) at
+#: the highest precision asked for; a request at that precision or less is rounded from it.
+_TABLEAUX: dict[tuple[str, int], tuple] = {}
+
+
+def _tableau(family: str, s: int, build: Callable) -> tuple:
+    """``build()`` at the raised precision, rounded to the caller's (cached, see
+    :data:`_TABLEAUX`); a fresh copy each call."""
+    known = _TABLEAUX.get((family, s))
+    if known is None or known[0] < mp.prec:
+        with mp.workdps(mp.dps + 3 * s + 10):
+            A, b, c = build()
+        known = (mp.prec, A, b, c)
+        _TABLEAUX[(family, s)] = known
+    return _round(*known[1:])
+
+
 def gauss_tableau(s: int) -> tuple:
     """Gauss-Legendre (A, b, c): c = roots of P_s(2x-1), A by collocation."""
-    with mp.workdps(mp.dps + 3 * s + 10):
-        c = _real_roots(_shifted_legendre(s), s)
+    def build():
+        c = [(1 + x) / 2 for x in _gauss_nodes(s)]
         A, b = _collocation(c)
-    return _round(A, b, c)
+        return A, b, c
+
+    return _tableau("gauss", s, build)
+
+
+_LOBATTO: dict[tuple[int, int], tuple] = {}
 
 
 def _lobatto_iiia(s: int) -> tuple:
+    """Lobatto IIIA ``(A, b, c)`` at the working precision (kept for IIIB, which is
+    built from it at the same precision)."""
     if s < 2:
         raise ValueError("Lobatto needs s >= 2")
-    leg = _shifted_legendre(s - 1)
-    dleg = [k * leg[k] for k in range(1, len(leg))]  # d/dx P_{s-1}(2x-1)
-    c = [mp.zero] + _real_roots(dleg, s) + [mp.one]
-    A, b = _collocation(c)
-    return A, b, c
+    if (s, mp.prec) not in _LOBATTO:
+        c = [mp.zero] + [(1 + x) / 2 for x in _lobatto_interior(s - 1)] + [mp.one]
+        A, b = _collocation(c)
+        _LOBATTO[(s, mp.prec)] = (A, b, c)
+    return _LOBATTO[(s, mp.prec)]
 
 
 def lobatto_IIIA_tableau(s: int) -> tuple:
     """Lobatto IIIA (A, b, c): nodes 0, 1 and the roots of P'_{s-1}(2x-1);
     collocation A[i,j] = int_0^{c_i} l_j(t) dt; b the Lobatto weights."""
-    with mp.workdps(mp.dps + 3 * s + 10):
-        A, b, c = _lobatto_iiia(s)
-    return _round(A, b, c)
+    return _tableau("lobatto3a", s, lambda: _lobatto_iiia(s))
 
 
 def lobatto_IIIB_tableau(s: int) -> tuple:
     """Lobatto IIIB: the symplectic partner of IIIA, defined by
     b_i B[i,j] + b_j A[j,i] - b_i b_j = 0, i.e. B[i,j] = b_j (1 - A[j,i]/b_i).
     (s=2: [[1/2,0],[1/2,0]]; s=3: [[1/6,-1/6,0],[1/6,1/3,0],[1/6,5/6,0]].)"""
-    with mp.workdps(mp.dps + 3 * s + 10):
+    def build():
         A, b, c = _lobatto_iiia(s)
         B = mp.matrix([[b[j] * (1 - A[j, i] / b[i]) for j in range(s)]
                        for i in range(s)])
-    return _round(B, b, c)
+        return B, b, c
+
+    return _tableau("lobatto3b", s, build)
 
 
 def splitting_to_prk(drift: Sequence, kick: Sequence) -> tuple:
@@ -224,47 +338,150 @@ def transfer_matrix_prk(A_q, b_q, A_p, b_p, z, model: str):
     return prk_transfer(A_q, b_q, A_p, b_p)(z, model)
 
 
+def _hessenberg(K: list, vectors: list) -> tuple:
+    """Householder reduction ``K = Q H Q^T`` (``Q`` orthogonal, ``H`` upper Hessenberg,
+    exact zeros below its subdiagonal), once per matrix: returns ``H`` (rows) and
+    ``Q^T v`` for each of ``vectors`` (``Q`` itself is never formed)."""
+    n = len(K)
+    H = [list(row) for row in K]
+    out = [list(v) for v in vectors]
+    for k in range(n - 2):
+        x = [H[i][k] for i in range(k + 1, n)]
+        norm = mp.sqrt(mp.fsum(t * t for t in x))
+        if norm == 0:
+            continue
+        v = list(x)
+        v[0] += norm if x[0] >= 0 else -norm  # v = x + sign(x_0) |x| e_1: no cancellation
+        scale = 2 / mp.fsum(t * t for t in v)
+        rows = range(k + 1, n)
+        for j in range(n):  # H <- P H (rows k+1..n-1)
+            f = scale * mp.fsum(v[i] * H[r][j] for i, r in enumerate(rows))
+            if f:
+                for i, r in enumerate(rows):
+                    H[r][j] -= f * v[i]
+        for row in H:  # H <- H P (columns k+1..n-1)
+            f = scale * mp.fsum(v[i] * row[r] for i, r in enumerate(rows))
+            if f:
+                for i, r in enumerate(rows):
+                    row[r] -= f * v[i]
+        for w in out:  # w <- P w, so that w ends as Q^T w (Q = P_0 P_1 ...)
+            f = scale * mp.fsum(v[i] * w[r] for i, r in enumerate(rows))
+            for i, r in enumerate(rows):
+                w[r] -= f * v[i]
+        for r in range(k + 2, n):
+            H[r][k] = mp.zero
+    return H, out
+
+
+def _hessenberg_solve(c, H: list, rhs: list) -> list:
+    """``y`` with ``(I - c H) y = r`` for each ``r`` in ``rhs``, ``H`` upper Hessenberg:
+    Gaussian elimination with partial pivoting between neighbouring rows (the only
+    candidates), O(s^2); ZeroDivisionError if the matrix is singular."""
+    n = len(H)
+    T = [[(1 if i == j else 0) - c * H[i][j] if j >= i - 1 else mp.zero for j in range(n)]
+         for i in range(n)]
+    R = [[r[i] for r in rhs] for i in range(n)]
+    for k in range(n - 1):
+        if abs(T[k + 1][k]) > abs(T[k][k]):
+            T[k], T[k + 1] = T[k + 1], T[k]
+            R[k], R[k + 1] = R[k + 1], R[k]
+        if T[k][k] == 0:
+            raise ZeroDivisionError("singular stage system")
+        f = T[k + 1][k] / T[k][k]
+        if f:
+            row, below = T[k], T[k + 1]
+            for j in range(k + 1, n):
+                below[j] -= f * row[j]
+            R[k + 1] = [a - f * b for a, b in zip(R[k + 1], R[k])]
+        T[k + 1][k] = mp.zero
+    if T[n - 1][n - 1] == 0:
+        raise ZeroDivisionError("singular stage system")
+    Y = [[mp.zero] * len(rhs) for _ in range(n)]
+    for i in range(n - 1, -1, -1):
+        for col in range(len(rhs)):
+            acc = R[i][col] - mp.fsum(T[i][j] * Y[j][col] for j in range(i + 1, n))
+            Y[i][col] = acc / T[i][i]
+    return [[Y[i][col] for i in range(n)] for col in range(len(rhs))]
+
+
+def _lower_triangular(K: list) -> bool:
+    return all(K[i][j] == 0 for i in range(len(K)) for j in range(i + 1, len(K)))
+
+
 def prk_transfer(A_q, b_q, A_p, b_p) -> Callable:
     """``Mfun(z, model)`` of the PRK (A_q,b_q)-(A_p,b_p): the stage system
     Q = q0 e + z A_q (Lqq Q + Lqp P), P = p0 e + z A_p (Lpq Q + Lpp P), solved for
     (q0, p0) = (1, 0) and (0, 1); then q1 = q0 + z b_q.(Lqq Q + Lqp P),
-    p1 = p0 + z b_p.(Lpq Q + Lpp P). Every model here has Lqq = Lpp = 0 (then
-    (I - z^2 Lqp Lpq A_q A_p) Q = q0 e + z Lqp p0 A_q e and P follows) or
-    Lqp = Lpq = 0 (two s x s systems), so only s x s systems are solved; the product
-    A_q A_p is formed once per working precision.
-    ``Mfun`` raises ZeroDivisionError where the stage system is singular (a pole)."""
+    p1 = p0 + z b_p.(Lpq Q + Lpp P). Every model here has Lqq = Lpp = 0 or
+    Lqp = Lpq = 0, so only s x s systems are solved:
+
+    * Lqq = Lpp = 0: with ``K = A_q A_p``, ``c = z^2 Lqp Lpq`` and ``S = I - c K``,
+      ``Q = S^-1 (q0 e + z Lqp p0 A_q e)``, ``P = p0 e + z Lpq A_p Q``, so
+      ``M = [[1 + c g(A_p^T b_q, e), z Lqp (sum b_q + c g(A_p^T b_q, A_q e))],
+      [z Lpq g(b_p, e), 1 + c g(b_p, A_q e)]]`` with ``g(u, v) = u^T S^-1 v``;
+    * Lqp = Lpq = 0: ``M = diag(1 + z Lqq g_q(b_q, e), 1 + z Lpp g_p(b_p, e))``,
+      ``g_q(u, v) = u^T (I - z Lqq A_q)^-1 v`` and ``g_p`` alike with ``A_p``.
+
+    Each ``g`` is ``(Q^T u)^T (I - c H)^-1 (Q^T v)`` for the Householder form ``K = Q H
+    Q^T`` (H upper Hessenberg), computed once per working precision, so that each z costs
+    O(s^2) instead of a dense O(s^3) solve; a lower-triangular K (explicit methods) is
+    solved by forward substitution. ``Mfun`` raises ZeroDivisionError where the stage
+    system is singular (a pole)."""
     Aq, Ap = _rows_of(A_q), _rows_of(A_p)
     s = len(Aq)
     b_q, b_p = list(b_q), list(b_p)
     eye = [[mp.one if i == j else mp.zero for j in range(s)] for i in range(s)]
-    products: dict[int, tuple] = {}
+    ones = [mp.one] * s
+    forms: dict[tuple[int, str], Any] = {}
+
+    def form(key: str):
+        """Per working precision: ``("triangular", K, ...)`` or ``("hessenberg", H, the
+        vectors Q^T u, Q^T v)`` for K = A_q A_p (``off``), A_q or A_p (``q``, ``p``)."""
+        if (mp.prec, key) in forms:
+            return forms[(mp.prec, key)]
+        rq = [mp.fsum(row) for row in Aq]  # A_q e
+        if key == "off":
+            K = [[mp.fsum(Aq[i][k] * Ap[k][j] for k in range(s)) for j in range(s)]
+                 for i in range(s)]
+            left = [mp.fsum(Ap[k][j] * b_q[k] for k in range(s)) for j in range(s)]
+            vectors = [left, b_p, ones, rq]  # u: A_p^T b_q, b_p; v: e, A_q e
+        else:
+            K = Aq if key == "q" else Ap
+            vectors = [b_q if key == "q" else b_p, ones]
+        if _lower_triangular(K):
+            out = ("triangular", K, vectors)
+        else:
+            out = ("hessenberg", *_hessenberg(K, vectors))
+        forms[(mp.prec, key)] = out
+        return out
+
+    def g(key: str, c, pairs: list) -> list:
+        """``u^T (I - c K)^-1 v`` for each ``(u, v)`` index pair into the form's vectors."""
+        how, K, vectors = form(key)
+        rhs = sorted({v for _, v in pairs})
+        if how == "triangular":
+            Y = _forward_substitution([[eye[i][j] - c * K[i][j] for j in range(s)]
+                                       for i in range(s)],
+                                      [[vectors[v][i] for v in rhs] for i in range(s)])
+            Y = [[Y[i][col] for i in range(s)] for col in range(len(rhs))]
+        else:
+            Y = _hessenberg_solve(c, K, [vectors[v] for v in rhs])
+        return [mp.fsum(a * b for a, b in zip(vectors[u], Y[rhs.index(v)])) for u, v in pairs]
 
     def Mfun(z, model: str):
         (lqq, lqp), (lpq, lpp) = MODELS[model]
         z = mp.mpf(z)
-        if mp.prec not in products:
-            products[mp.prec] = ([mp.fsum(row) for row in Aq],  # A_q e
-                                 [[mp.fsum(Aq[i][k] * Ap[k][j] for k in range(s))
-                                   for j in range(s)] for i in range(s)])
-        rq, AqAp = products[mp.prec]
+        M = mp.matrix(2, 2)
         if lqq == 0 and lpp == 0:
             c = z * z * lqp * lpq
-            S = [[eye[i][j] - c * AqAp[i][j] for j in range(s)] for i in range(s)]
-            # columns: (q0, p0) = (1, 0) and (0, 1)
-            Q = _solve(S, [[mp.one, z * lqp * rq[i]] for i in range(s)])
-            P = [[z * lpq * mp.fsum(Ap[i][k] * Q[k][col] for k in range(s)) + (col == 1)
-                  for col in range(2)] for i in range(s)]
+            qe, qr, pe, pr = g("off", c, [(0, 2), (0, 3), (1, 2), (1, 3)])
+            M[0, 0] = 1 + c * qe
+            M[0, 1] = z * lqp * (mp.fsum(b_q) + c * qr)
+            M[1, 0] = z * lpq * pe
+            M[1, 1] = 1 + c * pr
         else:
-            Q = _solve([[eye[i][j] - z * lqq * Aq[i][j] for j in range(s)] for i in range(s)],
-                       [[mp.one, mp.zero] for _ in range(s)])
-            P = _solve([[eye[i][j] - z * lpp * Ap[i][j] for j in range(s)] for i in range(s)],
-                       [[mp.zero, mp.one] for _ in range(s)])
-        M = mp.matrix(2, 2)
-        for col, (q0, p0) in enumerate(((1, 0), (0, 1))):
-            M[0, col] = q0 + z * mp.fsum(b_q[j] * (lqq * Q[j][col] + lqp * P[j][col])
-                                         for j in range(s))
-            M[1, col] = p0 + z * mp.fsum(b_p[j] * (lpq * Q[j][col] + lpp * P[j][col])
-                                         for j in range(s))
+            M[0, 0] = 1 + z * lqq * g("q", z * lqq, [(0, 1)])[0]
+            M[1, 1] = 1 + z * lpp * g("p", z * lpp, [(0, 1)])[0]
         return M
 
     return Mfun
@@ -291,13 +508,14 @@ def transfer_matrix_splitting(drift: Sequence, kick: Sequence, z,
     sign = -1 if model == "oscillator" else 1
     z = mp.mpf(z)
     grads = list(gradient) if gradient is not None else [0] * len(kick)
+    z3 = z ** 3 if any(grads) else mp.zero
     a, b, c, d = mp.one, mp.zero, mp.zero, mp.one  # rows (a, b) for q and (c, d) for p
     for x, y, w in zip_longest(drift, kick, grads, fillvalue=0):
         if x:
             t = x * z
             a, b = a + t * c, b + t * d
         if y or w:
-            t = sign * y * z + 2 * w * z ** 3
+            t = sign * y * z + 2 * w * z3 if w else sign * y * z
             c, d = c + t * a, d + t * b
     return mp.matrix([[a, b], [c, d]])
 
