@@ -793,8 +793,13 @@ def _assemble(ev: _Evaluator, model: str, zmax: float, z_last: float,
         if ELLIPTIC[model]:
             blind |= np.abs(jet.dev_m) <= TOL_FACTOR * EPS * jet.scale_m
         status[blind] = 0
-    for band in undecided:
-        status[(mids > band.lo) & ((band.hi is None) | (mids < (band.hi or 0.0)))] = 0
+    if undecided:  # a midpoint inside an undecided band (open): sorted starts, running ends
+        starts = np.array([band.lo for band in undecided])
+        ends = np.array([np.inf if band.hi is None else band.hi for band in undecided])
+        order = np.argsort(starts, kind="stable")
+        starts, reach = starts[order], np.maximum.accumulate(ends[order])
+        k = np.searchsorted(starts, mids, side="left")
+        status[(k > 0) & (reach[np.maximum(k - 1, 0)] > mids)] = 0
     intervals: list[Interval] = []
     reversed_: list[Interval] = []
     kept: list[Point] = []

@@ -342,18 +342,40 @@ def stretches(region: Region) -> list[tuple[float, float, int | None]]:
     cuts = sorted({0.0, region.zmax} | {x for x in edges if 0 < x < region.zmax}
                   | {iv.lo for iv in region.undecided}
                   | {iv.hi for iv in region.undecided if iv.hi is not None})
+    inf = float("inf")
+    covers = [(_covering([(iv.lo, inf if iv.hi is None else iv.hi) for iv in ivs]), value)
+              for ivs, value in ((region.intervals, 1), (region.reversed, -1),
+                                 (region.undecided, None))]
+    in_band = _covering(bands, closed=False)
     out = []
     for lo, hi in zip(cuts[:-1], cuts[1:]):
         mid = 0.5 * (lo + hi)
         status: int | None = 0
-        for ivs, value in ((region.intervals, 1), (region.reversed, -1),
-                           (region.undecided, None)):
-            if any(iv.lo <= mid and (iv.hi is None or mid <= iv.hi) for iv in ivs):
+        for covered, value in covers:
+            if covered(mid):
                 status = value
-        if any(a < mid < b for a, b in bands):
+        if in_band(mid):
             status = None
         out.append((lo, hi, status))
     return out
+
+
+def _covering(spans: list[tuple[float, float]], closed: bool = True) -> Callable:
+    """``x -> whether some (a, b) of spans holds x`` (``[a, b]``, or ``(a, b)`` when not
+    ``closed``), in O(log n) a query: the spans sorted by start, with the running largest
+    end (a linear scan per stretch is quadratic: 28,000 undecided bands on one barrier)."""
+    from bisect import bisect_left, bisect_right
+    from itertools import accumulate
+
+    spans = sorted(spans)
+    starts = [a for a, _ in spans]
+    reach = list(accumulate((b for _, b in spans), max))
+
+    def covered(x: float) -> bool:
+        k = bisect_right(starts, x) if closed else bisect_left(starts, x)
+        return k > 0 and (reach[k - 1] >= x if closed else reach[k - 1] > x)
+
+    return covered
 
 
 def status_samples(lo: float, hi: float) -> list[float]:
