@@ -178,6 +178,23 @@ def test_the_midpoint_rule_off_by_1e_12_is_a_sink_and_never_safe(tmp_path, run):
     assert code == 0 and "not symplectic" in out
 
 
+def test_gauss2_off_by_1e_13_is_not_symplectic(tmp_path, run):
+    """Gauss s = 2 with 1e-13 added to a_11: entry (1, 1) of the condition is 2 b_1 1e-13
+    = 1e-13 at 50 digits; validate says not symplectic and check refuses the step that the
+    exact tableau keeps."""
+    kind, exact = EXACT["gauss2"]
+    perturbed = {"A": [["1/4 + 1e-13", exact["A"][0][1]], exact["A"][1]], "b": exact["b"]}
+    sep, _ = _defects(kind, perturbed)
+    with mp.workdps(50):
+        assert abs(sep - mp.mpf("1e-13")) < mp.mpf("1e-40")
+    for coefficients, verdict in ((exact, 0), (perturbed, 1)):
+        path = _write(tmp_path / "g.yaml", kind, coefficients)
+        code, out, _ = run("check", "--method", str(path), "--beta", "1", "--step", "1")
+        assert code == verdict, out
+    code, out, _ = run("validate", str(path))
+    assert "not symplectic" in out
+
+
 def test_decimals_of_ten_digits_or_more_carry_their_rounding():
     """The written digits decide the allowance: a 10-digit literal is a rounding (half its
     last digit), a short one is exact, a 17-digit one carries 4 ulps of float64."""
