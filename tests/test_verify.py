@@ -4,6 +4,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import stepsafe.core.regions as regions_module
 from stepsafe.core.regions import Point
@@ -56,3 +61,29 @@ def test_verify_at_tiny_z_and_on_a_processed_saddle(run, tmp_path):
     code, out, err = run("check", "--method", str(path), "--saddle-beta", "1", "--step", "1",
                          "--verify")
     assert code == 0 and "SAFE" in out, out + err
+
+
+@settings(max_examples=200, deadline=None)
+@given(spans=st.lists(st.tuples(st.floats(0, 10), st.floats(0, 3)), max_size=30),
+       probes=st.lists(st.floats(-1, 14), min_size=1, max_size=20), closed=st.booleans())
+def test_a_span_lookup_answers_as_a_scan_of_every_span(spans, probes, closed):
+    """The sorted lookup that cuts a region into stretches (overlapping spans, shared
+    ends, probes on an end) agrees with testing each span in turn."""
+    from stepsafe.reference.verify import _covering
+
+    spans = [(a, a + w) for a, w in spans] + [(a, a) for a, _ in spans[:2]]
+    covered = _covering(spans, closed)
+    probes += [x for span in spans for x in span]
+    for x in probes:
+        scan = any((a <= x <= b) if closed else (a < x < b) for a, b in spans)
+        assert covered(x) == scan, (x, spans)
+
+
+@pytest.mark.slow
+def test_the_largest_families_verify(run_json):
+    """--verify on Gauss and Lobatto IIIA-IIIB with 40 stages (zmax 4 pi): every point and
+    stretch recomputed at 40 digits agrees."""
+    for family in ("gauss", "lobatto3ab"):
+        data = run_json("region", family, "-s", "40", "--zmax", repr(4 * math.pi),
+                        "--verify")
+        assert data["verify"]["ok"] and data["verify"]["points"] >= 18, data["verify"]
