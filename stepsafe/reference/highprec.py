@@ -108,7 +108,7 @@ def _newton(f_df: Callable, x, lo=None, hi=None):
                 hi = x
         step = f / df if df else mp.inf
         new = x - step
-        if lo is not None and not lo <= new <= hi:
+        if lo is not None and hi is not None and not lo <= new <= hi:
             new = (lo + hi) / 2
         settled = settled + 1 if abs(new - x) <= tol * max(1, abs(x)) else 0
         x = new
