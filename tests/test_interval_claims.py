@@ -105,3 +105,18 @@ def test_the_interval_before_lobatto12s_third_resonance_stops_at_its_band():
     second = region.intervals[1]
     assert second.hi == res.z - res.uncertainty < 9.4247773793341397
     assert record["intervals"][1][1] == second.hi
+
+
+def test_the_stable_run_ends_where_its_listed_interval_ends():
+    """hmc's and design's run of stable steps stops its end's float64 uncertainty short of
+    it, exactly where the interval listed under the stability criterion ends."""
+    from support import method
+
+    from stepsafe.core.regions import find_region, stable_run, under_criterion
+
+    for name in ("bcss3", "verlet", "pefrl", "sofroniou-spaletta10"):
+        region = find_region(method(name), "oscillator")
+        run = stable_run(region)
+        listed = under_criterion(region, "stability").intervals
+        ends = [iv.hi for iv in listed if iv.hi_point is not None and iv.hi_point.z == run.end]
+        assert run.uncertainty > 0 and ends == [run.first_unsafe], name

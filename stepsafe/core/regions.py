@@ -939,7 +939,8 @@ def stable_run(region: Region) -> StableRun:
     end = region.stability_limit
     runs = under_criterion(region, "stability")
     uncertainty = next((iv.hi_point.uncertainty for iv in runs.intervals
-                        if end is not None and iv.hi == end and iv.hi_point is not None), 0.0)
+                        if end is not None and iv.hi_point is not None
+                        and iv.hi_point.z == end), 0.0)
     resonances = tuple(r for r in runs.resonances if end is None or r.z < end)
     return StableRun(end, float(uncertainty), resonances)
 
