@@ -128,15 +128,32 @@ def separable_modes(K, M=None) -> Decoupled:
             if not is_positive_definite(M):
                 raise MatrixError("mass", "mass must be positive definite")
     if is_diagonal(K) and (M is None or is_diagonal(M)):
-        # decoupled already: w^2 = k_i / m_i, one rounding each (an eigensolver's absolute
-        # bound, n eps |K|, would leave 1e-16 of a 1e16-conditioned diagonal undecided)
+        # decoupled already: w = sqrt|k_i| / sqrt(m_i), a rounding per operation (an
+        # eigensolver's absolute bound, n eps |K|, would leave 1e-16 of a 1e16-conditioned
+        # diagonal undecided); no w^2 is formed, so k = 1e-300 against m = 1e300 (w =
+        # 1e-300) neither underflows nor overflows
+        k = np.diagonal(K)
+        m = np.ones(n) if M is None else np.diagonal(M)
         with np.errstate(all="ignore"):
-            w2 = np.diagonal(K) / (1.0 if M is None else np.diagonal(M))
-        if not np.all(np.isfinite(w2)) or np.any((w2 == 0) & (np.diagonal(K) != 0)):
-            raise MatrixError("stiffness", "the eigenvalues w^2 of K v = w^2 M v are beyond "
-                                           "the float64 range; rescale the units of K or M")
-        return Decoupled(_modes_from_w2(np.sort(w2), 0.0),
+            w = np.sqrt(np.abs(k)) / np.sqrt(m)
+        if not np.all(np.isfinite(w)) or np.any((w == 0) & (k != 0)):
+            raise MatrixError("stiffness", "a frequency sqrt(|k_i| / m_i) is beyond the "
+                                           "float64 range; rescale the units of K or M")
+        order = np.argsort(np.sign(k) * w, kind="stable")
+        return Decoupled(_modes_from_rates(np.sign(k)[order], w[order]),
                          "decoupled: separable H, diagonal K and M (w^2 = k_i / m_i)")
+    # K / 2^a and M / 2^b have entries of order 1 (exact: powers of two, a - b even): their
+    # w^2 are those of K and M times 2^(b - a), and w times 2^((b - a) / 2), so the
+    # eigenproblem is solved in range whatever the units (K = 1e-300 I against M = 1e300 I);
+    # not where an entry would leave the normal range (a matrix spanning more than it)
+    a = _exponent(K)
+    b = 0 if M is None else _exponent(M)
+    a += (a - b) % 2
+    if _exact_scaling(K, a) and (M is None or _exact_scaling(M, b)):
+        K = np.ldexp(K, -a)
+        M = None if M is None else np.ldexp(M, -b)
+    else:
+        a = b = 0
     try:
         with np.errstate(all="ignore"), blas_threads_for(n):
             w2 = eigh(K, M, eigvals_only=True)  # M None: the standard problem
@@ -146,7 +163,11 @@ def separable_modes(K, M=None) -> Decoupled:
     if not np.all(np.isfinite(w2)):
         raise MatrixError("stiffness", "the eigenvalues w^2 of K v = w^2 M v are beyond the "
                                        "float64 range; rescale the units of K or M")
-    return Decoupled(_modes_from_w2(w2, _eigenvalue_error(w2, n) * _cond(M)),
+    modes = _modes_from_w2(w2, _eigenvalue_error(w2, n) * _cond(M), (a - b) // 2)
+    if any(m.model != "free" and not 0 < m.beta < np.inf for m in modes):
+        raise MatrixError("stiffness", "a frequency of K v = w^2 M v is beyond the float64 "
+                                       "range; rescale the units of K or M")
+    return Decoupled(modes,
                      "decoupled: separable H, generalised eigenproblem K v = w^2 M v")
 
 
@@ -198,28 +219,65 @@ def _cond(M: np.ndarray | None) -> float:
     return float(m.max() / m.min())
 
 
-def _modes_from_w2(w2: np.ndarray, error: float) -> tuple[LinearMode, ...]:
-    """Modes from the eigenvalues ``w^2``, each known to ``error`` (absolute). An
+def _exponent(A: np.ndarray) -> int:
+    """The power of two ``e`` with ``max |A_ij|`` in ``[2^(e-1), 2^e)`` (0 for A = 0)."""
+    top = float(np.abs(A).max(initial=0.0))
+    return int(np.frexp(top)[1]) if top > 0 and np.isfinite(top) else 0
+
+
+def _exact_scaling(A: np.ndarray, e: int) -> bool:
+    """Whether ``A / 2^e`` keeps every normal entry of A normal (so it is exact)."""
+    tiny = np.finfo(float).tiny
+    with np.errstate(all="ignore"):
+        scaled = np.ldexp(A, -e)
+    return bool(np.all(np.isfinite(scaled))
+                and not np.any((np.abs(A) >= tiny) & (np.abs(scaled) < tiny)))
+
+
+def _modes_from_rates(signs: np.ndarray, w: np.ndarray) -> tuple[LinearMode, ...]:
+    """Modes of exactly known type: ``sign > 0`` a vibration of rate ``w``, ``< 0`` a
+    barrier, ``0`` free; each rate a few roundings from the truth."""
+    out = []
+    for sign, rate in zip(signs, w):
+        with np.errstate(all="ignore"):
+            value = complex(sign * rate * rate)
+        if sign == 0:
+            out.append(LinearMode(0.0, "free", 0j))
+        else:
+            out.append(LinearMode(float(rate), "oscillator" if sign > 0 else "inverted",
+                                  value, True, 2 * EPS))
+    return tuple(out)
+
+
+def _modes_from_w2(w2: np.ndarray, error: float, exponent: int = 0) -> tuple[LinearMode, ...]:
+    """Modes from the eigenvalues ``w^2``, each known to ``error`` (absolute), of a problem
+    whose rates are ``2^exponent`` times smaller than the system's (each rate is scaled
+    back exactly). An
     eigenvalue within ``error`` of 0 has no decided sign: it might be a slow vibration or
     a slow barrier of rate up to ``sqrt(error)``, so it is analysed as both at that rate
     (a free mode only when exactly 0 with no rounding: a diagonal K). A stiff system keeps
     its slow modes: in ``diag(1e12, -1)`` the barrier of rate 1 is far above the rounding
     (~1e-3)."""
+    def rate(x: float) -> float:
+        return float(np.ldexp(np.sqrt(x), exponent))
+
+    def square(x: float) -> complex:
+        with np.errstate(all="ignore"):
+            return complex(np.ldexp(x, 2 * exponent))
+
     out = []
     for value in w2:
         rel = 0.5 * error / abs(value) + 2 * EPS if value else 0.0  # of sqrt|w^2|
         if value == 0 and error == 0:
-            out.append(LinearMode(0.0, "free", complex(value)))
+            out.append(LinearMode(0.0, "free", square(value)))
         elif abs(value) <= error:  # (a computed 0 too: its sign is not decided either)
-            rate = float(np.sqrt(error))  # the rate is anywhere in [0, rate]
-            out += [LinearMode(rate, "oscillator", complex(value), False, 1.0),
-                    LinearMode(rate, "inverted", complex(value), False, 1.0)]
+            top = rate(error)  # the rate is anywhere in [0, top]
+            out += [LinearMode(top, "oscillator", square(value), False, 1.0),
+                    LinearMode(top, "inverted", square(value), False, 1.0)]
         elif value > 0:
-            out.append(LinearMode(float(np.sqrt(value)), "oscillator", complex(value), True,
-                                  rel))
+            out.append(LinearMode(rate(value), "oscillator", square(value), True, rel))
         else:
-            out.append(LinearMode(float(np.sqrt(-value)), "inverted", complex(value), True,
-                                  rel))
+            out.append(LinearMode(rate(-value), "inverted", square(value), True, rel))
     return tuple(out)
 
 
@@ -353,36 +411,94 @@ def split_hessian(S) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     return S[:n, :n], S[:n, n:], S[n:, :n], S[n:, n:]
 
 
+def normalised(S: np.ndarray) -> tuple[np.ndarray, int]:
+    """``(S', e)``: ``S' = 2^-e T^T S T`` for the symplectic point transformation ``T =
+    diag(d, 1/d)`` (``q -> d q``, ``p -> p / d``), ``d_i`` the power of two nearest
+    ``|S_pp[i, i] / S_qq[i, i]|^(1/4)`` (each coordinate's two diagonal entries brought to
+    one size; where one is 0, the blocks' norms stand in), and ``2^e`` the power of two
+    that brings the largest entry into ``[1/2, 1)`` (a unit of time: the rates of ``S`` are
+    ``2^e`` times those of ``S'``).
+
+    Both are exact in floating point (multiplications by powers of two), so ``J S'`` has the
+    eigenvalues of ``J S`` divided by ``2^e`` with the same types and Krein signatures, and
+    every partitioned method commutes with ``T``: classifying ``S'`` classifies ``S``, in
+    any units. The point transformation is skipped where a normal entry would leave the
+    normal range (an entry spread of more than 1e300 within one matrix); entries far below
+    the largest (subnormal ones, ``2^-1074`` of it) may lose digits or become 0, far below
+    every rounding bound."""
+    n = S.shape[0] // 2
+    potential, kinetic = np.abs(np.diagonal(S)[:n]), np.abs(np.diagonal(S)[n:])
+    with np.errstate(all="ignore"):
+        blocks = 0.25 * (np.log2(np.linalg.norm(S[n:, n:])) - np.log2(np.linalg.norm(S[:n, :n])))
+        target = np.where((potential > 0) & (kinetic > 0),
+                          0.25 * (np.log2(kinetic) - np.log2(potential)),
+                          blocks if np.isfinite(blocks) else 0.0)
+    d = np.ldexp(1.0, np.round(np.where(np.isfinite(target), target, 0.0)).astype(int))
+    scale = np.concatenate([d, 1.0 / d])
+    with np.errstate(all="ignore"):
+        scaled = S * np.outer(scale, scale)
+    tiny = np.finfo(float).tiny
+    if np.all(np.isfinite(scaled)) and not np.any((np.abs(S) >= tiny) & (np.abs(scaled) < tiny)):
+        S = scaled  # (exact: no normal entry left the normal range)
+    e = _exponent(S)
+    return np.ldexp(S, -e), e
+
+
 def hessian_modes(S, method: Method) -> Decoupled | None:
     """The decoupled modes of ``H = x^T S x / 2`` when they are exact for ``method``,
-    else None (the coupled analysis is needed)."""
+    else None (the coupled analysis is needed). Analysed as :func:`normalised` ``S'``, whose
+    rates are scaled back exactly: any units from 1e-300 to 1e300, in q and p together or
+    apart."""
+    S = check_square(S, "hessian")
+    split_hessian(S)
+    S, exponent = normalised(S)
     S_qq, S_qp, _, S_pp = split_hessian(S)
     if not S_qp.any() and np.linalg.eigvalsh(S_pp).min() > 0:
-        d = separable_modes(S_qq, np.linalg.inv(S_pp))
-        return d._replace(analysis="decoupled: separable Hessian, generalised eigenproblem")
+        kinetic = np.linalg.inv(S_pp)
+        if is_diagonal(S_pp):  # exact reciprocals of a diagonal: no inverse's rounding
+            with np.errstate(all="ignore"):
+                kinetic = np.diag(1.0 / np.diagonal(S_pp))
+        d = separable_modes(S_qq, kinetic)
+        return d._replace(modes=tuple(_scaled_mode(m, exponent, 2) for m in d.modes),
+                          analysis="decoupled: separable Hessian, generalised eigenproblem")
     if is_partitioned(method):
         return None
     mu = np.linalg.eigvals(hamiltonian_matrix(S))
     mu = mu[(mu.imag > 0) | ((mu.imag == 0) & (mu.real >= 0))]
-    # eigenvalues of J S carry an absolute error of a few n eps |J S|: a real or imaginary
-    # part within it is zero; an eigenvalue within it of 0 is analysed as a vibration and
-    # a saddle of that rate (its type is not decided)
-    error = 1e3 * S.shape[0] * EPS * float(np.abs(mu).max(initial=0.0))
+    # eigenvalues of J S carry an absolute error of a few n eps |J S| (|S| < 1 here): a
+    # real or imaginary part within it is zero. A pair +-mu near 0 is the split of a
+    # double eigenvalue: mu^2 moves by that error, so mu by error / |mu|, and a pair
+    # within sqrt(error) of 0 is analysed as a vibration and a saddle of rate sqrt(error)
+    # (its type and size are not decided; e.g. S = [[1, 3.16], [3.16, 10]], mu^2 = 1e-15)
+    error = 1e3 * S.shape[0] * EPS * max(float(np.abs(S).max()),
+                                         float(np.abs(mu).max(initial=0.0)))
+    floor = float(np.sqrt(error))
     modes = []
     for m in mu:
-        rel = error / abs(m) + 2 * EPS if m else 0.0
+        rel = error / abs(m) + error / abs(m) ** 2 + 2 * EPS if m else 0.0
         if m == 0:
             modes.append(LinearMode(0.0, "free", complex(m)))
-        elif abs(m) <= error:
-            modes += [LinearMode(error, "oscillator", complex(m), False, 1.0),
-                      LinearMode(error, "saddle", complex(m), False, 1.0)]
+        elif abs(m) <= floor:
+            modes += [LinearMode(floor, "oscillator", complex(m), False, 1.0),
+                      LinearMode(floor, "saddle", complex(m), False, 1.0)]
         elif abs(m.real) <= error:
             modes.append(LinearMode(float(abs(m.imag)), "oscillator", complex(m), True, rel))
         elif abs(m.imag) <= error:
             modes.append(LinearMode(float(abs(m.real)), "saddle", complex(m), True, rel))
         else:
             return None  # loxodromic: no 1-dof model
-    return Decoupled(tuple(modes), "decoupled: RK method, eigenvalues of J S")
+    return Decoupled(tuple(_scaled_mode(m, exponent, 1) for m in modes),
+                     "decoupled: RK method, eigenvalues of J S")
+
+
+def _scaled_mode(mode: LinearMode, exponent: int, power: int) -> LinearMode:
+    """A mode of :func:`normalised` ``S'`` as one of S: its rate times ``2^exponent``
+    (exact), its eigenvalue times ``2^(power exponent)`` (``power`` 2 for ``w^2``, 1 for an
+    eigenvalue ``mu`` of ``J S``; it may leave float64's range, the rate does not)."""
+    with np.errstate(all="ignore"):
+        value = complex(np.ldexp(mode.eigenvalue.real, power * exponent),
+                        np.ldexp(mode.eigenvalue.imag, power * exponent))
+    return mode._replace(beta=float(np.ldexp(mode.beta, exponent)), eigenvalue=value)
 
 
 def hamiltonian_matrix(S: np.ndarray) -> np.ndarray:

@@ -613,22 +613,26 @@ def _classify(H: ManyDofHamiltonian, x: np.ndarray) -> ManyDofEquilibrium:
     """The type from the eigenvalues of J S; an eigenvalue within the rounding of the
     eigensolver (a few 1e3 (2n) eps |mu|_max, as stepsafe.systems.linear counts it) of a
     zero real or imaginary part has that part zero, one within it of 0 is a zero mode."""
-    from stepsafe.systems.linear import hamiltonian_matrix
+    from stepsafe.systems.linear import hamiltonian_matrix, normalised
 
     jet = H.jet(x)
     S = 0.5 * (jet.h + jet.h.T)
-    mu = np.linalg.eigvals(hamiltonian_matrix(S))
+    # in the units where S is of order 1 (exact powers of two; the rates scale back)
+    scaled, exponent = normalised(S)
+    mu = np.linalg.eigvals(hamiltonian_matrix(scaled))
     tol = 1e3 * S.shape[0] * float(np.finfo(float).eps) * max(float(np.abs(mu).max()),
                                                               1e-300)
     upper = mu[(mu.imag > tol) | ((np.abs(mu.imag) <= tol) & (mu.real > tol))]
     zero = int((np.abs(mu) <= tol).sum())
     # a zero mode makes S singular; its eigenvalues (symmetric, well conditioned) tell it
     # even where J S has a Jordan block at 0, whose eigenvalues rounding moves by sqrt(eps)
-    s_eig = np.abs(np.linalg.eigvalsh(S))
+    s_eig = np.abs(np.linalg.eigvalsh(scaled))
     if s_eig.min() <= 1e3 * S.shape[0] * float(np.finfo(float).eps) * s_eig.max():
         zero = max(zero, 2)
-    freqs = tuple(sorted(float(m.imag) for m in upper if abs(m.real) <= tol))
-    rates = tuple(sorted(float(m.real) for m in upper if abs(m.imag) <= tol))
+    freqs = tuple(sorted(float(np.ldexp(m.imag, exponent)) for m in upper
+                         if abs(m.real) <= tol))
+    rates = tuple(sorted(float(np.ldexp(m.real, exponent)) for m in upper
+                         if abs(m.imag) <= tol))
     lox = sum(1 for m in upper if abs(m.real) > tol and abs(m.imag) > tol)
     if zero:
         kind = "degenerate"

@@ -31,8 +31,8 @@ The exact linearisation ``x' = L x``, ``L = [[H_pq, H_pp], [-H_qq, -H_qp]]``, ma
 test model when a partition-preserving scaling ``q -> a q, p -> b p`` brings it there
 (which every partitioned method commutes with):
 
-* ``H_qp = 0``: ``oscillator`` with ``beta = sqrt(H_qq H_pp)`` if ``H_qq H_pp > 0``, else
-  ``inverted`` with ``beta = sqrt(-H_qq H_pp)``;
+* ``H_qp = 0``: ``oscillator`` with ``beta = sqrt(H_qq H_pp)`` if H_qq and H_pp have one
+  sign, else ``inverted`` with ``beta = sqrt(-H_qq H_pp)``;
 * ``H_qq = H_pp = 0``: ``saddle`` (q expands) if ``H_qp > 0`` or ``saddle-p`` if ``H_qp < 0``,
   ``beta = |H_qp|``;
 * otherwise the linearisation is analysed as a 2x2 Hessian (:mod:`stepsafe.systems.linear`:
@@ -251,7 +251,7 @@ def _eval(node: ast.AST, source: str, env: dict[str, Jet2], number):
 class Equilibrium(NamedTuple):
     q: float
     p: float
-    D: float
+    D: float | None  # None: |D| beyond float64's range (see _classify)
     kind: str  # "elliptic", "hyperbolic", "degenerate"
     hessian: np.ndarray  # [[H_qq, H_qp], [H_pq, H_pp]]
     beta: float | None
@@ -419,8 +419,8 @@ def _verify(H: Hamiltonian, u: np.ndarray, centre, half) -> Equilibrium | None:
         # a coordinate within the location's uncertainty of 0 is 0 (the equilibrium at the
         # origin, not at 1e-87)
         q, p = (mp.mpf(0) if abs(xi) <= dx * wi else xi for xi, wi in zip(x, w))
-        return _classify(float(q), float(p), float(hqq), float(hqp), float(hpp),
-                         float(D), undecided or linear or terms == 0)
+        return _classify(float(q), float(p), hqq, hqp, hpp, D,
+                         undecided or linear or terms == 0)
 
 
 def _mp_jet(H: Hamiltonian, x, w):
@@ -447,19 +447,45 @@ def _mp_jet(H: Hamiltonian, x, w):
                 tuple((ha + hb) / 2 for ha, hb in zip(a.H, b.H)), mp)
 
 
-def _classify(q: float, p: float, hqq: float, hqp: float, hpp: float, D: float,
+def _classify(q: float, p: float, hqq: Any, hqp: Any, hpp: Any, D: Any,
               degenerate: bool) -> Equilibrium:
-    hessian = np.array([[hqq, hqp], [hqp, hpp]])
+    """The type and linear model from the Hessian entries and ``D = H_qp^2 - H_qq H_pp`` at
+    high precision (mpmath numbers, whose exponent range is unbounded): the signs and
+    ``beta`` are decided there and only the results are rounded to float64, so a centre
+    ``1e-300 (q^2 + p^2)`` (``D = -4e-600``, below float64's range) is a centre of ``beta =
+    2e-300``. ``D`` is reported as None when it is beyond float64's range."""
+    import mpmath as mp
+
+    hessian = np.array([[float(hqq), float(hqp)], [float(hqp), float(hpp)]])
+    if any((float(h) == 0) != (h == 0) or not math.isfinite(float(h)) for h in (hqq, hqp, hpp)):
+        raise ExpressionError(f"the Hessian of H at (q, p) = ({q:.6g}, {p:.6g}) has an entry "
+                              "beyond the float64 range; rescale the units of H")
+    rounded = float(D)
+    # None: |D| beyond float64's range (its sign is used, not its float)
+    shown = None if (rounded == 0 and D != 0) or not math.isfinite(rounded) else rounded
     if degenerate:
         return Equilibrium(q, p, 0.0, "degenerate", hessian, None, None)
     kind = "elliptic" if D < 0 else "hyperbolic"
     if hqp == 0:
-        prod = hqq * hpp
-        model = "oscillator" if prod > 0 else "inverted"
-        return Equilibrium(q, p, D, kind, hessian, math.sqrt(abs(hqq)) * math.sqrt(abs(hpp)),
-                           model)
+        model = "oscillator" if mp.sign(hqq) == mp.sign(hpp) else "inverted"
+        return Equilibrium(q, p, shown, kind, hessian, _rate(mp.sqrt(abs(hqq * hpp))), model)
     if hqq == 0 and hpp == 0:
-        return Equilibrium(q, p, D, kind, hessian, abs(hqp), "saddle" if hqp > 0 else "saddle-p")
-    beta = math.sqrt(abs(D)) if math.isfinite(D) and D != 0 else abs(hqp) * math.sqrt(
-        abs(1 - (hqq / hqp) * (hpp / hqp)))
-    return Equilibrium(q, p, D, kind, hessian, beta, "coupled")
+        return Equilibrium(q, p, shown, kind, hessian, _rate(abs(hqp)),
+                           "saddle" if hqp > 0 else "saddle-p")
+    return Equilibrium(q, p, shown, kind, hessian, _rate(mp.sqrt(abs(D))), "coupled")
+
+
+def _rate(beta: Any) -> float:
+    """An mpmath rate as a float; beyond float64's range it cannot be analysed."""
+    value = float(beta)
+    if value == 0 or not math.isfinite(value):
+        raise ExpressionError(f"the equilibrium's rate {_mp_text(beta)} is beyond the float64 "
+                              "range; rescale the units of H")
+    return value
+
+
+def _mp_text(x: Any) -> str:
+    """An mpmath number in a few digits, whatever its exponent."""
+    import mpmath as mp
+
+    return mp.nstr(x, 6)
