@@ -817,7 +817,7 @@ class CheckReport:
 def check(method: Integrator | str | None = None, h: float | None = None,
           frequencies: ArrayLike | None = None, *, resonance_order: int | None = None,
           criterion: str = "structure", verify: bool = False, solver: str = "fixed-point",
-          **inputs: Any) -> CheckReport:
+          require_complete_search: bool = False, **inputs: Any) -> CheckReport:
     """Is step ``h`` safe for every frequency (see :func:`problem` for the inputs)? A scene
     may give the step (``h:``). A step exactly on a resonance or a pole is unsafe. With
     ``resonance_order`` N, a vibration at or beyond its first nonlinear resonance of order
@@ -826,6 +826,10 @@ def check(method: Integrator | str | None = None, h: float | None = None,
     ``solver="fixed-point"`` (the default) an implicit method's step must also lie below
     the convergence limit of fixed-point iteration of its stages for every vibration and
     barrier (``record["solver_failure"]`` says why not); ``"newton"`` has no such limit.
+    With ``require_complete_search`` a system given by a Hamiltonian fails when its
+    equilibrium search cannot vouch that it found every equilibrium
+    (``record["system"]["search"]`` says what was searched, ``record["search_failure"]``
+    why it falls short; see :mod:`stepsafe.systems.walks`); other inputs are unaffected.
 
     >>> check("verlet", 0.49, [4.0]).safe
     True
@@ -835,6 +839,7 @@ def check(method: Integrator | str | None = None, h: float | None = None,
     from stepsafe.core.regions import validate_criterion
 
     criterion = validate_criterion(criterion)
+    require_complete_search = _flag(require_complete_search, "require_complete_search")
     p = _problem_of(method, frequencies, inputs)
     step = h if h is not None else p.h
     if step is None:
@@ -846,7 +851,8 @@ def check(method: Integrator | str | None = None, h: float | None = None,
             from stepsafe.systems.advice import system_check
 
             data = system_check(integrator.tableau, p.system, step, p.margin, p.zmax,
-                                integrator.name, criterion, _order(resonance_order))
+                                integrator.name, criterion, _order(resonance_order),
+                                require_complete_search)
         else:
             result = check_step(integrator.tableau, p.modes, step, p.margin, p.zmax,
                                 integrator.name, _order(resonance_order), criterion)

@@ -633,17 +633,25 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, crite
               help="How an implicit method's stages are solved: with fixed-point iteration a "
                    "step at or beyond its convergence limit fails too (reason given); "
                    "Newton's method has no such limit.")
+@click.option("--require-complete-search", is_flag=True,
+              help="Fail (exit 1) when the equilibrium search of a system: hamiltonian cannot "
+                   "vouch that it found every equilibrium: a walk from an equilibrium found "
+                   "stopped short of an equilibrium, the box boundary or a singularity, an "
+                   "equilibrium was not followed, or H could not be evaluated at a start "
+                   "(the 'Search:' line says which). Without it such a search is reported, "
+                   "not failed.")
 @criterion_option()
 @scene_options
 def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as_json,
-              verify, **options) -> None:
+              verify, require_complete_search, **options) -> None:
     """Fail (exit 1) when the step h loses some mode's structure; for CI.
 
     Exit 0: every mode is preserved at h (with the margin); 1: not, with the reason for
-    each failing mode (model, z = beta*h, the boundary crossed, the largest safe h);
-    2: bad input or a usage error (one line on stderr). A step exactly on a resonance or a
-    pole is unsafe. Every scene is analysed before anything is printed, so a reader that
-    stops early (| head -1) does not change the exit code.
+    each failing mode (model, z = beta*h, the boundary crossed, the largest safe h), or
+    (with --require-complete-search) a Hamiltonian's equilibrium search that cannot vouch
+    for completeness; 2: bad input or a usage error (one line on stderr). A step exactly on
+    a resonance or a pole is unsafe. Every scene is analysed before anything is printed, so
+    a reader that stops early (| head -1) does not change the exit code.
 
     \b
     Examples:
@@ -667,7 +675,8 @@ def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as
             continue
         problem = _problem(scene_file, options, not as_json)
         data = api.check(h=h, problem=problem, resonance_order=resonance_order,
-                         criterion=criterion, verify=verify, solver=solver).to_dict()
+                         criterion=criterion, verify=verify, solver=solver,
+                         require_complete_search=require_complete_search).to_dict()
         if "verify" in data:
             verdicts.append(data["verify"])
         outputs.append(data)

@@ -360,15 +360,16 @@ def print_check(data: dict[str, Any]) -> None:
                    f"{_criterion_words(data)}.")
         _print_other_criterion(click.echo, data, u)
         return
-    if data.get("solver_failure") and not data["failing"]:
+    besides = [data[key] for key in ("solver_failure", "search_failure") if data.get(key)]
+    if besides and not data["failing"]:
         click.echo(scene + _styled("UNSAFE", "red") + f": {name} with h = {h}: every mode "
-                   f"keeps its structure, but {data['solver_failure']}.")
+                   f"keeps its structure, but {' and '.join(besides)}.")
         return
     click.echo(scene + _styled("UNSAFE", "red") + f": {name} with h = {h}: "
                f"{data['failing']} of {data['modes']} mode(s) lose their structure"
                f"{_criterion_words(data)}.")
-    if data.get("solver_failure"):
-        click.echo(f"  and {data['solver_failure']}")
+    for reason in besides:
+        click.echo(f"  and {reason}")
     for f in data["failures"]:
         if f.get("label"):
             f = {**f, "model": f"{printable(f['label'])} ({f['model']})"}
@@ -543,3 +544,27 @@ def print_system(system: dict[str, Any], every: bool = False, unit: str | None =
         click.echo(f"  {where}{item['type']} {item.get('model') or ''} {beta}{limit_text}")
     for note in system["notes"]:
         click.echo(f"  note: {printable(note)}")
+    if "search" in system:
+        print_search(system["search"])
+
+
+def print_search(search: dict[str, Any]) -> None:
+    """What the equilibrium search did and whether it vouches for completeness."""
+    import click
+
+    ends = [f"{search['walks_to_equilibrium']} to an equilibrium",
+            f"{search['walks_to_boundary']} to the box boundary"]
+    if search["walks_to_singularity"]:
+        ends.append(f"{search['walks_to_singularity']} into a singularity of H")
+    ends.append(f"{search['walks_stopped']} stopped")
+    found = search["found_by_walks"]
+    click.echo(f"Search: {search['starts']} Newton starts, then {search['walks']} walks along "
+               f"the equilibria's eigendirections ({', '.join(ends)}; {found} new "
+               f"equilibri{'um' if found == 1 else 'a'} found by them): "
+               + ("complete" if search["complete"] else "INCOMPLETE, an equilibrium may be "
+                  "missing: " + "; ".join(search["gaps"]) + " (check "
+                  "--require-complete-search fails on this)"))
+    click.echo(f"  (complete: every walk ended at an equilibrium found, the box boundary or a "
+               "singularity of H; an equilibrium off every walk whose basin no start reaches, "
+               f"or a feature narrower than {search['resolution']:g} of the box along a walk, "
+               "is not seen; starts: adds starts)")

@@ -4,6 +4,7 @@ intersection (only the primary interval of a coupled piece is used)."""
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 from stepsafe.core.advice import advise, check_step, validate_margin
@@ -99,8 +100,7 @@ def system_advice(method: Method, report: SystemReport, margin: float = 1.0,
     data["undecided_h"] = [[margin * r.h_max, margin * r.undecided_to]
                            for r, _ in report.coupled if r.undecided_to is not None]
     items = _limit_items(report, regions, margin)
-    data["system"] = {"analysis": report.analysis, "items": items, "notes": report.notes,
-                      "limiting_item": _limiting_item(items)}
+    data["system"] = _system_record(report, items)
     return data
 
 
@@ -126,10 +126,12 @@ def _cap(safe: list, cap: float) -> list:
 
 def system_check(method: Method, report: SystemReport, h: float, margin: float = 1.0,
                  zmax: float = 10.0, name: str | None = None,
-                 criterion: str = "structure", resonance_order: int | None = None
-                 ) -> dict[str, Any]:
+                 criterion: str = "structure", resonance_order: int | None = None,
+                 require_complete_search: bool = False) -> dict[str, Any]:
     """JSON-ready check of step h for a system (see check_data for the common fields);
-    ``resonance_order``: see :func:`system_advice`."""
+    ``resonance_order``: see :func:`system_advice`. With ``require_complete_search`` a
+    Hamiltonian whose equilibrium search cannot vouch for completeness fails the check
+    (``safe`` False, ``search_failure`` says why), whatever its modes."""
     from stepsafe.core.records import check_data
 
     margin = validate_margin(margin)
@@ -186,7 +188,22 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
     data["in_primary_interval"] = bool(data["safe"] and (data["h_max"] is None
                                                          or h <= data["h_max"]))
     items = _limit_items(report, regions, margin)
-    data["system"] = {"analysis": report.analysis, "items": items, "notes": report.notes,
-                      "limiting_item": _limiting_item(items)}
+    data["system"] = _system_record(report, items)
+    search = report.search
+    if require_complete_search and search is not None and not search["complete"]:
+        data["safe"] = False
+        data["in_primary_interval"] = False
+        data["search_failure"] = ("the equilibrium search cannot vouch that it found every "
+                                  "equilibrium: " + "; ".join(search["gaps"]))
     return data
+
+
+def _system_record(report: SystemReport, items: list[dict[str, Any]]) -> dict[str, Any]:
+    """``system`` of the JSON: the analysis, its items and notes, and for a Hamiltonian the
+    equilibrium search (what it searched, whether it vouches for completeness)."""
+    record: dict[str, Any] = {"analysis": report.analysis, "items": items,
+                              "notes": report.notes, "limiting_item": _limiting_item(items)}
+    if report.search is not None:
+        record["search"] = copy.deepcopy(report.search)
+    return record
 

@@ -27,6 +27,7 @@ import numpy as np
 from stepsafe.core.advice import Modes
 from stepsafe.exceptions import StepsafeError, unknown_key
 from stepsafe.methods.tableaux import Method
+from stepsafe.systems.walks import RESOLUTION, Walks
 
 DENSE_LIMIT = 2000
 #: Relative uncertainty of an equilibrium's beta: its Hessian is exact to ~30 digits (see
@@ -47,6 +48,9 @@ class SystemReport(NamedTuple):
     notes: list[str]
     primary_only: bool = False  # only the safe interval from 0 was analysed (no islands)
     source: str = ""  # the file and key the modes came from (``file::$.system.precision``)
+    #: a Hamiltonian's equilibrium search: what it searched and whether it can vouch that
+    #: it found every equilibrium (:func:`search_record`); None for other systems
+    search: dict[str, Any] | None = None
 
 
 def _fail(where: str, path: str, message: str) -> StepsafeError:
@@ -295,14 +299,17 @@ def _hessian(tree, where, folder, method, zmax, progress=None, deadline=None
 def _hamiltonian(tree, where, method, zmax, deadline=None) -> SystemReport:
     from stepsafe.files.expressions import ExpressionError
     from stepsafe.systems.dynamics import separable_terms
-    from stepsafe.systems.nonlinear import find_equilibria, parse_hamiltonian
+    from stepsafe.systems.nonlinear import GRID, find_equilibria, parse_hamiltonian
 
     if "q" in tree or "p" in tree:
         return _hamiltonian_many(tree, where, method, zmax, deadline)
-    for key in ("energy_below", "starts", "sizes", "fixed"):
+    for key in ("energy_below", "sizes", "fixed"):
         if key in tree:
             raise _fail(where, key, "applies to Hamiltonians with named variables (q: and "
                                     "p: lists)")
+    grid = GRID
+    if "starts" in tree:  # a square grid of at least that many
+        grid = math.isqrt(_starts(tree, where) - 1) + 1
     text = tree["hamiltonian"]
     if not isinstance(text, str):
         raise _fail(where, "hamiltonian", "must be an expression in q and p")
@@ -323,7 +330,7 @@ def _hamiltonian(tree, where, method, zmax, deadline=None) -> SystemReport:
     try:
         H = parse_hamiltonian(text, params)
         _force_gradient_needs_separable(method, separable_terms(H.expression.tree), where)
-        search = find_equilibria(H, bounds[0], bounds[1])
+        search = find_equilibria(H, bounds[0], bounds[1], grid)
     except ExpressionError as exc:
         raise _fail(where, "hamiltonian", f"{exc} in {text[:60]!r}") from None
     equilibria = search.equilibria
@@ -354,7 +361,30 @@ def _hamiltonian(tree, where, method, zmax, deadline=None) -> SystemReport:
                               {k: np.array(v) for k, v in errors.items()}) if grouped else None
     return SystemReport("equilibria of H found in the box and linearised exactly "
                         "(automatic differentiation)", items, modes, coupled,
-                        notes + _undecided_notes(coupled))
+                        notes + _undecided_notes(coupled),
+                        search=search_record(search.starts, search.walks, search.gaps()))
+
+
+def search_record(starts: int, walks: Walks, gaps: list[str]) -> dict[str, Any]:
+    """What the equilibrium search did, JSON-ready: its Newton starts, the walks from the
+    equilibria found (:mod:`stepsafe.systems.walks`) and how they ended, and ``complete``:
+    whether it vouches for having found every equilibrium, i.e. every walk from every
+    equilibrium found ended at an equilibrium found, at the box boundary or at a
+    singularity of H, every direction was followed and H could be evaluated at every
+    start (``gaps`` says what fell short). Not a proof: an equilibrium off every walk
+    whose basin no start reaches is not seen (``caveat``)."""
+    return {"starts": starts, "walks": walks.followed,
+            "walks_to_equilibrium": walks.to_equilibrium,
+            "walks_to_boundary": walks.to_boundary,
+            "walks_to_singularity": walks.to_singularity,
+            "walks_stopped": walks.stopped, "found_by_walks": walks.new,
+            "resolution": RESOLUTION, "complete": not gaps, "gaps": list(gaps),
+            "caveat": "complete means every walk from every equilibrium found ended at an "
+                      "equilibrium found, the box boundary or a singularity of H; an "
+                      "equilibrium off every walk whose basin no start reaches (a well "
+                      "narrower than the starts' spacing, away from the equilibria found), "
+                      f"or a feature along a walk narrower than {RESOLUTION:g} of the box, "
+                      "is not seen"}
 
 
 def read_many(tree, where):
@@ -413,16 +443,11 @@ def read_many(tree, where):
 def _hamiltonian_many(tree, where, method, zmax, deadline=None) -> SystemReport:
     """Equilibria of an n-dof Hamiltonian, each linearised exactly and analysed: decoupled
     where its Hessian separates for this method, the coupled analysis otherwise."""
-    from stepsafe.systems.manydof import MAX_STARTS, find_many
+    from stepsafe.systems.manydof import find_many
 
     H, lo, hi = read_many(tree, where)
     _force_gradient_needs_separable(method, H.separable, where)
-    starts = None
-    if "starts" in tree:
-        starts = _float(tree["starts"], where, "starts")
-        if starts != int(starts) or not 1 <= starts <= MAX_STARTS:
-            raise _fail(where, "starts", f"must be a whole number from 1 to {MAX_STARTS}")
-        starts = int(starts)
+    starts = _starts(tree, where) if "starts" in tree else None
     below = _float(tree["energy_below"], where, "energy_below") if "energy_below" in tree \
         else None
     search = find_many(H, lo, hi, starts, deadline)
@@ -464,13 +489,22 @@ def _hamiltonian_many(tree, where, method, zmax, deadline=None) -> SystemReport:
         items.append(item)
     modes = Modes.from_arrays({k: np.array(v) for k, v in grouped.items()},
                               {k: np.array(v) for k, v in errors.items()}) if grouped else None
-    notes.append(f"equilibria found by Newton's method from {search.starts} starts: one "
-                 "whose basin no start reaches (a narrow well) can be missed; starts: "
-                 "raises their number")
     return SystemReport(f"{len(search.equilibria)} equilibria of H found in the box "
                         f"({search.explain()}), linearised exactly (automatic "
                         "differentiation)", items, modes, coupled,
-                        notes + _undecided_notes(coupled))
+                        notes + _undecided_notes(coupled),
+                        search=search_record(search.starts, search.walks, search.gaps()))
+
+
+def _starts(tree: dict, where: str) -> int:
+    """``starts:``, the number of Newton starts: a whole number up to
+    :data:`stepsafe.systems.manydof.MAX_STARTS`."""
+    from stepsafe.systems.manydof import MAX_STARTS
+
+    starts = _float(tree["starts"], where, "starts")
+    if starts != int(starts) or not 1 <= starts <= MAX_STARTS:
+        raise _fail(where, "starts", f"must be a whole number from 1 to {MAX_STARTS}")
+    return int(starts)
 
 
 def _force_gradient_needs_separable(method, separable: bool, where: str) -> None:

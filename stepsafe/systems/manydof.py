@@ -17,17 +17,24 @@ differentiation, never finite differences.
 
 Equilibria (``grad H = 0``) are found by Newton's method from a Halton set of starts in
 the box (box coordinates, each variable scaled to [-1, 1]; plain Newton steps, then
-steps damped so that ``|grad H|`` decreases), merged when they coincide, and each
-verified: the linear change of H along every variable is negligible next to its local
-change (:func:`_verified`). The search can miss an equilibrium whose basin no start
-reaches (a narrow well); ``starts:`` raises their number. The type comes from the eigenvalues
-``mu`` of ``J S`` (S the Hessian): pairs ``+-i omega`` are elliptic, ``+-lambda`` hyperbolic,
-quadruplets ``+-a +-ib`` loxodromic, an eigenvalue within rounding of 0 degenerate (no
-linear model): ``elliptic`` (a centre: all elliptic), ``hyperbolic`` (all hyperbolic),
-``mixed`` (``index`` k hyperbolic pairs among elliptic ones, as transition states have),
-``loxodromic`` or ``degenerate`` (a zero mode; when no family of equilibria continues along
-it, its other modes are still analysed; a family, a line or ring of equilibria from a
-symmetry, is flagged: its members across the box are not all reached).
+steps damped so that ``|grad H|`` decreases; where both fail, a descent to the minimum
+whose basin the start lies in), merged when they coincide, and each verified: the linear
+change of H along every variable is negligible next to its local change
+(:func:`_verified`). From every equilibrium found, walks along its eigendirections reach
+the ones it is connected to (down from a saddle into the well behind it, up from a
+minimum over the ridge), and each one found is followed in turn
+(:mod:`stepsafe.systems.walks`, which also says whether the search vouches for
+completeness). An equilibrium off every walk whose basin no start reaches (a narrow well
+away from those found) can still be missed; ``starts:`` raises their number. The type
+comes from the eigenvalues ``mu`` of ``J S`` (S the Hessian, classified in units where
+it is of order 1: :func:`stepsafe.systems.linear.normalised`): pairs ``+-i omega`` are
+elliptic, ``+-lambda`` hyperbolic, quadruplets ``+-a +-ib`` loxodromic, an eigenvalue
+within rounding of 0 degenerate (no linear model): ``elliptic`` (a centre: all
+elliptic), ``hyperbolic`` (all hyperbolic), ``mixed`` (``index`` k hyperbolic pairs among
+elliptic ones, as transition states have), ``loxodromic`` or ``degenerate`` (a zero mode;
+when no family of equilibria continues along it, its other modes are still analysed; a
+family, a line or ring of equilibria from a symmetry, is flagged: its members across the
+box are not all reached).
 """
 
 from __future__ import annotations
@@ -45,12 +52,14 @@ import numpy as np
 
 from stepsafe.exceptions import StepsafeError
 from stepsafe.files.expressions import ExpressionError, parse
+from stepsafe.systems.walks import Walks, descend, explore
 
 FUNCTIONS = ("sin", "cos", "exp", "log", "sqrt", "cosh", "sinh", "tanh")
 #: Degrees of freedom at most (2n variables, a 2n x 2n Hessian per Newton step).
 MAX_DOF = 20
-#: Newton starts at most, and by default per variable.
-MAX_STARTS = 4096
+#: Newton starts at most (``starts:``; about a millisecond each in 4 variables), and by
+#: default per variable.
+MAX_STARTS = 1 << 16
 STARTS_PER_VARIABLE = 32
 NEWTON_ITERATIONS = 40
 #: The linear change of H an equilibrium may show, relative to its local change (see
@@ -462,24 +471,40 @@ class ManyDofSearch:
     failed: int  # starts that did not converge in the box
     reason: str | None = None  # why H could not be evaluated, when that stopped starts
     stopped: int | None = None  # starts tried before the time budget ran out (None: all)
+    walks: Walks = Walks()  # the walks from the equilibria the starts found
+    unevaluable: int = 0  # starts where H or its derivatives could not be evaluated
+    undescended: int = 0  # starts where Newton failed not followed down (the time budget)
 
     def explain(self) -> str:
         text = (f"{self.starts} Newton starts, {self.failed} did not converge to a point of "
                 "the box")
         return text + (f"; H could not be evaluated: {self.reason}" if self.reason else "")
 
+    def gaps(self) -> list[str]:
+        """Why the search cannot vouch for completeness (empty when it can)."""
+        out = self.walks.gaps()
+        if self.undescended:
+            out.append(f"{self.undescended} start(s) where Newton's method failed were not "
+                       "followed down (the time budget ran out)")
+        if self.unevaluable:
+            out.append(f"H could not be evaluated at {self.unevaluable} start(s): where it "
+                       "is undefined the box is not searched")
+        return out
+
 
 def find_many(H: ManyDofHamiltonian, lo: np.ndarray, hi: np.ndarray,
               starts: int | None = None, deadline: float | None = None) -> ManyDofSearch:
-    """Every equilibrium Newton's method reaches from a Halton set of starts in the box:
-    from each start plain Newton steps first (they jump into narrow basins), then damped
-    ones if those fail."""
+    """Every equilibrium Newton's method reaches from a Halton set of starts in the box
+    (from each start plain Newton steps first, they jump into narrow basins, then damped
+    ones if those fail), and every one the walks of :mod:`stepsafe.systems.walks` reach
+    from those."""
     N = lo.size
     centre, half = (lo + hi) / 2, (hi - lo) / 2
     count = min(MAX_STARTS, starts or STARTS_PER_VARIABLE * N)
     points = halton(count, N)
     found: list[np.ndarray] = []
-    failed = 0
+    stuck: list[np.ndarray] = []  # starts from which Newton's method did not converge
+    failed = unevaluable = 0
     reasons: list[str] = []
     for k, u in enumerate(points):
         if deadline is not None and time.monotonic() > deadline:
@@ -491,11 +516,25 @@ def find_many(H: ManyDofHamiltonian, lo: np.ndarray, hi: np.ndarray,
             except ExpressionError as exc:
                 reasons.append(str(exc))
                 x = None
+                if not damped:
+                    unevaluable += 1
+                    break
             if x is not None:
                 break
         if x is None:
             failed += 1
+            stuck.append(u)
             continue
+        if not any(np.all(np.abs(x - y) <= 1e-7 * half) for y in found):
+            found.append(x)
+    local, slopes, settle = _walkers(H, centre, half)
+    descended, undescended = descend(stuck, local, slopes, settle, deadline)
+    for _, x in descended:
+        if not any(np.all(np.abs(x - y) <= 1e-7 * half) for y in found):
+            found.append(x)
+    new, walks = explore([(x - centre) / half for x in found], local, slopes, settle,
+                         deadline)
+    for _, x in new:
         if not any(np.all(np.abs(x - y) <= 1e-7 * half) for y in found):
             found.append(x)
     classified = []
@@ -506,7 +545,42 @@ def find_many(H: ManyDofHamiltonian, lo: np.ndarray, hi: np.ndarray,
         classified.append(e)
     equilibria = tuple(sorted(classified, key=lambda e: (e.energy, tuple(e.x))))
     reason = reasons[0] if reasons and len(reasons) >= failed > 0 and not found else None
-    return ManyDofSearch(equilibria, count, failed, reason)
+    return ManyDofSearch(equilibria, count, failed, reason, walks=walks,
+                         unevaluable=unevaluable, undescended=undescended)
+
+
+def _walkers(H: ManyDofHamiltonian, centre: np.ndarray, half: np.ndarray):
+    """``local``, ``slopes`` and ``settle`` of :func:`stepsafe.systems.walks.explore` for H
+    in box coordinates ``x = centre + half u``."""
+    scale = np.outer(half, half)
+
+    def local(u: np.ndarray):
+        try:
+            j = H.jet(centre + half * u)
+        except ExpressionError:
+            return None
+        return j.g * half, j.h * scale
+
+    def slopes(U: np.ndarray) -> np.ndarray:
+        try:
+            d = H.dual(centre + half * U)
+            G = np.asarray(d.d, dtype=float).T * half
+        except (ExpressionError, ValueError, ZeroDivisionError, OverflowError,
+                FloatingPointError, TypeError):
+            return np.full(U.shape, np.nan)
+        return np.where(np.isfinite(G), G, np.nan)
+
+    def settle(u: np.ndarray):
+        for damped in (False, True):
+            try:
+                x = _newton(H, u, centre, half, damped)
+            except ExpressionError:
+                return None
+            if x is not None:
+                return (x - centre) / half, x
+        return None
+
+    return local, slopes, settle
 
 
 def _newton(H: ManyDofHamiltonian, u: np.ndarray, centre: np.ndarray, half: np.ndarray,

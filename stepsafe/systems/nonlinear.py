@@ -9,18 +9,27 @@ in float64 or, to verify, in mpmath.
 
 Equilibria solve ``grad H = 0`` inside a box, whatever the units:
 
-1. Newton's method in float64 from a grid of starts, in box coordinates (the box mapped to
-   ``[-1, 1]^2``) and with the Hessian scaled by its diagonal, so coefficients from 1e-300
-   to 1e300 and anisotropic energies (``1e-6 p^2 + 1e6 q^2``) converge alike; starts where
-   H or its derivatives cannot be evaluated (overflow, a domain error) are counted.
-2. Each cluster of end points is re-solved by Newton's method in mpmath
+1. Newton's method in float64 from a grid of starts (:data:`GRID` squared, or ``starts:``),
+   in box coordinates (the box mapped to ``[-1, 1]^2``) and with the Hessian scaled by its
+   diagonal, so coefficients from 1e-300 to 1e300 and anisotropic energies (``1e-6 p^2 +
+   1e6 q^2``) converge alike; starts where H or its derivatives cannot be evaluated
+   (overflow, a domain error) are counted. From a start where Newton's method does not
+   converge (it cycles between the inflections of a narrow well) a descent follows H down
+   to the minimum whose basin it lies in (:func:`stepsafe.systems.walks.descend`).
+2. From every equilibrium found, walks along its eigendirections, down from a saddle and
+   up from a minimum, reach the equilibria it is connected to (a well behind a ridge);
+   each one found is followed in turn (:func:`stepsafe.systems.walks.explore`, which also
+   says whether the search vouches for completeness).
+3. Each cluster of end points is re-solved by Newton's method in mpmath
    (:data:`VERIFY_DPS` digits, to steps of :data:`VERIFY_STEP`) and kept only if it
    converges: that is the verification. The last steps give the location's uncertainty
    ``dx``.
-3. The Hessian there (in mpmath, so that cancellations such as ``sin(q)/q`` near 0 do
+4. The Hessian there (in mpmath, so that cancellations such as ``sin(q)/q`` near 0 do
    not matter; at a removable singularity it is the limit from both sides) decides the
    type by ``D = H_qp^2 - H_qq H_pp`` (the paper's ``f_q g_p - f_p g_q``): ``D < 0``
-   elliptic, ``D > 0`` hyperbolic. ``D`` is *degenerate* (no linear model) when its sign
+   elliptic, ``D > 0`` hyperbolic, decided and turned into ``beta`` at that precision, so
+   in any units (``1e-300 (q^2 + p^2)`` has ``D = -4e-600``, below float64's range, and
+   ``beta = 2e-300``). ``D`` is *degenerate* (no linear model) when its sign
    is not decided: ``|D|`` is within what moving the point by ``dx`` changes it, plus
    rounding relative to its terms ``max(H_qp^2, |H_qq H_pp|)``, or when Newton's method
    approached it only linearly (more than six steps below 1e-8): a zero of the gradient
@@ -42,6 +51,7 @@ test model when a partition-preserving scaling ``q -> a q, p -> b p`` brings it 
 from __future__ import annotations
 
 import ast
+import functools
 import math
 from typing import Any, NamedTuple
 
@@ -49,6 +59,7 @@ import numpy as np
 
 from stepsafe.exceptions import StepsafeError
 from stepsafe.files.expressions import Expression, ExpressionError, parse
+from stepsafe.systems.walks import Walks, descend, explore
 
 FUNCTIONS = ("sin", "cos", "exp", "log", "sqrt", "cosh", "sinh", "tanh")
 MAX_PARAMETERS = 100
@@ -219,9 +230,19 @@ def parse_hamiltonian(text: str, parameters: dict[str, float] | None = None) -> 
     return Hamiltonian(expr, parameters)
 
 
+@functools.lru_cache(maxsize=4096)
+def _segment(source: str, line: int, column: int, end_line: int, end_column: int) -> str:
+    """The text of a constant as written (read once: mpmath takes the decimal exactly)."""
+    node = ast.Constant(0, lineno=line, col_offset=column, end_lineno=end_line,
+                        end_col_offset=end_column)
+    return ast.get_source_segment(source, node) or ""
+
+
 def _eval(node: ast.AST, source: str, env: dict[str, Jet2], number):
     if isinstance(node, ast.Constant):
-        return number(ast.get_source_segment(source, node))
+        return number(_segment(source, node.lineno, node.col_offset,
+                               node.end_lineno or node.lineno,
+                               node.end_col_offset or node.col_offset))
     if isinstance(node, ast.Name):
         return env[node.id]
     if isinstance(node, ast.UnaryOp):
@@ -267,6 +288,15 @@ class Search(NamedTuple):
     outside: int  # Newton left the box or did not converge
     unverified: int  # float64 end points that high precision did not confirm
     flat: int = 0  # starts where gradient and Hessian vanish: no isolated equilibrium
+    walks: Walks = Walks()  # the walks from the equilibria the starts found
+
+    def gaps(self) -> list[str]:
+        """Why the search cannot vouch for completeness (empty when it can)."""
+        out = self.walks.gaps()
+        if self.unevaluable:
+            out.append(f"H could not be evaluated at {self.unevaluable} start(s): where it "
+                       "is undefined the box is not searched")
+        return out
 
     def explain(self) -> str:
         """Why nothing was found, in one phrase."""
@@ -295,11 +325,15 @@ def find_equilibria(H: Hamiltonian, box_q: tuple[float, float], box_p: tuple[flo
     if not np.all(np.isfinite(half)) or np.any(half <= 0):
         raise StepsafeError("the box is too wide or too narrow for float64")
     ends: list[np.ndarray] = []
+    failed: list[np.ndarray] = []  # starts from which Newton's method did not converge
     unevaluable = outside = flat = 0
     axis = np.linspace(-1.0, 1.0, grid)
     for uq in axis:
         for up in axis:
-            status, u = _newton_float(H, np.array([uq, up]), centre, half)
+            start = np.array([uq, up])
+            status, u = _newton_float(H, start, centre, half)
+            if status in ("stalled", "outside"):
+                failed.append(start)
             if status == "unevaluable":
                 unevaluable += 1
             elif status == "flat":
@@ -317,8 +351,54 @@ def find_equilibria(H: Hamiltonian, box_q: tuple[float, float], box_p: tuple[flo
         elif not any(abs(e.q - f.q) <= 1e-9 * half[0] and abs(e.p - f.p) <= 1e-9 * half[1]
                      for f in found):
             found.append(e)
+    def at(e: Equilibrium) -> np.ndarray:
+        return (np.array([e.q, e.p]) - centre) / half
+
+    local, slopes, settle = _walkers(H, centre, half, at)
+    descended, _ = descend(failed, local, slopes, settle)
+    for _, e in descended:
+        if not any(abs(e.q - f.q) <= 1e-9 * half[0] and abs(e.p - f.p) <= 1e-9 * half[1]
+                   for f in found):
+            found.append(e)
+    more, walks = explore([at(e) for e in found], local, slopes, settle,
+                          hessians=[e.hessian * np.outer(half, half) for e in found])
+    for _, e in more:
+        if not any(abs(e.q - f.q) <= 1e-9 * half[0] and abs(e.p - f.p) <= 1e-9 * half[1]
+                   for f in found):
+            found.append(e)
     found.sort(key=lambda e: (e.q, e.p))
-    return Search(found, grid * grid, unevaluable, outside, unverified, flat)
+    return Search(found, grid * grid, unevaluable, outside, unverified, flat, walks)
+
+
+def _walkers(H: Hamiltonian, centre: np.ndarray, half: np.ndarray, at):
+    """``local``, ``slopes`` and ``settle`` of :func:`stepsafe.systems.walks.explore` in
+    box coordinates; ``settle`` verifies an end point as the starts' end points are."""
+    from stepsafe.systems.manydof import parse_many
+
+    def local(u: np.ndarray):
+        try:
+            g, A = _scaled(H, u, centre, half)
+        except ExpressionError:
+            return None
+        return (g, A) if np.all(np.isfinite(A)) and np.all(np.isfinite(g)) else None
+
+    vectorised = parse_many(H.expression.text, ["q"], ["p"], H.parameters, "H")
+
+    def slopes(U: np.ndarray) -> np.ndarray:
+        """The gradients at many points at once (the n-dof engine's dual numbers on the
+        same expression)."""
+        try:
+            G = np.asarray(vectorised.dual(centre + half * U).d, dtype=float).T * half
+        except (ValueError, ZeroDivisionError, OverflowError, FloatingPointError):
+            return np.full(U.shape, np.nan)
+        return np.where(np.isfinite(G), G, np.nan)
+
+    def settle(u: np.ndarray):
+        status, u = _newton_float(H, u, centre, half)
+        e = _verify(H, u, centre, half) if status in ("ok", "stalled") else None
+        return None if e is None else (at(e), e)
+
+    return local, slopes, settle
 
 
 def _scaled(H: Hamiltonian, u: np.ndarray, centre: np.ndarray, half: np.ndarray):
@@ -331,9 +411,12 @@ def _scaled(H: Hamiltonian, u: np.ndarray, centre: np.ndarray, half: np.ndarray)
 
 
 def _newton_float(H: Hamiltonian, u: np.ndarray, centre, half, iterations: int = 80):
-    """Newton's method in box coordinates with the Hessian scaled by its diagonal;
-    returns ("ok", u), ("outside", u), ("unevaluable", u) or ("flat", u) (zero gradient and
-    Hessian: no isolated equilibrium)."""
+    """Newton's method in box coordinates with the Hessian scaled by its diagonal; returns
+    ("ok", u) converged, ("stalled", u) still creeping after ``iterations`` steps inside the
+    box (a stiff zero does for hundreds of steps: high precision decides), ("outside", u)
+    (it left the box, or cycles without creeping towards a point), ("unevaluable", u) or
+    ("flat", u) (zero gradient and Hessian: no isolated equilibrium)."""
+    steps: list[float] = []
     with np.errstate(all="ignore"):
         for _ in range(iterations):
             try:
@@ -353,9 +436,13 @@ def _newton_float(H: Hamiltonian, u: np.ndarray, centre, half, iterations: int =
             u = u - step
             if not np.all(np.isfinite(u)) or np.abs(u).max() > 4.0:
                 return "outside", u
-            if np.abs(step).max() <= 1e-14:
-                break
-    return ("ok", u) if np.abs(u).max() <= 1.0 + 1e-9 else ("outside", u)
+            steps.append(float(np.abs(step).max()))
+            if steps[-1] <= 1e-14:
+                return ("ok", u) if np.abs(u).max() <= 1.0 + 1e-9 else ("outside", u)
+    # still creeping towards a zero (steps shrinking, or down to rounding), or cycling
+    # among points (not)
+    creeping = steps[-1] <= 1e-8 or steps[-1] < 0.9 * steps[-10]
+    return ("stalled", u) if np.abs(u).max() <= 1.0 + 1e-9 and creeping else ("outside", u)
 
 
 def _verify(H: Hamiltonian, u: np.ndarray, centre, half) -> Equilibrium | None:

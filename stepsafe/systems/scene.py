@@ -138,7 +138,7 @@ def json_schema() -> dict[str, Any]:
                        "to analyse every mode of a stiffness over 2000 "
                        "rows (islands too; a dense eigendecomposition), "
                        "{precision:, mass:} or {covariance:, mass:} (a Gaussian target), "
-                       "{hessian:}, {hamiltonian:, parameters:, box: {q:, p:}} (1 dof), "
+                       "{hessian:}, {hamiltonian:, parameters:, box: {q:, p:}, starts:} (1 dof), "
                        "{hamiltonian:, q: [names], p: [names], parameters:, box: {name: "
                        "[lo, hi]}, energy_below:, starts:} (n dof; or q: 'q[1..N]' with "
                        "sizes:, fixed: and sum(i, lo, hi, body) in H), or for an impulse "
