@@ -19,6 +19,8 @@
    with ``--big`` also a 5000-dof dense stiffness.
 4. Start-up: ``stepsafe check`` on a scene file and ``stepsafe advise`` on a built-in, as
    ratios to ``python -c "import numpy"`` measured in the same run. Goals: 2x and 3x.
+5. Equilibrium search: ``stepsafe advise`` on each shipped Hamiltonian scene, and the
+   Henon-Heiles search with its walks as a ratio to its Newton starts alone.
 
 Timings are medians of repeated runs; the machine and its load average are printed with
 the table. Exit code 0
@@ -283,6 +285,48 @@ def bench_startup() -> None:
         f"{adv / base:.2f}x", "goal <= 3x")
 
 
+# ------------------------------------------------------------------ 5. equilibrium search
+
+
+#: The shipped Hamiltonian scenes (and the options they need) whose equilibria are searched.
+HAMILTONIAN_EXAMPLES = (("pendulum", ()), ("double-well", ()), ("paper-section3-system", ()),
+                        ("henon-heiles", ()), ("double-pendulum", ()), ("fpu-alpha", ()),
+                        ("lagrange-points", ("-s", "2")))
+
+
+def bench_equilibria() -> None:
+    """``stepsafe advise`` on each shipped Hamiltonian scene (start-up included): Newton's
+    starts, the descents and walks of stepsafe.systems.walks, the verification and the
+    analysis; and how much of it the walks take (find_equilibria / find_many in process,
+    with the walks and without)."""
+    from stepsafe.files.yamlio import load_yaml
+    from stepsafe.systems import manydof, walks
+    from stepsafe.systems.loader import read_many
+
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    env["PYTHONPATH"] = str(ROOT)
+    for name, extra in HAMILTONIAN_EXAMPLES:
+        args = [sys.executable, "-m", "stepsafe", "advise", f"examples/{name}.yaml", *extra]
+        t = timed(lambda a=args: subprocess.run(a, capture_output=True, cwd=ROOT, env=env),
+                  repeat=3)
+        row(f"stepsafe advise examples/{name}.yaml", f"{t:.2f} s")
+    tree = load_yaml(ROOT / "examples/henon-heiles.yaml")["system"]
+    H, lo, hi = read_many(tree, "henon-heiles.yaml")
+    explore = walks.explore
+
+    def without(points, *args, **kwargs):  # the starts alone: no walk followed
+        return [], walks.Walks()
+
+    full = timed(lambda: manydof.find_many(H, lo, hi), repeat=3)
+    manydof.explore = without
+    try:
+        starts = timed(lambda: manydof.find_many(H, lo, hi), repeat=3)
+    finally:
+        manydof.explore = explore
+    row("Henon-Heiles search: starts + walks", f"{full:.2f} s", f"{full / starts:.2f}x",
+        "of the starts alone")
+
+
 def main() -> int:
     big = "--big" in sys.argv[1:]
     print(f"stepsafe benchmarks on {platform.machine()} {platform.processor() or ''}, "
@@ -293,6 +337,7 @@ def main() -> int:
     bench_regions()
     bench_scale(big)
     bench_startup()
+    bench_equilibria()
     print(f"load average at the end {os.getloadavg()[0]:.2f}")
     return 0
 
