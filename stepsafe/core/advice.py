@@ -20,7 +20,9 @@ analysed and never reported as safe.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import NamedTuple
 
 import numpy as np
@@ -42,10 +44,11 @@ from stepsafe.methods.tableaux import Method
 class Modes:
     """Frequencies grouped by model: ``betas[model]`` is an array of beta >= 0, and
     ``errors[model]`` (same shape) the relative uncertainty of each: 0 for frequencies the
-    user gives, the rounding bound for those computed from a system's matrices."""
+    user gives, the rounding bound for those computed from a system's matrices. Built by
+    :meth:`from_arrays`, the arrays are read-only copies."""
 
-    betas: dict[str, np.ndarray]
-    errors: dict[str, np.ndarray] = field(default_factory=dict)
+    betas: Mapping[str, np.ndarray]
+    errors: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     def error(self, model: str) -> np.ndarray:
         return self.errors.get(model, np.zeros(self.betas[model].size))
@@ -65,19 +68,21 @@ class Modes:
         for model, betas in arrays.items():
             if model not in MODELS:
                 raise StepsafeError(f"unknown model {model!r}; choose one of {', '.join(MODELS)}")
-            betas = np.asarray(betas, dtype=float).ravel()
+            betas = np.array(betas, dtype=float).ravel()  # a copy, made read-only
             bad = ~np.isfinite(betas) | (betas < 0)
             if bad.any():
                 raise StepsafeError(f"beta must be a finite number >= 0, got {betas[bad][0]} "
                                     f"({model})")
             if betas.size:
+                betas.setflags(write=False)
                 out[model] = betas
                 if errors and model in errors:
-                    errs[model] = np.asarray(errors[model], dtype=float).ravel()
+                    errs[model] = np.array(errors[model], dtype=float).ravel()
+                    errs[model].setflags(write=False)
         if not out:
             raise StepsafeError("no frequencies given (use --beta, --saddle-beta, --inverted-beta "
                                 "or --modes)")
-        return cls(out, errs)
+        return cls(MappingProxyType(out), MappingProxyType(errs))
 
     @property
     def count(self) -> int:

@@ -1,7 +1,7 @@
 """One-step methods as data: Runge–Kutta, partitioned RK, splitting, composition and
 impulse (multiple time stepping).
 
-Conventions (DESIGN §5). Phase space is ``x = (q, p)``; a partitioned method integrates
+Conventions. Phase space is ``x = (q, p)``; a partitioned method integrates
 ``q' = f(q, p)`` with the tableau ``(A_q, b_q)`` and ``p' = g(q, p)`` with ``(A_p, b_p)``::
 
     Q_i = q0 + h sum_j A_q[i, j] f(Q_j, P_j)      q1 = q0 + h sum_j b_q[j] f(Q_j, P_j)
@@ -11,8 +11,10 @@ A splitting method for ``H = T(p) + V(q)`` applies ``drift(a_1 h), kick(b_1 h),
 drift(a_2 h), ...`` in that order (``drift(t): q += t T'(p)``, ``kick(t): p -= t V'(q)``).
 A composition ``Phi_{g_k h} o ... o Phi_{g_1 h}`` applies the base with ``g_1 h`` first.
 
-The classes are frozen; they validate shapes and finiteness when built and raise
-:class:`~stepsafe.exceptions.MethodError`. Nothing here knows of files or terminals.
+The classes are frozen and their coefficient arrays are read-only copies (an analysis
+made later sees the coefficients the method was built with); they validate shapes and
+finiteness when built and raise :class:`~stepsafe.exceptions.MethodError`. Nothing here
+knows of files or terminals.
 
 ``exact`` (optional, never compared) returns the method's transfer matrix at high
 precision, ``Mfun(z, model)`` in mpmath, built from its definition rather than from the
@@ -51,21 +53,25 @@ MAX_IMPLICIT_WORK = 1_000_000
 
 
 def _vector(values, name: str) -> np.ndarray:
-    arr = np.asarray(values, dtype=float)
+    """``values`` as a read-only 1-d float copy (a method's coefficients never change)."""
+    arr = np.array(values, dtype=float)
     if arr.ndim != 1 or arr.size == 0:
         raise MethodError(f"{name} must be a non-empty list of numbers, got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise MethodError(f"{name} has a non-finite entry")
+    arr.setflags(write=False)
     return arr
 
 
 def _square(values, name: str, size: int) -> np.ndarray:
-    arr = np.asarray(values, dtype=float)
+    """``values`` as a read-only (size, size) float copy."""
+    arr = np.array(values, dtype=float)
     if arr.shape != (size, size):
         raise MethodError(f"{name} must be {size}x{size} to match its weights, "
                           f"got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise MethodError(f"{name} has a non-finite entry")
+    arr.setflags(write=False)
     return arr
 
 
@@ -132,7 +138,7 @@ class RungeKutta:
         b = _vector(self.b, "b")
         object.__setattr__(self, "b", b)
         object.__setattr__(self, "A", _square(self.A, "A", b.size))
-        c = self.A.sum(axis=1) if self.c is None else _vector(self.c, "c")
+        c = _vector(self.A.sum(axis=1) if self.c is None else self.c, "c")
         if c.size != b.size:
             raise MethodError(f"c has {c.size} entries but b has {b.size}")
         object.__setattr__(self, "c", c)
@@ -281,8 +287,8 @@ class Splitting:
         drift(d_1 + c_2) ... kick(c_m + d_m) drift(d_m), so ``c_1 = a_1``,
         ``d_k = b_k - c_k``, ``c_{k+1} = a_{k+1} - d_k`` and the last drift must equal
         ``d_m``, which holds exactly when ``sum(a) = sum(b)``. Each factor is a 1-stage PRK
-        with ``b_q = b_p``, so the product is a PRK that is symplectic for every H
-        (DESIGN §1): kick-drift-kick Verlet becomes ``KD(1/2) DK(1/2)``, the 2-stage
+        with ``b_q = b_p``, so the product is a PRK that is symplectic for every H:
+        kick-drift-kick Verlet becomes ``KD(1/2) DK(1/2)``, the 2-stage
         Lobatto IIIA–IIIB pair. Zero-weight factors are dropped.
         """
         if self.force_gradient:
