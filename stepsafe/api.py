@@ -598,8 +598,9 @@ def _scene_method(method: Integrator | str | None, scene: Any, stages: int | Non
 @dataclass(frozen=True)
 class AdviceReport:
     """Safe steps: ``h_max`` ends the safe interval from 0 (``h_max_limited_by``:
-    ``boundary``, ``horizon`` when no boundary was found below how far the analysis
-    looked, ``none`` when no step is safe); ``safe_h`` lists every safe interval of h
+    ``boundary``, ``resonance n:m`` when the nonlinear resonance n theta = 2 pi m of the
+    ``resonance_order`` asked for ends it, ``horizon`` when no boundary was found below
+    how far the analysis looked, ``none`` when no step is safe); ``safe_h`` lists every safe interval of h
     (islands included, ``None`` for no upper end). ``advice`` is the core result (with
     the regions used) for decoupled modes. ``undecided_h``: intervals of h that float64
     could not decide in the coupled analysis of a nearly semidefinite system too large for

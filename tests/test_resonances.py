@@ -253,3 +253,56 @@ def test_resonance_order_is_refused_for_a_coupled_system(run, tmp_path):
     code, _, err = run("check", str(scene), "--step", "0.1", "--resonance-order", "4")
     assert code == 2 and "--resonance-order is not available" in err
     assert run("advise", str(scene), "--resonance-order", "4")[0] == 2
+
+
+@pytest.mark.parametrize("name", ["verlet", "pefrl", "bcss2"])
+@pytest.mark.parametrize("order", [3, 4, 5, 6])
+def test_a_resonance_that_limits_the_step_is_named(run, name, order):
+    """With --resonance-order N the end of the safe interval is the first resonance n:m of
+    order n <= N (placed here at 50 digits from the mpmath transfer matrix), and
+    h_max_limited_by names it as ``resonance n:m`` in the API, in --json and in text,
+    for advise and check alike; the step just below h_max is safe, the 50-digit
+    resonance step is not."""
+    beta = 3.0
+    _, found = _found(name, None, tuple(range(3, order + 1)))
+    first = min(found, key=lambda r: r.z)
+    Mfun = mp_transfer(mp_method(name, None, None, 50))
+    with mpmath.workdps(50):
+        level = 2 * mpmath.cos(2 * mpmath.pi * first.m / first.n)
+
+        def g(x):
+            M = Mfun(x, "oscillator")
+            return M[0, 0] + M[1, 1] - level
+
+        z = mpmath.findroot(g, (mpmath.mpf(first.z) * (1 - mpmath.mpf(1e-9)),
+                                mpmath.mpf(first.z) * (1 + mpmath.mpf(1e-9))),
+                            solver="anderson")
+        if name == "verlet":  # tr M = 2 - z^2: n theta = 2 pi m at z = 2 sin(pi m / n)
+            assert abs(z - 2 * mpmath.sin(mpmath.pi * first.m / first.n)) < mpmath.mpf(10) ** -40
+        h_exact = z / beta
+    expected = f"resonance {first.n}:{first.m}"
+    advice = stepsafe.advise(name, [beta], resonance_order=order)
+    assert advice.h_max_limited_by == expected
+    assert advice.record["h_max_limited_by"] == expected
+    assert mpmath.mpf(advice.h_max) <= h_exact
+    assert float(h_exact) == pytest.approx(advice.h_max, rel=1e-12)
+    below = math.nextafter(advice.h_max, 0)
+    report = stepsafe.check(name, below, [beta], resonance_order=order)
+    assert report.safe and report.record["h_max_limited_by"] == expected
+    above = float(h_exact * (1 + mpmath.mpf(1e-12)))
+    assert not stepsafe.check(name, above, [beta], resonance_order=order).safe
+    code, out, _ = run("check", "--method", name, "--beta", repr(beta), "--step", repr(below),
+                       "--resonance-order", str(order), "--json")
+    assert code == 0 and json.loads(out)["checks"][0]["h_max_limited_by"] == expected
+    code, out, _ = run("check", "--method", name, "--beta", repr(beta), "--step", repr(above),
+                       "--resonance-order", str(order))
+    assert code == 1 and f"(limited by the {first.n}:{first.m} nonlinear resonance)" in out
+    code, out, _ = run("advise", "--method", name, "--beta", repr(beta), "--resonance-order",
+                       str(order))
+    assert code == 0 and f"(its {first.n}:{first.m} nonlinear resonance)" in out
+
+
+def test_a_linear_boundary_is_not_called_a_resonance():
+    """Without --resonance-order the limit stays ``boundary``: Verlet's z = 2 at beta = 1."""
+    assert stepsafe.advise("verlet", [1.0]).h_max_limited_by == "boundary"
+    assert stepsafe.check("verlet", 1.0, [1.0]).record["h_max_limited_by"] == "boundary"

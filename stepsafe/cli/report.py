@@ -381,9 +381,11 @@ def print_check(data: dict[str, Any]) -> None:
     if data["failing"] > len(data["failures"]):
         click.echo(f"  ... and {data['failing'] - len(data['failures'])} more")
     if data["h_max"]:
-        horizon = " (no limit found up to the horizon of the analysis)" if data.get(
-            "h_max_limited_by") == "horizon" else ""
-        click.echo(f"Safe steps for all modes: 0 < h < {fmt_below(data['h_max'])}{u}{horizon}")
+        limited_by = data.get("h_max_limited_by") or ""
+        why = (" (no limit found up to the horizon of the analysis)" if limited_by == "horizon"
+               else f" (limited by the {limited_by.split()[1]} nonlinear resonance)"
+               if limited_by.startswith("resonance ") else "")
+        click.echo(f"Safe steps for all modes: 0 < h < {fmt_below(data['h_max'])}{u}{why}")
     elif data["h_max"] is not None:
         click.echo("No step is safe for all modes.")
     _print_other_criterion(click.echo, data, u)

@@ -146,23 +146,33 @@ def nonlinear_data(found, beta: float | None = None, margin: float = 1.0
     return out
 
 
+def limited_by_resonance(limited_by: str, limiting: Mapping[str, Any] | None) -> str:
+    """``resonance n:m`` for a ``boundary`` that is the nonlinear resonance n:m of the
+    limiting mode (see :func:`advice_data`), else ``limited_by`` as it is."""
+    if limited_by == "boundary" and limiting and limiting.get("resonance"):
+        return f"resonance {limiting['resonance']}"
+    return limited_by
+
+
 def advice_data(adv) -> dict[str, Any]:
     """JSON-ready advice: h_max, the safe h intervals, the limiting frequency, per model.
 
-    ``h_max_limited_by`` is ``boundary`` when a structure boundary (root, pole, resonance)
-    ends the safe interval from 0, ``horizon`` when none was found below the analysed
-    range (then ``h_max`` is the horizon, not a safety limit), ``none`` when no step is
-    safe."""
+    ``h_max_limited_by`` is ``boundary`` when a structure boundary (root, pole, resonance
+    M = +-I) ends the safe interval from 0, ``resonance n:m`` when the nonlinear
+    resonance n theta = 2 pi m asked for (``resonance_order``) ends it first, ``horizon``
+    when nothing was found below the analysed range (then ``h_max`` is the horizon, not a
+    safety limit), ``none`` when no step is safe."""
     safe = adv.safe_h
     limited_by = ("none" if not safe or safe[0][0] != 0.0 else
                   "horizon" if adv.h_max_is_horizon or safe[0][1] is None else "boundary")
+    limiting = _limit(adv.limiting) if limited_by == "boundary" else None
     return {
         "method": adv.method,
         "margin": adv.margin,
         "h_max": _num(adv.h_max) if adv.h_max is not None else None,
-        "h_max_limited_by": limited_by,
+        "h_max_limited_by": limited_by_resonance(limited_by, limiting),
         "safe_h": [[float(lo), _num(hi)] for lo, hi in adv.safe_h],
-        "limiting": _limit(adv.limiting) if limited_by == "boundary" else None,
+        "limiting": limiting,
         "models": {lim.model: _limit(lim) for lim in adv.models},
         "horizon": _num(adv.horizon),
         "criterion": adv.criterion,

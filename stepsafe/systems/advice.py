@@ -65,7 +65,7 @@ def system_advice(method: Method, report: SystemReport, margin: float = 1.0,
     """JSON-ready advice for a system (see advice_data for the common fields); with
     ``resonance_order`` N its vibrations also keep below their first nonlinear resonance
     of order at most N (decoupled modes only)."""
-    from stepsafe.core.records import advice_data
+    from stepsafe.core.records import advice_data, limited_by_resonance
 
     margin = validate_margin(margin)
     _coupled_criterion(report, criterion)
@@ -95,7 +95,7 @@ def system_advice(method: Method, report: SystemReport, margin: float = 1.0,
             data["h_max"] is not None and data["limiting"].get("h_limit") is not None
             and data["h_max"] < data["limiting"]["h_limit"])):
         data["limiting"] = {"model": "coupled", "beta": None, "h_limit": data["h_max"]}
-    data["h_max_limited_by"] = _limited_by(data)
+    data["h_max_limited_by"] = limited_by_resonance(_limited_by(data), data["limiting"])
     # steps float64 could not decide in a coupled analysis (neither certified nor lost)
     data["undecided_h"] = [[margin * r.h_max, margin * r.undecided_to]
                            for r, _ in report.coupled if r.undecided_to is not None]

@@ -77,6 +77,10 @@ _F = {"sin": (np.sin, np.cos, lambda x: -np.sin(x)),
                lambda x: -2 * np.tanh(x) * (1 - np.tanh(x) ** 2))}
 
 
+class NotReal(TypeError):
+    """A Hamiltonian function combined q or p with something that is not a real number."""
+
+
 class Jet:
     """A value with its gradient (N,) and Hessian (N, N): second-order forward AD."""
 
@@ -91,7 +95,7 @@ class Jet:
             return o
         if isinstance(o, (int, float)) and not isinstance(o, bool):
             return Jet(float(o), np.zeros_like(self.g), np.zeros_like(self.h))
-        raise TypeError(f"cannot combine a jet with {type(o).__name__}")
+        raise NotReal(f"cannot combine a jet with {type(o).__name__}")
 
     def __add__(self, o: Any) -> Jet:
         o = self.lift(o)
@@ -175,7 +179,7 @@ class Dual:
             return o
         if isinstance(o, (int, float)) and not isinstance(o, bool):
             return Dual(np.full_like(self.v, float(o)), np.zeros_like(self.d))
-        raise TypeError(f"cannot combine a dual number with {type(o).__name__}")
+        raise NotReal(f"cannot combine a dual number with {type(o).__name__}")
 
     def __add__(self, o: Any) -> Dual:
         o = self.lift(o)
@@ -237,8 +241,10 @@ class ManyDofHamiltonian:
     p: tuple[str, ...]
     parameters: dict[str, float]
     tree: Any = field(repr=False)
-    #: a Python function ``H(q, p, ops)`` instead of an expression (see :func:`from_callable`)
+    #: a Python function ``H(q, p, ops)`` instead of an expression (see :func:`parse_many`)
     function: Callable[..., Any] | None = field(default=None, repr=False)
+    #: where the function was given (``"system"`` from the API), for its errors
+    where: str = ""
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -298,10 +304,25 @@ class ManyDofHamiltonian:
             out = self.function(q, p, OPS)
         except (ZeroDivisionError, ValueError, OverflowError, FloatingPointError):
             raise
+        except NotReal as exc:  # e.g. q[0] * 1j: H is not real anywhere, a bad input
+            raise StepsafeError(f"the Hamiltonian function is not real: {exc} (H must be "
+                                "real: combine q, p, real numbers and ops)", self._key) from None
         except Exception as exc:  # the user's code: report, do not crash
             raise ValueError(f"the Hamiltonian function raised {type(exc).__name__}: "
                              f"{exc}") from None
-        return out if isinstance(out, (Jet, Dual)) else make(float(out))
+        if isinstance(out, (Jet, Dual)):
+            return out
+        if isinstance(out, (bool, np.bool_)) or not isinstance(out, (int, float, np.integer,
+                                                                      np.floating)):
+            # a complex, a text or a container is no energy at any point: a bad input
+            raise StepsafeError(f"the Hamiltonian function returned {type(out).__name__} "
+                                f"{repr(out)[:40]}, not a real number (H must be "
+                                "real: combine q, p, real numbers and ops)", self._key)
+        return make(float(out))
+
+    @property
+    def _key(self) -> str | None:
+        return f"{self.where}::$.system.hamiltonian" if self.where else None
 
     def jet(self, x: np.ndarray) -> Jet:
         """Value, gradient and Hessian at x (the 2n variables, q then p)."""
@@ -330,7 +351,13 @@ class ManyDofHamiltonian:
         env.update({k: Dual(np.full(m, float(v)), zero) for k, v in self.parameters.items()})
         env["pi"] = Dual(np.full(m, math.pi), zero)
         with np.errstate(all="ignore"):
-            return self._program(env, lambda c: Dual(np.full(m, c), zero))
+            if self.function is None:
+                return self._program(env, lambda c: Dual(np.full(m, c), zero))
+            try:
+                return self._program(env, lambda c: Dual(np.full(m, c), zero))
+            except (ZeroDivisionError, ValueError, OverflowError, FloatingPointError) as exc:
+                # the user's function failed on a point of the run: said, never a traceback
+                raise StepsafeError(str(exc) or type(exc).__name__, self._key) from None
 
     @property
     def separable(self) -> bool:
@@ -395,7 +422,7 @@ def parse_many(text: Any, q: Any, p: Any, parameters: dict[str, float],
     if callable(text):
         qs, ps = _names(q, p, parameters, fail)
         return ManyDofHamiltonian(getattr(text, "__name__", "H"), qs, ps, dict(parameters),
-                                  None, text)
+                                  None, text, where)
     if not isinstance(text, str):
         raise fail("hamiltonian", "must be an expression in the named variables")
     qs, ps = _names(q, p, parameters, fail)
