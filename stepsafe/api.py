@@ -600,11 +600,12 @@ class AdviceReport:
     """Safe steps: ``h_max`` ends the safe interval from 0 (``h_max_limited_by``:
     ``boundary``, ``resonance n:m`` when the nonlinear resonance n theta = 2 pi m of the
     ``resonance_order`` asked for ends it, ``horizon`` when no boundary was found below
-    how far the analysis looked, ``none`` when no step is safe); ``safe_h`` lists every safe interval of h
-    (islands included, ``None`` for no upper end). ``advice`` is the core result (with
-    the regions used) for decoupled modes. ``undecided_h``: intervals of h that float64
-    could not decide in the coupled analysis of a nearly semidefinite system too large for
-    the high-precision criterion (neither certified nor certainly unsafe)."""
+    how far the analysis looked, ``none`` when no step is safe); ``safe_h`` lists every
+    safe interval of h (islands included, ``None`` for no upper end). ``advice`` is the
+    core result (with the regions used) for decoupled modes. ``undecided_h``: intervals of
+    h that float64 could not decide in the coupled analysis of a nearly semidefinite
+    system too large for the high-precision criterion (neither certified nor certainly
+    unsafe)."""
 
     method: str
     h_max: float | None

@@ -104,3 +104,29 @@ def test_hmc_and_design_refuse_unknown_arguments_and_flat_directions():
         stepsafe.check("verlet", 0.1, [1.0], qux=4)
     with pytest.raises(stepsafe.StepsafeError, match="flat direction"):
         hmc(["verlet"], frequencies=[0.0, 1.0])
+
+
+NOT_REAL = st.one_of(
+    st.complex_numbers(allow_nan=False, allow_infinity=False, max_magnitude=1e3).filter(
+        lambda c: c.imag != 0),
+    st.text(max_size=6), st.none(), st.lists(st.floats(-1, 1), max_size=2), st.binary(max_size=3),
+    st.just(np.complex128(1 + 2j)), st.just(object()), st.booleans(),
+)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck))
+@given(value=NOT_REAL, combined=st.booleans(), call=st.sampled_from(["advise", "measure"]))
+def test_a_hamiltonian_function_that_is_not_real_is_an_input_error(value, combined, call):
+    """A Python Hamiltonian that returns, or combines q and p with, something that is not
+    a real number (a complex, a text, None, a list, a bool) is a StepsafeError naming
+    system.hamiltonian, never a TypeError from inside the analysis."""
+    def H(q, p, ops):
+        return p[0] ** 2 / 2 + q[0] ** 2 / 2 + value if combined else value
+
+    system = {"hamiltonian": H, "q": ["x"], "p": ["px"], "box": {"x": [-1, 1], "px": [-1, 1]}}
+    with pytest.raises(stepsafe.StepsafeError) as caught:
+        if call == "advise":
+            stepsafe.advise("verlet", system=system)
+        else:
+            stepsafe.measure("verlet", [0.1], system=system, time=1.0, initial=[0.1, 0.0])
+    assert caught.value.where == "system::$.system.hamiltonian"
