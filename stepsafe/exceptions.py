@@ -23,10 +23,14 @@ class MethodError(StepsafeError):
 
 
 def positive_finite(value, name: str) -> float:
-    """``value`` as a float > 0 and finite, else a :class:`StepsafeError` naming ``name``."""
+    """``value`` (a real number: not a bool, not a text) as a float > 0 and finite, else a
+    :class:`StepsafeError` naming ``name``."""
     import math
 
-    if isinstance(value, bool) or not isinstance(value, (int, float, str)) and not hasattr(
+    if isinstance(value, str):
+        raise StepsafeError(f"{name} must be a number, got the text {value[:40]!r} (give the "
+                            "number itself)")
+    if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(
             value, "__float__"):
         raise StepsafeError(f"{name} must be a number, got {type(value).__name__}")
     try:

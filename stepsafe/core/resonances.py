@@ -62,13 +62,19 @@ def fractions(orders: tuple[int, ...]) -> list[tuple[int, int]]:
 
 
 def validate_orders(orders) -> tuple[int, ...]:
+    """``orders`` as a tuple of whole numbers from 3 to :data:`MAX_ORDER` (not texts, not
+    bools, not fractions), else a StepsafeError."""
+    from numbers import Integral
+
     from stepsafe.exceptions import StepsafeError
 
-    out = tuple(int(n) for n in orders)
-    if not out or any(n < 3 or n > MAX_ORDER for n in out):
+    items = None if isinstance(orders, (str, bytes)) else \
+        list(orders) if isinstance(orders, (list, tuple, range)) else None
+    if not items or any(isinstance(n, bool) or not isinstance(n, Integral)
+                        or not 3 <= int(n) <= MAX_ORDER for n in items):
         raise StepsafeError(f"resonance orders must be integers from 3 to {MAX_ORDER} (2 is the "
-                            f"linear limit M = -I), got {list(orders)}")
-    return out
+                            f"linear limit M = -I), got {str(orders)[:40]}")
+    return tuple(int(n) for n in items)
 
 
 def nonlinear_resonances(method: Method, region: Region,

@@ -481,7 +481,9 @@ GRADIENT_COST = 1.0
 
 
 def validate_gradient_cost(value: float) -> float:
-    """``value`` if it is a finite number >= 0, else a :class:`MethodError`."""
+    """``value`` if it is a finite number >= 0 (not a text), else a :class:`MethodError`."""
+    if isinstance(value, str):
+        raise MethodError(f"the gradient cost must be a number, got the text {value[:40]!r}")
     try:
         number = float(value)
     except (TypeError, ValueError, OverflowError):
