@@ -201,6 +201,80 @@ def quantity(value: object, form: str, time: str | None) -> float:
                         f"{type(value).__name__}")
 
 
+def time_unit_of(value: object) -> str | None:
+    """The time unit a text names (``"0.5 fs"`` -> ``"fs"``); None for a number, a plain
+    number's text, a text naming another unit and one that does not parse (its error comes
+    where the value is read)."""
+    if not isinstance(value, str):
+        return None
+    try:
+        _, unit = parse_quantity(value)
+    except StepsafeError:
+        return None
+    return unit if unit in TIME_UNITS else None
+
+
+def implied_time_unit(*values: object) -> str | None:
+    """The time unit that values with a unit imply when none is given: the one time unit
+    their texts name (a list is looked into), None when none names one; texts in two
+    different units are a StepsafeError (which would the output be in?)."""
+    named: set[str] = set()
+    for value in values:
+        items = value if isinstance(value, (list, tuple)) else [value]
+        named.update(u for u in map(time_unit_of, items) if u is not None)
+    if len(named) > 1:
+        raise StepsafeError(f"values are given in {' and '.join(sorted(named))}: give the time "
+                            "unit of h (--time-unit, time_unit: or time_unit=) to say which "
+                            "unit the steps are in")
+    return named.pop() if named else None
+
+
+def duration(value: object, name: str, time: str | None, plain_text: bool = False) -> float:
+    """A duration (a step h, a period, a run or trajectory time) in the ``time`` unit: a
+    number is in it already; a text with a time unit (``"0.5 fs"``, ``"0.5fs"``,
+    ``"2e-15 s"``) is converted to it exactly (the decimal digits and the ratio of the two
+    units, a power of ten, are combined as fractions and rounded once). A text without a
+    unit is a number only where every value is text (``plain_text``: the command line and
+    files); a caller of the API gives numbers as numbers. A unit that is no time unit
+    (``THz``, ``cm-1``) is refused, as is a unit where no time unit is known."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)) and not (
+            hasattr(value, "dtype") and getattr(value, "ndim", 1) == 0
+            and value.dtype.kind in "iuf"):
+        raise StepsafeError(f"{name} must be a number or a text with a time unit such as "
+                            f"'0.5 fs', got {type(value).__name__}")
+    if not isinstance(value, str):
+        try:
+            return float(value)  # type: ignore[arg-type]  # (a 0-d array's item too)
+        except OverflowError:
+            raise StepsafeError(f"{name} must be a finite number, got {str(value)[:40]}"
+                                ) from None
+    number, unit = parse_quantity(value)
+    if unit is None:
+        if not plain_text:
+            raise StepsafeError(f"{name} must be a number, or a text with a time unit such "
+                                f"as '0.5 fs'; got the text {value[:40]!r} (give the number "
+                                "itself)")
+        return number
+    if unit not in TIME_UNITS:
+        kind = ("a wavenumber" if unit == "cm-1" else "a frequency"
+                if unit in FREQUENCY_UNITS else "an unknown")
+        raise StepsafeError(f"{name} is a time: {value[:40]!r} has {kind} unit ({unit}); give "
+                            f"one of {', '.join(TIME_UNITS)}")
+    if time is None:
+        raise StepsafeError(f"{name} {value[:40]!r}: a value in {unit} needs the time unit of h "
+                            "(--time-unit, time_unit: or time_unit=)")
+    ratio = TIME_UNITS[unit] / TIME_UNITS[time]
+    digits = _QUANTITY.fullmatch(value)
+    text = digits.group(1) if digits is not None else ""
+    if math.isfinite(number) and number != 0 and len(text) <= 60 and abs(
+            int(text.lower().partition("e")[2] or 0)) <= 400:
+        try:
+            return float(Fraction(text) * ratio)  # exact until this one rounding
+        except OverflowError:  # beyond float64: the caller says it is not finite
+            return math.copysign(math.inf, number)
+    return number * float(ratio)
+
+
 def any_frequency(value: object, time: str | None) -> float:
     """beta (rad per ``time`` unit) of a frequency whose unit names its form: a plain
     number is an angular frequency (rad per time unit), ``"3700 cm-1"`` a wavenumber,

@@ -3,7 +3,7 @@
 A scene file::
 
     method: yoshida4            # a name, a path, or {name: lobatto3ab, stages: 4, base: midpoint}
-    h: 0.05                     # the step to check (check only)
+    h: 0.05                     # the step to check (check only); or with a unit: 0.5 fs
     margin: 0.9                 # optional, 0 < margin <= 1
     zmax: 10                    # optional, how far in z = beta*h to analyse
     modes:                      # the linearised frequencies
@@ -46,7 +46,15 @@ import numpy as np
 from stepsafe.core.models import MODELS
 from stepsafe.exceptions import StepsafeError, unknown_key
 from stepsafe.files.yamlio import QuotedText, load_yaml, read_bytes
-from stepsafe.units import FORMS, SIGMA_RULE, TIME_UNITS, quantity
+from stepsafe.units import (
+    FORMS,
+    SIGMA_RULE,
+    TIME_UNITS,
+    duration,
+    implied_time_unit,
+    parse_quantity,
+    quantity,
+)
 
 SCENE_KEYS = ("method", "h", "time_unit", "margin", "zmax", "modes", "system", "substeps")
 MAX_CSV_BYTES = 256 << 20
@@ -99,10 +107,13 @@ def json_schema() -> dict[str, Any]:
                  "properties": {"name": {"type": "string"},
                                 "stages": {"type": "integer", "minimum": 1},
                                 "base": {"type": "string"}}}]},
-            "h": {**positive, "description": "the step to check (check only), in time_unit"},
+            "h": {"oneOf": [positive, {"type": "string"}],
+                  "description": "the step to check (check only): in time_unit, or with a "
+                                 "time unit ('0.5 fs', converted)"},
             "time_unit": {"enum": list(TIME_UNITS),
                           "description": "the unit of h; frequencies are converted to rad "
-                                         "per time_unit (default: the unit of 1/beta)"},
+                                         "per time_unit (default: the unit that h: and the "
+                                         "periods name, else the unit of 1/beta)"},
             "margin": {"type": "number", "exclusiveMinimum": 0, "maximum": 1,
                        "description": "frequencies may be up to 1/margin times larger"},
             "zmax": {**positive, "description": "analyse z = beta*h up to zmax (default 10)"},
@@ -297,14 +308,6 @@ def load_scene(path: str | Path, time_unit: str | None = None) -> Scene:
         ref = method_ref(tree["method"], where)
         scene.method = MethodRef(_near_scene(ref.name, scene.folder), ref.stages,
                                  _near_scene(ref.base, scene.folder))
-    for key in ("h", "margin", "zmax"):
-        if key in tree:
-            value = number(tree[key], where, key)
-            if not value > 0:
-                raise _fail(where, key, f"must be > 0, got {tree[key]}")
-            if key == "margin" and value > 1:
-                raise _fail(where, key, f"must be in (0, 1], got {value}")
-            setattr(scene, key, value)
     scene.time_unit = time_unit
     if "time_unit" in tree:
         unit = tree["time_unit"]
@@ -315,6 +318,20 @@ def load_scene(path: str | Path, time_unit: str | None = None) -> Scene:
             raise _fail(where, "time_unit", f"is {unit}, but --time-unit {time_unit} was "
                                             "given (h and the modes are in the file's unit)")
         scene.time_unit = unit
+    elif time_unit is None:
+        try:
+            scene.time_unit = implied_time_unit(*_durations(tree))
+        except StepsafeError as exc:
+            raise _fail(where, "time_unit", exc.message) from None
+    for key in ("h", "margin", "zmax"):
+        if key in tree:
+            value = _step(tree[key], where, scene.time_unit) if key == "h" else \
+                number(tree[key], where, key)
+            if not value > 0:
+                raise _fail(where, key, f"must be > 0, got {tree[key]}")
+            if key == "margin" and value > 1:
+                raise _fail(where, key, f"must be in (0, 1], got {value}")
+            setattr(scene, key, value)
     if "substeps" in tree:
         value = number(tree["substeps"], where, "substeps")
         if value != int(value) or not 1 <= value <= 1000:
@@ -329,6 +346,69 @@ def load_scene(path: str | Path, time_unit: str | None = None) -> Scene:
         else:
             scene.modes, scene.labels = _modes_list(items, where, "modes", scene.time_unit)
     return scene
+
+
+def _step(value: Any, where: str, time_unit: str | None) -> float:
+    """The scene's ``h:``: a number in its time unit, or a text with a time unit (quoted or
+    not: ``h: 0.5 fs``), converted to it."""
+    if isinstance(value, str) and _has_unit(value):
+        try:
+            x = duration(str(value), "h", time_unit, plain_text=True)
+        except StepsafeError as exc:
+            raise _fail(where, "h", exc.message) from None
+        if not np.isfinite(x):
+            raise _fail(where, "h", f"must be finite, got {value!r}")
+        return x
+    return number(value, where, "h")
+
+
+def _has_unit(text: str) -> bool:
+    try:
+        return parse_quantity(text)[1] is not None
+    except StepsafeError:
+        return False
+
+
+def _durations(tree: dict) -> list[Any]:
+    """The values of a scene tree that are durations and may name a time unit: ``h:``, the
+    modes' periods (and an impulse method's fast: or slow: given as a period)."""
+    items = tree.get("modes")
+    found = [tree.get("h")]
+    if isinstance(items, list):
+        found += [item.get(key) for item in items if isinstance(item, dict)
+                  for key in ("period", "fast", "slow")]
+    return found
+
+
+def scene_time_unit(path: Any) -> str | None:
+    """The time unit a scene file's values are in: its ``time_unit:``, else the unit its
+    ``h:`` and periods name; None where it names none (or cannot be read: loading it
+    reports that)."""
+    from stepsafe.files.yamlio import load_yaml as _load
+
+    if not isinstance(path, (str, Path)):
+        return None
+    try:
+        tree = _load(path)
+        if not isinstance(tree, dict):
+            return None
+        unit = tree.get("time_unit")
+        if unit is not None:
+            return unit if isinstance(unit, str) and unit in TIME_UNITS else None
+        return implied_time_unit(*_durations(tree))
+    except StepsafeError:
+        return None
+
+
+def time_unit_in_force(time_unit: str | None, scene: Any, *values: Any) -> str | None:
+    """The time unit of a run: ``time_unit`` when given (``--time-unit``,
+    ``time_unit=``), else the scene's (a :class:`Scene` or a file, see
+    :func:`scene_time_unit`), else the one the texts among ``values`` name (a step
+    ``"0.5 fs"``, a period ``"9 fs"``: :func:`stepsafe.units.implied_time_unit`)."""
+    if time_unit is not None:
+        return time_unit
+    own = scene.time_unit if isinstance(scene, Scene) else scene_time_unit(scene)
+    return own or implied_time_unit(*values)
 
 
 def _pairs_list(items: list, where: str, time_unit: str | None
