@@ -126,7 +126,7 @@ def pendulum_period(amplitude):
 
 
 def measure(name, stages, h, T):
-    method = stepsafe.method(name, stages)
+    method = stepsafe.method(name, stages=stages)
     step = stepper(method)
     pred = stepsafe.errors(method, [h])
     rate_pred = stepsafe.errors(method, [h], "inverted").phase[0]

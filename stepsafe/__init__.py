@@ -5,21 +5,26 @@ The public API (see :mod:`stepsafe.api`)::
     method(name, stages=None, base=None)        a built-in method, family member or file
     method_from_file(path)                      a method file
     region(method, model="all", zmax=10)        every z = beta*h interval that keeps structure
-    advise(method, frequencies, ...)            the safe steps h for your frequencies
-    check(method, h, frequencies, ...)          whether step h is safe (``.safe``)
+    advise(method, beta, ...)                   the safe steps h for your frequencies
+    check(method, h, beta, ...)                 whether step h is safe (``.safe``)
+    check_scenes([scene, ...], ...)             check of several scene files, as the command
     errors(method, z, model="oscillator")       phase and energy errors of one step
-    compare(methods, frequencies, ...)          methods ranked by cost at the usable step
+    compare(methods, beta, ...)                 methods ranked by cost at the usable step
     transfer_matrices(method, z, model)         the one-step matrices M(z), shape (n, 2, 2)
     hmc(methods, sigma=..., ...)                HMC on a Gaussian target: acceptance, step, cost
     design(sigma=..., step=h, stages=2)         a 2- or 3-stage HMC splitting for your target
-    impulse(outer, inner, substeps, fast=, slow=)  safe outer steps of r-RESPA / impulse MTS
+    impulse(outer, inner, substeps=, fast_beta=, slow_beta=)  safe outer steps of r-RESPA
     impulse_advice(method, pairs)               ... for several modes (fast, slow) together
     measure(method, steps, scene=...)           run the method on the scene's own system
     refine(method, "energy", tol, scene=...)    the largest h whose measured error meets tol
     problem(...), load_scene(path)              inputs merged from a scene file and arguments
     StepsafeError                               every error a caller can cause (bad input)
 
-Results are frozen objects whose ``to_dict()`` is the command line's ``--json`` output.
+``beta`` is an angular frequency in rad per time unit; every keyword of a frequency in
+another form says its unit (:mod:`stepsafe.arguments`). Arguments after the first one or two
+are given by name, and one a function does not take is a StepsafeError listing those it
+takes. Results are frozen objects whose ``to_dict()`` is the command line's ``--json``
+output.
 The folders follow the data: ``methods`` (method data and files), ``core`` (transfer
 matrices, regions, advice, accuracy), ``systems`` (linear and nonlinear systems, scenes),
 ``reference`` (the independent mpmath path), ``cli`` (commands and reports). Importing this
@@ -35,9 +40,9 @@ from stepsafe.exceptions import MethodError, StepsafeError
 __version__ = "0.1.0"
 
 _API = ("Integrator", "PartitionedTableau", "RegionReport", "AdviceReport", "CheckReport",
-        "ErrorTable", "CompareReport", "CompareRow", "Problem", "method", "method_from_file",
-        "region", "advise", "check", "errors", "compare", "transfer_matrices", "problem",
-        "load_scene")
+        "CheckError", "SceneChecks", "ErrorTable", "CompareReport", "CompareRow", "Problem",
+        "method", "method_from_file", "region", "advise", "check", "check_scenes", "errors",
+        "compare", "transfer_matrices", "problem", "load_scene")
 #: The HMC part of the API (stepsafe.hmc_advice), built on the same inputs.
 _HMC = ("hmc", "design", "HmcReport", "HmcRow", "DesignReport")
 #: Multiple time stepping (stepsafe.respa_advice).
@@ -49,6 +54,7 @@ __all__ = [*_API, *_HMC, *_MTS, *_MEASURE, "StepsafeError", "MethodError", "__ve
 if TYPE_CHECKING:  # pragma: no cover
     from stepsafe.api import (  # noqa: F401
         AdviceReport,
+        CheckError,
         CheckReport,
         CompareReport,
         CompareRow,
@@ -57,8 +63,10 @@ if TYPE_CHECKING:  # pragma: no cover
         PartitionedTableau,
         Problem,
         RegionReport,
+        SceneChecks,
         advise,
         check,
+        check_scenes,
         compare,
         errors,
         load_scene,

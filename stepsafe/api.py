@@ -2,22 +2,26 @@
 
 Every function takes numbers and arrays (or file paths for scenes and method files), never
 prints and never exits; bad input raises :class:`~stepsafe.exceptions.StepsafeError` (exit code
-2 on the command line), whose ``where`` names the file and key at fault. Each result has
+2 on the command line), whose ``where`` names the file and key at fault, and so does an
+argument a function does not take (the error lists those it takes). Arguments after the
+first one or two (the method, the frequencies, the step) are given by name. Each result has
 ``to_dict()``, which is exactly the command's ``--json`` output.
 
-Conventions: z = beta*h; a vibration of angular frequency beta is the model ``oscillator``
-(q' = p, p' = -beta^2 q), a barrier top of rate beta ``inverted`` (q' = p, p' = +beta^2 q),
-a saddle ``saddle`` (H = beta p q). ``margin`` F in (0, 1] allows every frequency to be up
-to 1/F times larger. Steps h are in the time unit of 1/beta.
+Conventions: z = beta*h; a vibration of angular frequency ``beta`` (rad per time unit) is
+the model ``oscillator`` (q' = p, p' = -beta^2 q), a barrier top of rate beta ``inverted``
+(q' = p, p' = +beta^2 q), a saddle ``saddle`` (H = beta p q). ``margin`` F in (0, 1]
+allows every frequency to be up to 1/F times larger. Steps h are in ``time_unit`` (else in
+the time unit of 1/beta). The keywords for frequencies in other forms, each with its unit,
+are listed in :mod:`stepsafe.arguments`.
 
 >>> import stepsafe
 >>> verlet = stepsafe.method("verlet")
 >>> verlet.order, verlet.kind, verlet.evaluations
 (2, 'splitting', 1)
->>> advice = stepsafe.advise(verlet, frequencies=[1.0, 4.0])
+>>> advice = stepsafe.advise(verlet, beta=[1.0, 4.0])
 >>> round(advice.h_max, 12)   # Verlet keeps a centre a centre for beta*h < 2
 0.5
->>> stepsafe.check(verlet, 0.6, frequencies=[4.0]).safe
+>>> stepsafe.check(verlet, 0.6, beta=[4.0]).safe
 False
 """
 
@@ -33,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from stepsafe.arguments import public
 from stepsafe.exceptions import StepsafeError
 
 #: Models accepted by :func:`region` besides ``"all"`` (which means the main three).
@@ -183,7 +188,8 @@ def _stage_count(value: Any) -> int | None:
     return int(value)
 
 
-def method(name: str, stages: int | None = None, base: str | None = None) -> Integrator:
+@public()
+def method(name: str, *, stages: int | None = None, base: str | None = None) -> Integrator:
     """A built-in method (``stepsafe methods`` lists them), a family member
     (``method("gauss", stages=3)``) or a method file given by path.
 
@@ -203,13 +209,14 @@ def method(name: str, stages: int | None = None, base: str | None = None) -> Int
                       (name, stages, base), gradient_evaluations(tableau))
 
 
-def method_from_file(path: str | Path, base: str | None = None) -> Integrator:
+@public()
+def method_from_file(path: str | Path, *, base: str | None = None) -> Integrator:
     """A method file (YAML, see ``stepsafe schema method``), read by path even when its
     name is also a built-in's."""
     from stepsafe.methods.library import _looks_like_path
 
     text = str(path)
-    return method(text if _looks_like_path(text) else f"./{text}", None, base)
+    return method(text if _looks_like_path(text) else f"./{text}", base=base)
 
 
 def _integrator(value: Integrator | str) -> Integrator:
@@ -311,7 +318,8 @@ def _ordered(models: Mapping[str, Any]) -> list[str]:
     return sorted(models, key=lambda m: rank.get(m, len(rank)))
 
 
-def region(method: Integrator | str, model: str = "all", zmax: float = 10.0,
+@public()
+def region(method: Integrator | str, model: str = "all", *, zmax: float = 10.0,
            verify: bool = False, resonance_orders: Sequence[int] = (3, 4, 5, 6),
            criterion: str = "structure") -> RegionReport:
     """The regions of ``method`` for ``model`` (``"all"``: oscillator, saddle and inverted;
@@ -368,62 +376,76 @@ def region(method: Integrator | str, model: str = "all", zmax: float = 10.0,
 @dataclass(frozen=True)
 class Problem:
     """What advise and check analyse: a method, the frequencies (``modes``) or an analysed
-    system, the margin, zmax, and the step a scene may name. Built by :func:`problem`."""
+    system, the margin, zmax, and the step (given, or named by the scene). Built by
+    :func:`problem`."""
 
     integrator: Integrator
     modes: Any  # stepsafe.core.advice.Modes, or None for a system
     system: Any  # stepsafe.systems.loader.SystemReport, or None
     margin: float
     zmax: float
-    h: float | None = None
+    h: float | None = None  # in time_unit
     scene: str | None = None
     labels: Mapping[str, tuple[str | None, ...]] = field(default_factory=dict)
     time_unit: str | None = None  # the unit of h (None: the time unit of 1/beta)
 
 
-#: Vibrations given as ordinary frequency, wavenumber or period (see :mod:`stepsafe.units`).
+#: Vibrations given as ordinary frequency, wavenumber, period or standard deviation: numbers
+#: in the keyword's unit, or texts with a unit (see :mod:`stepsafe.units`).
 UnitValues = Sequence[float | str] | np.ndarray | float | str
 
+#: The keywords of vibrations given in another form than beta, and the form
+#: :func:`stepsafe.units.quantity` reads each as.
+CONVERTED = (("ordinary_frequency", "frequency"), ("wavenumber", "wavenumber"),
+             ("period", "period"), ("sigma", "sigma"))
 
-def _converted(forms: Mapping[str, UnitValues | None], time_unit: str | None
+
+def _converted(values: Mapping[str, UnitValues | None], time_unit: str | None
                ) -> list[np.ndarray]:
-    """beta (rad per time unit) of each vibration given in another form."""
-    from stepsafe.units import quantity
+    """beta (rad per time unit) of each vibration given in another form (``CONVERTED``). A
+    text must name its unit: a number is given as a number."""
+    from stepsafe.units import parse_quantity, quantity
 
     out = []
-    for form, values in forms.items():
-        if values is None:
+    for keyword, form in CONVERTED:
+        given = values.get(keyword)
+        if given is None:
             continue
         try:
-            array = np.asarray(values, dtype=object)
+            array = np.asarray(given, dtype=object)
             if array.ndim > 1:
-                raise StepsafeError(f"{form} must be one-dimensional, got an array of shape "
-                                    f"{array.shape}")
-            items = [values] if isinstance(values, (str, int, float)) else list(array.ravel())
+                raise StepsafeError(f"{keyword} must be one-dimensional, got an array of "
+                                    f"shape {array.shape}")
+            items = [given] if isinstance(given, (str, int, float)) else list(array.ravel())
         except (TypeError, ValueError):
-            raise StepsafeError(f"{form} must be a number, a text with a unit or a list of "
+            raise StepsafeError(f"{keyword} must be a number, a text with a unit or a list of "
                                 "them") from None
-        out.append(np.array([quantity(v.item() if isinstance(v, np.generic) else v, form,
-                                      time_unit) for v in items], dtype=float))
+        betas = []
+        for item in items:
+            item = item.item() if isinstance(item, np.generic) else item
+            try:
+                if isinstance(item, str) and parse_quantity(item)[1] is None:
+                    raise StepsafeError(f"give numbers as numbers; a text names its unit "
+                                        f"(such as '3700 cm-1', '100 THz', '9 fs'), got "
+                                        f"{item[:40]!r}")
+                betas.append(quantity(item, form, time_unit))
+            except StepsafeError as exc:
+                raise StepsafeError(f"{keyword}: {exc.message}") from None
+        out.append(np.array(betas, dtype=float))
     return out
 
 
-def _modes_dict(frequencies: ArrayLike | None, saddle: ArrayLike | None,
-                inverted: ArrayLike | None, modes: Mapping[str, ArrayLike] | None,
-                converted: Sequence[np.ndarray] = ()) -> dict[str, np.ndarray]:
+def _modes_dict(given: Sequence[tuple[str, str, Any]]) -> dict[str, np.ndarray]:
+    """The frequencies of each ``(keyword, model, values)`` grouped by model, in order."""
     parts: dict[str, list[np.ndarray]] = {}
-    if modes is not None and not isinstance(modes, Mapping):
-        raise StepsafeError(f"modes must map model names to frequencies, got "
-                            f"{type(modes).__name__}")
-    for model, values in (("oscillator", frequencies),
-                          *(("oscillator", v) for v in converted), ("saddle", saddle),
-                          ("inverted", inverted), *((modes or {}).items())):
+    for keyword, model, values in given:
         if values is None:
             continue
         try:
             arr = np.asarray(values)
             if arr.dtype.kind == "c":
-                raise StepsafeError(f"{model} frequencies must be real, got complex values")
+                raise StepsafeError(f"{keyword} must be real (rad per time unit), got complex "
+                                    "values")
             if arr.dtype.kind not in "iuf" and not (
                     arr.dtype == object and all(isinstance(v, (int, float, np.integer,
                                                                np.floating))
@@ -431,23 +453,46 @@ def _modes_dict(frequencies: ArrayLike | None, saddle: ArrayLike | None,
                                                 for v in arr.ravel())):
                 raise TypeError
             if arr.ndim > 1:
-                raise StepsafeError(f"{model} frequencies must be one-dimensional, got an "
-                                    f"array of shape {arr.shape}")
+                raise StepsafeError(f"{keyword} must be one-dimensional, got an array of "
+                                    f"shape {arr.shape}")
             arr = np.atleast_1d(arr.astype(float))
         except (TypeError, ValueError, OverflowError):
-            raise StepsafeError(f"{model} frequencies must be a list or array of real "
-                                "numbers") from None
+            raise StepsafeError(f"{keyword} must be a number or a list or array of real numbers "
+                                "(rad per time unit)") from None
         if arr.size:
             parts.setdefault(model, []).append(arr)
     return {model: np.concatenate(v) for model, v in parts.items()}
 
 
-def problem(method: Integrator | str | None = None, frequencies: ArrayLike | None = None, *,
-            saddle: ArrayLike | None = None, inverted: ArrayLike | None = None,
+def _frequencies(beta: Any, saddle_beta: Any, inverted_beta: Any, modes: Any,
+                 converted: Sequence[np.ndarray] = ()) -> dict[str, np.ndarray]:
+    """Every frequency given by keyword, per model: ``beta`` and the ``converted``
+    vibrations, ``saddle_beta``, ``inverted_beta``, then ``modes`` (in that order)."""
+    if modes is not None and not isinstance(modes, Mapping):
+        raise StepsafeError(f"modes must map model names to frequencies (rad per time unit), "
+                            f"got {type(modes).__name__}")
+    return _modes_dict([("beta", "oscillator", beta),
+                        *(("beta", "oscillator", v) for v in converted),
+                        ("saddle_beta", "saddle", saddle_beta),
+                        ("inverted_beta", "inverted", inverted_beta),
+                        *((f"modes[{model!r}]", model, v) for model, v in (modes or {}).items())])
+
+
+def _step(h: Any, time_unit: str | None) -> float:
+    """A step ``h``: a number in ``time_unit``, or a text with a time unit (converted)."""
+    from stepsafe.exceptions import positive_finite
+    from stepsafe.units import duration
+
+    return positive_finite(duration(h, "h", time_unit), "h")
+
+
+@public()
+def problem(method: Integrator | str | None = None, beta: ArrayLike | None = None, *,
+            saddle_beta: ArrayLike | None = None, inverted_beta: ArrayLike | None = None,
             modes: Mapping[str, ArrayLike] | None = None,
-            frequency: UnitValues | None = None, wavenumber: UnitValues | None = None,
+            ordinary_frequency: UnitValues | None = None, wavenumber: UnitValues | None = None,
             period: UnitValues | None = None, sigma: ArrayLike | None = None,
-            time_unit: str | None = None,
+            time_unit: str | None = None, h: float | str | None = None,
             labels: Mapping[str, Sequence[str | None]] | None = None,
             system: Mapping[str, Any] | None = None, scene: str | Path | None = None,
             stages: int | None = None, base: str | None = None, margin: float | None = None,
@@ -455,26 +500,73 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
             progress: Callable[[float], None] | None = None, budget: float | None = None
             ) -> Problem:
     """Merge a scene file with explicit arguments (the arguments win, as options do on the
-    command line). Frequencies: ``frequencies`` (vibrations), ``saddle`` and ``inverted``
-    rates, ``modes`` by model name, and vibrations as ``frequency``, ``wavenumber`` (cm^-1)
-    or ``period`` (numbers, or texts with a unit such as ``"100 THz"``, ``"9 fs"``; see
-    :mod:`stepsafe.units`), converted to rad per ``time_unit`` (``"fs"``, ``"ps"``, ...: the
-    unit of every h in and out), standard deviations ``sigma`` of a Gaussian target (HMC
-    with unit mass: beta = 1/sigma), all used together (``labels[model][i]`` names mode i of
-    ``model`` in that order: ``frequencies``, ``frequency``, ``wavenumber``, ``period``,
-    ``sigma``, ``saddle``, ``inverted``, then ``modes``); else the scene's ``modes:``; else a
-    ``system`` (``{"stiffness": K, "mass": M}``, ``{"precision": P}`` or
-    ``{"covariance": C}`` with an optional mass, ``{"hessian": H}``, or a scene's
-    ``system:``), analysed for the method; an explicit ``system`` replaces the scene's
-    ``modes:`` or ``system:``, and is refused together with explicit frequencies.
-    ``budget`` (seconds) stops a coupled analysis early; ``progress`` is called with the
-    fraction done."""
+    command line).
+
+    Frequencies given by keyword are used together, in this order (``labels[model][i]``
+    names mode i of ``model`` in it); else the scene's ``modes:``; else a ``system``,
+    analysed for the method (an explicit ``system`` replaces the scene's ``modes:`` or
+    ``system:``, and is refused together with explicit frequencies).
+
+    Parameters
+    ----------
+    method : Integrator or str, optional
+        The method (name, ``family`` with ``stages``, or path); default: the scene's.
+    beta : array_like, optional
+        Angular frequencies of vibrations, rad per time unit.
+    saddle_beta, inverted_beta : array_like, optional
+        Rates of saddles (H = beta p q) and of barrier tops (p' = +beta^2 q), rad per time
+        unit.
+    modes : mapping, optional
+        ``{model: betas}``, rad per time unit (models as in :func:`region`).
+    ordinary_frequency : number, text or list, optional
+        f = beta / (2 pi) of vibrations: cycles per time unit, or texts with a frequency
+        unit (``"100 THz"``, ``"3 ps-1"``).
+    wavenumber : number, text or list, optional
+        Vibrations in cm^-1 (``3700`` or ``"3700 cm-1"``); needs a time unit.
+    period : number, text or list, optional
+        T = 2 pi / beta of vibrations: in the time unit, or texts with a time unit
+        (``"9 fs"``).
+    sigma : array_like, optional
+        Standard deviations of a Gaussian target (HMC, unit mass), in the units of q:
+        beta = 1 / sigma.
+    time_unit : str, optional
+        The unit of every step in and out (``"fs"``, ``"ps"``, ...; see
+        :data:`stepsafe.units.TIME_UNITS`). Default: the scene's, else the unit that the
+        texts of ``h`` and ``period`` name, else the time unit of 1/beta.
+    h : float or str, optional
+        The step to check, in the time unit or as a text with a time unit (``"0.5 fs"``);
+        default: the scene's ``h:``.
+    labels : mapping, optional
+        Names of the modes given by keyword, per model.
+    system : mapping, optional
+        ``{"stiffness": K, "mass": M}``, ``{"precision": P}`` or ``{"covariance": C}`` with
+        an optional mass, ``{"hessian": H}``, or a scene's ``system:`` (a Hamiltonian).
+    scene : str or Path, optional
+        A scene file (see ``stepsafe schema scene``), or a :func:`load_scene` result.
+    stages, base : optional
+        A family's stage count; a composition's base.
+    margin : float, optional
+        F in (0, 1]: every frequency may be up to 1/F times larger (default: the scene's,
+        else 1).
+    zmax : float, optional
+        How far in z = beta*h to analyse (default: the scene's, else 10).
+    progress : callable, optional
+        Called with the fraction done of a coupled analysis.
+    budget : float, optional
+        Seconds after which a coupled analysis stops (steps above the h reached are then
+        not analysed).
+
+    Returns
+    -------
+    Problem
+    """
     import time
 
     from stepsafe.core.advice import Modes, validate_margin
     from stepsafe.core.regions import DEFAULT_ZMAX
     from stepsafe.exceptions import positive_finite
-    from stepsafe.systems.scene import Scene, load_scene
+    from stepsafe.systems.scene import Scene, load_scene, time_unit_in_force
+    from stepsafe.units import time_unit as known_time_unit
 
     if zmax is not None:  # checked before any file is read or analysed
         zmax = positive_finite(zmax, "zmax")
@@ -482,13 +574,15 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
         budget = positive_finite(budget, "budget")
     if margin is not None:
         margin = validate_margin(margin)
-    from stepsafe.units import time_unit as known_time_unit
-
-    time_unit = known_time_unit(time_unit)
+    explicit = known_time_unit(time_unit)
+    time_unit = time_unit_in_force(explicit, scene, h, period)
     if isinstance(scene, Scene):
         loaded = scene
-        if time_unit is not None and scene.time_unit not in (None, time_unit):
-            raise StepsafeError(f"the scene's time_unit is {scene.time_unit}, not {time_unit}")
+        if explicit is not None and scene.time_unit not in (None, explicit):
+            raise StepsafeError(f"the scene's time_unit is {scene.time_unit}, not {explicit}")
+        if scene.time_unit is None and time_unit is not None:
+            loaded = copy.copy(scene)  # its values have no unit: they are in this one
+            loaded.time_unit = time_unit
         scene = scene.where or None
     elif scene is not None:
         loaded = load_scene(_text(scene, "scene"), time_unit)
@@ -498,14 +592,16 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
                              (loaded.margin if loaded.margin is not None else 1.0))
     zmax = zmax if zmax is not None else (
         loaded.zmax if loaded.zmax is not None else DEFAULT_ZMAX)
+    step = loaded.h if h is None else _step(h, loaded.time_unit)
     integrator = _scene_method(method, loaded, stages, base)
-    converted = _converted({"frequency": frequency, "wavenumber": wavenumber,
+    converted = _converted({"ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
                             "period": period, "sigma": sigma}, loaded.time_unit)
-    given = _modes_dict(frequencies, saddle, inverted, modes, converted)
+    given = _frequencies(beta, saddle_beta, inverted_beta, modes, converted)
     if given and system is not None:
         raise StepsafeError("give either frequencies (or modes) or a system, not both (one "
                             "would be ignored)")
     report = None
+    arrays: Mapping[str, Any]
     if given:
         arrays, labels = given, _labels(labels, given)
     elif loaded.modes and system is None:
@@ -522,8 +618,9 @@ def problem(method: Integrator | str | None = None, frequencies: ArrayLike | Non
         labels = {}
     else:
         raise StepsafeError("no frequencies: give --beta/--saddle-beta/--inverted-beta, "
-                            "--modes FILE, or modes: or system: in a scene file")
-    return Problem(integrator, Modes.from_arrays(arrays), report, margin, zmax, loaded.h,
+                            "--modes FILE, or modes: or system: in a scene file (in Python: "
+                            "beta=, saddle_beta=, inverted_beta=, modes=, system= or scene=)")
+    return Problem(integrator, Modes.from_arrays(arrays), report, margin, zmax, step,
                    str(scene) if scene is not None else None, MappingProxyType(dict(labels)),
                    loaded.time_unit)
 
@@ -544,25 +641,26 @@ def _labels(labels: Mapping[str, Sequence[str | None]] | None,
     return out
 
 
-def _problem_of(method: Integrator | str | None, frequencies: ArrayLike | None,
-                inputs: dict[str, Any]) -> Problem:
+def _problem_of(method: Integrator | str | None, beta: ArrayLike | None,
+                inputs: dict[str, Any], times: Sequence[Any] = ()) -> Problem:
     """A ``problem=`` given (it already holds the method, frequencies and options: any of
     them given beside it would be ignored, so that is refused), else :func:`problem` of
-    the inputs."""
+    the inputs (their names are checked by :func:`stepsafe.arguments.public`). ``times``
+    are steps or durations of the caller (texts with a unit name the time unit when
+    nothing else does)."""
     given = inputs.pop("problem", None)
     if given is None:
-        import inspect
+        from stepsafe.systems.scene import time_unit_in_force
+        from stepsafe.units import implied_time_unit
 
-        known = set(inspect.signature(problem).parameters) - {"method", "frequencies"}
-        for key in inputs:
-            if key not in known:
-                raise StepsafeError(f"unknown argument {key!r} (the problem takes "
-                                    f"{', '.join(sorted(known))})")
-        return problem(method, frequencies, **inputs)
+        if inputs.get("time_unit") is None and implied_time_unit(*times) is not None:
+            inputs["time_unit"] = time_unit_in_force(None, inputs.get("scene"), *times,
+                                                     inputs.get("h"), inputs.get("period"))
+        return problem(method, beta, **inputs)
     if not isinstance(given, Problem):
         raise StepsafeError(f"problem must be a stepsafe.Problem (from stepsafe.problem), got "
                             f"{type(given).__name__}")
-    extra = ([name for name, value in (("method", method), ("frequencies", frequencies))
+    extra = ([name for name, value in (("method", method), ("beta", beta))
               if value is not None] + sorted(k for k, v in inputs.items() if v is not None))
     if extra:
         raise StepsafeError(f"problem= already holds the method, frequencies and options: "
@@ -575,15 +673,15 @@ def _scene_method(method: Integrator | str | None, scene: Any, stages: int | Non
                   base: str | None) -> Integrator:
     if isinstance(method, Integrator):
         return single_force(method)
+    load = globals()["method"]
     if method is not None:
-        return single_force(globals()["method"](method, stages, base))
+        return single_force(load(method, stages=stages, base=base))
     ref = scene.method
     if ref is None:
         raise StepsafeError("no method: give --method METHOD or a scene file with method:")
     try:
-        return single_force(globals()["method"](
-            ref.name, stages if stages is not None else ref.stages,
-            base if base is not None else ref.base))
+        return single_force(load(ref.name, stages=stages if stages is not None else ref.stages,
+                                 base=base if base is not None else ref.base))
     except StepsafeError as exc:
         if exc.where or not scene.where:
             raise
@@ -625,14 +723,17 @@ class AdviceReport:
         return out
 
 
-def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None = None, *,
+@public(lambda: problem, drop=("h",))
+def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None, *,
            tol_phase: float | None = None, tol_energy: float | None = None,
            resonance_order: int | None = None, solver: str = "fixed-point",
            criterion: str = "structure", verify: bool = False, gradient_cost: float = 1.0,
            **inputs: Any) -> AdviceReport:
-    """Safe step sizes for a method and frequencies (or a scene, or a system): see
-    :func:`problem` for the inputs (``saddle``, ``inverted``, ``modes``, ``system``,
-    ``scene``, ``stages``, ``base``, ``margin``, ``zmax``, ``budget``, ``progress``).
+    """Safe step sizes for a method and angular frequencies ``beta`` (rad per time unit;
+    or a scene, or a system): see :func:`problem` for the other inputs and their units
+    (``saddle_beta``, ``inverted_beta``, ``modes``, ``ordinary_frequency``,
+    ``wavenumber``, ``period``, ``sigma``, ``time_unit``, ``system``, ``scene``,
+    ``labels``, ``stages``, ``base``, ``margin``, ``zmax``, ``budget``, ``progress``).
     ``tol_phase``/``tol_energy`` also bound the phase (growth-rate) and energy errors
     and add the usable step and its cost (implicit methods: the force evaluations of
     fixed-point iteration, ``solver="nominal"`` for one per stage). ``resonance_order`` N
@@ -645,7 +746,7 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
     ``gradient_cost``: force evaluations one force-gradient term costs (force-gradient
     methods; see :data:`stepsafe.methods.tableaux.GRADIENT_COST`).
 
-    >>> report = advise("yoshida4", [3.2], inverted=[1.1])
+    >>> report = advise("yoshida4", [3.2], inverted_beta=[1.1])
     >>> report.h_max_limited_by, f"{report.h_max:.6f}"
     ('boundary', '0.491688')
     """
@@ -654,7 +755,7 @@ def advise(method: Integrator | str | None = None, frequencies: ArrayLike | None
     from stepsafe.core.regions import validate_criterion
 
     criterion = validate_criterion(criterion)
-    p = _problem_of(method, frequencies, inputs)
+    p = _problem_of(method, beta, inputs)
     integrator, result = p.integrator, None
     with integrator.naming_its_file():
         if p.system is not None:
@@ -808,19 +909,27 @@ class CheckReport:
     result: Any = field(repr=False, default=None)
     verification: Mapping[str, Any] | None = None
 
-    def to_dict(self) -> dict[str, Any]:
-        """One entry of ``checks`` in ``stepsafe check ... --json``."""
+    def entry(self) -> dict[str, Any]:
+        """This check's entry of ``checks`` in ``stepsafe check ... --json``."""
         out = copy.deepcopy(dict(self.record))
         if self.verification is not None:
             out["verify"] = copy.deepcopy(dict(self.verification))
         return out
 
+    def to_dict(self) -> dict[str, Any]:
+        """What ``stepsafe check ... --json`` prints for this input:
+        ``{"safe": safe, "checks": [entry]}``."""
+        return {"safe": self.safe, "checks": [self.entry()]}
 
-def check(method: Integrator | str | None = None, h: float | None = None,
-          frequencies: ArrayLike | None = None, *, resonance_order: int | None = None,
+
+@public(lambda: problem)
+def check(method: Integrator | str | None = None, h: float | str | None = None,
+          beta: ArrayLike | None = None, *, resonance_order: int | None = None,
           criterion: str = "structure", verify: bool = False, solver: str = "fixed-point",
           require_complete_search: bool = False, **inputs: Any) -> CheckReport:
-    """Is step ``h`` safe for every frequency (see :func:`problem` for the inputs)? A scene
+    """Is step ``h`` safe for every frequency? ``h`` is a number in the time unit, or a
+    text with a time unit (``"0.5 fs"``, converted); ``beta`` are angular frequencies (rad
+    per time unit); see :func:`problem` for the other inputs and their units. A scene
     may give the step (``h:``). A step exactly on a resonance or a pole is unsafe. With
     ``resonance_order`` N, a vibration at or beyond its first nonlinear resonance of order
     at most N is unsafe too. ``criterion`` as for :func:`advise` (``record["other_criterion"]``
@@ -842,11 +951,15 @@ def check(method: Integrator | str | None = None, h: float | None = None,
 
     criterion = validate_criterion(criterion)
     require_complete_search = _flag(require_complete_search, "require_complete_search")
-    p = _problem_of(method, frequencies, inputs)
-    step = h if h is not None else p.h
+    if inputs.get("problem") is None:
+        p = _problem_of(method, beta, {**inputs, "h": h})
+        step = p.h
+    else:
+        p = _problem_of(method, beta, inputs)
+        step = p.h if h is None else _step(h, p.time_unit)
     if step is None:
         raise StepsafeError(f"{p.scene or 'check'}: no step: give --step H or h: in the "
-                            "scene file")
+                            "scene file (h= in Python)")
     integrator, result = p.integrator, None
     with integrator.naming_its_file():
         if p.system is not None:
@@ -881,6 +994,156 @@ def check(method: Integrator | str | None = None, h: float | None = None,
                        tuple(MappingProxyType(f) for f in copy.deepcopy(data["failures"])),
                        p.scene, _frozen(data), result,
                        None if verdict is None else _frozen(verdict))
+
+
+@dataclass(frozen=True)
+class CheckError:
+    """A scene file that could not be checked (bad input: exit code 2): its file, the
+    message and where (the file and key) the error lies."""
+
+    scene: str | None
+    message: str
+    where: str | None = None
+
+    def entry(self) -> dict[str, Any]:
+        """Its entry of ``checks`` in ``stepsafe check ... --json``: ``safe`` is null."""
+        return {"scene": self.scene, "safe": None, "error": self.message, "where": self.where}
+
+
+@dataclass(frozen=True)
+class SceneChecks:
+    """The checks of several scene files, in their order: each a :class:`CheckReport`, an
+    impulse method's :class:`~stepsafe.respa_advice.ImpulseModesReport`, or a
+    :class:`CheckError` for a file that could not be checked."""
+
+    checks: tuple[Any, ...]
+
+    @property
+    def safe(self) -> bool:
+        """Every step checked is safe (a file that could not be checked is not)."""
+        return all(not isinstance(c, CheckError) and bool(c.safe) for c in self.checks)
+
+    @property
+    def exit_code(self) -> int:
+        """The command's exit code (the worst of the files'): 2 when a file could not be
+        checked, else 1 when a step is unsafe, else 0 (a failed ``verify`` is 3, decided
+        by the command)."""
+        if any(isinstance(c, CheckError) for c in self.checks):
+            return 2
+        return 0 if self.safe else 1
+
+    def to_dict(self) -> dict[str, Any]:
+        """What ``stepsafe check A.yaml B.yaml ... --json`` prints:
+        ``{"safe": safe, "checks": [one entry per file]}``."""
+        return {"safe": self.safe,
+                "checks": [c.to_dict() if not isinstance(c, (CheckReport, CheckError))
+                           else c.entry() for c in self.checks]}
+
+
+#: The inputs that describe a method's single-force frequencies: an impulse method's modes
+#: come from its scene's fast: and slow: frequencies instead.
+_SINGLE_FORCE = ("beta", "saddle_beta", "inverted_beta", "modes", "ordinary_frequency",
+                 "wavenumber", "period", "sigma", "labels", "system", "margin", "zmax",
+                 "budget", "stages", "base")
+
+
+@public(lambda: problem, drop=("scene", "h"))
+def check_scenes(scenes: Sequence[str | Path], *, h: float | str | None = None,
+                 resonance_order: int | None = None, criterion: str = "structure",
+                 verify: bool = False, solver: str = "fixed-point",
+                 require_complete_search: bool = False, substeps: int | None = None,
+                 **inputs: Any) -> SceneChecks:
+    """:func:`check` of each scene file in ``scenes``, the other inputs the same for all
+    (as ``stepsafe check A.yaml B.yaml`` with options): a file that cannot be checked
+    (bad input) becomes a :class:`CheckError` in its place and the others are checked
+    still. A scene whose method is an impulse method is checked by
+    :func:`stepsafe.impulse_advice` (``substeps`` overrides its count).
+
+    Parameters
+    ----------
+    scenes : list of str or Path
+        The scene files, checked in this order.
+    h : float or str, optional
+        The step for every scene, in its time unit or as a text with a time unit
+        (``"0.5 fs"``); default: each scene's ``h:``.
+    resonance_order, criterion, verify, solver, require_complete_search
+        As for :func:`check`.
+    substeps : int, optional
+        Inner steps per outer drift of an impulse method's scenes.
+    **inputs
+        The keywords of :func:`problem` (frequencies with their units, ``time_unit``,
+        ``margin``, ...) but ``scene``, the same for every scene.
+
+    Returns
+    -------
+    SceneChecks
+        ``checks`` in the order of ``scenes``; ``safe``, ``exit_code`` and ``to_dict()``
+        (what ``stepsafe check A.yaml B.yaml ... --json`` prints).
+
+    >>> checks = check_scenes(["examples/scene.yaml", "examples/paper-section3.yaml"])
+    >>> checks.safe, checks.exit_code
+    (False, 1)
+    """
+    if isinstance(scenes, (str, Path)) or not isinstance(scenes, Sequence) or not scenes:
+        raise StepsafeError("scenes must be a non-empty list of scene files")
+    out: list[Any] = []
+    for scene in scenes:
+        try:
+            impulse = _impulse_of(scene, inputs)
+            if impulse is None:
+                if substeps is not None:
+                    raise StepsafeError("substeps applies to impulse (multiple time stepping) "
+                                        "methods only")
+                out.append(check(h=h, scene=scene, resonance_order=resonance_order,
+                                 criterion=criterion, verify=verify, solver=solver,
+                                 require_complete_search=require_complete_search, **inputs))
+                continue
+            out.append(_impulse_check(impulse, scene, h, substeps, criterion,
+                                      resonance_order, verify, inputs))
+        except StepsafeError as exc:
+            out.append(CheckError(_text(scene, "scene") if isinstance(scene, (str, Path))
+                                  else None, exc.message, exc.where))
+    return SceneChecks(tuple(out))
+
+
+def _impulse_of(scene: Any, inputs: Mapping[str, Any]) -> Integrator | None:
+    """The impulse method a scene is checked with (``method`` given, else the scene's), or
+    None for any other method."""
+    from stepsafe.systems.scene import load_scene
+
+    name = inputs.get("method")
+    if isinstance(name, Integrator):
+        return name if name.kind == "impulse" else None
+    if inputs.get("stages") is not None or inputs.get("base") is not None:
+        return None
+    if name is None:
+        ref = load_scene(_text(scene, "scene"), inputs.get("time_unit")).method
+        name = None if ref is None or ref.stages or ref.base else ref.name
+    if not isinstance(name, str):
+        return None
+    try:
+        integrator = method(name)
+    except StepsafeError:
+        return None  # the check of any other method reports it in context
+    return integrator if integrator.kind == "impulse" else None
+
+
+def _impulse_check(integrator: Integrator, scene: Any, h: Any, substeps: int | None,
+                   criterion: str, resonance_order: int | None, verify: bool,
+                   inputs: Mapping[str, Any]) -> Any:
+    from stepsafe.respa_advice import impulse_advice
+
+    given = [key for key in _SINGLE_FORCE if inputs.get(key) is not None]
+    if given or _flag(verify, "verify"):
+        raise StepsafeError(f"{(given or ['verify'])[0]} does not apply to the impulse method "
+                            f"{integrator.name}: its modes come as fast: and slow: frequencies "
+                            "in a scene file (or use stepsafe.impulse for one pair)")
+    report = impulse_advice(integrator, scene=_text(scene, "scene"), substeps=substeps, step=h,
+                            time_unit=inputs.get("time_unit"), criterion=criterion,
+                            resonance_order=resonance_order, use_scene_step=h is None)
+    if report.step is None:
+        raise StepsafeError("no step to check: give --step H or h: in the scene", str(scene))
+    return report
 
 
 # --------------------------------------------------------------------------- errors
@@ -926,6 +1189,7 @@ def _finite(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
 
 
+@public()
 def errors(method: Integrator | str, z: ArrayLike, model: str = "oscillator") -> ErrorTable:
     """Phase and energy errors of one step at each z = beta*h > 0.
 
@@ -971,6 +1235,7 @@ def _z_values(z: Any) -> np.ndarray:
         raise StepsafeError("z must be a number or a list or array of real numbers") from None
 
 
+@public()
 def transfer_matrices(method: Integrator | str, z: ArrayLike,
                       model: str = "oscillator") -> np.ndarray:
     """The one-step matrices M(z) of ``method`` on ``model`` at each z = beta*h, shape
@@ -1074,19 +1339,22 @@ def _compare_row_dict(row: dict[str, Any]) -> dict[str, Any]:
     return row
 
 
+@public()
 def compare(methods: Sequence[Integrator | str] | str | None = None,
-            frequencies: ArrayLike | None = None, *, saddle: ArrayLike | None = None,
-            inverted: ArrayLike | None = None, modes: Mapping[str, ArrayLike] | None = None,
+            beta: ArrayLike | None = None, *, saddle_beta: ArrayLike | None = None,
+            inverted_beta: ArrayLike | None = None,
+            modes: Mapping[str, ArrayLike] | None = None,
             tol_phase: float | None = None, tol_energy: float | None = None,
             margin: float = 1.0, zmax: float | None = None,
-            frequency: UnitValues | None = None, wavenumber: UnitValues | None = None,
-            period: UnitValues | None = None, time_unit: str | None = None,
-            solver: str = "fixed-point", criterion: str = "structure",
-            gradient_cost: float = 1.0) -> CompareReport:
+            ordinary_frequency: UnitValues | None = None, wavenumber: UnitValues | None = None,
+            period: UnitValues | None = None, sigma: ArrayLike | None = None,
+            time_unit: str | None = None, solver: str = "fixed-point",
+            criterion: str = "structure", gradient_cost: float = 1.0) -> CompareReport:
     """Rank ``methods`` (names, ``"family:N"`` such as ``"gauss:2"``, Integrators; ``"all"``:
     every built-in method with the families at s = 2 and 3; None: :data:`COMPARE_DEFAULT`)
     by the cost of the usable step h = min(safe, accurate) for the same frequencies
-    (given as for :func:`problem`; h in ``time_unit``; ``"all"`` leaves out the methods
+    (``beta`` in rad per time unit, the others with their units as for :func:`problem`;
+    h in ``time_unit``; ``"all"`` leaves out the methods
     with no form for a given model: force-gradient methods on saddles). Implicit methods
     cost the force
     evaluations of fixed-point iteration of their stages at that h (``solver="nominal"``:
@@ -1106,10 +1374,12 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     from stepsafe.units import time_unit as known_time_unit
 
     criterion = validate_criterion(criterion)
-    time_unit = known_time_unit(time_unit)
-    converted = _converted({"frequency": frequency, "wavenumber": wavenumber,
-                            "period": period}, time_unit)
-    grid = Modes.from_arrays(_modes_dict(frequencies, saddle, inverted, modes, converted))
+    from stepsafe.units import implied_time_unit
+
+    time_unit = known_time_unit(time_unit) or implied_time_unit(period)
+    converted = _converted({"ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
+                            "period": period, "sigma": sigma}, time_unit)
+    grid = Modes.from_arrays(_frequencies(beta, saddle_beta, inverted_beta, modes, converted))
     tolerances = tuple(Tolerance(k, _tolerance(k, v)) for k, v in
                        (("phase", tol_phase), ("energy", tol_energy)) if v is not None)
     margin = validate_margin(margin)
@@ -1146,7 +1416,7 @@ def named_method(item: str) -> Integrator:
     name, _, stages = _text(item, "method").strip().partition(":")
     if stages and not (stages.isascii() and stages.isdigit() and len(stages) <= 30):
         raise StepsafeError(f"bad stage count in {item!r} (use family:N)")
-    return method(name, int(stages) if stages else None)
+    return method(name, stages=int(stages) if stages else None)
 
 
 def _compared(methods: Sequence[Integrator | str] | str | None) -> list[Integrator]:
@@ -1154,7 +1424,7 @@ def _compared(methods: Sequence[Integrator | str] | str | None) -> list[Integrat
 
     if isinstance(methods, str) and methods == "all":
         return ([method(n) for n in builtin_names(single_force=True) if n not in FAMILIES]
-                + [method(f, s) for f in FAMILIES for s in (2, 3)])
+                + [method(f, stages=s) for f in FAMILIES for s in (2, 3)])
     if isinstance(methods, str) or (methods is not None and not isinstance(
             methods, (list, tuple))):
         raise StepsafeError(f"methods must be a list of names or 'all', got "
@@ -1170,6 +1440,7 @@ def _compared(methods: Sequence[Integrator | str] | str | None) -> list[Integrat
     return out
 
 
+@public()
 def load_scene(path: str | Path) -> Any:
     """A scene file (see ``stepsafe schema scene``) as a :class:`stepsafe.systems.scene.Scene`;
     pass its path as ``scene=`` to :func:`advise` or :func:`check`."""

@@ -41,7 +41,8 @@ from typing import Any
 
 import numpy as np
 
-from stepsafe.api import ArrayLike, Integrator, _compared, _problem_of, _step_cost
+from stepsafe.api import Integrator, _compared, _problem_of, _step_cost, problem
+from stepsafe.arguments import public
 from stepsafe.core.regions import ROUNDING_GAP_RULE
 from stepsafe.core.roots import EPS
 from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
@@ -148,16 +149,19 @@ def _validated(target: float, steps: int | None, length: float | None,
     return float(target), steps, length, float(jitter)
 
 
-def hmc(methods: Sequence[Integrator | str] | str | None = None,
-        frequencies: ArrayLike | None = None, *, steps: int | None = None,
-        length: float | None = None, jitter: float = 0.0, target_accept: float = 0.8,
-        step: float | None = None, criterion: str = "stability", curve: int = 0,
+@public(lambda: problem, drop=("method", "h"))
+def hmc(methods: Sequence[Integrator | str] | str | None = None, *, steps: int | None = None,
+        length: float | str | None = None, jitter: float = 0.0, target_accept: float = 0.8,
+        step: float | str | None = None, criterion: str = "stability", curve: int = 0,
         gradient_cost: float = 1.0, allow_unstable_jitter: bool = False,
         **inputs: Any) -> HmcReport:
     """HMC on a Gaussian target with each of ``methods`` (names, ``"all"``, or None for
-    :data:`HMC_DEFAULT`). The target is given as for :func:`stepsafe.problem`: ``sigma``
-    (standard deviations), ``frequencies`` (beta = 1/sigma for unit mass), a scene, or
+    :data:`HMC_DEFAULT`). The target is given by keyword as for :func:`stepsafe.problem`:
+    ``sigma`` (standard deviations, in the units of q), ``beta`` (angular frequencies, rad
+    per time unit: beta = 1/sigma for unit mass), a scene, or
     ``system={"covariance": C}`` / ``{"precision": P}`` with an optional ``"mass"``.
+    Steps and lengths are numbers in the time unit, or texts with a time unit (``"0.5
+    fs"``).
     ``steps`` L per trajectory, or ``length`` T (L = floor(T / h), as Stan), or neither (the
     acceptance is then the bound over every L); ``jitter`` j draws each step from
     ``h (1 +- j)``: the step at target keeps ``h (1 + j)`` within the criterion's step limit
@@ -178,8 +182,9 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
     """
     from stepsafe.core.hmc import Trajectory
     from stepsafe.core.regions import validate_criterion
+    from stepsafe.units import duration
 
-    target, steps, length, jitter = _validated(target_accept, steps, length, jitter)
+    _validated(target_accept, steps, None, jitter)  # the unit-free ones, before any work
     from stepsafe.methods.tableaux import validate_gradient_cost
 
     validate_gradient_cost(gradient_cost)  # a bad value fails before any work
@@ -187,13 +192,16 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None,
     if not isinstance(allow_unstable_jitter, (bool, np.bool_)):
         raise StepsafeError("allow_unstable_jitter must be True or False, got "
                             f"{str(allow_unstable_jitter)[:20]!r}")
-    if step is not None:
-        step = positive_finite(step, "step")
     if isinstance(curve, bool) or not isinstance(curve, int) or not 0 <= curve <= 10_000:
         raise StepsafeError(f"curve must be an integer from 0 to 10000, got {curve!r}")
     integrators = _compared(HMC_DEFAULT if methods is None else methods)
     progress = inputs.pop("progress", None)  # called with the fraction of methods done
-    p = _problem_of(integrators[0], frequencies, inputs)
+    p = _problem_of(integrators[0], inputs.pop("beta", None), inputs, times=(step, length))
+    if length is not None:
+        length = duration(length, "length", p.time_unit)
+    target, steps, length, jitter = _validated(target_accept, steps, length, jitter)
+    if step is not None:
+        step = positive_finite(duration(step, "step", p.time_unit), "step")
     betas, errors = _gaussian_betas(p)
     trajectory = Trajectory(steps, length, jitter)
     rows = []
@@ -438,11 +446,13 @@ class DesignReport:
                                for c in self.comparison]}
 
 
-def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2,
-           jitter: float = 0.0, name: str | None = None, **inputs: Any) -> DesignReport:
+@public(lambda: problem, drop=("method", "h"))
+def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
+           name: str | None = None, **inputs: Any) -> DesignReport:
     """Design the palindromic ``stages``-stage splitting (2: parameter b; 3: b and a; see
     :mod:`stepsafe.core.design`) that minimises the expected energy error summed over the
-    target's modes (the target as for :func:`hmc`) at ``step``, averaged over
+    target's modes (the target by keyword as for :func:`hmc`: ``sigma``, ``beta``, ...)
+    at ``step`` (in the time unit, or a text with a time unit), averaged over
     ``step (1 +- jitter)``, every mode stable up to ``step (1 + jitter)`` (an M = +-I
     resonance does not end the stable steps: the rule ``hmc`` uses,
     :func:`stepsafe.core.regions.stable_run`).
@@ -459,14 +469,16 @@ def design(frequencies: ArrayLike | None = None, *, step: float, stages: int = 2
     if isinstance(stages, bool) or not isinstance(stages, (int, np.integer)) or \
             stages not in PARAMETERS:
         raise StepsafeError(f"stages must be 2 or 3, got {stages!r}")
-    step = positive_finite(step, "step")
+    from stepsafe.units import duration
+
     _, _, _, jitter = _validated(0.5, None, None, jitter)
     name = f"designed-{stages}stage" if name is None else name
     if not isinstance(name, str) or not name or not all(
             c.isascii() and (c.isalnum() or c == "-") for c in name) or len(name) > 60:
         raise StepsafeError(f"name must be 1 to 60 letters, digits and '-' (as method files "
                             f"require), got {str(name)[:40]!r}")
-    p = _problem_of("verlet", frequencies, inputs)
+    p = _problem_of("verlet", inputs.pop("beta", None), inputs, times=(step,))
+    step = positive_finite(duration(step, "step", p.time_unit), "step")
     betas, errors = _gaussian_betas(p)
     # designed for each frequency at the largest it may be (the rounding of the
     # eigenvalues it came from), as hmc and advise limit the step

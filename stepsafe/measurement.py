@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 
 from stepsafe.api import Integrator
+from stepsafe.arguments import public
 from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
 
 #: Steps of one run at most by default (each costs the method's evaluations in Python)...
@@ -169,22 +170,25 @@ class _Problem:
     centre: np.ndarray | None = None
 
 
-def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Path | None = None,
-            system: Mapping[str, Any] | None = None, time: float | None = None,
+@public()
+def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
+            scene: str | Path | None = None,
+            system: Mapping[str, Any] | None = None, time: float | str | None = None,
             initial: Sequence[float] | None = None, energy: float | None = None,
             time_unit: str | None = None, solver: str = "fixed-point",
             max_steps: int = MAX_STEPS, budget: float | None = None,
             progress: Callable[[float], None] | None = None) -> MeasureReport:
     """Integrate the system of ``scene`` (or ``system``: the mapping a scene's ``system:``
-    holds) with ``method`` at each step h of ``steps`` for a time ``time`` (default: 100
+    holds) with ``method`` at each step size of ``h`` for a time ``time`` (default: 100
     periods of the vibration the start orbits), from ``initial`` (q then p) or, for a
     1-dof Hamiltonian, from the elliptic equilibrium with momentum raised to the
     ``energy`` given (default start: q displaced from that equilibrium by a tenth of the
     box). Implicit methods solve their stages by ``solver``: ``fixed-point`` iteration or
     simplified ``newton`` (the Jacobian from the Hessian at each step's start). A run of
     more than ``max_steps`` steps is refused; after ``budget`` seconds the run under way
-    stops (status ``budget``) and the rest are not run (``not run``). See the module
-    docstring for what is measured.
+    stops (status ``budget``) and the rest are not run (``not run``). Steps and the time
+    are numbers in ``time_unit`` (else the scene's, else the unit their texts name), or
+    texts with a time unit (``"0.5 fs"``). See the module docstring for what is measured.
 
     >>> report = measure("verlet", [0.1], system={"hamiltonian": "p**2/2 + q**2/2",
     ...                  "box": {"q": [-1, 1], "p": [-1, 1]}}, initial=[0.0, 1.0])
@@ -194,18 +198,24 @@ def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Pa
     """
     from stepsafe.api import _integrator
     from stepsafe.core.integrator import Engine
+    from stepsafe.systems.scene import time_unit_in_force
+    from stepsafe.units import duration
     from stepsafe.units import time_unit as known_time_unit
 
     integrator = _integrator(method)
     time_unit = known_time_unit(time_unit)
-    hs = _steps(steps)
+    steps = [h] if isinstance(h, (int, float, str)) else h
+    time_unit = time_unit_in_force(time_unit, scene,
+                                   list(steps) if isinstance(steps, (list, tuple)) else None,
+                                   time)
+    hs = _steps(steps, time_unit)
     problem = _problem(integrator, scene, system, initial, energy, time_unit)
     if time is None:
         if problem.beta is None:
             raise StepsafeError("give the time to integrate (--time T): the start orbits no "
                                 "vibration whose period would set it")
         time = DEFAULT_PERIODS * 2 * math.pi / problem.beta
-    time = positive_finite(time, "time")
+    time = positive_finite(duration(time, "time", time_unit), "time")
     if isinstance(max_steps, bool) or not isinstance(max_steps, int) or \
             not 1 <= max_steps <= MAX_STEPS_CAP:
         raise StepsafeError(f"max_steps must be an integer from 1 to {MAX_STEPS_CAP}")
@@ -227,17 +237,17 @@ def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Pa
     except ValueError as exc:
         raise StepsafeError(f"{integrator.name}: {exc}") from None
     total, done = float(sum(counts)), 0
-    exact = problem.reference([n * h for h, n in zip(hs, counts)], deadline)
+    exact = problem.reference([n * step for step, n in zip(hs, counts)], deadline)
     rows = []
-    for h, n, state in zip(hs, counts, exact):
+    for step, n, state in zip(hs, counts, exact):
         def tick(k: int, done=done) -> None:
             if progress:
                 progress((done + k) / total)
 
         if deadline is not None and _time.monotonic() > deadline:
-            rows.append(MeasureRow(h, n, n * h, "not run", *(None,) * 7))
+            rows.append(MeasureRow(step, n, n * step, "not run", *(None,) * 7))
             continue
-        rows.append(_run(integrator, problem, h, n, state, tick, solver, deadline))
+        rows.append(_run(integrator, problem, step, n, state, tick, solver, deadline))
         done += n
     state = np.concatenate([problem.q0[0], problem.p0[0]])
     return MeasureReport(integrator.name, problem.description, tuple(map(float, state)),
@@ -245,18 +255,19 @@ def measure(method: Integrator | str, steps: Sequence[float], *, scene: str | Pa
                          problem.beta, problem.reference_text, tuple(rows), time_unit)
 
 
-def _steps(steps: Sequence[float]) -> list[float]:
-    if isinstance(steps, (int, float)):
-        steps = [steps]
+def _steps(steps: Sequence[float | str], time_unit: str | None) -> list[float]:
+    """The step sizes h in ``time_unit`` (numbers, or texts with a time unit)."""
+    from stepsafe.units import duration
+
     try:
         items = list(steps)
     except TypeError:
-        raise StepsafeError("steps must be a list of step sizes h") from None
+        raise StepsafeError("h must be a step size or a list of step sizes") from None
     if not items:
         raise StepsafeError("no step sizes: give --h H (repeatable) or --h-range LO,HI,N")
     if len(items) > MAX_STEP_SIZES:
         raise StepsafeError(f"{len(items)} step sizes; at most {MAX_STEP_SIZES} per run")
-    return [positive_finite(h, "h") for h in items]
+    return [positive_finite(duration(h, "h", time_unit), "h") for h in items]
 
 
 def _run(integrator: Integrator, problem: _Problem, h: float, n: int, exact: np.ndarray,
@@ -729,9 +740,10 @@ class Refinement:
                 "limited_by": self.limited_by, "runs": self.runs.to_dict()}
 
 
+@public()
 def refine(method: Integrator | str, quantity: str, tol: float, *,
            scene: str | Path | None = None, system: Mapping[str, Any] | None = None,
-           time: float | None = None, initial: Sequence[float] | None = None,
+           time: float | str | None = None, initial: Sequence[float] | None = None,
            energy: float | None = None, time_unit: str | None = None,
            solver: str = "fixed-point",
            progress: Callable[[float], None] | None = None) -> Refinement:
@@ -748,18 +760,22 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
     from stepsafe.api import _integrator
     from stepsafe.core.accuracy import z_for_tolerance
     from stepsafe.core.regions import find_region
+    from stepsafe.systems.scene import time_unit_in_force
+    from stepsafe.units import duration
+    from stepsafe.units import time_unit as known_time_unit
 
     if not isinstance(quantity, str) or quantity not in ("energy", "trajectory"):
         raise StepsafeError(f"quantity must be energy or trajectory, got {quantity!r}")
     tol = positive_finite(tol, f"the {quantity} tolerance")
     integrator = _integrator(method)
-    problem = _problem(integrator, scene, system, initial, energy)
+    time_unit = time_unit_in_force(known_time_unit(time_unit), scene, time)
+    problem = _problem(integrator, scene, system, initial, energy, time_unit)
     if problem.beta is None:
         raise StepsafeError("the start orbits no vibration: nothing to predict h from")
     beta = problem.beta
     if time is None:
         time = DEFAULT_PERIODS * 2 * math.pi / beta
-    time = positive_finite(time, "time")
+    time = positive_finite(duration(time, "time", time_unit), "time")
     z_star = find_region(integrator.tableau, "oscillator").first_boundary or 10.0
     h_safe = z_star / beta
     if quantity == "energy":

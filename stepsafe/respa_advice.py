@@ -18,6 +18,7 @@ from types import MappingProxyType
 from typing import Any
 
 from stepsafe.api import Integrator
+from stepsafe.arguments import public
 from stepsafe.exceptions import StepsafeError, positive_finite
 
 #: The default search in beta H stops here at most (a slow force 1e6 times the fast one).
@@ -64,16 +65,19 @@ class ImpulseReport:
                 "nonlinear_resonances": [dict(r) for r in self.nonlinear]}
 
 
-def impulse(outer: Integrator | str = "verlet", inner: Integrator | str | None = None,
-            substeps: int | None = None, *, fast: float, slow: float,
-            step: float | None = None, criterion: str = "stability",
+@public()
+def impulse(outer: Integrator | str = "verlet", inner: Integrator | str | None = None, *,
+            substeps: int | None = None, fast_beta: float, slow_beta: float,
+            step: float | str | None = None, criterion: str = "stability",
             zmax: float | None = None, time_unit: str | None = None,
             resonance_order: int | None = None) -> ImpulseReport:
     """The safe outer steps of the impulse method ``outer``/``inner`` with ``substeps``
-    inner steps per outer drift, for the fast and slow angular frequencies (rad per
-    ``time_unit``); with ``step``, whether it is safe. ``outer`` may also be an impulse
-    method (a method file of kind ``impulse``, e.g. ``"respa-verlet"``): then it brings its
-    inner method and substep count (``substeps`` overrides the count); otherwise ``inner``
+    inner steps per outer drift, for the fast and slow forces' angular frequencies
+    ``fast_beta`` and ``slow_beta`` (rad per ``time_unit``); with ``step`` (in the time
+    unit, or a text with a time unit such as ``"2 fs"``), whether it is safe. ``outer``
+    may also be an impulse method (a method file of kind ``impulse``, e.g.
+    ``"respa-verlet"``): then it brings its inner method and substep count
+    (``substeps`` overrides the count); otherwise ``inner``
     defaults to ``"verlet"`` and ``substeps`` to 4. ``criterion``: ``stability`` (the
     default: |tr M| <= 2, the unstable bands of the impulse literature) or ``structure``
     (also the sense of rotation, reversed by the outer step between Omega H = pi and 2 pi).
@@ -87,14 +91,18 @@ def impulse(outer: Integrator | str = "verlet", inner: Integrator | str | None =
     order at most N (the 3:1 is the limit near a third of the fast period that Ma,
     Izaguirre & Skeel, SIAM J. Sci. Comput. 24 (2003) 1951, found for impulse methods).
 
-    >>> report = impulse("verlet", "verlet", 4, fast=10.0, slow=1.0)
+    >>> report = impulse("verlet", "verlet", substeps=4, fast_beta=10.0, slow_beta=1.0)
     >>> round(10.0 * report.h_max / 3.141592653589793, 4)   # just below Omega H = pi
     0.9649
-    >>> impulse("respa-verlet", fast=10.0, slow=1.0).h_max == report.h_max
+    >>> impulse("respa-verlet", fast_beta=10.0, slow_beta=1.0).h_max == report.h_max
     True
     """
+    from stepsafe.units import implied_time_unit
+    from stepsafe.units import time_unit as known_time_unit
+
     method = impulse_method(outer, inner, substeps)
-    return _impulse(method, fast, slow, step, criterion, zmax, time_unit, resonance_order)
+    return _impulse(method, fast_beta, slow_beta, step, criterion, zmax,
+                    known_time_unit(time_unit) or implied_time_unit(step), resonance_order)
 
 
 def impulse_method(outer: Integrator | str = "verlet", inner: Integrator | str | None = None,
@@ -141,7 +149,7 @@ def _name(value: Any, role: str) -> str:
     return value
 
 
-def _impulse(method: Any, fast: Any, slow: Any, step: float | None, criterion: str,
+def _impulse(method: Any, fast: Any, slow: Any, step: float | str | None, criterion: str,
              zmax: float | None, time_unit: str | None, resonance_order: int | None
              ) -> ImpulseReport:
     from stepsafe.core.advice import Modes, advise, check_step
@@ -174,7 +182,7 @@ def _impulse(method: Any, fast: Any, slow: Any, step: float | None, criterion: s
     modes = Modes.from_arrays({"oscillator": [beta]})
     verdict, reason = None, None
     if step is not None:
-        step = positive_finite(step, "step")
+        step = _step(step, time_unit)
         result = check_step(split, modes, step, zmax=zmax, name=split.name,
                             criterion=criterion, resonance_order=order)
         adv, verdict = result.advice, result.safe
@@ -221,8 +229,9 @@ def _impulse(method: Any, fast: Any, slow: Any, step: float | None, criterion: s
 
 
 def _frequency(value: Any, name: str) -> float:
-    if isinstance(value, bool):
-        raise StepsafeError(f"the {name} frequency must be a number, got a bool")
+    if isinstance(value, (bool, str)):
+        raise StepsafeError(f"the {name} frequency must be a number (rad per time unit), "
+                            f"got {'a bool' if isinstance(value, bool) else 'a text'}")
     try:
         value = float(value)
     except (TypeError, ValueError, OverflowError):
@@ -276,6 +285,14 @@ class ImpulseModesReport:
                 "modes": modes}
 
 
+def _step(step: Any, time_unit: str | None) -> float:
+    """An outer step H: a number in the time unit, or a text with a time unit."""
+    from stepsafe.units import duration
+
+    return positive_finite(duration(step, "step", time_unit), "step")
+
+
+@public()
 def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
                    labels: Any = None, scene: str | None = None,
                    substeps: int | None = None, step: float | None = None,
@@ -283,7 +300,8 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
                    resonance_order: int | None = None,
                    use_scene_step: bool = False) -> ImpulseModesReport:
     """The safe outer steps of an impulse method for every mode of a system: ``pairs`` is
-    a list of ``(fast, slow)`` angular frequencies (rad per ``time_unit``), or a ``scene``
+    a list of ``(fast, slow)`` angular frequencies (rad per ``time_unit``; ``step`` in it,
+    or a text with a time unit), or a ``scene``
     file gives them (its ``modes:`` with ``fast:`` and ``slow:``, or ``system:`` with
     ``stiffness_fast``, ``stiffness_slow`` and ``mass``), with the method, ``substeps``,
     the time unit and, when ``use_scene_step``, the step ``h`` to check. Arguments given
@@ -296,10 +314,10 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
     """
     import numpy as np
 
-    from stepsafe.systems.scene import Scene, load_scene
+    from stepsafe.systems.scene import Scene, load_scene, time_unit_in_force
     from stepsafe.units import time_unit as known_time_unit
 
-    time_unit = known_time_unit(time_unit)
+    time_unit = time_unit_in_force(known_time_unit(time_unit), scene, step)
     loaded = load_scene(scene, time_unit) if scene is not None else Scene(time_unit=time_unit)
     if method is None:
         if loaded.method is None:
@@ -327,7 +345,7 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
                                 "{stiffness_fast:, stiffness_slow:} in a scene file)",
                                 loaded.where or None)
     try:
-        if np.iscomplexobj(np.asarray(pairs)):
+        if np.asarray(pairs).dtype.kind not in "iuf":  # complex, texts, ragged lists
             raise TypeError
         table = np.array(pairs, dtype=float).reshape(-1, 2)
     except (TypeError, ValueError, OverflowError):
@@ -340,7 +358,7 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
     if step is None and use_scene_step:
         step = loaded.h
     if step is not None:
-        step = positive_finite(step, "step")
+        step = _step(step, loaded.time_unit)
     from_scene = pairs is loaded.pairs and loaded.pairs is not None
     reports_list = []
     for i, (fast, slow) in enumerate(table):
@@ -393,7 +411,7 @@ def _coupled_advice(method: Any, split: Any, step: float | None, criterion: str,
     safe_h = ((0.0, None if result.h_max >= result.horizon else h_max),)
     verdict, failures = None, ()
     if step is not None:
-        step = positive_finite(step, "step")
+        step = _step(step, scene.time_unit)
         reason = None
         if step >= h_max and result.h_max < result.horizon:
             reason = (f"H = {step:.12g} is at or beyond the end {h_max:.12g} of the safe "

@@ -52,7 +52,7 @@ def test_import_stepsafe_is_light():
     (["region", "verlet", "--model", "saddle", "--zmax", "5", "--json"],
      lambda: stepsafe.region("verlet", "saddle", zmax=5).to_dict()),
     (["advise", "--method", "yoshida4", "--beta", "3.2", "--inverted-beta", "1.1", "--json"],
-     lambda: stepsafe.advise("yoshida4", [3.2], inverted=[1.1]).to_dict()),
+     lambda: stepsafe.advise("yoshida4", [3.2], inverted_beta=[1.1]).to_dict()),
     (["advise", "--method", "verlet", "--beta", "2", "--tol-phase", "1e-3", "--json"],
      lambda: stepsafe.advise("verlet", 2.0, tol_phase=1e-3).to_dict()),
     (["advise", str(ROOT / "examples/double-well.yaml"), "--json"],
@@ -60,9 +60,9 @@ def test_import_stepsafe_is_light():
     (["error", "yoshida4", "--z", "0.1", "--z", "1", "--json"],
      lambda: stepsafe.errors("yoshida4", [0.1, 1.0]).to_dict()),
     (["compare", "--beta", "3.2", "--inverted-beta", "1", "--tol-phase", "1e-6", "--json"],
-     lambda: stepsafe.compare(None, [3.2], inverted=[1.0], tol_phase=1e-6).to_dict()),
+     lambda: stepsafe.compare(None, [3.2], inverted_beta=[1.0], tol_phase=1e-6).to_dict()),
     (["compare", "--methods", "verlet,gauss:3", "--beta", "2", "--margin", "0.9", "--json"],
-     lambda: stepsafe.compare(["verlet", stepsafe.method("gauss", 3)], [2.0],
+     lambda: stepsafe.compare(["verlet", stepsafe.method("gauss", stages=3)], [2.0],
                               margin=0.9).to_dict()),
 ])
 def test_to_dict_is_the_command_json(run, args, call):
@@ -71,13 +71,66 @@ def test_to_dict_is_the_command_json(run, args, call):
     assert json.loads(out) == json.loads(json.dumps(call()))
 
 
-def test_check_to_dict_is_one_entry_of_the_command_json(run):
-    scene = str(ROOT / "examples/paper-section3.yaml")
-    code, out, _ = run("check", scene, "--json")
-    report = stepsafe.check(scene=scene)
-    assert code == 1 and not report.safe
-    assert json.loads(out) == {"safe": False, "checks": [report.to_dict()]}
-    assert report.failures[0]["model"] == "saddle"
+def _scenes(folder):
+    """Scenes for check: safe, unsafe, an impulse method's, one in fs with h in ps, one
+    with a key that is no scene key, one that does not exist."""
+    files = {"safe": "method: verlet\nh: 0.1\nmodes: [{beta: 1, label: bond}]\n",
+             "unsafe": "method: verlet\nh: 3\nmodes: [{beta: 1}]\n",
+             "impulse": "method: respa-verlet\nh: 0.1\nmodes: [{fast: 10, slow: 1}]\n",
+             "units": "method: verlet\ntime_unit: fs\nh: 0.0005 ps\n"
+                      "modes: [{wavenumber: 3700}]\n",
+             "bad": "method: verlet\nh: 0.1\nmodez: [{beta: 1}]\n"}
+    paths = {}
+    for name, text in files.items():
+        paths[name] = folder / f"{name}.yaml"
+        paths[name].write_text(text)
+    paths["missing"] = folder / "missing.yaml"
+    return {k: str(v) for k, v in paths.items()}
+
+
+@pytest.mark.parametrize("names, code", [
+    (["unsafe"], 1), (["safe"], 0), (["impulse"], 0), (["units"], 0), (["bad"], 2),
+    (["safe", "unsafe"], 1), (["safe", "bad", "unsafe", "missing"], 2),
+    (["impulse", "units", "safe"], 0), (["paper"], 1),
+])
+def test_check_to_dict_is_the_command_json(run, tmp_path, names, code):
+    """The API's check of one scene and check_scenes of several give exactly the dict
+    that `stepsafe check ... --json` prints (a file that cannot be checked as its error
+    record, in its place), and the command exits with the worst code of its files."""
+    paths = {**_scenes(tmp_path), "paper": str(ROOT / "examples/paper-section3.yaml")}
+    files = [paths[n] for n in names]
+    got, out, err = run("check", *files, "--json")
+    data = json.loads(out)
+    suite = stepsafe.check_scenes(files)
+    assert got == code == suite.exit_code
+    assert data == json.loads(json.dumps(suite.to_dict()))
+    assert [c["scene"] for c in data["checks"]] == files
+    assert data["safe"] is (code == 0)
+    errors = [c for c in data["checks"] if "error" in c]
+    assert len(err.strip().splitlines()) == len(errors)
+    for entry in errors:
+        assert entry["safe"] is None and entry["where"].startswith(entry["scene"])
+    if len(files) == 1 and not errors and names != ["impulse"]:
+        assert data == json.loads(json.dumps(stepsafe.check(scene=files[0]).to_dict()))
+
+
+@pytest.mark.parametrize("args, call", [
+    (["--method", "verlet", "--beta", "3", "--step", "0.5"],
+     lambda: stepsafe.check("verlet", 0.5, [3.0])),
+    (["--method", "pefrl", "--beta", "1", "--saddle-beta", "2", "--step", "1.2"],
+     lambda: stepsafe.check("pefrl", 1.2, [1.0], saddle_beta=[2.0])),
+    (["--method", "verlet", "--wavenumber", "3700", "--step", "0.5fs"],
+     lambda: stepsafe.check("verlet", "0.5 fs", wavenumber=[3700])),
+    (["--method", "verlet", "--beta", "1", "--step", "1.8", "--resonance-order", "3"],
+     lambda: stepsafe.check("verlet", 1.8, [1.0], resonance_order=3)),
+])
+def test_check_of_the_command_line_is_its_json(run, args, call):
+    """Without scene files, ``check(...).to_dict()`` is the command's --json as well."""
+    report = call()
+    code, out, _ = run("check", *args, "--json")
+    assert code == (0 if report.safe else 1)
+    assert json.loads(out) == json.loads(json.dumps(report.to_dict()))
+    assert report.to_dict()["checks"] == [report.entry()]
 
 
 def test_results_are_frozen_and_calls_are_silent(capsys):
@@ -233,7 +286,7 @@ def test_transfer_matrices_and_recipes_agree():
     z = np.array([0.3, 1.1, 2.7])
     for name, stages in (("verlet", None), ("yoshida4", None), ("pefrl", None),
                          ("gauss", 2), ("lobatto3ab", 3)):
-        m = stepsafe.method(name, stages)
+        m = stepsafe.method(name, stages=stages)
         got = stepsafe.transfer_matrices(m, z)
         assert not got.flags.writeable
         for k, zz in enumerate(z):
@@ -271,7 +324,7 @@ def test_an_explicit_system_is_never_dropped(tmp_path):
     against a scene's ``modes:`` it wins, as arguments do (it used to be dropped: a
     stiffness of 1e6 at h = 0.05, z = 50, was checked safe)."""
     with pytest.raises(StepsafeError, match="not both"):
-        stepsafe.check("verlet", 1.0, frequencies=[1.0], system={"stiffness": [[100.0]]})
+        stepsafe.check("verlet", 1.0, beta=[1.0], system={"stiffness": [[100.0]]})
     with pytest.raises(StepsafeError, match="not both"):
         stepsafe.hmc(["verlet"], sigma=[1.0], system={"covariance": [[1e-6]]})
     scene = tmp_path / "modes.yaml"

@@ -28,13 +28,13 @@ JUNK = st.one_of(
 
 CALLS = {
     "method.name": lambda v: stepsafe.method(v),
-    "method.stages": lambda v: stepsafe.method("gauss", v),
+    "method.stages": lambda v: stepsafe.method("gauss", stages=v),
     "method.base": lambda v: stepsafe.method("yoshida4", base=v),
     "region.model": lambda v: stepsafe.region("verlet", v),
-    "region.zmax": lambda v: stepsafe.region("verlet", "oscillator", v),
-    "region.verify": lambda v: stepsafe.region("verlet", "oscillator", 1.0, v),
-    "advise.frequencies": lambda v: stepsafe.advise("verlet", v),
-    "advise.saddle": lambda v: stepsafe.advise("verlet", [1.0], saddle=v),
+    "region.zmax": lambda v: stepsafe.region("verlet", "oscillator", zmax=v),
+    "region.verify": lambda v: stepsafe.region("verlet", "oscillator", zmax=1.0, verify=v),
+    "advise.beta": lambda v: stepsafe.advise("verlet", v),
+    "advise.saddle": lambda v: stepsafe.advise("verlet", [1.0], saddle_beta=v),
     "advise.modes": lambda v: stepsafe.advise("verlet", modes=v),
     "advise.margin": lambda v: stepsafe.advise("verlet", [1.0], margin=v),
     "advise.zmax": lambda v: stepsafe.advise("verlet", [1.0], zmax=v),
@@ -103,7 +103,7 @@ def test_hmc_and_design_refuse_unknown_arguments_and_flat_directions():
     with pytest.raises(stepsafe.StepsafeError, match="unknown argument 'qux'"):
         stepsafe.check("verlet", 0.1, [1.0], qux=4)
     with pytest.raises(stepsafe.StepsafeError, match="flat direction"):
-        hmc(["verlet"], frequencies=[0.0, 1.0])
+        hmc(["verlet"], beta=[0.0, 1.0])
 
 
 NOT_REAL = st.one_of(

@@ -85,8 +85,8 @@ def test_hyperbolic_models_keep_the_type_only():
     type (tr M > 2) is what counts, so the stability set contains the structure set."""
     for name in ("gauss", "lobatto3ab"):
         for model in ("saddle", "inverted"):
-            full = stepsafe.region(stepsafe.method(name, 3), model).regions[model]
-            typ = stepsafe.region(stepsafe.method(name, 3), model,
+            full = stepsafe.region(stepsafe.method(name, stages=3), model).regions[model]
+            typ = stepsafe.region(stepsafe.method(name, stages=3), model,
                                   criterion="stability").regions[model]
             for iv in full.intervals:
                 assert any(t.lo <= iv.lo and (t.hi is None or (iv.hi is not None

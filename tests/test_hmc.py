@@ -316,7 +316,7 @@ def test_bad_arguments(kwargs, match):
 
 def test_a_target_with_saddles_is_refused():
     with pytest.raises(StepsafeError, match="only vibrations"):
-        hmc(["verlet"], [1.0], inverted=[1.0])
+        hmc(["verlet"], beta=[1.0], inverted_beta=[1.0])
 
 
 def test_cli_json_and_text(run, run_json):

@@ -124,7 +124,7 @@ def test_negative_precision_is_called_negative_with_its_key():
 
 def test_inverted_mode_given_directly_is_not_called_a_precision():
     with pytest.raises(StepsafeError, match="not modes of a Gaussian target") as caught:
-        hmc(["verlet"], sigma=[1.0], inverted=[1.0])
+        hmc(["verlet"], sigma=[1.0], inverted_beta=[1.0])
     assert "precision" not in caught.value.message.split(":")[-1]
 
 

@@ -43,8 +43,8 @@ def test_the_file_is_verlet_over_verlet_with_its_substeps():
     assert (m.kind, m.order, m.tableau.substeps) == ("impulse", 2, 4)
     assert m.tableau.force_evaluations == (4, 1)
     for k in (4, 7):
-        by_file = impulse("respa-verlet", substeps=k, fast=10.0, slow=1.0)
-        by_parts = impulse("verlet", "verlet", k, fast=10.0, slow=1.0)
+        by_file = impulse("respa-verlet", substeps=k, fast_beta=10.0, slow_beta=1.0)
+        by_parts = impulse("verlet", "verlet", substeps=k, fast_beta=10.0, slow_beta=1.0)
         assert by_file.safe_h == by_parts.safe_h and by_file.substeps == k
     assert method("verlet-i").name == "respa-verlet"
 
@@ -81,9 +81,9 @@ def test_order_two_measured_on_a_split_pendulum():
 def test_other_analyses_refuse_an_impulse_method(run):
     import stepsafe
 
-    for call in (lambda: stepsafe.advise("respa-verlet", frequencies=[1.0]),
+    for call in (lambda: stepsafe.advise("respa-verlet", beta=[1.0]),
                  lambda: stepsafe.region("respa-verlet"),
-                 lambda: stepsafe.compare(["verlet", "respa-verlet"], frequencies=[1.0],
+                 lambda: stepsafe.compare(["verlet", "respa-verlet"], beta=[1.0],
                                           tol_phase=1e-3)):
         with pytest.raises(StepsafeError, match="impulse"):
             call()
@@ -150,8 +150,8 @@ def test_a_scene_with_fast_and_slow_frequencies(tmp_path, run):
     scene = tmp_path / "water.yaml"
     scene.write_text(WATER)
     report = impulse_advice(scene=str(scene))
-    oh = impulse("respa-verlet", fast=quantity("3700", "wavenumber", "fs"),
-                 slow=quantity("300", "wavenumber", "fs"))
+    oh = impulse("respa-verlet", fast_beta=quantity("3700", "wavenumber", "fs"),
+                 slow_beta=quantity("300", "wavenumber", "fs"))
     assert report.h_max == oh.h_max and report.limiting == 0
     assert report.modes[2].fast == 0 and report.time_unit == "fs"
     code, out, err = run("advise", str(scene), "--json")
@@ -390,7 +390,7 @@ def test_region_ratio_and_the_chart(run, tmp_path):
     code, out, err = run("region", "respa-verlet", "--ratio", "0.1", "--json")
     assert code == 0, err
     data = json.loads(out)
-    assert data["h_max"] == impulse("respa-verlet", fast=1.0, slow=0.1).h_max
+    assert data["h_max"] == impulse("respa-verlet", fast_beta=1.0, slow_beta=0.1).h_max
     assert data["units"].startswith("Omega H")
     pytest.importorskip("matplotlib")
     png = tmp_path / "chart.png"
@@ -439,7 +439,7 @@ def test_review_8_inputs(run, tmp_path):
                  ("plot", "respa-verlet", "--ratio", "0.1", "--model", "saddle")):
         code, _, err = run(*args)
         assert code == 2 and err.count("\n") == 1, (args, err)
-    assert impulse("respa-verlet", substeps=400, fast=10.0, slow=1.0).h_max > 0
+    assert impulse("respa-verlet", substeps=400, fast_beta=10.0, slow_beta=1.0).h_max > 0
     split = read_split({"stiffness_fast": np.diag([1.0, 4.0]),
                         "stiffness_slow": np.array([[1e-9, 0.9e-9], [0.9e-9, 1e-9]])},
                        "s", tmp_path)

@@ -258,7 +258,7 @@ def test_a_python_function_as_the_hamiltonian():
 
     assert not read_many(mixed, "api")[0].separable
     assert read_many(system, "api")[0].separable
-    assert stepsafe.measure(stepsafe.method("gauss", 2), [0.1], system=mixed,
+    assert stepsafe.measure(stepsafe.method("gauss", stages=2), [0.1], system=mixed,
                             time=1.0).rows[0].status == "ok"
 
     def broken(q, p, ops):

@@ -25,7 +25,7 @@ def _pendulum():
 
 
 def _run(name, system, q, p, h, n, stages=None):
-    engine = Engine(method(name, stages).tableau, system)
+    engine = Engine(method(name, stages=stages).tableau, system)
     for _ in range(n):
         q, p = engine.step(q, p, h)
     return q, p, engine
@@ -77,7 +77,7 @@ def test_linear_systems_follow_the_transfer_matrices():
     system = linear_system(S)
     x0 = rng.normal(size=2 * n)
     for name, stages in (("yoshida4", None), ("gauss", 2), ("lobatto3ab", 3)):
-        M = one_step_matrix(method(name, stages).tableau, S, 0.05)
+        M = one_step_matrix(method(name, stages=stages).tableau, S, 0.05)
         q, p, _ = _run(name, system, x0[None, :n], x0[None, n:], 0.05, 30, stages)
         expected = np.linalg.matrix_power(M, 30) @ x0
         assert np.allclose(np.concatenate([q[0], p[0]]), expected, rtol=0, atol=1e-11)
@@ -90,7 +90,7 @@ def test_iterations_are_those_of_the_solver_model(name, stages, z):
     iterations and force evaluations per step are the solver model's counts."""
     from stepsafe.core.solver import fixed_point_cost
 
-    tableau = method(name, stages).tableau
+    tableau = method(name, stages=stages).tableau
     cost = fixed_point_cost(tableau, z)
     S = np.eye(2)
     counts = []
@@ -190,7 +190,7 @@ def test_an_unstable_step_and_a_failing_solver_are_reported():
     row = measure("verlet", [2.1], system=PENDULUM, initial=[0.4, 0.0], time=200.0).rows[0]
     assert row.status == "beyond z*" and row.energy_error > 1
     assert row.predicted_energy_error is None
-    report = measure(method("gauss", 2), [3.6], system=PENDULUM, initial=[0.1, 0.0],
+    report = measure(method("gauss", stages=2), [3.6], system=PENDULUM, initial=[0.1, 0.0],
                      time=20.0)
     assert report.rows[0].status == "solver failed"
 
@@ -299,7 +299,7 @@ def test_newton_counts_are_those_of_the_solver_model(name, stages, z):
     from stepsafe.core.solver import NEWTON_ITERATIONS, newton_cost
     from stepsafe.core.transfer import transfer_matrix
 
-    tableau = method(name, stages).tableau
+    tableau = method(name, stages=stages).tableau
     engine = Engine(tableau, linear_system(np.eye(2)), solver="newton")
     q, p = engine.step(np.array([[1.0]]), np.array([[0.0]]), z)
     cost = newton_cost(tableau, z)
@@ -319,7 +319,7 @@ def test_newton_on_the_pendulum_and_in_compare(run):
                     method="DOP853", rtol=1e-13, atol=1e-14).y[:, -1]
     errs = []
     for n in (20, 40):
-        engine = Engine(method("gauss", 2).tableau, _pendulum(), solver="newton")
+        engine = Engine(method("gauss", stages=2).tableau, _pendulum(), solver="newton")
         q, p = np.array([[1.0]]), np.array([[0.0]])
         for _ in range(n):
             q, p = engine.step(q, p, T / n)
@@ -396,10 +396,10 @@ def test_system_scenes_apply_the_solver_limit(run, tmp_path, system):
 def test_trajectory_error_in_the_energy_norm():
     """omega = 2 (not 1): the measured trajectory error equals the predicted phase chord
     (the energy norm makes the orbit a circle), and no ratio once half a turn is lost."""
-    row = measure(method("gauss", 2), [0.466731], system={"stiffness": 4 * np.eye(1)},
+    row = measure(method("gauss", stages=2), [0.466731], system={"stiffness": 4 * np.eye(1)},
                   time=100.0, initial=[1.0, 0.0], solver="newton").rows[0]
     assert row.trajectory_ratio == pytest.approx(1.0, abs=1e-3)
-    wrapped = measure(method("gauss", 2), [1.5], system={"stiffness": 4 * np.eye(1)},
+    wrapped = measure(method("gauss", stages=2), [1.5], system={"stiffness": 4 * np.eye(1)},
                       time=100.0, initial=[1.0, 0.0], solver="newton").rows[0]
     assert wrapped.predicted_trajectory_error == 2.0 and wrapped.trajectory_ratio is None
 

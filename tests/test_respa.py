@@ -16,7 +16,7 @@ from stepsafe.respa_advice import impulse
 
 
 def test_one_substep_is_verlet_on_the_total_force():
-    report = impulse("verlet", "verlet", 1, fast=3.0, slow=4.0)
+    report = impulse("verlet", "verlet", substeps=1, fast_beta=3.0, slow_beta=4.0)
     assert report.h_max == pytest.approx(2.0 / 5.0, rel=1e-12)
 
 
@@ -24,7 +24,7 @@ def test_no_slow_force_is_the_inner_method_with_its_own_step():
     """Five Verlet substeps of the fast force alone: stable up to Omega H / 5 = 2, passing
     M = -I or +I wherever 5 theta = j pi (theta = 2 arcsin(Omega H / 10)): exact touches,
     excluded as resonances since float64 cannot tell them from narrow gaps."""
-    report = impulse("verlet", "verlet", 5, fast=2.0, slow=0.0)
+    report = impulse("verlet", "verlet", substeps=5, fast_beta=2.0, slow_beta=0.0)
     assert report.safe_h[-1][1] == pytest.approx(5.0, rel=1e-12)
     touches = [5.0 * math.sin(j * math.pi / 10) for j in range(1, 5)]
     assert [b["kind"] for b in report.bands] == ["resonance"] * 4 + ["unstable"]
@@ -36,7 +36,7 @@ def test_no_slow_force_is_the_inner_method_with_its_own_step():
                                            (1e6, 3e4, 3), (1e-5, 1e-7, 16),
                                            (1.0, 1e-9, 2)])
 def test_bands_and_safe_steps_at_50_digits(fast, slow, k):
-    report = impulse("verlet", "verlet", k, fast=fast, slow=slow)
+    report = impulse("verlet", "verlet", substeps=k, fast_beta=fast, slow_beta=slow)
     rng = np.random.default_rng(k)
     for lo, hi in report.safe_h:
         top = report.horizon if hi is None else hi
@@ -59,37 +59,38 @@ def test_bands_and_safe_steps_at_50_digits(fast, slow, k):
 
 
 def test_structure_is_stricter_than_stability():
-    both = [impulse("verlet", "verlet", 4, fast=10.0, slow=1.0, criterion=c)
+    both = [impulse("verlet", "verlet", substeps=4, fast_beta=10.0, slow_beta=1.0,
+                    criterion=c)
             for c in ("structure", "stability")]
     assert both[0].h_max == both[1].h_max
     assert len(both[1].safe_h) > len(both[0].safe_h)
 
 
 def test_a_check_of_a_step():
-    ok = impulse(fast=0.696951079904, slow=0.0565095470193, substeps=4, step=2.0)
+    ok = impulse(fast_beta=0.696951079904, slow_beta=0.0565095470193, substeps=4, step=2.0)
     assert ok.safe is True
-    bad = impulse(fast=10.0, slow=1.0, substeps=4, step=0.304)
+    bad = impulse(fast_beta=10.0, slow_beta=1.0, substeps=4, step=0.304)
     assert bad.safe is False and bad.reason
 
 
 def test_other_outer_and_inner_splittings():
-    report = impulse("pefrl", "mclachlan2-min", 3, fast=5.0, slow=1.0)
+    report = impulse("pefrl", "mclachlan2-min", substeps=3, fast_beta=5.0, slow_beta=1.0)
     assert 0 < report.h_max < 3 * 2.55 / 5.0
 
 
 @pytest.mark.parametrize("kwargs, match", [
     ({"substeps": 0}, "substeps"),
     ({"substeps": 2.5}, "substeps"),
-    ({"fast": 0.0, "slow": 0.0}, "both 0"),
-    ({"fast": float("nan")}, "fast"),
-    ({"slow": -1.0}, "slow"),
+    ({"fast_beta": 0.0, "slow_beta": 0.0}, "both 0"),
+    ({"fast_beta": float("nan")}, "fast"),
+    ({"slow_beta": -1.0}, "slow"),
     ({"inner": "gauss:2"}, "splitting"),
     ({"outer": "midpoint"}, "splitting"),
     ({"step": -1.0}, "step"),
     ({"criterion": "both"}, "criterion"),
 ])
 def test_bad_arguments(kwargs, match):
-    args = {"fast": 10.0, "slow": 1.0, "substeps": 4, **kwargs}
+    args = {"fast_beta": 10.0, "slow_beta": 1.0, "substeps": 4, **kwargs}
     with pytest.raises(StepsafeError, match=match):
         impulse(**args)
 
@@ -113,7 +114,7 @@ def test_the_third_of_a_period_resonance_at_50_digits():
     """Ma, Izaguirre & Skeel (2003): impulse methods are limited near a third of the fast
     period by a nonlinear resonance; the outer step's 3:1 (tr M = 2 cos(2 pi / 3) = -1)."""
     fast, slow, k = 0.696951079904, 0.0565095470193, 8
-    report = impulse(fast=fast, slow=slow, substeps=k, resonance_order=3)
+    report = impulse(fast_beta=fast, slow_beta=slow, substeps=k, resonance_order=3)
     with mp.workdps(50):
         ref = mp.findroot(lambda H: (lambda M: M[0, 0] + M[1, 1] + 1)(
             respa_mp(fast, slow, k, H)), (2.9, 3.1), solver="anderson")
@@ -122,7 +123,8 @@ def test_the_third_of_a_period_resonance_at_50_digits():
     assert report.bands[0]["kind"] == "nonlinear"
     three = next(r for r in report.nonlinear if r["resonance"] == "3:1")
     assert three["h"] == pytest.approx(float(ref), rel=1e-10)
-    assert impulse(fast=fast, slow=slow, substeps=k, step=3.1, resonance_order=3).safe is False
+    assert impulse(fast_beta=fast, slow_beta=slow, substeps=k, step=3.1,
+                   resonance_order=3).safe is False
 
 
 def test_the_chart_is_the_trace_of_the_equivalent_splitting():
@@ -158,21 +160,21 @@ def test_cli_chart(run, tmp_path):
 def test_extreme_ratios_and_scales():
     """Ratios beyond 1e154 do not overflow the force fractions (the slow force alone binds:
     outer Verlet, omega H < 2); frequencies leaving float64 are refused."""
-    report = impulse(fast=1e-160, slow=1.0, substeps=4)
+    report = impulse(fast_beta=1e-160, slow_beta=1.0, substeps=4)
     assert report.h_max == pytest.approx(2.0, rel=1e-10)
-    report = impulse(fast=1e-200, slow=1e200, substeps=4)
+    report = impulse(fast_beta=1e-200, slow_beta=1e200, substeps=4)
     assert report.h_max == pytest.approx(2e-200, rel=1e-10)
     for fast, slow in ((1e-310, 0.0), (1e-320, 1e-320)):
         with pytest.raises(StepsafeError, match="float64"):
-            impulse(fast=fast, slow=slow)
+            impulse(fast_beta=fast, slow_beta=slow)
 
 
 def test_wide_structure_failures_are_not_called_resonances():
-    report = impulse(fast=10.0, slow=1e-6, substeps=4, criterion="structure")
+    report = impulse(fast_beta=10.0, slow_beta=1e-6, substeps=4, criterion="structure")
     wide = [b for b in report.bands if b["hi"] is not None and b["hi"] - b["lo"] > 1e-3]
     assert wide and all(b["kind"] == "unstable" for b in wide)
 
 
 def test_the_work_is_bounded():
     with pytest.raises(StepsafeError, match="operations"):
-        impulse("pefrl", "yoshida8", 200, fast=10.0, slow=1.0)
+        impulse("pefrl", "yoshida8", substeps=200, fast_beta=10.0, slow_beta=1.0)

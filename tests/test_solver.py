@@ -44,7 +44,7 @@ def _solve(method: stepsafe.Integrator, q: float, p: float, h: float, tol: float
                                           ("lobatto3ab", 4)])
 @pytest.mark.parametrize("z", [0.05, 0.3, 1.0, 1.9])
 def test_model_counts_the_real_solver(name, stages, z):
-    method = stepsafe.method(name, stages)
+    method = stepsafe.method(name, stages=stages)
     model = fixed_point_cost(method.tableau, z)
     runs = [_solve(method, q, p, z, DEFAULT_TOL) for q, p in ((1.0, 0.0), (0.0, 1.0))]
     if model.iterations is None:
@@ -62,7 +62,7 @@ def test_limits_are_where_the_iteration_diverges():
     s = 3 at sqrt 24; below the iteration converges (slowly), just above it does not."""
     for (name, s), limit in ((("gauss", 2), 2 * math.sqrt(3)), (("gauss", 1), 2.0),
                              (("lobatto3ab", 3), math.sqrt(24))):
-        tableau = stepsafe.method(name, s).tableau
+        tableau = stepsafe.method(name, stages=s).tableau
         assert fixed_point_cost(tableau, 1.0).limit == pytest.approx(limit, rel=1e-12)
         assert fixed_point_cost(tableau, 0.9 * limit).iterations is not None
         assert fixed_point_cost(tableau, 1.01 * limit).iterations is None
@@ -84,7 +84,7 @@ def test_compare_costs_implicit_methods_by_their_solver(run):
     rows = {r["method"]: r for r in json.loads(out)["methods"]}
     for name, s in (("gauss", 2), ("lobatto3ab", 3)):
         r = rows[f"{name}-s{s}"]
-        cost = fixed_point_cost(stepsafe.method(name, s).tableau, r["h"])
+        cost = fixed_point_cost(stepsafe.method(name, stages=s).tableau, r["h"])
         assert (r["evaluations"], r["solver_iterations"]) == (cost.evaluations,
                                                               cost.iterations)
         assert r["cost"] == pytest.approx(cost.evaluations / r["h"])

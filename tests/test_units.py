@@ -298,3 +298,127 @@ def test_bad_units_name_the_key(run, tmp_path, units, key):
                     f"  units: {units}\n")
     code, _, err = run("check", str(path))
     assert code == 2 and f"$.system.{key}:" in err and len(err.strip().splitlines()) == 1, err
+
+
+def _decimal(digits: int, point: int, exponent: int) -> str:
+    """``digits`` with the decimal point ``point`` places from the right, times 10^exponent."""
+    text = str(digits).zfill(point + 1)
+    return f"{text[:len(text) - point]}.{text[len(text) - point:] or '0'}e{exponent}"
+
+
+#: Decimal texts ``ddd.ddde±n`` with up to 16 significant digits.
+DECIMALS = st.builds(_decimal, st.integers(1, 10**16 - 1), st.integers(0, 16),
+                     st.integers(-30, 30))
+
+
+@settings(max_examples=300, deadline=None)
+@given(text=DECIMALS, unit=st.sampled_from(sorted(SECONDS)),
+       time=st.sampled_from(sorted(SECONDS)), space=st.sampled_from(["", " "]))
+def test_a_duration_is_converted_exactly(text, unit, time, space):
+    """A time with its unit ('0.5fs', '0.5 fs', '2e-15 s') in another time unit: the
+    correctly rounded value of the decimal times the power of ten between the units."""
+    from fractions import Fraction
+
+    from stepsafe.units import duration
+
+    expected = float(Fraction(text) * Fraction(10) ** (SECONDS[unit] - SECONDS[time]))
+    assert duration(f"{text}{space}{unit}", "h", time) == expected
+
+
+@pytest.mark.parametrize("args, h, unit, beta", [
+    (["--wavenumber", "3700", "--step", "0.5fs"], 0.5, "fs", ("wavenumber", 3700, "fs")),
+    (["--wavenumber", "3700", "--step", "0.5 fs"], 0.5, "fs", ("wavenumber", 3700, "fs")),
+    (["--wavenumber", "3700", "--time-unit", "fs", "--step", "5e-16s"], 0.5, "fs",
+     ("wavenumber", 3700, "fs")),
+    (["--wavenumber", "3700", "--step", "5e-16s"], 5e-16, "s", ("wavenumber", 3700, "s")),
+    (["--wavenumber", "3700", "--time-unit", "ps", "--step", "500fs"], 0.5, "ps",
+     ("wavenumber", 3700, "ps")),
+    (["--period", "9fs", "--step", "2"], 2.0, "fs", ("period", 9, "fs")),
+    (["--period", "9fs", "--step", "2.87fs"], 2.87, "fs", ("period", 9, "fs")),
+    (["--frequency", "100THz", "--step", "0.0009ps"], 0.0009, "ps",
+     ("frequency100", 100, "ps")),
+])
+def test_a_step_or_period_with_its_unit(run, args, h, unit, beta):
+    """The step and the periods may carry their unit; it names the time unit when none is
+    given. h, beta (50 digits from the SI definitions) and the verdict (Verlet: safe for
+    beta*h < 2) of `check --json` agree with the values converted by hand, and the API
+    gives the same dict."""
+    code, out, err = run("check", "--method", "verlet", *args, "--json")
+    (entry,) = json.loads(out)["checks"]
+    form, value, time = beta
+    with mpmath.workdps(50):
+        expected = exact("frequency", value, "THz", time) if form == "frequency100" else \
+            exact(form, value, "fs" if form == "period" else None, time)
+        z = expected * mpmath.mpf(entry["h"])
+        assert code == (0 if z < 2 else 1), err
+        limit = 2 / expected  # Verlet's h_max, the open end of the safe steps
+        assert entry["h_max"] < limit
+        assert entry["h_max"] == pytest.approx(float(limit), rel=1e-13)
+    assert (entry["h"], entry["time_unit"]) == (h, unit)
+
+
+def test_a_scene_step_with_its_unit(run, tmp_path):
+    """h: with a unit, quoted or not, in the scene's time_unit or naming it; a conflict of
+    two units with no time unit to settle it, and a unit of another kind, are refused
+    naming the key."""
+    for h, unit, expected in (('"0.5 fs"', None, 0.5), ("0.5 fs", None, 0.5),
+                              ("0.0005 ps", "fs", 0.5), ("500 as", "fs", 0.5),
+                              ('"5e-16 s"', "fs", 0.5)):
+        scene = tmp_path / "s.yaml"
+        scene.write_text(f"method: verlet\n{'' if unit is None else f'time_unit: {unit}'}\n"
+                         f"h: {h}\nmodes: [{{wavenumber: 3700}}]\n")
+        code, out, err = run("check", str(scene), "--json")
+        (entry,) = json.loads(out)["checks"]
+        assert code == 0 and (entry["h"], entry["time_unit"]) == (expected, "fs"), err
+        assert stepsafe.check(scene=str(scene)).to_dict() == json.loads(out)
+    for text, key in (("h: 0.5 fs\nmodes: [{period: 9 ps}]", "time_unit"),
+                      ("h: 0.5 THz\nmodes: [{beta: 1}]", "h")):
+        scene = tmp_path / "bad.yaml"
+        scene.write_text(f"method: verlet\n{text}\n")
+        code, out, err = run("check", str(scene))
+        assert code == 2 and len(err.strip().splitlines()) == 1 and f"::$.{key}" in err, err
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--step", "3THz"], "not a time"),
+    (["--step", "3 cm-1"], "not a time"),
+    (["--step", "0.5fs", "--period", "9ps"], "fs and ps"),
+    (["--step", "1_0fs"], "not a valid"),
+])
+def test_step_unit_errors(run, args, message):
+    code, out, err = run("check", "--method", "verlet", "--beta", "1", *args)
+    assert code == 2 and out == "" and len(err.strip().splitlines()) == 1
+    assert message in err
+
+
+def test_period_with_its_unit_names_the_time_unit(run):
+    """--period 9fs alone: beta = 2 pi / 9 rad/fs, h in fs."""
+    code, out, err = run("advise", "--method", "verlet", "--period", "9fs", "--json")
+    data = json.loads(out)
+    assert code == 0 and data["time_unit"] == "fs", err
+    with mpmath.workdps(50):
+        limit = 2 / (2 * mpmath.pi / 9)
+    assert data["h_max"] == pytest.approx(float(limit), rel=1e-13) and data["h_max"] < limit
+    assert stepsafe.advise("verlet", period=["9 fs"]).h_max == data["h_max"]
+
+
+def test_times_with_units_in_hmc_design_respa_and_measure(run):
+    """The other commands that take a time take its unit too, with the same answer as the
+    number in the time unit."""
+    for plain, with_unit in (
+            (["hmc", "--sigma", "1", "--methods", "verlet", "--length", "5", "--step", "0.5",
+              "--time-unit", "fs"],
+             ["hmc", "--sigma", "1", "--methods", "verlet", "--length", "5fs", "--step",
+              "500as", "--time-unit", "fs"]),
+            (["design", "--sigma", "1", "--step", "0.5", "--time-unit", "fs"],
+             ["design", "--sigma", "1", "--step", "0.0005ps", "--time-unit", "fs"]),
+            (["respa", "--fast-beta", "10", "--slow-beta", "1", "--step", "0.2",
+              "--time-unit", "fs"],
+             ["respa", "--fast-beta", "10", "--slow-beta", "1", "--step", "0.2fs"]),
+            (["measure", "examples/pendulum.yaml", "--h", "0.5", "--time", "20",
+              "--time-unit", "fs"],
+             ["measure", "examples/pendulum.yaml", "--h", "0.0005ps", "--time", "0.02ps",
+              "--time-unit", "fs"])):
+        a, b = run(*plain, "--json"), run(*with_unit, "--json")
+        assert a[0] == b[0] == 0, (a[2], b[2])
+        assert json.loads(a[1]) == json.loads(b[1])

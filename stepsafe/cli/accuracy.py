@@ -72,7 +72,7 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json, tsv) 
     for value in z:
         if not (np.isfinite(value) and value > 0):
             raise _input_error(f"z must be a positive finite number, got {value}")
-    data = api.errors(api.method(method, stages, base), z, model).to_dict()
+    data = api.errors(api.method(method, stages=stages, base=base), z, model).to_dict()
     if as_json:
         print_json(data)
     elif tsv:
@@ -217,7 +217,7 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, subst
 
     from stepsafe import api
 
-    integrator = api.method(method, stages, base)
+    integrator = api.method(method, stages=stages, base=base)
     if integrator.kind == "impulse" or ratio is not None or substeps is not None:
         from stepsafe.cli.respa import draw_chart
         from stepsafe.respa_advice import impulse_method
@@ -237,7 +237,7 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, subst
         safe_name = "".join(c if c.isalnum() or c in "-_." else "_" for c in integrator.name)
         output = f"{safe_name}-{model}.png"
     fmt = _plot_format(output, plt)
-    region = api.region(integrator, model, zmax).regions[model]
+    region = api.region(integrator, model, zmax=zmax).regions[model]
     z = np.linspace(zmax / 4000, zmax, 4000)
     M = api.transfer_matrices(integrator, z, model)
     with np.errstate(all="ignore"):  # overflow far out is drawn clipped, not warned about

@@ -68,7 +68,37 @@ class _Beta(_Number):
         return super().convert(value, param, ctx)
 
 
-INT, FLOAT, BETA = _Number(int), _Number(float), _Beta()
+class _Duration(_Number):
+    """A time (a step, a run or trajectory time): a plain number in the time unit, or a
+    number with a time unit (``0.5fs``, ``'0.5 fs'``, ``2e-15s``), kept as text for the API
+    to convert exactly to the time unit in force (:func:`stepsafe.units.duration`)."""
+
+    def __init__(self) -> None:
+        super().__init__(float)
+        self.name = "time"
+
+    def convert(self, value, param, ctx):
+        from stepsafe.exceptions import StepsafeError
+        from stepsafe.units import parse_quantity
+
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        try:
+            _, unit = parse_quantity(str(value))
+        except StepsafeError:
+            unit = None
+        if unit is None:
+            return super().convert(value, param, ctx)
+        if unit not in TIME_UNIT_NAMES:
+            self.fail(f"{value!r} is not a time: {unit} is not a time unit (give a number in "
+                      f"the time unit, or one with {', '.join(TIME_UNIT_NAMES)})", param, ctx)
+        return str(value).strip()
+
+
+INT, FLOAT, BETA, DURATION = _Number(int), _Number(float), _Beta(), _Duration()
+#: What the help of an option that takes a time says about its unit.
+TIME_HELP = ("in --time-unit (else the time unit of 1/beta), or with a unit, converted: "
+             "0.5fs, '0.5 fs', 2e-15s")
 
 
 class _Group(click.Group):
@@ -318,7 +348,7 @@ def show_cmd(method: str, stages: int | None, base: str | None, as_json: bool) -
     from stepsafe import api
     from stepsafe.cli.report import print_json, print_method
 
-    data = api.method(method, stages, base).to_dict()
+    data = api.method(method, stages=stages, base=base).to_dict()
     if as_json:
         print_json(data)
     else:
@@ -365,7 +395,7 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
     from stepsafe.cli.report import print_json, print_region
     from stepsafe.core.regions import DEFAULT_ZMAX
 
-    integrator = api.method(method, stages, base)
+    integrator = api.method(method, stages=stages, base=base)
     if integrator.kind == "impulse" or ratio is not None or substeps is not None:
         from stepsafe.cli.respa import impulse_region
 
@@ -377,9 +407,9 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
     if not all(item.isascii() and item.isdigit() and len(item) <= 3 for item in orders):
         raise _input_error(f"--resonance-orders {resonance_orders}: give integers such as "
                            "3,4,5,6")
-    report = api.region(integrator, model,
-                        DEFAULT_ZMAX if zmax is None else zmax, verify,
-                        tuple(int(item) for item in orders), criterion)
+    report = api.region(integrator, model, zmax=DEFAULT_ZMAX if zmax is None else zmax,
+                        verify=verify, resonance_orders=tuple(int(item) for item in orders),
+                        criterion=criterion)
     data = report.to_dict()
     verdict = data.get("verify")
     _decide([verdict])
@@ -424,7 +454,8 @@ def target_options(func):
                           "[default: the time unit of 1/beta]."),
         click.option("--period", multiple=True, metavar="T",
                      help="Period of a vibration: T in the time unit, or with a unit "
-                          "('9fs'); repeatable."),
+                          "('9fs', which also names the time unit when none is given); "
+                          "repeatable."),
         click.option("--wavenumber", multiple=True, metavar="K",
                      help="Wavenumber of a vibration in cm-1 (needs --time-unit); "
                           "repeatable."),
@@ -470,29 +501,39 @@ def scene_options(func):
     return func
 
 
-def _problem(scene_file, options: dict, show_progress: bool = False):
-    """The scene file merged with the command-line options (the options win)."""
+def _problem(scene_file, options: dict, show_progress: bool = False, h=None):
+    """The scene file merged with the command-line options (the options win); ``h`` the
+    step to check (a number, or a text with a time unit)."""
     from stepsafe import api
     from stepsafe.cli.progressbar import progress_bar
 
-    modes, labels = command_line_modes(options)
+    options = dict(options)  # (the time unit found is this scene's alone)
+    modes, labels = command_line_modes(options, scene_file, h)
     with progress_bar("coupled analysis", show_progress) as progress:
         return api.problem(options["method_name"], modes=modes, labels=labels,
                            scene=scene_file, stages=options["stages"], base=options["base"],
                            margin=options["margin"], zmax=options["zmax"],
-                           time_unit=options["time_unit"], progress=progress,
+                           time_unit=options["time_unit"], h=h, progress=progress,
                            budget=options["budget"])
 
 
-def command_line_modes(options: dict) -> tuple[dict, dict[str, tuple[str | None, ...]]]:
-    """Every frequency given on the command line, per model, as beta in rad per
-    --time-unit: --beta, --frequency, --wavenumber, --period (vibrations), --saddle-beta,
+def command_line_modes(options: dict, scene_file: str | None = None, *times
+                       ) -> tuple[dict, dict[str, tuple[str | None, ...]]]:
+    """Every frequency given on the command line, per model, as beta in rad per time
+    unit: --beta, --frequency, --wavenumber, --period (vibrations), --saddle-beta,
     --inverted-beta and the --modes file together, in that order (none is dropped); and
-    the labels of the file's modes at their places in that order. ({}, {}) if none."""
+    the labels of the file's modes at their places in that order. ({}, {}) if none.
+
+    The time unit (set in ``options["time_unit"]``) is --time-unit, else the scene's, else
+    the one that the command line's times (``times``: the step; the periods) name, else the
+    --modes file's."""
     import numpy as np
 
+    from stepsafe.systems.scene import time_unit_in_force
     from stepsafe.units import quantity
 
+    options["time_unit"] = time_unit_in_force(options["time_unit"], scene_file, *times,
+                                              list(options["period"]))
     loaded = None
     if options["modes_file"]:
         from stepsafe.systems.scene import load_modes
@@ -618,8 +659,9 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, crite
 
 
 @main.command("check")
-@click.option("--step", "--h", "h", type=FLOAT, default=None, metavar="H",
-              help="The step to check (--h is the same option; -h is an error, not help).")
+@click.option("--step", "--h", "h", type=DURATION, default=None, metavar="H",
+              help=f"The step to check, {TIME_HELP} (--h is the same option; -h is an "
+                   "error, not help).")
 @click.option("--every-mode", is_flag=True,
               help="List every mode or equilibrium of a system (default: the ten most "
                    "limiting when there are more).")
@@ -651,7 +693,10 @@ def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as
     (with --require-complete-search) a Hamiltonian's equilibrium search that cannot vouch
     for completeness; 2: bad input or a usage error (one line on stderr). A step exactly on
     a resonance or a pole is unsafe. Every scene is analysed before anything is printed, so
-    a reader that stops early (| head -1) does not change the exit code.
+    a reader that stops early (| head -1) does not change the exit code. With several
+    scenes each is reported (one that cannot be checked as its error, in text and in
+    --json) and the exit code is the worst: 2 if a scene could not be checked, else 1 if
+    one is unsafe.
 
     \b
     Examples:
@@ -660,48 +705,80 @@ def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as
     """
     from stepsafe import api
     from stepsafe.cli.report import print_check, print_json, print_system
-    from stepsafe.cli.respa import impulse_of, impulse_report, print_impulse_modes
+    from stepsafe.cli.respa import print_impulse_modes
+    from stepsafe.exceptions import StepsafeError
 
-    outputs, verdicts = [], []
+    checks = []
     for scene_file in scene_files or (None,):
-        impulse = impulse_of(scene_file, {**options, "verify": verify})
-        if impulse is not None:
-            data = impulse_report(impulse, scene_file, options, step=h, criterion=criterion,
-                                  resonance_order=resonance_order, check=True)
-            if data["step"] is None:
-                raise _input_error(f"{scene_file}: no step to check: give --step H or h: in "
-                                   "the scene")
-            outputs.append(data)
-            continue
-        problem = _problem(scene_file, options, not as_json)
-        data = api.check(h=h, problem=problem, resonance_order=resonance_order,
-                         criterion=criterion, verify=verify, solver=solver,
-                         require_complete_search=require_complete_search).to_dict()
-        if "verify" in data:
-            verdicts.append(data["verify"])
-        outputs.append(data)
-    unsafe = not all(data["safe"] for data in outputs)
-    _decide(verdicts, unsafe)
+        try:
+            checks.append(_check_one(scene_file, h, options, resonance_order, criterion,
+                                     verify, solver, require_complete_search, not as_json))
+        except StepsafeError as exc:
+            if not scene_files:
+                raise  # the command line alone: its error is the answer
+            checks.append(api.CheckError(scene_file, exc.message, exc.where))
+    suite = api.SceneChecks(tuple(checks))
+    data = suite.to_dict()
+    verdicts = [entry["verify"] for entry in data["checks"] if "verify" in entry]
+    failed = next((v for v in verdicts if not v["ok"]), None)
+    errors = [c for c in checks if isinstance(c, api.CheckError)]
+    from stepsafe.cli.output import decided
+
+    decided(EXIT_INTERNAL if failed else suite.exit_code,
+            None if failed is None else _unverified_message(failed))
+    for error in errors:
+        _error_line(str(StepsafeError(error.message, error.where)))
     if as_json:
-        print_json({"safe": not unsafe, "checks": outputs})
+        print_json(data)
     else:
-        for data in outputs:
-            if data.get("kind") == "impulse":
-                print_impulse_modes(data, check=True)
-                continue
-            print_check(data)
-            if "system" in data:
-                print_system(data["system"], every_mode, data.get("time_unit"))
-            if "verify" in data:
-                _print_verify(data["verify"])
+        for entry in data["checks"]:
+            if "error" in entry:  # (said on stderr; beside other scenes, in its place too)
+                if len(checks) > 1:
+                    where = f"{entry['where']}: " if entry["where"] else ""
+                    click.echo(f"{entry['scene']}: NOT CHECKED: {where}{entry['error']}")
+            elif entry.get("kind") == "impulse":
+                print_impulse_modes(entry, check=True)
+            else:
+                print_check(entry)
+                if "system" in entry:
+                    print_system(entry["system"], every_mode, entry.get("time_unit"))
+                if "verify" in entry:
+                    _print_verify(entry["verify"])
         if resonance_order is not None:
             from stepsafe.cli.report import RESONANCE_CAVEAT
 
             click.echo(RESONANCE_CAVEAT)
     for verdict in verdicts:
         _exit_if_unverified(verdict)
-    if unsafe:
-        sys.exit(EXIT_UNSAFE)
+    if suite.exit_code:
+        sys.exit(suite.exit_code)
+
+
+def _check_one(scene_file, h, options: dict, resonance_order, criterion: str, verify: bool,
+               solver: str, require_complete_search: bool, show_progress: bool):
+    """The check of one scene (or of the command line alone): an impulse method's
+    :class:`~stepsafe.respa_advice.ImpulseModesReport`, else a
+    :class:`~stepsafe.api.CheckReport`."""
+    from stepsafe import api
+    from stepsafe.cli.respa import impulse_of
+
+    impulse = impulse_of(scene_file, {**options, "verify": verify})
+    if impulse is not None:
+        from stepsafe.respa_advice import impulse_advice
+
+        report = impulse_advice(impulse, scene=scene_file, substeps=options.get("substeps"),
+                                step=h, time_unit=options["time_unit"], criterion=criterion,
+                                resonance_order=resonance_order, use_scene_step=h is None)
+        if report.step is None:
+            from stepsafe.exceptions import StepsafeError
+
+            raise StepsafeError("no step to check: give --step H or h: in the scene",
+                                scene_file)
+        return report
+    problem = _problem(scene_file, options, show_progress, h)
+    return api.check(problem=problem, resonance_order=resonance_order, criterion=criterion,
+                     verify=verify, solver=solver,
+                     require_complete_search=require_complete_search)
 
 
 def _print_verify(verdict: dict) -> None:

@@ -8,8 +8,10 @@ from typing import Any
 import click
 
 from stepsafe.cli.main import (
+    DURATION,
     FLOAT,
     INT,
+    TIME_HELP,
     TIME_UNIT_NAMES,
     _input_error,
     main,
@@ -49,13 +51,13 @@ def _range(text: str) -> list[float]:
 @main.command("measure")
 @click.argument("scene_file", metavar="SCENE.yaml")
 @method_options_optional
-@click.option("--h", "steps", type=FLOAT, multiple=True, metavar="H",
-              help="A step size to run (repeatable).")
+@click.option("--h", "steps", type=DURATION, multiple=True, metavar="H",
+              help=f"A step size to run (repeatable), {TIME_HELP}.")
 @click.option("--h-range", default=None, metavar="LO,HI,N",
               help="N step sizes spaced evenly in log h from LO to HI.")
-@click.option("--time", "duration", type=FLOAT, default=None, metavar="T",
-              help="Integrate up to T [default: 100 periods of the vibration the start "
-                   "orbits].")
+@click.option("--time", "duration", type=DURATION, default=None, metavar="T",
+              help="Integrate up to T, in the time unit or with one (60fs) [default: 100 "
+                   "periods of the vibration the start orbits].")
 @click.option("--initial", default=None, metavar="Q,P",
               help="Initial condition: q then p (1-dof: two numbers; linear systems: 2n) "
                    "[default: 1-dof, a tenth of the box from the elliptic equilibrium; "
@@ -113,10 +115,11 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
     from stepsafe.cli.progressbar import progress_bar
     from stepsafe.cli.report import print_json, print_tsv
     from stepsafe.measurement import measure
-    from stepsafe.systems.scene import load_scene
+    from stepsafe.systems.scene import load_scene, time_unit_in_force
 
     one_format(as_json, tsv)
     hs = list(steps) + (_range(h_range) if h_range else [])
+    time_unit = time_unit_in_force(time_unit, scene_file, hs, duration)
     loaded = load_scene(scene_file, time_unit)
     from stepsafe import api
     from stepsafe.exceptions import StepsafeError
@@ -125,12 +128,13 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
         if loaded.method is None:
             raise _input_error("no method: give --method METHOD or method: in the scene")
         try:
-            integrator = api.method(loaded.method.name, stages or loaded.method.stages,
-                                    base or loaded.method.base)
+            integrator = api.method(loaded.method.name,
+                                    stages=stages or loaded.method.stages,
+                                    base=base or loaded.method.base)
         except StepsafeError as exc:
             raise StepsafeError(exc.message, exc.where or f"{scene_file}::$.method") from None
     else:
-        integrator = api.method(method, stages, base)
+        integrator = api.method(method, stages=stages, base=base)
     start = None if initial is None else _numbers(initial, "initial")
     if tol_energy is not None or tol_trajectory is not None:
         if tol_energy is not None and tol_trajectory is not None:

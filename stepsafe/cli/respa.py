@@ -7,6 +7,7 @@ from typing import Any
 import click
 
 from stepsafe.cli.main import (
+    DURATION,
     EXIT_UNSAFE,
     FLOAT,
     INT,
@@ -51,8 +52,9 @@ def _frequency(beta, wavenumber, which: str, unit) -> float:
               help="The slow frequency as a wavenumber in cm^-1 (needs --time-unit).")
 @click.option("--time-unit", type=click.Choice(TIME_UNIT_NAMES), default=None,
               help="Unit of H in and out (and of the frequencies' 1/time).")
-@click.option("--step", "step", type=FLOAT, default=None, metavar="H",
-              help="Check this outer step: exit 0 if safe, 1 if not.")
+@click.option("--step", "step", type=DURATION, default=None, metavar="H",
+              help="Check this outer step: exit 0 if safe, 1 if not; in --time-unit, or "
+                   "with a unit (2fs).")
 @click.option("--zmax", type=FLOAT, default=None, metavar="Z",
               help="Search beta*H up to Z, beta = sqrt(fast^2 + slow^2) [default: just "
                    "past the inner method's own limit, Omega H = K z*_inner].")
@@ -95,11 +97,14 @@ def respa_cmd(method, outer, inner, substeps, fast_beta, slow_beta, fast_wavenum
 
     if method is not None and (outer is not None or inner is not None):
         raise _input_error(f"give the impulse method {method} or --outer/--inner, not both")
+    from stepsafe.units import implied_time_unit
+
     impulse_obj = impulse_method(method or outer or "verlet", inner, substeps)
+    time_unit = time_unit or implied_time_unit(step)  # --step 2fs names the time unit
     fast = _frequency(fast_beta, fast_wavenumber, "fast", time_unit)
     slow = _frequency(slow_beta, slow_wavenumber, "slow", time_unit)
-    report = impulse(method or outer or "verlet", inner, impulse_obj.substeps, fast=fast,
-                     slow=slow, step=step, criterion=criterion, zmax=zmax,
+    report = impulse(method or outer or "verlet", inner, substeps=impulse_obj.substeps,
+                     fast_beta=fast, slow_beta=slow, step=step, criterion=criterion, zmax=zmax,
                      time_unit=time_unit, resonance_order=resonance_order)
     data = report.to_dict()
     if plot_file is not None:
@@ -315,7 +320,8 @@ def impulse_region(integrator: Any, ratio: float | None, substeps: int | None,
     if ratio is None:
         raise _input_error(f"{integrator.name} is an impulse method: give the frequency ratio "
                            "--ratio omega/Omega (slow over fast), e.g. --ratio 0.1")
-    report = impulse(integrator, None, substeps, fast=1.0, slow=ratio, criterion=criterion,
+    report = impulse(integrator, None, substeps=substeps, fast_beta=1.0, slow_beta=ratio,
+                     criterion=criterion,
                      zmax=None if zmax is None else zmax * (1.0 + ratio * ratio) ** 0.5)
     data = {**report.to_dict(), "ratio": ratio, "units": "Omega H (fast frequency 1)"}
     if as_json:

@@ -9,6 +9,7 @@ from typing import Any
 import click
 
 from stepsafe.cli.main import (
+    DURATION,
     FLOAT,
     INT,
     _input_error,
@@ -32,9 +33,10 @@ PLOT_POINTS = 200
 @click.option("--all", "use_all", is_flag=True, help="Every built-in method (families s=2,3).")
 @click.option("--steps", type=INT, default=None, metavar="L",
               help="Leapfrog-style steps per trajectory (fixed L).")
-@click.option("--length", type=FLOAT, default=None, metavar="T",
+@click.option("--length", type=DURATION, default=None, metavar="T",
               help="Integration time per trajectory: L = max(1, floor(T/h)) as Stan's static "
-                   "HMC. Without --steps or --length the acceptance is the bound over every L.")
+                   "HMC (in the time unit, or with one: 5fs). Without --steps or --length "
+                   "the acceptance is the bound over every L.")
 @click.option("--jitter", type=FLOAT, default=0.0, show_default=True, metavar="J",
               help="Each step drawn uniformly from h(1-J, 1+J), L kept (Stan's "
                    "stepsize_jitter); the acceptance is averaged over it, and h at target "
@@ -46,8 +48,9 @@ PLOT_POINTS = 200
                    "Stan reports such trajectories as divergent transitions).")
 @click.option("--target-accept", type=FLOAT, default=0.8, show_default=True, metavar="A",
               help="Acceptance rate to reach (Stan's adapt_delta default).")
-@click.option("--step", "step", type=FLOAT, default=None, metavar="H",
-              help="Also predict the acceptance and cost at this step.")
+@click.option("--step", "step", type=DURATION, default=None, metavar="H",
+              help="Also predict the acceptance and cost at this step (in the time unit, or "
+                   "with one: 0.5fs).")
 @click.option("--plot", "plot_file", default=None, metavar="FILE.png",
               help="Draw the predicted acceptance against h for each method (needs "
                    "matplotlib).")
@@ -81,7 +84,7 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
     one_format(as_json, tsv)
     if use_all and names:
         raise _input_error("give --methods or --all, not both")
-    arrays, labels = command_line_modes(options)
+    arrays, labels = command_line_modes(options, scene_file, step, length)
     methods = "all" if use_all else (None if names is None else names.split(","))
     from stepsafe.cli.progressbar import progress_bar
 
@@ -203,8 +206,9 @@ def _plot(data: dict[str, Any], output: str) -> None:
 
 @main.command("design")
 @click.argument("scene_file", required=False, metavar="[SCENE.yaml]")
-@click.option("--step", "step", type=FLOAT, required=True, metavar="H",
-              help="The step the method will be used at (one step = STAGES gradients).")
+@click.option("--step", "step", type=DURATION, required=True, metavar="H",
+              help="The step the method will be used at (one step = STAGES gradients), in "
+                   "the time unit or with one (0.5fs).")
 @click.option("--stages", type=click.Choice(("2", "3")), default="2", show_default=True,
               help="2: one free coefficient b; 3: two (b, a).")
 @click.option("--jitter", type=FLOAT, default=0.0, show_default=True, metavar="J",
@@ -232,7 +236,7 @@ def design_cmd(scene_file, step, stages, jitter, name, output, as_json, **option
     from stepsafe.cli.report import print_json
     from stepsafe.hmc_advice import design
 
-    arrays, labels = command_line_modes(options)
+    arrays, labels = command_line_modes(options, scene_file, step)
     with _naming_the_modes_file(options):
         report = design(modes=arrays or None, labels=labels or None, scene=scene_file,
                         step=step, stages=int(stages), jitter=jitter, name=name,

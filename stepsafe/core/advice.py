@@ -23,7 +23,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -61,8 +61,8 @@ class Modes:
         return cls.from_arrays({m: np.asarray(v, dtype=float) for m, v in grouped.items()})
 
     @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray],
-                    errors: dict[str, np.ndarray] | None = None) -> Modes:
+    def from_arrays(cls, arrays: Mapping[str, Any],
+                    errors: Mapping[str, Any] | None = None) -> Modes:
         out = {}
         errs = {}
         for model, betas in arrays.items():
@@ -122,8 +122,9 @@ class Advice:
 
 
 def validate_margin(margin: float) -> float:
-    if isinstance(margin, bool):
-        raise StepsafeError("margin must be a number in (0, 1], got a bool")
+    if isinstance(margin, (bool, str)):
+        got = "a bool" if isinstance(margin, bool) else f"the text {margin[:40]!r}"
+        raise StepsafeError(f"margin must be a number in (0, 1], got {got}")
     try:
         margin = float(margin)
     except (TypeError, ValueError, OverflowError):
