@@ -628,6 +628,9 @@ def problem(method: Integrator | str | None = None, beta: ArrayLike | None = Non
 def _labels(labels: Mapping[str, Sequence[str | None]] | None,
             arrays: Mapping[str, np.ndarray]) -> dict[str, tuple[str | None, ...]]:
     """``labels`` checked against the frequencies they name."""
+    if labels is not None and not isinstance(labels, Mapping):
+        raise StepsafeError(f"labels must map model names to lists of texts, got "
+                            f"{type(labels).__name__}")
     out = {}
     for model, names in (labels or {}).items():
         if isinstance(names, str) or not isinstance(names, Sequence):
@@ -864,7 +867,7 @@ def _system_solver_limit(integrator: Integrator, p: Problem) -> float | None:
 
 
 def _check_solver(value: Any) -> str:
-    if value not in ("fixed-point", "newton"):
+    if not isinstance(value, str) or value not in ("fixed-point", "newton"):
         raise StepsafeError(f"solver must be fixed-point or newton, got {str(value)[:20]!r}")
     return value
 
@@ -1084,8 +1087,11 @@ def check_scenes(scenes: Sequence[str | Path], *, h: float | str | None = None,
     >>> checks.safe, checks.exit_code
     (False, 1)
     """
+    from stepsafe.units import time_unit as known_time_unit
+
     if isinstance(scenes, (str, Path)) or not isinstance(scenes, Sequence) or not scenes:
         raise StepsafeError("scenes must be a non-empty list of scene files")
+    known_time_unit(inputs.get("time_unit"))  # (before any scene is read with it)
     out: list[Any] = []
     for scene in scenes:
         try:

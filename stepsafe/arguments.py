@@ -67,7 +67,8 @@ READINGS: dict[str, tuple[tuple[str, str], ...]] = {
 def public(forwards: Callable[[], Callable[..., Any]] | None = None,
            drop: tuple[str, ...] = ()) -> Callable[[Callable[P, R]], Callable[P, R]]:
     """Decorate a public function: a positional argument beyond those it names before
-    ``*``, a keyword it does not take, a missing or a repeated one is a StepsafeError.
+    ``*``, a keyword it does not take, a missing or a repeated one, and a ``progress``
+    that cannot be called are a StepsafeError.
     ``forwards`` returns the function its ``**inputs`` go to (:func:`stepsafe.problem`),
     whose keywords it takes too, less ``drop``, and ``problem`` (a problem built
     beforehand, given instead of them)."""
@@ -105,6 +106,10 @@ def public(forwards: Callable[[], Callable[..., Any]] | None = None,
                 signature.bind(*args, **kwargs)
             except TypeError as exc:  # a missing or a repeated argument
                 raise StepsafeError(f"{where}: {exc}") from None
+            progress = kwargs.get("progress")
+            if progress is not None and not callable(progress):  # called late: check now
+                raise StepsafeError(f"{where}: progress must be a function of the fraction "
+                                    f"done, got {type(progress).__name__}")
             return func(*args, **kwargs)
 
         call.__signature__ = signature  # type: ignore[attr-defined]

@@ -230,7 +230,7 @@ def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
         raise StepsafeError(f"T / h = {max(ratios):.3g} steps exceeds the {max_steps} allowed "
                             "in one run: a shorter --time, larger steps or --max-steps")
     counts = [max(1, math.ceil(r)) for r in ratios]
-    if solver not in ("fixed-point", "newton"):
+    if not isinstance(solver, str) or solver not in ("fixed-point", "newton"):
         raise StepsafeError(f"solver must be fixed-point or newton, got {str(solver)[:20]!r}")
     try:
         Engine(integrator.tableau, problem.system, solver=solver)

@@ -317,6 +317,9 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
     from stepsafe.systems.scene import Scene, load_scene, time_unit_in_force
     from stepsafe.units import time_unit as known_time_unit
 
+    if not isinstance(use_scene_step, (bool, np.bool_)):
+        raise StepsafeError(f"use_scene_step must be True or False, got "
+                            f"{type(use_scene_step).__name__}")
     time_unit = time_unit_in_force(known_time_unit(time_unit), scene, step)
     loaded = load_scene(scene, time_unit) if scene is not None else Scene(time_unit=time_unit)
     if method is None:
@@ -352,6 +355,9 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
         raise StepsafeError("pairs must be a list of (fast, slow) frequencies") from None
     if table.shape[0] == 0:
         raise StepsafeError("pairs is empty: give at least one (fast, slow) pair")
+    if labels is not None and (isinstance(labels, str) or not isinstance(labels, (list, tuple))
+                               or not all(n is None or isinstance(n, str) for n in labels)):
+        raise StepsafeError("labels must be a list of texts (or None), one per mode")
     labels = tuple(labels) if labels is not None else (None,) * table.shape[0]
     if len(labels) != table.shape[0]:
         raise StepsafeError(f"{len(labels)} labels for {table.shape[0]} modes")

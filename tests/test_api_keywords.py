@@ -7,6 +7,7 @@ from __future__ import annotations
 import inspect
 import math
 import re
+from pathlib import Path
 
 import mpmath
 import numpy as np
@@ -17,21 +18,22 @@ from hypothesis import strategies as st
 import stepsafe
 from stepsafe.methods.library import FAMILIES, builtin_names
 
+ROOT = Path(__file__).resolve().parent.parent
 PENDULUM = {"hamiltonian": "p**2/2 - cos(q)", "box": {"q": [-3, 3], "p": [-1, 1]}}
 
 #: Every public function, with arguments for a small valid call.
 CALLS = {
     "method": (("verlet",), {}),
-    "method_from_file": (("methods/verlet.yaml",), {}),
+    "method_from_file": ((str(ROOT / "methods/verlet.yaml"),), {}),
     "region": (("verlet", "oscillator"), {}),
     "advise": (("verlet", [1.0]), {}),
     "check": (("verlet", 0.5, [1.0]), {}),
-    "check_scenes": ((["examples/scene.yaml"],), {}),
+    "check_scenes": (([str(ROOT / "examples/scene.yaml")],), {}),
     "errors": (("verlet", [0.5]), {}),
     "compare": ((["verlet"], [1.0]), {}),
     "transfer_matrices": (("verlet", [0.5]), {}),
     "problem": (("verlet", [1.0]), {}),
-    "load_scene": (("examples/scene.yaml",), {}),
+    "load_scene": ((str(ROOT / "examples/scene.yaml"),), {}),
     "hmc": ((["verlet"],), {"sigma": [1.0], "steps": 4}),
     "design": ((), {"sigma": [1.0], "step": 0.5}),
     "impulse": (("verlet", "verlet"), {"substeps": 4, "fast_beta": 10.0, "slow_beta": 1.0}),
@@ -41,8 +43,8 @@ CALLS = {
 }
 
 
-def _taken(name: str, monkeypatch) -> list[str]:
-    """The names in the error for an unknown keyword (run from the repository root)."""
+def _taken(name: str) -> list[str]:
+    """The names in the error for an unknown keyword."""
     args, kwargs = CALLS[name]
     with pytest.raises(stepsafe.StepsafeError) as caught:
         getattr(stepsafe, name)(*args, **kwargs, no_such_name=1)
@@ -58,12 +60,11 @@ def test_every_public_function_is_covered():
 
 
 @pytest.mark.parametrize("name", sorted(CALLS))
-def test_an_unknown_keyword_lists_every_name_taken(name, monkeypatch):
+def test_an_unknown_keyword_lists_every_name_taken(name):
     """The error lists every parameter of the function and, where ``**inputs`` go on to
     :func:`stepsafe.problem`, every keyword of it; and each name listed is taken (giving
-    it is never an unknown argument)."""
-    monkeypatch.chdir(stepsafe.__file__.rsplit("/stepsafe/", 1)[0])
-    taken = _taken(name, monkeypatch)
+    it, here with a value of no use, is never an unknown argument)."""
+    taken = _taken(name)
     assert len(taken) == len(set(taken))
     func = getattr(stepsafe, name)
     params = inspect.signature(func).parameters
@@ -79,7 +80,7 @@ def test_an_unknown_keyword_lists_every_name_taken(name, monkeypatch):
         if key in positional or key in kwargs:
             continue
         try:
-            func(*args, **kwargs, **{key: None})
+            func(*args, **kwargs, **{key: object()})
         except stepsafe.StepsafeError as exc:
             assert "unknown argument" not in exc.message, (name, key)
 
@@ -118,12 +119,11 @@ def _edits(a: str, b: str) -> int:
 
 
 @pytest.mark.parametrize("name", sorted(CALLS))
-def test_no_two_keywords_differ_by_a_letter(name, monkeypatch):
+def test_no_two_keywords_differ_by_a_letter(name):
     """Within each function no two names are one edit apart or a plural of each other,
     except hmc's ``step`` (a time h) and ``steps`` (the count L), whose values are of
     different kinds: a count that is no whole number is refused."""
-    monkeypatch.chdir(stepsafe.__file__.rsplit("/stepsafe/", 1)[0])
-    taken = _taken(name, monkeypatch)
+    taken = _taken(name)
     close = {(a, b) for a in taken for b in taken if a < b and (
         _edits(a, b) <= 1 or a.rstrip("s") == b.rstrip("s")
         or a.removesuffix("ies") + "y" == b or b.removesuffix("ies") + "y" == a)}
@@ -187,7 +187,7 @@ def test_beta_and_ordinary_frequency_differ_by_two_pi(f, z):
     lambda: stepsafe.impulse("verlet", "verlet", 4, fast_beta=10.0, slow_beta=1.0),
     lambda: stepsafe.advise("verlet", [1.0], [2.0]),
     lambda: stepsafe.check("verlet", 0.1, [1.0], [2.0]),
-    lambda: stepsafe.measure("verlet", [0.5], "examples/pendulum.yaml"),
+    lambda: stepsafe.measure("verlet", [0.5], str(ROOT / "examples/pendulum.yaml")),
 ])
 def test_arguments_after_the_first_ones_are_given_by_name(call):
     with pytest.raises(stepsafe.StepsafeError, match="positional argument"):
@@ -300,3 +300,39 @@ def test_a_changed_array_changes_no_later_verdict():
     assert stepsafe.check(h=1.5, problem=p).safe
     assert stepsafe.check(m, 1.5, [1.0]).safe
     assert math.isclose(stepsafe.advise(m, [1.0]).h_max, 2.0, rel_tol=1e-12)
+
+
+def _keywords() -> list[tuple[str, str]]:
+    """Every (function, keyword) pair a caller may give beyond the small valid call."""
+    out = []
+    for name, (args, kwargs) in CALLS.items():
+        func = getattr(stepsafe, name)
+        params = inspect.signature(func).parameters
+        positional = [n for n, p in params.items()
+                      if p.kind is p.POSITIONAL_OR_KEYWORD][:len(args)]
+        names = [n for n, p in params.items() if p.kind is not p.VAR_KEYWORD]
+        if any(p.kind is p.VAR_KEYWORD for p in params.values()):
+            names += [n for n in inspect.signature(stepsafe.problem).parameters
+                      if n not in names and n not in ("method", "h", "scene")]
+        out += [(name, key) for key in names if key not in positional and key not in kwargs]
+    return out
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=list(HealthCheck))
+@given(pair=st.sampled_from(_keywords()), value=st.deferred(lambda: _junk()))
+def test_any_value_of_any_keyword_is_an_answer_or_a_stepsafe_error(pair, value):
+    """Each keyword of each public function, given a value of the wrong kind (None, text,
+    bytes, complex, huge integers, arrays of the wrong shape, mappings, objects), gives an
+    answer or a StepsafeError, never another exception."""
+    name, key = pair
+    args, kwargs = CALLS[name]
+    try:
+        getattr(stepsafe, name)(*args, **kwargs, **{key: value})
+    except stepsafe.StepsafeError:
+        pass
+
+
+def _junk():
+    from test_api_inputs import JUNK
+
+    return JUNK
