@@ -20,6 +20,14 @@ conversions carry no constant of limited precision: the scale factor is formed e
 fraction, then rounded and multiplied by the value and pi (the result is within a few ulps
 of the exact product). Example:
 the O-H stretch of water at 3700 cm^-1 has beta = 2 pi c k = 0.69697... rad/fs.
+
+A time (a step h, a period, a run time) may carry its unit: ``"0.5 fs"``, ``"0.5fs"``,
+``"2e-15 s"`` (:func:`duration`). It is converted to the time unit in force (the ratio of
+two time units is a power of ten, so the decimal digits and that ratio are combined exactly
+and rounded once); where none is given, the unit the values name becomes it
+(:func:`implied_time_unit`), and values in two different units with none given are refused.
+The API's keyword for the ``frequency`` form is ``ordinary_frequency`` (cycles per time
+unit), apart by name from ``beta`` (rad per time unit).
 """
 
 from __future__ import annotations
