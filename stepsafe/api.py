@@ -424,13 +424,15 @@ def _converted(values: Mapping[str, UnitValues | None], time_unit: str | None
         for item in items:
             item = item.item() if isinstance(item, np.generic) else item
             try:
+                beta = quantity(item, form, time_unit)  # (a bad value says what it may be)
                 if isinstance(item, str) and parse_quantity(item)[1] is None:
                     raise StepsafeError(f"give numbers as numbers; a text names its unit "
                                         f"(such as '3700 cm-1', '100 THz', '9 fs'), got "
                                         f"{item[:40]!r}")
-                betas.append(quantity(item, form, time_unit))
+                betas.append(beta)
             except StepsafeError as exc:
-                raise StepsafeError(f"{keyword}: {exc.message}") from None
+                raise StepsafeError(exc.message if exc.message.startswith(keyword) else
+                                    f"{keyword}: {exc.message}") from None
         out.append(np.array(betas, dtype=float))
     return out
 

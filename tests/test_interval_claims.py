@@ -28,7 +28,8 @@ CASES = [("lobatto3ab", 12, "oscillator", FOUR_PI), ("lobatto3ab", 6, "oscillato
 
 @cache
 def _report(name: str, stages: int | None, model: str, zmax: float, criterion: str):
-    report = stepsafe.region(stepsafe.method(name, stages), model, zmax, criterion=criterion)
+    report = stepsafe.region(stepsafe.method(name, stages=stages), model, zmax=zmax,
+                             criterion=criterion)
     return report.regions[model], report.to_dict()["models"][model]
 
 
