@@ -226,7 +226,9 @@ def design_cmd(scene_file, step, stages, jitter, name, output, as_json, **option
     target at step H (averaged over the jitter interval, every mode kept stable), and
     writes a method file every command accepts (stepsafe hmc --methods FILE, region,
     advise, ...). The figures compare it with verlet, bcss2, bcss3 and mclachlan2-min at
-    the same gradient evaluations per unit of simulated time.
+    the same gradient evaluations per unit of simulated time. The coefficients are shown
+    to 8 digits (further ones change the objective by less than its rounding); the method
+    file and --json carry every digit.
 
     \b
     Examples:
@@ -281,6 +283,14 @@ def _write_new_text(path: str, text: str) -> None:
         raise _input_error(f"-o {path}: cannot write ({exc.strerror})") from None
 
 
+#: Significant digits of a designed coefficient in the text report. The objective (rho summed
+#: over the modes) is flat at its minimiser b*: it grows like C (b - b*)^2 relative, C of
+#: order 1e4 on the README's target, so its float64 rounding (a few 1e-16 relative) leaves
+#: b* uncertain by about 1e-10 and machines whose kernels round differently print other
+#: tenth digits; at 8 digits the figure's own objective is within 1e-12 of the minimum.
+PARAM_DIGITS = 8
+
+
 def print_design(data: dict[str, Any], output: str | None) -> None:
     from rich.table import Table
 
@@ -288,7 +298,9 @@ def print_design(data: dict[str, Any], output: str | None) -> None:
 
     console = _console()
     u = f" {data['time_unit']}" if data["time_unit"] else ""
-    params = ", ".join(f"{k} = {v!r}" for k, v in data["params"].items())
+    # to the digits the objective decides (PARAM_DIGITS); the method file and --json carry
+    # every digit
+    params = ", ".join(f"{k} = {fmt(v, PARAM_DIGITS)}" for k, v in data["params"].items())
     console.print(_lit(f"{data['name']}: {data['stages']}-stage palindromic splitting with "
                        f"{params}, designed for {data['modes']} mode(s) at h = "
                        f"{fmt(data['step'])}{u}"
