@@ -9,6 +9,8 @@ probed at relative offsets 1e-2 .. 1e-13 on both sides.
 
 from __future__ import annotations
 
+import sys
+
 import mpmath
 import numpy as np
 import pytest
@@ -116,16 +118,25 @@ coefficient = st.floats(-1.0, 1.0, allow_nan=False).map(lambda x: repr(round(x, 
        big=st.sampled_from([None, "1e3", "1e6", "-1e5"]),
        model=st.sampled_from(["saddle", "inverted"]))
 def test_random_splittings_near_their_points(tmp_path_factory, drift, data, big, model):
+    """Every draw is a valid method file (one more drift than kicks, each list completed to
+    a consistent sum), so whatever loading it raises fails the property."""
     kick = data.draw(st.lists(coefficient, min_size=len(drift) - 1, max_size=len(drift) - 1))
     if big is not None:
         drift = [big, *drift[1:]]
     folder = tmp_path_factory.mktemp("random")
     path = _method_file(folder, "random", drift, kick)
-    try:
-        resolve(path)
-    except Exception:  # an invalid draw (e.g. a kick list that is too short) is not a case
-        return
     assert _false_safes(path, model, 4.0) == []
+
+
+def test_the_random_splitting_property_fails_when_loading_fails(tmp_path_factory,
+                                                                monkeypatch):
+    """A loader that raises on every draw makes the property fail, not pass unexamined."""
+    def broken(*args, **kwargs):
+        raise TypeError("a loader that always fails")
+
+    monkeypatch.setattr(sys.modules[__name__], "resolve", broken)
+    with pytest.raises(TypeError, match="a loader that always fails"):
+        test_random_splittings_near_their_points(tmp_path_factory)
 
 
 def test_offsets_cover_both_sides():

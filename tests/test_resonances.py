@@ -184,10 +184,15 @@ def test_verify_checks_the_resonance_cap(run):
        order=st.integers(3, 6))
 def test_resonance_order_verdicts_at_every_scale(name, exponent, offset, order):
     """check --resonance-order at beta from 1e-150 to 1e150: a SAFE step lies below the
-    first resonance of order <= N at 50 digits; steps clearly above it are UNSAFE."""
+    first resonance of order <= N at 50 digits; steps clearly above it are UNSAFE. Where
+    no resonance of order <= N lies below the first boundary (yoshida4), the order
+    changes no verdict there."""
     beta = 10.0 ** exponent
     region, found = _found(name, None, tuple(range(3, order + 1)))
     if not found:
+        h = region.first_boundary * (1 + offset) / beta
+        assert stepsafe.check(name, h, [beta], resonance_order=order).safe == \
+            stepsafe.check(name, h, [beta]).safe
         return
     first = found[0]
     Mfun = mp_transfer(mp_method(name, None, None, 50))
