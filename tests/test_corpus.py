@@ -10,6 +10,7 @@ keep in the repository (100 MB, a 10^6-element list) are made on the fly.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import subprocess
@@ -58,14 +59,26 @@ def test_huge_and_special_files(tmp_path):
         assert "Traceback" not in proc.stderr
 
 
-def test_unreadable_file(tmp_path):
-    if os.geteuid() == 0:
-        pytest.skip("root reads files whatever their mode")
+@pytest.mark.parametrize("command", ["validate", "check"])
+def test_unreadable_file(tmp_path, monkeypatch, run, command):
+    """A file its user may not read (mode 0): one line naming it, exit 2. Root (as CI
+    runs) reads a file whatever its mode, so where the file is still readable the open the
+    reader makes is refused as the kernel refuses it to anyone else (EACCES)."""
     path = tmp_path / "secret.yaml"
     path.write_text("name: x\n")
     path.chmod(0)
-    proc = _run(["validate", str(path)], tmp_path)
-    assert proc.returncode == 2 and "cannot read" in proc.stderr
+    if os.access(path, os.R_OK):
+        real_open = os.open
+
+        def refused(file, flags, *args, **kwargs):
+            if os.fspath(file) == str(path):
+                raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
+            return real_open(file, flags, *args, **kwargs)
+
+        monkeypatch.setattr(os, "open", refused)
+    code, out, err = run(command, str(path))
+    assert (code, out) == (2, "")
+    assert err == f"stepsafe: error: {path}: cannot read: Permission denied\n"
 
 
 def test_internal_error_exits_3_with_a_hint(run, monkeypatch):
