@@ -352,6 +352,7 @@ def test_gauss_phase_matches_its_pade_form_to_the_boundary_and_tiny_z():
             assert _agree(got, truth), (s, z, got, mp.nstr(truth, 12))
 
 
+@pytest.mark.slow
 def test_lobatto_errors_match_its_stage_equations_on_islands_and_at_tiny_z():
     """Lobatto IIIA-IIIB s = 2..12 (s >= 10 printed energy 0 where the truth is 2e-16 to
     3e-6; the phase had the wrong sign on islands beyond 2 pi)."""

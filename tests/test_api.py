@@ -19,6 +19,7 @@ from stepsafe.exceptions import StepsafeError
 ROOT = Path(__file__).resolve().parent.parent
 
 
+@pytest.mark.slow
 def test_docstring_examples_run():
     failures, tried = doctest.testmod(api, raise_on_error=False, verbose=False)
     assert tried >= 8 and failures == 0

@@ -72,3 +72,34 @@ def test_github_actions_job(tmp_path):
     out = subprocess.run(["bash", "-e", "-c", check], cwd=tmp_path, capture_output=True, text=True,
                          env=env)
     assert out.returncode == 0 and "safe.stepsafe.yaml: SAFE" in out.stdout, out.stderr
+
+
+def _collected(probe: Path, *args: str) -> tuple[int, list[str]]:
+    """The tests of ``probe`` that pytest selects under the project's configuration."""
+    out = subprocess.run([sys.executable, "-m", "pytest", "-c", str(ROOT / "pyproject.toml"),
+                          "--collect-only", "-p", "no:cacheprovider", *args, str(probe)],
+                         capture_output=True, text=True, cwd=probe.parent)
+    return out.returncode, sorted(line.split("::")[-1] for line in out.stdout.splitlines()
+                                  if "::" in line)
+
+
+def test_the_readme_test_line_leaves_out_the_slow_tests_and_ci_runs_them(tmp_path):
+    """The README's test line (plain pytest) skips the tests marked slow, `-m slow` selects
+    only them and the command the README gives for the whole suite selects both; a
+    misspelt marker is an error, not a test silently left out; .ci/run runs the slow tests
+    after the README's line."""
+    probe = tmp_path / "test_probe.py"
+    probe.write_text("import pytest\n\n\n@pytest.mark.slow\ndef test_slow():\n    pass\n\n\n"
+                     "def test_fast():\n    pass\n")
+    assert _collected(probe) == (0, ["test_fast"])
+    assert _collected(probe, "-m", "slow") == (0, ["test_slow"])
+    assert _collected(probe, "-m", "slow or not slow") == (0, ["test_fast", "test_slow"])
+    probe.write_text(probe.read_text().replace("mark.slow", "mark.slwo"))
+    assert _collected(probe)[0] != 0
+    readme = (ROOT / "README.md").read_text()
+    line = readme.split("# install and run the tests\n", 1)[1].split("\n", 1)[0]
+    assert line == "pip install '.[test]' && pytest -n 2"
+    assert 'pytest -n 2 -m "slow or not slow"' in readme and "pytest -n 2 -m slow" in readme
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert "# install and run the tests" in ci
+    assert ci.index('eval "$cmd"') < ci.index("\npytest -n 2 -m slow\n")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 
+import pytest
 from click.testing import CliRunner
 from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
@@ -185,6 +186,7 @@ def test_modes_csv_keeps_the_contract(tmp_path_factory, rows, header):
                               str(path), "--json"), True)
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(beta=extreme, h=extreme, zmax=st.one_of(st.none(), extreme),
        margin=st.one_of(st.none(), st.floats(-1, 2, allow_nan=False)),
@@ -206,6 +208,7 @@ def test_command_line_numbers_keep_the_contract(beta, h, zmax, margin, model, na
         assert math.isfinite(beta) and math.isfinite(h)
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(name=st.sampled_from(["verlet", "pefrl", "yoshida4", "bcss2", "midpoint", "ruth3",
                              "symplectic-euler", "kahan-li8"]),

@@ -254,6 +254,7 @@ from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 
+@pytest.mark.slow
 @settings(max_examples=25, deadline=None)
 @given(scale=st.floats(-3.0, 3.0), spread=st.floats(1.0, 20.0),
        top=st.floats(2.4, 4.4), jitter=st.sampled_from((0.0, 0.1, 0.3, 0.6)))

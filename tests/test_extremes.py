@@ -272,6 +272,7 @@ def test_saddle_dip_inside_one_grid_cell_is_found(detune):
         assert region.first_boundary is None or region.first_boundary > 1.4386
 
 
+@pytest.mark.slow
 def test_a_stretch_float64_cannot_decide_is_never_preserved():
     """Lobatto IIIA-IIIB s = 27 on the barrier past its pole at 37.7: tr M - 2 ~ -1.5e16 (a
     flip, 50 digits), while float64's own rounding bound there is ~1e31 eps > 1e16."""

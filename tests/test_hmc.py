@@ -119,6 +119,7 @@ def _gil_pelaez_mp(errors):
         return float(1 - 2 / mp.pi * mp.quad(f, cuts))
 
 
+@pytest.mark.slow
 @settings(max_examples=12, deadline=None, derandomize=True)
 @given(st.lists(st.floats(-12.0, 1.5), min_size=1, max_size=5))
 def test_acceptance_matches_a_30_digit_quadrature(log_errors):

@@ -425,6 +425,7 @@ def test_an_ill_conditioned_mass_widens_the_margin(tmp_path):
                           criterion="structure").safe is False
 
 
+@pytest.mark.slow
 def test_review_8_inputs(run, tmp_path):
     """An impulse method as the base of a composition is refused (exit 2); substeps up to
     the merged-operation limit are accepted; a slow part 1e-9 of the fast one that does

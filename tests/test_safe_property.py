@@ -16,6 +16,7 @@ import math
 
 import mpmath as mp
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from support import method
@@ -155,6 +156,7 @@ def scenes(draw):
     return m, Modes.from_pairs(pairs), z_top / top, margin
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(scenes())
 def test_every_safe_verdict_holds_at_50_digits(case):
@@ -206,6 +208,7 @@ def _stable_type(Mfun, z, model) -> bool:
     return bool(abs(tr) < 2) if model == "oscillator" else bool(tr > 2)
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(scenes())
 def test_every_stable_verdict_holds_at_50_digits(case):
