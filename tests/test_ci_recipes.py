@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -83,6 +84,7 @@ def _collected(probe: Path, *args: str) -> tuple[int, list[str]]:
                                   if "::" in line)
 
 
+@pytest.mark.slow
 def test_the_readme_test_line_leaves_out_the_slow_tests_and_ci_runs_them(tmp_path):
     """The README's test line (plain pytest) skips the tests marked slow, `-m slow` selects
     only them and the command the README gives for the whole suite selects both; a

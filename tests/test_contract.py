@@ -288,6 +288,7 @@ def test_family_without_stages_in_a_scene_names_the_key(tmp_path):
     assert code == 2 and "g.yaml::$.method" in err and "stages:" in err
 
 
+@pytest.mark.slow
 @settings(max_examples=25, deadline=None)
 @example(name="sofroniou-spaletta10", log_betas=[math.log10(13350.168537322375)],
          margin=1.0)

@@ -330,6 +330,7 @@ def test_three_stage_design_against_the_end_of_its_stable_range(top, jitter):
                for u in np.linspace(-1.0, 1.0, 21) if abs(step * (1 + jitter * u) - near) > 1e-6)
 
 
+@pytest.mark.slow
 @settings(max_examples=6, deadline=None)
 @given(exponent=st.floats(-200.0, 200.0), spread=st.floats(1.0, 10.0),
        count=st.integers(1, 4), top=st.floats(2.5, 4.6),
@@ -358,6 +359,7 @@ def test_design_and_hmc_apply_one_rule_to_rounding_gaps(exponent, spread, count,
                                 if h <= step * (1.0 + jitter) * (1 + 1e-12)]
 
 
+@pytest.mark.slow
 def test_the_rule_for_rounding_gaps_is_stated_by_both_commands(run):
     """The README's target at bcss3's step at target there (0.354016, z = 3.54, past its
     M = -I point at 2.976, where hmc ranks it first): design --stages 3 designs, and both

@@ -256,6 +256,7 @@ def test_unstable_jittered_steps_raise_no_floating_point_warning():
         assert row.at_step["acceptance"] == 0.0 and row.at_step["expected_error"] == np.inf
 
 
+@pytest.mark.slow
 @settings(max_examples=10, deadline=None)
 @given(exponent=st.integers(-960, 960), log_z=st.floats(-3.0, 300.0),
        shape=st.lists(st.floats(1.0, 100.0), max_size=3),

@@ -228,7 +228,7 @@ def test_design_output(tmp_path):
     shown = float(re.search(r"with b = (\S+), designed", README).group(1))
     designed = float(re.search(r'b: "(\S+)"', out.read_text()).group(1))
     assert abs(designed - shown) <= 1e-8
-    near = shown + np.linspace(-1e-6, 1e-6, 2001)
+    near = shown + np.linspace(-1e-7, 1e-7, 201)  # steps of 1e-9 about the minimiser
     least = _design_objective(near[:, None], 0.2, 0.1).min()
     reached, at_shown = _design_objective(np.array([[designed], [shown]]), 0.2, 0.1)
     assert reached <= least * (1 + 1e-12)

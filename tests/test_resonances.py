@@ -222,7 +222,9 @@ def _fpu_stiffness(n: int = 4) -> list[list[float]]:
     return (2 * np.eye(n) - np.eye(n, k=1) - np.eye(n, k=-1)).tolist()
 
 
-@pytest.mark.parametrize("order, resonant", [(4, math.sqrt(2)), (3, math.sqrt(3))])
+# (order 4 also searches the equilibria of examples/fpu-alpha.yaml: about 3.4 s)
+@pytest.mark.parametrize("order, resonant", [
+    pytest.param(4, math.sqrt(2), marks=pytest.mark.slow), (3, math.sqrt(3))])
 def test_resonance_order_applies_to_system_scenes(run, tmp_path, order, resonant):
     """A system: scene (a Hamiltonian with its equilibria, or a stiffness with or without
     all_modes) keeps below the fastest mode's n:1 resonance, z = 2 sin(pi/n) for Verlet,
