@@ -9,6 +9,7 @@ import math
 from functools import cache
 
 import mpmath as mp
+import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from reference_methods import mp_transfer
@@ -71,6 +72,7 @@ FRACTION = st.one_of(st.floats(0.0, 1.0), st.integers(1, 16).map(lambda k: 10.0 
                      st.integers(1, 16).map(lambda k: 1.0 - 10.0 ** -k))
 
 
+@pytest.mark.slow
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(case=st.sampled_from(CASES), criterion=st.sampled_from(["structure", "stability"]),
        data=st.data(), t=FRACTION)
