@@ -1,6 +1,6 @@
 """stepsafe: step sizes that keep the type of an equilibrium under a symplectic integrator.
 
-The public API (see :mod:`stepsafe.api`)::
+The public API (its modules: :mod:`stepsafe.api`)::
 
     method(name, stages=None, base=None)        a built-in method, family member or file
     method_from_file(path)                      a method file
@@ -39,78 +39,84 @@ from stepsafe.exceptions import MethodError, StepsafeError
 
 __version__ = "0.1.0"
 
-_API = ("Integrator", "PartitionedTableau", "RegionReport", "AdviceReport", "CheckReport",
-        "CheckError", "SceneChecks", "ErrorTable", "CompareReport", "CompareRow", "Problem",
-        "method", "method_from_file", "region", "advise", "check", "check_scenes", "errors",
-        "compare", "transfer_matrices", "problem", "load_scene")
-#: The HMC part of the API (stepsafe.hmc_advice), built on the same inputs.
-_HMC = ("hmc", "design", "HmcReport", "HmcRow", "DesignReport")
-#: Multiple time stepping (stepsafe.respa_advice).
-_MTS = ("impulse", "impulse_advice", "ImpulseReport", "ImpulseModesReport")
-#: Measurement on the user's own system (stepsafe.measurement).
-_MEASURE = ("measure", "refine", "MeasureReport", "MeasureRow", "Refinement")
-__all__ = [*_API, *_HMC, *_MTS, *_MEASURE, "StepsafeError", "MethodError", "__version__"]
+#: Each public name and the module of :mod:`stepsafe.api` that defines it (loaded on first
+#: use, so that ``import stepsafe`` stays light).
+_MODULES = {name: module for module, names in {
+    "inputs": ("Integrator", "PartitionedTableau", "Problem", "method", "method_from_file",
+               "problem", "load_scene"),
+    "reports": ("RegionReport", "AdviceReport", "CheckReport", "CheckError", "SceneChecks",
+                "ErrorTable", "CompareReport", "CompareRow", "HmcReport", "HmcRow",
+                "DesignReport", "ImpulseReport", "ImpulseModesReport", "MeasureReport",
+                "MeasureRow", "Refinement"),
+    "linear": ("region", "advise", "check", "check_scenes", "errors", "compare",
+               "transfer_matrices"),
+    "hmc": ("hmc", "design"),
+    "md": ("impulse", "impulse_advice"),
+    "measure": ("measure", "refine"),
+}.items() for name in names}
+__all__ = [*_MODULES, "StepsafeError", "MethodError", "__version__"]
 
 if TYPE_CHECKING:  # pragma: no cover
-    from stepsafe.api import (  # noqa: F401
-        AdviceReport,
-        CheckError,
-        CheckReport,
-        CompareReport,
-        CompareRow,
-        ErrorTable,
+    from stepsafe.api.hmc import (  # noqa: F401
+        design,
+        hmc,
+    )
+    from stepsafe.api.inputs import (  # noqa: F401
         Integrator,
         PartitionedTableau,
         Problem,
-        RegionReport,
-        SceneChecks,
+        load_scene,
+        method,
+        method_from_file,
+        problem,
+    )
+    from stepsafe.api.linear import (  # noqa: F401
         advise,
         check,
         check_scenes,
         compare,
         errors,
-        load_scene,
-        method,
-        method_from_file,
-        problem,
         region,
         transfer_matrices,
     )
-    from stepsafe.hmc_advice import DesignReport, HmcReport, HmcRow, design, hmc  # noqa: F401
-    from stepsafe.measurement import (  # noqa: F401
-        MeasureReport,
-        MeasureRow,
-        Refinement,
+    from stepsafe.api.md import (  # noqa: F401
+        impulse,
+        impulse_advice,
+    )
+    from stepsafe.api.measure import (  # noqa: F401
         measure,
         refine,
     )
-    from stepsafe.respa_advice import (  # noqa: F401
+    from stepsafe.api.reports import (  # noqa: F401
+        AdviceReport,
+        CheckError,
+        CheckReport,
+        CompareReport,
+        CompareRow,
+        DesignReport,
+        ErrorTable,
+        HmcReport,
+        HmcRow,
         ImpulseModesReport,
         ImpulseReport,
-        impulse,
-        impulse_advice,
+        MeasureReport,
+        MeasureRow,
+        Refinement,
+        RegionReport,
+        SceneChecks,
     )
 
 
 def __getattr__(name: str) -> Any:
-    if name in _API:
-        from stepsafe import api
+    module = _MODULES.get(name)
+    if module is None:
+        raise AttributeError(f"module 'stepsafe' has no attribute {name!r}")
+    import importlib
 
-        return getattr(api, name)
-    if name in _HMC:
-        from stepsafe import hmc_advice
-
-        return getattr(hmc_advice, name)
-    if name in _MTS:
-        from stepsafe import respa_advice
-
-        return getattr(respa_advice, name)
-    if name in _MEASURE:
-        from stepsafe import measurement
-
-        return getattr(measurement, name)
-    raise AttributeError(f"module 'stepsafe' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"stepsafe.api.{module}"), name)
+    globals()[name] = value
+    return value
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_API) | set(_HMC) | set(_MTS) | set(_MEASURE))
+    return sorted(set(globals()) | set(_MODULES))

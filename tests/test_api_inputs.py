@@ -92,7 +92,7 @@ def test_hmc_and_design_refuse_unknown_arguments_and_flat_directions():
     problem (it was a TypeError from problem());
     a zero frequency (sigma = inf) is an improper target (review 22)."""
     import stepsafe
-    from stepsafe.hmc_advice import hmc
+    from stepsafe import hmc
 
     with pytest.raises(stepsafe.StepsafeError, match="unknown argument 'foo'"):
         hmc(["verlet"], sigma=[1.0], foo=1)

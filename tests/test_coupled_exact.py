@@ -88,9 +88,9 @@ def test_a_large_nearly_semidefinite_system_states_the_band_float64_leaves_open(
     assert "Undecided: float64 cannot decide" in text
     data = json.loads(run("advise", str(scene), "--json")[1])
     assert data["undecided_h"] == [[result.h_max, result.undecided_to]]
-    from stepsafe import api
+    import stepsafe
 
-    assert api.advise("verlet", system={"hessian": S}).undecided_h == (
+    assert stepsafe.advise("verlet", system={"hessian": S}).undecided_h == (
         (result.h_max, result.undecided_to),)
     step = 0.5 * (result.h_max + result.undecided_to)
     code, out, _ = run("check", str(scene), "--step", repr(step))

@@ -17,7 +17,7 @@ import stepsafe
 from stepsafe.core.design import design as core_design
 from stepsafe.core.design import family_member, rho_values
 from stepsafe.exceptions import StepsafeError
-from stepsafe.hmc_advice import design, hmc
+from stepsafe import design, hmc
 
 
 def _rho_mp(b, z):
@@ -81,7 +81,7 @@ def test_the_method_file_is_accepted_by_every_command(run, tmp_path):
     direct = family_member(3, (b, a))
     z = np.linspace(0.1, 3.0, 7)
     assert np.allclose(stepsafe.transfer_matrices(integrator, z),
-                       stepsafe.transfer_matrices(stepsafe.api.Integrator(
+                       stepsafe.transfer_matrices(stepsafe.Integrator(
                            "x", "splitting", "", 2, 4, 3, "", True, direct, None), z),
                        rtol=1e-14, atol=1e-15)
     for args in (("region", str(out)), ("advise", "--method", str(out), "--beta", "3"),
@@ -120,7 +120,7 @@ def test_designed_beats_its_family_on_its_own_target(stages, rivals):
     for ref in rivals:
         assert ours < objective(members[ref])
     rng = np.random.default_rng(2)
-    designed = stepsafe.api.Integrator("designed", "splitting", "", 2, stages + 1, stages, "",
+    designed = stepsafe.Integrator("designed", "splitting", "", 2, stages + 1, stages, "",
                                        True, family_member(stages, tuple(
                                            report.params.values())), None)
     runs = []
@@ -350,7 +350,7 @@ def test_design_and_hmc_apply_one_rule_to_rounding_gaps(exponent, spread, count,
         assert bcss3.stability_h < step * (1.0 + jitter)
         return
     params = tuple(report.params.values())
-    designed = stepsafe.api.Integrator("designed", "splitting", "", 2, 4, 3, "", True,
+    designed = stepsafe.Integrator("designed", "splitting", "", 2, 4, 3, "", True,
                                        family_member(3, params), None)
     row = hmc([designed], sigma=sigmas).rows[0]
     assert row.stability_h >= step * (1.0 + jitter) * (1 - 1e-12)

@@ -296,7 +296,7 @@ def test_a_force_gradient_outer_method_of_an_impulse_file_is_refused_naming_the_
 def test_hmc_shows_the_step_cost_it_charges():
     """chin-4a: 2 forces and one force gradient per step; at --gradient-cost 3 a step
     costs 5 gradients, and that is the figure shown per step and used per proposal."""
-    from stepsafe.hmc_advice import hmc
+    from stepsafe import hmc
 
     for cost, per_step in ((1.0, 3.0), (3.0, 5.0)):
         row = hmc(["chin-4a"], sigma=[1.0, 0.1], steps=10, gradient_cost=cost).rows[0]

@@ -27,7 +27,7 @@ from test_safe_property import _mp_function
 import stepsafe
 from stepsafe.core import hmc as H
 from stepsafe.exceptions import StepsafeError
-from stepsafe.hmc_advice import hmc
+from stepsafe import hmc
 from stepsafe.methods.tableaux import Splitting
 from stepsafe.reference import highprec as R
 

@@ -25,7 +25,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from stepsafe.exceptions import StepsafeError
-from stepsafe.hmc_advice import hmc
+from stepsafe import hmc
 
 #: Stan's threshold of a divergent transition: an energy error above this.
 DIVERGENT = 1000.0

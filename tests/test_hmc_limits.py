@@ -26,7 +26,7 @@ from reference_methods import mp_transfer
 
 from stepsafe.core import hmc as core
 from stepsafe.exceptions import StepsafeError
-from stepsafe.hmc_advice import hmc
+from stepsafe import hmc
 
 #: A 5x5 covariance of condition 5.7e11 at scale 1e-140 (a reviewer's case: its float64
 #: stability limit used to exceed the true one by 3e-6 relative).
@@ -199,7 +199,7 @@ def test_a_design_is_stable_for_the_true_frequencies_of_a_covariance(matrix, nea
     one: a step 1e-7 below the family's limit z = 4 for the float64 frequency is past it
     for the true one, and is refused (b = 1/4 used to be designed, |tr M| = 2.0001 at the
     true frequency); a step well inside gets a member with |tr M| <= 2 at 50 digits."""
-    from stepsafe.hmc_advice import design
+    from stepsafe import design
 
     nominal = float(np.sqrt(np.linalg.eigvalsh(np.asarray(matrix)).min()))
     with mp.workdps(50):

@@ -13,7 +13,7 @@ import pytest
 from support import respa_mp, respa_stable_mp
 
 from stepsafe.exceptions import StepsafeError
-from stepsafe.respa_advice import impulse, impulse_advice
+from stepsafe import impulse, impulse_advice
 
 
 def _respa_run(q, p, H, steps, k, fast_force, slow_force):
@@ -327,7 +327,7 @@ def _structure_kept(A_f, A_s, k, H) -> bool:
 def test_parts_that_do_not_commute_get_the_coupled_analysis(seed, tmp_path, run):
     """The 2n x 2n outer step: kept just below h_max and lost just above it at 50 digits;
     for commuting parts the coupled answer is the decoupled one."""
-    from stepsafe.respa_advice import impulse_method
+    from stepsafe.api.md import impulse_method
     from stepsafe.systems.multiple import coupled_impulse, read_split
 
     rng = np.random.default_rng(seed)
@@ -370,7 +370,7 @@ def test_parts_that_do_not_commute_get_the_coupled_analysis(seed, tmp_path, run)
 
 def test_coupled_limit_measured_in_a_real_integration(tmp_path):
     """r-RESPA on non-commuting parts: bounded energy at 0.97 h_max."""
-    from stepsafe.respa_advice import impulse_method
+    from stepsafe.api.md import impulse_method
     from stepsafe.systems.multiple import coupled_impulse, read_split
 
     rng = np.random.default_rng(5)
@@ -401,7 +401,7 @@ def test_region_ratio_and_the_chart(run, tmp_path):
 def test_an_ill_conditioned_mass_widens_the_margin(tmp_path):
     """Mass condition 1e6: the whitened parts carry ~1e-10 relative errors, so the printed
     h_max sits below the analysis's boundary by that much, and the edge is not SAFE."""
-    from stepsafe.respa_advice import impulse_method
+    from stepsafe.api.md import impulse_method
     from stepsafe.systems.multiple import coupled_impulse, read_split
 
     rng = np.random.default_rng(4)

@@ -13,7 +13,7 @@ import pytest
 from stepsafe import method
 from stepsafe.core.integrator import Engine
 from stepsafe.exceptions import StepsafeError
-from stepsafe.measurement import measure
+from stepsafe import measure
 from stepsafe.systems.dynamics import hamiltonian_system, linear_system
 from stepsafe.systems.nonlinear import parse_hamiltonian
 
@@ -260,7 +260,7 @@ def test_refinement_finds_the_measured_step():
     """On the oscillator the measured energy spread is the linear bound, so the refined h
     is the predicted one; on the pendulum the refined h meets the tolerance and twice it
     (or the next run up) does not."""
-    from stepsafe.measurement import refine
+    from stepsafe import refine
 
     oscillator = {"stiffness": np.eye(1)}
     r = refine("verlet", "energy", 1e-3, system=oscillator, initial=[0.0, 1.0], time=200.0)

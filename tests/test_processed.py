@@ -28,8 +28,8 @@ from stepsafe.core.regions import find_region
 from stepsafe.core.transfer import transfer_matrix
 from stepsafe.exceptions import StepsafeError
 from stepsafe.files.yamlio import load_yaml
-from stepsafe.hmc_advice import hmc
-from stepsafe.measurement import measure
+from stepsafe import hmc
+from stepsafe import measure
 from stepsafe.methods.fileformat import json_schema
 from stepsafe.methods.library import builtin_dir, resolve
 from stepsafe.reference.verify import mp_transfer

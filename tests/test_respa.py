@@ -12,7 +12,7 @@ import pytest
 from support import respa_mp, respa_stable_mp
 
 from stepsafe.exceptions import StepsafeError
-from stepsafe.respa_advice import impulse
+from stepsafe import impulse
 
 
 def test_one_substep_is_verlet_on_the_total_force():

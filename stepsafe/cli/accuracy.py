@@ -53,7 +53,7 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json, tsv) 
     """
     import numpy as np
 
-    from stepsafe import api
+    from stepsafe.api import inputs, linear
     from stepsafe.cli.report import print_errors, print_json, print_tsv
 
     one_format(as_json, tsv)
@@ -72,7 +72,7 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json, tsv) 
     for value in z:
         if not (np.isfinite(value) and value > 0):
             raise _input_error(f"z must be a positive finite number, got {value}")
-    data = api.errors(api.method(method, stages=stages, base=base), z, model).to_dict()
+    data = linear.errors(inputs.method(method, stages=stages, base=base), z, model).to_dict()
     if as_json:
         print_json(data)
     elif tsv:
@@ -118,7 +118,7 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, tsv, criterion, a
       stepsafe compare --beta 1 --tol-energy 1e-4 --methods verlet,pefrl,yoshida4,bcss2
       stepsafe compare --beta 1 --tol-phase 1e-6 --tol-energy 1e-6 --methods pefrl,gauss:2
     """
-    from stepsafe import api
+    from stepsafe.api import linear
     from stepsafe.cli.report import print_compare, print_json, print_tsv
 
     one_format(as_json, tsv)
@@ -127,7 +127,7 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, tsv, criterion, a
     arrays, _ = command_line_modes(options)
     methods = "all" if use_all else (None if names is None else names.split(","))
     margin = options["margin"]
-    data = api.compare(methods, modes=arrays, tol_phase=tol_phase, tol_energy=tol_energy,
+    data = linear.compare(methods, modes=arrays, tol_phase=tol_phase, tol_energy=tol_energy,
                        margin=1.0 if margin is None else margin, zmax=options["zmax"],
                        time_unit=options["time_unit"], solver=solver,
                        criterion=criterion, gradient_cost=gradient_cost).to_dict()
@@ -215,12 +215,12 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, subst
     plt = _pyplot()
     import numpy as np
 
-    from stepsafe import api
+    from stepsafe.api import inputs, linear
 
-    integrator = api.method(method, stages=stages, base=base)
+    integrator = inputs.method(method, stages=stages, base=base)
     if integrator.kind == "impulse" or ratio is not None or substeps is not None:
+        from stepsafe.api.md import impulse_method
         from stepsafe.cli.respa import draw_chart
-        from stepsafe.respa_advice import impulse_method
 
         if integrator.kind != "impulse":
             raise _input_error(f"--ratio and --substeps apply to impulse methods; "
@@ -237,9 +237,9 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, subst
         safe_name = "".join(c if c.isalnum() or c in "-_." else "_" for c in integrator.name)
         output = f"{safe_name}-{model}.png"
     fmt = _plot_format(output, plt)
-    region = api.region(integrator, model, zmax=zmax).regions[model]
+    region = linear.region(integrator, model, zmax=zmax).regions[model]
     z = np.linspace(zmax / 4000, zmax, 4000)
-    M = api.transfer_matrices(integrator, z, model)
+    M = linear.transfer_matrices(integrator, z, model)
     with np.errstate(all="ignore"):  # overflow far out is drawn clipped, not warned about
         half = 0.5 * (M[:, 0, 0] + M[:, 1, 1])
     with warnings.catch_warnings(), np.errstate(all="ignore"):
@@ -253,7 +253,7 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, subst
 def _draw(plt, integrator, model, region, z, half, zmax, with_phase):
     import numpy as np
 
-    from stepsafe import api
+    from stepsafe.api import linear
 
     rows = 2 if with_phase else 1
     fig, axes = plt.subplots(rows, 1, figsize=(8, 3.2 * rows), sharex=True, squeeze=False)
@@ -270,7 +270,7 @@ def _draw(plt, integrator, model, region, z, half, zmax, with_phase):
     ax.set_title(f"{integrator.name}, {model}: preserved z = beta*h shaded green")
     ax.legend(loc="lower left", fontsize=8)
     if with_phase:
-        e = api.errors(integrator, z, model)
+        e = linear.errors(integrator, z, model)
         axes[1, 0].semilogy(z, np.abs(e.phase), lw=1.2)
         axes[1, 0].set_ylabel("|phase error|" if model == "oscillator" else "|rate error|")
     axes[-1, 0].set_xlabel("z = beta h")

@@ -345,10 +345,10 @@ def methods_cmd(as_json: bool, tsv: bool) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 def show_cmd(method: str, stages: int | None, base: str | None, as_json: bool) -> None:
     """Coefficients, order, stages and symplecticity residuals of METHOD."""
-    from stepsafe import api
+    from stepsafe.api import inputs
     from stepsafe.cli.report import print_json, print_method
 
-    data = api.method(method, stages=stages, base=base).to_dict()
+    data = inputs.method(method, stages=stages, base=base).to_dict()
     if as_json:
         print_json(data)
     else:
@@ -391,11 +391,11 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
     An impulse (r-RESPA) METHOD is analysed at a frequency ratio --ratio omega/Omega:
     its unstable bands in Omega H (see stepsafe respa).
     """
-    from stepsafe import api
+    from stepsafe.api import inputs, linear
     from stepsafe.cli.report import print_json, print_region
     from stepsafe.core.regions import DEFAULT_ZMAX
 
-    integrator = api.method(method, stages=stages, base=base)
+    integrator = inputs.method(method, stages=stages, base=base)
     if integrator.kind == "impulse" or ratio is not None or substeps is not None:
         from stepsafe.cli.respa import impulse_region
 
@@ -407,7 +407,7 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
     if not all(item.isascii() and item.isdigit() and len(item) <= 3 for item in orders):
         raise _input_error(f"--resonance-orders {resonance_orders}: give integers such as "
                            "3,4,5,6")
-    report = api.region(integrator, model, zmax=DEFAULT_ZMAX if zmax is None else zmax,
+    report = linear.region(integrator, model, zmax=DEFAULT_ZMAX if zmax is None else zmax,
                         verify=verify, resonance_orders=tuple(int(item) for item in orders),
                         criterion=criterion)
     data = report.to_dict()
@@ -504,13 +504,13 @@ def scene_options(func):
 def _problem(scene_file, options: dict, show_progress: bool = False, h=None):
     """The scene file merged with the command-line options (the options win); ``h`` the
     step to check (a number, or a text with a time unit)."""
-    from stepsafe import api
+    from stepsafe.api import inputs
     from stepsafe.cli.progressbar import progress_bar
 
     options = dict(options)  # (the time unit found is this scene's alone)
     modes, labels = command_line_modes(options, scene_file, h)
     with progress_bar("coupled analysis", show_progress) as progress:
-        return api.problem(options["method_name"], modes=modes, labels=labels,
+        return inputs.problem(options["method_name"], modes=modes, labels=labels,
                            scene=scene_file, stages=options["stages"], base=options["base"],
                            margin=options["margin"], zmax=options["zmax"],
                            time_unit=options["time_unit"], h=h, progress=progress,
@@ -623,7 +623,7 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, crite
       stepsafe advise scene.yaml --margin 0.8
       stepsafe advise examples/pendulum.yaml
     """
-    from stepsafe import api
+    from stepsafe.api import linear
     from stepsafe.cli.report import print_advice, print_json
     from stepsafe.cli.respa import impulse_of, impulse_report, print_impulse_modes
 
@@ -639,7 +639,7 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, crite
         print_json(data) if as_json else print_impulse_modes(data, check=False)
         return
     problem = _problem(scene_files[0] if scene_files else None, options, not as_json)
-    data = api.advise(problem=problem, tol_phase=tol_phase, tol_energy=tol_energy,
+    data = linear.advise(problem=problem, tol_phase=tol_phase, tol_energy=tol_energy,
                       resonance_order=resonance_order, criterion=criterion, solver=solver,
                       verify=verify, gradient_cost=gradient_cost).to_dict()
     verdict = data.get("verify")
@@ -703,7 +703,7 @@ def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as
       stepsafe check --method verlet --step 0.1 --beta 12
       stepsafe check scene.yaml --json
     """
-    from stepsafe import api
+    from stepsafe.api import reports
     from stepsafe.cli.report import print_check, print_json, print_system
     from stepsafe.cli.respa import print_impulse_modes
     from stepsafe.exceptions import StepsafeError
@@ -716,12 +716,12 @@ def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as
         except StepsafeError as exc:
             if not scene_files:
                 raise  # the command line alone: its error is the answer
-            checks.append(api.CheckError(scene_file, exc.message, exc.where))
-    suite = api.SceneChecks(tuple(checks))
+            checks.append(reports.CheckError(scene_file, exc.message, exc.where))
+    suite = reports.SceneChecks(tuple(checks))
     data = suite.to_dict()
     verdicts = [entry["verify"] for entry in data["checks"] if "verify" in entry]
     failed = next((v for v in verdicts if not v["ok"]), None)
-    errors = [c for c in checks if isinstance(c, api.CheckError)]
+    errors = [c for c in checks if isinstance(c, reports.CheckError)]
     from stepsafe.cli.output import decided
 
     decided(EXIT_INTERNAL if failed else suite.exit_code,
@@ -757,14 +757,14 @@ def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as
 def _check_one(scene_file, h, options: dict, resonance_order, criterion: str, verify: bool,
                solver: str, require_complete_search: bool, show_progress: bool):
     """The check of one scene (or of the command line alone): an impulse method's
-    :class:`~stepsafe.respa_advice.ImpulseModesReport`, else a
-    :class:`~stepsafe.api.CheckReport`."""
-    from stepsafe import api
+    :class:`~stepsafe.api.reports.ImpulseModesReport`, else a
+    :class:`~stepsafe.api.reports.CheckReport`."""
+    from stepsafe.api import linear
     from stepsafe.cli.respa import impulse_of
 
     impulse = impulse_of(scene_file, {**options, "verify": verify})
     if impulse is not None:
-        from stepsafe.respa_advice import impulse_advice
+        from stepsafe.api.md import impulse_advice
 
         report = impulse_advice(impulse, scene=scene_file, substeps=options.get("substeps"),
                                 step=h, time_unit=options["time_unit"], criterion=criterion,
@@ -776,7 +776,7 @@ def _check_one(scene_file, h, options: dict, resonance_order, criterion: str, ve
                                 scene_file)
         return report
     problem = _problem(scene_file, options, show_progress, h)
-    return api.check(problem=problem, resonance_order=resonance_order, criterion=criterion,
+    return linear.check(problem=problem, resonance_order=resonance_order, criterion=criterion,
                      verify=verify, solver=solver,
                      require_complete_search=require_complete_search)
 

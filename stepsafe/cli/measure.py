@@ -112,29 +112,29 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
       stepsafe measure examples/pendulum.yaml --method pefrl --tol-trajectory 1e-4 --time 60
       stepsafe measure examples/pendulum.yaml --method yoshida4 --h-range 0.05,1,6 --energy 0
     """
+    from stepsafe.api.measure import measure
     from stepsafe.cli.progressbar import progress_bar
     from stepsafe.cli.report import print_json, print_tsv
-    from stepsafe.measurement import measure
     from stepsafe.systems.scene import load_scene, time_unit_in_force
 
     one_format(as_json, tsv)
     hs = list(steps) + (_range(h_range) if h_range else [])
     time_unit = time_unit_in_force(time_unit, scene_file, hs, duration)
     loaded = load_scene(scene_file, time_unit)
-    from stepsafe import api
+    from stepsafe.api import inputs
     from stepsafe.exceptions import StepsafeError
 
     if method is None:
         if loaded.method is None:
             raise _input_error("no method: give --method METHOD or method: in the scene")
         try:
-            integrator = api.method(loaded.method.name,
+            integrator = inputs.method(loaded.method.name,
                                     stages=stages or loaded.method.stages,
                                     base=base or loaded.method.base)
         except StepsafeError as exc:
             raise StepsafeError(exc.message, exc.where or f"{scene_file}::$.method") from None
     else:
-        integrator = api.method(method, stages=stages, base=base)
+        integrator = inputs.method(method, stages=stages, base=base)
     start = None if initial is None else _numbers(initial, "initial")
     if tol_energy is not None or tol_trajectory is not None:
         if tol_energy is not None and tol_trajectory is not None:
@@ -142,7 +142,7 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
         if hs or tsv or max_steps is not None or budget is not None:
             raise _input_error("--tol-* finds the step itself: give no --h, --h-range, --tsv, "
                                "--max-steps or --budget")
-        from stepsafe.measurement import refine
+        from stepsafe.api.measure import refine
 
         quantity, tol = (("energy", tol_energy) if tol_energy is not None
                          else ("trajectory", tol_trajectory))
@@ -172,7 +172,7 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
 
 
 def print_measure(data: dict[str, Any]) -> None:
-    """The text form of :meth:`stepsafe.measurement.MeasureReport.to_dict`."""
+    """The text form of :meth:`stepsafe.api.reports.MeasureReport.to_dict`."""
     unit = data["time_unit"] or "time unit"
 
     def g(x: float | None, digits: int = 3) -> str:
@@ -205,17 +205,17 @@ def print_measure(data: dict[str, Any]) -> None:
 def work_precision_plot(scene_file: str, methods: str, h_range: str, duration: float | None,
                         which: str, output: str, initial: str | None = None) -> None:
     """Measure every method at every step of the range; draw error against cost."""
-    from stepsafe import api
+    from stepsafe.api import inputs
+    from stepsafe.api.measure import measure
     from stepsafe.cli.accuracy import _plot_format, _pyplot, _save
     from stepsafe.cli.progressbar import progress_bar
-    from stepsafe.measurement import measure
 
     hs = _range(h_range)
     names = [item.strip() for item in methods.split(",") if item.strip()]
     if not names or len(names) > MAX_METHODS:
         raise _input_error(f"--methods {methods}: give 1 to {MAX_METHODS} names separated by "
                            "commas")
-    integrators = [api.named_method(name) for name in names]
+    integrators = [inputs.named_method(name) for name in names]
     start = None if initial is None else _numbers(initial, "initial")
     plt = _pyplot()
     fmt = _plot_format(output, plt)
@@ -248,7 +248,7 @@ def work_precision_plot(scene_file: str, methods: str, h_range: str, duration: f
 
 
 def print_refinement(data: dict[str, Any]) -> None:
-    """The text form of :meth:`stepsafe.measurement.Refinement.to_dict`."""
+    """The text form of :meth:`stepsafe.api.reports.Refinement.to_dict`."""
     unit = data["runs"]["time_unit"]
     u = f" {unit}" if unit else ""
     what = "energy spread" if data["quantity"] == "energy" else "trajectory error"

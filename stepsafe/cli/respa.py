@@ -92,8 +92,8 @@ def respa_cmd(method, outer, inner, substeps, fast_beta, slow_beta, fast_wavenum
       stepsafe respa --fast-wavenumber 3700 --slow-wavenumber 300 --time-unit fs \\
           --substeps 4 --step 2
     """
+    from stepsafe.api.md import impulse, impulse_method
     from stepsafe.cli.report import print_json
-    from stepsafe.respa_advice import impulse, impulse_method
 
     if method is not None and (outer is not None or inner is not None):
         raise _input_error(f"give the impulse method {method} or --outer/--inner, not both")
@@ -205,7 +205,7 @@ _SINGLE_FORCE_OPTIONS = ("beta", "frequency", "wavenumber", "period", "sigma", "
 def impulse_of(scene_file: str | None, options: dict) -> Any:
     """The impulse method advise/check were asked about (by --method or the scene's
     method:), or None for any other method. --substeps is refused for other methods."""
-    from stepsafe import api
+    from stepsafe.api import inputs
     from stepsafe.exceptions import StepsafeError
     from stepsafe.systems.scene import load_scene
 
@@ -216,7 +216,7 @@ def impulse_of(scene_file: str | None, options: dict) -> Any:
     integrator = None
     if name is not None and options["stages"] is None and options["base"] is None:
         try:
-            integrator = api.method(name)
+            integrator = inputs.method(name)
         except StepsafeError:
             integrator = None  # the analysis of any other method reports it in context
     if integrator is None or integrator.kind != "impulse":
@@ -239,7 +239,7 @@ def impulse_report(integrator: Any, scene_file: str, options: dict, *, step: flo
                    criterion: str, resonance_order: int | None, check: bool
                    ) -> dict[str, Any]:
     """advise or check (``step``, else the scene's h) of an impulse method on a scene."""
-    from stepsafe.respa_advice import impulse_advice
+    from stepsafe.api.md import impulse_advice
 
     return impulse_advice(integrator, scene=scene_file, substeps=options.get("substeps"),
                           step=step, time_unit=options["time_unit"], criterion=criterion,
@@ -248,7 +248,7 @@ def impulse_report(integrator: Any, scene_file: str, options: dict, *, step: flo
 
 
 def print_impulse_modes(data: dict[str, Any], check: bool) -> None:
-    """The text form of :meth:`stepsafe.respa_advice.ImpulseModesReport.to_dict`."""
+    """The text form of :meth:`stepsafe.api.reports.ImpulseModesReport.to_dict`."""
     from stepsafe.cli.report import fmt, fmt_below
 
     unit = data["time_unit"]
@@ -308,8 +308,8 @@ def _mode_table(modes: list, per: str, unit: str | None) -> None:
 def impulse_region(integrator: Any, ratio: float | None, substeps: int | None,
                    zmax: float | None, criterion: str, as_json: bool, other: bool) -> None:
     """``stepsafe region`` of an impulse method at the frequency ratio ``ratio``."""
+    from stepsafe.api.md import impulse
     from stepsafe.cli.report import print_json
-    from stepsafe.respa_advice import impulse
 
     if integrator.kind != "impulse":
         raise _input_error(f"--ratio and --substeps apply to impulse methods; "

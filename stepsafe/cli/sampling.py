@@ -78,8 +78,8 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
       stepsafe hmc --sigma 1 --sigma 0.1 --steps 20 --jitter 0.1 --methods verlet,bcss2
       stepsafe hmc target.yaml --all --json
     """
+    from stepsafe.api.hmc import hmc
     from stepsafe.cli.report import print_json, print_tsv
-    from stepsafe.hmc_advice import hmc
 
     one_format(as_json, tsv)
     if use_all and names:
@@ -235,8 +235,8 @@ def design_cmd(scene_file, step, stages, jitter, name, output, as_json, **option
       stepsafe design --sigma 1 --sigma 0.1 --step 0.15 -o mine.yaml
       stepsafe hmc --sigma 1 --sigma 0.1 --length 5 --methods mine.yaml,bcss2
     """
+    from stepsafe.api.hmc import design
     from stepsafe.cli.report import print_json
-    from stepsafe.hmc_advice import design
 
     arrays, labels = command_line_modes(options, scene_file, step)
     with _naming_the_modes_file(options):
@@ -256,8 +256,8 @@ def design_cmd(scene_file, step, stages, jitter, name, output, as_json, **option
 def _naming_the_modes_file(options: dict) -> Iterator[None]:
     """A refusal of the target that names no file is about the --modes file when that
     file gave every frequency: it then names it."""
+    from stepsafe.api.hmc import TargetError
     from stepsafe.exceptions import StepsafeError
-    from stepsafe.hmc_advice import TargetError
 
     only_file = options["modes_file"] and not any(
         options[key] for key in ("beta", "frequency", "wavenumber", "period", "sigma",

@@ -10,59 +10,18 @@ resonances cluster near whole numbers), and the verdict for a step.
 
 from __future__ import annotations
 
-import copy
 import math
-from collections.abc import Mapping
-from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
-from stepsafe.api import Integrator
+from stepsafe.api.inputs import Integrator, named_method
+from stepsafe.api.reports import ImpulseModesReport, ImpulseReport
 from stepsafe.arguments import public
 from stepsafe.exceptions import StepsafeError, positive_finite
 
 #: The default search in beta H stops here at most (a slow force 1e6 times the fast one).
 ZMAX_CAP = 1e6
 EPS = 2.0**-52
-
-
-@dataclass(frozen=True)
-class ImpulseReport:
-    """Safe outer steps H of an impulse (r-RESPA) integrator for one fast and one slow
-    frequency: ``h_max`` ends the safe interval from 0, ``safe_h`` lists every safe interval
-    up to the horizon, ``bands`` the unstable intervals of H between them; with a ``step``,
-    ``safe`` is its verdict. ``method`` is the equivalent splitting (a
-    :class:`stepsafe.methods.tableaux.Splitting` on the oscillator of frequency ``beta``)."""
-
-    name: str
-    substeps: int
-    fast: float
-    slow: float
-    beta: float
-    criterion: str
-    h_max: float | None
-    safe_h: tuple[tuple[float, float | None], ...]
-    bands: tuple[Mapping[str, Any], ...]
-    horizon: float | None
-    step: float | None = None
-    safe: bool | None = None
-    reason: str | None = None
-    time_unit: str | None = None
-    method: Any = None
-    #: n:m nonlinear resonances of the outer step (n theta = 2 pi m) below h_max, as
-    #: ``{"resonance": "3:1", "h": ...}``: Ma, Izaguirre & Skeel's limit near a third of the
-    #: fast period is the 3:1
-    nonlinear: tuple[Mapping[str, Any], ...] = ()
-
-    def to_dict(self) -> dict[str, Any]:
-        """What ``stepsafe respa ... --json`` prints."""
-        return {"method": self.name, "substeps": self.substeps, "fast": self.fast,
-                "slow": self.slow, "beta": self.beta, "criterion": self.criterion,
-                "h_max": self.h_max, "safe_h": [list(iv) for iv in self.safe_h],
-                "bands": [copy.deepcopy(dict(b)) for b in self.bands],
-                "horizon": self.horizon, "step": self.step, "safe": self.safe,
-                "reason": self.reason, "time_unit": self.time_unit,
-                "nonlinear_resonances": [dict(r) for r in self.nonlinear]}
 
 
 @public()
@@ -109,19 +68,18 @@ def impulse_method(outer: Integrator | str = "verlet", inner: Integrator | str |
                    substeps: int | None = None) -> Any:
     """The :class:`stepsafe.methods.tableaux.Impulse` of an impulse method (name, path or
     :class:`Integrator` of kind ``impulse``) or of an outer and an inner splitting."""
-    from stepsafe.api import named_method as load_method
     from stepsafe.core.impulse import impulse_method as build
     from stepsafe.methods.tableaux import Impulse
 
     if isinstance(outer, Impulse) and inner is None:
         return _substeps_of(outer, substeps)
-    outer_i = outer if isinstance(outer, Integrator) else load_method(_name(outer, "outer"))
+    outer_i = outer if isinstance(outer, Integrator) else named_method(_name(outer, "outer"))
     if outer_i.kind == "impulse":
         if inner is not None:
             raise StepsafeError(f"{outer_i.name} is an impulse method with its own inner "
                                 "method: give no inner method")
         return _substeps_of(outer_i.tableau, substeps)
-    inner_i = inner if isinstance(inner, Integrator) else load_method(
+    inner_i = inner if isinstance(inner, Integrator) else named_method(
         _name("verlet" if inner is None else inner, "inner"))
     if inner_i.kind == "impulse":
         raise StepsafeError(f"the inner method {inner_i.name} is itself an impulse method")
@@ -182,7 +140,7 @@ def _impulse(method: Any, fast: Any, slow: Any, step: float | str | None, criter
     modes = Modes.from_arrays({"oscillator": [beta]})
     verdict, reason = None, None
     if step is not None:
-        step = _step(step, time_unit)
+        step = _outer_step(step, time_unit)
         result = check_step(split, modes, step, zmax=zmax, name=split.name,
                             criterion=criterion, resonance_order=order)
         adv, verdict = result.advice, result.safe
@@ -242,50 +200,7 @@ def _frequency(value: Any, name: str) -> float:
     return value
 
 
-@dataclass(frozen=True)
-class ImpulseModesReport:
-    """Safe outer steps H of an impulse method for several modes, each with its own fast
-    and slow frequency (``modes[i]`` is mode i's :class:`ImpulseReport`): ``safe_h`` is
-    the intersection of their safe sets up to the nearest ``horizon``, ``h_max`` the end
-    of its interval from 0 and ``limiting`` the mode that ends it; with a ``step``,
-    ``safe`` and the ``failures`` (mode index, label, reason)."""
-
-    name: str
-    substeps: int
-    criterion: str
-    modes: tuple[ImpulseReport, ...]
-    labels: tuple[str | None, ...]
-    h_max: float | None
-    safe_h: tuple[tuple[float, float | None], ...]
-    horizon: float | None
-    limiting: int | None
-    step: float | None = None
-    safe: bool | None = None
-    failures: tuple[Mapping[str, Any], ...] = ()
-    time_unit: str | None = None
-    scene: str | None = None
-    #: how the modes were analysed: each on its own, or (``coupled``) the 2n x 2n step of a
-    #: split stiffness whose parts do not commute (then ``modes`` is empty)
-    analysis: str = "decoupled: each mode's outer step on its own oscillator"
-
-    def to_dict(self) -> dict[str, Any]:
-        """What ``stepsafe advise`` / ``check`` print with ``--json`` for an impulse method."""
-        modes = []
-        for label, mode in zip(self.labels, self.modes):
-            row = mode.to_dict()
-            for key in ("method", "substeps", "criterion", "time_unit", "step"):
-                row.pop(key)
-            modes.append({"label": label, **row})
-        return {"method": self.name, "kind": "impulse", "substeps": self.substeps,
-                "criterion": self.criterion, "time_unit": self.time_unit,
-                "scene": self.scene, "h_max": self.h_max,
-                "safe_h": [list(iv) for iv in self.safe_h], "horizon": self.horizon,
-                "limiting_mode": self.limiting, "step": self.step, "safe": self.safe,
-                "failures": [dict(f) for f in self.failures], "analysis": self.analysis,
-                "modes": modes}
-
-
-def _step(step: Any, time_unit: str | None) -> float:
+def _outer_step(step: Any, time_unit: str | None) -> float:
     """An outer step H: a number in the time unit, or a text with a time unit."""
     from stepsafe.units import duration
 
@@ -364,7 +279,7 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
     if step is None and use_scene_step:
         step = loaded.h
     if step is not None:
-        step = _step(step, loaded.time_unit)
+        step = _outer_step(step, loaded.time_unit)
     from_scene = pairs is loaded.pairs and loaded.pairs is not None
     reports_list = []
     for i, (fast, slow) in enumerate(table):
@@ -417,7 +332,7 @@ def _coupled_advice(method: Any, split: Any, step: float | None, criterion: str,
     safe_h = ((0.0, None if result.h_max >= result.horizon else h_max),)
     verdict, failures = None, ()
     if step is not None:
-        step = _step(step, scene.time_unit)
+        step = _outer_step(step, scene.time_unit)
         reason = None
         if step >= h_max and result.h_max < result.horizon:
             reason = (f"H = {step:.12g} is at or beyond the end {h_max:.12g} of the safe "
@@ -478,6 +393,3 @@ def _intersection(sets: list, horizons: list, horizon: float | None
         current = [(max(a, c), min(b, d)) for a, b in current for c, d in ends
                    if max(a, c) < min(b, d)]
     return tuple((lo, None if hi >= top else hi) for lo, hi in sorted(current))
-
-
-__all__ = ["ImpulseModesReport", "ImpulseReport", "impulse", "impulse_advice"]

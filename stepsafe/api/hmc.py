@@ -33,17 +33,16 @@ offered here.
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict
 from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
-from stepsafe.api import Integrator, _compared, _problem_of, _step_cost, problem
+from stepsafe.api.inputs import Integrator, compared_methods, problem, problem_of, step_cost
+from stepsafe.api.reports import DesignReport, HmcReport, HmcRow
 from stepsafe.arguments import public
-from stepsafe.core.regions import ROUNDING_GAP_RULE
 from stepsafe.core.roots import EPS
 from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
 from stepsafe.systems.loader import DENSE_LIMIT
@@ -57,78 +56,6 @@ HMC_DEFAULT = ("verlet", "mclachlan2-min", "bcss2", "bcss3", "yoshida4", "pefrl"
 
 class TargetError(StepsafeError):
     """The frequencies given are not those of a Gaussian target HMC can sample."""
-
-
-@dataclass(frozen=True)
-class HmcRow:
-    """One method's HMC figures (steps in the time unit of 1/beta; None where a figure
-    does not exist, e.g. no step reaches the target)."""
-
-    method: str
-    #: gradient evaluations per step (first same as last merged; a force gradient counted
-    #: at ``gradient_cost``; None for an implicit method, whose count depends on h)
-    evaluations: float | None
-    symmetric: bool
-    stability_h: float | None  # end of |tr M| <= 2 from 0 for the fastest mode
-    structure_h: float | None  # end of the structure-preserving interval from 0
-    resonance_h: tuple[float, ...]  # M = +-I points below stability_h (excluded steps)
-    h_target: float | None  # largest h whose acceptance reaches the target for every L
-    steps: int | None  # L at h_target (None: trajectory length not given)
-    acceptance: float | None  # at h_target, for the trajectory given (>= the target)
-    expected_error: float | None  # E[Delta] at h_target
-    gradients_per_proposal: float | None
-    gradients_per_accepted: float | None
-    gradients_per_time: float | None  # per accepted unit of simulated time
-    rank: int | None = None
-    at_step: Mapping[str, Any] | None = None
-    stalls: tuple[Mapping[str, Any], ...] = ()
-    notes: tuple[str, ...] = ()
-    #: (h, predicted acceptance, its bound over every L) up to the limit searched, if asked
-    curve: tuple[tuple[float, float, float], ...] = ()
-
-
-@dataclass(frozen=True)
-class HmcReport:
-    """Methods ranked by gradient evaluations per accepted unit of simulated time at the
-    largest step reaching ``target`` acceptance."""
-
-    rows: tuple[HmcRow, ...]
-    target: float
-    steps: int | None
-    length: float | None
-    jitter: float
-    criterion: str
-    modes: int
-    beta_range: tuple[float, float]
-    time_unit: str | None = None
-    approximate: bool = False
-    #: False: the step at target keeps ``h (1 + jitter)`` within the criterion's limit
-    allow_unstable_jitter: bool = False
-
-    def to_dict(self) -> dict[str, Any]:
-        """What ``stepsafe hmc ... --json`` prints."""
-        return {"target_accept": self.target, "steps": self.steps, "length": self.length,
-                "jitter": self.jitter, "allow_unstable_jitter": self.allow_unstable_jitter,
-                "criterion": self.criterion, "modes": self.modes,
-                "beta_min": self.beta_range[0], "beta_max": self.beta_range[1],
-                "time_unit": self.time_unit, "approximate": self.approximate,
-                "cost_unit": "gradient evaluations", "rounding_gaps": ROUNDING_GAP_RULE,
-                "methods": [copy.deepcopy(_row_dict(r)) for r in self.rows]}
-
-
-def _row_dict(row: HmcRow) -> dict[str, Any]:
-    from stepsafe.core.records import json_ready
-
-    out = {f.name: getattr(row, f.name) for f in fields(row)}
-    at_step = None if row.at_step is None else dict(row.at_step)
-    if at_step is not None and "largest_errors" in at_step:
-        at_step["largest_errors"] = [dict(e) for e in at_step["largest_errors"]]
-    out["at_step"] = None if at_step is None else json_ready(at_step)
-    out["stalls"] = [dict(s) for s in row.stalls]
-    out["resonance_h"] = list(row.resonance_h)
-    out["notes"] = list(row.notes)
-    out["curve"] = [list(point) for point in row.curve]
-    return out
 
 
 def _validated(target: float, steps: int | None, length: float | None,
@@ -194,9 +121,9 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *, steps: int |
                             f"{str(allow_unstable_jitter)[:20]!r}")
     if isinstance(curve, bool) or not isinstance(curve, int) or not 0 <= curve <= 10_000:
         raise StepsafeError(f"curve must be an integer from 0 to 10000, got {curve!r}")
-    integrators = _compared(HMC_DEFAULT if methods is None else methods)
+    integrators = compared_methods(HMC_DEFAULT if methods is None else methods)
     progress = inputs.pop("progress", None)  # called with the fraction of methods done
-    p = _problem_of(integrators[0], inputs.pop("beta", None), inputs, times=(step, length))
+    p = problem_of(integrators[0], inputs.pop("beta", None), inputs, times=(step, length))
     if length is not None:
         length = duration(length, "length", p.time_unit)
     target, steps, length, jitter = _validated(target_accept, steps, length, jitter)
@@ -316,7 +243,7 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
 
     def gradients(h: float) -> float | None:
         if integrator.explicit:
-            per_step = _step_cost(integrator, gradient_cost)
+            per_step = step_cost(integrator, gradient_cost)
             return None if per_step is None else float(per_step)
         cost = fixed_point_cost(m, h * top)
         return None if cost.evaluations is None else float(cost.evaluations)
@@ -400,7 +327,7 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
         points = tuple((float(h), a.rate, b.rate) for h, a, b in zip(
             hs, core.acceptance_curve(m, betas, hs, trajectory),
             core.acceptance_curve(m, betas, hs, bound)))
-    per_step = _step_cost(integrator, gradient_cost) if integrator.explicit else None
+    per_step = step_cost(integrator, gradient_cost) if integrator.explicit else None
     return HmcRow(integrator.name, per_step, symmetric, stability_h, structure_h,
                   resonances, h_target, at_target.get("steps"), at_target.get("acceptance"),
                   at_target.get("expected_error"), at_target.get("gradients_per_proposal"),
@@ -412,38 +339,6 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
 
 #: The fixed integrators a designed one is compared with.
 DESIGN_REFERENCES = ("verlet", "bcss2", "bcss3", "mclachlan2-min")
-
-
-@dataclass(frozen=True)
-class DesignReport:
-    """A 2- or 3-stage splitting designed for a Gaussian target at step ``step``, its method
-    file (``method_file``, YAML that every command accepts) and the figures that justify it:
-    for it and each of :data:`DESIGN_REFERENCES`, at the same gradient evaluations per unit
-    of simulated time (each method at step ``step * evaluations / stages``), the error bound
-    ``sum_k rho(beta_k h)`` over every trajectory length and the acceptance it guarantees,
-    both averaged over the jitter interval (``error_bound`` None: a mode is unstable there),
-    and ``resonance_h``, the steps up to the jitter interval's top where the fastest mode
-    meets an M = +-I resonance, which does not end the stable steps
-    (:data:`~stepsafe.core.regions.ROUNDING_GAP_RULE`, as ``hmc`` counts it)."""
-
-    name: str
-    stages: int
-    params: Mapping[str, float]
-    step: float
-    method_file: str
-    comparison: tuple[Mapping[str, Any], ...]
-    modes: int
-    binned: bool = False
-    time_unit: str | None = None
-
-    def to_dict(self) -> dict[str, Any]:
-        """What ``stepsafe design ... --json`` prints."""
-        return {"name": self.name, "stages": self.stages, "params": dict(self.params),
-                "step": self.step, "modes": self.modes, "binned": self.binned,
-                "time_unit": self.time_unit, "method_file": self.method_file,
-                "rounding_gaps": ROUNDING_GAP_RULE,
-                "comparison": [{**c, "resonance_h": list(c["resonance_h"])}
-                               for c in self.comparison]}
 
 
 @public(lambda: problem, drop=("method", "h"))
@@ -477,7 +372,7 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
             c.isascii() and (c.isalnum() or c == "-") for c in name) or len(name) > 60:
         raise StepsafeError(f"name must be 1 to 60 letters, digits and '-' (as method files "
                             f"require), got {str(name)[:40]!r}")
-    p = _problem_of("verlet", inputs.pop("beta", None), inputs, times=(step,))
+    p = problem_of("verlet", inputs.pop("beta", None), inputs, times=(step,))
     step = positive_finite(duration(step, "step", p.time_unit), "step")
     betas, errors = _gaussian_betas(p)
     # designed for each frequency at the largest it may be (the rounding of the
@@ -497,7 +392,7 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
     rows = []
     over = core.Trajectory(jitter=jitter)  # the bound over L, averaged over the jitter
     for label, tableau, evals in [(name, designed, stages)] + [
-            (ref, (i := _compared([ref])[0]).tableau, i.evaluations)
+            (ref, (i := compared_methods([ref])[0]).tableau, i.evaluations)
             for ref in DESIGN_REFERENCES]:
         h = step * evals / stages
         if h == 0:
@@ -604,7 +499,3 @@ def _method_file(name: str, stages: int, params: Mapping[str, float], step: floa
             + (f" (averaged over h (1 +- {jitter!r}))" if jitter else "") + '"\n'
             f"constants:\n{constants}\n"
             f"symmetric: true\n{shape}\n")
-
-
-__all__ = ["DESIGN_REFERENCES", "DesignReport", "HMC_DEFAULT", "HmcReport", "HmcRow",
-           "design", "hmc"]

@@ -1,0 +1,587 @@
+"""Regions, safe steps and accuracy of linear models: :func:`region`, :func:`advise`,
+:func:`check`, :func:`check_scenes`, :func:`errors`, :func:`transfer_matrices` and
+:func:`compare`, behind the commands of the same names.
+
+>>> import stepsafe
+>>> verlet = stepsafe.method("verlet")
+>>> verlet.order, verlet.kind, verlet.evaluations
+(2, 'splitting', 1)
+>>> advice = stepsafe.advise(verlet, beta=[1.0, 4.0])
+>>> round(advice.h_max, 12)   # Verlet keeps a centre a centre for beta*h < 2
+0.5
+>>> stepsafe.check(verlet, 0.6, beta=[4.0]).safe
+False
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from stepsafe.api.inputs import (
+    REGION_MODELS,
+    ArrayLike,
+    Integrator,
+    Problem,
+    UnitValues,
+    as_flag,
+    as_integrator,
+    as_text,
+    betas_by_model,
+    compared_methods,
+    converted_betas,
+    frozen_record,
+    method,
+    problem,
+    problem_of,
+    step_cost,
+    step_in_unit,
+    valid_order,
+    valid_solver,
+    valid_stage_solver,
+    valid_tolerance,
+    z_values,
+)
+from stepsafe.api.md import impulse_advice
+from stepsafe.api.reports import (
+    AdviceReport,
+    CheckError,
+    CheckReport,
+    CompareReport,
+    CompareRow,
+    ErrorTable,
+    RegionReport,
+    SceneChecks,
+)
+from stepsafe.arguments import public
+from stepsafe.exceptions import StepsafeError
+
+
+def _verification(integrator: Integrator, regions: Mapping[str, Any],
+                  up_to: float | None = None) -> dict[str, Any]:
+    """Recompute the regions' points with mpmath; a JSON-ready verdict."""
+    from stepsafe.reference.verify import DPS, TOLERANCE, verify_regions
+
+    name, stages, base = integrator.reference
+    checks = verify_regions(name, stages, base, dict(regions), up_to=up_to)
+    worst = max((c.discrepancy for c in checks), default=0.0)
+    failed = [{"model": c.model, "z": c.point.z, "kind": c.point.kind,
+               "reference": c.reference,
+               "discrepancy": None if c.discrepancy == float("inf") else c.discrepancy}
+              for c in checks if not c.ok]
+    return {"digits": DPS, "points": len(checks),
+            "largest_discrepancy": None if worst == float("inf") else worst,
+            "tolerance": TOLERANCE, "ok": not failed, "failed": failed,
+            "conservative": sum(c.conservative for c in checks)}
+
+
+@public()
+def region(method: Integrator | str, model: str = "all", *, zmax: float = 10.0,
+           verify: bool = False, resonance_orders: Sequence[int] = (3, 4, 5, 6),
+           criterion: str = "structure") -> RegionReport:
+    """The regions of ``method`` for ``model`` (``"all"``: oscillator, saddle and inverted;
+    a model the method has no form for is then listed in ``not_analysed``). On the
+    oscillator, also the nonlinear resonances ``n theta = 2 pi m`` of the orders n in
+    ``resonance_orders`` below the first boundary. ``criterion``: ``structure`` keeps the
+    flow's type and orientation, ``stability`` the type only (for the oscillator
+    ``|tr M| <= 2``, the stability interval of the HMC literature; islands of reversed
+    orientation join the intervals).
+
+    >>> round(region("verlet", "oscillator").first_boundary(), 12)
+    2.0
+    """
+    from stepsafe.core.models import MAIN_MODELS
+    from stepsafe.core.regions import find_region, under_criterion, validate_criterion
+    from stepsafe.exceptions import positive_finite
+
+    integrator = as_integrator(method)
+    criterion = validate_criterion(criterion)
+    model, verify = as_text(model, "model"), as_flag(verify, "verify")
+    if model != "all" and model not in REGION_MODELS:
+        raise StepsafeError(f"unknown model {model!r}; choose one of "
+                            f"{', '.join(REGION_MODELS)} or all")
+    zmax = positive_finite(zmax, "zmax")
+    models = MAIN_MODELS if model == "all" else (model,)
+    regions, skipped, first_error = {}, {}, None
+    with integrator.naming_its_file():
+        for name in models:
+            try:
+                regions[name] = find_region(integrator.tableau, name, zmax)
+            except StepsafeError as exc:
+                skipped[name], first_error = exc.message, first_error or exc
+        if first_error and (model != "all" or not regions):  # nothing the user asked for
+            raise first_error
+    nonlinear: tuple[Any, ...] = ()
+    if "oscillator" in regions and regions["oscillator"].symplectic:
+        from stepsafe.core.resonances import nonlinear_resonances, validate_orders
+
+        orders = validate_orders(resonance_orders)
+        nonlinear = nonlinear_resonances(integrator.tableau, regions["oscillator"], orders)
+    verdict = _verification(integrator, regions) if verify else None
+    structure = {}
+    if criterion != "structure":
+        structure = {m: r.first_boundary for m, r in regions.items() if r.symplectic}
+        regions = {m: under_criterion(r, criterion) for m, r in regions.items()}
+    return RegionReport(integrator, MappingProxyType(regions), MappingProxyType(skipped),
+                        None if verdict is None else frozen_record(verdict), nonlinear, criterion,
+                        MappingProxyType(structure))
+
+
+@public(lambda: problem, drop=("h",))
+def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None, *,
+           tol_phase: float | None = None, tol_energy: float | None = None,
+           resonance_order: int | None = None, solver: str = "fixed-point",
+           criterion: str = "structure", verify: bool = False, gradient_cost: float = 1.0,
+           **inputs: Any) -> AdviceReport:
+    """Safe step sizes for a method and angular frequencies ``beta`` (rad per time unit;
+    or a scene, or a system): see :func:`problem` for the other inputs and their units
+    (``saddle_beta``, ``inverted_beta``, ``modes``, ``ordinary_frequency``,
+    ``wavenumber``, ``period``, ``sigma``, ``time_unit``, ``system``, ``scene``,
+    ``labels``, ``stages``, ``base``, ``margin``, ``zmax``, ``budget``, ``progress``).
+    ``tol_phase``/``tol_energy`` also bound the phase (growth-rate) and energy errors
+    and add the usable step and its cost (implicit methods: the force evaluations of
+    fixed-point iteration, ``solver="nominal"`` for one per stage). ``resonance_order`` N
+    also keeps every
+    vibration below its first nonlinear resonance n theta = 2 pi m with n <= N; the
+    resonances of orders 3 to 6 (and up to N) of the fastest vibration are listed in
+    ``record["nonlinear_resonances"]`` either way. ``criterion``: ``structure`` (type and
+    orientation) or ``stability`` (type only: ``|tr M| <= 2`` for vibrations); where the
+    other criterion gives another ``h_max``, ``record["other_criterion"]`` holds it.
+    ``gradient_cost``: force evaluations one force-gradient term costs (force-gradient
+    methods; see :data:`stepsafe.methods.tableaux.GRADIENT_COST`).
+
+    >>> report = advise("yoshida4", [3.2], inverted_beta=[1.1])
+    >>> report.h_max_limited_by, f"{report.h_max:.6f}"
+    ('boundary', '0.491688')
+    """
+    from stepsafe.core.advice import advise as core_advise
+    from stepsafe.core.records import advice_data, tradeoff_data
+    from stepsafe.core.regions import validate_criterion
+
+    criterion = validate_criterion(criterion)
+    p = problem_of(method, beta, inputs)
+    integrator, result = p.integrator, None
+    with integrator.naming_its_file():
+        if p.system is not None:
+            from stepsafe.systems.advice import system_advice
+
+            if tol_phase is not None or tol_energy is not None:
+                raise StepsafeError("--tol-phase/--tol-energy apply to frequencies, not yet "
+                                    "to system: scenes")
+            data = system_advice(integrator.tableau, p.system, p.margin, p.zmax,
+                                 integrator.name, criterion, valid_order(resonance_order))
+            data["fixed_point_limit"] = _system_solver_limit(integrator, p)
+        elif tol_phase is None and tol_energy is None:
+            result = core_advise(integrator.tableau, p.modes, p.margin, p.zmax, integrator.name,
+                                 resonance_order=valid_order(resonance_order), criterion=criterion)
+            data = advice_data(result)
+        else:
+            from stepsafe.core.tradeoff import Tolerance, tradeoff
+
+            tols = tuple(Tolerance(k, valid_tolerance(k, v)) for k, v in
+                         (("phase", tol_phase), ("energy", tol_energy)) if v is not None)
+            res = tradeoff(integrator.tableau, p.modes, tols, p.margin, integrator.name,
+                           step_cost(integrator, gradient_cost), p.zmax,
+                           valid_order(resonance_order),
+                           valid_solver(solver), criterion)
+            result = res.advice
+            data = tradeoff_data(res)
+        if result is not None:
+            other = _other_criterion(integrator, p, result, resonance_order)
+            if other is not None:
+                data["other_criterion"] = other
+            data["nonlinear_resonances"] = _fastest_resonances(
+                integrator, result, p, resonance_order)
+            from stepsafe.core.solver import step_limit
+
+            data["fixed_point_limit"] = step_limit(integrator.tableau, p.modes.betas)
+    if result is not None and p.labels:
+        from stepsafe.core.records import label_limits
+
+        label_limits(data, p.modes.betas, p.labels)
+    data["time_unit"] = p.time_unit
+    verdict = (_verification(integrator, result.regions)
+               if as_flag(verify, "verify") and result else None)
+    safe = tuple((float(lo), hi) for lo, hi in data["safe_h"])
+    return AdviceReport(data["method"], data["h_max"], data["h_max_limited_by"], safe,
+                        data["horizon"], frozen_record(data), result,
+                        None if verdict is None else frozen_record(verdict),
+                        tuple((float(lo), float(hi)) for lo, hi in data.get("undecided_h", ())))
+
+
+def _other_criterion(integrator: Integrator, p: Problem, result: Any,
+                     resonance_order: int | None, h: float | None = None
+                     ) -> dict[str, Any] | None:
+    """The safe steps under the criterion not asked for, when they differ (with ``h``:
+    whether that step is safe under it)."""
+    from stepsafe.core.advice import advise as core_advise
+    from stepsafe.core.records import advice_data
+    from stepsafe.core.regions import CRITERIA
+
+    other = next(c for c in CRITERIA if c != result.criterion)
+    zmax = max(r.zmax for r in result.regions.values())
+    alt = advice_data(core_advise(integrator.tableau, p.modes, p.margin, zmax,
+                                  integrator.name, resonance_order=valid_order(resonance_order),
+                                  criterion=other))
+    if alt["safe_h"] == [[float(lo), hi] for lo, hi in result.safe_h]:
+        return None
+    out = {key: alt[key] for key in ("criterion", "h_max", "h_max_limited_by", "limiting",
+                                     "safe_h")}
+    if h is not None:
+        out["safe"] = any(lo < h and (hi is None or h < hi) for lo, hi in alt["safe_h"])
+    return out
+
+
+def _fastest_resonances(integrator: Integrator, result: Any, p: Problem,
+                        order: int | None) -> list[dict[str, Any]]:
+    """The nonlinear resonances of the fastest vibration below its first boundary (or
+    below the resonance that caps it), with their steps h."""
+    from stepsafe.core.records import nonlinear_data
+    from stepsafe.core.resonances import DEFAULT_ORDERS, nonlinear_resonances
+
+    region = result.regions.get("oscillator")
+    betas = p.modes.betas.get("oscillator")
+    if region is None or betas is None or not region.symplectic or not betas.max() > 0:
+        return []
+    orders = tuple(range(3, max(order or 0, max(DEFAULT_ORDERS)) + 1))
+    found = nonlinear_resonances(integrator.tableau, region, orders)
+    return nonlinear_data(found, float(betas.max()), p.margin)
+
+
+def _system_solver_limit(integrator: Integrator, p: Problem) -> float | None:
+    """The step beyond which fixed-point iteration of an implicit method's stages diverges
+    for the problem's frequencies or system (None: explicit, or no limit)."""
+    from stepsafe.core.solver import system_step_limit
+
+    if integrator.explicit:
+        return None
+    if p.system is None:
+        return system_step_limit(integrator.tableau, p.modes.betas, [])
+    betas = p.system.modes.betas if p.system.modes is not None else None
+    return system_step_limit(integrator.tableau, betas, [S for _, S in p.system.coupled])
+
+
+@public(lambda: problem)
+def check(method: Integrator | str | None = None, h: float | str | None = None,
+          beta: ArrayLike | None = None, *, resonance_order: int | None = None,
+          criterion: str = "structure", verify: bool = False, solver: str = "fixed-point",
+          require_complete_search: bool = False, **inputs: Any) -> CheckReport:
+    """Is step ``h`` safe for every frequency? ``h`` is a number in the time unit, or a
+    text with a time unit (``"0.5 fs"``, converted); ``beta`` are angular frequencies (rad
+    per time unit); see :func:`problem` for the other inputs and their units. A scene
+    may give the step (``h:``). A step exactly on a resonance or a pole is unsafe. With
+    ``resonance_order`` N, a vibration at or beyond its first nonlinear resonance of order
+    at most N is unsafe too. ``criterion`` as for :func:`advise` (``record["other_criterion"]``
+    says whether ``h`` is safe under the other one, when its ``h_max`` differs). With
+    ``solver="fixed-point"`` (the default) an implicit method's step must also lie below
+    the convergence limit of fixed-point iteration of its stages for every vibration and
+    barrier (``record["solver_failure"]`` says why not); ``"newton"`` has no such limit.
+    With ``require_complete_search`` a system given by a Hamiltonian fails when its
+    equilibrium search cannot vouch that it found every equilibrium
+    (``record["system"]["search"]`` says what was searched, ``record["search_failure"]``
+    why it falls short; see :mod:`stepsafe.systems.walks`); other inputs are unaffected.
+
+    >>> check("verlet", 0.49, [4.0]).safe
+    True
+    """
+    from stepsafe.core.advice import check_step
+    from stepsafe.core.records import check_data
+    from stepsafe.core.regions import validate_criterion
+
+    criterion = validate_criterion(criterion)
+    require_complete_search = as_flag(require_complete_search, "require_complete_search")
+    if inputs.get("problem") is None:
+        p = problem_of(method, beta, {**inputs, "h": h})
+        step = p.h
+    else:
+        p = problem_of(method, beta, inputs)
+        step = p.h if h is None else step_in_unit(h, p.time_unit)
+    if step is None:
+        raise StepsafeError(f"{p.scene or 'check'}: no step: give --step H or h: in the "
+                            "scene file (h= in Python)")
+    integrator, result = p.integrator, None
+    with integrator.naming_its_file():
+        if p.system is not None:
+            from stepsafe.systems.advice import system_check
+
+            data = system_check(integrator.tableau, p.system, step, p.margin, p.zmax,
+                                integrator.name, criterion, valid_order(resonance_order),
+                                require_complete_search)
+        else:
+            result = check_step(integrator.tableau, p.modes, step, p.margin, p.zmax,
+                                integrator.name, valid_order(resonance_order), criterion)
+            data = check_data(result, p.labels)
+            other = _other_criterion(integrator, p, result.advice, resonance_order,
+                                     float(step))
+            if other is not None:
+                data["other_criterion"] = other
+        if valid_stage_solver(solver) == "fixed-point":
+            limit = _system_solver_limit(integrator, p)
+            if limit is not None and float(step) >= p.margin * limit:
+                data["safe"] = False
+                data["solver_failure"] = (
+                    f"fixed-point iteration of the stages diverges at this step (it "
+                    f"converges for h < {p.margin * limit:.12g}); solve them by Newton's "
+                    "method (--solver newton) or take a smaller step")
+    data["scene"] = p.scene
+    data["time_unit"] = p.time_unit
+    verdict = None
+    if as_flag(verify, "verify") and result is not None:
+        top = max(float(b.max()) for b in p.modes.betas.values()) * float(step) / p.margin
+        verdict = _verification(integrator, result.advice.regions, up_to=1.05 * top)
+    return CheckReport(data["method"], float(step), bool(data["safe"]), data["h_max"],
+                       tuple(MappingProxyType(f) for f in copy.deepcopy(data["failures"])),
+                       p.scene, frozen_record(data), result,
+                       None if verdict is None else frozen_record(verdict))
+
+
+#: The inputs that describe a method's single-force frequencies: an impulse method's modes
+#: come from its scene's fast: and slow: frequencies instead.
+_SINGLE_FORCE = ("beta", "saddle_beta", "inverted_beta", "modes", "ordinary_frequency",
+                 "wavenumber", "period", "sigma", "labels", "system", "margin", "zmax",
+                 "budget", "stages", "base")
+
+
+@public(lambda: problem, drop=("scene", "h"))
+def check_scenes(scenes: Sequence[str | Path], *, h: float | str | None = None,
+                 resonance_order: int | None = None, criterion: str = "structure",
+                 verify: bool = False, solver: str = "fixed-point",
+                 require_complete_search: bool = False, substeps: int | None = None,
+                 **inputs: Any) -> SceneChecks:
+    """:func:`check` of each scene file in ``scenes``, the other inputs the same for all
+    (as ``stepsafe check A.yaml B.yaml`` with options): a file that cannot be checked
+    (bad input) becomes a :class:`CheckError` in its place and the others are checked
+    still. A scene whose method is an impulse method is checked by
+    :func:`stepsafe.impulse_advice` (``substeps`` overrides its count).
+
+    Parameters
+    ----------
+    scenes : list of str or Path
+        The scene files, checked in this order.
+    h : float or str, optional
+        The step for every scene, in its time unit or as a text with a time unit
+        (``"0.5 fs"``); default: each scene's ``h:``.
+    resonance_order, criterion, verify, solver, require_complete_search
+        As for :func:`check`.
+    substeps : int, optional
+        Inner steps per outer drift of an impulse method's scenes.
+    **inputs
+        The keywords of :func:`problem` (frequencies with their units, ``time_unit``,
+        ``margin``, ...) but ``scene``, the same for every scene.
+
+    Returns
+    -------
+    SceneChecks
+        ``checks`` in the order of ``scenes``; ``safe``, ``exit_code`` and ``to_dict()``
+        (what ``stepsafe check A.yaml B.yaml ... --json`` prints).
+
+    >>> checks = check_scenes(["examples/scene.yaml", "examples/paper-section3.yaml"])
+    >>> checks.safe, checks.exit_code
+    (False, 1)
+    """
+    from stepsafe.units import time_unit as known_time_unit
+
+    if isinstance(scenes, (str, Path)) or not isinstance(scenes, Sequence) or not scenes:
+        raise StepsafeError("scenes must be a non-empty list of scene files")
+    known_time_unit(inputs.get("time_unit"))  # (before any scene is read with it)
+    out: list[Any] = []
+    for scene in scenes:
+        try:
+            impulse = _impulse_of(scene, inputs)
+            if impulse is None:
+                if substeps is not None:
+                    raise StepsafeError("substeps applies to impulse (multiple time stepping) "
+                                        "methods only")
+                out.append(check(h=h, scene=scene, resonance_order=resonance_order,
+                                 criterion=criterion, verify=verify, solver=solver,
+                                 require_complete_search=require_complete_search, **inputs))
+                continue
+            out.append(_impulse_check(impulse, scene, h, substeps, criterion,
+                                      resonance_order, verify, inputs))
+        except StepsafeError as exc:
+            out.append(CheckError(as_text(scene, "scene") if isinstance(scene, (str, Path))
+                                  else None, exc.message, exc.where))
+    return SceneChecks(tuple(out))
+
+
+def _impulse_of(scene: Any, inputs: Mapping[str, Any]) -> Integrator | None:
+    """The impulse method a scene is checked with (``method`` given, else the scene's), or
+    None for any other method."""
+    from stepsafe.systems.scene import load_scene
+
+    name = inputs.get("method")
+    if isinstance(name, Integrator):
+        return name if name.kind == "impulse" else None
+    if inputs.get("stages") is not None or inputs.get("base") is not None:
+        return None
+    if name is None:
+        ref = load_scene(as_text(scene, "scene"), inputs.get("time_unit")).method
+        name = None if ref is None or ref.stages or ref.base else ref.name
+    if not isinstance(name, str):
+        return None
+    try:
+        integrator = method(name)
+    except StepsafeError:
+        return None  # the check of any other method reports it in context
+    return integrator if integrator.kind == "impulse" else None
+
+
+def _impulse_check(integrator: Integrator, scene: Any, h: Any, substeps: int | None,
+                   criterion: str, resonance_order: int | None, verify: bool,
+                   inputs: Mapping[str, Any]) -> Any:
+
+    given = [key for key in _SINGLE_FORCE if inputs.get(key) is not None]
+    if given or as_flag(verify, "verify"):
+        raise StepsafeError(f"{(given or ['verify'])[0]} does not apply to the impulse method "
+                            f"{integrator.name}: its modes come as fast: and slow: frequencies "
+                            "in a scene file (or use stepsafe.impulse for one pair)")
+    report = impulse_advice(integrator, scene=as_text(scene, "scene"), substeps=substeps, step=h,
+                            time_unit=inputs.get("time_unit"), criterion=criterion,
+                            resonance_order=resonance_order, use_scene_step=h is None)
+    if report.step is None:
+        raise StepsafeError("no step to check: give --step H or h: in the scene", str(scene))
+    return report
+
+
+#: |M| beyond this: products of its entries leave float64, the errors cannot be evaluated.
+OVERFLOW = 1e150
+
+
+@public()
+def errors(method: Integrator | str, z: ArrayLike, model: str = "oscillator") -> ErrorTable:
+    """Phase and energy errors of one step at each z = beta*h > 0.
+
+    >>> table = errors("verlet", [0.1])
+    >>> f"{table.phase[0]:.3e}"
+    '4.171e-04'
+    """
+    from stepsafe.core.accuracy import errors as core_errors
+    from stepsafe.core.accuracy import kernel_errors
+    from stepsafe.core.transfer import transfer_matrix
+
+    integrator = as_integrator(method)
+    model = as_text(model, "model")
+    if model not in REGION_MODELS:
+        raise StepsafeError(f"unknown model {model!r}; choose one of {', '.join(REGION_MODELS)}")
+    zs = z_values(z)
+    if not zs.size or not np.all(np.isfinite(zs) & (zs > 0)):
+        raise StepsafeError("z must be positive finite numbers")
+    with np.errstate(all="ignore"):  # far out, M(z) overflows: those rows say so
+        e = core_errors(integrator.tableau, zs, model)
+        M = np.asarray(transfer_matrix(integrator.tableau, zs, model))
+        size = np.abs(M).max(axis=(1, 2))
+        kernel = kernel_errors(integrator.tableau, zs, model)
+    overflow = ~(np.isfinite(M).all(axis=(1, 2)) & (size <= OVERFLOW))
+    phase = np.where(overflow, np.nan, np.asarray(e.phase, dtype=float))
+    energy = np.where(overflow, np.nan, np.asarray(e.energy, dtype=float))
+    kernel_energy = None if kernel is None else \
+        np.where(overflow, np.nan, np.asarray(kernel.energy, dtype=float))
+    for arr in (zs, phase, energy, overflow) + (() if kernel_energy is None
+                                                 else (kernel_energy,)):
+        arr.flags.writeable = False
+    return ErrorTable(integrator.name, model, zs, phase, energy, overflow, kernel_energy)
+
+
+@public()
+def transfer_matrices(method: Integrator | str, z: ArrayLike,
+                      model: str = "oscillator") -> np.ndarray:
+    """The one-step matrices M(z) of ``method`` on ``model`` at each z = beta*h, shape
+    (len(z), 2, 2), read-only: (q, p) after one step = M (q, p) before, in units where
+    beta = 1 (p scaled by beta). The structure is kept where |tr M| < 2 (oscillator) or
+    tr M > 2 (saddle, barrier). NaN where the implicit stage equations are singular (a pole);
+    entries may overflow to inf far out; no warning is raised.
+
+    >>> M = transfer_matrices("verlet", [1.0])[0]
+    >>> float(M[0, 0] + M[1, 1])   # 2 - z^2
+    1.0
+    """
+    from stepsafe.core.transfer import transfer_matrix
+
+    integrator = as_integrator(method)
+    model = as_text(model, "model")
+    if model not in REGION_MODELS:
+        raise StepsafeError(f"unknown model {model!r}; choose one of {', '.join(REGION_MODELS)}")
+    zs = z_values(z)
+    if not np.all(np.isfinite(zs) & (zs >= 0)):
+        raise StepsafeError("z must be finite numbers >= 0")
+    with np.errstate(all="ignore"), integrator.naming_its_file():
+        M = np.array(transfer_matrix(integrator.tableau, zs, model), dtype=float)
+    M.flags.writeable = False
+    return M
+
+
+@public()
+def compare(methods: Sequence[Integrator | str] | str | None = None,
+            beta: ArrayLike | None = None, *, saddle_beta: ArrayLike | None = None,
+            inverted_beta: ArrayLike | None = None,
+            modes: Mapping[str, ArrayLike] | None = None,
+            tol_phase: float | None = None, tol_energy: float | None = None,
+            margin: float = 1.0, zmax: float | None = None,
+            ordinary_frequency: UnitValues | None = None, wavenumber: UnitValues | None = None,
+            period: UnitValues | None = None, sigma: ArrayLike | None = None,
+            time_unit: str | None = None, solver: str = "fixed-point",
+            criterion: str = "structure", gradient_cost: float = 1.0) -> CompareReport:
+    """Rank ``methods`` (names, ``"family:N"`` such as ``"gauss:2"``, Integrators; ``"all"``:
+    every built-in method with the families at s = 2 and 3; None: :data:`COMPARE_DEFAULT`)
+    by the cost of the usable step h = min(safe, accurate) for the same frequencies
+    (``beta`` in rad per time unit, the others with their units as for :func:`problem`;
+    h in ``time_unit``; ``"all"`` leaves out the methods
+    with no form for a given model: force-gradient methods on saddles). Implicit methods
+    cost the force
+    evaluations of fixed-point iteration of their stages at that h (``solver="nominal"``:
+    one per stage), and h stays below 0.9 of that iteration's convergence limit. The safe
+    step follows ``criterion`` (see :func:`advise`). A force-gradient method costs its
+    forces plus ``gradient_cost`` forces per force-gradient term.
+
+    >>> best = compare(["verlet", "pefrl"], [1.0], tol_phase=1e-6).rows[0]
+    >>> best.method, best.bound_by
+    ('pefrl', 'accuracy')
+    """
+    from stepsafe.core.advice import Modes, validate_margin
+    from stepsafe.core.records import compare_row
+    from stepsafe.core.regions import validate_criterion
+    from stepsafe.core.tradeoff import Tolerance, tradeoff
+    from stepsafe.exceptions import positive_finite
+    from stepsafe.units import time_unit as known_time_unit
+
+    criterion = validate_criterion(criterion)
+    from stepsafe.units import implied_time_unit
+
+    time_unit = known_time_unit(time_unit) or implied_time_unit(period)
+    converted = converted_betas({"ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
+                            "period": period, "sigma": sigma}, time_unit)
+    grid = Modes.from_arrays(betas_by_model(beta, saddle_beta, inverted_beta, modes, converted))
+    tolerances = tuple(Tolerance(k, valid_tolerance(k, v)) for k, v in
+                       (("phase", tol_phase), ("energy", tol_energy)) if v is not None)
+    margin = validate_margin(margin)
+    if zmax is not None:
+        zmax = positive_finite(zmax, "zmax")
+    from stepsafe.core.transfer import has_form
+
+    rows = []
+    compared = compared_methods(methods)
+    if isinstance(methods, str) and methods == "all":  # every method that applies to the modes
+        compared = [i for i in compared if all(has_form(i.tableau, model)
+                                               for model in grid.betas)]
+    for integrator in compared:
+        with integrator.naming_its_file():
+            res = tradeoff(integrator.tableau, grid, tolerances, margin, integrator.name,
+                           step_cost(integrator, gradient_cost), zmax, solver=valid_solver(solver),
+                           criterion=criterion)
+        rows.append(compare_row(res, integrator.explicit))
+    rows.sort(key=lambda r: (r["cost"] is None, r["cost"] or 0.0))
+    ranked = []
+    for i, r in enumerate(rows, 1):
+        r["rank"] = i if r["cost"] is not None else None
+        if "processor_evaluations" in r:
+            r["processor_evaluations"] = r["processor_evaluations"]["start"]
+        ranked.append(CompareRow(**{**r, "tolerance_status": tuple(r["tolerance_status"])}))
+    return CompareReport(tuple(ranked),
+                         MappingProxyType({k: int(v.size) for k, v in grid.betas.items()}),
+                         MappingProxyType({t.kind: t.value for t in tolerances}), margin,
+                         time_unit, solver, criterion)

@@ -1,0 +1,282 @@
+"""Measure the trade on the user's own system: :func:`measure` and :func:`refine`, behind
+``stepsafe measure``; what is measured and how is :mod:`stepsafe.systems.measurement`."""
+
+from __future__ import annotations
+
+import math
+import time as _time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stepsafe.api.inputs import Integrator, as_integrator
+from stepsafe.api.reports import NEGLIGIBLE, MeasureReport, MeasureRow, Refinement
+from stepsafe.arguments import public
+from stepsafe.exceptions import StepsafeError, positive_finite
+from stepsafe.systems.measurement import MeasuredSystem, Run, measured_system, run_steps
+
+#: Steps of one run at most by default (each costs the method's evaluations in Python)...
+MAX_STEPS = 2_000_000
+#: ... and at most when asked (``max_steps``).
+MAX_STEPS_CAP = 100_000_000
+#: Steps h measured in one call at most.
+MAX_STEP_SIZES = 200
+#: Default length of a run, in periods of the vibration the start orbits.
+DEFAULT_PERIODS = 100
+
+
+@public()
+def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
+            scene: str | Path | None = None,
+            system: Mapping[str, Any] | None = None, time: float | str | None = None,
+            initial: Sequence[float] | None = None, energy: float | None = None,
+            time_unit: str | None = None, solver: str = "fixed-point",
+            max_steps: int = MAX_STEPS, budget: float | None = None,
+            progress: Callable[[float], None] | None = None) -> MeasureReport:
+    """Integrate the system of ``scene`` (or ``system``: the mapping a scene's ``system:``
+    holds) with ``method`` at each step size of ``h`` for a time ``time`` (default: 100
+    periods of the vibration the start orbits), from ``initial`` (q then p) or, for a
+    1-dof Hamiltonian, from the elliptic equilibrium with momentum raised to the
+    ``energy`` given (default start: q displaced from that equilibrium by a tenth of the
+    box). Implicit methods solve their stages by ``solver``: ``fixed-point`` iteration or
+    simplified ``newton`` (the Jacobian from the Hessian at each step's start). A run of
+    more than ``max_steps`` steps is refused; after ``budget`` seconds the run under way
+    stops (status ``budget``) and the rest are not run (``not run``). Steps and the time
+    are numbers in ``time_unit`` (else the scene's, else the unit their texts name), or
+    texts with a time unit (``"0.5 fs"``). See the module docstring for what is measured.
+
+    >>> report = measure("verlet", [0.1], system={"hamiltonian": "p**2/2 + q**2/2",
+    ...                  "box": {"q": [-1, 1], "p": [-1, 1]}}, initial=[0.0, 1.0])
+    >>> row = report.rows[0]
+    >>> round(row.energy_ratio, 3), row.status   # the linear bound kappa - 1 is reached
+    (1.0, 'ok')
+    """
+    from stepsafe.core.integrator import Engine
+    from stepsafe.systems.scene import time_unit_in_force
+    from stepsafe.units import duration
+    from stepsafe.units import time_unit as known_time_unit
+
+    integrator = as_integrator(method)
+    time_unit = known_time_unit(time_unit)
+    steps = [h] if isinstance(h, (int, float, str)) else h
+    time_unit = time_unit_in_force(time_unit, scene,
+                                   list(steps) if isinstance(steps, (list, tuple)) else None,
+                                   time)
+    hs = _steps(steps, time_unit)
+    problem = measured_system(integrator.tableau, scene, system, initial, energy, time_unit)
+    if time is None:
+        if problem.beta is None:
+            raise StepsafeError("give the time to integrate (--time T): the start orbits no "
+                                "vibration whose period would set it")
+        time = DEFAULT_PERIODS * 2 * math.pi / problem.beta
+    time = positive_finite(duration(time, "time", time_unit), "time")
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or \
+            not 1 <= max_steps <= MAX_STEPS_CAP:
+        raise StepsafeError(f"max_steps must be an integer from 1 to {MAX_STEPS_CAP}")
+    deadline = None if budget is None else _time.monotonic() + positive_finite(budget,
+                                                                                 "budget")
+    longest = max(hs)
+    if longest > time:
+        raise StepsafeError(f"the step h = {longest:.6g} is longer than the run time "
+                            f"{time:.6g}: give a longer --time or a smaller step")
+    ratios = [time / h * (1 - 1e-12) for h in hs]  # (inf where T / h overflows)
+    if not max(ratios) <= max_steps:
+        raise StepsafeError(f"T / h = {max(ratios):.3g} steps exceeds the {max_steps} allowed "
+                            "in one run: a shorter --time, larger steps or --max-steps")
+    counts = [max(1, math.ceil(r)) for r in ratios]
+    if not isinstance(solver, str) or solver not in ("fixed-point", "newton"):
+        raise StepsafeError(f"solver must be fixed-point or newton, got {str(solver)[:20]!r}")
+    try:
+        Engine(integrator.tableau, problem.system, solver=solver)
+    except ValueError as exc:
+        raise StepsafeError(f"{integrator.name}: {exc}") from None
+    total, done = float(sum(counts)), 0
+    exact = problem.reference([n * step for step, n in zip(hs, counts)], deadline)
+    rows = []
+    for step, n, state in zip(hs, counts, exact):
+        def tick(k: int, done=done) -> None:
+            if progress:
+                progress((done + k) / total)
+
+        if deadline is not None and _time.monotonic() > deadline:
+            rows.append(MeasureRow(step, n, n * step, "not run", *(None,) * 7))
+            continue
+        rows.append(_row(integrator, problem, step, n,
+                         run_steps(integrator.tableau, problem, step, n, state, tick,
+                                   solver, deadline)))
+        done += n
+    state = np.concatenate([problem.q0[0], problem.p0[0]])
+    return MeasureReport(integrator.name, problem.description, tuple(map(float, state)),
+                         float(problem.system.energy(problem.q0, problem.p0)[0]),
+                         problem.beta, problem.reference_text, tuple(rows), time_unit)
+
+
+def _steps(steps: Sequence[float | str], time_unit: str | None) -> list[float]:
+    """The step sizes h in ``time_unit`` (numbers, or texts with a time unit)."""
+    from stepsafe.units import duration
+
+    try:
+        items = list(steps)
+    except TypeError:
+        raise StepsafeError("h must be a step size or a list of step sizes") from None
+    if not items:
+        raise StepsafeError("no step sizes: give --h H (repeatable) or --h-range LO,HI,N")
+    if len(items) > MAX_STEP_SIZES:
+        raise StepsafeError(f"{len(items)} step sizes; at most {MAX_STEP_SIZES} per run")
+    return [positive_finite(duration(h, "h", time_unit), "h") for h in items]
+
+
+def _row(integrator: Integrator, problem: MeasuredSystem, h: float, n: int, run: Run
+         ) -> MeasureRow:
+    """The row of one run beside the linear prediction (status ``beyond z*`` for a run that
+    stayed finite past the method's first boundary, where the model predicts nothing)."""
+    T = n * h
+    prediction = _prediction(integrator, problem.beta, h, T)
+    status = run.status
+    if status == "ok" and problem.beta is not None and prediction[0] is None:
+        status = "beyond z*"  # ran, but past the linear model's first boundary
+    return MeasureRow(h, n, T, status, run.energy_error, run.energy_drift,
+                      run.trajectory_error, run.evaluations_per_time, run.iterations_per_step,
+                      *prediction, run.jacobians_per_time, run.gradients_per_time)
+
+
+def _prediction(integrator: Integrator, beta: float | None, h: float, T: float
+                ) -> tuple[float | None, float | None]:
+    """The linear model's energy error bound and phase drift over T (None beyond the
+    method's first boundary or without a vibration)."""
+    if beta is None:
+        return None, None
+    from stepsafe.core.accuracy import errors
+    from stepsafe.core.regions import find_region
+
+    z = beta * h
+    boundary = find_region(integrator.tableau, "oscillator", max(10.0, 1.1 * z)).first_boundary
+    if boundary is not None and z >= boundary:
+        return None, None
+    e = errors(integrator.tableau, np.array([z]), "oscillator")
+    energy, phase = float(np.asarray(e.energy)[0]), float(np.asarray(e.phase)[0])
+    if not (math.isfinite(energy) and math.isfinite(phase)):
+        return None, None
+    drift = abs(phase) * beta * T  # the phase the run falls behind (or ahead) by
+    energy = abs(energy) if abs(energy) > NEGLIGIBLE else 0.0
+    return energy, 2.0 * abs(math.sin(min(drift, math.pi) / 2))
+
+
+# ---------------------------------------------------------------- refinement by measurement
+
+#: Measurement runs of one refinement at most, and the relative bracket it stops at.
+MAX_REFINE_RUNS = 24
+REFINE_REL = 1e-3
+
+
+@public()
+def refine(method: Integrator | str, quantity: str, tol: float, *,
+           scene: str | Path | None = None, system: Mapping[str, Any] | None = None,
+           time: float | str | None = None, initial: Sequence[float] | None = None,
+           energy: float | None = None, time_unit: str | None = None,
+           solver: str = "fixed-point",
+           progress: Callable[[float], None] | None = None) -> Refinement:
+    """The largest h whose measured error meets ``tol`` on the scene's own system, by
+    bisection on measurements started from the linear prediction (what
+    ``advise --tol-*`` predicts, checked and corrected by running the method).
+    ``quantity``: ``energy`` or ``trajectory`` (see :class:`MeasureRow`).
+
+    >>> r = refine("verlet", "energy", 1e-3, system={"hamiltonian": "p**2/2 - cos(q)",
+    ...            "box": {"q": [-4, 4], "p": [-1, 1]}}, initial=[0.0, 0.5], time=20.0)
+    >>> r.limited_by, round(r.h / r.predicted, 2)   # the pendulum allows a little more
+    ('tolerance', 1.01)
+    """
+    from stepsafe.core.accuracy import z_for_tolerance
+    from stepsafe.core.regions import find_region
+    from stepsafe.systems.scene import time_unit_in_force
+    from stepsafe.units import duration
+    from stepsafe.units import time_unit as known_time_unit
+
+    if not isinstance(quantity, str) or quantity not in ("energy", "trajectory"):
+        raise StepsafeError(f"quantity must be energy or trajectory, got {quantity!r}")
+    tol = positive_finite(tol, f"the {quantity} tolerance")
+    integrator = as_integrator(method)
+    time_unit = time_unit_in_force(known_time_unit(time_unit), scene, time)
+    problem = measured_system(integrator.tableau, scene, system, initial, energy, time_unit)
+    if problem.beta is None:
+        raise StepsafeError("the start orbits no vibration: nothing to predict h from")
+    beta = problem.beta
+    if time is None:
+        time = DEFAULT_PERIODS * 2 * math.pi / beta
+    time = positive_finite(duration(time, "time", time_unit), "time")
+    z_star = find_region(integrator.tableau, "oscillator").first_boundary or 10.0
+    h_safe = z_star / beta
+    if quantity == "energy":
+        step = z_for_tolerance(integrator.tableau, tol, z_star, kind="energy")
+    else:  # the phase error whose drift over T gives that trajectory error
+        phase_tol = 2 * math.asin(min(tol, 2.0) / 2) / (beta * time)
+        step = z_for_tolerance(integrator.tableau, phase_tol, z_star, kind="phase")
+    predicted = None if step.z is None else step.z / beta
+    key = "energy_error" if quantity == "energy" else "trajectory_error"
+    top = h_safe * (1 - 1e-9)
+    rows: list[MeasureRow] = []
+
+    def error_at(h: float) -> float:
+        if len(rows) >= MAX_REFINE_RUNS:
+            raise _Exhausted
+        try:
+            report = measure(integrator, [h], scene=scene, system=system, time=time,
+                             initial=initial, energy=energy, time_unit=time_unit,
+                             solver=solver)
+        except StepsafeError:
+            raise _Exhausted from None  # a run too long for the step budget: stop here
+        row = report.rows[0]
+        rows.append(row)
+        if progress:
+            progress(len(rows) / MAX_REFINE_RUNS)
+        value = getattr(row, key)
+        return math.inf if row.status != "ok" or value is None else value
+
+    lo = hi = None
+    h = min(predicted or h_safe / 10, top)
+    limited = "tolerance"
+    if predicted is None:  # the linear model meets the tolerance at no step: say so
+        return Refinement(quantity, tol, None, None, None, h_safe, "unreachable",
+                          MeasureReport(integrator.name, problem.description, (), float("nan"),
+                                        beta, problem.reference_text, (), time_unit))
+    try:
+        if error_at(h) <= tol:
+            lo = h
+            while hi is None:
+                if lo >= top:
+                    limited = "safety"
+                    break
+                h = min(2 * lo, top)
+                if error_at(h) <= tol:
+                    lo = h
+                else:
+                    hi = h
+        else:
+            hi = h
+            while lo is None:
+                h = hi / 4
+                if error_at(h) <= tol:
+                    lo = h
+                else:
+                    hi = h
+        while hi is not None and hi / lo > 1 + REFINE_REL:
+            mid = math.sqrt(lo * hi)
+            if error_at(mid) <= tol:
+                lo = mid
+            else:
+                hi = mid
+    except _Exhausted:
+        if lo is None:
+            limited = "unreachable"
+    best = None if lo is None else next(getattr(r, key) for r in rows if r.h == lo)
+    runs = MeasureReport(integrator.name, problem.description,
+                         tuple(map(float, np.concatenate([problem.q0[0], problem.p0[0]]))),
+                         float(problem.system.energy(problem.q0, problem.p0)[0]), beta,
+                         problem.reference_text, tuple(rows), time_unit)
+    return Refinement(quantity, tol, lo, best, predicted, h_safe, limited, runs)
+
+
+class _Exhausted(Exception):
+    """The refinement used all its runs."""
