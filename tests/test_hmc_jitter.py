@@ -11,7 +11,8 @@ A sampler with jitter J draws each step from ``h (1 - J, 1 + J)``. The step at t
   jitters, trajectory lengths) times ``1 + J``, as float64 computes it, is within the first
   z where ``|tr M| > 2`` at 50 digits;
 * the fraction of unstable draws that a step past the cap has, as noted, against the same
-  sampler.
+  sampler, and for any step, jitter and limit against the 50-digit share: 0 exactly when
+  the longest draw as float64 computes it is within the limit.
 """
 
 from __future__ import annotations
@@ -21,11 +22,12 @@ import json
 import mpmath as mp
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from stepsafe.exceptions import StepsafeError
 from stepsafe import hmc
+from stepsafe.api.hmc import unstable_fraction
+from stepsafe.exceptions import StepsafeError
 
 #: Stan's threshold of a divergent transition: an energy error above this.
 DIVERGENT = 1000.0
@@ -157,6 +159,9 @@ def test_default_jittered_step_gives_no_divergent_transitions():
 @given(exponent=st.floats(-250.0, 250.0), spread=st.floats(1.0, 30.0),
        count=st.integers(1, 5), jitter=st.floats(0.01, 0.9),
        steps=st.none() | st.integers(1, 60), name=st.sampled_from(["verlet", "bcss2", "bcss3"]))
+# h (1 + J) within the limit in float64 while limit / h rounds below 1 + J: the fraction of
+# unstable draws must come from the computed longest draw, not from limit / h
+@example(exponent=-159.0, spread=1.0, count=1, jitter=0.63999, steps=None, name="bcss3")
 def test_step_at_target_times_one_plus_jitter_is_within_the_50_digit_limit(
         exponent, spread, count, jitter, steps, name):
     sigmas = list(10.0 ** exponent * np.geomspace(1.0, spread, count))
@@ -167,6 +172,37 @@ def test_step_at_target_times_one_plus_jitter_is_within_the_50_digit_limit(
         assert mp.mpf(longest) / mp.mpf(min(sigmas)) <= _stability_limit(name)
     assert _unstable_share(row.h_target, jitter, row.stability_h) == 0.0
     assert not any("pass the stability limit" in note for note in row.notes)
+
+
+@given(h=st.floats(1e-300, 1e300), jitter=st.floats(0.001, 0.999),
+       ratio=st.floats(0.0, 3.0), ulps=st.none() | st.integers(-3, 3))
+# h * (1 + J) equals the limit while limit / h rounds below 1 + J
+@example(h=2.842606405057488e-159, jitter=0.63999, ratio=0.0, ulps=0)
+# h * (1 + J) overflows float64
+@example(h=1e308, jitter=0.9, ratio=1.5, ulps=None)
+def test_unstable_share_is_0_exactly_when_the_computed_longest_draw_is_within(
+        h, jitter, ratio, ulps):
+    """The share of draws h (1 + J u), |u| <= 1, past a limit: 0 exactly when the longest
+    draw as float64 computes it, h * (1 + J), is within the limit (the rule the capped step
+    keeps), 1 exactly when the shortest h * (1 - J) is past it, and otherwise positive and
+    the 50-digit share (h (1 + J) - limit) / (2 J h) within a few roundings of h (1 + J).
+    The limit is drawn anywhere, or within a few float64 steps of the longest draw."""
+    longest = h * (1.0 + jitter)
+    if ulps is None:
+        limit = h * ratio
+    else:
+        limit = longest
+        for _ in range(abs(ulps)):
+            limit = float(np.nextafter(limit, np.sign(ulps) * np.inf))
+    share = unstable_fraction(h, jitter, limit)
+    assert (share == 0.0) == (longest <= limit)
+    assert (share == 1.0) == (h * (1.0 - jitter) > limit)
+    with mp.workdps(50):
+        exact = min(max((mp.mpf(h) * (1 + mp.mpf(jitter)) - mp.mpf(limit))
+                        / (2 * mp.mpf(jitter) * mp.mpf(h)), 0), 1)
+        if 0.0 < share < 1.0:
+            rounding = 4 * 2.0 ** -52 * (1 + jitter) / (2 * jitter)
+            assert abs(share - exact) <= rounding
 
 
 def test_unstable_jitter_is_said_in_text_json_and_help(run):

@@ -14,7 +14,8 @@ no jittered step is unstable. A step whose longest draws pass the stability limi
 trajectories that draw them grow without bound (Stan's divergent transitions), while the
 acceptance averaged over the jitter can still look fine. ``allow_unstable_jitter`` searches
 up to ``limit`` itself, as for a fixed step; the fraction of unstable draws,
-``(1 + J - limit / h) / (2 J)``, is then stated wherever it is not 0.
+``(h (1 + J) - limit) / (2 J h)``, is then stated wherever it is not 0: wherever the longest
+draw as float64 computes it, ``h * (1 + J)``, passes the stability limit.
 
 A processed method ``P^-1 K P`` proposes ``x -> P^-1 K^L P x``: its one-step matrix is the
 full map ``P^-1 M_K P`` (:mod:`stepsafe.core.transfer`), whose L-th power is the proposal,
@@ -173,11 +174,26 @@ def _quotient_within(h: float, factor: float) -> float:
 
 def unstable_fraction(h: float, jitter: float, limit: float) -> float:
     """The fraction of steps drawn uniformly from ``h (1 - jitter, 1 + jitter)`` that pass
-    ``limit``: ``(1 + jitter - limit / h) / (2 jitter)`` clipped to [0, 1] (0 or 1 without
-    jitter, as h is within the limit or not)."""
+    ``limit``: ``(h (1 + jitter) - limit) / (2 jitter h)`` clipped to [0, 1] (0 or 1 without
+    jitter, as h is within the limit or not).
+
+    It is 0 exactly when the longest draw as a sampler computes it, ``h * (1 + jitter)`` in
+    float64 (no draw ``h * (1 + jitter u)`` computes larger, rounding being monotone), is
+    within ``limit``, and 1 exactly when the shortest, ``h * (1 - jitter)``, is past it: the
+    rule the step at target keeps. Between the two the share is strictly between 0 and 1
+    (a draw on each side), the difference ``h (1 + jitter) - limit`` taken from the computed
+    longest draw (exact when the two are within a factor 2, so a share of one rounding is
+    not lost to the cancellation in ``1 + jitter - limit / h``)."""
     if jitter == 0.0:
         return 0.0 if h <= limit else 1.0
-    return float(min(max((1.0 + jitter - limit / h) / (2.0 * jitter), 0.0), 1.0))
+    longest = h * (1.0 + jitter)
+    if longest <= limit:
+        return 0.0
+    if h * (1.0 - jitter) > limit:
+        return 1.0
+    share = ((longest - limit) / (2.0 * jitter * h) if np.isfinite(longest) else
+             (1.0 + jitter - limit / h) / (2.0 * jitter))  # h near float64's largest
+    return float(min(max(share, float(np.nextafter(0.0, 1.0))), float(np.nextafter(1.0, 0.0))))
 
 
 def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajectory: Any,
