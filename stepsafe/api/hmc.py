@@ -320,13 +320,13 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
                          f"{core.MAX_TRAJECTORY_STEPS:.0e} steps: the acceptance and costs "
                          f"shown there are for L = {core.MAX_TRAJECTORY_STEPS:.0e} (no "
                          "sampler runs more)")
-    at_step = None
+    at_step: Mapping[str, Any] | None = None
     if step is not None:
-        at_step = figures(step)
-        at_step["largest_errors"] = tuple(MappingProxyType(asdict(e)) for e in
-                                          core.largest_errors(m, betas, step,
-                                                              trajectory.steps_at(step)))
-        at_step = MappingProxyType(at_step)
+        figures_at_step = figures(step)
+        figures_at_step["largest_errors"] = tuple(
+            MappingProxyType(asdict(e))
+            for e in core.largest_errors(m, betas, step, trajectory.steps_at(step)))
+        at_step = MappingProxyType(figures_at_step)
     stalls: list[Mapping[str, Any]] = []
     L = trajectory.steps_at(h_target) if h_target else None
     if L is not None and h_target:
