@@ -56,8 +56,8 @@ CALLS = {
     "refine.quantity": lambda v: stepsafe.refine("verlet", v, 1e-3, scene=PENDULUM),
     "design.stages": lambda v: stepsafe.design(sigma=[1.0], step=1.0, stages=v),
     "design.jitter": lambda v: stepsafe.design(sigma=[1.0], step=1.0, jitter=v),
-    "hmc.jitter": lambda v: stepsafe.hmc(["verlet"], sigma=[1.0], steps=4, jitter=v),
-    "hmc.target_accept": lambda v: stepsafe.hmc(["verlet"], sigma=[1.0], steps=4,
+    "hmc.jitter": lambda v: stepsafe.hmc(["verlet"], sigma=[1.0], trajectory_steps=4, jitter=v),
+    "hmc.target_accept": lambda v: stepsafe.hmc(["verlet"], sigma=[1.0], trajectory_steps=4,
                                                 target_accept=v),
     "impulse_advice.pairs": lambda v: stepsafe.impulse_advice("respa-verlet", pairs=v),
 }

@@ -34,7 +34,7 @@ CALLS = {
     "transfer_matrices": (("verlet", [0.5]), {}),
     "problem": (("verlet", [1.0]), {}),
     "load_scene": ((str(ROOT / "examples/scene.yaml"),), {}),
-    "hmc": ((["verlet"],), {"sigma": [1.0], "steps": 4}),
+    "hmc": ((["verlet"],), {"sigma": [1.0], "trajectory_steps": 4}),
     "design": ((), {"sigma": [1.0], "step": 0.5}),
     "impulse": (("verlet", "verlet"), {"substeps": 4, "fast_beta": 10.0, "slow_beta": 1.0}),
     "impulse_advice": (("respa-verlet", [(10.0, 1.0)]), {}),
@@ -130,7 +130,7 @@ def test_no_two_keywords_differ_by_a_letter(name):
     assert close <= {("step", "steps")}, close
     if close:
         with pytest.raises(stepsafe.StepsafeError, match="steps must be an integer"):
-            stepsafe.hmc(["verlet"], sigma=[1.0], steps=0.5)
+            stepsafe.hmc(["verlet"], sigma=[1.0], trajectory_steps=0.5)
 
 
 def test_every_frequency_and_time_keyword_says_its_unit():

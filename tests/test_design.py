@@ -14,10 +14,10 @@ import pytest
 from test_hmc import _run_hmc
 
 import stepsafe
+from stepsafe import design, hmc
 from stepsafe.core.design import design as core_design
 from stepsafe.core.design import family_member, rho_values
 from stepsafe.exceptions import StepsafeError
-from stepsafe import design, hmc
 
 
 def _rho_mp(b, z):

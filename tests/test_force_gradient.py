@@ -299,6 +299,6 @@ def test_hmc_shows_the_step_cost_it_charges():
     from stepsafe import hmc
 
     for cost, per_step in ((1.0, 3.0), (3.0, 5.0)):
-        row = hmc(["chin-4a"], sigma=[1.0, 0.1], steps=10, gradient_cost=cost).rows[0]
+        row = hmc(["chin-4a"], sigma=[1.0, 0.1], trajectory_steps=10, gradient_cost=cost).rows[0]
         assert row.evaluations == per_step
         assert row.gradients_per_proposal == 10 * per_step

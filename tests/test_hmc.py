@@ -25,9 +25,9 @@ from support import method
 from test_safe_property import _mp_function
 
 import stepsafe
+from stepsafe import hmc
 from stepsafe.core import hmc as H
 from stepsafe.exceptions import StepsafeError
-from stepsafe import hmc
 from stepsafe.methods.tableaux import Splitting
 from stepsafe.reference import highprec as R
 
@@ -233,8 +233,8 @@ CASES = [
 def test_measured_acceptance_matches_the_prediction(case):
     name, sigmas, h, steps, length, jitter = case
     rng = np.random.default_rng(11)
-    predicted = hmc([name], sigma=list(sigmas), steps=steps, length=length, jitter=jitter,
-                    step=h).rows[0].at_step["acceptance"]
+    predicted = hmc([name], sigma=list(sigmas), trajectory_steps=steps, length=length,
+                    jitter=jitter, step=h).rows[0].at_step["acceptance"]
     precision = 1.0 / sigmas ** 2
     measured, se = _run_hmc(stepsafe.method(name), precision, h, steps, 64, 120, rng,
                             jitter=jitter, length=length)
@@ -252,7 +252,7 @@ def test_dense_target_with_a_mass_matrix():
     mass = np.diag(np.diag(precision))
     h, steps = 0.7, 12
     report = hmc(["verlet"], system={"precision": precision.tolist(), "mass": mass.tolist()},
-                 steps=steps, step=h)
+                 trajectory_steps=steps, step=h)
     predicted = report.rows[0].at_step["acceptance"]
     measured, se = _run_hmc(stepsafe.method("verlet"), precision, h, steps, 64, 120, rng,
                             inv_mass=np.linalg.inv(mass))
@@ -300,9 +300,10 @@ def test_non_symplectic_and_non_symmetric_methods_are_flagged():
 @pytest.mark.parametrize("kwargs, match", [
     ({"target_accept": 1.0}, "target acceptance"),
     ({"target_accept": 0.0}, "target acceptance"),
-    ({"steps": 0}, "steps"),
-    ({"steps": 2.5}, "steps"),
-    ({"steps": 3, "length": 1.0}, "not both"),
+    ({"trajectory_steps": 0}, "trajectory_steps"),
+    ({"trajectory_steps": 2.5}, "trajectory_steps"),
+    ({"trajectory_steps": 3, "length": 1.0}, "not both"),
+    ({"steps": 3}, "did you mean"),
     ({"length": -1.0}, "length"),
     ({"jitter": 1.0}, "jitter"),
     ({"jitter": True}, "jitter"),
@@ -356,7 +357,7 @@ def test_huge_energy_errors_accept_almost_never():
     for e in (1e100, 1e154, 1e200, 1e308):
         rate = H.acceptance(np.array([e])).rate
         assert 0.0 <= rate <= 4 * np.finfo(float).eps
-    row = hmc(["verlet"], sigma=[1.0], steps=180, step=2.5).rows[0]
+    row = hmc(["verlet"], sigma=[1.0], trajectory_steps=180, step=2.5).rows[0]
     assert 0.0 <= row.at_step["acceptance"] <= 4 * np.finfo(float).eps
 
 

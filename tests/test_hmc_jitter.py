@@ -138,12 +138,12 @@ def test_default_jittered_step_gives_no_divergent_transitions():
     (the draws next to the stability edge, where L = 20 steps still give an energy error
     above 1000 for about 3e-5 of them, 32 in 10^6 with this sampler), where the uncapped
     step gives over a thousand."""
-    row = hmc(["bcss3"], sigma=list(SIGMAS), steps=20, jitter=0.2).rows[0]
+    row = hmc(["bcss3"], sigma=list(SIGMAS), trajectory_steps=20, jitter=0.2).rows[0]
     with mp.workdps(50):
         assert mp.mpf(row.h_target * 1.2) * 10 <= _stability_limit("bcss3")
     assert any("capped" in note for note in row.notes)
     assert _divergent("bcss3", SIGMAS, row.h_target, 20, 0.2, 20000, seed=3) <= 4
-    loose = hmc(["bcss3"], sigma=list(SIGMAS), steps=20, jitter=0.2,
+    loose = hmc(["bcss3"], sigma=list(SIGMAS), trajectory_steps=20, jitter=0.2,
                 allow_unstable_jitter=True).rows[0]
     share = _unstable_share(loose.h_target, 0.2, loose.stability_h)
     assert 0.05 < share < 0.08
@@ -165,7 +165,7 @@ def test_default_jittered_step_gives_no_divergent_transitions():
 def test_step_at_target_times_one_plus_jitter_is_within_the_50_digit_limit(
         exponent, spread, count, jitter, steps, name):
     sigmas = list(10.0 ** exponent * np.geomspace(1.0, spread, count))
-    row = hmc([name], sigma=sigmas, steps=steps, jitter=jitter).rows[0]
+    row = hmc([name], sigma=sigmas, trajectory_steps=steps, jitter=jitter).rows[0]
     assert row.h_target is not None
     longest = row.h_target * (1.0 + jitter)  # as a sampler computes its longest draw
     with mp.workdps(50):

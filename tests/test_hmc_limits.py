@@ -24,9 +24,9 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from reference_methods import mp_transfer
 
+from stepsafe import hmc
 from stepsafe.core import hmc as core
 from stepsafe.exceptions import StepsafeError
-from stepsafe import hmc
 
 #: A 5x5 covariance of condition 5.7e11 at scale 1e-140 (a reviewer's case: its float64
 #: stability limit used to exceed the true one by 3e-6 relative).
@@ -63,7 +63,7 @@ def test_covariance_stability_limit_is_below_the_50_digit_one(matrix):
     """Verlet is stable for z < 2: the true limit is 2 sigma_min (the smallest standard
     deviation, sqrt of the covariance's smallest eigenvalue at 50 digits)."""
     row = hmc(["verlet"], system={"covariance": np.asarray(matrix).tolist()},
-              steps=5).rows[0]
+              trajectory_steps=5).rows[0]
     with mp.workdps(50):
         truth = 2 * mp.sqrt(min(_mp_eigenvalues(matrix)))
         assert mp.mpf(row.stability_h) <= truth
@@ -149,7 +149,7 @@ def test_overflowing_steps_are_refused(run):
 
 def test_step_at_target_reaches_the_target_near_the_float64_limit():
     """At sigma 1e307 (steps near 1e307) the search grid must not overflow."""
-    for row in hmc(["verlet", "bcss3"], sigma=[1e307], steps=10).rows:
+    for row in hmc(["verlet", "bcss3"], sigma=[1e307], trajectory_steps=10).rows:
         assert row.acceptance >= 0.8
         assert row.h_target <= row.stability_h
         assert row.stability_h <= 2e307 if row.method == "verlet" else True
@@ -168,7 +168,7 @@ def test_many_modes_evaluate_in_bounded_pieces(monkeypatch):
     monkeypatch.setattr(core, "one_step", counted)
     monkeypatch.setattr(core, "CHUNK_ELEMENTS", 4096)
     sigma = np.geomspace(1e-3, 1.0, 6000)
-    row = hmc(["verlet"], sigma=sigma, steps=10, step=1e-4).rows[0]
+    row = hmc(["verlet"], sigma=sigma, trajectory_steps=10, step=1e-4).rows[0]
     assert row.h_target is not None and row.acceptance >= 0.8
     assert max(sizes) <= max(4096, core.JITTER_SAMPLES * core.JITTER_MODES)
     values, counts = core._binned(*core._distinct(1.0 / sigma))
@@ -179,7 +179,7 @@ def test_api_numpy_scalars_sparse_and_frozen_rows():
     import scipy.sparse as sp
 
     row = hmc(["verlet"], sigma=[1.0, 0.5], target_accept=np.float32(0.9),
-              jitter=np.float32(0.1), steps=5, step=0.3).rows[0]
+              jitter=np.float32(0.1), trajectory_steps=5, step=0.3).rows[0]
     assert row.h_target is not None
     errors = row.at_step["largest_errors"]
     assert isinstance(errors, tuple) and all(isinstance(e, MappingProxyType) for e in errors)
@@ -240,7 +240,7 @@ def test_a_trajectory_beyond_a_million_steps_is_approximate():
     so such figures say approximate; up to 1e6 steps they are exact."""
     far = hmc(["bcss3"], sigma=[1e-150, 1e150], length=1e150).rows[0]
     assert any("approximate" in note for note in far.notes)
-    near = hmc(["bcss3"], sigma=[1.0, 0.5], steps=10**6, step=0.3).rows[0]
+    near = hmc(["bcss3"], sigma=[1.0, 0.5], trajectory_steps=10**6, step=0.3).rows[0]
     assert near.at_step["approximate"] is False
 
 

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from support import respa_mp, respa_stable_mp
 
-from stepsafe.exceptions import StepsafeError
 from stepsafe import impulse, impulse_advice
+from stepsafe.exceptions import StepsafeError
 
 
 def _respa_run(q, p, H, steps, k, fast_force, slow_force):

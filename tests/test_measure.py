@@ -10,10 +10,9 @@ import mpmath as mp
 import numpy as np
 import pytest
 
-from stepsafe import method
+from stepsafe import measure, method
 from stepsafe.core.integrator import Engine
 from stepsafe.exceptions import StepsafeError
-from stepsafe import measure
 from stepsafe.systems.dynamics import hamiltonian_system, linear_system
 from stepsafe.systems.nonlinear import parse_hamiltonian
 

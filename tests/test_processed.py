@@ -22,14 +22,13 @@ import pytest
 from integrate import integrate, mp_method
 
 import stepsafe
+from stepsafe import hmc, measure
 from stepsafe.core import hmc as H
 from stepsafe.core.accuracy import errors, kernel_errors
 from stepsafe.core.regions import find_region
 from stepsafe.core.transfer import transfer_matrix
 from stepsafe.exceptions import StepsafeError
 from stepsafe.files.yamlio import load_yaml
-from stepsafe import hmc
-from stepsafe import measure
 from stepsafe.methods.fileformat import json_schema
 from stepsafe.methods.library import builtin_dir, resolve
 from stepsafe.reference.verify import mp_transfer
@@ -228,7 +227,7 @@ def _hmc_run(integrator, precision, h, L, chains, iterations, rng):
 def test_measured_hmc_acceptance_matches_the_prediction():
     sigmas = np.linspace(0.5, 1.0, 40)
     h, L = 1.05, 6
-    row = hmc([NAME], sigma=list(sigmas), steps=L, step=h).rows[0]
+    row = hmc([NAME], sigma=list(sigmas), trajectory_steps=L, step=h).rows[0]
     predicted = row.at_step["acceptance"]
     measured, se = _hmc_run(stepsafe.method(NAME), 1.0 / sigmas ** 2, h, L, 64, 120,
                             np.random.default_rng(7))
@@ -341,7 +340,7 @@ def test_the_processed_proposal_is_not_reversible_and_the_report_says_so():
         assert flip_twice((), ()) < mp.mpf(10) ** -45
         assert flip_twice(pre, adjoint) < mp.mpf(10) ** -45
         assert flip_twice(pre, post) > 1e-6
-    row = hmc([NAME], sigma=[1.0] * 4, steps=L, step=0.4).rows[0]
+    row = hmc([NAME], sigma=[1.0] * 4, trajectory_steps=L, step=0.4).rows[0]
     assert any(note.startswith("not reversible") for note in row.notes)
 
 
@@ -360,7 +359,7 @@ def test_an_hmc_chain_with_the_processed_method_drifts_from_the_target():
     as much, stays on it. hmc says so and does not rank the processed method."""
     sigmas = np.array([1.0, 0.3, 0.01])
     L, chains, transitions = 20, 4000, 150
-    report = hmc([NAME, "verlet"], sigma=list(sigmas), steps=L, step=0.0204357)
+    report = hmc([NAME, "verlet"], sigma=list(sigmas), trajectory_steps=L, step=0.0204357)
     rows = {r.method: r for r in report.rows}
     assert rows[NAME].rank is None and rows["verlet"].rank == 1
 

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from support import respa_mp, respa_stable_mp
 
-from stepsafe.exceptions import StepsafeError
 from stepsafe import impulse
+from stepsafe.exceptions import StepsafeError
 
 
 def test_one_substep_is_verlet_on_the_total_force():

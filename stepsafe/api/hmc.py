@@ -34,19 +34,29 @@ offered here.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict
+from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
-from stepsafe.api.inputs import Integrator, compared_methods, problem, problem_of, step_cost
+from stepsafe.api.inputs import (
+    ArrayLike,
+    Integrator,
+    Problem,
+    UnitValues,
+    compared_methods,
+    problem_of,
+    step_cost,
+)
 from stepsafe.api.reports import DesignReport, HmcReport, HmcRow
 from stepsafe.arguments import public
 from stepsafe.core.roots import EPS
 from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
 from stepsafe.systems.loader import DENSE_LIMIT
+from stepsafe.systems.scene import Scene
 
 #: Stall steps (L theta = 2 pi m) are reported within this relative distance of the target
 #: step (or within the jitter, if wider).
@@ -68,7 +78,8 @@ def _validated(target: float, steps: int | None, length: float | None,
     if steps is not None:
         if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or not (
                 1 <= steps <= 10**6):
-            raise StepsafeError(f"steps must be an integer from 1 to 1000000, got {steps!r}")
+            raise StepsafeError(f"trajectory_steps must be an integer from 1 to 1000000 (--steps "
+                                f"on the command line), got {steps!r}")
         steps = int(steps)
     if length is not None:
         length = positive_finite(length, "trajectory length")
@@ -77,32 +88,98 @@ def _validated(target: float, steps: int | None, length: float | None,
     return float(target), steps, length, float(jitter)
 
 
-@public(lambda: problem, drop=("method", "h"))
-def hmc(methods: Sequence[Integrator | str] | str | None = None, *, steps: int | None = None,
-        length: float | str | None = None, jitter: float = 0.0, target_accept: float = 0.8,
-        step: float | str | None = None, criterion: str = "stability", curve: int = 0,
-        gradient_cost: float = 1.0, allow_unstable_jitter: bool = False,
-        **inputs: Any) -> HmcReport:
-    """HMC on a Gaussian target with each of ``methods`` (names, ``"all"``, or None for
-    :data:`HMC_DEFAULT`). The target is given by keyword as for :func:`stepsafe.problem`:
-    ``sigma`` (standard deviations, in the units of q), ``beta`` (angular frequencies, rad
-    per time unit: beta = 1/sigma for unit mass), a scene, or
-    ``system={"covariance": C}`` / ``{"precision": P}`` with an optional ``"mass"``.
-    Steps and lengths are numbers in the time unit, or texts with a time unit (``"0.5
-    fs"``).
-    ``steps`` L per trajectory, or ``length`` T (L = floor(T / h), as Stan), or neither (the
-    acceptance is then the bound over every L); ``jitter`` j draws each step from
-    ``h (1 +- j)``: the step at target keeps ``h (1 + j)`` within the criterion's step limit
-    (no jittered step unstable) unless ``allow_unstable_jitter`` is True (see the module
-    docstring). The step at target is the largest whose acceptance reaches
-    ``target_accept`` for every trajectory length (each mode's energy error at its bound
-    over L, rho(h) of Blanes, Casas & Sanz-Serna 2014): the acceptance for one L
-    oscillates with h like sin^2(L theta), and is reported at that step. ``step`` also
-    evaluates that h. ``criterion`` bounds the search for h
-    (``stability``: |tr M| <= 2, the default here; ``structure``: type and orientation).
-    ``curve`` N adds the predicted acceptance at N steps up to that limit to each row;
-    ``progress`` is called with the fraction of methods done. A force-gradient method's
-    step costs its forces plus ``gradient_cost`` gradients per force-gradient term.
+@public()
+def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
+        beta: ArrayLike | None = None, sigma: ArrayLike | None = None,
+        saddle_beta: ArrayLike | None = None, inverted_beta: ArrayLike | None = None,
+        modes: Mapping[str, ArrayLike] | None = None,
+        ordinary_frequency: UnitValues | None = None,
+        wavenumber: UnitValues | None = None, period: UnitValues | None = None,
+        time_unit: str | None = None,
+        labels: Mapping[str, Sequence[str | None]] | None = None,
+        system: Mapping[str, Any] | None = None, scene: str | Path | Scene | None = None,
+        zmax: float | None = None, budget: float | None = None,
+        progress: Callable[[float], None] | None = None, problem: Problem | None = None,
+        trajectory_steps: int | None = None, length: float | str | None = None,
+        jitter: float = 0.0, target_accept: float = 0.8, step: float | str | None = None,
+        criterion: str = "stability", curve: int = 0, gradient_cost: float = 1.0,
+        allow_unstable_jitter: bool = False) -> HmcReport:
+    """HMC on a Gaussian target with each of ``methods``: the step at target, the
+    acceptance and the cost, methods ranked by gradient evaluations per accepted unit of
+    simulated time.
+
+    The step at target is the largest whose acceptance reaches ``target_accept`` for
+    every trajectory length (each mode's energy error at its bound over L, rho(h) of
+    Blanes, Casas & Sanz-Serna 2014): the acceptance for one L oscillates with h like
+    sin^2(L theta), and is reported at that step.
+
+    Parameters
+    ----------
+    methods : list of Integrator or str, or "all", optional
+        The methods (names, ``family:N``, paths, Integrators); None: :data:`HMC_DEFAULT`.
+    beta : array_like, optional
+        Angular frequencies of the target's modes, rad per time unit (beta = 1/sigma for
+        unit mass).
+    sigma : array_like, optional
+        Standard deviations of the target's modes (unit mass), in the units of q.
+    saddle_beta, inverted_beta : array_like, optional
+        Rates of saddles and barrier tops, rad per time unit (refused: a Gaussian target
+        has only vibrations).
+    modes : mapping, optional
+        ``{model: betas}``, rad per time unit.
+    ordinary_frequency : number, text or list, optional
+        f = beta / (2 pi): cycles per time unit, or texts with a frequency unit.
+    wavenumber : number, text or list, optional
+        In cm^-1 (``3700`` or ``"3700 cm-1"``); needs a time unit.
+    period : number, text or list, optional
+        T = 2 pi / beta: in the time unit, or texts with a time unit (``"9 fs"``).
+    time_unit : str, optional
+        The unit of every step and length in and out (``"fs"``, ...); default: the
+        scene's, else the unit the texts name, else the time unit of 1/beta.
+    labels : mapping, optional
+        Names of the modes given by keyword, per model.
+    system : mapping, optional
+        ``{"covariance": C}`` or ``{"precision": P}``, with an optional ``"mass"``.
+    scene : str, Path or Scene, optional
+        A scene file (``stepsafe schema scene``) or a :func:`~stepsafe.load_scene` result.
+    zmax : float, optional
+        How far in z = beta*h (dimensionless) each method's region is analysed
+        (default: the scene's, else 10).
+    budget : float, optional
+        Seconds after which the analysis of a coupled system stops.
+    progress : callable, optional
+        Called with the fraction of methods done.
+    problem : Problem, optional
+        A :func:`~stepsafe.problem` built beforehand, given instead of the target's
+        keywords above.
+    trajectory_steps : int, optional
+        L, the number of steps per trajectory (a count, not a time).
+    length : float or str, optional
+        The trajectory length T in the time unit (or a text with a time unit): L =
+        floor(T / h), as Stan. Neither L nor T: the acceptance is the bound over every L.
+    jitter : float
+        j in [0, 1): each step is drawn from ``h (1 +- j)``; the step at target keeps
+        ``h (1 + j)`` within the criterion's step limit (no jittered step unstable) unless
+        ``allow_unstable_jitter`` (see the module docstring).
+    target_accept : float
+        The acceptance rate to reach, in (0, 1) (Stan's ``adapt_delta``).
+    step : float or str, optional
+        A step h to evaluate too, in the time unit (or a text with a time unit).
+    criterion : str
+        What bounds the search for h: ``stability`` (|tr M| <= 2, the default here) or
+        ``structure`` (type and orientation).
+    curve : int
+        N: add the predicted acceptance at N steps up to that limit to each row.
+    gradient_cost : float
+        Gradient evaluations one force-gradient term costs.
+    allow_unstable_jitter : bool
+        Search up to the limit itself, as for a fixed step (the fraction of unstable
+        draws is then stated).
+
+    Returns
+    -------
+    HmcReport
+        One row per method, ranked; ``to_dict()`` is ``stepsafe hmc --json``.
 
     >>> rows = hmc(["verlet", "bcss2"], sigma=list(np.linspace(0.5, 1.0, 20)), length=5.0).rows
     >>> [(r.method, r.rank) for r in rows]   # bcss2 costs fewer gradients per accepted time
@@ -112,6 +189,7 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *, steps: int |
     from stepsafe.core.regions import validate_criterion
     from stepsafe.units import duration
 
+    steps = trajectory_steps
     _validated(target_accept, steps, None, jitter)  # the unit-free ones, before any work
     from stepsafe.methods.tableaux import validate_gradient_cost
 
@@ -123,8 +201,11 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *, steps: int |
     if isinstance(curve, bool) or not isinstance(curve, int) or not 0 <= curve <= 10_000:
         raise StepsafeError(f"curve must be an integer from 0 to 10000, got {curve!r}")
     integrators = compared_methods(HMC_DEFAULT if methods is None else methods)
-    progress = inputs.pop("progress", None)  # called with the fraction of methods done
-    p = problem_of(integrators[0], inputs.pop("beta", None), inputs, times=(step, length))
+    inputs = {"sigma": sigma, "saddle_beta": saddle_beta, "inverted_beta": inverted_beta,
+              "modes": modes, "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
+              "period": period, "time_unit": time_unit, "labels": labels, "system": system,
+              "scene": scene, "zmax": zmax, "budget": budget, "problem": problem}
+    p = problem_of(integrators[0], beta, inputs, times=(step, length))
     if length is not None:
         length = duration(length, "length", p.time_unit)
     target, steps, length, jitter = _validated(target_accept, steps, length, jitter)
@@ -357,16 +438,73 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
 DESIGN_REFERENCES = ("verlet", "bcss2", "bcss3", "mclachlan2-min")
 
 
-@public(lambda: problem, drop=("method", "h"))
+@public()
 def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
-           name: str | None = None, **inputs: Any) -> DesignReport:
+           name: str | None = None, beta: ArrayLike | None = None, sigma: ArrayLike | None = None,
+           saddle_beta: ArrayLike | None = None, inverted_beta: ArrayLike | None = None,
+           modes: Mapping[str, ArrayLike] | None = None,
+           ordinary_frequency: UnitValues | None = None,
+           wavenumber: UnitValues | None = None, period: UnitValues | None = None,
+           time_unit: str | None = None,
+           labels: Mapping[str, Sequence[str | None]] | None = None,
+           system: Mapping[str, Any] | None = None, scene: str | Path | Scene | None = None,
+           zmax: float | None = None, budget: float | None = None,
+           problem: Problem | None = None) -> DesignReport:
     """Design the palindromic ``stages``-stage splitting (2: parameter b; 3: b and a; see
     :mod:`stepsafe.core.design`) that minimises the expected energy error summed over the
-    target's modes (the target by keyword as for :func:`hmc`: ``sigma``, ``beta``, ...)
-    at ``step`` (in the time unit, or a text with a time unit), averaged over
-    ``step (1 +- jitter)``, every mode stable up to ``step (1 + jitter)`` (an M = +-I
-    resonance does not end the stable steps: the rule ``hmc`` uses,
-    :func:`stepsafe.core.regions.stable_run`).
+    target's modes at ``step``, averaged over ``step (1 +- jitter)``, every mode stable up
+    to ``step (1 + jitter)`` (an M = +-I resonance does not end the stable steps: the rule
+    ``hmc`` uses, :func:`stepsafe.core.regions.stable_run`).
+
+    Parameters
+    ----------
+    step : float or str
+        The step h to design for, in the time unit (or a text with a time unit).
+    stages : int
+        2 or 3 force evaluations per step.
+    jitter : float
+        j in [0, 1): the design averages over ``step (1 +- j)``.
+    name : str, optional
+        The designed method's name (default ``designed-2stage`` / ``designed-3stage``).
+    beta : array_like, optional
+        Angular frequencies of the target's modes, rad per time unit (beta = 1/sigma for
+        unit mass).
+    sigma : array_like, optional
+        Standard deviations of the target's modes (unit mass), in the units of q.
+    saddle_beta, inverted_beta : array_like, optional
+        Rates of saddles and barrier tops, rad per time unit (refused: a Gaussian target
+        has only vibrations).
+    modes : mapping, optional
+        ``{model: betas}``, rad per time unit.
+    ordinary_frequency : number, text or list, optional
+        f = beta / (2 pi): cycles per time unit, or texts with a frequency unit.
+    wavenumber : number, text or list, optional
+        In cm^-1 (``3700`` or ``"3700 cm-1"``); needs a time unit.
+    period : number, text or list, optional
+        T = 2 pi / beta: in the time unit, or texts with a time unit (``"9 fs"``).
+    time_unit : str, optional
+        The unit of every step and length in and out (``"fs"``, ...); default: the
+        scene's, else the unit the texts name, else the time unit of 1/beta.
+    labels : mapping, optional
+        Names of the modes given by keyword, per model.
+    system : mapping, optional
+        ``{"covariance": C}`` or ``{"precision": P}``, with an optional ``"mass"``.
+    scene : str, Path or Scene, optional
+        A scene file (``stepsafe schema scene``) or a :func:`~stepsafe.load_scene` result.
+    zmax : float, optional
+        How far in z = beta*h (dimensionless) each method's region is analysed
+        (default: the scene's, else 10).
+    budget : float, optional
+        Seconds after which the analysis of a coupled system stops.
+    problem : Problem, optional
+        A :func:`~stepsafe.problem` built beforehand, given instead of the target's
+        keywords above.
+
+    Returns
+    -------
+    DesignReport
+        The parameters, the method file and the comparison; ``to_dict()`` is ``stepsafe
+        design --json``.
 
     >>> report = design(sigma=[1.0, 0.5, 0.2], step=0.5)
     >>> [(c["method"], round(c["acceptance"], 2)) for c in report.comparison[:3]]
@@ -388,7 +526,11 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
             c.isascii() and (c.isalnum() or c == "-") for c in name) or len(name) > 60:
         raise StepsafeError(f"name must be 1 to 60 letters, digits and '-' (as method files "
                             f"require), got {str(name)[:40]!r}")
-    p = problem_of("verlet", inputs.pop("beta", None), inputs, times=(step,))
+    inputs = {"sigma": sigma, "saddle_beta": saddle_beta, "inverted_beta": inverted_beta,
+              "modes": modes, "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
+              "period": period, "time_unit": time_unit, "labels": labels, "system": system,
+              "scene": scene, "zmax": zmax, "budget": budget, "problem": problem}
+    p = problem_of("verlet", beta, inputs, times=(step,))
     step = positive_finite(duration(step, "step", p.time_unit), "step")
     betas, errors = _gaussian_betas(p)
     # designed for each frequency at the largest it may be (the rounding of the

@@ -16,7 +16,7 @@ False
 from __future__ import annotations
 
 import copy
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -37,7 +37,6 @@ from stepsafe.api.inputs import (
     converted_betas,
     frozen_record,
     method,
-    problem,
     problem_of,
     step_cost,
     step_in_unit,
@@ -60,6 +59,7 @@ from stepsafe.api.reports import (
 )
 from stepsafe.arguments import public
 from stepsafe.exceptions import StepsafeError
+from stepsafe.systems.scene import Scene
 
 
 def _verification(integrator: Integrator, regions: Mapping[str, Any],
@@ -132,28 +132,100 @@ def region(method: Integrator | str, model: str = "all", *, zmax: float = 10.0,
                         MappingProxyType(structure))
 
 
-@public(lambda: problem, drop=("h",))
+@public()
 def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None, *,
+           saddle_beta: ArrayLike | None = None, inverted_beta: ArrayLike | None = None,
+           modes: Mapping[str, ArrayLike] | None = None,
+           ordinary_frequency: UnitValues | None = None, wavenumber: UnitValues | None = None,
+           period: UnitValues | None = None, sigma: ArrayLike | None = None,
+           time_unit: str | None = None,
+           labels: Mapping[str, Sequence[str | None]] | None = None,
+           system: Mapping[str, Any] | None = None,
+           scene: str | Path | Scene | None = None, stages: int | None = None,
+           base: str | None = None, margin: float | None = None,
+           zmax: float | None = None, budget: float | None = None,
+           progress: Callable[[float], None] | None = None, problem: Problem | None = None,
            tol_phase: float | None = None, tol_energy: float | None = None,
            resonance_order: int | None = None, solver: str = "fixed-point",
-           criterion: str = "structure", verify: bool = False, gradient_cost: float = 1.0,
-           **inputs: Any) -> AdviceReport:
-    """Safe step sizes for a method and angular frequencies ``beta`` (rad per time unit;
-    or a scene, or a system): see :func:`problem` for the other inputs and their units
-    (``saddle_beta``, ``inverted_beta``, ``modes``, ``ordinary_frequency``,
-    ``wavenumber``, ``period``, ``sigma``, ``time_unit``, ``system``, ``scene``,
-    ``labels``, ``stages``, ``base``, ``margin``, ``zmax``, ``budget``, ``progress``).
-    ``tol_phase``/``tol_energy`` also bound the phase (growth-rate) and energy errors
-    and add the usable step and its cost (implicit methods: the force evaluations of
-    fixed-point iteration, ``solver="nominal"`` for one per stage). ``resonance_order`` N
-    also keeps every
-    vibration below its first nonlinear resonance n theta = 2 pi m with n <= N; the
-    resonances of orders 3 to 6 (and up to N) of the fastest vibration are listed in
-    ``record["nonlinear_resonances"]`` either way. ``criterion``: ``structure`` (type and
-    orientation) or ``stability`` (type only: ``|tr M| <= 2`` for vibrations); where the
-    other criterion gives another ``h_max``, ``record["other_criterion"]`` holds it.
-    ``gradient_cost``: force evaluations one force-gradient term costs (force-gradient
-    methods; see :data:`stepsafe.methods.tableaux.GRADIENT_COST`).
+           criterion: str = "structure", verify: bool = False, gradient_cost: float = 1.0
+           ) -> AdviceReport:
+    """Safe step sizes for a method and angular frequencies ``beta`` (or a scene, or a
+    system), with the inputs of :func:`problem`.
+
+    Parameters
+    ----------
+    method : Integrator or str, optional
+        The method (name, family with ``stages``, or path); default: the scene's.
+    beta : array_like, optional
+        Angular frequencies of vibrations, rad per time unit.
+    saddle_beta, inverted_beta : array_like, optional
+        Rates of saddles (H = beta p q) and of barrier tops (p' = +beta^2 q), rad per
+        time unit.
+    modes : mapping, optional
+        ``{model: betas}``, rad per time unit (models as in :func:`region`).
+    ordinary_frequency : number, text or list, optional
+        f = beta / (2 pi) of vibrations: cycles per time unit, or texts with a frequency
+        unit (``"100 THz"``, ``"3 ps-1"``).
+    wavenumber : number, text or list, optional
+        Vibrations in cm^-1 (``3700`` or ``"3700 cm-1"``); needs a time unit.
+    period : number, text or list, optional
+        T = 2 pi / beta of vibrations: in the time unit, or texts with a time unit
+        (``"9 fs"``).
+    sigma : array_like, optional
+        Standard deviations of a Gaussian target (unit mass), in the units of q:
+        beta = 1 / sigma.
+    time_unit : str, optional
+        The unit of every step in and out (``"fs"``, ``"ps"``, ...); default: the
+        scene's, else the unit the texts of steps and periods name, else the time unit
+        of 1/beta.
+    labels : mapping, optional
+        Names of the modes given by keyword, per model.
+    system : mapping, optional
+        A system instead of frequencies: ``{"stiffness": K, "mass": M}``,
+        ``{"precision": P}``, ``{"covariance": C}``, ``{"hessian": H}`` or a
+        Hamiltonian (see :func:`problem`).
+    scene : str, Path or Scene, optional
+        A scene file (``stepsafe schema scene``) or a :func:`load_scene` result.
+    stages, base : int, str, optional
+        A family's stage count; a composition's base.
+    margin : float, optional
+        F in (0, 1]: every frequency may be up to 1/F times larger (default: the
+        scene's, else 1).
+    zmax : float, optional
+        How far in z = beta*h (dimensionless) to analyse (default: the scene's, else 10).
+    budget : float, optional
+        Seconds after which a coupled analysis stops.
+    progress : callable, optional
+        Called with the fraction done.
+    problem : Problem, optional
+        A :func:`problem` built beforehand, given instead of the method, the frequencies
+        and the keywords above.
+    tol_phase, tol_energy : float, optional
+        Also bound the phase (growth-rate) error theta/z - 1 and the relative energy
+        error (dimensionless), and add the usable step and its cost (implicit methods:
+        the force evaluations of fixed-point iteration).
+    resonance_order : int, optional
+        N: also keep every vibration below its first nonlinear resonance
+        n theta = 2 pi m with n <= N; the resonances of orders 3 to 6 (and up to N) of
+        the fastest vibration are listed in ``record["nonlinear_resonances"]`` either way.
+    solver : str
+        How implicit stages are costed: ``fixed-point`` iteration, or ``nominal`` (one
+        evaluation per stage).
+    criterion : str
+        ``structure`` (type and orientation) or ``stability`` (type only: ``|tr M| <= 2``
+        for vibrations); where the other criterion gives another ``h_max``,
+        ``record["other_criterion"]`` holds it.
+    verify : bool
+        Recompute the regions' points with mpmath (50 digits): ``verification``.
+    gradient_cost : float
+        Force evaluations one force-gradient term costs (force-gradient methods; see
+        :data:`stepsafe.methods.tableaux.GRADIENT_COST`).
+
+    Returns
+    -------
+    AdviceReport
+        ``h_max`` and ``safe_h`` in the time unit; ``to_dict()`` is ``stepsafe advise
+        --json``.
 
     >>> report = advise("yoshida4", [3.2], inverted_beta=[1.1])
     >>> report.h_max_limited_by, f"{report.h_max:.6f}"
@@ -164,6 +236,11 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
     from stepsafe.core.regions import validate_criterion
 
     criterion = validate_criterion(criterion)
+    inputs = {"saddle_beta": saddle_beta, "inverted_beta": inverted_beta, "modes": modes,
+              "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
+              "period": period, "sigma": sigma, "time_unit": time_unit, "labels": labels,
+              "system": system, "scene": scene, "stages": stages, "base": base, "margin": margin,
+              "zmax": zmax, "budget": budget, "progress": progress, "problem": problem}
     p = problem_of(method, beta, inputs)
     integrator, result = p.integrator, None
     with integrator.naming_its_file():
@@ -266,25 +343,100 @@ def _system_solver_limit(integrator: Integrator, p: Problem) -> float | None:
     return system_step_limit(integrator.tableau, betas, [S for _, S in p.system.coupled])
 
 
-@public(lambda: problem)
+@public()
 def check(method: Integrator | str | None = None, h: float | str | None = None,
-          beta: ArrayLike | None = None, *, resonance_order: int | None = None,
-          criterion: str = "structure", verify: bool = False, solver: str = "fixed-point",
-          require_complete_search: bool = False, **inputs: Any) -> CheckReport:
-    """Is step ``h`` safe for every frequency? ``h`` is a number in the time unit, or a
-    text with a time unit (``"0.5 fs"``, converted); ``beta`` are angular frequencies (rad
-    per time unit); see :func:`problem` for the other inputs and their units. A scene
-    may give the step (``h:``). A step exactly on a resonance or a pole is unsafe. With
-    ``resonance_order`` N, a vibration at or beyond its first nonlinear resonance of order
-    at most N is unsafe too. ``criterion`` as for :func:`advise` (``record["other_criterion"]``
-    says whether ``h`` is safe under the other one, when its ``h_max`` differs). With
-    ``solver="fixed-point"`` (the default) an implicit method's step must also lie below
-    the convergence limit of fixed-point iteration of its stages for every vibration and
-    barrier (``record["solver_failure"]`` says why not); ``"newton"`` has no such limit.
-    With ``require_complete_search`` a system given by a Hamiltonian fails when its
-    equilibrium search cannot vouch that it found every equilibrium
-    (``record["system"]["search"]`` says what was searched, ``record["search_failure"]``
-    why it falls short; see :mod:`stepsafe.systems.walks`); other inputs are unaffected.
+          beta: ArrayLike | None = None, *,
+          saddle_beta: ArrayLike | None = None, inverted_beta: ArrayLike | None = None,
+          modes: Mapping[str, ArrayLike] | None = None,
+          ordinary_frequency: UnitValues | None = None, wavenumber: UnitValues | None = None,
+          period: UnitValues | None = None, sigma: ArrayLike | None = None,
+          time_unit: str | None = None,
+          labels: Mapping[str, Sequence[str | None]] | None = None,
+          system: Mapping[str, Any] | None = None,
+          scene: str | Path | Scene | None = None, stages: int | None = None,
+          base: str | None = None, margin: float | None = None,
+          zmax: float | None = None, budget: float | None = None,
+          progress: Callable[[float], None] | None = None, problem: Problem | None = None,
+          resonance_order: int | None = None, criterion: str = "structure",
+          verify: bool = False, solver: str = "fixed-point",
+          require_complete_search: bool = False) -> CheckReport:
+    """Is step ``h`` safe for every frequency? A scene may give the step (``h:``). A step
+    exactly on a resonance or a pole is unsafe.
+
+    Parameters
+    ----------
+    method : Integrator or str, optional
+        The method (name, family with ``stages``, or path); default: the scene's.
+    h : float or str, optional
+        The step: a number in the time unit, or a text with a time unit (``"0.5 fs"``,
+        converted); default: the scene's ``h:``.
+    beta : array_like, optional
+        Angular frequencies of vibrations, rad per time unit.
+    saddle_beta, inverted_beta : array_like, optional
+        Rates of saddles (H = beta p q) and of barrier tops (p' = +beta^2 q), rad per
+        time unit.
+    modes : mapping, optional
+        ``{model: betas}``, rad per time unit (models as in :func:`region`).
+    ordinary_frequency : number, text or list, optional
+        f = beta / (2 pi) of vibrations: cycles per time unit, or texts with a frequency
+        unit (``"100 THz"``, ``"3 ps-1"``).
+    wavenumber : number, text or list, optional
+        Vibrations in cm^-1 (``3700`` or ``"3700 cm-1"``); needs a time unit.
+    period : number, text or list, optional
+        T = 2 pi / beta of vibrations: in the time unit, or texts with a time unit
+        (``"9 fs"``).
+    sigma : array_like, optional
+        Standard deviations of a Gaussian target (unit mass), in the units of q:
+        beta = 1 / sigma.
+    time_unit : str, optional
+        The unit of every step in and out (``"fs"``, ``"ps"``, ...); default: the
+        scene's, else the unit the texts of steps and periods name, else the time unit
+        of 1/beta.
+    labels : mapping, optional
+        Names of the modes given by keyword, per model.
+    system : mapping, optional
+        A system instead of frequencies: ``{"stiffness": K, "mass": M}``,
+        ``{"precision": P}``, ``{"covariance": C}``, ``{"hessian": H}`` or a
+        Hamiltonian (see :func:`problem`).
+    scene : str, Path or Scene, optional
+        A scene file (``stepsafe schema scene``) or a :func:`load_scene` result.
+    stages, base : int, str, optional
+        A family's stage count; a composition's base.
+    margin : float, optional
+        F in (0, 1]: every frequency may be up to 1/F times larger (default: the
+        scene's, else 1).
+    zmax : float, optional
+        How far in z = beta*h (dimensionless) to analyse (default: the scene's, else 10).
+    budget : float, optional
+        Seconds after which a coupled analysis stops.
+    progress : callable, optional
+        Called with the fraction done.
+    problem : Problem, optional
+        A :func:`problem` built beforehand, given instead of the method, the frequencies
+        and the keywords above.
+    resonance_order : int, optional
+        N: a vibration at or beyond its first nonlinear resonance of order at most N is
+        unsafe too.
+    criterion : str
+        As for :func:`advise` (``record["other_criterion"]`` says whether ``h`` is safe
+        under the other one, when its ``h_max`` differs).
+    verify : bool
+        Recompute the regions' points up to the step with mpmath: ``verification``.
+    solver : str
+        ``fixed-point`` (the default): an implicit method's step must also lie below the
+        convergence limit of fixed-point iteration of its stages for every vibration and
+        barrier (``record["solver_failure"]`` says why not); ``newton`` has no such limit.
+    require_complete_search : bool
+        A system given by a Hamiltonian fails when its equilibrium search cannot vouch
+        that it found every equilibrium (``record["system"]["search"]`` says what was
+        searched, ``record["search_failure"]`` why it falls short; see
+        :mod:`stepsafe.systems.walks`); other inputs are unaffected.
+
+    Returns
+    -------
+    CheckReport
+        ``safe``, the failing modes and the safe steps; ``to_dict()`` is ``stepsafe check
+        --json``.
 
     >>> check("verlet", 0.49, [4.0]).safe
     True
@@ -295,7 +447,12 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
 
     criterion = validate_criterion(criterion)
     require_complete_search = as_flag(require_complete_search, "require_complete_search")
-    if inputs.get("problem") is None:
+    inputs = {"saddle_beta": saddle_beta, "inverted_beta": inverted_beta, "modes": modes,
+              "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
+              "period": period, "sigma": sigma, "time_unit": time_unit, "labels": labels,
+              "system": system, "scene": scene, "stages": stages, "base": base, "margin": margin,
+              "zmax": zmax, "budget": budget, "progress": progress, "problem": problem}
+    if problem is None:
         p = problem_of(method, beta, {**inputs, "h": h})
         step = p.h
     else:
@@ -347,12 +504,25 @@ _SINGLE_FORCE = ("beta", "saddle_beta", "inverted_beta", "modes", "ordinary_freq
                  "budget", "stages", "base")
 
 
-@public(lambda: problem, drop=("scene", "h"))
-def check_scenes(scenes: Sequence[str | Path], *, h: float | str | None = None,
+@public()
+def check_scenes(scenes: Sequence[str | Path], *, method: Integrator | str | None = None,
+                 h: float | str | None = None, beta: ArrayLike | None = None,
+                 saddle_beta: ArrayLike | None = None, inverted_beta: ArrayLike | None = None,
+                 modes: Mapping[str, ArrayLike] | None = None,
+                 ordinary_frequency: UnitValues | None = None,
+                 wavenumber: UnitValues | None = None,
+                 period: UnitValues | None = None, sigma: ArrayLike | None = None,
+                 time_unit: str | None = None,
+                 labels: Mapping[str, Sequence[str | None]] | None = None,
+                 system: Mapping[str, Any] | None = None,
+                 stages: int | None = None,
+                 base: str | None = None, margin: float | None = None,
+                 zmax: float | None = None, budget: float | None = None,
+                 progress: Callable[[float], None] | None = None,
                  resonance_order: int | None = None, criterion: str = "structure",
                  verify: bool = False, solver: str = "fixed-point",
-                 require_complete_search: bool = False, substeps: int | None = None,
-                 **inputs: Any) -> SceneChecks:
+                 require_complete_search: bool = False, substeps: int | None = None
+                 ) -> SceneChecks:
     """:func:`check` of each scene file in ``scenes``, the other inputs the same for all
     (as ``stepsafe check A.yaml B.yaml`` with options): a file that cannot be checked
     (bad input) becomes a :class:`CheckError` in its place and the others are checked
@@ -363,16 +533,54 @@ def check_scenes(scenes: Sequence[str | Path], *, h: float | str | None = None,
     ----------
     scenes : list of str or Path
         The scene files, checked in this order.
+    method : Integrator or str, optional
+        The method for every scene; default: each scene's.
     h : float or str, optional
         The step for every scene, in its time unit or as a text with a time unit
         (``"0.5 fs"``); default: each scene's ``h:``.
+    beta : array_like, optional
+        Angular frequencies of vibrations, rad per time unit, for every scene.
+    saddle_beta, inverted_beta : array_like, optional
+        Rates of saddles (H = beta p q) and of barrier tops (p' = +beta^2 q), rad per
+        time unit.
+    modes : mapping, optional
+        ``{model: betas}``, rad per time unit (models as in :func:`region`).
+    ordinary_frequency : number, text or list, optional
+        f = beta / (2 pi) of vibrations: cycles per time unit, or texts with a frequency
+        unit (``"100 THz"``, ``"3 ps-1"``).
+    wavenumber : number, text or list, optional
+        Vibrations in cm^-1 (``3700`` or ``"3700 cm-1"``); needs a time unit.
+    period : number, text or list, optional
+        T = 2 pi / beta of vibrations: in the time unit, or texts with a time unit
+        (``"9 fs"``).
+    sigma : array_like, optional
+        Standard deviations of a Gaussian target (unit mass), in the units of q:
+        beta = 1 / sigma.
+    time_unit : str, optional
+        The unit of every step in and out (``"fs"``, ``"ps"``, ...); default: the
+        scene's, else the unit the texts of steps and periods name, else the time unit
+        of 1/beta.
+    labels : mapping, optional
+        Names of the modes given by keyword, per model.
+    system : mapping, optional
+        A system instead of frequencies: ``{"stiffness": K, "mass": M}``,
+        ``{"precision": P}``, ``{"covariance": C}``, ``{"hessian": H}`` or a
+        Hamiltonian (see :func:`problem`).
+    stages, base : int, str, optional
+        A family's stage count; a composition's base.
+    margin : float, optional
+        F in (0, 1]: every frequency may be up to 1/F times larger (default: the
+        scene's, else 1).
+    zmax : float, optional
+        How far in z = beta*h (dimensionless) to analyse (default: the scene's, else 10).
+    budget : float, optional
+        Seconds after which a coupled analysis stops.
+    progress : callable, optional
+        Called with the fraction done.
     resonance_order, criterion, verify, solver, require_complete_search
         As for :func:`check`.
     substeps : int, optional
         Inner steps per outer drift of an impulse method's scenes.
-    **inputs
-        The keywords of :func:`problem` (frequencies with their units, ``time_unit``,
-        ``margin``, ...) but ``scene``, the same for every scene.
 
     Returns
     -------
@@ -388,7 +596,13 @@ def check_scenes(scenes: Sequence[str | Path], *, h: float | str | None = None,
 
     if isinstance(scenes, (str, Path)) or not isinstance(scenes, Sequence) or not scenes:
         raise StepsafeError("scenes must be a non-empty list of scene files")
-    known_time_unit(inputs.get("time_unit"))  # (before any scene is read with it)
+    inputs: dict[str, Any] = {"method": method, "beta": beta, "saddle_beta": saddle_beta,
+              "inverted_beta": inverted_beta, "modes": modes,
+              "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
+              "period": period, "sigma": sigma, "time_unit": time_unit, "labels": labels,
+              "system": system, "stages": stages, "base": base, "margin": margin, "zmax": zmax,
+              "budget": budget, "progress": progress}
+    known_time_unit(time_unit)  # (before any scene is read with it)
     out: list[Any] = []
     for scene in scenes:
         try:

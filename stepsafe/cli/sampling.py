@@ -90,7 +90,7 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
 
     with progress_bar("hmc", not as_json) as progress, _naming_the_modes_file(options):
         report = hmc(methods, modes=arrays or None, labels=labels or None, scene=scene_file,
-                     steps=steps, length=length, jitter=jitter,
+                     trajectory_steps=steps, length=length, jitter=jitter,
                      allow_unstable_jitter=allow_unstable_jitter, target_accept=target_accept,
                      step=step, criterion=criterion, time_unit=options["time_unit"],
                      zmax=options["zmax"], curve=0 if plot_file is None else PLOT_POINTS,
