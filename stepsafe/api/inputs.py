@@ -83,10 +83,10 @@ class Integrator:
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe show METHOD --json`` prints."""
-        from stepsafe.core.records import coefficients, method_data
+        from stepsafe.core.records import coefficients, method_data, versioned
 
-        return {**method_data(self.tableau, self.entry),
-                "coefficients": coefficients(self.tableau)}
+        return versioned({**method_data(self.tableau, self.entry),
+                          "coefficients": coefficients(self.tableau)})
 
     @property
     def operations(self) -> tuple[tuple[str, float], ...] | None:

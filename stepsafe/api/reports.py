@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from stepsafe.api.inputs import REGION_MODELS, Integrator
+from stepsafe.core.records import unversioned, versioned
 from stepsafe.core.regions import ROUNDING_GAP_RULE
 
 # --------------------------------------------------------------------------- region
@@ -60,7 +61,7 @@ class RegionReport:
             out["models"]["oscillator"]["nonlinear_resonances"] = nonlinear_data(self.nonlinear)
         if self.verification is not None:
             out["verify"] = copy.deepcopy(dict(self.verification))
-        return out
+        return versioned(out)
 
 
 def _ordered(models: Mapping[str, Any]) -> list[str]:
@@ -98,7 +99,7 @@ class AdviceReport:
         out = copy.deepcopy(dict(self.record))
         if self.verification is not None:
             out["verify"] = copy.deepcopy(dict(self.verification))
-        return out
+        return versioned(out)
 
 
 # --------------------------------------------------------------------------- check
@@ -129,7 +130,7 @@ class CheckReport:
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe check ... --json`` prints for this input:
         ``{"safe": safe, "checks": [entry]}``."""
-        return {"safe": self.safe, "checks": [self.entry()]}
+        return versioned({"safe": self.safe, "checks": [self.entry()]})
 
 
 @dataclass(frozen=True)
@@ -171,9 +172,9 @@ class SceneChecks:
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe check A.yaml B.yaml ... --json`` prints:
         ``{"safe": safe, "checks": [one entry per file]}``."""
-        return {"safe": self.safe,
-                "checks": [c.to_dict() if not isinstance(c, (CheckReport, CheckError))
-                           else c.entry() for c in self.checks]}
+        return versioned({"safe": self.safe,
+                "checks": [unversioned(c.to_dict()) if not isinstance(c, (CheckReport, CheckError))
+                           else c.entry() for c in self.checks]})
 
 
 # --------------------------------------------------------------------------- errors
@@ -206,9 +207,9 @@ class ErrorTable:
         if self.kernel_energy is not None and oscillator:
             for row, en, over in zip(rows, self.kernel_energy, self.overflow):
                 row["kernel_energy_error"] = None if over else _finite(en)
-        return {"method": self.method, "model": self.model,
+        return versioned({"method": self.method, "model": self.model,
                 "phase_error": "theta/z - 1" if self.model == "oscillator"
-                else "log(mu)/z - 1", "rows": rows}
+                else "log(mu)/z - 1", "rows": rows})
 
 
 def _finite(x: float) -> float | None:
@@ -256,11 +257,11 @@ class CompareReport:
         """What ``stepsafe compare ... --json`` prints."""
         from dataclasses import asdict
 
-        return {"modes": dict(self.modes), "tolerances": dict(self.tolerances),
+        return versioned({"modes": dict(self.modes), "tolerances": dict(self.tolerances),
                 "margin": self.margin, "time_unit": self.time_unit, "solver": self.solver,
                 "criterion": self.criterion,
                 "cost_unit": "force evaluations per unit of simulated time",
-                "methods": [_compare_row_dict(asdict(r)) for r in self.rows]}
+                "methods": [_compare_row_dict(asdict(r)) for r in self.rows]})
 
 
 def _compare_row_dict(row: dict[str, Any]) -> dict[str, Any]:
@@ -321,13 +322,14 @@ class HmcReport:
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe hmc ... --json`` prints."""
-        return {"target_accept": self.target, "steps": self.steps, "length": self.length,
+        return versioned({"target_accept": self.target, "steps": self.steps,
+                          "length": self.length,
                 "jitter": self.jitter, "allow_unstable_jitter": self.allow_unstable_jitter,
                 "criterion": self.criterion, "modes": self.modes,
                 "beta_min": self.beta_range[0], "beta_max": self.beta_range[1],
                 "time_unit": self.time_unit, "approximate": self.approximate,
                 "cost_unit": "gradient evaluations", "rounding_gaps": ROUNDING_GAP_RULE,
-                "methods": [copy.deepcopy(_row_dict(r)) for r in self.rows]}
+                "methods": [copy.deepcopy(_row_dict(r)) for r in self.rows]})
 
 
 def _row_dict(row: HmcRow) -> dict[str, Any]:
@@ -369,12 +371,12 @@ class DesignReport:
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe design ... --json`` prints."""
-        return {"name": self.name, "stages": self.stages, "params": dict(self.params),
+        return versioned({"name": self.name, "stages": self.stages, "params": dict(self.params),
                 "step": self.step, "modes": self.modes, "binned": self.binned,
                 "time_unit": self.time_unit, "method_file": self.method_file,
                 "rounding_gaps": ROUNDING_GAP_RULE,
                 "comparison": [{**c, "resonance_h": list(c["resonance_h"])}
-                               for c in self.comparison]}
+                               for c in self.comparison]})
 
 
 @dataclass(frozen=True)
@@ -407,13 +409,13 @@ class ImpulseReport:
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe respa ... --json`` prints."""
-        return {"method": self.name, "substeps": self.substeps, "fast": self.fast,
+        return versioned({"method": self.name, "substeps": self.substeps, "fast": self.fast,
                 "slow": self.slow, "beta": self.beta, "criterion": self.criterion,
                 "h_max": self.h_max, "safe_h": [list(iv) for iv in self.safe_h],
                 "bands": [copy.deepcopy(dict(b)) for b in self.bands],
                 "horizon": self.horizon, "step": self.step, "safe": self.safe,
                 "reason": self.reason, "time_unit": self.time_unit,
-                "nonlinear_resonances": [dict(r) for r in self.nonlinear]}
+                "nonlinear_resonances": [dict(r) for r in self.nonlinear]})
 
 
 @dataclass(frozen=True)
@@ -446,17 +448,17 @@ class ImpulseModesReport:
         """What ``stepsafe advise`` / ``check`` print with ``--json`` for an impulse method."""
         modes = []
         for label, mode in zip(self.labels, self.modes):
-            row = mode.to_dict()
+            row = unversioned(mode.to_dict())
             for key in ("method", "substeps", "criterion", "time_unit", "step"):
                 row.pop(key)
             modes.append({"label": label, **row})
-        return {"method": self.name, "kind": "impulse", "substeps": self.substeps,
+        return versioned({"method": self.name, "kind": "impulse", "substeps": self.substeps,
                 "criterion": self.criterion, "time_unit": self.time_unit,
                 "scene": self.scene, "h_max": self.h_max,
                 "safe_h": [list(iv) for iv in self.safe_h], "horizon": self.horizon,
                 "limiting_mode": self.limiting, "step": self.step, "safe": self.safe,
                 "failures": [dict(f) for f in self.failures], "analysis": self.analysis,
-                "modes": modes}
+                "modes": modes})
 
 
 @dataclass(frozen=True)
@@ -523,11 +525,11 @@ class MeasureReport:
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe measure --json`` prints."""
-        return copy.deepcopy({"method": self.method, "system": self.system,
+        return versioned(copy.deepcopy({"method": self.method, "system": self.system,
                               "initial": list(self.initial), "energy": self.energy,
                               "beta": self.beta, "reference": self.reference,
                               "time_unit": self.time_unit,
-                              "rows": [r.to_dict() for r in self.rows]})
+                              "rows": [r.to_dict() for r in self.rows]}))
 
 
 #: Predicted errors below this are rounding of an exact 0 (a method that conserves every
@@ -560,6 +562,7 @@ class Refinement:
     runs: MeasureReport
 
     def to_dict(self) -> dict[str, Any]:
-        return {"quantity": self.quantity, "tol": self.tol, "h": self.h, "error": self.error,
+        return versioned({"quantity": self.quantity, "tol": self.tol, "h": self.h,
+                          "error": self.error,
                 "predicted_h": self.predicted, "h_safe": self.h_safe,
-                "limited_by": self.limited_by, "runs": self.runs.to_dict()}
+                "limited_by": self.limited_by, "runs": unversioned(self.runs.to_dict())})

@@ -821,16 +821,25 @@ def _exit_if_unverified(verdict) -> None:
 
 
 @main.command("schema")
-@click.argument("which", type=click.Choice(("method", "scene")))
-def schema_cmd(which: str) -> None:
-    """Print the JSON Schema of method files or scene files."""
+@click.argument("which", type=click.Choice(("method", "scene", "output")))
+@click.argument("command", required=False, metavar="[COMMAND]")
+def schema_cmd(which: str, command: str | None) -> None:
+    """Print the JSON Schema of method files, of scene files, or (``output COMMAND``) of
+    what ``stepsafe COMMAND --json`` prints."""
+    from stepsafe.api.schemas import output_schema
     from stepsafe.cli.report import print_json
 
+    if (which == "output") != (command is not None):
+        raise _input_error("give a COMMAND after 'output' (stepsafe schema output hmc), and "
+                           "only there")
+    if which == "output":
+        print_json(output_schema(command), record=False)
+        return
     if which == "method":
         from stepsafe.methods.fileformat import json_schema
     else:
         from stepsafe.systems.scene import json_schema
-    print_json(json_schema())
+    print_json(json_schema(), record=False)
 
 
 @main.command("validate")

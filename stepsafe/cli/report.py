@@ -14,12 +14,17 @@ import sys
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
+from stepsafe.core.records import json_ready, versioned
 
-def print_json(data: Any) -> None:
+
+def print_json(data: Any, record: bool = True) -> None:
     """One JSON document; a non-finite number is null (see
-    :func:`stepsafe.core.records.json_ready`)."""
-    from stepsafe.core.records import json_ready
-
+    :func:`stepsafe.core.records.json_ready`). A ``record`` (a command's result, not a
+    JSON Schema) carries ``schema_version`` first, as does each record of a list."""
+    if record and isinstance(data, Mapping):
+        data = versioned(data)
+    elif record and isinstance(data, list):
+        data = [versioned(x) if isinstance(x, Mapping) else x for x in data]
     sys.stdout.write(json.dumps(json_ready(data), indent=2, allow_nan=False) + "\n")
 
 

@@ -14,6 +14,22 @@ from stepsafe.core.models import ELLIPTIC
 from stepsafe.core.regions import Interval, Point, Region
 from stepsafe.methods.residuals import residuals
 
+#: The version of the shape of every ``--json`` record and ``to_dict()``: each record
+#: carries it as ``schema_version`` (first key); ``stepsafe schema output COMMAND`` prints
+#: the JSON Schema of that version. A key removed or changed in meaning raises it.
+SCHEMA_VERSION = 1
+
+
+def versioned(record: Mapping[str, Any]) -> dict[str, Any]:
+    """``record`` with ``schema_version`` as its first key (once)."""
+    return {"schema_version": SCHEMA_VERSION,
+            **{k: v for k, v in record.items() if k != "schema_version"}}
+
+
+def unversioned(record: Mapping[str, Any]) -> dict[str, Any]:
+    """``record`` without ``schema_version`` (a record nested in another)."""
+    return {k: v for k, v in record.items() if k != "schema_version"}
+
 
 def json_ready(data: Any) -> Any:
     """``data`` with every non-finite float replaced by None (JSON has no inf or NaN;

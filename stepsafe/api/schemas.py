@@ -1,0 +1,204 @@
+"""The JSON Schema (draft 2020-12) of each command's ``--json`` output (``stepsafe schema
+output COMMAND``), which is also the shape of the matching ``to_dict()``.
+
+Every record carries ``schema_version`` (:data:`~stepsafe.core.records.SCHEMA_VERSION`),
+its first key. A top-level record whose keys the code writes out one by one is closed
+(``additionalProperties: false``): a key added without its schema fails the tests that
+validate each command's real output. Records assembled from a mapping (a method's
+coefficients, a region's models, a system's items) state the keys every record has and
+leave the rest open. A number that can be absent (no safe step, no boundary within zmax,
+a non-finite value) is ``null``, never NaN or infinity.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from stepsafe.core.records import SCHEMA_VERSION
+from stepsafe.exceptions import StepsafeError
+
+DRAFT = "https://json-schema.org/draft/2020-12/schema"
+
+NUM: dict[str, Any] = {"type": "number"}
+NUM_OR_NULL: dict[str, Any] = {"type": ["number", "null"]}
+INT: dict[str, Any] = {"type": "integer"}
+INT_OR_NULL: dict[str, Any] = {"type": ["integer", "null"]}
+STR: dict[str, Any] = {"type": "string"}
+STR_OR_NULL: dict[str, Any] = {"type": ["string", "null"]}
+BOOL: dict[str, Any] = {"type": "boolean"}
+BOOL_OR_NULL: dict[str, Any] = {"type": ["boolean", "null"]}
+OBJECT: dict[str, Any] = {"type": "object"}
+OBJECT_OR_NULL: dict[str, Any] = {"type": ["object", "null"]}
+ANY: dict[str, Any] = {}
+VERSION: dict[str, Any] = {"const": SCHEMA_VERSION}
+#: Open intervals of steps (or of z), ``[lo, hi]``; hi null: unbounded within the horizon.
+INTERVALS: dict[str, Any] = {"type": "array", "items": {
+    "type": "array", "items": NUM_OR_NULL, "minItems": 2, "maxItems": 2}}
+
+
+def array(items: dict[str, Any]) -> dict[str, Any]:
+    return {"type": "array", "items": items}
+
+
+def record(required: dict[str, Any], optional: dict[str, Any] | None = None, *,
+           closed: bool = True) -> dict[str, Any]:
+    """An object with the ``required`` keys (and maybe the ``optional`` ones); ``closed``:
+    no other key."""
+    properties = {**required, **(optional or {})}
+    out: dict[str, Any] = {"type": "object", "required": list(required),
+                           "properties": properties}
+    if closed:
+        out["additionalProperties"] = False
+    return out
+
+
+def top(required: dict[str, Any], optional: dict[str, Any] | None = None, *,
+        closed: bool = True) -> dict[str, Any]:
+    """A command's record: ``schema_version`` first, then ``required``."""
+    return record({"schema_version": VERSION, **required}, optional, closed=closed)
+
+
+NONLINEAR = array(record({"resonance": STR}, closed=False))
+
+METHOD_ROW = top({"name": STR, "kind": STR, "order": {"type": ["integer", "string"]},
+                  "stages": {"type": ["integer", "string"]},
+                  "evaluations": {"type": ["integer", "string", "null"]},
+                  "force_gradients": INT, "symplectic": BOOL, "title": STR,
+                  "aliases": array(STR)}, closed=False)
+
+SHOW = top({"method": STR, "title": STR, "kind": STR, "order": INT_OR_NULL,
+            "stages": INT_OR_NULL, "evaluations": INT_OR_NULL, "symplectic": BOOL,
+            "source": STR, "coefficients": OBJECT}, closed=False)
+
+MODEL_REGION = record({"first_boundary": NUM_OR_NULL, "intervals": INTERVALS,
+                       "islands": array(ANY), "resonances": array(ANY), "poles": array(ANY),
+                       "zmax": NUM, "symplectic": BOOL, "criterion": STR},
+                      {"nonlinear_resonances": NONLINEAR,
+                       "structure_first_boundary": NUM_OR_NULL}, closed=False)
+
+LINEAR_REGION = top({"method": STR, "title": STR, "kind": STR, "stages": INT_OR_NULL,
+                     "order": INT_OR_NULL, "symplectic": BOOL,
+                     "models": {"type": "object", "additionalProperties": {"anyOf": [
+                         MODEL_REGION, record({"not_analysed": STR})]}},
+                     "criterion": STR}, {"verify": OBJECT})
+
+IMPULSE = {"method": STR, "substeps": INT, "fast": NUM, "slow": NUM, "beta": NUM,
+           "criterion": STR, "h_max": NUM_OR_NULL, "safe_h": INTERVALS,
+           "bands": array(record({"lo": NUM, "hi": NUM_OR_NULL, "kind": STR}, closed=False)),
+           "horizon": NUM_OR_NULL, "step": NUM_OR_NULL, "safe": BOOL_OR_NULL,
+           "reason": STR_OR_NULL, "time_unit": STR_OR_NULL, "nonlinear_resonances": NONLINEAR}
+
+RESPA = top(IMPULSE)
+
+IMPULSE_REGION = top({**IMPULSE, "ratio": NUM, "units": STR})
+
+IMPULSE_MODES = top({"method": STR, "kind": {"const": "impulse"}, "substeps": INT,
+                     "criterion": STR, "time_unit": STR_OR_NULL, "scene": STR_OR_NULL,
+                     "h_max": NUM_OR_NULL, "safe_h": INTERVALS, "horizon": NUM_OR_NULL,
+                     "limiting_mode": ANY, "step": NUM_OR_NULL, "safe": BOOL_OR_NULL,
+                     "failures": array(OBJECT), "analysis": ANY,
+                     "modes": array(record({"label": STR_OR_NULL}, closed=False))})
+
+FAILURE = record({"model": STR, "z": NUM_OR_NULL, "reason": STR}, closed=False)
+
+LINEAR_ADVICE = top({"method": STR, "margin": NUM, "h_max": NUM_OR_NULL,
+                     "h_max_limited_by": STR_OR_NULL, "safe_h": INTERVALS,
+                     "criterion": STR, "time_unit": STR_OR_NULL}, closed=False)
+
+CHECK_ENTRY = {"anyOf": [
+    record({"method": STR, "h": NUM, "margin": NUM, "safe": BOOL, "modes": INT,
+            "failing": INT, "failures": array(FAILURE), "h_max": NUM_OR_NULL,
+            "safe_h": INTERVALS, "criterion": STR, "scene": STR_OR_NULL,
+            "time_unit": STR_OR_NULL}, closed=False),
+    record({"scene": STR_OR_NULL, "safe": {"const": None}, "error": STR,
+            "where": STR_OR_NULL}),
+    record({"method": STR, "kind": {"const": "impulse"}, "safe": BOOL_OR_NULL},
+           closed=False)]}
+
+CHECK = top({"safe": BOOL, "checks": {**array(CHECK_ENTRY), "minItems": 1}})
+
+ERROR = top({"method": STR, "model": STR, "phase_error": STR,
+             "rows": array(record({"z": NUM, "phase_error": NUM_OR_NULL,
+                                   "energy_error": NUM_OR_NULL, "overflow": BOOL},
+                                  {"kernel_energy_error": NUM_OR_NULL}))})
+
+COMPARE = top({"modes": OBJECT, "tolerances": OBJECT, "margin": NUM,
+               "time_unit": STR_OR_NULL, "solver": STR, "criterion": STR, "cost_unit": STR,
+               "methods": array(record({"method": STR, "implicit": BOOL,
+                                        "h_max": NUM_OR_NULL, "h": NUM_OR_NULL,
+                                        "evaluations": NUM, "cost": NUM_OR_NULL,
+                                        "rank": INT_OR_NULL}, closed=False))})
+
+HMC_ROW = record({"method": STR, "evaluations": NUM, "symmetric": BOOL,
+                  "stability_h": NUM_OR_NULL, "structure_h": NUM_OR_NULL,
+                  "resonance_h": array(NUM), "h_target": NUM_OR_NULL, "steps": INT_OR_NULL,
+                  "acceptance": NUM_OR_NULL, "expected_error": NUM_OR_NULL,
+                  "gradients_per_proposal": NUM_OR_NULL,
+                  "gradients_per_accepted": NUM_OR_NULL, "gradients_per_time": NUM_OR_NULL,
+                  "rank": INT_OR_NULL, "at_step": OBJECT_OR_NULL, "stalls": array(OBJECT),
+                  "notes": array(STR), "curve": array(ANY)}, closed=False)
+
+HMC = top({"target_accept": NUM, "steps": INT_OR_NULL, "length": NUM_OR_NULL,
+           "jitter": NUM, "allow_unstable_jitter": BOOL, "criterion": STR, "modes": INT,
+           "beta_min": NUM, "beta_max": NUM, "time_unit": STR_OR_NULL, "approximate": BOOL,
+           "cost_unit": STR, "rounding_gaps": STR, "methods": array(HMC_ROW)})
+
+DESIGN = top({"name": STR, "stages": INT, "params": {"type": "object",
+                                                     "additionalProperties": NUM},
+              "step": NUM, "modes": INT, "binned": BOOL, "time_unit": STR_OR_NULL,
+              "method_file": STR, "rounding_gaps": STR,
+              "comparison": array(record({"method": STR, "evaluations": NUM,
+                                          "h": NUM_OR_NULL, "resonance_h": array(NUM)},
+                                         closed=False))})
+
+MEASURE_ROW = record({"h": NUM, "steps": INT, "time": NUM, "status": STR,
+                      "energy_error": NUM_OR_NULL, "energy_drift": NUM_OR_NULL,
+                      "trajectory_error": NUM_OR_NULL, "evaluations_per_time": NUM_OR_NULL,
+                      "iterations_per_step": NUM_OR_NULL,
+                      "predicted_energy_error": NUM_OR_NULL,
+                      "predicted_trajectory_error": NUM_OR_NULL,
+                      "energy_ratio": NUM_OR_NULL, "trajectory_ratio": NUM_OR_NULL,
+                      "jacobians_per_time": NUM_OR_NULL, "gradients_per_time": NUM_OR_NULL})
+
+MEASURE_RUNS = {"method": STR, "system": STR, "initial": array(NUM), "energy": NUM_OR_NULL,
+                "beta": NUM_OR_NULL, "reference": STR, "time_unit": STR_OR_NULL,
+                "rows": array(MEASURE_ROW)}
+
+REFINEMENT = top({"quantity": STR, "tol": NUM, "h": NUM_OR_NULL, "error": NUM_OR_NULL,
+                  "predicted_h": NUM_OR_NULL, "h_safe": NUM_OR_NULL, "limited_by": STR,
+                  "runs": record(MEASURE_RUNS)})
+
+#: The output of each command that takes ``--json``.
+OUTPUTS: dict[str, dict[str, Any]] = {
+    "methods": array(METHOD_ROW),
+    "show": SHOW,
+    "region": {"oneOf": [LINEAR_REGION, IMPULSE_REGION]},
+    "advise": {"oneOf": [LINEAR_ADVICE, IMPULSE_MODES]},
+    "check": CHECK,
+    "error": ERROR,
+    "compare": COMPARE,
+    "hmc": HMC,
+    "design": DESIGN,
+    "respa": RESPA,
+    "measure": {"oneOf": [top(MEASURE_RUNS), REFINEMENT]},
+}
+
+
+def output_schema(command: str) -> dict[str, Any]:
+    """The JSON Schema of ``stepsafe COMMAND --json`` (and of the matching ``to_dict()``).
+
+    Parameters
+    ----------
+    command : str
+        A command that takes ``--json``: one of :data:`OUTPUTS`.
+
+    Returns
+    -------
+    dict
+        A JSON Schema (draft 2020-12) document.
+    """
+    if command not in OUTPUTS:
+        raise StepsafeError(f"no JSON output schema for {command!r}; the commands with "
+                            f"--json are {', '.join(OUTPUTS)}")
+    return {"$schema": DRAFT, "title": f"stepsafe {command} --json",
+            "description": f"schema_version {SCHEMA_VERSION}", **OUTPUTS[command]}
