@@ -1,5 +1,5 @@
 """``python -m stepsafe``: the same as the ``stepsafe`` command."""
 
-from stepsafe.cli.main import main
+from stepsafe.cli import main
 
 main(prog_name="stepsafe")

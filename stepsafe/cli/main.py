@@ -908,12 +908,3 @@ def _not_a_scene(path: str) -> None:
 
 def _is_pathlike(path: str) -> bool:
     return "/" in path or path.endswith((".yaml", ".yml"))
-
-
-from stepsafe.cli import accuracy as cli_accuracy  # noqa: E402,F401  (registers error, compare, plot)
-from stepsafe.cli import measure as cli_measure  # noqa: E402,F401  (registers measure)
-from stepsafe.cli import respa as cli_respa  # noqa: E402,F401  (registers respa)
-from stepsafe.cli import sampling as cli_sampling  # noqa: E402,F401  (registers hmc, design)
-
-if __name__ == "__main__":  # pragma: no cover
-    main()

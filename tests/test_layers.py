@@ -1,0 +1,212 @@
+"""The package's layers hold: every import of one of its own modules, at the top of a module
+or inside a function, goes to the same layer or one below, and no package imports another
+that imports it back.
+
+Layers, lowest first: the shared basics (``exceptions``, ``text``, ``units``,
+``arguments``), ``files`` (method files, YAML, expressions), ``methods`` (tableaux and the
+library), ``core`` (the float analysis), ``systems`` (scenes, coupled systems), ``api``,
+``cli``, and the package root. ``reference`` (mpmath) sits beside them: it may import the
+layers below ``api``, and only ``api``, ``cli``, the root and the tests import it.
+
+:data:`KNOWN` lists the imports that break this today, each with its reason; a new one fails
+:func:`test_no_upward_import`, and a listed one that is gone fails
+:func:`test_every_known_exception_still_occurs` (take it off the list).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parent.parent / "stepsafe"
+
+#: The rank of each layer (a top-level module or package of stepsafe); an import may go to
+#: an equal or lower rank. ``reference`` is checked separately (see :func:`allowed`).
+RANK = {"exceptions": 0, "text": 0, "units": 0, "arguments": 0, "files": 1, "methods": 2,
+        "core": 3, "systems": 4, "reference": 4, "api": 5, "cli": 6, "": 7, "__main__": 7}
+
+#: The layers that may import ``reference``.
+REFERENCE_USERS = {"reference", "api", "cli", "", "__main__"}
+
+#: Imports that break the layers today, (importer, imported module): the reason each
+#: remains. Shrink this list; never grow it.
+KNOWN = {
+    ("stepsafe.cli.main", "stepsafe"):
+        "the version string is defined in the package root",
+    ("stepsafe.core.accuracy", "stepsafe.reference.highprec"):
+        "the 50-digit phase error where float64 cannot resolve it (escalation)",
+    ("stepsafe.core.accuracy", "stepsafe.reference.verify"):
+        "the 50-digit verification of the error figures (escalation)",
+    ("stepsafe.core.escalate", "stepsafe.reference.highprec"):
+        "escalation to 50 digits lives in the core, which decides when float64 cannot",
+    ("stepsafe.methods.families", "stepsafe.core.escalate"):
+        "a family member's coefficients are checked by the core's escalated test",
+    ("stepsafe.methods.families", "stepsafe.reference.highprec"):
+        "a family member's symplecticity is decided at 50 digits",
+    ("stepsafe.methods.library", "stepsafe.core.escalate"):
+        "a library method's written digits are checked by the core's escalated test",
+    ("stepsafe.methods.library", "stepsafe.reference.verify"):
+        "a method file's symplecticity is verified at 50 digits on loading",
+    ("stepsafe.methods.table", "stepsafe.core.regions"):
+        "the methods table shows each method's stability limit",
+}
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _layer(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else ""
+
+
+def _type_checking_nodes(tree: ast.AST) -> set[int]:
+    """The nodes under ``if TYPE_CHECKING:`` (not imported when the program runs)."""
+    out: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            out.update(id(n) for n in ast.walk(node))
+    return out
+
+
+def _imports(path: Path, top_only: bool = False) -> list[tuple[str, int]]:
+    """The package's own modules that ``path`` imports, with their lines (``from stepsafe
+    import x`` counts as the root, or as ``stepsafe.x`` when x is a module)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    me = _module_name(path)
+    package = me if path.name == "__init__.py" else me.rpartition(".")[0]
+    skip = _type_checking_nodes(tree)
+    nodes = tree.body if top_only else list(ast.walk(tree))
+    out = []
+    for node in nodes:
+        if id(node) in skip:
+            continue
+        if isinstance(node, ast.Import):
+            out += [(a.name, node.lineno) for a in node.names if a.name.split(".")[0]
+                    == "stepsafe"]
+        elif isinstance(node, ast.ImportFrom):
+            name = node.module or ""
+            if node.level:
+                base = package.split(".")[:len(package.split(".")) - node.level + 1]
+                name = ".".join(base + ([node.module] if node.module else []))
+            if name.split(".")[0] != "stepsafe":
+                continue
+            for alias in node.names:
+                full = f"{name}.{alias.name}"
+                is_module = (PACKAGE.parent / (full.replace(".", "/") + ".py")).exists() or (
+                    PACKAGE.parent / full.replace(".", "/")).is_dir()
+                out.append((full if is_module else name, node.lineno))
+    return out
+
+
+MODULES = sorted(PACKAGE.rglob("*.py"))
+
+
+def allowed(importer: str, imported: str) -> bool:
+    """Whether the layers let ``importer`` import ``imported``."""
+    lower, upper = _layer(importer), _layer(imported)
+    if lower == upper:
+        return True
+    if upper == "reference" and lower not in REFERENCE_USERS:
+        return False
+    return RANK[upper] <= RANK[lower]
+
+
+def _violations() -> set[tuple[str, str, int]]:
+    out = set()
+    for path in MODULES:
+        me = _module_name(path)
+        for imported, line in _imports(path):
+            if not allowed(me, imported):
+                out.add((me, imported, line))
+    return out
+
+
+def test_every_module_is_in_a_layer():
+    layers = {_layer(_module_name(p)) for p in MODULES}
+    assert layers <= set(RANK), layers - set(RANK)
+
+
+def test_no_upward_import():
+    new = sorted(f"{a}:{line} imports {b}" for a, b, line in _violations()
+                 if (a, b) not in KNOWN)
+    assert not new, "imports against the layers:\n" + "\n".join(new)
+
+
+def test_every_known_exception_still_occurs():
+    found = {(a, b) for a, b, _ in _violations()}
+    assert not set(KNOWN) - found, f"no longer needed: {sorted(set(KNOWN) - found)}"
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one node (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                out.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_cycle_finder_finds_a_cycle():
+    """The cycle finder itself: a ring of three and a chain hanging off it."""
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a", "d"}, "d": set()}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_cycle_between_packages():
+    """Counting every import (at the top or in a function) but the known exceptions."""
+    graph: dict[str, set[str]] = {}
+    for path in MODULES:
+        me = _module_name(path)
+        for imported, _ in _imports(path):
+            if (me, imported) not in KNOWN and _layer(imported) != _layer(me):
+                graph.setdefault(_layer(me), set()).add(_layer(imported))
+    assert _cycles(graph) == []
+
+
+def test_no_import_cycle_between_modules_at_import_time():
+    """The imports at the top of modules (those run when a module loads) form no cycle."""
+    graph = {_module_name(p): {m for m, _ in _imports(p, top_only=True)} for p in MODULES}
+    assert _cycles(graph) == []
+
+
+def test_layer_rule_refuses_upward_and_reference_imports():
+    """The rule itself: down and sideways pass; up, and the reference below api, fail."""
+    assert allowed("stepsafe.cli.main", "stepsafe.api.inputs")
+    assert allowed("stepsafe.core.regions", "stepsafe.methods.tableaux")
+    assert allowed("stepsafe.api.hmc", "stepsafe.reference.highprec")
+    assert allowed("stepsafe.reference.verify", "stepsafe.core.transfer")
+    assert not allowed("stepsafe.core.regions", "stepsafe.api.inputs")
+    assert not allowed("stepsafe.methods.library", "stepsafe.systems.scene")
+    assert not allowed("stepsafe.systems.scene", "stepsafe.reference.highprec")
+    assert not allowed("stepsafe.files.yamlio", "stepsafe.methods.tableaux")
