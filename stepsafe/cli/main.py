@@ -311,7 +311,7 @@ def methods_cmd(as_json: bool, tsv: bool) -> None:
     from stepsafe.methods.residuals import residuals
     from stepsafe.methods.tableaux import gradient_evaluations
 
-    rows = []
+    rows: list[dict[str, object]] = []
     for name in builtin_names():
         if name in FAMILIES:
             title, smallest = FAMILIES[name]
@@ -832,7 +832,7 @@ def schema_cmd(which: str, command: str | None) -> None:
     if (which == "output") != (command is not None):
         raise _input_error("give a COMMAND after 'output' (stepsafe schema output hmc), and "
                            "only there")
-    if which == "output":
+    if command is not None:
         print_json(output_schema(command), record=False)
         return
     if which == "method":

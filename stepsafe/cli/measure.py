@@ -32,7 +32,7 @@ def _numbers(text: str, option: str) -> list[float]:
     values = [parse_real(item) for item in text.split(",")]
     if any(v is None for v in values):
         raise _input_error(f"--{option} {text}: give plain numbers separated by commas")
-    return [float(v) for v in values]
+    return [float(v) for v in values if v is not None]
 
 
 def _range(text: str) -> list[float]:

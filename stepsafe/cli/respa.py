@@ -235,8 +235,8 @@ def impulse_of(scene_file: str | None, options: dict) -> Any:
     return integrator
 
 
-def impulse_report(integrator: Any, scene_file: str, options: dict, *, step: float | None,
-                   criterion: str, resonance_order: int | None, check: bool
+def impulse_report(integrator: Any, scene_file: str | None, options: dict, *,
+                   step: float | None, criterion: str, resonance_order: int | None, check: bool
                    ) -> dict[str, Any]:
     """advise or check (``step``, else the scene's h) of an impulse method on a scene."""
     from stepsafe.api.md import impulse_advice

@@ -64,7 +64,7 @@ class Tradeoff(NamedTuple):
     limits: tuple[ToleranceLimit, ...]
     h: float | None  # the step to use: min(h_safe, h_tol); None if unbounded
     bound_by: str  # "safety", "accuracy", "horizon" (the analysed range) or "nothing"
-    evaluations: int | None
+    evaluations: float | None
     cost: float | None  # evaluations per unit time at h
     iterations: int | None = None  # fixed-point iterations per step (implicit methods)
     #: processed methods: forces of P (once) and of P^-1 (each output); None otherwise
@@ -82,7 +82,7 @@ SOLVER_REACH = 0.9
 
 def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (),
              margin: float = 1.0, name: str | None = None,
-             evaluations: int | None = None, zmax: float | None = None,
+             evaluations: float | None = None, zmax: float | None = None,
              resonance_order: int | None = None, solver: str = "fixed-point",
              criterion: str = "structure") -> Tradeoff:
     kinds = {t.kind for t in tolerances}
