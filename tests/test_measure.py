@@ -426,7 +426,6 @@ def test_kepler_without_an_equilibrium(run, tmp_path):
 
 def _builtin_splittings():
     from stepsafe.methods.library import builtin_names, resolve
-    from stepsafe.methods.tableaux import natural_evaluations
 
     out = []
     for name in builtin_names():
@@ -434,7 +433,7 @@ def _builtin_splittings():
             m, entry = resolve(name)
         except StepsafeError:
             continue  # a family (needs a stage count)
-        if natural_evaluations(m) is not None or entry.evaluations is not None:
+        if m.forces_per_step is not None or entry.evaluations is not None:
             out.append(name)
     return out
 
@@ -446,7 +445,6 @@ def test_every_stated_evaluation_count_is_what_the_engine_makes_per_step(name):
     steps on the pendulum (a processor's one-off forces cancel); and equals what
     ``stepsafe validate`` derives from the coefficients."""
     from stepsafe.methods.library import resolve
-    from stepsafe.methods.tableaux import natural_evaluations
 
     m, entry = resolve(name)
     counts = []
@@ -458,7 +456,7 @@ def test_every_stated_evaluation_count_is_what_the_engine_makes_per_step(name):
         counts.append(engine.force_evaluations)
     if not m.kind == "rk":  # (an RK's implicit solve counts iterations, not stages)
         assert (counts[1] - counts[0]) / 20 == entry.evaluations
-    natural = natural_evaluations(m)
+    natural = m.forces_per_step
     assert natural is None or natural == entry.evaluations
 
 

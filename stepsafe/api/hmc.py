@@ -346,7 +346,7 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
         return None if cost.evaluations is None else float(cost.evaluations)
 
     # a processed method runs P and P^-1 once per trajectory
-    overhead = 2.0 * getattr(m, "processor_evaluations", 0)
+    overhead = 2.0 * (m.processor_evaluations or 0)
     if overhead:
         notes.append(f"processed: P and P^-1 cost {overhead:g} gradient evaluations per "
                      "proposal besides the kernel's steps (included in the costs when the "

@@ -26,6 +26,7 @@ import numpy as np
 
 from stepsafe.arguments import public
 from stepsafe.exceptions import StepsafeError
+from stepsafe.methods.protocol import MethodKind
 
 #: Models accepted by :func:`region` besides ``"all"`` (which means the main three).
 REGION_MODELS = ("oscillator", "saddle", "inverted", "saddle-p")
@@ -64,7 +65,7 @@ class Integrator:
     evaluations: int | None
     source: str
     explicit: bool
-    tableau: Any = field(repr=False, compare=False)
+    tableau: MethodKind = field(repr=False, compare=False)
     entry: Any = field(repr=False, compare=False)
     reference: tuple[str, int | None, str | None] = field(repr=False, default=("", None, None))
     #: force-gradient terms (Hessian-vector products) per step, besides ``evaluations``
@@ -98,14 +99,8 @@ class Integrator:
         >>> method("verlet").operations
         (('kick', 0.5), ('drift', 1.0), ('kick', 0.5))
         """
-        from stepsafe.methods.tableaux import Composition, Processed, Splitting
-
-        m = self.tableau
-        if isinstance(m, Processed):
-            m = m.kernel_splitting
-        if isinstance(m, Composition) and isinstance(m.flattened().base, Splitting):
-            m = m.as_splitting()
-        return tuple(m.operations) if isinstance(m, Splitting) else None
+        step = self.tableau.splitting()
+        return None if step is None else tuple(step.operations)
 
     @property
     def processor(self) -> tuple[tuple[str, float], ...] | None:
@@ -116,20 +111,16 @@ class Integrator:
         >>> method("bcr764").processor[-1]
         ('kick', -0.5)
         """
-        from stepsafe.methods.tableaux import Processed
-
-        m = self.tableau
-        return tuple(m.processor_operations) if isinstance(m, Processed) else None
+        ops = self.tableau.processor_operations
+        return None if ops is None else tuple(ops)
 
     @property
     def partitioned_tableau(self) -> PartitionedTableau | None:
         """The coefficients of a Runge–Kutta or partitioned Runge–Kutta method (an RK method
         has both tableaux equal); None for splittings and compositions."""
-        from stepsafe.methods.tableaux import PartitionedRK, RungeKutta
-
-        if not isinstance(self.tableau, (RungeKutta, PartitionedRK)):
+        prk = self.tableau.rk_form()
+        if prk is None:
             return None
-        prk = self.tableau.as_prk()
         arrays = [np.array(a, dtype=float) for a in (prk.A_q, prk.b_q, prk.A_p, prk.b_p)]
         for a in arrays:
             a.flags.writeable = False
@@ -186,14 +177,13 @@ def method(name: str, *, stages: int | None = None, base: str | None = None) -> 
     4
     """
     from stepsafe.methods.library import resolve
-    from stepsafe.methods.tableaux import gradient_evaluations
 
     name, base = as_text(name, "method"), as_text(base, "base", optional=True)
     stages = _stage_count(stages)
     tableau, entry = resolve(name, stages, base)
     return Integrator(entry.name, tableau.kind, entry.title, tableau.order, tableau.stages,
                       entry.evaluations, entry.source, bool(tableau.explicit), tableau, entry,
-                      (name, stages, base), gradient_evaluations(tableau))
+                      (name, stages, base), tableau.gradient_evaluations)
 
 
 @public()

@@ -309,7 +309,6 @@ def methods_cmd(as_json: bool, tsv: bool) -> None:
     from stepsafe.cli.report import print_json, print_methods, print_tsv
     from stepsafe.methods.library import FAMILIES, builtin_names, resolve
     from stepsafe.methods.residuals import residuals
-    from stepsafe.methods.tableaux import gradient_evaluations
 
     rows: list[dict[str, object]] = []
     for name in builtin_names():
@@ -325,7 +324,7 @@ def methods_cmd(as_json: bool, tsv: bool) -> None:
         rows.append({"name": name, "kind": method.kind, "order": method.order,
                      "stages": method.stages, "evaluations": entry.evaluations,
                      # force-gradient terms per step, besides the forces
-                     "force_gradients": gradient_evaluations(method),
+                     "force_gradients": method.gradient_evaluations,
                      "symplectic": residuals(method).symplectic, "title": entry.title,
                      "aliases": list(entry.aliases)})
     if as_json:
@@ -853,7 +852,6 @@ def validate_cmd(files: tuple[str, ...]) -> None:
     from stepsafe.exceptions import StepsafeError
     from stepsafe.methods.library import resolve
     from stepsafe.methods.residuals import residuals
-    from stepsafe.methods.tableaux import natural_evaluations
 
     lines, invalid = [], None
     for path in files:  # all files first: a reader that stops early keeps the exit code
@@ -877,7 +875,7 @@ def validate_cmd(files: tuple[str, ...]) -> None:
         if not res.consistent:
             lines.append(f"warning: {path}: not consistent (weight sums off by "
                          f"{res.consistency:.3g})")
-        natural = natural_evaluations(method)
+        natural = method.forces_per_step
         if natural is not None and entry.evaluations not in (None, natural):
             lines.append(f"warning: {path}: evaluations: {entry.evaluations} stated, the "
                          f"coefficients make {natural} force evaluations per step (kicks, "

@@ -46,15 +46,9 @@ import numpy as np
 
 from stepsafe.core.models import ELLIPTIC
 from stepsafe.core.roots import EPS, refine_brackets
-from stepsafe.core.transfer import stage_operator, transfer_matrix
-from stepsafe.methods.tableaux import (
-    Composition,
-    Method,
-    PartitionedRK,
-    Processed,
-    RungeKutta,
-    Splitting,
-)
+from stepsafe.core.transfer import blocks_of, stage_operator, transfer_matrix
+from stepsafe.methods.protocol import Block, Friction, Shears, Stages
+from stepsafe.methods.tableaux import Method, PartitionedRK, Splitting
 
 SERIES_TERMS = 64
 SERIES_Z = 0.5
@@ -108,31 +102,55 @@ def _polynomial_series(method: Splitting, model: str, terms: int) -> Series:
 
 
 def taylor_series(method: Method, model: str, terms: int = SERIES_TERMS) -> Series:
-    """The :class:`Series` of M(z): ``M = I + sum_k z^(k+1) B K^k E``."""
-    if isinstance(method, Processed):  # the full one-step map P^-1 K P (the kernel's on
-        # the diagonal saddle models, where P commutes with K)
-        diagonal = model in ("saddle", "saddle-p")
-        return taylor_series(method.kernel_splitting if diagonal else method.per_step(),
-                             model, terms)
-    if isinstance(method, Composition):
-        flat = method.flattened()
-        if isinstance(flat.base, Splitting):
-            return taylor_series(flat.as_splitting(), model, terms)
-        base, base_abs, base_valid = taylor_series(flat.base, model, terms)
-        out = np.zeros_like(base)
-        out[0] = np.eye(2)
-        out_abs = out.copy()
-        powers = np.arange(terms + 1)
-        for g in flat.weights:
-            scaled = base * (g ** powers)[:, None, None]
-            scaled_abs = base_abs * (abs(g) ** powers)[:, None, None]
-            out, out_abs = _series_product(scaled, out), _series_product(scaled_abs, out_abs)
-        return Series(out, out_abs, base_valid / float(np.abs(flat.weights).max()))
-    if isinstance(method, Splitting) and method.force_gradient:
-        return _polynomial_series(method, model, terms)
-    prk = method.as_prk() if isinstance(method, (RungeKutta, Splitting)) else method
-    assert isinstance(prk, PartitionedRK)
-    K, E, B = stage_operator(prk, model)
+    """The :class:`Series` of M(z): ``M = I + sum_k z^(k+1) B K^k E``, over the blocks of
+    the step (:func:`stepsafe.core.transfer.blocks_of`): the product of the blocks' series,
+    each scaled to its weight."""
+    blocks = blocks_of(method, model)
+    if len(blocks) == 1 and blocks[0].weight == 1.0:
+        return _block_series(blocks[0], model, terms)
+    out = np.zeros((terms + 1, 2, 2))
+    out[0] = np.eye(2)
+    out_abs = out.copy()
+    powers = np.arange(terms + 1)
+    series: dict[int, Series] = {}
+    z_valid = np.inf
+    for b in blocks:
+        leaf = id(b.splitting if isinstance(b, Shears) else
+                  b.method if isinstance(b, Stages) else b)
+        if leaf not in series:
+            from dataclasses import replace
+
+            series[leaf] = _block_series(replace(b, weight=1.0), model, terms)
+        base, base_abs, base_valid = series[leaf]
+        g = b.weight
+        scaled = base * (g ** powers)[:, None, None]
+        scaled_abs = base_abs * (abs(g) ** powers)[:, None, None]
+        out, out_abs = _series_product(scaled, out), _series_product(scaled_abs, out_abs)
+        z_valid = min(z_valid, base_valid / abs(g))
+    return Series(out, out_abs, z_valid)
+
+
+def _friction_series(block: Friction, terms: int) -> Series:
+    """``diag(1, exp(-k z))``, ``k = gamma w``: the coefficients ``(-k)^j / j!`` (an entire
+    function: trusted where the terms left off are negligible, taken as ``|k z| <= 1``)."""
+    k = block.gamma * block.weight
+    out = np.zeros((terms + 1, 2, 2))
+    out[0] = np.eye(2)
+    term = 1.0
+    for j in range(1, terms + 1):
+        term = term * (-k) / j
+        out[j, 1, 1] = term
+    return Series(out, np.abs(out), 1.0 / k if k > 0 else np.inf)
+
+
+def _block_series(block: Block, model: str, terms: int) -> Series:
+    """The :class:`Series` of one block at weight 1."""
+    if isinstance(block, Friction):
+        return _friction_series(block, terms)
+    if isinstance(block, Shears) and block.splitting.force_gradient:
+        return _polynomial_series(block.splitting, model, terms)
+    K, E, B = stage_operator(block.splitting.as_prk() if isinstance(block, Shears)
+                             else block.method, model)
     out = np.zeros((terms + 1, 2, 2))
     out_abs = np.zeros((terms + 1, 2, 2))
     out[0] = out_abs[0] = np.eye(2)
@@ -217,9 +235,9 @@ def _hp_parts(method: Method, model: str, series: Series) -> Parts | None:
     every coefficient, however tiny, is then the ideal method's to float rounding. None for
     other methods (explicit ones have the exact polynomial) and for more than
     :data:`HP_MAX_STAGES` stages."""
-    if not isinstance(method, (RungeKutta, PartitionedRK)) or not np.isfinite(series.z_valid):
+    prk = method.rk_form()
+    if prk is None or not np.isfinite(series.z_valid):
         return None
-    prk = method.as_prk()
     if prk.stages > HP_MAX_STAGES:
         return None
     ex = prk.exact
@@ -372,9 +390,11 @@ def errors(method: Method, z, model: str = "oscillator") -> Errors:
     figure, the figure is recomputed from the method's high-precision transfer matrix
     (:func:`stepsafe.core.escalate.reference_of`), within a work budget."""
     z = np.atleast_1d(np.asarray(z, dtype=float))
-    if isinstance(method, Processed):
-        full = errors(method.per_step(), z, model)
-        return Errors(z, errors(method.kernel_splitting, z, model).phase, full.energy)
+    if method.processor_operations is not None:  # the kernel's phase, the full map's energy
+        full = errors(method.one_step(), z, model)
+        kernel = method.splitting()
+        assert kernel is not None
+        return Errors(z, errors(kernel, z, model).phase, full.energy)
     phase, phase_err, energy, energy_err = _float_errors(method, z, model)
     with np.errstate(invalid="ignore"):
         vague = (np.isfinite(phase) & ~(phase_err <= RECOMPUTE_REL * np.abs(phase))) | \
@@ -401,9 +421,8 @@ def _escalate(method: Method, model: str, z: np.ndarray, where: np.ndarray,
     import mpmath as mp
 
     from stepsafe.core.escalate import DPS, MP_WORK_BUDGET, reference_of
-    from stepsafe.core.grid import sample_work
 
-    limit = int(max(16, MP_WORK_BUDGET / sample_work(method)))
+    limit = int(max(16, MP_WORK_BUDGET / method.sample_work))
     ref = reference_of(method)
     with mp.workdps(DPS):
         two_pi = 2 * mp.pi
@@ -523,21 +542,19 @@ def _energy_exact(method: Method, model: str) -> bool:
     invariant ellipse is a circle (energy error 0)."""
     if model != "oscillator":
         return False
-    if isinstance(method, RungeKutta):
-        return True
-    if isinstance(method, PartitionedRK):
-        return bool(np.array_equal(method.A_q, method.A_p) and
-                    np.array_equal(method.b_q, method.b_p))
-    return False
+    prk = method.rk_form()
+    return prk is not None and bool(np.array_equal(prk.A_q, prk.A_p) and
+                                    np.array_equal(prk.b_q, prk.b_p))
 
 
 def kernel_errors(method: Method, z, model: str = "oscillator") -> Errors | None:
     """The errors of a processed method's kernel run alone (its outputs taken without
     P^-1), None for any other method: the processor leaves the phase error as it is and
     changes the energy error (:func:`errors`)."""
-    if not isinstance(method, Processed):
+    kernel = method.splitting() if method.processor_operations is not None else None
+    if kernel is None:
         return None
-    return errors(method.kernel_splitting, z, model)
+    return errors(kernel, z, model)
 
 
 class Offsets(NamedTuple):

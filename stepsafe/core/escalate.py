@@ -31,7 +31,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
+from stepsafe.methods.tableaux import Method
 
 DPS = 40
 ESCALATE_REL = 1e-12
@@ -56,24 +56,9 @@ class Decision(NamedTuple):
 
 def reference_of(method: Method) -> Reference:
     """The high-precision transfer matrix of ``method``: its own ``exact`` definition when
-    it has one, else built from its parts, float coefficients taken as exact."""
-    from stepsafe.reference import highprec as R
-
-    if method.exact is not None:
-        return method.exact()
-    if isinstance(method, Composition):
-        inner = reference_of(method.base)
-        weights = [float(g) for g in method.weights]
-        return lambda z, model: R.transfer_matrix_composition(lambda x: inner(x, model),
-                                                              weights, z)
-    if isinstance(method, Splitting):
-        drift, kick = method.drift.tolist(), method.kick.tolist()
-        gradient = None if method.gradient is None else method.gradient.tolist()
-        return lambda z, model: R.transfer_matrix_splitting(drift, kick, z, model, gradient)
-    prk = method.as_prk() if isinstance(method, RungeKutta) else method
-    assert isinstance(prk, PartitionedRK)
-    return R.prk_transfer(prk.A_q.tolist(), prk.b_q.tolist(), prk.A_p.tolist(),
-                          prk.b_p.tolist())
+    it has one, else built from its parts, float coefficients taken as exact
+    (:meth:`~stepsafe.methods.protocol.MethodKind.high_precision`)."""
+    return method.high_precision()
 
 
 class _Undecided(Exception):
@@ -91,9 +76,7 @@ class Escalation:
         self.model = model
         self._reference: Reference | None = None
         self.evaluations = 0
-        from stepsafe.core.grid import sample_work
-
-        self.limit = int(min(MAX_EVALUATIONS, max(8, MP_WORK_BUDGET / sample_work(method))))
+        self.limit = int(min(MAX_EVALUATIONS, max(8, MP_WORK_BUDGET / method.sample_work)))
 
     @property
     def exhausted(self) -> bool:

@@ -25,59 +25,24 @@ import numpy as np
 
 from stepsafe.core.models import KICK_SIGN
 from stepsafe.core.roots import EPS
-from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
+from stepsafe.methods.protocol import Shears
+from stepsafe.methods.tableaux import Method
 
 UNIFORM_SAMPLES = 40_000
 GEOMETRIC_SAMPLES = 40_000
 MIN_SEGMENT_SAMPLES = 16
 
 
-def reach(method: Method) -> float:
-    """How far the substeps of one step reach, in units of h (sum of |weights|)."""
-    if isinstance(method, Composition):
-        flat = method.flattened()
-        return float(np.abs(flat.weights).sum()) * reach(flat.base)
-    if isinstance(method, Splitting):
-        kicks = float(np.abs(method.kick).sum())
-        if method.gradient is not None:
-            # a kick's coefficient b - 2 c z^2 turns at z = sqrt(|b| / 2|c|); with no kick the
-            # term 2 c z^3 = (cbrt(2 c) z)^3 (cube roots taken apart: c may be ~1e308)
-            c = np.abs(method.gradient)
-            b = np.abs(method.kick[: c.size])
-            with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
-                turn = np.where(b > 0, np.sqrt(2.0) * np.sqrt(c) / np.sqrt(b), 0.0)
-            kicks += float(np.cbrt(2.0) * np.cbrt(c).sum()) + float(turn.max(initial=0.0))
-        return float(max(np.abs(method.drift).sum(), kicks, 1.0))
-    if isinstance(method, (RungeKutta, PartitionedRK)):
-        prk = method.as_prk()
-        return float(max(1.0, np.abs(prk.A_q).sum(axis=1).max(), np.abs(prk.A_p).sum(axis=1).max()))
-    return 1.0
-
-
-def sample_work(method: Method) -> float:
-    """Relative cost of one evaluation of M(z): the flops of a stage solve, (2s)^3 for an
-    implicit s-stage (P)RK method, s^2 for an explicit one, the number of factors of a
-    splitting, times the substeps of a composition."""
-    if isinstance(method, Composition):
-        flat = method.flattened()
-        return float(flat.weights.size) * sample_work(flat.base)
-    if isinstance(method, Splitting):
-        extra = 0 if method.gradient is None else int(np.count_nonzero(method.gradient))
-        return float(max(1, method.drift.size + method.kick.size + extra))
-    if isinstance(method, (RungeKutta, PartitionedRK)):
-        s = method.stages
-        return float((2 * s) ** 3 if not method.explicit else s * s)
-    return 1.0
-
-
-#: Float64 work per region (samples times :func:`sample_work`): a few seconds here. Gauss
+#: Float64 work per region (samples times the method's ``sample_work``: the flops of a stage
+#: solve, (2s)^3 for an implicit s-stage (P)RK method, s^2 for an explicit one, the number
+#: of factors of a splitting, times the substeps of a composition): a few seconds here. Gauss
 #: s = 40 reaches it at zmax of about 50, Gauss s = 20 at about 1e80; beyond, refused.
 SAMPLE_WORK_BUDGET = 5e9
 
 
 def default_resolution(method: Method) -> float:
     """Uniform grid spacing: 1/200 in z, divided by how far the substeps reach."""
-    return 5e-3 / reach(method)
+    return 5e-3 / method.reach
 
 
 def far_bound(method: Method, model: str) -> float:
@@ -93,16 +58,12 @@ def far_bound(method: Method, model: str) -> float:
     """
     if model not in KICK_SIGN:
         return np.inf
-    if isinstance(method, Composition):
-        flat = method.flattened()
-        if not isinstance(flat.base, Splitting):
-            return np.inf
-        method = flat.as_splitting()
-    if not isinstance(method, Splitting):
-        return np.inf
-    from stepsafe.core.transfer import row_ops
+    from stepsafe.core.transfer import blocks_of, row_ops
 
-    ops = row_ops(method, model)  # factors I + c z^k e_dst e_src^T
+    blocks = blocks_of(method, model)
+    if len(blocks) != 1 or not isinstance(blocks[0], Shears) or blocks[0].weight != 1.0:
+        return np.inf
+    ops = row_ops(blocks[0].splitting, model)  # factors I + c z^k e_dst e_src^T
     if len(ops) > 4000:
         return np.inf
     degree = sum(k for _, _, _, k in ops)

@@ -46,14 +46,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from stepsafe.exceptions import MethodError
-from stepsafe.methods.tableaux import (
-    Composition,
-    Method,
-    PartitionedRK,
-    Processed,
-    RungeKutta,
-    Splitting,
-)
+from stepsafe.methods.protocol import Shears, Stages
+from stepsafe.methods.tableaux import Method, PartitionedRK
 
 Gradient = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -105,14 +99,13 @@ class Engine:
         self.gradient_evaluations = 0
         self._cache: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._processor: tuple[tuple, tuple] | None = None
-        if isinstance(method, Processed):
+        start, inverse = method.processor_operations, method.inverse_operations
+        if start is not None and inverse is not None:
             if not system.separable:
                 raise ValueError("a processed method's processor is a drift/kick sequence "
                                  "whose sums are not 1: it has no form for an H that mixes "
                                  "q and p")
-            self._processor = (tuple(method.processor_operations),
-                               tuple(method.inverse_operations))
-            method = method.kernel
+            self._processor = (tuple(start), tuple(inverse))
         self.pieces = _pieces(method)
         gradient = any(kind == "ops" and any(op[0] in ("gradient", "displaced") for op in data)
                        for kind, _, data in self.pieces)
@@ -304,24 +297,34 @@ def _as_prk(operations: tuple) -> PartitionedRK:
 
 
 def _pieces(method: Method) -> list[tuple[str, float, object]]:
-    """The step as ``("ops", weight, operations)`` (splittings) and ``("prk", weight, prk)``
-    pieces, in the order applied."""
-    if isinstance(method, Composition):
-        flat = method.flattened()
-        return [piece[:1] + (float(g) * piece[1],) + piece[2:]
-                for g in flat.weights for piece in _pieces(flat.base)]
-    if isinstance(method, Splitting):
-        ops = method.operations
-        if method.displaced:  # each kick with its gradient becomes one displaced force
-            merged: list[tuple[str, object]] = []
-            for op, coef in ops:
-                if op == "gradient":
-                    merged[-1] = ("displaced", (merged[-1][1], coef))
-                else:
-                    merged.append((op, coef))
-            ops = merged
-        return [("ops", 1.0, tuple(ops))]
-    if isinstance(method, (RungeKutta, PartitionedRK)):
-        return [("prk", 1.0, method.as_prk())]
-    raise ValueError(f"{getattr(method, 'name', method)!r} cannot be integrated here "
-                     f"({getattr(method, 'kind', type(method).__name__)})")
+    """The step as run (:meth:`~stepsafe.methods.protocol.MethodKind.step_decomposition`)
+    as ``("ops", weight, operations)`` (splittings) and ``("prk", weight, prk)`` pieces, in
+    the order applied."""
+    try:
+        blocks = method.step_decomposition()
+    except MethodError:
+        blocks = ()
+    pieces: list[tuple[str, float, object]] = []
+    for block in blocks:
+        if isinstance(block, Shears):
+            ops: list = list(block.splitting.operations)
+            if block.splitting.displaced:  # each kick with its gradient: one displaced force
+                merged: list[tuple[str, object]] = []
+                for op, coef in ops:
+                    if op == "gradient":
+                        merged[-1] = ("displaced", (merged[-1][1], coef))
+                    else:
+                        merged.append((op, coef))
+                ops = merged
+            pieces.append(("ops", block.weight, tuple(ops)))
+        elif isinstance(block, Stages):
+            prk = block.method.rk_form()
+            assert prk is not None
+            pieces.append(("prk", block.weight, prk))
+        else:
+            raise ValueError(f"{method.name}: a Langevin friction step draws random numbers "
+                             "at a temperature; this engine runs deterministic methods")
+    if not pieces:
+        raise ValueError(f"{getattr(method, 'name', method)!r} cannot be integrated here "
+                         f"({getattr(method, 'kind', type(method).__name__)})")
+    return pieces

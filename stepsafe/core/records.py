@@ -89,14 +89,10 @@ def region_data(region: Region) -> dict[str, Any]:
 
 def method_data(method, entry) -> dict[str, Any]:
     """Identity and coefficient checks of a method."""
-    from stepsafe.methods.families import is_symmetric
-    from stepsafe.methods.tableaux import Composition, Splitting, gradient_evaluations
-
     res = residuals(method)
-    flat = method.flattened().base if isinstance(method, Composition) else method
-    fg = isinstance(flat, Splitting) and flat.force_gradient
-    extra = {"force_gradients": gradient_evaluations(method),
-             "gradient_form": "displaced-force" if flat.displaced else "hessian"} if fg else {}
+    step = method.splitting() if method.force_gradient else None
+    extra = {"force_gradients": method.gradient_evaluations,
+             "gradient_form": "displaced-force" if step.displaced else "hessian"} if step else {}
     return {
         "method": entry.name,
         "title": entry.title,
@@ -107,7 +103,7 @@ def method_data(method, entry) -> dict[str, Any]:
         **extra,
         "symplectic": res.symplectic,
         "symplectic_for_separable": res.symplectic_for_separable,
-        "symmetric": is_symmetric(method),
+        "symmetric": method.symmetric(),
         "explicit": method.explicit,
         "residuals": {
             "symplecticity": res.symplectic_separable,
@@ -126,11 +122,9 @@ def processor_data(method) -> dict[str, Any]:
     """A processed method's one-off cost: ``{"processor_evaluations": {"start": n,
     "per_output": n}}`` (P once before the first step, P^-1 for each output); {} for any
     other method."""
-    from stepsafe.methods.tableaux import Processed
-
-    if not isinstance(method, Processed):
-        return {}
     n = method.processor_evaluations
+    if n is None:
+        return {}
     return {"processor_evaluations": {"start": n, "per_output": n}}
 
 
@@ -287,35 +281,6 @@ def compare_row(res, explicit: bool) -> dict[str, Any]:
 
 
 def coefficients(method) -> dict[str, Any]:
-    """The coefficient arrays of a method (``show --json``)."""
-    from stepsafe.methods.tableaux import (
-        Composition,
-        Impulse,
-        PartitionedRK,
-        Processed,
-        RungeKutta,
-        Splitting,
-    )
-
-    if isinstance(method, Processed):
-        kernel = method.kernel_splitting
-        return {"kernel": {"drift": kernel.drift.tolist(), "kick": kernel.kick.tolist()},
-                "processor": {"drift": method.processor.drift.tolist(),
-                              "kick": method.processor.kick.tolist()}}
-    if isinstance(method, Impulse):
-        fast, slow = method.force_evaluations
-        return {"outer": method.outer.name, "inner": method.inner.name,
-                "substeps": method.substeps,
-                "force_evaluations_per_outer_step": {"fast": fast, "slow": slow}}
-    if isinstance(method, RungeKutta):
-        return {"A": method.A.tolist(), "b": method.b.tolist(), "c": method.c.tolist()}
-    if isinstance(method, PartitionedRK):
-        return {k: getattr(method, k).tolist() for k in ("A_q", "b_q", "A_p", "b_p")}
-    if isinstance(method, Splitting):
-        out = {"drift": method.drift.tolist(), "kick": method.kick.tolist()}
-        if method.gradient is not None:
-            out["gradient"] = method.gradient.tolist()
-        return out
-    if not isinstance(method, Composition):
-        raise TypeError(f"not a method: {type(method).__name__}")
-    return {"base": method.base.name, "weights": method.weights.tolist()}
+    """The coefficient arrays of a method (``show --json``; each kind gives its own,
+    :meth:`~stepsafe.methods.protocol.MethodKind.coefficients`)."""
+    return method.coefficients()

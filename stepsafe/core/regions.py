@@ -40,7 +40,7 @@ reported instead (for RK methods from the stability polynomials, :mod:`.rkstabil
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 
@@ -50,7 +50,6 @@ from stepsafe.core.grid import (
     Grid,
     default_resolution,
     far_bound,
-    sample_work,
 )
 from stepsafe.core.models import ELLIPTIC, check_model
 from stepsafe.core.rkstability import imaginary_axis_crossings, stability_function
@@ -58,8 +57,9 @@ from stepsafe.core.roots import EPS, HermiteCubic, hermite_extremum, hermite_roo
 from stepsafe.core.sets import contains, difference, distinct, union
 from stepsafe.core.transfer import TOL_FACTOR, Jet, pole_locations, poles, transfer_jet
 from stepsafe.exceptions import StepsafeError, positive_finite
+from stepsafe.methods.protocol import Shears
 from stepsafe.methods.residuals import residuals
-from stepsafe.methods.tableaux import Method, RungeKutta, region_method
+from stepsafe.methods.tableaux import Method, RungeKutta
 
 DEFAULT_ZMAX = 10.0
 #: Cells whose Hermite interpolant hides extrema are split this many times per level.
@@ -389,7 +389,7 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     """
     check_model(model)
     zmax = _validate_zmax(zmax)
-    method = region_method(method, model)  # processed: the kernel (see there)
+    method = method.region_method(model)  # processed: the kernel (see there)
     dz = default_resolution(method) if resolution is None else float(resolution)
     ev = _Evaluator(method, model)
     symplectic = residuals(method).symplectic_for(model)
@@ -431,7 +431,7 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
         pole_pts = tuple(p for p in pole_pts if p.z < zmax)
     grid = Grid.between_poles(pole_z, z_end, dz)
     grid.z = union(grid.z, _near_poles(pole_z, pole_u[inside][:pole_z.size], z_end))
-    work = grid.z.size * sample_work(method)
+    work = grid.z.size * method.sample_work
     if work > SAMPLE_WORK_BUDGET:
         raise StepsafeError(
             f"zmax = {zmax:g}: {grid.z.size} samples of M(z), each a stage solve of "
@@ -547,10 +547,8 @@ def _near_poles(pole_z: np.ndarray, pole_u: np.ndarray, z_end: float) -> np.ndar
 def _splitting_on_diagonal(method: Method, model: str) -> bool:
     """A splitting method (or a composition of one) on the saddle models, whose poles are
     ``1/w`` for the weights ``w`` of its symplectic Euler factors."""
-    from stepsafe.methods.tableaux import Composition, Splitting
-
-    base = method.flattened().base if isinstance(method, Composition) else method
-    return model in DIAGONAL_MODELS and isinstance(base, Splitting)
+    return model in DIAGONAL_MODELS and all(isinstance(b, Shears)
+                                            for b in method.decomposition(model))
 
 
 #: Models on which M is diagonal for every method (q and p decouple).
@@ -965,7 +963,7 @@ def classical_interval(method: Method, model: str = "oscillator", zmax: float = 
     """
     check_model(model)
     zmax = _validate_zmax(zmax)
-    method = region_method(method, model)
+    method = method.region_method(model)
     return _classical(_Evaluator(method, model), zmax, resolution)
 
 
@@ -979,17 +977,18 @@ def _classical(ev: _Evaluator, zmax: float, dz: float | None) -> tuple[Interval,
     side remain.
     """
 
-    rk_axis = isinstance(ev.method, RungeKutta) and ev.model == "oscillator"
+    rk_axis = ev.method.single_tableau and ev.model == "oscillator"
+    rk = cast(RungeKutta, ev.method)  # (read only when rk_axis)
 
     def margin(z):  # >= 0 where rho(M) <= 1 up to rounding
         if rk_axis:  # M acts as R(iz) on q + i p: entries Re R, +-Im R; rho = |R|
-            R = stability_function(ev.method, 1j * np.asarray(z))
+            R = stability_function(rk, 1j * np.asarray(z))
             return TOL_FACTOR * EPS * 2.0 * (np.abs(R.real) + np.abs(R.imag)) - (np.abs(R) - 1)
         M = ev.matrix(z)
         return TOL_FACTOR * EPS * np.abs(M).sum(axis=(1, 2)) - (spectral_radius(M) - 1.0)
 
     if rk_axis:
-        roots = imaginary_axis_crossings(ev.method, zmax)
+        roots = imaginary_axis_crossings(rk, zmax)
     else:
         dz = default_resolution(ev.method) if dz is None else float(dz)
         grid = Grid.between_poles(poles(ev.method, ev.model), zmax, dz)

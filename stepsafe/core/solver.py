@@ -38,7 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from stepsafe.core.sets import distinct
-from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta
+from stepsafe.methods.protocol import Stages
+from stepsafe.methods.tableaux import Method, PartitionedRK
 
 #: Default stopping tolerance (relative change of the stage values).
 DEFAULT_TOL = 1e-14
@@ -60,15 +61,24 @@ class SolverCost:
     limit: float
 
 
+def _implicit_blocks(method: Method) -> list[Stages]:
+    """The blocks of a step that solve stage equations (one per implicit substep)."""
+    from stepsafe.core.transfer import blocks_of
+
+    if method.explicit:
+        return []
+    return [b for b in blocks_of(method, None) if isinstance(b, Stages)
+            and not b.method.explicit]
+
+
 def _prk_of(method: Method) -> tuple[PartitionedRK, int] | None:
     """The PRK tableau of an implicit method and its substeps per step (None: explicit)."""
-    if isinstance(method, Composition):
-        flat = method.flattened()
-        inner = _prk_of(flat.base)
-        return None if inner is None else (inner[0], inner[1] * int(flat.weights.size))
-    if isinstance(method, (RungeKutta, PartitionedRK)) and not method.explicit:
-        return method.as_prk(), 1
-    return None
+    blocks = _implicit_blocks(method)
+    if not blocks:
+        return None
+    prk = blocks[0].method.rk_form()
+    assert prk is not None
+    return prk, len(blocks)
 
 
 def evaluation_pattern(prk: PartitionedRK) -> tuple[int, int]:
@@ -119,18 +129,16 @@ def newton_cost(method: Method, z: float) -> SolverCost:
 def factorizations(method: Method) -> int:
     """Jacobians factorised per step by simplified Newton's method: one per distinct
     substep size of an implicit method (0 for explicit methods)."""
-    if _prk_of(method) is None:
+    blocks = _implicit_blocks(method)
+    if not blocks:
         return 0
-    if isinstance(method, Composition):
-        return int(distinct(np.abs(method.flattened().weights)).size)
-    return 1
+    return int(distinct(np.abs([b.weight for b in blocks])).size)
 
 
 def _largest_weight(method: Method) -> float:
     """The largest substep of a composition, in steps (1 otherwise): it binds."""
-    if isinstance(method, Composition):
-        return float(np.abs(method.flattened().weights).max())
-    return 1.0
+    blocks = _implicit_blocks(method)
+    return float(np.abs([b.weight for b in blocks]).max()) if blocks else 1.0
 
 
 def fixed_point_limit(method: Method, model: str = "oscillator") -> float:

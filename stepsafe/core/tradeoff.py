@@ -147,6 +147,6 @@ def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (
         cost_n = newton_cost(method, h)
         evals, iterations = cost_n.evaluations, cost_n.iterations
     cost = None if (h is None or h == 0 or evals is None) else evals / h
-    processor = getattr(method, "processor_evaluations", None)
+    processor = method.processor_evaluations
     return Tradeoff(adv.method, adv, tuple(limits), h, bound, evals, cost, iterations,
                     processor)

@@ -1,27 +1,32 @@
 """The 2x2 one-step (transfer) matrix M(z) of any method on a test model, with dM/dz.
 
-One place turns every method kind into ``M(z)`` (DESIGN §1):
+One place turns every method into ``M(z)``: the blocks of its step
+(:func:`stepsafe.methods.protocol.linear_blocks`, the description the 2n x 2n map of
+:mod:`stepsafe.systems.coupled` is built from too), each block's matrix at ``w z`` for its
+weight w, multiplied in order:
 
-* RK / PRK: with ``L`` the model generator, stack the stages as ``X = (Q; P)`` and solve
+* Stages (RK / PRK): with ``L`` the model generator, stack the stages as ``X = (Q; P)`` and solve
   ``(I - z K) X = E`` with ``K = [[A_q L_qq, A_q L_qp], [A_p L_pq, A_p L_pp]]`` and
   ``E = [[1, 0], [0, 1]]`` (blocks of ones); then ``M = I + z B X`` with
   ``B = [[b_q L_qq, b_q L_qp], [b_p L_pq, b_p L_pp]]``. Differentiating,
   ``dX/dz = (I - z K)^-1 K X``. The stage system is singular exactly at ``z = 1/lambda``
   for the real eigenvalues ``lambda`` of ``K`` (the poles).
-* splitting, ``oscillator`` / ``inverted``: the product of drift ``[[1, a z], [0, 1]]`` and
+* Shears (splitting), ``oscillator`` / ``inverted``: the product of drift ``[[1, a z], [0, 1]]`` and
   kick ``[[1, 0], [-+ b z, 1]]`` factors in the order applied; a force-gradient term
   (``p += c h^3 grad |V'|^2_{M^-1}``, :class:`Splitting`) is ``[[1, 0], [2 c z^3, 1]]`` on
   both (``V = +-beta^2 q^2 / 2``: ``|V'|^2 = beta^4 q^2`` whatever the sign), so an FG kick
   on the oscillator has the coefficient ``b - 2 c z^2`` (``p~ -= (b - 2 c z^2) z q``), on
   the barrier top ``b + 2 c z^2`` (``p~ += (b + 2 c z^2) z q``; the same as the oscillator's
   at ``z -> i z`` with ``p~ -> i p~``).
-* splitting, ``saddle``: the product of the symplectic Euler factors of
+* Shears, ``saddle``: the product of the symplectic Euler factors of
   :meth:`Splitting.euler_factors` (diagonal: ``DK(c) = diag(1/(1-cz), 1-cz)``,
   ``KD(d) = diag(1+dz, 1/(1+dz))``).
-* composition: ``M_base(g_k z) ... M_base(g_1 z)``.
-* processed ``P^-1 K P``: the splitting of its full one-step map
-  (:meth:`~stepsafe.methods.tableaux.Processed.per_step`), similar to the kernel's M;
-  on the diagonal (saddle) models every factor is diagonal and the map is the kernel's.
+* Friction (the Langevin O step, on the mean): ``diag(1, c)``, ``c = exp(-gamma w z)``
+  (the friction per unit of the model's frequency: z = h when beta = 1).
+* several blocks (a composition of an RK method, a Langevin splitting):
+  ``M_k(w_k z) ... M_1(w_1 z)``; a composition of a splitting is one merged splitting, a
+  processed method ``P^-1 K P`` the splitting of its full one-step map (the kernel's on
+  the diagonal models, where every factor is diagonal and P commutes with K).
 
 Everything is vectorised over an array of z. The jet carries ``dM/dz`` and, on request,
 ``d2M/dz2`` (the region finder locates extrema of ``tr M`` by Newton's method), and
@@ -37,14 +42,16 @@ from typing import NamedTuple
 import numpy as np
 
 from stepsafe.core.models import GENERATORS, KICK_SIGN, check_model
-from stepsafe.methods.tableaux import (
-    Composition,
-    Method,
-    PartitionedRK,
-    Processed,
-    RungeKutta,
-    Splitting,
+from stepsafe.methods.protocol import (
+    DIAGONAL_MODELS,
+    Block,
+    Friction,
+    MethodKind,
+    Shears,
+    Stages,
+    linear_blocks,
 )
+from stepsafe.methods.tableaux import Method, PartitionedRK, RungeKutta, Splitting
 
 EPS = float(np.finfo(float).eps)
 
@@ -100,13 +107,26 @@ def _jet(D, dM, d2M, sens=None) -> Jet:
 def has_form(method: Method, model: str) -> bool:
     """Whether ``method`` has a transfer matrix on ``model``: a force-gradient splitting
     (or a composition of one) needs ``T(p) + V(q)`` with quadratic T, so it has none on
-    the saddles (``H = +-beta p q``)."""
+    the saddles (``H = +-beta p q``); a method is analysed only on its ``models``."""
     check_model(model)
-    if model not in ("saddle", "saddle-p"):
-        return True
-    if isinstance(method, Composition):
-        method = method.flattened().base
-    return not (isinstance(method, Splitting) and method.force_gradient)
+    if model not in method.models:
+        return False
+    return model not in DIAGONAL_MODELS or not method.force_gradient
+
+
+_BLOCKS: dict[tuple[int, str], tuple[MethodKind, tuple[Block, ...]]] = {}
+
+
+def blocks_of(method: MethodKind, model: str | None) -> tuple[Block, ...]:
+    """:func:`~stepsafe.methods.protocol.linear_blocks` of ``method`` on ``model``, cached
+    per method object (the region finder evaluates the same method many times)."""
+    key = (id(method), str(model))
+    hit = _BLOCKS.get(key)
+    if hit is None or hit[0] is not method:
+        if len(_BLOCKS) > 64:
+            _BLOCKS.clear()
+        hit = _BLOCKS[key] = (method, linear_blocks(method, model))
+    return hit[1]
 
 
 def transfer_matrix(method: Method, z, model: str = "oscillator") -> np.ndarray:
@@ -121,25 +141,49 @@ def transfer_jet(method: Method, z, model: str = "oscillator", scale: bool = Tru
     methods pay one extra stage solve per order."""
     check_model(model)
     z = np.atleast_1d(np.asarray(z, dtype=float))
-    if isinstance(method, Processed):  # the full one-step map P^-1 K P
-        if model in ("saddle", "saddle-p"):  # diagonal factors: P commutes with K
-            return transfer_jet(method.kernel_splitting, z, model, scale, order)
-        return transfer_jet(method.per_step(), z, model, scale, order)
-    if isinstance(method, Composition):
-        flat = method.flattened()
-        if isinstance(flat.base, Splitting):
-            return transfer_jet(_as_splitting(flat), z, model, scale, order)
-        return _composition_jet(flat, z, model, order, scale)
-    if isinstance(method, Splitting):
+    blocks = blocks_of(method, model)
+    if len(blocks) == 1 and blocks[0].weight == 1.0:
+        return _block_jet(blocks[0], z, model, scale, order)
+    return _product_jet(blocks, z, model, order, scale)
+
+
+def _block_jet(block: Block, z: np.ndarray, model: str, scale: bool, order: int) -> Jet:
+    """The jet of one block at weight 1."""
+    if isinstance(block, Shears):
         if model == "saddle":
-            return _euler_factor_jet(method, z)
+            return _euler_factor_jet(block.splitting, z)
         if model == "saddle-p":  # the saddle at -z: M(z) = M_saddle(-z), dM/dz = -dM_saddle
-            jet = _euler_factor_jet(method, -z)
+            jet = _euler_factor_jet(block.splitting, -z)
             return jet._replace(dM=-jet.dM)
-        return _splitting_jet(method, z, model, scale, order)
-    if isinstance(method, (RungeKutta, PartitionedRK)):
-        return _prk_jet(method, z, model, order, scale)
-    raise TypeError(f"not a method: {type(method).__name__}")
+        return _splitting_jet(block.splitting, z, model, scale, order)
+    if isinstance(block, Stages):
+        return _prk_jet(block.method, z, model, order, scale)
+    if isinstance(block, Friction):
+        return _friction_jet(block, z, model, order)
+    raise TypeError(f"not a block: {type(block).__name__}")
+
+
+def _friction_jet(block: Friction, z: np.ndarray, model: str, order: int) -> Jet:
+    """The Langevin O step on the mean, ``M = diag(1, c)``, ``c = exp(-k z)`` with
+    ``k = gamma w`` (the friction per unit of the model's frequency): ``D = diag(0,
+    expm1(-k z))``, ``dM = diag(0, -k c)``, ``d2M = diag(0, k^2 c)``; each entry of D is
+    one correctly rounded operation on ``k z`` (two roundings: ``sens = 2 |c - 1|``)."""
+    if model != "oscillator":
+        raise ValueError(f"the friction step is analysed on the oscillator, not on {model}")
+    k = block.gamma * block.weight
+    n = z.size
+    with np.errstate(over="ignore", under="ignore"):
+        c = np.exp(-k * z)
+        D = np.zeros((n, 2, 2))
+        D[:, 1, 1] = np.expm1(-k * z)
+        dM = np.zeros((n, 2, 2))
+        dM[:, 1, 1] = -k * c
+        d2M = np.zeros((n, 2, 2))
+        d2M[:, 1, 1] = k * k * c
+    nan = np.full((n, 2, 2), np.nan)
+    sens = np.zeros((n, 2, 2))
+    sens[:, 1, 1] = 2.0 * np.abs(D[:, 1, 1])
+    return _jet(D, dM if order >= 1 else nan, d2M if order >= 2 else nan, sens)
 
 
 @lru_cache(maxsize=64)
@@ -316,19 +360,6 @@ def _prk_forms(prk: RungeKutta | PartitionedRK, z: np.ndarray, model: str, order
     return Jet(D, dM, d2M, dev, scale, sens, dev_m, scale_m)
 
 
-_FLAT: dict[int, tuple[Composition, Splitting]] = {}
-
-
-def _as_splitting(method: Composition) -> Splitting:
-    """Cached :meth:`Composition.as_splitting` (the region finder evaluates many times)."""
-    hit = _FLAT.get(id(method))
-    if hit is None or hit[0] is not method:
-        if len(_FLAT) > 64:
-            _FLAT.clear()
-        hit = _FLAT[id(method)] = (method, method.as_splitting())
-    return hit[1]
-
-
 def _splitting_jet(method: Splitting, z: np.ndarray, model: str, with_scale: bool = True,
                    order: int = 1) -> Jet:
     """Product of drift/kick factors ``F = I + c z e_dst e_src^T`` applied as row updates.
@@ -472,9 +503,43 @@ def _euler_factor_jet(method: Splitting, z: np.ndarray) -> Jet:
 EPS_FLOOR = 1.0
 
 
-def _composition_jet(method: Composition, z: np.ndarray, model: str, order: int = 1,
-                     with_scale: bool = True) -> Jet:
-    """Product of base jets ``M = M_n(g_n z) ... M_1(g_1 z)``, accumulated as
+def _block_jets(blocks: tuple[Block, ...], z: np.ndarray, model: str, with_scale: bool,
+                order: int) -> tuple[np.ndarray, ...]:
+    """``(D, dM, d2M, sens)`` of every block at ``w_k z``, each of shape (k, n, 2, 2); the
+    blocks of one object (a composition's base) in one vectorised call at all their
+    ``w z``."""
+    n = z.size
+    out = [np.empty((len(blocks), n, 2, 2)) for _ in range(4)]
+    groups: dict[int, list[int]] = {}
+    for k, b in enumerate(blocks):
+        groups.setdefault(id(_leaf(b)), []).append(k)
+    for members in groups.values():
+        g = np.array([blocks[k].weight for k in members])
+        jet = _block_jet(_at_unit_weight(blocks[members[0]]), np.outer(g, z).ravel(), model,
+                         with_scale, order)
+        for array, part in zip(out, (jet.D, jet.dM, jet.d2M, jet.sens)):
+            array[members] = part.reshape(g.size, n, 2, 2)
+    return tuple(out)
+
+
+def _leaf(block: Block) -> object:
+    """What a block runs (blocks of one leaf differ only in weight)."""
+    if isinstance(block, Shears):
+        return block.splitting
+    if isinstance(block, Stages):
+        return block.method
+    return block.gamma
+
+
+def _at_unit_weight(block: Block) -> Block:
+    from dataclasses import replace
+
+    return block if block.weight == 1.0 else replace(block, weight=1.0)
+
+
+def _product_jet(blocks: tuple[Block, ...], z: np.ndarray, model: str, order: int = 1,
+                 with_scale: bool = True) -> Jet:
+    """Product of the blocks' jets ``M = M_n(g_n z) ... M_1(g_1 z)``, accumulated as
     ``D <- D_k + D + D_k D`` (``M = I + D``), the derivatives by the product rule with the
     chain-rule factors ``g_k``, ``g_k^2``.
 
@@ -482,13 +547,9 @@ def _composition_jet(method: Composition, z: np.ndarray, model: str, order: int 
     ``eps sens_k``) reaches the end as ``L_k E_k R_(k-1)`` (``L`` the later substeps, ``R``
     the earlier ones), and the update itself errs by ``2 eps (|D_new| + |D_k| |D|)``
     entrywise, carried by ``L_k``; ``sens`` sums these with absolute values."""
-    g = method.weights
-    base = transfer_jet(method.base, np.outer(g, z).ravel(), model, with_scale, order)
+    g = np.array([b.weight for b in blocks])
     n = z.size
-    Db = base.D.reshape(g.size, n, 2, 2)
-    dMb = base.dM.reshape(g.size, n, 2, 2)
-    d2Mb = base.d2M.reshape(g.size, n, 2, 2)
-    sb = base.sens.reshape(g.size, n, 2, 2)
+    Db, dMb, d2Mb, sb = _block_jets(blocks, z, model, with_scale, order)
     eye = np.eye(2)[None, :, :]
     D, dM, d2M = np.zeros((n, 2, 2)), np.zeros((n, 2, 2)), np.zeros((n, 2, 2))
     right = np.empty((g.size, n, 2, 2)) if with_scale else None  # |M_{k-1} ... M_1|
@@ -538,25 +599,37 @@ def pole_locations(method: Method, model: str) -> tuple[np.ndarray, np.ndarray]:
     (finite where ``kappa`` is not: a defective eigenvalue); so ``z`` by ``z^2`` times the
     smaller (times a safety factor of 16).
     Splitting on the saddle: ``1/c`` for DK(c) factors and ``-1/d`` for KD(d), exact to
-    rounding. Composition: the base's poles divided by each weight.
+    rounding. Several blocks (a composition): each block's poles divided by its weight. The
+    Langevin friction step has none.
     """
     check_model(model)
-    if isinstance(method, Processed):  # the map analysed (region_method): no poles of P's
-        from stepsafe.methods.tableaux import region_method
-
-        return pole_locations(region_method(method, model), model)
-    if isinstance(method, Composition):
-        flat = method.flattened()
-        base, unc = pole_locations(flat.base, model)
+    blocks = method.decomposition(model)
+    if len(blocks) == 1 and blocks[0].weight == 1.0:
+        return _block_poles(blocks[0], model)
+    groups: dict[int, tuple[Block, list[float]]] = {}
+    for b in blocks:
+        groups.setdefault(id(_leaf(b)), (b, []))[1].append(b.weight)
+    zs_all, us_all = [], []
+    for b, weights in groups.values():
+        base, unc = _block_poles(_at_unit_weight(b), model)
         if not base.size:
-            return base, unc
+            continue
         with np.errstate(over="ignore", divide="ignore"):  # a tiny weight: no pole in range
-            zs = np.concatenate([base / g for g in flat.weights])
-            us = np.concatenate([unc / abs(g) for g in flat.weights])
-        return _unique_sorted(zs, us)
-    if isinstance(method, Splitting):
-        if model not in ("saddle", "saddle-p"):
+            zs_all += [base / g for g in weights]
+            us_all += [unc / abs(g) for g in weights]
+    if not zs_all:
+        return np.empty(0), np.empty(0)
+    return _unique_sorted(np.concatenate(zs_all), np.concatenate(us_all))
+
+
+def _block_poles(block: Block, model: str) -> tuple[np.ndarray, np.ndarray]:
+    """The poles of one block at weight 1 (see :func:`pole_locations`)."""
+    if isinstance(block, Friction):
+        return np.empty(0), np.empty(0)
+    if isinstance(block, Shears):
+        if model not in DIAGONAL_MODELS:
             return np.empty(0), np.empty(0)
+        method = block.splitting
         zs = np.array([1.0 / w if kind == "DK" else -1.0 / w
                        for kind, w in method.euler_factors()])
         zs = zs if model == "saddle" else -zs
@@ -566,7 +639,8 @@ def pole_locations(method: Method, model: str) -> tuple[np.ndarray, np.ndarray]:
         with np.errstate(over="ignore"):  # a pole beyond 1e154: its band is unbounded
             unc = 2.0 * EPS * np.maximum(np.abs(zs), size * zs * zs)
         return _unique_sorted(zs, unc)
-    K, _, _ = stage_operator(method, model)
+    assert isinstance(block, Stages)
+    K, _, _ = stage_operator(block.method, model)
     lam, right = np.linalg.eig(K)
     real = (np.abs(lam.imag) <= 1e-7 * np.abs(lam)) & (np.abs(lam) > 1e-300)
     lam, right = lam.real[real], right[:, real].real

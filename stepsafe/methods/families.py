@@ -201,38 +201,7 @@ def is_symmetric(method: Method, tol: float = 1e-12) -> bool:
     RK: ``a_ij + a_{s+1-i, s+1-j} = b_j`` and ``b`` palindromic (after the standard
     stage reversal). Splitting: the merged drift/kick sequence is a palindrome.
     Composition: palindromic weights over a symmetric base. Impulse: symmetric outer and
-    inner splittings (each outer drift is then K steps of a symmetric map).
+    inner splittings (each outer drift is then K steps of a symmetric map). Each kind
+    decides (:meth:`~stepsafe.methods.protocol.MethodKind.symmetric`).
     """
-    from stepsafe.methods.tableaux import Impulse, Processed, Splitting
-
-    if isinstance(method, Processed):  # P^-1 K P: its one-step map, operation by operation
-        return is_symmetric(method.per_step(), tol)
-    if isinstance(method, Impulse):
-        return is_symmetric(method.outer, tol) and is_symmetric(method.inner, tol)
-    if isinstance(method, Composition):
-        w = method.weights
-        return _mirrored(w, w[::-1], tol) and is_symmetric(method.base, tol)
-    if isinstance(method, Splitting):
-        # each kick group (a kick and its gradient term, at one q) is one symbol
-        ops: list[tuple[str, float, float]] = []
-        for kind, c in method.operations:
-            if kind == "gradient" and ops and ops[-1][0] == "kick":
-                ops[-1] = ("kick", ops[-1][1], c)
-            else:
-                ops.append((kind, c, 0.0) if kind != "gradient" else ("kick", 0.0, c))
-        return all(k1 == k2 and _mirrored(b1, b2, tol) and _mirrored(c1, c2, tol)
-                   for (k1, b1, c1), (k2, b2, c2) in zip(ops, ops[::-1]))
-    prk = method.as_prk()
-    ok = True
-    for A, b in ((prk.A_q, prk.b_q), (prk.A_p, prk.b_p)):
-        size = np.abs(A) + np.abs(A[::-1, ::-1]) + np.abs(b)[None, :]
-        ok &= bool(np.all(np.abs(A + A[::-1, ::-1] - b[None, :]) <= tol * size))
-        ok &= _mirrored(b, b[::-1], tol)
-    return ok
-
-
-def _mirrored(x, y, tol: float) -> bool:
-    """Each of ``x`` equal to its mirror in ``y`` to ``tol`` relative to the pair (a large
-    coefficient elsewhere does not hide a mismatch between two small ones)."""
-    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
-    return bool(np.all(np.abs(x - y) <= tol * np.maximum(np.abs(x), np.abs(y))))
+    return method.symmetric(tol)

@@ -39,19 +39,16 @@ When a residual counts as zero:
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-from stepsafe.methods.tableaux import (
-    RESIDUAL_TOL,
-    Composition,
-    Impulse,
-    Method,
-    PartitionedRK,
-    RungeKutta,
-    Splitting,
-)
+if TYPE_CHECKING:  # pragma: no cover
+    from stepsafe.methods.protocol import MethodKind
+    from stepsafe.methods.tableaux import PartitionedRK
+
+#: Rounding-level threshold for the symplecticity and consistency residuals.
+RESIDUAL_TOL = 1e-12
 
 
 class Residuals(NamedTuple):
@@ -89,35 +86,22 @@ class Residuals(NamedTuple):
         return self.symplectic if model == "saddle" else self.symplectic_for_separable
 
 
-def residuals(method: Method | Impulse) -> Residuals:
-    """Compute the :class:`Residuals` of ``method`` from its coefficients."""
-    from stepsafe.methods.tableaux import Processed
+def residuals(method: MethodKind) -> Residuals:
+    """The :class:`Residuals` of ``method`` from its coefficients (each kind computes its
+    own: :meth:`~stepsafe.methods.protocol.MethodKind.residuals`)."""
+    return method.residuals()
 
-    if isinstance(method, Processed):  # P^-1 K P: the kernel's sums, symplectic as it is
-        return residuals(method.per_step())
-    if isinstance(method, Composition):
-        base = residuals(method.base)
-        cons = max(base.consistency, abs(float(method.weights.sum()) - 1.0))
-        mag = max(base.magnitude, float(np.abs(method.weights).max()))
-        return base._replace(consistency=cons, row_sums=None, magnitude=mag)
-    if isinstance(method, Impulse):  # every force's kicks and the drifts sum to 1 iff both do
-        outer, inner = residuals(method.outer), residuals(method.inner)
-        return Residuals(0.0, 0.0, max(outer.consistency, inner.consistency), None,
-                         max(outer.magnitude, inner.magnitude))
-    if isinstance(method, Splitting):
-        cons = max(abs(float(method.drift.sum()) - 1.0), abs(float(method.kick.sum()) - 1.0))
-        mag = float(max(np.abs(method.drift).max(), np.abs(method.kick).max()))
-        return Residuals(0.0, 0.0, cons, None, mag)
-    row_sums = None
-    if isinstance(method, RungeKutta):
-        row_sums = float(np.abs(method.A.sum(axis=1) - method.c).max())
-    prk = method.as_prk()
+
+def prk_residuals(prk: PartitionedRK, row_sums: float | None = None,
+                  written: Any = None) -> Residuals:
+    """The :class:`Residuals` of the tableaux of ``prk`` (``row_sums``: ``|A 1 - c|`` of an RK
+    method with given nodes; ``written``: the residuals of a method file's coefficients as
+    written, :func:`written_residuals`, which then decide)."""
     coefficients = (prk.A_q, prk.A_p, prk.b_q, prk.b_p)
     mag = float(max(np.abs(c).max() for c in coefficients))
     cons = max(abs(float(prk.b_q.sum()) - 1.0), abs(float(prk.b_p.sum()) - 1.0))
     if not np.isfinite(mag):
         return Residuals(np.nan, np.nan, cons, row_sums, mag)
-    written = getattr(method, "written", None)
     if written is not None:  # a method file: decided on the coefficients as written
         return Residuals(written.symplectic_separable, written.weights_equal, cons, row_sums,
                          mag, written.symplectic_tolerance, written.weights_tolerance)
@@ -198,14 +182,3 @@ def _relative(residual: np.ndarray, size: np.ndarray) -> float:
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.where(residual == 0, 0.0, np.abs(residual) / size)
     return float(np.max(ratio, initial=0.0))
-
-
-def is_partitioned(method: Method) -> bool:
-    """True when the method treats q and p differently (PRK, splitting, or built on one)."""
-    from stepsafe.methods.tableaux import Processed
-
-    if isinstance(method, Processed):
-        return True
-    if isinstance(method, Composition):
-        return is_partitioned(method.base)
-    return isinstance(method, (PartitionedRK, Splitting))

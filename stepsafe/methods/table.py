@@ -60,7 +60,6 @@ def rows() -> list[dict]:
             continue
         method, entry = resolve(name)
         region = find_region(method, "oscillator", ZMAX)
-        from stepsafe.methods.tableaux import gradient_evaluations
         first = region.first_interval
         z_star = None if first is None else region.first_boundary  # None: up to ZMAX
         if first is None:
@@ -69,8 +68,8 @@ def rows() -> list[dict]:
             classical = region.stability_limit
         out.append({"name": name, "kind": entry.kind, "order": entry.order,
                     "evaluations": entry.evaluations, "preserved": first is not None,
-                    "processor": getattr(method, "processor_evaluations", None),
-                    "gradients": gradient_evaluations(method),
+                    "processor": method.processor_evaluations,
+                    "gradients": method.gradient_evaluations,
                     "z_star": z_star, "stability": classical,
                     "source": short_source(entry.source)})
     return sorted(out, key=lambda r: (r["order"], r["name"]))

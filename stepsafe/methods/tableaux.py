@@ -11,6 +11,9 @@ A splitting method for ``H = T(p) + V(q)`` applies ``drift(a_1 h), kick(b_1 h),
 drift(a_2 h), ...`` in that order (``drift(t): q += t T'(p)``, ``kick(t): p -= t V'(q)``).
 A composition ``Phi_{g_k h} o ... o Phi_{g_1 h}`` applies the base with ``g_1 h`` first.
 
+Each class implements :class:`~stepsafe.methods.protocol.MethodKind` (its stages, symmetry,
+residuals, decomposition into blocks, ...), which is all the analyses ask of it.
+
 The classes are frozen and their coefficient arrays are read-only copies (an analysis
 made later sees the coefficients the method was built with); they validate shapes and
 finiteness when built and raise :class:`~stepsafe.exceptions.MethodError`. Nothing here
@@ -26,16 +29,21 @@ the float coefficients are taken as exact.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Any, Union
+from typing import Any
 
 import numpy as np
 
 from stepsafe.exceptions import MethodError
-
-#: Rounding-level threshold for the symplecticity and consistency residuals.
-RESIDUAL_TOL = 1e-12
+from stepsafe.methods.protocol import (
+    DIAGONAL_MODELS,
+    Block,
+    MethodKind,
+    Shears,
+    Stages,
+)
+from stepsafe.methods.residuals import RESIDUAL_TOL, Residuals, prk_residuals
 
 #: Most base steps a composition may take once nested compositions are multiplied out
 #: (checked when it is built, before :meth:`Composition.flattened` allocates anything):
@@ -63,6 +71,35 @@ def _vector(values, name: str) -> np.ndarray:
     return arr
 
 
+def mirrored(x, y, tol: float) -> bool:
+    """Each of ``x`` equal to its mirror in ``y`` to ``tol`` relative to the pair (a large
+    coefficient elsewhere does not hide a mismatch between two small ones)."""
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    return bool(np.all(np.abs(x - y) <= tol * np.maximum(np.abs(x), np.abs(y))))
+
+
+def _rk_symmetric(prk: PartitionedRK, tol: float) -> bool:
+    """``a_ij + a_{s+1-i, s+1-j} = b_j`` and ``b`` palindromic for both tableaux (after the
+    standard stage reversal), each to ``tol`` relative."""
+    ok = True
+    for A, b in ((prk.A_q, prk.b_q), (prk.A_p, prk.b_p)):
+        size = np.abs(A) + np.abs(A[::-1, ::-1]) + np.abs(b)[None, :]
+        ok &= bool(np.all(np.abs(A + A[::-1, ::-1] - b[None, :]) <= tol * size))
+        ok &= mirrored(b, b[::-1], tol)
+    return ok
+
+
+def _prk_reach(prk: PartitionedRK) -> float:
+    return float(max(1.0, np.abs(prk.A_q).sum(axis=1).max(), np.abs(prk.A_p).sum(axis=1).max()))
+
+
+def _prk_reference(prk: PartitionedRK) -> Callable[[Any, str], Any]:
+    from stepsafe.reference import highprec as R
+
+    return R.prk_transfer(prk.A_q.tolist(), prk.b_q.tolist(), prk.A_p.tolist(),
+                          prk.b_p.tolist())
+
+
 def _square(values, name: str, size: int) -> np.ndarray:
     """``values`` as a read-only (size, size) float copy."""
     arr = np.array(values, dtype=float)
@@ -76,7 +113,7 @@ def _square(values, name: str, size: int) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False)
-class PartitionedRK:
+class PartitionedRK(MethodKind):
     """Partitioned Runge–Kutta method: ``(A_q, b_q)`` for q, ``(A_p, b_p)`` for p."""
 
     A_q: np.ndarray
@@ -116,9 +153,37 @@ class PartitionedRK:
     def as_prk(self) -> PartitionedRK:
         return self
 
+    def rk_form(self) -> PartitionedRK:
+        return self
+
+    def symmetric(self, tol: float = 1e-12) -> bool:
+        return _rk_symmetric(self, tol)
+
+    def residuals(self) -> Residuals:
+        return prk_residuals(self, None, self.written)
+
+    def coefficients(self) -> dict[str, Any]:
+        return {k: getattr(self, k).tolist() for k in ("A_q", "b_q", "A_p", "b_p")}
+
+    def decomposition(self, model: str | None = None) -> tuple[Block, ...]:
+        return (Stages(self),)
+
+    @property
+    def reach(self) -> float:
+        return _prk_reach(self)
+
+    @property
+    def sample_work(self) -> float:
+        """``(2s)^3`` for an implicit method (a stage solve), ``s^2`` for an explicit one."""
+        s = self.stages
+        return float((2 * s) ** 3 if not self.explicit else s * s)
+
+    def high_precision(self) -> Callable[[Any, str], Any]:
+        return self.exact() if self.exact is not None else _prk_reference(self)
+
 
 @dataclass(frozen=True, eq=False)
-class RungeKutta:
+class RungeKutta(MethodKind):
     """Runge–Kutta method ``(A, b, c)``; the PRK with both tableaux equal."""
 
     A: np.ndarray
@@ -155,9 +220,47 @@ class RungeKutta:
         return PartitionedRK(self.A, self.b, self.A, self.b, name=self.name, order=self.order,
                              exact=self.exact, written=self.written)
 
+    def rk_form(self) -> PartitionedRK:
+        return self.as_prk()
+
+    @property
+    def single_tableau(self) -> bool:
+        return True
+
+    @property
+    def partitioned(self) -> bool:
+        return False
+
+    def symmetric(self, tol: float = 1e-12) -> bool:
+        return _rk_symmetric(self.as_prk(), tol)
+
+    def residuals(self) -> Residuals:
+        row_sums = float(np.abs(self.A.sum(axis=1) - self.c).max())
+        return prk_residuals(self.as_prk(), row_sums, self.written)
+
+    def coefficients(self) -> dict[str, Any]:
+        c = self.A.sum(axis=1) if self.c is None else self.c  # (c is set when built)
+        return {"A": self.A.tolist(), "b": self.b.tolist(), "c": c.tolist()}
+
+    def decomposition(self, model: str | None = None) -> tuple[Block, ...]:
+        return (Stages(self),)
+
+    @property
+    def reach(self) -> float:
+        return _prk_reach(self.as_prk())
+
+    @property
+    def sample_work(self) -> float:
+        """``(2s)^3`` for an implicit method (a stage solve), ``s^2`` for an explicit one."""
+        s = self.stages
+        return float((2 * s) ** 3 if not self.explicit else s * s)
+
+    def high_precision(self) -> Callable[[Any, str], Any]:
+        return self.exact() if self.exact is not None else _prk_reference(self.as_prk())
+
 
 @dataclass(frozen=True, eq=False)
-class Splitting:
+class Splitting(MethodKind):
     """Splitting method ``drift(a_1 h) kick(b_1 h) drift(a_2 h) ...`` for ``H = T(p) + V(q)``.
 
     ``drift`` has as many entries as ``kick`` or one more; zero coefficients are allowed
@@ -328,15 +431,77 @@ class Splitting:
         return PartitionedRK(A_q, w, A_p, w.copy(), name=self.name, order=self.order,
                              exact=self.exact)
 
+    def splitting(self) -> Splitting:
+        return self
 
-Method = Union[RungeKutta, PartitionedRK, Splitting, "Composition", "Processed"]
+    def decomposition(self, model: str | None = None) -> tuple[Block, ...]:
+        return (Shears(self),)
+
+    def symmetric(self, tol: float = 1e-12) -> bool:
+        """The merged drift/kick sequence is a palindrome (each kick group, a kick and its
+        gradient term at one q, one symbol)."""
+        ops: list[tuple[str, float, float]] = []
+        for kind, c in self.operations:
+            if kind == "gradient" and ops and ops[-1][0] == "kick":
+                ops[-1] = ("kick", ops[-1][1], c)
+            else:
+                ops.append((kind, c, 0.0) if kind != "gradient" else ("kick", 0.0, c))
+        return all(k1 == k2 and mirrored(b1, b2, tol) and mirrored(c1, c2, tol)
+                   for (k1, b1, c1), (k2, b2, c2) in zip(ops, ops[::-1]))
+
+    def residuals(self) -> Residuals:
+        """Symplectic by construction; consistent when the drifts and the kicks sum to 1."""
+        cons = max(abs(float(self.drift.sum()) - 1.0), abs(float(self.kick.sum()) - 1.0))
+        mag = float(max(np.abs(self.drift).max(), np.abs(self.kick).max()))
+        return Residuals(0.0, 0.0, cons, None, mag)
+
+    def coefficients(self) -> dict[str, Any]:
+        out = {"drift": self.drift.tolist(), "kick": self.kick.tolist()}
+        if self.gradient is not None:
+            out["gradient"] = self.gradient.tolist()
+        return out
+
+    @property
+    def reach(self) -> float:
+        """The larger of the drift and the kick sums of absolute values (at least 1); with
+        force gradients, where a kick's coefficient ``b - 2 c z^2`` turns and how far the
+        ``2 c z^3`` terms reach."""
+        kicks = float(np.abs(self.kick).sum())
+        if self.gradient is not None:
+            # a kick's coefficient b - 2 c z^2 turns at z = sqrt(|b| / 2|c|); with no kick the
+            # term 2 c z^3 = (cbrt(2 c) z)^3 (cube roots taken apart: c may be ~1e308)
+            c = np.abs(self.gradient)
+            b = np.abs(self.kick[: c.size])
+            with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+                turn = np.where(b > 0, np.sqrt(2.0) * np.sqrt(c) / np.sqrt(b), 0.0)
+            kicks += float(np.cbrt(2.0) * np.cbrt(c).sum()) + float(turn.max(initial=0.0))
+        return float(max(np.abs(self.drift).sum(), kicks, 1.0))
+
+    @property
+    def sample_work(self) -> float:
+        """The number of factors."""
+        extra = 0 if self.gradient is None else int(np.count_nonzero(self.gradient))
+        return float(max(1, self.drift.size + self.kick.size + extra))
+
+    def high_precision(self) -> Callable[[Any, str], Any]:
+        if self.exact is not None:
+            return self.exact()
+        from stepsafe.reference import highprec as R
+
+        drift, kick = self.drift.tolist(), self.kick.tolist()
+        gradient = None if self.gradient is None else self.gradient.tolist()
+        return lambda z, model: R.transfer_matrix_splitting(drift, kick, z, model, gradient)
+
+
+#: Any method kind (the protocol every kind implements).
+Method = MethodKind
 
 
 @dataclass(frozen=True, eq=False)
-class Composition:
+class Composition(MethodKind):
     """Composition ``Phi_{g_k h} o ... o Phi_{g_1 h}`` of a base method (weights may be < 0)."""
 
-    base: Method
+    base: MethodKind
     weights: np.ndarray
     name: str = "composition"
     order: int | None = None
@@ -353,6 +518,10 @@ class Composition:
             raise MethodError(f"{self.name}: the base of a composition must be a one-force "
                               f"method; {self.base.name} is an impulse (multiple time "
                               "stepping) method")
+        if getattr(self.base, "kind", "") == "langevin":
+            raise MethodError(f"{self.name}: the base of a composition must be a Hamiltonian "
+                              f"method; {self.base.name} is a Langevin splitting (its "
+                              "friction step has no substeps of negative length)")
         if self.base_steps > MAX_BASE_STEPS:
             raise MethodError(
                 f"{self.name}: {self.base_steps} steps of the base method once the nested "
@@ -367,7 +536,7 @@ class Composition:
                 f"drifts and kicks: {self.base_steps * len(inner.operations)} operations a "
                 f"step, more than the {MAX_COMPOSED_OPERATIONS} analysed in bounded time")
         if isinstance(inner, (RungeKutta, PartitionedRK)) and not inner.explicit:
-            work = self.base_steps * inner.stages ** 3 * max(1.0, self.reach)
+            work = self.base_steps * inner.stages ** 3 * max(1.0, self.weight_sum)
             if work > MAX_IMPLICIT_WORK:
                 raise MethodError(
                     f"{self.name}: {self.base_steps} steps of a {inner.stages}-stage implicit "
@@ -375,10 +544,10 @@ class Composition:
                     f"exceeds the {MAX_IMPLICIT_WORK:.3g} allowed")
 
     @property
-    def reach(self) -> float:
+    def weight_sum(self) -> float:
         """Sum of |weights| once nested compositions are multiplied out (how far the
         substeps reach, in steps of the base), counted without multiplying out."""
-        inner = self.base.reach if isinstance(self.base, Composition) else 1.0
+        inner = self.base.weight_sum if isinstance(self.base, Composition) else 1.0
         return float(np.abs(self.weights).sum()) * inner
 
     @property
@@ -416,6 +585,73 @@ class Composition:
         weights = np.concatenate([g * inner.weights for g in self.weights])
         return Composition(inner.base, weights, name=self.name, order=self.order,
                            evaluations=self.evaluations, title=self.title, exact=self.exact)
+
+    def decomposition(self, model: str | None = None) -> tuple[Block, ...]:
+        """The base's blocks once per weight (nested compositions multiplied out), each
+        block's weight times the substep's."""
+        flat = self.flattened()
+        blocks = flat.base.decomposition(model)
+        return tuple(replace(b, weight=float(g) * b.weight) for g in flat.weights
+                     for b in blocks)
+
+    def splitting(self) -> Splitting | None:
+        return self.as_splitting() if isinstance(self.flattened().base, Splitting) else None
+
+    @property
+    def force_gradient(self) -> bool:
+        return self.flattened().base.force_gradient
+
+    @property
+    def forces_per_step(self) -> int | None:
+        step = self.splitting()
+        return None if step is None else step.forces_per_step
+
+    @property
+    def gradient_evaluations(self) -> int:
+        step = self.splitting()
+        return 0 if step is None else step.gradient_evaluations
+
+    @property
+    def partitioned(self) -> bool:
+        return self.base.partitioned
+
+    def symmetric(self, tol: float = 1e-12) -> bool:
+        """Palindromic weights over a symmetric base."""
+        w = self.weights
+        return mirrored(w, w[::-1], tol) and self.base.symmetric(tol)
+
+    def residuals(self) -> Residuals:
+        """The base's, consistent when the weights also sum to 1."""
+        base = self.base.residuals()
+        cons = max(base.consistency, abs(float(self.weights.sum()) - 1.0))
+        mag = max(base.magnitude, float(np.abs(self.weights).max()))
+        return base._replace(consistency=cons, row_sums=None, magnitude=mag)
+
+    def coefficients(self) -> dict[str, Any]:
+        return {"base": self.base.name, "weights": self.weights.tolist()}
+
+    @property
+    def reach(self) -> float:
+        flat = self.flattened()
+        return float(np.abs(flat.weights).sum()) * flat.base.reach
+
+    @property
+    def sample_work(self) -> float:
+        """The base's, once per substep."""
+        flat = self.flattened()
+        return float(flat.weights.size) * flat.base.sample_work
+
+    def high_precision(self) -> Callable[[Any, str], Any]:
+        """Its own ``exact``, else the product of its base's high-precision matrices at
+        ``g_k z``."""
+        if self.exact is not None:
+            return self.exact()
+        from stepsafe.reference import highprec as R
+
+        inner = self.base.high_precision()
+        weights = [float(g) for g in self.weights]
+        return lambda z, model: R.transfer_matrix_composition(lambda x: inner(x, model),
+                                                              weights, z)
 
 
 def merge_operations(ops: list[tuple[str, float]]) -> list[tuple[str, float]]:
@@ -493,37 +729,6 @@ def validate_gradient_cost(value: float) -> float:
     return number
 
 
-def uses_force_gradient(method: Any) -> bool:
-    """Whether ``method`` takes force-gradient kicks (then it needs a separable
-    ``H = p^T M^-1 p / 2 + V(q)``)."""
-    if isinstance(method, Processed):
-        return uses_force_gradient(method.kernel)
-    if isinstance(method, Composition):
-        return uses_force_gradient(method.flattened().base)
-    return isinstance(method, Splitting) and method.force_gradient
-
-
-def natural_evaluations(method: Any) -> int | None:
-    """Force evaluations per step that a splitting (a composition of one, a processed
-    method's kernel) makes as run (:attr:`Splitting.forces_per_step`); None for other
-    methods."""
-    if isinstance(method, Processed):
-        method = method.kernel
-    if isinstance(method, Composition):
-        flat = method.flattened()
-        if not isinstance(flat.base, Splitting):
-            return None
-        method = flat.as_splitting()
-    return method.forces_per_step if isinstance(method, Splitting) else None
-
-
-def gradient_evaluations(method: Any) -> int:
-    """Force-gradient terms per step of ``method`` as run (0 for methods without)."""
-    if isinstance(method, Composition) and isinstance(method.flattened().base, Splitting):
-        method = method.as_splitting()
-    return method.gradient_evaluations if isinstance(method, Splitting) else 0
-
-
 #: Inner steps per outer drift an impulse method may take.
 MAX_SUBSTEPS = 1000
 
@@ -531,21 +736,21 @@ MAX_SUBSTEPS = 1000
 def splitting_operations(method: Any, role: str) -> list[tuple[str, float]]:
     """The drift/kick operations of a splitting method or of a composition of one;
     a :class:`~stepsafe.exceptions.MethodError` naming ``role`` for any other method."""
-    if isinstance(method, Composition) and isinstance(method.flattened().base, Splitting):
-        method = method.as_splitting()
-    if not isinstance(method, Splitting):
+    step = method.splitting() if isinstance(method, MethodKind) and \
+        method.processor_operations is None else None
+    if step is None:
         kind = getattr(method, "kind", type(method).__name__)
         raise MethodError(f"the {role} method of an impulse (r-RESPA) integrator must be a "
                           f"splitting (drift/kick) method; {getattr(method, 'name', '?')} is "
                           f"a {kind} method")
-    if method.force_gradient:
+    if step.force_gradient:
         raise MethodError(f"the {role} method of an impulse (r-RESPA) integrator must be a "
-                          f"drift/kick splitting; {method.name} is a force-gradient method")
-    return method.operations
+                          f"drift/kick splitting; {step.name} is a force-gradient method")
+    return step.operations
 
 
 @dataclass(frozen=True, eq=False)
-class Impulse:
+class Impulse(MethodKind):
     """Impulse / r-RESPA multiple time stepping for ``H = T(p) + V_fast(q) + V_slow(q)``.
 
     One outer step H applies the ``outer`` splitting with its kicks by the slow force only;
@@ -624,9 +829,41 @@ class Impulse:
     def explicit(self) -> bool:
         return True
 
+    def symmetric(self, tol: float = 1e-12) -> bool:
+        """Symmetric outer and inner splittings (each outer drift is then K steps of a
+        symmetric map)."""
+        return self.outer.symmetric(tol) and self.inner.symmetric(tol)
+
+    def residuals(self) -> Residuals:
+        """Every force's kicks and the drifts sum to 1 iff both splittings' do."""
+        outer, inner = self.outer.residuals(), self.inner.residuals()
+        return Residuals(0.0, 0.0, max(outer.consistency, inner.consistency), None,
+                         max(outer.magnitude, inner.magnitude))
+
+    @property
+    def partitioned(self) -> bool:
+        return False
+
+    def coefficients(self) -> dict[str, Any]:
+        fast, slow = self.force_evaluations
+        return {"outer": self.outer.name, "inner": self.inner.name,
+                "substeps": self.substeps,
+                "force_evaluations_per_outer_step": {"fast": fast, "slow": slow}}
+
+    def _two_forces(self) -> MethodError:
+        return MethodError(f"{self.name} is an impulse (multiple time stepping) method: its "
+                           "step needs a fast and a slow force (stepsafe.core.impulse turns it "
+                           "into a splitting at a frequency ratio)")
+
+    def decomposition(self, model: str | None = None) -> tuple[Block, ...]:
+        raise self._two_forces()
+
+    def high_precision(self) -> Callable[[Any, str], Any]:
+        raise self._two_forces()
+
 
 @dataclass(frozen=True, eq=False)
-class Processed:
+class Processed(MethodKind):
     """Processed method ``psi_h = P_h^-1 o K_h o P_h``: a kernel K and a processor P.
 
     The kernel is a splitting method (or a composition of one) and the processor a
@@ -644,13 +881,13 @@ class Processed:
     The structure boundaries (``tr M = +-2``), poles and resonances are functions of the
     trace, and the orientation of an elliptic matrix (the sense of rotation, the sign of
     ``M_qp``'s side of the invariant ellipse) is unchanged by conjugation with a matrix
-    of determinant +1. Hence :func:`region_method` hands the region finder the kernel.
+    of determinant +1. Hence :meth:`region_method` hands the region finder the kernel.
     What the processor changes are the invariant ellipse (``M_psi``'s energy error, and
     the HMC energy error ``E_1``) and, on nonlinear problems, the error constants:
     a kernel of *effective* order r with a suitable P gives a method of order r.
     """
 
-    kernel: Any
+    kernel: MethodKind
     processor: Splitting
     name: str = "processed"
     order: int | None = None
@@ -661,10 +898,9 @@ class Processed:
     kind = "processed"
 
     def __post_init__(self) -> None:
-        kernel = self.kernel
-        if isinstance(kernel, Composition) and isinstance(kernel.flattened().base, Splitting):
-            kernel = kernel.as_splitting()
-        if not isinstance(kernel, Splitting):
+        kernel = self.kernel.splitting() if isinstance(self.kernel, MethodKind) and \
+            self.kernel.processor_operations is None else None
+        if kernel is None:
             kind = getattr(self.kernel, "kind", type(self.kernel).__name__)
             raise MethodError(f"{self.name}: the kernel of a processed method must be a "
                               f"splitting (drift/kick) method or a composition of one; "
@@ -681,8 +917,9 @@ class Processed:
     @property
     def kernel_splitting(self) -> Splitting:
         """The kernel as one splitting (a composition multiplied out)."""
-        k = self.kernel
-        return k.as_splitting() if isinstance(k, Composition) else k
+        step = self.kernel.splitting()
+        assert step is not None  # (checked when built)
+        return step
 
     @property
     def processor_operations(self) -> list[tuple[str, float]]:
@@ -718,23 +955,66 @@ class Processed:
     def explicit(self) -> bool:
         return True
 
+    def decomposition(self, model: str | None = None) -> tuple[Block, ...]:
+        """The full one-step map ``P^-1 K P`` as one splitting; on the diagonal (saddle)
+        models, where every factor is diagonal and P commutes with K, the kernel's."""
+        if model in DIAGONAL_MODELS:
+            return (Shears(self.kernel_splitting),)
+        return (Shears(self.per_step()),)
 
-def region_method(method: Any, model: str = "oscillator") -> Any:
-    """The method whose M(z) the region finder analyses: for a processed method its
-    kernel, except on the ``inverted`` model. On the oscillator the kernel's region is the
-    processed method's (same trace, same sense of rotation, see :class:`Processed`); on the
-    diagonal models (``saddle``, ``saddle-p``) every drift and kick is a diagonal matrix
-    (a symplectic Euler factor), so P commutes with K and ``P^-1 K P = K`` exactly. On the
-    ``inverted`` model the orientation indicator compares M's eigenvectors with the flow's
-    and conjugation by P moves them, so the full one-step map ``P^-1 K P`` is analysed (the
-    trace, and with it every boundary of the type, is still the kernel's). The substitute
-    carries the processed method's high-precision ``exact`` (the full map, of the same
-    trace) when it has none of its own. Any other method is returned as it is."""
-    if not isinstance(method, Processed):
-        return method
-    target = method.per_step() if model == "inverted" else method.kernel_splitting
-    if target.exact is None and method.exact is not None:
-        from dataclasses import replace
+    def step_decomposition(self) -> tuple[Block, ...]:
+        """The kernel's blocks (P runs once at the start, ``P^-1`` at each output)."""
+        return self.kernel.step_decomposition()
 
-        target = replace(target, exact=method.exact)
-    return target
+    def splitting(self) -> Splitting:
+        """The kernel, run every step."""
+        return self.kernel_splitting
+
+    @property
+    def force_gradient(self) -> bool:
+        return self.kernel.force_gradient
+
+    @property
+    def forces_per_step(self) -> int | None:
+        return self.kernel.forces_per_step
+
+    @property
+    def gradient_evaluations(self) -> int:
+        return self.kernel.gradient_evaluations
+
+    def one_step(self) -> Splitting:
+        return self.per_step()
+
+    def symmetric(self, tol: float = 1e-12) -> bool:
+        """Its one-step map ``P^-1 K P``, operation by operation."""
+        return self.per_step().symmetric(tol)
+
+    def residuals(self) -> Residuals:
+        """``P^-1 K P``: the kernel's sums, symplectic as it is."""
+        return self.per_step().residuals()
+
+    def coefficients(self) -> dict[str, Any]:
+        kernel = self.kernel_splitting
+        return {"kernel": {"drift": kernel.drift.tolist(), "kick": kernel.kick.tolist()},
+                "processor": {"drift": self.processor.drift.tolist(),
+                              "kick": self.processor.kick.tolist()}}
+
+    def high_precision(self) -> Callable[[Any, str], Any]:
+        return self.exact() if self.exact is not None else self.per_step().high_precision()
+
+    def region_method(self, model: str = "oscillator") -> Splitting:
+        """The kernel, except on the ``inverted`` model. On the oscillator the kernel's
+        region is the processed method's (same trace, same sense of rotation, see the class
+        docstring); on the diagonal models (``saddle``, ``saddle-p``) every drift and kick
+        is a diagonal matrix (a symplectic Euler factor), so P commutes with K and
+        ``P^-1 K P = K`` exactly. On the ``inverted`` model the orientation indicator
+        compares M's eigenvectors with the flow's and conjugation by P moves them, so the
+        full one-step map ``P^-1 K P`` is analysed (the trace, and with it every boundary of
+        the type, is still the kernel's). The substitute carries the processed method's
+        high-precision ``exact`` (the full map, of the same trace) when it has none of its
+        own."""
+        target = self.per_step() if model == "inverted" else self.kernel_splitting
+        if target.exact is None and self.exact is not None:
+            target = replace(target, exact=self.exact)
+        return target
+

@@ -40,13 +40,15 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
+from typing import cast
 
 import numpy as np
 import scipy.linalg as sla
 
 from stepsafe.core.threads import blas_threads_for
 from stepsafe.exceptions import StepsafeError
-from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta, Splitting
+from stepsafe.methods.protocol import MethodKind, Shears, Stages
+from stepsafe.methods.tableaux import Method, PartitionedRK
 from stepsafe.systems import coupled_exact
 from stepsafe.systems.frame import (
     DiagonalFrame,
@@ -283,29 +285,28 @@ class _Steps:
 
 def _pieces(method: Method) -> list[tuple[str, object]]:
     """The step as Euler factors (splittings, compositions of them) or weighted PRK
-    steps (``("prk", (g, prk))``), in the order they are applied. A processed method
-    ``P^-1 K P`` is analysed as its full one-step map, a splitting with the kernel's drift
-    and kick sums, taken in its PRK form of symplectic Euler factors like every splitting
-    on an H that mixes q and p."""
-    from stepsafe.methods.tableaux import Processed
+    steps (``("prk", (g, prk))``), in the order they are applied: the blocks of the step
+    (:func:`stepsafe.core.transfer.blocks_of`, the description the 2x2 transfer matrix is
+    built from too). A splitting (a processed method ``P^-1 K P`` as its full one-step
+    map, a composition of splittings merged) runs as its PRK form of symplectic Euler
+    factors, as on every H that mixes q and p; a force-gradient one as its operations."""
+    from stepsafe.core.transfer import blocks_of
 
-    if isinstance(method, Processed):
-        method = method.per_step()
-    if isinstance(method, Composition):
-        flat = method.flattened()
-        if isinstance(flat.base, Splitting) and flat.base.force_gradient:
-            return [("ops", flat.as_splitting().operations)]
-        if isinstance(flat.base, Splitting):
-            return [("euler", flat.as_splitting().euler_factors())]
-        base = flat.base.as_prk() if isinstance(flat.base, RungeKutta) else flat.base
-        return [("prk", (float(g), base)) for g in flat.weights]
-    if isinstance(method, Splitting) and method.force_gradient:
-        return [("ops", method.operations)]
-    if isinstance(method, Splitting):
-        return [("euler", method.euler_factors())]
-    prk = method.as_prk() if isinstance(method, RungeKutta) else method
-    assert isinstance(prk, PartitionedRK)
-    return [("prk", (1.0, prk))]
+    pieces: list[tuple[str, object]] = []
+    for block in blocks_of(method, None):
+        if isinstance(block, Shears):
+            step = block.splitting
+            pieces.append(("ops", step.operations) if step.force_gradient
+                          else ("euler", step.euler_factors()))
+        elif isinstance(block, Stages):
+            prk = block.method.rk_form()
+            assert prk is not None
+            pieces.append(("prk", (block.weight, prk)))
+        else:
+            raise StepsafeError(f"{method.name}: a Langevin splitting is analysed on the "
+                                "modes of a system (its oscillator models), not on a coupled "
+                                "2n x 2n system")
+    return pieces
 
 
 def one_step_matrix(method: Method, S: np.ndarray, h: float) -> np.ndarray:
@@ -365,12 +366,15 @@ class CoupledSystem:
                 continue
         frame = None
         self.weight = None
-        if self.sign and steps is None:
+        if self.sign and steps is None and method is not None:
             S, self.chol, frame = _definite_coordinates(S, self.sign, method)
             if frame is not None:
                 self.weight = self.sign * np.concatenate([frame.a, frame.b])
         self.S = S
-        self.steps = steps(self.unit) if steps is not None else _Steps(method, S, frame)
+        if steps is None and method is None:
+            raise ValueError("a coupled analysis needs a method or its one-step matrices")
+        self.steps = steps(self.unit) if steps is not None else \
+            _Steps(cast(MethodKind, method), S, frame)
         self.top = self.unit * _largest_frequency(S, self.chol if self.sign else None)
         self.evaluations = 0
         self._cache: dict[float, float] = {}

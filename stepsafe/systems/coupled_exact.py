@@ -18,7 +18,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from stepsafe.methods.tableaux import Composition, Method, Splitting
+from stepsafe.methods.protocol import Shears
+from stepsafe.methods.tableaux import Method
 
 #: Largest 2n decided at high precision (one step costs about 1.5 ms per Euler factor at
 #: 2n = 8: 1 to 5 s for the about 100 steps of a boundary).
@@ -38,15 +39,14 @@ MAX_BISECTIONS = 200
 def euler_factors(method: Method | None) -> list[tuple[str, float]] | None:
     """The method's symplectic Euler factors ``("DK" | "KD", weight)`` (a splitting or a
     composition of splittings without force gradients), or None."""
+    from stepsafe.core.transfer import blocks_of
+
     if method is None:
         return None
-    if isinstance(method, Composition):
-        flat = method.flattened()
-        if isinstance(flat.base, Splitting) and not flat.base.force_gradient:
-            return flat.as_splitting().euler_factors()
-        return None
-    if isinstance(method, Splitting) and not method.force_gradient:
-        return method.euler_factors()
+    blocks = blocks_of(method, None)
+    if len(blocks) == 1 and isinstance(blocks[0], Shears) and blocks[0].weight == 1.0 \
+            and not blocks[0].splitting.force_gradient:
+        return blocks[0].splitting.euler_factors()
     return None
 
 

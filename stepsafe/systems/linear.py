@@ -27,7 +27,6 @@ import numpy as np
 
 from stepsafe.core.threads import blas_threads_for
 from stepsafe.exceptions import StepsafeError
-from stepsafe.methods.residuals import is_partitioned
 from stepsafe.methods.tableaux import Method
 
 ZERO_TOL = 1e-10  # eigenvalues of J S below this times the largest are zero modes
@@ -461,7 +460,7 @@ def hessian_modes(S, method: Method) -> Decoupled | None:
         d = separable_modes(S_qq, kinetic)
         return d._replace(modes=tuple(_scaled_mode(m, exponent, 2) for m in d.modes),
                           analysis="decoupled: separable Hessian, generalised eigenproblem")
-    if is_partitioned(method):
+    if method.partitioned:
         return None
     mu = np.linalg.eigvals(hamiltonian_matrix(S))
     mu = mu[(mu.imag > 0) | ((mu.imag == 0) & (mu.real >= 0))]

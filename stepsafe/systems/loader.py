@@ -511,9 +511,7 @@ def _force_gradient_needs_separable(method, separable: bool, where: str) -> None
     """A force-gradient method is defined only for ``H = p^T M^-1 p / 2 + V(q)``: refuse a
     Hamiltonian with a term in both coordinates and momenta (its linearisation at an
     equilibrium may separate, but the method cannot be run on H)."""
-    from stepsafe.methods.tableaux import uses_force_gradient
-
-    if method is not None and uses_force_gradient(method) and not separable:
+    if method is not None and method.force_gradient and not separable:
         raise _fail(where, "hamiltonian", f"{method.name} is a force-gradient method: it needs "
                                           "a separable H = T(p) + V(q), and this H has a term "
                                           "in both coordinates and momenta")
