@@ -274,10 +274,11 @@ METHODS = [(n, None) for n in builtin_names() if n not in FAMILIES] + \
 def test_a_method_coefficients_cannot_be_changed(name, stages):
     """Every coefficient array of every method (bases, kernels, processors, an impulse
     method's outer and inner methods) is read-only, so a verdict cannot change after
-    the method was loaded."""
+    the method was loaded (a Langevin splitting holds a word and two numbers, none of
+    them an array)."""
     m = stepsafe.method(name, stages=stages)
     arrays = list(_arrays(m.tableau))
-    assert arrays
+    assert arrays or isinstance(m.tableau.letters, str)
     for arr in arrays:
         assert not arr.flags.writeable
         with pytest.raises(ValueError):

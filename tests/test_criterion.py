@@ -94,10 +94,21 @@ def test_hyperbolic_models_keep_the_type_only():
                            for t in typ.intervals)
 
 
-@pytest.mark.parametrize("bad", ["Stability", "", None, 3])
+@pytest.mark.parametrize("bad", ["Stability", "", 3, 1.0, b"structure"])
 def test_bad_criterion_is_refused(bad):
     with pytest.raises(StepsafeError, match="criterion must be one of"):
         stepsafe.advise("verlet", [1.0], criterion=bad)
+
+
+def test_no_criterion_is_the_methods_own():
+    """``criterion=None`` (the default) is ``structure`` for a Hamiltonian method and
+    ``stability`` for a Langevin splitting, the only one that applies to it."""
+    assert stepsafe.advise("verlet", [1.0]).record["criterion"] == "structure"
+    assert stepsafe.advise("verlet", [1.0], criterion=None).h_max == \
+        stepsafe.advise("verlet", [1.0], criterion="structure").h_max
+    assert stepsafe.advise("baoab", [1.0]).record["criterion"] == "stability"
+    assert stepsafe.check("obabo", 0.5, [1.0]).record["criterion"] == "stability"
+    assert stepsafe.region("aboba").to_dict()["criterion"] == "stability"
 
 
 def test_bad_criterion_on_the_command_line(run):

@@ -47,6 +47,9 @@ KNOWN = {
         "a library method's written digits are checked by the core's escalated test",
     ("stepsafe.methods.library", "stepsafe.reference.verify"):
         "a method file's symplecticity is verified at 50 digits on loading",
+    ("stepsafe.methods.langevin", "stepsafe.reference.highprec"):
+        "a method's high-precision transfer matrix (MethodKind.high_precision, what the "
+        "core escalates with) is built from the reference's mpmath factors",
     ("stepsafe.methods.tableaux", "stepsafe.reference.highprec"):
         "a method's high-precision transfer matrix (MethodKind.high_precision, what the "
         "core escalates with) is built from the reference's mpmath factors",

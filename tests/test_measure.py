@@ -433,7 +433,7 @@ def _builtin_splittings():
             m, entry = resolve(name)
         except StepsafeError:
             continue  # a family (needs a stage count)
-        if m.forces_per_step is not None or entry.evaluations is not None:
+        if m.hamiltonian and (m.forces_per_step is not None or entry.evaluations is not None):
             out.append(name)
     return out
 

@@ -22,7 +22,7 @@ import pytest
 
 from stepsafe.core.transfer import has_form, pole_locations, transfer_jet, transfer_matrix
 from stepsafe.methods.library import FAMILIES, builtin_names, resolve
-from stepsafe.methods.protocol import Block, MethodKind, Stages
+from stepsafe.methods.protocol import Block, Friction, MethodKind, Stages
 from stepsafe.systems.coupled import one_step_matrix
 
 FAMILY_MEMBERS = [("gauss", 1), ("gauss", 2), ("gauss", 3), ("lobatto3ab", 2),
@@ -39,6 +39,15 @@ def _method(name: str, stages: int | None) -> MethodKind:
 
 def _single_force(m: MethodKind) -> bool:
     return m.kind != "impulse"
+
+
+def _generator(m: MethodKind, model: str) -> np.ndarray:
+    """The generator of the flow one step approximates: the model's, damped by the
+    friction (per unit of frequency) for a Langevin splitting's mean map."""
+    L = np.array(GENERATOR[model], dtype=float)
+    if not m.hamiltonian:
+        L[1, 1] -= m.friction
+    return L
 
 
 def _ids(item) -> str:
@@ -73,9 +82,12 @@ def test_every_shipped_method_answers_the_protocol(item):
         return
     blocks = m.decomposition()
     assert blocks and all(isinstance(b, Block) and b.weight != 0 for b in blocks)
-    # the weights of the blocks are the fractions of the step: they sum to 1 for a
-    # consistent method (a splitting is one block of weight 1)
-    assert sum(b.weight for b in blocks) == pytest.approx(1.0, rel=1e-12)
+    if m.hamiltonian:
+        # the weights of the blocks are the fractions of the step: they sum to 1 for a
+        # consistent method (a splitting is one block of weight 1)
+        assert sum(b.weight for b in blocks) == pytest.approx(1.0, rel=1e-12)
+    else:  # a Langevin splitting: its friction steps' fractions sum to 1
+        assert sum(b.weight for b in blocks if isinstance(b, Friction)) == pytest.approx(1.0)
     assert m.gradient_evaluations >= 0 and isinstance(m.force_gradient, bool)
     step = m.splitting()
     if step is not None:  # the step as one drift/kick sequence, consistent as the method
@@ -86,14 +98,15 @@ def test_every_shipped_method_answers_the_protocol(item):
 
 @pytest.mark.parametrize("item", SHIPPED, ids=_ids)
 def test_one_step_is_the_flow_to_first_order(item):
-    """``(M(z) - I) / z -> L`` as z -> 0 on every model the method is analysed on: the
-    error at z is O(z) (checked at z = 1e-4 and 1e-5, from D = M - I, which the engine
-    accumulates without forming I + small)."""
+    """``(M(z) - I) / z -> L`` as z -> 0 on every model the method is analysed on (L damped
+    by the friction for a Langevin splitting's mean map): the error at z is O(z) (checked
+    at z = 1e-4 and 1e-5, from D = M - I, which the engine accumulates without forming
+    I + small)."""
     m = _method(*item)
     if not _single_force(m):
         pytest.skip("an impulse method steps two forces (tests/test_impulse_methods.py)")
     for model in _models(m):
-        L = np.array(GENERATOR[model], dtype=float)
+        L = _generator(m, model)
         for z in (1e-4, 1e-5):
             D = transfer_jet(m, [z], model, scale=False, order=0).D[0]
             assert np.abs(D / z - L).max() <= 200 * z * max(1.0, m.reach) ** 2, (model, z)
@@ -188,8 +201,9 @@ def test_the_2x2_map_is_the_one_degree_of_freedom_case_of_the_2n_map(item):
     model's transfer matrix at ``z = beta h`` (in the model's scaled variables), to
     rounding: the two maps read one decomposition of the method."""
     m = _method(*item)
-    if not _single_force(m):
-        pytest.skip("an impulse method steps two forces")
+    if not _single_force(m) or not m.hamiltonian:
+        pytest.skip("an impulse method steps two forces; a Langevin splitting is analysed "
+                    "on vibrations one at a time")
     beta = 1.7
     for model in _models(m):
         S, T = _model_system(model, beta)
@@ -208,8 +222,9 @@ def test_decoupled_modes_step_mode_by_mode(item):
     invariant) steps as its modes: ``M = diag(Q, Q)^T blockdiag(M_i) diag(Q, Q)`` with
     ``M_i`` each mode's 2x2 matrix (vibrations and barrier tops), to rounding."""
     m = _method(*item)
-    if not _single_force(m):
-        pytest.skip("an impulse method steps two forces")
+    if not _single_force(m) or not m.hamiltonian:
+        pytest.skip("an impulse method steps two forces; a Langevin splitting is analysed "
+                    "on vibrations one at a time")
     rng = np.random.default_rng(zlib.crc32(_ids(item).encode()))
     for n in (2, 3, 5):
         Q, _ = np.linalg.qr(rng.normal(size=(n, n)))

@@ -83,14 +83,15 @@ def _verification(integrator: Integrator, regions: Mapping[str, Any],
 @public()
 def region(method: Integrator | str, model: str = "all", *, zmax: float = 10.0,
            verify: bool = False, resonance_orders: Sequence[int] = (3, 4, 5, 6),
-           criterion: str = "structure") -> RegionReport:
+           criterion: str | None = None) -> RegionReport:
     """The regions of ``method`` for ``model`` (``"all"``: oscillator, saddle and inverted;
     a model the method has no form for is then listed in ``not_analysed``). On the
     oscillator, also the nonlinear resonances ``n theta = 2 pi m`` of the orders n in
     ``resonance_orders`` below the first boundary. ``criterion``: ``structure`` keeps the
     flow's type and orientation, ``stability`` the type only (for the oscillator
     ``|tr M| <= 2``, the stability interval of the HMC literature; islands of reversed
-    orientation join the intervals).
+    orientation join the intervals). None: the method's own (``structure``; ``stability``
+    for a Langevin splitting, the only one that applies to it).
 
     >>> round(region("verlet", "oscillator").first_boundary(), 12)
     2.0
@@ -100,7 +101,7 @@ def region(method: Integrator | str, model: str = "all", *, zmax: float = 10.0,
     from stepsafe.exceptions import positive_finite
 
     integrator = as_integrator(method)
-    criterion = validate_criterion(criterion)
+    criterion = validate_criterion(criterion, integrator.tableau)
     model, verify = as_text(model, "model"), as_flag(verify, "verify")
     if model != "all" and model not in REGION_MODELS:
         raise StepsafeError(f"unknown model {model!r}; choose one of "
@@ -147,7 +148,7 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
            progress: Callable[[float], None] | None = None, problem: Problem | None = None,
            tol_phase: float | None = None, tol_energy: float | None = None,
            resonance_order: int | None = None, solver: str = "fixed-point",
-           criterion: str = "structure", verify: bool = False, gradient_cost: float = 1.0
+           criterion: str | None = None, verify: bool = False, gradient_cost: float = 1.0
            ) -> AdviceReport:
     """Safe step sizes for a method and angular frequencies ``beta`` (or a scene, or a
     system), with the inputs of :func:`problem`.
@@ -211,10 +212,12 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
     solver : str
         How implicit stages are costed: ``fixed-point`` iteration, or ``nominal`` (one
         evaluation per stage).
-    criterion : str
+    criterion : str, optional
         ``structure`` (type and orientation) or ``stability`` (type only: ``|tr M| <= 2``
         for vibrations); where the other criterion gives another ``h_max``,
-        ``record["other_criterion"]`` holds it.
+        ``record["other_criterion"]`` holds it. Default: the method's own (``structure``;
+        ``stability`` for a Langevin splitting, whose ``record["stochastic"]`` says what
+        its verdict means).
     verify : bool
         Recompute the regions' points with mpmath (50 digits): ``verification``.
     gradient_cost : float
@@ -235,7 +238,7 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
     from stepsafe.core.records import advice_data, tradeoff_data
     from stepsafe.core.regions import validate_criterion
 
-    criterion = validate_criterion(criterion)
+    criterion = None if criterion is None else validate_criterion(criterion)
     inputs = {"saddle_beta": saddle_beta, "inverted_beta": inverted_beta, "modes": modes,
               "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
               "period": period, "sigma": sigma, "time_unit": time_unit, "labels": labels,
@@ -243,6 +246,7 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
               "zmax": zmax, "budget": budget, "progress": progress, "problem": problem}
     p = problem_of(method, beta, inputs)
     integrator, result = p.integrator, None
+    criterion = validate_criterion(criterion, integrator.tableau)
     with integrator.naming_its_file():
         if p.system is not None:
             from stepsafe.systems.advice import system_advice
@@ -273,7 +277,10 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
             if other is not None:
                 data["other_criterion"] = other
             data["nonlinear_resonances"] = _fastest_resonances(
-                integrator, result, p, resonance_order)
+                integrator, result, p, resonance_order) \
+                if integrator.tableau.hamiltonian else []
+            if not integrator.tableau.hamiltonian:
+                data["stochastic"] = _stochastic_record(integrator, p, None)
             from stepsafe.core.solver import step_limit
 
             data["fixed_point_limit"] = step_limit(integrator.tableau, p.modes.betas)
@@ -291,6 +298,28 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
                         tuple((float(lo), float(hi)) for lo, hi in data.get("undecided_h", ())))
 
 
+def _stochastic_record(integrator: Integrator, p: Problem, h: float | None
+                       ) -> dict[str, Any]:
+    """What the verdict on a method that is not Hamiltonian (a Langevin splitting) means:
+    its stability is that of the map of the mean, which for the library's splittings holds
+    for every friction gamma > 0; at a step ``h``, how it samples the fastest vibration
+    (stationary configurational and kinetic temperature over the true ones, 1 exact; see
+    :func:`stepsafe.core.langevin.sampling`)."""
+    from stepsafe.core.langevin import sampling
+
+    m = integrator.tableau
+    coefficients = m.coefficients()
+    record: dict[str, Any] = {
+        "letters": coefficients.get("letters"), "friction": coefficients.get("friction"),
+        "kT": coefficients.get("kT"),
+        "stability": "of the mean map, for every friction gamma > 0", "sampling": None}
+    betas = p.modes.betas.get("oscillator")
+    if h is not None and betas is not None and betas.size:
+        mode = sampling(m, [float(betas.max())], h).modes[0]
+        record["sampling"] = mode.to_dict()
+    return record
+
+
 def _other_criterion(integrator: Integrator, p: Problem, result: Any,
                      resonance_order: int | None, h: float | None = None
                      ) -> dict[str, Any] | None:
@@ -300,7 +329,10 @@ def _other_criterion(integrator: Integrator, p: Problem, result: Any,
     from stepsafe.core.records import advice_data
     from stepsafe.core.regions import CRITERIA
 
-    other = next(c for c in CRITERIA if c != result.criterion)
+    other = next((c for c in CRITERIA if c != result.criterion
+                  and c in integrator.tableau.criteria), None)
+    if other is None:
+        return None
     zmax = max(r.zmax for r in result.regions.values())
     alt = advice_data(core_advise(integrator.tableau, p.modes, p.margin, zmax,
                                   integrator.name, resonance_order=valid_order(resonance_order),
@@ -357,7 +389,7 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
           base: str | None = None, margin: float | None = None,
           zmax: float | None = None, budget: float | None = None,
           progress: Callable[[float], None] | None = None, problem: Problem | None = None,
-          resonance_order: int | None = None, criterion: str = "structure",
+          resonance_order: int | None = None, criterion: str | None = None,
           verify: bool = False, solver: str = "fixed-point",
           require_complete_search: bool = False) -> CheckReport:
     """Is step ``h`` safe for every frequency? A scene may give the step (``h:``). A step
@@ -417,7 +449,7 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
     resonance_order : int, optional
         N: a vibration at or beyond its first nonlinear resonance of order at most N is
         unsafe too.
-    criterion : str
+    criterion : str, optional
         As for :func:`advise` (``record["other_criterion"]`` says whether ``h`` is safe
         under the other one, when its ``h_max`` differs).
     verify : bool
@@ -445,7 +477,7 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
     from stepsafe.core.records import check_data
     from stepsafe.core.regions import validate_criterion
 
-    criterion = validate_criterion(criterion)
+    criterion = None if criterion is None else validate_criterion(criterion)
     require_complete_search = as_flag(require_complete_search, "require_complete_search")
     inputs = {"saddle_beta": saddle_beta, "inverted_beta": inverted_beta, "modes": modes,
               "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
@@ -462,6 +494,7 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
         raise StepsafeError(f"{p.scene or 'check'}: no step: give --step H or h: in the "
                             "scene file (h= in Python)")
     integrator, result = p.integrator, None
+    criterion = validate_criterion(criterion, integrator.tableau)
     with integrator.naming_its_file():
         if p.system is not None:
             from stepsafe.systems.advice import system_check
@@ -477,6 +510,8 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
                                      float(step))
             if other is not None:
                 data["other_criterion"] = other
+            if not integrator.tableau.hamiltonian:
+                data["stochastic"] = _stochastic_record(integrator, p, float(step))
         if valid_stage_solver(solver) == "fixed-point":
             limit = _system_solver_limit(integrator, p)
             if limit is not None and float(step) >= p.margin * limit:
@@ -519,7 +554,7 @@ def check_scenes(scenes: Sequence[str | Path], *, method: Integrator | str | Non
                  base: str | None = None, margin: float | None = None,
                  zmax: float | None = None, budget: float | None = None,
                  progress: Callable[[float], None] | None = None,
-                 resonance_order: int | None = None, criterion: str = "structure",
+                 resonance_order: int | None = None, criterion: str | None = None,
                  verify: bool = False, solver: str = "fixed-point",
                  require_complete_search: bool = False, substeps: int | None = None
                  ) -> SceneChecks:
@@ -646,7 +681,7 @@ def _impulse_of(scene: Any, inputs: Mapping[str, Any]) -> Integrator | None:
 
 
 def _impulse_check(integrator: Integrator, scene: Any, h: Any, substeps: int | None,
-                   criterion: str, resonance_order: int | None, verify: bool,
+                   criterion: str | None, resonance_order: int | None, verify: bool,
                    inputs: Mapping[str, Any]) -> Any:
 
     given = [key for key in _SINGLE_FORCE if inputs.get(key) is not None]
@@ -655,7 +690,8 @@ def _impulse_check(integrator: Integrator, scene: Any, h: Any, substeps: int | N
                             f"{integrator.name}: its modes come as fast: and slow: frequencies "
                             "in a scene file (or use stepsafe.impulse for one pair)")
     report = impulse_advice(integrator, scene=as_text(scene, "scene"), substeps=substeps, step=h,
-                            time_unit=inputs.get("time_unit"), criterion=criterion,
+                            time_unit=inputs.get("time_unit"),
+                            criterion="structure" if criterion is None else criterion,
                             resonance_order=resonance_order, use_scene_step=h is None)
     if report.step is None:
         raise StepsafeError("no step to check: give --step H or h: in the scene", str(scene))

@@ -68,7 +68,13 @@ METHOD_ROW = top({"name": STR, "kind": STR, "order": {"type": ["integer", "strin
 
 SHOW = top({"method": STR, "title": STR, "kind": STR, "order": INT_OR_NULL,
             "stages": INT_OR_NULL, "evaluations": INT_OR_NULL, "symplectic": BOOL,
-            "source": STR, "coefficients": OBJECT}, closed=False)
+            "source": STR, "coefficients": OBJECT},
+           {"note": STR, "harmonic_sampling": STR_OR_NULL}, closed=False)
+
+#: What the verdict on a Langevin splitting means (its mean map's stability) and, at a
+#: step, how it samples the fastest vibration.
+STOCHASTIC = record({"letters": STR, "friction": NUM, "kT": NUM, "stability": STR,
+                     "sampling": OBJECT_OR_NULL})
 
 MODEL_REGION = record({"first_boundary": NUM_OR_NULL, "intervals": INTERVALS,
                        "islands": array(ANY), "resonances": array(ANY), "poles": array(ANY),
@@ -103,13 +109,14 @@ FAILURE = record({"model": STR, "z": NUM_OR_NULL, "reason": STR}, closed=False)
 
 LINEAR_ADVICE = top({"method": STR, "margin": NUM, "h_max": NUM_OR_NULL,
                      "h_max_limited_by": STR_OR_NULL, "safe_h": INTERVALS,
-                     "criterion": STR, "time_unit": STR_OR_NULL}, closed=False)
+                     "criterion": STR, "time_unit": STR_OR_NULL},
+                    {"stochastic": STOCHASTIC}, closed=False)
 
 CHECK_ENTRY = {"anyOf": [
     record({"method": STR, "h": NUM, "margin": NUM, "safe": BOOL, "modes": INT,
             "failing": INT, "failures": array(FAILURE), "h_max": NUM_OR_NULL,
             "safe_h": INTERVALS, "criterion": STR, "scene": STR_OR_NULL,
-            "time_unit": STR_OR_NULL}, closed=False),
+            "time_unit": STR_OR_NULL}, {"stochastic": STOCHASTIC}, closed=False),
     record({"scene": STR_OR_NULL, "safe": {"const": None}, "error": STR,
             "where": STR_OR_NULL}),
     record({"method": STR, "kind": {"const": "impulse"}, "safe": BOOL_OR_NULL},

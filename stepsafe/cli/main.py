@@ -242,15 +242,19 @@ def main(debug: bool) -> None:
     """
 
 
-def criterion_option(default: str = "structure"):
-    """``--criterion``: what a safe step must keep (see stepsafe.core.regions.CRITERIA)."""
+def criterion_option(default: str | None = "structure"):
+    """``--criterion``: what a safe step must keep (see stepsafe.core.regions.CRITERIA);
+    ``default`` None: the method's own (structure, or stability for a Langevin splitting)."""
     return click.option(
         "--criterion", type=click.Choice(("structure", "stability")), default=default,
-        show_default=True,
+        show_default=default is not None,
         help="structure: the flow's type and orientation are kept (a centre stays a centre "
              "turning the same way); stability: the type only, |tr M| <= 2 for vibrations "
              "(the stability interval of the HMC literature; bcss3 reaches 4.66 instead of "
-             "2.98). Where the other criterion gives other safe steps, both are printed.")
+             "2.98). Where the other criterion gives other safe steps, both are printed."
+             + ("" if default is not None else
+                "  [default: structure; stability for a Langevin splitting, the only one "
+                "that applies to it]"))
 
 
 def gradient_cost_option(func):
@@ -373,7 +377,7 @@ def show_cmd(method: str, stages: int | None, base: str | None, as_json: bool) -
                    "steps are then Omega H (the fast frequency is 1).")
 @click.option("--substeps", type=INT, default=None, metavar="K",
               help="Impulse methods: inner steps per outer drift [default: the file's].")
-@criterion_option()
+@criterion_option(None)
 def region_cmd(method: str, stages: int | None, base: str | None, model: str,
                zmax: float | None, resonance_orders: str, as_json: bool, verify: bool,
                ratio: float | None, substeps: int | None, criterion: str) -> None:
@@ -598,7 +602,7 @@ def _input_error(message: str):
                    "(fixed-point iteration of the stages, which also caps h below its "
                    "convergence limit; simplified Newton; or one per stage).")
 @gradient_cost_option
-@criterion_option()
+@criterion_option(None)
 @scene_options
 def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, criterion,
                scene_files, as_json, verify, gradient_cost, **options) -> None:
@@ -681,7 +685,7 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, crite
                    "equilibrium was not followed, or H could not be evaluated at a start "
                    "(the 'Search:' line says which). Without it such a search is reported, "
                    "not failed.")
-@criterion_option()
+@criterion_option(None)
 @scene_options
 def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as_json,
               verify, require_complete_search, **options) -> None:
@@ -864,7 +868,9 @@ def validate_cmd(files: tuple[str, ...]) -> None:
         res = residuals(method)
         lines.append(f"ok: {path}: {entry.name} ({method.kind}, order {method.order}, "
                      f"{method.stages} stages)")
-        if not res.symplectic_for_separable:
+        if not method.hamiltonian:
+            lines.append(f"note: {path}: {method.analysis_note}")
+        elif not res.symplectic_for_separable:
             lines.append(f"warning: {path}: not symplectic "
                          f"(residual {res.symplectic_separable:.3g}, beyond the "
                          f"{res.symplectic_tolerance:.3g} the written digits allow)")

@@ -168,7 +168,8 @@ def print_region(head: dict[str, Any], models: dict[str, dict[str, Any]]) -> Non
             if d["first_boundary_kind"]:
                 first += f"  ({d['first_boundary_kind']}: {d['first_boundary_detail']})"
         console.print(f"\n[bold]{model}[/bold]  first boundary z* = {first}")
-        if stability and d.get("structure_first_boundary") != d["first_boundary"]:
+        if stability and "structure_first_boundary" in d \
+                and d["structure_first_boundary"] != d["first_boundary"]:
             z_s = d.get("structure_first_boundary")
             console.print("  under the structure criterion (type and orientation): z* = "
                           + ("none below zmax" if z_s is None else fmt(z_s)))
@@ -227,6 +228,11 @@ def print_method(data: dict[str, Any], coefficients: dict[str, Any]) -> None:
     console.print(table)
     for key, value in coefficients.items():
         console.print(_lit((key, "bold"), f" = {value}"))
+    if data.get("note"):
+        console.print(_lit(f"note: {data['note']}"))
+    if data.get("harmonic_sampling"):
+        console.print(_lit(f"harmonic oscillator, z = omega h < 2, every friction: "
+                           f"{data['harmonic_sampling']}"))
 
 
 def print_methods(rows: list[dict[str, Any]]) -> None:
@@ -318,6 +324,7 @@ def print_advice(data: dict[str, Any]) -> None:
                           f"{r['resonance']} at h = {fmt_below(r['h'])}{u}"
                           for r in resonances))
     _print_other_criterion(console.print, data, u)
+    _print_stochastic(console.print, data)
     if not unit and data["models"]:
         console.print("h is in the time unit of 1/beta (--time-unit names it).")
 
@@ -332,6 +339,24 @@ def _print_other_criterion(echo, data: dict[str, Any], u: str) -> None:
         f"; h = {fmt(data['h'])}{u} is {'safe' if other['safe'] else 'unsafe'} under it")
     echo(f"Under --criterion {other['criterion']} ({CRITERION_MEANING[other['criterion']]}) "
          f"the safe steps are {steps}{verdict}.")
+
+
+def _print_stochastic(echo, data: dict[str, Any]) -> None:
+    """What a Langevin splitting's verdict means (its ``stochastic`` record), and at a step
+    how it samples the fastest vibration."""
+    rec = data.get("stochastic")
+    if not rec:
+        return
+    echo(f"Langevin splitting {rec['letters']} (friction gamma = {fmt(rec['friction'])}, kT = "
+         f"{fmt(rec['kT'])}, from the method file): the stability is that of the mean map, "
+         "the same for every friction gamma > 0.")
+    s = rec.get("sampling")
+    if s and s["stable"]:
+        echo(f"Sampling of the fastest vibration (beta = {fmt(s['beta'])}, z = {fmt(s['z'])}), "
+             f"stationary over exact (1 is exact): configurational temperature "
+             f"{fmt(s['configurational_temperature_ratio'])}, kinetic "
+             f"{fmt(s['kinetic_temperature_ratio'])}; the mean decays by "
+             f"{fmt(s['decay_per_step'])} per step.")
 
 
 CRITERION_MEANING = {"structure": "type and orientation",
@@ -364,6 +389,7 @@ def print_check(data: dict[str, Any]) -> None:
                    f"preserves all {data['modes']} mode(s){where}"
                    f"{_criterion_words(data)}.")
         _print_other_criterion(click.echo, data, u)
+        _print_stochastic(click.echo, data)
         return
     besides = [data[key] for key in ("solver_failure", "search_failure") if data.get(key)]
     if besides and not data["failing"]:
@@ -394,6 +420,7 @@ def print_check(data: dict[str, Any]) -> None:
     elif data["h_max"] is not None:
         click.echo("No step is safe for all modes.")
     _print_other_criterion(click.echo, data, u)
+    _print_stochastic(click.echo, data)
 
 
 #: What ``--resonance-order`` does not cover, printed under its verdicts.

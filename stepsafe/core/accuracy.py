@@ -46,8 +46,9 @@ import numpy as np
 
 from stepsafe.core.models import ELLIPTIC
 from stepsafe.core.roots import EPS, refine_brackets
-from stepsafe.core.transfer import blocks_of, stage_operator, transfer_matrix
-from stepsafe.methods.protocol import Block, Friction, Shears, Stages
+from stepsafe.core.transfer import blocks_of, leaf_key, stage_operator, transfer_matrix
+from stepsafe.exceptions import StepsafeError
+from stepsafe.methods.protocol import Block, Friction, Shears
 from stepsafe.methods.tableaux import Method, PartitionedRK, Splitting
 
 SERIES_TERMS = 64
@@ -112,11 +113,10 @@ def taylor_series(method: Method, model: str, terms: int = SERIES_TERMS) -> Seri
     out[0] = np.eye(2)
     out_abs = out.copy()
     powers = np.arange(terms + 1)
-    series: dict[int, Series] = {}
+    series: dict[tuple, Series] = {}
     z_valid = np.inf
     for b in blocks:
-        leaf = id(b.splitting if isinstance(b, Shears) else
-                  b.method if isinstance(b, Stages) else b)
+        leaf = leaf_key(b)
         if leaf not in series:
             from dataclasses import replace
 
@@ -390,6 +390,7 @@ def errors(method: Method, z, model: str = "oscillator") -> Errors:
     figure, the figure is recomputed from the method's high-precision transfer matrix
     (:func:`stepsafe.core.escalate.reference_of`), within a work budget."""
     z = np.atleast_1d(np.asarray(z, dtype=float))
+    hamiltonian_only(method)
     if method.processor_operations is not None:  # the kernel's phase, the full map's energy
         full = errors(method.one_step(), z, model)
         kernel = method.splitting()
@@ -573,6 +574,7 @@ def offsets(method: Method, z) -> Offsets:
     """:class:`Offsets` of the oscillator at each z (overflow gives inf or NaN entries, and
     no floating-point warning: the callers read them as unstable)."""
     z = np.atleast_1d(np.asarray(z, dtype=float))
+    hamiltonian_only(method)
     with np.errstate(invalid="ignore", over="ignore"):
         M = transfer_matrix(method, z, "oscillator")
         a, b, c, d = M[:, 0, 0], M[:, 0, 1], M[:, 1, 0], M[:, 1, 1]
@@ -581,6 +583,14 @@ def offsets(method: Method, z) -> Offsets:
         b_plus_c = _choose(parts.bc, parts.bc_err, parts.z_valid, z, b + c, direct_err)[0]
         a_minus_d = _choose(parts.ad, parts.ad_err, parts.z_valid, z, a - d, direct_err)[0]
         return Offsets(M, b_plus_c, a_minus_d, -b * c - 0.25 * (a - d) ** 2)
+
+
+def hamiltonian_only(method: Method) -> None:
+    """A :class:`StepsafeError` for a method whose step is not a Hamiltonian map (phase,
+    energy and HMC errors are those of one)."""
+    if not method.hamiltonian:
+        raise StepsafeError(f"phase, energy and acceptance errors are those of a Hamiltonian "
+                            f"map: {method.analysis_note}")
 
 
 class ToleranceStep(NamedTuple):

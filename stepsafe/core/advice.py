@@ -216,7 +216,7 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
     structure regions). With ``resonance_order`` N, vibrations also keep below the first
     nonlinear resonance of order at most N (:mod:`stepsafe.core.resonances`)."""
     margin = validate_margin(margin)
-    criterion = validate_criterion(criterion)
+    criterion = validate_criterion(criterion, method)
     regions = {model: under_criterion(region, criterion)
                for model, region in (regions or {}).items()}
     for model in modes.betas:
@@ -361,7 +361,7 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
     margin)? With ``resonance_order`` N, is every vibration also below its first nonlinear
     resonance of order at most N?"""
     margin = validate_margin(margin)
-    criterion = validate_criterion(criterion)
+    criterion = validate_criterion(criterion, method)
     h = positive_finite(h, "h")
     beta_top = max(float(b.max()) for b in modes.betas.values())
     with np.errstate(over="ignore"):

@@ -112,10 +112,24 @@ def method_data(method, entry) -> dict[str, Any]:
             "weights_equal_allowed": res.weights_tolerance,
             "consistency": res.consistency,
             **({"row_sums": res.row_sums} if res.row_sums is not None else {}),
-        },
+        } if method.hamiltonian else {"consistency": res.consistency},
         "source": entry.source,
         **processor_data(method),
+        **stochastic_data(method),
     }
+
+
+def stochastic_data(method) -> dict[str, Any]:
+    """For a method that is not Hamiltonian (a Langevin splitting): what its analyses mean
+    (``note``) and, where known, its stationary sampling of the harmonic oscillator in
+    closed form (``harmonic_sampling``, :data:`stepsafe.core.langevin.CLOSED_FORM_TEXT`)."""
+    if method.hamiltonian:
+        return {}
+    from stepsafe.core.langevin import CLOSED_FORM_TEXT
+
+    letters = method.coefficients().get("letters")
+    return {"note": method.analysis_note,
+            "harmonic_sampling": CLOSED_FORM_TEXT.get(letters)}
 
 
 def processor_data(method) -> dict[str, Any]:

@@ -386,10 +386,36 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     the extrema by Newton's method on ``d(tr M)/dz``, decide tangencies there, then refine
     every crossing of every level. Points float64 cannot place to the printed digits are
     re-decided at high precision (:mod:`stepsafe.core.escalate`).
+
+    The map analysed is the method's :meth:`~stepsafe.methods.protocol.MethodKind.region_method`
+    (a processed method's kernel). A method to which the structure criterion does not apply
+    (a Langevin splitting, whose region method is the symplectic part that decides the
+    stability of its mean map for every friction) gets that region under the stability
+    criterion, marked not symplectic, with the method's ``analysis_note``.
     """
     check_model(model)
     zmax = _validate_zmax(zmax)
-    method = method.region_method(model)  # processed: the kernel (see there)
+    analysed_on(method, model)
+    region = _find_region(method.region_method(model), model, zmax, resolution)
+    if "structure" in method.criteria:
+        return region
+    from dataclasses import replace
+
+    return replace(under_criterion(region, "stability"), symplectic=False,
+                   notes=region.notes + ((method.analysis_note,) if method.analysis_note
+                                         else ()))
+
+
+def analysed_on(method: Method, model: str) -> None:
+    """A :class:`StepsafeError` unless ``method`` is analysed on ``model``."""
+    if model not in method.models:
+        raise StepsafeError(f"{method.name} (a {method.kind} method) is analysed on the "
+                            f"{', '.join(method.models)} model only, not on {model}")
+
+
+def _find_region(method: Method, model: str, zmax: float, resolution: float | None
+                 ) -> Region:
+    """The body of :func:`find_region` for the map it analyses."""
     dz = default_resolution(method) if resolution is None else float(resolution)
     ev = _Evaluator(method, model)
     symplectic = residuals(method).symplectic_for(model)
@@ -853,10 +879,21 @@ def clear_of_bands(intervals: list[Interval]) -> list[Interval]:
 CRITERIA = ("structure", "stability")
 
 
-def validate_criterion(criterion: object) -> str:
+def validate_criterion(criterion: object, method: Method | None = None) -> str:
+    """``criterion`` if it is one of :data:`CRITERIA` (and applies to ``method``, when
+    given), else a :class:`StepsafeError` saying which apply. None is the method's own
+    default: ``structure``, or the first that applies to it (``stability`` for a Langevin
+    splitting); ``structure`` without a method."""
+    if criterion is None:
+        return "structure" if method is None else method.criteria[0]
     if not isinstance(criterion, str) or criterion not in CRITERIA:
         raise StepsafeError(f"criterion must be one of {', '.join(CRITERIA)}, got "
                             f"{str(criterion)[:30]!r}")
+    if method is not None and criterion not in method.criteria:
+        raise StepsafeError(f"the {criterion} criterion does not apply to {method.name}: "
+                            f"{method.analysis_note or 'see its method kind'} (criterion "
+                            f"{' or '.join(method.criteria)}: --criterion "
+                            f"{method.criteria[0]})")
     return criterion
 
 
@@ -963,6 +1000,7 @@ def classical_interval(method: Method, model: str = "oscillator", zmax: float = 
     """
     check_model(model)
     zmax = _validate_zmax(zmax)
+    analysed_on(method, model)
     method = method.region_method(model)
     return _classical(_Evaluator(method, model), zmax, resolution)
 

@@ -92,6 +92,9 @@ def rotations(method: Method, region: Region, pairs: list[tuple[int, int]]
     first = region.first_interval
     if region.model != "oscillator" or first is None:
         return ()
+    from stepsafe.core.accuracy import hamiltonian_only
+
+    hamiltonian_only(method)  # a rotation angle theta is a symplectic map's
     z_end = region.zmax if first.hi is None else first.hi
     dz = default_resolution(method)
     z = Grid.between_poles(np.empty(0), z_end, dz).z

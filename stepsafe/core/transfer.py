@@ -510,9 +510,9 @@ def _block_jets(blocks: tuple[Block, ...], z: np.ndarray, model: str, with_scale
     ``w z``."""
     n = z.size
     out = [np.empty((len(blocks), n, 2, 2)) for _ in range(4)]
-    groups: dict[int, list[int]] = {}
+    groups: dict[tuple, list[int]] = {}
     for k, b in enumerate(blocks):
-        groups.setdefault(id(_leaf(b)), []).append(k)
+        groups.setdefault(leaf_key(b), []).append(k)
     for members in groups.values():
         g = np.array([blocks[k].weight for k in members])
         jet = _block_jet(_at_unit_weight(blocks[members[0]]), np.outer(g, z).ravel(), model,
@@ -522,13 +522,14 @@ def _block_jets(blocks: tuple[Block, ...], z: np.ndarray, model: str, with_scale
     return tuple(out)
 
 
-def _leaf(block: Block) -> object:
-    """What a block runs (blocks of one leaf differ only in weight)."""
+def leaf_key(block: Block) -> tuple:
+    """What a block runs: blocks of one key differ only in their weight (a composition's
+    substeps), so their matrices are one call at all their ``w z``."""
     if isinstance(block, Shears):
-        return block.splitting
+        return ("shears", id(block.splitting))
     if isinstance(block, Stages):
-        return block.method
-    return block.gamma
+        return ("stages", id(block.method))
+    return ("friction", block.gamma, block.kT)
 
 
 def _at_unit_weight(block: Block) -> Block:
@@ -606,9 +607,9 @@ def pole_locations(method: Method, model: str) -> tuple[np.ndarray, np.ndarray]:
     blocks = method.decomposition(model)
     if len(blocks) == 1 and blocks[0].weight == 1.0:
         return _block_poles(blocks[0], model)
-    groups: dict[int, tuple[Block, list[float]]] = {}
+    groups: dict[tuple, tuple[Block, list[float]]] = {}
     for b in blocks:
-        groups.setdefault(id(_leaf(b)), (b, []))[1].append(b.weight)
+        groups.setdefault(leaf_key(b), (b, []))[1].append(b.weight)
     zs_all, us_all = [], []
     for b, weights in groups.values():
         base, unc = _block_poles(_at_unit_weight(b), model)

@@ -5,6 +5,7 @@ A method file is a YAML mapping (read by :mod:`stepsafe.files.yamlio`, all scala
     name: pefrl                      # CLI name
     title: "Position-extended Forest-Ruth-like"
     kind: splitting                  # rk | prk | splitting | composition | impulse | processed
+                                     # | langevin
     order: 4
     evaluations: 4                   # force evaluations per step, first-same-as-last merged
     source: "Omelyan, Mryglod, Folk, Comput. Phys. Commun. 146 (2002) 188, eq. (20)"
@@ -23,7 +24,10 @@ methods, each a name or a path) and ``substeps``; ``processed`` (``psi = P^-1 o 
 symmetric:}``; a splitting or a composition of one) and ``processor`` (inline ``{drift:,
 kick:}``: P applies ``drift(c_1 h), kick(d_1 h), drift(c_2 h), ...``, sums free; or the name
 of a splitting method file); ``order`` is then the processed method's order and
-``evaluations`` the kernel's per step (P and P^-1 are counted apart). Coefficients are
+``evaluations`` the kernel's per step (P and P^-1 are counted apart); ``langevin``:
+``letters`` (a word in A = drift, B = kick, O = the exact Ornstein–Uhlenbeck step, each
+letter's substep h over its count: ``BAOAB``, ``OBABO``), ``friction`` (gamma, per time unit,
+default 1) and ``kT`` (thermal energy, default 1). Coefficients are
 numbers or expressions (:mod:`stepsafe.files.expressions`). With ``symmetric: true`` the
 listed operation sequence (``drift a_1, kick b_1, drift a_2, ...``, or the weights) is the
 first half including the middle operation; the rest is its mirror image.
@@ -52,7 +56,7 @@ from stepsafe.files.expressions import (
     parse,
 )
 
-KINDS = ("rk", "prk", "splitting", "composition", "impulse", "processed")
+KINDS = ("rk", "prk", "splitting", "composition", "impulse", "processed", "langevin")
 MAX_STAGES = 200
 MAX_WEIGHTS = 200
 #: RK and PRK tableaux: each sample of M(z) solves a 2s x 2s stage system, so the cost grows
@@ -120,6 +124,14 @@ FIELDS: dict[str, Field] = {
                                     "each output): inline {drift:, kick:} (drift first, sums "
                                     "free) or a splitting method's name",
                        kinds=("processed",), required=True),
+    "letters": Field("text", "Langevin splitting as a word in A (drift q += t M^-1 p), B "
+                             "(kick p -= t V'(q)) and O (p <- c p + sqrt((1 - c^2) kT) "
+                             "M^1/2 xi, c = exp(-gamma t)), each letter's substep h over its "
+                             "count, e.g. BAOAB", kinds=("langevin",), required=True),
+    "friction": Field("coef", "friction gamma, per time unit [default 1]",
+                      kinds=("langevin",)),
+    "kT": Field("coef", "thermal energy kT in the system's energy unit [default 1]",
+                kinds=("langevin",)),
     "published_stability": Field("map", "a stability threshold stated by a source "
                                         "({value:, source:})"),
     "thresholds": Field("map", "harmonic-oscillator thresholds of these coefficients as "
@@ -382,6 +394,8 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
         extras = {"outer": _base_ref(tree["outer"], where, "outer"),
                   "inner": _base_ref(tree["inner"], where, "inner"),
                   "substeps": _int(tree["substeps"], where, "substeps", 1, MAX_SUBSTEPS)}
+    if kind == "langevin":
+        extras = _langevin(tree, where, scope)
     if kind in WRITTEN and backend is FLOAT:  # the symplecticity at the digits' precision
         extras["written"] = {key: _written(tree[key], scope) for key in WRITTEN[kind]}
     stability = tree.get("published_stability")
@@ -401,6 +415,26 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
         coefficients=coefficients, base=base,
         recipe=tree.get("recipe"), published_stability=stability, thresholds=thresholds,
         where=where, extras=extras)
+
+
+def _langevin(tree: dict, where: str, scope: _Scope) -> dict[str, Any]:
+    """``letters`` (A, B and O, each present, O in one run up to a rotation, checked when
+    the method is built), ``friction`` (>= 0) and ``kT`` (> 0) of a Langevin splitting."""
+    from stepsafe.methods.langevin import LETTERS, MAX_LETTERS
+
+    letters = _text(tree["letters"], where, "letters")
+    if not letters or len(letters) > MAX_LETTERS or any(ch not in LETTERS for ch in letters):
+        raise _fail(where, "letters", f"must be a word of at most {MAX_LETTERS} of the letters "
+                                      f"A (drift), B (kick) and O (friction), got "
+                                      f"{letters[:40]!r}")
+    out: dict[str, Any] = {"letters": letters}
+    for key, default in (("friction", 1.0), ("kT", 1.0)):
+        value = float(scope.value(tree[key], where, key)) if key in tree else default
+        if not math.isfinite(value) or value < 0 or (key == "kT" and value == 0):
+            raise _fail(where, key, f"must be a finite number {'> 0' if key == 'kT' else '>= 0'}"
+                                    f", got {value!r}")
+        out[key] = value
+    return out
 
 
 #: The tableaux whose symplecticity condition is decided on the coefficients as written
@@ -522,8 +556,8 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
     from stepsafe.methods import tableaux as m
 
     co = {k: np.array(v, dtype=float) for k, v in data.coefficients.items()}
-    common = dict(name=data.name, order=data.order, evaluations=data.evaluations,
-                  title=data.title)
+    common: dict[str, Any] = dict(name=data.name, order=data.order,
+                                  evaluations=data.evaluations, title=data.title)
     if data.kind in WRITTEN and "written" in data.extras:
         from stepsafe.methods.residuals import written_residuals
 
@@ -572,6 +606,16 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
                                 f"{data.where}::$.processor")
         with _naming_the_key(data.where, ("kernel",)):
             return m.Processed(part("kernel", "kernel"), processor, **common)
+    if data.kind == "langevin":
+        from stepsafe.exceptions import MethodError, StepsafeError
+        from stepsafe.methods.langevin import Langevin
+
+        try:
+            return Langevin(data.extras["letters"], data.extras["friction"],
+                            data.extras["kT"], name=data.name, order=data.order,
+                            evaluations=data.evaluations, title=data.title)
+        except MethodError as exc:
+            raise StepsafeError(str(exc), f"{data.where}::$.letters") from None
     if data.kind == "impulse":
         with _naming_the_key(data.where, ("outer", "inner")):
             return m.Impulse(resolved(data.extras["outer"], "outer"),
@@ -605,7 +649,7 @@ def _naming_the_key(where: str, keys: tuple[str, ...]) -> Iterator[None]:
 def json_schema() -> dict[str, Any]:
     """The method file format as a JSON Schema (draft 2020-12), generated from FIELDS."""
     coef = {"type": ["number", "string"], "description": "number or restricted expression"}
-    types = {
+    types: dict[str, Any] = {
         "text": {"type": "string"}, "int": {"type": "integer", "minimum": 0},
         "bool": {"type": "boolean"}, "coef": coef,
         "vector": {"type": "array", "items": coef, "minItems": 1, "maxItems": MAX_STAGES},

@@ -64,12 +64,18 @@ def _alias_index() -> dict[str, Path]:
     return index
 
 
+#: Kinds of built-in files that are not one-force Hamiltonian integrators: impulse methods
+#: need a fast and a slow force, Langevin splittings are stochastic (analysed by their mean
+#: map and covariance on vibrations only).
+NOT_SINGLE_FORCE = ("impulse", "langevin")
+
+
 def builtin_names(single_force: bool = False) -> list[str]:
-    """Names of the built-in method files and families; with ``single_force`` without the
-    impulse (multiple time stepping) methods, which need a fast and a slow force."""
+    """Names of the built-in method files and families; with ``single_force`` only the
+    one-force Hamiltonian integrators (without the kinds of :data:`NOT_SINGLE_FORCE`)."""
     files = [p.stem for p in builtin_dir().glob("*.yaml")]
     if single_force:
-        files = [name for name in files if _file_kinds().get(name) != "impulse"]
+        files = [name for name in files if _file_kinds().get(name) not in NOT_SINGLE_FORCE]
     return sorted(files + list(FAMILIES))
 
 

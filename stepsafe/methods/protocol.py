@@ -121,7 +121,8 @@ class MethodKind(ABC):
     * a processor: ``processor_operations``, ``inverse_operations``,
       ``processor_evaluations`` (None without one), :meth:`one_step` (the map from one output
       to the next), :meth:`region_method` (the map whose region is the method's);
-    * what the analyses accept: ``models``, ``criteria``;
+    * what the analyses accept: ``hamiltonian``, ``models``, ``criteria`` and, where those
+      are restricted, ``analysis_note`` saying why;
     * the cost of analysing it: ``reach`` (how far the substeps reach, in h), ``sample_work``
       (relative cost of one transfer matrix);
     * :meth:`high_precision` (its transfer matrix in mpmath, from the independent
@@ -234,6 +235,12 @@ class MethodKind(ABC):
 
     # ---------------------------------------------------------------- analyses
     @property
+    def hamiltonian(self) -> bool:
+        """Whether a step is the map of a Hamiltonian flow's approximation (phase and
+        energy errors, HMC, orientation apply); a Langevin splitting's mean map is not."""
+        return True
+
+    @property
     def models(self) -> tuple[str, ...]:
         """The test models the method is analysed on."""
         return ALL_MODELS
@@ -242,6 +249,12 @@ class MethodKind(ABC):
     def criteria(self) -> tuple[str, ...]:
         """The region criteria that apply to the method."""
         return ALL_CRITERIA
+
+    @property
+    def analysis_note(self) -> str | None:
+        """What the analyses of a method that is not Hamiltonian mean (the message where
+        one asks for what does not apply); None for Hamiltonian methods."""
+        return None
 
     @property
     def reach(self) -> float:

@@ -542,6 +542,50 @@ def _diagonal_splitting(drift: Sequence, kick: Sequence, z, model: str):
     return mp.matrix([[rq, mp.zero], [mp.zero, rp]])
 
 
+def langevin_substeps(letters: str) -> list[tuple[str, Any]]:
+    """A Langevin splitting's word as ``(letter, fraction of the step)``: each letter's
+    substep is the step over the number of times the letter occurs."""
+    return [(ch, mp.one / letters.count(ch)) for ch in letters]
+
+
+def transfer_matrix_langevin(letters: str, friction, z, model: str = "oscillator"):
+    """The map of the mean of a Langevin splitting on the oscillator (z = omega h, friction
+    per unit of frequency): ``A_t = [[1, t z], [0, 1]]``, ``B_t = [[1, 0], [-t z, 1]]``,
+    ``O_t = diag(1, exp(-friction t z))``, multiplied in the word's order."""
+    if model != "oscillator":
+        raise ValueError("a Langevin splitting's mean map is analysed on the oscillator only")
+    z = mp.mpf(z)
+    M = mp.eye(2)
+    for ch, t in langevin_substeps(letters):
+        if ch == "A":
+            F = mp.matrix([[1, t * z], [0, 1]])
+        elif ch == "B":
+            F = mp.matrix([[1, 0], [-t * z, 1]])
+        else:
+            F = mp.matrix([[1, 0], [0, mp.exp(-mp.mpf(friction) * t * z)]])
+        M = F * M
+    return M
+
+
+def langevin_hamiltonian_part(letters: str) -> tuple[list, list]:
+    """``(drift, kick)`` of the drifts and kicks of a Langevin splitting's word taken in
+    cyclic order from the end of its run of O letters (the O letters dropped): the
+    symplectic map X with ``tr M = tr(diag(1, c) X)``."""
+    n = len(letters)
+    end = next(i for i in range(n) if letters[i] == "O" and letters[(i + 1) % n] != "O")
+    steps = langevin_substeps(letters)
+    ops = [steps[(end + 1 + k) % n] for k in range(n)]
+    drift: list = [mp.zero]  # drift(a_1) kick(b_1) drift(a_2) ...: one more drift than kicks
+    kick: list = []
+    for ch, t in ops:
+        if ch == "A":
+            drift[-1] += t
+        elif ch == "B":
+            kick.append(t)
+            drift.append(mp.zero)
+    return drift, kick
+
+
 def transfer_matrix_composition(base_fn: MFun, weights: Sequence, z):
     """Phi_{g_k h} o ... o Phi_{g_1 h}: M = M_base(g_k z) ... M_base(g_1 z)."""
     M = mp.eye(2)

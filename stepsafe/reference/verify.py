@@ -35,7 +35,7 @@ TOLERANCE = 1e-10
 
 
 class MPMethod(NamedTuple):
-    kind: str  # "prk", "splitting", "composition"
+    kind: str  # "prk", "splitting", "composition", "processed", "langevin"
     order: int | None
     data: dict[str, Any]
 
@@ -115,6 +115,8 @@ def mp_method(name: str, stages: int | None = None, base: str | None = None,
                 out = MPMethod("processed", data.order,
                                {"kernel": part(data.extras["kernel"]),
                                 "processor": part(data.extras["processor"])})
+            elif data.kind == "langevin":
+                out = MPMethod("langevin", data.order, dict(data.extras))
             elif data.kind in ("rk", "prk"):
                 if data.kind == "rk":
                     co = {"A_q": co["A"], "b_q": co["b"], "A_p": co["A"], "b_p": co["b"]}
@@ -148,6 +150,9 @@ def mp_transfer(m: MPMethod) -> Callable:
     """``Mfun(z, model)``: the mpmath transfer matrix of ``m``."""
     from stepsafe.reference import highprec as reference
 
+    if m.kind == "langevin":  # the map of the mean
+        letters, friction = m.data["letters"], m.data["friction"]
+        return lambda z, model: reference.transfer_matrix_langevin(letters, friction, z, model)
     if m.kind == "processed":  # the full one-step map P^-1 K P (the kernel's trace)
         drift, kick = mp_processed_splitting(m)
         kernel = mp_transfer(m.data["kernel"])
@@ -453,7 +458,13 @@ def verify_regions(name: str, stages: int | None, base: str | None,
 
 def _verify_regions(name: str, stages: int | None, base: str | None,
                     regions: dict[str, Region], dps: int, up_to: float | None) -> list[Check]:
-    Mfun = mp_transfer(mp_method(name, stages, base, dps))
+    m = mp_method(name, stages, base, dps)
+    Mfun = mp_transfer(m)
+    if m.kind == "langevin":  # its region is that of its drifts and kicks from the O step
+        from stepsafe.reference import highprec as reference
+
+        drift, kick = reference.langevin_hamiltonian_part(m.data["letters"])
+        Mfun = mp_transfer(MPMethod("splitting", None, {"drift": drift, "kick": kick}))
     out = []
     for model, region in regions.items():
         first = region.first_boundary_point
