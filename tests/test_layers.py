@@ -33,18 +33,8 @@ REFERENCE_USERS = {"reference", "api", "cli", "", "__main__"}
 KNOWN = {
     ("stepsafe.cli.main", "stepsafe"):
         "the version string is defined in the package root",
-    ("stepsafe.core.accuracy", "stepsafe.reference.highprec"):
-        "the 50-digit phase error where float64 cannot resolve it (escalation)",
-    ("stepsafe.core.accuracy", "stepsafe.reference.verify"):
-        "the 50-digit verification of the error figures (escalation)",
-    ("stepsafe.core.escalate", "stepsafe.reference.highprec"):
-        "escalation to 50 digits lives in the core, which decides when float64 cannot",
-    ("stepsafe.methods.families", "stepsafe.core.escalate"):
-        "a family member's coefficients are checked by the core's escalated test",
     ("stepsafe.methods.families", "stepsafe.reference.highprec"):
         "a family member's symplecticity is decided at 50 digits",
-    ("stepsafe.methods.library", "stepsafe.core.escalate"):
-        "a library method's written digits are checked by the core's escalated test",
     ("stepsafe.methods.library", "stepsafe.reference.verify"):
         "a method file's symplecticity is verified at 50 digits on loading",
     ("stepsafe.methods.langevin", "stepsafe.reference.highprec"):

@@ -48,6 +48,7 @@ from stepsafe.core.models import ELLIPTIC
 from stepsafe.core.roots import EPS, refine_brackets
 from stepsafe.core.transfer import blocks_of, leaf_key, stage_operator, transfer_matrix
 from stepsafe.exceptions import StepsafeError
+from stepsafe.methods.library import high_precision_tableaux
 from stepsafe.methods.protocol import Block, Friction, Shears
 from stepsafe.methods.tableaux import Method, PartitionedRK, Splitting
 
@@ -251,40 +252,6 @@ def _hp_parts(method: Method, model: str, series: Series) -> Parts | None:
     return _HP_CACHE[key]
 
 
-def _hp_tableau(prk: PartitionedRK) -> tuple[list, list, list, list]:
-    """``(A_q, b_q, A_p, b_p)`` as mpmath numbers at the working precision: a Gauss or
-    Lobatto family member's tableau computed at that precision, a library file's decimals
-    read exactly, else the float coefficients taken as exact."""
-    import mpmath as mp
-
-    def rows(A):
-        return [[A[i, j] for j in range(A.cols)] for i in range(A.rows)] \
-            if isinstance(A, mp.matrix) else [list(r) for r in A]
-
-    ex = prk.exact
-    if isinstance(ex, partial):
-        from stepsafe.methods import families, library
-        from stepsafe.reference import highprec as R
-
-        if ex.func is families._exact:
-            family, s = ex.args
-            if family == "gauss":
-                A, b, _ = R.gauss_tableau(s)
-                return rows(A), list(b), rows(A), list(b)
-            A, b, _ = R.lobatto_IIIA_tableau(s)
-            B, _, _ = R.lobatto_IIIB_tableau(s)
-            return rows(A), list(b), rows(B), list(b)
-        if ex.func is library._exact:
-            from stepsafe.reference.verify import mp_method
-
-            m = mp_method(*ex.args, dps=mp.mp.dps)
-            if m.kind == "prk" and len(m.data["b_q"]) == prk.stages:
-                d = m.data
-                return rows(d["A_q"]), list(d["b_q"]), rows(d["A_p"]), list(d["b_p"])
-    return ([[mp.mpf(float(x)) for x in r] for r in prk.A_q], [mp.mpf(float(x)) for x in prk.b_q],
-            [[mp.mpf(float(x)) for x in r] for r in prk.A_p], [mp.mpf(float(x)) for x in prk.b_p])
-
-
 def _hp_series_parts(prk: PartitionedRK, model: str, series: Series) -> Parts:
     """``M_(k+1) = B K^k E`` summed at rising precision until every coefficient is either
     known to float accuracy or below the working precision's rounding bound (then 0 with
@@ -302,7 +269,7 @@ def _hp_series_parts(prk: PartitionedRK, model: str, series: Series) -> Parts:
     k = np.arange(n)
     for dps in (60, 120, 240, 480):
         with mp.workdps(dps):
-            Aq, bq, Ap, bp = _hp_tableau(prk)
+            Aq, bq, Ap, bp = high_precision_tableaux(prk)
             s = len(bq)
             Xq = [[mp.mpf(1)] * s, [mp.mpf(0)] * s]  # stage vectors of the columns (q0, p0)
             Xp = [[mp.mpf(0)] * s, [mp.mpf(1)] * s]

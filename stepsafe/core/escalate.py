@@ -31,9 +31,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from stepsafe.core.mproots import locate_pole, refine_root
+from stepsafe.methods.protocol import HIGH_PRECISION_DIGITS
 from stepsafe.methods.tableaux import Method
 
-DPS = 40
+DPS = HIGH_PRECISION_DIGITS
 ESCALATE_REL = 1e-12
 MAX_EVALUATIONS = 300
 #: High-precision work per region, in units of :func:`stepsafe.core.grid.sample_work`
@@ -108,8 +110,6 @@ class Escalation:
     def _decide(self, lo: float, hi: float, level: float, band: float) -> Decision | None:
         import mpmath as mp
 
-        from stepsafe.reference.highprec import refine_root
-
         if self.exhausted:
             return None
         with mp.workdps(DPS):
@@ -163,8 +163,6 @@ class Escalation:
         """
         import mpmath as mp
 
-        from stepsafe.reference.highprec import refine_root
-
         def g(x):
             return self._trace(x) - level
 
@@ -204,8 +202,6 @@ class Escalation:
 
     def _pole(self, z0: float, width: float) -> float | None:
         import mpmath as mp
-
-        from stepsafe.reference.highprec import locate_pole, refine_root
 
         if self.exhausted:
             return None

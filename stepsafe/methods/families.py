@@ -20,10 +20,12 @@ diagonal entry (Lobatto), so ``W^-1`` is explicit and well conditioned.
 from __future__ import annotations
 
 from functools import lru_cache, partial
+from typing import Any
 
 import numpy as np
 
 from stepsafe.exceptions import MethodError
+from stepsafe.methods.protocol import HIGH_PRECISION_DIGITS
 from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta
 
 #: Largest stage count accepted for the families (accuracy verified up to here by tests).
@@ -143,16 +145,28 @@ def lobatto3ab(s: int) -> PartitionedRK:
                          exact=partial(_exact, "lobatto3ab", s))
 
 
+def high_precision_tableaux(family: str, s: int) -> tuple[Any, Any, Any, Any]:
+    """``(A_q, b_q, A_p, b_p)`` of the family member at the working mpmath precision (nodes
+    and weights computed at that precision, :mod:`stepsafe.reference.highprec`)."""
+    from stepsafe.reference import highprec as R
+
+    if family == "gauss":
+        A, b, _ = R.gauss_tableau(s)
+        return A, b, A, b
+    A, b, _ = R.lobatto_IIIA_tableau(s)
+    B, _, _ = R.lobatto_IIIB_tableau(s)
+    return A, b, B, b
+
+
 @lru_cache(maxsize=16)
 def _exact(family: str, s: int):
     """The family member's transfer matrix at high precision (:mod:`stepsafe.reference.highprec`:
     nodes and weights computed at raised precision, not rounded to float64)."""
     import mpmath as mp
 
-    from stepsafe.core.escalate import DPS
     from stepsafe.reference import highprec as R
 
-    with mp.workdps(DPS + 10):
+    with mp.workdps(HIGH_PRECISION_DIGITS + 10):
         if family == "gauss":
             A, b, _ = R.gauss_tableau(s)
             return R.prk_transfer(A, b, A, b)

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from stepsafe.exceptions import MethodError, StepsafeError
+from stepsafe.methods.protocol import HIGH_PRECISION_DIGITS
 
 FAMILIES = {
     "gauss": ("Gauss–Legendre collocation (order 2s)", 1),
@@ -137,10 +138,37 @@ def resolve(name: str, stages: int | None = None, base: str | None = None,
 def _exact(name: str, stages: int | None, base: str | None):
     """The method's transfer matrix at high precision, from its definition (see
     :mod:`stepsafe.reference.verify`; read only when the region finder escalates a point)."""
-    from stepsafe.core.escalate import DPS
     from stepsafe.reference.verify import mp_method, mp_transfer
 
-    return mp_transfer(mp_method(name, stages, base, DPS))
+    return mp_transfer(mp_method(name, stages, base, HIGH_PRECISION_DIGITS))
+
+
+def high_precision_tableaux(prk: Any) -> tuple[list, list, list, list]:
+    """``(A_q, b_q, A_p, b_p)`` as mpmath numbers at the working precision: a Gauss or
+    Lobatto family member's tableau computed at that precision, a library file's decimals
+    read exactly, else the float coefficients taken as exact."""
+    import mpmath as mp
+
+    def rows(A):
+        return [[A[i, j] for j in range(A.cols)] for i in range(A.rows)] \
+            if isinstance(A, mp.matrix) else [list(r) for r in A]
+
+    ex = prk.exact
+    if isinstance(ex, partial):
+        from stepsafe.methods import families
+
+        if ex.func is families._exact:
+            A_q, b_q, A_p, b_p = families.high_precision_tableaux(*ex.args)
+            return rows(A_q), list(b_q), rows(A_p), list(b_p)
+        if ex.func is _exact:
+            from stepsafe.reference.verify import mp_method
+
+            m = mp_method(*ex.args, dps=mp.mp.dps)
+            if m.kind == "prk" and len(m.data["b_q"]) == prk.stages:
+                d = m.data
+                return rows(d["A_q"]), list(d["b_q"]), rows(d["A_p"]), list(d["b_p"])
+    return ([[mp.mpf(float(x)) for x in r] for r in prk.A_q], [mp.mpf(float(x)) for x in prk.b_q],
+            [[mp.mpf(float(x)) for x in r] for r in prk.A_p], [mp.mpf(float(x)) for x in prk.b_p])
 
 
 def _find_file(name: str) -> Path:

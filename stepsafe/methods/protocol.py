@@ -46,6 +46,9 @@ if TYPE_CHECKING:  # pragma: no cover
 DIAGONAL_MODELS = ("saddle", "saddle-p")
 #: Every test model (:mod:`stepsafe.core.models`).
 ALL_MODELS = ("oscillator", "saddle", "inverted", "saddle-p")
+#: Digits of the high-precision transfer matrices a method defines (its ``exact`` and
+#: :meth:`MethodKind.high_precision`); :mod:`stepsafe.core.escalate` decides at these.
+HIGH_PRECISION_DIGITS = 40
 #: The criteria of :mod:`stepsafe.core.regions` (``structure``: the flow's type and its
 #: orientation; ``stability``: the type alone).
 ALL_CRITERIA = ("structure", "stability")
