@@ -592,13 +592,15 @@ def print_search(search: dict[str, Any]) -> None:
         ends.append(f"{search['walks_to_singularity']} into a singularity of H")
     ends.append(f"{search['walks_stopped']} stopped")
     found = search["found_by_walks"]
+    found_bound = search["found_by_bound"]
     click.echo(f"Search: {search['starts']} Newton starts, then {search['walks']} walks along "
                f"the equilibria's eigendirections ({', '.join(ends)}; {found} new "
-               f"equilibri{'um' if found == 1 else 'a'} found by them): "
+               f"equilibri{'um' if found == 1 else 'a'} found by them), then an interval "
+               f"branch and bound over {search['boxes']} boxes ({found_bound} new "
+               f"equilibri{'um' if found_bound == 1 else 'a'} found by it): "
                + ("complete" if search["complete"] else "INCOMPLETE, an equilibrium may be "
                   "missing: " + "; ".join(search["gaps"]) + " (check "
                   "--require-complete-search fails on this)"))
-    click.echo(f"  (complete: every walk ended at an equilibrium found, the box boundary or a "
-               "singularity of H; an equilibrium off every walk whose basin no start reaches, "
-               f"or a feature narrower than {search['resolution']:g} of the box along a walk, "
-               "is not seen; starts: adds starts)")
+    click.echo("  (complete: interval arithmetic on grad H, rounded outward, excluded every "
+               "part of the box but the boxes where a Krawczyk test proved one equilibrium, "
+               "each of them found)")

@@ -362,29 +362,32 @@ def _hamiltonian(tree, where, method, zmax, deadline=None) -> SystemReport:
     return SystemReport("equilibria of H found in the box and linearised exactly "
                         "(automatic differentiation)", items, modes, coupled,
                         notes + _undecided_notes(coupled),
-                        search=search_record(search.starts, search.walks, search.gaps()))
+                        search=search_record(search))
 
 
-def search_record(starts: int, walks: Walks, gaps: list[str]) -> dict[str, Any]:
+def search_record(search: Any) -> dict[str, Any]:
     """What the equilibrium search did, JSON-ready: its Newton starts, the walks from the
-    equilibria found (:mod:`stepsafe.systems.walks`) and how they ended, and ``complete``:
-    whether it vouches for having found every equilibrium, i.e. every walk from every
-    equilibrium found ended at an equilibrium found, at the box boundary or at a
-    singularity of H, every direction was followed and H could be evaluated at every
-    start (``gaps`` says what fell short). Not a proof: an equilibrium off every walk
-    whose basin no start reaches is not seen (``caveat``)."""
-    return {"starts": starts, "walks": walks.followed,
+    equilibria found (:mod:`stepsafe.systems.walks`) and how they ended, the interval
+    branch and bound (:mod:`stepsafe.systems.intervals`: ``boxes`` evaluated,
+    ``found_by_bound`` equilibria the starts and walks missed), and ``complete``: whether
+    the bound proved that every equilibrium in the box was found (``gaps`` says why not;
+    ``walk_gaps`` what the starts and walks alone left out)."""
+    walks: Walks = search.walks
+    certified = search.certified
+    return {"starts": search.starts, "walks": walks.followed,
             "walks_to_equilibrium": walks.to_equilibrium,
             "walks_to_boundary": walks.to_boundary,
             "walks_to_singularity": walks.to_singularity,
             "walks_stopped": walks.stopped, "found_by_walks": walks.new,
-            "resolution": RESOLUTION, "complete": not gaps, "gaps": list(gaps),
-            "caveat": "complete means every walk from every equilibrium found ended at an "
-                      "equilibrium found, the box boundary or a singularity of H; an "
-                      "equilibrium off every walk whose basin no start reaches (a well "
-                      "narrower than the starts' spacing, away from the equilibria found), "
-                      f"or a feature along a walk narrower than {RESOLUTION:g} of the box, "
-                      "is not seen"}
+            "resolution": RESOLUTION,
+            "boxes": certified.boxes if certified is not None else 0,
+            "found_by_bound": search.found_by_bound,
+            "complete": not search.gaps(), "gaps": list(search.gaps()),
+            "walk_gaps": list(search.walk_gaps()),
+            "caveat": "complete means an interval branch and bound on grad H over the box "
+                      "(outward-rounded interval arithmetic, a Krawczyk test proving each "
+                      "equilibrium unique in its box) excluded every other part of the box: "
+                      "every equilibrium in it was found"}
 
 
 def read_many(tree, where):
@@ -493,7 +496,7 @@ def _hamiltonian_many(tree, where, method, zmax, deadline=None) -> SystemReport:
                         f"({search.explain()}), linearised exactly (automatic "
                         "differentiation)", items, modes, coupled,
                         notes + _undecided_notes(coupled),
-                        search=search_record(search.starts, search.walks, search.gaps()))
+                        search=search_record(search))
 
 
 def _starts(tree: dict, where: str) -> int:

@@ -52,6 +52,8 @@ import numpy as np
 
 from stepsafe.exceptions import StepsafeError
 from stepsafe.files.expressions import ExpressionError, parse
+from stepsafe.systems.compiler import Compiled, from_tree, trace
+from stepsafe.systems.intervals import Certified, certified_equilibria, certified_gaps
 from stepsafe.systems.walks import Walks, descend, explore
 
 FUNCTIONS = ("sin", "cos", "exp", "log", "sqrt", "cosh", "sinh", "tanh")
@@ -249,6 +251,19 @@ class ManyDofHamiltonian:
     @property
     def names(self) -> tuple[str, ...]:
         return self.q + self.p
+
+    @cached_property
+    def compiled_or_none(self) -> Compiled | None:
+        """H's expression graph with its derivatives (None: a Python function that
+        cannot be traced on symbolic variables)."""
+        try:
+            if self.function is not None:
+                node = trace(self.function, self.q, self.p)
+            else:
+                node = from_tree(self.tree, self.text.strip(), self.names, self.parameters)
+        except Exception:  # the user's function on symbolic variables: any failure
+            return None
+        return Compiled(node, self.names)
 
     @cached_property
     def _program(self) -> Callable[[dict[str, Any], Callable[[float], Any]], Any]:
@@ -501,6 +516,9 @@ class ManyDofSearch:
     walks: Walks = Walks()  # the walks from the equilibria the starts found
     unevaluable: int = 0  # starts where H or its derivatives could not be evaluated
     undescended: int = 0  # starts where Newton failed not followed down (the time budget)
+    certified: Certified | None = None  # the interval branch and bound
+    unconfirmed: int = 0  # equilibria it proved that Newton's method did not verify
+    found_by_bound: int = 0  # equilibria the starts and walks missed and the bound found
 
     def explain(self) -> str:
         text = (f"{self.starts} Newton starts, {self.failed} did not converge to a point of "
@@ -508,7 +526,12 @@ class ManyDofSearch:
         return text + (f"; H could not be evaluated: {self.reason}" if self.reason else "")
 
     def gaps(self) -> list[str]:
-        """Why the search cannot vouch for completeness (empty when it can)."""
+        """Why the search cannot vouch for completeness (empty when it can: the interval
+        branch and bound proved every equilibrium of the box found)."""
+        return certified_gaps(self.certified, self.unconfirmed)
+
+    def walk_gaps(self) -> list[str]:
+        """What the starts and walks left out (a heuristic's account, not a proof)."""
         out = self.walks.gaps()
         if self.undescended:
             out.append(f"{self.undescended} start(s) where Newton's method failed were not "
@@ -564,6 +587,8 @@ def find_many(H: ManyDofHamiltonian, lo: np.ndarray, hi: np.ndarray,
     for _, x in new:
         if not any(np.all(np.abs(x - y) <= 1e-7 * half) for y in found):
             found.append(x)
+    before = len(found)
+    certified, unconfirmed = _certify(H, lo, hi, found, centre, half, deadline)
     classified = []
     for x in found:
         e = _classify(H, x)
@@ -573,7 +598,39 @@ def find_many(H: ManyDofHamiltonian, lo: np.ndarray, hi: np.ndarray,
     equilibria = tuple(sorted(classified, key=lambda e: (e.energy, tuple(e.x))))
     reason = reasons[0] if reasons and len(reasons) >= failed > 0 and not found else None
     return ManyDofSearch(equilibria, count, failed, reason, walks=walks,
-                         unevaluable=unevaluable, undescended=undescended)
+                         unevaluable=unevaluable, undescended=undescended,
+                         certified=certified, unconfirmed=unconfirmed,
+                         found_by_bound=len(found) - before)
+
+
+def _certify(H: ManyDofHamiltonian, lo: np.ndarray, hi: np.ndarray, found: list[np.ndarray],
+             centre: np.ndarray, half: np.ndarray, deadline: float | None
+             ) -> tuple[Certified | None, int]:
+    """The interval branch and bound on grad H in the box; each equilibrium it proves
+    that the starts and walks missed is verified by Newton's method from there and added
+    to ``found``. Returns the bound's result (None: H has no expression graph) and the
+    count of proved equilibria Newton's method did not verify."""
+    compiled = H.compiled_or_none
+    if compiled is None:
+        return None, 0
+    result = certified_equilibria(compiled, lo, hi, deadline=deadline)
+    unconfirmed = 0
+    for root in result.roots:
+        if any(np.all(np.abs(root - y) <= 1e-7 * half) for y in found):
+            continue
+        x = None
+        for damped in (False, True):
+            try:
+                x = _newton(H, (root - centre) / half, centre, half, damped)
+            except ExpressionError:
+                x = None
+            if x is not None:
+                break
+        if x is None:
+            unconfirmed += 1
+        elif not any(np.all(np.abs(x - y) <= 1e-7 * half) for y in found):
+            found.append(x)
+    return result, unconfirmed
 
 
 def _walkers(H: ManyDofHamiltonian, centre: np.ndarray, half: np.ndarray):

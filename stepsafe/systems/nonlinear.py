@@ -59,6 +59,8 @@ import numpy as np
 
 from stepsafe.exceptions import StepsafeError
 from stepsafe.files.expressions import Expression, ExpressionError, parse
+from stepsafe.systems.compiler import Compiled, from_tree
+from stepsafe.systems.intervals import Certified, certified_equilibria, certified_gaps
 from stepsafe.systems.walks import Walks, descend, explore
 
 FUNCTIONS = ("sin", "cos", "exp", "log", "sqrt", "cosh", "sinh", "tanh")
@@ -189,6 +191,12 @@ class Hamiltonian(NamedTuple):
     expression: Expression
     parameters: dict[str, float]
 
+    @property
+    def compiled(self) -> Compiled:
+        """H's expression graph in (q, p) with its derivatives."""
+        return _compiled(self.expression.text, self.expression.tree,
+                         tuple(sorted(self.parameters.items())))
+
     def jet(self, q, p, lib=math) -> Jet2:
         """Value, gradient and Hessian at (q, p) in float64 (``lib=math``) or mpmath."""
         number = float if lib is math else lib.mpf
@@ -228,6 +236,11 @@ def parse_hamiltonian(text: str, parameters: dict[str, float] | None = None) -> 
                 raise ExpressionError(f"{ast.get_source_segment(expr.text.strip(), node)}: "
                                       "powers of an expression in q or p go up to 64")
     return Hamiltonian(expr, parameters)
+
+
+@functools.lru_cache(maxsize=64)
+def _compiled(text: str, tree: ast.AST, parameters: tuple) -> Compiled:
+    return Compiled(from_tree(tree, text, ("q", "p"), dict(parameters)), ("q", "p"))
 
 
 @functools.lru_cache(maxsize=4096)
@@ -289,9 +302,17 @@ class Search(NamedTuple):
     unverified: int  # float64 end points that high precision did not confirm
     flat: int = 0  # starts where gradient and Hessian vanish: no isolated equilibrium
     walks: Walks = Walks()  # the walks from the equilibria the starts found
+    certified: Certified | None = None  # the interval branch and bound
+    unconfirmed: int = 0  # equilibria it proved that high precision did not verify
+    found_by_bound: int = 0  # equilibria the starts and walks missed and the bound found
 
     def gaps(self) -> list[str]:
-        """Why the search cannot vouch for completeness (empty when it can)."""
+        """Why the search cannot vouch for completeness (empty when it can: the interval
+        branch and bound proved every equilibrium of the box found)."""
+        return certified_gaps(self.certified, self.unconfirmed)
+
+    def walk_gaps(self) -> list[str]:
+        """What the starts and walks left out (a heuristic's account, not a proof)."""
         out = self.walks.gaps()
         if self.unevaluable:
             out.append(f"H could not be evaluated at {self.unevaluable} start(s): where it "
@@ -366,8 +387,24 @@ def find_equilibria(H: Hamiltonian, box_q: tuple[float, float], box_p: tuple[flo
         if not any(abs(e.q - f.q) <= 1e-9 * half[0] and abs(e.p - f.p) <= 1e-9 * half[1]
                    for f in found):
             found.append(e)
+    before = len(found)
+    certified = certified_equilibria(H.compiled, np.array([q0, p0]), np.array([q1, p1]))
+    unconfirmed = 0
+    for root in certified.roots:
+        if any(abs(root[0] - f.q) <= 1e-7 * half[0] and abs(root[1] - f.p) <= 1e-7 * half[1]
+               for f in found):
+            continue
+        settled = settle((root - centre) / half)
+        if settled is None:
+            unconfirmed += 1
+            continue
+        e = settled[1]
+        if not any(abs(e.q - f.q) <= 1e-9 * half[0] and abs(e.p - f.p) <= 1e-9 * half[1]
+                   for f in found):
+            found.append(e)
     found.sort(key=lambda e: (e.q, e.p))
-    return Search(found, grid * grid, unevaluable, outside, unverified, flat, walks)
+    return Search(found, grid * grid, unevaluable, outside, unverified, flat, walks,
+                  certified, unconfirmed, len(found) - before)
 
 
 def _walkers(H: Hamiltonian, centre: np.ndarray, half: np.ndarray, at):
