@@ -1,9 +1,8 @@
 """The equations of motion of a scene's system, for running methods on it
 (:mod:`stepsafe.core.integrator`).
 
-* a 1-dof Hamiltonian expression: its gradient by first-order forward automatic
-  differentiation on numpy arrays (the same restricted expression language as
-  :mod:`stepsafe.systems.nonlinear`, never ``eval``); separable when ``H_qp`` vanishes
+* a Hamiltonian expression (1 or n degrees of freedom): its gradient compiled from the
+  expression graph (:mod:`stepsafe.systems.compiler`); separable when ``H_qp`` vanishes
   identically, which the expression's structure tells: ``H`` is a sum of terms each in q
   alone or p alone;
 * a linear system ``H = p^T M^-1 p / 2 + q^T K q / 2`` (or ``x^T S x / 2``): the gradients
@@ -13,97 +12,14 @@
 from __future__ import annotations
 
 import ast
-import math
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from stepsafe.core.integrator import System
 from stepsafe.exceptions import StepsafeError
+from stepsafe.systems.compiler import Compiled
 from stepsafe.systems.nonlinear import Hamiltonian
-
-_UNARY = {
-    "sin": (np.sin, np.cos), "cos": (np.cos, lambda x: -np.sin(x)),
-    "exp": (np.exp, np.exp), "log": (np.log, lambda x: 1.0 / x),
-    "sqrt": (np.sqrt, lambda x: 0.5 / np.sqrt(x)), "cosh": (np.cosh, np.sinh),
-    "sinh": (np.sinh, np.cosh), "tanh": (np.tanh, lambda x: 1.0 - np.tanh(x) ** 2),
-}
-
-
-class _Dual:
-    """A value with its derivatives in q and p (arrays): first-order forward AD."""
-
-    __slots__ = ("v", "dq", "dp")
-
-    def __init__(self, v, dq=0.0, dp=0.0) -> None:
-        self.v, self.dq, self.dp = v, dq, dp
-
-    def __add__(self, o: _Dual) -> _Dual:
-        return _Dual(self.v + o.v, self.dq + o.dq, self.dp + o.dp)
-
-    def __sub__(self, o: _Dual) -> _Dual:
-        return _Dual(self.v - o.v, self.dq - o.dq, self.dp - o.dp)
-
-    def __mul__(self, o: _Dual) -> _Dual:
-        return _Dual(self.v * o.v, self.v * o.dq + o.v * self.dq, self.v * o.dp + o.v * self.dp)
-
-    def __truediv__(self, o: _Dual) -> _Dual:
-        r = 1.0 / o.v
-        return self * _Dual(r, -r * r * o.dq, -r * r * o.dp)
-
-    def __neg__(self) -> _Dual:
-        return _Dual(-self.v, -self.dq, -self.dp)
-
-    def chain(self, f, df) -> _Dual:
-        d = df(self.v)
-        return _Dual(f(self.v), d * self.dq, d * self.dp)
-
-    def power(self, o: _Dual, constant: bool) -> _Dual:
-        if constant:
-            n = o.v
-            return _Dual(self.v ** n, n * self.v ** (n - 1) * self.dq,
-                         n * self.v ** (n - 1) * self.dp)
-        return (o * self.chain(np.log, lambda x: 1.0 / x)).chain(np.exp, np.exp)
-
-
-def _constant(node: ast.AST) -> bool:
-    return not any(isinstance(n, ast.Name) and n.id in ("q", "p") for n in ast.walk(node))
-
-
-_BINARY = {ast.Add: lambda a, b: a + b, ast.Sub: lambda a, b: a - b,
-           ast.Mult: lambda a, b: a * b, ast.Div: lambda a, b: a / b}
-
-
-def _compile(node: ast.AST, source: str, params: dict[str, _Dual]
-             ) -> Callable[[dict[str, _Dual]], _Dual]:
-    """The expression as nested closures of ``env`` (q and p): parsed once, evaluated on
-    every step without walking the tree again."""
-    if isinstance(node, ast.Constant):
-        value = _Dual(float(ast.get_source_segment(source, node)))
-        return lambda env: value
-    if isinstance(node, ast.Name):
-        if node.id in params:
-            fixed = params[node.id]
-            return lambda env: fixed
-        name = node.id
-        return lambda env: env[name]
-    if isinstance(node, ast.UnaryOp):
-        inner = _compile(node.operand, source, params)
-        if isinstance(node.op, ast.USub):
-            return lambda env: -inner(env)
-        return inner
-    if isinstance(node, ast.Call):
-        f, df = _UNARY[node.func.id]
-        arg = _compile(node.args[0], source, params)
-        return lambda env: arg(env).chain(f, df)
-    assert isinstance(node, ast.BinOp)
-    left, right = _compile(node.left, source, params), _compile(node.right, source, params)
-    if type(node.op) in _BINARY:
-        op = _BINARY[type(node.op)]
-        return lambda env: op(left(env), right(env))
-    constant = _constant(node.right)
-    return lambda env: left(env).power(right(env), constant)
 
 
 def _terms(node: ast.AST) -> list[ast.AST]:
@@ -126,36 +42,55 @@ def separable_terms(tree: ast.AST) -> bool:
 
 def hamiltonian_system(H: Hamiltonian) -> System:
     """The 1-dof system of a Hamiltonian expression (arrays of shape (m, 1))."""
-    tree, source = H.expression.tree, H.expression.text
-    params = {k: _Dual(float(v)) for k, v in H.parameters.items()}
-    params["pi"] = _Dual(math.pi)
-    compiled = _compile(tree, source, params)
+    return compiled_system(H.compiled, 1, separable_terms(H.expression.tree))
 
-    def jet(q: np.ndarray, p: np.ndarray) -> _Dual:
-        env = {"q": _Dual(q, 1.0, 0.0), "p": _Dual(p, 0.0, 1.0)}
+
+def compiled_system(compiled: Compiled, n: int, separable: bool,
+                    where: str | None = None) -> System:
+    """The system of a compiled Hamiltonian of n degrees of freedom (variables q then p):
+    ``dH/dq`` and ``dH/dp`` are compiled apart (a separable H's force reads q alone), the
+    vector field from the whole gradient, the energy and Hessian from the same graph.
+    States are arrays of shape (m, n); a non-finite value is left to the caller (the
+    engine stops a run that leaves the finite numbers)."""
+    grad = compiled.gradient_nodes
+    force = compiled.function(grad[:n])
+    velocity = compiled.function(grad[n:])
+    both = compiled.function(grad)
+    energy_of = compiled.function([compiled.H])
+
+    def columns(q: np.ndarray, p: np.ndarray) -> list[np.ndarray]:
+        return [*q.T, *p.T]
+
+    def stack(values: Any, like: np.ndarray) -> np.ndarray:
+        out = np.empty(like.shape)
+        for i, v in enumerate(values):
+            out[:, i] = v
+        return out
+
+    def dH_dq(q: np.ndarray, p: np.ndarray) -> np.ndarray:
         with np.errstate(all="ignore"):
-            return compiled(env)
+            return stack(force(*columns(q, p)), q)
 
-    def full(x: Any, like: np.ndarray) -> np.ndarray:
-        if isinstance(x, np.ndarray) and x.shape == like.shape:
-            return x
-        return np.broadcast_to(np.asarray(x, dtype=float), like.shape).copy()
+    def dH_dp(q: np.ndarray, p: np.ndarray) -> np.ndarray:
+        with np.errstate(all="ignore"):
+            return stack(velocity(*columns(q, p)), p)
 
     def vector_field(q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        d = jet(q, p)
-        return full(d.dp, p), -full(d.dq, q)
+        with np.errstate(all="ignore"):
+            g = both(*columns(q, p))
+        return stack(g[n:], p), -stack(g[:n], q)
+
+    def energy(q: np.ndarray, p: np.ndarray) -> np.ndarray:
+        with np.errstate(all="ignore"):
+            (v,) = energy_of(*columns(q, p))
+        return np.broadcast_to(np.asarray(v, dtype=float), (q.shape[0],)).copy()
 
     def hessian(q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Second derivatives by the second-order jets of stepsafe.systems.nonlinear."""
-        blocks = np.empty((3, q.shape[0], 1, 1))
-        for k in range(q.shape[0]):
-            blocks[:, k, 0, 0] = H.jet(float(q[k, 0]), float(p[k, 0])).H
-        return blocks[0], blocks[1], blocks[2]
+        S = compiled.hessian(np.hstack([q, p]))
+        return S[:, :n, :n], S[:, :n, n:], S[:, n:, n:]
 
-    return System(dH_dq=lambda q, p: full(jet(q, p).dq, q),
-                  dH_dp=lambda q, p: full(jet(q, p).dp, p),
-                  energy=lambda q, p: full(jet(q, p).v, q)[:, 0], separable=separable_terms(tree),
-                  dimension=1, vector_field=vector_field, hessian=hessian)
+    return System(dH_dq=dH_dq, dH_dp=dH_dp, energy=energy, separable=separable,
+                  dimension=n, vector_field=vector_field, hessian=hessian)
 
 
 def linear_system(S: np.ndarray) -> System:

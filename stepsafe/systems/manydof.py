@@ -11,9 +11,9 @@ box, their exact linearisation and type.
       energy_below: 0.2          # optional: only equilibria the motion can reach
 
 H is the restricted expression language of :mod:`stepsafe.files.expressions` (never
-``eval``) in the named variables and parameters. Derivatives are exact: H is evaluated on
-second-order jets (value, gradient, Hessian in all 2n variables), forward-mode automatic
-differentiation, never finite differences.
+``eval``) in the named variables and parameters. Derivatives are exact: the gradient and
+Hessian in all 2n variables are differentiated symbolically on the expression graph
+(:mod:`stepsafe.systems.compiler`), never by finite differences.
 
 Equilibria (``grad H = 0``) are found by Newton's method from a Halton set of starts in
 the box (box coordinates, each variable scaled to [-1, 1]; plain Newton steps, then
@@ -41,18 +41,17 @@ from __future__ import annotations
 
 import ast
 import dataclasses
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from stepsafe.exceptions import StepsafeError
 from stepsafe.files.expressions import ExpressionError, parse
-from stepsafe.systems.compiler import Compiled, from_tree, trace
+from stepsafe.systems.compiler import Compiled, NotReal, from_tree, trace
 from stepsafe.systems.intervals import Certified, certified_equilibria, certified_gaps
 from stepsafe.systems.walks import Walks, descend, explore
 
@@ -68,170 +67,12 @@ NEWTON_ITERATIONS = 40
 #: :func:`_verified`).
 RESIDUAL = 1e-7
 
-_F = {"sin": (np.sin, np.cos, lambda x: -np.sin(x)),
-      "cos": (np.cos, lambda x: -np.sin(x), lambda x: -np.cos(x)),
-      "exp": (np.exp, np.exp, np.exp),
-      "log": (np.log, lambda x: 1 / x, lambda x: -1 / x ** 2),
-      "sqrt": (np.sqrt, lambda x: 0.5 / np.sqrt(x), lambda x: -0.25 / x ** 1.5),
-      "cosh": (np.cosh, np.sinh, np.cosh),
-      "sinh": (np.sinh, np.cosh, np.sinh),
-      "tanh": (np.tanh, lambda x: 1 - np.tanh(x) ** 2,
-               lambda x: -2 * np.tanh(x) * (1 - np.tanh(x) ** 2))}
+class Jet(NamedTuple):
+    """H at a point with its gradient ``g`` (N,) and Hessian ``h`` (N, N)."""
 
-
-class NotReal(TypeError):
-    """A Hamiltonian function combined q or p with something that is not a real number."""
-
-
-class Jet:
-    """A value with its gradient (N,) and Hessian (N, N): second-order forward AD."""
-
-    __slots__ = ("v", "g", "h")
-
-    def __init__(self, v: float, g: np.ndarray, h: np.ndarray) -> None:
-        self.v, self.g, self.h = v, g, h
-
-    def lift(self, o: Any) -> Jet:
-        """A number as a constant jet (Python callables mix numbers with jets)."""
-        if isinstance(o, Jet):
-            return o
-        if isinstance(o, (int, float)) and not isinstance(o, bool):
-            return Jet(float(o), np.zeros_like(self.g), np.zeros_like(self.h))
-        raise NotReal(f"cannot combine a jet with {type(o).__name__}")
-
-    def __add__(self, o: Any) -> Jet:
-        o = self.lift(o)
-        return Jet(self.v + o.v, self.g + o.g, self.h + o.h)
-
-    def __sub__(self, o: Any) -> Jet:
-        o = self.lift(o)
-        return Jet(self.v - o.v, self.g - o.g, self.h - o.h)
-
-    def __radd__(self, o: Any) -> Jet:
-        return self.lift(o) + self
-
-    def __rsub__(self, o: Any) -> Jet:
-        return self.lift(o) - self
-
-    def __rmul__(self, o: Any) -> Jet:
-        return self.lift(o) * self
-
-    def __rtruediv__(self, o: Any) -> Jet:
-        return self.lift(o) / self
-
-    def __pow__(self, o: Any) -> Jet:
-        constant = not isinstance(o, Jet) or (not o.g.any() and not o.h.any())
-        return self.power(self.lift(o), constant)
-
-    def __neg__(self) -> Jet:
-        return Jet(-self.v, -self.g, -self.h)
-
-    def __mul__(self, o: Any) -> Jet:
-        o = self.lift(o)
-        cross = np.outer(self.g, o.g)
-        return Jet(self.v * o.v, self.v * o.g + o.v * self.g,
-                   self.v * o.h + o.v * self.h + cross + cross.T)
-
-    def chain(self, f0: float, f1: float, f2: float) -> Jet:
-        if f2 == 0.0:
-            return Jet(f0, f1 * self.g, f1 * self.h)
-        return Jet(f0, f1 * self.g, f1 * self.h + f2 * np.outer(self.g, self.g))
-
-    def __truediv__(self, o: Any) -> Jet:
-        o = self.lift(o)
-        if o.v == 0:
-            raise ZeroDivisionError("division by zero")
-        return self * o.chain(1 / o.v, -1 / o.v ** 2, 2 / o.v ** 3)
-
-    def power(self, o: Jet, constant: bool) -> Jet:
-        if constant:
-            n, x = o.v, self.v
-            if x <= 0 and n != int(n):
-                raise ValueError("power of a non-positive base")
-            if x == 0 and n == int(n) and n >= 0:
-                k = int(n)
-                return self.chain(0.0 if k else 1.0, 1.0 if k == 1 else 0.0,
-                                  2.0 if k == 2 else 0.0)
-            return self.chain(x ** n, n * x ** (n - 1), n * (n - 1) * x ** (n - 2))
-        if self.v <= 0:
-            raise ValueError("power of a non-positive base")
-        log = self.chain(math.log(self.v), 1 / self.v, -1 / self.v ** 2)
-        e = math.exp((o * log).v)
-        return (o * log).chain(e, e, e)
-
-    def call(self, name: str) -> Jet:
-        if name in ("log", "sqrt") and self.v <= 0:
-            raise ValueError(f"{name} of a non-positive number")
-        f0, f1, f2 = _F[name]
-        x = self.v
-        return self.chain(float(f0(x)), float(f1(x)), float(f2(x)))
-
-
-class Dual:
-    """Values of shape (m,) with their gradients (N, m): first-order forward AD over m
-    points at once (the integration engine's force evaluations)."""
-
-    __slots__ = ("v", "d")
-
-    def __init__(self, v: Any, d: Any) -> None:
-        self.v, self.d = v, d
-
-    def lift(self, o: Any) -> Dual:
-        if isinstance(o, Dual):
-            return o
-        if isinstance(o, (int, float)) and not isinstance(o, bool):
-            return Dual(np.full_like(self.v, float(o)), np.zeros_like(self.d))
-        raise NotReal(f"cannot combine a dual number with {type(o).__name__}")
-
-    def __add__(self, o: Any) -> Dual:
-        o = self.lift(o)
-        return Dual(self.v + o.v, self.d + o.d)
-
-    def __sub__(self, o: Any) -> Dual:
-        o = self.lift(o)
-        return Dual(self.v - o.v, self.d - o.d)
-
-    def __radd__(self, o: Any) -> Dual:
-        return self.lift(o) + self
-
-    def __rsub__(self, o: Any) -> Dual:
-        return self.lift(o) - self
-
-    def __rmul__(self, o: Any) -> Dual:
-        return self.lift(o) * self
-
-    def __rtruediv__(self, o: Any) -> Dual:
-        return self.lift(o) / self
-
-    def __pow__(self, o: Any) -> Dual:
-        return self.power(self.lift(o), not isinstance(o, Dual) or not np.any(o.d))
-
-    def __neg__(self) -> Dual:
-        return Dual(-self.v, -self.d)
-
-    def __mul__(self, o: Any) -> Dual:
-        o = self.lift(o)
-        return Dual(self.v * o.v, self.v * o.d + o.v * self.d)
-
-    def __truediv__(self, o: Any) -> Dual:
-        o = self.lift(o)
-        r = 1.0 / o.v
-        return Dual(self.v * r, (self.d * o.v - self.v * o.d) * r * r)
-
-    def power(self, o: Dual, constant: bool) -> Dual:
-        if constant:
-            n = o.v
-            return Dual(self.v ** n, n * self.v ** (n - 1) * self.d)
-        value = self.v ** o.v
-        return Dual(value, value * (o.d * np.log(self.v) + o.v * self.d / self.v))
-
-    def call(self, name: str) -> Dual:
-        f0, f1, _ = _F[name]
-        return Dual(f0(self.v), f1(self.v) * self.d)
-
-
-def _constant(node: ast.AST, variables: set[str]) -> bool:
-    return not any(isinstance(n, ast.Name) and n.id in variables for n in ast.walk(node))
+    v: float
+    g: np.ndarray
+    h: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
@@ -252,127 +93,49 @@ class ManyDofHamiltonian:
     def names(self) -> tuple[str, ...]:
         return self.q + self.p
 
-    @cached_property
-    def compiled_or_none(self) -> Compiled | None:
-        """H's expression graph with its derivatives (None: a Python function that
-        cannot be traced on symbolic variables)."""
-        try:
-            if self.function is not None:
-                node = trace(self.function, self.q, self.p)
-            else:
-                node = from_tree(self.tree, self.text.strip(), self.names, self.parameters)
-        except Exception:  # the user's function on symbolic variables: any failure
-            return None
-        return Compiled(node, self.names)
 
     @cached_property
-    def _program(self) -> Callable[[dict[str, Any], Callable[[float], Any]], Any]:
-        """H as nested closures of (env, make): parsed once (constants read, exponents
-        classified), then evaluated on jets or duals without walking the tree."""
-        if self.function is not None:
-            return self._call
-
-        variables = set(self.names)
-
-        def build(node: ast.AST):
-            if isinstance(node, ast.Constant):
-                value = float(node.value)  # Python reads a decimal literal as float() does
-                return lambda env, make: make(value)
-            if isinstance(node, ast.Name):
-                name = node.id
-                return lambda env, make: env[name]
-            if isinstance(node, ast.UnaryOp):
-                inner = build(node.operand)
-                if isinstance(node.op, ast.USub):
-                    return lambda env, make: -inner(env, make)
-                return inner
-            if isinstance(node, ast.Call):
-                arg, fname = build(node.args[0]), node.func.id
-                return lambda env, make: arg(env, make).call(fname)
-            assert isinstance(node, ast.BinOp)
-            left, right = build(node.left), build(node.right)
-            if isinstance(node.op, ast.Add):
-                return lambda env, make: left(env, make) + right(env, make)
-            if isinstance(node.op, ast.Sub):
-                return lambda env, make: left(env, make) - right(env, make)
-            if isinstance(node.op, ast.Mult):
-                return lambda env, make: left(env, make) * right(env, make)
-            if isinstance(node.op, ast.Div):
-                return lambda env, make: left(env, make) / right(env, make)
-            constant = _constant(node.right, variables)
-
-            def power(env, make):
-                b = right(env, make)
-                if constant and isinstance(b, Jet) and abs(b.v) > 64:
-                    raise ValueError("exponent above 64")
-                return left(env, make).power(b, constant)
-
-            return power
-
-        return build(self.tree)
-
-    def _call(self, env: dict[str, Any], make: Callable[[float], Any]) -> Any:
-        """The user's function on jets or duals; numbers it returns are lifted."""
-        q = [env[name] for name in self.q]
-        p = [env[name] for name in self.p]
+    def compiled(self) -> Compiled:
+        """H's expression graph with its derivatives (:mod:`stepsafe.systems.compiler`);
+        a Python function is traced once on symbolic variables. A function that is not
+        real (returns or combines the variables with a complex, a text, ...) is a
+        StepsafeError naming the key; one that fails otherwise, an ExpressionError."""
+        if self.function is None:
+            return Compiled(from_tree(self.tree, self.text.strip(), self.names,
+                                      self.parameters), self.names)
         try:
-            out = self.function(q, p, OPS)
-        except (ZeroDivisionError, ValueError, OverflowError, FloatingPointError):
-            raise
+            node = trace(self.function, self.q, self.p)
         except NotReal as exc:  # e.g. q[0] * 1j: H is not real anywhere, a bad input
             raise StepsafeError(f"the Hamiltonian function is not real: {exc} (H must be "
                                 "real: combine q, p, real numbers and ops)", self._key) from None
+        except ExpressionError:
+            raise
         except Exception as exc:  # the user's code: report, do not crash
-            raise ValueError(f"the Hamiltonian function raised {type(exc).__name__}: "
-                             f"{exc}") from None
-        if isinstance(out, (Jet, Dual)):
-            return out
-        if isinstance(out, (bool, np.bool_)) or not isinstance(out, (int, float, np.integer,
-                                                                      np.floating)):
-            # a complex, a text or a container is no energy at any point: a bad input
-            raise StepsafeError(f"the Hamiltonian function returned {type(out).__name__} "
-                                f"{repr(out)[:40]}, not a real number (H must be "
-                                "real: combine q, p, real numbers and ops)", self._key)
-        return make(float(out))
+            raise ExpressionError(f"the Hamiltonian function raised {type(exc).__name__}: "
+                                  f"{exc}") from None
+        return Compiled(node, self.names)
+
+    @cached_property
+    def compiled_or_none(self) -> Compiled | None:
+        """:attr:`compiled`, or None where the function cannot be traced."""
+        try:
+            return self.compiled
+        except (ExpressionError, StepsafeError):
+            return None
 
     @property
     def _key(self) -> str | None:
         return f"{self.where}::$.system.hamiltonian" if self.where else None
 
     def jet(self, x: np.ndarray) -> Jet:
-        """Value, gradient and Hessian at x (the 2n variables, q then p)."""
-        N = len(self.names)
-        zero_g, zero_h = np.zeros(N), np.zeros((N, N))
-        env: dict[str, Any] = {name: Jet(float(x[i]), np.eye(N)[i], zero_h)
-                               for i, name in enumerate(self.names)}
-        env.update({k: Jet(float(v), zero_g, zero_h) for k, v in self.parameters.items()})
-        env["pi"] = Jet(math.pi, zero_g, zero_h)
-        try:
-            with np.errstate(over="raise", divide="raise", invalid="raise", under="ignore"):
-                out = self._program(env, lambda c: Jet(c, zero_g, zero_h))
-        except (ZeroDivisionError, ValueError, OverflowError, FloatingPointError) as exc:
-            raise ExpressionError(str(exc) or type(exc).__name__) from None
-        if not (math.isfinite(out.v) and np.all(np.isfinite(out.g))
-                and np.all(np.isfinite(out.h))):
+        """Value, gradient and Hessian at x (the 2n variables, q then p); an
+        ExpressionError where they are not finite."""
+        x = np.asarray(x, dtype=float)
+        v, g = self.compiled.energy_gradient(x)
+        h = self.compiled.hessian(x)
+        if not (np.isfinite(v) and np.all(np.isfinite(g)) and np.all(np.isfinite(h))):
             raise ExpressionError("H or its derivatives are not finite here")
-        return out
-
-    def dual(self, X: np.ndarray) -> Dual:
-        """Values and gradients at the rows of X (shape (m, 2n))."""
-        m, N = X.shape
-        env: dict[str, Any] = {name: Dual(X[:, i], np.eye(N)[i][:, None] * np.ones(m))
-                               for i, name in enumerate(self.names)}
-        zero = np.zeros((N, m))
-        env.update({k: Dual(np.full(m, float(v)), zero) for k, v in self.parameters.items()})
-        env["pi"] = Dual(np.full(m, math.pi), zero)
-        with np.errstate(all="ignore"):
-            if self.function is None:
-                return self._program(env, lambda c: Dual(np.full(m, c), zero))
-            try:
-                return self._program(env, lambda c: Dual(np.full(m, c), zero))
-            except (ZeroDivisionError, ValueError, OverflowError, FloatingPointError) as exc:
-                # the user's function failed on a point of the run: said, never a traceback
-                raise StepsafeError(str(exc) or type(exc).__name__, self._key) from None
+        return Jet(float(v), g, h)
 
     @property
     def separable(self) -> bool:
@@ -403,26 +166,6 @@ class ManyDofHamiltonian:
         return True
 
 
-class _Ops:
-    """The elementary functions for Hamiltonians given as Python functions: each works on
-    stepsafe's jets and dual numbers and on plain numbers."""
-
-    pi = math.pi
-
-    def __getattr__(self, name: str) -> Callable[[Any], Any]:
-        if name not in _F:
-            raise AttributeError(f"ops has no function {name!r}; it has "
-                                 f"{', '.join(sorted(_F))}")
-
-        def apply(x: Any) -> Any:
-            if isinstance(x, (Jet, Dual)):
-                return x.call(name)
-            return float(_F[name][0](float(x)))
-
-        return apply
-
-
-OPS = _Ops()
 
 
 def parse_many(text: Any, q: Any, p: Any, parameters: dict[str, float],
@@ -647,8 +390,7 @@ def _walkers(H: ManyDofHamiltonian, centre: np.ndarray, half: np.ndarray):
 
     def slopes(U: np.ndarray) -> np.ndarray:
         try:
-            d = H.dual(centre + half * U)
-            G = np.asarray(d.d, dtype=float).T * half
+            G = H.compiled.gradient(centre + half * U) * half
         except (ExpressionError, ValueError, ZeroDivisionError, OverflowError,
                 FloatingPointError, TypeError):
             return np.full(U.shape, np.nan)
@@ -806,24 +548,8 @@ def _classify(H: ManyDofHamiltonian, x: np.ndarray) -> ManyDofEquilibrium:
 
 
 def system_of(H: ManyDofHamiltonian):
-    """The equations of motion for :mod:`stepsafe.core.integrator`."""
-    from stepsafe.core.integrator import System
+    """The equations of motion for :mod:`stepsafe.core.integrator` (the compiled
+    gradient; see :func:`stepsafe.systems.dynamics.compiled_system`)."""
+    from stepsafe.systems.dynamics import compiled_system
 
-    n = len(H.q)
-
-    def grads(q: np.ndarray, p: np.ndarray) -> np.ndarray:
-        d = H.dual(np.hstack([q, p]))
-        return np.asarray(d.d).T  # (m, 2n)
-
-    def hessian(q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, ...]:
-        X = np.hstack([q, p])
-        S = np.stack([H.jet(row).h for row in X])
-        return S[:, :n, :n], S[:, :n, n:], S[:, n:, n:]
-
-    def field(q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        g = grads(q, p)
-        return g[:, n:], -g[:, :n]
-
-    return System(dH_dq=lambda q, p: grads(q, p)[:, :n], dH_dp=lambda q, p: grads(q, p)[:, n:],
-                  energy=lambda q, p: np.asarray(H.dual(np.hstack([q, p])).v, dtype=float),
-                  separable=H.separable, dimension=n, vector_field=field, hessian=hessian)
+    return compiled_system(H.compiled, len(H.q), H.separable, H._key)

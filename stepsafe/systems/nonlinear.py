@@ -3,9 +3,9 @@ linear model each one gives.
 
 ``H`` is a restricted expression in ``q``, ``p`` and named parameters (numbers, + - * / **,
 sin, cos, exp, log, sqrt, cosh, sinh, tanh, pi; checked by :mod:`stepsafe.files.expressions`,
-never ``eval``). Derivatives are exact: H is evaluated on second-order jets (value,
-gradient, Hessian), i.e. forward-mode automatic differentiation, not finite differences,
-in float64 or, to verify, in mpmath.
+never ``eval``). Derivatives are exact: the gradient and Hessian are differentiated
+symbolically on the expression graph (:mod:`stepsafe.systems.compiler`), not by finite
+differences, and evaluated in float64 or, to verify, in mpmath.
 
 Equilibria solve ``grad H = 0`` inside a box, whatever the units:
 
@@ -75,116 +75,13 @@ VERIFY_ITERATIONS = 2000
 GRID = 13
 
 
-class Jet2:
-    """A value with its gradient and Hessian in (q, p): second-order forward AD.
+class Jet2(NamedTuple):
+    """H at (q, p) with its gradient ``g = (H_q, H_p)`` and Hessian
+    ``H = (H_qq, H_qp, H_pp)``, in float64 or mpmath numbers."""
 
-    Plain Python numbers (float or mpmath ``mpf``): ``g = (g_q, g_p)``,
-    ``H = (H_qq, H_qp, H_pp)``; ``lib`` supplies the elementary functions."""
-
-    __slots__ = ("v", "g", "H", "lib")
-
-    def __init__(self, v, g=(0, 0), H=(0, 0, 0), lib=math) -> None:
-        self.v, self.g, self.H, self.lib = v, g, H, lib
-
-    def lift(self, x) -> Jet2:
-        return x if isinstance(x, Jet2) else Jet2(x, lib=self.lib)
-
-    def _chain(self, f0, f1, f2) -> Jet2:
-        """``f(self)`` from f, f', f'' at self.v."""
-        (gq, gp), (hqq, hqp, hpp) = self.g, self.H
-        return Jet2(f0, (f1 * gq, f1 * gp),
-                    (f1 * hqq + f2 * gq * gq, f1 * hqp + f2 * gq * gp, f1 * hpp + f2 * gp * gp),
-                    self.lib)
-
-    def __add__(self, o):
-        o = self.lift(o)
-        return Jet2(self.v + o.v, (self.g[0] + o.g[0], self.g[1] + o.g[1]),
-                    tuple(a + b for a, b in zip(self.H, o.H)), self.lib)
-
-    __radd__ = __add__
-
-    def __neg__(self):
-        return Jet2(-self.v, (-self.g[0], -self.g[1]), tuple(-h for h in self.H), self.lib)
-
-    def __sub__(self, o):
-        return self + (-self.lift(o))
-
-    def __rsub__(self, o):
-        return self.lift(o) - self
-
-    def __mul__(self, o):
-        o = self.lift(o)
-        (a, b), (c, d) = self.g, o.g
-        return Jet2(self.v * o.v, (self.v * c + o.v * a, self.v * d + o.v * b),
-                    (self.v * o.H[0] + o.v * self.H[0] + 2 * a * c,
-                     self.v * o.H[1] + o.v * self.H[1] + a * d + b * c,
-                     self.v * o.H[2] + o.v * self.H[2] + 2 * b * d), self.lib)
-
-    __rmul__ = __mul__
-
-    def reciprocal(self):
-        if self.v == 0:
-            raise ZeroDivisionError
-        return self._chain(1 / self.v, -1 / self.v**2, 2 / self.v**3)
-
-    def __truediv__(self, o):
-        return self * self.lift(o).reciprocal()
-
-    def __rtruediv__(self, o):
-        return self.lift(o) * self.reciprocal()
-
-    def _constant(self) -> bool:
-        return not any(self.g) and not any(self.H)
-
-    def __pow__(self, o):
-        o = self.lift(o)
-        if o._constant():
-            n, x = o.v, self.v
-            if x == 0 and n == int(n) and n >= 0:
-                k = int(n)
-                return self._chain(0 if k else 1, 1 if k == 1 else 0, 2 if k == 2 else 0)
-            if x <= 0 and n != int(n):
-                raise ValueError("power of a non-positive base")
-            return self._chain(x**n, n * x ** (n - 1), n * (n - 1) * x ** (n - 2))
-        return (o * self.log()).exp()
-
-    def __rpow__(self, o):
-        return self.lift(o) ** self
-
-    def exp(self):
-        e = self.lib.exp(self.v)
-        return self._chain(e, e, e)
-
-    def log(self):
-        if self.v <= 0:
-            raise ValueError("log of a non-positive number")
-        return self._chain(self.lib.log(self.v), 1 / self.v, -1 / self.v**2)
-
-    def sqrt(self):
-        if self.v <= 0:
-            raise ValueError("sqrt at a non-positive number (not differentiable)")
-        r = self.lib.sqrt(self.v)
-        return self._chain(r, 1 / (2 * r), -1 / (4 * r * self.v))
-
-    def sin(self):
-        s, c = self.lib.sin(self.v), self.lib.cos(self.v)
-        return self._chain(s, c, -s)
-
-    def cos(self):
-        s, c = self.lib.sin(self.v), self.lib.cos(self.v)
-        return self._chain(c, -s, -c)
-
-    def sinh(self):
-        s, c = self.lib.sinh(self.v), self.lib.cosh(self.v)
-        return self._chain(s, c, s)
-
-    def cosh(self):
-        s, c = self.lib.sinh(self.v), self.lib.cosh(self.v)
-        return self._chain(c, s, c)
-
-    def tanh(self):
-        t = self.lib.tanh(self.v)
-        return self._chain(t, 1 - t * t, -2 * t * (1 - t * t))
+    v: Any
+    g: tuple[Any, Any]
+    H: tuple[Any, Any, Any]
 
 
 class Hamiltonian(NamedTuple):
@@ -198,19 +95,20 @@ class Hamiltonian(NamedTuple):
                          tuple(sorted(self.parameters.items())))
 
     def jet(self, q, p, lib=math) -> Jet2:
-        """Value, gradient and Hessian at (q, p) in float64 (``lib=math``) or mpmath."""
-        number = float if lib is math else lib.mpf
-        env = {"q": Jet2(q, (1, 0), lib=lib), "p": Jet2(p, (0, 1), lib=lib),
-               **{k: Jet2(number(v), lib=lib) for k, v in self.parameters.items()},
-               "pi": Jet2(lib.pi if lib is not math else math.pi, lib=lib)}
-        try:
-            out = _eval(self.expression.tree, self.expression.text, env, number)
-        except (ZeroDivisionError, ValueError, OverflowError) as exc:
-            raise ExpressionError(str(exc) or type(exc).__name__) from None
-        out = env["q"].lift(out)
-        if lib is math and not all(map(math.isfinite, (out.v, *out.g, *out.H))):
-            raise ExpressionError("H or its derivatives overflow float64")
-        return out
+        """Value, gradient and Hessian at (q, p) in float64 (``lib=math``) or mpmath (at
+        its current precision), from the compiled graph; an ExpressionError where they
+        are not finite reals."""
+        compiled = self.compiled
+        if lib is math:
+            x = np.array([float(q), float(p)])
+            v, g = compiled.energy_gradient(x)
+            h = compiled.hessian(x)
+            if not (np.isfinite(v) and np.all(np.isfinite(g)) and np.all(np.isfinite(h))):
+                raise ExpressionError("H or its derivatives overflow float64")
+            return Jet2(float(v), (float(g[0]), float(g[1])),
+                        (float(h[0, 0]), float(h[0, 1]), float(h[1, 1])))
+        v, g, h = compiled.mp_jet([lib.mpf(q), lib.mpf(p)])
+        return Jet2(v, (g[0], g[1]), (h[0][0], h[0][1], h[1][1]))
 
 
 def parse_hamiltonian(text: str, parameters: dict[str, float] | None = None) -> Hamiltonian:
@@ -241,45 +139,6 @@ def parse_hamiltonian(text: str, parameters: dict[str, float] | None = None) -> 
 @functools.lru_cache(maxsize=64)
 def _compiled(text: str, tree: ast.AST, parameters: tuple) -> Compiled:
     return Compiled(from_tree(tree, text, ("q", "p"), dict(parameters)), ("q", "p"))
-
-
-@functools.lru_cache(maxsize=4096)
-def _segment(source: str, line: int, column: int, end_line: int, end_column: int) -> str:
-    """The text of a constant as written (read once: mpmath takes the decimal exactly)."""
-    node = ast.Constant(0, lineno=line, col_offset=column, end_lineno=end_line,
-                        end_col_offset=end_column)
-    return ast.get_source_segment(source, node) or ""
-
-
-def _eval(node: ast.AST, source: str, env: dict[str, Jet2], number):
-    if isinstance(node, ast.Constant):
-        return number(_segment(source, node.lineno, node.col_offset,
-                               node.end_lineno or node.lineno,
-                               node.end_col_offset or node.col_offset))
-    if isinstance(node, ast.Name):
-        return env[node.id]
-    if isinstance(node, ast.UnaryOp):
-        value = _eval(node.operand, source, env, number)
-        return -value if isinstance(node.op, ast.USub) else value
-    lift = env["q"].lift
-    if isinstance(node, ast.Call):
-        return getattr(lift(_eval(node.args[0], source, env, number)), node.func.id)()
-    assert isinstance(node, ast.BinOp)
-    a, b = _eval(node.left, source, env, number), _eval(node.right, source, env, number)
-    if isinstance(node.op, ast.Add):
-        return lift(a) + b
-    if isinstance(node.op, ast.Sub):
-        return lift(a) - b
-    if isinstance(node.op, ast.Mult):
-        return lift(a) * b
-    if isinstance(node.op, ast.Div):
-        return lift(a) / b
-    bv = b.v if isinstance(b, Jet2) else b
-    constant_base = not isinstance(a, Jet2) or a._constant()
-    if (not isinstance(b, Jet2) or b._constant()) and not constant_base:
-        if abs(bv) > 64:
-            raise ValueError("exponent above 64")  # (of q or p; 2**65 is a number)
-    return lift(a) ** b
 
 
 class Equilibrium(NamedTuple):
@@ -410,8 +269,6 @@ def find_equilibria(H: Hamiltonian, box_q: tuple[float, float], box_p: tuple[flo
 def _walkers(H: Hamiltonian, centre: np.ndarray, half: np.ndarray, at):
     """``local``, ``slopes`` and ``settle`` of :func:`stepsafe.systems.walks.explore` in
     box coordinates; ``settle`` verifies an end point as the starts' end points are."""
-    from stepsafe.systems.manydof import parse_many
-
     def local(u: np.ndarray):
         try:
             g, A = _scaled(H, u, centre, half)
@@ -419,15 +276,9 @@ def _walkers(H: Hamiltonian, centre: np.ndarray, half: np.ndarray, at):
             return None
         return (g, A) if np.all(np.isfinite(A)) and np.all(np.isfinite(g)) else None
 
-    vectorised = parse_many(H.expression.text, ["q"], ["p"], H.parameters, "H")
-
     def slopes(U: np.ndarray) -> np.ndarray:
-        """The gradients at many points at once (the n-dof engine's dual numbers on the
-        same expression)."""
-        try:
-            G = np.asarray(vectorised.dual(centre + half * U).d, dtype=float).T * half
-        except (ValueError, ZeroDivisionError, OverflowError, FloatingPointError):
-            return np.full(U.shape, np.nan)
+        """The gradients at many points at once (the compiled gradient)."""
+        G = H.compiled.gradient(centre + half * U) * half
         return np.where(np.isfinite(G), G, np.nan)
 
     def settle(u: np.ndarray):
@@ -567,8 +418,8 @@ def _mp_jet(H: Hamiltonian, x, w):
     scale = max(max(abs(h) for h in a.H), mp.mpf(10) ** -300)
     if max(abs(ha - hb) for ha, hb in zip(a.H, b.H)) > mp.mpf(10) ** (-(VERIFY_DPS // 8)) * scale:
         return None  # a genuine singularity, not a removable one
-    return Jet2((a.v + b.v) / 2, tuple((ga + gb) / 2 for ga, gb in zip(a.g, b.g)),
-                tuple((ha + hb) / 2 for ha, hb in zip(a.H, b.H)), mp)
+    return Jet2((a.v + b.v) / 2, ((a.g[0] + b.g[0]) / 2, (a.g[1] + b.g[1]) / 2),
+                ((a.H[0] + b.H[0]) / 2, (a.H[1] + b.H[1]) / 2, (a.H[2] + b.H[2]) / 2))
 
 
 def _classify(q: float, p: float, hqq: Any, hqp: Any, hpp: Any, D: Any,
