@@ -14,6 +14,20 @@ hand): Verlet from the same start with the energy at every step, plus scipy's DO
 reference to the same time at the same tolerance (1e-13). The runs are interleaved
 (plain, stepsafe, plain, ...) and the medians of ``--repeat`` wall times are printed with
 their ratio, side by side.
+
+Measured on this project's machine (x86_64, 2 cores shared with other jobs, Python 3.11.7,
+numpy 2.4.6, scipy 1.17.1), medians of interleaved runs. Before: the scene's expression
+evaluated by forward-mode dual numbers at every force, an equilibrium search of 256 Newton
+starts (with walks) before every n-dof run, the reference's right-hand side through the
+batch engine (one repeat); after: the compiled gradient, the start's centre from one
+vectorised Newton pass, the reference on the compiled right-hand side (three repeats).
+
+===================================  =============  ============
+run                                  before: ratio  after: ratio
+===================================  =============  ============
+FPU-alpha, 4 masses, 10^4 steps      13.1           1.65
+pendulum, 10^5 steps                 4.4            1.49
+===================================  =============  ============
 """
 
 from __future__ import annotations

@@ -376,6 +376,43 @@ def _certify(H: ManyDofHamiltonian, lo: np.ndarray, hi: np.ndarray, found: list[
     return result, unconfirmed
 
 
+def centres(H: ManyDofHamiltonian, lo: np.ndarray, hi: np.ndarray,
+            starts: int | None = None) -> list[ManyDofEquilibrium]:
+    """The elliptic equilibria Newton's method reaches from a Halton set of starts in the
+    box, all starts advanced at once on the compiled gradient and Hessian (pseudo-inverse
+    steps, so a singular Hessian does not stop the batch), each end point verified
+    (:func:`_verified`) and classified; sorted by energy. A start to run near, found fast:
+    no completeness is claimed (the search of :func:`find_many` is for the analysis)."""
+    N = lo.size
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    count = min(MAX_STARTS, starts or STARTS_PER_VARIABLE * N)
+    X = centre + half * halton(count, N)
+    compiled = H.compiled
+    with np.errstate(all="ignore"):
+        for _ in range(NEWTON_ITERATIONS):
+            g = compiled.gradient(X)
+            S = compiled.hessian(X)
+            ok = np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(S), axis=(1, 2))
+            if not ok.any():
+                break
+            X = X[ok]
+            step = np.einsum("bij,bj->bi", np.linalg.pinv(S[ok], rcond=1e-13), g[ok])
+            X = X - step
+            inside = np.all(np.abs(X - centre) <= 1.5 * half, axis=1)
+            X = X[inside]
+            if np.all(np.abs(step[inside]) <= 1e-14 * half):
+                break
+    found: list[np.ndarray] = []
+    for x in X:
+        if np.all(np.abs(x - centre) <= half * (1 + 1e-9)) and \
+                not any(np.all(np.abs(x - y) <= 1e-7 * half) for y in found):
+            x = np.where(np.abs(x) <= 1e-12 * half, 0.0, x)
+            if _verified(H, x, half):
+                found.append(x)
+    out = [e for e in (_classify(H, x) for x in found) if e.kind == "elliptic"]
+    return sorted(out, key=lambda e: (e.energy, tuple(e.x)))
+
+
 def _walkers(H: ManyDofHamiltonian, centre: np.ndarray, half: np.ndarray):
     """``local``, ``slopes`` and ``settle`` of :func:`stepsafe.systems.walks.explore` for H
     in box coordinates ``x = centre + half u``."""
