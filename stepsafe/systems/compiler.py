@@ -265,11 +265,12 @@ def from_tree(tree: ast.AST, source: str, variables: Sequence[str],
     def build(node: ast.AST) -> Node:
         if isinstance(node, ast.Constant):
             text = ast.get_source_segment(source, node)
+            value = float(node.value)  # type: ignore[arg-type]  # (whitelisted: int or float)
             try:
-                exact = text is not None and float(text) == float(node.value)
+                exact = text is not None and float(text) == value
             except ValueError:
                 exact = False
-            return const(text if exact and text else float(node.value))
+            return const(text if exact and text else value)
         if isinstance(node, ast.Name):
             if node.id in names:
                 return var(node.id)

@@ -86,7 +86,7 @@ def _exact(node: Node) -> bool:
         return False
 
 
-def _mul(a: Interval, b: Interval) -> tuple:
+def _mul(a: Interval, b: Interval) -> tuple[np.ndarray, np.ndarray]:
     p = np.stack(np.broadcast_arrays(a.lo * b.lo, a.lo * b.hi, a.hi * b.lo, a.hi * b.hi))
     p = np.where(np.isnan(p), 0.0, p)  # 0 * inf: the product at that corner is 0
     return _out(p.min(axis=0), p.max(axis=0))
@@ -221,23 +221,26 @@ def evaluate(outputs: Sequence[Node], names: Sequence[str], lo: np.ndarray,
                     b = values[id(node.args[1])]
                     partial, empty = a.partial | b.partial, a.empty | b.empty
                     if op == "add":
-                        out = Interval(*_out(a.lo + b.lo, a.hi + b.hi), partial, empty)
+                        lo_, hi_ = _out(a.lo + b.lo, a.hi + b.hi)
                     elif op == "sub":
-                        out = Interval(*_out(a.lo - b.hi, a.hi - b.lo), partial, empty)
+                        lo_, hi_ = _out(a.lo - b.hi, a.hi - b.lo)
                     elif op == "mul":
-                        out = Interval(*_mul(a, b), partial, empty)
+                        lo_, hi_ = _mul(a, b)
                     elif op == "div":
                         r = _recip(b)
-                        out = Interval(*_mul(a, r), partial | r.partial, empty | r.empty)
+                        lo_, hi_ = _mul(a, r)
+                        partial, empty = partial | r.partial, empty | r.empty
+                    if op in ("add", "sub", "mul", "div"):
+                        out = Interval(lo_, hi_, partial, empty)
                     else:
                         out = _power(a, b, node.args[1])
             values[id(node)] = out
     result = []
     for o in outputs:
-        v = values[id(o)]
-        result.append(Interval(np.broadcast_to(v.lo, (B,)), np.broadcast_to(v.hi, (B,)),
-                               np.broadcast_to(v.partial, (B,)),
-                               np.broadcast_to(v.empty, (B,))))
+        w = values[id(o)]
+        result.append(Interval(np.broadcast_to(w.lo, (B,)), np.broadcast_to(w.hi, (B,)),
+                               np.broadcast_to(w.partial, (B,)),
+                               np.broadcast_to(w.empty, (B,))))
     return result
 
 

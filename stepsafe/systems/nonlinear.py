@@ -107,8 +107,8 @@ class Hamiltonian(NamedTuple):
                 raise ExpressionError("H or its derivatives overflow float64")
             return Jet2(float(v), (float(g[0]), float(g[1])),
                         (float(h[0, 0]), float(h[0, 1]), float(h[1, 1])))
-        v, g, h = compiled.mp_jet([lib.mpf(q), lib.mpf(p)])
-        return Jet2(v, (g[0], g[1]), (h[0][0], h[0][1], h[1][1]))
+        mv, mg, mh = compiled.mp_jet([lib.mpf(q), lib.mpf(p)])
+        return Jet2(mv, (mg[0], mg[1]), (mh[0][0], mh[0][1], mh[1][1]))
 
 
 def parse_hamiltonian(text: str, parameters: dict[str, float] | None = None) -> Hamiltonian:
