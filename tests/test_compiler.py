@@ -33,6 +33,7 @@ def _extend(inner):
         st.tuples(inner, st.sampled_from(["0.5", "1.5", "-0.5"])).map(
             lambda t: f"(2 + sin({t[0]}))**{t[1]}"),
         inner.map(lambda a: f"-({a})"),
+        inner.map(lambda a: f"({a})**(4/2)"),
         st.tuples(st.sampled_from(["sin", "cos", "tanh", "sinh", "cbrt"]), inner).map(
             lambda t: f"{t[0]}({t[1]})"),
         inner.map(lambda a: f"exp(-({a})**2)"),

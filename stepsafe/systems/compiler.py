@@ -485,6 +485,18 @@ def _float_value(node: Node, local: dict[int, str], namespace: dict[str, Any]) -
                   "div": x / y if y != 0 else np.float64(np.nan), "pow": x ** y}[op])
 
 
+def constant_value(node: Node) -> float:
+    """A variable-free node in float64, as the numpy backend computes it."""
+    local: dict[int, str] = {}
+    namespace: dict[str, Any] = {}
+    with np.errstate(all="ignore"):
+        for n in _postorder([node]):
+            name = f"c{len(namespace)}"
+            namespace[name] = _float_value(n, local, namespace)
+            local[id(n)] = name
+    return float(namespace[local[id(node)]])
+
+
 def mp_evaluate(outputs: Sequence[Node], values: dict[str, Any]) -> list[Any]:
     """The outputs in mpmath at the current precision (``values`` the variables as mpf);
     a value that is not a finite real raises ExpressionError."""

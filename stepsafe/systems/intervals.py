@@ -32,6 +32,7 @@ and where the first one is.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -39,7 +40,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from stepsafe.systems.compiler import Compiled, Node, _postorder
+from stepsafe.systems.compiler import Compiled, Node, _postorder, constant_value
 
 EPS = float(np.finfo(float).eps)
 #: Relative widening of an elementary function's value (they are accurate to an ulp or two).
@@ -177,9 +178,12 @@ def _call(name: str, a: Interval) -> Interval:
 
 
 def _power(a: Interval, b: Interval, b_node: Node) -> Interval:
-    if not b_node.variables and b_node.op == "const" and _exact(b_node) \
-            and b_node.value == int(b_node.value):
-        return _integer_power(a, int(b_node.value))
+    if not b_node.variables:
+        # a constant exponent that is an integer as float64 computes it (4/2 as well as
+        # 2): numpy's power is then defined for a negative base too
+        c = constant_value(b_node)
+        if math.isfinite(c) and c == int(c) and abs(c) <= 64:
+            return _integer_power(a, int(c))
     # a^b = exp(b log a) on a > 0 (and a = 0 for b > 0), as for a real exponent
     base = _nonnegative(a)
     with np.errstate(all="ignore"):
