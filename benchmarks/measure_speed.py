@@ -20,13 +20,14 @@ numpy 2.4.6, scipy 1.17.1), medians of interleaved runs. Before: the scene's exp
 evaluated by forward-mode dual numbers at every force, an equilibrium search of 256 Newton
 starts (with walks) before every n-dof run, the reference's right-hand side through the
 batch engine (one repeat); after: the compiled gradient, the start's centre from one
-vectorised Newton pass, the reference on the compiled right-hand side (three repeats).
+vectorised Newton pass, the reference on the compiled right-hand side (three repeats; two
+runs under different loads, the range shown).
 
 ===================================  =============  ============
 run                                  before: ratio  after: ratio
 ===================================  =============  ============
-FPU-alpha, 4 masses, 10^4 steps      13.1           1.65
-pendulum, 10^5 steps                 4.4            1.49
+FPU-alpha, 4 masses, 10^4 steps      13.1           1.37 - 1.65
+pendulum, 10^5 steps                 4.4            1.45 - 1.49
 ===================================  =============  ============
 """
 
