@@ -95,7 +95,9 @@ def test_the_bound_is_the_largest_error_over_trajectory_lengths(name):
                 P = M * P
                 worst = max(worst, (sum(P[i, j] ** 2 for i in range(2) for j in range(2))
                                     - 2) / 2)
-            defect = float(2 * 400 * abs(mp.det(M) - 1))  # see the test above
+            # see the test above; plus the 30-digit rounding of 400 products, which is all
+            # there is for a method that keeps the oscillator's energy exactly (Gauss: bound 0)
+            defect = float(2 * 400 * abs(mp.det(M) - 1)) + 400 * 1e-29
         assert float(worst) <= bound * (1 + 1e-10) + defect
         assert float(worst) >= 0.95 * bound - defect  # 400 steps come close to sin^2 = 1
 
