@@ -44,9 +44,10 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from stepsafe.core.engine import leaf_key
 from stepsafe.core.models import ELLIPTIC
 from stepsafe.core.roots import EPS, refine_brackets
-from stepsafe.core.transfer import blocks_of, leaf_key, stage_operator, transfer_matrix
+from stepsafe.core.transfer import blocks_of, stage_operator, transfer_matrix
 from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.library import high_precision_tableaux
 from stepsafe.methods.protocol import Block, Friction, Shears

@@ -28,7 +28,7 @@ rounding bound ``tol`` of ``+-2`` is a tangency: an isolated *resonance* (e.g.
 ``M = -I``), reported with the half-width of z within which float64 cannot tell a touch
 from a gap, never merged over. The rounding bound is ``tol = TOL_FACTOR * eps * scale``
 with ``scale`` the first-order rounding sensitivity of ``tr M`` (see
-:class:`stepsafe.core.transfer.Jet`; it includes the conditioning of implicit stage solves),
+:class:`stepsafe.core.engine.Jet`; it includes the conditioning of implicit stage solves),
 computed only at the points where a tolerance is decided. Where ``M(z)`` overflows float64
 the analysis stops below that z and the region says so (``zmax`` is lowered, with a note).
 
@@ -44,6 +44,7 @@ from typing import NamedTuple, cast
 
 import numpy as np
 
+from stepsafe.core.engine import TOL_FACTOR, Jet
 from stepsafe.core.escalate import ESCALATE_REL, Escalation
 from stepsafe.core.grid import (
     SAMPLE_WORK_BUDGET,
@@ -55,7 +56,7 @@ from stepsafe.core.models import ELLIPTIC, check_model
 from stepsafe.core.rkstability import imaginary_axis_crossings, stability_function
 from stepsafe.core.roots import EPS, HermiteCubic, hermite_extremum, hermite_root, refine_brackets
 from stepsafe.core.sets import contains, difference, distinct, union
-from stepsafe.core.transfer import TOL_FACTOR, Jet, pole_locations, poles, transfer_jet
+from stepsafe.core.transfer import pole_locations, poles, transfer_jet
 from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.methods.protocol import Shears
 from stepsafe.methods.residuals import residuals
@@ -160,7 +161,7 @@ class _Evaluator:
 
     The level ``tr M = +2`` is decided on ``dev = tr M - 2``, the level ``-2`` on
     ``dev_m = tr M + 2``: each is summed where it keeps its accuracy (see
-    :class:`stepsafe.core.transfer.Jet`)."""
+    :class:`stepsafe.core.engine.Jet`)."""
 
     def __init__(self, method: Method, model: str) -> None:
         self.method = method
@@ -198,7 +199,7 @@ def _at_level(jet: Jet, level: float) -> np.ndarray:
 
 
 def _tolerance(jet: Jet, level: float) -> np.ndarray:
-    """The rounding bound of ``tr M - level`` (see :data:`~stepsafe.core.transfer.TOL_FACTOR`)."""
+    """The rounding bound of ``tr M - level`` (see :data:`~stepsafe.core.engine.TOL_FACTOR`)."""
     return TOL_FACTOR * EPS * (jet.scale if level > 0 else jet.scale_m)
 
 

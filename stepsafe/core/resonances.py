@@ -23,10 +23,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from stepsafe.core.engine import TOL_FACTOR
 from stepsafe.core.grid import Grid, default_resolution
 from stepsafe.core.regions import Interval, Point, Region, clear_of_bands
 from stepsafe.core.roots import EPS, refine_brackets
-from stepsafe.core.transfer import TOL_FACTOR, transfer_jet
+from stepsafe.core.transfer import transfer_jet
 from stepsafe.methods.tableaux import Method
 
 #: The orders shown by ``region`` and ``advise``: n = 3, 4, 5, 6.

@@ -27,8 +27,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from stepsafe.core.engine import batched_solve
 from stepsafe.core.sets import distinct
-from stepsafe.core.transfer import batched_solve
 from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import RungeKutta
 

@@ -45,10 +45,20 @@ from typing import cast
 import numpy as np
 import scipy.linalg as sla
 
+from stepsafe.core.engine import (
+    Jet,
+    Rounding,
+    StageOperator,
+    stage_jet,
+    stage_operator,
+    step_jet,
+)
+from stepsafe.core.engine import jet as make_jet
 from stepsafe.core.threads import blas_threads_for
+from stepsafe.core.transfer import blocks_of
 from stepsafe.exceptions import StepsafeError
-from stepsafe.methods.protocol import MethodKind, Shears, Stages
-from stepsafe.methods.tableaux import Method, PartitionedRK
+from stepsafe.methods.protocol import Friction, MethodKind, Shears, Stages
+from stepsafe.methods.tableaux import Method, PartitionedRK, RungeKutta, Splitting
 from stepsafe.systems import coupled_exact
 from stepsafe.systems.frame import (
     DiagonalFrame,
@@ -157,7 +167,12 @@ def discrete_signature(M: np.ndarray) -> Signature | None:
 
 
 class _Steps:
-    """Builds ``D(h) = M(h) - I`` for one method on one S (see module docstring)."""
+    """Builds ``D(h) = M(h) - I`` for one method on one S (see module docstring): the step
+    engine (:func:`stepsafe.core.engine.step_jet`) on this system, whose blocks are a
+    splitting's symplectic Euler factors by n x n solves (in a :class:`DiagonalFrame` by
+    :func:`euler_deviation`; a force-gradient splitting by its operations) and a Runge–Kutta
+    step by the engine's stage system on ``L = J S``. Rounding: the engine's normwise
+    bound."""
 
     def __init__(self, method: Method, S: np.ndarray, frame: DiagonalFrame | None = None
                  ) -> None:
@@ -168,7 +183,9 @@ class _Steps:
         self.S_pq, self.S_pp = S[n:, :n], S[n:, n:]
         self.norm_S = float(np.linalg.norm(S))
         self.pieces = _pieces(method)
+        self.blocks = blocks_of(method, None)
         self.frame = frame
+        self._stage_systems: dict[int, tuple[object, StageOperator]] = {}
         if any(kind == "ops" for kind, _ in self.pieces) and (self.S_qp.any()
                                                               or self.S_pq.any()):
             raise StepsafeError("a force-gradient method needs a separable H = p^T M^-1 p / 2 "
@@ -185,29 +202,49 @@ class _Steps:
 
     def deviation(self, h: float) -> tuple[np.ndarray, float]:
         """``(D, err)``: ``D = M(h) - I`` and a first-order bound on its rounding error
-        (Frobenius); D is NaN where the step is not unique (a singular stage system).
-        Splittings in a :class:`DiagonalFrame` take :func:`euler_deviation`."""
-        n = self.n
-        if self.frame is not None and len(self.pieces) == 1 and self.pieces[0][0] == "euler":
-            return euler_deviation(self.frame, self.pieces[0][1], h, self.norm_S)
-        D = np.zeros((2 * n, 2 * n))
-        err = 0.0
-        for kind, item in self.pieces:
-            if kind == "euler":
-                for label, c in item:
-                    err += self._euler(D, label, c * h)
-            elif kind == "ops":
-                for label, c in item:
-                    err += self._operation(D, label, c, h)
-            else:
-                g, prk = item
-                Df, e = self._prk(prk, g * h)
-                # (I + Df)(I + D) - I = D + Df + Df D
-                D += Df + Df @ D
-                err += e * (1.0 + float(np.linalg.norm(D)))
-            if not np.all(np.isfinite(D)):
-                return np.full_like(D, np.nan), np.inf
+        (Frobenius); D is NaN where the step is not unique (a singular stage system)."""
+        out = step_jet(self.blocks, self, np.array([float(h)]), order=0, rounding="norm")
+        D = out.D[0]
+        assert out.err is not None
+        if not np.all(np.isfinite(D)):
+            return np.full_like(D, np.nan), np.inf
+        return D, float(out.err[0])
+
+    def shears(self, splitting: Splitting, z: np.ndarray, order: int,
+               rounding: Rounding) -> Jet:
+        """The splitting at each h in ``z`` (values only: the coupled criteria take no
+        derivatives), with its normwise rounding bound."""
+        Ds, errs = zip(*(self._shears(splitting, float(h)) for h in z))
+        nan = np.full((z.size, 2 * self.n, 2 * self.n), np.nan)
+        return make_jet(np.array(Ds), nan, nan, err=np.array(errs))
+
+    def _shears(self, splitting: Splitting, h: float) -> tuple[np.ndarray, float]:
+        if self.frame is not None and not splitting.force_gradient:
+            return euler_deviation(self.frame, splitting.euler_factors(), h, self.norm_S)
+        D = np.zeros((2 * self.n, 2 * self.n))
+        if splitting.force_gradient:
+            err = sum(self._operation(D, label, c, h) for label, c in splitting.operations)
+        else:
+            err = sum(self._euler(D, label, c * h) for label, c in splitting.euler_factors())
         return D, err
+
+    def stages(self, method: RungeKutta | PartitionedRK, z: np.ndarray, order: int,
+               rounding: Rounding) -> Jet:
+        """The stage system of ``method`` on ``L = J S`` (built once per method; without
+        the far form, which serves the accuracy of ``tr M -+ 2`` on the 2x2 models)."""
+        hit = self._stage_systems.get(id(method))
+        if hit is None or hit[0] is not method:
+            hit = self._stage_systems[id(method)] = (
+                method, stage_operator(method, hamiltonian_matrix(self.S)))
+        out = stage_jet(hit[1], None, z, order, rounding, norm_L=self.norm_S)
+        if out.err is not None:  # the products with the stage sums: 1 + ||D||
+            out = out._replace(err=out.err * (1.0 + np.linalg.norm(out.D, axis=(1, 2))))
+        return out
+
+    def friction(self, block: Friction, z: np.ndarray, order: int,
+                 rounding: Rounding) -> Jet:
+        raise StepsafeError("a Langevin splitting is analysed on the modes of a system (its "
+                            "oscillator models), not on a coupled 2n x 2n system")
 
     def _operation(self, D: np.ndarray, label: str, c: float, h: float) -> float:
         """Apply one operation of a force-gradient splitting to ``X = I + D`` in place
@@ -259,29 +296,6 @@ class _Steps:
         return 2 * n * EPS * abs(c) * self.norm_S * float(np.linalg.norm(X)) \
             * solver.amplification
 
-    def _prk(self, prk: PartitionedRK, h: float) -> tuple[np.ndarray, float]:
-        """``M - I`` of one PRK step from its stage system (``h`` times the stage sums)."""
-        n, s = self.n, prk.stages
-        I_sn = np.eye(s * n)
-        top = np.hstack([I_sn - h * np.kron(prk.A_q, self.S_pq), -h * np.kron(prk.A_q, self.S_pp)])
-        bottom = np.hstack([h * np.kron(prk.A_p, self.S_qq),
-                            I_sn + h * np.kron(prk.A_p, self.S_qp)])
-        system = np.vstack([top, bottom])
-        E = np.zeros((2 * s * n, 2 * n))
-        E[: s * n, :n] = np.tile(np.eye(n), (s, 1))
-        E[s * n:, n:] = np.tile(np.eye(n), (s, 1))
-        try:
-            X = np.linalg.solve(system, E)
-        except np.linalg.LinAlgError:
-            return np.full((2 * n, 2 * n), np.nan), np.inf
-        Q, P = X[: s * n].reshape(s, n, 2 * n), X[s * n:].reshape(s, n, 2 * n)
-        F = np.einsum("ab,sbk->sak", self.S_pq, Q) + np.einsum("ab,sbk->sak", self.S_pp, P)
-        G = -(np.einsum("ab,sbk->sak", self.S_qq, Q) + np.einsum("ab,sbk->sak", self.S_qp, P))
-        D = np.empty((2 * n, 2 * n))
-        D[:n] = h * np.einsum("s,sak->ak", prk.b_q, F)
-        D[n:] = h * np.einsum("s,sak->ak", prk.b_p, G)
-        return D, 2 * s * n * EPS * abs(h) * self.norm_S * float(np.linalg.norm(X))
-
 
 def _pieces(method: Method) -> list[tuple[str, object]]:
     """The step as Euler factors (splittings, compositions of them) or weighted PRK
@@ -290,8 +304,6 @@ def _pieces(method: Method) -> list[tuple[str, object]]:
     built from too). A splitting (a processed method ``P^-1 K P`` as its full one-step
     map, a composition of splittings merged) runs as its PRK form of symplectic Euler
     factors, as on every H that mixes q and p; a force-gradient one as its operations."""
-    from stepsafe.core.transfer import blocks_of
-
     pieces: list[tuple[str, object]] = []
     for block in blocks_of(method, None):
         if isinstance(block, Shears):
@@ -577,7 +589,7 @@ class CoupledSystem:
         found: list[float] = []
         S = self.S
         n = self.n
-        S_qq, S_qp, S_pq, S_pp = S[:n, :n], S[:n, n:], S[n:, :n], S[n:, n:]
+        S_pq = S[n:, :n]
         eig_pq = None  # -S_qp = -S_pq^T has the eigenvalues of -S_pq
         for kind, item in self.steps.pieces:
             if kind == "ops":  # explicit: no stage equations, no poles
@@ -591,8 +603,7 @@ class CoupledSystem:
                 g, prk = item
                 if 2 * prk.stages * n > MAX_POLE_SIZE:
                     continue
-                K = np.block([[np.kron(prk.A_q, S_pq), np.kron(prk.A_q, S_pp)],
-                              [-np.kron(prk.A_p, S_qq), -np.kron(prk.A_p, S_qp)]])
+                K = stage_operator(prk, hamiltonian_matrix(S)).K
                 found += _reciprocals(g * np.linalg.eigvals(K))
         h = np.array(sorted(found)) / self.unit
         return h[np.isfinite(h) & (h > 0)]
