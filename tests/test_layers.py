@@ -43,8 +43,6 @@ KNOWN = {
     ("stepsafe.methods.tableaux", "stepsafe.reference.highprec"):
         "a method's high-precision transfer matrix (MethodKind.high_precision, what the "
         "core escalates with) is built from the reference's mpmath factors",
-    ("stepsafe.methods.table", "stepsafe.core.regions"):
-        "the methods table shows each method's stability limit",
 }
 
 

@@ -313,9 +313,9 @@ def test_compare_table():
 
 
 def test_method_library_table_is_generated_from_the_files():
-    from stepsafe.methods.table import markdown
+    from stepsafe.cli.methods_table import markdown
 
-    start = README.index("<!-- generated: python -m stepsafe.methods.table -->\n")
+    start = README.index("<!-- generated: python -m stepsafe.cli.methods_table -->\n")
     start = README.index("\n", start) + 1
     block = README[start:README.index("<!-- end of generated table -->", start)]
     assert_shown(block, markdown())

@@ -1,6 +1,6 @@
 """The README's method-library table, generated from the built-in method files.
 
-``python -m stepsafe.methods.table`` prints it as Markdown: per single-force method its
+``python -m stepsafe.cli.methods_table`` prints it as Markdown: per single-force method its
 kind, order, force evaluations per step, the harmonic-oscillator threshold z* = omega h
 (end of the first interval where the structure is preserved, computed by
 :func:`~stepsafe.core.regions.find_region`), z* per evaluation (the step per force
@@ -16,6 +16,10 @@ once per output, are listed beside them.
 from __future__ import annotations
 
 import re
+
+from stepsafe.core.regions import find_region
+from stepsafe.methods.library import FAMILIES, builtin_names, resolve
+from stepsafe.methods.tableaux import GRADIENT_COST
 
 #: the region is searched up to this z (a method preserving the structure beyond it is
 #: listed as such)
@@ -51,9 +55,6 @@ def short_source(source: str) -> str:
 
 def rows() -> list[dict]:
     """One row per built-in single-force method file (not the families)."""
-    from stepsafe.core.regions import find_region
-    from stepsafe.methods.library import FAMILIES, builtin_names, resolve
-
     out = []
     for name in builtin_names(single_force=True):
         if name in FAMILIES:
@@ -81,8 +82,6 @@ def _number(x: float | None, digits: int) -> str:
 
 def markdown() -> str:
     """The table as Markdown lines, ending with a newline."""
-    from stepsafe.methods.tableaux import GRADIENT_COST
-
     lines = ["| method | kind | order | evaluations | z* | z* per evaluation | "
              "stability limit, where different | source |",
              "|---|---|---|---|---|---|---|---|"]
