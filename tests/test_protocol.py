@@ -19,11 +19,15 @@ import zlib
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from stepsafe.core.transfer import has_form, pole_locations, transfer_jet, transfer_matrix
 from stepsafe.methods.library import FAMILIES, builtin_names, resolve
 from stepsafe.methods.protocol import Block, Friction, MethodKind, Stages
-from stepsafe.systems.coupled import one_step_matrix
+from stepsafe.methods.tableaux import Composition
+from stepsafe.systems.coupled import _Steps, one_step_matrix
+from stepsafe.systems.linear import hamiltonian_matrix
 
 FAMILY_MEMBERS = [("gauss", 1), ("gauss", 2), ("gauss", 3), ("lobatto3ab", 2),
                   ("lobatto3ab", 3)]
@@ -247,3 +251,47 @@ def test_decoupled_modes_step_mode_by_mode(item):
         expected = rotate.T @ modes @ rotate
         Mn = one_step_matrix(m, S, h)
         assert np.abs(Mn - expected).max() <= 1e-11 * (1 + np.abs(expected).max()), n
+
+
+def _gauss2_exact(A, steps):
+    """``prod_k R(g_k h A)`` at 50 digits, ``R(X) = (I - X/2 + X^2/12)^-1 (I + X/2 + X^2/12)``
+    the (2,2) Padé approximant of exp: the step of the 2-stage Gauss method on ``x' = A x``
+    (its stability function, which a linear system sees whole). ``steps`` in order."""
+    mpmath = pytest.importorskip("mpmath")
+    with mpmath.workdps(50):
+        L = mpmath.matrix(A.tolist())
+        eye = mpmath.eye(L.rows)
+        M = eye
+        for step in steps:
+            X = L * mpmath.mpf(step)
+            X2 = X * X / 12
+            M = mpmath.inverse(eye - X / 2 + X2) * (eye + X / 2 + X2) * M
+        D = M - eye
+        return np.array([[float(D[i, j]) for j in range(D.cols)] for i in range(D.rows)])
+
+
+@given(n=st.integers(1, 4), seed=st.integers(0, 2**32 - 1),
+       h=st.floats(1e-3, 0.6), log_unit=st.integers(-40, 40))
+@settings(max_examples=12, deadline=None)
+def test_a_composition_of_an_implicit_method_is_the_product_of_its_substeps(n, seed, h,
+                                                                              log_unit):
+    """A composition of the 2-stage Gauss method (triple jump weights: negative substeps)
+    on a random coupled ``x' = J S x`` (definite or not, S scaled by ``2^log_unit``) is the
+    product of its substeps: the float ``M - I`` of the step engine agrees with the
+    50-digit product of the exact substeps (Padé approximants of exp) within its own
+    normwise rounding bound."""
+    rng = np.random.default_rng(seed)
+    G = rng.normal(size=(2 * n, 2 * n))
+    unit = 2.0 ** log_unit
+    S = unit * (G + G.T) / 2
+    w1 = 1 / (2 - 2 ** (1 / 3))
+    weights = [w1, 1 - 2 * w1, w1]
+    composition = Composition(base=resolve("gauss", 2)[0], weights=np.array(weights),
+                              name="triple-jump-gauss2")
+    step = h / unit
+    D, err = _Steps(composition, S).deviation(step)
+    exact = _gauss2_exact(hamiltonian_matrix(S), [g * step for g in weights])
+    if not np.all(np.isfinite(exact)) or not np.all(np.isfinite(D)):
+        return  # a substep at a pole of its stage system
+    wrong = float(np.linalg.norm(D - exact))
+    assert wrong <= err, (wrong, err)
