@@ -8,9 +8,11 @@ residuals say it is symplectic, a method that says it is symmetric is its own ad
 with the independent mpmath reference built from its own definition.
 
 The 2x2 transfer matrix (:mod:`stepsafe.core.transfer`) and the 2n x 2n one-step matrix
-(:mod:`stepsafe.systems.coupled`) are built from one block decomposition; the 2x2 map must be
-the one-degree-of-freedom case of the 2n x 2n one, and a system of n decoupled modes
-(rotated by a random orthogonal point transformation) must step mode by mode.
+(:mod:`stepsafe.systems.coupled`) are one routine (:func:`stepsafe.core.engine.step_jet`)
+over one block decomposition; the 2x2 map must be the one-degree-of-freedom case of the
+2n x 2n one, a system of n decoupled modes (rotated by a random orthogonal point
+transformation) must step mode by mode, and a step of several blocks must be the product of
+its blocks.
 """
 
 from __future__ import annotations
