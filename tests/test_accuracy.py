@@ -147,12 +147,15 @@ def test_tolerance_inverse_problem():
 def test_compare_ranks_by_the_cost_it_prints(run):
     code, out, err = run("compare", "--beta", "3.2", "--tol-phase", "1e-6", "--json")
     assert code == 0, err
-    rows = json.loads(out)["methods"]
+    data = json.loads(out)
+    rows = data["methods"]
     costs = [r["cost"] for r in rows]
     assert costs == sorted(costs) and [r["rank"] for r in rows] == list(range(1, len(rows) + 1))
     for r in rows:
         assert r["h"] == pytest.approx(min(r["h_max"], r["h_tol"]))
-        assert r["cost"] == pytest.approx(r["evaluations"] / r["h"])
+        jacobians = r["jacobians"] or 0  # (Newton's, each at --jacobian-cost forces)
+        assert r["cost"] == pytest.approx((r["evaluations"] + data["jacobian_cost"] * jacobians)
+                                          / r["h"])
         assert r["bound_by"] == ("accuracy" if r["h_tol"] < r["h_max"] else "safety")
 
 

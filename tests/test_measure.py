@@ -341,7 +341,7 @@ def test_advise_counts_the_solver_asked_for(run):
                              "--tol-phase", "1e-6", "--solver", solver, "--json")
         assert code == 0, err
         counts[solver] = json.loads(out)["evaluations"]
-    assert counts == {"fixed-point": 24, "newton": 6, "nominal": 2}
+    assert counts == {"fixed-point": 14, "newton": 6, "nominal": 2}
 
 
 def test_check_names_the_solver_limit(run):

@@ -303,13 +303,21 @@ def test_compare_table():
         name = name.replace(" (implicit)", "").replace(" -s ", "-s")
         assert (int(rank), name) == (row["rank"], row["method"])
         assert all(same_figure(a, b) for a, b in zip((z, h_max, h), printed[name][3:6]))
-        count = f"{row['evaluations']}" + (f" ({row['solver_iterations']} iterations)"
-                                           if row["implicit"] else "")
+        count = f"{row['evaluations']}" + (
+            f" + {row['jacobians']} Jacobian" if row["jacobians"] else "") + (
+            f" ({row['solver']}, {row['solver_iterations']} iterations)"
+            if row["implicit"] else "")
         assert evaluations == count
         assert abs(Decimal(cost) - Decimal(row["cost"])) <= _last_digit_unit(cost) / 2
-    nominal = json.loads(_output(*args, "--solver", "nominal", "--json"))["methods"]
-    ranks = [row["rank"] for row in nominal if row["implicit"]]
-    assert ranks == [2, 4] and "would rank 2nd\nand 4th" in README
+    ranks = {}
+    for solver in ("fixed-point", "nominal"):
+        rows = json.loads(_output(*args, "--solver", solver, "--json"))["methods"]
+        ranks[solver] = [row["rank"] for row in rows if row["implicit"]]
+        if solver == "fixed-point":
+            assert {row["evaluations"] for row in rows if row["implicit"]} == {14}
+    assert ranks == {"fixed-point": [6, 7], "nominal": [2, 4]}
+    assert "would rank 6th\nand 7th, with `--solver nominal` (2 evaluations per step) 2nd " \
+           "and 4th" in README
 
 
 def test_method_library_table_is_generated_from_the_files():

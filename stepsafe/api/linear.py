@@ -774,17 +774,21 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
             margin: float = 1.0, zmax: float | None = None,
             ordinary_frequency: UnitValues | None = None, wavenumber: UnitValues | None = None,
             period: UnitValues | None = None, sigma: ArrayLike | None = None,
-            time_unit: str | None = None, solver: str = "fixed-point",
-            criterion: str = "structure", gradient_cost: float = 1.0) -> CompareReport:
+            time_unit: str | None = None, solver: str = "best",
+            criterion: str = "structure", gradient_cost: float = 1.0,
+            jacobian_cost: float = 1.0) -> CompareReport:
     """Rank ``methods`` (names, ``"family:N"`` such as ``"gauss:2"``, Integrators; ``"all"``:
     every built-in method with the families at s = 2 and 3; None: :data:`COMPARE_DEFAULT`)
     by the cost of the usable step h = min(safe, accurate) for the same frequencies
     (``beta`` in rad per time unit, the others with their units as for :func:`problem`;
     h in ``time_unit``; ``"all"`` leaves out the methods
     with no form for a given model: force-gradient methods on saddles). Implicit methods
-    cost the force
-    evaluations of fixed-point iteration of their stages at that h (``solver="nominal"``:
-    one per stage), and h stays below 0.9 of that iteration's convergence limit. The safe
+    cost, by default (``solver="best"``), the cheaper per unit time of two stage solvers
+    at the step each allows (the row's ``solver`` says which): fixed-point iteration in
+    Gauss-Seidel order, its force evaluations at h with h below 0.9 of its convergence
+    limit, or simplified Newton's method, its force evaluations plus ``jacobian_cost``
+    force evaluations per Jacobian evaluated and factorised (``"fixed-point"`` or
+    ``"newton"``: that solver only; ``"nominal"``: one evaluation per stage). The safe
     step follows ``criterion`` (see :func:`advise`). A force-gradient method costs its
     forces plus ``gradient_cost`` forces per force-gradient term.
 
@@ -796,7 +800,7 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     from stepsafe.core.records import compare_row
     from stepsafe.core.regions import validate_criterion
     from stepsafe.core.tradeoff import Tolerance, tradeoff
-    from stepsafe.exceptions import positive_finite
+    from stepsafe.exceptions import finite_real, positive_finite
     from stepsafe.units import time_unit as known_time_unit
 
     criterion = validate_criterion(criterion)
@@ -811,6 +815,10 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     margin = validate_margin(margin)
     if zmax is not None:
         zmax = positive_finite(zmax, "zmax")
+    jacobian_cost = finite_real(jacobian_cost, "jacobian_cost")
+    if jacobian_cost < 0:
+        raise StepsafeError(f"jacobian_cost must be >= 0 force evaluations, got "
+                            f"{jacobian_cost:g}")
     from stepsafe.core.transfer import has_form
 
     rows = []
@@ -822,7 +830,7 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
         with integrator.naming_its_file():
             res = tradeoff(integrator.tableau, grid, tolerances, margin, integrator.name,
                            step_cost(integrator, gradient_cost), zmax, solver=valid_solver(solver),
-                           criterion=criterion)
+                           criterion=criterion, jacobian_cost=jacobian_cost)
         rows.append(compare_row(res, integrator.explicit))
     rows.sort(key=lambda r: (r["cost"] is None, r["cost"] or 0.0))
     ranked = []
@@ -834,4 +842,4 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     return CompareReport(tuple(ranked),
                          MappingProxyType({k: int(v.size) for k, v in grid.betas.items()}),
                          MappingProxyType({t.kind: t.value for t in tolerances}), margin,
-                         time_unit, solver, criterion)
+                         time_unit, solver, criterion, jacobian_cost)

@@ -239,6 +239,11 @@ class CompareRow:
     cost: float | None
     rank: int | None
     processor_evaluations: int | None = None
+    #: implicit methods: the stage solver counted (``fixed-point`` or ``newton``; with
+    #: ``solver="best"`` the cheaper at its step) and Newton's Jacobians per step (each
+    #: costing :attr:`CompareReport.jacobian_cost` force evaluations in ``cost``)
+    solver: str | None = None
+    jacobians: int | None = None
 
 
 @dataclass(frozen=True)
@@ -250,8 +255,9 @@ class CompareReport:
     tolerances: Mapping[str, float]
     margin: float
     time_unit: str | None = None
-    solver: str = "fixed-point"
+    solver: str = "best"
     criterion: str = "structure"
+    jacobian_cost: float = 1.0
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe compare ... --json`` prints."""
@@ -259,7 +265,7 @@ class CompareReport:
 
         return versioned({"modes": dict(self.modes), "tolerances": dict(self.tolerances),
                 "margin": self.margin, "time_unit": self.time_unit, "solver": self.solver,
-                "criterion": self.criterion,
+                "jacobian_cost": self.jacobian_cost, "criterion": self.criterion,
                 "cost_unit": "force evaluations per unit of simulated time",
                 "methods": [_compare_row_dict(asdict(r)) for r in self.rows]})
 

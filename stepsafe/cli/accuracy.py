@@ -90,27 +90,33 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json, tsv) 
               help="Largest |phase error| (|growth-rate error| for saddles and barriers).")
 @click.option("--tol-energy", type=FLOAT, default=None, metavar="T",
               help="Largest relative energy error (vibrations).")
-@click.option("--solver", type=click.Choice(("fixed-point", "newton", "nominal")),
-              default="fixed-point", show_default=True,
-              help="How implicit methods are costed: force evaluations of fixed-point "
-                   "iteration of their stages to 1e-14 at the step used (which also caps h "
-                   "below its convergence limit), of simplified Newton's method (plus one "
-                   "Jacobian and factorisation per step, not counted as evaluations), or "
-                   "one per stage.")
+@click.option("--solver", type=click.Choice(("best", "fixed-point", "newton", "nominal")),
+              default="best", show_default=True,
+              help="How implicit methods are costed: best, the cheaper of the two solvers "
+                   "at the step each allows (the table says which); fixed-point, force "
+                   "evaluations of fixed-point iteration of their stages (Gauss-Seidel "
+                   "order) to 1e-14 at the step used, which also caps h below its "
+                   "convergence limit; newton, simplified Newton's method, its force "
+                   "evaluations plus --jacobian-cost per Jacobian; nominal, one per stage.")
+@click.option("--jacobian-cost", type=FLOAT, default=1.0, show_default=True, metavar="R",
+              help="Newton's method: one Jacobian (the Hessian at the step's start and the "
+                   "factorisation of the stage system) in force evaluations. 1 suits a few "
+                   "degrees of freedom; a dense Hessian of d dof costs about d gradients.")
 @click.option("--tsv", is_flag=True, help="Print the table as tab-separated values.")
 @criterion_option()
 @gradient_cost_option
 @frequency_options
-def compare_cmd(names, use_all, tol_phase, tol_energy, solver, tsv, criterion, as_json,
-                gradient_cost, **options) -> None:
+def compare_cmd(names, use_all, tol_phase, tol_energy, solver, jacobian_cost, tsv, criterion,
+                as_json, gradient_cost, **options) -> None:
     """Rank methods by cost per unit of simulated time for your frequencies.
 
     For each method: the first boundary, the largest safe h, the h that meets the
     tolerance, evaluations per step and the cost evaluations/h at the usable step
-    min(safe, accurate); ranked by cost (cheapest first). Implicit methods cost what
-    fixed-point iteration of their stages costs at that step, which also stays below 0.9
-    of the iteration's convergence limit (bound by "solver"). Steps are in the time unit
-    of 1/beta.
+    min(safe, accurate); ranked by cost (cheapest first). Implicit methods cost what the
+    cheaper of two stage solvers costs at the step it allows: fixed-point iteration
+    (Gauss-Seidel order), whose step stays below 0.9 of its convergence limit (bound by
+    "solver"), or simplified Newton's method with its Jacobians counted. Steps are in the
+    time unit of 1/beta.
 
     \b
     Examples:
@@ -130,12 +136,14 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, tsv, criterion, a
     data = linear.compare(methods, modes=arrays, tol_phase=tol_phase, tol_energy=tol_energy,
                        margin=1.0 if margin is None else margin, zmax=options["zmax"],
                        time_unit=options["time_unit"], solver=solver,
-                       criterion=criterion, gradient_cost=gradient_cost).to_dict()
+                       criterion=criterion, gradient_cost=gradient_cost,
+                       jacobian_cost=jacobian_cost).to_dict()
     if as_json:
         print_json(data)
     elif tsv:
         print_tsv(("rank", "method", "implicit", "first_boundary", "h_max", "h_tol", "h",
-                   "bound_by", "evaluations", "solver_iterations", "cost"), data["methods"])
+                   "bound_by", "evaluations", "solver", "solver_iterations", "jacobians",
+                   "cost"), data["methods"])
     else:
         print_compare(data)
 

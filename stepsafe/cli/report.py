@@ -511,7 +511,8 @@ def print_compare(data: dict[str, Any]) -> None:
                                             fmt_below(r["h_tol"], 6)),
             "-" if r["h"] is None else fmt_below(r["h"], 6), r["bound_by"],
             "-" if r["evaluations"] is None else str(r["evaluations"]) + (
-                " +P" if "processor_evaluations" in r else ""),
+                " +P" if "processor_evaluations" in r else "") + (
+                f" +{r['jacobians']}J" if r.get("jacobians") else ""),
             "-" if r["cost"] is None else fmt(r["cost"], 6))
     console = _console()
     console.print(table)
@@ -521,17 +522,30 @@ def print_compare(data: dict[str, Any]) -> None:
         console.print(_lit(f"+P {r['method']} (processed): {cost['start']} force evaluations "
                            f"once before the first step and {cost['per_output']} per output "
                            "(P^-1), not in the cost per unit time"))
-    if data.get("solver", "fixed-point") == "fixed-point":
-        console.print("* implicit: force evaluations of fixed-point iteration of the stages to "
-                      "1e-14 at that h (iterations in --json); --solver nominal counts one per "
-                      "stage.")
-    elif data.get("solver") == "newton":
-        console.print("* implicit: force evaluations of simplified Newton's method on the "
-                      "stages (2 iterations on a linear model at any h, and the update); each "
-                      "step also evaluates one Jacobian and factorises it once per distinct "
-                      "substep, not counted in the cost.")
-    else:
+    solver = data.get("solver", "best")
+    if solver == "nominal":
         console.print("* implicit: one evaluation per stage (nominal); no solver is counted.")
+    else:
+        jac = data.get("jacobian_cost", 1.0)
+        console.print({
+            "best": "* implicit: the cheaper stage solver at the step it allows: fixed-point "
+                    "iteration (Gauss-Seidel order, to 1e-14, h below 0.9 of its "
+                    "convergence limit) or simplified Newton (its force evaluations plus "
+                    f"{jac:g} per Jacobian, --jacobian-cost).",
+            "fixed-point": "* implicit: force evaluations of fixed-point iteration of the "
+                           "stages (Gauss-Seidel order) to 1e-14 at that h (iterations in "
+                           "--json); --solver nominal counts one per stage.",
+            "newton": "* implicit: force evaluations of simplified Newton's method on the "
+                      "stages (2 iterations on a linear model at any h, and the update) "
+                      f"plus {jac:g} per Jacobian (--jacobian-cost), one evaluated and "
+                      "factorised per distinct substep."}[solver])
+        for r in data["methods"]:
+            if r.get("solver"):
+                passes = "" if r["solver_iterations"] is None else \
+                    f", {r['solver_iterations']} passes"
+                jacobians = f", {r['jacobians']} Jacobian per step" if r.get("jacobians") \
+                    else ""
+                console.print(_lit(f"  {r['method']}: {r['solver']}{passes}{jacobians}"))
 
 
 #: a system with more modes or equilibria than this lists only the most limiting

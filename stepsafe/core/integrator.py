@@ -12,13 +12,17 @@ initial conditions of d degrees of freedom advance together. One step of size h:
 * Runge-Kutta and partitioned RK methods (and compositions of them) solve their stage
   equations ``Q_i = q + h sum_j A_q[i, j] dH/dp(Q_j, P_j)``,
   ``P_i = p - h sum_j A_p[i, j] dH/dq(Q_j, P_j)`` by fixed-point iteration from ``Q = q``,
-  ``P = p`` until the largest change of a stage value is at most ``tol`` times the largest
-  stage value (and 1), as :mod:`stepsafe.core.solver` models it; a stage whose ``A_q`` row
-  is zero keeps ``Q_i = q`` and its force is evaluated once (none if the previous step's
-  last stage ended there). Each iteration evaluates the forces of the stages that vary;
-  the update evaluates them once more. With ``solver="newton"`` each pass is a simplified
-  Newton step ``X - J^-1 G(X)`` instead, J the stage system's Jacobian from the Hessian at
-  the step's start (one per step and implicit substep, counted in ``jacobians``).
+  ``P = p`` in Gauss-Seidel order (the positions from the current momenta, the forces at
+  the new positions, the momenta from those forces) until the largest change of a stage
+  value is at most ``tol`` times the largest stage value (and 1), as
+  :mod:`stepsafe.core.solver` models it; a stage whose ``A_q`` row is zero keeps
+  ``Q_i = q`` and its force is evaluated once (none if the previous step's last stage
+  ended there). Each iteration evaluates the forces of the stages that vary; the update
+  uses the last iteration's (on an H that mixes q and p, it evaluates them once more at
+  the converged stages). With ``solver="newton"`` each pass is a simplified Newton step
+  ``X - J^-1 G(X)`` on the map of every stage from the previous pass instead, J the stage
+  system's Jacobian from the Hessian at the step's start (one per step and implicit
+  substep, counted in ``jacobians``), and the update evaluates the forces once more.
 
 Force-gradient splittings (:class:`~stepsafe.methods.tableaux.Splitting` with ``gradient``)
 need a separable H with ``T = p^T M^-1 p / 2``: a gradient term ``("gradient", c)`` is
@@ -47,7 +51,7 @@ import numpy as np
 
 from stepsafe.exceptions import MethodError
 from stepsafe.methods.protocol import Shears, Stages
-from stepsafe.methods.tableaux import Method, PartitionedRK
+from stepsafe.methods.tableaux import Method, PartitionedRK, step_end_stage
 
 Gradient = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -198,7 +202,7 @@ class Engine:
         s = b_q.size
         # stages with Q_i = q for good: their force is that at q (and the step's p) only
         # when dH/dq does not depend on p
-        fixed = ~A_q.any(axis=1) & self.system.separable
+        fixed = np.asarray(~A_q.any(axis=1) & self.system.separable)
         Q = [q] * s
         P = [p] * s
         sys = self.system
@@ -213,7 +217,68 @@ class Engine:
             return (q + h * sum(b_q[j] * V[j] for j in range(s)),
                     p - h * sum(b_p[j] * F[j] for j in range(s)))
         self.solves += 1
-        inverse = self._newton_matrix(prk, q, p, h) if self.solver == "newton" else None
+        if self.solver == "newton":
+            Q, P, F = self._newton_solve(prk, q, p, h, fixed)
+        else:
+            Q, P, F = self._gauss_seidel_solve(prk, q, p, h, fixed)
+        V = [sys.dH_dp(Q[j], P[j]) for j in range(s)]
+        q1 = q + h * sum(b_q[j] * V[j] for j in range(s) if b_q[j])
+        p1 = p - h * sum(b_p[j] * F[j] for j in range(s) if b_p[j])
+        end = step_end_stage(prk)
+        if end is not None and self.system.separable:
+            self._cache = (q1, p1, F[end])  # that stage ended at q1 (Lobatto IIIA's last)
+        return q1, p1
+
+    def _converged(self, old: list, new: list) -> bool:
+        """Whether the largest change of a stage value is at most ``tol`` times the largest
+        stage value (and 1); a SolverFailure when it is not finite."""
+        self.iterations += 1
+        change = max(float(np.max(np.abs(a - b))) for a, b in zip(new, old))
+        if not np.isfinite(change):
+            raise SolverFailure("the stage iteration overflowed")
+        size = max(1.0, max(float(np.max(np.abs(x))) for x in new))
+        return change <= self.tol * size
+
+    def _gauss_seidel_solve(self, prk: PartitionedRK, q: np.ndarray, p: np.ndarray,
+                            h: float, fixed: np.ndarray) -> tuple[list, list, list]:
+        """The stages by fixed-point iteration in Gauss-Seidel order: positions from the
+        current momenta, the forces at the new positions, the momenta from those forces;
+        returns ``(Q, P, F)`` with F the forces at the converged stages (the last sweep's
+        when the force depends on q only, evaluated again otherwise)."""
+        A_q, A_p = prk.A_q, prk.A_p
+        s = A_q.shape[0]
+        sys = self.system
+        Q, P = [q] * s, [p] * s
+        for _ in range(self.max_iterations):
+            V = [sys.dH_dp(Q[j], P[j]) for j in range(s)]
+            Qn = [q if fixed[i] else q + h * sum(A_q[i, j] * V[j] for j in range(s)
+                                                 if A_q[i, j])
+                  for i in range(s)]
+            F = [self._force(q, p) if fixed[j] else self._stage_force(Qn[j], P[j])
+                 for j in range(s)]
+            Pn = [p - h * sum(A_p[i, j] * F[j] for j in range(s) if A_p[i, j])
+                  for i in range(s)]
+            done = self._converged(Q + P, Qn + Pn)
+            Q, P = Qn, Pn
+            if done:
+                break
+        else:
+            raise SolverFailure(f"the stage iteration did not converge in "
+                                f"{self.max_iterations} iterations")
+        if not sys.separable:  # the forces moved with the momenta of the last sweep
+            F = [self._stage_force(Q[j], P[j]) for j in range(s)]
+        return Q, P, F
+
+    def _newton_solve(self, prk: PartitionedRK, q: np.ndarray, p: np.ndarray, h: float,
+                      fixed: np.ndarray) -> tuple[list, list, list]:
+        """The stages by simplified Newton's method on ``G(X) = X - Phi(X)`` (``Phi`` the
+        map of every stage from the previous iterate), the Jacobian at the step's start;
+        returns ``(Q, P, F)`` with F the forces at the converged stages."""
+        A_q, A_p = prk.A_q, prk.A_p
+        s = A_q.shape[0]
+        sys = self.system
+        inverse = self._newton_matrix(prk, q, p, h)
+        Q, P = [q] * s, [p] * s
         for _ in range(self.max_iterations):
             F = [self._force(q, p) if fixed[j] else self._stage_force(Q[j], P[j])
                  for j in range(s)]
@@ -223,28 +288,17 @@ class Engine:
                   for i in range(s)]
             Pn = [p - h * sum(A_p[i, j] * F[j] for j in range(s) if A_p[i, j])
                   for i in range(s)]
-            if inverse is not None:  # X - J^-1 G(X), G(X) = X - (the fixed-point map)
-                Qn, Pn = self._newton_update(inverse, Q, P, Qn, Pn)
-            self.iterations += 1
-            change = max(float(np.max(np.abs(a - b))) for a, b in zip(Qn + Pn, Q + P))
-            size = max(1.0, max(float(np.max(np.abs(x))) for x in Qn + Pn))
+            Qn, Pn = self._newton_update(inverse, Q, P, Qn, Pn)
+            done = self._converged(Q + P, Qn + Pn)
             Q, P = Qn, Pn
-            if not np.isfinite(change):
-                raise SolverFailure("the stage iteration overflowed")
-            if change <= self.tol * size:
+            if done:
                 break
         else:
             raise SolverFailure(f"the stage iteration did not converge in "
                                 f"{self.max_iterations} iterations")
         F = [self._force(q, p) if fixed[j] else self._stage_force(Q[j], P[j])
              for j in range(s)]
-        V = [sys.dH_dp(Q[j], P[j]) for j in range(s)]
-        q1 = q + h * sum(b_q[j] * V[j] for j in range(s) if b_q[j])
-        p1 = p - h * sum(b_p[j] * F[j] for j in range(s) if b_p[j])
-        last = s - 1
-        if np.array_equal(A_q[last], b_q) and self.system.separable:
-            self._cache = (q1, p1, F[last])  # the last stage ended at q1 (Lobatto IIIA)
-        return q1, p1
+        return Q, P, F
 
     def _newton_matrix(self, prk: PartitionedRK, q: np.ndarray, p: np.ndarray, h: float
                        ) -> np.ndarray:

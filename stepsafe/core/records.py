@@ -287,6 +287,8 @@ def compare_row(res, explicit: bool) -> dict[str, Any]:
         "bound_by": res.bound_by,
         "evaluations": res.evaluations,
         "solver_iterations": res.iterations,
+        "solver": res.solver,
+        "jacobians": res.jacobians,
         "cost": _num(res.cost),
         "rank": None,
         **({} if res.processor_evaluations is None else {"processor_evaluations": {

@@ -1,33 +1,45 @@
-"""What an implicit method costs with fixed-point iteration of its stage equations.
+"""What an implicit method costs with its stage equations solved by fixed-point iteration
+or by simplified Newton's method.
 
-A (partitioned) Runge-Kutta step solves ``Q_i = q + h sum_j A_q[i, j] P_j``,
-``P_i = p + h sum_j A_p[i, j] f(Q_j)``. Fixed-point iteration starts from ``Q_i = q``,
-``P_i = p`` and repeats
+A (partitioned) Runge-Kutta step solves ``Q_i = q + h sum_j A_q[i, j] V_j``,
+``P_i = p + h sum_j A_p[i, j] F_j`` with ``V_j = dH/dp(Q_j, P_j)`` and the forces
+``F_j = -dH/dq(Q_j, P_j)``. Fixed-point iteration starts from ``Q_i = q``, ``P_i = p`` and
+sweeps in Gauss-Seidel order, the positions first and the momenta from the forces at the
+new positions:
 
-    F = f(Q)                      (one force evaluation per stage that varies)
-    Q, P = q + h A_q P, p + h A_p F
+    Q <- q + h A_q V(Q, P)
+    F <- f(Q, P)                  (one force evaluation per stage that varies)
+    P <- p + h A_p F
 
 until the largest change of a stage value is at most ``tol`` times the largest stage
-value (and 1); the step then takes one more force evaluation per stage for its update.
-On the test models this is the linear iteration ``X <- E + z K X`` (``K`` the stage
-operator of :func:`stepsafe.core.transfer.stage_operator`), whose changes are
-``(z K)^j z K E`` exactly: the count below is that of the algorithm above for the worse of
-the two unit states, not an estimate. It converges iff the spectral radius of ``z K`` is
-below 1, i.e. for ``z < 1 / rho(K)``: beyond, fixed-point iteration diverges and the
-method needs Newton's method.
+value (and 1). When the force depends on q only (a separable H), the forces of the last
+sweep are those at the converged positions and the update ``p + h b_p F`` reuses them;
+otherwise the step takes one more force evaluation per varying stage at the converged
+stages. On the test models this is the linear iteration ``x_q <- e_q + z (K_qq x_q +
+K_qp x_p)``, ``x_p <- e_p + z (K_pq x_q + K_pp x_p)`` (the new ``x_q``; ``K`` the stage
+operator of :func:`stepsafe.core.transfer.stage_operator`), and the count below is that of
+the algorithm above for the worse of the two unit states, not an estimate. On a separable
+model ``K`` has zero diagonal blocks, the sweep's iteration matrix is ``z^2 K_pq K_qp`` on
+the momenta, and its spectral radius is ``rho(z K)^2``: about half the passes of the
+Jacobi order (every stage from the previous pass), with the same convergence limit
+``z < 1 / rho(K)``. Beyond it fixed-point iteration diverges and the method needs Newton's
+method.
 
 Simplified Newton's method (``newton_cost``) iterates ``X <- X - J^-1 G(X)`` with the stage
 system's Jacobian ``J`` taken once per step (one Hessian evaluation and one factorisation
 per distinct substep). On the test models G is linear and J exact, so the first iteration
 lands on the solution and the second sees a change at rounding level: 2 iterations at every
-z, with the same stopping rule and evaluation count as fixed-point iteration, and no
-convergence limit (only the poles, where J is singular).
+z, each evaluating the forces at the current stages, one more evaluation per stage for
+the update, and no convergence limit (only the poles, where J is singular). Its cost in
+force evaluations is those plus ``jacobian_cost`` per Jacobian (the Hessian and its
+factorisation, in force evaluations: the caller's estimate).
 
 Force evaluations per step: the stages whose ``A_q`` row is zero have ``Q_i = q`` for
 good and cost one evaluation per step, none when the method reuses the previous step's
-last force (first same as last: a stage with ``A_q`` row equal to ``b_q`` ends at
-``q_{n+1}``, as in Lobatto IIIA-IIIB); every other stage costs one per iteration and one
-for the update.
+last force (first same as last: a stage whose ``A_q`` row is ``b_q`` ends at
+``q_{n+1}``, as Lobatto IIIA's last; :func:`~stepsafe.methods.tableaux.step_end_stage`
+decides it on the coefficients as written); every other stage costs one per iteration
+(and, for Jacobi-order or Newton iterations, one for the update).
 """
 
 from __future__ import annotations
@@ -39,7 +51,7 @@ import numpy as np
 
 from stepsafe.core.sets import distinct
 from stepsafe.methods.protocol import Stages
-from stepsafe.methods.tableaux import Method, PartitionedRK
+from stepsafe.methods.tableaux import Method, PartitionedRK, step_end_stage
 
 #: Default stopping tolerance (relative change of the stage values).
 DEFAULT_TOL = 1e-14
@@ -85,17 +97,16 @@ def evaluation_pattern(prk: PartitionedRK) -> tuple[int, int]:
     """``(varying, fixed)``: stages evaluated every iteration, and force evaluations per
     step for the stages fixed at ``q`` (0 when the last one is reused)."""
     zero = ~np.any(prk.A_q != 0, axis=1)
-    scale = max(float(np.abs(prk.b_q).max()), 1e-300)
-    fsal = bool(np.any(np.all(np.abs(prk.A_q - prk.b_q[None, :]) <= 4e-16 * scale, axis=1)))
+    fsal = step_end_stage(prk) is not None
     return int((~zero).sum()), (0 if fsal else int(zero.any()))
 
 
 def fixed_point_cost(method: Method, z: float, model: str = "oscillator",
                      tol: float = DEFAULT_TOL) -> SolverCost:
-    """Iterations and force evaluations per step at ``z = beta h`` for the worse of the two
-    unit states (see the module docstring); explicit methods cost their nominal
-    evaluations and never diverge. A composition's substeps are all counted at its largest
-    substep (an upper bound)."""
+    """Gauss-Seidel fixed-point iterations and force evaluations per step at ``z = beta h``
+    for the worse of the two unit states (see the module docstring); explicit methods cost
+    their nominal evaluations and never diverge. A composition's substeps are all counted
+    at its largest substep (an upper bound)."""
     from stepsafe.core.transfer import stage_operator
 
     found = _prk_of(method)
@@ -110,13 +121,17 @@ def fixed_point_cost(method: Method, z: float, model: str = "oscillator",
     if any(c is None for c in counts):
         return SolverCost(z, None, None, limit)
     iterations = max(counts)
-    return SolverCost(z, iterations, (varying * (iterations + 1) + fixed) * substeps, limit)
+    s = prk.stages
+    separable = not (K[:s, :s].any() or K[s:, s:].any())  # the force depends on q only
+    update = 0 if separable else varying  # else the forces again at the converged stages
+    return SolverCost(z, iterations, (varying * iterations + update + fixed) * substeps,
+                      limit)
 
 
 def newton_cost(method: Method, z: float) -> SolverCost:
     """Iterations and force evaluations per step of simplified Newton's method at any z
-    (see the module docstring); ``limit`` is inf. Explicit methods cost their nominal
-    evaluations."""
+    (see the module docstring; its Jacobians are :func:`factorizations`); ``limit`` is
+    inf. Explicit methods cost their nominal evaluations."""
     found = _prk_of(method)
     if found is None:
         return SolverCost(z, 0, getattr(method, "evaluations", None), np.inf)
@@ -143,7 +158,8 @@ def _largest_weight(method: Method) -> float:
 
 def fixed_point_limit(method: Method, model: str = "oscillator") -> float:
     """``1 / rho(K)`` (over the largest substep): the z beyond which fixed-point iteration
-    of the stages diverges; inf for explicit methods."""
+    of the stages diverges on a separable model (oscillator, inverted: the Gauss-Seidel
+    sweep's spectral radius is ``rho(z K)^2``); inf for explicit methods."""
     from stepsafe.core.transfer import stage_operator
 
     found = _prk_of(method)
@@ -187,11 +203,16 @@ def system_step_limit(method: Method, betas: Mapping[str, np.ndarray] | None,
 
 
 def _iterations(K: np.ndarray, e: np.ndarray, z: float, tol: float) -> int | None:
-    """Passes of ``x <- e + z K x`` from ``x = e`` until the change is at most ``tol``
-    times ``max(1, |x|)`` (max norms), as the solver runs them for the state ``e``."""
+    """Gauss-Seidel passes ``x_q <- e_q + z K_q x``, then ``x_p <- e_p + z K_p x`` (with the
+    new ``x_q``) from ``x = e`` until the change is at most ``tol`` times ``max(1, |x|)``
+    (max norms), as the solver runs them for the state ``e``."""
+    s = K.shape[0] // 2
+    K_q, K_p = K[:s], K[s:]
     x = e.copy()
     for iteration in range(1, MAX_ITERATIONS + 1):
-        x_new = e + z * (K @ x)
+        x_new = x.copy()
+        x_new[:s] = e[:s] + z * (K_q @ x)
+        x_new[s:] = e[s:] + z * (K_p @ x_new)  # (its p part is still the old one)
         change = float(np.abs(x_new - x).max())
         x = x_new
         if not np.isfinite(change):

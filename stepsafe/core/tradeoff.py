@@ -8,8 +8,10 @@ the largest beta binds). The cost per unit of simulated time is ``evaluations / 
 implicit methods, by default, those of fixed-point iteration of the stage equations to
 1e-14 at the largest beta h (:mod:`stepsafe.core.solver`), whose convergence limit also
 bounds h (``bound_by = "solver"``); ``solver="newton"`` counts simplified Newton's
-method (2 iterations on the test models, any h; its Jacobians are not force evaluations and
-are reported apart); ``solver="nominal"`` counts one per stage.
+method (2 iterations on the test models, any h), its cost being its force evaluations plus
+``jacobian_cost`` per Jacobian; ``solver="best"`` takes whichever of the two costs less per
+unit time at the step it allows (``Tradeoff.solver`` says which);
+``solver="nominal"`` counts one per stage.
 
 A processed method ``P^-1 K P`` costs its kernel's evaluations per step plus a one-off
 ``processor_evaluations``: P once before the first step and P^-1 for each output (each as
@@ -69,12 +71,22 @@ class Tradeoff(NamedTuple):
     iterations: int | None = None  # fixed-point iterations per step (implicit methods)
     #: processed methods: forces of P (once) and of P^-1 (each output); None otherwise
     processor_evaluations: int | None = None
+    #: implicit methods: the stage solver counted (``fixed-point`` or ``newton``) and,
+    #: for Newton, its Jacobians per step (their cost is in ``cost``)
+    solver: str | None = None
+    jacobians: int | None = None
 
 
 #: How an implicit method's cost is counted: its stages solved by fixed-point iteration or
 #: by simplified Newton's method (:mod:`stepsafe.core.solver`; Newton adds a Jacobian and
-#: a factorisation per step, counted apart), or the nominal count of one per stage.
-SOLVERS = ("fixed-point", "newton", "nominal")
+#: its factorisation per step, at ``jacobian_cost`` force evaluations each), the cheaper
+#: of the two at the step each allows (``best``), or the nominal count of one per stage.
+SOLVERS = ("fixed-point", "newton", "best", "nominal")
+#: A Jacobian (the Hessian at the step's start and the factorisation of the stage
+#: system) in force evaluations, by default: a few degrees of freedom, where a Hessian
+#: costs about one gradient by automatic differentiation and the factorisation of a
+#: matrix of 2 s d rows is negligible.
+JACOBIAN_COST = 1.0
 #: Fixed-point iteration is used up to this fraction of its convergence limit (beyond, its
 #: iteration count grows without bound).
 SOLVER_REACH = 0.9
@@ -84,7 +96,8 @@ def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (
              margin: float = 1.0, name: str | None = None,
              evaluations: float | None = None, zmax: float | None = None,
              resonance_order: int | None = None, solver: str = "fixed-point",
-             criterion: str = "structure") -> Tradeoff:
+             criterion: str = "structure", jacobian_cost: float = JACOBIAN_COST
+             ) -> Tradeoff:
     kinds = {t.kind for t in tolerances}
     if "energy" in kinds and "phase" not in kinds and energy_exact(method):
         raise StepsafeError(
@@ -128,25 +141,65 @@ def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (
         if bound == "safety" and adv.h_max_is_horizon:
             bound = "horizon"  # no boundary below the analysed range: not a safety limit
     evals = evaluations if evaluations is not None else getattr(method, "evaluations", None)
-    iterations = None
-    if solver == "fixed-point" and not method.explicit and h:
-        from stepsafe.core.solver import fixed_point_cost, step_limit
-
-        top = max(float(b.max()) for b in modes.betas.values())
-        models = [m for m in modes.betas if m in ("oscillator", "inverted")] or ["oscillator"]
-        h_limit = step_limit(method, modes.betas)
-        if h_limit is not None and h > SOLVER_REACH * h_limit:
-            h, bound = SOLVER_REACH * h_limit, "solver"
-        costs = [fixed_point_cost(method, h * top, m) for m in models]
-        if all(c.evaluations is not None for c in costs):
-            evals = max(c.evaluations for c in costs)
-            iterations = max(c.iterations for c in costs)
-    elif solver == "newton" and not method.explicit and h:
-        from stepsafe.core.solver import newton_cost
-
-        cost_n = newton_cost(method, h)
-        evals, iterations = cost_n.evaluations, cost_n.iterations
+    iterations, used, jacobians = None, None, None
     cost = None if (h is None or h == 0 or evals is None) else evals / h
+    if solver in ("fixed-point", "newton", "best") and not method.explicit and h:
+        options = []
+        if solver in ("fixed-point", "best"):
+            option = _fixed_point(method, modes, h, bound)
+            if option is not None:
+                options.append(option)
+            elif solver == "fixed-point":  # (no count: the nominal one, as before)
+                options.append(_Solved("fixed-point", h, bound, evals, None, 0, cost))
+        if solver in ("newton", "best"):
+            options.append(_newton(method, h, bound, jacobian_cost))
+        if options:
+            best = min(options, key=lambda o: (o.cost is None, o.cost or 0.0))
+            h, bound, evals, iterations, cost = (best.h, best.bound, best.evaluations,
+                                                 best.iterations, best.cost)
+            used, jacobians = best.solver, best.jacobians or None
     processor = method.processor_evaluations
     return Tradeoff(adv.method, adv, tuple(limits), h, bound, evals, cost, iterations,
-                    processor)
+                    processor, used, jacobians)
+
+
+class _Solved(NamedTuple):
+    """An implicit method's step, cost and counts with one stage solver."""
+
+    solver: str
+    h: float
+    bound: str
+    evaluations: float | None
+    iterations: int | None
+    jacobians: int
+    cost: float | None  # (evaluations + jacobian_cost * jacobians) / h
+
+
+def _fixed_point(method: Method, modes: Modes, h: float, bound: str) -> _Solved | None:
+    """Fixed-point iteration at h, h capped at :data:`SOLVER_REACH` of its convergence
+    limit (None: it does not converge there)."""
+    from stepsafe.core.solver import fixed_point_cost, step_limit
+
+    top = max(float(b.max()) for b in modes.betas.values())
+    models = [m for m in modes.betas if m in ("oscillator", "inverted")] or ["oscillator"]
+    h_limit = step_limit(method, modes.betas)
+    if h_limit is not None and h > SOLVER_REACH * h_limit:
+        h, bound = SOLVER_REACH * h_limit, "solver"
+    costs = [fixed_point_cost(method, h * top, m) for m in models]
+    if any(c.evaluations is None for c in costs):
+        return None
+    evals = max(c.evaluations for c in costs if c.evaluations is not None)
+    iterations = max(c.iterations for c in costs if c.iterations is not None)
+    return _Solved("fixed-point", h, bound, evals, iterations, 0, evals / h)
+
+
+def _newton(method: Method, h: float, bound: str, jacobian_cost: float) -> _Solved:
+    """Simplified Newton's method at h: its force evaluations and ``jacobian_cost`` per
+    Jacobian (evaluated and factorised once per distinct substep)."""
+    from stepsafe.core.solver import factorizations, newton_cost
+
+    cost_n = newton_cost(method, h)
+    jacobians = factorizations(method)
+    evals = cost_n.evaluations
+    cost = None if evals is None else (evals + jacobian_cost * jacobians) / h
+    return _Solved("newton", h, bound, evals, cost_n.iterations, jacobians, cost)

@@ -130,6 +130,7 @@ def lobatto3a(s: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     W_inv[s - 1] /= gamma
     A = W @ X @ W_inv
     A[0] = 0.0  # first stage is exactly q0
+    A[s - 1] = b  # last stage is exactly q1 (collocation at c = 1: int_0^1 l_j = b_j)
     return A, b, c
 
 

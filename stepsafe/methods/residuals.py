@@ -126,6 +126,9 @@ class Written(NamedTuple):
     symplectic_tolerance: float
     weights_equal: float
     weights_tolerance: float
+    #: the last stage whose ``A_q`` row equals ``b_q`` as written (their exact values
+    #: within the allowances of their digits), None if none
+    step_end_stage: int | None = None
 
 
 #: Residuals below this (relative) are the 50-digit evaluation's own rounding.
@@ -159,7 +162,9 @@ def written_residuals(A_q: list, b_q: list, A_p: list, b_p: list) -> Written:
         weights = [(abs(bq[i] - bp[i]), max(abs(bq[i]), abs(bp[i])), mp.mpf(dbq[i] + dbp[i]))
                    for i in range(s)]
         weq, weq_tol = _deciding(weights)
-    return Written(sym, sym_tol, weq, weq_tol)
+        ends = [i for i in range(s)
+                if all(abs(aq[i][j] - bq[j]) <= daq[i][j] + dbq[j] for j in range(s))]
+    return Written(sym, sym_tol, weq, weq_tol, ends[-1] if ends else None)
 
 
 def _deciding(entries: list) -> tuple[float, float]:

@@ -654,6 +654,20 @@ class Composition(MethodKind):
                                                               weights, z)
 
 
+def step_end_stage(prk: PartitionedRK) -> int | None:
+    """The stage whose position ends at the step's ``q_{n+1}`` (its ``A_q`` row is ``b_q``,
+    as Lobatto IIIA's last), else None: a force there is the next step's first force when
+    that stage is fixed at ``q`` (first same as last). Decided on the coefficients as
+    written where a method file gives them (their exact values equal within what their
+    digits allow: :attr:`PartitionedRK.written`), else on the floats exactly (the
+    families build Lobatto IIIA's last row as ``b`` itself)."""
+    decided = getattr(getattr(prk, "written", None), "step_end_stage", False)
+    if decided is not False:
+        return decided
+    rows = [i for i in range(prk.stages) if np.array_equal(prk.A_q[i], prk.b_q)]
+    return rows[-1] if rows else None
+
+
 def merge_operations(ops: list[tuple[str, float]]) -> list[tuple[str, float]]:
     """``ops`` with adjacent drifts added and each run of kicks and gradients between two
     drifts (all functions of the same q, so they commute) merged into one ``kick`` then one
