@@ -15,7 +15,13 @@ from stepsafe.api.inputs import Integrator, as_integrator
 from stepsafe.api.reports import NEGLIGIBLE, MeasureReport, MeasureRow, Refinement
 from stepsafe.arguments import public
 from stepsafe.exceptions import StepsafeError, positive_finite
-from stepsafe.systems.measurement import MeasuredSystem, Run, measured_system, run_steps
+from stepsafe.systems.measurement import (
+    MeasuredSystem,
+    Run,
+    measured_system,
+    reference_floor,
+    run_steps,
+)
 
 #: Steps of one run at most by default (each costs the method's evaluations in Python)...
 MAX_STEPS = 2_000_000
@@ -94,8 +100,11 @@ def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
         raise StepsafeError(f"{integrator.name}: {exc}") from None
     total, done = float(sum(counts)), 0
     exact = problem.reference([n * step for step, n in zip(hs, counts)], deadline)
+    check = getattr(exact, "check", None)
+    floors = [None] * len(hs) if check is None else \
+        [reference_floor(x, c, problem) for x, c in zip(exact, check)]
     rows = []
-    for step, n, state in zip(hs, counts, exact):
+    for step, n, state, floor in zip(hs, counts, exact, floors):
         def tick(k: int, done=done) -> None:
             if progress:
                 progress((done + k) / total)
@@ -105,7 +114,7 @@ def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
             continue
         rows.append(_row(integrator, problem, step, n,
                          run_steps(integrator.tableau, problem, step, n, state, tick,
-                                   solver, deadline)))
+                                   solver, deadline), floor))
         done += n
     state = np.concatenate([problem.q0[0], problem.p0[0]])
     return MeasureReport(integrator.name, problem.description, tuple(map(float, state)),
@@ -128,18 +137,23 @@ def _steps(steps: Sequence[float | str], time_unit: str | None) -> list[float]:
     return [positive_finite(duration(h, "h", time_unit), "h") for h in items]
 
 
-def _row(integrator: Integrator, problem: MeasuredSystem, h: float, n: int, run: Run
-         ) -> MeasureRow:
+def _row(integrator: Integrator, problem: MeasuredSystem, h: float, n: int, run: Run,
+         floor: float | None = None) -> MeasureRow:
     """The row of one run beside the linear prediction (status ``beyond z*`` for a run that
-    stayed finite past the method's first boundary, where the model predicts nothing)."""
+    stayed finite past the method's first boundary, where the model predicts nothing); a
+    trajectory error below the reference's ``floor`` is not reported as a number."""
     T = n * h
     prediction = _prediction(integrator, problem.beta, h, T)
     status = run.status
     if status == "ok" and problem.beta is not None and prediction[0] is None:
         status = "beyond z*"  # ran, but past the linear model's first boundary
+    trajectory, below = run.trajectory_error, False
+    if trajectory is not None and floor is not None and not trajectory > floor:
+        trajectory, below = None, True
     return MeasureRow(h, n, T, status, run.energy_error, run.energy_drift,
-                      run.trajectory_error, run.evaluations_per_time, run.iterations_per_step,
-                      *prediction, run.jacobians_per_time, run.gradients_per_time)
+                      trajectory, run.evaluations_per_time, run.iterations_per_step,
+                      *prediction, run.jacobians_per_time, run.gradients_per_time,
+                      floor, below)
 
 
 def _prediction(integrator: Integrator, beta: float | None, h: float, T: float
@@ -232,6 +246,8 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
         if progress:
             progress(len(rows) / MAX_REFINE_RUNS)
         value = getattr(row, key)
+        if key == "trajectory_error" and row.below_reference:
+            value = row.reference_error  # (less than it: what can be said)
         return math.inf if row.status != "ok" or value is None else value
 
     lo = hi = None
@@ -270,12 +286,15 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
     except _Exhausted:
         if lo is None:
             limited = "unreachable"
-    best = None if lo is None else next(getattr(r, key) for r in rows if r.h == lo)
+    chosen = None if lo is None else next(r for r in rows if r.h == lo)
+    below = chosen is not None and key == "trajectory_error" and chosen.below_reference
+    best = None if chosen is None else (chosen.reference_error if below
+                                        else getattr(chosen, key))
     runs = MeasureReport(integrator.name, problem.description,
                          tuple(map(float, np.concatenate([problem.q0[0], problem.p0[0]]))),
                          float(problem.system.energy(problem.q0, problem.p0)[0]), beta,
                          problem.reference_text, tuple(rows), time_unit)
-    return Refinement(quantity, tol, lo, best, predicted, h_safe, limited, runs)
+    return Refinement(quantity, tol, lo, best, predicted, h_safe, limited, runs, below)
 
 
 class _Exhausted(Exception):

@@ -487,6 +487,11 @@ class MeasureRow:
     jacobians_per_time: float | None = None
     #: force-gradient terms (Hessian-vector products) per unit time, on top of the forces
     gradients_per_time: float | None = None
+    #: the reference's own error at ``time``, relative as ``trajectory_error`` (None: the
+    #: exact flow); a trajectory error below it is not a number: ``trajectory_error`` is
+    #: then None and ``below_reference`` True (the error is less than this floor)
+    reference_error: float | None = None
+    below_reference: bool = False
 
     @property
     def energy_ratio(self) -> float | None:
@@ -511,7 +516,9 @@ class MeasureRow:
                 "predicted_trajectory_error": self.predicted_trajectory_error,
                 "energy_ratio": self.energy_ratio, "trajectory_ratio": self.trajectory_ratio,
                 "jacobians_per_time": self.jacobians_per_time,
-                "gradients_per_time": self.gradients_per_time}
+                "gradients_per_time": self.gradients_per_time,
+                "reference_error": self.reference_error,
+                "below_reference": self.below_reference}
 
 
 @dataclass(frozen=True)
@@ -566,9 +573,13 @@ class Refinement:
     h_safe: float | None
     limited_by: str
     runs: MeasureReport
+    #: the trajectory error at ``h`` is below the reference's own error: ``error`` is that
+    #: floor, an upper bound
+    below_reference: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         return versioned({"quantity": self.quantity, "tol": self.tol, "h": self.h,
-                          "error": self.error,
-                "predicted_h": self.predicted, "h_safe": self.h_safe,
-                "limited_by": self.limited_by, "runs": unversioned(self.runs.to_dict())})
+                          "error": self.error, "below_reference": self.below_reference,
+                          "predicted_h": self.predicted, "h_safe": self.h_safe,
+                          "limited_by": self.limited_by,
+                          "runs": unversioned(self.runs.to_dict())})

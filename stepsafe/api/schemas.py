@@ -130,7 +130,8 @@ ERROR = top({"method": STR, "model": STR, "phase_error": STR,
                                   {"kernel_energy_error": NUM_OR_NULL}))})
 
 COMPARE = top({"modes": OBJECT, "tolerances": OBJECT, "margin": NUM,
-               "time_unit": STR_OR_NULL, "solver": STR, "criterion": STR, "cost_unit": STR,
+               "time_unit": STR_OR_NULL, "solver": STR, "jacobian_cost": NUM,
+               "criterion": STR, "cost_unit": STR,
                "methods": array(record({"method": STR, "implicit": BOOL,
                                         "h_max": NUM_OR_NULL, "h": NUM_OR_NULL,
                                         "evaluations": NUM, "cost": NUM_OR_NULL,
@@ -165,14 +166,16 @@ MEASURE_ROW = record({"h": NUM, "steps": INT, "time": NUM, "status": STR,
                       "predicted_energy_error": NUM_OR_NULL,
                       "predicted_trajectory_error": NUM_OR_NULL,
                       "energy_ratio": NUM_OR_NULL, "trajectory_ratio": NUM_OR_NULL,
-                      "jacobians_per_time": NUM_OR_NULL, "gradients_per_time": NUM_OR_NULL})
+                      "jacobians_per_time": NUM_OR_NULL, "gradients_per_time": NUM_OR_NULL,
+                      "reference_error": NUM_OR_NULL, "below_reference": BOOL})
 
 MEASURE_RUNS = {"method": STR, "system": STR, "initial": array(NUM), "energy": NUM_OR_NULL,
                 "beta": NUM_OR_NULL, "reference": STR, "time_unit": STR_OR_NULL,
                 "rows": array(MEASURE_ROW)}
 
 REFINEMENT = top({"quantity": STR, "tol": NUM, "h": NUM_OR_NULL, "error": NUM_OR_NULL,
-                  "predicted_h": NUM_OR_NULL, "h_safe": NUM_OR_NULL, "limited_by": STR,
+                  "below_reference": BOOL, "predicted_h": NUM_OR_NULL,
+                  "h_safe": NUM_OR_NULL, "limited_by": STR,
                   "runs": record(MEASURE_RUNS)})
 
 #: The output of each command that takes ``--json``.

@@ -185,6 +185,18 @@ def print_measure(data: dict[str, Any]) -> None:
     click.echo("Prediction: the linear model of the vibration the start orbits"
                + (f" (beta = {beta:.6g} rad/{unit})" if beta else " (none: no vibration)")
                + f"; reference: {data['reference']}.")
+    floors = [r["reference_error"] for r in data["rows"] if r.get("reference_error") is not None]
+    if floors:
+        click.echo(f"The reference's own error at T (relative, as the trajectory errors): "
+                   f"{min(floors):.2g}" + (f" to {max(floors):.2g}" if max(floors) > min(floors)
+                                           else "")
+                   + "; a trajectory error below it prints as < that floor.")
+
+    def trajectory(r: dict[str, Any]) -> str:
+        if r.get("below_reference"):
+            return f"<{r['reference_error']:.2g}"
+        return g(r["trajectory_error"])
+
     click.echo(f"{'h':>10} {'steps':>8} {'evals/' + unit:>12}  {'energy err':>10} "
                f"{'predicted':>9} {'ratio':>6}  {'drift/' + unit:>10}  {'traj err':>9} "
                f"{'predicted':>9} {'ratio':>6}  status")
@@ -192,7 +204,7 @@ def print_measure(data: dict[str, Any]) -> None:
         click.echo(f"{r['h']:>10.4g} {r['steps']:>8} {g(r['evaluations_per_time'], 4):>12}  "
                    f"{g(r['energy_error']):>10} {g(r['predicted_energy_error']):>9} "
                    f"{g(r['energy_ratio'], 2):>6}  {g(r['energy_drift'], 2):>10}  "
-                   f"{g(r['trajectory_error']):>9} {g(r['predicted_trajectory_error']):>9} "
+                   f"{trajectory(r):>9} {g(r['predicted_trajectory_error']):>9} "
                    f"{g(r['trajectory_ratio'], 2):>6}  {r['status']}"
                    + (f" ({r['iterations_per_step']:.3g} solver iterations per step"
                       + (f", {r['jacobians_per_time']:.4g} Hessians per {unit}"
@@ -261,6 +273,8 @@ def print_refinement(data: dict[str, Any]) -> None:
             "unreachable": ""}[data["limited_by"]]
     ratio = "" if data["predicted_h"] is None else \
         f" ({data['h'] / data['predicted_h']:.3g} times the prediction)"
-    click.echo(f"Measured: h = {data['h']:.6g}{u} keeps the {what} at {data['error']:.3g} <= "
+    at = (f"below the reference's floor {data['error']:.3g}" if data.get("below_reference")
+          else f"at {data['error']:.3g}")
+    click.echo(f"Measured: h = {data['h']:.6g}{u} keeps the {what} {at} <= "
                f"{data['tol']:g}{tail}; the linear model predicted h = {predicted}{ratio}; "
                f"{len(data['runs']['rows'])} runs.")
