@@ -107,8 +107,9 @@ def test_the_text_prints_the_floor(kepler, run):
                          repr(T / 250), "--time", repr(T), "--initial", x0)
     assert code == 0, err
     assert "The reference's own error at T" in out
-    row = out.splitlines()[-1].split()
-    assert row[7].startswith("<")  # the trajectory error column
+    lines = out.splitlines()
+    row = lines[lines.index(next(line for line in lines if line.lstrip().startswith("h "))) + 1]
+    assert row.split()[7].startswith("<")  # the trajectory error column
 
 
 @pytest.mark.slow

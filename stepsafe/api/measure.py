@@ -12,7 +12,13 @@ from typing import Any
 import numpy as np
 
 from stepsafe.api.inputs import Integrator, as_integrator
-from stepsafe.api.reports import NEGLIGIBLE, MeasureReport, MeasureRow, Refinement
+from stepsafe.api.reports import (
+    NEGLIGIBLE,
+    InvariantRow,
+    MeasureReport,
+    MeasureRow,
+    Refinement,
+)
 from stepsafe.arguments import public
 from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.systems.measurement import (
@@ -150,10 +156,15 @@ def _row(integrator: Integrator, problem: MeasuredSystem, h: float, n: int, run:
     trajectory, below = run.trajectory_error, False
     if trajectory is not None and floor is not None and not trajectory > floor:
         trajectory, below = None, True
+    fit = run.energy_fit
+    invariants = tuple(InvariantRow(name, f.spread, f.slope, f.r2, f.behaviour)
+                       for name, f in run.invariants)
     return MeasureRow(h, n, T, status, run.energy_error, run.energy_drift,
                       trajectory, run.evaluations_per_time, run.iterations_per_step,
                       *prediction, run.jacobians_per_time, run.gradients_per_time,
-                      floor, below)
+                      floor, below, None if fit is None else fit.r2,
+                      None if fit is None else fit.behaviour, invariants,
+                      run.seconds_per_time)
 
 
 def _prediction(integrator: Integrator, beta: float | None, h: float, T: float
@@ -183,6 +194,8 @@ def _prediction(integrator: Integrator, beta: float | None, h: float, T: float
 #: Measurement runs of one refinement at most, and the relative bracket it stops at.
 MAX_REFINE_RUNS = 24
 REFINE_REL = 1e-3
+#: With no vibration to predict from, the refinement starts at h = T / this.
+NO_VIBRATION_START = 1000
 
 
 @public()
@@ -194,7 +207,9 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
            progress: Callable[[float], None] | None = None) -> Refinement:
     """The largest h whose measured error meets ``tol`` on the scene's own system, by
     bisection on measurements started from the linear prediction (what
-    ``advise --tol-*`` predicts, checked and corrected by running the method).
+    ``advise --tol-*`` predicts, checked and corrected by running the method), or from
+    ``T / 1000`` when the start orbits no vibration (an orbit of Kepler's problem; then
+    ``time`` is required and h stays below it).
     ``quantity``: ``energy`` or ``trajectory`` (see :class:`MeasureRow`).
 
     >>> r = refine("verlet", "energy", 1e-3, system={"hamiltonian": "p**2/2 - cos(q)",
@@ -214,22 +229,28 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
     integrator = as_integrator(method)
     time_unit = time_unit_in_force(known_time_unit(time_unit), scene, time)
     problem = measured_system(integrator.tableau, scene, system, initial, energy, time_unit)
-    if problem.beta is None:
-        raise StepsafeError("the start orbits no vibration: nothing to predict h from")
     beta = problem.beta
     if time is None:
+        if beta is None:
+            raise StepsafeError("give the time to integrate (--time T): the start orbits no "
+                                "vibration whose period would set it")
         time = DEFAULT_PERIODS * 2 * math.pi / beta
     time = positive_finite(duration(time, "time", time_unit), "time")
-    z_star = find_region(integrator.tableau, "oscillator").first_boundary or 10.0
-    h_safe = z_star / beta
-    if quantity == "energy":
-        step = z_for_tolerance(integrator.tableau, tol, z_star, kind="energy")
-    else:  # the phase error whose drift over T gives that trajectory error
-        phase_tol = 2 * math.asin(min(tol, 2.0) / 2) / (beta * time)
-        step = z_for_tolerance(integrator.tableau, phase_tol, z_star, kind="phase")
-    predicted = None if step.z is None else step.z / beta
+    predicted: float | None
+    h_safe: float | None
+    if beta is None:  # no linear model to start from: T / 1000, and the run time at most
+        predicted, h_safe, top = None, None, time
+    else:
+        z_star = find_region(integrator.tableau, "oscillator").first_boundary or 10.0
+        h_safe = z_star / beta
+        if quantity == "energy":
+            step = z_for_tolerance(integrator.tableau, tol, z_star, kind="energy")
+        else:  # the phase error whose drift over T gives that trajectory error
+            phase_tol = 2 * math.asin(min(tol, 2.0) / 2) / (beta * time)
+            step = z_for_tolerance(integrator.tableau, phase_tol, z_star, kind="phase")
+        predicted = None if step.z is None else step.z / beta
+        top = h_safe * (1 - 1e-9)
     key = "energy_error" if quantity == "energy" else "trajectory_error"
-    top = h_safe * (1 - 1e-9)
     rows: list[MeasureRow] = []
 
     def error_at(h: float) -> float:
@@ -248,21 +269,26 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
         value = getattr(row, key)
         if key == "trajectory_error" and row.below_reference:
             value = row.reference_error  # (less than it: what can be said)
+            if value is not None and value > tol:
+                raise _BelowReference
         return math.inf if row.status != "ok" or value is None else value
 
     lo = hi = None
-    h = min(predicted or h_safe / 10, top)
     limited = "tolerance"
-    if predicted is None:  # the linear model meets the tolerance at no step: say so
+    if beta is None:
+        h = time / NO_VIBRATION_START
+    elif predicted is None:  # the linear model meets the tolerance at no step: say so
         return Refinement(quantity, tol, None, None, None, h_safe, "unreachable",
                           MeasureReport(integrator.name, problem.description, (), float("nan"),
                                         beta, problem.reference_text, (), time_unit))
+    else:
+        h = min(predicted, top)
     try:
         if error_at(h) <= tol:
             lo = h
             while hi is None:
                 if lo >= top:
-                    limited = "safety"
+                    limited = "safety" if beta is not None else "time"
                     break
                 h = min(2 * lo, top)
                 if error_at(h) <= tol:
@@ -286,6 +312,9 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
     except _Exhausted:
         if lo is None:
             limited = "unreachable"
+    except _BelowReference:
+        if lo is None:
+            limited = "reference"
     chosen = None if lo is None else next(r for r in rows if r.h == lo)
     below = chosen is not None and key == "trajectory_error" and chosen.below_reference
     best = None if chosen is None else (chosen.reference_error if below
@@ -299,3 +328,7 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
 
 class _Exhausted(Exception):
     """The refinement used all its runs."""
+
+
+class _BelowReference(Exception):
+    """A run's error is below the reference's floor, which is above the tolerance."""

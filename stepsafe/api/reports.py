@@ -468,6 +468,25 @@ class ImpulseModesReport:
 
 
 @dataclass(frozen=True)
+class InvariantRow:
+    """A conserved quantity the scene declares, along one run: ``spread`` (max - min of
+    ``(I(x_k) - I(x_0)) / |I(x_0)|``, absolute when ``I(x_0) = 0``), ``drift`` (the
+    least-squares slope of that error against time, per time unit), ``r2`` (the share of
+    its variance the line explains) and ``behaviour``: ``drift`` when that share is at
+    least one half, else ``bounded``."""
+
+    name: str
+    spread: float
+    drift: float | None
+    r2: float | None
+    behaviour: str | None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "spread": self.spread, "drift": self.drift, "r2": self.r2,
+                "behaviour": self.behaviour}
+
+
+@dataclass(frozen=True)
 class MeasureRow:
     """What one step size h did on the system (None where not measured or predicted)."""
 
@@ -492,6 +511,14 @@ class MeasureRow:
     #: then None and ``below_reference`` True (the error is less than this floor)
     reference_error: float | None = None
     below_reference: bool = False
+    #: the energy error against time: the share of its variance the least-squares line
+    #: through every step explains, and ``drift`` (at least one half) or ``bounded``
+    energy_r2: float | None = None
+    energy_behaviour: str | None = None
+    #: the scene's declared invariants, measured like the energy
+    invariants: tuple[InvariantRow, ...] = ()
+    #: wall-clock seconds per unit of simulated time of the run (monitoring included)
+    seconds_per_time: float | None = None
 
     @property
     def energy_ratio(self) -> float | None:
@@ -518,7 +545,10 @@ class MeasureRow:
                 "jacobians_per_time": self.jacobians_per_time,
                 "gradients_per_time": self.gradients_per_time,
                 "reference_error": self.reference_error,
-                "below_reference": self.below_reference}
+                "below_reference": self.below_reference,
+                "energy_r2": self.energy_r2, "energy_behaviour": self.energy_behaviour,
+                "invariants": [i.to_dict() for i in self.invariants],
+                "seconds_per_time": self.seconds_per_time}
 
 
 @dataclass(frozen=True)
@@ -562,8 +592,11 @@ class Refinement:
     whose measured ``quantity`` (``energy``: the energy spread; ``trajectory``: the
     trajectory error at T) is at most ``tol``, found by bisection on measurements
     (``runs``: every run made, in order), beside ``predicted``, the h the linear model
-    gives for the same tolerance. ``limited_by``: ``tolerance``, ``safety`` (met up to the
-    safe limit) or ``unreachable`` (not met down to the smallest h tried)."""
+    gives for the same tolerance (None when the start orbits no vibration: the search
+    then starts from T / 1000). ``limited_by``: ``tolerance``, ``safety`` (met up to the
+    safe limit), ``time`` (met up to the run time, with no vibration), ``unreachable``
+    (not met down to the smallest h tried) or ``reference`` (the tolerance is below the
+    reference's own error, so no run can show it met)."""
 
     quantity: str
     tol: float

@@ -167,7 +167,12 @@ MEASURE_ROW = record({"h": NUM, "steps": INT, "time": NUM, "status": STR,
                       "predicted_trajectory_error": NUM_OR_NULL,
                       "energy_ratio": NUM_OR_NULL, "trajectory_ratio": NUM_OR_NULL,
                       "jacobians_per_time": NUM_OR_NULL, "gradients_per_time": NUM_OR_NULL,
-                      "reference_error": NUM_OR_NULL, "below_reference": BOOL})
+                      "reference_error": NUM_OR_NULL, "below_reference": BOOL,
+                      "energy_r2": NUM_OR_NULL, "energy_behaviour": STR_OR_NULL,
+                      "invariants": array(record({"name": STR, "spread": NUM,
+                                                  "drift": NUM_OR_NULL, "r2": NUM_OR_NULL,
+                                                  "behaviour": STR_OR_NULL})),
+                      "seconds_per_time": NUM_OR_NULL})
 
 MEASURE_RUNS = {"method": STR, "system": STR, "initial": array(NUM), "energy": NUM_OR_NULL,
                 "beta": NUM_OR_NULL, "reference": STR, "time_unit": STR_OR_NULL,

@@ -212,6 +212,17 @@ def print_measure(data: dict[str, Any]) -> None:
                       if r["iterations_per_step"] else "")
                    + (f" ({r['gradients_per_time']:.4g} force gradients per {unit})"
                       if r.get("gradients_per_time") else ""))
+    fitted = [r for r in data["rows"] if r.get("energy_behaviour")]
+    if fitted:
+        click.echo("Against time (least-squares line through every step; a drift when it "
+                   "explains half the variance or more, else a bounded oscillation):")
+    for r in fitted:
+        parts = [f"energy {r['energy_behaviour']} (R2 {r['energy_r2']:.2f})"]
+        for inv in r.get("invariants", ()):
+            parts.append(f"{inv['name']} spread {g(inv['spread'])}, drift "
+                         f"{g(inv['drift'], 2)}/{unit}, {inv['behaviour']} "
+                         f"(R2 {inv['r2']:.2f})" if inv['r2'] is not None else "")
+        click.echo(f"{r['h']:>10.4g}  " + "; ".join(parts))
 
 
 def work_precision_plot(scene_file: str, methods: str, h_range: str, duration: float | None,
@@ -264,17 +275,27 @@ def print_refinement(data: dict[str, Any]) -> None:
     unit = data["runs"]["time_unit"]
     u = f" {unit}" if unit else ""
     what = "energy spread" if data["quantity"] == "energy" else "trajectory error"
+    vibration = data["h_safe"] is not None
     predicted = "none" if data["predicted_h"] is None else f"{data['predicted_h']:.6g}{u}"
+    model = (f"the linear model predicted h = {predicted}" if vibration else
+             "no linear prediction: the start orbits no vibration, the search began at "
+             "T / 1000")
     if data["h"] is None:
-        click.echo(f"No step meets {what} <= {data['tol']:g} in the runs made (the linear "
-                   f"model predicted h = {predicted}).")
+        if data["limited_by"] == "reference":
+            floor = min(r["reference_error"] for r in data["runs"]["rows"]
+                        if r.get("below_reference"))
+            click.echo(f"The {what} tolerance {data['tol']:g} is below the reference's own "
+                       f"error ({floor:.2g}): no run can show it met ({model}).")
+            return
+        click.echo(f"No step meets {what} <= {data['tol']:g} in the runs made ({model}).")
         return
-    tail = {"tolerance": "", "safety": f", up to the safe limit {data['h_safe']:.6g}{u}",
-            "unreachable": ""}[data["limited_by"]]
+    tail = {"tolerance": "", "unreachable": "", "reference": "", "time": ", up to the run time",
+            "safety": "" if not vibration else
+            f", up to the safe limit {data['h_safe']:.6g}{u}"}[data["limited_by"]]
     ratio = "" if data["predicted_h"] is None else \
         f" ({data['h'] / data['predicted_h']:.3g} times the prediction)"
     at = (f"below the reference's floor {data['error']:.3g}" if data.get("below_reference")
           else f"at {data['error']:.3g}")
     click.echo(f"Measured: h = {data['h']:.6g}{u} keeps the {what} {at} <= "
-               f"{data['tol']:g}{tail}; the linear model predicted h = {predicted}{ratio}; "
+               f"{data['tol']:g}{tail}; {model}{ratio}; "
                f"{len(data['runs']['rows'])} runs.")

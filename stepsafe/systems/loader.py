@@ -35,7 +35,7 @@ DENSE_LIMIT = 2000
 EQUILIBRIUM_ERROR = 8 * float(np.finfo(float).eps)
 SYSTEM_KEYS = {"stiffness", "precision", "covariance", "mass", "hessian", "hamiltonian",
                "parameters", "box", "q", "p", "energy_below", "starts", "sizes", "fixed",
-               "all_modes", "units"}
+               "all_modes", "units", "invariants"}
 
 
 class SystemReport(NamedTuple):

@@ -80,6 +80,9 @@ class MeasuredSystem:
     #: trajectory errors are measured), and the equilibrium's state
     metric: np.ndarray | None = None
     centre: np.ndarray | None = None
+    #: the conserved quantities the scene declares (``invariants:``): name and a
+    #: vectorised function of (q, p), rows of shape (m, dof)
+    invariants: tuple[tuple[str, Callable[[np.ndarray, np.ndarray], np.ndarray]], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -95,6 +98,12 @@ class Run:
     iterations_per_step: float | None = None
     jacobians_per_time: float | None = None
     gradients_per_time: float | None = None
+    #: the energy error against time (:class:`Fit`) and each declared invariant's
+    energy_fit: Fit | None = None
+    invariants: tuple[tuple[str, Fit], ...] = ()
+    #: wall-clock seconds of the run's steps per unit of simulated time (the energy and
+    #: invariant monitoring included, the reference not)
+    seconds_per_time: float | None = None
 
 
 def run_steps(tableau: Any, problem: MeasuredSystem, h: float, n: int, exact: np.ndarray,
@@ -106,13 +115,15 @@ def run_steps(tableau: Any, problem: MeasuredSystem, h: float, n: int, exact: np
     ``unstable``, ``solver failed`` or ``budget`` (the ``deadline`` passed)."""
     from stepsafe.core.integrator import Engine, SolverFailure
 
+    began = _time.perf_counter()
     engine = Engine(tableau, problem.system, solver=solver)
     system = problem.system
     q, p = problem.q0.copy(), problem.p0.copy()
     e0 = float(system.energy(q, p)[0])
-    q, p = engine.start(q, p, h)  # processed methods: P once (else the identity)
     scale = abs(e0 - (problem.equilibrium_energy or 0.0)) or 1.0
-    trace = EnergyTrace(engine, h, e0, scale, q.shape[1])
+    trace = EnergyTrace(engine, h, e0, scale, q.shape[1],
+                        [f for _, f in problem.invariants], (q, p))
+    q, p = engine.start(q, p, h)  # processed methods: P once (else the identity)
     status = "ok"
     with np.errstate(all="ignore"):
         for k in range(1, n + 1):
@@ -129,6 +140,7 @@ def run_steps(tableau: Any, problem: MeasuredSystem, h: float, n: int, exact: np
                 if deadline is not None and _time.monotonic() > deadline:
                     status = "budget"
                     break
+    seconds = _time.perf_counter() - began
     tick(n)
     T = n * h
     if status != "ok":
@@ -152,32 +164,115 @@ def run_steps(tableau: Any, problem: MeasuredSystem, h: float, n: int, exact: np
         spread = (trace.high - trace.low) / low if low > 0 else None
     return Run(status, spread, drift, traj, (engine.force_evaluations + outputs) / T,
                iterations, engine.jacobians / T if engine.jacobians else None,
-               engine.gradient_evaluations / T if engine.gradient_evaluations else None)
+               engine.gradient_evaluations / T if engine.gradient_evaluations else None,
+               trace.energy.fit(),
+               tuple((name, moments.fit()) for (name, _), (_, _, _, moments)
+                     in zip(problem.invariants, trace.invariants)),
+               seconds / T)
+
+
+#: The least fraction of an error's variance over a run that its least-squares line must
+#: explain (R^2) for the error to be called a drift rather than a bounded oscillation.
+DRIFT_R2 = 0.5
+
+
+@dataclass(frozen=True)
+class Fit:
+    """A relative error ``e_k`` against ``t_k = k h`` over every step of a run: its spread
+    ``max e - min e``, the least-squares ``slope`` of the line through every step, and
+    ``r2``, the fraction of the variance of ``e`` that line explains (``S_te^2 / (S_tt
+    S_ee)``): a ``drift`` when it explains at least :data:`DRIFT_R2`, else ``bounded``
+    (an oscillation about a level, the line's slope being the residue of its phases)."""
+
+    spread: float
+    slope: float | None
+    r2: float | None
+
+    @property
+    def behaviour(self) -> str | None:
+        if self.r2 is None:
+            return None
+        return "drift" if self.r2 >= DRIFT_R2 else "bounded"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"spread": self.spread, "slope": self.slope, "r2": self.r2,
+                "behaviour": self.behaviour}
+
+
+class Moments:
+    """Least, greatest, means and co-moments of ``(t_k, e_k)`` merged chunk by chunk by the
+    pairwise update of Chan, Golub and LeVeque (``n = n_a + n_b``, ``d = mean_b -
+    mean_a``, ``S_tt = S_tt,a + S_tt,b + d_t^2 n_a n_b / n``, likewise ``S_te`` and
+    ``S_ee``), so that the fit is that through every step, without the cancellation of raw
+    sums. Starts with the point ``(0, 0)``."""
+
+    def __init__(self) -> None:
+        self.count, self.t_mean, self.e_mean = 1, 0.0, 0.0
+        self.S_tt = self.S_te = self.S_ee = 0.0
+        self.low = self.high = 0.0
+
+    def add(self, t: np.ndarray, e: np.ndarray) -> None:
+        m = t.size
+        t_mean, e_mean = float(t.mean()), float(e.mean())
+        dt, de = t - t_mean, e - e_mean
+        total = self.count + m
+        shift_t, shift_e = t_mean - self.t_mean, e_mean - self.e_mean
+        weight = self.count * m / total
+        self.S_tt += float(dt @ dt) + shift_t * shift_t * weight
+        self.S_te += float(dt @ de) + shift_t * shift_e * weight
+        self.S_ee += float(de @ de) + shift_e * shift_e * weight
+        self.t_mean += shift_t * m / total
+        self.e_mean += shift_e * m / total
+        self.count = total
+        self.low, self.high = min(self.low, float(e.min())), max(self.high, float(e.max()))
+
+    def slope(self) -> float | None:
+        """The least-squares slope of e against t over every step (None below 3 points)."""
+        if self.count < 3 or not self.S_tt > 0:
+            return None
+        return self.S_te / self.S_tt
+
+    def fit(self) -> Fit:
+        slope = self.slope()
+        r2 = None
+        if slope is not None:
+            r2 = 0.0 if not self.S_ee > 0 else \
+                min(1.0, self.S_te * self.S_te / (self.S_tt * self.S_ee))
+        return Fit(self.high - self.low, slope, r2)
 
 
 class EnergyTrace:
     """The relative energy error ``e_k = (H(x_k) - H(x_0)) / scale`` at every step
     k = 0 .. n of a run (``x_k`` the output state: ``P^-1`` of the kernel's for processed
-    methods), reduced on the fly: its least and greatest values (``low``, ``high``) and
-    the least-squares slope of ``e_k`` against ``t_k = k h``. No step is skipped (a
-    sample every few steps can lock onto the rotation of the orbit and miss the
-    extremes) and none is stored: the states of up to :data:`ENERGY_CHUNK` steps are
-    buffered, their energies evaluated in one vectorised call, and the chunk's means and
-    co-moments merged into the totals by the pairwise update of Chan, Golub and LeVeque
-    (``n = n_a + n_b``, ``d = mean_b - mean_a``,
-    ``S_tt = S_tt,a + S_tt,b + d_t^2 n_a n_b / n``, likewise ``S_te``), so that the slope
-    ``S_te / S_tt`` is that of the fit through every step, without the cancellation of
-    raw sums."""
+    methods), and likewise each invariant ``I`` the scene declares (``(I(x_k) - I(x_0)) /
+    |I(x_0)|``, or absolute when ``I(x_0) = 0``), reduced on the fly (:class:`Moments`):
+    least and greatest values, the least-squares slope against ``t_k = k h`` and the
+    fraction of the variance it explains. No step is skipped (a sample every few steps can
+    lock onto the rotation of the orbit and miss the extremes) and none is stored: the
+    states of up to :data:`ENERGY_CHUNK` steps are buffered and evaluated in one
+    vectorised call per quantity."""
 
-    def __init__(self, engine: Any, h: float, e0: float, scale: float, dof: int) -> None:
+    def __init__(self, engine: Any, h: float, e0: float, scale: float, dof: int,
+                 invariants: Sequence[Callable[[np.ndarray, np.ndarray], np.ndarray]] = (),
+                 start: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         self.engine, self.h, self.e0, self.scale = engine, h, e0, scale
         size = max(1, min(ENERGY_CHUNK, CHUNK_VALUES // (2 * dof)))
         self.Q, self.P = np.empty((size, dof)), np.empty((size, dof))
         self.filled = 0  # steps buffered
         self.step = 0  # steps pushed
-        # the start: k = 0, e_0 = 0
-        self.count, self.t_mean, self.e_mean, self.S_tt, self.S_te = 1, 0.0, 0.0, 0.0, 0.0
-        self.low = self.high = 0.0
+        self.energy = Moments()
+        self.invariants = []  # (function, value at the start, scale, moments)
+        for f in invariants:
+            i0 = float(f(*start)[0]) if start is not None else 0.0
+            self.invariants.append((f, i0, abs(i0) or 1.0, Moments()))
+
+    @property
+    def low(self) -> float:
+        return self.energy.low
+
+    @property
+    def high(self) -> float:
+        return self.energy.high
 
     def push(self, q: np.ndarray, p: np.ndarray, last: bool = False) -> bool:
         """Buffer the state after the next step (rows of shape ``(1, dof)``); evaluate the
@@ -196,31 +291,22 @@ class EnergyTrace:
         if m == 0:
             return True
         Q, P = self.Q[:m], self.P[:m]
-        e = (self.engine.system.energy(*self.engine.output(Q, P, self.h)) - self.e0) \
-            / self.scale
+        out = self.engine.output(Q, P, self.h)
+        e = (self.engine.system.energy(*out) - self.e0) / self.scale
         stable = np.isfinite(Q).all(axis=1) & np.isfinite(P).all(axis=1) & \
             (np.abs(e) <= UNSTABLE)  # (nan compares False)
         if not stable.all():
             return False
         t = self.h * np.arange(self.step - m + 1, self.step + 1, dtype=float)
-        t_mean, e_mean = float(t.mean()), float(e.mean())
-        dt = t - t_mean
-        total = self.count + m
-        shift_t, shift_e = t_mean - self.t_mean, e_mean - self.e_mean
-        weight = self.count * m / total
-        self.S_tt += float(dt @ dt) + shift_t * shift_t * weight
-        self.S_te += float(dt @ (e - e_mean)) + shift_t * shift_e * weight
-        self.t_mean += shift_t * m / total
-        self.e_mean += shift_e * m / total
-        self.count = total
-        self.low, self.high = min(self.low, float(e.min())), max(self.high, float(e.max()))
+        self.energy.add(t, e)
+        for f, i0, scale, moments in self.invariants:
+            moments.add(t, (np.asarray(f(*out), dtype=float) - i0) / scale)
         return True
 
     def slope(self) -> float | None:
-        """The least-squares slope of e against t over every step (None below 3 points)."""
-        if self.count < 3 or not self.S_tt > 0:
-            return None
-        return self.S_te / self.S_tt
+        """The least-squares slope of the energy error against t over every step (None
+        below 3 points)."""
+        return self.energy.slope()
 
 
 def _trajectory_error(state: np.ndarray, exact: np.ndarray, problem: MeasuredSystem) -> float:
@@ -332,8 +418,15 @@ def _expression_problem(tableau, tree, where, folder, initial, energy) -> Measur
         hqq, hqp, hpp = H.jet(float(nearest["q"]), float(nearest["p"])).H
         metric = _definite(np.array([[hqq, hqp], [hqp, hpp]], dtype=float))
         centre = np.array([nearest["q"], nearest["p"]], dtype=float)
+    def invariant(text: str, key: str) -> Callable:
+        try:
+            return hamiltonian_system(parse_hamiltonian(text, params)).energy
+        except (StepsafeError, ValueError) as exc:
+            raise StepsafeError(str(getattr(exc, "message", exc)), key) from None
+
     return MeasuredSystem(system, q, p, beta, f"H = {tree['hamiltonian']}", reference,
-                    REFERENCE_TEXT, centre_energy, metric, centre)
+                    REFERENCE_TEXT, centre_energy, metric, centre,
+                    _invariants(tree, where, invariant))
 
 
 def _many_problem(tree, where, initial, energy) -> MeasuredSystem:
@@ -343,13 +436,25 @@ def _many_problem(tree, where, initial, energy) -> MeasuredSystem:
     from stepsafe.systems.dynamics import check_finite_start
     from stepsafe.systems.loader import read_many
     from stepsafe.systems.manydof import centres as elliptic_centres
-    from stepsafe.systems.manydof import system_of
+    from stepsafe.systems.manydof import parse_many, system_of
 
     if energy is not None:
         raise StepsafeError("--energy applies to 1-dof Hamiltonians; give --initial for "
                             "named coordinates")
     H, lo, hi = read_many(tree, where)
     n = len(H.q)
+
+    def invariant(text: str, key: str) -> Callable:
+        if isinstance(tree.get("q"), str):
+            raise StepsafeError("invariants: apply to named variables (q: [x, y]), not "
+                                "indexed ones", key)
+        try:
+            expr = parse_many(text, tree.get("q"), tree.get("p"), H.parameters, where)
+        except StepsafeError as exc:
+            raise StepsafeError(exc.message, key) from None
+        return system_of(expr).energy
+
+    invariants = _invariants(tree, where, invariant)  # (bad input before the search)
     centres = elliptic_centres(H, lo, hi)
     if initial is not None:
         x0 = _start(initial)
@@ -375,7 +480,34 @@ def _many_problem(tree, where, initial, energy) -> MeasuredSystem:
         return reference_run(compiled_rhs(H.compiled, n), x0, times, deadline)
 
     return MeasuredSystem(system, q, p, beta, f"H = {H.text} ({n} dof)", reference,
-                    REFERENCE_TEXT, centre_energy, metric, centre)
+                    REFERENCE_TEXT, centre_energy, metric, centre, invariants)
+
+
+#: Invariants one scene may declare at most.
+MAX_INVARIANTS = 16
+
+
+def _invariants(tree: Mapping[str, Any], where: str, parse: Callable[[str, str], Any]
+                ) -> tuple[tuple[str, Callable[[np.ndarray, np.ndarray], np.ndarray]], ...]:
+    """The scene's ``invariants:`` (a mapping of names to expressions in the system's
+    variables and parameters), each parsed by ``parse(text, key)`` into a vectorised
+    function of (q, p)."""
+    declared = tree.get("invariants")
+    if declared is None:
+        return ()
+    if not isinstance(declared, Mapping) or not declared:
+        raise StepsafeError("must map names to expressions in the system's variables "
+                            "(angular momentum: \"x*py - y*px\")", f"{where}::$.system.invariants")
+    if len(declared) > MAX_INVARIANTS:
+        raise StepsafeError(f"{len(declared)} invariants; at most {MAX_INVARIANTS}",
+                            f"{where}::$.system.invariants")
+    out = []
+    for name, text in declared.items():
+        key = f"{where}::$.system.invariants.{name}"
+        if not isinstance(name, str) or not isinstance(text, str):
+            raise StepsafeError("must be an expression (a quoted text) under a name", key)
+        out.append((name, parse(text, key)))
+    return tuple(out)
 
 
 def compiled_rhs(compiled: Any, n: int) -> Callable:
