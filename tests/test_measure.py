@@ -248,7 +248,9 @@ def test_work_precision_plot(run, tmp_path):
                          str(png))
     assert code == 0 and png.read_bytes()[:4] == b"\x89PNG", err
     for args in (("plot",), ("plot", "verlet", "--work-precision", "examples/pendulum.yaml"),
-                 ("plot", "--work-precision", "examples/pendulum.yaml", "--methods", "verlet"),
+                 ("plot", "--work-precision", "examples/pendulum.yaml", "--methods", "verlet",
+                  "--budget", "-1"),
+                 ("plot", "--work-precision", "examples/pendulum.yaml"),
                  ("plot", "--work-precision", "examples/pendulum.yaml", "--methods", ",",
                   "--h-range", "0.1,1,2")):
         code, _, err = run(*args)

@@ -332,3 +332,95 @@ class _Exhausted(Exception):
 
 class _BelowReference(Exception):
     """A run's error is below the reference's floor, which is above the tolerance."""
+
+
+# ---------------------------------------------------------------- work-precision
+
+#: Runs of one method in a work-precision diagram at most (each doubles the steps).
+WORK_PRECISION_RUNS = 12
+#: With no vibration to start from, the first run takes this many steps over T.
+WORK_PRECISION_START = 100
+#: A method's runs stop once its error is within this factor of the reference's floor.
+FLOOR_MARGIN = 10.0
+
+
+@public()
+def work_precision(methods: Sequence[Integrator | str], *, scene: str | Path | None = None,
+                   system: Mapping[str, Any] | None = None, time: float | str | None = None,
+                   initial: Sequence[float] | None = None, energy: float | None = None,
+                   time_unit: str | None = None, solver: str = "fixed-point",
+                   budget: float = 60.0, error: str = "trajectory",
+                   max_steps: int = MAX_STEPS,
+                   progress: Callable[[float], None] | None = None
+                   ) -> tuple[MeasureReport, ...]:
+    """Error against cost for each of ``methods`` on the scene's system, with step ranges
+    chosen per method: every run ends exactly at ``time`` (h = T / n, so one reference
+    serves all), the first with n = ``T beta / (0.9 z*)`` steps (just inside the method's
+    first boundary for the vibration the start orbits) or 100 with no vibration, and each
+    next run with twice the steps, until the ``error`` (``trajectory`` or ``energy``) is
+    within 10 times the reference's floor (trajectory) or below 1e-15 (energy), the method
+    has used :data:`WORK_PRECISION_RUNS` runs or ``max_steps`` steps, or its share of the
+    ``budget`` (seconds for the whole call, the set-up and reference included, shared
+    evenly by the methods still to run) is spent. Runs that do not finish (``budget``) are
+    left out; unstable runs are kept (they have no error). One :class:`MeasureReport` per
+    method, in the order given."""
+    from stepsafe.core.regions import find_region
+    from stepsafe.systems.scene import time_unit_in_force
+    from stepsafe.units import duration
+    from stepsafe.units import time_unit as known_time_unit
+
+    began = _time.monotonic()
+    if isinstance(methods, (str, Integrator)):
+        methods = [methods]
+    integrators = [as_integrator(m) for m in methods]
+    if not integrators:
+        raise StepsafeError("no methods to compare")
+    if not isinstance(error, str) or error not in ("trajectory", "energy"):
+        raise StepsafeError(f"error must be trajectory or energy, got {str(error)[:20]!r}")
+    deadline = began + positive_finite(budget, "budget")
+    time_unit = time_unit_in_force(known_time_unit(time_unit), scene, time)
+    problem = measured_system(integrators[0].tableau, scene, system, initial, energy,
+                              time_unit)
+    if time is None:
+        if problem.beta is None:
+            raise StepsafeError("give the time to integrate (--time T): the start orbits no "
+                                "vibration whose period would set it")
+        time = DEFAULT_PERIODS * 2 * math.pi / problem.beta
+    T = positive_finite(duration(time, "time", time_unit), "time")
+    exact = problem.reference([T], deadline)
+    check = getattr(exact, "check", None)
+    floor = None if check is None else reference_floor(exact[0], check[0], problem)
+    key = "trajectory_error" if error == "trajectory" else "energy_error"
+    start = np.concatenate([problem.q0[0], problem.p0[0]])
+    energy0 = float(problem.system.energy(problem.q0, problem.p0)[0])
+    reports = []
+    for k, integrator in enumerate(integrators):
+        share = began + (deadline - began) if k == len(integrators) - 1 else \
+            _time.monotonic() + (deadline - _time.monotonic()) / (len(integrators) - k)
+        n = WORK_PRECISION_START
+        if problem.beta is not None:
+            z_star = find_region(integrator.tableau, "oscillator").first_boundary
+            if z_star is not None:
+                n = max(1, math.ceil(T * problem.beta / (0.9 * z_star)))
+        rows: list[MeasureRow] = []
+        while len(rows) < WORK_PRECISION_RUNS and n <= max_steps and \
+                _time.monotonic() < share:
+            h = T / n
+            run = run_steps(integrator.tableau, problem, h, n, exact[0], lambda _: None,
+                            solver, share)
+            if run.status == "budget":
+                break
+            row = _row(integrator, problem, h, n, run, floor)
+            rows.append(row)
+            if progress:
+                progress((k + len(rows) / WORK_PRECISION_RUNS) / len(integrators))
+            value = getattr(row, key)
+            if row.below_reference or (value is not None and (
+                    value <= FLOOR_MARGIN * (floor or 0.0) if key == "trajectory_error"
+                    else value <= 1e-15)):
+                break
+            n *= 2
+        reports.append(MeasureReport(integrator.name, problem.description,
+                                     tuple(map(float, start)), energy0, problem.beta,
+                                     problem.reference_text, tuple(rows), time_unit))
+    return tuple(reports)

@@ -168,7 +168,17 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, jacobian_cost, ts
 @click.option("--methods", default=None, metavar="M1,M2,...",
               help="--work-precision: the methods (family members as gauss:2).")
 @click.option("--h-range", default=None, metavar="LO,HI,N",
-              help="--work-precision: N steps spaced evenly in log h from LO to HI.")
+              help="--work-precision: N steps spaced evenly in log h from LO to HI "
+                   "[default: chosen per method, from just inside its first boundary, "
+                   "halving h until the error reaches the reference's floor or the budget "
+                   "runs out].")
+@click.option("--budget", type=FLOAT, default=None, metavar="SECONDS",
+              help="--work-precision: the whole diagram's time, shared by the methods "
+                   "[default: 45].")
+@click.option("--cost", type=click.Choice(("evaluations", "seconds")), default="evaluations",
+              show_default=True,
+              help="--work-precision: the cost axis, force evaluations or wall-clock seconds "
+                   "per unit time.")
 @click.option("--time", "duration", type=FLOAT, default=None, metavar="T",
               help="--work-precision: integrate up to T [default: 100 periods].")
 @click.option("--error", "which", type=click.Choice(("trajectory", "energy")),
@@ -177,7 +187,7 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, jacobian_cost, ts
 @click.option("--initial", default=None, metavar="Q,P",
               help="--work-precision: the initial condition (as for stepsafe measure).")
 def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, substeps,
-             scene_file, methods, h_range, duration, which, initial) -> None:
+             scene_file, methods, h_range, budget, cost, duration, which, initial) -> None:
     """Draw tr M(z)/2 with the band [-1, 1] and the preserved intervals (needs matplotlib).
 
     The file is written at exactly the path given, in the format its extension names; no
@@ -187,29 +197,33 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, subst
     drawn instead (METHOD-chart.png), with the ray of --ratio when given.
 
     With --work-precision SCENE (no METHOD) it draws the measured error of each method of
-    --methods against its force evaluations per unit time on the scene's own system, one
-    point per step of --h-range (default file: work-precision.png).
+    --methods against its force evaluations (or --cost seconds) per unit time on the
+    scene's own system, one point per step of --h-range, or steps chosen per method within
+    --budget seconds (default file: work-precision.png).
 
     \b
     Examples:
       stepsafe plot lobatto3ab -s 3 -o lobatto3.png --phase
       stepsafe plot --work-precision examples/pendulum.yaml --methods verlet,pefrl,gauss:2 \\
           --h-range 0.05,1,8
+      stepsafe plot --work-precision examples/pendulum.yaml --methods verlet,pefrl \\
+          --budget 20
     """
     import math
     import warnings
 
     if scene_file is not None or methods is not None or h_range is not None \
-            or initial is not None:
+            or initial is not None or budget is not None:
         from stepsafe.cli.measure import work_precision_plot
 
         if method is not None:
             raise _input_error("give METHOD or --work-precision SCENE --methods M1,M2, not both")
-        if scene_file is None or methods is None or h_range is None:
-            raise _input_error("--work-precision needs SCENE, --methods M1,M2,... and "
-                               "--h-range LO,HI,N")
+        if scene_file is None or methods is None:
+            raise _input_error("--work-precision needs SCENE and --methods M1,M2,...")
+        if h_range is not None and budget is not None:
+            raise _input_error("give --h-range or --budget, not both")
         work_precision_plot(scene_file, methods, h_range, duration, which,
-                            output or "work-precision.png", initial)
+                            output or "work-precision.png", initial, budget, cost)
         return
     if method is None:
         raise _input_error("missing METHOD (or --work-precision SCENE); see 'stepsafe plot "

@@ -225,15 +225,23 @@ def print_measure(data: dict[str, Any]) -> None:
         click.echo(f"{r['h']:>10.4g}  " + "; ".join(parts))
 
 
-def work_precision_plot(scene_file: str, methods: str, h_range: str, duration: float | None,
-                        which: str, output: str, initial: str | None = None) -> None:
-    """Measure every method at every step of the range; draw error against cost."""
+#: Seconds of a work-precision diagram with steps chosen per method, by default.
+WORK_PRECISION_BUDGET = 45.0
+
+
+def work_precision_plot(scene_file: str, methods: str, h_range: str | None,
+                        duration: float | None, which: str, output: str,
+                        initial: str | None = None, budget: float | None = None,
+                        cost: str = "evaluations") -> None:
+    """Measure every method at every step of the range (or at steps chosen per method
+    within the budget: :func:`stepsafe.api.measure.work_precision`); draw error against
+    cost."""
     from stepsafe.api import inputs
-    from stepsafe.api.measure import measure
+    from stepsafe.api.measure import measure, work_precision
     from stepsafe.cli.accuracy import _plot_format, _pyplot, _save
     from stepsafe.cli.progressbar import progress_bar
 
-    hs = _range(h_range)
+    hs = None if h_range is None else _range(h_range)
     names = [item.strip() for item in methods.split(",") if item.strip()]
     if not names or len(names) > MAX_METHODS:
         raise _input_error(f"--methods {methods}: give 1 to {MAX_METHODS} names separated by "
@@ -244,22 +252,34 @@ def work_precision_plot(scene_file: str, methods: str, h_range: str, duration: f
     fmt = _plot_format(output, plt)
     reports = []
     with progress_bar("measuring") as progress:
-        for k, integrator in enumerate(integrators):
-            def part(f: float, k=k) -> None:
-                if progress:
-                    progress((k + f) / len(integrators))
+        if hs is None:
+            reports = list(work_precision(
+                integrators, scene=scene_file, time=duration, initial=start,
+                budget=WORK_PRECISION_BUDGET if budget is None else budget,
+                error=which, progress=progress))
+        else:
+            for k, integrator in enumerate(integrators):
+                def part(f: float, k=k) -> None:
+                    if progress:
+                        progress((k + f) / len(integrators))
 
-            reports.append(measure(integrator, hs, scene=scene_file, time=duration,
-                                   initial=start, progress=part))
+                reports.append(measure(integrator, hs, scene=scene_file, time=duration,
+                                       initial=start, progress=part))
     key = "trajectory_error" if which == "trajectory" else "energy_error"
+    axis = "evaluations_per_time" if cost == "evaluations" else "seconds_per_time"
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for report in reports:
-        points = [(r.evaluations_per_time, getattr(r, key)) for r in report.rows
-                  if getattr(r, key) and r.evaluations_per_time]
+        points = [(getattr(r, axis), getattr(r, key)) for r in report.rows
+                  if getattr(r, key) and getattr(r, axis)]
         if points:
             x, y = zip(*points)
             ax.loglog(x, y, marker="o", ms=3, lw=1, label=report.method)
-    ax.set_xlabel("force evaluations per unit time (measured)")
+    floors = [r.reference_error for report in reports for r in report.rows
+              if r.reference_error is not None]
+    if floors and which == "trajectory":
+        ax.axhline(max(floors), color="0.5", lw=0.8, ls="--", label="reference's floor")
+    ax.set_xlabel("force evaluations per unit time (measured)" if cost == "evaluations"
+                  else "wall-clock seconds per unit time (measured)")
     ax.set_ylabel("trajectory error at T (relative)" if which == "trajectory"
                   else "energy spread (max - min) / min")
     ax.set_title(f"work-precision on {reports[0].system}")
@@ -268,6 +288,11 @@ def work_precision_plot(scene_file: str, methods: str, h_range: str, duration: f
     fig.tight_layout()
     _save(fig, output, fmt)
     click.echo(f"wrote {output}")
+    for report in reports:
+        usable = [r for r in report.rows if getattr(r, key) is not None]
+        click.echo(f"  {report.method}: {len(usable)} points"
+                   + (f", h from {min(r.h for r in usable):.4g} to {max(r.h for r in usable):.4g}"
+                      if usable else ""))
 
 
 def print_refinement(data: dict[str, Any]) -> None:
