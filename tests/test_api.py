@@ -274,10 +274,15 @@ def test_json_and_tsv_together_is_a_usage_error(run):
 
 
 def test_compare_help_offers_only_what_compare_accepts(run):
-    """Every option listed by compare --help is accepted (no scene, method or --verify)."""
+    """Every option listed by compare --help is accepted (no method or --verify); a scene
+    only through --measure, whose --time, --initial and --budget need it."""
     _, text, _ = run("compare", "--help")
-    for refused in ("--verify", "--budget", "--method ", "SCENE"):
+    for refused in ("--verify", "--method "):
         assert refused not in text
+    assert "--measure SCENE.yaml" in text
+    for option, value in (("--budget", "5"), ("--time", "3"), ("--initial", "0,1")):
+        code, _, err = run("compare", "--beta", "1", option, value)
+        assert code == 2 and "--measure" in err
 
 
 def test_transfer_matrices_and_recipes_agree():

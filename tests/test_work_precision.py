@@ -82,3 +82,43 @@ def test_the_plot_with_a_budget(run, tmp_path):
     code, _, err = run("plot", "--work-precision", "examples/pendulum.yaml", "--methods",
                        "verlet", "--budget", "5", "--h-range", "0.1,1,3", "-o", str(out))
     assert code == 2 and "--budget" in err
+
+
+def test_compare_says_how_far_the_linear_ranking_is_from_the_measured(run_json):
+    """compare --measure on the pendulum: each method's measured cost is the force rate at
+    which a run written here, at h = forces per step / that cost, has the trajectory error
+    the phase tolerance allows over T (within the interpolation between doublings); the
+    ratios are those costs over the linear ranking's first."""
+    T, tol_phase = 20.0, 1e-4
+    data = run_json("compare", "--beta", "1", "--tol-phase", str(tol_phase), "--methods",
+                    "verlet,pefrl", "--measure", "examples/pendulum.yaml", "--time", str(T),
+                    "--budget", "600")
+    measured = data["measured"]
+    tol = 2 * math.sin(tol_phase * T / 2)
+    assert measured["tolerance"] == pytest.approx(tol) and measured["time"] == T
+    first = data["methods"][0]["method"]
+    assert measured["first"] == first == "pefrl"
+    x0 = (0.4, 0.0)  # the scene's default start: a tenth of the box from the centre
+    reference = solve_ivp(lambda t, y: [y[1], -math.sin(y[0])], (0, T), x0,
+                          method="DOP853", rtol=1e-13, atol=1e-14).y[:, -1]
+    costs = {}
+    for o in measured["methods"]:
+        name = o["method"]
+        kicks = len(stepsafe.method(name).tableau.as_splitting().kick
+                    if stepsafe.method(name).tableau.kind == "composition"
+                    else stepsafe.method(name).tableau.kick)
+        forces = 1 if name == "verlet" else kicks  # (Verlet's last kick is the next first)
+        n = round(T * o["measured_cost"] / forces)
+        error = np.linalg.norm(_splitting(name, T / n, n, x0) - reference) \
+            / np.linalg.norm(reference)
+        assert tol / 1.5 <= error <= tol * 1.5, (name, error, tol)
+        costs[name] = o["measured_cost"]
+        predicted = next(r["cost"] for r in data["methods"] if r["method"] == name)
+        assert o["predicted_cost"] == predicted
+    for o in measured["methods"]:
+        assert o["measured_ratio"] == pytest.approx(costs[o["method"]] / costs[first])
+    assert measured["measured_order"] == sorted(costs, key=costs.get)
+    verlet = next(o for o in measured["methods"] if o["method"] == "verlet")
+    # as the README quotes them
+    assert (f"{verlet['predicted_ratio']:.3g}", f"{verlet['measured_ratio']:.3g}") == \
+        ("5.83", "5.55")

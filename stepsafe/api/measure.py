@@ -424,3 +424,25 @@ def work_precision(methods: Sequence[Integrator | str], *, scene: str | Path | N
                                      tuple(map(float, start)), energy0, problem.beta,
                                      problem.reference_text, tuple(rows), time_unit))
     return tuple(reports)
+
+
+def cost_at(report: MeasureReport, tol: float, error: str = "trajectory") -> float | None:
+    """Force evaluations per unit time at which the method's measured ``error`` reaches
+    ``tol``: interpolated linearly in (log cost, log error) between the two runs of
+    ``report`` (a :func:`work_precision` curve) that bracket it; the cheaper run's cost if
+    its error already meets ``tol``; None when no run reaches it (or a run below the
+    reference's floor is all that does: its error is not known)."""
+    key = "trajectory_error" if error == "trajectory" else "energy_error"
+    points = sorted((r.evaluations_per_time, getattr(r, key)) for r in report.rows
+                    if r.status == "ok" and r.evaluations_per_time
+                    and getattr(r, key) is not None)
+    for k, (cost, value) in enumerate(points):
+        if value <= tol:
+            if k == 0:
+                return cost
+            cost_a, value_a = points[k - 1]
+            if not value_a > 0 or not value > 0:
+                return cost
+            share = math.log(value_a / tol) / math.log(value_a / value)
+            return math.exp(math.log(cost_a) + share * math.log(cost / cost_a))
+    return None

@@ -129,13 +129,22 @@ ERROR = top({"method": STR, "model": STR, "phase_error": STR,
                                    "energy_error": NUM_OR_NULL, "overflow": BOOL},
                                   {"kernel_energy_error": NUM_OR_NULL}))})
 
+#: ``compare --measure``: each method's measured cost beside the predicted one.
+MEASURED_RANKING = record({
+    "scene": STR, "time": NUM, "tolerance": NUM, "first": STR,
+    "methods": array(record({"method": STR, "predicted_cost": NUM,
+                             "measured_cost": NUM_OR_NULL, "predicted_ratio": NUM,
+                             "measured_ratio": NUM_OR_NULL})),
+    "measured_order": array(STR)})
+
 COMPARE = top({"modes": OBJECT, "tolerances": OBJECT, "margin": NUM,
                "time_unit": STR_OR_NULL, "solver": STR, "jacobian_cost": NUM,
                "criterion": STR, "cost_unit": STR,
                "methods": array(record({"method": STR, "implicit": BOOL,
                                         "h_max": NUM_OR_NULL, "h": NUM_OR_NULL,
                                         "evaluations": NUM, "cost": NUM_OR_NULL,
-                                        "rank": INT_OR_NULL}, closed=False))})
+                                        "rank": INT_OR_NULL}, closed=False))},
+              {"measured": MEASURED_RANKING})
 
 HMC_ROW = record({"method": STR, "evaluations": NUM, "symmetric": BOOL,
                   "stability_h": NUM_OR_NULL, "structure_h": NUM_OR_NULL,

@@ -102,12 +102,25 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json, tsv) 
               help="Newton's method: one Jacobian (the Hessian at the step's start and the "
                    "factorisation of the stage system) in force evaluations. 1 suits a few "
                    "degrees of freedom; a dense Hessian of d dof costs about d gradients.")
+@click.option("--measure", "measure_scene", default=None, metavar="SCENE.yaml",
+              help="Also run each method on the scene's nonlinear system (steps chosen as "
+                   "plot --work-precision does) and say how far the linear ranking is from "
+                   "the measured one, at the trajectory error the phase tolerance gives "
+                   "over --time.")
+@click.option("--time", "duration", type=FLOAT, default=None, metavar="T",
+              help="--measure: integrate up to T [default: 100 periods of the vibration "
+                   "the start orbits].")
+@click.option("--initial", default=None, metavar="Q,P",
+              help="--measure: the initial condition (as for stepsafe measure).")
+@click.option("--budget", type=FLOAT, default=None, metavar="SECONDS",
+              help="--measure: the seconds all the runs may take [default: 45].")
 @click.option("--tsv", is_flag=True, help="Print the table as tab-separated values.")
 @criterion_option()
 @gradient_cost_option
 @frequency_options
-def compare_cmd(names, use_all, tol_phase, tol_energy, solver, jacobian_cost, tsv, criterion,
-                as_json, gradient_cost, **options) -> None:
+def compare_cmd(names, use_all, tol_phase, tol_energy, solver, jacobian_cost, measure_scene,
+                duration, initial, budget, tsv, criterion, as_json, gradient_cost,
+                **options) -> None:
     """Rank methods by cost per unit of simulated time for your frequencies.
 
     For each method: the first boundary, the largest safe h, the h that meets the
@@ -138,6 +151,20 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, jacobian_cost, ts
                        time_unit=options["time_unit"], solver=solver,
                        criterion=criterion, gradient_cost=gradient_cost,
                        jacobian_cost=jacobian_cost).to_dict()
+    if measure_scene is None and (duration is not None or initial is not None
+                                  or budget is not None):
+        raise _input_error("--time, --initial and --budget apply to --measure SCENE")
+    if measure_scene is not None:
+        from stepsafe.cli.measure import measured_ranking
+
+        if tol_phase is None:
+            raise _input_error("--measure needs --tol-phase (the trajectory error it gives "
+                               "over --time is the measured tolerance)")
+        vibrations = arrays.get("oscillator")
+        if vibrations is None or not len(vibrations):
+            raise _input_error("--measure needs the vibrations compared (--beta, ...)")
+        data["measured"] = measured_ranking(data, measure_scene, tol_phase,
+                                            float(max(vibrations)), duration, initial, budget)
     if as_json:
         print_json(data)
     elif tsv:
@@ -146,6 +173,10 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, jacobian_cost, ts
                    "cost"), data["methods"])
     else:
         print_compare(data)
+        if "measured" in data:
+            from stepsafe.cli.measure import print_measured_ranking
+
+            print_measured_ranking(data["measured"])
 
 
 @main.command("plot")

@@ -3,6 +3,7 @@ prediction."""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import click
@@ -324,3 +325,59 @@ def print_refinement(data: dict[str, Any]) -> None:
     click.echo(f"Measured: h = {data['h']:.6g}{u} keeps the {what} {at} <= "
                f"{data['tol']:g}{tail}; {model}{ratio}; "
                f"{len(data['runs']['rows'])} runs.")
+
+
+def measured_ranking(data: dict[str, Any], scene_file: str, tol_phase: float, beta: float,
+                     duration: float | None, initial: str | None, budget: float | None
+                     ) -> dict[str, Any]:
+    """Each compared method's measured cost on the scene's system at the trajectory error
+    ``2 sin(tol_phase beta T / 2)`` (the phase drift the linear model allows over T, beta
+    the largest vibration compared), from its :func:`stepsafe.api.measure.work_precision`
+    curve, beside the cost ``compare`` predicts; ratios to the linear ranking's first."""
+    from stepsafe.api import inputs
+    from stepsafe.api.measure import cost_at, work_precision
+    from stepsafe.cli.progressbar import progress_bar
+
+    start = None if initial is None else _numbers(initial, "initial")
+    rows = [r for r in data["methods"] if r["cost"] is not None]
+    if not rows:
+        raise _input_error("--measure: no compared method has a predicted cost")
+    names = [r["method"] for r in rows]
+    integrators = [inputs.named_method(name) for name in names]
+    with progress_bar("measuring") as progress:
+        reports = work_precision(integrators, scene=scene_file, time=duration,
+                                 initial=start, progress=progress,
+                                 budget=WORK_PRECISION_BUDGET if budget is None else budget)
+    T = next((row.time for report in reports for row in report.rows), None)
+    if T is None:
+        raise _input_error("--measure: no run finished within the budget")
+    tol = 2 * math.sin(min(tol_phase * beta * T, math.pi) / 2)
+    measured = {name: cost_at(report, tol) for name, report in zip(names, reports)}
+    first = names[0]
+    base, base_measured = float(rows[0]["cost"]), measured[first]
+    out = []
+    for r in rows:
+        m = measured[r["method"]]
+        out.append({"method": r["method"], "predicted_cost": r["cost"], "measured_cost": m,
+                    "predicted_ratio": float(r["cost"]) / base,
+                    "measured_ratio": (None if m is None or base_measured is None
+                                       else m / base_measured)})
+    order = sorted((o for o in out if o["measured_cost"] is not None),
+                   key=lambda o: o["measured_cost"])
+    return {"scene": scene_file, "time": T, "tolerance": tol, "first": first,
+            "methods": out, "measured_order": [o["method"] for o in order]}
+
+
+def print_measured_ranking(data: dict[str, Any]) -> None:
+    """The text form of :func:`measured_ranking`."""
+    click.echo(f"Measured on {data['scene']} (trajectory error <= {data['tolerance']:.3g} at "
+               f"T = {data['time']:.6g}; costs interpolated between runs), each relative "
+               f"to {data['first']}, the linear ranking's first:")
+    for o in data["methods"]:
+        measured = "not reached" if o["measured_cost"] is None else \
+            f"{o['measured_cost']:.4g}"
+        ratio = "-" if o["measured_ratio"] is None else f"{o['measured_ratio']:.3g}"
+        click.echo(f"  {o['method']}: cost predicted {o['predicted_cost']:.4g}, measured "
+                   f"{measured}; {o['method']}/{data['first']} predicted "
+                   f"{o['predicted_ratio']:.3g}, measured {ratio}")
+    click.echo("Measured order: " + (", ".join(data["measured_order"]) or "none reached"))

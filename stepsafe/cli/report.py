@@ -523,6 +523,8 @@ def print_compare(data: dict[str, Any]) -> None:
                            f"once before the first step and {cost['per_output']} per output "
                            "(P^-1), not in the cost per unit time"))
     solver = data.get("solver", "best")
+    if not any(r["implicit"] for r in data["methods"]):
+        return
     if solver == "nominal":
         console.print("* implicit: one evaluation per stage (nominal); no solver is counted.")
     else:
