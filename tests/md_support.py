@@ -1,0 +1,179 @@
+"""A force engine written out by hand for the MD tests: harmonic bonds with exact forces and an
+exact Hessian, so finite differences, Lanczos and the constraint projection are checked
+against numbers that share no code with stepsafe."""
+
+from __future__ import annotations
+
+import math
+
+import mpmath
+import numpy as np
+
+from stepsafe.systems.md.engine import DistanceConstraints
+
+
+class HarmonicNetwork:
+    """``U = sum over bonds of k/2 (|x_i - x_j| - r0)^2`` (nm, kJ/mol, amu), implementing
+    :class:`stepsafe.systems.md.engine.ForceEngine`."""
+
+    def __init__(self, positions, masses, bonds, k, r0, constraints=None, labels=None):
+        self._x = np.array(positions, dtype=float)
+        self._m = np.array(masses, dtype=float)
+        self.bonds = np.array(bonds, dtype=int).reshape(-1, 2)
+        self.k = np.broadcast_to(np.asarray(k, dtype=float), (len(self.bonds),)).copy()
+        self.r0 = np.broadcast_to(np.asarray(r0, dtype=float), (len(self.bonds),)).copy()
+        self._c = constraints if constraints is not None else DistanceConstraints()
+        n = len(self._m)
+        self._labels = tuple(labels) if labels is not None else tuple(f"A{i}" for i in range(n))
+        self.calls = 0
+
+    n_particles = property(lambda self: len(self._m))
+    masses = property(lambda self: self._m)
+    positions = property(lambda self: self._x)
+    constraints = property(lambda self: self._c)
+    virtual_sites = property(lambda self: np.zeros(len(self._m), dtype=bool))
+    labels = property(lambda self: self._labels)
+
+    def energy(self, x):
+        x = np.asarray(x, dtype=float)
+        r = np.linalg.norm(x[self.bonds[:, 0]] - x[self.bonds[:, 1]], axis=1)
+        return float(0.5 * np.sum(self.k * (r - self.r0) ** 2))
+
+    def forces(self, x):
+        self.calls += 1
+        x = np.asarray(x, dtype=float)
+        f = np.zeros_like(x)
+        for (i, j), k, r0 in zip(self.bonds, self.k, self.r0):
+            d = x[i] - x[j]
+            r = np.linalg.norm(d)
+            g = k * (r - r0) * d / r          # dU/dx_i
+            f[i] -= g
+            f[j] += g
+        return f
+
+    def exact_hessian(self, x=None):
+        """d^2U over all 3N coordinates: per bond ``k [e e^T + (r - r0)/r (I - e e^T)]`` on
+        (i, i) and (j, j), its negative on (i, j) and (j, i)."""
+        x = self._x if x is None else np.asarray(x, dtype=float)
+        n = len(self._m)
+        h = np.zeros((3 * n, 3 * n))
+        for (i, j), k, r0 in zip(self.bonds, self.k, self.r0):
+            d = x[i] - x[j]
+            r = np.linalg.norm(d)
+            e = d / r
+            block = k * (np.outer(e, e) + (r - r0) / r * (np.eye(3) - np.outer(e, e)))
+            for a, b, s in ((i, i, 1), (j, j, 1), (i, j, -1), (j, i, -1)):
+                h[3 * a:3 * a + 3, 3 * b:3 * b + 3] += s * block
+        return h
+
+
+def bond_hessian(xi, xj, k, r0):
+    """The 6x6 Hessian of k/2 (|xi - xj| - r0)^2 over (xi, xj):
+    ``k [e e^T + (r - r0)/r (I - e e^T)]`` and its negative off the diagonal."""
+    d = np.asarray(xi, float) - np.asarray(xj, float)
+    r = np.linalg.norm(d)
+    e = d / r
+    b = k * (np.outer(e, e) + (r - r0) / r * (np.eye(3) - np.outer(e, e)))
+    return np.block([[b, -b], [-b, b]])
+
+
+def angle_hessian(x1, x2, x3, k, theta0):
+    """The 9x9 Hessian of k/2 (theta - theta0)^2 over (x1, x2, x3), theta the angle at x2.
+
+    With a = x1 - x2, b = x3 - x2, c = cos theta = a.b/(|a||b|):
+    dc/da = g_a = (b^ - c a^)/|a|, dc/db = g_b = (a^ - c b^)/|b|,
+    d2c/da2 = -(g_a a^T + a^ g_a^T)/|a| - c (I - a^ a^T)/|a|^2 (and likewise for b),
+    d2c/da db = (I - a^ a^T - b^ b^T + c a^ b^T)/(|a||b|);
+    theta = arccos c: theta' = -1/s, theta'' = -c/s^3 (s = sin theta);
+    d2U = k (grad theta grad theta^T + (theta - theta0) d2 theta), and x1 -> a, x3 -> b,
+    x2 -> -(a + b)."""
+    a = np.asarray(x1, float) - np.asarray(x2, float)
+    b = np.asarray(x3, float) - np.asarray(x2, float)
+    la, lb = np.linalg.norm(a), np.linalg.norm(b)
+    ah, bh = a / la, b / lb
+    c = float(ah @ bh)
+    ga, gb = (bh - c * ah) / la, (ah - c * bh) / lb
+    eye = np.eye(3)
+    haa = -(np.outer(ga, ah) + np.outer(ah, ga)) / la - c * (eye - np.outer(ah, ah)) / la**2
+    hbb = -(np.outer(gb, bh) + np.outer(bh, gb)) / lb - c * (eye - np.outer(bh, bh)) / lb**2
+    hab = (eye - np.outer(ah, ah) - np.outer(bh, bh) + c * np.outer(ah, bh)) / (la * lb)
+    grad_c = np.concatenate([ga, gb])
+    hess_c = np.block([[haa, hab], [hab.T, hbb]])
+    s = math.sqrt(1.0 - c * c)
+    theta = math.acos(c)
+    grad_t = -grad_c / s
+    hess_t = -c / s**3 * np.outer(grad_c, grad_c) - hess_c / s
+    h_ab = k * (np.outer(grad_t, grad_t) + (theta - theta0) * hess_t)
+    chain = np.zeros((6, 9))          # (a, b) = chain @ (x1, x2, x3)
+    chain[0:3, 0:3] = eye
+    chain[0:3, 3:6] = -eye
+    chain[3:6, 6:9] = eye
+    chain[3:6, 3:6] = -eye
+    return chain.T @ h_ab @ chain
+
+
+def triatomic(d=0.1, r0_ab=0.11, theta=1.9, r_bc=0.1, k_ab=3e5, k_bc=2e5, k_ac=5e4,
+              masses=(12.0, 14.0, 1.0)):
+    """A-B-C with A-B constrained at d and also carrying a harmonic term stretched to
+    r0_ab != d; B-C and the 1-3 term A-C at rest: an equilibrium of the constrained system
+    whose multiplier is not zero."""
+    xb = np.zeros(3)
+    xa = np.array([d, 0.0, 0.0])
+    xc = r_bc * np.array([math.cos(theta), math.sin(theta), 0.0])
+    x = np.array([xa, xb, xc])
+    r_ac = float(np.linalg.norm(xa - xc))
+    c = DistanceConstraints([[0, 1]], [d])
+    net = HarmonicNetwork(x, masses, [(0, 1), (1, 2), (0, 2)], [k_ab, k_bc, k_ac],
+                          [r0_ab, r_bc, r_ac], constraints=c)
+    return net, dict(d=d, r0_ab=r0_ab, theta=theta, r_bc=r_bc, r_ac=r_ac, k_ab=k_ab, k_bc=k_bc,
+                     k_ac=k_ac, masses=masses)
+
+
+def reduced_coordinate_frequencies(p):
+    """omega^2 of the triatomic in reduced coordinates q = (x_B, phi, psi, x_C) with
+    x_A = x_B + d (sin psi cos phi, sin psi sin phi, cos psi): the generalized eigenvalues of
+    (d^2 U(x(q))/dq^2, J^T M J), J = dx/dq, at 50 digits (mpmath)."""
+    mpmath.mp.dps = 50
+    mp = mpmath.mp
+    d, mA, mB, mC = mp.mpf(p["d"]), *map(mp.mpf, p["masses"])
+
+    def x_of(q):
+        xb, phi, psi, xc = q[0:3], q[3], q[4], q[5:8]
+        xa = [xb[0] + d * mp.sin(psi) * mp.cos(phi), xb[1] + d * mp.sin(psi) * mp.sin(phi),
+              xb[2] + d * mp.cos(psi)]
+        return xa, list(xb), list(xc)
+
+    def dist(a, b):
+        return mp.sqrt(sum((a[i] - b[i]) ** 2 for i in range(3)))
+
+    def U(*q):
+        xa, xb, xc = x_of(q)
+        return (mp.mpf(p["k_ab"]) / 2 * (dist(xa, xb) - mp.mpf(p["r0_ab"])) ** 2
+                + mp.mpf(p["k_bc"]) / 2 * (dist(xb, xc) - mp.mpf(p["r_bc"])) ** 2
+                + mp.mpf(p["k_ac"]) / 2 * (dist(xa, xc) - mp.mpf(p["r_ac"])) ** 2)
+
+    th = mp.mpf(p["theta"])
+    q0 = [0, 0, 0, 0, mp.pi / 2, p["r_bc"] * mp.cos(th), p["r_bc"] * mp.sin(th), 0]
+    q0 = [mp.mpf(v) for v in q0]
+    n = 8
+    hq = mp.matrix(n, n)
+    for i in range(n):
+        for j in range(i, n):
+            order = [0] * n
+            order[i] += 1
+            order[j] += 1
+            hq[i, j] = hq[j, i] = mp.diff(U, q0, tuple(order))
+    jac = mp.matrix(9, n)
+    for j in range(n):
+        for a in range(9):
+            def comp(t, a=a, j=j):
+                q = list(q0)
+                q[j] += t
+                xa, xb, xc = x_of(q)
+                return (xa + xb + xc)[a]
+            jac[a, j] = mp.diff(comp, 0)
+    mass = mp.diag([mA] * 3 + [mB] * 3 + [mC] * 3)
+    mq = jac.T * mass * jac
+    inv = mp.inverse(mp.cholesky(mq))
+    lam = mp.eigsy(inv * hq * inv.T, eigvals_only=True)
+    return sorted((float(v) for v in lam), reverse=True)
