@@ -36,6 +36,7 @@ import math
 import subprocess
 import sys
 import tempfile
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -129,13 +130,15 @@ class SeedRun:
     seed : int
     blew_up : bool
     blowup_step : int or None
-        Production step of the first sample that showed the blow-up.
+        Production step at the end of the sampling window (``sample_every`` steps) in which
+        the blow-up showed.
     reason : str
         What showed it.
     steps : int
         Production steps completed.
     drift : float
-        Least-squares slope of U + K in kJ/mol/ps (nan for a blow-up or fewer than 3 samples).
+        Least-squares slope of U + K in kJ/mol/ps (Verlet only: nan for a blow-up, for fewer
+        than 3 samples and for LangevinMiddle, whose energy is exchanged with the bath).
     drift_error : float
         The slope's standard error from the fit (residuals taken as independent: a lower
         bound for correlated fluctuations).
@@ -219,9 +222,10 @@ def _fit(times: list[float], energy: list[float]) -> tuple[float, float, float]:
     return float(coef[0]), se, math.sqrt(float(res @ res) / len(t))
 
 
-def _seed_run(out: dict, n_dof: int) -> SeedRun:
+def _seed_run(out: dict, n_dof: int, integrator: str) -> SeedRun:
     e = [u + k for u, k in zip(out["potential"], out["kinetic"])]
-    drift, err, rms = (float("nan"),) * 3 if out["blew_up"] else _fit(out["times"], e)
+    conserved = integrator == "verlet" and not out["blew_up"]
+    drift, err, rms = _fit(out["times"], e) if conserved else (float("nan"),) * 3
     kin = float(np.mean(out["kinetic"])) if out["kinetic"] and not out["blew_up"] \
         else float("nan")
     return SeedRun(int(out["seed"]), bool(out["blew_up"]), out["blowup_step"],
@@ -245,7 +249,7 @@ def degrees_of_freedom(system_xml: str) -> int:
 
 
 def run_trials(system_xml: str, state_xml: str, spec: TrialSpec, *,
-               progress=None) -> TrialRecord:
+               progress: Callable[[str, int, int | None], None] | None = None) -> TrialRecord:
     """Run ``spec`` on a serialized OpenMM System and State (positions), one process per seed.
 
     Parameters
@@ -300,7 +304,7 @@ def run_trials(system_xml: str, state_xml: str, spec: TrialSpec, *,
             if int(out["n_dof"]) != n_dof:
                 raise RuntimeError(f"degrees of freedom: {out['n_dof']} from OpenMM, {n_dof} "
                                    f"from the XML")
-            runs.append(_seed_run(out, n_dof))
+            runs.append(_seed_run(out, n_dof, spec.integrator))
             if progress is not None:
                 progress("trials", done + 1, len(spec.seeds))
     return TrialRecord(spec, n_dof, tuple(runs))

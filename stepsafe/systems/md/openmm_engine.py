@@ -593,11 +593,11 @@ def trial_run(spec: dict[str, Any]) -> dict[str, Any]:
     for _ in range(int(spec["steps"]) // every):
         try:
             integrator.step(every)
-            done += every
             st = ctx.getState(getEnergy=True)
+            done += every
             pe, ke = st.getPotentialEnergy()._value, st.getKineticEnergy()._value
-        except Exception as exc:
-            result.update(blew_up=True, blowup_step=done,
+        except Exception as exc:      # within the last `every` steps
+            result.update(blew_up=True, blowup_step=done + every,
                           reason=f"OpenMM: {str(exc).splitlines()[0][:60]}")
             break
         if not (math.isfinite(pe) and math.isfinite(ke)):
