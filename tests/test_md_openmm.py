@@ -269,6 +269,7 @@ def water_minimum(built):
     return cpu.at(cpu.positions, platform="Reference")
 
 
+@pytest.mark.slow
 def test_largest_frequency_of_the_water_box_is_the_tip3p_stretch(water_minimum):
     """129 flexible TIP3P waters with PME at their minimum: the fastest mode is an O-H stretch
     within 1% of the isolated molecule's antisymmetric stretch (hydrogen bonds shift it by a
@@ -293,6 +294,7 @@ def water_limit(water_minimum):
     return hs.largest_modes(water_minimum, k=1, tol=1e-6).verlet_limit()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("integrator", er.INTEGRATORS)
 def test_openmm_blows_up_above_the_verlet_limit_and_runs_below(water_minimum, water_limit,
                                                                integrator):
@@ -345,6 +347,7 @@ def test_engine_reads_a_state_xml_and_refuses_bad_files(built, tmp_path):
         oe.load(xml, pdb, platform="GPU")
 
 
+@pytest.mark.slow
 def test_constrained_villin_keeps_the_heavy_atom_modes(built):
     """Villin (the PDB structure, put on the constraints, not minimised) with h-bond
     constraints: every X-H stretch is gone from the fastest modes, which now move heavy atoms,
