@@ -177,3 +177,60 @@ def reduced_coordinate_frequencies(p):
     inv = mp.inverse(mp.cholesky(mq))
     lam = mp.eigsy(inv * hq * inv.T, eigvals_only=True)
     return sorted((float(v) for v in lam), reverse=True)
+
+
+def water_cluster(directory, n_side=2, spacing=0.31, **create):
+    """Write ``system.xml`` (flexible TIP3P waters from OpenMM's ``amber14/tip3p.xml``, in
+    vacuum, no cutoff, no constraints unless ``create`` asks, no centre-of-mass remover) and
+    ``structure.pdb`` (``n_side``^3 molecules on a cubic grid ``spacing`` nm apart, in three
+    orientations) into ``directory``; returns the two paths. Needs OpenMM."""
+    from pathlib import Path
+
+    import openmm
+    from openmm import app, unit
+
+    r0, theta = 0.09572, 1.82421813418
+    top = app.Topology()
+    chain = top.addChain()
+    positions = []
+    for a in range(n_side):
+        for b in range(n_side):
+            for c in range(n_side):
+                res = top.addResidue("HOH", chain)
+                o = top.addAtom("O", app.element.oxygen, res)
+                for name in ("H1", "H2"):
+                    top.addBond(o, top.addAtom(name, app.element.hydrogen, res))
+                local = np.array([[0.0, 0.0, 0.0], [r0, 0.0, 0.0],
+                                  [r0 * math.cos(theta), r0 * math.sin(theta), 0.0]])
+                local = np.roll(local, (a + b + c) % 3, axis=1)
+                positions += list(local + spacing * np.array([a, b, c]))
+    ff = app.ForceField("amber14/tip3p.xml")
+    options = {"constraints": None, "rigidWater": False, **create}
+    system = ff.createSystem(top, nonbondedMethod=app.NoCutoff, removeCMMotion=False,
+                             **options)
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "system.xml").write_text(openmm.XmlSerializer.serialize(system))
+    with open(out / "structure.pdb", "w") as fh:
+        app.PDBFile.writeFile(top, np.array(positions) * unit.nanometer, fh)
+    return out / "system.xml", out / "structure.pdb"
+
+
+def tip3p_isolated_frequencies():
+    """Closed forms (Wilson's G matrix) for one flexible TIP3P molecule (amber14/tip3p.xml:
+    bond k_r = 462750.4 kJ/mol/nm^2, r0 = 0.09572 nm, angle k_theta = 836.8 kJ/mol/rad^2,
+    theta0 = 1.82421813418 rad; masses 15.99943 and 1.007947 amu), in rad^2/ps^2:
+    the antisymmetric stretch ``k_r (1/m_H + (1 - cos theta0)/m_O)`` (no stretch-bend
+    coupling in this force field, so it is exact), and the bend with both bonds held rigid,
+    ``k_theta / (G^-1)_theta,theta``: with the bond lengths fixed the kinetic energy is
+    ``(G^-1)_tt theta'^2 / 2``, and the Schur complement of G over (r1, r2, theta) gives
+    ``1/(G^-1)_tt = G_tt - 2 sin^2 theta0 / (m_O^2 r0^2 (1/m_H + (1 + cos theta0)/m_O))``,
+    ``G_tt = (2/m_H + (2 - 2 cos theta0)/m_O) / r0^2``."""
+    k_r, r0, k_t, theta = 462750.4, 0.09572, 836.8, 1.82421813418
+    m_o, m_h = 15.99943, 1.007947
+    stretch = k_r * (1 / m_h + (1 - math.cos(theta)) / m_o)
+    g_tt = (2 / m_h + (2 - 2 * math.cos(theta)) / m_o) / r0 ** 2
+    coupling = 2 * math.sin(theta) ** 2 / (m_o ** 2 * r0 ** 2
+                                           * (1 / m_h + (1 + math.cos(theta)) / m_o))
+    bend = k_t * (g_tt - coupling)
+    return {"antisymmetric_stretch": stretch, "rigid_bend": bend}

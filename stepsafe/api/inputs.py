@@ -351,7 +351,9 @@ def problem(method: Integrator | str | None = None, beta: ArrayLike | None = Non
             system: Mapping[str, Any] | None = None, scene: str | Path | None = None,
             stages: int | None = None, base: str | None = None, margin: float | None = None,
             zmax: float | None = None,
-            progress: Callable[[float], None] | None = None, budget: float | None = None
+            progress: Callable[[float], None] | None = None, budget: float | None = None,
+            openmm_system: Any = None, positions: Any = None, constraints: str | None = None,
+            hydrogen_mass: float | str | None = None, minimize: bool | None = None
             ) -> Problem:
     """Merge a scene file with explicit arguments (the arguments win, as options do on the
     command line).
@@ -409,6 +411,22 @@ def problem(method: Integrator | str | None = None, beta: ArrayLike | None = Non
     budget : float, optional
         Seconds after which a coupled analysis stops (steps above the h reached are then
         not analysed).
+    openmm_system : openmm.System or str, optional
+        An OpenMM System (or its ``XmlSerializer`` file) whose instantaneous normal modes
+        are analysed (``pip install 'stepsafe[openmm]'``;
+        :mod:`stepsafe.systems.md.system`); as a scene's
+        ``system: {openmm:, positions:}``.
+    positions : array_like or str, optional
+        With ``openmm_system``: (N, 3) positions in nm (or an OpenMM Quantity), or a
+        ``.pdb``/``.cif``/State ``.xml`` file.
+    constraints : {"none", "h-bonds", "all-bonds", "h-angles"}, optional
+        Distance constraints added to an OpenMM system's own by OpenMM's ``createSystem``
+        rule (needs a PDB or PDBx structure).
+    hydrogen_mass : float or str, optional
+        Hydrogen mass repartitioning of an OpenMM system, amu (``3`` or ``"3 amu"``).
+    minimize : bool, optional
+        Minimise an OpenMM system's energy before the analysis (default: the scene's, else
+        no).
 
     Returns
     -------
@@ -451,6 +469,8 @@ def problem(method: Integrator | str | None = None, beta: ArrayLike | None = Non
     converted = converted_betas({"ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
                             "period": period, "sigma": sigma}, loaded.time_unit)
     given = betas_by_model(beta, saddle_beta, inverted_beta, modes, converted)
+    system, md_where = _md_system(system, loaded, openmm_system, positions, constraints,
+                                  hydrogen_mass, minimize)
     if given and system is not None:
         raise StepsafeError("give either frequencies (or modes) or a system, not both (one "
                             "would be ignored)")
@@ -466,6 +486,9 @@ def problem(method: Integrator | str | None = None, beta: ArrayLike | None = Non
         deadline = None if budget is None else time.monotonic() + budget
         tree, where, folder = ((system, "system", Path(".")) if system is not None
                                else (loaded.system, loaded.where, loaded.folder))
+        if md_where is not None:
+            tree, where, folder = system, md_where, (loaded.folder if md_where == loaded.where
+                                                     else Path("."))
         report = analyse_system(tree, where, folder, integrator.tableau, zmax, progress,
                                 deadline, loaded.time_unit)
         arrays = report.modes.betas if report.modes is not None else {"oscillator": [0.0]}
@@ -477,6 +500,37 @@ def problem(method: Integrator | str | None = None, beta: ArrayLike | None = Non
     return Problem(integrator, Modes.from_arrays(arrays), report, margin, zmax, step,
                    str(scene) if scene is not None else None, MappingProxyType(dict(labels)),
                    loaded.time_unit)
+
+
+def _md_system(system: Any, scene: Any, openmm_system: Any, positions: Any,
+               constraints: str | None, hydrogen_mass: float | str | None,
+               minimize: bool | None) -> tuple[Any, str | None]:
+    """The ``system`` to analyse and the name its errors carry, with an OpenMM system given
+    by keyword (``openmm_system=``, ``positions=``) and the keywords that modify one, which
+    apply to it or to the scene's ``system: {openmm:}`` (they win over the scene's)."""
+    md = {key: value for key, value in (("constraints", constraints),
+                                          ("hydrogen_mass", hydrogen_mass),
+                                          ("minimize", minimize)) if value is not None}
+    if minimize is not None and not isinstance(minimize, (bool, np.bool_)):
+        raise StepsafeError(f"minimize must be True or False, got {type(minimize).__name__}")
+    if openmm_system is not None:
+        if system is not None:
+            raise StepsafeError("give either system= or openmm_system=, not both")
+        if positions is None:
+            raise StepsafeError("openmm_system= needs positions= (an (N, 3) array in nm, or "
+                                "a .pdb, .cif or State .xml file)")
+        return {"openmm": openmm_system, "positions": positions, **md}, "openmm_system"
+    if positions is not None:
+        raise StepsafeError("positions= goes with openmm_system=")
+    if not md:
+        return system, None
+    target = system if system is not None else scene.system
+    if not (isinstance(target, Mapping) and "openmm" in target):
+        raise StepsafeError(f"{', '.join(f'{k}=' for k in md)}: only for an OpenMM system "
+                            "(openmm_system=, or a scene's system: {openmm:, positions:})")
+    if system is not None:
+        return {**system, **md}, "system"
+    return {**scene.system, **md}, scene.where
 
 
 def _labels(labels: Mapping[str, Sequence[str | None]] | None,

@@ -488,6 +488,16 @@ def scene_options(func):
                           "reached are then not analysed (reported as the horizon). A bar "
                           "on stderr shows its progress when it takes over a second."),
         frequency_options,
+        click.option("--minimize/--no-minimize", default=None,
+                     help="OpenMM systems: minimise the energy before the analysis "
+                          "[default: the scene's minimize:, else no]."),
+        click.option("--hydrogen-mass", type=FLOAT, default=None, metavar="AMU",
+                     help="OpenMM systems: hydrogen mass repartitioning to AMU (the mass "
+                          "comes from the bonded heavy atom, OpenMM's hydrogenMass rule)."),
+        click.option("--constraints", type=click.Choice(("none", "h-bonds", "all-bonds",
+                                                         "h-angles")), default=None,
+                     help="OpenMM systems: add the distance constraints of this rule to the "
+                          "System's own (OpenMM's createSystem rules; needs a PDB)."),
         click.option("--substeps", type=INT, default=None, metavar="K",
                      help="Impulse (r-RESPA) methods: inner steps per outer drift "
                           "[default: the scene's, else the method file's]."),
@@ -517,7 +527,9 @@ def _problem(scene_file, options: dict, show_progress: bool = False, h=None):
                            scene=scene_file, stages=options["stages"], base=options["base"],
                            margin=options["margin"], zmax=options["zmax"],
                            time_unit=options["time_unit"], h=h, progress=progress,
-                           budget=options["budget"])
+                           budget=options["budget"], constraints=options["constraints"],
+                           hydrogen_mass=options["hydrogen_mass"],
+                           minimize=options["minimize"])
 
 
 def command_line_modes(options: dict, scene_file: str | None = None, *times

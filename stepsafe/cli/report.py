@@ -591,7 +591,12 @@ def print_system(system: dict[str, Any], every: bool = False, unit: str | None =
             "no limit" if limit is None or not math.isfinite(limit)
             else f"h < {fmt_below(limit, 10)}"
             + (f" {unit}" if unit else ""))
-        click.echo(f"  {where}{item['type']} {item.get('model') or ''} {beta}{limit_text}")
+        moving = ""
+        if item.get("atoms"):  # a mode of an MD system: which atoms carry it
+            atoms = ", ".join(f"{printable(name)} {share:.0%}" for name, share in item["atoms"])
+            moving = f" ({item['wavenumber']:.0f} cm-1; moving {atoms})"
+        click.echo(f"  {where}{item['type']} {item.get('model') or ''} {beta}{limit_text}"
+                   f"{moving}")
     for note in system["notes"]:
         click.echo(f"  note: {printable(note)}")
     if "search" in system:

@@ -125,6 +125,8 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
 
     if not isinstance(tree, dict):
         raise _fail(where, "", "must be a mapping (stiffness/mass, hessian or hamiltonian)")
+    if "openmm" in tree:
+        return _md_system(tree, where, folder, time_unit, progress)
     unknown = set(tree) - SYSTEM_KEYS
     if unknown:
         key = sorted(unknown)[0]
@@ -163,6 +165,119 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
         # a MatrixError names the matrix at fault (mass errors under $.system.mass)
         key = getattr(exc, "key", None)
         raise _fail(where, key if key in tree else kinds[0], exc.message) from None
+
+
+def _md_system(tree: dict, where: str, folder: Path, time_unit: str | None,
+               progress: Callable[[float], None] | None = None) -> SystemReport:
+    """An MD engine's system (``system: {openmm:, positions:, ...}``,
+    :mod:`stepsafe.systems.md.system`): its instantaneous normal modes as vibrations
+    (omega^2 > its error), barriers (omega^2 < -its error) or undecided (both, at the rate
+    the error allows), in rad per ``time_unit`` (ps, OpenMM's, when the scene names none);
+    the fastest modes carry the atoms that move in them."""
+    from stepsafe.systems.linear import EPS, LinearMode
+    from stepsafe.systems.md import system as md
+    from stepsafe.units import TIME_UNITS
+
+    def fail(key: str, message: str) -> StepsafeError:
+        return _fail(where, key, message)
+
+    chosen = md.settings(tree, fail)
+    engine = md.load_engine(tree["openmm"], tree.get("positions"), folder, fail)
+    engine, repartitioned, minimization = md.prepare(engine, chosen, fail)
+
+    def tick(stage: str, done: int, total: int | None) -> None:
+        if progress is not None and total:
+            progress(done / total)
+
+    result = md.analyse(engine, chosen, repartitioned, minimization, progress=tick)
+    unit = time_unit or "ps"
+    scale = float(TIME_UNITS[unit] / TIME_UNITS["ps"])  # rad/ps -> rad per unit
+    lam = result.spectrum.eigenvalues * scale ** 2
+    err = md.eigenvalue_errors(result) * scale ** 2
+    modes: list[LinearMode] = []
+    sources: list[int] = []
+    for i, (value, e) in enumerate(zip(lam.tolist(), err.tolist())):
+        if abs(value) <= e:
+            top = float(np.sqrt(e))
+            modes += [LinearMode(top, "oscillator", complex(value), False, 1.0),
+                      LinearMode(top, "inverted", complex(value), False, 1.0)]
+            sources += [i, i]
+            continue
+        rel = 0.5 * e / abs(value) + 2 * EPS
+        modes.append(LinearMode(float(np.sqrt(abs(value))),
+                                "oscillator" if value > 0 else "inverted", complex(value),
+                                True, rel))
+        sources.append(i)
+    notes = _md_notes(result, unit, time_unit is None)
+    if not result.complete:  # every other eigenvalue lies within +- the last modulus found
+        bound = float(np.min(np.abs(lam) + err))
+        top = float(np.sqrt(bound))
+        modes += [LinearMode(top, "oscillator", complex(bound), False, 1.0),
+                  LinearMode(top, "inverted", complex(-bound), False, 1.0)]
+        sources += [-1, -1]
+    report = _report_modes(tuple(modes), _md_analysis(result), notes,
+                           primary_only=not result.complete)
+    raw = result.spectrum.eigenvalues
+    raw_err = md.eigenvalue_errors(result)
+    for item, i in zip(report.items, sources):
+        if i < 0:
+            item["type"] = "bound"
+            item["note"] = "every mode not computed has |omega^2| below this"
+            continue
+        # the eigenvalue in the engine's units and the error allowed it (rad^2/ps^2)
+        item["omega_squared"], item["omega_squared_error"] = float(raw[i]), float(raw_err[i])
+        if i < len(result.fastest):
+            mode = result.fastest[i]
+            item["wavenumber"] = mode.wavenumber
+            item["atoms"] = [[label or str(index), share] for index, label, share in mode.atoms]
+    return report
+
+
+def _md_analysis(result: Any) -> str:
+    sp = result.spectrum
+    free = 3 * result.n_moving - sp.removed
+    if result.complete:
+        return (f"instantaneous normal modes of an OpenMM system: all {free} modes of a "
+                f"dense Hessian ({result.n_moving} moving atoms)")
+    return (f"instantaneous normal modes of an OpenMM system: the {len(sp.eigenvalues)} of "
+            f"largest |omega^2| of {free} by Lanczos on Hessian-vector products "
+            f"({result.n_moving} moving atoms, {sp.products} products); islands not analysed")
+
+
+def _md_notes(result: Any, unit: str, implied: bool) -> list[str]:
+    """What was done to the system, in the words a user checks."""
+    chosen = result.settings
+    notes = []
+    rule = "" if chosen.constraints in (None, "none") else \
+        f" (the System's own and the rule {chosen.constraints})"
+    notes.append(f"{result.n_particles} particles, {result.n_moving} moving, "
+                 f"{result.n_constraints} distance constraints{rule}: the modes are those on "
+                 "the constraints' tangent space (mass metric)" if result.n_constraints else
+                 f"{result.n_particles} particles, {result.n_moving} moving, no constraints")
+    if result.repartition is not None:
+        r = result.repartition
+        notes.append(f"hydrogen mass {r.hydrogen_mass:g} amu on {len(r.hydrogens)} hydrogens, "
+                     "taken from their bonded heavy atoms (OpenMM's hydrogenMass rule)")
+    m = result.minimization
+    if m is not None:
+        notes.append(f"minimised (OpenMM LocalEnergyMinimizer, RMS force tolerance "
+                     f"{m.tolerance:g} kJ/mol/nm): energy {m.energy_before:.6g} -> "
+                     f"{m.energy_after:.6g} kJ/mol, RMS force {result.rms_force:.3g} kJ/mol/nm")
+    else:
+        notes.append(f"not minimised: the modes of the configuration given (RMS force "
+                     f"{result.rms_force:.3g} kJ/mol/nm); minimize: true minimises first")
+    sp = result.spectrum
+    bound = f", eigenvalue error bound {sp.bound:.2g} rad^2/ps^2" if result.complete else ""
+    notes.append(f"Hessian by central differences of OpenMM's Reference-platform forces: step "
+                 f"{result.step:.2g} nm, relative error estimate {result.relative_error:.1g}, "
+                 f"{result.force_calls} force evaluations{bound}")
+    notes.append("a verdict is the linear stability at this configuration (0 K at a "
+                 "minimum); at 300 K OpenMM's own runs blew up or drifted from about 0.8 to "
+                 "0.95 of this limit (README: engine validation)")
+    if implied:
+        notes.append("frequencies in rad/ps (OpenMM's time unit): time_unit: fs gives steps "
+                     "in fs")
+    return notes
 
 
 def _report_modes(modes, analysis: str, notes: list[str],

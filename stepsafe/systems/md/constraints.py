@@ -276,7 +276,7 @@ class ConstrainedProduct:
 
 
 def constrained_modes(hvp: HessianVectorProduct, constraints: DistanceConstraints, *,
-                      k: int = 1, tol: float = 1e-6) -> Spectrum:
+                      k: int = 1, tol: float = 1e-6, which: str = "largest") -> Spectrum:
     """The ``k`` fastest modes of the constrained system by Lanczos on
     :class:`ConstrainedProduct` (see :func:`~stepsafe.systems.md.hessian.extreme_eigenvalues`).
 
@@ -287,13 +287,16 @@ def constrained_modes(hvp: HessianVectorProduct, constraints: DistanceConstraint
     k : int
     tol : float
         ARPACK's relative tolerance.
+    which : {"largest", "magnitude"}
+        As in :func:`~stepsafe.systems.md.hessian.extreme_eigenvalues` (the K directions
+        normal to the constraints are eigenvectors of eigenvalue 0 and never come first).
 
     Returns
     -------
     Spectrum
     """
     op = ConstrainedProduct(hvp, constraints)
-    sp = extreme_eigenvalues(op, op.dim, k=k, tol=tol, with_error=op.with_error,
+    sp = extreme_eigenvalues(op, op.dim, k=k, tol=tol, which=which, with_error=op.with_error,
                              particles=op.particles)
     return Spectrum(sp.eigenvalues, sp.vectors, sp.errors, sp.particles, sp.bound, sp.products,
                     op.space.removed)

@@ -592,8 +592,9 @@ def extreme_eigenvalues(operator: Callable[[np.ndarray], np.ndarray], dim: int, 
     dim : int
     k : int
         Eigenvalues wanted (``k < dim``).
-    which : {"largest", "smallest"}
-        Algebraically largest or smallest.
+    which : {"largest", "smallest", "magnitude"}
+        Algebraically largest or smallest, or largest in absolute value (then every other
+        eigenvalue lies within plus or minus the k-th's modulus).
     tol, ncv, maxiter :
         ARPACK's relative tolerance, Lanczos basis size (memory ``ncv * dim``; default
         ``max(2k + 1, 20)``) and iteration cap.
@@ -607,12 +608,13 @@ def extreme_eigenvalues(operator: Callable[[np.ndarray], np.ndarray], dim: int, 
     Returns
     -------
     Spectrum
-        Ordered fastest first (descending) for ``largest``, ascending for ``smallest``.
+        Ordered fastest first (descending) for ``largest``, ascending for ``smallest``,
+        by descending modulus for ``magnitude``.
     """
     from scipy.sparse.linalg import ArpackNoConvergence, LinearOperator, eigsh
 
-    if which not in ("largest", "smallest"):
-        raise StepsafeError(f"which must be largest or smallest, got {which!r}")
+    if which not in ("largest", "smallest", "magnitude"):
+        raise StepsafeError(f"which must be largest, smallest or magnitude, got {which!r}")
     if not 0 < k < dim:
         raise StepsafeError(f"k must be between 1 and {dim - 1}, got {k}")
     calls = [1]
@@ -632,13 +634,15 @@ def extreme_eigenvalues(operator: Callable[[np.ndarray], np.ndarray], dim: int, 
 
     op = LinearOperator((dim, dim), matvec=matvec, dtype=float)
     try:
-        lam, vec = eigsh(op, k=k, which="LA" if which == "largest" else "SA", v0=v0, tol=tol,
+        lam, vec = eigsh(op, k=k, which={"largest": "LA", "smallest": "SA",
+                                         "magnitude": "LM"}[which], v0=v0, tol=tol,
                          ncv=ncv, maxiter=maxiter)
     except ArpackNoConvergence as exc:
         raise StepsafeError(f"Lanczos did not converge in {calls[0]} products "
                             f"({len(exc.eigenvalues)} of {k} eigenvalues)") from None
     lam = lam * sigma
-    order = np.argsort(lam)[::-1] if which == "largest" else np.argsort(lam)
+    order = (np.argsort(lam)[::-1] if which == "largest" else np.argsort(lam)
+             if which == "smallest" else np.argsort(np.abs(lam))[::-1])
     lam, vec = lam[order], vec[:, order]
     errors = np.empty(k)
     for i in range(k):
@@ -656,7 +660,7 @@ def extreme_eigenvalues(operator: Callable[[np.ndarray], np.ndarray], dim: int, 
 
 def largest_modes(engine: ForceEngine, positions: np.ndarray | None = None, *, k: int = 1,
                   step: float | None = None, tol: float = LANCZOS_TOL,
-                  progress: Progress | None = None) -> Spectrum:
+                  progress: Progress | None = None, which: str = "largest") -> Spectrum:
     """The ``k`` fastest modes of the mass-weighted Hessian by Lanczos on Hessian-vector
     products (no dense matrix: memory linear in the number of particles).
 
@@ -671,13 +675,16 @@ def largest_modes(engine: ForceEngine, positions: np.ndarray | None = None, *, k
         ARPACK's relative tolerance.
     progress : callable, optional
         ``progress("products", done, None)``.
+    which : {"largest", "magnitude"}
+        As in :func:`extreme_eigenvalues`.
 
     Returns
     -------
     Spectrum
     """
     hvp = HessianVectorProduct(engine, positions, step=step, progress=progress)
-    return extreme_eigenvalues(hvp, hvp.dim, k=k, tol=tol, with_error=hvp.with_error,
+    return extreme_eigenvalues(hvp, hvp.dim, k=k, tol=tol, which=which,
+                               with_error=hvp.with_error,
                                particles=hvp.particles)
 
 

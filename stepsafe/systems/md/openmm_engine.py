@@ -273,6 +273,62 @@ class OpenMMEngine:
                             threads=self.threads, box=self._box, topology=self.topology,
                             labels=self._labels)
 
+    def with_constraints(self, constraints: DistanceConstraints) -> OpenMMEngine:
+        """The same system with ``constraints`` added to its own (a pair it already
+        constrains must keep its distance); positions are put on them.
+
+        Parameters
+        ----------
+        constraints : DistanceConstraints
+            Pairs and distances (nm) to add.
+
+        Returns
+        -------
+        OpenMMEngine
+        """
+        own = {(min(i, j), max(i, j)): d for (i, j), d in
+               zip(self._constraints.pairs.tolist(), self._constraints.distances.tolist())}
+        mm = _openmm()
+        system = mm.XmlSerializer.clone(self.system)
+        for (i, j), d in zip(constraints.pairs.tolist(), constraints.distances.tolist()):
+            key = (min(i, j), max(i, j))
+            if key in own:
+                if abs(own[key] - d) > 1e-9 * d:
+                    raise StepsafeError(f"particles {i} and {j} are already constrained to "
+                                        f"{own[key]:.6g} nm, not {d:.6g} nm")
+                continue
+            if self._virtual[i] or self._virtual[j]:
+                raise StepsafeError(f"a constraint cannot join virtual site {i}-{j}")
+            system.addConstraint(int(i), int(j), float(d))
+            own[key] = d
+        return OpenMMEngine(system, self._positions, platform=self.platform_name,
+                            threads=self.threads, box=self._box, topology=self.topology,
+                            labels=self._labels)
+
+    def bonded_terms(self) -> tuple[dict[tuple[int, int], float], np.ndarray, np.ndarray]:
+        """The equilibrium lengths of the System's harmonic bonds (``{(i, j): r0}`` in nm,
+        ``i < j``; constrained pairs without a bond term give their constrained distance)
+        and its harmonic angles ``(A, 3)`` with their equilibrium values in radians: what
+        the ``constraints:`` rules need (OpenMM's ``createSystem`` takes them from the force
+        field the same way)."""
+        mm = _openmm()
+        unit = mm.unit
+        lengths = {(min(i, j), max(i, j)): d for (i, j), d in
+                   zip(self._constraints.pairs.tolist(), self._constraints.distances.tolist())}
+        angles, values = [], []
+        for force in self.system.getForces():
+            if isinstance(force, mm.HarmonicBondForce):
+                for b in range(force.getNumBonds()):
+                    i, j, r0, _ = force.getBondParameters(b)
+                    lengths[(min(i, j), max(i, j))] = r0.value_in_unit(unit.nanometer)
+            elif isinstance(force, mm.HarmonicAngleForce):
+                for a in range(force.getNumAngles()):
+                    i, j, k, theta, _ = force.getAngleParameters(a)
+                    angles.append((i, j, k))
+                    values.append(theta.value_in_unit(unit.radian))
+        return (lengths, np.array(angles, dtype=np.int64).reshape(-1, 3),
+                np.array(values, dtype=float))
+
     def system_xml(self) -> str:
         """The System, serialized (``XmlSerializer``)."""
         return _openmm().XmlSerializer.serialize(self.system)

@@ -1,0 +1,330 @@
+"""An MD engine's system as the ``system:`` of a scene (or ``openmm_system=`` in Python): read
+it, apply the scene's constraint rule and hydrogen mass repartitioning, minimise if asked, and
+compute the instantaneous normal modes of the configuration the analysis uses.
+
+::
+
+    time_unit: fs
+    system:
+      openmm: system.xml          # an OpenMM System serialized with XmlSerializer
+      positions: structure.pdb    # or .cif/.pdbx, or a serialized State (.xml) with positions
+      constraints: h-bonds        # optional: none | h-bonds | all-bonds | h-angles
+      hydrogen_mass: 3            # optional, amu: OpenMM's hydrogenMass rule
+      minimize: true              # optional (default false): OpenMM's LocalEnergyMinimizer
+
+Paths are read next to the scene file. The System brings its own constraints (rigid water,
+``HBonds``, ...); ``constraints:`` adds those of the rule (as ``ForceField.createSystem``
+would have, from the structure's bonds and the System's harmonic bond and angle terms, which
+is why the rule needs a PDB or PDBx file, not a State), ``none`` adds nothing.
+
+The modes: the Hessian of the potential at the configuration (the structure's positions, put
+on the constraints, or the minimum reached from them) by central differences of OpenMM's
+forces on its Reference platform (:mod:`~stepsafe.systems.md.hessian`), on the constraints'
+tangent space in the mass metric (:mod:`~stepsafe.systems.md.constraints`). Up to
+:data:`DENSE_ATOMS` moving particles the Hessian is dense and every mode is found; above, the
+:data:`FASTEST` modes of largest ``|omega^2|`` come from Lanczos on Hessian-vector products
+(memory linear in the atoms), and every other eigenvalue lies within plus or minus the
+smallest of them in modulus. The squared angular frequencies are in rad^2/ps^2 (OpenMM's
+units) and are converted to rad per the scene's time unit.
+
+What a verdict on these modes means: the linear stability of the integrator at this
+configuration (0 K when it is a minimum). Thermal motion moves the frequencies and couples
+the modes; measured runs of OpenMM's integrators at 300 K fail from about 0.8-0.95 of the 0 K
+limit (README, engine validation), which the analysis at this configuration does not cover.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stepsafe.exceptions import StepsafeError, unknown_key
+from stepsafe.systems.md.constraints import (
+    KINDS,
+    ConstrainedSpace,
+    constrained_modes,
+    constrained_spectrum,
+    constraints_for,
+)
+from stepsafe.systems.md.engine import Topology, mobile_particles
+from stepsafe.systems.md.hessian import (
+    HessianVectorProduct,
+    ModeReport,
+    Spectrum,
+    describe,
+    extreme_eigenvalues,
+    hessian,
+    spectrum,
+)
+from stepsafe.systems.md.hmr import Repartition, repartition, rigid_waters
+
+#: The keys of ``system:`` for an OpenMM system.
+KEYS = ("openmm", "positions", "constraints", "hydrogen_mass", "minimize")
+#: Up to this many moving particles the Hessian is dense (6 N force evaluations); above, the
+#: fastest modes come from Lanczos.
+DENSE_ATOMS = 200
+#: Modes reported with the atoms that move in them (and computed by Lanczos above
+#: :data:`DENSE_ATOMS`).
+FASTEST = 5
+#: OpenMM's default minimiser tolerance, RMS force in kJ/mol/nm.
+MINIMIZE_TOLERANCE = 10.0
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What the scene asks of the system besides its files.
+
+    Attributes
+    ----------
+    constraints : str or None
+        A rule of :data:`~stepsafe.systems.md.constraints.KINDS`; None: the System's own only.
+    hydrogen_mass : float or None
+        amu; None: the System's masses.
+    minimize : bool
+        Minimise the energy before the analysis.
+    """
+
+    constraints: str | None = None
+    hydrogen_mass: float | None = None
+    minimize: bool = False
+
+
+@dataclass(frozen=True)
+class MDAnalysis:
+    """The modes of an engine's system at a configuration.
+
+    Attributes
+    ----------
+    spectrum : Spectrum
+        omega^2 in rad^2/ps^2 (all of them, or the :data:`FASTEST` of largest modulus).
+    complete : bool
+        Whether every mode was computed (dense Hessian).
+    fastest : tuple of ModeReport
+        The fastest modes with the atoms that carry them.
+    n_particles, n_moving, n_constraints : int
+        Particles, particles of positive mass, distance constraints.
+    settings : Settings
+    repartition : Repartition or None
+        The hydrogen mass repartitioning applied.
+    minimization : Any
+        :class:`~stepsafe.systems.md.openmm_engine.Minimization`, or None.
+    rms_force : float
+        RMS force on the moving particles at the configuration (kJ/mol/nm, constraint forces
+        removed).
+    step : float
+        The finite-difference step, nm.
+    relative_error : float
+        The step control's relative error estimate of a Hessian-vector product.
+    force_calls : int
+        Force evaluations for the Hessian.
+    engine : Any
+        The engine at the configuration analysed (with the constraints and masses used).
+    """
+
+    spectrum: Spectrum
+    complete: bool
+    fastest: tuple[ModeReport, ...]
+    n_particles: int
+    n_moving: int
+    n_constraints: int
+    settings: Settings
+    repartition: Repartition | None
+    minimization: Any
+    rms_force: float
+    step: float
+    relative_error: float
+    force_calls: int
+    engine: Any
+
+
+def settings(tree: dict[str, Any], fail: Callable[[str, str], StepsafeError]) -> Settings:
+    """The :class:`Settings` of a ``system:`` mapping; ``fail(key, message)`` makes the
+    error that names the key."""
+    unknown = set(tree) - set(KEYS)
+    if unknown:
+        key = sorted(unknown)[0]
+        raise fail(key, unknown_key(key, KEYS))
+    rule = tree.get("constraints")
+    if rule is not None and rule not in KINDS:
+        raise fail("constraints", f"must be one of {', '.join(KINDS)}, got {str(rule)[:30]!r}")
+    mass = tree.get("hydrogen_mass")
+    if mass is not None:
+        mass = _amu(mass)
+        if mass is None:
+            raise fail("hydrogen_mass", f"must be a mass in amu (3, or 3 amu), got "
+                                        f"{str(tree['hydrogen_mass'])[:30]!r}")
+        if not 0 < mass <= 100:  # (nan too)
+            raise fail("hydrogen_mass", f"must be a mass in amu between 0 and 100, got {mass:g}")
+    flag = tree.get("minimize", False)
+    if str(flag).lower() not in ("true", "false"):
+        raise fail("minimize", f"must be true or false, got {str(flag)[:30]!r}")
+    return Settings(rule, mass, str(flag).lower() == "true")
+
+
+def _amu(value: Any) -> float | None:
+    """A mass in amu: a number, or a text ``"3"``, ``"3 amu"`` (also ``Da``, ``u``,
+    ``g/mol``); None if it is neither."""
+    from stepsafe.systems.scene import parse_real
+
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, (int, float, np.integer, np.floating)):
+        return float(value)
+    if not isinstance(value, str):
+        return None
+    text = value.strip()
+    for suffix in ("amu", "Da", "g/mol", "u"):
+        if text.endswith(suffix):
+            text = text[:-len(suffix)]
+            break
+    return parse_real(text)
+
+
+def load_engine(system: Any, positions: Any, folder: Path,
+                fail: Callable[[str, str], StepsafeError]) -> Any:
+    """An :class:`~stepsafe.systems.md.openmm_engine.OpenMMEngine` on the Reference platform
+    from file names (read next to the scene, ``folder``) or, from Python, an
+    ``openmm.System`` and positions (an (N, 3) array in nm or an OpenMM ``Quantity``)."""
+    from stepsafe.systems.md import openmm_engine as oe
+
+    if positions is None:
+        raise fail("positions", "missing: the coordinates (a .pdb, .cif/.pdbx or serialized "
+                                "State .xml file; in Python an (N, 3) array in nm)")
+    if isinstance(system, (str, os.PathLike)):
+        path = folder / Path(system)
+        sys_ = _named(lambda: oe.read_system(path), fail, "openmm")
+    else:
+        mm = oe._openmm()
+        if not isinstance(system, mm.System):
+            raise fail("openmm", f"must be a file name or an openmm.System, got "
+                                 f"{type(system).__name__}")
+        sys_ = system
+    n = sys_.getNumParticles()
+    if isinstance(positions, (str, os.PathLike)):
+        path = folder / Path(positions)
+        structure = _named(lambda: oe.read_structure(path), fail, "positions")
+        if len(structure.positions) != n:
+            raise fail("positions", f"{path} holds {len(structure.positions)} particles, the "
+                                    f"system {n}")
+        return _named(lambda: oe.OpenMMEngine(sys_, structure.positions, box=structure.box,
+                                              topology=structure.topology,
+                                              labels=structure.labels), fail, "positions")
+    if hasattr(positions, "value_in_unit"):
+        positions = positions.value_in_unit(oe._openmm().unit.nanometer)
+    return _named(lambda: oe.OpenMMEngine(sys_, positions), fail, "positions")
+
+
+def _named(make: Callable[[], Any], fail: Callable[[str, str], StepsafeError], key: str) -> Any:
+    """``make()``, its StepsafeError named after ``key`` (with the file it names)."""
+    try:
+        return make()
+    except StepsafeError as exc:
+        if exc.where and "::" in exc.where:
+            raise
+        raise fail(key, f"{exc.where}: {exc.message}" if exc.where else exc.message) from None
+
+
+def prepare(engine: Any, chosen: Settings, fail: Callable[[str, str], StepsafeError]
+            ) -> tuple[Any, Repartition | None, Any]:
+    """The engine with the hydrogen masses repartitioned, the rule's constraints added
+    and (if asked) minimised: ``(engine, repartition, minimization)``. As in OpenMM's
+    ``createSystem``, the masses are set before the positions are put on the new
+    constraints (a mass-weighted projection), and the waters the System itself holds rigid
+    keep their masses (``createSystem`` skips the waters its ``rigidWater`` makes rigid, not
+    those its ``HAngles`` rule does)."""
+    topology: Topology | None = engine.topology
+    rule = None
+    if chosen.constraints not in (None, "none"):
+        if topology is None:
+            raise fail("constraints", "a constraint rule needs the bonds and elements of a "
+                                      "PDB or PDBx structure file (a State has none)")
+        lengths, angles, values = engine.bonded_terms()
+        missing = [(i, j) for i, j in topology.bonds.tolist()
+                   if (min(i, j), max(i, j)) not in lengths]
+        if missing:
+            i, j = missing[0]
+            raise fail("constraints", f"the structure's bond {engine.labels[i] or i}-"
+                                      f"{engine.labels[j] or j} has no harmonic bond term or "
+                                      "constraint in the System: its length is unknown")
+        rule = constraints_for(chosen.constraints, topology,
+                               [lengths[(min(i, j), max(i, j))]
+                                for i, j in topology.bonds.tolist()], angles, values)
+    done = None
+    if chosen.hydrogen_mass is not None:
+        if topology is None:
+            raise fail("hydrogen_mass", "hydrogen mass repartitioning needs the bonds and "
+                                        "elements of a PDB or PDBx structure file")
+        done = _named(lambda: repartition(engine.masses, topology, float(chosen.hydrogen_mass),
+                                          keep_residues=rigid_waters(topology,
+                                                                     engine.constraints)),
+                      fail, "hydrogen_mass")
+        engine = engine.with_masses(done.masses)
+    if rule is not None:
+        engine = _named(lambda: engine.with_constraints(rule), fail, "constraints")
+    minimization = engine.minimize(MINIMIZE_TOLERANCE) if chosen.minimize else None
+    return engine, done, minimization
+
+
+def analyse(engine: Any, chosen: Settings, repartitioned: Repartition | None = None,
+            minimization: Any = None, *, dense_atoms: int = DENSE_ATOMS,
+            progress: Callable[[str, int, int | None], None] | None = None) -> MDAnalysis:
+    """The modes of ``engine`` at its positions (see the module docstring).
+
+    Parameters
+    ----------
+    engine : ForceEngine
+        With ``topology`` and ``labels`` (an OpenMMEngine).
+    chosen : Settings
+    repartitioned, minimization :
+        What :func:`prepare` did, for the record.
+    dense_atoms : int
+        The dense Hessian up to this many moving particles.
+    progress : callable, optional
+        ``progress(stage, done, total)``.
+
+    Returns
+    -------
+    MDAnalysis
+    """
+    moving = mobile_particles(engine.masses)
+    cons = engine.constraints
+    if len(moving) <= dense_atoms:
+        h = hessian(engine, progress=progress)
+        sp = constrained_spectrum(h, cons) if len(cons) else spectrum(h)
+        complete, step, rel, calls = True, h.step.step, h.step.relative_error, h.calls
+        forces = h.forces
+    else:
+        hvp = HessianVectorProduct(engine, progress=progress)
+        k = min(FASTEST, hvp.dim - 1)
+        sp = (constrained_modes(hvp, cons, k=k, which="magnitude") if len(cons)
+              else extreme_eigenvalues(hvp, hvp.dim, k=k, which="magnitude",
+                                       with_error=hvp.with_error, particles=hvp.particles))
+        complete, step = False, hvp.fd.step
+        rel, calls = hvp.fd.choice.relative_error, hvp.fd.calls
+        forces = hvp.fd.f0
+    f = np.asarray(forces, dtype=float).reshape(-1)
+    if len(cons):
+        f = ConstrainedSpace(cons, engine.positions, engine.masses, f).tangent_forces(f)
+    rms = float(np.sqrt(np.mean(f ** 2))) if f.size else 0.0
+    order = np.argsort(sp.eigenvalues)[::-1]
+    fastest_first = Spectrum(sp.eigenvalues[order], sp.vectors[:, order], sp.errors[order],
+                             sp.particles, sp.bound, sp.products, sp.removed)
+    return MDAnalysis(fastest_first, complete,
+                      describe(fastest_first, engine.labels, modes=FASTEST), engine.n_particles,
+                      len(moving), len(cons), chosen, repartitioned, minimization, rms, step,
+                      rel, calls, engine)
+
+
+def eigenvalue_errors(analysis: MDAnalysis) -> np.ndarray:
+    """The absolute error allowed each eigenvalue (rad^2/ps^2): Weyl's bound for a dense
+    Hessian (no eigenvalue moves by more), else each Lanczos pair's residual and
+    finite-difference estimate."""
+    sp = analysis.spectrum
+    if analysis.complete and np.isfinite(sp.bound):
+        return np.maximum(np.full(len(sp.eigenvalues), sp.bound), sp.errors)
+    return np.asarray(sp.errors, dtype=float)

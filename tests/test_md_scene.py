@@ -1,0 +1,206 @@
+"""OpenMM systems in scenes and in stepsafe.advise/check: the limit against closed forms for one
+TIP3P molecule, the constraints: and hydrogen_mass: rules against OpenMM's own createSystem,
+the verdicts at the command line (exit 0 / 1 / 2), and, in the slow set, the verdicts against
+OpenMM's own Verlet and LangevinMiddle integrators (fixed seeds)."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+
+import numpy as np
+import pytest
+import yaml
+from md_support import tip3p_isolated_frequencies, water_cluster
+
+import stepsafe
+from stepsafe.exceptions import StepsafeError
+
+openmm = pytest.importorskip("openmm")
+app = pytest.importorskip("openmm.app")
+unit = pytest.importorskip("openmm.unit")
+
+pytestmark = pytest.mark.openmm
+
+#: rad^2/ps^2 -> the Verlet limit 2/omega in fs
+def verlet_fs(omega_squared):
+    return 2.0 / math.sqrt(omega_squared) * 1000.0
+
+
+def scene(folder, name="scene.yaml", **system):
+    """A scene for Verlet in fs on ``folder``'s system.xml and structure.pdb."""
+    tree = {"method": "verlet", "time_unit": "fs",
+            "system": {"openmm": "system.xml", "positions": "structure.pdb", **system}}
+    path = folder / name
+    path.write_text(yaml.safe_dump(tree))
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    """Eight flexible TIP3P waters in vacuum (24 atoms), no constraints."""
+    folder = tmp_path_factory.mktemp("cluster")
+    water_cluster(folder)
+    return folder
+
+
+def one_water(**create):
+    """One TIP3P molecule at its force field's exact geometry, as (System, positions in nm)."""
+    ff = app.ForceField("amber14/tip3p.xml")
+    top = app.Topology()
+    res = top.addResidue("HOH", top.addChain())
+    o = top.addAtom("O", app.element.oxygen, res)
+    for name in ("H1", "H2"):
+        top.addBond(o, top.addAtom(name, app.element.hydrogen, res))
+    system = ff.createSystem(top, nonbondedMethod=app.NoCutoff, removeCMMotion=False,
+                             **{"rigidWater": False, "constraints": None, **create})
+    r0, theta = 0.09572, 1.82421813418
+    x = np.array([[0.0, 0.0, 0.0], [r0, 0.0, 0.0], [r0 * math.cos(theta), r0 * math.sin(theta),
+                                                     0.0]])
+    return system, x
+
+
+# --- the limit against closed forms -------------------------------------------------------
+
+def test_limit_of_a_flexible_water_is_its_antisymmetric_stretch():
+    system, x = one_water()
+    report = stepsafe.advise("verlet", openmm_system=system, positions=x, time_unit="fs")
+    want = verlet_fs(tip3p_isolated_frequencies()["antisymmetric_stretch"])
+    assert report.h_max == pytest.approx(want, rel=1e-6)
+    assert report.h_max_limited_by == "boundary"
+
+
+def test_limit_of_a_water_with_rigid_bonds_is_its_bend():
+    """h-bond constraints carried by the System (createSystem(constraints=HBonds)) leave the
+    bend, whose frequency with rigid bonds is the closed form."""
+    system, x = one_water(constraints=app.HBonds)
+    assert system.getNumConstraints() == 2
+    report = stepsafe.advise("verlet", openmm_system=system, positions=x * unit.nanometer,
+                             time_unit="fs")
+    want = verlet_fs(tip3p_isolated_frequencies()["rigid_bend"])
+    assert report.h_max == pytest.approx(want, rel=1e-6)
+
+
+def test_scene_limit_of_a_water_cluster_is_near_the_isolated_stretch(cluster, run):
+    """Hydrogen bonds move the fastest O-H stretch of a minimised cluster by well under 1%;
+    check says SAFE just below h_max and UNSAFE just above (exit 0 and 1)."""
+    path = scene(cluster, minimize=True)
+    code, out, err = run("advise", path, "--json")
+    assert code == 0, err
+    data = json.loads(out)
+    isolated = verlet_fs(tip3p_isolated_frequencies()["antisymmetric_stretch"])
+    assert data["h_max"] == pytest.approx(isolated, rel=0.01)
+    fastest = data["system"]["items"][0]
+    assert {name.split(":")[1][0] for name, _ in fastest["atoms"]} <= {"H", "O"}
+    assert 3650 < fastest["wavenumber"] < 3850
+    assert any("minimised" in note for note in data["system"]["notes"])
+    assert run("check", path, "--step", repr(0.99 * data["h_max"]))[0] == 0
+    code, out, _ = run("check", path, "--step", repr(1.01 * data["h_max"]))
+    assert code == 1
+    assert "UNSAFE" in out
+
+
+# --- the rules against OpenMM's createSystem ----------------------------------------------
+
+@pytest.mark.parametrize("rule, option", [("h-bonds", "HBonds"), ("all-bonds", "AllBonds"),
+                                          ("h-angles", "HAngles")])
+@pytest.mark.parametrize("hydrogen_mass", [None, 3.0])
+def test_constraint_rule_and_hmr_equal_openmm_create_system(cluster, tmp_path, rule, option,
+                                                             hydrogen_mass):
+    """constraints: and hydrogen_mass: on a flexible system give the limit of the System that
+    createSystem builds with the same constraints and hydrogenMass (both at the structure's
+    positions put on the constraints)."""
+    ours = stepsafe.advise(scene=scene(cluster, f"{rule}-{hydrogen_mass}.yaml",
+                                       constraints=rule,
+                                       **({} if hydrogen_mass is None
+                                          else {"hydrogen_mass": f"{hydrogen_mass:g} amu"})))
+    extra = {} if hydrogen_mass is None else {"hydrogenMass": hydrogen_mass * unit.amu}
+    water_cluster(tmp_path, constraints=getattr(app, option), **extra)
+    theirs = stepsafe.advise(scene=scene(tmp_path))
+    # h = 2/omega: a relative error e/lambda of the eigenvalue moves h by half of it; the
+    # two Systems differ in the bond and angle terms createSystem drops for constrained
+    # pairs, which change nothing on the constraints beyond rounding
+    (a,), (b,) = (r.record["system"]["items"][:1] for r in (ours, theirs))
+    allowed = 0.5 * (a["omega_squared_error"] / a["omega_squared"]
+                     + b["omega_squared_error"] / b["omega_squared"])
+    assert abs(ours.h_max / theirs.h_max - 1) <= allowed
+    notes = " ".join(ours.record["system"]["notes"])
+    assert f"the rule {rule}" in notes
+    assert ("hydrogen mass 3 amu on 16 hydrogens" in notes) == (hydrogen_mass is not None)
+
+
+def test_hmr_with_h_bond_constraints_lengthens_the_limit_of_water(cluster):
+    """With rigid O-H bonds the bend limits; 3 amu hydrogens slow it (the advice for a longer
+    step comes from the modes, not a rule of thumb)."""
+    plain = stepsafe.advise(scene=scene(cluster, "a.yaml", constraints="h-bonds"))
+    heavy = stepsafe.advise(scene=scene(cluster, "b.yaml", constraints="h-bonds"),
+                            hydrogen_mass=3)
+    assert heavy.h_max > 1.3 * plain.h_max
+    assert stepsafe.check("verlet", "4 fs", scene=scene(cluster, "c.yaml"),
+                          constraints="h-bonds").safe
+    assert stepsafe.check("verlet", "6 fs", scene=scene(cluster, "d.yaml"),
+                          constraints="h-bonds", hydrogen_mass=3).safe
+    assert not stepsafe.check("verlet", "6 fs", scene=scene(cluster, "e.yaml"),
+                              constraints="h-bonds").safe
+
+
+# --- bad input ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("system, key, message", [
+    ({"constraints": "rigid"}, "constraints", "must be one of none, h-bonds"),
+    ({"hydrogen_mass": -1}, "hydrogen_mass", "between 0 and 100"),
+    ({"hydrogen_mass": "3 kg"}, "hydrogen_mass", "a mass in amu"),
+    ({"minimize": "maybe"}, "minimize", "true or false"),
+    ({"temperature": 300}, "temperature", "unknown key"),
+    ({"positions": None}, "positions", "missing"),
+    ({"positions": "nowhere.pdb"}, "positions", "not found"),
+    ({"openmm": "structure.pdb"}, "openmm", "not an OpenMM XML file"),
+    ({"hydrogen_mass": 14}, "hydrogen_mass", "leaves atom"),
+])
+def test_bad_md_scenes_name_the_key_and_exit_2(cluster, run, system, key, message):
+    tree = {"openmm": "system.xml", "positions": "structure.pdb", **system}
+    tree = {k: v for k, v in tree.items() if v is not None}
+    path = cluster / f"bad-{key}.yaml"
+    path.write_text(yaml.safe_dump({"method": "verlet", "time_unit": "fs", "system": tree}))
+    code, out, err = run("advise", str(path))
+    assert code == 2
+    assert f"{path}::$.system.{key}:" in err
+    assert message in err.lower() or message in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_a_rule_without_a_structure_file_is_refused(cluster, tmp_path):
+    """A State has no bonds or elements: a constraint rule or HMR cannot be applied."""
+    from stepsafe.systems.md import openmm_engine as oe
+
+    engine = oe.load(cluster / "system.xml", cluster / "structure.pdb")
+    (tmp_path / "state.xml").write_text(engine.state_xml())
+    (tmp_path / "system.xml").write_text(engine.system_xml())
+    path = tmp_path / "s.yaml"
+    path.write_text(yaml.safe_dump({"method": "verlet", "system": {
+        "openmm": "system.xml", "positions": "state.xml", "constraints": "h-bonds"}}))
+    with pytest.raises(StepsafeError, match="PDB or PDBx"):
+        stepsafe.advise(scene=str(path))
+    stepsafe.advise(scene=str(path), constraints="none")  # the System's own: none
+
+
+def test_md_keywords_need_an_openmm_system():
+    with pytest.raises(StepsafeError, match="only for an OpenMM system"):
+        stepsafe.advise("verlet", [1.0], hydrogen_mass=3)
+    with pytest.raises(StepsafeError, match="positions= goes with openmm_system="):
+        stepsafe.advise("verlet", [1.0], positions=np.zeros((3, 3)))
+    system, x = one_water()
+    with pytest.raises(StepsafeError, match="needs positions="):
+        stepsafe.advise("verlet", openmm_system=system)
+    with pytest.raises(StepsafeError, match=r"shape \(3, 3\)"):
+        stepsafe.advise("verlet", openmm_system=system, positions=x[:2])
+
+
+def test_missing_openmm_is_exit_2_naming_the_extra(cluster, run, monkeypatch):
+    path = scene(cluster, "missing.yaml")
+    for name in ("openmm", "openmm.app", "openmm.unit"):
+        monkeypatch.setitem(sys.modules, name, None)
+    code, _, err = run("check", path, "--step", "1")
+    assert code == 2
+    assert "$.system.openmm:" in err and "pip install 'stepsafe[openmm]'" in err
