@@ -204,3 +204,97 @@ def test_missing_openmm_is_exit_2_naming_the_extra(cluster, run, monkeypatch):
     code, _, err = run("check", path, "--step", "1")
     assert code == 2
     assert "$.system.openmm:" in err and "pip install 'stepsafe[openmm]'" in err
+
+
+# --- verdicts against OpenMM's own integrators (fixed seeds) ------------------------------
+
+#: Seeds of every trial run (thermalisation and Langevin noise).
+SEEDS = (1, 2, 3)
+
+
+def engine_of(folder, xml="system.xml", pdb="structure.pdb", **system):
+    """The engine a scene of ``folder`` analyses (same rule, masses and minimisation)."""
+    from stepsafe.systems.md import system as md
+
+    def fail(key, message):
+        return StepsafeError(message, key)
+
+    chosen = md.settings({"openmm": xml, "positions": pdb, **system}, fail)
+    engine = md.load_engine(xml, pdb, folder, fail)
+    return md.prepare(engine, chosen, fail)[0]
+
+
+def trials(engine, integrator, step_fs, temperature, **spec):
+    from stepsafe.systems.md import enginerun as er
+
+    return er.run_trials(engine.system_xml(), engine.state_xml(), er.TrialSpec(
+        integrator, step_fs / 1000.0, spec.pop("duration", 1.0), temperature=temperature,
+        seeds=SEEDS, equilibration=0.5, **spec))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("integrator", ["verlet", "langevin-middle"])
+@pytest.mark.parametrize("system", [{}, {"constraints": "h-bonds"},
+                                    {"constraints": "h-bonds", "hydrogen_mass": 3}],
+                         ids=["flexible", "h-bonds", "h-bonds-hmr3"])
+def test_openmm_blows_up_just_above_the_limit_and_runs_below(cluster, integrator, system):
+    """The water cluster at its minimum. At 1 K (the linearisation holds): check says SAFE
+    at 0.99 h_max and every seed of OpenMM's integrator runs 1 ps with its total energy
+    within 100 n_dof kT of its start (a linearly stable Verlet's energy fluctuates by up to
+    1/(1 - (omega h/2)^2) = 50 times the fast modes' kT there), UNSAFE at 1.01 h_max and every
+    seed blows up (an unstable mode grows by a factor 1.15 per step and more). At 300 K:
+    1.1 h_max blows up in every seed, and 0.5 h_max runs 2 ps without blow-up, Verlet
+    drifting less than 0.01 kT/ps per degree of freedom. (Between the two the 0 K verdict
+    says nothing about 300 K: with 3 amu hydrogens this cluster's Verlet runs drift at 0.6
+    h_max and a LangevinMiddle seed blows up at 0.7. LangevinMiddle has Verlet's limit
+    omega h < 2 on the harmonic oscillator: its O step only scales the velocities.)"""
+    from stepsafe.systems.md import enginerun as er
+
+    path = scene(cluster, f"trial-{len(system)}.yaml", minimize=True, **system)
+    h_max = stepsafe.advise(scene=path).h_max
+    assert stepsafe.check("verlet", 0.99 * h_max, scene=path).safe
+    assert not stepsafe.check("verlet", 1.01 * h_max, scene=path).safe
+    engine = engine_of(cluster, minimize=True, **system)
+    below = trials(engine, integrator, 0.99 * h_max, 1.0, energy_bound=100.0)
+    assert not below.blew_up, [r.reason for r in below.runs]
+    above = trials(engine, integrator, 1.01 * h_max, 1.0, energy_bound=100.0)
+    assert all(r.blew_up for r in above.runs)
+    safe = trials(engine, integrator, 0.5 * h_max, 300.0, duration=2.0)
+    assert not safe.blew_up
+    if integrator == "verlet":
+        drift, _ = safe.drift()
+        assert abs(drift) < er.DRIFT_TOLERANCE
+    unsafe = trials(engine, integrator, 1.1 * h_max, 300.0)
+    assert all(r.blew_up for r in unsafe.runs)
+
+
+@pytest.mark.slow
+def test_villin_at_4_fs_with_h_bonds_and_hmr(tmp_path):
+    """The villin headpiece (582 atoms, Amber14, vacuum), minimised, h-bond constraints and
+    3 amu hydrogens: the analysis (Lanczos) puts the limit near 5.6 fs (aromatic ring
+    stretches; no hydrogen among the fastest modes), so 4 fs is SAFE, and OpenMM's Verlet
+    runs 4 fs at 300 K for 2 ps in every seed, drifting less than 0.01 kT/ps per degree of
+    freedom; at 1 K OpenMM blows up at 1.01 h_max in every seed."""
+    from stepsafe.systems.md import enginerun as er
+    from stepsafe.systems.md import openmm_engine as oe
+
+    xml, pdb = oe.write_example_system("villin", tmp_path)
+    settings = {"constraints": "h-bonds", "hydrogen_mass": 3, "minimize": True}
+    tree = {"method": "verlet", "time_unit": "fs", "h": 4,
+            "system": {"openmm": xml.name, "positions": pdb.name, **settings}}
+    path = tmp_path / "villin.yaml"
+    path.write_text(yaml.safe_dump(tree))
+    report = stepsafe.check(scene=str(path))
+    assert report.safe
+    items = report.record["system"]["items"]
+    assert not any(name.split(":")[1].startswith("H") for item in items[:5]
+                   for name, _ in item["atoms"])
+    h_max = report.h_max
+    assert 5.0 < h_max < 6.0
+    engine = engine_of(tmp_path, xml.name, pdb.name, **settings)
+    run = trials(engine, "verlet", 4.0, 300.0, duration=2.0, equilibration_step=0.001)
+    assert not run.blew_up
+    assert abs(run.drift()[0]) < er.DRIFT_TOLERANCE
+    above = trials(engine, "verlet", 1.01 * h_max, 1.0, energy_bound=100.0,
+                   equilibration_step=0.001)
+    assert all(r.blew_up for r in above.runs)

@@ -210,10 +210,11 @@ def _md_system(tree: dict, where: str, folder: Path, time_unit: str | None,
         sources.append(i)
     notes = _md_notes(result, unit, time_unit is None)
     if not result.complete:  # every other eigenvalue lies within +- the last modulus found
+        # (an upper bound already: the rates lie anywhere in [0, top], nothing above)
         bound = float(np.min(np.abs(lam) + err))
         top = float(np.sqrt(bound))
-        modes += [LinearMode(top, "oscillator", complex(bound), False, 1.0),
-                  LinearMode(top, "inverted", complex(-bound), False, 1.0)]
+        modes += [LinearMode(top, "oscillator", complex(bound), False, 2 * EPS),
+                  LinearMode(top, "inverted", complex(-bound), False, 2 * EPS)]
         sources += [-1, -1]
     report = _report_modes(tuple(modes), _md_analysis(result), notes,
                            primary_only=not result.complete)
