@@ -22,6 +22,8 @@ MODES_COLUMNS = {"beta", "frequency", "wavenumber", "period", "sigma", "model", 
 
 def _kind(name: str) -> str:
     path = ROOT / "examples" / name
+    if path.is_dir():
+        return "data"
     if path.suffix in (".yaml", ".yml"):
         tree = yaml.safe_load(path.read_text())
         return "workflow" if isinstance(tree, dict) and "jobs" in tree else "scene"
@@ -45,10 +47,12 @@ def test_scene_runs_with_advise_and_check(run, name):
     """advise answers (exit 0); check answers a scene with h: (0 or 1, as advise's safe
     steps say), and one without h: at half of advise's h_max (0)."""
     path = str(ROOT / "examples" / name)
+    scene = yaml.safe_load((ROOT / "examples" / name).read_text())
+    if isinstance(scene.get("system"), dict) and "openmm" in scene["system"]:
+        pytest.importorskip("openmm", reason="an OpenMM system: pip install 'stepsafe[openmm]'")
     code, out, err = run("advise", path, "--json")
     assert code == 0, err
     advice = json.loads(out)
-    scene = yaml.safe_load((ROOT / "examples" / name).read_text())
     if "h" in scene:
         code, out, err = run("check", path, "--json")
         assert code in (0, 1), err
@@ -62,6 +66,20 @@ def test_scene_runs_with_advise_and_check(run, name):
     elif advice["h_max"]:
         code, out, err = run("check", path, "--step", repr(advice["h_max"] / 2))
         assert code == 0, (out, err)
+
+
+@pytest.mark.parametrize("name", [n for n in EXAMPLES if _kind(n) == "data"])
+def test_a_data_folder_belongs_to_a_scene(name):
+    """A folder holds the files of a scene's system (an MD engine's System and structure):
+    some scene names every file in it."""
+    named = set()
+    for scene in EXAMPLES:
+        if _kind(scene) == "scene":
+            system = yaml.safe_load((ROOT / "examples" / scene).read_text()).get("system")
+            if isinstance(system, dict):
+                named |= {v for v in system.values() if isinstance(v, str)}
+    files = {f"{name}/{p.name}" for p in (ROOT / "examples" / name).iterdir()}
+    assert files and files <= named, files - named
 
 
 @pytest.mark.parametrize("name", [n for n in EXAMPLES if _kind(n) == "modes"])

@@ -145,6 +145,43 @@ def test_hmr_with_h_bond_constraints_lengthens_the_limit_of_water(cluster):
                               constraints="h-bonds").safe
 
 
+# --- the README's MD section ---------------------------------------------------------------
+
+ROOT = __import__("pathlib").Path(__file__).resolve().parent.parent
+README = (ROOT / "README.md").read_text()
+
+
+def readme_rows(system):
+    """The engine-validation table's rows for ``system``: (constraints and H mass, h_max)."""
+    rows = []
+    for line in README.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if line.startswith("| ") and cells[0].startswith(system):
+            rows.append((cells[1], cells[2]))
+    return rows
+
+
+def test_readme_table_limits_of_the_water_cluster(cluster):
+    """The h_max column of the cluster's rows is what advise gives, to the digits shown."""
+    rows = readme_rows("8 flexible TIP3P waters")
+    assert len(rows) == 3
+    for rule, h_max in rows:
+        parts = [p.strip() for p in rule.split(",")]
+        system = {} if parts[0] == "none" else {"constraints": parts[0]}
+        if len(parts) > 1:
+            system["hydrogen_mass"] = parts[1]
+        report = stepsafe.advise(scene=scene(cluster, "readme.yaml", minimize=True, **system))
+        assert f"{report.h_max:.2f} fs" == h_max
+
+
+def test_readme_python_example_gives_the_limit_it_states(monkeypatch):
+    block = README.split("in Python:\n\n```python\n", 1)[1].split("```", 1)[0]
+    monkeypatch.chdir(ROOT)
+    scope: dict = {}
+    exec(block, scope)
+    assert f"{scope['h_max']:.2f}" == block.rsplit("# ", 1)[1].split()[0]
+
+
 # --- bad input ----------------------------------------------------------------------------
 
 @pytest.mark.parametrize("system, key, message", [
@@ -290,7 +327,8 @@ def test_villin_at_4_fs_with_h_bonds_and_hmr(tmp_path):
     assert not any(name.split(":")[1].startswith("H") for item in items[:5]
                    for name, _ in item["atoms"])
     h_max = report.h_max
-    assert 5.0 < h_max < 6.0
+    ((rule, shown),) = readme_rows("villin headpiece")
+    assert rule == "h-bonds, 3 amu" and shown.startswith(f"{h_max:.2f} fs")
     engine = engine_of(tmp_path, xml.name, pdb.name, **settings)
     run = trials(engine, "verlet", 4.0, 300.0, duration=2.0, equilibration_step=0.001)
     assert not run.blew_up

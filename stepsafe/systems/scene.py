@@ -154,7 +154,10 @@ def json_schema() -> dict[str, Any]:
                        "[lo, hi]}, energy_below:, starts:} (n dof; or q: 'q[1..N]' with "
                        "sizes:, fixed: and sum(i, lo, hi, body) in H), or for an impulse "
                        "method "
-                       "{stiffness_fast:, stiffness_slow:, mass:}"},
+                       "{stiffness_fast:, stiffness_slow:, mass:}, or an OpenMM system "
+                       "{openmm: system.xml, positions: structure.pdb, constraints: "
+                       "none|h-bonds|all-bonds|h-angles, hydrogen_mass: 3 amu, minimize: "
+                       "true} (pip install 'stepsafe[openmm]')"},
         },
     }
 
