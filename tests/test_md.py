@@ -417,7 +417,8 @@ def test_md_modules_do_not_import_openmm():
     code = ("import sys\n"
             "import stepsafe.systems.md.engine, stepsafe.systems.md.hessian, "
             "stepsafe.systems.md.constraints, stepsafe.systems.md.hmr, "
-            "stepsafe.systems.md.enginerun, stepsafe.systems.md.openmm_engine\n"
+            "stepsafe.systems.md.enginerun, stepsafe.systems.md.openmm_engine, "
+            "stepsafe.systems.md.system\n"
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('openmm', 'scipy')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout

@@ -101,6 +101,28 @@ def test_scene_limit_of_a_water_cluster_is_near_the_isolated_stretch(cluster, ru
     assert "UNSAFE" in out
 
 
+@pytest.mark.parametrize("system", [{}, {"constraints": "h-bonds"}])
+def test_lanczos_path_agrees_with_the_dense_spectrum(cluster, monkeypatch, system):
+    """Above DENSE_ATOMS moving atoms the fastest modes come from Lanczos: the same h_max
+    as the dense Hessian within their error bounds, the rest bounded, islands not analysed
+    (a step beyond h_max fails with that reason)."""
+    from stepsafe.systems.md import system as md
+
+    path = scene(cluster, f"lanczos-{len(system)}.yaml", **system)
+    dense = stepsafe.advise(scene=path)
+    monkeypatch.setattr(md, "DENSE_ATOMS", 10)
+    sparse = stepsafe.advise(scene=path)
+    assert "Lanczos" in sparse.record["system"]["analysis"]
+    a, b = dense.record["system"]["items"][0], sparse.record["system"]["items"][0]
+    assert abs(a["omega_squared"] - b["omega_squared"]) <= (a["omega_squared_error"]
+                                                            + b["omega_squared_error"])
+    assert sparse.h_max == pytest.approx(dense.h_max, rel=1e-5)
+    assert sum(item["type"] == "bound" for item in sparse.record["system"]["items"]) == 2
+    assert "islands not analysed" in sparse.record["system"]["analysis"]
+    assert sparse.safe_h == ((0.0, sparse.h_max),)
+    assert not stepsafe.check("verlet", 3 * sparse.h_max, scene=path).safe
+
+
 # --- the rules against OpenMM's createSystem ----------------------------------------------
 
 @pytest.mark.parametrize("rule, option", [("h-bonds", "HBonds"), ("all-bonds", "AllBonds"),

@@ -2,7 +2,9 @@
 sites through the narrow :class:`~stepsafe.systems.md.engine.ForceEngine` interface, the
 Hessian by finite differences of the engine's forces (dense, or as Hessian-vector products
 for Lanczos), the Hessian on the tangent space of holonomic constraints, hydrogen mass
-repartitioning, and trial runs of the engine's own integrators that validate a verdict.
+repartitioning, trial runs of the engine's own integrators that validate a verdict, and
+:mod:`~stepsafe.systems.md.system`, which turns a scene's ``system: {openmm:, positions:}``
+into the modes the advice is about.
 
 Units are the engine's (OpenMM's): nm, amu, ps, kJ/mol, K. This unit system is consistent,
 1 kJ/mol = 1 amu nm^2/ps^2, so the eigenvalues of a mass-weighted Hessian are angular

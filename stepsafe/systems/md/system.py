@@ -255,11 +255,12 @@ def prepare(engine: Any, chosen: Settings, fail: Callable[[str, str], StepsafeEr
                                [lengths[(min(i, j), max(i, j))]
                                 for i, j in topology.bonds.tolist()], angles, values)
     done = None
-    if chosen.hydrogen_mass is not None:
+    mass = chosen.hydrogen_mass
+    if mass is not None:
         if topology is None:
             raise fail("hydrogen_mass", "hydrogen mass repartitioning needs the bonds and "
                                         "elements of a PDB or PDBx structure file")
-        done = _named(lambda: repartition(engine.masses, topology, float(chosen.hydrogen_mass),
+        done = _named(lambda: repartition(engine.masses, topology, mass,
                                           keep_residues=rigid_waters(topology,
                                                                      engine.constraints)),
                       fail, "hydrogen_mass")
@@ -271,7 +272,7 @@ def prepare(engine: Any, chosen: Settings, fail: Callable[[str, str], StepsafeEr
 
 
 def analyse(engine: Any, chosen: Settings, repartitioned: Repartition | None = None,
-            minimization: Any = None, *, dense_atoms: int = DENSE_ATOMS,
+            minimization: Any = None, *, dense_atoms: int | None = None,
             progress: Callable[[str, int, int | None], None] | None = None) -> MDAnalysis:
     """The modes of ``engine`` at its positions (see the module docstring).
 
@@ -282,8 +283,8 @@ def analyse(engine: Any, chosen: Settings, repartitioned: Repartition | None = N
     chosen : Settings
     repartitioned, minimization :
         What :func:`prepare` did, for the record.
-    dense_atoms : int
-        The dense Hessian up to this many moving particles.
+    dense_atoms : int, optional
+        The dense Hessian up to this many moving particles (default :data:`DENSE_ATOMS`).
     progress : callable, optional
         ``progress(stage, done, total)``.
 
@@ -293,7 +294,7 @@ def analyse(engine: Any, chosen: Settings, repartitioned: Repartition | None = N
     """
     moving = mobile_particles(engine.masses)
     cons = engine.constraints
-    if len(moving) <= dense_atoms:
+    if len(moving) <= (DENSE_ATOMS if dense_atoms is None else dense_atoms):
         h = hessian(engine, progress=progress)
         sp = constrained_spectrum(h, cons) if len(cons) else spectrum(h)
         complete, step, rel, calls = True, h.step.step, h.step.relative_error, h.calls
