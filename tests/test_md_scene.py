@@ -216,6 +216,13 @@ def test_readme_python_example_gives_the_limit_it_states(monkeypatch):
     ({"positions": "nowhere.pdb"}, "positions", "not found"),
     ({"openmm": "structure.pdb"}, "openmm", "not an OpenMM XML file"),
     ({"hydrogen_mass": 14}, "hydrogen_mass", "leaves atom"),
+    ({"runs": {"seeds": [1]}}, "runs.temperature", "missing"),
+    ({"runs": {"temperature": "300 C"}}, "runs.temperature", "must be a number in (0, 10000] K"),
+    ({"runs": {"temperature": 300, "seeds": [1, 1]}}, "runs.seeds", "distinct whole numbers"),
+    ({"runs": {"temperature": 300, "seeds": "1"}}, "runs.seeds", "distinct whole numbers"),
+    ({"runs": {"temperature": 300, "duration": 0}}, "runs.duration", "(0, 1000] ps"),
+    ({"runs": {"temperature": 300, "steps": 10}}, "runs.steps", "unknown key"),
+    ({"runs": [300]}, "runs", "must be a mapping"),
 ])
 def test_bad_md_scenes_name_the_key_and_exit_2(cluster, run, system, key, message):
     tree = {"openmm": "system.xml", "positions": "structure.pdb", **system}
@@ -358,3 +365,23 @@ def test_villin_at_4_fs_with_h_bonds_and_hmr(tmp_path):
     above = trials(engine, "verlet", 1.01 * h_max, 1.0, energy_bound=100.0,
                    equilibration_step=0.001)
     assert all(r.blew_up for r in above.runs)
+
+
+@pytest.mark.slow
+def test_runs_at_300_k_turn_a_linearly_safe_step_unsafe(cluster, run):
+    """runs: at 300 K: 0.5 h_max passes the linear check and OpenMM's runs (3 seeds,
+    stated); at 0.9 h_max every mode keeps its structure at the minimum, yet a seed's run
+    blows up, so check says UNSAFE (exit 1) and says why. A method OpenMM cannot run is
+    refused (exit 2)."""
+    path = scene(cluster, "runs.yaml", minimize=True,
+                 runs={"temperature": "300 K", "seeds": [1, 2, 3], "duration": "2 ps"})
+    h_max = stepsafe.advise(scene=path).h_max
+    good = stepsafe.check("verlet", 0.5 * h_max, scene=path)
+    assert good.safe and good.record["engine_runs"]["verdict"] == "stable"
+    assert good.record["engine_runs"]["seeds"] == [1, 2, 3]
+    code, out, _ = run("check", path, "--step", repr(0.9 * h_max))
+    assert code == 1
+    assert "every mode keeps its structure, but verlet in OpenMM at 300 K" in out
+    assert "blew up" in out
+    code, _, err = run("check", path, "--method", "pefrl", "--step", "0.5")
+    assert code == 2 and "OpenMM runs verlet, langevin-middle only" in err

@@ -755,6 +755,8 @@ def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as
                 print_impulse_modes(entry, check=True)
             else:
                 print_check(entry)
+                if entry.get("engine_runs") and entry["safe"]:
+                    click.echo(f"Engine runs: {entry['engine_runs']['summary']}")
                 if "system" in entry:
                     print_system(entry["system"], every_mode, entry.get("time_unit"))
                 if "verify" in entry:

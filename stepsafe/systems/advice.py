@@ -187,6 +187,14 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
     # (h = h_max is safe only where h_max is a certified step, the coupled analysis's end)
     data["in_primary_interval"] = bool(data["safe"] and (data["h_max"] is None
                                                          or h <= data["h_max"]))
+    if report.engine_check is not None and data["safe"]:
+        runs = report.engine_check(name or method.name, h)
+        runs["summary"] = engine_reason(runs)
+        data["engine_runs"] = runs
+        if runs["verdict"] != "stable":  # every mode may keep its structure, the run not
+            data["safe"] = False
+            data["in_primary_interval"] = False
+            data["engine_failure"] = runs["summary"]
     items = _limit_items(report, regions, margin)
     data["system"] = _system_record(report, items)
     search = report.search
@@ -196,6 +204,22 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
         data["search_failure"] = ("the equilibrium search cannot vouch that it found every "
                                   "equilibrium: " + "; ".join(search["gaps"]))
     return data
+
+
+def engine_reason(runs: dict[str, Any]) -> str:
+    """One line on the engine's runs (:func:`stepsafe.systems.md.system.engine_check`)."""
+    head = (f"{runs['integrator']} in OpenMM at {runs['temperature']:g} K, "
+            f"{len(runs['seeds'])} seeds of {runs['duration']:g} ps: {runs['verdict']}")
+    blown = [r for r in runs["runs"] if r["blew_up"]]
+    if blown:
+        return head + " (" + "; ".join(
+            f"seed {r['seed']} by step {r['step']}: {r['reason']}" if r["step"] is not None
+            else f"seed {r['seed']}: {r['reason']}" for r in blown) + ")"
+    if runs["drift"] is not None:
+        error = "" if runs["drift_error"] is None else f" +- {runs['drift_error']:.1g}"
+        return head + (f" (energy drift {runs['drift']:.2g}{error} kT/ps per degree of "
+                       f"freedom, tolerance {runs['drift_tolerance']:g})")
+    return head
 
 
 def _system_record(report: SystemReport, items: list[dict[str, Any]]) -> dict[str, Any]:

@@ -51,6 +51,10 @@ class SystemReport(NamedTuple):
     #: a Hamiltonian's equilibrium search: what it searched and whether it can vouch that
     #: it found every equilibrium (:func:`search_record`); None for other systems
     search: dict[str, Any] | None = None
+    #: an MD engine's system with ``runs:``: ``engine_check(method name, h)`` runs the method
+    #: in the engine at step h (the scene's time unit) and returns the JSON-ready record
+    #: (:func:`stepsafe.systems.md.system.engine_check`); None for other systems
+    engine_check: Callable[[str, float], dict[str, Any]] | None = None
 
 
 def _fail(where: str, path: str, message: str) -> StepsafeError:
@@ -218,6 +222,9 @@ def _md_system(tree: dict, where: str, folder: Path, time_unit: str | None,
         sources += [-1, -1]
     report = _report_modes(tuple(modes), _md_analysis(result), notes,
                            primary_only=not result.complete)
+    if chosen.runs is not None:
+        report = report._replace(engine_check=lambda name, h: md.engine_check(
+            result, name, h * scale))
     raw = result.spectrum.eigenvalues
     raw_err = md.eigenvalue_errors(result)
     for item, i in zip(report.items, sources):
@@ -278,6 +285,11 @@ def _md_notes(result: Any, unit: str, implied: bool) -> list[str]:
     if implied:
         notes.append("frequencies in rad/ps (OpenMM's time unit): time_unit: fs gives steps "
                      "in fs")
+    if chosen.runs is not None:
+        runs = chosen.runs
+        notes.append(f"runs: check also runs the method in OpenMM at the step, "
+                     f"{len(runs.seeds)} seeds ({', '.join(map(str, runs.seeds))}) of "
+                     f"{runs.duration:g} ps from states thermalised at {runs.temperature:g} K")
     return notes
 
 

@@ -64,7 +64,11 @@ from stepsafe.systems.md.hessian import (
 from stepsafe.systems.md.hmr import Repartition, repartition, rigid_waters
 
 #: The keys of ``system:`` for an OpenMM system.
-KEYS = ("openmm", "positions", "constraints", "hydrogen_mass", "minimize")
+KEYS = ("openmm", "positions", "constraints", "hydrogen_mass", "minimize", "runs")
+#: The keys of ``runs:`` and their defaults (K, ps, 1/ps).
+RUN_KEYS = {"temperature": None, "seeds": (1, 2, 3), "duration": 2.0, "friction": 1.0}
+#: The methods whose runs OpenMM can make: the method's name, OpenMM's integrator.
+ENGINE_INTEGRATORS = {"verlet": "verlet", "langevin-middle": "langevin-middle"}
 #: Up to this many moving particles the Hessian is dense (6 N force evaluations); above, the
 #: fastest modes come from Lanczos.
 DENSE_ATOMS = 200
@@ -87,11 +91,36 @@ class Settings:
         amu; None: the System's masses.
     minimize : bool
         Minimise the energy before the analysis.
+    runs : Runs or None
+        Runs of the method in OpenMM that a checked step must also pass.
     """
 
     constraints: str | None = None
     hydrogen_mass: float | None = None
     minimize: bool = False
+    runs: Runs | None = None
+
+
+@dataclass(frozen=True)
+class Runs:
+    """``runs:``: short runs of the checked method in OpenMM from thermal states.
+
+    Attributes
+    ----------
+    temperature : float
+        K.
+    seeds : tuple of int
+        One run per seed (thermalisation and Langevin noise).
+    duration : float
+        ps per run after 1 ps of thermalisation.
+    friction : float
+        1/ps, for ``langevin-middle``.
+    """
+
+    temperature: float
+    seeds: tuple[int, ...] = (1, 2, 3)
+    duration: float = 2.0
+    friction: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -163,7 +192,47 @@ def settings(tree: dict[str, Any], fail: Callable[[str, str], StepsafeError]) ->
     flag = tree.get("minimize", False)
     if str(flag).lower() not in ("true", "false"):
         raise fail("minimize", f"must be true or false, got {str(flag)[:30]!r}")
-    return Settings(rule, mass, str(flag).lower() == "true")
+    runs = _runs(tree["runs"], fail) if tree.get("runs") is not None else None
+    return Settings(rule, mass, str(flag).lower() == "true", runs)
+
+
+def _runs(value: Any, fail: Callable[[str, str], StepsafeError]) -> Runs:
+    """``runs: {temperature: 300 K, seeds: [1, 2, 3], duration: 2 ps, friction: 1}``."""
+    from stepsafe.systems.scene import parse_real
+
+    if not isinstance(value, dict):
+        raise fail("runs", "must be a mapping {temperature:, seeds:, duration:, friction:}")
+    unknown = set(value) - set(RUN_KEYS)
+    if unknown:
+        key = sorted(unknown)[0]
+        raise fail(f"runs.{key}", unknown_key(key, tuple(RUN_KEYS)))
+    if "temperature" not in value:
+        raise fail("runs.temperature", "missing: the temperature of the runs, in K")
+
+    def amount(key: str, units: tuple[str, ...], low: float, high: float) -> float:
+        given = value.get(key, RUN_KEYS[key])
+        text = str(given).strip()
+        for suffix in units:
+            if text.endswith(suffix):
+                text = text[:-len(suffix)]
+                break
+        x = None if isinstance(given, bool) else parse_real(text)
+        if x is None or not low < x <= high:
+            raise fail(f"runs.{key}", f"must be a number in ({low:g}, {high:g}] "
+                                      f"{units[0]}, got {str(given)[:30]!r}")
+        return x
+
+    given = value.get("seeds", RUN_KEYS["seeds"])
+    texts = [str(k).strip() for k in (given if isinstance(given, (list, tuple)) else [None])
+             if not isinstance(k, bool)]
+    seeds = [int(t) for t in texts if t.isascii() and t.isdigit() and len(t) < 10]
+    if not seeds or len(seeds) > 20 or len(seeds) != len(given) or \
+            len(set(seeds)) != len(seeds):
+        raise fail("runs.seeds", "must be a list of 1 to 20 distinct whole numbers below "
+                                 f"10^9, got {str(given)[:40]!r}")
+    return Runs(amount("temperature", ("K",), 0.0, 1e4), tuple(seeds),
+                amount("duration", ("ps",), 0.0, 1e3), amount("friction", ("/ps", "ps-1"),
+                                                                 0.0, 1e4))
 
 
 def _amu(value: Any) -> float | None:
@@ -329,3 +398,51 @@ def eigenvalue_errors(analysis: MDAnalysis) -> np.ndarray:
     if analysis.complete and np.isfinite(sp.bound):
         return np.maximum(np.full(len(sp.eigenvalues), sp.bound), sp.errors)
     return np.asarray(sp.errors, dtype=float)
+
+
+def engine_check(analysis: MDAnalysis, method: str, step_ps: float) -> dict[str, Any]:
+    """Short runs of ``method`` in OpenMM at ``step_ps`` from the configuration analysed,
+    thermalised at ``runs.temperature`` (:mod:`~stepsafe.systems.md.enginerun`: 1 ps of
+    LangevinMiddle with friction 10/ps at a step of at most half the 0 K limit, then the
+    method for ``runs.duration`` ps per seed, CPU platform, one thread). The record says
+    ``"stable"``, ``"drifts"`` (Verlet: mean energy drift beyond 0.01 kT/ps per degree of
+    freedom) or ``"blew up"`` (a non-finite energy, OpenMM stopping, or the total energy
+    moving by more than n_dof kT / 2), with each seed's outcome.
+
+    Parameters
+    ----------
+    analysis : MDAnalysis
+        With ``settings.runs``.
+    method : str
+        ``verlet`` or ``langevin-middle`` (:data:`ENGINE_INTEGRATORS`).
+    step_ps : float
+        The step, ps.
+
+    Returns
+    -------
+    dict
+        JSON-ready.
+    """
+    from stepsafe.systems.md.enginerun import DRIFT_TOLERANCE, TrialSpec, run_trials
+
+    runs = analysis.settings.runs
+    if runs is None:
+        raise StepsafeError("no runs: were asked for")
+    integrator = ENGINE_INTEGRATORS.get(method)
+    if integrator is None:
+        raise StepsafeError(f"runs: OpenMM runs {', '.join(ENGINE_INTEGRATORS)} only, not "
+                            f"{method}")
+    equilibration = min(0.001, 0.5 * analysis.spectrum.verlet_limit())
+    spec = TrialSpec(integrator, step_ps, runs.duration, temperature=runs.temperature,
+                     friction=runs.friction, seeds=runs.seeds, equilibration=1.0,
+                     equilibration_step=equilibration)
+    record = run_trials(analysis.engine.system_xml(), analysis.engine.state_xml(), spec)
+    drift, error = record.drift()
+    return {"integrator": integrator, "temperature": runs.temperature,
+            "duration": runs.duration, "friction": runs.friction, "step_ps": step_ps,
+            "seeds": list(runs.seeds), "verdict": record.verdict(),
+            "drift": None if drift != drift else drift,
+            "drift_error": None if error != error else error,
+            "drift_tolerance": DRIFT_TOLERANCE,
+            "runs": [{"seed": r.seed, "blew_up": r.blew_up, "step": r.blowup_step,
+                      "reason": r.reason} for r in record.runs]}
