@@ -223,8 +223,9 @@ def _runs(value: Any, fail: Callable[[str, str], StepsafeError]) -> Runs:
         return x
 
     given = value.get("seeds", RUN_KEYS["seeds"])
-    texts = [str(k).strip() for k in (given if isinstance(given, (list, tuple)) else [None])
-             if not isinstance(k, bool)]
+    if not isinstance(given, (list, tuple)):
+        given = []  # refused below
+    texts = [str(k).strip() for k in given if not isinstance(k, bool)]
     seeds = [int(t) for t in texts if t.isascii() and t.isdigit() and len(t) < 10]
     if not seeds or len(seeds) > 20 or len(seeds) != len(given) or \
             len(set(seeds)) != len(seeds):
