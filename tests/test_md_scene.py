@@ -123,6 +123,22 @@ def test_lanczos_path_agrees_with_the_dense_spectrum(cluster, monkeypatch, syste
     assert not stepsafe.check("verlet", 3 * sparse.h_max, scene=path).safe
 
 
+def test_md_json_output_fits_the_command_schemas(cluster, run):
+    """advise and check --json of an OpenMM scene (modes with their atoms) validate against
+    ``stepsafe schema output``."""
+    jsonschema = pytest.importorskip("jsonschema")
+    from stepsafe.api.schemas import output_schema
+
+    path = scene(cluster, "schema.yaml", constraints="h-bonds")
+    for command, args in (("advise", ()), ("check", ("--step", "1"))):
+        code, out, err = run(command, path, *args, "--json")
+        assert code == 0, err
+        data = json.loads(out)
+        jsonschema.validate(data, output_schema(command))
+        items = (data if command == "advise" else data["checks"][0])["system"]["items"]
+        assert items[0]["atoms"] and items[0]["omega_squared"] > 0
+
+
 # --- the rules against OpenMM's createSystem ----------------------------------------------
 
 @pytest.mark.parametrize("rule, option", [("h-bonds", "HBonds"), ("all-bonds", "AllBonds"),
@@ -379,6 +395,14 @@ def test_runs_at_300_k_turn_a_linearly_safe_step_unsafe(cluster, run):
     good = stepsafe.check("verlet", 0.5 * h_max, scene=path)
     assert good.safe and good.record["engine_runs"]["verdict"] == "stable"
     assert good.record["engine_runs"]["seeds"] == [1, 2, 3]
+    code, out, _ = run("check", path, "--step", repr(0.9 * h_max), "--json")
+    assert code == 1
+    jsonschema = pytest.importorskip("jsonschema")
+    from stepsafe.api.schemas import output_schema
+
+    data = json.loads(out)
+    jsonschema.validate(data, output_schema("check"))
+    assert data["checks"][0]["engine_runs"]["verdict"] == "blew up"
     code, out, _ = run("check", path, "--step", repr(0.9 * h_max))
     assert code == 1
     assert "every mode keeps its structure, but verlet in OpenMM at 300 K" in out

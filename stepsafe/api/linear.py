@@ -146,6 +146,8 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
            base: str | None = None, margin: float | None = None,
            zmax: float | None = None, budget: float | None = None,
            progress: Callable[[float], None] | None = None, problem: Problem | None = None,
+           openmm_system: Any = None, positions: Any = None, constraints: str | None = None,
+           hydrogen_mass: float | str | None = None, minimize: bool | None = None,
            tol_phase: float | None = None, tol_energy: float | None = None,
            resonance_order: int | None = None, solver: str = "fixed-point",
            criterion: str | None = None, verify: bool = False, gradient_cost: float = 1.0
@@ -198,6 +200,20 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
         Seconds after which a coupled analysis stops.
     progress : callable, optional
         Called with the fraction done.
+    openmm_system : openmm.System or str, optional
+        An OpenMM System (or its ``XmlSerializer`` file) whose instantaneous normal modes
+        are analysed, with ``positions`` (needs ``pip install 'stepsafe[openmm]'``; see
+        :func:`problem`).
+    positions : array_like or str, optional
+        (N, 3) positions in nm (or an OpenMM Quantity), or a ``.pdb``/``.cif``/State
+        ``.xml`` file.
+    constraints : str, optional
+        ``none``, ``h-bonds``, ``all-bonds`` or ``h-angles``: constraints added to an OpenMM
+        system's own by OpenMM's ``createSystem`` rule.
+    hydrogen_mass : float or str, optional
+        Hydrogen mass repartitioning of an OpenMM system, amu (``3`` or ``"3 amu"``).
+    minimize : bool, optional
+        Minimise an OpenMM system's energy first (default: the scene's, else no).
     problem : Problem, optional
         A :func:`problem` built beforehand, given instead of the method, the frequencies
         and the keywords above.
@@ -243,7 +259,10 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
               "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
               "period": period, "sigma": sigma, "time_unit": time_unit, "labels": labels,
               "system": system, "scene": scene, "stages": stages, "base": base, "margin": margin,
-              "zmax": zmax, "budget": budget, "progress": progress, "problem": problem}
+              "zmax": zmax, "budget": budget, "progress": progress, "problem": problem,
+              "openmm_system": openmm_system, "positions": positions,
+              "constraints": constraints, "hydrogen_mass": hydrogen_mass,
+              "minimize": minimize}
     p = problem_of(method, beta, inputs)
     integrator, result = p.integrator, None
     criterion = validate_criterion(criterion, integrator.tableau)
@@ -389,6 +408,8 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
           base: str | None = None, margin: float | None = None,
           zmax: float | None = None, budget: float | None = None,
           progress: Callable[[float], None] | None = None, problem: Problem | None = None,
+          openmm_system: Any = None, positions: Any = None, constraints: str | None = None,
+          hydrogen_mass: float | str | None = None, minimize: bool | None = None,
           resonance_order: int | None = None, criterion: str | None = None,
           verify: bool = False, solver: str = "fixed-point",
           require_complete_search: bool = False) -> CheckReport:
@@ -443,6 +464,20 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
         Seconds after which a coupled analysis stops.
     progress : callable, optional
         Called with the fraction done.
+    openmm_system : openmm.System or str, optional
+        An OpenMM System (or its ``XmlSerializer`` file) whose instantaneous normal modes
+        are analysed, with ``positions`` (needs ``pip install 'stepsafe[openmm]'``; see
+        :func:`problem`).
+    positions : array_like or str, optional
+        (N, 3) positions in nm (or an OpenMM Quantity), or a ``.pdb``/``.cif``/State
+        ``.xml`` file.
+    constraints : str, optional
+        ``none``, ``h-bonds``, ``all-bonds`` or ``h-angles``: constraints added to an OpenMM
+        system's own by OpenMM's ``createSystem`` rule.
+    hydrogen_mass : float or str, optional
+        Hydrogen mass repartitioning of an OpenMM system, amu (``3`` or ``"3 amu"``).
+    minimize : bool, optional
+        Minimise an OpenMM system's energy first (default: the scene's, else no).
     problem : Problem, optional
         A :func:`problem` built beforehand, given instead of the method, the frequencies
         and the keywords above.
@@ -483,7 +518,10 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
               "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
               "period": period, "sigma": sigma, "time_unit": time_unit, "labels": labels,
               "system": system, "scene": scene, "stages": stages, "base": base, "margin": margin,
-              "zmax": zmax, "budget": budget, "progress": progress, "problem": problem}
+              "zmax": zmax, "budget": budget, "progress": progress, "problem": problem,
+              "openmm_system": openmm_system, "positions": positions,
+              "constraints": constraints, "hydrogen_mass": hydrogen_mass,
+              "minimize": minimize}
     if problem is None:
         p = problem_of(method, beta, {**inputs, "h": h})
         step = p.h
