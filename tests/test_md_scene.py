@@ -139,6 +139,23 @@ def test_md_json_output_fits_the_command_schemas(cluster, run):
         assert items[0]["atoms"] and items[0]["omega_squared"] > 0
 
 
+def test_langevin_middle_has_verlet_s_limit_on_an_openmm_system(cluster, run):
+    """LangevinMiddle's mean map is stable for every friction exactly where Verlet is: the
+    same h_max; it is analysed on vibrations only, so the rigid-body modes near 0 count as
+    vibrations, and a configuration with a barrier (the unminimised grid) is refused."""
+    path = scene(cluster, "langevin.yaml", minimize=True)
+    verlet = stepsafe.advise("verlet", scene=path)
+    langevin = stepsafe.advise("langevin-middle", scene=path)
+    assert langevin.h_max == verlet.h_max
+    assert any("analysed on vibrations only" in note
+               for note in langevin.record["system"]["notes"])
+    grid = scene(cluster, "grid.yaml")
+    assert any(item["model"] == "inverted" and item["type"] == "hyperbolic"
+               for item in stepsafe.advise("verlet", scene=grid).record["system"]["items"])
+    code, _, err = run("advise", grid, "--method", "langevin-middle")
+    assert code == 2 and "$.system.openmm:" in err and "minimize: true" in err
+
+
 # --- the rules against OpenMM's createSystem ----------------------------------------------
 
 @pytest.mark.parametrize("rule, option", [("h-bonds", "HBonds"), ("all-bonds", "AllBonds"),
@@ -333,9 +350,10 @@ def test_openmm_blows_up_just_above_the_limit_and_runs_below(cluster, integrator
     from stepsafe.systems.md import enginerun as er
 
     path = scene(cluster, f"trial-{len(system)}.yaml", minimize=True, **system)
-    h_max = stepsafe.advise(scene=path).h_max
-    assert stepsafe.check("verlet", 0.99 * h_max, scene=path).safe
-    assert not stepsafe.check("verlet", 1.01 * h_max, scene=path).safe
+    method = integrator  # the library's verlet and langevin-middle: OpenMM's integrators
+    h_max = stepsafe.advise(method, scene=path).h_max
+    assert stepsafe.check(method, 0.99 * h_max, scene=path).safe
+    assert not stepsafe.check(method, 1.01 * h_max, scene=path).safe
     engine = engine_of(cluster, minimize=True, **system)
     below = trials(engine, integrator, 0.99 * h_max, 1.0, energy_bound=100.0)
     assert not below.blew_up, [r.reason for r in below.runs]

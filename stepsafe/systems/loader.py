@@ -130,7 +130,7 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
     if not isinstance(tree, dict):
         raise _fail(where, "", "must be a mapping (stiffness/mass, hessian or hamiltonian)")
     if "openmm" in tree:
-        return _md_system(tree, where, folder, time_unit, progress)
+        return _md_system(tree, where, folder, time_unit, progress, method)
     unknown = set(tree) - SYSTEM_KEYS
     if unknown:
         key = sorted(unknown)[0]
@@ -172,12 +172,16 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
 
 
 def _md_system(tree: dict, where: str, folder: Path, time_unit: str | None,
-               progress: Callable[[float], None] | None = None) -> SystemReport:
+               progress: Callable[[float], None] | None = None,
+               method: Method | None = None) -> SystemReport:
     """An MD engine's system (``system: {openmm:, positions:, ...}``,
     :mod:`stepsafe.systems.md.system`): its instantaneous normal modes as vibrations
     (omega^2 > its error), barriers (omega^2 < -its error) or undecided (both, at the rate
     the error allows), in rad per ``time_unit`` (ps, OpenMM's, when the scene names none);
-    the fastest modes carry the atoms that move in them."""
+    the fastest modes carry the atoms that move in them. A ``method`` analysed on
+    vibrations only (a Langevin splitting) takes the undecided modes as vibrations (their
+    barrier half is the rigid-body motion rounding leaves near 0) and refuses a
+    configuration with a barrier beyond rounding (not a minimum)."""
     from stepsafe.systems.linear import EPS, LinearMode
     from stepsafe.systems.md import system as md
     from stepsafe.units import TIME_UNITS
@@ -212,14 +216,31 @@ def _md_system(tree: dict, where: str, folder: Path, time_unit: str | None,
                                 "oscillator" if value > 0 else "inverted", complex(value),
                                 True, rel))
         sources.append(i)
+    models = getattr(method, "models", ("oscillator", "inverted"))
+    if "inverted" not in models:
+        barriers = sum(1 for m in modes if m.decided and m.model == "inverted")
+        if barriers:
+            raise _fail(where, "openmm", f"the configuration has {barriers} barrier mode(s) "
+                                         "(omega^2 < 0 beyond its error) and "
+                                         f"{getattr(method, 'name', 'the method')} is "
+                                         "analysed on vibrations only: minimise it first "
+                                         "(minimize: true)")
+        kept = [(m, i) for m, i in zip(modes, sources) if m.model != "inverted"]
+        modes, sources = [m for m, _ in kept], [i for _, i in kept]
     notes = _md_notes(result, unit, time_unit is None)
+    if "inverted" not in models:
+        notes.append(f"{getattr(method, 'name', 'the method')} is analysed on vibrations "
+                     "only: the modes within rounding of omega^2 = 0 (the rigid-body "
+                     "motions) are taken as vibrations")
     if not result.complete:  # every other eigenvalue lies within +- the last modulus found
         # (an upper bound already: the rates lie anywhere in [0, top], nothing above)
         bound = float(np.min(np.abs(lam) + err))
         top = float(np.sqrt(bound))
-        modes += [LinearMode(top, "oscillator", complex(bound), False, 2 * EPS),
-                  LinearMode(top, "inverted", complex(-bound), False, 2 * EPS)]
-        sources += [-1, -1]
+        modes.append(LinearMode(top, "oscillator", complex(bound), False, 2 * EPS))
+        sources.append(-1)
+        if "inverted" in models:
+            modes.append(LinearMode(top, "inverted", complex(-bound), False, 2 * EPS))
+            sources.append(-1)
     report = _report_modes(tuple(modes), _md_analysis(result), notes,
                            primary_only=not result.complete)
     if chosen.runs is not None:
