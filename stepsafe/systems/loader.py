@@ -289,7 +289,8 @@ def _md_notes(result: Any, unit: str, implied: bool) -> list[str]:
                      "taken from their bonded heavy atoms (OpenMM's hydrogenMass rule)")
     m = result.minimization
     if m is not None:
-        notes.append(f"minimised (OpenMM LocalEnergyMinimizer, RMS force tolerance "
+        notes.append(f"minimised (OpenMM LocalEnergyMinimizer on its CPU platform, RMS force "
+                     f"tolerance "
                      f"{m.tolerance:g} kJ/mol/nm): energy {m.energy_before:.6g} -> "
                      f"{m.energy_after:.6g} kJ/mol, RMS force {result.rms_force:.3g} kJ/mol/nm")
     else:

@@ -303,7 +303,9 @@ def _named(make: Callable[[], Any], fail: Callable[[str, str], StepsafeError], k
 def prepare(engine: Any, chosen: Settings, fail: Callable[[str, str], StepsafeError]
             ) -> tuple[Any, Repartition | None, Any]:
     """The engine with the hydrogen masses repartitioned, the rule's constraints added
-    and (if asked) minimised: ``(engine, repartition, minimization)``. As in OpenMM's
+    and (if asked) minimised (OpenMM's ``LocalEnergyMinimizer`` on the CPU platform, one
+    thread, where there is one; the Hessian is then taken on Reference):
+    ``(engine, repartition, minimization)``. As in OpenMM's
     ``createSystem``, the masses are set before the positions are put on the new
     constraints (a mass-weighted projection), and the waters the System itself holds rigid
     keep their masses (``createSystem`` skips the waters its ``rigidWater`` makes rigid, not
@@ -338,7 +340,14 @@ def prepare(engine: Any, chosen: Settings, fail: Callable[[str, str], StepsafeEr
         engine = engine.with_masses(done.masses)
     if rule is not None:
         engine = _named(lambda: engine.with_constraints(rule), fail, "constraints")
-    minimization = engine.minimize(MINIMIZE_TOLERANCE) if chosen.minimize else None
+    minimization = None
+    if chosen.minimize:  # on the CPU platform (fast), then back on Reference for the Hessian
+        try:
+            fast = engine.at(engine.positions, platform="CPU", threads=1)
+        except StepsafeError:  # no CPU platform here
+            fast = engine
+        minimization = fast.minimize(MINIMIZE_TOLERANCE)
+        engine = engine.at(fast.positions)
     return engine, done, minimization
 
 
