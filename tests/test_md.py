@@ -500,3 +500,32 @@ def test_drift_is_averaged_over_seeds_in_kT_per_ps_per_dof(monkeypatch):
     assert rec.runs[0].kinetic_temperature == pytest.approx(2 * 2.0 / (5 * er.MOLAR_GAS_CONSTANT))
     assert rec.verdict(tolerance=mean * 0.99) == "drifts"
     assert rec.verdict(tolerance=mean * 1.01) == "stable"
+
+
+# --- rigid-body motions ---------------------------------------------------------------------
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(networks(max_atoms=5))
+def test_leaving_out_rigid_motions_moves_no_eigenvalue_beyond_the_coupling(net):
+    """A network off equilibrium (r0 drawn away from r): its exact W has rigid-body
+    directions coupled to the rest through the forces. The spectrum without them is a
+    compression of W (Cauchy: its largest is at most W's), and with the coupling added to
+    its bound it and the rigid block together hold W's largest (Weyl); the 6 (or 5) rigid
+    directions are orthonormal and keep every bond length to first order."""
+    exact = mass_weighted(net.exact_hessian(), net.masses)
+    particles = np.arange(len(net.masses))
+    rigid = cs.rigid_body_basis(net.positions, net.masses, particles)
+    assert rigid.shape[1] == (5 if len(net.masses) == 2 else 6)
+    assert np.allclose(rigid.T @ rigid, np.eye(rigid.shape[1]), atol=1e-12)
+    dx = (rigid / np.repeat(np.sqrt(net.masses), 3)[:, None]).T.reshape(rigid.shape[1], -1, 3)
+    for i, j in net.bonds:
+        e = net.positions[i] - net.positions[j]
+        assert np.allclose((dx[:, i] - dx[:, j]) @ e, 0, atol=1e-9 * np.abs(dx).max()
+                           * np.linalg.norm(e))
+    h = hs.hessian(net)
+    sp = cs.constrained_spectrum(h, DistanceConstraints(), exclude=rigid)
+    assert len(sp.eigenvalues) == 3 * len(net.masses) - rigid.shape[1]
+    top = np.linalg.eigvalsh(exact)[-1]
+    assert sp.eigenvalues[0] <= top + sp.bound
+    rigid_top = np.linalg.eigvalsh(rigid.T @ exact @ rigid)[-1]
+    assert top <= max(sp.eigenvalues[0], rigid_top) + sp.bound + 1e-12 * abs(top)

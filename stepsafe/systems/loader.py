@@ -230,8 +230,8 @@ def _md_system(tree: dict, where: str, folder: Path, time_unit: str | None,
     notes = _md_notes(result, unit, time_unit is None)
     if "inverted" not in models:
         notes.append(f"{getattr(method, 'name', 'the method')} is analysed on vibrations "
-                     "only: the modes within rounding of omega^2 = 0 (the rigid-body "
-                     "motions) are taken as vibrations")
+                     "only: the modes within rounding of omega^2 = 0 are taken as "
+                     "vibrations")
     if not result.complete:  # every other eigenvalue lies within +- the last modulus found
         # (an upper bound already: the rates lie anywhere in [0, top], nothing above)
         bound = float(np.min(np.abs(lam) + err))
@@ -264,10 +264,11 @@ def _md_system(tree: dict, where: str, folder: Path, time_unit: str | None,
 
 def _md_analysis(result: Any) -> str:
     sp = result.spectrum
-    free = 3 * result.n_moving - sp.removed
+    free = 3 * result.n_moving - sp.removed - result.rigid
     if result.complete:
+        rigid = (f", less its {result.rigid} rigid-body motions" if result.rigid else "")
         return (f"instantaneous normal modes of an OpenMM system: all {free} modes of a "
-                f"dense Hessian ({result.n_moving} moving atoms)")
+                f"dense Hessian ({result.n_moving} moving atoms{rigid})")
     return (f"instantaneous normal modes of an OpenMM system: the {len(sp.eigenvalues)} of "
             f"largest |omega^2| of {free} by Lanczos on Hessian-vector products "
             f"({result.n_moving} moving atoms, {sp.products} products); islands not analysed")

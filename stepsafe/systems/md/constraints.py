@@ -208,7 +208,7 @@ class ConstrainedSpace:
 
 
 def constrained_spectrum(h: Hessian, constraints: DistanceConstraints,
-                         k: int | None = None) -> Spectrum:
+                         k: int | None = None, exclude: np.ndarray | None = None) -> Spectrum:
     """The spectrum of the constrained system from a dense Hessian: eigenvalues of
     ``Q^T M^(-1/2) (H + sum lambda_k d^2 g_k) M^(-1/2) Q`` (d - K of them), fastest first, with
     eigenvectors ``Q z`` in the full mass-weighted coordinates (so
@@ -223,6 +223,12 @@ def constrained_spectrum(h: Hessian, constraints: DistanceConstraints,
     constraints : DistanceConstraints
     k : int, optional
         Keep the k largest.
+    exclude : ndarray, shape (d, r), optional
+        Orthonormal mass-weighted directions in the tangent space to leave out (the
+        rigid-body motions, :func:`rigid_body_basis`): the spectrum is that of the
+        compression to the rest, and the coupling between the two, ``||Q'^T K R||_2``, is
+        added to the bound (by Weyl's inequality no eigenvalue of the whole moves further
+        from one of the two blocks'; with no force on the system the coupling vanishes).
 
     Returns
     -------
@@ -230,20 +236,69 @@ def constrained_spectrum(h: Hessian, constraints: DistanceConstraints,
     """
     masses = np.zeros(len(h.positions))
     masses[h.particles] = h.masses
-    space = ConstrainedSpace(constraints, h.positions, masses, h.forces)
     w, e = h.mass_weighted()
-    s = space.inv_sqrt_m
-    kw = w + s[:, None] * space.curvature_matrix() * s[None, :]
-    q = space.basis()
+    if len(constraints):
+        space = ConstrainedSpace(constraints, h.positions, masses, h.forces)
+        s = space.inv_sqrt_m
+        kw = w + s[:, None] * space.curvature_matrix() * s[None, :]
+        q = space.basis()
+    else:
+        kw, q = w, np.eye(len(w))
+    removed = q.shape[0] - q.shape[1]
+    coupling = 0.0
+    if exclude is not None and exclude.shape[1]:
+        from scipy.linalg import null_space
+
+        q = q @ null_space((q.T @ exclude).T)
+        coupling = float(np.linalg.norm(q.T @ kw @ exclude, 2))
     lam, z = np.linalg.eigh(q.T @ kw @ q)
     lam, z = lam[::-1], z[:, ::-1]
     if k is not None:
         lam, z = lam[:k], z[:, :k]
     vec = q @ z
     av = np.abs(vec)
-    errors = SAFETY * np.einsum("ik,ij,jk->k", av, e, av)
-    return Spectrum(lam, vec, errors, h.particles, SAFETY * spectral_radius_bound(e), 0,
-                    q.shape[0] - q.shape[1])
+    errors = SAFETY * np.einsum("ik,ij,jk->k", av, e, av) + coupling
+    return Spectrum(lam, vec, errors, h.particles,
+                    SAFETY * spectral_radius_bound(e) + coupling, 0, removed)
+
+
+def rigid_body_basis(positions: np.ndarray, masses: np.ndarray, particles: np.ndarray, *,
+                     rotations: bool = True) -> np.ndarray:
+    """An orthonormal basis of the rigid-body motions of the moving particles in
+    mass-weighted coordinates: translations ``sqrt(m_i) e_a`` and (``rotations``: a system
+    without periodic boundaries) rotations about the centre of mass
+    ``sqrt(m_i) e_a x (x_i - c)``; 6 columns, 5 for a linear molecule, 3 without rotations.
+    They keep every distance, so they lie in the constraints' tangent space, and the
+    energy of an isolated system does not change along them.
+
+    Parameters
+    ----------
+    positions : ndarray, shape (N, 3)
+    masses : ndarray, shape (N,)
+    particles : ndarray of int
+        The moving particles (their coordinates, in order, are the d = 3 n dimensions).
+    rotations : bool
+
+    Returns
+    -------
+    ndarray, shape (d, r)
+    """
+    x = np.asarray(positions, dtype=float)[particles]
+    m = np.asarray(masses, dtype=float)[particles]
+    root = np.sqrt(m)
+    c = (m[:, None] * x).sum(axis=0) / m.sum()
+    cols = []
+    for a in range(3):
+        t = np.zeros((len(m), 3))
+        t[:, a] = root
+        cols.append(t.reshape(-1))
+    if rotations:
+        for a in range(3):
+            axis = np.zeros(3)
+            axis[a] = 1.0
+            cols.append((root[:, None] * np.cross(axis, x - c)).reshape(-1))
+    u, sv, _ = np.linalg.svd(np.array(cols).T, full_matrices=False)
+    return u[:, sv > 1e-10 * sv.max()]
 
 
 class ConstrainedProduct:

@@ -197,6 +197,12 @@ class OpenMMEngine:
     def labels(self) -> tuple[str, ...]:
         return self._labels
 
+    @property
+    def periodic(self) -> bool:
+        """Whether the System uses periodic boundaries (then only translations leave the
+        energy unchanged, not rotations)."""
+        return bool(self.system.usesPeriodicBoundaryConditions())
+
     def _state(self, positions: np.ndarray, **what: bool) -> Any:
         self.calls += 1
         self._context.setPositions(np.asarray(positions, dtype=float))

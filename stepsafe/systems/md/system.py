@@ -50,6 +50,7 @@ from stepsafe.systems.md.constraints import (
     constrained_modes,
     constrained_spectrum,
     constraints_for,
+    rigid_body_basis,
 )
 from stepsafe.systems.md.engine import Topology, mobile_particles
 from stepsafe.systems.md.hessian import (
@@ -59,7 +60,6 @@ from stepsafe.systems.md.hessian import (
     describe,
     extreme_eigenvalues,
     hessian,
-    spectrum,
 )
 from stepsafe.systems.md.hmr import Repartition, repartition, rigid_waters
 
@@ -154,6 +154,10 @@ class MDAnalysis:
         Force evaluations for the Hessian.
     engine : Any
         The engine at the configuration analysed (with the constraints and masses used).
+    rigid : int
+        Rigid-body motions left out of a dense spectrum (translations, and rotations
+        without periodic boundaries; 0 on the Lanczos path, where they sit near 0 below
+        the modes found).
     """
 
     spectrum: Spectrum
@@ -170,6 +174,7 @@ class MDAnalysis:
     relative_error: float
     force_calls: int
     engine: Any
+    rigid: int = 0
 
 
 def settings(tree: dict[str, Any], fail: Callable[[str, str], StepsafeError]) -> Settings:
@@ -374,9 +379,17 @@ def analyse(engine: Any, chosen: Settings, repartitioned: Repartition | None = N
     """
     moving = mobile_particles(engine.masses)
     cons = engine.constraints
+    rigid = 0
     if len(moving) <= (DENSE_ATOMS if dense_atoms is None else dense_atoms):
         h = hessian(engine, progress=progress)
-        sp = constrained_spectrum(h, cons) if len(cons) else spectrum(h)
+        exclude = None
+        # the whole system's rigid-body motions (every particle moves with it: no particle
+        # held fixed); rotations only without periodic boundaries
+        if not np.any((np.asarray(engine.masses) == 0) & ~np.asarray(engine.virtual_sites)):
+            exclude = rigid_body_basis(h.positions, engine.masses, h.particles,
+                                       rotations=not getattr(engine, "periodic", True))
+            rigid = exclude.shape[1]
+        sp = constrained_spectrum(h, cons, exclude=exclude)
         complete, step, rel, calls = True, h.step.step, h.step.relative_error, h.calls
         forces = h.forces
     else:
@@ -398,7 +411,7 @@ def analyse(engine: Any, chosen: Settings, repartitioned: Repartition | None = N
     return MDAnalysis(fastest_first, complete,
                       describe(fastest_first, engine.labels, modes=FASTEST), engine.n_particles,
                       len(moving), len(cons), chosen, repartitioned, minimization, rms, step,
-                      rel, calls, engine)
+                      rel, calls, engine, rigid)
 
 
 def eigenvalue_errors(analysis: MDAnalysis) -> np.ndarray:
