@@ -213,7 +213,23 @@ def _reference_coefficients(model: str, n: int) -> np.ndarray:
     return ref
 
 
+#: :func:`_parts` by method object (frozen, compared by identity) and model: the series
+#: are rebuilt otherwise at every call, a fixed cost that dominates small arrays of z.
+_PARTS: dict[tuple[int, str], tuple[Any, Parts]] = {}
+
+
 def _parts(method: Method, model: str) -> Parts:
+    hit = _PARTS.get((id(method), model))
+    if hit is not None and hit[0] is method:
+        return hit[1]
+    if len(_PARTS) > 64:
+        _PARTS.clear()
+    parts = _parts_of(method, model)
+    _PARTS[(id(method), model)] = (method, parts)
+    return parts
+
+
+def _parts_of(method: Method, model: str) -> Parts:
     series = taylor_series(method, model)
     hp = _hp_parts(method, model, series)
     if hp is not None:
@@ -318,8 +334,8 @@ def _choose(coef, err, z_valid, z, direct, direct_err, shift: int = 0):
     low = sum((coef[j] * z ** float(j - shift) for j in lead), np.zeros_like(z))
     low_err = sum((err[j] * az ** float(j - shift) for j in lead), np.zeros_like(z))
     series_val = low + _horner(coef[shift:], z)
-    series_err = (low_err + _horner(err[shift:], az)
-                  + 4 * EPS * _horner((np.abs(coef) * (k + 1))[shift:], az))
+    # the coefficients' bounds and the evaluation's rounding in one polynomial
+    series_err = low_err + _horner((err + 4 * EPS * np.abs(coef) * (k + 1))[shift:], az)
     if np.isfinite(z_valid):  # the first terms left off, with room for the tail
         n = coef.size
         for j in (n - 2, n - 1):
@@ -331,7 +347,11 @@ def _choose(coef, err, z_valid, z, direct, direct_err, shift: int = 0):
 
 
 def _horner(coef: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """``sum_j coef[j] z^j`` (trailing zero coefficients, the padding of an explicit
+    method's exact polynomial, skipped: they add exact zeros for finite z)."""
     out = np.zeros_like(z)
+    nonzero = np.flatnonzero(coef)
+    coef = coef[:nonzero[-1] + 1] if nonzero.size else coef[:0]
     for c in coef[::-1]:
         out = out * z + c
     return out

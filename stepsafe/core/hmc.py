@@ -43,6 +43,7 @@ from typing import NamedTuple
 import numpy as np
 
 from stepsafe.core.accuracy import offsets
+from stepsafe.core.roots import EPS, narrowed
 from stepsafe.core.sets import distinct
 from stepsafe.methods.tableaux import Method
 
@@ -162,10 +163,10 @@ def _lumped(errors: np.ndarray, counts: np.ndarray, total: float) -> Acceptance:
     the rest as one normal variable of their mean and variance."""
     if not np.isfinite(total):
         return Acceptance(0.0, np.inf, True)
-    order = np.argsort(errors, kind="stable")
+    cut = errors.size - MAX_EXACT_MODES
+    order = np.argpartition(errors, cut)  # the cut smallest first (a partition, not a sort)
     errors, counts = errors[order], counts[order]
     a, b = _weights(errors)
-    cut = errors.size - MAX_EXACT_MODES
     mean_g = float(np.sum(counts[:cut] * (a[:cut] + b[:cut])))
     var_g = float(np.sum(counts[:cut] * 2.0 * (a[:cut] ** 2 + b[:cut] ** 2)))
     rate = _gil_pelaez(a[None, cut:], b[None, cut:], counts[cut:], np.array([mean_g]),
@@ -314,12 +315,15 @@ def _jitter_rule(method: Method, values: np.ndarray, h: float, jitter: float,
     # stability edges: where sin2 changes sign between samples, located to rounding (a cut
     # off the edge leaves the kink inside a panel: 1e-3 of acceptance at L = 20)
     cuts = {-1.0, 1.0}
+    cliffs: set[float] = set()  # the cuts at stability edges (panels graded towards them)
     # the fastest mode's edges (the others' cliffs are lower: fewer modes fall off them)
     flips = np.argwhere(np.sign(sin2[:-1, -1:]) * np.sign(sin2[1:, -1:]) < 0)
     for i, _ in flips[:4]:
         a, b = sin2[i, -1], sin2[i + 1, -1]
         if np.isfinite(a) and np.isfinite(b):
-            cuts.add(_edge(method, h * top[-1], jitter, float(u[i]), float(u[i + 1])))
+            cliff = _edge(method, h * top[-1], jitter, float(u[i]), float(u[i + 1]))
+            cuts.add(cliff)
+            cliffs.add(cliff)
     # zeros of the bound rho: a symmetric method's M = [[a, b], [c, a]] is a pure rotation
     # where b + c = 0, and there rho ~ (z - z0)^2 puts a kink |z - z0| in the bound's
     # acceptance (1 - sqrt(2 E) / (pi/2)...); a cut there keeps it off a panel's interior
@@ -343,9 +347,10 @@ def _jitter_rule(method: Method, values: np.ndarray, h: float, jitter: float,
         piece = [np.linspace(lo, hi, n + 1)]
         # an energy error that grows like e^(2 L phi) past an edge turns the acceptance in a
         # layer of width ~ 1/L^2 at it: panels shrink geometrically towards each edge
-        if lo > -1.0:
+        # (a rotation's kink needs only the cut: either side of it is smooth)
+        if lo in cliffs:
             piece.append(lo + (hi - lo) * grading / n)
-        if hi < 1.0:
+        if hi in cliffs:
             piece.append(hi - (hi - lo) * grading / n)
         edges.append(np.concatenate(piece))
     edges = distinct(np.concatenate(edges))
@@ -416,11 +421,25 @@ def _follow_turns(method: Method, top: np.ndarray, h: float, jitter: float, step
         return edges, short or panel.size > 0
     target = np.pi * np.maximum(k_lo, k_hi)[panel, mode]
     a, b, betas = edges[panel], edges[panel + 1], top[mode]
-    below = turns[panel, mode] < target  # the side of a that lies below k pi
-    for _ in range(60):
-        mid = 0.5 * (a + b)
-        left = (angle(at(mid, betas)) < target) == below
-        a, b = np.where(left, mid, a), np.where(left, b, mid)
+    f_a, f_b = turns[panel, mode] - target, turns[panel + 1, mode] - target
+    # regula falsi with the Illinois rule (a retained end's value halved), every fourth
+    # round a bisection: the bracket closes to rounding in a few rounds where L theta is
+    # smooth, and at worst halves every four near a square-root edge
+    side = np.zeros(a.size)
+    for round_ in range(4 * 60):
+        open_ = (b - a) > 4.0 * EPS
+        if not open_.any():
+            break
+        with np.errstate(invalid="ignore", divide="ignore"):
+            x = np.where(round_ % 4 == 3, 0.5 * (a + b), a - f_a * (b - a) / (f_b - f_a))
+        x = np.where(np.isfinite(x) & (x > a) & (x < b), x, 0.5 * (a + b))
+        f_x = angle(at(x, betas)) - target
+        with_a = np.sign(f_x) == np.sign(f_a)  # the root lies in (x, b)
+        f_b = np.where(with_a & (side == 1), 0.5 * f_b, f_b)
+        f_a = np.where(~with_a & (side == -1), 0.5 * f_a, f_a)
+        a, f_a = np.where(open_ & with_a, x, a), np.where(open_ & with_a, f_x, f_a)
+        b, f_b = np.where(open_ & ~with_a, x, b), np.where(open_ & ~with_a, f_x, f_b)
+        side = np.where(with_a, 1, -1)
     return distinct(np.concatenate([edges, 0.5 * (a + b)])), short
 
 
@@ -492,9 +511,9 @@ def acceptance_curve(method: Method, betas: np.ndarray, hs: np.ndarray,
 EXACT_STEPS = 10**6
 
 
-#: The target step is searched on this many grid points below the upper end, then bisected.
+#: The target step is searched on this many grid points below the upper end, then narrowed
 TARGET_GRID = 32
-#: ... and bisected to this relative width (a prediction: finer says nothing more).
+#: ... to this relative width (a prediction: finer says nothing more).
 TARGET_RTOL = 1e-6
 
 
@@ -507,46 +526,67 @@ def target_step(method: Method, betas: np.ndarray, target: float, h_hi: float,
     """The largest h below ``h_hi`` such that the predicted acceptance is at least
     ``target`` at every step from 0 to h, checked on a grid of :data:`TARGET_GRID` steps and
     at every local maximum of the total error bound ``sum_k rho(beta_k h)`` (located on
-    :data:`PEAK_GRID` steps and refined by a parabola), then bisected; None when even
+    :data:`PEAK_GRID` steps and refined by a parabola), then narrowed to
+    :data:`TARGET_RTOL` (:func:`stepsafe.core.roots.narrowed`: regula falsi between the
+    last step reaching the target and the first missing it); None when even
     ``h_hi / 2^60`` misses it. With an unknown trajectory length this uses the bound over
-    every L, so the acceptance holds whatever L the sampler takes."""
-    def ok(h: float) -> bool:
-        return acceptance_at(method, betas, h, trajectory).rate >= target
+    every L, so the acceptance holds whatever L the sampler takes; with a given L (or an
+    integration time), the acceptance of that L.
 
-    grid = np.concatenate([h_hi * (np.arange(1, TARGET_GRID + 1) / TARGET_GRID),
-                           _bound_peaks(method, betas, h_hi)])
-    grid = np.unique(grid[(grid > 0) & (grid <= h_hi)])
-    good = np.array([a.rate >= target for a in acceptance_curve(method, betas, grid,
-                                                                 trajectory)])
-    if good.all():
+    The grid is walked upwards and the bound's maxima are looked for only below its first
+    miss: the steps above it cannot change the answer."""
+    def excess(h: float) -> float:
+        return acceptance_at(method, betas, h, trajectory).rate - target
+
+    lo, f_lo = 0.0, 1.0 - target
+    bad: tuple[float, float] | None = None
+    for h in h_hi * (np.arange(1, TARGET_GRID + 1) / TARGET_GRID):
+        f = excess(float(h))
+        if f < 0:
+            bad = (float(h), f)
+            break
+        lo, f_lo = float(h), f
+    reach = h_hi if bad is None else bad[0]
+    good = [(lo, f_lo)] if lo > 0 else []
+    for peak in np.unique(_bound_peaks(method, betas, h_hi, reach)):
+        if not 0 < peak <= reach or (bad is not None and peak >= bad[0]):
+            continue
+        f = excess(float(peak))
+        if f < 0:
+            bad = (float(peak), f)
+            break
+        good.append((float(peak), f))
+    if bad is None:
         return float(h_hi)
-    first_bad = int(np.argmin(good))
-    lo, hi = (0.0, float(grid[0])) if first_bad == 0 else (float(grid[first_bad - 1]),
-                                                           float(grid[first_bad]))
+    hi, f_hi = bad
+    below = [g for g in good if g[0] < hi]
+    lo, f_lo = max(below) if below else (0.0, 1.0 - target)
     if lo == 0.0:
         for _ in range(60):  # below the first grid step: geometric
-            if ok(hi / 2.0):
-                lo = hi / 2.0
+            f = excess(hi / 2.0)
+            if f >= 0:
+                lo, f_lo = hi / 2.0, f
                 break
-            hi /= 2.0
+            hi, f_hi = hi / 2.0, f
         else:
             return None
-    while hi - lo > TARGET_RTOL * hi:
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if ok(mid) else (lo, mid)
-    return lo
+    return narrowed(excess, lo, f_lo, hi, f_hi, TARGET_RTOL)
 
 
-def _bound_peaks(method: Method, betas: np.ndarray, h_hi: float) -> np.ndarray:
-    """The steps below ``h_hi`` where ``sum_k rho(beta_k h)`` has a local maximum: a dip of
-    the acceptance that a coarse grid could step over. Beyond :data:`PEAK_MODES` distinct
-    frequencies the fastest are kept and the others merged into :data:`PEAK_BINS`
-    geometric bins (each at its largest beta, with the bin's count): the peaks are only
-    extra steps at which the acceptance is then evaluated in full, so this bounds the
-    search's cost (``PEAK_GRID`` times at most ``PEAK_MODES + PEAK_BINS`` matrices)
-    without changing any reported figure's definition."""
+def _bound_peaks(method: Method, betas: np.ndarray, h_hi: float,
+                 reach: float | None = None) -> np.ndarray:
+    """The steps below ``h_hi`` (and, if given, up to about ``reach``) where
+    ``sum_k rho(beta_k h)`` has a local maximum on the grid of :data:`PEAK_GRID` steps up to
+    ``h_hi``: a dip of the acceptance that a coarse grid could step over. Beyond
+    :data:`PEAK_MODES` distinct frequencies the fastest are kept and the others merged
+    into :data:`PEAK_BINS` geometric bins (each at its largest beta, with the bin's count):
+    the peaks are only extra steps at which the acceptance is then evaluated in full, so
+    this bounds the search's cost (``PEAK_GRID`` times at most ``PEAK_MODES + PEAK_BINS``
+    matrices) without changing any reported figure's definition."""
     values, counts = _binned(*_distinct(betas))
     h = h_hi * (np.arange(1, PEAK_GRID + 1) / PEAK_GRID)
+    if reach is not None:  # the grid's steps up to reach, and one beyond (a maximum there)
+        h = h[:min(PEAK_GRID, int(np.searchsorted(h, reach, side="right")) + 2)]
     total = np.zeros(h.size)
     rows = max(1, CHUNK_ELEMENTS // max(values.size, 1))
     with np.errstate(invalid="ignore", over="ignore"):

@@ -179,3 +179,35 @@ def _newton_brackets(slope, lo, hi, f_lo, f_hi, max_iter: int, level: np.ndarray
         x[idx] = np.where(ok, newton, 0.5 * (ai + bi))
         active[idx[done]] = False
     return best
+
+
+def narrowed(f: Callable[[float], float], lo: float, f_lo: float, hi: float, f_hi: float,
+             rtol: float) -> float:
+    """The lower end of a bracket ``f(lo) >= 0 > f(hi)`` narrowed to ``hi - lo <= rtol
+    hi``: each round takes the regula falsi point (kept a tenth of the bracket from its
+    ends) and then probes ``rtol hi / 2`` beyond it on the side of the root, so that a good
+    estimate closes the bracket in two evaluations; bisection after 40 rounds."""
+    for round_ in range(200):
+        if hi - lo <= rtol * hi:
+            break
+        width = hi - lo
+        if round_ < 40 and f_lo > f_hi:
+            x = lo + width * f_lo / (f_lo - f_hi)
+            x = min(max(x, lo + 0.1 * width), hi - 0.1 * width)
+        else:
+            x = 0.5 * (lo + hi)
+        fx = f(x)
+        if fx >= 0:
+            lo, f_lo = x, fx
+        else:
+            hi, f_hi = x, fx
+        if hi - lo <= rtol * hi or round_ >= 40:
+            continue
+        y = x + 0.5 * rtol * hi if fx >= 0 else x - 0.5 * rtol * hi
+        if lo < y < hi:
+            fy = f(y)
+            if fy >= 0:
+                lo, f_lo = y, fy
+            else:
+                hi, f_hi = y, fy
+    return lo
