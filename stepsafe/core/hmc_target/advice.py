@@ -1,0 +1,340 @@
+"""HMC advice on the user's own target: every method's step at target acceptance, its
+acceptance, divergences and cost estimated on the target itself, beside the Gaussian
+(Laplace) figures at the mode.
+
+For each method:
+
+* its linear stability limit ``z*`` (``|tr M| <= 2`` from 0, the rule for rounding gaps of
+  :func:`stepsafe.core.regions.stable_run`) over the stiffest frequency the draws meet,
+  ``h_stable = z* / omega_top`` (:mod:`stepsafe.core.hmc_target.frequencies`), and over
+  the mode's, ``laplace_stability_h``;
+* the step at target acceptance for the trajectory given (L steps, or an integration time
+  T with ``L = floor(T / h)``) and jitter J, searched on the estimate with common random
+  numbers (:mod:`stepsafe.core.hmc_target.estimate`) below ``h_stable / (1 + J)``, so that
+  no jittered step passes the stiffest region's limit, unless ``allow_unstable_jitter``
+  (then below ``h_stable``, and the share of jittered steps beyond it is stated);
+* at that step: the estimated acceptance with its standard error, the divergence rate, the
+  mean energy error, gradient evaluations per proposal, per accepted proposal and per
+  accepted unit of simulated time; and the Gaussian figures at the mode at the same step
+  (``laplace_acceptance``, ``laplace_expected_error``, from
+  :mod:`stepsafe.core.hmc`, exact for a Gaussian);
+* where divergent proposals start (a scan of h on the estimate);
+* the Laplace step at target, and the Laplace ranking.
+
+Methods are ranked by gradient evaluations per accepted unit of simulated time, as the
+Gaussian ``hmc`` ranks them: at a fixed integration time T this is the order of gradient
+evaluations per accepted proposal (``T / h`` steps of ``e`` gradients over the acceptance).
+Non-reversible (non-symmetric) methods are listed, not ranked; non-symplectic ones are not
+run.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from stepsafe.core import hmc as gaussian
+from stepsafe.core.hmc import Trajectory
+from stepsafe.core.hmc_target.draws import SEED, Draws, Laplace, find_mode, sample
+from stepsafe.core.hmc_target.estimate import (
+    Estimate,
+    Estimator,
+    Onset,
+    divergence_onset,
+    target_step,
+)
+from stepsafe.core.hmc_target.frequencies import Spread, spread
+from stepsafe.core.hmc_target.potential import Target
+from stepsafe.core.hmc_target.trajectories import scheme
+from stepsafe.core.regions import find_region, stable_run
+from stepsafe.exceptions import StepsafeError
+from stepsafe.methods.tableaux import Method
+
+#: The divergence scan runs up to this multiple of the larger stability step (draws', mode's).
+ONSET_REACH = 1.5
+
+
+@dataclass(frozen=True)
+class TargetRow:
+    """One method's figures on the target (module docstring; steps in the target's time
+    unit; None where a figure does not exist)."""
+
+    method: str
+    evaluations: int | None
+    symmetric: bool
+    z_star: float | None
+    stability_h: float | None
+    laplace_stability_h: float | None
+    h_target: float | None
+    h_target_se: float | None
+    estimate: Estimate | None
+    laplace_acceptance: float | None = None
+    laplace_expected_error: float | None = None
+    laplace_h_target: float | None = None
+    laplace_gradients_per_time: float | None = None
+    onset: Onset | None = None
+    at_step: Estimate | None = None
+    laplace_at_step: float | None = None
+    rank: int | None = None
+    laplace_rank: int | None = None
+    notes: tuple[str, ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        e = self.estimate
+        out: dict[str, Any] = {
+            "method": self.method, "evaluations": self.evaluations,
+            "symmetric": self.symmetric, "z_star": self.z_star,
+            "stability_h": self.stability_h, "laplace_stability_h": self.laplace_stability_h,
+            "h_target": self.h_target, "h_target_se": self.h_target_se,
+            "steps": None if e is None else e.steps,
+            "acceptance": None if e is None else e.acceptance,
+            "acceptance_se": None if e is None else e.acceptance_se,
+            "divergent": None if e is None else e.divergent,
+            "expected_error": None if e is None else _finite(e.expected_error),
+            "expected_error_se": None if e is None else _finite(e.expected_error_se),
+            "gradients_per_proposal": None if e is None else e.gradients_per_proposal,
+            "gradients_per_accepted": None if e is None else e.gradients_per_accepted,
+            "gradients_per_time": None if e is None else e.gradients_per_time,
+            "rank": self.rank,
+            "laplace_acceptance": self.laplace_acceptance,
+            "laplace_expected_error": _finite(self.laplace_expected_error),
+            "laplace_h_target": self.laplace_h_target,
+            "laplace_gradients_per_time": self.laplace_gradients_per_time,
+            "laplace_rank": self.laplace_rank,
+            "divergence_onset": None if self.onset is None else {
+                "h_clean": self.onset.h_clean, "h_divergent": self.onset.h_divergent,
+                "proposals": self.onset.proposals, "scanned_to": self.onset.scanned_to},
+            "at_step": None if self.at_step is None else {
+                "h": self.at_step.h, "steps": self.at_step.steps,
+                "acceptance": self.at_step.acceptance,
+                "acceptance_se": self.at_step.acceptance_se,
+                "divergent": self.at_step.divergent,
+                "expected_error": _finite(self.at_step.expected_error),
+                "gradients_per_accepted": self.at_step.gradients_per_accepted,
+                "laplace_acceptance": self.laplace_at_step},
+            "notes": list(self.notes)}
+        return out
+
+
+def _finite(x: float | None) -> float | None:
+    """JSON has no inf: None for a non-finite figure."""
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+@dataclass(frozen=True)
+class TargetReport:
+    """Methods ranked on the target (module docstring), with the draws, the spread of
+    frequencies over them and the Laplace approximation they were compared with."""
+
+    rows: tuple[TargetRow, ...]
+    target_accept: float
+    trajectory: Trajectory
+    allow_unstable_jitter: bool
+    dimension: int
+    draws: Draws
+    spread: Spread
+    laplace: Laplace | None
+    seed: int
+    notes: tuple[str, ...] = field(default=())
+
+    def to_dict(self) -> dict[str, Any]:
+        d = self.draws
+        lap = self.laplace
+        return {
+            "target_accept": self.target_accept, "steps": self.trajectory.steps,
+            "length": self.trajectory.length, "jitter": self.trajectory.jitter,
+            "allow_unstable_jitter": self.allow_unstable_jitter,
+            "dimension": self.dimension, "seed": self.seed,
+            "cost_unit": "gradient evaluations",
+            "draws": {"source": d.source, "chains": d.chains, "per_chain": d.per_chain,
+                      "seed": d.seed, "sampler_step": d.step, "sampler_max_steps": d.max_steps,
+                      "sampler_acceptance": d.acceptance, "sampler_divergent": d.divergent},
+            "frequencies": {"how": self.spread.how, "draws": self.spread.draws,
+                            "omega_max": self.spread.top,
+                            "omega_max_quantiles": {str(k): v for k, v in
+                                                    self.spread.quantiles().items()},
+                            "inverted_share": self.spread.inverted_share(),
+                            "lanczos_residual": (None if self.spread.residual is None else
+                                                 float(self.spread.residual.max()))},
+            "laplace": None if lap is None else {
+                "positive_definite": lap.positive_definite, "converged": lap.converged,
+                "gradient_norm": lap.gradient_norm,
+                "beta_min": float(lap.betas[0]) if lap.positive_definite else None,
+                "beta_max": float(lap.betas[-1]) if lap.positive_definite else None},
+            "methods": [r.to_dict() for r in self.rows], "notes": list(self.notes)}
+
+
+def _within(h: float, factor: float) -> float:
+    """The largest float q <= h / factor with ``q * factor <= h`` in float64."""
+    q = h / factor
+    while q * factor > h:
+        q = float(np.nextafter(q, 0.0))
+    return q
+
+
+def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Trajectory, *,
+                  target_accept: float = gaussian.DEFAULT_TARGET, step: float | None = None,
+                  draws: Draws | None = None, laplace: Laplace | None = None,
+                  seed: int = SEED, start: np.ndarray | None = None,
+                  allow_unstable_jitter: bool = False, onset: bool = True,
+                  zmax: float = 10.0) -> TargetReport:
+    """HMC with each of ``methods`` on ``target`` (module docstring).
+
+    Parameters
+    ----------
+    target
+        The potential and mass.
+    methods
+        Methods of :mod:`stepsafe.methods.tableaux`.
+    trajectory
+        L (``steps``) or the integration time (``length``), and the jitter J; one of the
+        first two is needed.
+    target_accept
+        The acceptance the step at target reaches.
+    step
+        Also estimate every method at this nominal step.
+    draws
+        Draws from the target (default: the warm-up sampler's, seeded by ``seed``).
+    laplace
+        The mode and its Gaussian approximation (default: found from ``start``).
+    seed
+        Seed of the warm-up sampler; the estimates' common random numbers use ``seed + 1``.
+    start
+        Where the mode search (and, without a mode, the chains) start.
+    allow_unstable_jitter
+        Search steps up to the stability limit itself rather than its quotient by 1 + J.
+    onset
+        Scan for the step where divergent proposals start.
+    zmax
+        How far in z the methods' stability is analysed.
+
+    Returns
+    -------
+    TargetReport
+    """
+    if not 0.0 < target_accept < 1.0:
+        raise StepsafeError(f"target acceptance must be in (0, 1), got {target_accept!r}")
+    if trajectory.steps is None and trajectory.length is None:
+        raise StepsafeError("HMC on a target needs the number of steps per trajectory or the "
+                            "trajectory length (the acceptance depends on it)")
+    notes: list[str] = []
+    if laplace is None:
+        laplace = find_mode(target, start)
+    if laplace is None:
+        notes.append("no mode found (or d too large for a dense Hessian): no Laplace figures")
+    elif not laplace.positive_definite:
+        notes.append("the Hessian at the mode found is not positive definite: no Laplace "
+                     "figures")
+    if draws is None:
+        draws = sample(target, seed=seed, laplace=laplace, start=start)
+    freq = spread(target, draws, seed=seed + 2)
+    if not freq.top > 0:
+        raise StepsafeError("the target has no positive curvature at any draw: no step limit")
+    estimator = Estimator(target, draws, seed=seed + 1,
+                          scale=float(np.median(draws.flat.std(axis=0))) or 1.0)
+    betas = laplace.betas if laplace is not None and laplace.positive_definite else None
+    rows = []
+    for m in methods:
+        rows.append(_row(m, target_accept, trajectory, step, estimator, freq, betas,
+                         allow_unstable_jitter, onset, zmax))
+    rows = _ranked(rows)
+    differ = [r.method for r in rows if r.rank is not None and r.laplace_rank is not None
+              and r.rank != r.laplace_rank]
+    if differ:
+        notes.append("the ranking on the target differs from the Gaussian (Laplace) one for "
+                     + ", ".join(differ))
+    return TargetReport(tuple(rows), float(target_accept), trajectory,
+                        bool(allow_unstable_jitter), target.dimension, draws, freq, laplace,
+                        seed, tuple(notes))
+
+
+def _row(m: Method, target_accept: float, trajectory: Trajectory, step: float | None,
+         estimator: Estimator, freq: Spread, betas: np.ndarray | None,
+         allow_unstable_jitter: bool, onset: bool, zmax: float) -> TargetRow:
+    run = scheme(m)
+    region = find_region(m, "oscillator", zmax)
+    notes: list[str] = []
+    base = TargetRow(run.name, run.gradients_per_step, run.symmetric, None, None, None, None,
+                     None, None)
+    if not region.symplectic:
+        return TargetRow(**{**base.__dict__, "notes": (
+            "not symplectic: it does not preserve volume, so HMC with it does not sample "
+            "the target",)})
+    if not run.symmetric:
+        notes.append("not symmetric: the HMC chain is not reversible with it (not ranked); "
+                     "the acceptance shown is that of a proposal from the target")
+    stable = stable_run(region)
+    z_star = stable.first_unsafe if stable.first_unsafe is not None else region.zmax
+    if stable.first_unsafe is None:
+        notes.append(f"stable up to z = {region.zmax:g}, as far as analysed")
+    h_stable = float(z_star / freq.top)
+    laplace_h = None if betas is None else float(z_star / betas.max())
+    jitter = trajectory.jitter
+    h_hi = h_stable if (allow_unstable_jitter or not jitter) else _within(h_stable, 1 + jitter)
+    found = target_step(estimator, run, target_accept, h_hi, trajectory)
+    est = None if found is None else found.estimate
+    h_target = None if found is None else found.h
+    if found is None:
+        notes.append(f"no step up to h = {h_hi:.6g} reaches acceptance {target_accept:g} on "
+                     "the target")
+    elif found.capped:
+        notes.append(f"h at target is capped at h = {h_hi:.6g}: the stability limit of the "
+                     "stiffest draw" + (f" over 1 + J = {1 + jitter:g}" if h_hi < h_stable
+                                        else ""))
+    if est is not None and jitter and allow_unstable_jitter and h_target is not None:
+        share = min(max((1.0 + jitter - h_stable / h_target) / (2.0 * jitter), 0.0), 1.0)
+        if share > 0:
+            notes.append(f"{100 * share:.3g}% of the jittered steps h (1 +- {jitter:g}) pass "
+                         f"the stiffest draw's stability limit {h_stable:.6g}")
+    lap_acc = lap_err = lap_h = lap_cost = lap_at = None
+    if betas is not None:
+        if h_target is not None:
+            a = gaussian.acceptance_at(m, betas, h_target, trajectory)
+            lap_acc, lap_err = a.rate, a.expected_error
+        assert laplace_h is not None
+        lap_hi = laplace_h if (allow_unstable_jitter or not jitter) else _within(
+            laplace_h, 1 + jitter)
+        lap_h = gaussian.target_step(m, betas, target_accept, lap_hi, trajectory)
+        if lap_h is not None and run.gradients_per_step is not None:
+            a = gaussian.acceptance_at(m, betas, lap_h, trajectory)
+            L = trajectory.steps_at(lap_h)
+            if a.rate > 0 and L:
+                lap_cost = (run.gradients_per_step * L + run.gradients_per_trajectory_extra) \
+                    / (a.rate * L * lap_h)
+        if step is not None:
+            lap_at = gaussian.acceptance_at(m, betas, step, trajectory).rate
+    at_step = None if step is None else estimator.estimate(run, step, trajectory)
+    scan = None
+    if onset:
+        reach = ONSET_REACH * max(h_stable, laplace_h or 0.0)
+        scan = divergence_onset(estimator, run, reach, trajectory)
+    if est is not None and est.divergent > 0:
+        notes.append(f"{100 * est.divergent:.3g}% of the proposals at h at target diverge "
+                     f"(energy error > 1000)")
+    return TargetRow(run.name, run.gradients_per_step, run.symmetric, float(z_star), h_stable,
+                     laplace_h, h_target, None if found is None else found.h_se, est,
+                     lap_acc, lap_err, lap_h, lap_cost, scan, at_step, lap_at,
+                     notes=tuple(notes))
+
+
+def _ranked(rows: list[TargetRow]) -> list[TargetRow]:
+    """Rows sorted by gradients per accepted unit of time on the target (symmetric ones
+    ranked), each with its rank there and its rank by the Laplace figures."""
+    def cost(r: TargetRow) -> float | None:
+        return None if r.estimate is None else r.estimate.gradients_per_time
+
+    index = range(len(rows))
+    usable = sorted((k for k in index if rows[k].symmetric and cost(rows[k]) is not None),
+                    key=lambda k: cost(rows[k]) or 0.0)
+    rank = {k: n + 1 for n, k in enumerate(usable)}
+    lap = sorted((k for k in index if rows[k].symmetric
+                  and rows[k].laplace_gradients_per_time is not None),
+                 key=lambda k: rows[k].laplace_gradients_per_time or 0.0)
+    lap_rank = {k: n + 1 for n, k in enumerate(lap)}
+    out = [TargetRow(**{**rows[k].__dict__, "rank": rank.get(k),
+                        "laplace_rank": lap_rank.get(k)}) for k in index]
+    return sorted(out, key=lambda r: (r.rank is None, r.rank or 0))
