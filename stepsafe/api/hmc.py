@@ -449,12 +449,23 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
            labels: Mapping[str, Sequence[str | None]] | None = None,
            system: Mapping[str, Any] | None = None, scene: str | Path | Scene | None = None,
            zmax: float | None = None, budget: float | None = None,
-           problem: Problem | None = None) -> DesignReport:
+           problem: Problem | None = None, trajectory_steps: int | None = None,
+           length: float | str | None = None,
+           objective: str = "error-bound") -> DesignReport:
     """Design the palindromic ``stages``-stage splitting (2: parameter b; 3: b and a; see
     :mod:`stepsafe.core.design`) that minimises the expected energy error summed over the
     target's modes at ``step``, averaged over ``step (1 +- jitter)``, every mode stable up
     to ``step (1 + jitter)`` (an M = +-I resonance does not end the stable steps: the rule
     ``hmc`` uses, :func:`stepsafe.core.regions.stable_run`).
+
+    ``objective="acceptance"`` minimises instead what ``hmc`` ranks by: the gradient
+    evaluations per accepted proposal for the trajectory given (``trajectory_steps`` L or
+    ``length`` T, L = floor(T / step); neither: each mode at its bound over L) and the jitter, at
+    ``step`` the reciprocal of the predicted acceptance; the comparison then also lists
+    the minimax member (``aia-minimax``: the smallest worst rho over (0, beta_max step
+    (1 + jitter)], the adaptive integrators' choice) and gives every row's acceptance for
+    that trajectory. ``trajectory_steps`` or ``length`` alone (the default objective) only sets the
+    trajectory of the comparison.
 
     Parameters
     ----------
@@ -499,6 +510,12 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
     problem : Problem, optional
         A :func:`~stepsafe.problem` built beforehand, given instead of the target's
         keywords above.
+    trajectory_steps : int, optional
+        L, the number of steps per trajectory (a count, not a time).
+    length : float or str, optional
+        The trajectory length T in the time unit (or a text with a time unit).
+    objective : str
+        ``error-bound`` (the default) or ``acceptance`` (see above).
 
     Returns
     -------
@@ -518,9 +535,12 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
     if isinstance(stages, bool) or not isinstance(stages, (int, np.integer)) or \
             stages not in PARAMETERS:
         raise StepsafeError(f"stages must be 2 or 3, got {stages!r}")
+    from stepsafe.core.design import OBJECTIVES, minimax
     from stepsafe.units import duration
 
-    _, _, _, jitter = _validated(0.5, None, None, jitter)
+    if objective not in OBJECTIVES:
+        raise StepsafeError(f"objective must be one of {', '.join(OBJECTIVES)}, got "
+                            f"{str(objective)[:40]!r}")
     name = f"designed-{stages}stage" if name is None else name
     if not isinstance(name, str) or not name or not all(
             c.isascii() and (c.isalnum() or c == "-") for c in name) or len(name) > 60:
@@ -530,14 +550,19 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
               "modes": modes, "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
               "period": period, "time_unit": time_unit, "labels": labels, "system": system,
               "scene": scene, "zmax": zmax, "budget": budget, "problem": problem}
-    p = problem_of("verlet", beta, inputs, times=(step,))
+    p = problem_of("verlet", beta, inputs, times=(step, length))
     step = positive_finite(duration(step, "step", p.time_unit), "step")
+    if length is not None:
+        length = duration(length, "length", p.time_unit)
+    _, steps, length, jitter = _validated(0.5, trajectory_steps, length, jitter)
     betas, errors = _gaussian_betas(p)
     # designed for each frequency at the largest it may be (the rounding of the
     # eigenvalues it came from), as hmc and advise limit the step
     widest = betas * (1.0 + errors)
     values, counts = np.unique(widest[betas > 0], return_counts=True)
-    found = core_design(stages, values, counts.astype(float), step, jitter)
+    given = core.Trajectory(steps, length, jitter)
+    found = core_design(stages, values, counts.astype(float), step, jitter, objective,
+                        given.steps_at(step))
     if found is None:
         top = values.max()
         past = (f"; past h = {3.0 / top:g} only members with an M = -I point are, of which "
@@ -548,8 +573,15 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
     designed = family_member(stages, found.params, name)
     params = dict(zip(PARAMETERS[stages], found.params))
     rows = []
-    over = core.Trajectory(jitter=jitter)  # the bound over L, averaged over the jitter
-    for label, tableau, evals in [(name, designed, stages)] + [
+    # the trajectory given, else the bound over L; averaged over the jitter
+    over = given if (steps is not None or length is not None) else core.Trajectory(
+        jitter=jitter)
+    extra = []
+    if objective == "acceptance":
+        params_aia = minimax(stages, float(widest.max()) * step * (1.0 + jitter))
+        if params_aia is not None:
+            extra = [("aia-minimax", family_member(stages, params_aia, "aia-minimax"), stages)]
+    for label, tableau, evals in [(name, designed, stages)] + extra + [
             (ref, (i := compared_methods([ref])[0]).tableau, i.evaluations)
             for ref in DESIGN_REFERENCES]:
         h = step * evals / stages
@@ -560,15 +592,22 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
         acc = core.acceptance_at(tableau, betas, h, over)
         reach = float(widest.max()) * h * (1.0 + jitter)
         run = stable_run(find_region(tableau, "oscillator", max(reach * 1.001, 10.0)))
-        rows.append(MappingProxyType({
-            "method": label, "evaluations": evals, "h": h,
-            "resonance_h": tuple(r.z / float(betas.max()) for r in run.resonances
-                                 if r.z <= reach),
-            "error_bound": None if not np.isfinite(acc.expected_error) else acc.expected_error,
-            "acceptance": acc.rate,
-            "gradients_per_time": (None if acc.rate == 0 else evals / acc.rate / h)}))
+        L = over.steps_at(h)
+        row = {"method": label, "evaluations": evals, "h": h,
+               "resonance_h": tuple(r.z / float(betas.max()) for r in run.resonances
+                                    if r.z <= reach),
+               "error_bound": (None if not np.isfinite(acc.expected_error)
+                               else acc.expected_error),
+               "acceptance": acc.rate,
+               "gradients_per_time": (None if acc.rate == 0 else evals / acc.rate / h)}
+        if objective == "acceptance":
+            row["steps"] = L
+            row["gradients_per_accepted"] = (None if acc.rate == 0 or L is None
+                                             or evals is None else evals * L / acc.rate)
+        rows.append(MappingProxyType(row))
     return DesignReport(name, stages, MappingProxyType(params), step,
-                        _method_file(name, stages, params, step, jitter, betas.size),
+                        _method_file(name, stages, params, step, jitter, betas.size,
+                                     objective, given.steps_at(step)),
                         tuple(rows), int(betas.size), found.binned, p.time_unit)
 
 
@@ -640,7 +679,8 @@ def _gaussian_betas(p: Any) -> tuple[np.ndarray, np.ndarray]:
     return betas, errors
 
 def _method_file(name: str, stages: int, params: Mapping[str, float], step: float,
-                 jitter: float, modes: int) -> str:
+                 jitter: float, modes: int, objective: str = "error-bound",
+                 steps: int | None = None) -> str:
     family = ("K(b h) D(h/2) K((1-2b) h) D(h/2) K(b h)" if stages == 2 else
               "K(b h) D(a h) K((1/2-b) h) D((1-2a) h) K((1/2-b) h) D(a h) K(b h)")
     constants = "\n".join(f'  {k}: "{v!r}"' for k, v in params.items())
@@ -652,8 +692,13 @@ def _method_file(name: str, stages: int, params: Mapping[str, float], step: floa
             f"evaluations: {stages}\n"
             f'source: "stepsafe design: the {stages}-stage palindromic family {family} of '
             "Blanes, Casas & Sanz-Serna, SIAM J. Sci. Comput. 36 (2014) A1556, with "
-            f"{', '.join(params)} minimising the sum over {modes} mode(s) of the expected "
-            f"energy error bound rho(beta h) at h = {step!r}"
+            + (f"{', '.join(params)} minimising the sum over {modes} mode(s) of the "
+               f"expected energy error bound rho(beta h) at h = {step!r}"
+               if objective == "error-bound" else
+               f"{', '.join(params)} maximising the predicted HMC acceptance on {modes} "
+               f"mode(s) at h = {step!r}"
+               + (f" after L = {steps} steps" if steps is not None else
+                  " (each mode at its error bound over L)"))
             + (f" (averaged over h (1 +- {jitter!r}))" if jitter else "") + '"\n'
             f"constants:\n{constants}\n"
             f"symmetric: true\n{shape}\n")

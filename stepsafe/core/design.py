@@ -129,9 +129,12 @@ def error_bounds(stages: int, params: np.ndarray, z: np.ndarray, weights: np.nda
     return np.where(np.isfinite(rho[:, scaled.size:]).all(axis=1), total, np.inf)
 
 
-def rho_values(stages: int, params: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """``rho(z)`` for each parameter row and z (inf where M is not elliptic): the one-step
-    matrices multiplied out in float64, vectorised over both."""
+def one_step_values(stages: int, params: np.ndarray, z: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For each parameter row and z: ``E_1`` (the one-step energy error from the
+    stationary state), ``sin2 = 1 - (tr M / 2)^2`` in the cancellation-free form
+    ``-M_qp M_pq - (M_qq - M_pp)^2 / 4``, ``tr M / 2`` and whether M is elliptic; the
+    one-step matrices multiplied out in float64, vectorised over both."""
     params = np.atleast_2d(np.asarray(params, dtype=float))
     n = params.shape[0]
     m00 = np.ones((n, z.size))
@@ -147,10 +150,18 @@ def rho_values(stages: int, params: np.ndarray, z: np.ndarray) -> np.ndarray:
     half = 0.5 * (m00 + m11)
     sin2 = -m01 * m10 - 0.25 * (m00 - m11) ** 2
     e1 = 0.5 * ((m00 - m11) ** 2 + (m01 + m10) ** 2)
+    # (below z = 1e-4 every member is elliptic, and tr M / 2 = 1 - O(z^2) rounds to 1
+    # below z ~ 1e-8: there sin2 ~ z^2, free of cancellation, decides alone)
+    elliptic = (sin2 > 0) & ((np.abs(half) < 1) | (z < 1e-4)[None, :])
+    return e1, sin2, half, elliptic
+
+
+def rho_values(stages: int, params: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """``rho(z)`` for each parameter row and z (inf where M is not elliptic): the one-step
+    matrices multiplied out in float64, vectorised over both."""
+    params = np.atleast_2d(np.asarray(params, dtype=float))
+    e1, sin2, _, elliptic = one_step_values(stages, params, z)
     with np.errstate(divide="ignore", invalid="ignore"):
-        # (below z = 1e-4 every member is elliptic, and tr M / 2 = 1 - O(z^2) rounds to 1
-        # below z ~ 1e-8: there sin2 ~ z^2, free of cancellation, decides alone)
-        elliptic = (sin2 > 0) & ((np.abs(half) < 1) | (z < 1e-4)[None, :])
         rho = np.where(elliptic, e1 / sin2, np.inf)
         # rho = O(z^4) (C z^4 with C of order 1 for the family): below z = 1e-80 it is
         # below the smallest float, where sin2 ~ z^2 itself underflows to 0
@@ -219,14 +230,153 @@ def _binned(betas: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return top[keep], weight[keep], True
 
 
+#: What the design minimises: the error bound of the module docstring, or the gradient
+#: evaluations per accepted proposal that ``hmc`` ranks by (:func:`acceptance_values`).
+OBJECTIVES = ("error-bound", "acceptance")
+#: Exact-objective Nelder-Mead polish of the acceptance design (iterations).
+POLISH_ITERATIONS = 120
+
+
+def _stable_rows(stages: int, params: np.ndarray, top: float) -> np.ndarray:
+    """Whether each parameter row keeps M elliptic at :data:`SWEEP` points of (0, top]."""
+    sweep = top * np.arange(1, SWEEP + 1) / SWEEP
+    return np.isfinite(rho_values(stages, params, sweep)).all(axis=1)
+
+
+def _node_errors(stages: int, params: np.ndarray, z: np.ndarray, weights: np.ndarray,
+                 jitter: float, steps: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Each mode's expected energy error at each jitter node (shape (rows, nodes, modes))
+    after ``steps`` steps (None: its bound rho over every L), and the modes' weights."""
+    from stepsafe.core.hmc import OneStep, errors_after
+
+    nodes = ((np.arange(JITTER_NODES) + 0.5) / JITTER_NODES * 2.0 - 1.0 if jitter
+             else np.zeros(1))
+    scaled = (z[None, :] * (1.0 + jitter * nodes[:, None])).ravel()
+    params = np.atleast_2d(np.asarray(params, dtype=float))
+    if steps is None:
+        errors = rho_values(stages, params, scaled)
+    else:
+        e1, sin2, half, _ = one_step_values(stages, params, scaled)
+        errors = errors_after(OneStep(e1, sin2, half), steps)
+        errors[:, scaled < RESOLVED_Z] = 0.0
+    return errors.reshape(params.shape[0], nodes.size, z.size), weights
+
+
+def acceptance_values(stages: int, params: np.ndarray, z: np.ndarray, weights: np.ndarray,
+                      jitter: float = 0.0, steps: int | None = None,
+                      exact: bool = True) -> np.ndarray:
+    """The predicted HMC acceptance of each parameter row on the Gaussian whose modes sit at
+    ``z`` (``weights`` modes each) with L = ``steps`` (None: each mode's error at its bound
+    over L), averaged over the step interval ``z (1 +- jitter)`` by the :data:`JITTER_NODES`
+    midpoint rule; 0 where some mode is not elliptic up to ``z (1 + jitter)``. ``exact``:
+    the Gaussian acceptance ``2 P(Delta < 0)`` of :mod:`stepsafe.core.hmc`; else its normal
+    approximation ``2 Phi(-sqrt(mu / 2))``, ``mu`` the total expected error (for the grid
+    of the search only)."""
+    from stepsafe.core.hmc import acceptances
+
+    params = np.atleast_2d(np.asarray(params, dtype=float))
+    top = float(z.max()) * (1.0 + jitter)
+    stable = _stable_rows(stages, params, top)
+    errors, weights = _node_errors(stages, params, z, weights, jitter, steps)
+    out = np.zeros(params.shape[0])
+    with np.errstate(invalid="ignore", over="ignore"):
+        if exact:
+            for r in np.flatnonzero(stable):
+                rows = np.where(np.isfinite(errors[r]), errors[r], np.inf)
+                out[r] = float(np.mean([a.rate for a in acceptances(rows, weights)]))
+        else:
+            from scipy.special import erfc
+
+            mu = np.where(np.isfinite(errors), errors, np.inf) @ weights  # (rows, nodes)
+            # 2 Phi(-x) = erfc(x / sqrt 2), x = sqrt(mu / 2)
+            out = np.where(stable, erfc(np.sqrt(np.maximum(mu, 0.0)) / 2.0).mean(axis=1), 0.0)
+    return out
+
+
+def minimax(stages: int, top: float) -> tuple[float, ...] | None:
+    """The member minimising ``max_{0 < z <= top} rho(z)``: the choice of the adaptive
+    integrators of Fernandez-Pendas, Akhmatskaya & Sanz-Serna (J. Comput. Phys. 2016; s-AIA
+    for HMC, Nagar et al. 2024) for a largest dimensionless step ``top``, found on a grid of
+    the parameters and refined by Nelder-Mead on the maximum over :data:`MINIMAX_Z` steps;
+    None when no member is stable up to ``top``. For 2 stages at ``top = 2`` it is bcss2
+    (b = 0.21178), as Blanes, Casas & Sanz-Serna define that method."""
+    z = top * np.arange(1, MINIMAX_Z + 1) / MINIMAX_Z
+    lo, hi = 0.0, 0.5
+    if stages == 2:
+        interval = stable_b(top)
+        if interval is None:
+            return None
+        lo, hi = interval
+        if lo >= hi:
+            return (QUARTER,)
+    n = 400 if stages == 2 else 64
+    axis = lo + (np.arange(n) + 0.5) / n * (hi - lo)
+    grid = (axis[:, None] if stages == 2 else
+            np.stack(np.meshgrid(axis, axis, indexing="ij"), axis=-1).reshape(-1, 2))
+    worst = np.concatenate([rho_values(stages, chunk, z).max(axis=1)
+                            for chunk in np.array_split(grid, max(1, grid.size * z.size
+                                                                  // 4_000_000))])
+
+    def objective(x: np.ndarray) -> float:
+        if np.any(x <= lo) or np.any(x >= hi):
+            return np.inf
+        return float(rho_values(stages, x[None, :], z).max())
+
+    finite = np.flatnonzero(np.isfinite(worst))
+    candidates = [grid[i] for i in finite[np.argsort(worst[finite], kind="stable")][:STARTS]]
+    candidates += [np.array(m) for m in KNOWN[stages] if np.isfinite(objective(np.array(m)))]
+    step = (hi - lo) / n
+    found = []
+    for start in candidates:
+        simplex = np.vstack([start] + [start + step * np.eye(start.size)[i]
+                                       for i in range(start.size)])
+        res = minimize(objective, start, method="Nelder-Mead",
+                       options={"initial_simplex": simplex, "xatol": 1e-12, "fatol": 0.0,
+                                "maxiter": 600})
+        found += [res.x, start]
+    ranked = sorted(((objective(x), k) for k, x in enumerate(found)), key=lambda t: t[0])
+    best = next((found[k] for value, k in ranked
+                 if np.isfinite(value) and _stable_up_to(stages, found[k], top)), None)
+    return None if best is None else tuple(float(x) for x in best)
+
+
+#: Steps of (0, top] over which :func:`minimax` takes the maximum of rho.
+MINIMAX_Z = 1024
+
+
 def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
-           jitter: float = 0.0) -> Design | None:
-    """The family member of ``stages`` stages minimising the objective of the module
-    docstring at step ``h`` for the frequencies ``betas`` (``counts`` modes each); None
-    when no member keeps every mode stable up to ``h (1 + jitter)``."""
+           jitter: float = 0.0, objective: str = "error-bound",
+           steps: int | None = None) -> Design | None:
+    """The family member of ``stages`` stages minimising ``objective`` at step ``h`` for the
+    frequencies ``betas`` (``counts`` modes each); None when no member keeps every mode
+    stable up to ``h (1 + jitter)``.
+
+    ``error-bound`` (the module docstring's sum of rho) or ``acceptance``: the gradient
+    evaluations per accepted proposal, ``stages L / alpha`` at a fixed step, that is the
+    reciprocal of the acceptance :func:`acceptance_values` predicts for L = ``steps`` (None:
+    each mode at its bound over L) averaged over the jitter. The acceptance design searches
+    its grid on the normal approximation of the acceptance, refines by Nelder-Mead on it,
+    ranks every candidate by the exact acceptance and polishes the best by Nelder-Mead on
+    the exact one; ``Design.error_bound`` is then ``1 / alpha``."""
+    if objective not in OBJECTIVES:
+        raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
     betas, counts, binned = _binned(np.asarray(betas, float), np.asarray(counts, float))
     z = betas * h
     top = float(z.max()) * (1.0 + jitter)
+    if objective == "acceptance":
+        def rough(rows: np.ndarray) -> np.ndarray:
+            with np.errstate(divide="ignore"):
+                return 1.0 / acceptance_values(stages, rows, z, counts, jitter, steps,
+                                               exact=False)
+
+        def exact(rows: np.ndarray) -> np.ndarray:
+            with np.errstate(divide="ignore"):
+                return 1.0 / acceptance_values(stages, rows, z, counts, jitter, steps)
+    else:
+        def rough(rows: np.ndarray) -> np.ndarray:
+            return error_bounds(stages, rows, z, counts, jitter)
+
+        exact = rough
     lo, hi = 0.0, 0.5
     if stages == 2:  # the stable members, exactly (module docstring)
         interval = stable_b(top)
@@ -234,40 +384,52 @@ def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
             return None
         lo, hi = interval
         if lo >= hi:  # b = 1/4 alone (or the interval narrower than its rounding)
-            return _quarter(z, counts, jitter, binned)
+            return _quarter(exact, binned)
     axis = lo + (np.arange(GRID[stages]) + 0.5) / GRID[stages] * (hi - lo)
     grid = (axis[:, None] if stages == 2 else
             np.stack(np.meshgrid(axis, axis, indexing="ij"), axis=-1).reshape(-1, 2))
-    values = np.concatenate([error_bounds(stages, chunk, z, counts, jitter)
-                             for chunk in np.array_split(grid, max(1, grid.size * z.size
-                                                                   // 4_000_000))])
+    values = np.concatenate([rough(chunk) for chunk in
+                             np.array_split(grid, max(1, grid.size * z.size // 4_000_000))])
     if stages == 2 and not np.isfinite(values).any():
         # (near top = 2 sqrt 2 the interval's members are stable, but too close to their
         # M = -I point for float64's error bound: b = 1/4 is stable on all of (0, 4))
-        return _quarter(z, counts, jitter, binned)
+        return _quarter(exact, binned)
 
-    def objective(x: np.ndarray) -> float:
-        if np.any(x <= lo) or np.any(x >= hi):
-            return np.inf
-        return float(error_bounds(stages, x[None, :], z, counts, jitter)[0])
+    def inside(x: np.ndarray) -> bool:
+        return not (np.any(x <= lo) or np.any(x >= hi))
+
+    def searched(x: np.ndarray) -> float:
+        return float(rough(x[None, :])[0]) if inside(x) else np.inf
+
+    def final(x: np.ndarray) -> float:
+        return float(exact(x[None, :])[0]) if inside(x) else np.inf
 
     # Nelder-Mead from the best grid points and from the published members (the landscape
     # has narrow valleys: bcss3 lies in one)
     order = np.argsort(values, kind="stable")[:STARTS]
     starts = [grid[i] for i in order if np.isfinite(values[i])]
-    starts += [np.array(m) for m in KNOWN[stages] if np.isfinite(objective(np.array(m)))]
+    starts += [np.array(m) for m in KNOWN[stages] if np.isfinite(searched(np.array(m)))]
     step = (hi - lo) / GRID[stages]
     found_points = []
     for start in starts:
         simplex = np.vstack([start] + [start + step * np.eye(start.size)[i]
                                        for i in range(start.size)])
-        found = minimize(objective, start, method="Nelder-Mead",
+        found = minimize(searched, start, method="Nelder-Mead",
                          options={"initial_simplex": simplex, "xatol": 1e-10, "fatol": 0.0,
                                   "maxiter": 400})
         found_points += [found.x, start]
+    if objective == "acceptance" and found_points:
+        # the exact acceptance, polished from the best candidate
+        first = min(found_points, key=final)
+        simplex = np.vstack([first] + [first + 0.1 * step * np.eye(first.size)[i]
+                                       for i in range(first.size)])
+        polish = minimize(final, first, method="Nelder-Mead",
+                          options={"initial_simplex": simplex, "xatol": 1e-10, "fatol": 0.0,
+                                   "maxiter": POLISH_ITERATIONS})
+        found_points.append(polish.x)
     # the sampled stability check can step over a narrow gap (|tr M| > 2 on 1e-3 of z):
     # the best candidate the region finder confirms stable up to the top z wins
-    ranked = sorted(((objective(x), i) for i, x in enumerate(found_points)), key=lambda t: t[0])
+    ranked = sorted(((final(x), i) for i, x in enumerate(found_points)), key=lambda t: t[0])
     best = next((found_points[i] for value, i in ranked
                  if np.isfinite(value) and _stable_up_to(stages, found_points[i], top)), None)
     if best is None:  # then the best grid points the region finder confirms
@@ -275,11 +437,11 @@ def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
         best = next((grid[i] for i in finite[:CONFIRM_LIMIT]
                      if _stable_up_to(stages, grid[i], top)), None)
     if best is None:
-        return _quarter(z, counts, jitter, binned) if stages == 2 else None
-    return Design(stages, tuple(float(x) for x in best), objective(best), binned)
+        return _quarter(exact, binned) if stages == 2 else None
+    return Design(stages, tuple(float(x) for x in best), final(best), binned)
 
 
-def _quarter(z: np.ndarray, counts: np.ndarray, jitter: float, binned: bool) -> Design:
+def _quarter(exact, binned: bool) -> Design:
     """The member b = 1/4 (two half-step leapfrogs), stable for every z < 4."""
-    value = float(error_bounds(2, np.array([[QUARTER]]), z, counts, jitter)[0])
+    value = float(exact(np.array([[QUARTER]]))[0])
     return Design(2, (QUARTER,), value, binned)
