@@ -1,0 +1,188 @@
+"""stepsafe's methods and step advice run by BlackJAX (``pip install 'stepsafe[blackjax]'``).
+
+* Every symmetric splitting of the library and designed members, exported as BlackJAX
+  coefficient lists: one BlackJAX step on a 1-D Gaussian is stepsafe's transfer matrix
+  M(z) to 1e-14.
+* BlackJAX's own HMC kernel with the exported integrator and the recommended step: on a
+  Gaussian its measured acceptance matches the exact Gaussian prediction of
+  :mod:`stepsafe.core.hmc` within 3 standard errors (with and without a jittered step);
+  on the banana it matches stepsafe's estimate on the target within 3 standard errors.
+
+Without jax and blackjax these tests are skipped; the refusal that names the extra is
+tested either way.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+
+import numpy as np
+import pytest
+from support import method
+
+from stepsafe.core import hmc as gaussian
+from stepsafe.core.design import family_member
+from stepsafe.core.hmc import Trajectory
+from stepsafe.core.hmc_target.statistics import chain_mean
+from stepsafe.core.transfer import transfer_matrix
+from stepsafe.exceptions import StepsafeError
+from stepsafe.methods.families import is_symmetric
+from stepsafe.methods.library import builtin_names
+from stepsafe.methods.tableaux import Composition, Processed, Splitting
+from stepsafe.systems import blackjax_bridge as bridge
+
+
+def test_a_missing_blackjax_is_refused_naming_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "blackjax", None)  # import blackjax raises ImportError
+    with pytest.raises(StepsafeError, match=r"pip install 'stepsafe\[blackjax\]'"):
+        bridge.integrator("verlet")
+
+
+def _exportable() -> list[str]:
+    names = []
+    for name in builtin_names(single_force=True):
+        try:
+            m = method(name)
+        except StepsafeError:
+            continue
+        flat = m.as_splitting() if isinstance(m, Composition) and isinstance(
+            m.flattened().base, Splitting) else m
+        if isinstance(flat, Splitting) and not flat.force_gradient and is_symmetric(flat):
+            names.append(name)
+    return names
+
+
+EXPORTABLE = _exportable()
+
+
+def test_the_library_has_symmetric_splittings_to_export():
+    assert {"verlet", "bcss2", "bcss3", "mclachlan2-min", "yoshida4", "pefrl"} <= set(
+        EXPORTABLE)
+
+
+@pytest.mark.parametrize("name", ["blanes-casas-ros764", "chin-4a", "symplectic-euler",
+                                  "rk4", "midpoint"])
+def test_what_blackjax_cannot_run_is_refused(name):
+    m = method(name)
+    assert isinstance(m, Processed) or not isinstance(m, Splitting) or m.force_gradient \
+        or not is_symmetric(m)
+    with pytest.raises(StepsafeError):
+        bridge.coefficients(m)
+
+
+def test_coefficient_lists_start_with_a_kick_and_are_palindromes():
+    for name in EXPORTABLE:
+        c = bridge.coefficients(method(name)).coefficients
+        assert len(c) % 2 == 1
+        np.testing.assert_allclose(c, c[::-1], rtol=1e-12, atol=1e-15)
+        # kicks (even places) and drifts (odd places) each sum to 1
+        assert sum(c[0::2]) == pytest.approx(1.0, abs=1e-12)
+        assert sum(c[1::2]) == pytest.approx(1.0, abs=1e-12)
+
+
+#: the tests that run jax and blackjax (skipped cleanly without them)
+needs_blackjax = pytest.mark.skipif(
+    importlib.util.find_spec("jax") is None or importlib.util.find_spec("blackjax") is None,
+    reason="jax and blackjax are not installed (pip install 'stepsafe[blackjax]')")
+
+
+def _jax():
+    import jax
+
+    return jax
+
+
+def _one_step_matrix(factory, z: float) -> np.ndarray:
+    """The 2x2 matrix of one BlackJAX step at step size z on log pi = -q^2/2 (unit mass),
+    column by column from (q, p) = (1, 0) and (0, 1), in float64."""
+    jax = _jax()
+    import jax.numpy as jnp
+    from blackjax.mcmc.integrators import new_integrator_state
+    from blackjax.mcmc.metrics import default_metric
+
+    with jax.enable_x64(True):
+        def logdensity(q):
+            return -0.5 * jnp.sum(q * q)
+
+        step = factory(logdensity, default_metric(jnp.ones(1)).kinetic_energy)
+        cols = []
+        for q, p in ((1.0, 0.0), (0.0, 1.0)):
+            out = step(new_integrator_state(logdensity, jnp.array([q]), jnp.array([p])), z)
+            cols.append([float(out.position[0]), float(out.momentum[0])])
+    return np.array(cols).T
+
+
+DESIGNED = [family_member(2, (0.2093,), "designed-b"), family_member(3, (0.11, 0.29),
+                                                                   "designed-ba")]
+
+
+@pytest.mark.parametrize("m", [method(n) for n in EXPORTABLE] + DESIGNED,
+                         ids=EXPORTABLE + ["designed-2", "designed-3"])
+@pytest.mark.blackjax
+@needs_blackjax
+def test_one_blackjax_step_is_the_transfer_matrix(m):
+    factory = bridge.integrator(m)
+    for z in (0.05, 0.7, 1.9):
+        got = _one_step_matrix(factory, z)
+        want = transfer_matrix(m, [z])[0]
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-14 * max(1.0, np.abs(want).max()))
+
+
+def test_blackjax_counts_a_gradient_per_drift():
+    assert bridge.coefficients("verlet").blackjax_gradients_per_step == 1
+    position_form = bridge.coefficients("mclachlan2-min")
+    assert position_form.coefficients[0] == 0.0 == position_form.coefficients[-1]
+    assert (position_form.gradients_per_step, position_form.blackjax_gradients_per_step) == \
+        (2, 3)
+
+
+SIGMA = np.linspace(0.5, 2.0, 10)
+
+
+def _gaussian_logdensity(q):
+    import jax.numpy as jnp
+
+    return -0.5 * jnp.sum((q / SIGMA) ** 2)
+
+
+@pytest.mark.slow
+@pytest.mark.blackjax
+@needs_blackjax
+@pytest.mark.parametrize("name, jitter", [("bcss2", 0.1), ("verlet", 0.0)])
+def test_blackjax_acceptance_on_a_gaussian_is_the_prediction(name, jitter):
+    settings = bridge.blackjax_hmc(_gaussian_logdensity, np.ones(10), method=name, steps=10,
+                                   jitter=jitter, target_accept=0.75)
+    assert settings.method == name and settings.num_integration_steps == 10
+    predicted = gaussian.acceptance_at(method(name), 1.0 / SIGMA, settings.step_size,
+                                       Trajectory(steps=10, jitter=jitter))
+    rng = np.random.default_rng(3)
+    run = bridge.sample(settings, _gaussian_logdensity, rng.standard_normal((64, 10)) * SIGMA,
+                        150, seed=4)
+    measured = chain_mean(run.acceptance)
+    assert 0.5 < predicted.rate < 0.97
+    assert abs(measured.value - predicted.rate) < 3 * measured.se, (measured, predicted)
+    # stepsafe's estimate on the target agrees with the exact figure too
+    assert abs(settings.acceptance - predicted.rate) < 3 * settings.acceptance_se
+    # no jittered step passes the stability limit of the fastest mode
+    assert not run.divergent.any()
+
+
+def _banana_logdensity(q):
+    x, y = q[0], q[1]
+    return -0.5 * x * x - 0.5 * (y - 0.3 * x * x) ** 2
+
+
+@pytest.mark.slow
+@pytest.mark.blackjax
+@needs_blackjax
+def test_blackjax_acceptance_on_the_banana_is_the_estimate():
+    settings = bridge.blackjax_hmc(_banana_logdensity, np.array([0.1, 0.2]),
+                                   method="verlet", steps=10)
+    rng = np.random.default_rng(5)
+    x = rng.standard_normal(256)
+    start = np.stack([x, 0.3 * x * x + rng.standard_normal(256)], axis=1)  # exact draws
+    run = bridge.sample(settings, _banana_logdensity, start, 40, seed=6)
+    measured = chain_mean(run.acceptance)
+    se = np.hypot(measured.se, settings.acceptance_se)
+    assert abs(measured.value - settings.acceptance) < 3 * se, (measured, settings.acceptance)
