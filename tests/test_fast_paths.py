@@ -80,3 +80,21 @@ def test_lumped_acceptance_is_the_sorted_ones():
                          np.array([var_g]))[0]
     assert got.approximate
     assert got.rate == pytest.approx(want, abs=1e-13)
+
+
+@pytest.mark.parametrize("name, steps, jitter, h", [
+    ("bcss2", None, 0.1, 0.9), ("bcss3", None, 0.05, 1.9), ("verlet", 20, 0.1, 0.6),
+    ("bcss2", 15, 0.05, 1.1)])
+def test_narrow_jitter_on_few_panels_is_exact_to_1e7(name, steps, jitter, h):
+    """Panels in proportion to the jitter: against the midpoint rule on 8000 steps of the
+    exact fixed-step acceptance of several modes."""
+    m = method(name)
+    betas = np.array([0.3, 0.7, 1.0, 1.3, 1.6, 2.0])
+    n = 8000
+    hs = h * (1.0 + jitter * ((np.arange(n) + 0.5) / n * 2 - 1))
+    errs = H.errors_after(H.one_step(m, np.outer(hs, betas).ravel()), steps).reshape(n, -1)
+    rates = [a.rate for a in H.acceptances(errs, np.ones(betas.size))]
+    got = H.acceptance_at(m, betas, h, H.Trajectory(steps=steps, jitter=jitter))
+    assert 0.2 < got.rate < 0.999
+    assert not got.approximate and abs(got.rate - np.mean(rates)) < 1e-7, \
+        (got.rate, np.mean(rates))

@@ -285,8 +285,9 @@ def acceptance_at(method: Method, betas: np.ndarray, h: float,
 
 
 #: The jitter average is a composite 8-point Gauss-Legendre rule: at least this many panels
-#: (the bound over L, smooth in h) or four times as many (a given L, whose energy error
-#: turns like sin^2(L theta)), halved where L theta turns by more than
+#: for a jitter of 1/2, in proportion to J with one at least (the bound over L, smooth in h)
+#: or four times as many (a given L, whose energy error turns like sin^2(L theta)), halved
+#: where L theta turns by more than
 #: :data:`PANEL_TURN` across one, and at most :data:`MAX_JITTER_NODES` nodes (beyond, the
 #: result says ``approximate``).
 JITTER_PANELS = 2
@@ -338,7 +339,10 @@ def _jitter_rule(method: Method, values: np.ndarray, h: float, jitter: float,
         if cut is not None:
             cuts.add(cut)
     cuts_sorted = sorted(cuts)
-    base = JITTER_PANELS if steps is None else 4 * JITTER_PANELS  # the bound is smooth in h
+    # panels in proportion to the width of the jitter interval (JITTER_PANELS for
+    # J = 1/2): the bound is smooth in h; a given L turns like sin^2(L theta), whose fast
+    # modes are followed below and whose slow ones turn by 2 J theta at most across it
+    base = max(1.0, JITTER_PANELS * 2.0 * jitter) * (1 if steps is None else 4)
     x, w = _GL8
     grading = 0.5 ** np.arange(1, EDGE_LEVELS + 1)
     edges = []
