@@ -247,9 +247,16 @@ def sample(target: Target, *, chains: int = CHAINS, warmup: int = WARMUP, keep: 
         spread = float(1.0 / math.sqrt(lam[0]))
         h = 0.5 / math.sqrt(lam[-1])
     else:
+        # the curvature where the chains start sets the first step and spread (its
+        # magnitudes: the start need not be a minimum)
         centre = np.zeros(d) if start is None else np.asarray(start, float).reshape(d)
-        q = centre + 0.1 * mass.weigh_vector(rng.standard_normal((chains, d)))
-        spread, h = 1.0, 0.1
+        with np.errstate(all="ignore"):
+            lam = np.abs(np.linalg.eigvalsh(mass.weighted(
+                hessian_matrix(pot, centre[None, :], 1e-3 * (np.abs(centre) + 1.0))[0])))
+        lam = lam[np.isfinite(lam) & (lam > 0)]
+        top = float(lam.max()) if lam.size else 1.0
+        spread, h = 1.0 / math.sqrt(float(lam.min()) if lam.size else 1.0), 0.5 / math.sqrt(top)
+        q = centre + 0.1 * spread * mass.weigh_vector(rng.standard_normal((chains, d)))
     with np.errstate(all="ignore"):
         u = pot.energy(q)
         g = pot.gradient(q)

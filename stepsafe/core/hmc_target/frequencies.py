@@ -30,7 +30,7 @@ EXACT_LIMIT = 64
 #: Lanczos steps beyond it (capped at d).
 LANCZOS_STEPS = 40
 #: At most this many draws (evenly spaced through the chains) are examined.
-MAX_DRAWS = 4000
+MAX_DRAWS = 2000
 #: Quantiles of omega_max reported.
 QUANTILES = (0.5, 0.9, 0.99, 1.0)
 
@@ -93,14 +93,26 @@ def spread(target: Target, draws: Draws, *, seed: int = 0, limit: int = MAX_DRAW
     """
     q = _subset(draws, limit)
     scale = _scales(draws.flat)
+    d = target.dimension
     with np.errstate(all="ignore"):
-        if target.dimension <= EXACT_LIMIT:
-            H = hessian_matrix(target.potential, q, scale)
-            W = target.mass.weighted(H)
-            lam = np.linalg.eigvalsh(0.5 * (W + np.swapaxes(W, -1, -2)))
+        if d <= EXACT_LIMIT:
+            # in pieces of draws: d central differences each way per draw
+            rows = max(1, CHUNK_ELEMENTS // (d * d))
+            lam = np.concatenate([_eigenvalues(target, q[i:i + rows], scale)
+                                  for i in range(0, q.shape[0], rows)])
             return Spread(np.sqrt(np.maximum(lam[:, -1], 0.0)), lam[:, 0], "exact")
         top, bottom, residual = lanczos_extremes(target, q, scale, seed=seed)
     return Spread(np.sqrt(np.maximum(top, 0.0)), bottom, "lanczos", residual)
+
+
+def _eigenvalues(target: Target, q: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """The eigenvalues of W at each row of q, ascending."""
+    W = target.mass.weighted(hessian_matrix(target.potential, q, scale))
+    return np.linalg.eigvalsh(0.5 * (W + np.swapaxes(W, -1, -2)))
+
+
+#: The exact path forms the Hessians of at most about this many entries at once.
+CHUNK_ELEMENTS = 2**20
 
 
 def _scales(flat: np.ndarray) -> np.ndarray:
