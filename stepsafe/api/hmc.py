@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from stepsafe.api.hmc_target import on_target, target_of
 from stepsafe.api.inputs import (
     ArrayLike,
     Integrator,
@@ -53,6 +54,8 @@ from stepsafe.api.inputs import (
 )
 from stepsafe.api.reports import DesignReport, HmcReport, HmcRow
 from stepsafe.arguments import public
+from stepsafe.core.hmc_target.advice import TargetReport
+from stepsafe.core.hmc_target.draws import SEED as TARGET_SEED
 from stepsafe.core.roots import EPS
 from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
 from stepsafe.systems.loader import DENSE_LIMIT
@@ -103,15 +106,27 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         trajectory_steps: int | None = None, length: float | str | None = None,
         jitter: float = 0.0, target_accept: float = 0.8, step: float | str | None = None,
         criterion: str = "stability", curve: int = 0, gradient_cost: float = 1.0,
-        allow_unstable_jitter: bool = False) -> HmcReport:
-    """HMC on a Gaussian target with each of ``methods``: the step at target, the
-    acceptance and the cost, methods ranked by gradient evaluations per accepted unit of
-    simulated time.
+        allow_unstable_jitter: bool = False, target_for_every_length: bool = False,
+        logdensity: Callable[..., Any] | None = None,
+        gradient: Callable[..., Any] | None = None, start: ArrayLike | None = None,
+        mass: ArrayLike | None = None, draws: ArrayLike | str | Path | None = None,
+        seed: int = TARGET_SEED) -> HmcReport | TargetReport:
+    """HMC on a target with each of ``methods``: the step at target, the acceptance and
+    the cost, methods ranked by gradient evaluations per accepted unit of simulated time.
 
-    The step at target is the largest whose acceptance reaches ``target_accept`` for
-    every trajectory length (each mode's energy error at its bound over L, rho(h) of
-    Blanes, Casas & Sanz-Serna 2014): the acceptance for one L oscillates with h like
-    sin^2(L theta), and is reported at that step.
+    With L (``trajectory_steps``) or T (``length``) given, the step at target is the
+    largest whose acceptance for that trajectory reaches ``target_accept`` at every step up
+    to it; without, or with ``target_for_every_length=True``, the largest whose acceptance
+    reaches it for every trajectory length (each mode's energy error at its bound over L,
+    rho(h) of Blanes, Casas & Sanz-Serna 2014; the acceptance for one L oscillates with h
+    like sin^2(L theta)). The acceptance is reported for the trajectory given.
+
+    A target that is not Gaussian, ``logdensity`` with ``start`` or a scene or ``system``
+    with ``potential:`` (:mod:`stepsafe.systems.potential`), is never analysed as a
+    Gaussian: the acceptance is estimated on ``draws`` from the target with each method's
+    own trajectories, beside the Laplace figures at the mode, and a
+    :class:`~stepsafe.core.hmc_target.advice.TargetReport` is returned
+    (:mod:`stepsafe.api.hmc_target`). It needs L or T.
 
     Parameters
     ----------
@@ -175,10 +190,31 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
     allow_unstable_jitter : bool
         Search up to the limit itself, as for a fixed step (the fraction of unstable
         draws is then stated).
+    target_for_every_length : bool
+        Reach ``target_accept`` for every trajectory length (the bound over L), not only
+        for the L or T given (Gaussian targets).
+    logdensity : callable, optional
+        ``log pi(q)`` of a target that is not Gaussian: with ``gradient``, a numpy function
+        batched over leading axes (``(..., d) -> (...)``); without, a JAX function of one
+        position (``(d,) -> ()``), differentiated by JAX.
+    gradient : callable, optional
+        ``grad log pi(q)``, ``(..., d) -> (..., d)``.
+    start : array_like, optional
+        A position of shape (d,) inside the support of ``logdensity`` (sets d; the mode
+        search starts there).
+    mass : array_like, optional
+        The mass matrix M of ``logdensity``'s kinetic energy ``p^T M^-1 p / 2``: a number,
+        d masses or a d x d SPD matrix (default: unit masses).
+    draws : array_like or str, optional
+        Draws from a target that is not Gaussian, shape (n, d) or (chains, n, d), or a
+        file (:func:`stepsafe.systems.potential.read_draws`); default: a short adaptive
+        HMC run of stepsafe's own.
+    seed : int
+        Seed of that run and of the estimate's momenta (stated in the report).
 
     Returns
     -------
-    HmcReport
+    HmcReport or TargetReport
         One row per method, ranked; ``to_dict()`` is ``stepsafe hmc --json``.
 
     >>> rows = hmc(["verlet", "bcss2"], sigma=list(np.linspace(0.5, 1.0, 20)), length=5.0).rows
@@ -200,11 +236,26 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
                             f"{str(allow_unstable_jitter)[:20]!r}")
     if isinstance(curve, bool) or not isinstance(curve, int) or not 0 <= curve <= 10_000:
         raise StepsafeError(f"curve must be an integer from 0 to 10000, got {curve!r}")
+    if not isinstance(target_for_every_length, (bool, np.bool_)):
+        raise StepsafeError("target_for_every_length must be True or False, got "
+                            f"{str(target_for_every_length)[:20]!r}")
     integrators = compared_methods(HMC_DEFAULT if methods is None else methods)
     inputs = {"sigma": sigma, "saddle_beta": saddle_beta, "inverted_beta": inverted_beta,
               "modes": modes, "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
               "period": period, "time_unit": time_unit, "labels": labels, "system": system,
               "scene": scene, "zmax": zmax, "budget": budget, "problem": problem}
+    found = target_of(logdensity, gradient, start, mass, scene, system)
+    if found is not None:
+        return _non_gaussian(found, integrators, {**inputs, "beta": beta,
+                                                  "progress": progress},
+                             steps=steps, length=length, jitter=jitter,
+                             target_accept=target_accept, step=step, criterion=criterion,
+                             curve=curve, draws=draws, seed=seed,
+                             allow_unstable_jitter=bool(allow_unstable_jitter),
+                             target_for_every_length=bool(target_for_every_length))
+    if draws is not None:
+        raise StepsafeError("draws= go with a target that is not Gaussian (logdensity= or a "
+                            "potential:); a Gaussian target's acceptance is exact")
     p = problem_of(integrators[0], beta, inputs, times=(step, length))
     if length is not None:
         length = duration(length, "length", p.time_unit)
@@ -216,7 +267,8 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
     rows = []
     for k, integrator in enumerate(integrators):
         rows.append(_row(integrator, betas, errors, trajectory, target, step, criterion,
-                         p.zmax, curve, gradient_cost, bool(allow_unstable_jitter)))
+                         p.zmax, curve, gradient_cost, bool(allow_unstable_jitter),
+                         bool(target_for_every_length)))
         if progress is not None:
             progress((k + 1) / len(integrators))
     # a method that is not reversible does not sample the target: listed, not ranked
@@ -233,7 +285,56 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
     return HmcReport(tuple(out), target, steps, length, jitter, criterion, int(betas.size),
                      (float(positive.min()), float(positive.max())), p.time_unit,
                      bool(np.unique(positive).size > MAX_EXACT_MODES),
-                     bool(allow_unstable_jitter))
+                     bool(allow_unstable_jitter),
+                     bool(target_for_every_length or trajectory.steps is None
+                          and trajectory.length is None))
+
+
+def _non_gaussian(found: Any, integrators: list[Integrator], inputs: dict[str, Any], *,
+                  steps: int | None, length: Any, jitter: float, target_accept: float,
+                  step: Any, criterion: str, curve: int, draws: Any, seed: Any,
+                  allow_unstable_jitter: bool, target_for_every_length: bool) -> TargetReport:
+    """``hmc`` on a target that is not Gaussian (:mod:`stepsafe.api.hmc_target`)."""
+    from stepsafe.units import duration
+
+    others = sorted(k for k, v in inputs.items()
+                    if v is not None and k not in ("scene", "system", "time_unit", "zmax",
+                                                   "progress"))
+    if others:
+        raise StepsafeError(f"give the target once: {others[0]}= beside a log-density or a "
+                            "potential")
+    if criterion != "stability":
+        raise StepsafeError("a target that is not Gaussian is searched below the stability "
+                            "limit of the stiffest draw: criterion structure applies to "
+                            "Gaussian targets only")
+    if curve:
+        raise StepsafeError("curve= (--plot) draws the exact acceptance of a Gaussian target; "
+                            "for this target the acceptance is estimated at the steps "
+                            "searched only")
+    if target_for_every_length:
+        raise StepsafeError("the bound over every trajectory length is a Gaussian figure: for "
+                            "this target the acceptance is estimated for the L (or T) given")
+    time_unit = inputs.get("time_unit")
+    scene = inputs.get("scene")
+    if time_unit is None and scene is not None and hasattr(scene, "time_unit"):
+        time_unit = scene.time_unit
+    elif time_unit is None and isinstance(scene, (str, Path)):
+        from stepsafe.systems.scene import scene_time_unit
+
+        time_unit = scene_time_unit(scene)
+    if length is not None:
+        length = duration(length, "length", time_unit)
+    target, steps, length, jitter = _validated(target_accept, steps, length, jitter)
+    if step is not None:
+        step = positive_finite(duration(step, "step", time_unit), "step")
+    report = on_target(found, integrators, steps=steps, length=length, jitter=jitter,
+                       target_accept=target, step=step, draws=draws, seed=seed,
+                       allow_unstable_jitter=allow_unstable_jitter,
+                       zmax=inputs.get("zmax"))
+    progress = inputs.get("progress")
+    if progress is not None:
+        progress(1.0)
+    return report
 
 
 def _quotient_below(z: float, beta: float) -> float:
@@ -279,7 +380,8 @@ def unstable_fraction(h: float, jitter: float, limit: float) -> float:
 
 def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajectory: Any,
          target: float, step: float | None, criterion: str, zmax: float, curve: int = 0,
-         gradient_cost: float = 1.0, allow_unstable_jitter: bool = False) -> HmcRow:
+         gradient_cost: float = 1.0, allow_unstable_jitter: bool = False,
+         every_length: bool = False) -> HmcRow:
     from stepsafe.core import hmc as core
     from stepsafe.core.advice import first_unsafe_z
     from stepsafe.core.regions import find_region, stable_run
@@ -368,10 +470,13 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
                 "gradients_per_time": (None if per_step is None or acc.rate == 0
                                        else per_step / (acc.rate * h))}
 
-    # the step reaching the target for every trajectory length (the bound rho of each
-    # mode): the acceptance for a given L oscillates with h like sin^2(L theta)
+    # the step reaching the target for the trajectory given (at every step up to it: the
+    # acceptance for a given L oscillates with h like sin^2(L theta)), or for every
+    # trajectory length (the bound rho of each mode) when asked or when L is not given
     bound = core.Trajectory(jitter=jitter)
-    h_target = core.target_step(m, betas, target, h_hi, bound)
+    given = trajectory.steps is not None or trajectory.length is not None
+    h_target = core.target_step(m, betas, target, h_hi,
+                                trajectory if given and not every_length else bound)
     at_target = figures(h_target) if h_target else {}
     if jitter and h_target is not None and h_target == h_hi and not allow_unstable_jitter:
         notes.append(f"h at target is capped at h = {h_hi:.6g}, the {criterion} limit "

@@ -325,17 +325,23 @@ class HmcReport:
     approximate: bool = False
     #: False: the step at target keeps ``h (1 + jitter)`` within the criterion's limit
     allow_unstable_jitter: bool = False
+    #: True: the step at target reaches the target for every trajectory length (the bound
+    #: over L); False: for the L (or T) given
+    target_for_every_length: bool = True
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe hmc ... --json`` prints."""
         return versioned({"target_accept": self.target, "steps": self.steps,
                           "length": self.length,
-                "jitter": self.jitter, "allow_unstable_jitter": self.allow_unstable_jitter,
-                "criterion": self.criterion, "modes": self.modes,
-                "beta_min": self.beta_range[0], "beta_max": self.beta_range[1],
-                "time_unit": self.time_unit, "approximate": self.approximate,
-                "cost_unit": "gradient evaluations", "rounding_gaps": ROUNDING_GAP_RULE,
-                "methods": [copy.deepcopy(_row_dict(r)) for r in self.rows]})
+                          "target_for_every_length": self.target_for_every_length,
+                          "jitter": self.jitter,
+                          "allow_unstable_jitter": self.allow_unstable_jitter,
+                          "criterion": self.criterion, "modes": self.modes,
+                          "beta_min": self.beta_range[0], "beta_max": self.beta_range[1],
+                          "time_unit": self.time_unit, "approximate": self.approximate,
+                          "cost_unit": "gradient evaluations",
+                          "rounding_gaps": ROUNDING_GAP_RULE,
+                          "methods": [copy.deepcopy(_row_dict(r)) for r in self.rows]})
 
 
 def _row_dict(row: HmcRow) -> dict[str, Any]:

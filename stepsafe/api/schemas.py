@@ -162,9 +162,32 @@ HMC_ROW = record({"method": STR, "evaluations": NUM, "symmetric": BOOL,
                   "notes": array(STR), "curve": array(ANY)}, closed=False)
 
 HMC = top({"target_accept": NUM, "steps": INT_OR_NULL, "length": NUM_OR_NULL,
+           "target_for_every_length": BOOL,
            "jitter": NUM, "allow_unstable_jitter": BOOL, "criterion": STR, "modes": INT,
            "beta_min": NUM, "beta_max": NUM, "time_unit": STR_OR_NULL, "approximate": BOOL,
            "cost_unit": STR, "rounding_gaps": STR, "methods": array(HMC_ROW)})
+
+#: A target that is not Gaussian (a potential): figures estimated on draws.
+HMC_TARGET_ROW = record({"method": STR, "evaluations": INT_OR_NULL, "symmetric": BOOL,
+                         "z_star": NUM_OR_NULL, "stability_h": NUM_OR_NULL,
+                         "h_target": NUM_OR_NULL, "steps": INT_OR_NULL,
+                         "acceptance": NUM_OR_NULL, "acceptance_se": NUM_OR_NULL,
+                         "divergent": NUM_OR_NULL, "expected_error": NUM_OR_NULL,
+                         "gradients_per_accepted": NUM_OR_NULL,
+                         "gradients_per_time": NUM_OR_NULL, "rank": INT_OR_NULL,
+                         "laplace_acceptance": NUM_OR_NULL, "laplace_rank": INT_OR_NULL,
+                         "divergence_onset": OBJECT_OR_NULL, "at_step": OBJECT_OR_NULL,
+                         "notes": array(STR)}, closed=False)
+
+HMC_TARGET = top({"target_accept": NUM, "steps": INT_OR_NULL, "length": NUM_OR_NULL,
+                  "jitter": NUM, "allow_unstable_jitter": BOOL, "dimension": INT, "seed": INT,
+                  "cost_unit": STR,
+                  "draws": record({"source": STR, "chains": INT, "per_chain": INT},
+                                  closed=False),
+                  "frequencies": record({"how": STR, "draws": INT, "omega_max": NUM,
+                                         "omega_max_quantiles": OBJECT}, closed=False),
+                  "laplace": OBJECT_OR_NULL, "methods": array(HMC_TARGET_ROW),
+                  "notes": array(STR)})
 
 DESIGN = top({"name": STR, "stages": INT, "params": {"type": "object",
                                                      "additionalProperties": NUM},
@@ -207,7 +230,7 @@ OUTPUTS: dict[str, dict[str, Any]] = {
     "check": CHECK,
     "error": ERROR,
     "compare": COMPARE,
-    "hmc": HMC,
+    "hmc": {"oneOf": [HMC, HMC_TARGET]},
     "design": DESIGN,
     "respa": RESPA,
     "measure": {"oneOf": [top(MEASURE_RUNS), REFINEMENT]},

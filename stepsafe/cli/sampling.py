@@ -47,10 +47,22 @@ PLOT_POINTS = 200
                    "longest jittered steps may then be unstable (their share is noted; "
                    "Stan reports such trajectories as divergent transitions).")
 @click.option("--target-accept", type=FLOAT, default=0.8, show_default=True, metavar="A",
-              help="Acceptance rate to reach (Stan's adapt_delta default).")
+              help="Acceptance rate to reach (Stan's adapt_delta default), for the "
+                   "trajectory given (--steps or --length).")
+@click.option("--target-for-every-length", is_flag=True,
+              help="Reach --target-accept for every trajectory length (the bound over L), "
+                   "not only for the --steps or --length given (Gaussian targets).")
 @click.option("--step", "step", type=DURATION, default=None, metavar="H",
               help="Also predict the acceptance and cost at this step (in the time unit, or "
                    "with one: 0.5fs).")
+@click.option("--draws", "draws_file", default=None, metavar="FILE",
+              help="A target given by its potential: estimate on these draws from it (.npy "
+                   "of shape (n, d) or (chains, n, d), or CSV with a header naming the "
+                   "coordinates and optionally chain) instead of a warm-up run of "
+                   "stepsafe's own.")
+@click.option("--seed", type=INT, default=None, metavar="N",
+              help="A target given by its potential: the seed of the warm-up draws and of "
+                   "the estimate's momenta [default: 20240611].")
 @click.option("--plot", "plot_file", default=None, metavar="FILE.png",
               help="Draw the predicted acceptance against h for each method (needs "
                    "matplotlib).")
@@ -59,9 +71,9 @@ PLOT_POINTS = 200
 @gradient_cost_option
 @target_options
 def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_jitter,
-            target_accept, step, plot_file, tsv, criterion, as_json, gradient_cost,
-            **options) -> None:
-    """HMC on a Gaussian target: acceptance rate, step size and cost per method.
+            target_accept, target_for_every_length, step, draws_file, seed, plot_file, tsv,
+            criterion, as_json, gradient_cost, **options) -> None:
+    """HMC on a target: acceptance rate, step size and cost per method.
 
     The target: standard deviations (--sigma, unit mass), frequencies (--beta =
     1/sigma), a modes file, or a scene whose system: gives a covariance or precision
@@ -72,11 +84,19 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
     gradient evaluations per proposal, per accepted proposal and per accepted unit of
     simulated time, by which methods are ranked. Steps are in the time unit of sigma.
 
+    A scene whose system: gives a potential (U = -log pi, with q: names, optional
+    parameters:, mass: and start:) is not Gaussian: the acceptance (with its standard
+    error), the divergent share and the mean energy error are estimated on draws from
+    the target (a seeded warm-up run, or --draws FILE) with each method's own
+    trajectories, beside the Gaussian figures at the mode (laplace_*); it needs --steps
+    or --length.
+
     \b
     Examples:
       stepsafe hmc --sigma 1 --sigma 0.1 --length 5
       stepsafe hmc --sigma 1 --sigma 0.1 --steps 20 --jitter 0.1 --methods verlet,bcss2
       stepsafe hmc target.yaml --all --json
+      stepsafe hmc banana.yaml --steps 10 --methods verlet,bcss2
     """
     from stepsafe.api.hmc import hmc
     from stepsafe.cli.report import print_json, print_tsv
@@ -86,16 +106,30 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
         raise _input_error("give --methods or --all, not both")
     arrays, labels = command_line_modes(options, scene_file, step, length)
     methods = "all" if use_all else (None if names is None else names.split(","))
+    from stepsafe.api.hmc import TARGET_SEED, TargetReport
     from stepsafe.cli.progressbar import progress_bar
 
     with progress_bar("hmc", not as_json) as progress, _naming_the_modes_file(options):
         report = hmc(methods, modes=arrays or None, labels=labels or None, scene=scene_file,
                      trajectory_steps=steps, length=length, jitter=jitter,
                      allow_unstable_jitter=allow_unstable_jitter, target_accept=target_accept,
+                     target_for_every_length=target_for_every_length,
                      step=step, criterion=criterion, time_unit=options["time_unit"],
                      zmax=options["zmax"], curve=0 if plot_file is None else PLOT_POINTS,
-                     gradient_cost=gradient_cost, progress=progress)
+                     gradient_cost=gradient_cost, progress=progress, draws=draws_file,
+                     seed=TARGET_SEED if seed is None else seed)
     data = report.to_dict()
+    if isinstance(report, TargetReport):
+        if as_json:
+            print_json(data)
+        elif tsv:
+            print_tsv(("rank", "method", "evaluations", "stability_h", "h_target", "steps",
+                       "acceptance", "acceptance_se", "divergent", "expected_error",
+                       "gradients_per_accepted", "gradients_per_time", "laplace_acceptance",
+                       "laplace_rank"), data["methods"])
+        else:
+            print_hmc_target(data, scene_file)
+        return
     if plot_file is not None:
         _plot(data, plot_file)
     if as_json:
@@ -160,9 +194,11 @@ def print_hmc(data: dict[str, Any]) -> None:
                             "proposal" if at["gradients_per_accepted"] is not None else ""))
         for line in lines:
             console.print(_lit(f"{r['method']}: {line}"))
-    console.print("h at target: the largest step whose acceptance reaches the target for "
-                  "every trajectory length; the acceptance shown is for the trajectory given. "
-                  "Ranked by gradient evaluations per accepted unit of simulated time there "
+    console.print("h at target: the largest step whose acceptance reaches the target "
+                  + ("for every trajectory length; the acceptance shown is for the trajectory "
+                     "given. " if data["target_for_every_length"] else
+                     "for the trajectory given at every step up to it. ")
+                  + "Ranked by gradient evaluations per accepted unit of simulated time there "
                   "(equivalently per accepted proposal at a fixed integration time).")
     if data["jitter"]:
         console.print(_lit(
@@ -175,6 +211,80 @@ def print_hmc(data: dict[str, Any]) -> None:
     if any(r["resonance_h"] for r in data["methods"]):
         console.print(_lit(f"M = ±I within rounding: {data['rounding_gaps']} (as design "
                            "counts it)."))
+
+
+def print_hmc_target(data: dict[str, Any], scene_file: str | None) -> None:
+    """The text of ``stepsafe hmc`` for a target given by its potential."""
+    from rich.table import Table
+
+    from stepsafe.cli.report import _console, _lit, fmt, fmt_below
+
+    console = _console()
+    trajectory = (f"L = {data['steps']} steps" if data["steps"] else
+                  f"T = {fmt(data['length'])} (L = floor(T/h))")
+    jitter = f", steps jittered by ±{data['jitter']:g}" if data["jitter"] else ""
+    console.print(_lit(f"Target U = -log pi{f' of {scene_file}' if scene_file else ''} "
+                       f"(d = {data['dimension']}), not Gaussian: acceptance estimated on "
+                       f"draws; {trajectory}{jitter}; target acceptance "
+                       f"{data['target_accept']:g}; seed {data['seed']}"))
+    d, f = data["draws"], data["frequencies"]
+    if d["source"] == "warm-up":
+        console.print(_lit(f"Draws: stepsafe's warm-up HMC, {d['chains']} chains x "
+                           f"{d['per_chain']} (verlet, step {fmt(d['sampler_step'], 4)}, "
+                           f"acceptance {d['sampler_acceptance']:.3g}, "
+                           f"{d['sampler_divergent']} divergent)"))
+    else:
+        console.print(_lit(f"Draws: given, {d['chains']} chain(s) x {d['per_chain']}"))
+    q = f["omega_max_quantiles"]
+    lap = data["laplace"]
+    console.print(_lit(f"Stiffest frequency over {f['draws']} draws ({f['how']}): median "
+                       f"{fmt(q['0.5'], 4)}, 90% {fmt(q['0.9'], 4)}, max {fmt(q['1.0'], 4)}"
+                       + (f"; at the mode {fmt(lap['beta_max'], 4)}"
+                          if lap and lap["beta_max"] is not None else "")
+                       + (f"; {100 * f['inverted_share']:.3g}% of draws have negative "
+                          "curvature" if f["inverted_share"] else "")))
+    table = Table()
+    for col in ("rank", "method", "stability h", "h at target", "L", "acceptance",
+                "divergent", "mean dH", "grads/accepted", "Laplace acceptance",
+                "Laplace rank"):
+        table.add_column(col, overflow="fold")
+    for r in data["methods"]:
+        acc = ("-" if r["acceptance"] is None else
+               f"{r['acceptance']:.3f} ± {r['acceptance_se']:.3f}")
+        table.add_row("-" if r["rank"] is None else str(r["rank"]), r["method"],
+                      "-" if r["stability_h"] is None else fmt_below(r["stability_h"], 4),
+                      "-" if r["h_target"] is None else fmt_below(r["h_target"], 4),
+                      "-" if r["steps"] is None else str(r["steps"]), acc,
+                      "-" if r["divergent"] is None else f"{100 * r['divergent']:.2g}%",
+                      _error_cell(r["expected_error"]),
+                      "-" if r["gradients_per_accepted"] is None else
+                      fmt(r["gradients_per_accepted"], 4),
+                      "-" if r["laplace_acceptance"] is None else
+                      f"{r['laplace_acceptance']:.3f}",
+                      "-" if r["laplace_rank"] is None else str(r["laplace_rank"]))
+    console.print(table)
+    for r in data["methods"]:
+        lines = list(r["notes"])
+        on = r["divergence_onset"]
+        if on is not None and on["h_divergent"] is not None:
+            lines.append(f"divergent proposals start between h = {fmt(on['h_clean'], 4)} and "
+                         f"{fmt(on['h_divergent'], 4)}")
+        at = r["at_step"]
+        if at:
+            lines.append(f"at h = {fmt(at['h'])}: acceptance {at['acceptance']:.3f} ± "
+                         f"{at['acceptance_se']:.3f}, {100 * at['divergent']:.2g}% divergent"
+                         + ("" if at["laplace_acceptance"] is None else
+                            f" (Laplace {at['laplace_acceptance']:.3f})"))
+        for line in lines:
+            console.print(_lit(f"{r['method']}: {line}"))
+    for note in data["notes"]:
+        console.print(_lit(note))
+    console.print("acceptance: E[min(1, exp(-dH))] over the draws with fresh momenta and each "
+                  "method's own trajectories, ± its Monte Carlo standard error; divergent: "
+                  "dH > 1000. h at target stays within the stiffest draw's stability limit"
+                  + (" over 1 + J." if data["jitter"] and not data["allow_unstable_jitter"]
+                     else ".") + " Ranked by gradient evaluations per accepted unit of "
+                  "simulated time on the target; Laplace: the Gaussian at the mode.")
 
 
 def _error_cell(x: float | None) -> str:

@@ -131,6 +131,10 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
         raise _fail(where, "", "must be a mapping (stiffness/mass, hessian or hamiltonian)")
     if "openmm" in tree:
         return _md_system(tree, where, folder, time_unit, progress, method)
+    if "potential" in tree:
+        raise _fail(where, "potential", "a potential (U = -log pi) is a target for HMC: "
+                                        "stepsafe hmc SCENE --steps L; advise and check "
+                                        "analyse a hamiltonian:")
     unknown = set(tree) - SYSTEM_KEYS
     if unknown:
         key = sorted(unknown)[0]

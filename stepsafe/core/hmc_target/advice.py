@@ -50,6 +50,7 @@ from stepsafe.core.hmc_target.estimate import (
 from stepsafe.core.hmc_target.frequencies import Spread, spread
 from stepsafe.core.hmc_target.potential import Target
 from stepsafe.core.hmc_target.trajectories import scheme
+from stepsafe.core.records import versioned
 from stepsafe.core.regions import find_region, stable_run
 from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import Method
@@ -144,7 +145,7 @@ class TargetReport:
     def to_dict(self) -> dict[str, Any]:
         d = self.draws
         lap = self.laplace
-        return {
+        return versioned({
             "target_accept": self.target_accept, "steps": self.trajectory.steps,
             "length": self.trajectory.length, "jitter": self.trajectory.jitter,
             "allow_unstable_jitter": self.allow_unstable_jitter,
@@ -165,7 +166,7 @@ class TargetReport:
                 "gradient_norm": lap.gradient_norm,
                 "beta_min": float(lap.betas[0]) if lap.positive_definite else None,
                 "beta_max": float(lap.betas[-1]) if lap.positive_definite else None},
-            "methods": [r.to_dict() for r in self.rows], "notes": list(self.notes)}
+            "methods": [r.to_dict() for r in self.rows], "notes": list(self.notes)})
 
 
 def _within(h: float, factor: float) -> float:
