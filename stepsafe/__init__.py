@@ -12,6 +12,9 @@ The public API (its modules: :mod:`stepsafe.api`)::
     compare(methods, beta, ...)                 methods ranked by cost at the usable step
     transfer_matrices(method, z, model)         the one-step matrices M(z), shape (n, 2, 2)
     hmc(methods, sigma=..., ...)                HMC on a Gaussian target: acceptance, step, cost
+    hmc(methods, logdensity=f, gradient=g, start=q0, trajectory_steps=L)  ... on your own
+                                                target: acceptance estimated on draws
+    blackjax_hmc(logdensity, q0, steps=L)       BlackJAX's integrator, step and L for a target
     design(sigma=..., step=h, stages=2)         a 2- or 3-stage HMC splitting for your target
     impulse(outer, inner, substeps=, fast_beta=, slow_beta=)  safe outer steps of r-RESPA
     impulse_advice(method, pairs)               ... for several modes (fast, slow) together
@@ -51,6 +54,7 @@ _MODULES = {name: module for module, names in {
     "linear": ("region", "advise", "check", "check_scenes", "errors", "compare",
                "transfer_matrices"),
     "hmc": ("hmc", "design"),
+    "hmc_target": ("blackjax_hmc", "blackjax_sample"),
     "md": ("impulse", "impulse_advice"),
     "measure": ("measure", "refine"),
 }.items() for name in names}
@@ -60,6 +64,10 @@ if TYPE_CHECKING:  # pragma: no cover
     from stepsafe.api.hmc import (  # noqa: F401
         design,
         hmc,
+    )
+    from stepsafe.api.hmc_target import (  # noqa: F401
+        blackjax_hmc,
+        blackjax_sample,
     )
     from stepsafe.api.inputs import (  # noqa: F401
         Integrator,

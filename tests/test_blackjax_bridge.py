@@ -186,3 +186,22 @@ def test_blackjax_acceptance_on_the_banana_is_the_estimate():
     measured = chain_mean(run.acceptance)
     se = np.hypot(measured.se, settings.acceptance_se)
     assert abs(measured.value - settings.acceptance) < 3 * se, (measured, settings.acceptance)
+
+
+@pytest.mark.slow
+@pytest.mark.blackjax
+@needs_blackjax
+def test_readme_blackjax_example_prints_what_it_shows(monkeypatch, capsys):
+    """The README's BlackJAX block runs as written and prints the text block after it."""
+    import re
+    import textwrap
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    readme = (root / "README.md").read_text()
+    (code, shown), = [(c, t) for c, t in re.findall(
+        r"```python\n(.*?)```\n\n```text\n(.*?)```", readme, flags=re.S)
+        if "import blackjax" in c]
+    monkeypatch.chdir(root)
+    exec(compile(textwrap.dedent(code), "README.md", "exec"), {})
+    assert capsys.readouterr().out == shown

@@ -26,6 +26,9 @@ def _kind(name: str) -> str:
         return "data"
     if path.suffix in (".yaml", ".yml"):
         tree = yaml.safe_load(path.read_text())
+        if isinstance(tree, dict) and isinstance(tree.get("system"), dict) and \
+                "potential" in tree["system"]:
+            return "target"
         return "workflow" if isinstance(tree, dict) and "jobs" in tree else "scene"
     if path.suffix == ".py":
         return "program"
@@ -80,6 +83,20 @@ def test_a_data_folder_belongs_to_a_scene(name):
                 named |= {v for v in system.values() if isinstance(v, str)}
     files = {f"{name}/{p.name}" for p in (ROOT / "examples" / name).iterdir()}
     assert files and files <= named, files - named
+
+
+@pytest.mark.parametrize("name", [n for n in EXAMPLES if _kind(n) == "target"])
+def test_target_scene_runs_with_hmc(run, name):
+    """A scene giving a potential is an HMC target: hmc estimates each method's acceptance
+    on draws (a standard error, a divergent share, the Laplace figure beside it)."""
+    code, out, err = run("hmc", str(ROOT / "examples" / name), "--steps", "10",
+                         "--methods", "verlet,bcss2", "--json")
+    assert code == 0, err
+    data = json.loads(out)
+    assert [r["rank"] for r in data["methods"]] == [1, 2]
+    for row in data["methods"]:
+        assert 0 < row["acceptance"] < 1 and row["acceptance_se"] > 0
+        assert row["laplace_acceptance"] is not None and row["divergent"] is not None
 
 
 @pytest.mark.parametrize("name", [n for n in EXAMPLES if _kind(n) == "modes"])

@@ -475,8 +475,10 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
     # trajectory length (the bound rho of each mode) when asked or when L is not given
     bound = core.Trajectory(jitter=jitter)
     given = trajectory.steps is not None or trajectory.length is not None
-    h_target = core.target_step(m, betas, target, h_hi,
-                                trajectory if given and not every_length else bound)
+    h_target = core.target_step(m, betas, target, h_hi, bound)
+    if given and not every_length and h_target is not None and h_target < h_hi:
+        # the given L's acceptance is at least the bound's: its search starts there
+        h_target = core.target_step(m, betas, target, h_hi, trajectory, h_lo=h_target)
     at_target = figures(h_target) if h_target else {}
     if jitter and h_target is not None and h_target == h_hi and not allow_unstable_jitter:
         notes.append(f"h at target is capped at h = {h_hi:.6g}, the {criterion} limit "
@@ -687,8 +689,8 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
         if params_aia is not None:
             extra = [("aia-minimax", family_member(stages, params_aia, "aia-minimax"), stages)]
     for label, tableau, evals in [(name, designed, stages)] + extra + [
-            (ref, (i := compared_methods([ref])[0]).tableau, i.evaluations)
-            for ref in DESIGN_REFERENCES]:
+            (ref, (i := compared_methods([ref])[0]).tableau, int(i.evaluations or 0))
+            for ref in DESIGN_REFERENCES]:  # the references are explicit: evaluations known
         h = step * evals / stages
         if h == 0:
             raise StepsafeError(f"step: {step:g} is so small that {label}'s step at equal "
@@ -708,7 +710,7 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
         if objective == "acceptance":
             row["steps"] = L
             row["gradients_per_accepted"] = (None if acc.rate == 0 or L is None
-                                             or evals is None else evals * L / acc.rate)
+                                             else evals * L / acc.rate)
         rows.append(MappingProxyType(row))
     return DesignReport(name, stages, MappingProxyType(params), step,
                         _method_file(name, stages, params, step, jitter, betas.size,

@@ -526,7 +526,7 @@ PEAK_GRID = 1024
 
 
 def target_step(method: Method, betas: np.ndarray, target: float, h_hi: float,
-                trajectory: Trajectory = Trajectory()) -> float | None:
+                trajectory: Trajectory = Trajectory(), h_lo: float = 0.0) -> float | None:
     """The largest h below ``h_hi`` such that the predicted acceptance is at least
     ``target`` at every step from 0 to h, checked on a grid of :data:`TARGET_GRID` steps and
     at every local maximum of the total error bound ``sum_k rho(beta_k h)`` (located on
@@ -538,13 +538,23 @@ def target_step(method: Method, betas: np.ndarray, target: float, h_hi: float,
     integration time), the acceptance of that L.
 
     The grid is walked upwards and the bound's maxima are looked for only below its first
-    miss: the steps above it cannot change the answer."""
+    miss: the steps above it cannot change the answer. ``h_lo`` (below ``h_hi``) is a step
+    up to which every step is known to reach the target, such as the step at target of the
+    bound over every L when a given L is searched (an L-step trajectory's energy error is
+    within the bound, so its acceptance is at least the bound's): the walk starts there."""
     def excess(h: float) -> float:
         return acceptance_at(method, betas, h, trajectory).rate - target
 
     lo, f_lo = 0.0, 1.0 - target
+    if 0.0 < h_lo < h_hi:
+        lo, f_lo = float(h_lo), excess(float(h_lo))
+        if f_lo < 0:  # not so after all: search from 0
+            lo, f_lo = 0.0, 1.0 - target
+    known = lo  # every step up to it reaches the target
     bad: tuple[float, float] | None = None
     for h in h_hi * (np.arange(1, TARGET_GRID + 1) / TARGET_GRID):
+        if h <= known:
+            continue
         f = excess(float(h))
         if f < 0:
             bad = (float(h), f)
@@ -553,7 +563,7 @@ def target_step(method: Method, betas: np.ndarray, target: float, h_hi: float,
     reach = h_hi if bad is None else bad[0]
     good = [(lo, f_lo)] if lo > 0 else []
     for peak in np.unique(_bound_peaks(method, betas, h_hi, reach)):
-        if not 0 < peak <= reach or (bad is not None and peak >= bad[0]):
+        if not known < peak <= reach or (bad is not None and peak >= bad[0]):
             continue
         f = excess(float(peak))
         if f < 0:

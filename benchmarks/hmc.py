@@ -1,0 +1,151 @@
+"""Time ``hmc`` on 10^5 Gaussian modes with the six default methods, and HMC on a target.
+
+    python benchmarks/hmc.py [--before PATH] [--repeat N] [--timeout S] [--json FILE]
+
+Each case runs in its own process (``python -c``, one BLAS thread) and reports its wall
+time and CPU time (user + system of the child: on a shared machine the CPU time is the
+steadier figure), the median of ``--repeat`` runs. With ``--before PATH`` (a checkout of
+another commit, e.g. ``git worktree add /tmp/before <commit>``) every case also runs
+against that source tree, the two interleaved run by run, side by side; a run past
+``--timeout`` seconds is stopped and reported as such.
+
+Cases: ``hmc(None, sigma=S)`` with 10^5 standard deviations S log-uniform on [0.1, 1]
+(seed 0) and L unknown (the bound over L), L = 20, jitter 0.1, and L = 20 with jitter 0.1;
+and :func:`stepsafe.core.hmc_target.advice.hmc_on_target` on the banana
+``x^2/2 + (y - 0.3 x^2)^2/2`` with verlet and bcss2 at L = 10 (warm-up draws, the
+frequency spread, the step searches, the Laplace figures and the divergence scan).
+
+Measured on this project's machine (x86_64, 2 cores, Python 3.11.7, numpy 2.4) with the
+load average at 5-8 from other jobs, one run each. Before: commit e308a04; after: the
+step search narrowed by regula falsi over a grid walked upwards, M(z) of a splitting off
+the jet, the jitter rule's kinks located by Illinois.
+
+========================================  ==================  ==================
+case                                      before: wall, CPU   after: wall, CPU
+========================================  ==================  ==================
+10^5 modes, L unknown                     RESULTS_1
+10^5 modes, L = 20                        RESULTS_2
+10^5 modes, jitter 0.1                    RESULTS_3
+10^5 modes, L = 20, jitter 0.1            RESULTS_4
+banana c = 0.3, verlet + bcss2, L = 10    RESULTS_5
+========================================  ==================  ==================
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+SETUP = ("import inspect\n"
+         "import numpy as np\n"
+         "from stepsafe import hmc\n"
+         "L = ('trajectory_steps' if 'trajectory_steps' in inspect.signature(hmc).parameters\n"
+         "     else 'steps')\n"
+         "sigma = np.exp(np.random.default_rng(0).uniform(np.log(0.1), 0.0, 10**5))\n")
+BANANA = (
+    "import numpy as np\n"
+    "from stepsafe.api import method\n"
+    "from stepsafe.core.hmc import Trajectory\n"
+    "from stepsafe.core.hmc_target.advice import hmc_on_target\n"
+    "from stepsafe.core.hmc_target.potential import CallablePotential, target\n"
+    "def energy(q):\n"
+    "    x, y = q[..., 0], q[..., 1]\n"
+    "    return 0.5 * x * x + 0.5 * (y - 0.3 * x * x) ** 2\n"
+    "def gradient(q):\n"
+    "    x, y = q[..., 0], q[..., 1]\n"
+    "    r = y - 0.3 * x * x\n"
+    "    return np.stack([x - 0.6 * x * r, r], axis=-1)\n"
+    "hmc_on_target(target(CallablePotential(energy, gradient, 2)),\n"
+    "              [method('verlet').tableau, method('bcss2').tableau], Trajectory(steps=10))\n")
+CASES = {
+    "10^5 modes, L unknown": SETUP + "hmc(None, sigma=sigma)\n",
+    "10^5 modes, L = 20": SETUP + "hmc(None, sigma=sigma, **{L: 20})\n",
+    "10^5 modes, jitter 0.1": SETUP + "hmc(None, sigma=sigma, jitter=0.1)\n",
+    "10^5 modes, L = 20, jitter 0.1": SETUP + "hmc(None, sigma=sigma, jitter=0.1, **{L: 20})\n",
+    "banana c = 0.3, verlet + bcss2, L = 10": BANANA,
+}
+
+
+def timed(code: str, tree: str | None, timeout: float) -> tuple[float, float, bool]:
+    """(wall seconds, child CPU seconds, finished) of ``python -c CODE`` with ``tree``
+    first on the import path (None: this checkout)."""
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
+               MKL_NUM_THREADS="1")
+    root = tree or os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    start = time.perf_counter()
+    try:
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              env=env, cwd=root, timeout=timeout)
+        finished = done.returncode == 0
+        if not finished:
+            print(done.stderr[-2000:], file=sys.stderr)
+    except subprocess.TimeoutExpired:
+        finished = False
+    wall = time.perf_counter() - start
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, cpu, finished
+
+
+def _cell(runs: list[tuple[float, float, bool]], timeout: float) -> str:
+    if not runs:
+        return "-"
+    if not all(ok for _, _, ok in runs):
+        return f"> {timeout:.0f} s (stopped)"
+    return (f"{statistics.median(w for w, _, _ in runs):.1f} s, "
+            f"{statistics.median(c for _, c, _ in runs):.1f} s")
+
+
+def _ratio(before: list[tuple[float, float, bool]],
+           after: list[tuple[float, float, bool]]) -> str:
+    """Before over after, of the median CPU time ('>' when the before run was stopped)."""
+    if not before or not after or not all(ok for _, _, ok in after):
+        return "-"
+    cpu_after = statistics.median(c for _, c, _ in after)
+    cpu_before = statistics.median(c for _, c, _ in before)
+    sign = "" if all(ok for _, _, ok in before) else "> "
+    return f"{sign}{cpu_before / cpu_after:.1f}x" if cpu_after > 0 else "-"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--before", default=None, help="another source tree to compare")
+    parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument("--timeout", type=float, default=600.0)
+    parser.add_argument("--only", default=None, help="run the cases whose name has this")
+    parser.add_argument("--json", dest="json_path", default=None)
+    args = parser.parse_args()
+    print(f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+          f"load average {os.getloadavg()[0]:.1f}, Python {platform.python_version()}")
+    print(f"{'case':<40}  {'before: wall, CPU':<22}  {'after: wall, CPU':<22}  "
+          "CPU before / after")
+    rows = []
+    for label, code in CASES.items():
+        if args.only and args.only not in label:
+            continue
+        before, after = [], []
+        for _ in range(args.repeat):  # interleaved: before, after, before, after, ...
+            if args.before is not None and "banana" not in label:
+                before.append(timed(code, args.before, args.timeout))
+            after.append(timed(code, None, args.timeout))
+        row = {"case": label, "before": _cell(before, args.timeout),
+               "after": _cell(after, args.timeout), "ratio": _ratio(before, after)}
+        rows.append(row)
+        print(f"{label:<40}  {row['before']:<22}  {row['after']:<22}  {row['ratio']}",
+              flush=True)
+    if args.json_path:
+        with open(args.json_path, "w") as f:
+            json.dump(rows, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
