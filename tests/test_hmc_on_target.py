@@ -194,3 +194,26 @@ def test_advise_on_a_potential_scene_says_it_is_an_hmc_target(run, tmp_path):
 def test_bad_log_densities_are_refused(kwargs, match):
     with pytest.raises(StepsafeError, match=match):
         hmc(["verlet"], trajectory_steps=5, **kwargs)
+
+
+def test_the_readme_banana_figures():
+    """The figures the README quotes for examples/banana.yaml with verlet at L = 10: the
+    Gaussian at the mode predicts 0.92 at the step at target (about 0.80, the stiffest
+    draw's limit), the estimate is 0.88 with 0.6% divergent, divergences start near h =
+    0.68 (to the Monte Carlo error of the seeded draws)."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    readme = (root / "README.md").read_text()
+    text = " ".join(readme.split())
+    assert ("predicts 0.92 for verlet with L = 10 at its step at target (h ≈ 0.80" in text
+            and "estimates 0.88 ± 0.003 there, with 0.6% of the proposals divergent" in text
+            and "divergences starting at h ≈ 0.68" in text)
+    row = hmc(["verlet"], scene=str(root / "examples" / "banana.yaml"),
+              trajectory_steps=10).rows[0]
+    assert abs(row.h_target - 0.80) < 0.005 and round(row.laplace_acceptance, 2) == 0.92
+    assert row.h_target == row.stability_h
+    assert abs(row.estimate.acceptance - 0.88) < 0.005 + 3 * row.estimate.acceptance_se
+    assert row.estimate.acceptance_se < 0.005
+    assert 0.003 < row.estimate.divergent < 0.01
+    assert abs(row.onset.h_clean - 0.68) < 0.01 and row.onset.h_divergent < 0.69

@@ -192,7 +192,7 @@ def test_scene_schema_is_the_code_s():
     assert block == _output("schema", "scene")
 
 
-@pytest.mark.slow  # about 13 s: the jittered acceptance of 1000 modes for four methods
+@pytest.mark.slow  # about 30 s: the jittered acceptance of 1000 modes for four methods, for L
 def test_hmc_output():
     target = str(ROOT / "examples/gaussian-1000.csv")
     hmc = _output("hmc", "--modes", target, "--length", "5", "--jitter", "0.1", "--methods",
