@@ -14,7 +14,6 @@ The public API (its modules: :mod:`stepsafe.api`)::
     hmc(methods, sigma=..., ...)                HMC on a Gaussian target: acceptance, step, cost
     hmc(methods, logdensity=f, gradient=g, start=q0, trajectory_steps=L)  ... on your own
                                                 target: acceptance estimated on draws
-    blackjax_hmc(logdensity, q0, steps=L)       BlackJAX's integrator, step and L for a target
     design(sigma=..., step=h, stages=2)         a 2- or 3-stage HMC splitting for your target
     impulse(outer, inner, substeps=, fast_beta=, slow_beta=)  safe outer steps of r-RESPA
     impulse_advice(method, pairs)               ... for several modes (fast, slow) together
@@ -54,7 +53,6 @@ _MODULES = {name: module for module, names in {
     "linear": ("region", "advise", "check", "check_scenes", "errors", "compare",
                "transfer_matrices"),
     "hmc": ("hmc", "design"),
-    "hmc_target": ("blackjax_hmc", "blackjax_sample"),
     "md": ("impulse", "impulse_advice"),
     "measure": ("measure", "refine"),
 }.items() for name in names}
@@ -64,10 +62,6 @@ if TYPE_CHECKING:  # pragma: no cover
     from stepsafe.api.hmc import (  # noqa: F401
         design,
         hmc,
-    )
-    from stepsafe.api.hmc_target import (  # noqa: F401
-        blackjax_hmc,
-        blackjax_sample,
     )
     from stepsafe.api.inputs import (  # noqa: F401
         Integrator,

@@ -151,8 +151,8 @@ def _gaussian_logdensity(q):
 @needs_blackjax
 @pytest.mark.parametrize("name, jitter", [("bcss2", 0.1), ("verlet", 0.0)])
 def test_blackjax_acceptance_on_a_gaussian_is_the_prediction(name, jitter):
-    settings = bridge.blackjax_hmc(_gaussian_logdensity, np.ones(10), method=name, steps=10,
-                                   jitter=jitter, target_accept=0.75)
+    settings = bridge.blackjax_hmc(_gaussian_logdensity, np.ones(10), method=name,
+                                   trajectory_steps=10, jitter=jitter, target_accept=0.75)
     assert settings.method == name and settings.num_integration_steps == 10
     predicted = gaussian.acceptance_at(method(name), 1.0 / SIGMA, settings.step_size,
                                        Trajectory(steps=10, jitter=jitter))
@@ -178,7 +178,7 @@ def _banana_logdensity(q):
 @needs_blackjax
 def test_blackjax_acceptance_on_the_banana_is_the_estimate():
     settings = bridge.blackjax_hmc(_banana_logdensity, np.array([0.1, 0.2]),
-                                   method="verlet", steps=10)
+                                   method="verlet", trajectory_steps=10)
     rng = np.random.default_rng(5)
     x = rng.standard_normal(256)
     start = np.stack([x, 0.3 * x * x + rng.standard_normal(256)], axis=1)  # exact draws

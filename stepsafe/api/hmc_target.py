@@ -226,39 +226,4 @@ def on_target(found: PotentialTarget, integrators: Sequence[Integrator], *,
                          zmax=10.0 if zmax is None else float(zmax))
 
 
-def blackjax_hmc(logdensity: Callable, initial_position: Any, **options: Any) -> Any:
-    """The integrator, step size and number of steps stepsafe recommends for BlackJAX's
-    HMC on a JAX log-density (:func:`stepsafe.systems.blackjax_bridge.blackjax_hmc`, whose
-    keywords it takes: ``method``, ``target_accept``, ``steps``, ``jitter``,
-    ``inverse_mass_matrix``, ``draws``, ``seed``).
-
-    Returns
-    -------
-    stepsafe.systems.blackjax_bridge.Settings
-        ``integrator``, ``step_size``, ``num_integration_steps`` and
-        ``inverse_mass_matrix`` for ``blackjax.hmc``; the estimate behind them.
-    """
-    from stepsafe.systems import blackjax_bridge
-
-    return blackjax_bridge.blackjax_hmc(logdensity, initial_position, **options)
-
-
-def blackjax_sample(settings: Any, logdensity: Callable, initial_positions: Any,
-                    num_samples: int, **options: Any) -> Any:
-    """Run BlackJAX's HMC kernel with ``settings`` from :func:`blackjax_hmc`
-    (:func:`stepsafe.systems.blackjax_bridge.sample`: the jittered step drawn afresh each
-    iteration, chains vectorised).
-
-    Returns
-    -------
-    stepsafe.systems.blackjax_bridge.Run
-        Positions, acceptance statistics and divergence flags as numpy arrays.
-    """
-    from stepsafe.systems import blackjax_bridge
-
-    return blackjax_bridge.sample(settings, logdensity, initial_positions, num_samples,
-                                  **options)
-
-
-__all__ = ["SEED", "TargetReport", "blackjax_hmc", "blackjax_sample", "callable_target",
-           "on_target", "target_of"]
+__all__ = ["SEED", "TargetReport", "callable_target", "on_target", "target_of"]

@@ -200,12 +200,12 @@ class Settings:
 
 def blackjax_hmc(logdensity: Callable, initial_position: Any, *,
                  method: Any | Sequence[Any] | None = None, target_accept: float = 0.8,
-                 steps: int = 10, jitter: float = 0.0,
+                 trajectory_steps: int = 10, jitter: float = 0.0,
                  inverse_mass_matrix: Any | None = None, draws: Any | None = None,
                  seed: int = SEED) -> Settings:
     """The integrator, step size and number of steps stepsafe recommends for BlackJAX's HMC
-    on a JAX log-density: the step reaching ``target_accept`` at ``steps`` steps per
-    trajectory, estimated on the target itself (:mod:`stepsafe.core.hmc_target`), with
+    on a JAX log-density: the step reaching ``target_accept`` at ``trajectory_steps`` steps
+    per trajectory, estimated on the target itself (:mod:`stepsafe.core.hmc_target`), with
     ``h (1 + jitter)`` within the stability limit of the stiffest region the draws visit.
 
     Parameters
@@ -220,8 +220,9 @@ def blackjax_hmc(logdensity: Callable, initial_position: Any, *,
         :data:`DEFAULT_METHODS`.
     target_accept
         The acceptance to reach.
-    steps
-        L, the number of integration steps per trajectory.
+    trajectory_steps
+        L, the number of integration steps per trajectory (BlackJAX's
+        ``num_integration_steps``).
     jitter
         Relative jitter J of the step (each iteration draws ``h (1 + J u)``).
     inverse_mass_matrix
@@ -253,7 +254,12 @@ def blackjax_hmc(logdensity: Callable, initial_position: Any, *,
     for m in tableaux:
         coefficients(m)  # refuse what BlackJAX cannot run before any work
     given = None if draws is None else given_draws(draws, d)
-    report = hmc_on_target(target, tableaux, Trajectory(steps=steps, jitter=jitter),
+    steps = trajectory_steps
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or \
+            not 1 <= steps <= 10**6:
+        raise StepsafeError(f"trajectory_steps must be an integer from 1 to 1000000, got "
+                            f"{steps!r}")
+    report = hmc_on_target(target, tableaux, Trajectory(steps=int(steps), jitter=jitter),
                            target_accept=target_accept, draws=given, seed=seed, start=q0,
                            onset=False)
     best = next((r for r in report.rows if r.rank == 1), None)
