@@ -345,7 +345,7 @@ def _jitter_rule(method: Method, values: np.ndarray, h: float, jitter: float,
     base = max(1.0, JITTER_PANELS * 2.0 * jitter) * (1 if steps is None else 4)
     x, w = _GL8
     grading = 0.5 ** np.arange(1, EDGE_LEVELS + 1)
-    edges = []
+    pieces: list[np.ndarray] = []
     for lo, hi in zip(cuts_sorted[:-1], cuts_sorted[1:]):
         n = max(1, int(np.ceil(base * (hi - lo) / 2.0)))
         piece = [np.linspace(lo, hi, n + 1)]
@@ -356,8 +356,8 @@ def _jitter_rule(method: Method, values: np.ndarray, h: float, jitter: float,
             piece.append(lo + (hi - lo) * grading / n)
         if hi in cliffs:
             piece.append(hi - (hi - lo) * grading / n)
-        edges.append(np.concatenate(piece))
-    edges = distinct(np.concatenate(edges))
+        pieces.append(np.concatenate(piece))
+    edges = distinct(np.concatenate(pieces))
     approximate = False
     if steps is not None:
         edges, approximate = _follow_turns(method, top, h, jitter, steps, edges)
