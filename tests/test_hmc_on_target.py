@@ -217,3 +217,30 @@ def test_the_readme_banana_figures():
     assert row.estimate.acceptance_se < 0.005
     assert 0.003 < row.estimate.divergent < 0.01
     assert abs(row.onset.h_clean - 0.68) < 0.01 and row.onset.h_divergent < 0.69
+
+
+@pytest.mark.blackjax
+def test_a_jax_log_density_without_gradient_is_differentiated_by_jax():
+    """The same banana as a JAX function (no gradient given) and as numpy callables, on the
+    same draws and seed: the same estimate (the gradients agree to rounding)."""
+    pytest.importorskip("jax")
+    import jax.numpy as jnp
+
+    def log_jax(q):
+        return -0.5 * q[0] ** 2 - 0.5 * (q[1] - 0.3 * q[0] ** 2) ** 2
+
+    def log_np(q):
+        return -0.5 * q[..., 0] ** 2 - 0.5 * (q[..., 1] - 0.3 * q[..., 0] ** 2) ** 2
+
+    def grad_np(q):
+        x, y = q[..., 0], q[..., 1]
+        r = y - 0.3 * x * x
+        return np.stack([-x + 0.6 * x * r, -r], axis=-1)
+
+    draws = banana_draws(0.3, 200, 11)
+    common = dict(trajectory_steps=10, step=1.0, draws=draws, start=np.zeros(2))
+    by_jax = hmc(["verlet"], logdensity=log_jax, **common).rows[0].at_step
+    by_numpy = hmc(["verlet"], logdensity=log_np, gradient=grad_np, **common).rows[0].at_step
+    assert jnp is not None and 0.3 < by_jax.acceptance < 0.95
+    assert by_jax.acceptance == pytest.approx(by_numpy.acceptance, abs=1e-9)
+    assert by_jax.divergent == by_numpy.divergent
