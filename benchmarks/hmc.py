@@ -51,7 +51,7 @@ SETUP = ("import inspect\n"
          "sigma = np.exp(np.random.default_rng(0).uniform(np.log(0.1), 0.0, 10**5))\n")
 BANANA = (
     "import numpy as np\n"
-    "from stepsafe.api import method\n"
+    "from stepsafe import method\n"
     "from stepsafe.core.hmc import Trajectory\n"
     "from stepsafe.core.hmc_target.advice import hmc_on_target\n"
     "from stepsafe.core.hmc_target.potential import CallablePotential, target\n"
@@ -73,8 +73,8 @@ CASES = {
 }
 
 
-def timed(code: str, tree: str | None, timeout: float) -> tuple[float, float, bool]:
-    """(wall seconds, child CPU seconds, finished) of ``python -c CODE`` with ``tree``
+def timed(code: str, tree: str | None, timeout: float) -> tuple[float, float, str]:
+    """(wall seconds, child CPU seconds, ok|stopped|failed) of ``python -c CODE`` with ``tree``
     first on the import path (None: this checkout)."""
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1",
                MKL_NUM_THREADS="1")
@@ -85,34 +85,40 @@ def timed(code: str, tree: str | None, timeout: float) -> tuple[float, float, bo
     try:
         done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                               env=env, cwd=root, timeout=timeout)
-        finished = done.returncode == 0
-        if not finished:
+        status = "ok" if done.returncode == 0 else "failed"
+        if status == "failed":
             print(done.stderr[-2000:], file=sys.stderr)
     except subprocess.TimeoutExpired:
-        finished = False
+        status = "stopped"
     wall = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    return wall, cpu, finished
+    return wall, cpu, status
 
 
-def _cell(runs: list[tuple[float, float, bool]], timeout: float) -> str:
+Run = tuple[float, float, str]
+
+
+def _cell(runs: list[Run], timeout: float) -> str:
     if not runs:
         return "-"
-    if not all(ok for _, _, ok in runs):
-        return f"> {timeout:.0f} s (stopped)"
+    if any(status == "failed" for _, _, status in runs):
+        return "failed (stderr above)"
+    if any(status == "stopped" for _, _, status in runs):
+        return (f"> {timeout:.0f} s (stopped; "
+                f"{statistics.median(c for _, c, _ in runs):.0f} s CPU)")
     return (f"{statistics.median(w for w, _, _ in runs):.1f} s, "
             f"{statistics.median(c for _, c, _ in runs):.1f} s")
 
 
-def _ratio(before: list[tuple[float, float, bool]],
-           after: list[tuple[float, float, bool]]) -> str:
+def _ratio(before: list[Run], after: list[Run]) -> str:
     """Before over after, of the median CPU time ('>' when the before run was stopped)."""
-    if not before or not after or not all(ok for _, _, ok in after):
+    if not before or not after or any(status != "ok" for _, _, status in after) or \
+            any(status == "failed" for _, _, status in before):
         return "-"
     cpu_after = statistics.median(c for _, c, _ in after)
     cpu_before = statistics.median(c for _, c, _ in before)
-    sign = "" if all(ok for _, _, ok in before) else "> "
+    sign = "" if all(status == "ok" for _, _, status in before) else "> "
     return f"{sign}{cpu_before / cpu_after:.1f}x" if cpu_after > 0 else "-"
 
 

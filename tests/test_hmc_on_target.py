@@ -244,3 +244,18 @@ def test_a_jax_log_density_without_gradient_is_differentiated_by_jax():
     assert jnp is not None and 0.3 < by_jax.acceptance < 0.95
     assert by_jax.acceptance == pytest.approx(by_numpy.acceptance, abs=1e-9)
     assert by_jax.divergent == by_numpy.divergent
+
+
+def test_many_modes_with_jitter_take_the_bound_for_the_given_length_and_say_so():
+    """With jitter, beyond 2048 distinct frequencies the step at target for the L given is
+    the bound's over every L (which holds for that L too: its acceptance there, reported,
+    is at least the target), a note and target_for_every_length say so."""
+    sigma = np.exp(np.random.default_rng(2).uniform(np.log(0.2), 0.0, 2100))
+    report = hmc(["verlet"], sigma=list(sigma), trajectory_steps=8, jitter=0.05)
+    row = report.rows[0]
+    assert report.target_for_every_length and report.to_dict()["target_for_every_length"]
+    assert any("for every trajectory length, so for the one given too" in n for n in row.notes)
+    assert row.acceptance >= 0.8
+    bound = gaussian.acceptance_at(method("verlet"), 1 / sigma, row.h_target,
+                                   gaussian.Trajectory(jitter=0.05))
+    assert bound.rate >= 0.8 - 1e-9

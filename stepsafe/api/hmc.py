@@ -287,7 +287,8 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
                      bool(np.unique(positive).size > MAX_EXACT_MODES),
                      bool(allow_unstable_jitter),
                      bool(target_for_every_length or trajectory.steps is None
-                          and trajectory.length is None))
+                          and trajectory.length is None
+                          or not _given_length_searched(betas, jitter)))
 
 
 def _non_gaussian(found: Any, integrators: list[Integrator], inputs: dict[str, Any], *,
@@ -376,6 +377,16 @@ def unstable_fraction(h: float, jitter: float, limit: float) -> float:
     share = ((longest - limit) / (2.0 * jitter * h) if np.isfinite(longest) else
              (1.0 + jitter - limit / h) / (2.0 * jitter))  # h near float64's largest
     return float(min(max(share, float(np.nextafter(0.0, 1.0))), float(np.nextafter(1.0, 0.0))))
+
+
+def _given_length_searched(betas: np.ndarray, jitter: float) -> bool:
+    """Whether the step at target is searched for the L given (else the bound over every L
+    stands for it): always without jitter; with jitter up to
+    :data:`stepsafe.core.hmc.MAX_EXACT_MODES` distinct frequencies, beyond which each step
+    of that search costs seconds to minutes."""
+    from stepsafe.core.hmc import MAX_EXACT_MODES
+
+    return not jitter or np.unique(betas).size <= MAX_EXACT_MODES
 
 
 def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajectory: Any,
@@ -477,8 +488,15 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
     given = trajectory.steps is not None or trajectory.length is not None
     h_target = core.target_step(m, betas, target, h_hi, bound)
     if given and not every_length and h_target is not None and h_target < h_hi:
-        # the given L's acceptance is at least the bound's: its search starts there
-        h_target = core.target_step(m, betas, target, h_hi, trajectory, h_lo=h_target)
+        if _given_length_searched(betas, jitter):
+            # the given L's acceptance is at least the bound's: its search starts there
+            h_target = core.target_step(m, betas, target, h_hi, trajectory, h_lo=h_target)
+        else:
+            notes.append(f"h at target reaches the target for every trajectory length, so for "
+                         f"the one given too: with jitter, the search for the L given is not "
+                         f"made on more than {core.MAX_EXACT_MODES} distinct frequencies (each "
+                         "of its steps averages every mode over the turns of L theta across "
+                         "the jitter); the acceptance shown is for the L given")
     at_target = figures(h_target) if h_target else {}
     if jitter and h_target is not None and h_target == h_hi and not allow_unstable_jitter:
         notes.append(f"h at target is capped at h = {h_hi:.6g}, the {criterion} limit "
