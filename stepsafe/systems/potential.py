@@ -11,9 +11,9 @@
 
 ``U`` is the restricted expression language of :mod:`stepsafe.files.expressions` (never
 ``eval``) with the functions of :mod:`stepsafe.systems.manydof` (sin, cos, exp, log, sqrt,
-cosh, sinh, tanh). Its gradient is exact: U is evaluated on first-order dual numbers
-over every draw at once (forward-mode automatic differentiation,
-:class:`stepsafe.systems.manydof.Dual`), never finite differences. The kinetic energy is
+cosh, sinh, tanh). Its gradient and Hessian are exact: U is compiled with its symbolic
+derivatives (:mod:`stepsafe.systems.compiler`) and evaluated over every draw at once, never
+by finite differences. The kinetic energy is
 ``p^T M^-1 p / 2`` with the mass M (unit masses by default), as HMC runs it.
 
 A draws file (``--draws FILE``) holds positions from the target: ``.npy`` of shape (n, d)
@@ -46,35 +46,27 @@ MAX_DRAWS_BYTES = 256 << 20
 @dataclass(frozen=True, eq=False)
 class ExpressionPotential:
     """``U(q)`` from an expression in the named coordinates, batched over leading axes,
-    with its exact gradient (module docstring)."""
+    with its exact gradient and Hessian (module docstring)."""
 
     text: str
     names: tuple[str, ...]
-    program: Any  # a stepsafe.systems.manydof.ManyDofHamiltonian in q alone
+    program: Any  # a stepsafe.systems.compiler.Compiled of U in q
 
     @property
     def dimension(self) -> int:
         return len(self.names)
 
-    def _dual(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        q = np.asarray(q, dtype=float)
-        flat = q.reshape(-1, self.dimension)
-        if flat.shape[0] == 0:
-            return np.zeros(0), np.zeros((0, self.dimension))
-        out = self.program.dual(flat)
-        value = np.broadcast_to(np.asarray(out.v, dtype=float), flat.shape[:1])
-        grad = np.broadcast_to(np.asarray(out.d, dtype=float), flat.shape[::-1]).T
-        return value, grad
-
     def energy(self, q: np.ndarray) -> np.ndarray:
         """U at the rows of q (shape (..., d) -> (...))."""
-        value, _ = self._dual(q)
-        return value.reshape(np.shape(q)[:-1])
+        return np.asarray(self.program.energy(np.asarray(q, dtype=float)), dtype=float)
 
     def gradient(self, q: np.ndarray) -> np.ndarray:
         """grad U at the rows of q (shape (..., d) -> (..., d))."""
-        _, grad = self._dual(q)
-        return grad.reshape(np.shape(q))
+        return self.program.gradient(np.asarray(q, dtype=float))
+
+    def hessian(self, q: np.ndarray) -> np.ndarray:
+        """The Hessian of U at the rows of q (shape (..., d) -> (..., d, d))."""
+        return self.program.hessian(np.asarray(q, dtype=float))
 
 
 @dataclass(frozen=True)
@@ -112,7 +104,8 @@ def potential_target(tree: Any, where: str = "") -> PotentialTarget:
     -------
     PotentialTarget
     """
-    from stepsafe.systems.manydof import FUNCTIONS, ManyDofHamiltonian
+    from stepsafe.systems.compiler import Compiled, from_tree
+    from stepsafe.systems.manydof import FUNCTIONS
     from stepsafe.systems.scene import number
 
     if not is_potential(tree):
@@ -154,8 +147,7 @@ def potential_target(tree: Any, where: str = "") -> PotentialTarget:
     if unknown:
         raise _fail(where, "potential", f"unknown name {sorted(unknown)[0]!r} (use the names "
                                         "of q:, the parameters and pi)")
-    program = ManyDofHamiltonian(text, tuple(names), (), params, expr.tree, None,
-                                 where)
+    program = Compiled(from_tree(expr.tree, text.strip(), tuple(names), params), tuple(names))
     potential = ExpressionPotential(text, tuple(names), program)
     d = len(names)
     mass = tree.get("mass")
