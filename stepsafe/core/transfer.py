@@ -122,7 +122,7 @@ def _splitting_matrix(method: Splitting, z: np.ndarray, model: str) -> np.ndarra
     or rounding bounds, the same operations in the same order on the four entries held
     apart (bit for bit its ``M``, at a fraction of the cost on large arrays of z)."""
     D = [[np.zeros(z.size), np.zeros(z.size)], [np.zeros(z.size), np.zeros(z.size)]]
-    for src, dst, c, power in _row_ops(method, model):
+    for src, dst, c, power in row_ops(method, model):
         cz = _scaled_power(c, z, power)
         old = [D[src][0], D[src][1]]
         old[src] = old[src] + 1.0
