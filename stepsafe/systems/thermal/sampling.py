@@ -1,0 +1,328 @@
+"""Configurations of a potential at temperature: draws from ``exp(-U(q) / kT)``.
+
+Three ways, the most exact that applies:
+
+* **quadratic U** (``U = U0 + x^T K x / 2``, ``x = q - q0``, K positive definite): exact
+  Gaussian draws ``x = sqrt(kT) L^-T xi`` with ``K = L L^T`` (Cholesky), ``xi ~ N(0, I)``;
+* **one coordinate**: exact draws by the inverse of the distribution function, tabulated by
+  the trapezoid rule on a uniform grid over the well of the minimum up to ``U - U(q0) =
+  cut kT`` on both sides (the mass beyond is below ``e^-cut`` relative);
+* otherwise **Langevin dynamics**, BAOAB (Leimkuhler & Matthews 2013): with ``F = -grad U``
+  and ``c = exp(-gamma h)``, one step is ``p += h F / 2; q += h M^-1 p / 2;
+  p = c p + sqrt((1 - c^2) kT) M^1/2 xi; q += h M^-1 p / 2; p += h F / 2``. Its
+  configurations sample ``exp(-U / kT)`` exactly for a quadratic U at every stable step and
+  with an O(h^2) bias otherwise; the step is conservative, ``h = z_sample / omega_max`` with
+  ``omega_max`` the largest 0 K frequency at the minimum (default ``z_sample = 0.1``), and the
+  friction ``gamma = 2 omega_min`` damps the slowest 0 K mode critically (every other mode is
+  underdamped and relaxes at the rate gamma). Chains start from the harmonic
+  approximation's exact draws (a configuration near equilibrium) with thermal momenta, are
+  run ``burn_in`` steps (``burn_damping / (gamma h)``: that many relaxation times), and
+  ``U`` along the second half of the burn-in gives its integrated autocorrelation time
+  ``tau`` (in steps; Sokal's automatic window, ``W >= 5 tau``; the burn-in is doubled, up
+  to six times, until that record spans ``SPAN tau``, else a note says so). Frames are then
+  taken every ``thin = ceil(2 tau)`` steps, several chains advancing together as rows of
+  one array.
+
+Every draw comes from ``numpy.random.default_rng(seed)`` in a fixed order: the same seed
+gives the same configurations, bit for bit, on one machine.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from stepsafe.exceptions import StepsafeError, positive_finite
+from stepsafe.systems.thermal.extremes import integrated_time
+from stepsafe.systems.thermal.inm import EXACT_UP_TO, Modes, modes
+from stepsafe.systems.thermal.potential import Potential
+
+#: The well is tabulated up to this many kT above the minimum (1-D exact draws).
+CUT = 40.0
+#: A side of a 1-D well where U levels off ends this many thermal amplitudes out ...
+REACH = 64
+#: ... where U must be at least this many kT above the minimum.
+PLATEAU = 12.0
+#: Grid points of the 1-D distribution function.
+GRID = 20001
+#: Langevin step in units of the fastest 0 K period: ``h = Z_SAMPLE / omega_max``.
+Z_SAMPLE = 0.1
+#: Burn-in, in relaxation times ``1 / gamma``.
+BURN_DAMPING = 10.0
+#: The burn-in's record of U must span this many autocorrelation times (per chain; the
+#: chains' autocorrelations are averaged).
+SPAN = 20
+#: Chains run side by side.
+CHAINS = 64
+#: Largest n whose quadratic potential is drawn exactly (a dense Cholesky factor).
+GAUSSIAN_UP_TO = 4096
+
+
+@dataclass(frozen=True)
+class Ensemble:
+    """Configurations drawn at temperature and how they were made.
+
+    Attributes
+    ----------
+    q : ndarray
+        Configurations ``(m, n)``.
+    chain : ndarray
+        The chain each configuration comes from ``(m,)`` (all different for independent
+        draws): resampling whole chains keeps their correlation in a bootstrap.
+    kT : float
+    how : str
+        ``"exact Gaussian"``, ``"exact 1-D (inverse distribution function)"`` or
+        ``"Langevin (BAOAB)"``.
+    seed : int
+    h, friction : float or None
+        Langevin's step and friction gamma.
+    burn_in, thin : int
+        Langevin steps before the first frame and between frames.
+    tau : float or None
+        Integrated autocorrelation time of U along the chains, in steps.
+    chains : int
+    notes : tuple of str
+    """
+
+    q: np.ndarray
+    chain: np.ndarray
+    kT: float
+    how: str
+    seed: int
+    h: float | None = None
+    friction: float | None = None
+    burn_in: int = 0
+    thin: int = 0
+    tau: float | None = None
+    chains: int = 0
+    notes: tuple[str, ...] = ()
+
+    @property
+    def size(self) -> int:
+        return int(self.q.shape[0])
+
+
+def momenta(pot: Potential, kT: float, count: int, rng: np.random.Generator) -> np.ndarray:
+    """``p ~ N(0, kT M)``: thermal momenta ``(count, n)``."""
+    return rng.standard_normal((count, pot.dimension)) * np.sqrt(kT * pot.masses)
+
+
+def minimum_modes(pot: Potential) -> Modes:
+    """The normal modes at the potential's minimum (all of them for small n, the fastest
+    otherwise); a :class:`StepsafeError` if there is no minimum or it is not one."""
+    if pot.minimum is None:
+        raise StepsafeError("the thermal analysis needs the potential's minimum")
+    found = modes(pot, pot.minimum)
+    if found.eigenvalues[-1] <= found.error:
+        raise StepsafeError("the Hessian at the minimum has no positive curvature: no "
+                            "frequency to start from")
+    return found
+
+
+def draw(pot: Potential, kT: float, count: int, seed: int = 0, chains: int = CHAINS,
+         z_sample: float = Z_SAMPLE, friction: float | None = None,
+         burn_damping: float = BURN_DAMPING) -> Ensemble:
+    """At least ``count`` configurations of ``exp(-U / kT)`` (see the module docstring for
+    which way and its conventions).
+
+    Parameters
+    ----------
+    pot : Potential
+        With its minimum.
+    kT : float
+        The thermal energy (> 0).
+    count : int
+        Configurations wanted (Langevin rounds up to a multiple of ``chains``).
+    seed : int
+        Of the random generator.
+    chains : int
+        Langevin chains.
+    z_sample : float
+        Langevin step times the fastest 0 K frequency.
+    friction : float, optional
+        Langevin's gamma (default: twice the slowest 0 K frequency).
+    burn_damping : float
+        Burn-in in relaxation times.
+
+    Returns
+    -------
+    Ensemble
+    """
+    kT = positive_finite(kT, "kT")
+    count = int(count)
+    if count < 1:
+        raise StepsafeError(f"count must be at least 1, got {count}")
+    rng = np.random.default_rng(seed)
+    if pot.quadratic and pot.dimension <= GAUSSIAN_UP_TO:
+        return Ensemble(gaussian(pot, kT, count, rng), np.arange(count), kT, "exact Gaussian",
+                        seed)
+    if pot.dimension == 1:
+        q, notes = one_dimensional(pot, kT, count, rng)
+        return Ensemble(q, np.arange(count), kT, "exact 1-D (inverse distribution function)",
+                        seed, notes=notes)
+    return langevin(pot, kT, count, rng, seed, chains, z_sample, friction, burn_damping)
+
+
+def gaussian(pot: Potential, kT: float, count: int, rng: np.random.Generator) -> np.ndarray:
+    """Exact draws of a quadratic potential: ``q0 + sqrt(kT) L^-T xi`` (``K = L L^T``)."""
+    from scipy.linalg import solve_triangular
+
+    q0 = pot.minimum if pot.minimum is not None else np.zeros(pot.dimension)
+    if pot.hessian is None:
+        raise StepsafeError("exact Gaussian draws need the quadratic potential's Hessian")
+    K = np.asarray(pot.hessian(q0[None, :])[0], dtype=float)
+    try:
+        L = np.linalg.cholesky(0.5 * (K + K.T))
+    except np.linalg.LinAlgError:
+        raise StepsafeError("the quadratic potential is not positive definite: its "
+                            "Boltzmann distribution does not exist") from None
+    xi = rng.standard_normal((pot.dimension, count))
+    return q0[None, :] + math.sqrt(kT) * solve_triangular(L, xi, trans="T", lower=True).T
+
+
+def well(pot: Potential, kT: float, cut: float = CUT
+         ) -> tuple[float, float, tuple[str, ...]]:
+    """The interval around a 1-D minimum where ``U - U(q0) < cut kT``, found by walking out
+    from ``q0`` in steps of an eighth of the thermal amplitude ``a = sqrt(kT / U'')``.
+
+    A side where U falls before ``cut kT`` (a barrier to a lower region) ends at the
+    barrier's top, one where it levels off (a dissociation plateau) at ``REACH a``; there
+    ``U - U(q0)`` must be at least ``PLATEAU kT`` (the density left out is below
+    ``e^-PLATEAU`` of the peak there), else the distribution is not confined at this
+    temperature (a :class:`StepsafeError`). Returns ``(lo, hi, notes)``.
+    """
+    s0 = float(pot.minimum[0]) if pot.minimum is not None else 0.0
+    u0 = float(pot.energy(np.array([[s0]]))[0])
+    found = modes(pot, np.array([s0]))
+    curvature = float(found.eigenvalues[-1]) * float(pot.masses[0])
+    if not curvature > 0:
+        raise StepsafeError("the potential has no positive curvature at its minimum")
+    amplitude = math.sqrt(kT / curvature)
+    step = amplitude / 8.0
+    ends = []
+    notes = []
+    last = 8 * REACH
+    for sign in (-1.0, 1.0):
+        k = np.arange(1, last + 1)
+        s = s0 + sign * step * k
+        with np.errstate(all="ignore"):
+            u = pot.energy(s[:, None]) - u0
+        bad = ~np.isfinite(u)
+        hit = np.flatnonzero((u >= cut * kT) | bad)
+        end = int(hit[0]) if hit.size else last - 1
+        if hit.size and bad[end]:
+            raise StepsafeError(f"U is not finite at {s[end]:.6g}, inside the well at "
+                                f"kT = {kT:.6g}")
+        falls = np.flatnonzero(np.diff(u[:end + 1]) < 0)
+        if falls.size:  # a barrier below the cut: the well ends at its top
+            end = int(falls[0])
+        elif hit.size:
+            ends.append(float(s[end]))
+            continue
+        if not u[end] >= PLATEAU * kT:
+            raise StepsafeError(f"U rises only {u[end] / kT:.3g} kT above its minimum before "
+                                f"it levels off or falls: the distribution at kT = {kT:.6g} "
+                                f"is not confined")
+        ends.append(float(s[end]))
+        what = "a barrier" if falls.size else f"{REACH} thermal amplitudes"
+        notes.append(f"U levels off or falls {u[end] / kT:.3g} kT above the minimum: the "
+                     f"distribution is taken up to {what} (the density left out is below "
+                     f"e^-{u[end] / kT:.3g} of the peak there)")
+    return ends[0], ends[1], tuple(notes)
+
+
+def one_dimensional(pot: Potential, kT: float, count: int, rng: np.random.Generator,
+                    cut: float = CUT, points: int = GRID) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Exact draws ``(count, 1)`` of a 1-D ``exp(-U / kT)`` on the well of the minimum
+    (:func:`well`): the distribution function by the trapezoid rule on ``points`` nodes,
+    inverted by linear interpolation of uniform draws; with the well's notes."""
+    lo, hi, notes = well(pot, kT, cut)
+    s = np.linspace(lo, hi, points)
+    u = pot.energy(s[:, None])
+    w = np.exp(-(u - np.min(u)) / kT)
+    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]) * np.diff(s))])
+    cdf /= cdf[-1]
+    return np.interp(rng.random(count), cdf, s)[:, None], notes
+
+
+def langevin(pot: Potential, kT: float, count: int, rng: np.random.Generator, seed: int,
+             chains: int = CHAINS, z_sample: float = Z_SAMPLE, friction: float | None = None,
+             burn_damping: float = BURN_DAMPING) -> Ensemble:
+    """Configurations by BAOAB Langevin dynamics (module docstring), ``chains`` at once."""
+    n = pot.dimension
+    found = minimum_modes(pot)
+    q0 = np.asarray(pot.minimum, dtype=float)
+    lam = found.eigenvalues
+    omega_max = math.sqrt(float(lam[-1]))
+    positive = lam[lam > found.error]
+    if n <= EXACT_UP_TO and positive.size < n:
+        raise StepsafeError("the Hessian at the minimum is not positive definite: the point "
+                            "is not a minimum")
+    omega_min = math.sqrt(float(positive[0]))
+    gamma = 2.0 * omega_min if friction is None else positive_finite(friction, "friction")
+    h = z_sample / omega_max
+    chains = max(1, min(int(chains), count))
+    frames = -(-count // chains)
+    masses = pot.masses
+    r = 1.0 / np.sqrt(masses)
+    # start: exact draws of the harmonic approximation where every mode is known
+    if found.vectors.shape[1] == n:
+        xi = rng.standard_normal((chains, n))
+        q = q0[None, :] + (xi * np.sqrt(kT / lam)[None, :]) @ found.vectors.T * r[None, :]
+    else:
+        q = np.broadcast_to(q0, (chains, n)).copy()
+    p = momenta(pot, kT, chains, rng)
+    c = math.exp(-gamma * h)
+    noise = np.sqrt((1.0 - c * c) * kT * masses)[None, :]
+    half = 0.5 * h
+    state = {"q": q, "p": p, "F": -pot.gradient(q)}
+
+    def run(steps: int, record: bool = False) -> np.ndarray:
+        """``steps`` BAOAB steps; U at each step when ``record`` (else an empty array)."""
+        q, p, F = state["q"], state["p"], state["F"]
+        out = np.empty((steps if record else 0, chains))
+        with np.errstate(all="ignore"):
+            for k in range(steps):
+                p = p + half * F
+                q = q + half * p / masses
+                p = c * p + noise * rng.standard_normal((chains, n))
+                q = q + half * p / masses
+                F = -pot.gradient(q)
+                p = p + half * F
+                if record:
+                    out[k] = pot.energy(q)
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(p))):
+            raise StepsafeError(f"the Langevin chains at kT = {kT:.6g} left every finite "
+                                f"value (h = {h:.6g}): the distribution is not confined, "
+                                f"or U is too rough for this step")
+        state.update(q=q, p=p, F=F)
+        return out
+
+    burn = math.ceil(burn_damping / (gamma * h))
+    notes: list[str] = []
+    run(burn - burn // 2)
+    trace = run(burn // 2, record=True)
+    tau = integrated_time(trace)
+    total = burn
+    for _ in range(6):  # the record must span SPAN tau: doubled up to 6 times
+        if SPAN * tau <= trace.shape[0]:
+            break
+        more = run(trace.shape[0], record=True)
+        trace = np.concatenate([trace, more])
+        total += more.shape[0]
+        tau = integrated_time(trace)
+    if SPAN * tau > trace.shape[0]:
+        notes.append(f"the autocorrelation time of U ({tau:.3g} steps) is not resolved "
+                     f"by {trace.shape[0]} steps of burn-in")
+    thin = max(1, math.ceil(2 * tau))
+    configs = np.empty((frames, chains, n))
+    for f in range(frames):
+        run(thin)
+        configs[f] = state["q"]
+    q_out = configs.transpose(1, 0, 2).reshape(chains * frames, n)
+    chain = np.repeat(np.arange(chains), frames)
+    return Ensemble(q_out, chain, kT, "Langevin (BAOAB)", seed, h, gamma, total, thin, tau,
+                    chains, tuple(notes))
+
