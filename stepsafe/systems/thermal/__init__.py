@@ -16,3 +16,9 @@ nonlinear map opens at finite amplitude. The modules, in the order the data flow
   the bands where they fail, the energy drift;
 * :mod:`.limit`: :func:`thermal_limit` and :func:`thermal_check`.
 """
+
+from stepsafe.systems.thermal.limit import ThermalCheck, ThermalLimit, thermal_check, thermal_limit
+from stepsafe.systems.thermal.potential import Potential, from_callables, of_system, quadratic
+
+__all__ = ["Potential", "ThermalCheck", "ThermalLimit", "from_callables", "of_system",
+           "quadratic", "thermal_check", "thermal_limit"]

@@ -1,0 +1,183 @@
+"""Resonance bands at amplitude: failure fractions of the method's own map from thermal
+initial conditions against integrations written in the test (velocity Verlet and PEFRL on
+Morse, cubic and quartic oscillators, with their own Boltzmann draws), the verdicts the
+issue measured on Morse bonds, the binomial bounds, and one step of many h at once."""
+
+from __future__ import annotations
+
+import math
+
+import mpmath as mp
+import numpy as np
+import pytest
+from support import method
+from thermal_support import (
+    boltzmann_1d,
+    cubic,
+    morse,
+    morse_energy,
+    morse_force,
+    pefrl,
+    quartic,
+    verlet,
+)
+
+from stepsafe.systems.thermal.bands import clopper_pearson, grid, probe, scan
+from stepsafe.systems.thermal.limit import thermal_check
+from stepsafe.systems.thermal.trajectories import run, thermal_start
+
+STEPS = 2000
+
+
+@pytest.mark.parametrize("k, m", [(0, 500), (1, 500), (7, 300), (300, 300), (40, 41)])
+def test_clopper_pearson_bounds_solve_the_binomial_tail_equations(k, m):
+    """P(X <= k | upper) = 1 - c and P(X >= k | lower) = 1 - c, summed at 30 digits."""
+    mp.mp.dps = 30
+    lower, upper = clopper_pearson(k, m, 0.95)
+
+    def cdf(j, p):
+        return mp.fsum(mp.binomial(m, i) * mp.mpf(p) ** i * (1 - mp.mpf(p)) ** (m - i)
+                       for i in range(j + 1))
+
+    if k < m:
+        assert float(cdf(k, upper)) == pytest.approx(0.05, rel=1e-8)
+    else:
+        assert upper == 1.0
+    if k > 0:
+        assert float(1 - cdf(k - 1, lower)) == pytest.approx(0.05, rel=1e-8)
+    else:
+        assert lower == 0.0
+
+
+def test_many_steps_at_once_equal_each_step_alone_bit_for_bit():
+    pot = morse()
+    start = thermal_start(pot, 0.006, 64, seed=2)
+    hs = [0.8, 1.40784, 1.70056]
+    together = run(method("verlet"), pot, start, hs, 300, [3.0, 3.0, 3.0])
+    alone = [run(method("verlet"), pot, start, [h], 300, [3.0])[0] for h in hs]
+    assert together == alone
+
+
+def _own_fractions(step, energy, force, kT, hs, rho, lo, hi, m=4000, seed=1):
+    """Failure fractions by the test's own integrator and Boltzmann draws: failed when a
+    state is not finite, |q| exceeds 10 sqrt(rho) times the start's largest |q| (10 times
+    for an infinite rho), or the energy exceeds 4 rho^2 times the initial one (the
+    conventions of the scan)."""
+    rng = np.random.default_rng(seed)
+    q0 = boltzmann_1d(energy, kT, m, rng, lo, hi)
+    p0 = rng.standard_normal(m) * math.sqrt(kT)
+    E0 = energy(q0) + p0 * p0 / 2
+    out = []
+    for h, r in zip(hs, rho):
+        bound = 10 * np.max(np.abs(q0)) * (math.sqrt(r) if math.isfinite(r) else 1.0)
+
+        def fail(q, p, r=r, bound=bound):
+            return ~(np.abs(q) <= bound) | ~(energy(q) + p * p / 2 <= 4 * r * r * E0)
+        out.append(float(step(force, q0.copy(), p0.copy(), h, STEPS, fail).mean()))
+    return np.array(out)
+
+
+def _agree(p_a, m_a, p_b, m_b):
+    """Two failure fractions agree within 4 binomial standard errors (plus 2/m_a)."""
+    p = 0.5 * (p_a + p_b)
+    return np.abs(p_a - p_b) <= 4 * np.sqrt(p * (1 - p) * (1 / m_a + 1 / m_b)) + 2 / m_a
+
+
+def _verlet_rho(h, omega=1.0):
+    z = np.minimum(np.asarray(h) * omega, 1.999)
+    return 1 / (1 - z * z / 4)
+
+
+@pytest.mark.parametrize("kT", [0.006, 0.03])
+def test_morse_failure_fractions_match_an_independent_verlet_integration(kT):
+    pot = morse()
+    hs = np.array([0.8, 1.2, 1.40784, 1.5, 1.70056, 1.9])
+    rho = _verlet_rho(hs)
+    start = thermal_start(pot, kT, 500, seed=4)
+    got = scan(method("verlet"), pot, start, hs, STEPS, _verlet_rho, bisections=0)
+    mine = np.array([p.probability for p in got.probes])
+    own = _own_fractions(verlet, morse_energy, morse_force, kT, hs, rho, -1.5, 12.0)
+    assert np.all(_agree(mine, 500, own, 4000)), (mine, own)
+    assert own[hs == 1.70056][0] > 0.5  # the test can fail: the band is there
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind, coefficient, kT", [
+    ("cubic", 0.1, 0.05), ("cubic", 0.1, 0.5), ("quartic", 0.1, 0.05), ("quartic", 0.1, 0.5)])
+def test_cubic_and_quartic_bands_match_an_independent_verlet_integration(kind, coefficient,
+                                                                          kT):
+    a = coefficient
+    if kind == "cubic":
+        pot, lo, hi = cubic(a), -1 / a, 40 * math.sqrt(kT)
+
+        def energy(s):
+            return s * s / 2 + a * s ** 3 / 3
+
+        def force(s):
+            return -(s + a * s * s)
+    else:
+        pot, lo, hi = quartic(a), -40 * math.sqrt(kT), 40 * math.sqrt(kT)
+
+        def energy(s):
+            return s * s / 2 + a * s ** 4 / 4
+
+        def force(s):
+            return -(s + a * s ** 3)
+    hs = np.array([1.0, 1.45, 1.6, 1.75, 1.9])
+    start = thermal_start(pot, kT, 500, seed=6)
+    got = scan(method("verlet"), pot, start, hs, STEPS, _verlet_rho, bisections=0)
+    mine = np.array([p.probability for p in got.probes])
+    own = _own_fractions(verlet, energy, force, kT, hs, _verlet_rho(hs), lo, hi, m=2000)
+    assert np.all(_agree(mine, 500, own, 2000)), (mine, own)
+    # every step the independent integration sees failing (lower bound above 1%) is
+    # reported as not clear
+    for p, f in zip(got.probes, own):
+        if clopper_pearson(round(f * 2000), 2000)[0] > 0.01:
+            assert not p.clear
+
+
+def test_probe_of_a_safe_step_is_clear_and_of_a_band_step_is_not():
+    pot = morse()
+    start = thermal_start(pot, 0.006, 500, seed=8)
+    assert probe(method("verlet"), pot, start, 0.8, 1000, 1.2).verdict == "clear"
+    inside = probe(method("verlet"), pot, start, 1.70056, 1000, 4.0)
+    assert inside.verdict == "band" and inside.lower > 0.5
+
+
+def test_grid_holds_the_resonance_points_and_their_neighbours():
+    h = grid(0.5, 2.0, 16, [math.sqrt(2), 3.0])
+    assert math.sqrt(2) in h and h.min() == 0.5 and h.max() == 2.0
+    assert np.all(np.diff(h) > 0)
+    for offset in (0.0025, 0.005, 0.01, 0.02, 0.04):
+        assert np.any(np.isclose(h, math.sqrt(2) * (1 - offset), rtol=1e-15))
+    assert not np.any(h > 2.0)
+
+
+@pytest.mark.parametrize("name, kT, z, unsafe", [
+    ("verlet", 0.006, 1.70056, True), ("verlet", 0.006, 1.40784, True),
+    ("verlet", 0.006, 0.8, False), ("verlet", 0.03, 1.5, True),
+    ("pefrl", 0.006, 2.0542, True), ("pefrl", 0.006, 0.8, False),
+    ("pefrl", 0.03, 1.5635, True)])
+def test_morse_verdicts_at_thermal_energy(name, kT, z, unsafe):
+    """The steps measured on Morse bonds: velocity Verlet 2% below its 3:1 point and 0.5%
+    below its 4:1 point at E/D ~ 0.006, and z = 1.5 at E/D ~ 0.03; PEFRL 2% below its own
+    3:1 point (2.0961) and 0.5% below its 4:1 point (1.5713) at the higher temperature. z =
+    0.8 is safe for both at kT = 0.006. Each verdict is checked against the test's own
+    integration: a step it sees failing is never SAFE."""
+    check = thermal_check(method(name), morse(), kT, z, steps=1e4)
+    assert check.safe is not unsafe, check.reasons
+    step = verlet if name == "verlet" else pefrl
+    own = _own_fractions(step, morse_energy, morse_force, kT, [z], [math.inf], -1.5, 12.0,
+                         m=2000)[0]
+    if clopper_pearson(round(own * 2000), 2000)[0] > 0.01:
+        assert not check.safe
+
+
+def test_pefrl_4_to_1_step_at_low_temperature_is_safe_as_measured():
+    """PEFRL 0.5% below its 4:1 point at kT = 0.006: no trajectory of 2000 fails within
+    2000 steps in the test's own integration, and the check says SAFE (it is below the
+    linear limit at temperature, about z = 1.8)."""
+    own = _own_fractions(pefrl, morse_energy, morse_force, 0.006, [1.5635], [math.inf],
+                         -1.5, 12.0, m=2000)[0]
+    assert own == 0.0
+    assert thermal_check(method("pefrl"), morse(), 0.006, 1.5635, steps=1e4).safe
