@@ -1,0 +1,111 @@
+"""The cost of the thermal analysis (issue: "a 1-dof scene in a few seconds, a 100-dof scene
+in under a minute"), printed, not asserted.
+
+    python benchmarks/thermal.py [--threads N]
+
+Two cases, each timed stage by stage (wall clock, one run each: the analysis is seconds
+long and its parts are reported separately):
+
+1. a Morse bond ``U = (1 - e^-q)^2 / 2`` (1 dof) at kT = 0.006 with velocity Verlet, a run of
+   1e4 steps: exact 1-D draws, frequencies, the whole system's band scan, the drift;
+2. an FPU-alpha chain of 100 unit masses (alpha = 0.25) at kT = 0.05 with velocity Verlet,
+   a run of 1e4 steps: Langevin sampling, 1024 Hessians of 100 x 100, the whole chain on a
+   coarse grid, profiles along its three fastest modes, the confirmation and drift.
+
+The defaults of :func:`stepsafe.systems.thermal.thermal_limit` are used throughout. The
+machine and its load average are printed with the table; numpy's BLAS runs with the thread
+count given (default 1, as the tests do).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[var] = str(args.threads)
+
+    import numpy as np
+
+    from stepsafe.methods.library import resolve
+    from stepsafe.systems.thermal import from_callables, thermal_limit
+
+    def morse():
+        def energy(q):
+            return 0.5 * (1 - np.exp(-q[:, 0])) ** 2
+
+        def gradient(q):
+            e = np.exp(-q)
+            return (1 - e) * e
+
+        def hessian(q):
+            e = np.exp(-q)
+            return (2 * e * e - e)[:, :, None]
+
+        return from_callables(energy, gradient, [1.0], minimum=[0.0], hessian=hessian)
+
+    def fpu(n, alpha=0.25):
+        def bonds(q):
+            z = np.zeros((q.shape[0], 1))
+            return np.diff(np.hstack([z, q, z]), axis=1)
+
+        def energy(q):
+            d = bonds(q)
+            return np.sum(d * d * (0.5 + d * (alpha / 3)), axis=1)
+
+        def gradient(q):
+            d = bonds(q)
+            f = d * (1 + alpha * d)
+            return f[:, :-1] - f[:, 1:]
+
+        def hessian(q):
+            k = 1 + 2 * alpha * bonds(q)
+            out = np.zeros((q.shape[0], n, n))
+            i = np.arange(n)
+            out[:, i, i] = k[:, :-1] + k[:, 1:]
+            out[:, i[:-1], i[1:]] = -k[:, 1:-1]
+            out[:, i[1:], i[:-1]] = -k[:, 1:-1]
+            return out
+
+        return from_callables(energy, gradient, np.ones(n), minimum=np.zeros(n), hessian=hessian)
+
+    verlet = resolve("verlet")[0]
+    print(f"machine: {platform.machine()} {platform.processor() or ''} "
+          f"cpus {os.cpu_count()}, load {os.getloadavg()[0]:.2f}, "
+          f"numpy {np.__version__}, BLAS threads {args.threads}")
+    for label, pot, kT, goal in (("Morse, 1 dof, kT = 0.006", morse(), 0.006, "a few s"),
+                                 ("FPU-alpha, 100 dof, kT = 0.05", fpu(100), 0.05, "< 60 s")):
+        marks: list[tuple[str, float]] = []
+
+        def progress(stage: str, fraction: float, marks=marks) -> None:
+            if not marks or marks[-1][0] != stage:
+                marks.append((stage, time.perf_counter()))
+
+        t0 = time.perf_counter()
+        r = thermal_limit(verlet, pot, kT, steps=1e4, progress=progress)
+        total = time.perf_counter() - t0
+        print(f"\n{label}: h_max = {r.h_max:.6g} ({r.limited_by}); 0 K {r.zero.h_zero:.6g}, "
+              f"linear at temperature {r.h_linear:.6g}")
+        e = r.linear.ensemble
+        print(f"  sampling: {e.how}, {e.size} frames, seed {e.seed}")
+        starts = [t0] + [stamp for _, stamp in marks] + [t0 + total]
+        names = ["sampling, frequencies, starts"] + [stage for stage, _ in marks[:-1]] + [
+            f"{marks[-1][0]}, confirmation, drift" if marks else "the rest"]
+        for name, a, b in zip(names, starts[:-1], starts[1:]):
+            print(f"  {name[:58]:58s} {b - a:8.2f} s")
+        print(f"  {'total':58s} {total:8.2f} s   goal {goal}")
+
+if __name__ == "__main__":
+    main()
