@@ -5,10 +5,13 @@ reproducibility, the large-system path, bad input."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from support import method
 from thermal_support import (
     fpu,
@@ -200,6 +203,49 @@ def test_large_system_path_profiles_and_a_coarse_whole_system_scan():
     dead = verlet(lambda q: fpu_force(q, alpha), q0, p0, r.h_max, 800,
                   lambda q, p: ~np.all(np.abs(q) <= 10, axis=1))
     assert dead.mean() <= 0.01 + 2.3 * math.sqrt(0.01 * 0.99 / 1500)
+
+
+def _morse_scaled(E, L, m, analytic):
+    """``U = E (1 - e^(-q/L))^2 / 2`` with mass m: omega_0 = sqrt(E / (m L^2))."""
+    def energy(q):
+        return E * 0.5 * (1 - np.exp(-q[:, 0] / L)) ** 2
+
+    def gradient(q):
+        e = np.exp(-q / L)
+        return (E / L) * (1 - e) * e
+
+    def hessian(q):
+        e = np.exp(-q / L)
+        return ((E / L ** 2) * (2 * e * e - e))[:, :, None]
+
+    from stepsafe.systems.thermal.potential import from_callables
+
+    return from_callables(energy, gradient, [m], minimum=[0.0],
+                          hessian=hessian if analytic else None)
+
+
+@functools.lru_cache(maxsize=1)
+def _unscaled():
+    return thermal_limit(method("verlet"), morse(), 0.006, steps=1e4, **SMALL)
+
+
+@settings(max_examples=6, deadline=None)
+@given(st.integers(-100, 100), st.integers(-60, 60), st.booleans())
+def test_limit_in_units_of_the_frequency_holds_at_every_scale(ex_L, ex_m, analytic):
+    """Energy, length and mass scaled by up to 1e100 (kT with the energy): h_max omega_0 is
+    the unscaled one (the draws are the same numbers scaled); from a difference Hessian it
+    is never above the analytic one and within 1e-8 of it."""
+    L, m = 10.0 ** ex_L, 10.0 ** ex_m
+    E = L * L  # keeps U'' = E / L^2 = 1 representable whatever L
+    base = _unscaled()
+    r = thermal_limit(method("verlet"), _morse_scaled(E, L, m, analytic), 0.006 * E,
+                      steps=1e4, **SMALL)
+    z_base, z = base.h_max * base.zero.omega_zero, r.h_max * math.sqrt(E / (m * L * L))
+    assert r.limited_by == base.limited_by
+    if analytic:
+        assert z == pytest.approx(z_base, rel=1e-9)
+    else:
+        assert z_base * (1 - 1e-8) <= z <= z_base * (1 + 1e-12)
 
 
 @pytest.mark.parametrize("kwargs, message", [

@@ -252,6 +252,8 @@ def modes(pot: Potential, q0, count: int | None = None, exact_up_to: int = EXACT
     n = pot.dimension
     if n <= exact_up_to:
         W, err, _ = mass_weighted(pot, q0)
+        if not np.all(np.isfinite(W)):
+            raise StepsafeError("the Hessian is not finite at the configuration")
         lam, vec = np.linalg.eigh(W[0])
         k = n if count is None else min(int(count), n)
         error = float(err[0]) + 4 * n * EPS * float(np.max(np.abs(lam)))

@@ -204,7 +204,9 @@ def zero_kelvin(method: Method, pot: Potential, criterion: str = "structure",
         notes.append(f"the method is stable up to z = {z_star:g} (the analysed range); "
                      f"that z is taken as its limit")
     found = minimum_modes(pot)
-    omega = math.sqrt(float(found.eigenvalues[-1]))
+    # a difference Hessian's eigenvalue may lie anywhere within its error: the upper end
+    top = float(found.eigenvalues[-1]) + (0.0 if pot.has_hessian else found.error)
+    omega = math.sqrt(top)
     every = tuple(sorted(set(orders) | set(DEFAULT_ORDERS)))
     res = tuple((r.z, r.name) for r in nonlinear_resonances(method, region, every)) \
         if z_star > 0 else ()

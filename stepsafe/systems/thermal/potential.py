@@ -65,8 +65,8 @@ class Potential:
         U is exactly ``U(q0) + (q - q0)^T K (q - q0) / 2`` (then thermal configurations are
         drawn exactly).
     length : float, optional
-        A length typical of the coordinates, for difference steps where ``q`` itself gives
-        none (at ``q = 0``).
+        The length over which U's curvature changes, for difference steps (default: found
+        by :func:`probe_length`).
     description : str
         What the potential is, for reports.
     """
@@ -121,14 +121,17 @@ class Potential:
                                  self.scale_of(q) if scale is None else scale)
 
     def scale_of(self, q: Array) -> Array:
-        """A length per configuration for difference steps: ``max(|q|_inf, length)``
-        (``length`` defaults to the largest ``|q0|``, else 1)."""
+        """A length per configuration for difference steps: ``length`` when given, else
+        :func:`probe_length` at the minimum (or 0), found once."""
         q = np.asarray(q, dtype=float)
         base = self.length
         if base is None:
-            q0 = self.minimum
-            base = float(np.max(np.abs(q0))) if q0 is not None and np.any(q0) else 1.0
-        return np.maximum(np.max(np.abs(q), axis=1), base)
+            base = self.__dict__.get("_probed")
+            if base is None:
+                q0 = self.minimum if self.minimum is not None else np.zeros(self.dimension)
+                base = probe_length(self.gradient, q0)
+                self.__dict__["_probed"] = base  # (a cache: the instance stays frozen)
+        return np.full(q.shape[0], float(base))
 
     def mass_weighted_hessian(self, q: Array) -> Array:
         """``W = M^-1/2 grad^2 U(q) M^-1/2`` of shape ``(m, n, n)`` from the analytic
@@ -139,6 +142,51 @@ class Potential:
         H = np.asarray(self.hessian(np.asarray(q, dtype=float)), dtype=float)
         W = H * r[None, :, None] * r[None, None, :]
         return 0.5 * (W + np.swapaxes(W, 1, 2))
+
+
+def probe_length(gradient: Callable[[Array], Array], q0: Array) -> float:
+    """A length over which U's curvature changes near ``q0``, for difference steps.
+
+    Along a fixed direction u (seeded), ``d(e) = u . (g(q0 + e u) - g(q0))`` bends by
+    ``r(e) = |d(2e) - 2 d(e)| / |2 d(e)|``: ``e / 2L`` for a cubic term of U on the length
+    L, ``(e / L)^2`` for a quartic one. r is evaluated at ``e = 10^k`` (k = -300..300 in
+    steps of 2, one batched call) from ``1e3 eps |q0|`` up (below, ``q0 + e u`` does not
+    resolve e); in the longest run of steps with ``r <= 0.01`` (below it the rounding of g
+    makes d jump, and short stretches there can look linear by chance) the end is refined
+    in quarter decades and ``L = 20 e`` at the last e with ``r <= 0.01``. When d stays
+    linear to the end of the range (a quadratic U) any step serves: the run's geometric
+    middle; 1 when no e is linear."""
+    q0 = np.asarray(q0, dtype=float).reshape(-1)
+    n = q0.size
+    u = np.random.default_rng(0).standard_normal(n)
+    u /= np.linalg.norm(u)
+    floor = 1e3 * EPS * float(np.max(np.abs(q0)))
+
+    def bends(e: Array) -> tuple[Array, Array]:
+        """``(r(e) <= 0.01, d(e) and d(2e) finite)``."""
+        with np.errstate(all="ignore"):
+            X = q0[None, :] + np.concatenate([e, 2 * e])[:, None] * u[None, :]
+            g = np.asarray(gradient(np.concatenate([q0[None, :], X])), dtype=float) @ u
+            d1, d2 = g[1:e.size + 1] - g[0], g[e.size + 1:] - g[0]
+            finite = np.isfinite(d1) & np.isfinite(d2)
+            return finite & (np.abs(d1) > 0) & (np.abs(d2 - 2 * d1) <= 0.02 * np.abs(d1)), \
+                finite
+
+    e = 10.0 ** np.arange(-300, 301, 2).astype(float)
+    e = e[e >= floor]
+    linear, finite = bends(e)
+    if not linear.any():
+        return 1.0
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], linear.astype(int), [0]])))
+    starts, ends = edges[::2], edges[1::2] - 1
+    longest = int(np.argmax(ends - starts))
+    first, end = int(starts[longest]), int(ends[longest])
+    if end + 1 >= e.size or not finite[end + 1]:
+        return float(np.sqrt(e[first]) * np.sqrt(e[end]))
+    fine = e[end] * 10.0 ** (np.arange(1, 9) / 4.0)
+    ok, _ = bends(fine)
+    last = e[end] if not ok[0] else fine[int(np.argmin(ok)) - 1] if not ok.all() else fine[-1]
+    return float(20.0 * last)
 
 
 def fd_hessian_vector(gradient: Callable[[Array], Array], q: Array, v: Array,

@@ -115,6 +115,9 @@ def minimum_modes(pot: Potential) -> Modes:
     if pot.minimum is None:
         raise StepsafeError("the thermal analysis needs the potential's minimum")
     found = modes(pot, pot.minimum)
+    if not (np.all(np.isfinite(found.eigenvalues)) and np.isfinite(found.error)):
+        raise StepsafeError("the curvature at the minimum is not finite (it overflows "
+                            "float64)")
     if found.eigenvalues[-1] <= found.error:
         raise StepsafeError("the Hessian at the minimum has no positive curvature: no "
                             "frequency to start from")
