@@ -231,6 +231,9 @@ def integrated_time(trace: np.ndarray, window: float = 5.0) -> float:
     ``t >= window * tau(t)`` (Sokal's automatic window); at least 1."""
     x = trace - trace.mean()  # (the chains share the stationary mean: short chains keep
     # their correlation, which subtracting each chain's own mean would remove)
+    size = float(np.max(np.abs(x))) if x.size else 0.0
+    if size > 0 and np.isfinite(size):
+        x = x / size  # (products of values near 1e200 overflow)
     steps = x.shape[0]
     if steps < 4:
         return 1.0

@@ -198,7 +198,8 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
     with np.errstate(over="ignore", invalid="ignore"):
         reach = distance * np.sqrt(np.repeat(rho, m))[:, None] * start.extent[None, :]
     reach = np.where(np.isfinite(reach), reach, np.finfo(float).max)  # (inf q still fails)
-    sums = np.zeros((3, k * m))  # sum dH, sum n dH, sum dH^2
+    sums = np.zeros((3, k * m))  # sum dH, sum n dH, sum dH^2, dH in units of kT
+    unit = start.kT
     failures = np.zeros(k, dtype=int)
     # one step per row: the engine's updates are elementwise in h, so an (rows, 1) column
     # runs each row at its own step (bit for bit as a run of that step alone)
@@ -227,10 +228,11 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
                     dH = dH[keep]
                 if not which.size:
                     break
-            if every == 1:
-                sums[0] += dH
-                sums[1] += n * dH
-                sums[2] += dH * dH
+            if every == 1:  # (in units of kT: squares of energies of 1e200 overflow)
+                x = dH / unit
+                sums[0] += x
+                sums[1] += n * x
+                sums[2] += x * x
             if progress is not None and n % 256 == 0:
                 progress(n / steps)
     out = []
@@ -246,9 +248,9 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
         drift = error = fluct = math.nan
         if every == 1 and count:
             b = slope[mine]
-            drift = float(b.mean())
-            error = float(b.std(ddof=1) / math.sqrt(count)) if count > 1 else math.nan
-            fluct = float(math.sqrt(variance[mine].mean()))
+            drift = float(b.mean()) * unit
+            error = float(b.std(ddof=1) / math.sqrt(count)) * unit if count > 1 else math.nan
+            fluct = float(math.sqrt(variance[mine].mean())) * unit
         out.append(Outcome(float(h_values[j]), m, int(failures[j]), steps, drift, error, fluct))
     if progress is not None:
         progress(1.0)
