@@ -327,3 +327,41 @@ def stiffness_scale(energy: str, length: str, mass: str, time: str) -> Fraction:
     eigenvalue times ``(time / t0)^2 = time^2 energy / (mass length^2)`` (exact)."""
     return (TIME_UNITS[time] ** 2 * ENERGY_UNITS[energy]
             / (MASS_UNITS[mass] * LENGTH_UNITS[length] ** 2))
+
+
+# ------------------------------------------------------------------ temperature
+
+#: The Boltzmann constant, J/K (exact in the SI since 2019).
+BOLTZMANN = Fraction("1.380649e-23")
+
+
+def kelvin(value: object, name: str = "temperature") -> float:
+    """A temperature in kelvin: a number (``300``) or a text with the unit K (``"300 K"``,
+    ``"300K"``; a plain number as text too, as the command line and files give it);
+    finite and >= 0."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise StepsafeError(f"{name} must be a number of kelvin or a text such as '300 K', "
+                            f"got {type(value).__name__}")
+    if isinstance(value, str):
+        number, unit = parse_quantity(value)
+        if unit not in (None, "K"):
+            raise StepsafeError(f"{name} is in kelvin: {value[:40]!r} has the unit {unit} "
+                                "(give 300, '300 K' or '300K')")
+    else:
+        try:
+            number = float(value)
+        except OverflowError:
+            number = math.inf
+    if not (math.isfinite(number) and number >= 0):
+        raise StepsafeError(f"{name} must be a finite number of kelvin >= 0, got {value!r}")
+    return number
+
+
+def thermal_energy(temperature: float, energy: str) -> float:
+    """``kT`` in the energy unit ``energy`` (one of :data:`ENERGY_UNITS`) at ``temperature``
+    kelvin: ``k_B T / unit``, formed exactly as a fraction and rounded once (the Boltzmann
+    constant, the Avogadro constant, the calorie and the electronvolt are exact)."""
+    if energy not in ENERGY_UNITS:
+        raise StepsafeError(f"unknown energy unit {str(energy)[:20]!r}; choose one of "
+                            f"{', '.join(ENERGY_UNITS)}")
+    return float(Fraction(temperature) * BOLTZMANN / ENERGY_UNITS[energy])

@@ -150,8 +150,9 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
            hydrogen_mass: float | str | None = None, minimize: bool | None = None,
            tol_phase: float | None = None, tol_energy: float | None = None,
            resonance_order: int | None = None, solver: str = "fixed-point",
-           criterion: str | None = None, verify: bool = False, gradient_cost: float = 1.0
-           ) -> AdviceReport:
+           criterion: str | None = None, verify: bool = False, gradient_cost: float = 1.0,
+           temperature: float | str | None = None, kT: float | None = None,
+           length: float | str | None = None, steps: int | None = None) -> AdviceReport:
     """Safe step sizes for a method and angular frequencies ``beta`` (or a scene, or a
     system), with the inputs of :func:`problem`.
 
@@ -239,6 +240,21 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
     gradient_cost : float
         Force evaluations one force-gradient term costs (force-gradient methods; see
         :data:`stepsafe.methods.tableaux.GRADIENT_COST`).
+    temperature : float or str, optional
+        Analyse at this temperature, in kelvin (``300`` or ``"300 K"``; the scene's
+        ``energy_unit:`` names the system's energy unit): ``h_max`` is then the smallest
+        of the 0 K one, the linear limit at temperature and the first resonance band
+        measured below it (``record["thermal"]["limited_by"]`` says which;
+        ``record["zero_kelvin"]`` holds the 0 K answer), and ``resonance_order`` excludes
+        the measured bands, not the points (:mod:`stepsafe.api.thermal`). At T = 0 (or
+        without a temperature) nothing changes.
+    kT : float, optional
+        Or the thermal energy, in the system's energy unit.
+    length : float or str, optional
+        With a temperature: the run's simulated time, in the time unit or as a text with
+        a time unit (``"10 ps"``).
+    steps : int, optional
+        Or the run's number of steps.
 
     Returns
     -------
@@ -259,11 +275,19 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
               "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
               "period": period, "sigma": sigma, "time_unit": time_unit, "labels": labels,
               "system": system, "scene": scene, "stages": stages, "base": base, "margin": margin,
-              "zmax": zmax, "budget": budget, "progress": progress, "problem": problem,
+              "zmax": zmax, "budget": budget,
+              "progress": None if problem is not None else progress, "problem": problem,
               "openmm_system": openmm_system, "positions": positions,
               "constraints": constraints, "hydrogen_mass": hydrogen_mass,
-              "minimize": minimize}
-    p = problem_of(method, beta, inputs)
+              "minimize": minimize}  # (beside problem=, progress reports on the thermal work)
+    p = problem_of(method, beta, inputs, (length,))
+    warm = _thermal_request(p, temperature, kT, length, steps)
+    if warm is not None and (tol_phase is not None or tol_energy is not None):
+        raise StepsafeError("temperature: the answer at temperature does not bound the phase "
+                            "or energy error yet; give tol_phase/tol_energy without it")
+    order = valid_order(resonance_order)
+    # at temperature the measured bands replace the resonance points
+    resonance_order = None if warm is not None else resonance_order
     integrator, result = p.integrator, None
     criterion = validate_criterion(criterion, integrator.tableau)
     with integrator.naming_its_file():
@@ -308,6 +332,8 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
 
         label_limits(data, p.modes.betas, p.labels)
     data["time_unit"] = p.time_unit
+    if warm is not None:
+        _advise_at_temperature(p, warm, data, criterion, order, progress)
     verdict = (_verification(integrator, result.regions)
                if as_flag(verify, "verify") and result else None)
     safe = tuple((float(lo), hi) for lo, hi in data["safe_h"])
@@ -337,6 +363,36 @@ def _stochastic_record(integrator: Integrator, p: Problem, h: float | None
         mode = sampling(m, [float(betas.max())], h).modes[0]
         record["sampling"] = mode.to_dict()
     return record
+
+
+def _thermal_request(p: Problem, temperature: Any, kT: Any, length: Any, steps: Any) -> Any:
+    """The request at temperature of the keywords and the problem's scene (None: none,
+    or T = 0)."""
+    from stepsafe.api.thermal import request
+    from stepsafe.systems.scene import load_scene
+
+    scene = load_scene(p.scene, p.time_unit) if p.scene else None
+    tree = p.system.tree if p.system is not None else None
+    return request(temperature=temperature, kT=kT, length=length, steps=steps, scene=scene,
+                   system=tree, time_unit=p.time_unit)
+
+
+def _advise_at_temperature(p: Problem, warm: Any, data: dict[str, Any], criterion: str,
+                           order: int | None, progress: Any) -> None:
+    """The answer at temperature into ``data``: ``h_max``, ``h_max_limited_by`` and
+    ``safe_h`` become it; the 0 K answer moves to ``zero_kelvin``."""
+    from stepsafe.api.thermal import advise_at_temperature
+    from stepsafe.core.resonances import DEFAULT_ORDERS
+
+    orders = tuple(range(3, order + 1)) if order is not None else DEFAULT_ORDERS[:2]
+    thermal = advise_at_temperature(p, warm, data["h_max"], criterion, orders, progress)
+    data["zero_kelvin"] = {key: data[key] for key in ("h_max", "h_max_limited_by", "safe_h")}
+    data["thermal"] = thermal
+    if thermal["limited_by"] != "0 K":
+        data["h_max"] = thermal["h_max"]
+        data["h_max_limited_by"] = thermal["limited_by"]
+    if data["h_max"] is not None:
+        data["safe_h"] = [[0.0, data["h_max"]]] if data["h_max"] > 0 else []
 
 
 def _other_criterion(integrator: Integrator, p: Problem, result: Any,
@@ -412,7 +468,9 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
           hydrogen_mass: float | str | None = None, minimize: bool | None = None,
           resonance_order: int | None = None, criterion: str | None = None,
           verify: bool = False, solver: str = "fixed-point",
-          require_complete_search: bool = False) -> CheckReport:
+          require_complete_search: bool = False, temperature: float | str | None = None,
+          kT: float | None = None, length: float | str | None = None,
+          steps: int | None = None) -> CheckReport:
     """Is step ``h`` safe for every frequency? A scene may give the step (``h:``). A step
     exactly on a resonance or a pole is unsafe.
 
@@ -498,6 +556,11 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
         that it found every equilibrium (``record["system"]["search"]`` says what was
         searched, ``record["search_failure"]`` why it falls short; see
         :mod:`stepsafe.systems.walks`); other inputs are unaffected.
+    temperature, kT, length, steps : optional
+        As for :func:`advise`: the step is unsafe too when it lies above the linear limit
+        at temperature or an ensemble of thermal trajectories at that step is not clear of
+        failures (``record["thermal"]``; ``resonance_order`` then leaves the points to that
+        measurement).
 
     Returns
     -------
@@ -518,12 +581,13 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
               "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
               "period": period, "sigma": sigma, "time_unit": time_unit, "labels": labels,
               "system": system, "scene": scene, "stages": stages, "base": base, "margin": margin,
-              "zmax": zmax, "budget": budget, "progress": progress, "problem": problem,
+              "zmax": zmax, "budget": budget,
+              "progress": None if problem is not None else progress, "problem": problem,
               "openmm_system": openmm_system, "positions": positions,
               "constraints": constraints, "hydrogen_mass": hydrogen_mass,
-              "minimize": minimize}
+              "minimize": minimize}  # (beside problem=, progress reports on the thermal work)
     if problem is None:
-        p = problem_of(method, beta, {**inputs, "h": h})
+        p = problem_of(method, beta, {**inputs, "h": h}, (length,))
         step = p.h
     else:
         p = problem_of(method, beta, inputs)
@@ -531,6 +595,9 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
     if step is None:
         raise StepsafeError(f"{p.scene or 'check'}: no step: give --step H or h: in the "
                             "scene file (h= in Python)")
+    warm = _thermal_request(p, temperature, kT, length, steps)
+    if warm is not None:
+        resonance_order = None  # (the measured bands replace the resonance points)
     integrator, result = p.integrator, None
     criterion = validate_criterion(criterion, integrator.tableau)
     with integrator.naming_its_file():
@@ -560,6 +627,14 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
                     "method (--solver newton) or take a smaller step")
     data["scene"] = p.scene
     data["time_unit"] = p.time_unit
+    if warm is not None:
+        from stepsafe.api.thermal import check_at_temperature
+
+        thermal = check_at_temperature(p, warm, float(step), criterion, progress)
+        data["thermal"] = thermal
+        if not thermal["safe"]:
+            data["safe"] = False
+            data["thermal_failure"] = "at temperature " + "; ".join(thermal["reasons"])
     verdict = None
     if as_flag(verify, "verify") and result is not None:
         top = max(float(b.max()) for b in p.modes.betas.values()) * float(step) / p.margin

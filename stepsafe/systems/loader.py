@@ -55,6 +55,8 @@ class SystemReport(NamedTuple):
     #: in the engine at step h (the scene's time unit) and returns the JSON-ready record
     #: (:func:`stepsafe.systems.md.system.engine_check`); None for other systems
     engine_check: Callable[[str, float], dict[str, Any]] | None = None
+    #: the ``system:`` mapping as given (what the analysis at temperature integrates)
+    tree: Any = None
 
 
 def _fail(where: str, path: str, message: str) -> StepsafeError:
@@ -166,7 +168,7 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
             report = _hessian(tree, where, folder, method, zmax, progress, deadline)
         else:
             report = _hamiltonian(tree, where, method, zmax, deadline)
-        return report._replace(source=f"{where}::$.system.{kinds[0]}")
+        return report._replace(source=f"{where}::$.system.{kinds[0]}", tree=tree)
     except _E as exc:
         if exc.where:
             raise

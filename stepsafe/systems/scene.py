@@ -47,6 +47,7 @@ from stepsafe.core.models import MODELS
 from stepsafe.exceptions import StepsafeError, unknown_key
 from stepsafe.files.yamlio import QuotedText, load_yaml, read_bytes
 from stepsafe.units import (
+    ENERGY_UNITS,
     FORMS,
     SIGMA_RULE,
     TIME_UNITS,
@@ -56,7 +57,11 @@ from stepsafe.units import (
     quantity,
 )
 
-SCENE_KEYS = ("method", "h", "time_unit", "margin", "zmax", "modes", "system", "substeps")
+SCENE_KEYS = ("method", "h", "time_unit", "margin", "zmax", "modes", "system", "substeps",
+              "temperature", "kT", "energy_unit", "length", "steps")
+#: The keys of the analysis at temperature, kept as written and read by
+#: :func:`stepsafe.api.thermal.request` (which names the key of a bad value).
+THERMAL_KEYS = ("temperature", "kT", "energy_unit", "length", "steps")
 MAX_CSV_BYTES = 256 << 20
 MAX_CSV_ROWS = 10_000_000  # rows of a modes CSV, counted (newlines) before parsing
 #: Modes of an impulse scene: each (fast, slow) pair is a region of its own.
@@ -86,6 +91,8 @@ class Scene:
     pairs: np.ndarray | None = None
     pair_labels: tuple[str | None, ...] = ()
     substeps: int | None = None
+    #: ``temperature:``, ``kT:``, ``energy_unit:``, ``length:`` and ``steps:`` as written
+    thermal: dict[str, Any] = field(default_factory=dict)
 
     @property
     def folder(self) -> Path:
@@ -119,6 +126,20 @@ def json_schema() -> dict[str, Any]:
             "zmax": {**positive, "description": "analyse z = beta*h up to zmax (default 10)"},
             "substeps": {"type": "integer", "minimum": 1,
                          "description": "inner steps per outer drift (impulse methods)"},
+            "temperature": {"type": ["number", "string"],
+                            "description": "analyse at this temperature, in kelvin (300 or "
+                                           "'300 K'; needs energy_unit:)"},
+            "kT": {"type": "number", "minimum": 0,
+                   "description": "analyse at this thermal energy, in the energy unit of "
+                                  "the system"},
+            "energy_unit": {"enum": list(ENERGY_UNITS),
+                            "description": "the unit of the Hamiltonian's energy (for "
+                                           "temperature:)"},
+            "length": {"type": ["number", "string"],
+                       "description": "the simulated time of the run analysed at "
+                                      "temperature: in time_unit, or with a unit ('10 ps')"},
+            "steps": {"type": "integer", "minimum": 1,
+                      "description": "or the run's number of steps"},
             "modes": {"type": "array", "minItems": 1, "items": {
                 "type": "object", "additionalProperties": False,
                 "oneOf": [{"required": [form]} for form in FORMS]
@@ -341,6 +362,7 @@ def load_scene(path: str | Path, time_unit: str | None = None) -> Scene:
             raise _fail(where, "substeps", f"must be a whole number from 1 to 1000, got "
                                            f"{tree['substeps']}")
         scene.substeps = int(value)
+    scene.thermal = {key: tree[key] for key in THERMAL_KEYS if key in tree}
     if "modes" in tree:
         items = tree["modes"]
         if isinstance(items, list) and any(isinstance(i, dict) and ("fast" in i or "slow" in i)

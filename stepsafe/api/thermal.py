@@ -1,0 +1,369 @@
+"""Safe at temperature: what :func:`stepsafe.advise` and :func:`stepsafe.check` add when
+given a temperature (``temperature=`` in kelvin, or ``kT=`` in the system's energy unit)
+and the length of the run (``length=`` simulated time, or ``steps=``).
+
+The analysis (:mod:`stepsafe.systems.thermal`) draws configurations of the system's own
+potential at that temperature around each of its minima, measures the largest
+instantaneous frequency a run of that length meets (the linear limit at temperature),
+iterates the method's own map from thermal initial conditions to find the resonance bands
+at amplitude, and measures the energy drift. Its answer ``h_max`` at temperature is the
+smallest of the 0 K one (every equilibrium, as without a temperature), the linear limit at
+temperature, the lower edge of the first band, times the margin; ``limited_by`` names the
+criterion: ``"0 K"`` (the answer without a temperature), ``"linear at temperature"``,
+``"resonance band n:m"`` or ``"drift"``. A linear system (frequencies, stiffness, Hessian,
+Gaussian) is harmonic: its answer at any temperature is the 0 K one, and it says so.
+At ``T = 0`` (or without a temperature) nothing changes.
+
+Every draw is seeded (``seed``, stated in the record): the same inputs give the same
+answer on one machine.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from stepsafe.exceptions import StepsafeError, finite_real
+from stepsafe.systems.thermal.minima import Minimum, is_harmonic, minima
+
+#: The seed of every draw of the analysis at temperature.
+SEED = 0
+
+
+@dataclass(frozen=True)
+class Request:
+    """A validated request for the analysis at temperature.
+
+    Attributes
+    ----------
+    kT : float
+        Thermal energy in the system's energy unit (> 0).
+    temperature : float or None
+        In kelvin, when given so.
+    energy_unit : str or None
+        The unit of kT (None: the system's own).
+    length : float or None
+        The run's simulated time, in the time unit.
+    steps : float or None
+        Or its number of steps.
+    """
+
+    kT: float
+    temperature: float | None
+    energy_unit: str | None
+    length: float | None
+    steps: float | None
+
+    def run(self) -> dict[str, Any]:
+        return {"length": self.length, "steps": self.steps}
+
+
+def _where(scene: Any, key: str) -> str | None:
+    return f"{scene.where}::$.{key}" if scene is not None and scene.where else None
+
+
+def _fail(message: str, scene: Any, key: str, given: bool) -> StepsafeError:
+    """An error naming the key: the keyword (option) when given, else the scene's key."""
+    if given:
+        return StepsafeError(message if message.startswith(key) else f"{key}: {message}")
+    return StepsafeError(message, _where(scene, key))
+
+
+def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
+            steps: Any = None, scene: Any = None, system: Any = None,
+            time_unit: str | None = None) -> Request | None:
+    """The request of the keywords (the command line's options), else of the scene's
+    ``temperature:``, ``kT:``, ``length:`` and ``steps:`` (each keyword wins over the
+    scene's key), checked: None without a temperature or at T = 0; a bad value is an error
+    naming its key.
+
+    Parameters
+    ----------
+    temperature : float or str, optional
+        Kelvin (``300``, ``"300 K"``); needs the system's energy unit (the scene's
+        ``energy_unit:``, or ``units: {energy:}`` of a stiffness).
+    kT : float, optional
+        Thermal energy in the system's energy unit (>= 0).
+    length : float or str, optional
+        The run's simulated time: in the time unit, or a text with a time unit
+        (``"10 ps"``).
+    steps : int, optional
+        Or the run's number of steps.
+    scene : stepsafe.systems.scene.Scene, optional
+        The scene file read (its keys and where they are).
+    system : mapping, optional
+        The ``system:`` mapping (for its energy unit).
+    time_unit : str, optional
+        The unit of ``length``.
+
+    Returns
+    -------
+    Request or None
+    """
+    from stepsafe.units import ENERGY_UNITS, duration, kelvin, thermal_energy
+
+    keys = dict(getattr(scene, "thermal", None) or {})
+    given = {"temperature": temperature, "kT": kT, "length": length, "steps": steps}
+
+    def value(key: str) -> tuple[Any, bool]:
+        if given.get(key) is not None:
+            return given[key], True
+        return keys.get(key), False
+
+    t_value, t_given = value("temperature")
+    k_value, k_given = value("kT")
+    if t_value is not None and k_value is not None:
+        raise _fail("give temperature (kelvin) or kT (energy), not both", scene,
+                    "temperature" if t_given or not k_given else "kT", t_given or k_given)
+    unit = keys.get("energy_unit")
+    if unit is not None and unit not in ENERGY_UNITS:
+        raise StepsafeError(f"must be one of {', '.join(ENERGY_UNITS)}, got {str(unit)[:20]!r}",
+                            _where(scene, "energy_unit"))
+    units = system.get("units") if isinstance(system, Mapping) else None
+    if unit is None and isinstance(units, Mapping) and units.get("energy") in ENERGY_UNITS:
+        unit = units["energy"]
+    if t_value is not None:
+        try:
+            T = kelvin(t_value)
+        except StepsafeError as exc:
+            raise _fail(exc.message, scene, "temperature", t_given) from None
+        if T == 0:
+            return None
+        if unit is None:
+            raise _fail("the system's energy has no unit: give energy_unit: in the scene "
+                        "(kcal/mol, kJ/mol, eV, hartree or J), or kT in its own energy unit",
+                        scene, "temperature", t_given)
+        kt = thermal_energy(T, unit)
+        temperature_k: float | None = T
+    elif k_value is not None:
+        try:
+            if isinstance(k_value, str) and not k_given:
+                from stepsafe.systems.scene import parse_real
+
+                k_value = parse_real(k_value)
+            kt = finite_real(k_value, "kT")
+        except (StepsafeError, TypeError):
+            raise _fail(f"kT must be a finite number >= 0 (energy), got {k_value!r}", scene,
+                        "kT", k_given) from None
+        if kt < 0:
+            raise _fail(f"kT must not be negative, got {kt:g}", scene, "kT", k_given)
+        if kt == 0:
+            return None
+        temperature_k = None
+        unit = unit if k_given is False else unit
+    else:
+        for key in ("length", "steps"):
+            v, g = value(key)
+            if v is not None:
+                raise _fail("applies to the analysis at temperature: give a temperature "
+                            "(or kT) too", scene, key, g)
+        return None
+    if not math.isfinite(kt) or kt <= 0:
+        raise _fail(f"kT = {kt!r} is not a positive finite energy", scene,
+                    "temperature" if temperature_k is not None else "kT", True)
+    l_value, l_given = value("length")
+    s_value, s_given = value("steps")
+    if l_value is not None and s_value is not None:
+        raise _fail("give the run's length or its steps, not both", scene, "length",
+                    l_given)
+    run_length = run_steps = None
+    if l_value is not None:
+        try:
+            run_length = duration(l_value, "length", time_unit, plain_text=not l_given)
+        except StepsafeError as exc:
+            raise _fail(exc.message, scene, "length", l_given) from None
+        if not (math.isfinite(run_length) and run_length > 0):
+            raise _fail(f"length must be a positive finite time, got {l_value!r}", scene,
+                        "length", l_given)
+    elif s_value is not None:
+        number = s_value
+        if isinstance(number, str):
+            from stepsafe.systems.scene import parse_real
+
+            number = parse_real(number)
+        if isinstance(number, bool) or not isinstance(number, (int, float)) or \
+                not (math.isfinite(number) and number >= 1 and number == int(number)):
+            raise _fail(f"steps must be a whole number >= 1, got {s_value!r}", scene,
+                        "steps", s_given)
+        run_steps = float(number)
+    else:
+        raise _fail("give the run's length (simulated time, --length / length:) or its "
+                    "number of steps (--steps / steps:): how far into the tails a run "
+                    "reaches depends on it", scene, "length", True)
+    return Request(kt, temperature_k, unit, run_length, run_steps)
+
+
+def _minima(p: Any, req: Request) -> list[Minimum] | None:
+    """The minima of the problem's potential (None: harmonic, the 0 K answer holds)."""
+    system = p.system
+    if system is None or is_harmonic(system.tree):
+        return None
+    where = (p.scene or "system") if system.tree is not None else "system"
+    return minima(system.tree, system.items, where)
+
+
+def _progress(progress: Callable[[float], None] | None, count: int
+              ) -> Callable[[int], Callable[[str, float], None] | None]:
+    """Per minimum i of ``count``, a ``(stage, fraction)`` callback reporting the whole
+    (the band scans take most of the time: each stage's fraction is spread over them)."""
+    if progress is None:
+        return lambda i: None
+
+    def of(i: int) -> Callable[[str, float], None]:
+        def report(stage: str, fraction: float) -> None:
+            progress((i + min(max(fraction, 0.0), 1.0)) / count)
+        return report
+    return of
+
+
+def _harmonic_record(req: Request, h_zero: float | None) -> dict[str, Any]:
+    return {**_request_record(req), "h_max": h_zero, "h_max_0K": h_zero,
+            "limited_by": "0 K", "harmonic": True, "minima": [],
+            "notes": ["the system is linear (harmonic): its frequencies do not depend on "
+                      "amplitude and its map has no resonance bands below the linear limit, "
+                      "so the answer at temperature is the 0 K one"]}
+
+
+def _request_record(req: Request) -> dict[str, Any]:
+    return {"kT": req.kT, "temperature": req.temperature, "energy_unit": req.energy_unit,
+            "run": req.run(), "seed": SEED}
+
+
+def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion: str,
+                          orders: tuple[int, ...],
+                          progress: Callable[[float], None] | None = None) -> dict[str, Any]:
+    """The record of the answer at temperature for :func:`stepsafe.advise`: ``h_max``
+    (the smallest of ``h_zero``, the 0 K answer, and each minimum's limit at temperature
+    times the margin), ``limited_by``, ``h_max_0K`` and each minimum's analysis."""
+    from stepsafe.systems.thermal import thermal_limit
+
+    found = _minima(p, req)
+    if found is None:
+        return _harmonic_record(req, h_zero)
+    each = []
+    report = _progress(progress, len(found))
+    for i, m in enumerate(found):
+        with p.integrator.naming_its_file():
+            r = thermal_limit(p.integrator.tableau, m.potential, req.kT, length=req.length,
+                              steps=None if req.steps is None else req.steps,
+                              criterion=criterion, orders=orders, seed=SEED,
+                              progress=report(i))
+        each.append((m, r))
+    best_m, best = min(each, key=lambda e: e[1].h_max)
+    h_t = p.margin * best.h_max
+    out = {**_request_record(req), "h_max_0K": h_zero}
+    if h_zero is not None and h_zero <= h_t:
+        out.update(h_max=h_zero, limited_by="0 K")
+    else:
+        out.update(h_max=h_t, limited_by=best.limited_by, at=best_m.label)
+    out["h_range"] = [p.margin * best.h_range[0], p.margin * best.h_range[1]]
+    out["margin"] = p.margin
+    out["minima"] = [limit_record(m, r, p.margin) for m, r in each]
+    out["harmonic"] = False
+    return out
+
+
+def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
+                         progress: Callable[[float], None] | None = None) -> dict[str, Any]:
+    """The record of the check of step h at temperature for :func:`stepsafe.check`:
+    ``safe`` when h (over the margin) is below every minimum's linear limit at temperature
+    and an ensemble at h itself is clear of failures (:func:`stepsafe.systems.thermal.
+    thermal_check`); ``reasons`` otherwise."""
+    from stepsafe.systems.thermal import thermal_check
+
+    found = _minima(p, req)
+    if found is None:
+        return {**_request_record(req), "safe": True, "harmonic": True, "reasons": [],
+                "minima": [], "notes": _harmonic_record(req, None)["notes"]}
+    step = h / p.margin
+    each, reasons = [], []
+    for i, m in enumerate(found):
+        with p.integrator.naming_its_file():
+            c = thermal_check(p.integrator.tableau, m.potential, req.kT, step,
+                              length=req.length, steps=req.steps, criterion=criterion,
+                              seed=SEED)
+        if progress is not None:
+            progress((i + 1) / len(found))
+        each.append(check_record(m, c, p.margin))
+        reasons += [f"{r} (minimum at {m.label})" for r in c.reasons]
+    return {**_request_record(req), "safe": not reasons, "reasons": reasons,
+            "harmonic": False, "margin": p.margin, "minima": each}
+
+
+def _edge(e: Any) -> dict[str, Any] | None:
+    if e is None:
+        return None
+    return {"clear": e.clear, "unsafe": e.unsafe, "band": e.band,
+            "uncertainty": None if math.isinf(e.uncertainty) else e.uncertainty}
+
+
+def _scan_record(sc: Any, margin: float) -> dict[str, Any]:
+    def scaled(e):
+        d = _edge(e)
+        if d is None:
+            return None
+        return {k: (None if v is None else margin * v) for k, v in d.items()}
+
+    return {"target": sc.target, "h_range": [margin * sc.h_range[0], margin * sc.h_range[1]],
+            "spacing": margin * sc.spacing, "trajectories": sc.trajectories,
+            "steps": sc.steps, "threshold": sc.threshold, "confidence": sc.confidence,
+            "seed": sc.seed, "start": sc.start_how, "failure": sc.criterion,
+            "bands": [{"name": b.name, "resonances": list(b.resonances),
+                       "lower": scaled(b.lower), "upper": scaled(b.upper), "peak": b.peak}
+                      for b in sc.bands]}
+
+
+def _drift_record(d: Any, margin: float) -> dict[str, Any] | None:
+    if d is None:
+        return None
+    return {"h": margin * d.h, "rate": d.rate, "error": d.error,
+            "fluctuation": d.fluctuation, "per_dof": d.per_dof, "dof": d.dimension,
+            "trajectories": d.trajectories, "failed": d.failed, "steps": d.steps,
+            "seed": d.seed}
+
+
+def _frequency_record(linear: Any) -> dict[str, Any] | None:
+    if linear is None:
+        return None
+    w, e = linear.omega, linear.ensemble
+    return {"median": w.median, "maximum": w.maximum, "frames": w.frames,
+            "effective_frames": w.effective, "run_frames": w.run_frames, "level": w.level,
+            "run_quantile": w.estimate, "upper": w.upper, "confidence": w.confidence,
+            "extrapolation": w.method, "tail_shape": w.shape,
+            "tail_shape_fitted": w.shape_fitted, "threshold": w.threshold,
+            "exceedances": w.exceedances, "bootstrap": w.bootstrap, "seed": w.seed,
+            "eigenvalues": linear.frequencies.how,
+            "sampling": {"how": e.how, "seed": e.seed, "chains": e.chains, "h": e.h,
+                         "friction": e.friction, "burn_in": e.burn_in, "thin": e.thin,
+                         "tau": e.tau}}
+
+
+def limit_record(m: Minimum, r: Any, margin: float = 1.0) -> dict[str, Any]:
+    """One minimum's :class:`~stepsafe.systems.thermal.ThermalLimit`, JSON-ready (steps
+    times the margin)."""
+    def scaled(x):
+        return None if x is None else margin * x
+
+    return {"at": m.label, "h_max": scaled(r.h_max), "limited_by": r.limited_by,
+            "h_range": [scaled(r.h_range[0]), scaled(r.h_range[1])],
+            "h_zero": scaled(r.zero.h_zero), "omega_zero": r.zero.omega_zero,
+            "z_star": r.zero.z_star, "h_linear": scaled(r.h_linear),
+            "h_band": scaled(r.h_band), "h_drift": scaled(r.h_drift),
+            "frequencies": _frequency_record(r.linear),
+            "scans": [_scan_record(sc, margin) for sc in r.scans],
+            "drift": _drift_record(r.drift, margin), "seed": r.seed, "notes": list(r.notes)}
+
+
+def check_record(m: Minimum, c: Any, margin: float = 1.0) -> dict[str, Any]:
+    """One minimum's :class:`~stepsafe.systems.thermal.ThermalCheck`, JSON-ready."""
+    probes = [{"target": name, "h": margin * pr.h, "verdict": pr.verdict,
+               "trajectories": pr.trajectories, "failures": pr.failures, "steps": pr.steps,
+               "probability": pr.probability, "lower": pr.lower, "upper": pr.upper}
+              for name, pr in c.probes]
+    h_linear = None if c.linear is None else margin * c.linear.h_linear
+    return {"at": m.label, "safe": c.safe, "reasons": list(c.reasons),
+            "h_zero": margin * c.zero.h_zero, "h_linear": h_linear,
+            "frequencies": _frequency_record(c.linear), "probes": probes,
+            "drift": _drift_record(c.drift, margin), "seed": c.seed}
