@@ -154,16 +154,21 @@ def test_grid_holds_the_resonance_points_and_their_neighbours():
 
 
 @pytest.mark.parametrize("name, kT, z, unsafe", [
+    ("verlet", 0.003, 1.70056, True), ("verlet", 0.003, 1.40784, True),
+    ("verlet", 0.003, 0.8, False), ("verlet", 0.015, 1.5, True),
     ("verlet", 0.006, 1.70056, True), ("verlet", 0.006, 1.40784, True),
     ("verlet", 0.006, 0.8, False), ("verlet", 0.03, 1.5, True),
+    ("pefrl", 0.003, 2.0542, True), ("pefrl", 0.003, 0.8, False),
     ("pefrl", 0.006, 2.0542, True), ("pefrl", 0.006, 0.8, False),
-    ("pefrl", 0.03, 1.5635, True)])
+    ("pefrl", 0.015, 1.5635, True), ("pefrl", 0.03, 1.5635, True)])
 def test_morse_verdicts_at_thermal_energy(name, kT, z, unsafe):
-    """The steps measured on Morse bonds: velocity Verlet 2% below its 3:1 point and 0.5%
-    below its 4:1 point at E/D ~ 0.006, and z = 1.5 at E/D ~ 0.03; PEFRL 2% below its own
-    3:1 point (2.0961) and 0.5% below its 4:1 point (1.5713) at the higher temperature. z =
-    0.8 is safe for both at kT = 0.006. Each verdict is checked against the test's own
-    integration: a step it sees failing is never SAFE."""
+    """The steps measured on Morse bonds (D = 1/2: kT = 0.003 is E/D = 0.006, kT = 0.015 is
+    E/D = 0.03; twice those as well): velocity Verlet 2% below its 3:1 point and 0.5% below
+    its 4:1 point at E/D = 0.006, and z = 1.5 at E/D = 0.03; PEFRL 2% below its own 3:1
+    point (2.0961), and 0.5% below its 4:1 point (1.5713) at the higher temperatures. z =
+    0.8 is safe for both. Each verdict is checked against the test's own integration: a
+    step it sees failing is never SAFE, and an unsafe verdict at the points the issue
+    measured rests on failures the test's own integration sees too."""
     check = thermal_check(method(name), morse(), kT, z, steps=1e4)
     assert check.safe is not unsafe, check.reasons
     step = verlet if name == "verlet" else pefrl
@@ -171,6 +176,8 @@ def test_morse_verdicts_at_thermal_energy(name, kT, z, unsafe):
                          m=2000)[0]
     if clopper_pearson(round(own * 2000), 2000)[0] > 0.01:
         assert not check.safe
+    if name == "verlet" and z != 0.8:  # the issue's escapes: the test's integration too
+        assert clopper_pearson(round(own * 2000), 2000)[0] > 0.01, own
 
 
 def test_pefrl_4_to_1_step_at_low_temperature_is_safe_as_measured():

@@ -477,6 +477,13 @@ def target_options(func):
     return func
 
 
+def _thermal_options(func):
+    """--temperature, --kT, --length, --steps (:mod:`stepsafe.cli.thermal`)."""
+    from stepsafe.cli.thermal import thermal_options
+
+    return thermal_options(func)
+
+
 def scene_options(func):
     """Options shared by advise and check; they override the scene file's values."""
     opts = [
@@ -514,14 +521,15 @@ def scene_options(func):
     return func
 
 
-def _problem(scene_file, options: dict, show_progress: bool = False, h=None):
+def _problem(scene_file, options: dict, show_progress: bool = False, h=None, length=None):
     """The scene file merged with the command-line options (the options win); ``h`` the
-    step to check (a number, or a text with a time unit)."""
+    step to check (a number, or a text with a time unit); ``length`` a run's time (its
+    unit names the time unit where nothing else does)."""
     from stepsafe.api import inputs
     from stepsafe.cli.progressbar import progress_bar
 
     options = dict(options)  # (the time unit found is this scene's alone)
-    modes, labels = command_line_modes(options, scene_file, h)
+    modes, labels = command_line_modes(options, scene_file, h, length)
     with progress_bar("coupled analysis", show_progress) as progress:
         return inputs.problem(options["method_name"], modes=modes, labels=labels,
                            scene=scene_file, stages=options["stages"], base=options["base"],
@@ -615,6 +623,7 @@ def _input_error(message: str):
                    "convergence limit; simplified Newton; or one per stage).")
 @gradient_cost_option
 @criterion_option(None)
+@_thermal_options
 @scene_options
 def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, criterion,
                scene_files, as_json, verify, gradient_cost, **options) -> None:
@@ -639,32 +648,51 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, crite
       stepsafe advise examples/pendulum.yaml
     """
     from stepsafe.api import linear
+    from stepsafe.cli.progressbar import progress_bar
     from stepsafe.cli.report import print_advice, print_json
     from stepsafe.cli.respa import impulse_of, impulse_report, print_impulse_modes
+    from stepsafe.cli.thermal import (
+        print_thermal_advice,
+        thermal_keywords,
+        zero_kelvin_view,
+    )
 
+    warm = thermal_keywords(options)
     if len(scene_files) > 1:
         raise _input_error("advise takes at most one scene file")
     scene_file = scene_files[0] if scene_files else None
     impulse = impulse_of(scene_file, {**options, "verify": verify})
     if impulse is not None:
+        _no_temperature(warm)
         if tol_phase is not None or tol_energy is not None:
             raise _input_error("--tol-phase/--tol-energy do not apply to impulse methods")
         data = impulse_report(impulse, scene_file, options, step=None, criterion=criterion,
                               resonance_order=resonance_order, check=False)
         print_json(data) if as_json else print_impulse_modes(data, check=False)
         return
-    problem = _problem(scene_files[0] if scene_files else None, options, not as_json)
-    data = linear.advise(problem=problem, tol_phase=tol_phase, tol_energy=tol_energy,
-                      resonance_order=resonance_order, criterion=criterion, solver=solver,
-                      verify=verify, gradient_cost=gradient_cost).to_dict()
+    problem = _problem(scene_files[0] if scene_files else None, options, not as_json,
+                       length=warm["length"])
+    with progress_bar("analysis at temperature", not as_json) as progress:
+        data = linear.advise(problem=problem, tol_phase=tol_phase, tol_energy=tol_energy,
+                             resonance_order=resonance_order, criterion=criterion,
+                             solver=solver, verify=verify, gradient_cost=gradient_cost,
+                             progress=progress, **warm).to_dict()
     verdict = data.get("verify")
     _decide([verdict])
-    print_json(data) if as_json else print_advice(data)
+    if as_json:
+        print_json(data)
+    elif "thermal" in data:
+        click.echo("At 0 K (the linearisation at each equilibrium):")
+        print_advice(zero_kelvin_view(data))
+    else:
+        print_advice(data)
     if "system" in data and not as_json:
         from stepsafe.cli.report import print_system
 
         print_system(data["system"], every_mode, data.get("time_unit"))
-    if resonance_order is not None and not as_json:
+    if "thermal" in data and not as_json:
+        print_thermal_advice(data)
+    if resonance_order is not None and not as_json and "thermal" not in data:
         from stepsafe.cli.report import RESONANCE_CAVEAT
 
         click.echo(RESONANCE_CAVEAT)
@@ -698,6 +726,7 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, crite
                    "(the 'Search:' line says which). Without it such a search is reported, "
                    "not failed.")
 @criterion_option(None)
+@_thermal_options
 @scene_options
 def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as_json,
               verify, require_complete_search, **options) -> None:
@@ -721,13 +750,16 @@ def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as
     from stepsafe.api import reports
     from stepsafe.cli.report import print_check, print_json, print_system
     from stepsafe.cli.respa import print_impulse_modes
+    from stepsafe.cli.thermal import print_thermal_check, thermal_keywords
     from stepsafe.exceptions import StepsafeError
 
+    warm = thermal_keywords(options)
     checks = []
     for scene_file in scene_files or (None,):
         try:
             checks.append(_check_one(scene_file, h, options, resonance_order, criterion,
-                                     verify, solver, require_complete_search, not as_json))
+                                     verify, solver, require_complete_search, not as_json,
+                                     warm))
         except StepsafeError as exc:
             if not scene_files:
                 raise  # the command line alone: its error is the answer
@@ -759,9 +791,12 @@ def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as
                     click.echo(f"Engine runs: {entry['engine_runs']['summary']}")
                 if "system" in entry:
                     print_system(entry["system"], every_mode, entry.get("time_unit"))
+                if "thermal" in entry:
+                    print_thermal_check(entry)
                 if "verify" in entry:
                     _print_verify(entry["verify"])
-        if resonance_order is not None:
+        if resonance_order is not None and not any(
+                "thermal" in entry for entry in data["checks"]):
             from stepsafe.cli.report import RESONANCE_CAVEAT
 
             click.echo(RESONANCE_CAVEAT)
@@ -772,7 +807,8 @@ def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as
 
 
 def _check_one(scene_file, h, options: dict, resonance_order, criterion: str, verify: bool,
-               solver: str, require_complete_search: bool, show_progress: bool):
+               solver: str, require_complete_search: bool, show_progress: bool,
+               warm: dict | None = None):
     """The check of one scene (or of the command line alone): an impulse method's
     :class:`~stepsafe.api.reports.ImpulseModesReport`, else a
     :class:`~stepsafe.api.reports.CheckReport`."""
@@ -780,9 +816,11 @@ def _check_one(scene_file, h, options: dict, resonance_order, criterion: str, ve
     from stepsafe.cli.respa import impulse_of
 
     impulse = impulse_of(scene_file, {**options, "verify": verify})
+    warm = warm or {}
     if impulse is not None:
         from stepsafe.api.md import impulse_advice
 
+        _no_temperature(warm)
         report = impulse_advice(impulse, scene=scene_file, substeps=options.get("substeps"),
                                 step=h, time_unit=options["time_unit"], criterion=criterion,
                                 resonance_order=resonance_order, use_scene_step=h is None)
@@ -792,10 +830,25 @@ def _check_one(scene_file, h, options: dict, resonance_order, criterion: str, ve
             raise StepsafeError("no step to check: give --step H or h: in the scene",
                                 scene_file)
         return report
-    problem = _problem(scene_file, options, show_progress, h)
-    return linear.check(problem=problem, resonance_order=resonance_order, criterion=criterion,
-                     verify=verify, solver=solver,
-                     require_complete_search=require_complete_search)
+    from stepsafe.cli.progressbar import progress_bar
+
+    problem = _problem(scene_file, options, show_progress, h, warm.get("length"))
+    with progress_bar("check at temperature", show_progress) as progress:
+        return linear.check(problem=problem, resonance_order=resonance_order,
+                            criterion=criterion, verify=verify, solver=solver,
+                            require_complete_search=require_complete_search,
+                            progress=progress, **warm)
+
+
+def _no_temperature(warm: dict) -> None:
+    """Impulse methods have no analysis at temperature yet: refuse its options."""
+    given = next((key for key, value in warm.items() if value is not None), None)
+    if given is not None:
+        option = {"length": "--length", "steps": "--steps", "kT": "--kT"}.get(
+            given, "--temperature")
+        raise _input_error(f"{option}: the analysis at temperature does not apply to "
+                           "impulse (multiple time stepping) methods yet")
+
 
 
 def _print_verify(verdict: dict) -> None:

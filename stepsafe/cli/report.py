@@ -391,7 +391,8 @@ def print_check(data: dict[str, Any]) -> None:
         _print_other_criterion(click.echo, data, u)
         _print_stochastic(click.echo, data)
         return
-    besides = [data[key] for key in ("solver_failure", "search_failure", "engine_failure")
+    besides = [data[key] for key in ("solver_failure", "search_failure", "engine_failure",
+                                     "thermal_failure")
                if data.get(key)]
     if besides and not data["failing"]:
         click.echo(scene + _styled("UNSAFE", "red") + f": {name} with h = {h}: every mode "

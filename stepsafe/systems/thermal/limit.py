@@ -571,9 +571,13 @@ def thermal_check(method: Method, pot: Potential, kT: float, h: float, *,
     ratio = max(1.0, linear.omega.upper / zero.omega_zero)
     probes = []
     for t in targets:
-        rho = rho_function(method, t.omega * ratio, h)
-        pr = bands_.probe(method, t.potential, t.start, h, n_steps, float(rho(np.array([h]))[0]),
-                          threshold, confidence)
+        rho = float(rho_function(method, t.omega * ratio, h)(np.array([h]))[0])
+        if not math.isfinite(rho):
+            # above the linear limit at temperature (unsafe already) the bound of the
+            # largest thermal frequency is infinite and nothing but overflow would count
+            # as a failure: the probe uses the minimum's frequency, to say what runs do
+            rho = float(rho_function(method, t.omega, h)(np.array([h]))[0])
+        pr = bands_.probe(method, t.potential, t.start, h, n_steps, rho, threshold, confidence)
         probes.append((t.name, pr))
         if not pr.clear:
             what = "in a resonance band" if pr.verdict == "band" else "failures not excluded"

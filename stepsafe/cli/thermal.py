@@ -1,0 +1,163 @@
+"""The command line's options and report of the analysis at temperature (advise and check
+with ``--temperature`` or ``--kT``; see :mod:`stepsafe.api.thermal`)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import click
+
+from stepsafe.cli.report import fmt_below
+from stepsafe.text import printable
+
+#: Significant digits shown: the measured figures are statistical (their spread is stated).
+DIGITS = 6
+
+
+def _g(x: float | None) -> str:
+    return "none" if x is None else f"{x:.{DIGITS}g}"
+
+
+def _below(x: float) -> str:
+    return fmt_below(x, DIGITS)
+
+
+def thermal_options(func):
+    """--temperature, --kT, --length and --steps."""
+    from stepsafe.cli.main import DURATION, FLOAT, INT
+
+    opts = [
+        click.option("--steps", "run_steps", type=INT, default=None, metavar="N",
+                     help="With a temperature: the run's number of steps (or --length)."),
+        click.option("--length", "run_length", type=DURATION, default=None, metavar="TIME",
+                     help="With a temperature: the run's simulated time, in the time unit "
+                          "or with a unit (10ps): how far into the thermal tails it reaches."),
+        click.option("--kT", "kT", type=FLOAT, default=None, metavar="E",
+                     help="Analyse at the thermal energy E, in the system's energy unit "
+                          "(a system: Hamiltonian; its minima are sampled, their resonance "
+                          "bands and drift measured). 0: the 0 K answer."),
+        click.option("--temperature", type=str, default=None, metavar="T",
+                     help="As --kT, at T kelvin (300 or 300K), for a scene with "
+                          "energy_unit:."),
+    ]
+    for opt in opts:
+        func = opt(func)
+    return func
+
+
+def thermal_keywords(options: dict[str, Any]) -> dict[str, Any]:
+    """The API's keywords of the options (removed from ``options``)."""
+    return {"temperature": options.pop("temperature"), "kT": options.pop("kT"),
+            "length": options.pop("run_length"), "steps": options.pop("run_steps")}
+
+
+def zero_kelvin_view(data: dict[str, Any]) -> dict[str, Any]:
+    """The advice with its 0 K answer in place (for the 0 K report)."""
+    zero = data.get("zero_kelvin")
+    return data if zero is None else {**data, **zero}
+
+
+def _condition(t: dict[str, Any], unit: str) -> str:
+    energy = f" {t['energy_unit']}" if t.get("energy_unit") else ""
+    kT = f"kT = {_g(t['kT'])}{energy}"
+    if t.get("temperature") is not None:
+        kT = f"T = {_g(t['temperature'])} K ({kT})"
+    run = t["run"]
+    length = (f"{_g(run['length'])}{unit}" if run["length"] is not None
+              else f"{run['steps']:.0f} steps")
+    return f"{kT}, a run of {length}"
+
+
+def print_thermal_advice(data: dict[str, Any]) -> None:
+    """The answer at temperature under the 0 K report."""
+    t = data["thermal"]
+    u = f" {data['time_unit']}" if data.get("time_unit") else ""
+    click.echo(f"At {_condition(t, u)}:")
+    if t["harmonic"]:
+        click.echo(f"  {t['notes'][0]}.")
+        return
+    h0 = t["h_max_0K"]
+    zero = "none" if h0 is None else f"h < {_below(h0)}{u}"
+    if t["limited_by"] == "0 K":
+        click.echo(click.style("Safe", fg="green") + f": 0 < h < {_below(t['h_max'])}{u}, "
+                   "the 0 K limit (no band or thermal frequency below it)")
+    else:
+        click.echo(click.style("Safe", fg="green") + f": 0 < h < {_below(t['h_max'])}{u}, "
+                   f"limited by the {t['limited_by']} at the minimum {printable(t['at'])} "
+                   f"(at 0 K: {zero})")
+    for m in t["minima"]:
+        _print_minimum(m, u, data.get("margin", 1.0))
+    click.echo(f"  Reproducible: every draw seeded ({t['seed']}); the failure criterion: "
+               + (t["minima"][0]["scans"][0]["failure"] if t["minima"] and
+                  t["minima"][0]["scans"] else "none") + ".")
+
+
+def _print_minimum(m: dict[str, Any], u: str, margin: float) -> None:
+    click.echo(f"  minimum at {printable(m['at'])}: h < {_below(m['h_max'])}{u} "
+               f"({m['limited_by']})")
+    f = m["frequencies"]
+    if f is not None:
+        click.echo(f"    largest frequency over {f['frames']} thermal frames "
+                   f"({f['sampling']['how']}): median {_g(f['median'])}, maximum "
+                   f"{_g(f['maximum'])}; a run of {f['run_frames']:.3g} frames reaches "
+                   f"{_g(f['run_quantile'])} ({_g(f['upper'])} at {f['confidence']:.0%} "
+                   f"confidence; {f['extrapolation']})")
+        click.echo(f"    linear limit at temperature h < {_below(m['h_linear'])}{u} "
+                   f"(0 K: {_below(m['h_zero'])}{u})")
+    for sc in m["scans"]:
+        for b in sc["bands"]:
+            lo = b["lower"]
+            edge = ("below the scan" if lo is None else
+                    f"from h = {_g(lo['clear'])}{u}" + (
+                        f" +- {_g(lo['uncertainty'])}" if lo["uncertainty"] is not None
+                        else " (edge uncertainty not measured)"))
+            click.echo(f"    band {b['name']} {edge}, peak failure fraction "
+                       f"{b['peak']:.2g} ({sc['target']}: {sc['trajectories']} trajectories "
+                       f"x {sc['steps']} steps, scanned h in [{_g(sc['h_range'][0])}, "
+                       f"{_g(sc['h_range'][1])}]{u})")
+        if not sc["bands"]:
+            click.echo(f"    no band in h = [{_g(sc['h_range'][0])}, {_g(sc['h_range'][1])}]"
+                       f"{u} ({sc['target']}: {sc['trajectories']} trajectories x "
+                       f"{sc['steps']} steps)")
+    _print_drift(m.get("drift"), u, "    ")
+    for note in m["notes"]:
+        click.echo(f"    note: {printable(note)}")
+
+
+def _print_drift(d: dict[str, Any] | None, u: str, indent: str) -> None:
+    if d is None:
+        return
+    per = f"/{u.strip()}" if u else " per time unit"
+    click.echo(f"{indent}drift at h = {_g(d['h'])}{u}: {d['rate']:.3g} +- {d['error']:.2g} "
+               f"energy{per} (fluctuation {d['fluctuation']:.3g}; {d['failed']} of "
+               f"{d['trajectories']} trajectories failed in {d['steps']} steps)")
+
+
+def print_thermal_check(entry: dict[str, Any]) -> None:
+    """The check at temperature under the 0 K verdict."""
+    t = entry["thermal"]
+    u = f" {entry['time_unit']}" if entry.get("time_unit") else ""
+    verdict = (click.style("SAFE", fg="green") if t["safe"]
+               else click.style("UNSAFE", fg="red"))
+    click.echo(f"At {_condition(t, u)}: {verdict}")
+    if t["harmonic"]:
+        click.echo(f"  {t['notes'][0]}.")
+        return
+    for reason in t["reasons"]:
+        click.echo(f"  {printable(reason)}")
+    for m in t["minima"]:
+        f = m["frequencies"]
+        lim = "" if m["h_linear"] is None else \
+            f"; linear limit at temperature h < {_below(m['h_linear'])}{u}"
+        click.echo(f"  minimum at {printable(m['at'])}: 0 K limit h < "
+                   f"{_below(m['h_zero'])}{u}{lim}")
+        if f is not None:
+            click.echo(f"    (a run of {f['run_frames']:.3g} frames reaches frequency "
+                       f"{_g(f['run_quantile'])}, {_g(f['upper'])} at "
+                       f"{f['confidence']:.0%} confidence; {f['extrapolation']})")
+        for p in m["probes"]:
+            click.echo(f"    {p['target']} at h: {p['failures']} of {p['trajectories']} "
+                       f"trajectories failed in {p['steps']} steps ({p['verdict']}; failure "
+                       f"probability {p['lower']:.2g} to {p['upper']:.2g})")
+        _print_drift(m.get("drift"), u, "    ")
+    click.echo(f"  Reproducible: every draw seeded ({t['seed']}).")
