@@ -165,6 +165,8 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
                     "temperature" if temperature_k is not None else "kT", True)
     l_value, l_given = value("length")
     s_value, s_given = value("steps")
+    if l_given or s_given:  # the run given by keyword replaces the scene's
+        l_value, s_value = given["length"], given["steps"]
     if l_value is not None and s_value is not None:
         raise _fail("give the run's length or its steps, not both", scene, "length",
                     l_given)
@@ -183,15 +185,17 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
             from stepsafe.systems.scene import parse_real
 
             number = parse_real(number)
-        if isinstance(number, bool) or not isinstance(number, (int, float)) or \
+        if isinstance(number, int) and not isinstance(number, bool):
+            number = float(number) if abs(number) < 2 ** 1023 else math.inf
+        if not isinstance(number, float) or \
                 not (math.isfinite(number) and number >= 1 and number == int(number)):
-            raise _fail(f"steps must be a whole number >= 1, got {s_value!r}", scene,
-                        "steps", s_given)
-        run_steps = float(number)
+            raise _fail(f"steps must be a whole number >= 1, got {str(s_value)[:40]!r}",
+                        scene, "steps", s_given)
+        run_steps = number
     else:
         raise _fail("give the run's length (simulated time, --length / length:) or its "
                     "number of steps (--steps / steps:): how far into the tails a run "
-                    "reaches depends on it", scene, "length", True)
+                    "reaches depends on it", scene, "length", t_given or k_given)
     return Request(kt, temperature_k, unit, run_length, run_steps)
 
 

@@ -1,0 +1,255 @@
+"""advise and check at temperature, through the API and the command line: the inputs (kelvin
+against the Boltzmann constant at 50 digits, kT, the run's length or steps, from keywords,
+options and scene keys), bad input naming its key, nothing changed at T = 0 or for a
+harmonic system, and the Morse verdicts of the issue against an integration written here."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import mpmath as mp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import stepsafe
+from stepsafe.api.thermal import request
+from stepsafe.exceptions import StepsafeError
+from stepsafe.systems.scene import load_scene
+
+MORSE = """method: verlet
+system:
+  hamiltonian: "p**2/2 + (1 - exp(-q))**2/2"
+  box: {q: [-1, 5], p: [-1, 1]}
+"""
+
+
+@pytest.fixture
+def morse_scene(tmp_path):
+    path = tmp_path / "morse.yaml"
+    path.write_text(MORSE)
+    return str(path)
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "stepsafe", *args], capture_output=True,
+                          text=True, timeout=600)
+
+
+def test_temperature_in_kelvin_is_the_boltzmann_energy_in_the_scenes_unit(tmp_path):
+    """k_B T in kcal/mol, kJ/mol and eV at 50 digits (k_B = 1.380649e-23 J/K, N_A =
+    6.02214076e23 /mol, the calorie 4.184 J, the electronvolt 1.602176634e-19 J)."""
+    mp.mp.dps = 50
+    kB, NA = mp.mpf("1.380649e-23"), mp.mpf("6.02214076e23")
+    per = {"kcal/mol": mp.mpf(4184) / NA, "kJ/mol": mp.mpf(1000) / NA,
+           "eV": mp.mpf("1.602176634e-19")}
+    for unit, joules in per.items():
+        path = tmp_path / "s.yaml"
+        path.write_text(MORSE + f"energy_unit: {unit}\ntemperature: 300 K\nsteps: 100\n")
+        r = request(scene=load_scene(path))
+        assert r.kT == float(kB * 300 / joules)
+        assert (r.temperature, r.energy_unit, r.steps, r.length) == (300.0, unit, 100.0, None)
+    # 0.596 kcal/mol: kT at room temperature as chemists know it
+    assert request(temperature="300K", steps=10, scene=load_scene(path)).kT == \
+        pytest.approx(2.585e-2, rel=1e-3)
+
+
+def test_keywords_win_over_the_scenes_keys_and_a_length_takes_the_time_unit(tmp_path):
+    path = tmp_path / "s.yaml"
+    path.write_text(MORSE + "time_unit: fs\nkT: 0.5\nlength: 2 ps\n")
+    scene = load_scene(path)
+    r = request(scene=scene, time_unit="fs")
+    assert (r.kT, r.length, r.steps) == (0.5, 2000.0, None)
+    r = request(kT=0.25, steps=300, scene=scene, time_unit="fs")
+    assert (r.kT, r.steps, r.length) == (0.25, 300.0, None)
+
+
+@pytest.mark.parametrize("keys, message, key", [
+    ("temperature: hot\nsteps: 10\n", "not a number", "temperature"),
+    ("temperature: 300 fs\nenergy_unit: eV\nsteps: 10\n", "kelvin", "temperature"),
+    ("temperature: -5\nenergy_unit: eV\nsteps: 10\n", ">= 0", "temperature"),
+    ("temperature: 300\nsteps: 10\n", "no unit", "temperature"),
+    ("temperature: 300\nenergy_unit: furlong\nsteps: 10\n", "one of", "energy_unit"),
+    ("kT: -1\nsteps: 10\n", "negative", "kT"),
+    ("kT: .nan\nsteps: 10\n", "finite", "kT"),
+    ("kT: 1\ntemperature: 3\nsteps: 10\n", "not both", "temperature"),
+    ("kT: 1\n", "length", "length"),
+    ("kT: 1\nlength: 10 THz\n", "time", "length"),
+    ("kT: 1\nlength: -3\n", "positive", "length"),
+    ("kT: 1\nsteps: 2.5\n", "whole number", "steps"),
+    ("kT: 1\nsteps: 0\n", "whole number", "steps"),
+    ("kT: 1\nsteps: 10\nlength: 3\n", "not both", "length"),
+    ("steps: 10\n", "temperature", "steps"),
+])
+def test_bad_scene_values_exit_2_naming_the_file_and_key(tmp_path, keys, message, key):
+    path = tmp_path / "bad.yaml"
+    path.write_text(MORSE + keys)
+    with pytest.raises(StepsafeError, match=message) as info:
+        request(scene=load_scene(path))
+    assert info.value.where == f"{path}::$.{key}"
+    run = _cli("check", str(path), "--step", "0.5")
+    assert run.returncode == 2 and run.stdout == ""
+    assert f"$.{key}" in run.stderr and len(run.stderr.strip().splitlines()) == 1
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10**400, 10**400),
+                 st.text(max_size=12), st.booleans(), st.none(), st.lists(st.floats(),
+                                                                           max_size=2)),
+       st.sampled_from(["kT", "temperature", "length", "steps"]))
+def test_any_value_of_a_key_is_accepted_or_refused_naming_it(value, key):
+    """A hostile value of each keyword: a request, None, or a StepsafeError whose message
+    names the keyword; never another exception."""
+    base = {"kT": 0.1, "steps": 10}
+    if key == "temperature":
+        base = {"temperature": None, "steps": 10}
+    kwargs = {**base, key: value}
+    if key in ("length",):
+        kwargs.pop("steps")
+    try:
+        r = request(**kwargs, system={"units": {"energy": "eV"}}, time_unit="fs")
+    except StepsafeError as exc:
+        assert any(k in exc.message for k in kwargs), exc.message
+        return
+    if r is not None:
+        assert math.isfinite(r.kT) and r.kT > 0
+        assert (r.length is None) != (r.steps is None)
+
+
+@pytest.mark.slow  # (several command-line runs, each analysing the scene)
+def test_command_line_options_name_themselves_when_bad(morse_scene):
+    for args, word in [(["--temperature", "300"], "temperature"),
+                       (["--kT", "-1", "--steps", "5"], "kT"),
+                       (["--kT", "1"], "length"), (["--kT", "1", "--length", "3THz"], "length"),
+                       (["--kT", "1", "--steps", "5", "--length", "3"], "length")]:
+        run = _cli("advise", morse_scene, *args)
+        assert run.returncode == 2, run.stderr
+        assert word in run.stderr and len(run.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.slow  # (several command-line runs, each analysing the scene)
+def test_zero_temperature_changes_no_answer(morse_scene):
+    plain = stepsafe.advise(scene=morse_scene).to_dict()
+    assert stepsafe.advise(scene=morse_scene, kT=0.0).to_dict() == plain
+    assert stepsafe.advise(scene=morse_scene, kT=0, steps=10).to_dict() == plain
+    checked = stepsafe.check(scene=morse_scene, h=1.7, resonance_order=3).to_dict()
+    assert stepsafe.check(scene=morse_scene, h=1.7, resonance_order=3, kT=0.0).to_dict() == \
+        checked
+    run = _cli("advise", morse_scene, "--temperature", "0", "--json")
+    assert run.returncode == 0 and json.loads(run.stdout) == plain
+
+
+def test_harmonic_inputs_keep_their_answer_at_any_temperature():
+    plain = stepsafe.advise("verlet", [1.0, 4.0])
+    warm = stepsafe.advise("verlet", [1.0, 4.0], kT=3.0, steps=1000)
+    assert (warm.h_max, warm.h_max_limited_by) == (plain.h_max, plain.h_max_limited_by)
+    assert warm.record["thermal"]["harmonic"] is True
+    assert warm.record["thermal"]["limited_by"] == "0 K"
+    c = stepsafe.check("verlet", 0.49, [4.0], kT=3.0, steps=1000)
+    assert c.safe and c.record["thermal"]["safe"]
+    assert not stepsafe.check("verlet", 0.51, [4.0], kT=3.0, steps=1000).safe
+
+
+def _own_escapes(h, kT, steps=2000, m=2000, seed=5):
+    """Velocity Verlet on U = (1 - e^-q)^2 / 2 written here, from Boltzmann draws
+    (rejection from the harmonic proposal, exact for the well below U = 20 kT) with
+    momenta N(0, kT); the fraction whose energy leaves the well (above 0.45 = 0.9 D) or
+    overflows within ``steps`` steps."""
+    rng = np.random.default_rng(seed)
+
+    def U(q):
+        return 0.5 * (1 - np.exp(-q)) ** 2
+
+    q = np.empty(0)
+    while q.size < m:
+        x = rng.standard_normal(4 * m) * math.sqrt(2 * kT) + 0.0
+        # proposal N(0, 2 kT) covers exp(-U/kT) (U >= q^2/2 - q^3/2 near 0, bounded
+        # well); accept with exp(-U/kT) / (c exp(-x^2 / 4kT)), c = max over the well
+        w = np.exp(-U(x) / kT + x * x / (4 * kT))
+        c = float(np.max(w)) * 1.01
+        q = np.concatenate([q, x[rng.random(x.size) * c < w]])
+    q = q[:m]
+    p = rng.standard_normal(m) * math.sqrt(kT)
+
+    def force(q):
+        e = np.exp(-q)
+        return -(1 - e) * e
+
+    out = np.zeros(m, dtype=bool)
+    with np.errstate(all="ignore"):
+        f = force(q)
+        for _ in range(steps):
+            p = p + 0.5 * h * f
+            q = q + h * p
+            f = force(q)
+            p = p + 0.5 * h * f
+            out |= ~(U(q) + 0.5 * p * p < 0.45)
+    return float(out.mean())
+
+
+def _morse_advice(path: str, kT: float):
+    return stepsafe.advise(scene=path, kT=kT, steps=10000)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kT", [0.003, 0.015])
+def test_morse_advice_at_temperature_runs_clear_by_an_integration_written_here(
+        morse_scene, kT):
+    """At E/D = 0.006 and 0.03 (D = 1/2): h_max at temperature lies below the 0 K one and
+    below the issue's failing steps; the test's own Verlet from its own Boltzmann draws
+    loses no more than the 1% threshold allows (2.3 standard errors) at h_max, and the
+    record says which criterion limits it, with the run quantile's method and the seeds."""
+    r = _morse_advice(morse_scene, kT)
+    t = r.record["thermal"]
+    assert r.h_max == t["h_max"] < r.record["zero_kelvin"]["h_max"]
+    assert t["limited_by"].split(" (")[0] in ("linear at temperature", "drift") or \
+        t["limited_by"].startswith("resonance band")
+    assert r.h_max < (1.40784 if kT == 0.003 else 1.5)
+    m = t["minima"][0]
+    assert "peaks over threshold" in m["frequencies"]["extrapolation"] or \
+        "empirical" in m["frequencies"]["extrapolation"]
+    assert t["seed"] == 0 and m["frequencies"]["seed"] == 0
+    assert m["drift"]["h"] <= r.h_max and m["drift"]["fluctuation"] > 0
+    assert _own_escapes(r.h_max, kT) <= 0.01 + 2.3 * math.sqrt(0.01 * 0.99 / 2000)
+
+
+@pytest.mark.parametrize("h, kT, order", [
+    (1.70056, 0.003, 3), (1.40784, 0.003, 4), (0.8, 0.003, 4), (1.5, 0.015, None)])
+def test_morse_check_at_temperature_against_an_integration_written_here(
+        morse_scene, h, kT, order):
+    """check --temperature: the issue's failing steps (2% below Verlet's 3:1 point, 0.5%
+    below its 4:1 point, z = 1.5 at E/D = 0.03) are UNSAFE at temperature while the 0 K
+    check says SAFE, with --resonance-order 3 or 4 (the points, not the bands); z = 0.8 is
+    SAFE. Each verdict agrees with the test's own integration: a step where it sees
+    escapes is never SAFE."""
+    zero = stepsafe.check(scene=morse_scene, h=h, resonance_order=order)
+    assert zero.safe
+    warm = stepsafe.check(scene=morse_scene, h=h, resonance_order=order, kT=kT, steps=10000)
+    own = _own_escapes(h, kT)
+    assert warm.safe is (h == 0.8), warm.record["thermal"]["reasons"]
+    if own > 0.02:
+        assert not warm.safe
+    assert (h == 0.8) is (own == 0.0)
+
+
+@pytest.mark.slow  # (several command-line runs, each analysing the scene)
+def test_check_at_temperature_exits_1_and_reports_json(morse_scene):
+    run = _cli("check", morse_scene, "--step", "1.70056", "--kT", "0.003", "--steps",
+               "10000", "--json")
+    assert run.returncode == 1, run.stderr
+    entry = json.loads(run.stdout)["checks"][0]
+    assert entry["safe"] is False and entry["thermal"]["safe"] is False
+    assert entry["thermal"]["kT"] == 0.003 and entry["thermal"]["seed"] == 0
+    probe = entry["thermal"]["minima"][0]["probes"][0]
+    assert probe["failures"] > 0.5 * probe["trajectories"]
+    text = _cli("check", morse_scene, "--step", "0.8", "--kT", "0.003", "--steps", "10000")
+    assert text.returncode == 0 and "At kT = 0.003, a run of 10000 steps: SAFE" in text.stdout
+
+
+def test_example_scene_at_temperature_is_in_the_examples():
+    assert (Path(__file__).parent.parent / "examples" / "morse-300K.yaml").exists()
