@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from stepsafe.exceptions import StepsafeError, finite_real
-from stepsafe.systems.thermal.minima import Minimum, is_harmonic, minima
+from stepsafe.systems.thermal_scene import Minimum, is_harmonic, minima
 
 #: The seed of every draw of the analysis at temperature.
 SEED = 0

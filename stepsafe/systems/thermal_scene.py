@@ -1,4 +1,5 @@
-"""The potentials a scene's system gives the analysis at temperature: one per minimum.
+"""The potentials a scene's system gives the analysis at temperature: one per minimum
+(:mod:`stepsafe.systems.thermal` itself reads no scene).
 
 A ``system:`` Hamiltonian ``H = p^T M^-1 p / 2 + U(q)`` (1 dof, or named or indexed
 coordinates) has been searched for its equilibria (:mod:`stepsafe.systems.loader`); each
