@@ -85,6 +85,8 @@ def test_keywords_win_over_the_scenes_keys_and_a_length_takes_the_time_unit(tmp_
     ("kT: 1\nsteps: 0\n", "whole number", "steps"),
     ("kT: 1\nsteps: 10\nlength: 3\n", "not both", "length"),
     ("steps: 10\n", "temperature", "steps"),
+    ("kT: 1\nsteps: 10\nmax_drift: 0\n", "positive", "max_drift"),
+    ("kT: 1\nsteps: 10\nmax_drift: .inf\n", "positive", "max_drift"),
 ])
 def test_bad_scene_values_exit_2_naming_the_file_and_key(tmp_path, keys, message, key):
     path = tmp_path / "bad.yaml"
@@ -101,7 +103,7 @@ def test_bad_scene_values_exit_2_naming_the_file_and_key(tmp_path, keys, message
 @given(st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10**400, 10**400),
                  st.text(max_size=12), st.booleans(), st.none(), st.lists(st.floats(),
                                                                            max_size=2)),
-       st.sampled_from(["kT", "temperature", "length", "steps"]))
+       st.sampled_from(["kT", "temperature", "length", "steps", "max_drift"]))
 def test_any_value_of_a_key_is_accepted_or_refused_naming_it(value, key):
     """A hostile value of each keyword: a request, None, or a StepsafeError whose message
     names the keyword; never another exception."""
@@ -155,16 +157,20 @@ def test_harmonic_inputs_keep_their_answer_at_any_temperature():
     assert not stepsafe.check("verlet", 0.51, [4.0], kT=3.0, steps=1000).safe
 
 
-def _own_escapes(h, kT, steps=2000, m=2000, seed=5):
-    """Velocity Verlet on U = (1 - e^-q)^2 / 2 written here, from Boltzmann draws
-    (rejection from the harmonic proposal, exact for the well below U = 20 kT) with
-    momenta N(0, kT); the fraction whose energy leaves the well (above 0.45 = 0.9 D) or
-    overflows within ``steps`` steps."""
+def _U(q):
+    return 0.5 * (1 - np.exp(-q)) ** 2
+
+
+def _force(q):
+    e = np.exp(-q)
+    return -(1 - e) * e
+
+
+def _boltzmann(kT, m, seed):
+    """m draws of (q, p) from exp(-H / kT) for H = p^2/2 + (1 - e^-q)^2/2: q by rejection
+    from N(0, 2 kT) (the well's density over that proposal is bounded), p ~ N(0, kT)."""
     rng = np.random.default_rng(seed)
-
-    def U(q):
-        return 0.5 * (1 - np.exp(-q)) ** 2
-
+    U = _U
     q = np.empty(0)
     while q.size < m:
         x = rng.standard_normal(4 * m) * math.sqrt(2 * kT) + 0.0
@@ -173,13 +179,15 @@ def _own_escapes(h, kT, steps=2000, m=2000, seed=5):
         w = np.exp(-U(x) / kT + x * x / (4 * kT))
         c = float(np.max(w)) * 1.01
         q = np.concatenate([q, x[rng.random(x.size) * c < w]])
-    q = q[:m]
-    p = rng.standard_normal(m) * math.sqrt(kT)
+    return q[:m], rng.standard_normal(m) * math.sqrt(kT)
 
-    def force(q):
-        e = np.exp(-q)
-        return -(1 - e) * e
 
+def _own_escapes(h, kT, steps=2000, m=2000, seed=5):
+    """Velocity Verlet on U = (1 - e^-q)^2 / 2 written here, from the test's own Boltzmann
+    draws; the fraction whose energy leaves the well (above 0.45 = 0.9 D) or overflows
+    within ``steps`` steps."""
+    q, p = _boltzmann(kT, m, seed)
+    U, force = _U, _force
     out = np.zeros(m, dtype=bool)
     with np.errstate(all="ignore"):
         f = force(q)
@@ -253,3 +261,47 @@ def test_check_at_temperature_exits_1_and_reports_json(morse_scene):
 
 def test_example_scene_at_temperature_is_in_the_examples():
     assert (Path(__file__).parent.parent / "examples" / "morse-300K.yaml").exists()
+
+
+def _own_drift(h, kT, steps=2000, m=500, seed=7):
+    """The test's own drift at h: each trajectory's least-squares slope of H_n - H_0
+    against t = n h over every step (velocity Verlet written here, its own Boltzmann
+    draws); the mean slope and its standard error over trajectories."""
+    q, p = _boltzmann(kT, m, seed)
+    H0 = _U(q) + 0.5 * p * p
+    f = _force(q)
+    dH = np.empty((steps, m))
+    for n in range(steps):
+        p = p + 0.5 * h * f
+        q = q + h * p
+        f = _force(q)
+        p = p + 0.5 * h * f
+        dH[n] = _U(q) + 0.5 * p * p - H0
+    keep = np.all(np.isfinite(dH), axis=0) & (np.max(np.abs(dH), axis=0) < 0.1)
+    slope = np.polyfit(h * np.arange(1, steps + 1), dH[:, keep], 1)[0]
+    return float(slope.mean()), float(slope.std(ddof=1) / math.sqrt(keep.sum()))
+
+
+@pytest.mark.slow  # two analyses at temperature and the test's own drift run
+def test_max_drift_limits_the_step_where_the_measured_drift_meets_it():
+    """advise with max_drift 1e-8 (energy per time unit) at kT/D = 0.006: the step is
+    lowered until the measured drift (plus 2 standard errors) meets it and the record says
+    so; the test's own Verlet drift at that step is within the tolerance (3 of its own
+    standard errors allowed); check at that step with the tolerance is SAFE, and a
+    tolerance a thousand times below the measured bound fails it."""
+    scene = str(Path(__file__).parent.parent / "examples" / "morse.yaml")
+    free = stepsafe.advise(scene=scene)
+    r = stepsafe.advise(scene=scene, max_drift=1e-8)
+    t = r.record["thermal"]
+    assert t["limited_by"] == "drift" == r.h_max_limited_by and t["max_drift"] == 1e-8
+    assert r.h_max < free.h_max
+    d = t["minima"][0]["drift"]
+    assert d["h"] == r.h_max and abs(d["rate"]) + 2 * d["error"] <= 1e-8
+    rate, error = _own_drift(r.h_max, 0.003)
+    assert abs(rate) <= 1e-8 + 3 * error
+    ok = stepsafe.check(scene=scene, h=0.9 * r.h_max, max_drift=1e-8)
+    assert ok.safe, ok.record["thermal"]["reasons"]
+    probe = ok.record["thermal"]["minima"][0]["drift"]
+    tight = (abs(probe["rate"]) + 2 * probe["error"]) / 1000
+    bad = stepsafe.check(scene=scene, h=0.9 * r.h_max, max_drift=tight)
+    assert not bad.safe and "max_drift" in " ".join(bad.record["thermal"]["reasons"])

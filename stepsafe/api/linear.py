@@ -152,7 +152,8 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
            resonance_order: int | None = None, solver: str = "fixed-point",
            criterion: str | None = None, verify: bool = False, gradient_cost: float = 1.0,
            temperature: float | str | None = None, kT: float | None = None,
-           length: float | str | None = None, steps: int | None = None) -> AdviceReport:
+           length: float | str | None = None, steps: int | None = None,
+           max_drift: float | None = None) -> AdviceReport:
     """Safe step sizes for a method and angular frequencies ``beta`` (or a scene, or a
     system), with the inputs of :func:`problem`.
 
@@ -255,6 +256,9 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
         a time unit (``"10 ps"``).
     steps : int, optional
         Or the run's number of steps.
+    max_drift : float, optional
+        With a temperature: the largest acceptable energy drift (energy per time unit);
+        the step is lowered until the measured drift meets it (``limited_by`` ``drift``).
 
     Returns
     -------
@@ -281,7 +285,7 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
               "constraints": constraints, "hydrogen_mass": hydrogen_mass,
               "minimize": minimize}  # (beside problem=, progress reports on the thermal work)
     p = problem_of(method, beta, inputs, (length,))
-    warm = _thermal_request(p, temperature, kT, length, steps)
+    warm = _thermal_request(p, temperature, kT, length, steps, max_drift)
     if warm is not None and (tol_phase is not None or tol_energy is not None):
         raise StepsafeError("temperature: the answer at temperature does not bound the phase "
                             "or energy error yet; give tol_phase/tol_energy without it")
@@ -365,7 +369,8 @@ def _stochastic_record(integrator: Integrator, p: Problem, h: float | None
     return record
 
 
-def _thermal_request(p: Problem, temperature: Any, kT: Any, length: Any, steps: Any) -> Any:
+def _thermal_request(p: Problem, temperature: Any, kT: Any, length: Any, steps: Any,
+                     max_drift: Any) -> Any:
     """The request at temperature of the keywords and the problem's scene (None: none,
     or T = 0)."""
     from stepsafe.api.thermal import request
@@ -373,8 +378,8 @@ def _thermal_request(p: Problem, temperature: Any, kT: Any, length: Any, steps: 
 
     scene = load_scene(p.scene, p.time_unit) if p.scene else None
     tree = p.system.tree if p.system is not None else None
-    return request(temperature=temperature, kT=kT, length=length, steps=steps, scene=scene,
-                   system=tree, time_unit=p.time_unit)
+    return request(temperature=temperature, kT=kT, length=length, steps=steps,
+                   max_drift=max_drift, scene=scene, system=tree, time_unit=p.time_unit)
 
 
 def _advise_at_temperature(p: Problem, warm: Any, data: dict[str, Any], criterion: str,
@@ -470,7 +475,7 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
           verify: bool = False, solver: str = "fixed-point",
           require_complete_search: bool = False, temperature: float | str | None = None,
           kT: float | None = None, length: float | str | None = None,
-          steps: int | None = None) -> CheckReport:
+          steps: int | None = None, max_drift: float | None = None) -> CheckReport:
     """Is step ``h`` safe for every frequency? A scene may give the step (``h:``). A step
     exactly on a resonance or a pole is unsafe.
 
@@ -556,11 +561,11 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
         that it found every equilibrium (``record["system"]["search"]`` says what was
         searched, ``record["search_failure"]`` why it falls short; see
         :mod:`stepsafe.systems.walks`); other inputs are unaffected.
-    temperature, kT, length, steps : optional
+    temperature, kT, length, steps, max_drift : optional
         As for :func:`advise`: the step is unsafe too when it lies above the linear limit
-        at temperature or an ensemble of thermal trajectories at that step is not clear of
-        failures (``record["thermal"]``; ``resonance_order`` then leaves the points to that
-        measurement).
+        at temperature, an ensemble of thermal trajectories at that step is not clear of
+        failures, or its measured drift exceeds ``max_drift`` (``record["thermal"]``;
+        ``resonance_order`` then leaves the points to that measurement).
 
     Returns
     -------
@@ -595,7 +600,7 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
     if step is None:
         raise StepsafeError(f"{p.scene or 'check'}: no step: give --step H or h: in the "
                             "scene file (h= in Python)")
-    warm = _thermal_request(p, temperature, kT, length, steps)
+    warm = _thermal_request(p, temperature, kT, length, steps, max_drift)
     if warm is not None:
         resonance_order = None  # (the measured bands replace the resonance points)
     integrator, result = p.integrator, None

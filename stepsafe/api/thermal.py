@@ -8,7 +8,8 @@ instantaneous frequency a run of that length meets (the linear limit at temperat
 iterates the method's own map from thermal initial conditions to find the resonance bands
 at amplitude, and measures the energy drift. Its answer ``h_max`` at temperature is the
 smallest of the 0 K one (every equilibrium, as without a temperature), the linear limit at
-temperature, the lower edge of the first band, times the margin; ``limited_by`` names the
+temperature, the lower edge of the first band (and, with ``max_drift``, the largest step
+whose measured drift meets it), times the margin; ``limited_by`` names the
 criterion: ``"0 K"`` (the answer without a temperature), ``"linear at temperature"``,
 ``"resonance band n:m"`` or ``"drift"``. A linear system (frequencies, stiffness, Hessian,
 Gaussian) is harmonic: its answer at any temperature is the 0 K one, and it says so.
@@ -48,6 +49,8 @@ class Request:
         The run's simulated time, in the time unit.
     steps : float or None
         Or its number of steps.
+    max_drift : float or None
+        The largest acceptable energy drift, energy per time unit (the whole system).
     """
 
     kT: float
@@ -55,6 +58,7 @@ class Request:
     energy_unit: str | None
     length: float | None
     steps: float | None
+    max_drift: float | None = None
 
     def run(self) -> dict[str, Any]:
         return {"length": self.length, "steps": self.steps}
@@ -72,7 +76,7 @@ def _fail(message: str, scene: Any, key: str, given: bool) -> StepsafeError:
 
 
 def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
-            steps: Any = None, scene: Any = None, system: Any = None,
+            steps: Any = None, max_drift: Any = None, scene: Any = None, system: Any = None,
             time_unit: str | None = None) -> Request | None:
     """The request of the keywords (the command line's options), else of the scene's
     ``temperature:``, ``kT:``, ``length:`` and ``steps:`` (each keyword wins over the
@@ -91,6 +95,10 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
         (``"10 ps"``).
     steps : int, optional
         Or the run's number of steps.
+    max_drift : float, optional
+        The largest acceptable ``|drift| + 2 SE`` of the energy, in the system's energy
+        unit per time unit: ``advise`` lowers the step until the measured drift meets it
+        (``limited_by`` ``"drift"``), ``check`` fails a step whose drift does not.
     scene : stepsafe.systems.scene.Scene, optional
         The scene file read (its keys and where they are).
     system : mapping, optional
@@ -105,7 +113,8 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
     from stepsafe.units import ENERGY_UNITS, duration, kelvin, thermal_energy
 
     keys = dict(getattr(scene, "thermal", None) or {})
-    given = {"temperature": temperature, "kT": kT, "length": length, "steps": steps}
+    given = {"temperature": temperature, "kT": kT, "length": length, "steps": steps,
+             "max_drift": max_drift}
 
     def value(key: str) -> tuple[Any, bool]:
         if given.get(key) is not None:
@@ -154,7 +163,7 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
         temperature_k = None
         unit = unit if k_given is False else unit
     else:
-        for key in ("length", "steps"):
+        for key in ("length", "steps", "max_drift"):
             v, g = value(key)
             if v is not None:
                 raise _fail("applies to the analysis at temperature: give a temperature "
@@ -196,7 +205,23 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
         raise _fail("give the run's length (simulated time, --length / length:) or its "
                     "number of steps (--steps / steps:): how far into the tails a run "
                     "reaches depends on it", scene, "length", t_given or k_given)
-    return Request(kt, temperature_k, unit, run_length, run_steps)
+    tolerance, d_given = value("max_drift")
+    if tolerance is not None:
+        if isinstance(tolerance, str) and not d_given:
+            from stepsafe.systems.scene import parse_real
+
+            tolerance = parse_real(tolerance)
+        number = math.nan
+        if isinstance(tolerance, (int, float)) and not isinstance(tolerance, bool):
+            try:
+                number = float(tolerance)
+            except OverflowError:  # (an int beyond float64)
+                pass
+        if not (math.isfinite(number) and number > 0):
+            raise _fail(f"max_drift must be a positive finite energy per time unit, got "
+                        f"{str(tolerance)[:40]!r}", scene, "max_drift", d_given)
+        tolerance = number
+    return Request(kt, temperature_k, unit, run_length, run_steps, tolerance)
 
 
 def _minima(p: Any, req: Request) -> list[Minimum] | None:
@@ -232,7 +257,7 @@ def _harmonic_record(req: Request, h_zero: float | None) -> dict[str, Any]:
 
 def _request_record(req: Request) -> dict[str, Any]:
     return {"kT": req.kT, "temperature": req.temperature, "energy_unit": req.energy_unit,
-            "run": req.run(), "seed": SEED}
+            "run": req.run(), "max_drift": req.max_drift, "seed": SEED}
 
 
 def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion: str,
@@ -253,7 +278,7 @@ def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion:
             r = thermal_limit(p.integrator.tableau, m.potential, req.kT, length=req.length,
                               steps=None if req.steps is None else req.steps,
                               criterion=criterion, orders=orders, seed=SEED,
-                              progress=report(i))
+                              drift_tolerance=req.max_drift, progress=report(i))
         each.append((m, r))
     best_m, best = min(each, key=lambda e: e[1].h_max)
     h_t = p.margin * best.h_max
@@ -292,6 +317,11 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
             progress((i + 1) / len(found))
         each.append(check_record(m, c, p.margin))
         reasons += [f"{r} (minimum at {m.label})" for r in c.reasons]
+        d = c.drift
+        if req.max_drift is not None and d is not None and not d.bound(2.0) <= req.max_drift:
+            reasons.append(f"the energy drift {d.rate:.3g} +- {d.error:.2g} per time unit "
+                           f"(2 standard errors) exceeds max_drift {req.max_drift:g} "
+                           f"(minimum at {m.label})")
     return {**_request_record(req), "safe": not reasons, "reasons": reasons,
             "harmonic": False, "margin": p.margin, "minima": each}
 

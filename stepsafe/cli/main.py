@@ -844,8 +844,8 @@ def _no_temperature(warm: dict) -> None:
     """Impulse methods have no analysis at temperature yet: refuse its options."""
     given = next((key for key, value in warm.items() if value is not None), None)
     if given is not None:
-        option = {"length": "--length", "steps": "--steps", "kT": "--kT"}.get(
-            given, "--temperature")
+        option = {"length": "--length", "steps": "--steps", "kT": "--kT",
+                  "max_drift": "--max-drift"}.get(given, "--temperature")
         raise _input_error(f"{option}: the analysis at temperature does not apply to "
                            "impulse (multiple time stepping) methods yet")
 

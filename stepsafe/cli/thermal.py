@@ -23,10 +23,14 @@ def _below(x: float) -> str:
 
 
 def thermal_options(func):
-    """--temperature, --kT, --length and --steps."""
+    """--temperature, --kT, --length, --steps and --max-drift."""
     from stepsafe.cli.main import DURATION, FLOAT, INT
 
     opts = [
+        click.option("--max-drift", "max_drift", type=FLOAT, default=None, metavar="D",
+                     help="With a temperature: the largest acceptable energy drift, energy "
+                          "per time unit (advise lowers h until the measured drift meets "
+                          "it; check fails a step whose drift does not)."),
         click.option("--steps", "run_steps", type=INT, default=None, metavar="N",
                      help="With a temperature: the run's number of steps (or --length)."),
         click.option("--length", "run_length", type=DURATION, default=None, metavar="TIME",
@@ -48,7 +52,8 @@ def thermal_options(func):
 def thermal_keywords(options: dict[str, Any]) -> dict[str, Any]:
     """The API's keywords of the options (removed from ``options``)."""
     return {"temperature": options.pop("temperature"), "kT": options.pop("kT"),
-            "length": options.pop("run_length"), "steps": options.pop("run_steps")}
+            "length": options.pop("run_length"), "steps": options.pop("run_steps"),
+            "max_drift": options.pop("max_drift")}
 
 
 def zero_kelvin_view(data: dict[str, Any]) -> dict[str, Any]:

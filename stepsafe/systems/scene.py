@@ -58,10 +58,10 @@ from stepsafe.units import (
 )
 
 SCENE_KEYS = ("method", "h", "time_unit", "margin", "zmax", "modes", "system", "substeps",
-              "temperature", "kT", "energy_unit", "length", "steps")
+              "temperature", "kT", "energy_unit", "length", "steps", "max_drift")
 #: The keys of the analysis at temperature, kept as written and read by
 #: :func:`stepsafe.api.thermal.request` (which names the key of a bad value).
-THERMAL_KEYS = ("temperature", "kT", "energy_unit", "length", "steps")
+THERMAL_KEYS = ("temperature", "kT", "energy_unit", "length", "steps", "max_drift")
 MAX_CSV_BYTES = 256 << 20
 MAX_CSV_ROWS = 10_000_000  # rows of a modes CSV, counted (newlines) before parsing
 #: Modes of an impulse scene: each (fast, slow) pair is a region of its own.
@@ -140,6 +140,9 @@ def json_schema() -> dict[str, Any]:
                                       "temperature: in time_unit, or with a unit ('10 ps')"},
             "steps": {"type": "integer", "minimum": 1,
                       "description": "or the run's number of steps"},
+            "max_drift": {"type": "number", "exclusiveMinimum": 0,
+                          "description": "at temperature: the largest acceptable energy "
+                                         "drift, energy per time unit"},
             "modes": {"type": "array", "minItems": 1, "items": {
                 "type": "object", "additionalProperties": False,
                 "oneOf": [{"required": [form]} for form in FORMS]
