@@ -305,3 +305,23 @@ def test_max_drift_limits_the_step_where_the_measured_drift_meets_it():
     tight = (abs(probe["rate"]) + 2 * probe["error"]) / 1000
     bad = stepsafe.check(scene=scene, h=0.9 * r.h_max, max_drift=tight)
     assert not bad.safe and "max_drift" in " ".join(bad.record["thermal"]["reasons"])
+
+
+def test_json_at_temperature_follows_the_output_schema():
+    """advise and check --json at temperature (a harmonic system: quick) carry their
+    thermal records as ``stepsafe schema output`` describes them."""
+    import jsonschema
+
+    from stepsafe.api.schemas import output_schema
+
+    for command, args in (("advise", ()), ("check", ("--step", "0.5"))):
+        run = _cli(command, "--method", "verlet", "--beta", "1", "--kT", "2", "--steps",
+                   "100", "--json", *args)
+        assert run.returncode == 0, run.stderr
+        data = json.loads(run.stdout)
+        jsonschema.validate(data, output_schema(command))
+        record = data if command == "advise" else data["checks"][0]
+        assert record["thermal"]["harmonic"] is True and record["thermal"]["kT"] == 2.0
+    advice = stepsafe.advise("verlet", [1.0], kT=2.0, steps=100).to_dict()
+    jsonschema.validate(advice, output_schema("advise"))
+    assert advice["thermal"]["h_max"] == advice["h_max"] == advice["zero_kelvin"]["h_max"]

@@ -107,17 +107,33 @@ IMPULSE_MODES = top({"method": STR, "kind": {"const": "impulse"}, "substeps": IN
 
 FAILURE = record({"model": STR, "z": NUM_OR_NULL, "reason": STR}, closed=False)
 
+#: The analysis at temperature (:mod:`stepsafe.api.thermal`): the request, and per minimum
+#: of the system its record (frequencies, scans, drift).
+THERMAL_REQUEST = {"kT": NUM, "temperature": NUM_OR_NULL, "energy_unit": STR_OR_NULL,
+                   "run": record({"length": NUM_OR_NULL, "steps": NUM_OR_NULL}),
+                   "max_drift": NUM_OR_NULL, "seed": INT, "harmonic": BOOL,
+                   "minima": array(record({"at": STR}, closed=False))}
+
+THERMAL_ADVICE = record({**THERMAL_REQUEST, "h_max": NUM_OR_NULL, "h_max_0K": NUM_OR_NULL,
+                         "limited_by": STR}, closed=False)
+
+THERMAL_CHECK = record({**THERMAL_REQUEST, "safe": BOOL, "reasons": array(STR)},
+                       closed=False)
+
 LINEAR_ADVICE = top({"method": STR, "margin": NUM, "h_max": NUM_OR_NULL,
                      "h_max_limited_by": STR_OR_NULL, "safe_h": INTERVALS,
                      "criterion": STR, "time_unit": STR_OR_NULL},
-                    {"stochastic": STOCHASTIC}, closed=False)
+                    {"stochastic": STOCHASTIC, "thermal": THERMAL_ADVICE,
+                     "zero_kelvin": record({"h_max": NUM_OR_NULL,
+                                            "h_max_limited_by": STR_OR_NULL,
+                                            "safe_h": INTERVALS})}, closed=False)
 
 CHECK_ENTRY = {"anyOf": [
     record({"method": STR, "h": NUM, "margin": NUM, "safe": BOOL, "modes": INT,
             "failing": INT, "failures": array(FAILURE), "h_max": NUM_OR_NULL,
             "safe_h": INTERVALS, "criterion": STR, "scene": STR_OR_NULL,
             "time_unit": STR_OR_NULL},
-           {"stochastic": STOCHASTIC,
+           {"stochastic": STOCHASTIC, "thermal": THERMAL_CHECK, "thermal_failure": STR,
             # an MD engine's system checked with runs: (stepsafe.systems.md.system)
             "engine_failure": STR,
             "engine_runs": record({"integrator": STR, "temperature": NUM,

@@ -7,7 +7,6 @@ from typing import Any
 
 import click
 
-from stepsafe.cli.report import fmt_below
 from stepsafe.text import printable
 
 #: Significant digits shown: the measured figures are statistical (their spread is stated).
@@ -19,6 +18,8 @@ def _g(x: float | None) -> str:
 
 
 def _below(x: float) -> str:
+    from stepsafe.cli.report import fmt_below  # (not at import: the CLI starts light)
+
     return fmt_below(x, DIGITS)
 
 
