@@ -291,7 +291,20 @@ def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion:
     out["margin"] = p.margin
     out["minima"] = [limit_record(m, r, p.margin) for m, r in each]
     out["harmonic"] = False
+    ran = min((sc.steps for _, r in each for sc in r.scans), default=None)
+    out["notes"] = _shorter_runs(req, ran, best.h_max)
     return out
+
+
+def _shorter_runs(req: Request, ran: int | None, h: float) -> list[str]:
+    """A note when the ensembles ran fewer steps than the user's run at step h."""
+    if ran is None or not h > 0:
+        return []
+    total = req.steps if req.steps is not None else (req.length or 0.0) / h
+    if total <= ran:
+        return []
+    return [f"the thermal trajectories ran {ran} steps of the run's {total:.3g}: failures "
+            "that take longer to develop are not excluded"]
 
 
 def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
@@ -322,8 +335,10 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
             reasons.append(f"the energy drift {d.rate:.3g} +- {d.error:.2g} per time unit "
                            f"(2 standard errors) exceeds max_drift {req.max_drift:g} "
                            f"(minimum at {m.label})")
+    ran = min((pr["steps"] for m in each for pr in m["probes"]), default=None)
     return {**_request_record(req), "safe": not reasons, "reasons": reasons,
-            "harmonic": False, "margin": p.margin, "minima": each}
+            "harmonic": False, "margin": p.margin, "minima": each,
+            "notes": _shorter_runs(req, ran, step)}
 
 
 def _edge(e: Any) -> dict[str, Any] | None:

@@ -615,7 +615,8 @@ def _input_error(message: str):
               help="Also keep every vibration below its first nonlinear resonance "
                    "n theta = 2 pi m of order n <= N (3 or more; Verlet: 4:1 at "
                    "beta*h = sqrt 2, 3:1 at sqrt 3). The points only: the band around "
-                   "each widens with amplitude; resonances between modes are not analysed.")
+                   "each widens with amplitude (--temperature measures the bands instead); "
+                   "resonances between modes are not analysed.")
 @click.option("--solver", type=click.Choice(("fixed-point", "newton", "nominal")),
               default="fixed-point", show_default=True,
               help="With --tol-*: how implicit methods' evaluations per step are counted "
@@ -711,8 +712,8 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, crite
 @click.option("--resonance-order", type=INT, default=None, metavar="N",
               help="Also fail a vibration at or beyond its first nonlinear resonance "
                    "n theta = 2 pi m of order n <= N (3 or more). The points only: the "
-                   "band around each widens with amplitude; resonances between modes are "
-                   "not analysed.")
+                   "band around each widens with amplitude (--temperature measures the "
+                   "bands instead); resonances between modes are not analysed.")
 @click.option("--solver", type=click.Choice(("fixed-point", "newton")), default="fixed-point",
               show_default=True,
               help="How an implicit method's stages are solved: with fixed-point iteration a "

@@ -93,6 +93,8 @@ def print_thermal_advice(data: dict[str, Any]) -> None:
                    f"(at 0 K: {zero})")
     for m in t["minima"]:
         _print_minimum(m, u, data.get("margin", 1.0))
+    for note in t.get("notes", ()):
+        click.echo(f"  note: {printable(note)}")
     click.echo(f"  Reproducible: every draw seeded ({t['seed']}); the failure criterion: "
                + (t["minima"][0]["scans"][0]["failure"] if t["minima"] and
                   t["minima"][0]["scans"] else "none") + ".")
@@ -169,4 +171,6 @@ def print_thermal_check(entry: dict[str, Any]) -> None:
                        f"trajectories failed in {p['steps']} steps ({p['verdict']}; failure "
                        f"probability {p['lower']:.2g} to {p['upper']:.2g})")
         _print_drift(m.get("drift"), u, "    ")
+    for note in t.get("notes", ()):
+        click.echo(f"  note: {printable(note)}")
     click.echo(f"  Reproducible: every draw seeded ({t['seed']}).")
