@@ -325,3 +325,23 @@ def test_json_at_temperature_follows_the_output_schema():
     advice = stepsafe.advise("verlet", [1.0], kT=2.0, steps=100).to_dict()
     jsonschema.validate(advice, output_schema("advise"))
     assert advice["thermal"]["h_max"] == advice["h_max"] == advice["zero_kelvin"]["h_max"]
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.lists(st.lists(st.floats(0, 1), max_size=6), max_size=5), min_size=1,
+                max_size=4))
+def test_progress_at_temperature_never_goes_back_and_stays_in_the_unit_interval(minima):
+    """Each minimum's stages, one after another, each reporting rising fractions: the whole
+    stays in [0, 1] and never goes back, and each minimum ends within its share."""
+    from stepsafe.api.thermal import _progress
+
+    seen: list[float] = []
+    of = _progress(seen.append, len(minima))
+    for i, stages in enumerate(minima):
+        report = of(i)
+        for k, fractions in enumerate(stages):
+            for f in sorted(fractions):
+                report(f"stage {k}", f)
+                assert i / len(minima) <= seen[-1] <= (i + 1) / len(minima)
+    assert all(0.0 <= x <= 1.0 for x in seen)
+    assert all(b >= a for a, b in zip(seen, seen[1:]))

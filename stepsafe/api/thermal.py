@@ -235,14 +235,21 @@ def _minima(p: Any, req: Request) -> list[Minimum] | None:
 
 def _progress(progress: Callable[[float], None] | None, count: int
               ) -> Callable[[int], Callable[[str, float], None] | None]:
-    """Per minimum i of ``count``, a ``(stage, fraction)`` callback reporting the whole
-    (the band scans take most of the time: each stage's fraction is spread over them)."""
+    """Per minimum i of ``count``, a ``(stage, fraction)`` callback reporting the whole,
+    never backwards: the k-th stage of a minimum (their number is not known beforehand)
+    fills the next half of what is left of its share, ``1 - 2^-(k-1) (1 - f / 2)``."""
     if progress is None:
         return lambda i: None
 
     def of(i: int) -> Callable[[str, float], None]:
+        state: dict[str, Any] = {"stage": None, "k": 0}
+
         def report(stage: str, fraction: float) -> None:
-            progress((i + min(max(fraction, 0.0), 1.0)) / count)
+            if stage != state["stage"]:
+                state["stage"], state["k"] = stage, state["k"] + 1
+            f = min(max(fraction, 0.0), 1.0)
+            local = 1.0 - 0.5 ** (state["k"] - 1) * (1.0 - 0.5 * f)
+            progress((i + local) / count)
         return report
     return of
 
