@@ -270,9 +270,31 @@ def _request_record(req: Request) -> dict[str, Any]:
 def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion: str,
                           orders: tuple[int, ...],
                           progress: Callable[[float], None] | None = None) -> dict[str, Any]:
-    """The record of the answer at temperature for :func:`stepsafe.advise`: ``h_max``
-    (the smallest of ``h_zero``, the 0 K answer, and each minimum's limit at temperature
-    times the margin), ``limited_by``, ``h_max_0K`` and each minimum's analysis."""
+    """The record of the answer at temperature for :func:`stepsafe.advise`.
+
+    Parameters
+    ----------
+    p : Problem
+        The analysed problem (its method, system, margin).
+    req : Request
+        The temperature and the run.
+    h_zero : float or None
+        The 0 K answer (every equilibrium), in the time unit.
+    criterion : str
+        ``structure`` or ``stability``, for the method's interval z*.
+    orders : tuple of int
+        Resonance orders whose points refine the band grid.
+    progress : callable, optional
+        Called with the fraction done.
+
+    Returns
+    -------
+    dict
+        ``h_max`` (the smallest of ``h_zero`` and each minimum's limit at temperature
+        times the margin), ``limited_by`` (``"0 K"`` when ``h_zero`` is the smaller),
+        ``h_max_0K``, ``h_range`` (where the limit lies at the stated confidence), and
+        each minimum's analysis (:func:`limit_record`).
+    """
     from stepsafe.systems.thermal import thermal_limit
 
     found = _minima(p, req)
@@ -316,10 +338,30 @@ def _shorter_runs(req: Request, ran: int | None, h: float) -> list[str]:
 
 def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
                          progress: Callable[[float], None] | None = None) -> dict[str, Any]:
-    """The record of the check of step h at temperature for :func:`stepsafe.check`:
-    ``safe`` when h (over the margin) is below every minimum's linear limit at temperature
-    and an ensemble at h itself is clear of failures (:func:`stepsafe.systems.thermal.
-    thermal_check`); ``reasons`` otherwise."""
+    """The record of the check of step h at temperature for :func:`stepsafe.check`.
+
+    Parameters
+    ----------
+    p : Problem
+        The analysed problem.
+    req : Request
+        The temperature, the run and ``max_drift``.
+    h : float
+        The step, in the time unit.
+    criterion : str
+        ``structure`` or ``stability``.
+    progress : callable, optional
+        Called with the fraction done.
+
+    Returns
+    -------
+    dict
+        ``safe``: h over the margin lies below every minimum's linear limit at
+        temperature, an ensemble at h itself is clear of failures
+        (:func:`stepsafe.systems.thermal.thermal_check`) and its drift meets
+        ``max_drift``; ``reasons`` says what fails, ``minima`` each check
+        (:func:`check_record`).
+    """
     from stepsafe.systems.thermal import thermal_check
 
     found = _minima(p, req)
