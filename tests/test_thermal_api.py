@@ -372,3 +372,12 @@ def test_resonance_order_at_temperature_excludes_the_measured_band_not_the_point
     assert not stepsafe.check(scene=scene, h=past, resonance_order=4).safe
     assert stepsafe.check(scene=scene, h=past, resonance_order=4, kT=kT).safe
     assert _own_escapes(past, kT) == 0.0
+
+
+@pytest.mark.parametrize("name", ["baoab", "langevin-middle"])
+def test_langevin_splittings_are_refused_at_temperature_naming_it(name):
+    with pytest.raises(StepsafeError, match="^temperature: .*Langevin"):
+        stepsafe.advise(name, [1.0], kT=1.0, steps=10)
+    with pytest.raises(StepsafeError, match="^temperature: .*Langevin"):
+        stepsafe.check(name, 0.5, [1.0], kT=1.0, steps=10)
+    assert stepsafe.advise(name, [1.0], kT=0.0).to_dict() == stepsafe.advise(name, [1.0]).to_dict()

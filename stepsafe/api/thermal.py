@@ -226,6 +226,10 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
 
 def _minima(p: Any, req: Request) -> list[Minimum] | None:
     """The minima of the problem's potential (None: harmonic, the 0 K answer holds)."""
+    if p.integrator.kind == "langevin":
+        raise StepsafeError(f"temperature: the analysis at temperature iterates a "
+                            f"Hamiltonian map; {p.integrator.name} is a Langevin splitting, "
+                            "not analysed at temperature yet")
     system = p.system
     if system is None or is_harmonic(system.tree):
         return None
