@@ -222,22 +222,6 @@ def test_unknown_keys_suggest_the_closest(run, tmp_path):
     assert code == 2 and "did you mean 'drift'?" in err
 
 
-def test_readme_python_examples_run(monkeypatch):
-    """Every ```python block of the README runs as written (from the repository root);
-    the BlackJAX one needs the blackjax extra and runs in tests/test_blackjax_bridge.py."""
-    import re
-
-    text = (ROOT / "README.md").read_text()
-    blocks = [b for b in re.findall(r"```python\n(.*?)```", text, flags=re.S)
-              if "import blackjax" not in b]
-    assert blocks
-    monkeypatch.chdir(ROOT)
-    import textwrap
-
-    for block in blocks:
-        exec(compile(textwrap.dedent(block), "README.md", "exec"), {})
-
-
 @pytest.mark.parametrize("args", [
     ["compare", "--beta", "1", "--tol-phase", "1e-6"],
     ["error", "verlet", "--z", "0.1", "--z", "2.5"],

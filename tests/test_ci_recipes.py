@@ -105,3 +105,4 @@ def test_the_readme_test_line_leaves_out_the_slow_tests_and_ci_runs_them(tmp_pat
     ci = (ROOT / ".ci" / "run").read_text()
     assert "# install and run the tests" in ci
     assert ci.index('eval "$cmd"') < ci.index("\npytest -n 2 -m slow\n")
+    assert "'.[docs]'" in ci and "mkdocs build --strict" in ci

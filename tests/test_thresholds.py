@@ -141,8 +141,9 @@ def test_bad_thresholds_are_refused(value, message):
         validate_tree(tree, "x.yaml")
 
 
-def test_readme_documents_the_key():
-    assert "`thresholds:`" in (Path(__file__).resolve().parent.parent / "README.md").read_text()
+def test_the_method_file_page_documents_the_key():
+    page = Path(__file__).resolve().parent.parent / "docs" / "method-files.md"
+    assert "`thresholds:`" in page.read_text()
 
 
 def test_every_name_and_alias_finds_one_file():

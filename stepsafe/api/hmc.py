@@ -648,6 +648,8 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
         The parameters, the method file and the comparison; ``to_dict()`` is ``stepsafe
         design --json``.
 
+    Examples
+    --------
     >>> report = design(sigma=[1.0, 0.5, 0.2], step=0.5)
     >>> [(c["method"], round(c["acceptance"], 2)) for c in report.comparison[:3]]
     [('designed-2stage', 0.98), ('verlet', 0.84), ('bcss2', 0.77)]
