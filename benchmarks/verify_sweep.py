@@ -1,4 +1,4 @@
-"""Sweep ``--verify`` over the families and the library (the README's verify table).
+"""Sweep ``--verify`` over the families and the library (the verify table of docs/validation.md).
 
 For Gauss and Lobatto IIIA-IIIB with s = 2..40 and every built-in method, at zmax = 4 pi
 and 40, find the regions of the three main models and recompute every reported point and

@@ -195,7 +195,7 @@ def test_plot_writes_a_png_or_names_the_extra(run, tmp_path):
 
 def test_tradeoff_example_measures_what_it_predicts(tmp_path):
     """examples/tradeoff.py on two methods: measured oscillator phase and energy errors
-    agree with the predictions (the README's claim)."""
+    agree with the predictions (the numerical analysis guide's claim)."""
     import csv
     import subprocess
     import sys
@@ -254,13 +254,16 @@ def test_energy_tolerance_alone_is_refused_for_energy_exact_methods(run, args):
     assert code == 0, err
 
 
-def test_energy_tolerance_alone_still_works_for_other_methods(run_json):
+def test_energy_tolerance_alone_is_accepted_for_methods_that_do_not_conserve_quadratics(
+        run_json):
+    """An energy tolerance without a phase tolerance applies to a method whose energy error
+    on the linear model is not 0 (Lobatto IIIA-IIIB s = 3): it binds."""
     data = run_json("advise", "--method", "lobatto3ab", "-s", "3", "--beta", "1",
                     "--tol-energy", "1e-4")
     assert data["bound_by"] == "accuracy"
 
 
-# --- independent high-precision references (review 18): Gauss from its stability function
+# --- independent high-precision references: Gauss from its stability function
 # (the diagonal Pade approximant of exp), Lobatto IIIA-IIIB from its stage equations with a
 # tableau built here (Legendre nodes, collocation by Vandermonde solve at raised precision)
 
@@ -382,8 +385,9 @@ def test_lobatto_errors_match_its_stage_equations_on_islands_and_at_tiny_z():
 
 
 def test_advise_energy_tolerance_of_lobatto10_stops_where_the_truth_does(run_json):
-    """Review 18 A1: the energy error of Lobatto s = 10 was 0 to the boundary; it reaches
-    1e-12 at z = 2.91907987402 (50-digit stage equations)."""
+    """The energy error of a high-stage implicit method is computed, not taken as 0: for
+    Lobatto IIIA-IIIB s = 10 it reaches 1e-12 at z = 2.91907987402 (50-digit stage
+    equations), where advise's energy tolerance stops."""
     data = run_json("advise", "--method", "lobatto3ab", "-s", "10", "--beta", "1",
                     "--tol-energy", "1e-12", "--tol-phase", "1e-3")
     energy = [a for a in data["accuracy"] if a["kind"] == "energy"][0]

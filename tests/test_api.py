@@ -312,8 +312,8 @@ def test_examples_use_only_the_public_api():
 
 def test_an_explicit_system_is_never_dropped(tmp_path):
     """An explicit ``system`` with explicit frequencies is refused (one would be ignored);
-    against a scene's ``modes:`` it wins, as arguments do (it used to be dropped: a
-    stiffness of 1e6 at h = 0.05, z = 50, was checked safe)."""
+    against a scene's ``modes:`` it wins, as arguments do: a stiffness of 1e6 at h = 0.05
+    (z = 50) is checked unsafe although the scene's own mode is safe."""
     with pytest.raises(StepsafeError, match="not both"):
         stepsafe.check("verlet", 1.0, beta=[1.0], system={"stiffness": [[100.0]]})
     with pytest.raises(StepsafeError, match="not both"):
@@ -330,16 +330,16 @@ def test_an_explicit_system_is_never_dropped(tmp_path):
                                     {"sigma": np.ones((2, 2))},
                                     {"frequencies": np.array(["1"], dtype=object)}])
 def test_frequencies_are_one_dimensional_real_numbers(kwargs):
-    """A 2-D array is refused (it used to be flattened silently), and so is a text in an
-    object array where texts are not accepted (review 13, F9)."""
+    """A 2-D array of frequencies is refused (not flattened), and so is a text in an
+    object array where texts are not accepted."""
     with pytest.raises(StepsafeError):
         stepsafe.check("verlet", 0.1, **kwargs)
 
 
 def test_a_problem_is_not_combined_with_other_inputs():
     """problem= already holds the method, frequencies and options: any of them beside it
-    is refused (it used to be ignored: yoshida4 checked as verlet's problem said safe at
-    z = 1.9; review 15)."""
+    is refused, never ignored (yoshida4 checked as verlet's problem would say safe at
+    z = 1.9)."""
     p = stepsafe.problem("verlet", [1.0])
     for args, kwargs in ((("yoshida4", 1.9), {}), ((), {"h": 1.9, "margin": 0.5}),
                          ((), {"h": 0.05, "system": {"stiffness": [[1e6]]}})):

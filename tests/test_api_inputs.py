@@ -89,8 +89,7 @@ def test_wrong_arguments_raise_stepsafe_error(where, value):
 
 def test_hmc_and_design_refuse_unknown_arguments_and_flat_directions():
     """An unknown keyword is a StepsafeError naming it, in every function that builds a
-    problem (it was a TypeError from problem());
-    a zero frequency (sigma = inf) is an improper target (review 22)."""
+    problem (never a TypeError); a zero frequency (sigma = inf) is an improper target."""
     import stepsafe
     from stepsafe import hmc
 

@@ -1,6 +1,6 @@
-"""The CI recipes the README gives run as written: the pre-commit hook definition and the
-GitHub Actions job, against a safe and an unsafe scene (run as pre-commit and the job would
-run them, with the stepsafe installed here)."""
+"""The CI recipes of the CI guide (docs/guides/ci.md) run as written: the pre-commit hook
+definition and the GitHub Actions job, against a safe and an unsafe scene (run as pre-commit
+and the job would run them, with the stepsafe installed here)."""
 
 from __future__ import annotations
 

@@ -300,7 +300,7 @@ def test_unicode_digits_in_method_file_integers_are_refused(run, tmp_path, field
     prop()
 
 
-def test_ascii_integers_still_work(run, tmp_path):
+def test_signed_and_quoted_ascii_integers_are_read_as_integers(run, tmp_path):
     path = tmp_path / "m.yaml"
     path.write_text(METHOD_FILE.format(kind="composition", order=" +4", extra="",
                                        body='base: {name: gauss, stages: "2"}\nweights: [1]'))

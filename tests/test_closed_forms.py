@@ -1,4 +1,4 @@
-"""Regions against exact closed forms (paper Table 1, DESIGN §2, Prop. 2)."""
+"""Regions against exact closed forms (the paper's Table 1 and Prop. 2; docs/theory.md#regions)."""
 
 from __future__ import annotations
 

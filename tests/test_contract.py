@@ -235,9 +235,9 @@ def test_printed_limits_are_steps_check_accepts(name, betas, margin):
     assert code == 1
 
 
-# ------------------------------------------------------------- cases from a hostile review
+# ------------------------------------------------- scene values at and beyond their ranges
 
-REVIEW_SCENES = [
+EDGE_SCENES = [
     # (scene text, expected exit code, text the one-line error must contain)
     ("method: verlet\nh: 0\nmodes: [{beta: 1}]\n", 2, "::$.h: must be > 0"),
     ("method: verlet\nh: -1\nmodes: [{beta: 1}]\n", 2, "::$.h: must be > 0"),
@@ -255,10 +255,10 @@ REVIEW_SCENES = [
 ]
 
 
-def test_review_scenes(tmp_path):
+def test_scene_values_out_of_range_or_beyond_float64(tmp_path):
     """Out-of-range scene values name the file and key; a zero Hessian is nothing to
     analyse (exit 2, never SAFE); limits beyond float64 are null in --json, never inf."""
-    for k, (text, expected, message) in enumerate(REVIEW_SCENES):
+    for k, (text, expected, message) in enumerate(EDGE_SCENES):
         path = tmp_path / f"s{k}.yaml"
         path.write_text(text)
         for as_json in (False, True):
@@ -301,8 +301,8 @@ def test_family_without_stages_in_a_scene_names_the_key(tmp_path):
 def test_the_float_just_below_h_max_passes_check_and_h_max_does_not(name, log_betas,
                                                                    margin):
     """The JSON/API h_max is the open end of the safe interval: check passes the next
-    float below it (bcss2 and sofroniou-spaletta10 failed there: beta h rounded up into
-    the uncertainty band, review 23) and fails h_max itself."""
+    float below it (beta h rounded up must not reach the uncertainty band of the boundary,
+    which bcss2 and sofroniou-spaletta10 come close to) and fails h_max itself."""
     import stepsafe
 
     betas = [10.0 ** x for x in log_betas]

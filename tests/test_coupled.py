@@ -190,8 +190,8 @@ def test_budget_on_the_command_line_caps_the_analysed_steps(tmp_path, run, run_j
 
 @pytest.mark.parametrize("h", [-1.0, 0.0, float("nan"), float("inf"), -1e-300])
 def test_a_step_that_is_not_positive_is_refused_on_a_coupled_system(h):
-    """check on a coupled Hessian called h = -1 SAFE (the coupled criterion holds trivially
-    for h <= 0): it is bad input, as for modes (review 17)."""
+    """A step h <= 0 (where the coupled criterion holds trivially), nan or inf on a
+    coupled Hessian is bad input, as for modes: never SAFE."""
     import stepsafe
 
     with pytest.raises(stepsafe.StepsafeError, match="positive finite"):
@@ -199,8 +199,8 @@ def test_a_step_that_is_not_positive_is_refused_on_a_coupled_system(h):
 
 
 def test_a_singular_hessian_at_1e300_ends_with_no_safe_step():
-    """(q + p)^2 1e300 / 2: the boundary search from 0 went below the subnormals and its
-    bisection never ended (REL_TOL * h underflows to 0: review 17)."""
+    """(q + p)^2 1e300 / 2, singular and huge: the boundary search from 0 ends (its
+    bisection must stop where REL_TOL * h underflows to 0) with no safe step."""
     S = np.full((2, 2), 1e300)
     result = coupled_safe_steps(method("verlet"), S)
     assert result.h_max == 0.0
@@ -211,8 +211,8 @@ def test_a_singular_hessian_at_1e300_ends_with_no_safe_step():
 def test_h_max_in_other_units_of_q_and_p(kind, k):
     """S_pp times 2^(2k) and S_qp times 2^k: S' = D S D with D = diag(I, 2^k I), and
     J S' = 2^k D^-1 (J S) D, the same system in other units of p and time, whose step
-    limits are exactly 2^-k times. The rounding bounds, made of |S|, swamped the small
-    block and an indefinite system was "never safe" (review 19)."""
+    limits are exactly 2^-k times: rounding bounds made of |S| must not swamp the small
+    block (an indefinite system would then be "never safe")."""
     S = KINDS[kind](np.random.default_rng(3), 3)
     n = 3
     scaled = S.copy()
@@ -227,7 +227,7 @@ def test_h_max_in_other_units_of_q_and_p(kind, k):
 
 def test_no_certified_step_is_not_called_never_preserved(run, tmp_path):
     """Two pairs of opposite Krein sign 2e-6 apart: the coupled analysis certifies no step
-    (pairs that close are undecided), which is not "never preserves" (review 17: the truth
+    (pairs that close are undecided), which is not "never preserves" (the exact system
     keeps the structure up to h = 2.92564)."""
     S = [[11.021789487585378, 1.7918652946710565, -0.49636227185660786, -1.3996632628869785],
          [1.7918652946710565, -2.326987080311353, 0.12990600967649873, 0.522245307202353],
@@ -241,7 +241,7 @@ def test_no_certified_step_is_not_called_never_preserved(run, tmp_path):
 
 def test_check_at_the_coupled_h_max_is_in_the_primary_interval(run_json, tmp_path):
     """The coupled analysis's h_max is a certified step: check there is SAFE, and in the
-    interval from 0, not "in an island" (review 17)."""
+    interval from 0, not "in an island"."""
     scene = tmp_path / "c.yaml"
     scene.write_text("method: verlet\nsystem:\n  hessian: [[1.0, 0.3], [0.3, 2.0]]\n")
     h_max = run_json("advise", str(scene))["h_max"]

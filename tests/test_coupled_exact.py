@@ -116,8 +116,7 @@ def test_check_certifies_a_step_float64_alone_could_not():
        name=st.sampled_from(["verlet", "yoshida4", "kahan-li8"]))
 def test_a_well_conditioned_boundary_is_decided_by_float64(seed, rows, name):
     """Every boundary has a band of the size of the rounding bound (about 1e-11 here):
-    on a well-conditioned S it is not reported as undecided, nor sent to 40 digits
-    (review 14: every 10-row system reported one)."""
+    on a well-conditioned S it is not reported as undecided, nor sent to 40 digits."""
     rng = np.random.default_rng(seed)
     X = rng.normal(size=(rows, rows))
     S = X @ X.T / rows + 0.5 * np.eye(rows)
@@ -147,8 +146,8 @@ def _singular_to_rounding(seed: int) -> np.ndarray:
 
 def test_an_s_not_definite_in_its_exact_floats_is_not_decided_at_high_precision(monkeypatch):
     """float64 calls it definite, its exact floats are not: nothing is certified at 40
-    digits (the criterion there assumes a definite S; review 14 measured 20 s spent on
-    it), the band float64 leaves is reported, and no step in it is certified."""
+    digits (the criterion there assumes a definite S, so it is not tried), the band
+    float64 leaves is reported, and no step in it is certified."""
     S = _singular_to_rounding(0)
     calls = []
     monkeypatch.setattr(coupled_exact, "_kept", lambda *a: calls.append(a))
@@ -166,7 +165,7 @@ def test_an_s_not_definite_in_its_exact_floats_is_not_decided_at_high_precision(
 def test_a_trap_float64_calls_indefinite_is_decided_at_high_precision():
     """The exact floats of S are definite though float64's Cholesky fails (B ~ 1e8: the
     2 x 2 blocks are singular to rounding): the safe interval is decided at 40 digits
-    instead of h_max = 0 (review 14, minor 5); 60-digit truth at h_max (1 -+ 1e-9)."""
+    instead of h_max = 0; 60-digit truth at h_max (1 -+ 1e-9)."""
     from stepsafe.systems.coupled import CoupledSystem
 
     rng = np.random.default_rng(0)

@@ -1,10 +1,10 @@
 """The coupled analysis decides the orientation of hyperbolic pairs, as the 1-dof models do.
 
-An independent review found ``system: {hessian: [[0, 1], [1, 0]]}`` (H = q p) SAFE with
-pefrl at h = 1.65, where q contracts and p expands (the saddle reversed; the same H as
-``modes: saddle`` is UNSAFE from 1.6399), and a barrier with a 1e-9 q-p coupling SAFE where
-its uncoupled twin is not. Given as a system, a 1-dof saddle or barrier (coupled or not)
-must never get a larger safe step than its test model.
+Given as a system, a 1-dof saddle or barrier (coupled or not) never gets a larger safe step
+than its test model: ``system: {hessian: [[0, 1], [1, 0]]}`` (H = q p) with pefrl at
+h = 1.65, where q contracts and p expands (the saddle reversed), is UNSAFE as the same H
+given as ``modes: saddle`` is from 1.6399, and a barrier with a 1e-9 q-p coupling is not SAFE
+where its uncoupled twin is not.
 """
 
 from __future__ import annotations
@@ -44,7 +44,8 @@ def test_hessian_saddle_and_barrier_never_beyond_their_models(name):
             assert stepsafe.check(method, 0.999 * h, system=system).safe
 
 
-def test_the_review_case():
+def test_a_reversed_saddle_given_as_a_hessian_is_unsafe_where_its_model_is():
+    """H = q p with pefrl: unsafe at h = 1.65, and h_max is the saddle model's 1.6399."""
     pefrl = stepsafe.method("pefrl")
     system = {"hessian": [[0.0, 1.0], [1.0, 0.0]]}
     assert not stepsafe.check(pefrl, 1.65, system=system).safe
@@ -58,8 +59,7 @@ KREIN = [[0.860544, None, -0.420883, 0.0], [None, -1.070946, 0.0, 0.131125],
 
 def _krein_system(eps: float) -> dict:
     """Two 1-dof blocks with elliptic pairs of opposite Krein sign whose pefrl rotation
-    angles cross at h0 = 2.48728162988 (50 digits), coupled by eps (an independent
-    review's case)."""
+    angles cross at h0 = 2.48728162988 (50 digits), coupled by eps."""
     return {"hessian": [[eps if x is None else x for x in row] for row in KREIN]}
 
 

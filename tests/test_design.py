@@ -179,7 +179,7 @@ def test_the_comparison_averages_over_the_jitter():
     assert rows["designed-2stage"]["acceptance"] > rows["bcss2"]["acceptance"]
 
 
-# --- review 13 F4: design's refusals against the family's exact stable set --------------
+# --- design's refusals against the family's exact stable set ------------------------------
 
 def _tr_half_mp(stages, params, z):
     """tr M / 2 and M at 50 digits, straight from the kick/drift product (no formula)."""
@@ -273,7 +273,10 @@ def test_two_stage_design_refuses_only_when_no_member_is_stable(scale, spread, t
 
 
 @pytest.mark.parametrize("step, jitter", [(3.0, 0.0), (2.0, 0.6), (3.99, 0.0)])
-def test_the_review_cases_get_the_quarter_member(step, jitter, run):
+def test_a_jitter_top_between_two_root_two_and_four_gets_the_quarter_member(step, jitter,
+                                                                             run):
+    """Where the top of the jitter interval, z = h (1 + J), lies in [2 sqrt 2, 4), b = 1/4
+    is the only stable 2-stage member, and it is the design."""
     code, text, err = run("design", "--sigma", "1", "--step", str(step), "--jitter",
                           str(jitter), "--json")
     assert code == 0, err
@@ -361,7 +364,7 @@ def test_design_and_hmc_apply_one_rule_to_rounding_gaps(exponent, spread, count,
 
 @pytest.mark.slow
 def test_the_rule_for_rounding_gaps_is_stated_by_both_commands(run):
-    """The README's target at bcss3's step at target there (0.354016, z = 3.54, past its
+    """The HMC guide's target at bcss3's step at target there (0.354016, z = 3.54, past its
     M = -I point at 2.976, where hmc ranks it first): design --stages 3 designs, and both
     commands state the rule in text and JSON."""
     target = str(Path(__file__).parents[1] / "examples" / "gaussian-1000.csv")
@@ -385,7 +388,7 @@ def test_the_rule_for_rounding_gaps_is_stated_by_both_commands(run):
 def test_steps_just_below_two_root_two_get_a_stable_design(run, relative):
     """Just below z = 2 sqrt 2 the stable interval of b is narrower than the rounding of
     its ends, or its members too close to M = -I for float64's error bound: b = 1/4
-    (stable on all of (0, 4)) is designed instead of a refusal (review 15)."""
+    (stable on all of (0, 4)) is designed instead of a refusal."""
     import mpmath as mp
 
     step = 2 * math.sqrt(2) * (1 - relative)
@@ -400,7 +403,7 @@ def test_steps_just_below_two_root_two_get_a_stable_design(run, relative):
 
 def test_a_step_at_the_familys_limit_within_an_ulp_is_refused():
     """sigma = 10^1.5, h = 4 sigma: z = h / sigma rounds to 4, where b = 1/4 is not stable,
-    while 1/sigma rounded down made z = 4 - 4e-16 (hypothesis found it)."""
+    although 1/sigma rounded down makes z = 4 - 4e-16."""
     sigma = 10.0 ** 1.5
     with pytest.raises(StepsafeError, match="no 2-stage member"):
         design(sigma=[sigma, sigma], step=4.0 * sigma)
@@ -408,8 +411,8 @@ def test_a_step_at_the_familys_limit_within_an_ulp_is_refused():
 
 @pytest.mark.parametrize("slow", [1.0, 1e6, 1e150])
 def test_a_mode_far_slower_than_the_rest_does_not_change_the_design(slow):
-    """rho of a mode at z = 1.5e-12 rounded tr M / 2 to 1 and came out inf: every member
-    scored inf and the design fell back to b = 1/4 (review 17); such a mode adds ~z^4."""
+    """A mode at z = 1.5e-12, where tr M / 2 rounds to 1, adds ~z^4 to the objective: its
+    rho must be computed without that rounding (as inf, every member would score inf)."""
     fast = 1e-12 * slow
     alone = design(sigma=[fast], step=1.5 * fast).params["b"]
     both = design(sigma=[slow, fast], step=1.5 * fast).params["b"]
@@ -418,8 +421,8 @@ def test_a_mode_far_slower_than_the_rest_does_not_change_the_design(slow):
 
 def test_a_mode_resolved_beyond_float_range_does_not_change_the_design():
     """A slow mode with z = beta h = 1e-200 has rho = O(z^4) = 0 in float64 (its z^2
-    underflowed and made every member 'not elliptic', so b fell back to 1/4: review 22):
-    the design is the fast mode's alone."""
+    underflows, which must not make a member 'not elliptic'): the design is the fast
+    mode's alone."""
     import stepsafe
 
     alone = stepsafe.design(sigma=[1e-200], step=1e-200)

@@ -396,8 +396,8 @@ def test_huge_tableau_prints_no_warnings(run, tmp_path):
 
 
 def test_work_budget_refuses_in_one_line_and_bounded_time(run):
-    """Gauss s = 40 at zmax 1000 was 50 s of sampling: refused before sampling, naming the
-    budget; at zmax 10 it runs."""
+    """Gauss s = 40 at zmax 1000 exceeds the sampling work budget: refused before
+    sampling, naming the budget; at zmax 10 it runs."""
     code, out, err = run("region", "gauss", "-s", "40", "--zmax", "1000", "--json")
     assert code == 2 and out == "" and "work budget" in err
     assert len(err.strip().splitlines()) == 1

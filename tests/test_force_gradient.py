@@ -228,7 +228,7 @@ def test_a_triple_root_is_placed_and_its_uncertainty_is_honest():
     """Chin's 4A has M = -I at z* = 2 sqrt 3, where tr M + 2 has a triple root: 40 digits
     place it only to ~1e-14, so the escalation certifies the width it can vouch for and
     redoes the root at 120 digits; the reported z* is 2 sqrt 3 within its stated
-    uncertainty (it was 2.7e-14 low with one ulp claimed)."""
+    uncertainty, which is at most 4 ulps."""
     from stepsafe.core.regions import find_region
 
     point = find_region(resolve("chin-4a")[0], "oscillator", 10.0).first_boundary_point
@@ -244,7 +244,7 @@ def test_huge_gradient_coefficients_keep_their_tiny_boundary(tmp_path_factory, e
     kick's coefficient 2/3 - 2 c z^2 and the outer ones sum to 1 - 2 c z^2, so tr M - 2 =
     -z^2 (1 - 2 c z^2) + O(z^4) changes sign at z = 1/sqrt(2c) (to 1e-60 relative here).
     The term 2 c z^3 must be formed without z^3 alone, which underflows at z ~ 1e-150
-    (review 12: the region was reported preserved up to 1.4e-108 for k = 300)."""
+    (the boundary, 1e-150 for k = 300, would be lost)."""
     from stepsafe.core.regions import find_region
 
     folder = tmp_path_factory.mktemp("fg")
@@ -263,8 +263,7 @@ def test_huge_gradient_coefficients_keep_their_tiny_boundary(tmp_path_factory, e
                                          "p**2/2 + q**2/2 + q**2*p**2"])
 def test_a_hamiltonian_mixing_q_and_p_is_refused(tmp_path, run, hamiltonian):
     """Its linearisation at (0, 0) separates, but a force-gradient kick is not defined for
-    such an H: check refuses (exit 2, naming the key) as measure does (review 12: check
-    said SAFE)."""
+    such an H: check refuses (exit 2, naming the key) as measure does, never SAFE."""
     scene = tmp_path / "s.yaml"
     scene.write_text(f"method: chin-4a\nh: 0.5\nsystem:\n  hamiltonian: \"{hamiltonian}\"\n"
                      "  box: {q: [-1, 1], p: [-1, 1]}\n")

@@ -241,7 +241,7 @@ def test_gyroscopic_systems_in_the_frame_match_the_straightforward_scan(seed):
 def test_a_boundary_brent_cannot_converge_on_is_bisected():
     """A nearly semidefinite 1-dof S (eigenvalues -72 and -6e-11) with strong mixing: the
     margin is too rough for Brent's method at the boundary (no convergence in 60 steps),
-    so bisection decides; the result is kept at 40 digits (review 11)."""
+    so bisection decides; the result is kept at 40 digits."""
     h = float.fromhex
     S = np.array([[h("-0x1.19a590cbad062p+6"), h("-0x1.2a80d37e047ffp+3")],
                   [h("-0x1.2a80d37e047ffp+3"), h("-0x1.3c5e5a9b7f8e2p+0")]])
@@ -361,7 +361,8 @@ def _near_pole_case(seed: int, mode: str, near: float):
 def test_the_rounding_bound_holds_near_a_stage_pole(seed, mode, near, lu):
     """Near a pole a stage solve amplifies its rounding by its matrix's condition (and
     carries the right-hand side's through the inverse): the bound holds against 40 digits
-    (review 24 found it exceeded 30-900 times at 1e-8 from a pole with these matrices)."""
+    at 1e-4 and 1e-8 from a pole, where a bound without the condition falls short 30-900
+    times with these matrices."""
     frame, factors, h = _near_pole_case(seed, mode, near)
     with pytest.MonkeyPatch.context() as patch:
         if lu:

@@ -1,5 +1,5 @@
 """The high-precision reference at any precision, on coefficients consistent only to their
-rounding (review 18 B1, review 16 F2).
+rounding.
 
 A splitting's drift and kick sums, as float64 values (or decimals read at 40 digits), agree
 only to their rounding; the reference must judge that at float64's scale, as the float path

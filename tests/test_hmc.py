@@ -349,7 +349,7 @@ def test_cli_plot(run, tmp_path):
     assert out.read_bytes()[:4] == b"\x89PNG"
 
 
-# --------------------------------------------------------------------------- review cases
+# ------------------------------------------------------- extreme errors, kinks and limits
 
 
 def test_huge_energy_errors_accept_almost_never():
@@ -386,8 +386,7 @@ def test_jitter_average_of_the_bound_across_a_zero_of_the_energy_error(name, jit
     """The bound over every L (no L given): where a symmetric method's step is a pure
     rotation its energy error has a double zero and the acceptance a kink; against the
     midpoint mean of the one-mode closed form (4/pi) atan sqrt(|b|/a) over 40000 steps,
-    to 1e-7
-    (bcss2 at h = 1.5, jitter 0.5 was 6e-5 off: review 22)."""
+    to 1e-7."""
     m = method(name)
     hs = h * (1.0 + jitter * ((np.arange(40000) + 0.5) / 20000 - 1.0))  # midpoints
     a, b = H._weights(H.errors_after(H.one_step(m, hs), None))
@@ -432,7 +431,7 @@ def test_targets_hmc_cannot_answer_exactly_are_refused():
     ("verlet", 10, 0.5, 1.9), ("verlet", 20, 0.2, 1.8), ("kahan-li6", 5, 0.95, 1.6807)])
 def test_jitter_average_to_1e7_where_the_rule_says_exact(name, steps, jitter, h):
     """The acceptance of a given L goes like |sin(L theta)|: kinks at L theta = k pi, which
-    the panels now end on (the rule was off by 1.3e-4 before, review 17). Reference: the
+    the panels end on (a rule across a kink is off by about 1e-4). Reference: the
     midpoint rule on 40000 steps of the exact fixed-step acceptance."""
     m = method(name)
     n = 40000
@@ -447,7 +446,7 @@ def test_jitter_average_to_1e7_where_the_rule_says_exact(name, steps, jitter, h)
 
 def test_a_stability_limit_beyond_zmax_is_said_to_be_the_analysed_end(tmp_path):
     """Eight Verlet substeps of h/8 are stable to z = 16: at zmax 10 the stability h shown
-    is the analysed end, and the row says so (review 19)."""
+    is the analysed end, and the row says so."""
     path = tmp_path / "verlet8.yaml"
     path.write_text("name: verlet8\nkind: composition\nbase: verlet\norder: 2\n"
                     "source: \"eight Verlet substeps of h/8\"\n"
@@ -462,7 +461,7 @@ def test_a_stability_limit_beyond_zmax_is_said_to_be_the_analysed_end(tmp_path):
 @pytest.mark.parametrize("log_error", [-3.0, 0.0, 1.0, 2.0, 4.0, 6.5, 7.2, 9.0, 12.0])
 def test_one_mode_acceptance_against_its_closed_form(log_error):
     """One mode: Delta H = a X - |b| Y with X, Y independent chi^2_1, so the acceptance
-    2 P(Delta H < 0) = (4 / pi) atan sqrt(|b| / a) (X / Y is F(1, 1)). The README's
+    2 P(Delta H < 0) = (4 / pi) atan sqrt(|b| / a) (X / Y is F(1, 1)). The HMC guide's
     accuracy: 1e-12 up to an expected error of 100, 2e-8 absolute beyond."""
     e = 10.0 ** log_error
     with mp.workdps(40):

@@ -28,8 +28,9 @@ from stepsafe import hmc
 from stepsafe.core import hmc as core
 from stepsafe.exceptions import StepsafeError
 
-#: A 5x5 covariance of condition 5.7e11 at scale 1e-140 (a reviewer's case: its float64
-#: stability limit used to exceed the true one by 3e-6 relative).
+#: A 5x5 covariance of condition 5.7e11 at scale 1e-140: float64's smallest standard
+#: deviation lies 3e-6 relative above the 50-digit one, so a stability limit not widened by
+#: the eigenvalue's rounding would exceed the true one.
 C28 = [[7.7996191966714555e-140, -1.1635116590740418e-139, -8.299835009371132e-140,
         -5.724956791330007e-140, 1.212491073576497e-139],
        [-1.1635116590740418e-139, 1.7366858249790233e-139, 1.2378221579697713e-139,
@@ -197,8 +198,8 @@ def test_a_design_is_stable_for_the_true_frequencies_of_a_covariance(matrix, nea
     """design widens each frequency by the rounding of the eigenvalue it came from, as hmc
     does. Here float64's smallest standard deviation is 3e-6 and 2e-5 above the 50-digit
     one: a step 1e-7 below the family's limit z = 4 for the float64 frequency is past it
-    for the true one, and is refused (b = 1/4 used to be designed, |tr M| = 2.0001 at the
-    true frequency); a step well inside gets a member with |tr M| <= 2 at 50 digits."""
+    for the true one, and is refused (b = 1/4 there has |tr M| = 2.0001 at the true
+    frequency); a step well inside gets a member with |tr M| <= 2 at 50 digits."""
     from stepsafe import design
 
     nominal = float(np.sqrt(np.linalg.eigvalsh(np.asarray(matrix)).min()))
@@ -236,7 +237,7 @@ def test_a_refused_target_names_the_file_it_came_from(run, tmp_path, command):
 
 def test_a_trajectory_beyond_a_million_steps_is_approximate():
     """L theta in float64 carries an error of about eps L pi: at L = 1e12 (a length capped)
-    the 4th digit of the acceptance (review 22: 0.956151 against 0.956238 at 60 digits),
+    the 4th digit of the acceptance (0.956151 against 0.956238 at 60 digits),
     so such figures say approximate; up to 1e6 steps they are exact."""
     far = hmc(["bcss3"], sigma=[1e-150, 1e150], length=1e150).rows[0]
     assert any("approximate" in note for note in far.notes)

@@ -426,7 +426,7 @@ def test_an_ill_conditioned_mass_widens_the_margin(tmp_path):
 
 
 @pytest.mark.slow
-def test_review_8_inputs(run, tmp_path):
+def test_impulse_inputs_at_the_edges_of_what_applies(run, tmp_path):
     """An impulse method as the base of a composition is refused (exit 2); substeps up to
     the merged-operation limit are accepted; a slow part 1e-9 of the fast one that does
     not commute with it goes to the coupled analysis; plot options that do not apply are

@@ -689,9 +689,8 @@ def test_nested_composition_budget_counts_without_flattening():
 
 def test_a_composition_over_a_long_splitting_is_bounded(run, tmp_path):
     """A composition's work is its steps times its base's drifts and kicks: 399 steps of
-    a 799-operation splitting ran for more than 15 minutes (review 23); refused at once,
-    exit 2, while the library's largest (105 operations) and 5 steps of that splitting
-    (3995) are analysed."""
+    a 799-operation splitting exceed the bound and are refused at once, exit 2, while the
+    library's largest (105 operations) and 5 steps of that splitting (3995) are analysed."""
     from stepsafe.methods.tableaux import MAX_COMPOSED_OPERATIONS
 
     values = ", ".join(['"0.0025"'] * 200)
@@ -787,8 +786,8 @@ def test_validate_warns_when_the_stated_evaluations_are_not_the_coefficients(run
                                   ["--beta", "1e-310", "--beta", "1"]])
 def test_a_frequency_whose_limit_is_beyond_every_float(run, args):
     """beta ~ 1e-310 puts its boundary 2/beta past the largest float: it limits no step
-    (advise says so, exit 0, JSON consistent), and check passes any finite step it allows;
-    it used to exit 3 (review 13, F3)."""
+    (advise says so, exit 0, JSON consistent), and check passes any finite step it allows:
+    never an internal error."""
     code, out, err = run("advise", "--method", "verlet", *args)
     assert code == 0, err
     data = json.loads(run("advise", "--method", "verlet", *args, "--json")[1])
@@ -803,8 +802,8 @@ def test_a_frequency_whose_limit_is_beyond_every_float(run, args):
 @pytest.mark.parametrize("tol", [["--tol-phase", "1e-3"], ["--tol-energy", "1e-3"]])
 def test_a_tolerance_on_a_frequency_beyond_every_float(run, tol):
     """Its accuracy limit is past the largest float too: advise says the tolerance holds
-    for every float step (it exited 3), compare leaves the method unranked with no step
-    and no cost (it ranked it 'bound by accuracy' at cost 0; review 15)."""
+    for every float step (never an internal error), compare leaves the method unranked
+    with no step and no cost (not 'bound by accuracy' at cost 0)."""
     code, out, err = run("advise", "--method", "verlet", "--beta", "1e-310", *tol)
     assert code == 0, err
     assert "for every float step" in " ".join(out.split())

@@ -72,8 +72,8 @@ def test_family_order(family, s, reference):
 
 def test_kahan_li10_error_floor(reference):
     """kahan-li10's published 20 digits hold its order conditions to about 1e-20: in
-    40-digit arithmetic the error stops falling near 3e-20 (stated in the file and the
-    README), which is why order 10 is measured at h = 1/4, 1/8."""
+    40-digit arithmetic the error stops falling near 3e-20 (stated in the file and in
+    docs/methods.md), which is why order 10 is measured at h = 1/4, 1/8."""
     with mp.workdps(DPS):
         m = mp_method("kahan-li10")
         errors = []
@@ -115,7 +115,8 @@ def test_method_files_carry_facts_not_development_notes():
 @pytest.mark.parametrize("k", [-42, -10, 0, 10, 42])
 def test_symmetry_does_not_depend_on_the_scale_of_the_coefficients(k):
     """drift 0.3, kick 1, drift 0.7 is not its own adjoint at any step: every coefficient
-    times 2^-42 was called symmetric by an absolute 1e-12 (review 19, F3); Verlet is."""
+    times 2^-42 is not symmetric either (no absolute tolerance such as 1e-12); Verlet is,
+    at every scale."""
     from stepsafe.methods.families import is_symmetric
     from stepsafe.methods.tableaux import Splitting
 
@@ -129,8 +130,9 @@ def test_symmetry_does_not_depend_on_the_scale_of_the_coefficients(k):
 
 def test_a_huge_coefficient_does_not_hide_a_non_symplectic_entry():
     """b = (0.999, 0.001), a21 = 1e15, a12 cancelling entry (1, 2) of the condition: entry
-    (1, 1), 2 b1 a11 - b1^2 = -0.998, is as far from 0 as it can be, but was 5e-13 of the
-    largest product (review 20). Scaled Gauss s = 2 stays symplectic."""
+    (1, 1), 2 b1 a11 - b1^2 = -0.998, is as far from 0 as it can be, though only 5e-13 of
+    the largest product: each entry is judged on its own terms. Scaled Gauss s = 2 stays
+    symplectic."""
     from support import method
 
     from stepsafe.methods.residuals import residuals

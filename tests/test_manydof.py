@@ -135,7 +135,7 @@ def test_zero_and_slow_modes_do_not_hide_the_others(hamiltonian, h_max, tmp_path
     # a ring of 4 masses: every translate is an equilibrium
     "(p1**2 + p2**2 + p3**2 + p4**2)/2 + ((q2 - q1)**2 + (q3 - q2)**2 + (q4 - q3)**2"
     " + (q1 - q4)**2)/2",
-    # a line of equilibria q1 = q2 whose frequency grows along it (review 10): members
+    # a line of equilibria q1 = q2 whose frequency grows along it: members
     # Newton does not reach would set the limit
     "(p1**2 + p2**2)/2 + (q1 - q2)**2*(1 + q1**2)",
 ])

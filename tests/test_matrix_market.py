@@ -86,7 +86,8 @@ def test_headers_are_checked(tmp_path, text, message):
 
 
 def test_a_typo_in_a_matrix_file_is_exit_2_not_safe(run, tmp_path):
-    """The review's false SAFE: 1_000_000 was read as 1 (beta 1 instead of 1000)."""
+    """1_000_000 is not a Matrix Market number: exit 2 naming the file, never read as 1
+    (which would check beta 1 instead of 1000 and call the step SAFE)."""
     (tmp_path / "K.mtx").write_text(BANNER.format(fmt="coordinate", sym="general")
                                     + "1 1 1\n1 1 1_000_000\n")
     scene = tmp_path / "s.yaml"
@@ -100,8 +101,8 @@ def test_a_typo_in_a_matrix_file_is_exit_2_not_safe(run, tmp_path):
     ("2 2 3\n1 1 4\n1 1 4\n2 2 1\n", "more than once"),
 ])
 def test_repeated_positions_are_refused(tmp_path, body, message):
-    """Summing repeated entries in float64 cancelled 5000 between +-1e20 (a review's false
-    SAFE): each position must be written once."""
+    """Each position must be written once: summing repeated entries in float64 would
+    cancel 5000 between +-1e20 (a stiffer system read as a softer one)."""
     path = tmp_path / "dup.mtx"
     path.write_text(BANNER.format(fmt="coordinate", sym="general") + body)
     with pytest.raises(StepsafeError, match=message):
@@ -117,7 +118,7 @@ def test_integer_field_holds_integers(tmp_path):
 
 @pytest.mark.parametrize("length", [1023, 1024, 1025, 5000, 100_000])
 def test_long_comment_lines_are_comments(tmp_path, length):
-    """A comment line longer than the size line's read is skipped whole (review 18)."""
+    """A comment line longer than the size line's read is skipped whole."""
     path = tmp_path / "k.mtx"
     path.write_text("%%MatrixMarket matrix coordinate real symmetric\n%" + "x" * length
                     + "\n% short\n2 2 2\n1 1 4.0\n2 2 9.0\n")

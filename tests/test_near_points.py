@@ -1,6 +1,6 @@
 """Steps close to reported points: every step the gate calls safe is preserved at 50 digits.
 
-The hostile cases of an independent review: boundaries within 1e-6 relative of a pole
+Hostile cases: boundaries within 1e-6 relative of a pole
 (M = +I on the saddle, where the multiplier crosses 1 on its way to 0 at the pole), and
 orientation switches on the barrier computed with cancellation (drift coefficients 1e2 to
 1e8 that cancel to 1). Random splittings generate more of both; each reported point is
@@ -60,7 +60,7 @@ def _false_safes(path: str, model: str, zmax: float) -> list[float]:
 
 
 @pytest.mark.parametrize("name, drift, kick, model, zmax", [
-    # M = +I 2.5e-6 after a pole (the island was reported preserved from the pole)
+    # M = +I 2.5e-6 after a pole (the island must not be preserved from the pole on)
     ("many-11", ["0.0", "0.8851554622329858", "0.5199874313536643", "-0.2585039506316802",
                  "-0.20690011531840335", "-0.7019903814515651", "0.09094886925595946",
                  "-0.4784624116586951", "-0.2546473137723626", "0.8634235267401613"],
@@ -86,13 +86,14 @@ def _false_safes(path: str, model: str, zmax: float) -> list[float]:
       '0.5701893583888806', '-0.48643769765060285', '-0.26279995528943445',
       '-0.14998772116448977', '-0.7422605835667542'], "inverted", 6.0),
 ])
-def test_review_cases(tmp_path, name, drift, kick, model, zmax):
+def test_no_false_safe_beside_points_close_to_poles_or_under_cancellation(tmp_path, name, drift,
+                                                                        kick, model, zmax):
     assert _false_safes(_method_file(tmp_path, name, drift, kick), model, zmax) == []
 
 
 def test_m_equals_identity_just_below_a_pole(tmp_path):
-    """Symmetric splitting with a 1e8 drift: M = +I 1.35e-8 (relative) below the pole
-    that was reported as the first boundary."""
+    """Symmetric splitting with a 1e8 drift: M = +I 1.35e-8 (relative) below the pole is
+    the first boundary, not the pole."""
     path = tmp_path / "cancel-sym.yaml"
     path.write_text("name: cancel-sym\nkind: splitting\norder: 1\nsource: generated\n"
                     "symmetric: true\n"
@@ -152,10 +153,10 @@ def test_offsets_cover_both_sides():
 
 
 def test_m_equals_identity_under_cancelling_composition_weights(tmp_path):
-    """A composition of pefrl with weights +-1e6: the M = +I touch near z = 2.9033627 was
-    placed 1e-9 too high with a stated uncertainty of 2e-11 (the rounding bound of
-    tr M - 2 vanishes at a touch); on the saddle the touch is the multiplier crossing 1,
-    placed only to the rounding of M_qq - 1 over its slope."""
+    """A composition of pefrl with weights +-1e6: the M = +I touch near z = 2.9033627 is
+    placed within its stated uncertainty, although the rounding bound of tr M - 2 vanishes
+    at a touch (an uncertainty of 2e-11 would miss it by 1e-9); on the saddle the touch is
+    the multiplier crossing 1, placed only to the rounding of M_qq - 1 over its slope."""
     path = tmp_path / "comp-cancel.yaml"
     path.write_text("name: comp-cancel\nkind: composition\norder: 1\nsource: generated\n"
                     "base: pefrl\nsymmetric: true\nweights: ['1000000.0', "

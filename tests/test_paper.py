@@ -1,7 +1,7 @@
 """Every number the paper prints, confirmed or refuted at 50 digits (mpmath, stage
 equations solved directly), and stepsafe's float64 answer checked against the truth.
 
-Each test states the claim, where it is in the paper, and the verdict. README.md carries
+Each test states the claim, where it is in the paper, and the verdict. docs/validation.md carries
 the same table.
 """
 
@@ -119,7 +119,7 @@ def true_gap(s: int):
 def test_conjecture_boundary_tends_to_pi(s):
     """Conjecture (s -> inf): z*(s) -> pi. Supported: the first boundary and the start of
     the next (reversed) island close in on pi from both sides (gap and pi - z* shrink by
-    orders of magnitude per stage; README table). Where the gap is below float64
+    orders of magnitude per stage; the table in docs/validation.md). Where the gap is below float64
     resolution (s >= 7) stepsafe's resonance and its uncertainty cover both boundaries."""
     p, lo, hi = true_gap(s)
     assert lo < mp.pi < hi or lo < hi < mp.pi

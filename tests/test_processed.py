@@ -353,7 +353,7 @@ def test_a_kernel_that_is_not_a_splitting_is_refused_naming_the_key(tmp_path, ru
 
 
 def test_an_hmc_chain_with_the_processed_method_drifts_from_the_target():
-    """Measured (review 22): with P^-1 K^L P as the proposal, the first transition from
+    """Measured: with P^-1 K^L P as the proposal, the first transition from
     the target accepts as predicted, but the chain is not reversible and leaves the
     target (the whitened variance of q grows); a verlet chain on the same target, moving
     as much, stays on it. hmc says so and does not rank the processed method."""

@@ -78,8 +78,8 @@ def test_lanczos_value_agrees_with_the_eigensolver(seed):
 @pytest.mark.parametrize("seed", range(20))
 def test_a_singular_matrix_of_subnormal_entries_is_not_certified(seed):
     """W = B B^T 2^-1074 with B an integer N x r matrix, r < N: lambda_min = 0 exactly, and
-    every term of the allowance underflowed to 0 unscaled (review 24: certified in 4% of
-    cases); W is scaled by a power of two first."""
+    every term of the allowance underflows to 0 unscaled; W is scaled by a power of two
+    first, and nothing is certified."""
     rng = np.random.default_rng(seed)
     N = int(rng.integers(2, 12))
     B = rng.integers(-3, 4, size=(N, N - 1)).astype(float)
@@ -103,8 +103,8 @@ def test_an_indefinite_matrix_is_not_certified_and_its_value_is_exact():
 
 def test_an_extreme_eigenvalue_of_a_tight_cluster():
     """LAPACK's syevr for one eigenvalue can fail on a cluster within rounding (a 200 x 200
-    Hessian that is the identity rotated: exit 3 before, review 24): the coupled analysis
-    then takes every eigenvalue, and verlet's limit on S = I is 2."""
+    Hessian that is the identity rotated): the coupled analysis then takes every
+    eigenvalue, never an internal error, and verlet's limit on S = I is 2."""
     from stepsafe.methods.library import resolve
     from stepsafe.systems.coupled import coupled_safe_steps
 

@@ -272,7 +272,7 @@ def test_degenerate_equilibrium_beside_an_analysed_one(run_json, tmp_path):
 
 def test_stiff_matrix_keeps_its_slow_barrier(run, tmp_path):
     """K = diag(1e12, -1): the barrier of rate 1 is far above rounding (~1e-3) and limits
-    the midpoint rule (pole at z = 2) to h < 2; it was once dropped as a 'free' mode."""
+    the midpoint rule (pole at z = 2) to h < 2: it is not taken for a 'free' mode."""
     path = tmp_path / "k.yaml"
     path.write_text("method: midpoint\nh: 3\nsystem: {stiffness: [[1e12, 0], [0, -1]]}\n")
     code, out, _ = run("check", str(path))
@@ -402,8 +402,8 @@ def test_large_dense_stiffness_uses_the_extreme_eigenvalues_only(tmp_path, run_j
 
 
 def test_constant_powers_are_numbers_and_powers_of_q_are_capped(tmp_path):
-    """2**65 is a number (it was refused as a power above 64, reported as 'H cannot be
-    evaluated' at every start: review 19); q**65 is refused as itself."""
+    """2**65 is a number, not a power of a variable above 64 (H can be evaluated at every
+    start); q**65 is refused as itself."""
     from stepsafe.exceptions import StepsafeError
     from stepsafe.systems.loader import analyse_system
 

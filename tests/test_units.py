@@ -175,9 +175,9 @@ def test_scene_with_units(run, tmp_path):
     ("protein-flexible.yaml", (2.949, 2.085, 2.554)),
     ("protein-constrained.yaml", (6.434, 4.550, 5.572)),
 ])
-def test_md_examples_as_the_readme_states(run, scene, limits):
-    """The README's table (rounded down): linear limit, below the 4:1 and the 3:1 resonance, fs
-    (each the closed form 2 sin(pi m / n) / beta for Verlet, beta = 2 pi c k)."""
+def test_md_examples_as_the_md_guide_states(run, scene, limits):
+    """The MD guide's table (rounded down): linear limit, below the 4:1 and the 3:1
+    resonance, fs (each the closed form 2 sin(pi m / n) / beta for Verlet, beta = 2 pi c k)."""
     from pathlib import Path
 
     path = str(Path(__file__).resolve().parent.parent / "examples" / scene)
@@ -220,7 +220,7 @@ def test_scene_time_unit_must_be_known(run, tmp_path):
 def test_a_modes_csv_column_in_any_form_gives_the_same_betas_as_the_command_line(
         run, tmp_path, form, unit_text):
     """A CSV spectrum in cm-1 (or frequencies, periods, standard deviations) is read as the
-    same modes given one by one: identical betas, hence identical advice (review 13)."""
+    same modes given one by one: identical betas, hence identical advice."""
     from stepsafe.systems.scene import load_modes
     from stepsafe.units import quantity
 

@@ -51,8 +51,8 @@ def test_a_wrong_float_answer_fails_verification(run, monkeypatch):
 
 def test_verify_at_tiny_z_and_on_a_processed_saddle(run, tmp_path):
     """--verify raises its precision where the deciding quantity is tiny (2 - tr M = z^2 =
-    1e-42 at z = 1e-21 was 'reference None', exit 3), and takes a processed method on the
-    saddle as its kernel, as the float analysis does (P commutes with K there): review 23."""
+    1e-42 at z = 1e-21: the reference decides it, exit 0), and takes a processed method on
+    the saddle as its kernel, as the float analysis does (P commutes with K there)."""
     code, out, err = run("region", "verlet", "--zmax", "1e-12", "--verify")
     assert code == 0, out + err
     path = tmp_path / "proc.yaml"

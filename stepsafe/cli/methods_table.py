@@ -1,4 +1,4 @@
-"""The README's method-library table, generated from the built-in method files.
+"""The method-library table of docs/methods.md, generated from the built-in method files.
 
 ``python -m stepsafe.cli.methods_table`` prints it as Markdown: per single-force method its
 kind, order, force evaluations per step, the harmonic-oscillator threshold z* = omega h
@@ -10,7 +10,7 @@ evaluation, the cost measure for comparing methods; a force-gradient term counts
 A processed method ``P^-1 K P`` counts its kernel's evaluations per step (z* per
 evaluation uses them, z* is the kernel's); its processor's, spent once at the start and
 once per output, are listed beside them.
-``tests/test_readme.py`` checks that the README holds exactly this text.
+The docs site renders it into that page when it is built (``docs/hooks/generate.py``).
 """
 
 from __future__ import annotations

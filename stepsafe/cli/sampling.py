@@ -395,7 +395,7 @@ def _write_new_text(path: str, text: str) -> None:
 
 #: Significant digits of a designed coefficient in the text report. The objective (rho summed
 #: over the modes) is flat at its minimiser b*: it grows like C (b - b*)^2 relative, C of
-#: order 1e4 on the README's target, so its float64 rounding (a few 1e-16 relative) leaves
+#: order 1e4 on the HMC guide's target, so its float64 rounding (a few 1e-16 relative) leaves
 #: b* uncertain by about 1e-10 and machines whose kernels round differently print other
 #: tenth digits; at 8 digits the figure's own objective is within 1e-12 of the minimum.
 PARAM_DIGITS = 8

@@ -1,8 +1,9 @@
 """What a step buys: phase, energy and growth-rate errors of M(z), and their inverse.
 
-Oscillator (DESIGN §3). A symplectic elliptic ``M = [[a, b], [c, d]]`` is conjugate to a
-rotation by ``theta`` with ``cos theta = tr M / 2`` and ``sin theta = sqrt(-bc - (a-d)^2/4)``
-(no cancellation: ``-bc ~ z^2``). The flow rotates by ``z``, so
+Oscillator (docs/theory.md#accuracy-and-cost). A symplectic elliptic
+``M = [[a, b], [c, d]]`` is conjugate to a rotation by ``theta`` with ``cos theta = tr M / 2``
+and ``sin theta = sqrt(-bc - (a-d)^2/4)`` (no cancellation: ``-bc ~ z^2``). The flow rotates
+by ``z``, so
 
 * phase error ``e_phase = theta / z - 1``;
 * energy error: orbits of M lie on the invariant ellipse ``x^T S x = const`` with

@@ -1,4 +1,5 @@
-"""Safe step sizes for a set of frequencies (DESIGN §2): intersections of unions of intervals.
+"""Safe step sizes for a set of frequencies: intersections of unions of intervals
+(docs/theory.md#safe-steps-for-many-frequencies).
 
 For modes ``(beta_k, model_k)`` the safe set is ``{h > 0 : beta_k h in R(model_k) for all
 k}``, ``R`` the region of :func:`stepsafe.core.regions.find_region`. Its complement in

@@ -1,4 +1,5 @@
-"""The three linear test models of DESIGN §1, scaled so that only ``z = beta*h`` matters.
+"""The linear test models, scaled so that only ``z = beta*h`` matters
+(docs/theory.md#the-test-models).
 
 Each model is ``x' = beta L x`` with ``x = (q, p~)`` (``p~ = p/beta`` for the two
 kinetic + potential models). ``L`` is the matrix below:

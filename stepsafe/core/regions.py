@@ -1,4 +1,4 @@
-"""Structure-preservation regions as unions of z-intervals (DESIGN §2).
+"""Structure-preservation regions as unions of z-intervals (docs/theory.md#regions).
 
 For a symplectic method ``det M = 1`` and the type of ``M(z)`` follows from ``t = tr M``:
 elliptic for ``|t| < 2``, hyperbolic with positive multipliers for ``t > 2``, a flip for

@@ -1,4 +1,5 @@
-"""Speed against accuracy for a set of frequencies (DESIGN §3): what each method costs.
+"""Speed against accuracy for a set of frequencies: what each method costs
+(docs/theory.md#accuracy-and-cost).
 
 For a method and modes, the usable step is ``h = min(h_safe, h_tol)``: ``h_safe`` from
 :mod:`stepsafe.core.advice`, ``h_tol`` the largest step whose error stays within tolerance for

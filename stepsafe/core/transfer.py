@@ -1,8 +1,9 @@
 """The 2x2 one-step (transfer) matrix M(z) of any method on a test model, with dM/dz.
 
-The step engine (:func:`stepsafe.core.engine.step_jet`, the one routine that also builds
-the 2n x 2n map of :mod:`stepsafe.systems.coupled`) turns the blocks of a method's step
-(:func:`stepsafe.methods.protocol.linear_blocks`) into ``M(z)``, each block's matrix at
+The step engine (docs/theory.md#the-one-step-matrix; :func:`stepsafe.core.engine.step_jet`,
+the one routine that also builds the 2n x 2n map of :mod:`stepsafe.systems.coupled`) turns
+the blocks of a method's step (:func:`stepsafe.methods.protocol.linear_blocks`) into
+``M(z)``, each block's matrix at
 ``w z`` for its weight w, multiplied in order; a test model (:class:`TestModel`) gives the
 matrix of each block:
 

@@ -33,7 +33,7 @@ listed operation sequence (``drift a_1, kick b_1, drift a_2, ...``, or the weigh
 first half including the middle operation; the rest is its mirror image.
 
 :data:`FIELDS` is the single description of the format: :func:`validate_tree` enforces it
-and :func:`json_schema` renders it as a JSON Schema for editors and the README.
+and :func:`json_schema` renders it as a JSON Schema for editors (``stepsafe schema method``).
 """
 
 from __future__ import annotations

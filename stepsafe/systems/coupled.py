@@ -1,4 +1,5 @@
-"""The coupled analysis of ``x' = J S x`` when the modes do not decouple (DESIGN §4).
+"""The coupled analysis of ``x' = J S x`` when the modes do not decouple
+(docs/theory.md#systems-beyond-the-test-models).
 
 ``x = (q, p)``, ``J = [[0, I], [-I, 0]]``, ``S`` symmetric 2n x 2n. One step of size h is a
 2n x 2n matrix ``M(h)``; it keeps the structure of the flow when its eigenvalues have the

@@ -1,5 +1,5 @@
 """The definite criterion of the coupled analysis at high precision, for the small systems
-whose boundary float64 cannot place (DESIGN §4).
+whose boundary float64 cannot place (docs/theory.md#systems-beyond-the-test-models).
 
 On a nearly semidefinite S (condition 1e12 and beyond: a strong magnetic field, a slow
 drift mode) the rounding bound of ``Q(h) = sign(S) (M^T J - J M)`` reaches its smallest

@@ -1,4 +1,5 @@
-"""A symplectic point transformation that makes the coupled analysis cheap (DESIGN §4).
+"""A symplectic point transformation that makes the coupled analysis cheap
+(docs/theory.md#systems-beyond-the-test-models).
 
 For ``x' = J S x`` with ``x = (q, p)`` and the kinetic block ``S_pp`` definite, the linear
 point transformation ``q = R q~, p = R^-T p~`` (``T = diag(R, R^-T)``, symplectic) with

@@ -1,5 +1,5 @@
 """Linear n-dof systems: which modes to analyse, and the coupled analysis when they do not
-decouple (DESIGN §4).
+decouple (docs/theory.md#systems-beyond-the-test-models).
 
 ``H = x^T S x / 2`` with ``x = (q, p)`` and ``S = [[S_qq, S_qp], [S_pq, S_pp]]`` gives
 ``x' = J S x``. Use the cheapest analysis that is exact for the system in hand:
