@@ -36,6 +36,7 @@ import shlex
 import subprocess
 import sys
 import textwrap
+import unicodedata
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from decimal import Decimal
@@ -184,7 +185,7 @@ NOT_RUN = {
     "pip install": "installs the project: .ci/run runs it in a fresh environment",
     "pytest": "the test suite itself: .ci/run runs the README's line",
     "python benchmarks/": "benchmarks measure speed on the machine that runs them",
-    "python examples/tradeoff.py": "tests/test_examples.py runs the example",
+    "python examples/tradeoff.py": "tests/test_accuracy.py and tests/test_examples.py run it",
     "mkdocs build": "builds this site: .ci/run runs it",
 }
 #: A fenced block: its indentation, language and text (dedented).
@@ -317,11 +318,11 @@ def _generate():
 
 def test_generated_parts_are_the_code_s():
     """The hook renders each generated part from the code: the scene schema is what
-    ``stepsafe schema scene`` prints, the CLI reference has every command's help, and
-    every marker a page holds renders."""
+    ``stepsafe schema scene`` prints, the CLI reference has every command's help, the API
+    reference every public name, and every marker a page holds renders."""
     generate = _generate()
     markers = {m.group(1) for page in PAGES for m in generate.MARKER.finditer(_page(page))}
-    assert {"cli reference", "stepsafe schema scene",
+    assert {"cli reference", "api reference", "stepsafe schema scene",
             "python -m stepsafe.methods.table"} <= markers
     for what in markers - {"python -m stepsafe.methods.table"}:  # the table: below
         assert generate.render(what)
@@ -332,6 +333,11 @@ def test_generated_parts_are_the_code_s():
                  "methods", "plot", "region", "respa", "schema", "show", "validate"):
         assert f"## stepsafe {name}\n" in reference and f"Usage: stepsafe {name} " in reference
     assert max(len(line) for line in reference.splitlines()) <= generate.WIDTH
+    import stepsafe
+
+    api = generate.render("api reference")
+    for name in stepsafe.__all__:
+        assert name.startswith("__") or f"        - {name}\n" in api, name
 
 
 def test_method_library_table_is_generated_from_the_files():
@@ -339,6 +345,46 @@ def test_method_library_table_is_generated_from_the_files():
 
     assert _generate().render("python -m stepsafe.methods.table") == markdown()
     assert "<!-- generated: python -m stepsafe.methods.table -->" in _page("docs/methods.md")
+
+
+#: A page of the site cited from the code, the tests or the README, with its section.
+CITED = re.compile(r"(?<![\w/.])(docs/[\w/-]+\.md)(?:#([\w-]+))?")
+
+
+def _slug(heading: str) -> str:
+    """The anchor MkDocs gives a heading (python-markdown's toc slugify)."""
+    text = re.sub(r"\[([^]]*)\]\([^)]*\)", r"\1", heading).replace("`", "")
+    text = unicodedata.normalize("NFKD", text).encode("ascii", "ignore").decode("ascii")
+    text = re.sub(r"[^\w\s-]", "", text).strip().lower()
+    return re.sub(r"[-\s]+", "-", text)
+
+
+def _anchors(page: str) -> set[str]:
+    text = FENCE.sub("", _page(page))
+    return {_slug(m.group(1)) for m in re.finditer(r"^#+ (.+)$", text, re.M)}
+
+
+def test_cited_pages_and_sections_exist():
+    """Every docs page the code, the tests, the benchmarks or the README cite exists, with
+    the section named after '#'; so does every file the README links to."""
+    sources = [p for folder in ("stepsafe", "tests", "benchmarks")
+               for p in (ROOT / folder).rglob("*.py")] + [ROOT / "README.md"]
+    cited = {(m.group(1), m.group(2), str(source.relative_to(ROOT)))
+             for source in sources for m in CITED.finditer(source.read_text())}
+    assert ("docs/theory.md", "regions", "stepsafe/core/regions.py") in cited
+    for page, anchor, source in cited:
+        assert (ROOT / page).is_file(), (source, page)
+        assert anchor is None or anchor in _anchors(page), (source, page, anchor)
+    for target in re.findall(r"\]\(([^)#]+)(?:#[^)]*)?\)", README):
+        assert target.startswith("http") or (ROOT / target).exists(), target
+
+
+def test_slugs_are_the_ones_mkdocs_gives():
+    assert _slug("The one-step matrix") == "the-one-step-matrix"
+    assert _slug("`--verify` over the families and the library") == \
+        "-verify-over-the-families-and-the-library"
+    assert _slug("Hamiltonian Monte Carlo: `hmc` and `design`") == \
+        "hamiltonian-monte-carlo-hmc-and-design"
 
 
 # ----------------------------------------------------------- figures quoted in the prose

@@ -4,7 +4,10 @@ A line ``<!-- generated: stepsafe ARGS -->`` in a page becomes the output of the
 ``stepsafe ARGS`` (a ``json`` block for ``schema``, a ``text`` block otherwise), a line
 ``<!-- generated: python -m stepsafe.methods.table -->`` the method-library table, and a line
 ``<!-- generated: cli reference -->`` the ``--help`` of ``stepsafe`` and of every command,
-rendered by click at a fixed width of 100 columns. A command that fails stops the build.
+rendered by click at a fixed width of 100 columns, and a line
+``<!-- generated: api reference -->`` the mkdocstrings blocks of every public name of
+``stepsafe`` (``stepsafe.__all__``), grouped by the module that defines it. A command that
+fails stops the build.
 """
 
 from __future__ import annotations
@@ -51,10 +54,28 @@ def cli_reference() -> str:
     return "\n".join(parts)
 
 
+def api_reference() -> str:
+    """One mkdocstrings block per module of the public API, listing only its public names
+    (those ``stepsafe`` exports), in the order ``stepsafe.__all__`` gives them."""
+    import stepsafe
+
+    modules: dict[str, list[str]] = {}
+    for name in stepsafe.__all__:
+        if not name.startswith("__"):
+            modules.setdefault(getattr(stepsafe, name).__module__, []).append(name)
+    order = sorted(modules, key=lambda m: (m == "stepsafe.api.reports",
+                                           m == "stepsafe.exceptions"))
+    return "\n".join(f"::: {module}\n    options:\n      members:\n"
+                     + "".join(f"        - {name}\n" for name in modules[module])
+                     for module in order)
+
+
 def render(what: str) -> str:
     """The Markdown a marker ``<!-- generated: WHAT -->`` stands for."""
     if what == "cli reference":
         return cli_reference()
+    if what == "api reference":
+        return api_reference()
     if what == "python -m stepsafe.methods.table":
         from stepsafe.methods.table import markdown
 
