@@ -8,10 +8,13 @@ its own where ``examples/`` and ``methods/`` are the repository's, in order, so 
 one command writes is there for the next. Any other command (installing, running the test
 suite or a benchmark) must be one of :data:`NOT_RUN`, with its reason. A ``text`` block
 right after a ``bash`` block is the output of the block's last command, and is compared
-unless that command is not run (a benchmark's timings). A page marks a block whose commands
-take more than a few seconds with ``<!-- slow -->`` on the line before it (the test is then
-marked slow). The parts of a page written ``<!-- generated: ... -->`` are rendered from the
-code when the site is built (``docs/hooks/generate.py``), and their rendering is tested here.
+unless that command is not run (a benchmark's timings). HTML comments on the lines right
+above a block annotate it: ``<!-- slow: why -->`` for a block that takes more than a few
+seconds (its test is then marked slow), ``<!-- requires: openmm -->`` for one that needs an
+optional extra's module (its test is skipped without it; a ``python`` block that imports one
+of :data:`OPTIONAL` is skipped without it too). The parts of a page written
+``<!-- generated: ... -->`` are rendered from the code when the site is built
+(``docs/hooks/generate.py``), and their rendering is tested here.
 
 What is compared is what the code promises, not the digits one machine's floating-point path
 happens to produce (:func:`assert_shown`): the text, every verdict and count, and every
@@ -190,6 +193,23 @@ NOT_RUN = {
 }
 #: A fenced block: its indentation, language and text (dedented).
 FENCE = re.compile(r"^( *)```(\w*)\n(.*?)^\1```$", re.M | re.S)
+#: Modules of the optional extras: a page's block that needs one is skipped without it.
+OPTIONAL = ("openmm", "blackjax", "jax", "matplotlib")
+
+
+def _annotations(text: str, start: int) -> tuple[bool, tuple[str, ...]]:
+    """Whether the block at ``start`` is marked slow, and the modules it requires, from the
+    HTML comments on the lines right above it."""
+    slow, requires = False, []
+    for line in reversed(text[:start].rstrip().split("\n")):
+        note = re.fullmatch(r"\s*<!-- (slow|requires)\b:?\s*(.*?)\s*-->\s*", line)
+        if note is None:
+            break
+        if note.group(1) == "slow":
+            slow = True
+        else:
+            requires += [m.strip() for m in note.group(2).split(",")]
+    return slow, tuple(requires)
 
 
 @dataclass(frozen=True)
@@ -202,6 +222,7 @@ class Shown:
     exit_codes: tuple[int, ...]
     output: str | None
     slow: bool
+    requires: tuple[str, ...]  #: modules of optional extras the block needs
 
     @property
     def id(self) -> str:
@@ -239,9 +260,8 @@ def shown_blocks(page: str) -> list[Shown]:
         if after is not None and after.group(2) == "text" \
                 and not text[fence.end():after.start()].strip():
             output = textwrap.dedent(after.group(3))
-        before = text[:fence.start()].rstrip().rsplit("\n", 1)[-1]
         blocks.append(Shown(page, text.count("\n", 0, fence.start()) + 1, tuple(commands),
-                            tuple(codes), output, before.startswith("<!-- slow")))
+                            tuple(codes), output, *_annotations(text, fence.start())))
     return blocks
 
 
@@ -261,12 +281,18 @@ def test_the_pages_show_commands():
     assert quick.commands[0] == ("pip", "install", ".")
     assert quick.commands[1][:2] == ("stepsafe", "advise") and quick.output
     assert _split("stepsafe check x.yaml   # exit 1") == ([["stepsafe", "check", "x.yaml"]], 1)
+    text = "x\n<!-- requires: openmm, jax -->\n<!-- slow: 20 s -->\n```bash\n"
+    assert _annotations(text, text.index("```")) == (True, ("openmm", "jax"))
+    assert _annotations("<!-- slow -->\ntext\n```", 19) == (False, ())
+    assert any(b.slow for b in BLOCKS) and not all(b.slow for b in BLOCKS)
 
 
 @pytest.mark.parametrize("block", [
     pytest.param(block, id=block.id, marks=[pytest.mark.slow] if block.slow else [])
     for block in BLOCKS])
 def test_shown_commands_print_what_the_page_shows(block, tmp_path, monkeypatch):
+    for module in block.requires:
+        pytest.importorskip(module)
     for folder in ("examples", "methods"):
         (tmp_path / folder).symlink_to(ROOT / folder)
     monkeypatch.chdir(tmp_path)
@@ -294,16 +320,23 @@ def _python_blocks():
         text = _page(page)
         for m in FENCE.finditer(text):
             if m.group(2) == "python":
-                yield pytest.param(page, textwrap.dedent(m.group(3)),
-                                   id=f"{page}:{text.count(chr(10), 0, m.start()) + 1}")
+                code = textwrap.dedent(m.group(3))
+                slow, requires = _annotations(text, m.start())
+                imported = re.findall(r"^\s*(?:import|from)\s+(\w+)", code, re.M)
+                requires += tuple(name for name in OPTIONAL if name in imported)
+                yield pytest.param(page, code, requires,
+                                   id=f"{page}:{text.count(chr(10), 0, m.start()) + 1}",
+                                   marks=[pytest.mark.slow] if slow else [])
 
 
 PYTHON_BLOCKS = list(_python_blocks())
 
 
-@pytest.mark.parametrize("page, code", PYTHON_BLOCKS)
-def test_python_blocks_run(page, code, monkeypatch):
+@pytest.mark.parametrize("page, code, requires", PYTHON_BLOCKS)
+def test_python_blocks_run(page, code, requires, monkeypatch):
     """Every ``python`` block of a page runs as written, from the repository's root."""
+    for module in requires:
+        pytest.importorskip(module)
     monkeypatch.chdir(ROOT)
     exec(compile(code, page, "exec"), {})
 
