@@ -51,7 +51,7 @@ from stepsafe.methods.residuals import RESIDUAL_TOL, Residuals, prk_residuals
 MAX_BASE_STEPS = 1000
 #: Most drifts and kicks a composition over a splitting may apply a step, once multiplied
 #: out (the library's largest: 105, sofroniou-spaletta10); the work of every analysis is in
-#: proportion (399 steps of a 400-operation base ran for more than 15 minutes).
+#: proportion (399 steps of a 400-operation base take more than 15 minutes).
 MAX_COMPOSED_OPERATIONS = 4000
 #: A composition of an RK/PRK base solves one stage system per base step and per sample of
 #: M(z), and needs samples in proportion to how far its substeps reach: at most this much

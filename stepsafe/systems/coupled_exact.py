@@ -153,7 +153,7 @@ def exact_boundary(factors: list[tuple[str, float]], S: np.ndarray, sign: int, g
     ``good`` being certified and ``lost`` lost: the ``steps`` inside (the float64 scan's)
     and :data:`BAND_SAMPLES` uniform samples in order, then bisection of the first change
     to ``rel_tol`` (relative); ends on a kept step. ``progress(h / lost)`` after each
-    sample (up to 13 s were measured for a 35-factor method on 8 rows)."""
+    sample (a 35-factor method on 8 rows takes up to 13 s)."""
     uniform = good + (lost - good) * np.arange(1, BAND_SAMPLES + 1) / BAND_SAMPLES
     inside = np.empty(0) if steps is None else steps[(steps > good) & (steps < lost)]
     previous = good
