@@ -12,9 +12,10 @@ unless that command is not run (a benchmark's timings). HTML comments on the lin
 above a block annotate it: ``<!-- slow: why -->`` for a block that takes more than a few
 seconds (its test is then marked slow), ``<!-- requires: openmm -->`` for one that needs an
 optional extra's module (its test is skipped without it; a ``python`` block that imports one
-of :data:`OPTIONAL` is skipped without it too). The parts of a page written
-``<!-- generated: ... -->`` are rendered from the code when the site is built
-(``docs/hooks/generate.py``), and their rendering is tested here.
+of :data:`OPTIONAL` is skipped without it too). A ``python`` block runs as written; a
+``text`` block right after it is what it prints, compared as a command's output. The parts
+of a page written ``<!-- generated: ... -->`` are rendered from the code when the site is
+built (``docs/hooks/generate.py``), and their rendering is tested here.
 
 What is compared is what the code promises, not the digits one machine's floating-point path
 happens to produce (:func:`assert_shown`): the text, every verdict and count, and every
@@ -318,13 +319,18 @@ def test_shown_commands_print_what_the_page_shows(block, tmp_path, monkeypatch):
 def _python_blocks():
     for page in PAGES:
         text = _page(page)
-        for m in FENCE.finditer(text):
+        fences = list(FENCE.finditer(text))
+        for i, m in enumerate(fences):
             if m.group(2) == "python":
                 code = textwrap.dedent(m.group(3))
                 slow, requires = _annotations(text, m.start())
                 imported = re.findall(r"^\s*(?:import|from)\s+(\w+)", code, re.M)
                 requires += tuple(name for name in OPTIONAL if name in imported)
-                yield pytest.param(page, code, requires,
+                after = fences[i + 1] if i + 1 < len(fences) else None
+                output = textwrap.dedent(after.group(3)) if after is not None \
+                    and after.group(2) == "text" and not text[m.end():after.start()].strip() \
+                    else None
+                yield pytest.param(page, code, requires, output,
                                    id=f"{page}:{text.count(chr(10), 0, m.start()) + 1}",
                                    marks=[pytest.mark.slow] if slow else [])
 
@@ -332,13 +338,17 @@ def _python_blocks():
 PYTHON_BLOCKS = list(_python_blocks())
 
 
-@pytest.mark.parametrize("page, code, requires", PYTHON_BLOCKS)
-def test_python_blocks_run(page, code, requires, monkeypatch):
-    """Every ``python`` block of a page runs as written, from the repository's root."""
+@pytest.mark.parametrize("page, code, requires, output", PYTHON_BLOCKS)
+def test_python_blocks_run(page, code, requires, output, monkeypatch, capsys):
+    """Every ``python`` block of a page runs as written, from the repository's root, and
+    prints the ``text`` block that follows it, if one does."""
     for module in requires:
         pytest.importorskip(module)
     monkeypatch.chdir(ROOT)
+    capsys.readouterr()
     exec(compile(code, page, "exec"), {})
+    if output is not None:
+        assert_shown(output, capsys.readouterr().out)
 
 
 def _generate():
