@@ -2,7 +2,7 @@
 
 A line ``<!-- generated: stepsafe ARGS -->`` in a page becomes the output of the command
 ``stepsafe ARGS`` (a ``json`` block for ``schema``, a ``text`` block otherwise), a line
-``<!-- generated: python -m stepsafe.methods.table -->`` the method-library table, and a line
+``<!-- generated: python -m stepsafe.cli.methods_table -->`` the method-library table, and a line
 ``<!-- generated: cli reference -->`` the ``--help`` of ``stepsafe`` and of every command,
 rendered by click at a fixed width of 100 columns, and a line
 ``<!-- generated: api reference -->`` the mkdocstrings blocks of every public name of
@@ -76,8 +76,8 @@ def render(what: str) -> str:
         return cli_reference()
     if what == "api reference":
         return api_reference()
-    if what == "python -m stepsafe.methods.table":
-        from stepsafe.methods.table import markdown
+    if what == "python -m stepsafe.cli.methods_table":
+        from stepsafe.cli.methods_table import markdown
 
         return markdown()
     args = shlex.split(what)
