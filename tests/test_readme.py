@@ -566,3 +566,56 @@ def test_the_site_builds_with_warnings_as_errors(tmp_path):
                             env={**os.environ, "NO_MKDOCS_2_WARNING": "1"})
     assert result.returncode == 0, result.stderr
     assert (tmp_path / "site" / "reference" / "cli" / "index.html").is_file()
+
+
+#: The rows of the "Safe at temperature" table and the commands that make them.
+THERMAL_ROWS = {"`examples/morse.yaml`": ("advise", str(ROOT / "examples/morse.yaml")),
+                "`--kT 0.015`": ("advise", str(ROOT / "examples/morse.yaml"), "--kT", "0.015"),
+                "`examples/morse-300K.yaml`": ("advise", str(ROOT / "examples/morse-300K.yaml"))}
+
+
+def _limit(cell: str) -> float:
+    return float(re.search(r"h < ([\d.]+)", cell).group(1))
+
+
+@pytest.mark.slow  # three analyses at temperature, a few seconds each
+def test_safe_at_temperature_table():
+    """Each row against the analysis it quotes: the 0 K limit rounded down to its digits;
+    the limit at temperature and the first band's edge below what was measured and within
+    a grid step of the scan (2%) of it, the criterion named (a band near its resonance),
+    every band's peak failure fraction to its digits, the drift's bound (|rate| + 2
+    standard errors) below the power of ten shown and the fluctuation to its digit."""
+    section = _page("docs/guides/thermal.md")
+    rows = [line for line in section.splitlines()[:40] if line.startswith("| ")][1:]
+    assert len(rows) == len(THERMAL_ROWS)
+    for row, (key, args) in zip(rows, THERMAL_ROWS.items()):
+        assert key in row
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        data = json.loads(_output(*args, "--json"))
+        t = data["thermal"]
+        m = t["minima"][0]
+        zero = data["zero_kelvin"]["h_max"]
+        shown = _limit(cells[2])
+        assert shown <= zero and Decimal(str(shown)) + _last_digit_unit(str(shown)) > \
+            Decimal(zero)
+        warm = _limit(cells[3])
+        assert 0.98 * t["h_max"] <= warm <= t["h_max"] * 1.02
+        assert t["limited_by"].startswith("resonance band")
+        bands = [b for sc in m["scans"] for b in sc["bands"]]
+        words = cells[4].split("; ")
+        assert len(words) == len(bands)
+        for word, band in zip(words, bands):
+            assert band["name"] in word
+            peak = re.search(r"\(([\d.]+)%\)", word).group(1)
+            assert f"{100 * band['peak']:.{len(peak.split('.')[-1]) if '.' in peak else 0}f}"\
+                == peak
+            edge = re.search(r"from ([\d.]+)", word)
+            if edge:
+                assert 0.98 * band["lower"]["clear"] <= float(edge.group(1)) <= \
+                    band["lower"]["clear"]
+        drift = m["drift"]
+        bound = abs(drift["rate"]) + 2 * drift["error"]
+        power = float(re.search(r"below (1e-\d+)", cells[5]).group(1))
+        assert bound < power
+        fluct = float(re.search(r"\(([\d.]+)\)$", cells[5]).group(1))
+        assert f"{drift['fluctuation']:.1g}" == f"{fluct:g}"
