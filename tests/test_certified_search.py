@@ -185,3 +185,26 @@ def test_the_budget_bounds_the_boxes_evaluated():
                   ("x", "y", "px", "py"))
     result = certified_equilibria(c, -np.ones(4), np.ones(4), max_boxes=100)
     assert not result.complete and result.boxes <= 100 and "budget" in result.reason
+
+
+def test_an_incomplete_search_is_printed_as_incomplete_and_fails_on_request(tmp_path, run):
+    """A degenerate equilibrium (V' = q (q - 1/2)^2: V'' = 0 at 1/2) beside a regular
+    minimum at 0 leaves the bound undecided: the Search line says
+    INCOMPLETE, never the sentence that defines a complete search, and
+    --require-complete-search turns the verdict into exit 1 even at a safe step."""
+    scene = tmp_path / "quartic.yaml"
+    scene.write_text('method: verlet\nh: 0.1\nsystem:\n  hamiltonian: "p**2/2 + q**4 + q**2"\n'
+                     "  box: {q: [-1, 1], p: [-1, 1]}\n")
+    code, out, _ = run("check", str(scene))
+    assert "Search:" in out, out
+    if ": complete" in out:  # q^4 + q^2 is regular: proved, and said so
+        assert "(complete: interval arithmetic" in out and code == 0
+    degenerate = tmp_path / "degenerate.yaml"
+    degenerate.write_text('method: verlet\nh: 0.1\nsystem:\n  hamiltonian: '
+                          '"p**2/2 + q**4/4 - q**3/3 + q**2/8"\n'
+                          "  box: {q: [-1, 1], p: [-1, 1]}\n")
+    code, out, err = run("check", str(degenerate))
+    assert "INCOMPLETE" in out, (out, err)
+    assert "(complete: interval arithmetic" not in out
+    code, out, err = run("check", str(degenerate), "--require-complete-search")
+    assert code != 0, (out, err)

@@ -624,6 +624,7 @@ def print_search(search: dict[str, Any]) -> None:
                + ("complete" if search["complete"] else "INCOMPLETE, an equilibrium may be "
                   "missing: " + "; ".join(search["gaps"]) + " (check "
                   "--require-complete-search fails on this)"))
-    click.echo("  (complete: interval arithmetic on grad H, rounded outward, excluded every "
-               "part of the box but the boxes where a Krawczyk test proved one equilibrium, "
-               "each of them found)")
+    if search["complete"]:
+        click.echo("  (complete: interval arithmetic on grad H, rounded outward, excluded "
+                   "every part of the box but the boxes where a Krawczyk test proved one "
+                   "equilibrium, each of them found)")
