@@ -381,3 +381,14 @@ def test_langevin_splittings_are_refused_at_temperature_naming_it(name):
     with pytest.raises(StepsafeError, match="^temperature: .*Langevin"):
         stepsafe.check(name, 0.5, [1.0], kT=1.0, steps=10)
     assert stepsafe.advise(name, [1.0], kT=0.0).to_dict() == stepsafe.advise(name, [1.0]).to_dict()
+
+
+@pytest.mark.openmm
+def test_a_temperature_on_an_engine_system_is_refused_not_answered_at_0K(run):
+    """An OpenMM system is not sampled at temperature: a temperature with it is refused
+    (exit 2, one line), never answered with the 0 K verdict as if the system were linear."""
+    pytest.importorskip("openmm")
+    scene = Path(__file__).resolve().parents[1] / "examples" / "water-cluster.yaml"
+    code, out, err = run("check", str(scene), "--kT", "2.49", "--steps", "1000")
+    assert code == 2 and "SAFE" not in out, (out, err)
+    assert "temperature" in err and len(err.strip().splitlines()) == 1

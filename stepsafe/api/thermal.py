@@ -233,6 +233,12 @@ def _minima(p: Any, req: Request) -> list[Minimum] | None:
     system = p.system
     if system is None or is_harmonic(system.tree):
         return None
+    if not (isinstance(system.tree, Mapping) and "hamiltonian" in system.tree):
+        raise StepsafeError("temperature: only a scene's hamiltonian: is analysed at "
+                            "temperature (it samples that potential); an MD engine's system "
+                            "is not yet, and its verdicts are the 0 K ones: give no "
+                            "temperature, or check the step by the engine's own runs (runs: "
+                            "in the scene's system)")
     where = (p.scene or "system") if system.tree is not None else "system"
     return minima(system.tree, system.items, where)
 

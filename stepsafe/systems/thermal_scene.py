@@ -37,9 +37,11 @@ class Minimum(NamedTuple):
 
 
 def is_harmonic(tree: Any) -> bool:
-    """Whether a ``system:`` mapping is linear (no ``hamiltonian:``): frequencies that do
-    not depend on amplitude."""
-    return not (isinstance(tree, Mapping) and "hamiltonian" in tree)
+    """Whether a ``system:`` is linear (a stiffness, precision, covariance or Hessian
+    matrix): frequencies that do not depend on amplitude. Anything else (a Hamiltonian, an
+    MD engine's force field, a Python function) is not known to be linear."""
+    return isinstance(tree, Mapping) and any(
+        key in tree for key in ("stiffness", "precision", "covariance", "hessian"))
 
 
 def minima(tree: Mapping[str, Any], items: list[dict[str, Any]], where: str) -> list[Minimum]:
