@@ -44,7 +44,8 @@ class Expression(NamedTuple):
     @property
     def names(self) -> set[str]:
         """Names used as values (not the called functions)."""
-        called = {n.func.id for n in ast.walk(self.tree) if isinstance(n, ast.Call)}
+        called = {n.func.id for n in ast.walk(self.tree)
+                  if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)}
         used = {n.id for n in ast.walk(self.tree) if isinstance(n, ast.Name)}
         return used - called
 
@@ -155,7 +156,9 @@ def evaluate(expr: Expression, names: dict[str, Any] | None = None,
 
 def _eval(node: ast.AST, source: str, env: dict[str, Any], bk: Backend) -> Any:
     if isinstance(node, ast.Constant):
-        return bk.number(ast.get_source_segment(source, node))
+        literal = ast.get_source_segment(source, node)
+        assert literal is not None  # a node parsed from source has its segment
+        return bk.number(literal)
     if isinstance(node, ast.Name):
         if node.id == "pi":
             return bk.pi
@@ -166,6 +169,7 @@ def _eval(node: ast.AST, source: str, env: dict[str, Any], bk: Backend) -> Any:
         value = _eval(node.operand, source, env, bk)
         return -value if isinstance(node.op, ast.USub) else value
     if isinstance(node, ast.Call):
+        assert isinstance(node.func, ast.Name)  # (_check_node: only named functions)
         arg = bk.check(_eval(node.args[0], source, env, bk))
         return bk.check(bk.sqrt(arg) if node.func.id == "sqrt" else bk.cbrt(arg))
     assert isinstance(node, ast.BinOp)
@@ -249,6 +253,7 @@ def evaluate_with_bound(expr: Expression, names: dict[str, float],
             v, e = go(node.operand)
             return (-v if isinstance(node.op, ast.USub) else v), e
         if isinstance(node, ast.Call):
+            assert isinstance(node.func, ast.Name)  # (_check_node: only named functions)
             x, e = go(node.args[0])
             if node.func.id == "sqrt":
                 v = _float_sqrt(x)

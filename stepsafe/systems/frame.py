@@ -319,8 +319,10 @@ class Solver:
         on ``||A - I||_2`` (the stage matrices are ``I -+ c C``); below 1 it bounds A's
         condition rigorously and closely (Neumann: ``||A^-1|| <= 1 / (1 - offset)``)."""
         close = offset is not None and offset < 1.0
-        neumann = _amplification(1.0 + offset, 1.0 / (1.0 - offset)) if close else np.inf
-        neumann_inverse = 1.0 / (1.0 - offset) if close else np.inf
+        neumann = neumann_inverse = np.inf
+        if offset is not None and close:
+            neumann = _amplification(1.0 + offset, 1.0 / (1.0 - offset))
+            neumann_inverse = 1.0 / (1.0 - offset)
         if A.shape[0] < SOLVE_FROM:
             inverse = _inverse(A)
             if inverse is None:
@@ -372,9 +374,10 @@ class Solver:
         if self.inverse is not None:
             np.matmul(self.inverse, rhs, out=out)
         else:
-            lu = self.lu
+            lu, rows = self.lu, self.rows  # a solver without the inverse holds P A = L U
+            assert lu is not None and rows is not None
             for a, b, lower, _ in self.blocks:  # L y = P rhs, a block of rows at a time
-                block = rhs[self.rows[a:b]]
+                block = rhs[rows[a:b]]
                 if a:
                     block -= lu[a:b, :a] @ out[:a]
                 np.matmul(lower, block, out=out[a:b])

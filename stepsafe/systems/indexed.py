@@ -61,7 +61,7 @@ def _integer(node: ast.AST, env: dict[str, int]) -> int:
                                "the sizes and summation indices")
 
 
-def parse_spec(spec: str, sizes: dict[str, int], key: str) -> tuple[str, int, int]:
+def parse_spec(spec: object, sizes: dict[str, int], key: str) -> tuple[str, int, int]:
     """``"q[1..N]"`` -> ``("q", 1, N)``."""
     match = _SPEC.match(spec) if isinstance(spec, str) else None
     if match is None:
@@ -78,7 +78,7 @@ def parse_spec(spec: str, sizes: dict[str, int], key: str) -> tuple[str, int, in
 
 
 def expand(text: str, arrays: dict[str, tuple[int, int]], sizes: dict[str, int],
-           fixed: dict[str, float], functions: tuple[str, ...]) -> ast.AST:
+           fixed: dict[str, float], functions: tuple[str, ...]) -> ast.expr:
     """The expression with every sum expanded and every entry named (see the module
     docstring); raises :class:`_Fail` naming the key at fault."""
     if not isinstance(text, str) or len(text) > MAX_TEXT:
@@ -104,20 +104,24 @@ def expand(text: str, arrays: dict[str, tuple[int, int]], sizes: dict[str, int],
             raise _Fail("hamiltonian", f"only {', '.join(arrays)} may be indexed")
     count = [0]
 
-    def grow(node: ast.AST) -> ast.AST:
+    def grow(node: ast.expr) -> ast.expr:
         count[0] += 1
         if count[0] > MAX_NODES:
             raise _Fail("hamiltonian", f"the expansion has more than {MAX_NODES} parts")
         return node
 
-    def build(node: ast.AST, env: dict[str, int]) -> ast.AST:
+    # the walk above admits only the node types, constants, callees and subscripted
+    # names narrowed below
+    def build(node: ast.expr, env: dict[str, int]) -> ast.expr:
         if isinstance(node, ast.Constant):
+            assert isinstance(node.value, (int, float))
             return grow(ast.Constant(float(node.value)))
         if isinstance(node, ast.Name):
             if node.id in env:
                 return grow(ast.Constant(float(env[node.id])))
             return grow(ast.Name(node.id, ast.Load()))
         if isinstance(node, ast.Subscript):
+            assert isinstance(node.value, ast.Name)
             name = node.value.id
             k = _integer(node.slice, env)
             label = f"{name}[{k}]"
@@ -132,21 +136,21 @@ def expand(text: str, arrays: dict[str, tuple[int, int]], sizes: dict[str, int],
             return grow(ast.UnaryOp(node.op, build(node.operand, env)))
         if isinstance(node, ast.BinOp):
             return grow(ast.BinOp(build(node.left, env), node.op, build(node.right, env)))
-        assert isinstance(node, ast.Call)
+        assert isinstance(node, ast.Call) and isinstance(node.func, ast.Name)
         if node.func.id != "sum":
             return grow(ast.Call(ast.Name(node.func.id, ast.Load()),
                                  [build(node.args[0], env)], []))
-        index, lo, hi, body = node.args
+        index, lo_node, hi_node, body = node.args
         if not isinstance(index, ast.Name) or index.id in env:
             raise _Fail("hamiltonian", "sum(i, lo, hi, body) needs a new index name i")
-        a, b = _integer(lo, env), _integer(hi, env)
+        a, b = _integer(lo_node, env), _integer(hi_node, env)
         terms = [build(body, {**env, index.id: k}) for k in range(a, b + 1)]
         return _balanced(terms) if terms else grow(ast.Constant(0.0))
 
     return build(tree.body, dict(sizes))
 
 
-def _balanced(terms: list[ast.AST]) -> ast.AST:
+def _balanced(terms: list[ast.expr]) -> ast.expr:
     """``t1 + t2 + ...`` as a balanced tree (depth log n)."""
     while len(terms) > 1:
         terms = [ast.BinOp(terms[i], ast.Add(), terms[i + 1]) if i + 1 < len(terms)
@@ -210,9 +214,9 @@ def read_indexed(tree: dict[str, Any], where: str, number) -> tuple[Any, list, l
     for key, arr in (("q", tree["q"]), ("p", tree["p"])):
         name = parse_spec(arr, sizes, key)[0]
         for var in names[key]:
-            k = var.split("_")[-1]
-            entry = box_tree.get(f"{name}[{k}]", box_tree.get(name))
+            index = var.split("_")[-1]
+            entry = box_tree.get(f"{name}[{index}]", box_tree.get(name))
             if entry is None:
-                raise fail("box", f"no interval for {name}[{k}] (give {name}: [lo, hi])")
+                raise fail("box", f"no interval for {name}[{index}] (give {name}: [lo, hi])")
             box[var] = entry
     return expanded, names["q"], names["p"], box

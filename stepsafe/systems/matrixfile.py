@@ -177,13 +177,15 @@ def _central_directory(fh) -> tuple[int, int] | None:
     or None if the stdlib helper is missing. zipfile.ZipFile would build one object per
     entry of a directory that can fill the whole file."""
     end_record = getattr(zipfile, "_EndRecData", None)
-    if end_record is None:
+    entries = getattr(zipfile, "_ECD_ENTRIES_TOTAL", None)
+    size = getattr(zipfile, "_ECD_SIZE", None)
+    if end_record is None or entries is None or size is None:
         return None
     record = end_record(fh)
     fh.seek(0)
     if not record:
         return None
-    return int(record[zipfile._ECD_ENTRIES_TOTAL]), int(record[zipfile._ECD_SIZE])
+    return int(record[entries]), int(record[size])
 
 
 def _read_npz(fh, label: str, sparse_ok: bool):
