@@ -11,6 +11,7 @@ resonances cluster near whole numbers), and the verdict for a step.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Any
 
@@ -153,7 +154,10 @@ def _impulse(method: Any, fast: Any, slow: Any, step: float | str | None, criter
     horizon = adv.horizon
     resonances = [(r.z / beta, r.uncertainty / beta)
                   for r in adv.regions["oscillator"].resonances]
-    gaps = list(zip([hi for _, hi in adv.safe_h[:-1]], [lo for lo, _ in adv.safe_h[1:]]))
+    gaps: list[tuple[float, float | None]] = []
+    for (_, hi), (lo, _) in zip(adv.safe_h[:-1], adv.safe_h[1:]):
+        assert hi is not None  # only the last safe interval is open
+        gaps.append((hi, lo))
     if adv.safe_h and adv.safe_h[-1][1] is not None and (
             horizon is None or adv.safe_h[-1][1] < horizon * (1 - 1e-12)):
         gaps.append((adv.safe_h[-1][1], horizon))
@@ -330,7 +334,8 @@ def _coupled_advice(method: Any, split: Any, step: float | None, criterion: str,
     h_max = result.h_max * (1 - EDGE_FACTOR * split.coupled_error) \
         if result.h_max < result.horizon else result.h_max
     safe_h = ((0.0, None if result.h_max >= result.horizon else h_max),)
-    verdict, failures = None, ()
+    verdict: bool | None = None
+    failures: tuple[Mapping[str, Any], ...] = ()
     if step is not None:
         step = _outer_step(step, scene.time_unit)
         reason = None
@@ -372,8 +377,9 @@ def _uncertain(report: ImpulseReport, error: float) -> ImpulseReport:
     h_max = safe[0][1] if safe and safe[0][0] == 0.0 else None
     verdict, reason = report.safe, report.reason
     if report.step is not None and verdict:
-        inside = any(lo < report.step < (report.horizon if hi is None else hi)
-                     for lo, hi in safe)
+        # (no horizon: nothing above the safe intervals was left unanalysed)
+        end = math.inf if report.horizon is None else report.horizon
+        inside = any(lo < report.step < (end if hi is None else hi) for lo, hi in safe)
         if not inside:
             verdict = False
             reason = (f"within the frequencies' relative uncertainty {error:.2g} of a band "

@@ -348,11 +348,11 @@ def sparse_extreme_modes(K, M=None) -> Decoupled:
             # bound itself, beyond every eigenvalue, is a frequency no mode exceeds
             w2.append(bound)
             bounded = True
-    w2 = np.array(w2)
+    extremes = np.array(w2)
     how = ("shift-invert eigsh" if not bounded else
            "Gershgorin bounds where the eigensolver did not converge within its budget: "
            "conservative")
-    return Decoupled(_modes_from_w2(w2, 1e-12 * float(np.abs(w2).max())),
+    return Decoupled(_modes_from_w2(extremes, 1e-12 * float(np.abs(extremes).max())),
                      "decoupled: separable H, extreme eigenvalues of K v = w^2 M v only "
                      f"({how}); islands not analysed", True)
 
