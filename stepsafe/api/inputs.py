@@ -476,10 +476,11 @@ def problem(method: Integrator | str | None = None, beta: ArrayLike | None = Non
                             "would be ignored)")
     report = None
     arrays: Mapping[str, Any]
+    named: Mapping[str, tuple[str | None, ...]]  # the labels of the frequencies analysed
     if given:
-        arrays, labels = given, _labels(labels, given)
+        arrays, named = given, _labels(labels, given)
     elif loaded.modes and system is None:
-        arrays, labels = loaded.modes, loaded.labels
+        arrays, named = loaded.modes, loaded.labels
     elif system is not None or loaded.system is not None:
         from stepsafe.systems.loader import analyse_system
 
@@ -492,13 +493,13 @@ def problem(method: Integrator | str | None = None, beta: ArrayLike | None = Non
         report = analyse_system(tree, where, folder, integrator.tableau, zmax, progress,
                                 deadline, loaded.time_unit)
         arrays = report.modes.betas if report.modes is not None else {"oscillator": [0.0]}
-        labels = {}
+        named = {}
     else:
         raise StepsafeError("no frequencies: give --beta/--saddle-beta/--inverted-beta, "
                             "--modes FILE, or modes: or system: in a scene file (in Python: "
                             "beta=, saddle_beta=, inverted_beta=, modes=, system= or scene=)")
     return Problem(integrator, Modes.from_arrays(arrays), report, margin, zmax, step,
-                   str(scene) if scene is not None else None, MappingProxyType(dict(labels)),
+                   str(scene) if scene is not None else None, MappingProxyType(dict(named)),
                    loaded.time_unit)
 
 

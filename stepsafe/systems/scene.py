@@ -303,14 +303,14 @@ def _frequency(value: Any, form: str, time_unit: str | None, where: str, path: s
         raise _fail(where, path, exc.message) from None
 
 
-def _near_scene(name: str | None, folder: Path) -> str | None:
+def _near_scene(name: str, folder: Path) -> str:
     """A relative method-file path in a scene is read next to the scene file (as a
     composition's ``base`` is next to its method file), never relative to the working
     directory, so a scene means the same from wherever it is checked. Names of built-in
     methods are left alone."""
     from stepsafe.methods.library import _looks_like_path
 
-    if name is None or not _looks_like_path(name) or Path(name).is_absolute():
+    if not _looks_like_path(name) or Path(name).is_absolute():
         return name
     return str(folder / name)
 
@@ -333,8 +333,8 @@ def load_scene(path: str | Path, time_unit: str | None = None) -> Scene:
         scene.system = tree["system"]
     if "method" in tree:
         ref = method_ref(tree["method"], where)
-        scene.method = MethodRef(_near_scene(ref.name, scene.folder), ref.stages,
-                                 _near_scene(ref.base, scene.folder))
+        base = None if ref.base is None else _near_scene(ref.base, scene.folder)
+        scene.method = MethodRef(_near_scene(ref.name, scene.folder), ref.stages, base)
     scene.time_unit = time_unit
     if "time_unit" in tree:
         unit = tree["time_unit"]
