@@ -174,7 +174,8 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
             raise
         # a MatrixError names the matrix at fault (mass errors under $.system.mass)
         key = getattr(exc, "key", None)
-        raise _fail(where, key if key in tree else kinds[0], exc.message) from None
+        raise _fail(where, key if isinstance(key, str) and key in tree else kinds[0],
+                    exc.message) from None
 
 
 def _md_system(tree: dict, where: str, folder: Path, time_unit: str | None,
@@ -425,7 +426,7 @@ def _stiffness(tree, where, folder, key: str = "stiffness", all_modes: bool = Fa
                                 + (f" (all_modes: up to {4 * DENSE_LIMIT} rows)"
                                    if all_modes else ""))
         K = K.toarray() if hasattr(K, "toarray") else K
-        M = M.toarray() if hasattr(M, "toarray") else M
+        M = M.toarray() if M is not None and hasattr(M, "toarray") else M
         d = separable_modes(K, M)
     return _report_modes(d.modes, d.analysis, notes, d.extremes_only)
 
@@ -498,7 +499,10 @@ def _hamiltonian(tree, where, method, zmax, deadline=None) -> SystemReport:
         raise _fail(where, "hamiltonian", "nothing to analyse: every equilibrium found is "
                     f"degenerate (no linear model): {where_}"
                     + (" ..." if len(equilibria) > 3 else ""))
-    items, grouped, errors, coupled, notes = [], {}, {}, [], []
+    items, notes = [], []
+    grouped: dict[str, list[float]] = {}  # per model: the frequencies and their errors
+    errors: dict[str, list[float]] = {}
+    coupled: list[Any] = []
     for e in equilibria:
         item = {"q": e.q, "p": e.p, "type": e.kind, "D": e.D, "beta": e.beta,
                 "model": e.model}
@@ -511,6 +515,7 @@ def _hamiltonian(tree, where, method, zmax, deadline=None) -> SystemReport:
             else:
                 item.pop("analysis")
         else:
+            assert e.beta is not None  # (an equilibrium with a test model has its beta)
             grouped.setdefault(e.model, []).append(e.beta)
             errors.setdefault(e.model, []).append(EQUILIBRIUM_ERROR)
         items.append(item)
@@ -618,7 +623,10 @@ def _hamiltonian_many(tree, where, method, zmax, deadline=None) -> SystemReport:
                                      "starts:)")
     if not search.equilibria:
         raise _fail(where, "box", f"no equilibrium of H found in the box ({search.explain()})")
-    items, grouped, errors, coupled, notes = [], {}, {}, [], []
+    items, notes = [], []
+    grouped: dict[str, list[float]] = {}  # per model: the frequencies and their errors
+    errors: dict[str, list[float]] = {}
+    coupled: list[Any] = []
     reached = [e for e in search.equilibria if below is None or e.energy < below]
     for e in search.equilibria:
         if below is not None and not e.energy < below:
