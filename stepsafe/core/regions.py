@@ -40,6 +40,7 @@ reported instead (for RK methods from the stability polynomials, :mod:`.rkstabil
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import NamedTuple, cast
 
 import numpy as np
@@ -485,7 +486,7 @@ def _find_region(method: Method, model: str, zmax: float, resolution: float | No
     ext = refine_brackets(ev.dtrace, z[cells], z[cells + 1], dt[cells], dt[cells + 1],
                           slope=ev.dtrace_slope, start=start)
     ext = np.concatenate([ext, z[dt == 0.0]])
-    resonances: list[Point] = []
+    resonances: list[_Candidate] = []
     if ext.size:
         ej = ev.jet(ext, order=2, scale=True)
         f_ext, curv = _level_values(ej, levels), ej.d2trace
@@ -503,17 +504,18 @@ def _find_region(method: Method, model: str, zmax: float, resolution: float | No
                                   (unc, unc_ext))
         usable = grid.cells(z)
     # crossings of every level
-    roots, root_levels = [], []
+    roots_of: list[np.ndarray] = []
+    levels_of: list[np.ndarray] = []
     for i, L in enumerate(levels):
         cells = _brackets(z, f[:, i], usable)
         f0, f1 = f[cells, i], f[cells + 1, i]
         start = hermite_root(z[cells], z[cells + 1], f0, f1, dt[cells], dt[cells + 1])
-        found = refine_brackets(lambda x, L=L: ev.level(x, L), z[cells], z[cells + 1], f0, f1,
+        found = refine_brackets(partial(ev.level, level=L), z[cells], z[cells + 1], f0, f1,
                                 slope=ev.level_slope(L), start=start)
         found = np.concatenate([found, z[f[:, i] == 0.0]])
-        roots.append(found)
-        root_levels.append(np.full(found.size, L))
-    roots, root_levels = np.concatenate(roots), np.concatenate(root_levels)
+        roots_of.append(found)
+        levels_of.append(np.full(found.size, L))
+    roots, root_levels = np.concatenate(roots_of), np.concatenate(levels_of)
     keep = ~contains([r.point.z for r in resonances], roots)
     roots, root_levels = roots[keep], root_levels[keep]
     points = [_Candidate(p) for p in pole_pts]
@@ -741,9 +743,10 @@ def _escalate(ev: _Evaluator, spreads: list[_Spread], esc: Escalation,
                 c = c._replace(point=p._replace(z=z, uncertainty=u), lo=z - u, hi=z + u)
             out.append(c)
             continue
-        vague = vague and c.level is not None
-        decision = esc.decide(c.lo, c.hi, c.level, c.band) if vague else None
-        if decision is None:
+        level = c.level
+        decision = esc.decide(c.lo, c.hi, level, c.band) \
+            if vague and level is not None else None
+        if decision is None or level is None:
             out.append(c)
             continue
         if decision.touch is not None:
@@ -752,12 +755,12 @@ def _escalate(ev: _Evaluator, spreads: list[_Spread], esc: Escalation,
             touches.append((decision.touch, 0.0))
         widths = decision.widths or tuple(float(np.spacing(r)) for r in decision.roots)
         for r, u in zip(decision.roots, widths):
-            out.append(_Spread(Point(r, "root", u, f"tr M = {c.level:+g}"), r - u, r + u,
-                               c.level, c.band))
+            out.append(_Spread(Point(r, "root", u, f"tr M = {level:+g}"), r - u, r + u,
+                               level, c.band))
         if decision.touch is not None:
             jet = ev.jet([decision.touch], order=2)
-            q = _resonance(decision.touch, jet.D[0], c.level, c.band, jet.d2trace[0], dz)
-            out.append(_Spread(q, q.z - q.uncertainty, q.z + q.uncertainty, c.level, c.band))
+            q = _resonance(decision.touch, jet.D[0], level, c.band, jet.d2trace[0], dz)
+            out.append(_Spread(q, q.z - q.uncertainty, q.z + q.uncertainty, level, c.band))
     return out
 
 
@@ -795,15 +798,15 @@ def _assemble(ev: _Evaluator, model: str, zmax: float, z_last: float,
     pts, bands = _bands(list(unique.values()))
     undecided = []
     for lo, hi in bands:
-        lo_pt = Point(max(lo, 0.0), "undecided", 0.0,
-                      "float64 cannot decide the type (|tr M| within rounding of 2)")
+        band_lo = Point(max(lo, 0.0), "undecided", 0.0,
+                        "float64 cannot decide the type (|tr M| within rounding of 2)")
         if hi >= zmax:
-            undecided.append(Interval(lo_pt.z, None, lo_pt, None))
-            pts = [p for p in pts if p.z < lo_pt.z] + ([lo_pt] if lo_pt.z > 0 else [])
+            undecided.append(Interval(band_lo.z, None, band_lo, None))
+            pts = [p for p in pts if p.z < band_lo.z] + ([band_lo] if band_lo.z > 0 else [])
             continue
-        hi_pt = lo_pt._replace(z=hi)
-        undecided.append(Interval(lo_pt.z, hi, lo_pt, hi_pt))
-        pts += [hi_pt] + ([lo_pt] if lo_pt.z > 0 else [])
+        band_hi = band_lo._replace(z=hi)
+        undecided.append(Interval(band_lo.z, hi, band_lo, band_hi))
+        pts += [band_hi] + ([band_lo] if band_lo.z > 0 else [])
     pts.sort(key=lambda p: p.z)
     edges = [0.0] + [p.z for p in pts] + [zmax]
     mids = np.array([0.5 * (a + min(b, max(z_last, a))) if b > z_last else 0.5 * (a + b)
@@ -834,13 +837,13 @@ def _assemble(ev: _Evaluator, model: str, zmax: float, z_last: float,
         lo_pt = pts[i - 1] if i > 0 else None
         hi_pt = pts[i] if i < len(pts) else None
         lo = edges[i]
-        hi = None if hi_pt is None else edges[i + 1]
+        end = None if hi_pt is None else edges[i + 1]
         target = intervals if st == 1 else reversed_
         # extend a run split by a point that is not a real boundary (same status both sides)
         if target and target[-1].hi == lo and lo_pt is not None and lo_pt.kind == "orientation":
             prev = target.pop()
             lo, lo_pt = prev.lo, prev.lo_point
-        target.append(Interval(lo, hi, lo_pt, hi_pt))
+        target.append(Interval(lo, end, lo_pt, hi_pt))
     # resonances: isolated parabolic points with the flow's type on both sides (the
     # orientation may differ across them, e.g. M = -I ends Gauss s=2's first interval)
     for i, p in enumerate(pts):
