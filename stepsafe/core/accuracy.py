@@ -322,7 +322,7 @@ def _hp_series_parts(prk: PartitionedRK, model: str, series: Series) -> Parts:
                 out += [v, np.where(below, np.where(k < first, 0.0, bound), EPS * np.abs(v))]
         if settled:
             break
-    return Parts(*out, series.z_valid)
+    return Parts._make([*out, series.z_valid])
 
 
 def _choose(coef, err, z_valid, z, direct, direct_err, shift: int = 0):

@@ -92,7 +92,8 @@ class Modes:
 
 class ModelLimit(NamedTuple):
     model: str
-    count: int
+    # (a NamedTuple field may shadow tuple.count; mypy flags every such field)
+    count: int  # type: ignore[assignment]
     beta_max: float
     first_boundary: float | None  # z*, None when the first interval reaches zmax
     first_boundary_point: Point | None
@@ -274,7 +275,7 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
             unsafe.append(np.column_stack([lo[keep], hi[keep]]))
     safe = _complement(_merge(np.concatenate(unsafe)))
     limiting = min((lim for lim in limits if lim.h_limit is not None),
-                   key=lambda lim: lim.h_limit, default=None)
+                   key=lambda lim: np.inf if lim.h_limit is None else lim.h_limit, default=None)
     h_max = (safe[0][1] if safe[0][0] == 0.0 else 0.0) if safe else 0.0
     return Advice(name or method.name, margin, h_max, tuple(safe), limiting, tuple(limits),
                   None if horizon == np.inf else float(horizon), regions, criterion)
@@ -330,7 +331,9 @@ class Failure(NamedTuple):
     z: float
     reason: str
     h_limit: float | None  # largest safe h for this mode in its primary interval
-    index: int = -1  # position of the mode among its model's frequencies
+    # position of the mode among its model's frequencies (a NamedTuple field may shadow
+    # tuple.index; mypy flags every such field)
+    index: int = -1  # type: ignore[assignment]
 
 
 @dataclass(frozen=True)

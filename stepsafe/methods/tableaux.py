@@ -717,7 +717,8 @@ def splitting_from_operations(ops: list[tuple[str, float]], **fields: Any) -> Sp
         fields["gradient"] = gradient
     else:
         fields.pop("displaced", None)
-    return Splitting(drift or [0.0], kick or [0.0], **fields)
+    return Splitting(np.array(drift or [0.0], dtype=float), np.array(kick or [0.0], dtype=float),
+                     **fields)
 
 
 #: Default cost of one force-gradient term (a Hessian-vector product ``V''(q) v``) in force

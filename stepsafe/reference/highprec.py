@@ -101,7 +101,7 @@ def _newton(f_df: Callable, x, lo=None, hi=None):
         f, df = f_df(x)
         if f == 0:
             return x
-        if lo is not None:
+        if lo is not None and f_lo is not None:  # (both or neither)
             if (f > 0) == (f_lo > 0):
                 lo, f_lo = x, f
             else:

@@ -76,6 +76,7 @@ def mp_method(name: str, stages: int | None = None, base: str | None = None,
 
     with mp.workdps(dps):
         if name in FAMILIES:
+            assert stages is not None  # (a family is resolved with its stages)
             if name == "gauss":
                 A, b, _ = reference.gauss_tableau(stages)
                 A, b = _rows(A), list(b)
@@ -97,6 +98,7 @@ def mp_method(name: str, stages: int | None = None, base: str | None = None,
                 inner = mp_method(ref_name, None if isinstance(ref, str) else ref.get("stages"),
                                   dps=dps)
                 if data.recipe:
+                    assert inner.order is not None  # (a recipe's base states its order)
                     co["weights"] = _recipe_weights(data.recipe, inner.order)
                 out = MPMethod("composition", data.order, {"base": inner,
                                                            "weights": co["weights"]})
