@@ -46,6 +46,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -54,6 +55,24 @@ from stepsafe.methods.protocol import Shears, Stages
 from stepsafe.methods.tableaux import Method, PartitionedRK, step_end_stage
 
 Gradient = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+#: One operation of a splitting as run: ``("drift" | "kick" | "gradient", c)``, or
+#: ``("displaced", (b, c))`` for a kick with its gradient term in the displaced-force form.
+Operation = tuple[str, Any]
+
+
+class _Operations(NamedTuple):
+    """A splitting's operations, run at ``weight`` times the step."""
+
+    weight: float
+    operations: tuple[Operation, ...]
+
+
+class _Stages(NamedTuple):
+    """A (partitioned) Runge-Kutta step, run at ``weight`` times the step."""
+
+    weight: float
+    prk: PartitionedRK
 
 
 @dataclass(frozen=True)
@@ -111,19 +130,19 @@ class Engine:
                                  "q and p")
             self._processor = (tuple(start), tuple(inverse))
         self.pieces = _pieces(method)
-        gradient = any(kind == "ops" and any(op[0] in ("gradient", "displaced") for op in data)
-                       for kind, _, data in self.pieces)
+        operations = [op for piece in self.pieces if isinstance(piece, _Operations)
+                      for op in piece.operations]
+        gradient = any(op[0] in ("gradient", "displaced") for op in operations)
         if gradient and not system.separable:
             raise ValueError("a force-gradient method needs a separable H = p^T M^-1 p / 2 + "
                              "V(q); this H mixes q and p")
-        if gradient and system.hessian is None and any(
-                op[0] == "gradient" for kind, _, data in self.pieces if kind == "ops"
-                for op in data):
+        if gradient and system.hessian is None and any(op[0] == "gradient" for op in operations):
             raise ValueError("a force-gradient method needs the system's Hessian")
         if not system.separable:  # a splitting on H(q, p) runs as its PRK form (implicit)
             try:
-                self.pieces = [("prk", w, _as_prk(data)) if kind == "ops" else (kind, w, data)
-                               for kind, w, data in self.pieces]
+                self.pieces = [_Stages(piece.weight, _as_prk(piece.operations))
+                               if isinstance(piece, _Operations) else piece
+                               for piece in self.pieces]
             except MethodError:
                 raise ValueError("this splitting method's drift and kick sums differ: it has "
                                  "no form for an H that mixes q and p") from None
@@ -169,9 +188,10 @@ class Engine:
         return q, p
 
     def step(self, q: np.ndarray, p: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
-        for kind, weight, data in self.pieces:
-            if kind == "ops":
-                for op, coef in data:
+        for piece in self.pieces:
+            weight = piece.weight
+            if isinstance(piece, _Operations):
+                for op, coef in piece.operations:
                     if op == "drift":
                         q = q + (coef * weight * h) * self.system.dH_dp(q, p)
                     elif op == "kick":
@@ -186,13 +206,15 @@ class Engine:
                         self.force_evaluations += 1
                         p = p - (b * t) * self.system.dH_dq(shifted, p)
             else:
-                q, p = self._prk_step(data, q, p, weight * h)
+                q, p = self._prk_step(piece.prk, q, p, weight * h)
         return q, p
 
     def _force_gradient(self, q: np.ndarray, p: np.ndarray) -> np.ndarray:
         """``grad |F|^2_{M^-1} = 2 V''(q) M^-1 V'(q)`` (rows: initial conditions)."""
         g = self._force(q, p)
-        H_qq = self.system.hessian(q, p)[0]
+        hessian = self.system.hessian
+        assert hessian is not None  # (a force-gradient method's engine has one)
+        H_qq = hessian(q, p)[0]
         self.gradient_evaluations += 1
         return 2.0 * np.einsum("mij,mj->mi", H_qq, self.system.dH_dp(q, g))
 
@@ -305,7 +327,9 @@ class Engine:
         """``J^-1`` of the stage system at the step's start, one per initial condition:
         ``J = I - h [[A_q x H_pq, A_q x H_pp], [-A_p x H_qq, -A_p x H_qp]]`` on the
         unknowns ``(Q_1..Q_s, P_1..P_s)`` (simplified Newton: taken once per step)."""
-        H_qq, H_qp, H_pp = self.system.hessian(q, p)
+        hessian = self.system.hessian
+        assert hessian is not None  # (Newton's method's engine has one)
+        H_qq, H_qp, H_pp = hessian(q, p)
         self.jacobians += 1
         H_pq = np.swapaxes(H_qp, 1, 2)
         A_q, A_p = prk.A_q, prk.A_p
@@ -350,15 +374,15 @@ def _as_prk(operations: tuple) -> PartitionedRK:
     return splitting_from_operations(list(operations)).as_prk()
 
 
-def _pieces(method: Method) -> list[tuple[str, float, object]]:
+def _pieces(method: Method) -> list[_Operations | _Stages]:
     """The step as run (:meth:`~stepsafe.methods.protocol.MethodKind.step_decomposition`)
-    as ``("ops", weight, operations)`` (splittings) and ``("prk", weight, prk)`` pieces, in
-    the order applied."""
+    as weighted splitting operations and (partitioned) Runge-Kutta steps, in the order
+    applied."""
     try:
         blocks = method.step_decomposition()
     except MethodError:
         blocks = ()
-    pieces: list[tuple[str, float, object]] = []
+    pieces: list[_Operations | _Stages] = []
     for block in blocks:
         if isinstance(block, Shears):
             ops: list = list(block.splitting.operations)
@@ -370,11 +394,11 @@ def _pieces(method: Method) -> list[tuple[str, float, object]]:
                     else:
                         merged.append((op, coef))
                 ops = merged
-            pieces.append(("ops", block.weight, tuple(ops)))
+            pieces.append(_Operations(block.weight, tuple(ops)))
         elif isinstance(block, Stages):
             prk = block.method.rk_form()
             assert prk is not None
-            pieces.append(("prk", block.weight, prk))
+            pieces.append(_Stages(block.weight, prk))
         else:
             raise ValueError(f"{method.name}: a Langevin friction step draws random numbers "
                              "at a temperature; this engine runs deterministic methods")
