@@ -65,8 +65,9 @@ class _StrictLoader(yaml.SafeLoader):
         value = super().construct_scalar(node)
         return QuotedText(value) if node.style in ("'", '"') else value
 
-    def construct_mapping(self, node, deep=False):  # noqa: ANN001
-        seen: set = set()
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False
+                          ) -> dict[Any, Any]:
+        seen: set[Any] = set()
         for key_node, _ in node.value:
             if not isinstance(key_node, yaml.ScalarNode):
                 line = key_node.start_mark.line + 1
