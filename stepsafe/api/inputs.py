@@ -53,8 +53,10 @@ class PartitionedTableau:
 class Integrator:
     """A method ready to analyse: its identity, and its coefficients as ``tableau``.
 
-    ``tableau`` is the frozen coefficient object (:mod:`stepsafe.methods.tableaux`);
-    ``reference`` is how to rebuild it at high precision (name or path, stages, base).
+    ``tableau`` is the frozen coefficient object (:mod:`stepsafe.methods.tableaux`), typed
+    by the method protocol every kind implements
+    (:class:`~stepsafe.methods.protocol.MethodKind`); ``reference`` is how to rebuild it at
+    high precision (name or path, stages, base).
     """
 
     name: str
