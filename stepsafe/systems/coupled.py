@@ -38,10 +38,10 @@ between samples for a dip of ``phi`` that the samples straddle.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from typing import cast
+from typing import Literal, NamedTuple, Protocol, cast
 
 import numpy as np
 import scipy.linalg as sla
@@ -167,6 +167,37 @@ def discrete_signature(M: np.ndarray) -> Signature | None:
 # ---------------------------------------------------------------- one-step matrix
 
 
+class Factors(NamedTuple):
+    """A run of symplectic Euler factors (``kind`` "euler", each ``("DK" | "KD", c)``) or
+    of a force-gradient splitting's operations (``kind`` "ops", each ``(label, c)``), in the
+    order applied."""
+
+    kind: Literal["euler", "ops"]
+    factors: list[tuple[str, float]]
+
+
+class Weighted(NamedTuple):
+    """The step ``M(g h)`` of a PRK method, ``g`` its weight in a composition."""
+
+    weight: float
+    prk: PartitionedRK
+
+
+#: One piece of a step: :class:`Factors` or :class:`Weighted`.
+Piece = Factors | Weighted
+
+
+class StepMatrices(Protocol):
+    """What :class:`CoupledSystem` asks of the one-step matrices it analyses: ``D = M(h) -
+    I`` with a bound on its rounding error (Frobenius), and the pieces of the step (for
+    the poles; none for an explicit step)."""
+
+    @property
+    def pieces(self) -> Sequence[Piece]: ...
+
+    def deviation(self, h: float) -> tuple[np.ndarray, float]: ...
+
+
 class _Steps:
     """Builds ``D(h) = M(h) - I`` for one method on one S (see module docstring): the step
     engine (:func:`stepsafe.core.engine.step_jet`) on this system, whose blocks are a
@@ -187,8 +218,8 @@ class _Steps:
         self.blocks = blocks_of(method, None)
         self.frame = frame
         self._stage_systems: dict[int, tuple[object, StageOperator]] = {}
-        if any(kind == "ops" for kind, _ in self.pieces) and (self.S_qp.any()
-                                                              or self.S_pq.any()):
+        if any(isinstance(piece, Factors) and piece.kind == "ops" for piece in self.pieces) \
+                and (self.S_qp.any() or self.S_pq.any()):
             raise StepsafeError("a force-gradient method needs a separable H = p^T M^-1 p / 2 "
                                 "+ V(q); this system couples q and p")
 
@@ -298,23 +329,23 @@ class _Steps:
             * solver.amplification
 
 
-def _pieces(method: Method) -> list[tuple[str, object]]:
+def _pieces(method: Method) -> list[Piece]:
     """The step as Euler factors (splittings, compositions of them) or weighted PRK
-    steps (``("prk", (g, prk))``), in the order they are applied: the blocks of the step
+    steps, in the order they are applied: the blocks of the step
     (:func:`stepsafe.core.transfer.blocks_of`, the description the 2x2 transfer matrix is
     built from too). A splitting (a processed method ``P^-1 K P`` as its full one-step
     map, a composition of splittings merged) runs as its PRK form of symplectic Euler
     factors, as on every H that mixes q and p; a force-gradient one as its operations."""
-    pieces: list[tuple[str, object]] = []
+    pieces: list[Piece] = []
     for block in blocks_of(method, None):
         if isinstance(block, Shears):
             step = block.splitting
-            pieces.append(("ops", step.operations) if step.force_gradient
-                          else ("euler", step.euler_factors()))
+            pieces.append(Factors("ops", step.operations) if step.force_gradient
+                          else Factors("euler", step.euler_factors()))
         elif isinstance(block, Stages):
             prk = block.method.rk_form()
             assert prk is not None
-            pieces.append(("prk", (block.weight, prk)))
+            pieces.append(Weighted(block.weight, prk))
         else:
             raise StepsafeError(f"{method.name}: a Langevin splitting is analysed on the "
                                 "modes of a system (its oscillator models), not on a coupled "
@@ -352,10 +383,11 @@ class CoupledSystem:
     """One method on one S, with what every h shares computed once. ``steps`` (optional)
     builds the one-step matrices instead of ``method``: called with the scale ``unit`` by
     which S is divided, it returns an object with ``deviation(h)`` (``M(h / unit) - I``
-    and its rounding bound, as :class:`_Steps`) and ``pieces`` (for the poles)."""
+    and its rounding bound, as :class:`_Steps`) and ``pieces`` (for the poles): a
+    :class:`StepMatrices`."""
 
     def __init__(self, method: Method | None, S: np.ndarray,
-                 steps: Callable[[float], object] | None = None) -> None:
+                 steps: Callable[[float], StepMatrices] | None = None) -> None:
         self.method, self.given = method, S
         if steps is None and S.size:
             # q and p in units where the two diagonal blocks are of one size: an exact
@@ -369,7 +401,8 @@ class CoupledSystem:
         self.unit = largest if largest > 0 and np.isfinite(largest) else 1.0
         S = S / self.unit
         self.n = S.shape[0] // 2
-        self.sign, self.chol = 0, None
+        self.sign = 0
+        self.chol: np.ndarray | None = None  # the Cholesky factor of sign S (definite S)
         for sign in (1, -1):
             try:
                 self.chol = np.linalg.cholesky(sign * S)
@@ -472,6 +505,7 @@ class CoupledSystem:
             inverse_norm2 = float(scale.max()) ** 2
         else:
             L = self.chol
+            assert L is not None  # (the margin of a definite S)
             W = sla.solve_triangular(L, self.sign * Q, lower=True)
             W = sla.solve_triangular(L, W.T, lower=True)
             inverse_norm2 = self.inv_chol_norm2
@@ -503,6 +537,7 @@ class CoupledSystem:
             return False
         # (also where float64's Cholesky could not tell S definite and its floats are)
         factors = coupled_exact.euler_factors(self.method)
+        assert factors is not None  # (exact_sign: a splitting)
         return coupled_exact.kept_exactly(factors, self.given, self.exact_sign, h)
 
     @cached_property
@@ -522,6 +557,7 @@ class CoupledSystem:
         low -= 8 * self.n * EPS * float(np.linalg.norm(self.S))
         if low > 0:
             return 1.0 / low
+        assert self.chol is not None  # (asked of a definite S only)
         Linv = sla.solve_triangular(self.chol, np.eye(2 * self.n), lower=True)
         return float(np.linalg.norm(Linv)) ** 2
 
@@ -592,16 +628,16 @@ class CoupledSystem:
         n = self.n
         S_pq = S[n:, :n]
         eig_pq = None  # -S_qp = -S_pq^T has the eigenvalues of -S_pq
-        for kind, item in self.steps.pieces:
-            if kind == "ops":  # explicit: no stage equations, no poles
-                continue
-            if kind == "euler":
-                for label, c in item:
+        for piece in self.steps.pieces:
+            if isinstance(piece, Factors) and piece.kind == "ops":
+                continue  # explicit: no stage equations, no poles
+            if isinstance(piece, Factors):
+                for label, c in piece.factors:
                     eig_pq = np.linalg.eigvals(S_pq) if eig_pq is None else eig_pq
                     lam = eig_pq if label == "DK" else -eig_pq
                     found += _reciprocals(c * lam)
             else:
-                g, prk = item
+                g, prk = piece
                 if 2 * prk.stages * n > MAX_POLE_SIZE:
                     continue
                 K = stage_operator(prk, hamiltonian_matrix(S)).K
@@ -681,8 +717,9 @@ def _frame_pays(frame: DiagonalFrame, method: Method, sign: int) -> bool:
     scale = 1.0 / np.sqrt(weight)
     low = extreme_eigenvalue((sign * scale[:, None]) * frame.S * scale[None, :])
     pieces = _pieces(method)
-    reach = sum(abs(c) for kind, item in pieces if kind == "euler" for _, c in item) \
-        if all(kind == "euler" for kind, _ in pieces) else 0.0
+    euler = [piece for piece in pieces if isinstance(piece, Factors) and piece.kind == "euler"]
+    reach = sum(abs(c) for piece in euler for _, c in piece.factors) \
+        if len(euler) == len(pieces) else 0.0
     if reach == 0.0:
         return False  # only splittings run in the frame
     n = frame.a.size
@@ -741,7 +778,7 @@ NEAR_POLE = 10.0 ** -np.arange(2, 14)
 def coupled_safe_steps(method: Method | None, S: np.ndarray, zmax: float = 10.0,
                        progress: Callable[[float], None] | None = None,
                        deadline: float | None = None,
-                       steps: Callable[[float], object] | None = None) -> CoupledResult:
+                       steps: Callable[[float], StepMatrices] | None = None) -> CoupledResult:
     """The safe interval from 0 of ``method`` on ``x' = J S x``, up to the horizon
     ``zmax / |mu|_max``.
 
@@ -762,7 +799,7 @@ def coupled_safe_steps(method: Method | None, S: np.ndarray, zmax: float = 10.0,
 
 def _safe_steps(method: Method | None, S: np.ndarray, zmax: float,
                 progress: Callable[[float], None] | None, deadline: float | None,
-                steps: Callable[[float], object] | None = None) -> CoupledResult:
+                steps: Callable[[float], StepMatrices] | None = None) -> CoupledResult:
     system = CoupledSystem(method, S, steps)
     if system.top == 0:
         return CoupledResult(np.inf, np.inf, 0, "coupled: S = 0, no limit")
@@ -772,9 +809,10 @@ def _safe_steps(method: Method | None, S: np.ndarray, zmax: float,
     if not system.definite and system.exact_sign:
         # float64's Cholesky could not tell S definite, its exact floats are: every step
         # is decided at high precision
-        h_max = coupled_exact.exact_boundary(coupled_exact.euler_factors(method), S,
-                                             system.exact_sign, 0.0, horizon, REL_TOL, hs,
-                                             progress)
+        factors = coupled_exact.euler_factors(method)
+        assert factors is not None  # (exact_sign: a splitting)
+        h_max = coupled_exact.exact_boundary(factors, S, system.exact_sign, 0.0, horizon,
+                                             REL_TOL, hs, progress)
         if progress:
             progress(1.0)
         return CoupledResult(h_max, horizon, system.evaluations,
@@ -810,13 +848,15 @@ def _safe_steps(method: Method | None, S: np.ndarray, zmax: float,
         if bad is None and order is not None and system.krein_order(h) != order:
             bad = (lo, h)  # pairs of opposite Krein sign met in between
         if bad is not None:
-            good, bad = bad
-            h_max = _boundary(system, good, bad, order)
+            good, lost = bad
+            h_max = _boundary(system, good, lost, order)
             undecided = _undecided(system, h_max, hs, horizon)
             if undecided is not None and system.exact_sign == system.sign:
+                factors = coupled_exact.euler_factors(method)
+                assert factors is not None  # (exact_sign: a splitting)
                 h_max = max(h_max, coupled_exact.exact_boundary(
-                    coupled_exact.euler_factors(method), S, system.sign, h_max, undecided,
-                    REL_TOL, hs, _rescaled(progress, undecided / horizon)))
+                    factors, S, system.sign, h_max, undecided, REL_TOL, hs,
+                    _rescaled(progress, undecided / horizon)))
                 analysis += (f"; the boundary decided at {coupled_exact.PRECISION} digits "
                              "(float64's rounding bound reached the margin)")
                 undecided = None
