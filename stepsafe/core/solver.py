@@ -118,9 +118,10 @@ def fixed_point_cost(method: Method, z: float, model: str = "oscillator",
     limit = fixed_point_limit(method, model)
     varying, fixed = evaluation_pattern(prk)
     counts = [_iterations(K, E[:, k], z * g, tol) for k in range(E.shape[1])]
-    if any(c is None for c in counts):
+    known = [c for c in counts if c is not None]
+    if len(known) < len(counts):
         return SolverCost(z, None, None, limit)
-    iterations = max(counts)
+    iterations = max(known)
     s = prk.stages
     separable = not (K[:s, :s].any() or K[s:, s:].any())  # the force depends on q only
     update = 0 if separable else varying  # else the forces again at the converged stages

@@ -23,7 +23,7 @@ the cost column stays the per-step cost and the one-off part is reported beside 
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -106,8 +106,9 @@ def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (
             "conserves quadratic invariants), so --tol-energy alone would recommend the "
             "largest safe step, which says nothing about a nonlinear system: give "
             "--tol-phase as well")
+    extent: dict[str, Any] = {} if zmax is None else {"zmax": zmax}
     adv = advise(method, modes, margin, name=name, resonance_order=resonance_order,
-                 criterion=criterion, **({} if zmax is None else {"zmax": zmax}))
+                 criterion=criterion, **extent)
     limits: list[ToleranceLimit] = []
     for tol in tolerances:
         if not (tol.value > 0):
@@ -131,8 +132,8 @@ def tradeoff(method: Method, modes: Modes, tolerances: tuple[Tolerance, ...] = (
     h_tol = min((lim.h for lim in limits if lim.h is not None), default=None)
     if any(lim.limited_by == "unreachable" for lim in limits):
         h_tol = 0.0
-    candidates = [(h_safe, "safety"), (h_tol, "accuracy")]
-    candidates = [(h, why) for h, why in candidates if h is not None]
+    candidates: list[tuple[float, str]] = [
+        (h, why) for h, why in ((h_safe, "safety"), (h_tol, "accuracy")) if h is not None]
     if not candidates:
         h, bound = None, "nothing"
     else:

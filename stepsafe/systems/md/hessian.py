@@ -58,6 +58,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -289,7 +290,7 @@ def length_scale(positions: np.ndarray) -> float:
     if len(x) < 2:
         return REFERENCE_LENGTH
     dist, _ = cKDTree(x).query(x, k=2)
-    near = float(np.median(dist[:, 1]))
+    near = float(np.median(np.asarray(dist)[:, 1]))  # (k = 2: an array of pairs)
     return near if np.isfinite(near) and near > 0 else REFERENCE_LENGTH
 
 
@@ -632,11 +633,12 @@ def extreme_eigenvalues(operator: Callable[[np.ndarray], np.ndarray], dim: int, 
         calls[0] += 1
         return operator(np.asarray(v, dtype=float).reshape(-1)) / sigma
 
-    op = LinearOperator((dim, dim), matvec=matvec, dtype=float)
+    op: LinearOperator = LinearOperator((dim, dim), matvec=matvec, dtype=float)
+    arpack: dict[str, Literal["LA", "SA", "LM"]] = {"largest": "LA", "smallest": "SA",
+                                                    "magnitude": "LM"}
     try:
-        lam, vec = eigsh(op, k=k, which={"largest": "LA", "smallest": "SA",
-                                         "magnitude": "LM"}[which], v0=v0, tol=tol,
-                         ncv=ncv, maxiter=maxiter)
+        lam, vec = eigsh(op, k=k, which=arpack[which], v0=v0, tol=tol, ncv=ncv,
+                         maxiter=maxiter)
     except ArpackNoConvergence as exc:
         raise StepsafeError(f"Lanczos did not converge in {calls[0]} products "
                             f"({len(exc.eigenvalues)} of {k} eigenvalues)") from None
