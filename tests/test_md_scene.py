@@ -203,23 +203,23 @@ def test_hmr_with_h_bond_constraints_lengthens_the_limit_of_water(cluster):
                               constraints="h-bonds").safe
 
 
-# --- the README's MD section ---------------------------------------------------------------
+# --- the OpenMM guide (docs/guides/openmm.md) ----------------------------------------------
 
 ROOT = __import__("pathlib").Path(__file__).resolve().parent.parent
-README = (ROOT / "README.md").read_text()
+GUIDE = (ROOT / "docs" / "guides" / "openmm.md").read_text()
 
 
 def readme_rows(system):
     """The engine-validation table's rows for ``system``: (constraints and H mass, h_max)."""
     rows = []
-    for line in README.splitlines():
+    for line in GUIDE.splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
         if line.startswith("| ") and cells[0].startswith(system):
             rows.append((cells[1], cells[2]))
     return rows
 
 
-def test_readme_table_limits_of_the_water_cluster(cluster):
+def test_the_guide_table_limits_of_the_water_cluster_are_what_advise_gives(cluster):
     """The h_max column of the cluster's rows is what advise gives, to one unit of the last
     digit shown (the minimiser's end point moves the third digit by less than that)."""
     rows = readme_rows("8 flexible TIP3P waters")
@@ -233,8 +233,8 @@ def test_readme_table_limits_of_the_water_cluster(cluster):
         assert h_max.endswith(" fs") and abs(report.h_max - float(h_max[:-3])) <= 0.01
 
 
-def test_readme_python_example_gives_the_limit_it_states(monkeypatch):
-    block = README.split("in Python:\n\n```python\n", 1)[1].split("```", 1)[0]
+def test_the_guide_python_example_gives_the_limit_it_states(monkeypatch):
+    block = GUIDE.split("in Python:\n\n```python\n", 1)[1].split("```", 1)[0]
     monkeypatch.chdir(ROOT)
     scope: dict = {}
     exec(block, scope)

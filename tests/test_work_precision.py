@@ -74,6 +74,7 @@ def test_runs_stop_at_the_reference_floor():
 
 
 def test_the_plot_with_a_budget(run, tmp_path):
+    pytest.importorskip("matplotlib")
     out = tmp_path / "wp.png"
     code, text, err = run("plot", "--work-precision", "examples/pendulum.yaml", "--methods",
                           "verlet,pefrl", "--time", "10", "--budget", "600", "-o", str(out))
