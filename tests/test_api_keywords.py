@@ -319,6 +319,7 @@ def _keywords() -> list[tuple[str, str]]:
     return out
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None, suppress_health_check=list(HealthCheck))
 @given(pair=st.sampled_from(_keywords()), value=st.deferred(lambda: _junk()))
 def test_any_value_of_any_keyword_is_an_answer_or_a_stepsafe_error(pair, value):

@@ -340,6 +340,7 @@ def _check_2_dof_well(well, f) -> None:
 # ------------------------------------------------------------------ what the search says
 
 
+@pytest.mark.slow
 def test_an_incomplete_search_is_said_and_can_fail_check(run, tmp_path):
     """log(q) is undefined for q <= 0: the starts there cannot be evaluated, so the search
     cannot vouch for completeness. check says so, exits 0 by default and 1 with

@@ -199,6 +199,7 @@ def test_the_ill_conditioned_kinetic_block_is_exact_at_40_digits(seed):
     assert not _kept_mp(m, S, got * 1.25)
 
 
+@pytest.mark.slow
 @settings(max_examples=12, deadline=None)
 @given(seed=st.integers(0, 10**6), n=st.integers(2, 12),
        exponent=st.sampled_from([-150, -12, 0, 12, 150]),
