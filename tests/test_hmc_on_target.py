@@ -197,10 +197,10 @@ def test_bad_log_densities_are_refused(kwargs, match):
 
 
 def test_the_hmc_guide_banana_figures():
-    """The figures the HMC guide (docs/guides/hmc.md) quotes for examples/banana.yaml with
-    verlet at L = 10: the Gaussian at the mode predicts 0.92 at the step at target (about
-    0.80, the stiffest draw's limit), the estimate is 0.88 with 0.6% divergent, divergences start near h =
-    0.68 (to the Monte Carlo error of the seeded draws)."""
+    """The figures the HMC guide (docs/guides/hmc.md) quotes for examples/banana.yaml
+    with verlet at L = 10: the Gaussian at the mode predicts 0.92 at the step at target
+    (about 0.80, the stiffest draw's limit), the estimate is 0.88 with 0.6% divergent,
+    divergences start near h = 0.68 (to the Monte Carlo error of the seeded draws)."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent
