@@ -14,13 +14,15 @@ import numpy as np
 from stepsafe.api.inputs import Integrator, as_integrator
 from stepsafe.api.reports import (
     NEGLIGIBLE,
+    EnsembleReport,
+    EnsembleRow,
     InvariantRow,
     MeasureReport,
     MeasureRow,
     Refinement,
 )
 from stepsafe.arguments import public
-from stepsafe.exceptions import StepsafeError, positive_finite
+from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
 from stepsafe.systems.measurement import (
     MeasuredSystem,
     Run,
@@ -37,6 +39,12 @@ MAX_STEPS_CAP = 100_000_000
 MAX_STEP_SIZES = 200
 #: Default length of a run, in periods of the vibration the start orbits.
 DEFAULT_PERIODS = 100
+#: Trajectories of one ensemble at most, and trajectory steps (trajectories times steps,
+#: summed over the step sizes) of one call at most.
+MAX_ENSEMBLE = 1_000_000
+MAX_ENSEMBLE_STEPS = 1_000_000_000
+#: The seed of an ensemble's draw unless given (printed with the results).
+DEFAULT_SEED = 0
 
 
 @public()
@@ -46,7 +54,9 @@ def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
             initial: Sequence[float] | None = None, energy: float | None = None,
             time_unit: str | None = None, solver: str = "fixed-point",
             max_steps: int = MAX_STEPS, budget: float | None = None,
-            progress: Callable[[float], None] | None = None) -> MeasureReport:
+            progress: Callable[[float], None] | None = None, ensemble: int | None = None,
+            kT: float | None = None, seed: int = DEFAULT_SEED
+            ) -> MeasureReport | EnsembleReport:
     """Integrate the system of ``scene`` (or ``system``: the mapping a scene's ``system:``
     holds) with ``method`` at each step size of ``h`` for a time ``time`` (default: 100
     periods of the vibration the start orbits), from ``initial`` (q then p) or, for a
@@ -58,6 +68,15 @@ def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
     stops (status ``budget``) and the rest are not run (``not run``). Steps and the time
     are numbers in ``time_unit`` (else the scene's, else the unit their texts name), or
     texts with a time unit (``"0.5 fs"``). See the module docstring for what is measured.
+
+    With ``ensemble`` (a number N of trajectories) a splitting method runs N initial
+    conditions at once instead, drawn with ``seed`` around the elliptic equilibrium the
+    default start orbits (its Hessian ``S`` positive definite): on the energy shell
+    ``energy`` (H there is ``H_e + (x - x_e)^T S (x - x_e) / 2``: every phase and every
+    split of the energy among the modes) or, with ``kT`` instead, from the Boltzmann
+    distribution ``N(x_e, kT S^-1)`` of the quadratic model; the result is an
+    :class:`EnsembleReport` of the distribution of each trajectory's largest energy
+    error over every step (:mod:`stepsafe.systems.integrate`).
 
     >>> report = measure("verlet", [0.1], system={"hamiltonian": "p**2/2 + q**2/2",
     ...                  "box": {"q": [-1, 1], "p": [-1, 1]}}, initial=[0.0, 1.0])
@@ -71,6 +90,12 @@ def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
     from stepsafe.units import time_unit as known_time_unit
 
     integrator = as_integrator(method)
+    if ensemble is not None or kT is not None:
+        if initial is not None or budget is not None or solver != "fixed-point":
+            raise StepsafeError("ensemble: give no initial, budget or solver (the ensemble "
+                                "draws its own starts and runs splitting methods)")
+        return _ensemble(integrator, h, scene, system, time, energy, kT, ensemble, seed,
+                         time_unit, max_steps, progress)
     time_unit = known_time_unit(time_unit)
     steps = [h] if isinstance(h, (int, float, str)) else h
     time_unit = time_unit_in_force(time_unit, scene,
@@ -126,6 +151,114 @@ def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
     return MeasureReport(integrator.name, problem.description, tuple(map(float, state)),
                          float(problem.system.energy(problem.q0, problem.p0)[0]),
                          problem.beta, problem.reference_text, tuple(rows), time_unit)
+
+
+def _ensemble(integrator: Integrator, h: Any, scene: Any, system: Any, time: Any,
+              energy: float | None, kT: float | None, count: Any, seed: Any,
+              time_unit: str | None, max_steps: int,
+              progress: Callable[[float], None] | None) -> EnsembleReport:
+    """:func:`measure` on an ensemble (see there)."""
+    from stepsafe.methods.tableaux import Splitting
+    from stepsafe.systems.integrate import energy_errors, shell_states, thermal_states
+    from stepsafe.systems.scene import time_unit_in_force
+    from stepsafe.units import duration
+    from stepsafe.units import time_unit as known_time_unit
+
+    if count is None:
+        raise StepsafeError("--kT needs --ensemble N (the number of trajectories)")
+    if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or \
+            not 1 <= count <= MAX_ENSEMBLE:
+        raise StepsafeError(f"--ensemble must be an integer from 1 to {MAX_ENSEMBLE}, "
+                            f"got {str(count)[:20]}")
+    count = int(count)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or \
+            not 0 <= seed < 2 ** 63:
+        raise StepsafeError(f"--seed must be an integer from 0 to 2**63 - 1, got "
+                            f"{str(seed)[:20]}")
+    if (energy is None) == (kT is None):
+        raise StepsafeError("--ensemble: give the energy shell (--energy E) or the "
+                            "temperature (--kT E), one of them")
+    tableau = integrator.tableau
+    if not isinstance(tableau, Splitting) or tableau.gradient is not None and \
+            np.any(tableau.gradient):
+        raise StepsafeError(f"--ensemble runs splitting methods (drift and kick "
+                            f"coefficients) only; {integrator.name} is a {integrator.kind} "
+                            "method")
+    time_unit = known_time_unit(time_unit)
+    steps = [h] if isinstance(h, (int, float, str)) else h
+    time_unit = time_unit_in_force(time_unit, scene,
+                                   list(steps) if isinstance(steps, (list, tuple)) else None,
+                                   time)
+    hs = _steps(steps, time_unit)
+    problem = measured_system(tableau, scene, system, None, None, time_unit)
+    if problem.metric is None or problem.centre is None or \
+            problem.equilibrium_energy is None:
+        raise StepsafeError("--ensemble: no elliptic equilibrium (positive definite "
+                            "Hessian) in the box to draw the trajectories around")
+    if not problem.system.separable:
+        raise StepsafeError("--ensemble runs splitting methods, which need a separable "
+                            "H = T(p) + V(q)")
+    if time is None:
+        if problem.beta is None:
+            raise StepsafeError("give the time to integrate (--time T)")
+        time = DEFAULT_PERIODS * 2 * math.pi / problem.beta
+    time = positive_finite(duration(time, "time", time_unit), "time")
+    if max(hs) > time:
+        raise StepsafeError(f"the step h = {max(hs):.6g} is longer than the run time "
+                            f"{time:.6g}: give a longer --time or a smaller step")
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or \
+            not 1 <= max_steps <= MAX_STEPS_CAP:
+        raise StepsafeError(f"max_steps must be an integer from 1 to {MAX_STEPS_CAP}")
+    ratios = [time / step * (1 - 1e-12) for step in hs]
+    if not max(ratios) <= max_steps:
+        raise StepsafeError(f"T / h = {max(ratios):.3g} steps exceeds the {max_steps} allowed "
+                            "in one run: a shorter --time, larger steps or --max-steps")
+    counts = [max(1, math.ceil(r)) for r in ratios]
+    if sum(counts) * count > MAX_ENSEMBLE_STEPS:
+        raise StepsafeError(f"--ensemble {count} times {sum(counts)} steps exceeds the "
+                            f"{MAX_ENSEMBLE_STEPS:.0e} trajectory steps of one call")
+    centre, S, H_e = problem.centre, problem.metric, float(problem.equilibrium_energy)
+    rng = np.random.default_rng(int(seed))
+    if energy is not None:
+        energy = finite_real(energy, "--energy")
+        if not energy > H_e:
+            raise StepsafeError(f"--energy {energy:g} is not above the minimum {H_e:g} of "
+                                "the equilibrium the ensemble is drawn around")
+        X0 = shell_states(centre, S, energy - H_e, count, rng)
+    else:
+        kT = positive_finite(kT, "--kT")
+        X0 = thermal_states(centre, S, kT, count, rng)
+    n = X0.shape[1] // 2
+    sys_ = problem.system
+
+    def dV(q: np.ndarray) -> np.ndarray:
+        return sys_.dH_dq(q, np.zeros_like(q))
+
+    def dT(p: np.ndarray) -> np.ndarray:
+        return sys_.dH_dp(np.zeros_like(p), p)
+
+    def H(X: np.ndarray) -> np.ndarray:
+        return sys_.energy(X[:, :n], X[:, n:])
+
+    rows = []
+    for k, (step, steps_n) in enumerate(zip(hs, counts)):
+        errors = energy_errors(tableau.drift, tableau.kick, H, dV, dT, X0, step, steps_n, H_e)
+        unstable = int(np.sum(~np.isfinite(errors)))
+        with np.errstate(invalid="ignore"):
+            q = np.quantile(errors, [0.5, 0.9, 0.99])
+
+        def value(x: float) -> float | None:
+            return float(x) if math.isfinite(x) else None
+
+        rows.append(EnsembleRow(step, steps_n, steps_n * step, value(q[0]), value(q[1]),
+                                value(q[2]), value(float(np.max(errors))), unstable,
+                                tuple(map(float, errors))))
+        if progress:
+            progress((k + 1) / len(hs))
+    return EnsembleReport(integrator.name, problem.description, count, int(seed),
+                          "shell" if energy is not None else "thermal", energy,
+                          None if kT is None else float(kT), tuple(map(float, centre)), H_e,
+                          tuple(rows), time_unit, tuple(tuple(map(float, x)) for x in X0))
 
 
 def _steps(steps: Sequence[float | str], time_unit: str | None) -> list[float]:

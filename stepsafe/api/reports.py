@@ -581,6 +581,63 @@ class MeasureReport:
                               "rows": [r.to_dict() for r in self.rows]}))
 
 
+@dataclass(frozen=True)
+class EnsembleRow:
+    """One step ``h`` run for ``steps`` steps (up to ``time``) on every trajectory of an
+    ensemble: the distribution of each trajectory's largest energy error
+    ``max_k |H(x_k) - H(x_0)| / |H(x_0) - H_e|`` over every step (median, 90 and 99
+    percent quantiles by linear interpolation, maximum; None where a trajectory that left
+    the finite numbers makes it infinite), ``unstable`` such trajectories, and
+    ``errors``, each trajectory's value in the order of the ensemble's states (``inf``
+    for an unstable one; not in :meth:`to_dict`)."""
+
+    h: float
+    steps: int
+    time: float
+    median: float | None
+    q90: float | None
+    q99: float | None
+    max: float | None
+    unstable: int
+    errors: tuple[float, ...] = field(repr=False, default=())
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"h": self.h, "steps": self.steps, "time": self.time, "median": self.median,
+                "q90": self.q90, "q99": self.q99, "max": self.max, "unstable": self.unstable}
+
+
+@dataclass(frozen=True)
+class EnsembleReport:
+    """``method`` run on ``count`` trajectories at once for each h (``rows``): states
+    drawn with ``seed`` either on the quadratic energy shell ``energy`` around the
+    elliptic equilibrium ``centre`` (``draw`` ``shell``: every phase, every split of the
+    energy among the modes) or from the Boltzmann distribution of its quadratic model at
+    ``kT`` (``draw`` ``thermal``); ``centre_energy`` is H there. ``states`` holds the
+    initial states (one row of q then p per trajectory; not in :meth:`to_dict`)."""
+
+    method: str
+    system: str
+    count: int
+    seed: int
+    draw: str
+    energy: float | None
+    kT: float | None
+    centre: tuple[float, ...]
+    centre_energy: float
+    rows: tuple[EnsembleRow, ...]
+    time_unit: str | None = None
+    states: tuple[tuple[float, ...], ...] = field(repr=False, default=())
+
+    def to_dict(self) -> dict[str, Any]:
+        """What ``stepsafe measure --ensemble N --json`` prints."""
+        return versioned({"method": self.method, "system": self.system,
+                          "ensemble": self.count, "seed": self.seed, "draw": self.draw,
+                          "energy": self.energy, "kT": self.kT,
+                          "centre": list(self.centre), "centre_energy": self.centre_energy,
+                          "time_unit": self.time_unit,
+                          "rows": [r.to_dict() for r in self.rows]})
+
+
 #: Predicted errors below this are rounding of an exact 0 (a method that conserves every
 #: quadratic invariant has no energy error on a linear model): no ratio is formed.
 NEGLIGIBLE = 1e-13

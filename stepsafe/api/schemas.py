@@ -237,6 +237,14 @@ REFINEMENT = top({"quantity": STR, "tol": NUM, "h": NUM_OR_NULL, "error": NUM_OR
                   "h_safe": NUM_OR_NULL, "limited_by": STR,
                   "runs": record(MEASURE_RUNS)})
 
+ENSEMBLE = top({"method": STR, "system": STR, "ensemble": INT, "seed": INT, "draw": STR,
+                "energy": NUM_OR_NULL, "kT": NUM_OR_NULL, "centre": array(NUM),
+                "centre_energy": NUM, "time_unit": STR_OR_NULL,
+                "rows": array(record({"h": NUM, "steps": INT, "time": NUM,
+                                      "median": NUM_OR_NULL, "q90": NUM_OR_NULL,
+                                      "q99": NUM_OR_NULL, "max": NUM_OR_NULL,
+                                      "unstable": INT}))})
+
 #: The output of each command that takes ``--json``.
 OUTPUTS: dict[str, dict[str, Any]] = {
     "methods": array(METHOD_ROW),
@@ -249,7 +257,7 @@ OUTPUTS: dict[str, dict[str, Any]] = {
     "hmc": {"oneOf": [HMC, HMC_TARGET]},
     "design": DESIGN,
     "respa": RESPA,
-    "measure": {"oneOf": [top(MEASURE_RUNS), REFINEMENT]},
+    "measure": {"oneOf": [top(MEASURE_RUNS), REFINEMENT, ENSEMBLE]},
 }
 
 

@@ -83,11 +83,20 @@ def _range(text: str) -> list[float]:
 @click.option("--budget", type=FLOAT, default=None, metavar="SECONDS",
               help="Stop after SECONDS: the run under way reports 'budget', the rest "
                    "'not run'.")
+@click.option("--ensemble", type=INT, default=None, metavar="N",
+              help="Run N trajectories at once (splitting methods), drawn around the "
+                   "elliptic equilibrium on the energy shell --energy E or at --kT E, and "
+                   "report the distribution of their largest energy errors.")
+@click.option("--kT", "kT", type=FLOAT, default=None, metavar="E",
+              help="With --ensemble: draw the trajectories from the Boltzmann distribution "
+                   "of the equilibrium's quadratic model at this temperature (energy units).")
+@click.option("--seed", type=INT, default=None, metavar="S",
+              help="With --ensemble: the seed of the draw [default: 0; printed].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object.")
 @click.option("--tsv", is_flag=True, help="Print the rows as tab-separated values.")
 def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, initial, energy,
-                time_unit, tol_energy, tol_trajectory, solver, max_steps, budget, as_json,
-                tsv) -> None:
+                time_unit, tol_energy, tol_trajectory, solver, max_steps, budget, ensemble,
+                kT, seed, as_json, tsv) -> None:
     """Run the method on the scene's own system and measure what each h buys and costs.
 
     The scene's system: (a Hamiltonian expression in q and p, or with named variables for
@@ -103,6 +112,12 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
     prediction for the vibration the start orbits and the ratio measured / predicted, the
     nonlinear calibration of `advise --tol-...`.
 
+    With --ensemble N (splitting methods) it runs N trajectories at once instead, drawn
+    with --seed around the elliptic equilibrium: on the energy shell --energy E (every
+    phase; H = E in the equilibrium's quadratic model) or at the temperature --kT E, and
+    prints the median, 90% and 99% quantiles and maximum over the trajectories of each
+    one's largest energy error |H_k - H_0| / |H_0 - H_e| over every step.
+
     With --tol-energy or --tol-trajectory it refines instead: the largest h (within the
     safe steps) whose measured error meets the tolerance, by bisection on runs started
     from the h the linear model predicts (what advise --tol-* would give), both printed.
@@ -112,6 +127,7 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
       stepsafe measure examples/pendulum.yaml --h 0.1 --h 0.5
       stepsafe measure examples/pendulum.yaml --method pefrl --tol-trajectory 1e-4 --time 60
       stepsafe measure examples/pendulum.yaml --method yoshida4 --h-range 0.05,1,6 --energy 0
+      stepsafe measure examples/pendulum.yaml --h 0.5 --time 50 --ensemble 1000 --kT 0.2
     """
     from stepsafe.api.measure import measure
     from stepsafe.cli.progressbar import progress_bar
@@ -137,6 +153,32 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
     else:
         integrator = inputs.method(method, stages=stages, base=base)
     start = None if initial is None else _numbers(initial, "initial")
+    if ensemble is None and (kT is not None or seed is not None):
+        raise _input_error("--kT and --seed draw an ensemble: give --ensemble N")
+    if ensemble is not None:
+        if tol_energy is not None or tol_trajectory is not None or tsv or \
+                initial is not None or budget is not None or solver != "fixed-point":
+            raise _input_error("--ensemble draws its own starts: give no --initial, "
+                               "--tol-*, --tsv, --budget or --solver")
+        if energy is not None and kT is not None:
+            raise _input_error("--ensemble: give --energy E (a shell) or --kT E (a "
+                               "temperature), not both")
+        if not 1 <= ensemble:
+            raise _input_error(f"--ensemble {ensemble}: give a number of trajectories >= 1")
+        from stepsafe.api.measure import DEFAULT_SEED
+
+        with progress_bar("measuring", not as_json) as progress:
+            result = measure(integrator, hs or ([loaded.h] if loaded.h else []),
+                             scene=scene_file, time=duration, energy=energy,
+                             time_unit=loaded.time_unit, progress=progress,
+                             ensemble=ensemble, kT=kT,
+                             seed=DEFAULT_SEED if seed is None else seed,
+                             **({} if max_steps is None else {"max_steps": max_steps}))
+        if as_json:
+            print_json(result.to_dict())
+        else:
+            print_ensemble(result.to_dict())
+        return
     if tol_energy is not None or tol_trajectory is not None:
         if tol_energy is not None and tol_trajectory is not None:
             raise _input_error("give --tol-energy or --tol-trajectory, not both")
@@ -224,6 +266,27 @@ def print_measure(data: dict[str, Any]) -> None:
                          f"{g(inv['drift'], 2)}/{unit}, {inv['behaviour']} "
                          f"(R2 {inv['r2']:.2f})" if inv['r2'] is not None else "")
         click.echo(f"{r['h']:>10.4g}  " + "; ".join(parts))
+
+
+def print_ensemble(data: dict[str, Any]) -> None:
+    """The text form of :meth:`stepsafe.api.reports.EnsembleReport.to_dict`."""
+    def g(x: float | None) -> str:
+        return "inf" if x is None else f"{x:.3g}"
+
+    centre = ", ".join(f"{x:.6g}" for x in data["centre"])
+    draw = (f"on the energy shell H = {data['energy']:.6g} of its quadratic model (every "
+            f"phase)" if data["draw"] == "shell" else
+            f"from the Boltzmann distribution of its quadratic model at kT = {data['kT']:.6g}")
+    click.echo(f"{data['method']} on {data['system']}: {data['ensemble']} trajectories drawn "
+               f"around the equilibrium ({centre}) (H = {data['centre_energy']:.6g}) {draw}; "
+               f"seed {data['seed']}.")
+    click.echo("Each trajectory's largest energy error |H_k - H_0| / |H_0 - H_e| over every "
+               "step, across the trajectories:")
+    click.echo(f"{'h':>10} {'steps':>8}  {'median':>9} {'90%':>9} {'99%':>9} {'max':>9}  "
+               "unstable")
+    for r in data["rows"]:
+        click.echo(f"{r['h']:>10.4g} {r['steps']:>8}  {g(r['median']):>9} {g(r['q90']):>9} "
+                   f"{g(r['q99']):>9} {g(r['max']):>9}  {r['unstable']}")
 
 
 #: Seconds of a work-precision diagram with steps chosen per method, by default.
