@@ -50,7 +50,11 @@ RUNS = {
               ["respa", "respa-verlet", "--fast-beta", "10", "--slow-beta", "1",
                "--step", "0.3"]],
     "measure": [["measure", PENDULUM, "--h", "0.1", "--h", "0.5", "--time", "5"],
-                ["measure", PENDULUM, "--tol-energy", "1e-3", "--time", "5"]],
+                ["measure", PENDULUM, "--tol-energy", "1e-3", "--time", "5"],
+                ["measure", PENDULUM, "--h", "0.5", "--time", "5", "--ensemble", "20",
+                 "--kT", "0.2"],
+                ["measure", PENDULUM, "--h", "0.5", "--time", "5", "--ensemble", "20",
+                 "--energy", "-0.5", "--seed", "4"]],
 }
 
 CASES = [(command, args) for command, runs in RUNS.items() for args in runs]

@@ -69,7 +69,8 @@ def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
     are numbers in ``time_unit`` (else the scene's, else the unit their texts name), or
     texts with a time unit (``"0.5 fs"``). See the module docstring for what is measured.
 
-    With ``ensemble`` (a number N of trajectories) a splitting method runs N initial
+    With ``ensemble`` (a number N of trajectories) a splitting method (or a composition
+    of one) runs N initial
     conditions at once instead, drawn with ``seed`` around the elliptic equilibrium the
     default start orbits (its Hessian ``S`` positive definite): on the energy shell
     ``energy`` (H there is ``H_e + (x - x_e)^T S (x - x_e) / 2``: every phase and every
@@ -158,7 +159,8 @@ def _ensemble(integrator: Integrator, h: Any, scene: Any, system: Any, time: Any
               time_unit: str | None, max_steps: int,
               progress: Callable[[float], None] | None) -> EnsembleReport:
     """:func:`measure` on an ensemble (see there)."""
-    from stepsafe.methods.tableaux import Splitting
+    from stepsafe.exceptions import MethodError
+    from stepsafe.methods.tableaux import Composition, Splitting
     from stepsafe.systems.integrate import energy_errors, shell_states, thermal_states
     from stepsafe.systems.scene import time_unit_in_force
     from stepsafe.units import duration
@@ -179,6 +181,11 @@ def _ensemble(integrator: Integrator, h: Any, scene: Any, system: Any, time: Any
         raise StepsafeError("--ensemble: give the energy shell (--energy E) or the "
                             "temperature (--kT E), one of them")
     tableau = integrator.tableau
+    if isinstance(tableau, Composition):  # a composition of a splitting is one
+        try:
+            tableau = tableau.as_splitting()
+        except MethodError:
+            pass
     if not isinstance(tableau, Splitting) or tableau.gradient is not None and \
             np.any(tableau.gradient):
         raise StepsafeError(f"--ensemble runs splitting methods (drift and kick "
