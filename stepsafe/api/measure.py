@@ -7,7 +7,7 @@ import math
 import time as _time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 
@@ -45,6 +45,26 @@ MAX_ENSEMBLE = 1_000_000
 MAX_ENSEMBLE_STEPS = 1_000_000_000
 #: The seed of an ensemble's draw unless given (printed with the results).
 DEFAULT_SEED = 0
+
+
+@overload
+def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
+            scene: str | Path | None = ..., system: Mapping[str, Any] | None = ...,
+            time: float | str | None = ..., initial: Sequence[float] | None = ...,
+            energy: float | None = ..., time_unit: str | None = ..., solver: str = ...,
+            max_steps: int = ..., budget: float | None = ...,
+            progress: Callable[[float], None] | None = ..., ensemble: None = ...,
+            kT: None = ..., seed: int = ...) -> MeasureReport: ...
+
+
+@overload
+def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
+            scene: str | Path | None = ..., system: Mapping[str, Any] | None = ...,
+            time: float | str | None = ..., initial: Sequence[float] | None = ...,
+            energy: float | None = ..., time_unit: str | None = ..., solver: str = ...,
+            max_steps: int = ..., budget: float | None = ...,
+            progress: Callable[[float], None] | None = ..., ensemble: int,
+            kT: float | None = ..., seed: int = ...) -> EnsembleReport: ...
 
 
 @public()
