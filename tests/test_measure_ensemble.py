@@ -141,6 +141,27 @@ def test_bad_ensemble_input_exits_2_naming_the_option(run, extra, option):
     assert len(lines) == 1 and option in lines[0], err
 
 
+def _chain(tmp_path, n: int = 10):
+    K = [[2.0 if i == j else -1.0 if abs(i - j) == 1 else 0.0 for j in range(n)]
+         for i in range(n)]
+    path = tmp_path / "chain.yaml"
+    path.write_text(f"method: verlet\nsystem:\n  stiffness: {K}\n")
+    return str(path)
+
+
+def test_a_chain_past_verlets_limit_counts_its_unstable_trajectories(tmp_path, run):
+    """The 10-mass fixed chain's fastest mode has beta = 2 sin(10 pi / 22) = 1.98: at
+    h = 1.9 (z > 2) every thermal trajectory grows past 1e6 times its energy, at h = 0.5
+    none does; an ensemble too large for memory is refused naming --ensemble."""
+    chain = _chain(tmp_path)
+    r = stepsafe.measure("verlet", [0.5, 1.9], scene=chain, time=60.0, ensemble=30, kT=0.1)
+    assert [row.unstable for row in r.rows] == [0, 30]
+    assert r.rows[0].max < 1
+    code, _, err = run("measure", chain, "--h", "0.5", "--time", "5", "--ensemble", "600000",
+                       "--kT", "0.1")
+    assert code == 2 and "--ensemble" in err and len(err.strip().splitlines()) == 1
+
+
 def test_the_python_keywords_refuse_bad_values():
     for kwargs in ({"ensemble": 0, "kT": 0.1}, {"ensemble": True, "kT": 0.1},
                    {"ensemble": 3, "kT": 0.1, "seed": 1.5}, {"ensemble": 3},

@@ -24,6 +24,7 @@ from stepsafe.api.reports import (
 from stepsafe.arguments import public
 from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
 from stepsafe.systems.measurement import (
+    UNSTABLE,
     MeasuredSystem,
     Run,
     measured_system,
@@ -43,6 +44,8 @@ DEFAULT_PERIODS = 100
 #: summed over the step sizes) of one call at most.
 MAX_ENSEMBLE = 1_000_000
 MAX_ENSEMBLE_STEPS = 1_000_000_000
+#: State values of one ensemble at most (trajectories times 2n: 80 MB of float64).
+MAX_ENSEMBLE_VALUES = 10_000_000
 #: The seed of an ensemble's draw unless given (printed with the results).
 DEFAULT_SEED = 0
 
@@ -245,6 +248,9 @@ def _ensemble(integrator: Integrator, h: Any, scene: Any, system: Any, time: Any
         raise StepsafeError(f"--ensemble {count} times {sum(counts)} steps exceeds the "
                             f"{MAX_ENSEMBLE_STEPS:.0e} trajectory steps of one call")
     centre, S, H_e = problem.centre, problem.metric, float(problem.equilibrium_energy)
+    if count * centre.size > MAX_ENSEMBLE_VALUES:
+        raise StepsafeError(f"--ensemble {count} trajectories of {centre.size} state values "
+                            f"each exceed the {MAX_ENSEMBLE_VALUES:.0e} values of one call")
     rng = np.random.default_rng(int(seed))
     if energy is not None:
         energy = finite_real(energy, "--energy")
@@ -270,7 +276,7 @@ def _ensemble(integrator: Integrator, h: Any, scene: Any, system: Any, time: Any
     rows = []
     for k, (step, steps_n) in enumerate(zip(hs, counts)):
         errors = energy_errors(tableau.drift, tableau.kick, H, dV, dT, X0, step, steps_n, H_e)
-        unstable = int(np.sum(~np.isfinite(errors)))
+        unstable = int(np.sum(~(errors <= UNSTABLE)))
         with np.errstate(invalid="ignore"):
             q = np.quantile(errors, [0.5, 0.9, 0.99])
 

@@ -587,7 +587,8 @@ class EnsembleRow:
     ensemble: the distribution of each trajectory's largest energy error
     ``max_k |H(x_k) - H(x_0)| / |H(x_0) - H_e|`` over every step (median, 90 and 99
     percent quantiles by linear interpolation, maximum; None where a trajectory that left
-    the finite numbers makes it infinite), ``unstable`` such trajectories, and
+    the finite numbers makes it infinite), ``unstable`` the trajectories that left them
+    or whose error exceeds :data:`stepsafe.systems.measurement.UNSTABLE`, and
     ``errors``, each trajectory's value in the order of the ensemble's states (``inf``
     for an unstable one; not in :meth:`to_dict`)."""
 
