@@ -191,17 +191,18 @@ def test_blackjax_acceptance_on_the_banana_is_the_estimate():
 @pytest.mark.slow
 @pytest.mark.blackjax
 @needs_blackjax
-def test_readme_blackjax_example_prints_what_it_shows(monkeypatch, capsys):
-    """The README's BlackJAX block runs as written and prints the text block after it."""
+def test_the_hmc_guide_blackjax_example_prints_what_it_shows(monkeypatch, capsys):
+    """The HMC guide's BlackJAX block (docs/guides/hmc.md) runs as written and prints the
+    text block after it."""
     import re
     import textwrap
     from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent
-    readme = (root / "README.md").read_text()
+    readme = (root / "docs" / "guides" / "hmc.md").read_text()
     (code, shown), = [(c, t) for c, t in re.findall(
         r"```python\n(.*?)```\n\n```text\n(.*?)```", readme, flags=re.S)
         if "import blackjax" in c]
     monkeypatch.chdir(root)
-    exec(compile(textwrap.dedent(code), "README.md", "exec"), {})
+    exec(compile(textwrap.dedent(code), "docs/guides/hmc.md", "exec"), {})
     assert capsys.readouterr().out == shown

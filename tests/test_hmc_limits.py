@@ -277,7 +277,7 @@ def test_hmc_at_any_scale_and_step_is_scale_free_and_warns_of_nothing(
     step = 10.0 ** log_z
     assume(step * scale < 1e300 and 100.0 * scale < 1e300 and scale > 1e-290)
     base = [1.0, *shape]
-    extra = {"any": {}, "steps": {"steps": 10}, "length": {"length": 3.0}}[trajectory]
+    extra = {"any": {}, "steps": {"trajectory_steps": 10}, "length": {"length": 3.0}}[trajectory]
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         unit = hmc([name], sigma=base, step=step, jitter=jitter, **extra).rows[0]
