@@ -384,11 +384,16 @@ def test_langevin_splittings_are_refused_at_temperature_naming_it(name):
 
 
 @pytest.mark.openmm
-def test_a_temperature_on_an_engine_system_is_refused_not_answered_at_0K(run):
-    """An OpenMM system is not sampled at temperature: a temperature with it is refused
-    (exit 2, one line), never answered with the 0 K verdict as if the system were linear."""
+@pytest.mark.parametrize("options, message", [
+    (["--method", "pefrl", "--kT", "2.49", "--steps", "1000"], "runs verlet, langevin-middle only"),
+    (["--temperature", "300K", "--length", "1ps", "--kT", "2.49"], "not both")])
+def test_a_temperature_the_engine_cannot_answer_is_refused_not_answered_at_0K(run, options,
+                                                                            message):
+    """An OpenMM system at temperature is answered by runs of the method in OpenMM: a method
+    OpenMM does not run is refused (exit 2, one line) before any sampling, never answered
+    with the 0 K verdict as if the system were linear."""
     pytest.importorskip("openmm")
     scene = Path(__file__).resolve().parents[1] / "examples" / "water-cluster.yaml"
-    code, out, err = run("check", str(scene), "--kT", "2.49", "--steps", "1000")
+    code, out, err = run("check", str(scene), *options)
     assert code == 2 and "SAFE" not in out, (out, err)
-    assert "temperature" in err and len(err.strip().splitlines()) == 1
+    assert message in err and len(err.strip().splitlines()) == 1

@@ -609,7 +609,9 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
         if p.system is not None:
             from stepsafe.systems.advice import system_check
 
-            data = system_check(integrator.tableau, p.system, step, p.margin, p.zmax,
+            # (at temperature the engine's runs are those of the analysis at temperature)
+            analysed = p.system if warm is None else p.system._replace(engine_check=None)
+            data = system_check(integrator.tableau, analysed, step, p.margin, p.zmax,
                                 integrator.name, criterion, valid_order(resonance_order),
                                 require_complete_search)
         else:

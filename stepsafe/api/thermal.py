@@ -31,6 +31,8 @@ from stepsafe.systems.thermal_scene import Minimum, is_harmonic, minima
 
 #: The seed of every draw of the analysis at temperature.
 SEED = 0
+#: The energy unit of an MD engine's system (OpenMM's).
+ENGINE_ENERGY = "kJ/mol"
 
 
 @dataclass(frozen=True)
@@ -133,6 +135,11 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
     units = system.get("units") if isinstance(system, Mapping) else None
     if unit is None and isinstance(units, Mapping) and units.get("energy") in ENERGY_UNITS:
         unit = units["energy"]
+    if isinstance(system, Mapping) and "openmm" in system:  # the engine's energies
+        if unit not in (None, ENGINE_ENERGY):
+            raise StepsafeError(f"an OpenMM system's energies are in {ENGINE_ENERGY}, not "
+                                f"{unit}", _where(scene, "energy_unit"))
+        unit = ENGINE_ENERGY
     if t_value is not None:
         try:
             T = kelvin(t_value)
@@ -307,6 +314,8 @@ def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion:
     """
     from stepsafe.systems.thermal import thermal_limit
 
+    if _engine_analysis(p) is not None:
+        return _engine_advice(p, req, h_zero, criterion, progress)
     found = _minima(p, req)
     if found is None:
         return _harmonic_record(req, h_zero)
@@ -374,6 +383,8 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
     """
     from stepsafe.systems.thermal import thermal_check
 
+    if _engine_analysis(p) is not None:
+        return _engine_check(p, req, h, criterion, progress)
     found = _minima(p, req)
     if found is None:
         return {**_request_record(req), "safe": True, "harmonic": True, "reasons": [],
@@ -475,3 +486,198 @@ def check_record(m: Minimum, c: Any, margin: float = 1.0) -> dict[str, Any]:
             "h_zero": margin * c.zero.h_zero, "h_linear": h_linear,
             "frequencies": _frequency_record(c.linear), "probes": probes,
             "drift": _drift_record(c.drift, margin), "seed": c.seed}
+
+
+# --- an MD engine's system (stepsafe.systems.md.thermal) ----------------------------------
+
+#: How the records name the configuration an engine's system is analysed at.
+ENGINE_AT = "the OpenMM system at temperature"
+
+
+def _engine_analysis(p: Any) -> Any:
+    """The MD analysis of an engine's system (None for other problems)."""
+    return getattr(p.system, "md", None) if p.system is not None else None
+
+
+def _scale(p: Any) -> float:
+    """Picoseconds per time unit of the problem (an engine works in ps)."""
+    from stepsafe.units import TIME_UNITS
+
+    return float(TIME_UNITS[p.time_unit or "ps"] / TIME_UNITS["ps"])
+
+
+def _z_star(p: Any, criterion: str) -> float:
+    """The end of the method's interval from 0 on the oscillator (its analysed range when
+    it has none)."""
+    from stepsafe.core.regions import find_region, under_criterion
+
+    with p.integrator.naming_its_file():
+        region = under_criterion(find_region(p.integrator.tableau, "oscillator"), criterion)
+    return float(region.first_boundary if region.first_boundary is not None else region.zmax)
+
+
+def _engine_runs(p: Any, req: Request, run_length: float) -> Any:
+    """The runs of the user's integrator in the engine: the method as OpenMM's integrator,
+    at the request's temperature, with the seeds, duration and friction of the scene's
+    ``runs:`` when it has one (its temperature must be the request's)."""
+    from stepsafe.systems.md import thermal as md_thermal
+    from stepsafe.systems.md.engine import MOLAR_GAS_CONSTANT
+    from stepsafe.systems.md.system import ENGINE_INTEGRATORS
+
+    name = p.integrator.name
+    integrator = ENGINE_INTEGRATORS.get(name)
+    if integrator is None:
+        raise StepsafeError(f"temperature: on an OpenMM system the step at temperature is "
+                            f"measured by runs of the method in OpenMM, which runs "
+                            f"{', '.join(ENGINE_INTEGRATORS)} only, not {name}")
+    T = req.temperature if req.temperature is not None else req.kT / MOLAR_GAS_CONSTANT
+    chosen = _engine_analysis(p).settings.runs
+    if chosen is None:
+        return md_thermal.Runs(integrator, T, duration=min(md_thermal.DURATION, run_length))
+    if abs(chosen.temperature - T) > 1e-9 * T:
+        raise StepsafeError(f"the runs' temperature {chosen.temperature:g} K is not the "
+                            f"temperature asked for, {T:g} K",
+                            _where(_scene_of(p), "system.runs.temperature"))
+    return md_thermal.Runs(integrator, T, chosen.seeds, chosen.duration, chosen.friction)
+
+
+def _scene_of(p: Any) -> Any:
+    from stepsafe.systems.scene import load_scene
+
+    return load_scene(p.scene, p.time_unit) if p.scene else None
+
+
+def _engine_progress(progress: Callable[[float], None] | None
+                     ) -> Callable[[str, float], None] | None:
+    """Sampling and frequencies fill the first 40%, the runs the rest."""
+    if progress is None:
+        return None
+    share = {"sampling": (0.0, 0.1), "frequencies": (0.1, 0.3), "runs": (0.4, 0.6)}
+
+    def report(stage: str, fraction: float) -> None:
+        start, width = share.get(stage, (0.0, 1.0))
+        progress(start + width * min(max(fraction, 0.0), 1.0))
+    return report
+
+
+def _engine_advice(p: Any, req: Request, h_zero: float | None, criterion: str,
+                   progress: Callable[[float], None] | None) -> dict[str, Any]:
+    """The record of the answer at temperature on an engine's system
+    (:func:`stepsafe.systems.md.thermal.thermal_limit`), in the problem's time unit."""
+    from stepsafe.systems.md.thermal import thermal_limit
+
+    scale = _scale(p)
+    z_star = _z_star(p, criterion)
+    analysis = _engine_analysis(p)
+    if req.length is not None:
+        run_length = req.length * scale
+    else:
+        omega = float(analysis.spectrum.eigenvalues[0])
+        run_length = float(req.steps or 1) * z_star / math.sqrt(omega) if omega > 0 else 1.0
+    runs = _engine_runs(p, req, run_length)
+    r = thermal_limit(analysis, runs, z_star, run_length, _engine_progress(progress),
+                      engine_name="OpenMM")
+    h_t = p.margin * r.h_max / scale
+    out = {**_request_record(req), "h_max_0K": h_zero}
+    if h_zero is not None and h_zero <= h_t:
+        out.update(h_max=h_zero, limited_by="0 K")
+    else:
+        out.update(h_max=h_t, limited_by=r.limited_by, at=ENGINE_AT)
+    out["h_range"] = [p.margin * r.h_range[0] / scale, p.margin * r.h_range[1] / scale]
+    out["margin"] = p.margin
+    out["harmonic"] = False
+    out["minima"] = [engine_limit_record(r, p.margin, scale)]
+    out["notes"] = []
+    return out
+
+
+def _engine_check(p: Any, req: Request, h: float, criterion: str,
+                  progress: Callable[[float], None] | None) -> dict[str, Any]:
+    """The record of the check at temperature on an engine's system
+    (:func:`stepsafe.systems.md.thermal.thermal_check`)."""
+    from stepsafe.systems.md.thermal import thermal_check
+
+    scale = _scale(p)
+    step = h / p.margin * scale
+    run_length = req.length * scale if req.length is not None else float(req.steps or 1) * step
+    runs = _engine_runs(p, req, run_length)
+    c = thermal_check(_engine_analysis(p), runs, _z_star(p, criterion), step, run_length,
+                      _engine_progress(progress))
+    linear = c.linear
+    entry = {"at": ENGINE_AT, "safe": c.safe, "reasons": list(c.reasons),
+             "h_zero": p.margin * c.h_zero / scale,
+             "h_linear": p.margin * linear.h_linear / scale,
+             "frequencies": _engine_frequencies(linear, scale), "probes": [], "drift": None,
+             "seed": int(runs.seeds[0]),
+             "engine_runs": _runs_record(runs, [] if c.trial is None else [c.trial],
+                                         p.margin, scale)}
+    return {**_request_record(req), "safe": c.safe, "reasons": list(c.reasons),
+            "harmonic": False, "margin": p.margin, "minima": [entry], "notes": list(c.notes)}
+
+
+
+def _engine_frequencies(linear: Any, scale: float) -> dict[str, Any]:
+    """:func:`_frequency_record` of the snapshots' frequencies, rad per time unit."""
+    w, e = linear.omega, linear.ensemble
+
+    def per_unit(x: float | None) -> float | None:
+        return None if x is None else x * scale
+
+    return {"median": per_unit(w.median), "maximum": per_unit(w.maximum), "frames": w.frames,
+            "effective_frames": w.effective, "run_frames": w.run_frames, "level": w.level,
+            "run_quantile": per_unit(w.estimate), "upper": per_unit(w.upper),
+            "confidence": w.confidence, "extrapolation": w.method, "tail_shape": w.shape,
+            "tail_shape_fitted": w.shape_fitted, "threshold": per_unit(w.threshold),
+            "exceedances": w.exceedances, "bootstrap": w.bootstrap, "seed": w.seed,
+            "eigenvalues": linear.frequencies.how,
+            "sampling": {"how": e.how, "seed": e.seed, "chains": e.chains, "h": e.h / scale,
+                         "friction": e.friction * scale, "burn_in": e.burn_in,
+                         "thin": e.thin, "tau": e.tau}}
+
+
+def _runs_record(runs: Any, trials: list[Any], margin: float, scale: float
+                 ) -> dict[str, Any]:
+    """The runs in the engine, JSON-ready (steps in the time unit times the margin; drifts
+    in kT per ps per degree of freedom)."""
+    from stepsafe.systems.md.thermal import THERMALISATION, confirm_seeds
+
+    def trial(t: Any) -> dict[str, Any]:
+        drift, error = t.record.drift()
+        return {"h": margin * t.h / scale, "stage": t.stage, "verdict": t.verdict,
+                "seeds": [r.seed for r in t.record.runs],
+                "drift": drift if math.isfinite(drift) else None,
+                "drift_error": error if math.isfinite(error) else None,
+                "runs": [{"seed": r.seed, "blew_up": r.blew_up, "step": r.blowup_step,
+                          "reason": r.reason} for r in t.record.runs]}
+
+    return {"engine": "OpenMM", "integrator": runs.integrator,
+            "temperature": runs.temperature, "seeds": list(runs.seeds),
+            "confirm_seeds": list(confirm_seeds(runs.seeds)), "duration": runs.duration,
+            "thermalisation": THERMALISATION, "friction": runs.friction,
+            "drift_tolerance": runs.tolerance, "energy_bound": 0.5,
+            "trials": [trial(t) for t in trials]}
+
+
+def engine_limit_record(r: Any, margin: float, scale: float) -> dict[str, Any]:
+    """An :class:`~stepsafe.systems.md.thermal.EngineThermalLimit`, JSON-ready in the time
+    unit (steps times the margin), with the keys of :func:`limit_record`."""
+    def step(x: float | None) -> float | None:
+        return None if x is None else margin * x / scale
+
+    found = r.scan
+    runs = _runs_record(found.runs, list(found.trials), margin, scale)
+    drift = error = None
+    if found.confirmed is not None:
+        d, e = found.confirmed.drift()
+        drift = d if math.isfinite(d) else None
+        error = e if math.isfinite(e) else None
+    runs.update(h_clear=step(found.h_clear), h_fail=step(found.h_fail), drift=drift,
+                drift_error=error,
+                confirmed_seeds=[] if found.confirmed is None
+                else [x.seed for x in found.confirmed.runs])
+    return {"at": ENGINE_AT, "h_max": step(r.h_max), "limited_by": r.limited_by,
+            "h_range": [step(r.h_range[0]), step(r.h_range[1])], "h_zero": step(r.h_zero),
+            "omega_zero": r.omega_zero * scale, "z_star": r.z_star,
+            "h_linear": step(r.linear.h_linear), "h_band": None, "h_drift": None,
+            "frequencies": _engine_frequencies(r.linear, scale), "scans": [], "drift": None,
+            "seed": int(found.runs.seeds[0]), "notes": list(r.notes), "engine_runs": runs}

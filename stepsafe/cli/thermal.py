@@ -88,21 +88,62 @@ def print_thermal_advice(data: dict[str, Any]) -> None:
         click.echo(click.style("Safe", fg="green") + f": 0 < h < {_below(t['h_max'])}{u}, "
                    "the 0 K limit (no band or thermal frequency below it)")
     else:
+        where = ("" if t["minima"] and "engine_runs" in t["minima"][0]
+                 else f" at the minimum {printable(t['at'])}")
         click.echo(click.style("Safe", fg="green") + f": 0 < h < {_below(t['h_max'])}{u}, "
-                   f"limited by the {t['limited_by']} at the minimum {printable(t['at'])} "
-                   f"(at 0 K: {zero})")
+                   f"limited by the {t['limited_by']}{where} (at 0 K: {zero})")
     for m in t["minima"]:
         _print_minimum(m, u, data.get("margin", 1.0))
     for note in t.get("notes", ()):
         click.echo(f"  note: {printable(note)}")
+    if t["minima"] and "engine_runs" in t["minima"][0]:
+        click.echo(f"  Reproducible: seeds stated; {_ENGINE_REPRODUCIBLE}.")
+        return
     click.echo(f"  Reproducible: every draw seeded ({t['seed']}); the failure criterion: "
                + (t["minima"][0]["scans"][0]["failure"] if t["minima"] and
                   t["minima"][0]["scans"] else "none") + ".")
 
 
+#: How an engine's runs are reproduced.
+_ENGINE_REPRODUCIBLE = ("the engine's runs are on its CPU platform with one thread, the same "
+                        "on one machine")
+
+
+def _seeds(seeds: list[int]) -> str:
+    return ", ".join(str(k) for k in seeds)
+
+
+def _print_engine_runs(r: dict[str, Any], u: str, indent: str) -> None:
+    """The runs of the user's integrator in the engine: what they are, each step run, and
+    the drift where they passed."""
+    click.echo(f"{indent}runs of {r['integrator']} in {r['engine']} at {_g(r['temperature'])} "
+               f"K: {_g(r['duration'])} ps each after {_g(r['thermalisation'])} ps of "
+               f"thermalisation; a step fails when a seed blows up (non-finite energy, or "
+               f"the total energy moves by more than {_g(r['energy_bound'])} n_dof kT) or "
+               f"the mean drift exceeds {_g(r['drift_tolerance'])} kT/ps per degree of "
+               "freedom")
+    for t in r["trials"]:
+        blown = [x for x in t["runs"] if x["blew_up"]]
+        how = "; ".join(f"seed {x['seed']} by step {x['step']}" if x["step"] is not None
+                        else f"seed {x['seed']}: {x['reason']}" for x in blown)
+        drift = "" if t["drift"] is None else f", drift {t['drift']:.2g}" + (
+            "" if t["drift_error"] is None else f" +- {t['drift_error']:.1g}")
+        click.echo(f"{indent}  h = {_g(t['h'])}{u} ({t['stage']}; seeds "
+                   f"{_seeds(t['seeds'])}): {t['verdict']}" + (f" ({how})" if how else "")
+                   + drift)
+    if r.get("h_clear") is not None:
+        fail = "" if r["h_fail"] is None else f", fail at {_g(r['h_fail'])}{u}"
+        drift = "" if r["drift"] is None else (
+            f"; drift there {r['drift']:.2g}" + ("" if r["drift_error"] is None else
+                                                 f" +- {r['drift_error']:.1g}")
+            + " kT/ps per degree of freedom")
+        click.echo(f"{indent}passed up to h = {_g(r['h_clear'])}{u} in every seed "
+                   f"({_seeds(r['confirmed_seeds'])}){fail}{drift}")
+
+
 def _print_minimum(m: dict[str, Any], u: str, margin: float) -> None:
-    click.echo(f"  minimum at {printable(m['at'])}: h < {_below(m['h_max'])}{u} "
-               f"({m['limited_by']})")
+    what = printable(m["at"]) if "engine_runs" in m else f"minimum at {printable(m['at'])}"
+    click.echo(f"  {what}: h < {_below(m['h_max'])}{u} ({m['limited_by']})")
     f = m["frequencies"]
     if f is not None:
         click.echo(f"    largest frequency over {f['frames']} thermal frames "
@@ -131,6 +172,8 @@ def _print_minimum(m: dict[str, Any], u: str, margin: float) -> None:
                        f"{u} ({sc['target']}: {sc['trajectories']} trajectories x "
                        f"{sc['steps']} steps)")
     _print_drift(m.get("drift"), u, "    ")
+    if "engine_runs" in m:
+        _print_engine_runs(m["engine_runs"], u, "    ")
     for note in m["notes"]:
         click.echo(f"    note: {printable(note)}")
 
@@ -160,7 +203,8 @@ def print_thermal_check(entry: dict[str, Any]) -> None:
         f = m["frequencies"]
         lim = "" if m["h_linear"] is None else \
             f"; linear limit at temperature h < {_below(m['h_linear'])}{u}"
-        click.echo(f"  minimum at {printable(m['at'])}: 0 K limit h < "
+        what = printable(m["at"]) if "engine_runs" in m else f"minimum at {printable(m['at'])}"
+        click.echo(f"  {what}: 0 K limit h < "
                    f"{_below(m['h_zero'])}{u}{lim}")
         if f is not None:
             click.echo(f"    (a run of {f['run_frames']:.3g} frames reaches frequency "
@@ -171,6 +215,11 @@ def print_thermal_check(entry: dict[str, Any]) -> None:
                        f"trajectories failed in {p['steps']} steps ({p['verdict']}; failure "
                        f"probability {p['lower']:.2g} to {p['upper']:.2g})")
         _print_drift(m.get("drift"), u, "    ")
+        if "engine_runs" in m:
+            _print_engine_runs(m["engine_runs"], u, "    ")
     for note in t.get("notes", ()):
         click.echo(f"  note: {printable(note)}")
+    if t["minima"] and "engine_runs" in t["minima"][0]:
+        click.echo(f"  Reproducible: seeds stated; {_ENGINE_REPRODUCIBLE}.")
+        return
     click.echo(f"  Reproducible: every draw seeded ({t['seed']}).")

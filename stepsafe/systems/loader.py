@@ -57,6 +57,9 @@ class SystemReport(NamedTuple):
     engine_check: Callable[[str, float], dict[str, Any]] | None = None
     #: the ``system:`` mapping as given (what the analysis at temperature integrates)
     tree: Any = None
+    #: an MD engine's system: its analysis (:class:`stepsafe.systems.md.system.MDAnalysis`,
+    #: with the engine the analysis at temperature samples and runs); None for other systems
+    md: Any = None
 
 
 def _fail(where: str, path: str, message: str) -> StepsafeError:
@@ -249,7 +252,7 @@ def _md_system(tree: dict, where: str, folder: Path, time_unit: str | None,
             modes.append(LinearMode(top, "inverted", complex(-bound), False, 2 * EPS))
             sources.append(-1)
     report = _report_modes(tuple(modes), _md_analysis(result), notes,
-                           primary_only=not result.complete)
+                           primary_only=not result.complete)._replace(tree=tree, md=result)
     if chosen.runs is not None:
         report = report._replace(engine_check=lambda name, h: md.engine_check(
             result, name, h * scale))

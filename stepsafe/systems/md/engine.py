@@ -27,7 +27,7 @@ an acceleration in nm/ps^2 with no conversion factor.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -195,6 +195,28 @@ class ForceEngine(Protocol):
 
     def energy(self, positions: np.ndarray) -> float:
         """The potential energy U in kJ/mol at ``positions`` (N, 3) nm."""
+        ...
+
+
+@runtime_checkable
+class DynamicsEngine(ForceEngine, Protocol):
+    """A :class:`ForceEngine` that also runs its own integrators: what the analysis at
+    temperature needs (:mod:`~stepsafe.systems.md.thermal`). Specifications and records are
+    those of :mod:`~stepsafe.systems.md.enginerun`."""
+
+    def on_constraints(self, positions: np.ndarray) -> np.ndarray:
+        """(N, 3) positions put on the constraints to the engine's tightest tolerance (and
+        virtual sites placed): where a Hessian can be taken."""
+        ...
+
+    def thermal_frames(self, spec: Any) -> np.ndarray:
+        """Configurations ``(seeds, frames, N, 3)`` nm of the engine's own Langevin dynamics
+        at temperature (a ``SamplingSpec``), from :attr:`positions`."""
+        ...
+
+    def trials(self, spec: Any, progress: Any = None) -> Any:
+        """Runs of the engine's integrator from thermal states (a ``TrialSpec``; returns a
+        ``TrialRecord``)."""
         ...
 
 

@@ -122,6 +122,44 @@ class TrialSpec:
 
 
 @dataclass(frozen=True)
+class SamplingSpec:
+    """Configurations at temperature from the engine's own Langevin dynamics (units: ps, K,
+    1/ps): per seed, velocities drawn at ``temperature``, ``thermalisation`` steps of
+    ``LangevinMiddle`` (friction ``friction``, step ``step``), then ``frames`` frames
+    ``spacing`` steps apart. Chains of different seeds are independent.
+
+    Attributes
+    ----------
+    temperature : float
+    step : float
+    friction : float
+    thermalisation : int
+        Steps before the first frame.
+    spacing : int
+        Steps between frames.
+    frames : int
+        Frames per seed.
+    seeds : tuple of int
+    """
+
+    temperature: float
+    step: float
+    friction: float
+    thermalisation: int
+    spacing: int
+    frames: int
+    seeds: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        for name in ("temperature", "step", "friction"):
+            positive_finite(getattr(self, name), name)
+        if min(self.thermalisation, self.spacing, self.frames) < 1:
+            raise StepsafeError("thermalisation, spacing and frames must be at least 1")
+        if not self.seeds or len(set(self.seeds)) != len(self.seeds):
+            raise StepsafeError("seeds must be distinct, at least one")
+
+
+@dataclass(frozen=True)
 class SeedRun:
     """One seed's run.
 

@@ -42,6 +42,7 @@ from stepsafe.systems.md.engine import (
     engine_missing,
     mobile_particles,
 )
+from stepsafe.systems.md.enginerun import SamplingSpec, TrialRecord, TrialSpec, run_trials
 
 #: Relative tolerance (a fraction of each constrained distance) to which positions are put on
 #: the constraints when an engine is built.
@@ -334,6 +335,83 @@ class OpenMMEngine:
                     values.append(theta.value_in_unit(unit.radian))
         return (lengths, np.array(angles, dtype=np.int64).reshape(-1, 3),
                 np.array(values, dtype=float))
+
+    def on_constraints(self, positions: Any) -> np.ndarray:
+        """``positions`` (N, 3) nm put on the constraints (``Context.applyConstraints`` to
+        :data:`CONSTRAINT_TOLERANCE`) with the virtual sites placed: a configuration of
+        another platform's run (single precision) made one the Hessian can be taken at."""
+        x = as_positions(positions, self.n_particles)
+        self._context.setPositions(x)
+        if len(self._constraints):
+            self._context.applyConstraints(CONSTRAINT_TOLERANCE)
+        self._context.computeVirtualSites()
+        return np.array(self._context.getState(getPositions=True).getPositions(
+            asNumpy=True)._value, dtype=float)
+
+    def thermal_frames(self, spec: SamplingSpec) -> np.ndarray:
+        """Configurations at temperature from OpenMM's own ``LangevinMiddleIntegrator``
+        (:class:`~stepsafe.systems.md.enginerun.SamplingSpec`: per seed, velocities drawn at
+        T, ``thermalisation`` steps, then a frame every ``spacing`` steps), on the CPU
+        platform with one thread where there is one (else this engine's platform), started
+        from :attr:`positions`.
+
+        Parameters
+        ----------
+        spec : SamplingSpec
+
+        Returns
+        -------
+        ndarray, shape (seeds, frames, N, 3)
+            Positions in nm.
+        """
+        mm = _openmm()
+        try:
+            platform, properties = _platform("CPU", 1)
+        except StepsafeError:
+            platform, properties = _platform(self.platform_name, self.threads)
+        out = np.empty((len(spec.seeds), spec.frames, self.n_particles, 3))
+        for s, seed in enumerate(spec.seeds):
+            integrator = mm.LangevinMiddleIntegrator(float(spec.temperature),
+                                                     float(spec.friction), float(spec.step))
+            integrator.setRandomNumberSeed(int(seed))
+            context = mm.Context(self.system, integrator, platform, properties)
+            if self._box is not None:
+                b = np.asarray(self._box, dtype=float).reshape(3, 3)
+                context.setPeriodicBoxVectors(*(mm.Vec3(*row) for row in b))
+            context.setPositions(self._positions)
+            if len(self._constraints):
+                context.applyConstraints(1e-8)
+            context.setVelocitiesToTemperature(float(spec.temperature), int(seed))
+            try:
+                integrator.step(int(spec.thermalisation))
+                for k in range(spec.frames):
+                    integrator.step(int(spec.spacing))
+                    state = context.getState(getPositions=True, getEnergy=True)
+                    if not math.isfinite(state.getPotentialEnergy()._value):
+                        raise ArithmeticError("non-finite energy")
+                    out[s, k] = state.getPositions(asNumpy=True)._value
+            except Exception as exc:
+                raise StepsafeError(
+                    f"the thermal sampling (LangevinMiddle at {spec.step:g} ps, seed {seed}) "
+                    f"failed: {str(exc).splitlines()[0][:60]}") from None
+            del context, integrator
+        return out
+
+    def trials(self, spec: TrialSpec, progress: Any = None) -> TrialRecord:
+        """Runs of OpenMM's own integrator from thermal states of this configuration
+        (:func:`~stepsafe.systems.md.enginerun.run_trials`, one process per seed).
+
+        Parameters
+        ----------
+        spec : TrialSpec
+        progress : callable, optional
+            ``progress("trials", seeds_done, seeds)``.
+
+        Returns
+        -------
+        TrialRecord
+        """
+        return run_trials(self.system_xml(), self.state_xml(), spec, progress=progress)
 
     def system_xml(self) -> str:
         """The System, serialized (``XmlSerializer``)."""

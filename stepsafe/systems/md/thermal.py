@@ -1,0 +1,483 @@
+"""Safe at temperature for an MD engine's system: the largest step of the user's integrator at
+temperature T, from the engine's own thermal states and runs.
+
+With harmonic bonds the potential of a molecule is anharmonic only through its couplings
+(bond lengths against angles, neighbours against each other), and the instability a hot system
+meets below the linear limit comes from those couplings: a 1-D profile along a mode of the
+minimum misses it. So here everything at temperature comes from the engine (units: nm, amu, ps,
+kJ/mol, K; :class:`~stepsafe.systems.md.engine.DynamicsEngine`):
+
+1. **Thermal snapshots** (:class:`~stepsafe.systems.md.enginerun.SamplingSpec`): per seed of
+   :data:`SAMPLING_SEEDS`, the engine's LangevinMiddle at the conservative step
+   ``Z_SAMPLE / omega_0`` (``omega_0`` the largest frequency at the configuration analysed,
+   upper end of its error), friction :data:`FRICTION`, :data:`THERMALISATION` ps of
+   thermalisation, then :data:`FRAMES` frames :data:`SPACING` ps apart.
+2. **Instantaneous frequencies**: at each snapshot (put on the constraints) the largest
+   eigenvalue ``lambda`` of the mass-weighted Hessian on the constraints' tangent space, by
+   Lanczos on finite-difference Hessian-vector products
+   (:mod:`~stepsafe.systems.md.hessian`, :mod:`~stepsafe.systems.md.constraints`; the step of
+   the differences chosen at the first snapshot), and ``omega = sqrt(lambda + error)``. The
+   value a run of length L reaches: the ``1 - 1/N`` quantile of their distribution,
+   ``N = L omega_0 / pi`` frames (one per half period of the fastest mode), with its upper
+   confidence bound (:func:`~stepsafe.systems.thermal.extremes.run_extreme`, chains = seeds).
+   The **linear limit at temperature** is ``z* / omega_q`` (``z*`` the end of the method's
+   interval from 0 on the oscillator), never above the 0 K limit ``z* / omega_0``.
+3. **Runs of the user's integrator in the engine** (:mod:`~stepsafe.systems.md.enginerun`:
+   per seed, 1 ps of thermalisation, then :data:`DURATION` ps or the user's run if shorter):
+   a step *fails* when a seed blows up (a non-finite energy, the engine stopping, or the total
+   energy moving by more than half of n_dof kT) or, for Verlet, the mean energy drift exceeds
+   :data:`~stepsafe.systems.md.enginerun.DRIFT_TOLERANCE` kT per ps per degree of freedom.
+   First at ``TOP h_linear``; if it fails, from ``LOW h_linear`` (halved until it passes) by
+   bisection to a relative width :data:`RESOLUTION`. The largest step found to pass is then
+   confirmed with as many other seeds (:func:`confirm_seeds`); a step that fails there is
+   lowered by :data:`RESOLUTION` and confirmed again.
+
+``h_max`` is the smaller of the linear limit at temperature (``limited_by`` ``"linear at
+temperature"``) and the confirmed step (``"<engine> runs"``), with the drift measured there.
+A check at h fails above the linear limit at temperature, or when a run at h itself (every
+seed, the confirmation's too) fails. The runs are statistical: a step found to pass in these
+seeds over these durations may fail in a longer run; the record states both.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from stepsafe.exceptions import StepsafeError, positive_finite
+from stepsafe.systems.md.constraints import constrained_modes
+from stepsafe.systems.md.engine import MOLAR_GAS_CONSTANT
+from stepsafe.systems.md.enginerun import (
+    DRIFT_TOLERANCE,
+    SamplingSpec,
+    TrialRecord,
+    TrialSpec,
+)
+from stepsafe.systems.md.hessian import HessianVectorProduct, extreme_eigenvalues
+from stepsafe.systems.md.system import eigenvalue_errors
+from stepsafe.systems.thermal.extremes import RunExtreme, run_extreme
+from stepsafe.systems.thermal.inm import Frequencies
+from stepsafe.systems.thermal.limit import AtTemperature
+from stepsafe.systems.thermal.sampling import Ensemble
+
+#: The sampling step in units of the fastest 0 K period: ``h = Z_SAMPLE / omega_0`` (0.5 fs for
+#: an O-H stretch).
+Z_SAMPLE = 0.35
+#: Friction of the sampling Langevin dynamics, 1/ps.
+FRICTION = 10.0
+#: Thermalisation before the first frame, ps.
+THERMALISATION = 1.0
+#: Time between frames, ps.
+SPACING = 0.025
+#: Frames per seed, and the seeds of the sampling chains.
+FRAMES = 30
+SAMPLING_SEEDS = (1, 2, 3, 4)
+#: Seeds of the runs of the user's integrator, and their length at most (ps).
+SEEDS = (1, 2, 3)
+DURATION = 2.0
+#: Friction of the user's LangevinMiddle in the runs, 1/ps (when the method is one).
+RUN_FRICTION = 1.0
+#: The runs start at this fraction of the linear limit at temperature ...
+TOP = 0.999
+#: ... and, when that fails, the bisection starts from this fraction.
+LOW = 0.7
+#: The bisection stops when its bracket is this narrow (relative).
+RESOLUTION = 0.02
+#: Lowerings of the step after a failed confirmation, and halvings of LOW, at most.
+LOWERINGS = 4
+#: Lanczos's relative tolerance at the snapshots (its residual is added to the error).
+LANCZOS_TOL = 1e-6
+
+Progress = Callable[[str, float], None]
+
+
+def confirm_seeds(seeds: tuple[int, ...]) -> tuple[int, ...]:
+    """As many seeds again, none of ``seeds``: ``max + 1, max + 2, ...``."""
+    top = max(seeds)
+    return tuple(top + 1 + k for k in range(len(seeds)))
+
+
+@dataclass(frozen=True)
+class Runs:
+    """What the runs of the user's integrator are (units: ps, K, 1/ps).
+
+    Attributes
+    ----------
+    integrator : str
+        The engine's integrator (``verlet`` or ``langevin-middle``).
+    temperature : float
+    seeds : tuple of int
+        Of the bisection; the confirmation adds :func:`confirm_seeds`.
+    duration : float
+        Each run's production length.
+    friction : float
+        Of the user's LangevinMiddle.
+    tolerance : float
+        Verlet's drift tolerance, kT per ps per degree of freedom.
+    """
+
+    integrator: str
+    temperature: float
+    seeds: tuple[int, ...] = SEEDS
+    duration: float = DURATION
+    friction: float = RUN_FRICTION
+    tolerance: float = DRIFT_TOLERANCE
+
+    def spec(self, h: float, seeds: tuple[int, ...], equilibration_step: float) -> TrialSpec:
+        return TrialSpec(self.integrator, h, self.duration, temperature=self.temperature,
+                         friction=self.friction, seeds=seeds, equilibration=THERMALISATION,
+                         equilibration_step=equilibration_step)
+
+
+@dataclass(frozen=True)
+class Trial:
+    """The runs at one step (ps): ``passed`` when no seed blew up and (Verlet) the mean
+    drift is within ``tolerance`` kT per ps per degree of freedom; ``stage`` says why the
+    step was run."""
+
+    h: float
+    record: TrialRecord
+    passed: bool
+    stage: str
+    tolerance: float = DRIFT_TOLERANCE
+
+    @property
+    def verdict(self) -> str:
+        """``"stable"``, ``"drifts"`` or ``"blew up"``."""
+        return self.record.verdict(self.tolerance)
+
+
+@dataclass(frozen=True)
+class Scan:
+    """The runs that placed the step limit, in the order made.
+
+    Attributes
+    ----------
+    runs : Runs
+    trials : tuple of Trial
+    h_clear : float
+        The largest step that passed, confirmed (0: none).
+    h_fail : float or None
+        The smallest step that failed (None: none failed).
+    confirmed : TrialRecord or None
+        Every seed's run at ``h_clear`` (bisection and confirmation seeds).
+    """
+
+    runs: Runs
+    trials: tuple[Trial, ...]
+    h_clear: float
+    h_fail: float | None
+    confirmed: TrialRecord | None
+
+
+@dataclass(frozen=True)
+class EngineThermalLimit:
+    """The step limit at temperature of an engine's system (module docstring; ps).
+
+    Attributes
+    ----------
+    temperature, kT : float
+        K and kJ/mol.
+    z_star, omega_zero, h_zero : float
+        The method's interval, the largest frequency at the configuration (rad/ps), and the
+        0 K limit ``z* / omega_zero``.
+    linear : AtTemperature
+        The frequencies at the snapshots and the linear limit at temperature.
+    h_max : float
+    limited_by : str
+    h_range : tuple of float
+        ``(h_max, h_high)``: where the limit lies (the smallest failing step, or the linear
+        limit at the quantile's point estimate).
+    scan : Scan or None
+        The runs (None when the method preserves no oscillator).
+    run_length : float
+        The user's run, ps.
+    notes : tuple of str
+    """
+
+    temperature: float
+    kT: float
+    z_star: float
+    omega_zero: float
+    h_zero: float
+    linear: AtTemperature
+    h_max: float
+    limited_by: str
+    h_range: tuple[float, float]
+    scan: Scan | None
+    run_length: float
+    notes: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class EngineThermalCheck:
+    """The verdict on one step at temperature (ps): ``safe`` False at or above the linear
+    limit at temperature, or when a run at h fails; ``reasons`` says which."""
+
+    h: float
+    safe: bool
+    reasons: tuple[str, ...]
+    temperature: float
+    kT: float
+    z_star: float
+    omega_zero: float
+    h_zero: float
+    linear: AtTemperature
+    trial: Trial | None
+    runs: Runs
+    run_length: float
+    notes: tuple[str, ...] = ()
+
+
+def _stage(progress: Progress | None, stage: str) -> Callable[[float], None]:
+    if progress is None:
+        return lambda f: None
+    return lambda f: progress(stage, f)
+
+
+def sampling_spec(temperature: float, omega_zero: float) -> SamplingSpec:
+    """The sampling of step 1 (module docstring) for a system whose fastest 0 K frequency is
+    ``omega_zero`` rad/ps."""
+    step = Z_SAMPLE / omega_zero
+    return SamplingSpec(temperature, step, FRICTION, max(1, round(THERMALISATION / step)),
+                        max(1, round(SPACING / step)), FRAMES, SAMPLING_SEEDS)
+
+
+def snapshot_frequencies(engine, spec: SamplingSpec, progress: Progress | None = None
+                         ) -> tuple[Frequencies, Ensemble]:
+    """The largest eigenvalue of the constrained mass-weighted Hessian at each snapshot of
+    the engine's Langevin dynamics, with its error (residual plus finite-difference
+    estimate), rad^2/ps^2; and the snapshots as an :class:`Ensemble` (rows: the flattened
+    positions, nm; chains: the seeds)."""
+    frames = engine.thermal_frames(spec)
+    _stage(progress, "sampling")(1.0)
+    seeds, count = frames.shape[:2]
+    cons = engine.constraints
+    lam = np.empty(seeds * count)
+    err = np.empty(seeds * count)
+    step = None
+    report = _stage(progress, "frequencies")
+    for k, x in enumerate(frames.reshape(seeds * count, *frames.shape[2:])):
+        hvp = HessianVectorProduct(engine, engine.on_constraints(x), step=step)
+        if step is None:
+            step = hvp.fd.step
+        if len(cons):
+            sp = constrained_modes(hvp, cons, k=1, tol=LANCZOS_TOL, which="largest")
+        else:
+            sp = extreme_eigenvalues(hvp, hvp.dim, k=1, which="largest", tol=LANCZOS_TOL,
+                                     with_error=hvp.with_error, particles=hvp.particles)
+        lam[k], err[k] = float(sp.eigenvalues[0]), float(sp.errors[0])
+        report((k + 1) / lam.size)
+    if not (np.all(np.isfinite(lam)) and np.all(np.isfinite(err))):
+        raise StepsafeError("the Hessian is not finite at a thermal snapshot")
+    how = ("Lanczos on finite-difference Hessian-vector products" +
+           (" on the constraints' tangent space" if len(cons) else "") +
+           f" (step {step:.2g} nm, chosen at the first snapshot)")
+    frequencies = Frequencies(lam, np.full(lam.size, np.nan), err, how, None)
+    chain = np.repeat(np.arange(seeds), count)
+    kT = MOLAR_GAS_CONSTANT * spec.temperature
+    ensemble = Ensemble(frames.reshape(seeds * count, -1), chain, kT,
+                        "LangevinMiddle in the engine", int(spec.seeds[0]), spec.step,
+                        spec.friction, spec.thermalisation, spec.spacing, None, seeds)
+    return frequencies, ensemble
+
+
+def linear_at_temperature(engine, temperature: float, z_star: float, omega_zero: float,
+                          run_length: float, progress: Progress | None = None,
+                          confidence: float = 0.95) -> AtTemperature:
+    """Steps 1 and 2 of the module docstring: ``z* / omega_q`` in ps (never above
+    ``z* / omega_zero``) with what it rests on."""
+    spec = sampling_spec(temperature, omega_zero)
+    frequencies, ensemble = snapshot_frequencies(engine, spec, progress)
+    run_frames = max(1.0, run_length * omega_zero / math.pi)
+    omega: RunExtreme = run_extreme(frequencies.omega_max_upper, run_frames, ensemble.chain,
+                                    confidence=confidence, seed=0)
+    h_zero = z_star / omega_zero
+    h_linear = min(h_zero, z_star / omega.upper) if omega.upper > 0 else h_zero
+    return AtTemperature(h_linear, omega, frequencies, ensemble, run_frames)
+
+
+def _trial(engine, runs: Runs, h: float, seeds: tuple[int, ...], eq_step: float,
+           stage: str) -> Trial:
+    record = engine.trials(runs.spec(h, seeds, eq_step))
+    return Trial(h, record, record.verdict(runs.tolerance) == "stable", stage,
+                 runs.tolerance)
+
+
+def scan(engine, runs: Runs, h_linear: float, eq_step: float,
+         progress: Progress | None = None) -> Scan:
+    """Step 3 of the module docstring: the largest step below ``TOP h_linear`` whose runs
+    pass, confirmed with other seeds."""
+    report = _stage(progress, "runs")
+    trials: list[Trial] = []
+
+    def attempt(h: float, seeds: tuple[int, ...], stage: str) -> Trial:
+        t = _trial(engine, runs, h, seeds, eq_step, stage)
+        trials.append(t)
+        report(1.0 - 0.5 ** len(trials))
+        return t
+
+    top = TOP * h_linear
+    h_fail: float | None = None
+    first = attempt(top, runs.seeds, "at the linear limit at temperature")
+    clear: Trial | None = first if first.passed else None
+    if clear is None:
+        h_fail = top
+        lo = LOW * h_linear
+        for _ in range(LOWERINGS):
+            t = attempt(lo, runs.seeds, "start of the bisection")
+            if t.passed:
+                clear = t
+                break
+            h_fail, lo = lo, 0.5 * lo
+        if clear is None:
+            return Scan(runs, tuple(trials), 0.0, h_fail, None)
+        while h_fail / clear.h - 1.0 > RESOLUTION:
+            t = attempt(0.5 * (clear.h + h_fail), runs.seeds, "bisection")
+            if t.passed:
+                clear = t
+            else:
+                h_fail = t.h
+    others = confirm_seeds(runs.seeds)
+    for _ in range(LOWERINGS):
+        c = attempt(clear.h, others, "confirmation (other seeds)")
+        if c.passed:
+            both = TrialRecord(c.record.spec, c.record.n_dof, clear.record.runs + c.record.runs)
+            report(1.0)
+            return Scan(runs, tuple(trials), clear.h, h_fail, both)
+        h_fail = clear.h
+        lower = clear.h * (1.0 - RESOLUTION)
+        clear = attempt(lower, runs.seeds, "below a failed confirmation")
+        while not clear.passed and len(trials) < 4 * LOWERINGS + 16:
+            h_fail = clear.h
+            clear = attempt(clear.h * (1.0 - RESOLUTION), runs.seeds,
+                            "below a failed confirmation")
+    return Scan(runs, tuple(trials), 0.0, h_fail, None)
+
+
+def _zero(analysis, z_star: float) -> tuple[float, float]:
+    """``omega_0`` (the upper end of the largest eigenvalue's error, rad/ps) and
+    ``h_zero = z* / omega_0``."""
+    lam = float(analysis.spectrum.eigenvalues[0]) + float(eigenvalue_errors(analysis)[0])
+    if not lam > 0:
+        raise StepsafeError("the configuration has no vibration (omega^2 <= 0): no analysis "
+                            "at temperature")
+    omega = math.sqrt(lam)
+    return omega, z_star / omega
+
+
+def _runs_note(runs: Runs, run_length: float) -> tuple[str, ...]:
+    if run_length <= runs.duration * (1 + 1e-12):
+        return ()
+    return (f"the runs in the engine last {runs.duration:g} ps of the run's "
+            f"{run_length:.3g} ps: failures that take longer to develop are not excluded",)
+
+
+def thermal_limit(analysis, runs: Runs, z_star: float, run_length: float,
+                  progress: Progress | None = None, engine_name: str = "engine"
+                  ) -> EngineThermalLimit:
+    """The largest step at temperature (module docstring).
+
+    Parameters
+    ----------
+    analysis : MDAnalysis
+        The 0 K analysis (:func:`stepsafe.systems.md.system.analyse`): its engine (a
+        :class:`~stepsafe.systems.md.engine.DynamicsEngine`) and its largest frequency.
+    runs : Runs
+        The user's integrator, the temperature, seeds and durations.
+    z_star : float
+        The end of the method's interval from 0 on the oscillator (> 0).
+    run_length : float
+        The user's run, ps (how far into the frequencies' tail it reaches).
+    progress : callable, optional
+        ``progress(stage, fraction)``.
+    engine_name : str
+        For ``limited_by`` (``"OpenMM runs"``).
+
+    Returns
+    -------
+    EngineThermalLimit
+    """
+    z_star = positive_finite(z_star, "z_star")
+    run_length = positive_finite(run_length, "length")
+    omega_zero, h_zero = _zero(analysis, z_star)
+    engine = analysis.engine
+    kT = MOLAR_GAS_CONSTANT * runs.temperature
+    linear = linear_at_temperature(engine, runs.temperature, z_star, omega_zero, run_length,
+                                   progress)
+    found = scan(engine, runs, linear.h_linear, min(0.5 * h_zero, linear.ensemble.h or h_zero),
+                 progress)
+    omega_point = linear.omega.estimate
+    h_high = min(h_zero, z_star / omega_point) if omega_point > 0 else h_zero
+    notes = list(_runs_note(runs, run_length))
+    if found.h_clear >= TOP * linear.h_linear:
+        h_max, limited_by = linear.h_linear, "linear at temperature"
+    else:
+        h_max, limited_by = found.h_clear, f"{engine_name} runs"
+        h_high = found.h_fail if found.h_fail is not None else h_high
+        if found.h_clear == 0:
+            notes.append(f"every run failed down to {found.trials[-1].h:.4g} ps")
+    return EngineThermalLimit(runs.temperature, kT, z_star, omega_zero, h_zero, linear, h_max,
+                              limited_by, (h_max, max(h_max, h_high)), found, run_length,
+                              tuple(notes))
+
+
+def thermal_check(analysis, runs: Runs, z_star: float, h: float, run_length: float,
+                  progress: Progress | None = None) -> EngineThermalCheck:
+    """Whether the step h (ps) is safe at temperature: below the linear limit at
+    temperature, and every run at h (the seeds and the confirmation's) passes.
+
+    Parameters
+    ----------
+    analysis, runs, z_star, run_length, progress
+        As for :func:`thermal_limit` (``run_length`` at the step h).
+    h : float
+        The step, ps.
+
+    Returns
+    -------
+    EngineThermalCheck
+    """
+    h = positive_finite(h, "h")
+    z_star = positive_finite(z_star, "z_star")
+    run_length = positive_finite(run_length, "length")
+    omega_zero, h_zero = _zero(analysis, z_star)
+    engine = analysis.engine
+    kT = MOLAR_GAS_CONSTANT * runs.temperature
+    linear = linear_at_temperature(engine, runs.temperature, z_star, omega_zero, run_length,
+                                   progress)
+    reasons: list[str] = []
+    trial = None
+    if h >= linear.h_linear:
+        reasons.append("above the linear limit at temperature")
+    else:
+        seeds = runs.seeds + confirm_seeds(runs.seeds)
+        trial = _trial(engine, runs, h, seeds,
+                       min(0.5 * h_zero, linear.ensemble.h or h_zero), "at the step")
+        _stage(progress, "runs")(1.0)
+        if not trial.passed:
+            reasons.append(f"the runs in the engine at h: {trial_summary(trial, runs)}")
+    return EngineThermalCheck(h, not reasons, tuple(reasons), runs.temperature, kT, z_star,
+                              omega_zero, h_zero, linear, trial, runs, run_length,
+                              _runs_note(runs, run_length))
+
+
+def trial_summary(trial: Trial, runs: Runs) -> str:
+    """One line: the verdict, which seeds failed and how, or the drift."""
+    record = trial.record
+    head = (f"{runs.integrator}, {len(record.runs)} seeds of {runs.duration:g} ps: "
+            f"{trial.verdict}")
+    blown = [r for r in record.runs if r.blew_up]
+    if blown:
+        return head + " (" + "; ".join(
+            f"seed {r.seed} by step {r.blowup_step}" if r.blowup_step is not None
+            else f"seed {r.seed}: {r.reason}" for r in blown) + ")"
+    drift, error = record.drift()
+    if math.isfinite(drift):
+        e = f" +- {error:.1g}" if math.isfinite(error) else ""
+        return head + (f" (drift {drift:.2g}{e} kT/ps per degree of freedom, tolerance "
+                       f"{runs.tolerance:g})")
+    return head
