@@ -458,41 +458,55 @@ def test_degrees_of_freedom_from_the_system_xml():
         er.degrees_of_freedom("<System")
 
 
-def fake_run(result, returncode=0):
-    def run(*args, **kwargs):
-        out = result if isinstance(result, str) else json.dumps(result)
-        return subprocess.CompletedProcess(args, returncode, out, "boom")
-    return run
+def worker(script):
+    """An engine process running the Python ``script`` in place of OpenMM's worker."""
+    return er.TrialWorker(command=[sys.executable, "-c", script])
 
 
-def test_a_crashed_engine_process_counts_as_a_blow_up(monkeypatch):
-    monkeypatch.setattr(er.subprocess, "run", fake_run("", returncode=-11))
-    rec = er.run_trials(SYSTEM_XML, "<State/>", er.TrialSpec("verlet", 0.001, 0.1, seeds=(4,)))
+def test_a_crashed_engine_process_counts_as_a_blow_up_and_is_started_again(tmp_path):
+    """The process kills itself with SIGSEGV on its first job (a marker file says so) and
+    answers the next: the first seed is a blow-up naming the signal, the second is run."""
+    marker = tmp_path / "crashed"
+    script = (f"import json, os, signal, sys\nmarker = {str(marker)!r}\n"
+              "for line in sys.stdin:\n"
+              "    if not os.path.exists(marker):\n"
+              "        open(marker, 'w').close(); os.kill(os.getpid(), signal.SIGSEGV)\n"
+              "    job = json.loads(line)\n"
+              "    print(json.dumps({'seed': job['seed'], 'n_dof': 5, 'blew_up': False, "
+              "'blowup_step': None, 'reason': '', 'equilibrated': True, 'steps_done': 100, "
+              "'times': [0.0, 0.1, 0.2], 'potential': [1.0, 1.0, 1.0], "
+              "'kinetic': [2.0, 2.0, 2.0]}), flush=True)\n")
+    with worker(script) as w:
+        rec = er.run_trials(SYSTEM_XML, "<State/>",
+                            er.TrialSpec("verlet", 0.001, 0.1, seeds=(4, 5)), worker=w)
     assert rec.blew_up and rec.verdict() == "blew up"
     assert "signal 11" in rec.runs[0].reason and rec.n_dof == 5
+    assert not rec.runs[1].blew_up and rec.runs[1].seed == 5
 
 
-def test_engine_errors_and_bugs_are_told_apart(monkeypatch):
+def test_engine_errors_and_bugs_are_told_apart():
     spec = er.TrialSpec("verlet", 0.001, 0.1, seeds=(4,))
-    monkeypatch.setattr(er.subprocess, "run", fake_run({"error": "file::x: bad"}, 2))
-    with pytest.raises(StepsafeError, match="bad"):
-        er.run_trials(SYSTEM_XML, "<State/>", spec)
-    monkeypatch.setattr(er.subprocess, "run", fake_run("Traceback", 1))
-    with pytest.raises(RuntimeError, match="trial run failed"):
-        er.run_trials(SYSTEM_XML, "<State/>", spec)
+    with worker("import sys\nfor line in sys.stdin: print('{\"error\": \"file::x: bad\"}', "
+                "flush=True)") as w:
+        with pytest.raises(StepsafeError, match="bad"):
+            er.run_trials(SYSTEM_XML, "<State/>", spec, worker=w)
+    with worker("raise SystemExit('Traceback')") as w:
+        with pytest.raises(RuntimeError, match="trial run failed"):
+            er.run_trials(SYSTEM_XML, "<State/>", spec, worker=w)
 
 
-def test_drift_is_averaged_over_seeds_in_kT_per_ps_per_dof(monkeypatch):
+def test_drift_is_averaged_over_seeds_in_kT_per_ps_per_dof():
     results = iter([
         {"seed": s, "n_dof": 5, "blew_up": False, "blowup_step": None, "reason": "",
          "equilibrated": True, "steps_done": 100, "times": [0.0, 0.1, 0.2, 0.3],
          "potential": [10 + slope * t for t in (0.0, 0.1, 0.2, 0.3)], "kinetic": [2.0] * 4}
         for s, slope in ((1, 0.5), (2, 1.5))])
-    monkeypatch.setattr(er.subprocess, "run",
-                        lambda *a, **k: subprocess.CompletedProcess(a, 0, json.dumps(next(results)),
-                                                                    ""))
+    class Replies:
+        def run(self, job):
+            return next(results)
+
     spec = er.TrialSpec("verlet", 0.001, 0.3, seeds=(1, 2), temperature=300.0)
-    rec = er.run_trials(SYSTEM_XML, "<State/>", spec)
+    rec = er.run_trials(SYSTEM_XML, "<State/>", spec, worker=Replies())
     kT = er.MOLAR_GAS_CONSTANT * 300.0
     mean, se = rec.drift()
     assert mean == pytest.approx(1.0 / (5 * kT), rel=1e-12)

@@ -214,9 +214,13 @@ class DynamicsEngine(ForceEngine, Protocol):
         at temperature (a ``SamplingSpec``), from :attr:`positions`."""
         ...
 
-    def trials(self, spec: Any, progress: Any = None) -> Any:
+    def trials(self, spec: Any, progress: Any = None, worker: Any = None) -> Any:
         """Runs of the engine's integrator from thermal states (a ``TrialSpec``; returns a
-        ``TrialRecord``)."""
+        ``TrialRecord``), in ``worker`` (from :meth:`trial_worker`) when given."""
+        ...
+
+    def trial_worker(self) -> Any:
+        """A context manager holding what many :meth:`trials` share (an engine process)."""
         ...
 
 

@@ -1,8 +1,9 @@
 """Trial runs of the engine's own integrators: the check of a step-size verdict against the
 engine.
 
-Protocol (per seed, each seed in its own process, because OpenMM's Reference platform can
-crash the process when a run blows up):
+Protocol (per seed, in an engine process of its own, :class:`TrialWorker`, because OpenMM's
+Reference platform can crash the process when a run blows up; a crash counts as a blow-up and
+the process is started again for the next seed):
 
 1. Thermalisation: velocities drawn at temperature T (``setVelocitiesToTemperature`` with the
    seed), then ``equilibration`` ps of ``LangevinMiddleIntegrator(T, equilibration_friction,
@@ -286,9 +287,82 @@ def degrees_of_freedom(system_xml: str) -> int:
     return 3 * sum(1 for m in masses if m > 0) - constraints - (3 if cm else 0)
 
 
+class TrialWorker:
+    """One engine process that runs trial seeds one after the other (JSON lines on its
+    standard input and output: a job per line, a result per line), started again when a run
+    crashes it; one process serves every seed and step of a scan, so the engine's start-up
+    is paid once. Use as a context manager (the process ends on exit)."""
+
+    def __init__(self, timeout: float = 1800.0, command: list[str] | None = None) -> None:
+        self.timeout = timeout
+        #: The process to start (the engine's worker by default).
+        self.command = command or [sys.executable, "-m", "stepsafe.systems.md.openmm_engine",
+                                   "--serve"]
+        self._process: subprocess.Popen[str] | None = None
+
+    def __enter__(self) -> TrialWorker:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """End the process (if running)."""
+        proc, self._process = self._process, None
+        if proc is not None and proc.poll() is None:
+            try:
+                assert proc.stdin is not None
+                proc.stdin.close()
+                proc.wait(timeout=10)
+            except (OSError, subprocess.TimeoutExpired):
+                proc.kill()
+                proc.wait()
+
+    def _start(self) -> subprocess.Popen[str]:
+        if self._process is None or self._process.poll() is not None:
+            self._process = subprocess.Popen(
+                self.command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                text=True, bufsize=1)
+        return self._process
+
+    def run(self, job: dict) -> dict:
+        """The result of one seed's job; ``{"crashed": signal}`` when the run killed the
+        process (which is started again for the next job)."""
+        import threading
+
+        proc = self._start()
+        assert proc.stdin is not None and proc.stdout is not None
+        try:
+            proc.stdin.write(json.dumps(job) + "\n")
+            proc.stdin.flush()
+        except OSError:  # the process had ended
+            self._process = None
+            return {"crashed": -(proc.wait() or 0)}
+        timer = threading.Timer(self.timeout, proc.kill)
+        timer.start()
+        try:
+            line = proc.stdout.readline()
+        finally:
+            timer.cancel()
+        if not line:
+            code = proc.wait()
+            self._process = None
+            if code == -9:
+                raise StepsafeError(f"the trial run of seed {job['seed']} took longer than "
+                                    f"{self.timeout:g} s")
+            if code < 0:
+                return {"crashed": -code}
+            err = proc.stderr.read() if proc.stderr is not None else ""
+            raise RuntimeError(f"trial run failed (exit {code}): {err.strip()[-400:]}")
+        return json.loads(line)
+
+
 def run_trials(system_xml: str, state_xml: str, spec: TrialSpec, *,
-               progress: Callable[[str, int, int | None], None] | None = None) -> TrialRecord:
-    """Run ``spec`` on a serialized OpenMM System and State (positions), one process per seed.
+               progress: Callable[[str, int, int | None], None] | None = None,
+               worker: TrialWorker | None = None) -> TrialRecord:
+    """Run ``spec`` on a serialized OpenMM System and State (positions), the seeds one after
+    the other in an engine process (:class:`TrialWorker`; a run that crashes the process
+    counts as blown up and the process is started again).
 
     Parameters
     ----------
@@ -301,11 +375,16 @@ def run_trials(system_xml: str, state_xml: str, spec: TrialSpec, *,
     spec : TrialSpec
     progress : callable, optional
         ``progress("trials", seeds_done, seeds)``.
+    worker : TrialWorker, optional
+        The engine process to use (one for this call when omitted).
 
     Returns
     -------
     TrialRecord
     """
+    if worker is None:
+        with TrialWorker(spec.timeout) as own:
+            return run_trials(system_xml, state_xml, spec, progress=progress, worker=own)
     runs = []
     n_dof = degrees_of_freedom(system_xml)
     with tempfile.TemporaryDirectory(prefix="stepsafe-trial-") as tmp:
@@ -316,24 +395,12 @@ def run_trials(system_xml: str, state_xml: str, spec: TrialSpec, *,
         base.update(system=str(sys_path), positions=str(pos_path), steps=spec.steps,
                     equilibration_steps=max(1, round(spec.equilibration / spec.equilibration_step)))
         for done, seed in enumerate(spec.seeds):
-            job = json.dumps({**base, "seed": int(seed)})
-            try:
-                proc = subprocess.run(
-                    [sys.executable, "-m", "stepsafe.systems.md.openmm_engine"], input=job,
-                    capture_output=True, text=True, timeout=spec.timeout)
-            except subprocess.TimeoutExpired:
-                raise StepsafeError(f"the trial run of seed {seed} took longer than "
-                                    f"{spec.timeout:g} s") from None
-            if proc.returncode < 0:
+            out = worker.run({**base, "seed": int(seed)})
+            if "crashed" in out:
                 runs.append(SeedRun(int(seed), True, None,
-                                    f"engine process crashed (signal {-proc.returncode})", 0,
+                                    f"engine process crashed (signal {out['crashed']})", 0,
                                     *(float("nan"),) * 4))
                 continue
-            try:
-                out = json.loads(proc.stdout)
-            except json.JSONDecodeError:
-                raise RuntimeError(f"trial run failed (exit {proc.returncode}): "
-                                   f"{proc.stderr.strip()[-400:]}") from None
             if "error" in out:
                 raise StepsafeError(out["error"])
             if not out["equilibrated"]:

@@ -42,7 +42,13 @@ from stepsafe.systems.md.engine import (
     engine_missing,
     mobile_particles,
 )
-from stepsafe.systems.md.enginerun import SamplingSpec, TrialRecord, TrialSpec, run_trials
+from stepsafe.systems.md.enginerun import (
+    SamplingSpec,
+    TrialRecord,
+    TrialSpec,
+    TrialWorker,
+    run_trials,
+)
 
 #: Relative tolerance (a fraction of each constrained distance) to which positions are put on
 #: the constraints when an engine is built.
@@ -397,21 +403,30 @@ class OpenMMEngine:
             del context, integrator
         return out
 
-    def trials(self, spec: TrialSpec, progress: Any = None) -> TrialRecord:
+    def trials(self, spec: TrialSpec, progress: Any = None,
+               worker: TrialWorker | None = None) -> TrialRecord:
         """Runs of OpenMM's own integrator from thermal states of this configuration
-        (:func:`~stepsafe.systems.md.enginerun.run_trials`, one process per seed).
+        (:func:`~stepsafe.systems.md.enginerun.run_trials`, in an engine process).
 
         Parameters
         ----------
         spec : TrialSpec
         progress : callable, optional
             ``progress("trials", seeds_done, seeds)``.
+        worker : TrialWorker, optional
+            The engine process (from :meth:`trial_worker`) to run in; one for this call
+            when omitted.
 
         Returns
         -------
         TrialRecord
         """
-        return run_trials(self.system_xml(), self.state_xml(), spec, progress=progress)
+        return run_trials(self.system_xml(), self.state_xml(), spec, progress=progress,
+                          worker=worker)
+
+    def trial_worker(self) -> TrialWorker:
+        """An engine process for many :meth:`trials` (a context manager)."""
+        return TrialWorker()
 
     def system_xml(self) -> str:
         """The System, serialized (``XmlSerializer``)."""
@@ -757,7 +772,19 @@ def trial_run(spec: dict[str, Any]) -> dict[str, Any]:
 
 def _worker() -> int:
     """Subprocess entry: a JSON spec on stdin, the JSON result on stdout (exit 2 with
-    ``{"error": ...}`` for bad input)."""
+    ``{"error": ...}`` for bad input); with ``--serve``, one spec per line and one result
+    per line until stdin closes (bad input answered by an ``{"error": ...}`` line)."""
+    if "--serve" in sys.argv[1:]:
+        for line in sys.stdin:
+            if not line.strip():
+                continue
+            try:
+                out = trial_run(json.loads(line))
+            except StepsafeError as exc:
+                out = {"error": str(exc)}
+            sys.stdout.write(json.dumps(out) + "\n")
+            sys.stdout.flush()
+        return 0
     spec = json.loads(sys.stdin.read())
     try:
         out = trial_run(spec)

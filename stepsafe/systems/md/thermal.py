@@ -301,8 +301,8 @@ def linear_at_temperature(engine, temperature: float, z_star: float, omega_zero:
 
 
 def _trial(engine, runs: Runs, h: float, seeds: tuple[int, ...], eq_step: float,
-           stage: str) -> Trial:
-    record = engine.trials(runs.spec(h, seeds, eq_step))
+           stage: str, worker=None) -> Trial:
+    record = engine.trials(runs.spec(h, seeds, eq_step), worker=worker)
     return Trial(h, record, record.verdict(runs.tolerance) == "stable", stage,
                  runs.tolerance)
 
@@ -310,12 +310,18 @@ def _trial(engine, runs: Runs, h: float, seeds: tuple[int, ...], eq_step: float,
 def scan(engine, runs: Runs, h_linear: float, eq_step: float,
          progress: Progress | None = None) -> Scan:
     """Step 3 of the module docstring: the largest step below ``TOP h_linear`` whose runs
-    pass, confirmed with other seeds."""
+    pass, confirmed with other seeds (every run in one engine process)."""
+    with engine.trial_worker() as worker:
+        return _scan(engine, runs, h_linear, eq_step, progress, worker)
+
+
+def _scan(engine, runs: Runs, h_linear: float, eq_step: float, progress: Progress | None,
+          worker) -> Scan:
     report = _stage(progress, "runs")
     trials: list[Trial] = []
 
     def attempt(h: float, seeds: tuple[int, ...], stage: str) -> Trial:
-        t = _trial(engine, runs, h, seeds, eq_step, stage)
+        t = _trial(engine, runs, h, seeds, eq_step, stage, worker)
         trials.append(t)
         report(1.0 - 0.5 ** len(trials))
         return t
