@@ -234,3 +234,22 @@ def tip3p_isolated_frequencies():
                                            * (1 / m_h + (1 + math.cos(theta)) / m_o))
     bend = k_t * (g_tt - coupling)
     return {"antisymmetric_stretch": stretch, "rigid_bend": bend}
+
+
+#: amber14/tip3p.xml's flexible water: masses (amu), O-H bond (kJ/mol/nm^2, nm), H-O-H angle
+#: (kJ/mol/rad^2, rad).
+TIP3P = {"mO": 15.99943, "mH": 1.007947, "kb": 462750.4, "r0": 0.09572, "ka": 836.8,
+         "theta0": 1.82421813418}
+
+
+def single_water_hessian(x):
+    """The analytic 9x9 Hessian of one flexible TIP3P molecule (O, H1, H2): two harmonic O-H
+    bonds and the H-O-H angle (OpenMM excludes the intramolecular nonbonded pairs)."""
+    p = TIP3P
+    h = np.zeros((9, 9))
+    for hyd in (1, 2):
+        idx = np.r_[0:3, 3 * hyd:3 * hyd + 3]
+        h[np.ix_(idx, idx)] += bond_hessian(x[0], x[hyd], p["kb"], p["r0"])
+    h += angle_hessian(x[1], x[0], x[2], p["ka"], p["theta0"])[np.ix_(
+        np.r_[3:6, 0:3, 6:9], np.r_[3:6, 0:3, 6:9])]
+    return h

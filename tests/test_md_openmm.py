@@ -12,7 +12,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from md_support import angle_hessian, bond_hessian, reduced_coordinate_frequencies, triatomic
+from md_support import (
+    TIP3P,
+    angle_hessian,
+    bond_hessian,
+    reduced_coordinate_frequencies,
+    single_water_hessian,
+    triatomic,
+)
 
 from stepsafe.exceptions import StepsafeError
 from stepsafe.systems.md import constraints as cs
@@ -26,9 +33,6 @@ app = pytest.importorskip("openmm.app")
 unit = pytest.importorskip("openmm.unit")
 
 pytestmark = pytest.mark.openmm
-
-TIP3P = {"mO": 15.99943, "mH": 1.007947, "kb": 462750.4, "r0": 0.09572, "ka": 836.8,
-         "theta0": 1.82421813418}
 
 
 @pytest.fixture(scope="session")
@@ -219,19 +223,6 @@ def test_hmr_matches_openmm_hydrogen_mass(villin_with_water, rigid, constraints)
 
 
 # --- flexible water ------------------------------------------------------------------------
-
-def single_water_hessian(x):
-    """The analytic 9x9 Hessian of one flexible TIP3P molecule (O, H1, H2): two harmonic O-H
-    bonds and the H-O-H angle (OpenMM excludes the intramolecular nonbonded pairs)."""
-    p = TIP3P
-    h = np.zeros((9, 9))
-    for hyd in (1, 2):
-        idx = np.r_[0:3, 3 * hyd:3 * hyd + 3]
-        h[np.ix_(idx, idx)] += bond_hessian(x[0], x[hyd], p["kb"], p["r0"])
-    h += angle_hessian(x[1], x[0], x[2], p["ka"], p["theta0"])[np.ix_(
-        np.r_[3:6, 0:3, 6:9], np.r_[3:6, 0:3, 6:9])]
-    return h
-
 
 def isolated_tip3p_stretch():
     """omega^2 (rad^2/ps^2) of the antisymmetric O-H stretch of one TIP3P molecule at its
