@@ -119,14 +119,15 @@ def _print_engine_runs(r: dict[str, Any], u: str, indent: str) -> None:
     click.echo(f"{indent}runs of {r['integrator']} in {r['engine']} at {_g(r['temperature'])} "
                f"K: {_g(r['duration'])} ps each after {_g(r['thermalisation'])} ps of "
                f"thermalisation; a step fails when a seed blows up (non-finite energy, or "
-               f"the total energy moves by more than {_g(r['energy_bound'])} n_dof kT) or "
-               f"the mean drift exceeds {_g(r['drift_tolerance'])} kT/ps per degree of "
-               "freedom")
+               f"the total energy moves by more than {_g(r['energy_bound'])} n_dof kT)" + (
+                   f" or the mean drift exceeds {_g(r['drift_tolerance'])} kT/ps per degree "
+                   "of freedom" if r["integrator"] == "verlet" else ""))
     for t in r["trials"]:
         blown = [x for x in t["runs"] if x["blew_up"]]
         how = "; ".join(f"seed {x['seed']} by step {x['step']}" if x["step"] is not None
                         else f"seed {x['seed']}: {x['reason']}" for x in blown)
-        drift = "" if t["drift"] is None else f", drift {t['drift']:.2g}" + (
+        drift = "" if t["drift"] is None else (", drift" + (" of the others" if blown else "")
+                                                + f" {t['drift']:.2g}") + (
             "" if t["drift_error"] is None else f" +- {t['drift_error']:.1g}")
         click.echo(f"{indent}  h = {_g(t['h'])}{u} ({t['stage']}; seeds "
                    f"{_seeds(t['seeds'])}): {t['verdict']}" + (f" ({how})" if how else "")
