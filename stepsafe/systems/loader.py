@@ -314,7 +314,8 @@ def _md_notes(result: Any, unit: str, implied: bool) -> list[str]:
                  f"{result.force_calls} force evaluations{bound}")
     notes.append("a verdict is the linear stability at this configuration (0 K at a "
                  "minimum); at 300 K OpenMM's own runs blew up or drifted from about 0.8 to "
-                 "0.95 of this limit (README: engine validation)")
+                 "0.95 of this limit (README: engine validation): a temperature (with the "
+                 "run's length) measures the limit there in OpenMM")
     if implied:
         notes.append("frequencies in rad/ps (OpenMM's time unit): time_unit: fs gives steps "
                      "in fs")

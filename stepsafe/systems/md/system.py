@@ -30,7 +30,9 @@ units) and are converted to rad per the scene's time unit.
 What a verdict on these modes means: the linear stability of the integrator at this
 configuration (0 K when it is a minimum). Thermal motion moves the frequencies and couples
 the modes; measured runs of OpenMM's integrators at 300 K fail from about 0.8-0.95 of the 0 K
-limit (README, engine validation), which the analysis at this configuration does not cover.
+limit (README, engine validation), which the analysis at this configuration does not cover:
+the analysis at temperature (:mod:`~stepsafe.systems.md.thermal`) measures it with the
+engine's own snapshots and runs.
 """
 
 from __future__ import annotations
