@@ -228,3 +228,54 @@ def test_water_cluster_limit_at_300_K_is_below_0_K_and_openmm_agrees(cluster_at_
     assert any(blew) or abs(drift) > er.DRIFT_TOLERANCE, (blew, drift)
     blew, drift = own_verlet_runs(engine, safe / 1000.0)
     assert not any(blew) and abs(drift) < er.DRIFT_TOLERANCE, (blew, drift)
+
+
+def cluster_scene(folder, **keys):
+    """The water cluster's scene, its files linked into ``folder``, with ``keys`` added."""
+    import yaml
+
+    (folder / "water-cluster").symlink_to(ROOT / "examples" / "water-cluster")
+    tree = yaml.safe_load((ROOT / "examples" / "water-cluster.yaml").read_text())
+    system = keys.pop("system", {})
+    tree["system"].update(system)
+    tree.update(keys)
+    path = folder / "scene.yaml"
+    path.write_text(yaml.safe_dump(tree))
+    return str(path)
+
+
+@openmm_only
+def test_runs_at_another_temperature_than_asked_are_refused_naming_the_key(tmp_path, run):
+    pytest.importorskip("openmm")
+    scene = cluster_scene(tmp_path, system={"runs": {"temperature": "310 K"}})
+    code, out, err = run("check", scene, "--temperature", "300K", "--length", "10ps")
+    assert code == 2 and "SAFE" not in out
+    assert "$.system.runs.temperature" in err and "310 K" in err
+
+
+@openmm_only
+@pytest.mark.slow
+def test_scene_temperature_and_runs_give_the_check_and_its_json(tmp_path, run):
+    """``temperature:``, ``length:`` and ``h:`` in the scene, ``runs:`` with two seeds of
+    1 ps: the check at 2.7 fs exits 1, its JSON fits the schema and states the seeds run
+    (the two and two others) and their length."""
+    pytest.importorskip("openmm")
+    jsonschema = pytest.importorskip("jsonschema")
+    import json
+
+    from stepsafe.api.schemas import output_schema
+
+    scene = cluster_scene(tmp_path, temperature="300 K", length="10 ps", h=2.7,
+                          system={"runs": {"temperature": "300 K", "seeds": [11, 12],
+                                           "duration": "1 ps"}})
+    code, out, err = run("check", scene, "--json")
+    assert code == 1, err
+    data = json.loads(out)
+    jsonschema.validate(data, output_schema("check"))
+    entry = data["checks"][0]
+    assert "engine_runs" not in entry  # (the 0 K check runs nothing at temperature)
+    runs = entry["thermal"]["minima"][0]["engine_runs"]
+    assert runs["seeds"] == [11, 12] and runs["confirm_seeds"] == [13, 14]
+    assert runs["duration"] == 1.0 and runs["trials"][0]["seeds"] == [11, 12, 13, 14]
+    assert entry["thermal"]["temperature"] == 300.0 and entry["thermal"]["energy_unit"] == \
+        "kJ/mol"
