@@ -258,7 +258,7 @@ def test_runs_at_another_temperature_than_asked_are_refused_naming_the_key(tmp_p
 def test_scene_temperature_and_runs_give_the_check_and_its_json(tmp_path, run):
     """``temperature:``, ``length:`` and ``h:`` in the scene, ``runs:`` with two seeds of
     1 ps: the check at 2.7 fs exits 1, its JSON fits the schema and states the seeds run
-    (the two and two others) and their length."""
+    (the two and two others), their length and the drift tolerance ``--max-drift`` sets."""
     pytest.importorskip("openmm")
     jsonschema = pytest.importorskip("jsonschema")
     import json
@@ -268,7 +268,7 @@ def test_scene_temperature_and_runs_give_the_check_and_its_json(tmp_path, run):
     scene = cluster_scene(tmp_path, temperature="300 K", length="10 ps", h=2.7,
                           system={"runs": {"temperature": "300 K", "seeds": [11, 12],
                                            "duration": "1 ps"}})
-    code, out, err = run("check", scene, "--json")
+    code, out, err = run("check", scene, "--json", "--max-drift", "0.5")
     assert code == 1, err
     data = json.loads(out)
     jsonschema.validate(data, output_schema("check"))
@@ -279,3 +279,6 @@ def test_scene_temperature_and_runs_give_the_check_and_its_json(tmp_path, run):
     assert runs["duration"] == 1.0 and runs["trials"][0]["seeds"] == [11, 12, 13, 14]
     assert entry["thermal"]["temperature"] == 300.0 and entry["thermal"]["energy_unit"] == \
         "kJ/mol"
+    # --max-drift: kJ/mol per fs for the 24 atoms, as kT per ps per degree of freedom
+    kT = er.MOLAR_GAS_CONSTANT * 300.0
+    assert runs["drift_tolerance"] == pytest.approx(0.5 * 1000.0 / (72 * kT), rel=1e-12)

@@ -531,14 +531,23 @@ def _engine_runs(p: Any, req: Request, run_length: float) -> Any:
                             f"measured by runs of the method in OpenMM, which runs "
                             f"{', '.join(ENGINE_INTEGRATORS)} only, not {name}")
     T = req.temperature if req.temperature is not None else req.kT / MOLAR_GAS_CONSTANT
-    chosen = _engine_analysis(p).settings.runs
+    analysis = _engine_analysis(p)
+    tolerance = md_thermal.DRIFT_TOLERANCE
+    if req.max_drift is not None:  # energy per time unit, the whole system
+        from stepsafe.systems.md.enginerun import degrees_of_freedom
+
+        n_dof = degrees_of_freedom(analysis.engine.system_xml())
+        tolerance = req.max_drift / _scale(p) / (max(n_dof, 1) * MOLAR_GAS_CONSTANT * T)
+    chosen = analysis.settings.runs
     if chosen is None:
-        return md_thermal.Runs(integrator, T, duration=min(md_thermal.DURATION, run_length))
+        return md_thermal.Runs(integrator, T, duration=min(md_thermal.DURATION, run_length),
+                               tolerance=tolerance)
     if abs(chosen.temperature - T) > 1e-9 * T:
         raise StepsafeError(f"the runs' temperature {chosen.temperature:g} K is not the "
                             f"temperature asked for, {T:g} K",
                             _where(_scene_of(p), "system.runs.temperature"))
-    return md_thermal.Runs(integrator, T, chosen.seeds, chosen.duration, chosen.friction)
+    return md_thermal.Runs(integrator, T, chosen.seeds, chosen.duration, chosen.friction,
+                           tolerance)
 
 
 def _scene_of(p: Any) -> Any:
