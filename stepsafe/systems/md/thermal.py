@@ -45,12 +45,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.systems.md.constraints import constrained_modes
-from stepsafe.systems.md.engine import MOLAR_GAS_CONSTANT
+from stepsafe.systems.md.engine import MOLAR_GAS_CONSTANT, DynamicsEngine
 from stepsafe.systems.md.enginerun import (
     DRIFT_TOLERANCE,
     SamplingSpec,
@@ -101,7 +102,16 @@ Progress = Callable[[str, float], None]
 
 
 def confirm_seeds(seeds: tuple[int, ...]) -> tuple[int, ...]:
-    """As many seeds again, none of ``seeds``: ``max + 1, max + 2, ...``."""
+    """As many seeds again, none of ``seeds``: ``max + 1, max + 2, ...``.
+
+    Parameters
+    ----------
+    seeds : tuple of int
+
+    Returns
+    -------
+    tuple of int
+    """
     top = max(seeds)
     return tuple(top + 1 + k for k in range(len(seeds)))
 
@@ -246,18 +256,43 @@ def _stage(progress: Progress | None, stage: str) -> Callable[[float], None]:
 
 def sampling_spec(temperature: float, omega_zero: float) -> SamplingSpec:
     """The sampling of step 1 (module docstring) for a system whose fastest 0 K frequency is
-    ``omega_zero`` rad/ps."""
+    ``omega_zero``: step ``Z_SAMPLE / omega_zero``, the times in whole steps.
+
+    Parameters
+    ----------
+    temperature : float
+        K.
+    omega_zero : float
+        rad/ps.
+
+    Returns
+    -------
+    SamplingSpec
+    """
     step = Z_SAMPLE / omega_zero
     return SamplingSpec(temperature, step, FRICTION, max(1, round(THERMALISATION / step)),
                         max(1, round(SPACING / step)), FRAMES, SAMPLING_SEEDS)
 
 
-def snapshot_frequencies(engine, spec: SamplingSpec, progress: Progress | None = None
-                         ) -> tuple[Frequencies, Ensemble]:
+def snapshot_frequencies(engine: DynamicsEngine, spec: SamplingSpec,
+                         progress: Progress | None = None) -> tuple[Frequencies, Ensemble]:
     """The largest eigenvalue of the constrained mass-weighted Hessian at each snapshot of
-    the engine's Langevin dynamics, with its error (residual plus finite-difference
-    estimate), rad^2/ps^2; and the snapshots as an :class:`Ensemble` (rows: the flattened
-    positions, nm; chains: the seeds)."""
+    the engine's Langevin dynamics, with its error (Lanczos residual plus the
+    finite-difference estimate), rad^2/ps^2; and the snapshots.
+
+    Parameters
+    ----------
+    engine : DynamicsEngine
+    spec : SamplingSpec
+    progress : callable, optional
+        ``progress(stage, fraction)``.
+
+    Returns
+    -------
+    (Frequencies, Ensemble)
+        ``lambda_max`` and ``error`` per snapshot (``lambda_min`` is not computed: nan);
+        the snapshots as rows of flattened positions (nm), their chains the seeds.
+    """
     frames = engine.thermal_frames(spec)
     _stage(progress, "sampling")(1.0)
     seeds, count = frames.shape[:2]
@@ -285,17 +320,44 @@ def snapshot_frequencies(engine, spec: SamplingSpec, progress: Progress | None =
     frequencies = Frequencies(lam, np.full(lam.size, np.nan), err, how, None)
     chain = np.repeat(np.arange(seeds), count)
     kT = MOLAR_GAS_CONSTANT * spec.temperature
-    ensemble = Ensemble(frames.reshape(seeds * count, -1), chain, kT,
-                        "LangevinMiddle in the engine", int(spec.seeds[0]), spec.step,
-                        spec.friction, spec.thermalisation, spec.spacing, None, seeds)
+    sampled = (f"the engine's LangevinMiddle, seeds {', '.join(map(str, spec.seeds))}: step "
+               f"{spec.step * 1000:.3g} fs, friction {spec.friction:g}/ps, "
+               f"{spec.thermalisation * spec.step:.3g} ps of thermalisation, then a frame "
+               f"every {spec.spacing * spec.step * 1000:.3g} fs")
+    ensemble = Ensemble(frames.reshape(seeds * count, -1), chain, kT, sampled,
+                        int(spec.seeds[0]), spec.step, spec.friction, spec.thermalisation,
+                        spec.spacing, None, seeds)
     return frequencies, ensemble
 
 
-def linear_at_temperature(engine, temperature: float, z_star: float, omega_zero: float,
-                          run_length: float, progress: Progress | None = None,
+def linear_at_temperature(engine: DynamicsEngine, temperature: float, z_star: float,
+                          omega_zero: float, run_length: float,
+                          progress: Progress | None = None,
                           confidence: float = 0.95) -> AtTemperature:
-    """Steps 1 and 2 of the module docstring: ``z* / omega_q`` in ps (never above
-    ``z* / omega_zero``) with what it rests on."""
+    """Steps 1 and 2 of the module docstring: the linear limit at temperature.
+
+    Parameters
+    ----------
+    engine : DynamicsEngine
+    temperature : float
+        K.
+    z_star : float
+        The end of the method's interval from 0 on the oscillator.
+    omega_zero : float
+        The largest frequency at the configuration analysed, rad/ps.
+    run_length : float
+        The user's run, ps: ``N = run_length omega_zero / pi`` frames.
+    progress : callable, optional
+        ``progress(stage, fraction)``.
+    confidence : float
+        Of the frequency's upper bound.
+
+    Returns
+    -------
+    AtTemperature
+        ``h_linear = min(z* / omega_zero, z* / omega_q)`` in ps, ``omega_q`` the upper bound
+        of the value a run of N frames reaches.
+    """
     spec = sampling_spec(temperature, omega_zero)
     frequencies, ensemble = snapshot_frequencies(engine, spec, progress)
     run_frames = max(1.0, run_length * omega_zero / math.pi)
@@ -306,23 +368,39 @@ def linear_at_temperature(engine, temperature: float, z_star: float, omega_zero:
     return AtTemperature(h_linear, omega, frequencies, ensemble, run_frames)
 
 
-def _trial(engine, runs: Runs, h: float, seeds: tuple[int, ...], eq_step: float,
-           stage: str, worker=None) -> Trial:
+def _trial(engine: DynamicsEngine, runs: Runs, h: float, seeds: tuple[int, ...], eq_step: float,
+           stage: str, worker: Any = None) -> Trial:
     record = engine.trials(runs.spec(h, seeds, eq_step), worker=worker)
     return Trial(h, record, record.verdict(runs.tolerance) == "stable", stage,
                  runs.tolerance)
 
 
-def scan(engine, runs: Runs, h_linear: float, eq_step: float,
+def scan(engine: DynamicsEngine, runs: Runs, h_linear: float, eq_step: float,
          progress: Progress | None = None) -> Scan:
     """Step 3 of the module docstring: the largest step below ``TOP h_linear`` whose runs
-    pass, confirmed with other seeds (every run in one engine process)."""
+    pass, confirmed in every seed (every run in one engine process).
+
+    Parameters
+    ----------
+    engine : DynamicsEngine
+    runs : Runs
+    h_linear : float
+        The linear limit at temperature, ps.
+    eq_step : float
+        The thermalisation's step, ps.
+    progress : callable, optional
+        ``progress("runs", fraction)``.
+
+    Returns
+    -------
+    Scan
+    """
     with engine.trial_worker() as worker:
         return _scan(engine, runs, h_linear, eq_step, progress, worker)
 
 
-def _scan(engine, runs: Runs, h_linear: float, eq_step: float, progress: Progress | None,
-          worker) -> Scan:
+def _scan(engine: DynamicsEngine, runs: Runs, h_linear: float, eq_step: float,
+          progress: Progress | None, worker: Any) -> Scan:
     report = _stage(progress, "runs")
     trials: list[Trial] = []
 
@@ -474,7 +552,17 @@ def thermal_check(analysis, runs: Runs, z_star: float, h: float, run_length: flo
 
 
 def trial_summary(trial: Trial, runs: Runs) -> str:
-    """One line: the verdict, which seeds failed and how, or the drift."""
+    """One line: the verdict, which seeds failed and how, or the drift.
+
+    Parameters
+    ----------
+    trial : Trial
+    runs : Runs
+
+    Returns
+    -------
+    str
+    """
     record = trial.record
     head = (f"{runs.integrator}, {len(record.runs)} seeds of {runs.duration:g} ps: "
             f"{trial.verdict}")
