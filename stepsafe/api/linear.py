@@ -247,8 +247,10 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
         of the 0 K one, the linear limit at temperature and the first resonance band
         measured below it (``record["thermal"]["limited_by"]`` says which;
         ``record["zero_kelvin"]`` holds the 0 K answer), and ``resonance_order`` excludes
-        the measured bands, not the points (:mod:`stepsafe.api.thermal`). At T = 0 (or
-        without a temperature) nothing changes.
+        the measured bands, not the points (:mod:`stepsafe.api.thermal`). An OpenMM
+        system is sampled by OpenMM and its limit measured by runs of the method in OpenMM
+        (:mod:`stepsafe.systems.md.thermal`; ``limited_by`` ``"OpenMM runs"``). At T = 0
+        (or without a temperature) nothing changes.
     kT : float, optional
         Or the thermal energy, in the system's energy unit.
     length : float or str, optional
@@ -565,7 +567,8 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
         As for :func:`advise`: the step is unsafe too when it lies above the linear limit
         at temperature, an ensemble of thermal trajectories at that step is not clear of
         failures, or its measured drift exceeds ``max_drift`` (``record["thermal"]``;
-        ``resonance_order`` then leaves the points to that measurement).
+        ``resonance_order`` then leaves the points to that measurement); on an OpenMM
+        system, when runs of the method in OpenMM at that step fail.
 
     Returns
     -------

@@ -13,6 +13,10 @@ whose measured drift meets it), times the margin; ``limited_by`` names the
 criterion: ``"0 K"`` (the answer without a temperature), ``"linear at temperature"``,
 ``"resonance band n:m"`` or ``"drift"``. A linear system (frequencies, stiffness, Hessian,
 Gaussian) is harmonic: its answer at any temperature is the 0 K one, and it says so.
+An MD engine's system (OpenMM) is answered by the engine itself
+(:mod:`stepsafe.systems.md.thermal`: its thermal snapshots, the largest instantaneous
+frequency at each, and runs of the method in the engine in place of bands; ``limited_by``
+``"OpenMM runs"``), in the engine's energy unit, kJ/mol.
 At ``T = 0`` (or without a temperature) nothing changes.
 
 Every draw is seeded (``seed``, stated in the record): the same inputs give the same
