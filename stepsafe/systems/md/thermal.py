@@ -369,8 +369,8 @@ def linear_at_temperature(engine: DynamicsEngine, temperature: float, z_star: fl
 
 
 def _trial(engine: DynamicsEngine, runs: Runs, h: float, seeds: tuple[int, ...], eq_step: float,
-           stage: str, worker: Any = None) -> Trial:
-    record = engine.trials(runs.spec(h, seeds, eq_step), worker=worker)
+           stage: str, worker: Any = None, seeds_done: Any = None) -> Trial:
+    record = engine.trials(runs.spec(h, seeds, eq_step), progress=seeds_done, worker=worker)
     return Trial(h, record, record.verdict(runs.tolerance) == "stable", stage,
                  runs.tolerance)
 
@@ -541,9 +541,10 @@ def thermal_check(analysis, runs: Runs, z_star: float, h: float, run_length: flo
         reasons.append("above the linear limit at temperature")
     else:
         seeds = runs.seeds + confirm_seeds(runs.seeds)
+        report = _stage(progress, "runs")
         trial = _trial(engine, runs, h, seeds,
-                       min(0.5 * h_zero, linear.ensemble.h or h_zero), "at the step")
-        _stage(progress, "runs")(1.0)
+                       min(0.5 * h_zero, linear.ensemble.h or h_zero), "at the step",
+                       seeds_done=lambda stage, done, total: report(done / (total or 1)))
         if not trial.passed:
             reasons.append(f"the runs in the engine at h: {trial_summary(trial, runs)}")
     return EngineThermalCheck(h, not reasons, tuple(reasons), runs.temperature, kT, z_star,
