@@ -538,9 +538,7 @@ def _engine_runs(p: Any, req: Request, run_length: float) -> Any:
     analysis = _engine_analysis(p)
     tolerance = md_thermal.DRIFT_TOLERANCE
     if req.max_drift is not None:  # energy per time unit, the whole system
-        from stepsafe.systems.md.enginerun import degrees_of_freedom
-
-        n_dof = degrees_of_freedom(analysis.engine.system_xml())
+        n_dof = analysis.engine.degrees_of_freedom()
         tolerance = req.max_drift / _scale(p) / (max(n_dof, 1) * MOLAR_GAS_CONSTANT * T)
     chosen = analysis.settings.runs
     if chosen is None:

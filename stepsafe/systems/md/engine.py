@@ -204,6 +204,11 @@ class DynamicsEngine(ForceEngine, Protocol):
     temperature needs (:mod:`~stepsafe.systems.md.thermal`). Specifications and records are
     those of :mod:`~stepsafe.systems.md.enginerun`."""
 
+    def degrees_of_freedom(self) -> int:
+        """n_dof: 3 per particle of positive mass, less one per constraint and those a
+        centre-of-mass motion remover takes (what the equipartition of the runs counts)."""
+        ...
+
     def on_constraints(self, positions: np.ndarray) -> np.ndarray:
         """(N, 3) positions put on the constraints to the engine's tightest tolerance (and
         virtual sites placed): where a Hessian can be taken."""

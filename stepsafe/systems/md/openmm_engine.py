@@ -47,6 +47,7 @@ from stepsafe.systems.md.enginerun import (
     TrialRecord,
     TrialSpec,
     TrialWorker,
+    degrees_of_freedom,
     run_trials,
 )
 
@@ -341,6 +342,11 @@ class OpenMMEngine:
                     values.append(theta.value_in_unit(unit.radian))
         return (lengths, np.array(angles, dtype=np.int64).reshape(-1, 3),
                 np.array(values, dtype=float))
+
+    def degrees_of_freedom(self) -> int:
+        """3 per particle of positive mass, less one per constraint and 3 with a
+        ``CMMotionRemover`` (:func:`~stepsafe.systems.md.enginerun.degrees_of_freedom`)."""
+        return degrees_of_freedom(self.system_xml())
 
     def on_constraints(self, positions: Any) -> np.ndarray:
         """``positions`` (N, 3) nm put on the constraints (``Context.applyConstraints`` to
