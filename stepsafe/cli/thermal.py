@@ -40,10 +40,11 @@ def thermal_options(func):
         click.option("--kT", "kT", type=FLOAT, default=None, metavar="E",
                      help="Analyse at the thermal energy E, in the system's energy unit "
                           "(a system: Hamiltonian; its minima are sampled, their resonance "
-                          "bands and drift measured). 0: the 0 K answer."),
+                          "bands and drift measured; an OpenMM system, kJ/mol: sampled and "
+                          "run in OpenMM). 0: the 0 K answer."),
         click.option("--temperature", type=str, default=None, metavar="T",
                      help="As --kT, at T kelvin (300 or 300K), for a scene with "
-                          "energy_unit:."),
+                          "energy_unit: or an OpenMM system."),
     ]
     for opt in opts:
         func = opt(func)
