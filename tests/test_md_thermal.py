@@ -203,7 +203,8 @@ def test_water_cluster_limit_at_300_K_is_below_0_K_and_openmm_agrees(cluster_at_
     0 K one, set by OpenMM's runs. A step below the 0 K limit that the analysis calls UNSAFE
     at 300 K (0.95 of the 0 K limit, SAFE at 0 K) blows up or drifts beyond the tolerance in
     runs written here with other seeds; the step it gives as safe at 300 K (just below its
-    h_max) runs 2 ps in 10 other seeds without blow-up, drifting less than the tolerance."""
+    h_max) runs 2 ps in 10 other seeds without blow-up, drifting less than the tolerance;
+    check agrees with advise on both sides of its h_max."""
     import stepsafe
     from stepsafe.systems.md import openmm_engine as oe
 
@@ -220,6 +221,10 @@ def test_water_cluster_limit_at_300_K_is_below_0_K_and_openmm_agrees(cluster_at_
     assert not hot.safe
     safe = 0.999 * warm.h_max
     assert stepsafe.check(scene=scene, h=safe, temperature=300, length="10 ps").safe
+    above = stepsafe.check(scene=scene, h=1.01 * warm.h_max, temperature=300, length="10 ps")
+    assert not above.safe and above.record["thermal"]["reasons"] == [
+        "at or above the largest step the runs in the engine pass (the limit at temperature "
+        "advise gives)"]
     engine = oe.load(ROOT / "examples" / "water-cluster" / "system.xml",
                      ROOT / "examples" / "water-cluster" / "structure.pdb", platform="CPU",
                      threads=1)

@@ -560,10 +560,12 @@ def _scene_of(p: Any) -> Any:
 
 def _engine_progress(progress: Callable[[float], None] | None
                      ) -> Callable[[str, float], None] | None:
-    """Sampling and frequencies fill the first 40%, the runs the rest."""
+    """Sampling and frequencies fill the first 40%, the runs the rest (a check's runs at
+    its step, then the scan of the limit)."""
     if progress is None:
         return None
-    share = {"sampling": (0.0, 0.1), "frequencies": (0.1, 0.3), "runs": (0.4, 0.6)}
+    share = {"sampling": (0.0, 0.1), "frequencies": (0.1, 0.3), "runs": (0.4, 0.6),
+             "step": (0.4, 0.2), "limit": (0.6, 0.4)}
 
     def report(stage: str, fraction: float) -> None:
         start, width = share.get(stage, (0.0, 1.0))
@@ -620,8 +622,12 @@ def _engine_check(p: Any, req: Request, h: float, criterion: str,
              "h_linear": p.margin * linear.h_linear / scale,
              "frequencies": _engine_frequencies(linear, scale), "probes": [], "drift": None,
              "seed": int(runs.seeds[0]),
-             "engine_runs": _runs_record(runs, [] if c.trial is None else [c.trial],
+             "engine_runs": _runs_record(runs, ([] if c.trial is None else [c.trial])
+                                         + ([] if c.limit is None else list(c.limit.trials)),
                                          p.margin, scale)}
+    if c.limit is not None:
+        entry["engine_runs"].update(_scan_limits(c.limit, p.margin, scale))
+        entry["h_max"] = p.margin * c.h_max / scale
     return {**_request_record(req), "safe": c.safe, "reasons": list(c.reasons),
             "harmonic": False, "margin": p.margin, "minima": [entry], "notes": list(c.notes)}
 
@@ -677,18 +683,26 @@ def engine_limit_record(r: Any, margin: float, scale: float) -> dict[str, Any]:
 
     found = r.scan
     runs = _runs_record(found.runs, list(found.trials), margin, scale)
-    drift = error = None
-    if found.confirmed is not None:
-        d, e = found.confirmed.drift()
-        drift = d if math.isfinite(d) else None
-        error = e if math.isfinite(e) else None
-    runs.update(h_clear=step(found.h_clear), h_fail=step(found.h_fail), drift=drift,
-                drift_error=error,
-                confirmed_seeds=[] if found.confirmed is None
-                else [x.seed for x in found.confirmed.runs])
+    runs.update(_scan_limits(found, margin, scale))
     return {"at": ENGINE_AT, "h_max": step(r.h_max), "limited_by": r.limited_by,
             "h_range": [step(r.h_range[0]), step(r.h_range[1])], "h_zero": step(r.h_zero),
             "omega_zero": r.omega_zero * scale, "z_star": r.z_star,
             "h_linear": step(r.linear.h_linear), "h_band": None, "h_drift": None,
             "frequencies": _engine_frequencies(r.linear, scale), "scans": [], "drift": None,
             "seed": int(found.runs.seeds[0]), "notes": list(r.notes), "engine_runs": runs}
+
+
+def _scan_limits(found: Any, margin: float, scale: float) -> dict[str, Any]:
+    """What a :class:`~stepsafe.systems.md.thermal.Scan` found: the largest step that
+    passed in every seed and the smallest that failed (time unit, times the margin), the
+    drift at the first (kT/ps per degree of freedom) and the seeds run there."""
+    drift = error = None
+    if found.confirmed is not None:
+        d, e = found.confirmed.drift()
+        drift = d if math.isfinite(d) else None
+        error = e if math.isfinite(e) else None
+    return {"h_clear": margin * found.h_clear / scale,
+            "h_fail": None if found.h_fail is None else margin * found.h_fail / scale,
+            "drift": drift, "drift_error": error,
+            "confirmed_seeds": [] if found.confirmed is None
+            else [x.seed for x in found.confirmed.runs]}

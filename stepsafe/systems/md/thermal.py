@@ -231,7 +231,9 @@ class EngineThermalLimit:
 @dataclass(frozen=True)
 class EngineThermalCheck:
     """The verdict on one step at temperature (ps): ``safe`` False at or above the linear
-    limit at temperature, or when a run at h fails; ``reasons`` says which."""
+    limit at temperature, when a run at h fails, or at or above the limit ``h_max`` the
+    scan of the runs gives (``limit``, as :func:`thermal_limit` finds it); ``reasons`` says
+    which."""
 
     h: float
     safe: bool
@@ -246,6 +248,8 @@ class EngineThermalCheck:
     runs: Runs
     run_length: float
     notes: tuple[str, ...] = ()
+    limit: Scan | None = None
+    h_max: float | None = None
 
 
 def _stage(progress: Progress | None, stage: str) -> Callable[[float], None]:
@@ -376,7 +380,7 @@ def _trial(engine: DynamicsEngine, runs: Runs, h: float, seeds: tuple[int, ...],
 
 
 def scan(engine: DynamicsEngine, runs: Runs, h_linear: float, eq_step: float,
-         progress: Progress | None = None) -> Scan:
+         progress: Progress | None = None, stage: str = "runs") -> Scan:
     """Step 3 of the module docstring: the largest step below ``TOP h_linear`` whose runs
     pass, confirmed in every seed (every run in one engine process).
 
@@ -389,19 +393,20 @@ def scan(engine: DynamicsEngine, runs: Runs, h_linear: float, eq_step: float,
     eq_step : float
         The thermalisation's step, ps.
     progress : callable, optional
-        ``progress("runs", fraction)``.
+        ``progress(stage, fraction)``.
+    stage : str
+        The stage named to ``progress``.
 
     Returns
     -------
     Scan
     """
     with engine.trial_worker() as worker:
-        return _scan(engine, runs, h_linear, eq_step, progress, worker)
+        return _scan(engine, runs, h_linear, eq_step, _stage(progress, stage), worker)
 
 
 def _scan(engine: DynamicsEngine, runs: Runs, h_linear: float, eq_step: float,
-          progress: Progress | None, worker: Any) -> Scan:
-    report = _stage(progress, "runs")
+          report: Callable[[float], None], worker: Any) -> Scan:
     trials: list[Trial] = []
 
     def attempt(h: float, seeds: tuple[int, ...], stage: str) -> Trial:
@@ -514,7 +519,9 @@ def thermal_limit(analysis, runs: Runs, z_star: float, run_length: float,
 def thermal_check(analysis, runs: Runs, z_star: float, h: float, run_length: float,
                   progress: Progress | None = None) -> EngineThermalCheck:
     """Whether the step h (ps) is safe at temperature: below the linear limit at
-    temperature, and every run at h (the seeds and the confirmation's) passes.
+    temperature, every run at h (the seeds and the confirmation's) passes, and h lies below
+    the limit :func:`thermal_limit` gives (the scan of the runs, made only when the runs at
+    h pass), so that ``check`` fails every step ``advise`` puts above its limit.
 
     Parameters
     ----------
@@ -541,12 +548,24 @@ def thermal_check(analysis, runs: Runs, z_star: float, h: float, run_length: flo
         reasons.append("above the linear limit at temperature")
     else:
         seeds = runs.seeds + confirm_seeds(runs.seeds)
-        report = _stage(progress, "runs")
+        report = _stage(progress, "step")
         trial = _trial(engine, runs, h, seeds,
                        min(0.5 * h_zero, linear.ensemble.h or h_zero), "at the step",
                        seeds_done=lambda stage, done, total: report(done / (total or 1)))
+        found = h_max = None
         if not trial.passed:
             reasons.append(f"the runs in the engine at h: {trial_summary(trial, runs)}")
+        else:
+            found = scan(engine, runs, linear.h_linear,
+                         min(0.5 * h_zero, linear.ensemble.h or h_zero), progress, "limit")
+            h_max = linear.h_linear if found.h_clear >= TOP * linear.h_linear \
+                else found.h_clear
+            if h >= h_max:
+                reasons.append("at or above the largest step the runs in the engine pass "
+                               "(the limit at temperature advise gives)")
+        return EngineThermalCheck(h, not reasons, tuple(reasons), runs.temperature, kT,
+                                  z_star, omega_zero, h_zero, linear, trial, runs, run_length,
+                                  _runs_note(runs, run_length), found, h_max)
     return EngineThermalCheck(h, not reasons, tuple(reasons), runs.temperature, kT, z_star,
                               omega_zero, h_zero, linear, trial, runs, run_length,
                               _runs_note(runs, run_length))
