@@ -120,9 +120,11 @@ def _print_engine_runs(r: dict[str, Any], u: str, indent: str) -> None:
     click.echo(f"{indent}runs of {r['integrator']} in {r['engine']} at {_g(r['temperature'])} "
                f"K: {_g(r['duration'])} ps each after {_g(r['thermalisation'])} ps of "
                f"thermalisation; a step fails when a seed blows up (non-finite energy, or "
-               f"the total energy moves by more than {_g(r['energy_bound'])} n_dof kT)" + (
-                   f" or the mean drift exceeds {_g(r['drift_tolerance'])} kT/ps per degree "
-                   "of freedom" if r["integrator"] == "verlet" else ""))
+               + (f"the total energy moves by more than {_g(r['energy_bound'])} n_dof kT) "
+                  f"or the mean drift exceeds {_g(r['drift_tolerance'])} kT/ps per degree "
+                  "of freedom" if r["integrator"] == "verlet" else
+                  f"the kinetic energy exceeds its mean by more than "
+                  f"{_g(r['energy_bound'])} n_dof kT)"))
     for t in r["trials"]:
         blown = [x for x in t["runs"] if x["blew_up"]]
         how = "; ".join(f"seed {x['seed']} by step {x['step']}" if x["step"] is not None

@@ -16,9 +16,13 @@ the process is started again for the next seed):
    on-step estimate from the two half-step velocities, for LangevinMiddle that of the half-step
    velocities).
 3. Blow-up: a non-finite energy, an OpenMM exception (the CPU platform refuses NaN
-   coordinates), a crash of the process, or a change of the total energy since the first
-   sample by more than ``energy_bound`` n_dof kT (default 1/2: the system's whole equilibrium
-   kinetic energy). The step of the first such sample is recorded.
+   coordinates), a crash of the process, or, for Verlet, a change of the total energy since
+   the first sample by more than ``energy_bound`` n_dof kT (default 1/2: the system's whole
+   equilibrium kinetic energy); for LangevinMiddle, whose total energy wanders with the heat
+   the thermostat exchanges (and its potential energy with the structure: a small cluster
+   restructures), the kinetic energy exceeding its mean n_dof kT / 2 by that much (an
+   unstable mode heats the system; for 72 degrees of freedom that is 6 standard deviations
+   of the kinetic energy at equilibrium). The step of the first such sample is recorded.
 4. Drift (Verlet): the least-squares slope of E = U + K against time, in kJ/mol/ps, per degree
    of freedom (n_dof = 3 x moving particles - constraints - 3 with a centre-of-mass motion
    remover, which also edits velocities every step and should be left out of NVE checks).
@@ -77,7 +81,8 @@ class TrialSpec:
     sample_every : int
         Steps between energy samples.
     energy_bound : float
-        Blow-up when the total energy moves by more than this many n_dof kT.
+        Blow-up when the total energy moves by more than this many n_dof kT (Verlet), or the
+        kinetic energy exceeds n_dof kT / 2 by that much (LangevinMiddle).
     platform : {"CPU", "Reference"}
     threads : int
         CPU threads per run.
