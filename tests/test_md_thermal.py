@@ -144,11 +144,15 @@ def test_linear_limit_at_temperature_is_below_the_0_K_one():
 OWN_SEEDS = tuple(range(101, 111))
 
 
-def own_verlet_runs(engine, h_ps, seeds=OWN_SEEDS, duration=2.0, temperature=300.0):
+def own_runs(engine, h_ps, seeds=OWN_SEEDS, duration=2.0, temperature=300.0,
+                    langevin=False):
     """OpenMM's VerletIntegrator at h from thermal states made here: per seed, velocities
     at T and 1 ps of LangevinMiddle (0.5 fs, 10/ps), then ``duration`` ps of NVE sampled
-    every 10 steps. Returns (blew_up per seed, mean drift in kT/ps per degree of freedom
-    over the seeds that finished)."""
+    every 10 steps; a seed blows up at a non-finite energy, an OpenMM error or the total
+    energy moving by n_dof kT / 2. Returns (blew_up per seed, mean drift in kT/ps per degree
+    of freedom over the seeds that finished). With ``langevin``: LangevinMiddleIntegrator
+    (friction 1/ps) in place of Verlet, blowing up when the kinetic energy exceeds
+    n_dof kT (its mean plus n_dof kT / 2); no drift."""
     import openmm
 
     kT = er.MOLAR_GAS_CONSTANT * temperature
@@ -164,6 +168,9 @@ def own_verlet_runs(engine, h_ps, seeds=OWN_SEEDS, duration=2.0, temperature=300
         eq.step(2000)
         state = ctx.getState(getPositions=True, getVelocities=True)
         nve = openmm.VerletIntegrator(h_ps)
+        if langevin:
+            nve = openmm.LangevinMiddleIntegrator(temperature, 1.0, h_ps)
+            nve.setRandomNumberSeed(seed + 1000)
         run = openmm.Context(engine.system, nve, platform, {"Threads": "1"})
         run.setState(state)
         times, energy, failed = [], [], False
@@ -171,17 +178,19 @@ def own_verlet_runs(engine, h_ps, seeds=OWN_SEEDS, duration=2.0, temperature=300
             try:
                 nve.step(10)
                 st = run.getState(getEnergy=True)
-                e = st.getPotentialEnergy()._value + st.getKineticEnergy()._value
+                kinetic = st.getKineticEnergy()._value
+                e = st.getPotentialEnergy()._value + kinetic
             except Exception:
                 failed = True
                 break
-            if not math.isfinite(e) or (energy and abs(e - energy[0]) > 0.5 * n_dof * kT):
+            if not math.isfinite(e) or (langevin and kinetic > n_dof * kT) or (
+                    not langevin and energy and abs(e - energy[0]) > 0.5 * n_dof * kT):
                 failed = True
                 break
             times.append((k + 1) * 10 * h_ps)
             energy.append(e)
         blew.append(failed)
-        if not failed:
+        if not failed and not langevin:
             drifts.append(np.polyfit(times, energy, 1)[0] / (n_dof * kT))
     return blew, float(np.mean(drifts)) if drifts else math.nan
 
@@ -229,9 +238,9 @@ def test_water_cluster_limit_at_300_K_is_below_0_K_and_openmm_agrees(cluster_at_
                      ROOT / "examples" / "water-cluster" / "structure.pdb", platform="CPU",
                      threads=1)
     engine.minimize(1.0)
-    blew, drift = own_verlet_runs(engine, unsafe / 1000.0)
+    blew, drift = own_runs(engine, unsafe / 1000.0)
     assert any(blew) or abs(drift) > er.DRIFT_TOLERANCE, (blew, drift)
-    blew, drift = own_verlet_runs(engine, safe / 1000.0)
+    blew, drift = own_runs(engine, safe / 1000.0)
     assert not any(blew) and abs(drift) < er.DRIFT_TOLERANCE, (blew, drift)
 
 
@@ -287,3 +296,31 @@ def test_scene_temperature_and_runs_give_the_check_and_its_json(tmp_path, run):
     # --max-drift: kJ/mol per fs for the 24 atoms, as kT per ps per degree of freedom
     kT = er.MOLAR_GAS_CONSTANT * 300.0
     assert runs["drift_tolerance"] == pytest.approx(0.5 * 1000.0 / (72 * kT), rel=1e-12)
+
+
+@openmm_only
+@pytest.mark.slow
+def test_water_cluster_with_langevin_middle_at_300_K_against_openmm():
+    """LangevinMiddle (friction 1/ps) on the cluster at 300 K: its limit at temperature
+    lies below the 0 K one (Verlet's); at 0.9 of the 0 K limit, SAFE at 0 K, the analysis
+    says UNSAFE and LangevinMiddle runs written here (other seeds) blow up; just below the
+    h_max it gives they run 2 ps in 10 seeds."""
+    import stepsafe
+    from stepsafe.systems.md import openmm_engine as oe
+
+    scene = str(ROOT / "examples" / "water-cluster.yaml")
+    warm = stepsafe.advise("langevin-middle", scene=scene, temperature=300, length="10 ps")
+    h0 = warm.record["thermal"]["h_max_0K"]
+    assert warm.h_max < h0 and warm.record["thermal"]["limited_by"] == "OpenMM runs"
+    unsafe = 0.9 * h0
+    assert stepsafe.check("langevin-middle", unsafe, scene=scene).safe
+    assert not stepsafe.check("langevin-middle", unsafe, scene=scene, temperature=300,
+                              length="10 ps").safe
+    engine = oe.load(ROOT / "examples" / "water-cluster" / "system.xml",
+                     ROOT / "examples" / "water-cluster" / "structure.pdb", platform="CPU",
+                     threads=1)
+    engine.minimize(1.0)
+    blew, _ = own_runs(engine, unsafe / 1000.0, langevin=True)
+    assert any(blew), blew
+    blew, _ = own_runs(engine, 0.999 * warm.h_max / 1000.0, langevin=True)
+    assert not any(blew), blew
