@@ -25,7 +25,8 @@ kJ/mol, K; :class:`~stepsafe.systems.md.engine.DynamicsEngine`):
 3. **Runs of the user's integrator in the engine** (:mod:`~stepsafe.systems.md.enginerun`:
    per seed, 1 ps of thermalisation, then :data:`DURATION` ps or the user's run if shorter):
    a step *fails* when a seed blows up (a non-finite energy, the engine stopping, or the total
-   energy moving by more than half of n_dof kT) or, for Verlet, the mean energy drift exceeds
+   energy moving by more than half of n_dof kT; with a thermostat, the kinetic energy
+   exceeding its mean by that much) or, for Verlet, the mean energy drift exceeds
    :data:`~stepsafe.systems.md.enginerun.DRIFT_TOLERANCE` kT per ps per degree of freedom.
    First at ``TOP h_linear``; if it fails, from ``LOW h_linear`` (halved until it passes) by
    bisection to a relative width :data:`RESOLUTION`. The step given is :data:`BACKOFF` below
@@ -35,9 +36,11 @@ kJ/mol, K; :class:`~stepsafe.systems.md.engine.DynamicsEngine`):
 
 ``h_max`` is the smaller of the linear limit at temperature (``limited_by`` ``"linear at
 temperature"``) and the confirmed step (``"<engine> runs"``), with the drift measured there.
-A check at h fails above the linear limit at temperature, or when a run at h itself (every
-seed, the confirmation's too) fails. The runs are statistical: a step found to pass in these
-seeds over these durations may fail in a longer run; the record states both.
+A check at h fails at or above the linear limit at temperature, when a run at h itself
+(every seed, the confirmation's too) fails, or, when they pass, at or above that ``h_max``
+(the same scan): check and advise agree on both sides of it. The runs are statistical: a step
+found to pass in these seeds over these durations may fail in a longer run; the record
+states both.
 """
 
 from __future__ import annotations
