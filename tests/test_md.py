@@ -484,6 +484,14 @@ def test_a_crashed_engine_process_counts_as_a_blow_up_and_is_started_again(tmp_p
     assert not rec.runs[1].blew_up and rec.runs[1].seed == 5
 
 
+def test_a_run_past_its_timeout_is_stopped_and_named():
+    spec = er.TrialSpec("verlet", 0.001, 0.1, seeds=(4,))
+    with er.TrialWorker(timeout=0.5, command=[sys.executable, "-c",
+                                             "import time; time.sleep(60)"]) as w:
+        with pytest.raises(StepsafeError, match="seed 4 took longer than 0.5 s"):
+            er.run_trials(SYSTEM_XML, "<State/>", spec, worker=w)
+
+
 def test_engine_errors_and_bugs_are_told_apart():
     spec = er.TrialSpec("verlet", 0.001, 0.1, seeds=(4,))
     with worker("import sys\nfor line in sys.stdin: print('{\"error\": \"file::x: bad\"}', "

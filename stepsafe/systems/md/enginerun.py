@@ -41,9 +41,11 @@ import math
 import subprocess
 import sys
 import tempfile
+import threading
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -304,6 +306,8 @@ class TrialWorker:
         self.command = command or [sys.executable, "-m", "stepsafe.systems.md.openmm_engine",
                                    "--serve"]
         self._process: subprocess.Popen[str] | None = None
+        # (a file, not a pipe: a pipe nobody reads stops a process that writes much to it)
+        self._stderr: Any = None
 
     def __enter__(self) -> TrialWorker:
         return self
@@ -322,27 +326,46 @@ class TrialWorker:
             except (OSError, subprocess.TimeoutExpired):
                 proc.kill()
                 proc.wait()
+        if self._stderr is not None:
+            self._stderr.close()
+            self._stderr = None
 
     def _start(self) -> subprocess.Popen[str]:
         if self._process is None or self._process.poll() is not None:
+            if self._stderr is not None:
+                self._stderr.close()
+            self._stderr = tempfile.TemporaryFile(mode="w+")
             self._process = subprocess.Popen(
-                self.command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                text=True, bufsize=1)
+                self.command, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                stderr=self._stderr, text=True, bufsize=1)
         return self._process
+
+    def _ended(self, proc: subprocess.Popen[str], job: dict) -> dict:
+        """The process ended during ``job``: a crash (a signal) is the job's result, a
+        timeout or an exit a :class:`StepsafeError` or a bug."""
+        code = proc.wait()
+        self._process = None
+        if code == -9:
+            raise StepsafeError(f"the trial run of seed {job['seed']} took longer than "
+                                f"{self.timeout:g} s")
+        if code < 0:
+            return {"crashed": -code}
+        err = ""
+        if self._stderr is not None:
+            self._stderr.seek(0)
+            err = self._stderr.read()
+        raise RuntimeError(f"trial run failed (exit {code}): {err.strip()[-400:]}")
 
     def run(self, job: dict) -> dict:
         """The result of one seed's job; ``{"crashed": signal}`` when the run killed the
         process (which is started again for the next job)."""
-        import threading
-
         proc = self._start()
         assert proc.stdin is not None and proc.stdout is not None
         try:
             proc.stdin.write(json.dumps(job) + "\n")
             proc.stdin.flush()
         except OSError:  # the process had ended
-            self._process = None
-            return {"crashed": -(proc.wait() or 0)}
+            return self._ended(proc, job)
         timer = threading.Timer(self.timeout, proc.kill)
         timer.start()
         try:
@@ -350,15 +373,7 @@ class TrialWorker:
         finally:
             timer.cancel()
         if not line:
-            code = proc.wait()
-            self._process = None
-            if code == -9:
-                raise StepsafeError(f"the trial run of seed {job['seed']} took longer than "
-                                    f"{self.timeout:g} s")
-            if code < 0:
-                return {"crashed": -code}
-            err = proc.stderr.read() if proc.stderr is not None else ""
-            raise RuntimeError(f"trial run failed (exit {code}): {err.strip()[-400:]}")
+            return self._ended(proc, job)
         return json.loads(line)
 
 
