@@ -397,3 +397,46 @@ def test_a_temperature_the_engine_cannot_answer_is_refused_not_answered_at_0K(ru
     code, out, err = run("check", str(scene), *options)
     assert code == 2 and "SAFE" not in out, (out, err)
     assert message in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("criterion", ["structure", "stability"])
+def test_json_says_which_criterion_and_which_answer_was_applied(morse_scene, criterion):
+    """The criterion keeps its name at temperature: the record's ``criterion`` and the
+    thermal record's are the one given, and each minimum's z* and 0 K limit are the first
+    boundary ``region`` gives under it (omega_0 = 1). The answer applied is named: advise's
+    ``h_max`` and ``h_max_limited_by`` are the thermal answer's (the 0 K one under
+    ``zero_kelvin``), and a step SAFE at 0 K but not at temperature fails with no mode
+    failing and the reason under ``thermal_failure``. A harmonic system names its
+    criterion too, and its answer at temperature is the 0 K one under that criterion,
+    islands included."""
+    import jsonschema
+
+    from stepsafe.api.schemas import output_schema
+
+    z_star = stepsafe.region("verlet", model="oscillator", criterion=criterion) \
+        .to_dict()["models"]["oscillator"]["first_boundary"]
+    advice = stepsafe.advise(scene=morse_scene, kT=0.003, steps=10000,
+                             criterion=criterion).to_dict()
+    jsonschema.validate(advice, output_schema("advise"))
+    t = advice["thermal"]
+    assert advice["criterion"] == t["criterion"] == criterion
+    assert t["minima"][0]["z_star"] == z_star
+    assert t["minima"][0]["h_zero"] == pytest.approx(z_star, rel=1e-12)
+    assert (advice["h_max"], advice["h_max_limited_by"]) == (t["h_max"], t["limited_by"])
+    assert t["limited_by"] != "0 K" and advice["h_max"] < advice["zero_kelvin"]["h_max"]
+    assert advice["zero_kelvin"]["h_max_limited_by"] == "boundary"
+
+    checked = stepsafe.check(scene=morse_scene, h=1.5, kT=0.003, steps=10000,
+                             criterion=criterion).to_dict()
+    jsonschema.validate(checked, output_schema("check"))
+    entry = checked["checks"][0]
+    assert entry["criterion"] == entry["thermal"]["criterion"] == criterion
+    assert entry["safe"] is False and entry["failing"] == 0 and not entry["failures"]
+    assert entry["thermal_failure"].startswith("at temperature ")
+    assert entry["thermal"]["minima"][0]["h_zero"] == pytest.approx(z_star, rel=1e-12)
+
+    linear = stepsafe.advise("bcss3", [1.0], kT=2.0, steps=100, criterion=criterion)
+    plain = stepsafe.advise("bcss3", [1.0], criterion=criterion)
+    assert linear.record["thermal"]["criterion"] == criterion
+    assert linear.record["thermal"]["limited_by"] == "0 K"
+    assert linear.h_max == plain.h_max and linear.safe_h == plain.safe_h

@@ -387,7 +387,8 @@ def _thermal_request(p: Problem, temperature: Any, kT: Any, length: Any, steps: 
 def _advise_at_temperature(p: Problem, warm: Any, data: dict[str, Any], criterion: str,
                            order: int | None, progress: Any) -> None:
     """The answer at temperature into ``data``: ``h_max``, ``h_max_limited_by`` and
-    ``safe_h`` become it; the 0 K answer moves to ``zero_kelvin``."""
+    ``safe_h`` become it; the 0 K answer moves to ``zero_kelvin``. A harmonic system's
+    answer is the 0 K one, islands included."""
     from stepsafe.api.thermal import advise_at_temperature
     from stepsafe.core.resonances import DEFAULT_ORDERS
 
@@ -398,7 +399,7 @@ def _advise_at_temperature(p: Problem, warm: Any, data: dict[str, Any], criterio
     if thermal["limited_by"] != "0 K":
         data["h_max"] = thermal["h_max"]
         data["h_max_limited_by"] = thermal["limited_by"]
-    if data["h_max"] is not None:
+    if data["h_max"] is not None and not thermal["harmonic"]:
         data["safe_h"] = [[0.0, data["h_max"]]] if data["h_max"] > 0 else []
 
 

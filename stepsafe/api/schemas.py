@@ -107,9 +107,11 @@ IMPULSE_MODES = top({"method": STR, "kind": {"const": "impulse"}, "substeps": IN
 
 FAILURE = record({"model": STR, "z": NUM_OR_NULL, "reason": STR}, closed=False)
 
-#: The analysis at temperature (:mod:`stepsafe.api.thermal`): the request, and per minimum
-#: of the system its record (frequencies, scans, drift).
-THERMAL_REQUEST = {"kT": NUM, "temperature": NUM_OR_NULL, "energy_unit": STR_OR_NULL,
+#: The analysis at temperature (:mod:`stepsafe.api.thermal`): the request, the criterion of
+#: the method's interval z* its limits rest on, and per minimum of the system its record
+#: (frequencies, scans, drift).
+THERMAL_REQUEST = {"kT": NUM, "criterion": {"enum": ["structure", "stability"]},
+                   "temperature": NUM_OR_NULL, "energy_unit": STR_OR_NULL,
                    "run": record({"length": NUM_OR_NULL, "steps": NUM_OR_NULL}),
                    "max_drift": NUM_OR_NULL, "seed": INT, "harmonic": BOOL,
                    "minima": array(record({"at": STR}, closed=False))}

@@ -275,17 +275,20 @@ def _progress(progress: Callable[[float], None] | None, count: int
     return of
 
 
-def _harmonic_record(req: Request, h_zero: float | None) -> dict[str, Any]:
-    return {**_request_record(req), "h_max": h_zero, "h_max_0K": h_zero,
+def _harmonic_record(req: Request, h_zero: float | None, criterion: str) -> dict[str, Any]:
+    return {**_request_record(req, criterion), "h_max": h_zero, "h_max_0K": h_zero,
             "limited_by": "0 K", "harmonic": True, "minima": [],
             "notes": ["the system is linear (harmonic): its frequencies do not depend on "
                       "amplitude and its map has no resonance bands below the linear limit, "
                       "so the answer at temperature is the 0 K one"]}
 
 
-def _request_record(req: Request) -> dict[str, Any]:
-    return {"kT": req.kT, "temperature": req.temperature, "energy_unit": req.energy_unit,
-            "run": req.run(), "max_drift": req.max_drift, "seed": SEED}
+def _request_record(req: Request, criterion: str) -> dict[str, Any]:
+    """The request, with the criterion (``structure`` or ``stability``) of the method's
+    interval z* that the 0 K limit and the linear limit at temperature rest on."""
+    return {"kT": req.kT, "criterion": criterion, "temperature": req.temperature,
+            "energy_unit": req.energy_unit, "run": req.run(), "max_drift": req.max_drift,
+            "seed": SEED}
 
 
 def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion: str,
@@ -313,6 +316,7 @@ def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion:
     dict
         ``h_max`` (the smallest of ``h_zero`` and each minimum's limit at temperature
         times the margin), ``limited_by`` (``"0 K"`` when ``h_zero`` is the smaller),
+        ``criterion`` (the one given: the limits rest on the method's z* under it),
         ``h_max_0K``, ``h_range`` (where the limit lies at the stated confidence), and
         each minimum's analysis (:func:`limit_record`).
     """
@@ -322,7 +326,7 @@ def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion:
         return _engine_advice(p, req, h_zero, criterion, progress)
     found = _minima(p, req)
     if found is None:
-        return _harmonic_record(req, h_zero)
+        return _harmonic_record(req, h_zero, criterion)
     each = []
     report = _progress(progress, len(found))
     for i, m in enumerate(found):
@@ -334,7 +338,7 @@ def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion:
         each.append((m, r))
     best_m, best = min(each, key=lambda e: e[1].h_max)
     h_t = p.margin * best.h_max
-    out = {**_request_record(req), "h_max_0K": h_zero}
+    out = {**_request_record(req, criterion), "h_max_0K": h_zero}
     if h_zero is not None and h_zero <= h_t:
         out.update(h_max=h_zero, limited_by="0 K")
     else:
@@ -380,7 +384,8 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
     -------
     dict
         ``safe``: h over the margin lies below every minimum's linear limit at
-        temperature, an ensemble at h itself is clear of failures
+        temperature (z* under ``criterion``, stated), an ensemble at h itself is clear
+        of failures
         (:func:`stepsafe.systems.thermal.thermal_check`) and its drift meets
         ``max_drift``; ``reasons`` says what fails, ``minima`` each check
         (:func:`check_record`).
@@ -391,8 +396,9 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
         return _engine_check(p, req, h, criterion, progress)
     found = _minima(p, req)
     if found is None:
-        return {**_request_record(req), "safe": True, "harmonic": True, "reasons": [],
-                "minima": [], "notes": _harmonic_record(req, None)["notes"]}
+        return {**_request_record(req, criterion), "safe": True, "harmonic": True,
+                "reasons": [], "minima": [],
+                "notes": _harmonic_record(req, None, criterion)["notes"]}
     step = h / p.margin
     each, reasons = [], []
     for i, m in enumerate(found):
@@ -410,7 +416,7 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
                            f"(2 standard errors) exceeds max_drift {req.max_drift:g} "
                            f"(minimum at {m.label})")
     ran = min((pr["steps"] for m in each for pr in m["probes"]), default=None)
-    return {**_request_record(req), "safe": not reasons, "reasons": reasons,
+    return {**_request_record(req, criterion), "safe": not reasons, "reasons": reasons,
             "harmonic": False, "margin": p.margin, "minima": each,
             "notes": _shorter_runs(req, ran, step)}
 
@@ -591,7 +597,7 @@ def _engine_advice(p: Any, req: Request, h_zero: float | None, criterion: str,
     r = thermal_limit(analysis, runs, z_star, run_length, _engine_progress(progress),
                       engine_name="OpenMM")
     h_t = p.margin * r.h_max / scale
-    out = {**_request_record(req), "h_max_0K": h_zero}
+    out = {**_request_record(req, criterion), "h_max_0K": h_zero}
     if h_zero is not None and h_zero <= h_t:
         out.update(h_max=h_zero, limited_by="0 K")
     else:
@@ -628,7 +634,7 @@ def _engine_check(p: Any, req: Request, h: float, criterion: str,
     if c.limit is not None:
         entry["engine_runs"].update(_scan_limits(c.limit, p.margin, scale))
         entry["h_max"] = p.margin * c.h_max / scale
-    return {**_request_record(req), "safe": c.safe, "reasons": list(c.reasons),
+    return {**_request_record(req, criterion), "safe": c.safe, "reasons": list(c.reasons),
             "harmonic": False, "margin": p.margin, "minima": [entry], "notes": list(c.notes)}
 
 
