@@ -213,6 +213,8 @@ NOT_RUN = {
     "pytest": "the test suite itself: .ci/run runs the README's line",
     "python benchmarks/": "benchmarks measure speed on the machine that runs them",
     "python examples/tradeoff.py": "tests/test_accuracy.py and tests/test_examples.py run it",
+    "python docs/figures/morse_thermal.py": "a minute of ensembles drawn as a figure: "
+                                            "tests/test_thermal_figure.py checks its data",
     "mkdocs build": "builds this site: .ci/run runs it",
 }
 #: A fenced block: its indentation, language and text (dedented).
