@@ -621,3 +621,21 @@ def test_safe_at_temperature_table():
         assert bound < power
         fluct = float(re.search(r"\(([\d.]+)\)$", cells[5]).group(1))
         assert f"{drift['fluctuation']:.1g}" == f"{fluct:g}"
+
+
+def test_readme_temperature_rows_are_the_guide_s():
+    """The README's "Safe at temperature" rows are rows of the guide's table, under its
+    header (test_safe_at_temperature_table checks those against the analysis): the Morse
+    bond at kT/D = 0.006 and the O-H bond at 300 K; the section links the guide and the
+    figure, and the README stays within 250 lines."""
+    section = README[README.index("\n## Safe at temperature\n"):]
+    section = section[:section.index("\n## ", 1)]
+    rows = [line for line in section.splitlines() if line.startswith("| ")]
+    guide = [line for line in _page("docs/guides/thermal.md").splitlines()
+             if line.startswith("| ")]
+    assert rows[0] == guide[0] and set(rows[1:]) <= set(guide[1:])
+    assert [("morse.yaml" in r, "300 K" in r) for r in rows[1:]] == [(True, False),
+                                                                    (False, True)]
+    assert "(docs/guides/thermal.md)" in section
+    assert "(docs/figures/morse-thermal.png)" in section
+    assert README.count("\n") <= 250
