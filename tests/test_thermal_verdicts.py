@@ -1,21 +1,23 @@
 """Verdicts at temperature against ensembles integrated in the test: a cubic and a quartic
-oscillator (``check`` of the thermal analysis at one step), and the FPU-alpha chain of
-``examples/fpu-alpha.yaml`` at two temperatures through ``stepsafe check --kT``.
+oscillator (``check`` of the thermal analysis at one step, velocity Verlet and PEFRL), and
+the FPU-alpha chain of ``examples/fpu-alpha.yaml`` at two temperatures through ``stepsafe
+check --kT``.
 
-Each step is also run by velocity Verlet written out in numpy (:mod:`thermal_support`) from
-the test's own Boltzmann draws (exact 1-D draws by quadrature; Metropolis for the chain),
-2000 trajectories, for as many steps as the analysis ran, with two failure counts that
-need nothing of stepsafe:
+Each step is also run by the method written out in numpy (:mod:`thermal_support`: Verlet,
+and PEFRL from its published coefficients) from the test's own Boltzmann draws (exact 1-D
+draws by quadrature; Metropolis for the chain), 2000 trajectories, for as many steps as the
+analysis ran, with two failure counts that need nothing of stepsafe:
 
 * *blown up*: a state not finite or a coordinate beyond 1000 times the start's largest;
 * *grown*: blown up, or the energy above the minimum past ``4 rho0^2`` times its start,
-  ``rho0 = 1 / (1 - z0^2 / 4)`` the energy ratio of Verlet's invariant ellipse at the
-  minimum's own fastest ``z0 = omega_0 h``.
+  ``rho0`` the energy ratio of the method's invariant ellipse on the oscillator at the
+  minimum's own fastest ``z0 = omega_0 h`` (Verlet's ``1 / (1 - z0^2 / 4)``; multiplied
+  out here from the method's kicks and drifts).
 
 The analysis counts a trajectory failed when it leaves ``10 sqrt(rho)`` times the start's
 extent or its energy passes ``4 rho^2`` times its start, with ``rho`` taken at the largest
 instantaneous frequency the run meets (above ``omega_0``: a looser energy test than
-*grown*) and never less far than *blown up* reaches. So its failure fraction lies between
+*grown*, a tighter distance than *blown up*). So its failure fraction should lie between
 the two counts: within 4 binomial standard errors (plus 2 of 500) of that interval. A step
 called UNSAFE in a band is one where the test's own run fails too; a step called SAFE is
 one where the test's own run loses no more than the 1% threshold allows (2.3 standard
@@ -31,11 +33,14 @@ import numpy as np
 import pytest
 from support import method
 from thermal_support import (
+    PEFRL_DRIFTS,
+    PEFRL_KICKS,
     boltzmann_1d,
     cubic,
     fpu_energy,
     fpu_force,
     metropolis,
+    pefrl,
     quartic,
     verlet,
 )
@@ -57,10 +62,36 @@ def _tolerance(p: float, m: int) -> float:
     return 4 * math.sqrt(p * (1 - p) * (1 / m + 1 / OWN)) + 2 / m
 
 
-def _own_counts(force, energy, q0, p0, h, steps, omega0):
-    """The fractions *blown up* and *grown* (module docstring) of the test's own Verlet."""
-    z0 = min(h * omega0, 1.999)
-    rho0 = 1 / (1 - z0 * z0 / 4)
+def _ellipse_ratio(name: str, z: float) -> float:
+    """``rho0``: the largest over the smallest energy ``(q^2 + p^2) / 2`` on the invariant
+    ellipse of the method's map of the oscillator at z, its one-step matrix M multiplied
+    out here from the recipe (kicks and drifts) and the ellipse ``x^T Q x = 1`` with
+    ``Q = [[-c, (a - d)/2], [(a - d)/2, b]]`` for ``M = [[a, b], [c, d]]`` (``M^T Q M = Q``
+    when det M = 1); inf where ``|tr M| >= 2``. Verlet's is ``1 / (1 - z^2/4)``."""
+    def drift(a):
+        return np.array([[1.0, a * z], [0.0, 1.0]])
+
+    def kick(b):
+        return np.array([[1.0, 0.0], [-b * z, 1.0]])
+
+    if name == "verlet":
+        ops = [kick(0.5), drift(1.0), kick(0.5)]
+    else:
+        ops = [op for a, b in zip(PEFRL_DRIFTS, PEFRL_KICKS) for op in (drift(a), kick(b))]
+        ops.append(drift(PEFRL_DRIFTS[-1]))
+    M = np.eye(2)
+    for op in ops:
+        M = op @ M
+    (a, b), (c, d) = M
+    if not abs(a + d) < 2:
+        return math.inf
+    w = np.linalg.eigvalsh(np.array([[-c, (a - d) / 2], [(a - d) / 2, b]]))
+    return float(w[1] / w[0]) if w[0] > 0 else float(w[0] / w[1])
+
+
+def _own_counts(step, force, energy, q0, p0, h, steps, rho0):
+    """The fractions *blown up* and *grown* (module docstring) of the test's own run of
+    ``step`` (:func:`thermal_support.verlet` or :func:`thermal_support.pefrl`)."""
     qs = q0.reshape(q0.shape[0], -1)
     far = 1e3 * np.max(np.abs(qs))
     E0 = energy(q0, p0)
@@ -71,8 +102,8 @@ def _own_counts(force, energy, q0, p0, h, steps, omega0):
     def grown(q, p):
         return blown(q, p) | ~(energy(q, p) <= 4 * rho0 ** 2 * E0)
 
-    return (float(verlet(force, q0.copy(), p0.copy(), h, steps, blown).mean()),
-            float(verlet(force, q0.copy(), p0.copy(), h, steps, grown).mean()))
+    return (float(step(force, q0.copy(), p0.copy(), h, steps, blown).mean()),
+            float(step(force, q0.copy(), p0.copy(), h, steps, grown).mean()))
 
 
 def _judged_against_own(safe, failures, trajectories, blown, grown, in_band):
@@ -108,30 +139,36 @@ def _oscillator(kind, c):
 SLOW = [pytest.mark.slow]
 
 
-@pytest.mark.parametrize("kind, c, kT, z, verdict", [
+@pytest.mark.parametrize("name, kind, c, kT, z, verdict", [
     # U = q^2/2 + q^3/30: barrier at q = -10, 16.7 high; kT = 0.05 and 0.5
-    ("cubic", 0.1, 0.05, 1.6, "safe"),  # between the 4:1 and 3:1 bands
-    ("cubic", 0.1, 0.05, 1.42, "band"),  # just above 4:1 (sqrt 2): energy grows, bounded
-    pytest.param("cubic", 0.1, 0.05, 0.8, "safe", marks=SLOW),
-    pytest.param("cubic", 0.1, 0.05, 1.72, "band", marks=SLOW),  # below 3:1: most escape
-    pytest.param("cubic", 0.1, 0.5, 1.2, "safe", marks=SLOW),
-    pytest.param("cubic", 0.1, 0.5, 1.45, "band", marks=SLOW),
-    pytest.param("cubic", 0.1, 0.5, 1.75, "band", marks=SLOW),
+    ("verlet", "cubic", 0.1, 0.05, 1.6, "safe"),  # between the 4:1 and 3:1 bands
+    ("verlet", "cubic", 0.1, 0.05, 1.42, "band"),  # above 4:1 (sqrt 2): energy grows, bounded
+    pytest.param("verlet", "cubic", 0.1, 0.05, 0.8, "safe", marks=SLOW),
+    pytest.param("verlet", "cubic", 0.1, 0.05, 1.72, "band", marks=SLOW),  # most escape
+    pytest.param("verlet", "cubic", 0.1, 0.5, 1.2, "safe", marks=SLOW),
+    pytest.param("verlet", "cubic", 0.1, 0.5, 1.45, "band", marks=SLOW),
+    pytest.param("verlet", "cubic", 0.1, 0.5, 1.75, "band", marks=SLOW),
     # U = q^2/2 + q^4/40: stiffening; kT = 0.05 and 0.5
-    ("quartic", 0.1, 0.5, 0.8, "safe"),
-    ("quartic", 0.1, 0.5, 1.2, "band"),  # above the linear limit at temperature, 1.09
-    pytest.param("quartic", 0.1, 0.5, 1.6, "band", marks=SLOW),
-    pytest.param("quartic", 0.1, 0.05, 0.8, "safe", marks=SLOW),
-    pytest.param("quartic", 0.1, 0.05, 1.6, "safe", marks=SLOW),
-    pytest.param("quartic", 0.1, 0.05, 1.85, "band", marks=SLOW)])
-def test_oscillator_verdicts_at_temperature_against_the_tests_own_ensembles(kind, c, kT, z,
-                                                                            verdict):
-    """thermal_check at z (omega_0 = 1, a run of 1e4 steps): SAFE where the test's own
-    Verlet loses nothing the threshold does not allow, UNSAFE where its trajectories blow
-    up or their energy grows past the linear map's bound, at the fraction the check's
-    ensemble reports (module docstring)."""
+    ("verlet", "quartic", 0.1, 0.5, 0.8, "safe"),
+    ("verlet", "quartic", 0.1, 0.5, 1.2, "band"),  # above the linear limit at T, 1.09, too
+    pytest.param("verlet", "quartic", 0.1, 0.5, 1.6, "band", marks=SLOW),
+    pytest.param("verlet", "quartic", 0.1, 0.05, 0.8, "safe", marks=SLOW),
+    pytest.param("verlet", "quartic", 0.1, 0.05, 1.6, "safe", marks=SLOW),
+    pytest.param("verlet", "quartic", 0.1, 0.05, 1.85, "band", marks=SLOW),
+    # PEFRL (4th order): safe far up; above its linear limit at temperature (about 1.58 on
+    # the quartic at kT = 0.5) the check says UNSAFE where no failure shows in 2000 steps
+    ("pefrl", "cubic", 0.1, 0.5, 2.05, "safe"),
+    pytest.param("pefrl", "quartic", 0.1, 0.5, 1.5, "safe", marks=SLOW),
+    pytest.param("pefrl", "quartic", 0.1, 0.5, 1.9, "linear", marks=SLOW)])
+def test_oscillator_verdicts_at_temperature_against_the_tests_own_ensembles(name, kind, c, kT,
+                                                                            z, verdict):
+    """thermal_check at z (omega_0 = 1, a run of 1e4 steps): SAFE where the test's own run
+    of the method loses nothing the threshold does not allow, UNSAFE in a band where its
+    trajectories blow up or their energy grows past the linear map's bound, at the fraction
+    the check's ensemble reports (module docstring), and UNSAFE above the linear limit at
+    temperature, a bound on the frequencies the run meets, whatever the ensemble shows."""
     pot, energy, force, barrier = _oscillator(kind, c)
-    check = thermal_check(method("verlet"), pot, kT, z, steps=1e4)
+    check = thermal_check(method(name), pot, kT, z, steps=1e4)
     assert check.safe is (verdict == "safe"), check.reasons
     (_, probe), = check.probes
     rng = np.random.default_rng(11)
@@ -139,12 +176,15 @@ def test_oscillator_verdicts_at_temperature_against_the_tests_own_ensembles(kind
     q0 = boltzmann_1d(lambda s: energy(s, 0.0), kT, OWN, rng,
                       barrier if barrier is not None else -reach, reach)
     p0 = rng.standard_normal(OWN) * math.sqrt(kT)
-    blown, grown = _own_counts(force, energy, q0, p0, z, probe.steps, 1.0)
+    blown, grown = _own_counts(verlet if name == "verlet" else pefrl, force, energy, q0, p0,
+                               z, probe.steps, _ellipse_ratio(name, z))
     _judged_against_own(check.safe, probe.failures, probe.trajectories, blown, grown,
                         verdict == "band")
     if verdict == "band":
         assert any("in a resonance band" in r or "failures not excluded" in r
                    for r in check.reasons)
+    if verdict == "linear":
+        assert check.reasons == ("above the linear limit at temperature",)
 
 
 ALPHA = 0.25
@@ -185,7 +225,7 @@ def test_fpu_scene_verdicts_at_two_temperatures_against_the_tests_own_ensembles(
     def energy(q, p):
         return fpu_energy(q, ALPHA) + 0.5 * np.sum(p * p, axis=1)
 
-    blown, grown = _own_counts(lambda q: fpu_force(q, ALPHA), energy, q0, p0, h,
-                               probe["steps"], OMEGA_0)
+    blown, grown = _own_counts(verlet, lambda q: fpu_force(q, ALPHA), energy, q0, p0, h,
+                               probe["steps"], _ellipse_ratio("verlet", h * OMEGA_0))
     _judged_against_own(entry["safe"], probe["failures"], probe["trajectories"], blown,
                         grown, verdict == "band")
