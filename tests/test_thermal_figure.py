@@ -65,7 +65,9 @@ def test_resonance_points_and_0K_limit_are_region_s():
 @pytest.mark.parametrize("kT", sorted(PANELS))
 def test_figure_shows_what_the_analysis_reports(kT):
     """advise at kT over 1e4 steps gives the panel's h_max (within a grid step), its
-    criterion, linear limit and bands; along the curve every step up to h_max is SAFE,
+    criterion, linear limit and bands; check gives the curve's verdict, trajectories and
+    steps at two of its steps, and its failures but for a few a different rounding may
+    tip; along the curve every step up to h_max is SAFE,
     every step at or above the linear limit at temperature UNSAFE, and so is every step
     inside a band."""
     panel = PANELS[kT]
@@ -83,6 +85,17 @@ def test_figure_shows_what_the_analysis_reports(kT):
                 assert now[side] is None
             else:
                 assert abs(now[side]["clear"] - shown[side]) <= EDGE * shown[side]
+    for z in (1.2, 1.5):  # the check's own ensemble today, at two steps of the curve
+        point = next(p for p in panel["curve"] if p["z"] == z)
+        now = stepsafe.check(scene=SCENE, h=z, kT=kT, steps=DATA["run_steps"]).to_dict()
+        thermal = now["checks"][0]["thermal"]
+        (probe,) = thermal["minima"][0]["probes"]
+        assert (thermal["safe"], probe["trajectories"], probe["steps"]) == \
+            (point["safe"], point["trajectories"], point["steps"])
+        # the same draws: only trajectories a rounding can tip (a chaotic edge) may differ
+        k = point["failures"]
+        m = point["trajectories"]
+        assert abs(probe["failures"] - k) <= 4 * math.sqrt(k * (1 - k / m)) + 2
     for point in panel["curve"]:
         z = point["z"]
         if z <= panel["h_max"]:
