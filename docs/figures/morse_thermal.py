@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
+import re
 import sys
 from pathlib import Path
 
@@ -111,6 +111,14 @@ def compute() -> dict:
             "measured": list(MEASURED), "panels": panels}
 
 
+def dumps(data: dict) -> str:
+    """The data as JSON, an object without nested ones (a point of a curve) on one line."""
+    text = json.dumps(data, indent=1)
+    flat = re.compile(r"\{\n\s*([^{}\[\]]*?)\n\s*\}")
+    return flat.sub(lambda m: "{" + " ".join(x.strip() for x in m.group(1).splitlines())
+                    + "}", text) + "\n"
+
+
 def draw(data: dict, path: Path) -> None:
     """The figure, from the data alone: one panel per temperature, failure fraction (log
     scale; none failed: on the axis) against z, the 1% threshold, the resonance points,
@@ -177,7 +185,7 @@ def main() -> None:
         data = json.loads(args.data.read_text())
     else:
         data = compute()
-        args.data.write_text(json.dumps(data, indent=1) + "\n")
+        args.data.write_text(dumps(data))
     draw(data, args.png)
 
 
