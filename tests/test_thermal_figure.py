@@ -62,6 +62,7 @@ def test_resonance_points_and_0K_limit_are_region_s():
     assert {"4:1", "3:1"} <= set(shown)
 
 
+@pytest.mark.slow  # an analysis at temperature and two checks, over the run's 1e4 steps
 @pytest.mark.parametrize("kT", sorted(PANELS))
 def test_figure_shows_what_the_analysis_reports(kT):
     """advise at kT over 1e4 steps gives the panel's h_max (within a grid step), its

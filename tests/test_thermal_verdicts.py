@@ -51,6 +51,8 @@ from stepsafe.systems.thermal.limit import thermal_check
 ROOT = Path(__file__).resolve().parent.parent
 #: The test's own trajectories.
 OWN = 2000
+#: The user's run, in steps: the ensembles run all of it (it is within their cap).
+RUN = 2000
 #: Most the test's own run may lose at a SAFE step: the 1% threshold and 2.3 standard errors.
 SAFE_LOSS = 0.01 + 2.3 * math.sqrt(0.01 * 0.99 / OWN)
 
@@ -162,15 +164,16 @@ SLOW = [pytest.mark.slow]
     pytest.param("pefrl", "quartic", 0.1, 0.5, 1.9, "linear", marks=SLOW)])
 def test_oscillator_verdicts_at_temperature_against_the_tests_own_ensembles(name, kind, c, kT,
                                                                             z, verdict):
-    """thermal_check at z (omega_0 = 1, a run of 1e4 steps): SAFE where the test's own run
+    """thermal_check at z (omega_0 = 1, a run of RUN steps): SAFE where the test's own run
     of the method loses nothing the threshold does not allow, UNSAFE in a band where its
     trajectories blow up or their energy grows past the linear map's bound, at the fraction
     the check's ensemble reports (module docstring), and UNSAFE above the linear limit at
     temperature, a bound on the frequencies the run meets, whatever the ensemble shows."""
     pot, energy, force, barrier = _oscillator(kind, c)
-    check = thermal_check(method(name), pot, kT, z, steps=1e4)
+    check = thermal_check(method(name), pot, kT, z, steps=RUN)
     assert check.safe is (verdict == "safe"), check.reasons
     (_, probe), = check.probes
+    assert probe.steps == RUN
     rng = np.random.default_rng(11)
     reach = 40 * math.sqrt(kT)
     q0 = boltzmann_1d(lambda s: energy(s, 0.0), kT, OWN, rng,
@@ -197,7 +200,7 @@ OMEGA_0 = 2 * math.sin(0.4 * math.pi)
     (0.02, 0.7, "safe"), (0.02, 1.03, "band"), (0.08, 0.7, "safe"), (0.08, 0.95, "band")])
 def test_fpu_scene_verdicts_at_two_temperatures_against_the_tests_own_ensembles(
         run, kT, h, verdict):
-    """``stepsafe check examples/fpu-alpha.yaml --kT kT --steps 10000 --step h``: exit 0
+    """``stepsafe check examples/fpu-alpha.yaml --kT kT --steps 2000 --step h``: exit 0
     at h = 0.7 (two thirds of the 0 K limit 1.0515) at both temperatures; exit 1 at 0.95
     for kT = 0.08 and at 1.03 for kT = 0.02, steps the 0 K check calls SAFE. The test's own
     Verlet, from its own Metropolis draws of the chain at kT, agrees (module docstring)."""
@@ -205,15 +208,15 @@ def test_fpu_scene_verdicts_at_two_temperatures_against_the_tests_own_ensembles(
     code, _, err = run("check", scene, "--step", str(h))
     assert code == 0, err  # safe at 0 K
     code, out, err = run("check", scene, "--step", str(h), "--kT", str(kT), "--steps",
-                         "10000", "--json")
+                         str(RUN), "--json")
     assert code == (0 if verdict == "safe" else 1), err
     entry = json.loads(out)["checks"][0]
     thermal = entry["thermal"]
     assert thermal["safe"] is entry["safe"] is (verdict == "safe")
-    assert thermal["kT"] == kT and thermal["run"]["steps"] == 10000
+    assert thermal["kT"] == kT and thermal["run"]["steps"] == RUN
     (minimum,) = thermal["minima"]
     (probe,) = minimum["probes"]
-    assert probe["target"] == "whole system" and probe["h"] == h
+    assert probe["target"] == "whole system" and probe["h"] == h and probe["steps"] == RUN
 
     n = 4
     ref, _ = metropolis(lambda q: fpu_energy(q, ALPHA), kT, np.zeros(n), 400, 6000,
