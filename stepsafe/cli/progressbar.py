@@ -1,7 +1,10 @@
 """A progress bar on stderr for analyses that take more than a second (command line only).
 
 The numeric core reports progress through a callback ``progress(fraction)``; this module
-turns it into a rich bar when stderr is a terminal. Nothing is drawn before
+turns it into a rich bar when stderr is a terminal. A stage that names what it counts, and
+may not know its total (Lanczos iterations, for one), reports through the callback's
+``stage(label, done, total)`` attribute instead: the bar then shows the label and the count
+(``done of total``, or ``done`` alone under a pulsing bar). Nothing is drawn before
 :data:`DELAY` seconds (most analyses finish first), and the bar is removed when done, so
 stdout (the report or the JSON) is never mixed with it.
 """
@@ -27,19 +30,33 @@ def progress_bar(label: str, enabled: bool = True) -> Iterator[Callable[[float],
     start = time.monotonic()
     state: dict = {}
 
-    def report(fraction: float) -> None:
+    def bar() -> bool:
         if "bar" not in state:
             if time.monotonic() - start < DELAY:
-                return
+                return False
             from rich.console import Console
             from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-            bar = Progress(TextColumn(label), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
-                           TimeElapsedColumn(), console=Console(stderr=True), transient=True)
-            bar.start()
-            state["bar"], state["task"] = bar, bar.add_task(label, total=1.0)
-        state["bar"].update(state["task"], completed=min(max(fraction, 0.0), 1.0))
+            shown = Progress(TextColumn("{task.description}"), BarColumn(),
+                             TextColumn("{task.fields[count]}"), TimeElapsedColumn(),
+                             console=Console(stderr=True), transient=True)
+            shown.start()
+            state["bar"], state["task"] = shown, shown.add_task(label, total=1.0, count="")
+        return True
 
+    def report(fraction: float) -> None:
+        if bar():
+            state["bar"].update(state["task"], description=label, total=1.0,
+                                completed=min(max(fraction, 0.0), 1.0),
+                                count=f"{100 * min(max(fraction, 0.0), 1.0):>3.0f}%")
+
+    def stage(name: str, done: int, total: int | None) -> None:
+        if bar():
+            count = f"{done} of {total}" if total else f"{done}"
+            state["bar"].update(state["task"], description=f"{label}: {name}", total=total,
+                                completed=done if total else 0, count=count)
+
+    report.stage = stage  # type: ignore[attr-defined]
     try:
         yield report
     finally:

@@ -181,6 +181,13 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
                     exc.message) from None
 
 
+#: What each stage of an MD system's analysis counts, as a progress bar labels it.
+MD_STAGES = {"minimize": "minimising the energy (OpenMM)",
+             "step control": "finite-difference step control, trial steps",
+             "hessian": "dense Hessian, force-difference columns",
+             "products": "Lanczos iterations (Hessian-vector products)"}
+
+
 def _md_system(tree: dict, where: str, folder: Path, time_unit: str | None,
                progress: Callable[[float], None] | None = None,
                method: Method | None = None) -> SystemReport:
@@ -199,14 +206,20 @@ def _md_system(tree: dict, where: str, folder: Path, time_unit: str | None,
     def fail(key: str, message: str) -> StepsafeError:
         return _fail(where, key, message)
 
-    chosen = md.settings(tree, fail)
-    engine = md.load_engine(tree["openmm"], tree.get("positions"), folder, fail)
-    engine, repartitioned, minimization = md.prepare(engine, chosen, fail)
-
     def tick(stage: str, done: int, total: int | None) -> None:
-        if progress is not None and total:
+        # a callback with a stage(label, done, total) attribute (the command line's bar)
+        # is told what is counted, also without a total (Lanczos); others get fractions
+        named = getattr(progress, "stage", None)
+        if named is not None:
+            named(MD_STAGES.get(stage, stage), done, total)
+        elif progress is not None and total:
             progress(done / total)
 
+    chosen = md.settings(tree, fail)
+    engine = md.load_engine(tree["openmm"], tree.get("positions"), folder, fail)
+    if chosen.minimize:
+        tick("minimize", 0, None)
+    engine, repartitioned, minimization = md.prepare(engine, chosen, fail)
     result = md.analyse(engine, chosen, repartitioned, minimization, progress=tick)
     unit = time_unit or "ps"
     scale = float(TIME_UNITS[unit] / TIME_UNITS["ps"])  # rad/ps -> rad per unit

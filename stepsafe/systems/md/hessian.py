@@ -143,10 +143,12 @@ class ForceDifferences:
         Where to differentiate (nm); the engine's positions by default.
     step : float, optional
         eps in nm; chosen by :func:`choose_step` on first use when omitted.
+    progress : callable, optional
+        ``progress("step control", force_differences, None)`` while the step is chosen.
     """
 
     def __init__(self, engine: ForceEngine, positions: np.ndarray | None = None,
-                 step: float | None = None) -> None:
+                 step: float | None = None, progress: Progress | None = None) -> None:
         self.engine = engine
         self.x0 = as_positions(engine.positions if positions is None else positions,
                                engine.n_particles)
@@ -162,6 +164,7 @@ class ForceDifferences:
         self.calls = 0
         self.retries = 0
         self._hnorm = 0.0
+        self._progress = progress
         #: The forces at x0 on the moving coordinates (kJ/mol/nm).
         self.f0 = self.forces()
         self._choice: StepChoice | None = None
@@ -228,7 +231,7 @@ class ForceDifferences:
     def choice(self) -> StepChoice:
         """The step control's outcome (computed on first use)."""
         if self._choice is None:
-            self._choice = choose_step(self)
+            self._choice = choose_step(self, progress=self._progress)
         return self._choice
 
     @property
@@ -295,7 +298,8 @@ def length_scale(positions: np.ndarray) -> float:
 
 
 def choose_step(differences: ForceDifferences, steps: tuple[float, ...] | None = None,
-                seed: int = SEED, above_balance: int | None = None) -> StepChoice:
+                seed: int = SEED, above_balance: int | None = None,
+                progress: Progress | None = None) -> StepChoice:
     """The finite-difference step where the relative error estimate ``|e| / |D|`` is smallest,
     on a fixed pseudo-random direction ``u ~ M^(-1/2) xi`` (xi standard normal, u scaled to
     norm 1).
@@ -310,6 +314,9 @@ def choose_step(differences: ForceDifferences, steps: tuple[float, ...] | None =
         Of the direction.
     above_balance : int, optional
         Halvings above the smallest estimate to step back (:data:`ABOVE_BALANCE`).
+    progress : callable, optional
+        ``progress("step control", candidates_tried, None)`` after each candidate (two force
+        evaluations).
 
     Returns
     -------
@@ -331,6 +338,8 @@ def choose_step(differences: ForceDifferences, steps: tuple[float, ...] | None =
         scale = float(np.linalg.norm(d))
         rel.append(float(np.linalg.norm(e)) / scale + shift if scale > 0 else float("inf"))
         scaled.append(eps * float(np.linalg.norm(e)))
+        if progress is not None:
+            progress("step control", len(rel), None)
 
     for eps in steps:
         measure(eps)
@@ -411,14 +420,15 @@ def hessian(engine: ForceEngine, positions: np.ndarray | None = None, *,
     step : float, optional
         eps in nm; by step control when omitted.
     progress : callable, optional
-        ``progress("hessian", done_columns, total_columns)``.
+        ``progress("hessian", done_columns, total_columns)`` (and ``"step control"``, see
+        :func:`choose_step`).
 
     Returns
     -------
     Hessian
     """
     progress = progress or _silent
-    fd = ForceDifferences(engine, positions, step)
+    fd = ForceDifferences(engine, positions, step, progress)
     d = fd.dim
     choice = fd.choice
     value = np.empty((d, d))
@@ -542,12 +552,13 @@ class HessianVectorProduct:
     step : float, optional
         eps in nm; by step control when omitted.
     progress : callable, optional
-        ``progress("products", done, None)`` after each product.
+        ``progress("products", done, None)`` after each product (each Lanczos iteration
+        forms one), ``progress("step control", ...)`` before (:func:`choose_step`).
     """
 
     def __init__(self, engine: ForceEngine, positions: np.ndarray | None = None, *,
                  step: float | None = None, progress: Progress | None = None) -> None:
-        self.fd = ForceDifferences(engine, positions, step)
+        self.fd = ForceDifferences(engine, positions, step, progress)
         self.dim = self.fd.dim
         self.particles = self.fd.particles
         self.products = 0
