@@ -45,7 +45,25 @@ def test_every_example_has_a_kind():
         [name for name in EXAMPLES if _kind(name) == "unknown"]
 
 
-@pytest.mark.parametrize("name", [n for n in EXAMPLES if _kind(n) == "scene"])
+def _openmm_atoms(name: str) -> int:
+    """Particles of the OpenMM System a scene names (0 for another scene)."""
+    import xml.etree.ElementTree as ET
+
+    system = yaml.safe_load((ROOT / "examples" / name).read_text()).get("system")
+    if not (isinstance(system, dict) and "openmm" in system):
+        return 0
+    particles = ET.parse(ROOT / "examples" / system["openmm"]).getroot().find("Particles")
+    return 0 if particles is None else len(particles)
+
+
+#: Scenes of OpenMM systems above this many atoms (minimised, then Lanczos: seconds each)
+#: run in the slow set.
+SLOW_OPENMM_ATOMS = 200
+
+
+@pytest.mark.parametrize("name", [
+    pytest.param(n, marks=pytest.mark.slow) if _openmm_atoms(n) > SLOW_OPENMM_ATOMS else n
+    for n in EXAMPLES if _kind(n) == "scene"])
 def test_scene_runs_with_advise_and_check(run, name):
     """advise answers (exit 0); check answers a scene with h: (0 or 1, as advise's safe
     steps say), and one without h: at half of advise's h_max (0)."""
