@@ -182,7 +182,7 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
 
 
 #: What each stage of an MD system's analysis counts, as a progress bar labels it.
-MD_STAGES = {"minimize": "minimising the energy (OpenMM)",
+MD_STAGES = {"minimize": "minimising the energy (OpenMM's L-BFGS iterations)",
              "step control": "finite-difference step control, trial steps",
              "hessian": "dense Hessian, force-difference columns",
              "products": "Lanczos iterations (Hessian-vector products)"}
@@ -217,9 +217,7 @@ def _md_system(tree: dict, where: str, folder: Path, time_unit: str | None,
 
     chosen = md.settings(tree, fail)
     engine = md.load_engine(tree["openmm"], tree.get("positions"), folder, fail)
-    if chosen.minimize:
-        tick("minimize", 0, None)
-    engine, repartitioned, minimization = md.prepare(engine, chosen, fail)
+    engine, repartitioned, minimization = md.prepare(engine, chosen, fail, progress=tick)
     result = md.analyse(engine, chosen, repartitioned, minimization, progress=tick)
     unit = time_unit or "ps"
     scale = float(TIME_UNITS[unit] / TIME_UNITS["ps"])  # rad/ps -> rad per unit

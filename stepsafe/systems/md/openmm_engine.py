@@ -26,6 +26,7 @@ import json
 import math
 import os
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -228,7 +229,9 @@ class OpenMMEngine:
 
     # --- beyond the interface ------------------------------------------------------------
 
-    def minimize(self, tolerance: float = 10.0, max_iterations: int = 0) -> Minimization:
+    def minimize(self, tolerance: float = 10.0, max_iterations: int = 0,
+                 progress: Callable[[str, int, int | None], None] | None = None
+                 ) -> Minimization:
         """Move :attr:`positions` to a local minimum of the energy (OpenMM's
         ``LocalEnergyMinimizer``, L-BFGS; constraints held by a penalty to the integrator's
         tolerance, then applied exactly).
@@ -239,6 +242,9 @@ class OpenMMEngine:
             Stop when the RMS force component falls below this, kJ/mol/nm.
         max_iterations : int
             Iteration cap; 0 runs to convergence.
+        progress : callable, optional
+            ``progress("minimize", iterations, None)`` after each L-BFGS iteration (counted
+            over OpenMM's restarts with stronger constraint restraints).
 
         Returns
         -------
@@ -248,7 +254,19 @@ class OpenMMEngine:
         mm = _openmm()
         before = self.energy(self._positions)
         self._context.setPositions(self._positions)
-        mm.LocalEnergyMinimizer.minimize(self._context, float(tolerance), int(max_iterations))
+        reporter = None
+        if progress is not None:
+            count = [0]
+
+            class Reporter(mm.MinimizationReporter):  # type: ignore[misc,name-defined]
+                def report(self, iteration: int, x: Any, grad: Any, args: Any) -> bool:
+                    count[0] += 1
+                    progress("minimize", count[0], None)
+                    return False
+
+            reporter = Reporter()
+        mm.LocalEnergyMinimizer.minimize(self._context, float(tolerance), int(max_iterations),
+                                         reporter)
         if len(self._constraints):
             self._context.applyConstraints(CONSTRAINT_TOLERANCE)
         self._context.computeVirtualSites()

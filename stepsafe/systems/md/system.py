@@ -318,7 +318,8 @@ def _named(make: Callable[[], Any], fail: Callable[[str, str], StepsafeError], k
         raise fail(key, f"{exc.where}: {exc.message}" if exc.where else exc.message) from None
 
 
-def prepare(engine: Any, chosen: Settings, fail: Callable[[str, str], StepsafeError]
+def prepare(engine: Any, chosen: Settings, fail: Callable[[str, str], StepsafeError], *,
+            progress: Callable[[str, int, int | None], None] | None = None
             ) -> tuple[Any, Repartition | None, Any]:
     """The engine with the hydrogen masses repartitioned, the rule's constraints added
     and (if asked) minimised (OpenMM's ``LocalEnergyMinimizer`` on the CPU platform, one
@@ -327,7 +328,8 @@ def prepare(engine: Any, chosen: Settings, fail: Callable[[str, str], StepsafeEr
     ``createSystem``, the masses are set before the positions are put on the new
     constraints (a mass-weighted projection), and the waters the System itself holds rigid
     keep their masses (``createSystem`` skips the waters its ``rigidWater`` makes rigid, not
-    those its ``HAngles`` rule does)."""
+    those its ``HAngles`` rule does). ``progress("minimize", iterations, None)`` follows the
+    minimiser."""
     topology: Topology | None = engine.topology
     rule = None
     if chosen.constraints not in (None, "none"):
@@ -364,7 +366,7 @@ def prepare(engine: Any, chosen: Settings, fail: Callable[[str, str], StepsafeEr
             fast = engine.at(engine.positions, platform="CPU", threads=1)
         except StepsafeError:  # no CPU platform here
             fast = engine
-        minimization = fast.minimize(MINIMIZE_TOLERANCE)
+        minimization = fast.minimize(MINIMIZE_TOLERANCE, progress=progress)
         engine = engine.at(fast.positions)
     return engine, done, minimization
 
