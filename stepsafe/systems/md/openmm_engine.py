@@ -256,12 +256,12 @@ class OpenMMEngine:
         self._context.setPositions(self._positions)
         reporter = None
         if progress is not None:
-            count = [0]
+            count, tell = [0], progress
 
             class Reporter(mm.MinimizationReporter):  # type: ignore[misc,name-defined]
                 def report(self, iteration: int, x: Any, grad: Any, args: Any) -> bool:
                     count[0] += 1
-                    progress("minimize", count[0], None)
+                    tell("minimize", count[0], None)
                     return False
 
             reporter = Reporter()
