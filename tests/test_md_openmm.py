@@ -1,7 +1,8 @@
 """The MD-engine core on OpenMM: finite-difference Hessians against analytic second
 derivatives, the constraint projection against reduced coordinates, hydrogen mass
-repartitioning and the constraint rules against OpenMM's own createSystem, the flexible-water
-O-H stretch, and Verlet's limit checked by OpenMM's own integrators (fixed seeds)."""
+repartitioning and the constraint rules against OpenMM's own createSystem, and the
+flexible-water O-H stretch. (The verdicts against OpenMM's own integrators:
+test_md_validation.py and test_md_scene.py.)"""
 
 from __future__ import annotations
 
@@ -23,7 +24,6 @@ from md_support import (
 
 from stepsafe.exceptions import StepsafeError
 from stepsafe.systems.md import constraints as cs
-from stepsafe.systems.md import enginerun as er
 from stepsafe.systems.md import hessian as hs
 from stepsafe.systems.md import hmr
 from stepsafe.systems.md import openmm_engine as oe
@@ -277,37 +277,6 @@ def test_largest_frequency_of_the_water_box_is_the_tip3p_stretch(water_minimum):
     (mode,) = hs.describe(sp, engine.labels, modes=1, share=0.9)
     assert mode.atoms[0][1].endswith((":H1", ":H2"))
     assert mode.wavenumber == pytest.approx(sp.wavenumbers[0])
-
-
-@pytest.fixture(scope="module")
-def water_limit(water_minimum):
-    """Verlet's linear limit 2/omega_max at the water box's minimum, ps."""
-    return hs.largest_modes(water_minimum, k=1, tol=1e-6).verlet_limit()
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("integrator", er.INTEGRATORS)
-def test_openmm_blows_up_above_the_verlet_limit_and_runs_below(water_minimum, water_limit,
-                                                               integrator):
-    """Flexible water (129 molecules, PME), thermalised at 300 K: 10% above 2/omega_max of the
-    minimum OpenMM's run blows up or drifts beyond the tolerance; 30% below it does neither
-    (2 seeds, 1 ps)."""
-    engine = water_minimum
-    limit = water_limit
-    common = dict(duration=1.0, seeds=(11, 12), equilibration=0.5, equilibration_step=0.001,
-                  sample_every=10)
-    above = er.run_trials(engine.system_xml(), engine.state_xml(),
-                          er.TrialSpec(integrator, 1.1 * limit, **common))
-    below = er.run_trials(engine.system_xml(), engine.state_xml(),
-                          er.TrialSpec(integrator, 0.7 * limit, **common))
-    assert above.verdict() != "stable"
-    assert below.verdict() == "stable"
-    assert not below.blew_up and below.n_dof == 3 * 387
-    mean, se = below.drift()
-    if integrator == "verlet":
-        assert abs(mean) < er.DRIFT_TOLERANCE and se < er.DRIFT_TOLERANCE
-    for run in below.runs:
-        assert 250 < run.kinetic_temperature < 350
 
 
 # --- files and errors ----------------------------------------------------------------------
