@@ -290,7 +290,8 @@ def _md_analysis(result: Any) -> str:
         rigid = (f", less its {result.rigid} rigid-body motions" if result.rigid else "")
         return (f"instantaneous normal modes of an OpenMM system: all {free} modes of a "
                 f"dense Hessian ({result.n_moving} moving atoms{rigid})")
-    return (f"instantaneous normal modes of an OpenMM system: the {len(sp.eigenvalues)} of "
+    found = "the one" if len(sp.eigenvalues) == 1 else f"the {len(sp.eigenvalues)}"
+    return (f"instantaneous normal modes of an OpenMM system: {found} of "
             f"largest |omega^2| of {free} by Lanczos on Hessian-vector products "
             f"({result.n_moving} moving atoms, {sp.products} products); islands not analysed")
 
