@@ -27,14 +27,14 @@ def drawn(monkeypatch, calls) -> str:
 def test_a_stage_without_a_total_shows_its_label_and_its_count(monkeypatch):
     out = drawn(monkeypatch, lambda p: [p.stage("Lanczos iterations (Hessian-vector "
                                                 "products)", k, None) for k in (1, 2, 37)])
-    assert "coupled analysis: Lanczos iterations (Hessian-vector products)" in out
+    assert "Lanczos iterations (Hessian-vector products)" in out
     assert " 37 " in out and "%" not in out
 
 
 def test_a_stage_with_a_total_shows_done_of_total(monkeypatch):
-    out = drawn(monkeypatch, lambda p: p.stage("dense Hessian, force-difference columns",
+    out = drawn(monkeypatch, lambda p: p.stage("dense Hessian (force-difference columns)",
                                                10, 120))
-    assert "coupled analysis: dense Hessian, force-difference columns" in out
+    assert "dense Hessian (force-difference columns)" in out
     assert "10 of 120" in out
 
 

@@ -3,10 +3,10 @@
 The numeric core reports progress through a callback ``progress(fraction)``; this module
 turns it into a rich bar when stderr is a terminal. A stage that names what it counts, and
 may not know its total (Lanczos iterations, for one), reports through the callback's
-``stage(label, done, total)`` attribute instead: the bar then shows the label and the count
-(``done of total``, or ``done`` alone under a pulsing bar). Nothing is drawn before
-:data:`DELAY` seconds (most analyses finish first), and the bar is removed when done, so
-stdout (the report or the JSON) is never mixed with it.
+``stage(label, done, total)`` attribute instead: the bar then shows that label in place of
+its own, and the count (``done of total``, or ``done`` alone under a pulsing bar). Nothing
+is drawn before :data:`DELAY` seconds (most analyses finish first), and the bar is removed
+when done, so stdout (the report or the JSON) is never mixed with it.
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ def progress_bar(label: str, enabled: bool = True) -> Iterator[Callable[[float],
     def stage(name: str, done: int, total: int | None) -> None:
         if bar():
             count = f"{done} of {total}" if total else f"{done}"
-            state["bar"].update(state["task"], description=f"{label}: {name}", total=total,
+            state["bar"].update(state["task"], description=name, total=total,
                                 completed=done if total else 0, count=count)
 
     report.stage = stage  # type: ignore[attr-defined]

@@ -182,9 +182,9 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
 
 
 #: What each stage of an MD system's analysis counts, as a progress bar labels it.
-MD_STAGES = {"minimize": "minimising the energy (OpenMM's L-BFGS iterations)",
-             "step control": "finite-difference step control, trial steps",
-             "hessian": "dense Hessian, force-difference columns",
+MD_STAGES = {"minimize": "minimising (OpenMM's L-BFGS iterations)",
+             "step control": "difference step control (trial steps)",
+             "hessian": "dense Hessian (force-difference columns)",
              "products": "Lanczos iterations (Hessian-vector products)"}
 
 
