@@ -144,7 +144,7 @@ class ForceDifferences:
     step : float, optional
         eps in nm; chosen by :func:`choose_step` on first use when omitted.
     progress : callable, optional
-        ``progress("step control", force_differences, None)`` while the step is chosen.
+        ``progress("step control", candidates_tried, None)`` while the step is chosen.
     """
 
     def __init__(self, engine: ForceEngine, positions: np.ndarray | None = None,
