@@ -87,6 +87,13 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--duration", type=float, default=5.0, help="ps per run")
     parser.add_argument("--only", type=int, nargs="*", help="rows of SYSTEMS to run (0-3)")
+    parser.add_argument("--integrators", nargs="+", default=list(INTEGRATORS),
+                        choices=INTEGRATORS)
+    parser.add_argument("--temperature", type=float,
+                        help="also stepsafe's h_max at this temperature (K), with --length")
+    parser.add_argument("--length", default="5 ps", help="the run's length at temperature")
+    parser.add_argument("--no-scan", action="store_true",
+                        help="stepsafe's limits only, no OpenMM scan")
     parser.add_argument("--json", type=Path, help="also write every run to this file")
     args = parser.parse_args()
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -119,14 +126,25 @@ def main() -> None:
         xml, _ = oe.write_example_system(kind, tmp, constraints=rule, hydrogen_mass=mass)
         system_xml = xml.read_text()
         cons = rule + (f", H {mass:g} amu" if mass else "")
-        for integrator in INTEGRATORS:
+        for integrator in args.integrators:
             report = stepsafe.advise(integrator, scene=str(scene), **extra)
             h_max = float(report.h_max)
             band = bands(report.record["safe_h"], h_max)
             print(f"\n{label}; {cons}; {integrator}: stepsafe h_max {h_max:.4f} fs "
                   f"({time.time() - t0:.0f} s)", flush=True)
+            warm = None
+            if args.temperature is not None:
+                t2 = time.time()
+                hot = stepsafe.advise(integrator, scene=str(scene), **extra,
+                                      temperature=args.temperature, length=args.length)
+                warm = {"h_max_fs": float(hot.h_max),
+                        "limited_by": hot.record.get("h_max_limited_by"),
+                        "seconds": time.time() - t2}
+                print(f"  at {args.temperature:g} K ({args.length}): stepsafe h_max "
+                      f"{warm['h_max_fs']:.4f} fs, limited by {warm['limited_by']} "
+                      f"({warm['seconds']:.0f} s)", flush=True)
             runs = []
-            for fraction in FRACTIONS:
+            for fraction in () if args.no_scan else FRACTIONS:
                 step = fraction * h_max
                 t1 = time.time()
                 record = er.run_trials(system_xml, state, er.TrialSpec(
@@ -151,13 +169,16 @@ def main() -> None:
                 if all(r.blew_up for r in record.runs):
                     break
             rows.append({"system": label, "constraints": cons, "integrator": integrator,
-                         "h_max_fs": h_max, "bands": band, "runs": runs})
+                         "h_max_fs": h_max, "bands": band, "warm": warm, "runs": runs})
+            if args.json:
+                args.json.write_text(json.dumps(log + rows[-1:], indent=1, default=str))
             log.append(rows[-1])
     print(f"\n(all runs: {time.time() - started:.0f} s)\n")
-    print("| system | integrator | constraints, H mass | stepsafe h_max (0 K) | unsafe bands "
-          "below it | OpenMM at 300 K: largest step run | drift there (Verlet) or T_kin "
-          "(LangevinMiddle) | first step that failed: blow-up step per seed |")
-    print("|---|---|---|---|---|---|---|---|")
+    hot = "" if args.temperature is None else f" stepsafe h_max at {args.temperature:g} K |"
+    print("| system | integrator | constraints, H mass | stepsafe h_max (0 K) |" + hot +
+          " unsafe bands below it | OpenMM at 300 K: largest step run | drift there (Verlet) "
+          "or T_kin (LangevinMiddle) | first step that failed: blow-up step per seed |")
+    print("|---|---|---|---|---|---|---|---|" + ("" if not hot else "---|"))
     for row in rows:
         ok = [r for r in row["runs"] if r["verdict"] == "stable"]
         bad = [r for r in row["runs"] if r["verdict"] != "stable"]
@@ -171,7 +192,9 @@ def main() -> None:
                 measured = f"{good['drift']:+.1e} ± {good['drift_se']:.1e} kT/ps/dof"
             else:
                 measured = ", ".join(f"{t:.0f}" for t in good["kinetic_temperature"]) + " K"
-        if first is None:
+        if not row["runs"]:
+            ran = measured = failed = "not run"
+        elif first is None:
             failed = "none up to " + f"{row['runs'][-1]['fraction']:.2f} h_max"
         else:
             steps = ", ".join("-" if s is None else str(s) for s in first["blowup_steps"])
@@ -180,8 +203,9 @@ def main() -> None:
             failed = f"{first['step_fs']:.2f} fs ({first['fraction']:.2f} h_max): {what}" + \
                 (f"; {steps}" if first["verdict"] == "blew up" else "")
         name = "Verlet" if row["integrator"] == "verlet" else "LangevinMiddle"
-        print(f"| {row['system']} | {name} | {row['constraints']} | {row['h_max_fs']:.3f} fs | "
-              f"{row['bands']} | {ran} | {measured} | {failed} |")
+        warm = "" if row["warm"] is None else f" {row['warm']['h_max_fs']:.3f} fs |"
+        print(f"| {row['system']} | {name} | {row['constraints']} | {row['h_max_fs']:.3f} fs |"
+              f"{warm} {row['bands']} | {ran} | {measured} | {failed} |")
     if args.json:
         args.json.write_text(json.dumps(log, indent=1, default=str))
 
