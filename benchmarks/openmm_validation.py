@@ -17,12 +17,12 @@ below h_max would show as a gap). Then OpenMM runs its ``VerletIntegrator`` and
 System OpenMM's own ``createSystem`` makes with those constraints and hydrogen masses, from
 the minimum stepsafe analysed (:mod:`stepsafe.systems.md.enginerun`): per seed, 1 ps of
 LangevinMiddle thermalisation at 300 K (friction 10/ps, step 1 fs or 0.35 h_max if smaller),
-then ``--duration`` ps of
-the integrator under test, CPU platform, one thread, energies every 10 steps. A run *blew up*
-at a non-finite energy, an OpenMM error, or a total energy moved by more than n_dof kT / 2;
-Verlet *drifts* when the mean slope of its total energy over the seeds exceeds 0.01 kT per ps
-per degree of freedom. The scan of a system and integrator stops at the first step where every
-seed blew up.
+then ``--duration`` ps of the integrator under test, CPU platform, one thread, energies every
+10 steps. A run *blew up* at a non-finite energy, an OpenMM error, or (Verlet) a total energy
+moved by more than n_dof kT / 2, (LangevinMiddle) a kinetic energy past its mean n_dof kT / 2
+by that much; Verlet *drifts* when the mean slope of its total energy over the seeds exceeds
+0.01 kT per ps per degree of freedom. The scan of a system and integrator stops at the first
+step where every seed blew up.
 
 The machine, the versions and the seeds are printed with the table.
 """
