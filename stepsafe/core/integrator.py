@@ -157,6 +157,23 @@ class Engine:
         self._cache = (q, p, g)
         return g
 
+    def know_force(self, q: np.ndarray, p: np.ndarray, force: np.ndarray) -> None:
+        """Take ``force`` as ``dH/dq`` at these very arrays (q, p), not counted: the next
+        kick there reuses it."""
+        self._cache = (q, p, force)
+
+    def take(self, rows: np.ndarray, q: np.ndarray, p: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """The rows ``rows`` (a mask or indices) of the state (q, p), the force last taken
+        at (q, p) going with them (so a run that drops trajectories reuses it)."""
+        c = self._cache
+        q1, p1 = q[rows], p[rows]
+        if c is not None and c[0] is q and (self.system.separable or c[1] is p):
+            self._cache = (q1, p1, c[2][rows])
+        else:
+            self._cache = None
+        return q1, p1
+
     def start(self, q: np.ndarray, p: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
         """The processor P applied to the initial state (the identity for other methods);
         its forces count in ``force_evaluations``."""

@@ -1,7 +1,7 @@
 """Ensembles of trajectories of a method's own map on a potential, many steps at once.
 
 One run advances ``m`` thermal initial conditions at each of ``k`` steps h together, as
-``k m`` rows of one array, through :class:`stepsafe.core.integrator.Engine` (the method's
+``k m`` rows of one array, through :func:`stepsafe.core.ensemble.integrate` (the method's
 nonlinear map; h is a column, one value per row). At every step it
 
 * measures the exact energy ``H = U(q) + p^T M^-1 p / 2`` of every row (on the processor's
@@ -33,13 +33,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import cast
 
 import numpy as np
 
-from stepsafe.core.integrator import Engine, SolverFailure
+from stepsafe.core.ensemble import integrate
 from stepsafe.exceptions import StepsafeError
-from stepsafe.methods.tableaux import Method, Processed
+from stepsafe.methods.tableaux import Method
 from stepsafe.systems.thermal.potential import Potential, system_of
 from stepsafe.systems.thermal.sampling import draw, momenta
 
@@ -184,66 +183,26 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
     every = max(1, int(energy_every))
     k, m = h_values.size, start.size
     system = system_of(pot)
-    engine = Engine(method, system)
-    processed = isinstance(method, Processed)
-    U_ref = start.energy_reference
-    H0 = np.tile(system.energy(start.q, start.p), k)
-    q = np.tile(start.q, (k, 1))
-    p = np.tile(start.p, (k, 1))
-    which = np.repeat(np.arange(k), m)
-    with np.errstate(invalid="ignore"):  # (inf rho times a zero energy: no limit)
-        limit = growth * np.repeat(rho, m) ** 2 * np.maximum(H0 - U_ref, 0.0)
-    limit = np.where(np.isnan(limit), np.inf, limit)
-    ref = start.reference[None, :]
+    rho_rows = np.repeat(rho, m)
     with np.errstate(over="ignore", invalid="ignore"):
-        reach = distance * np.sqrt(np.repeat(rho, m))[:, None] * start.extent[None, :]
+        reach = distance * np.sqrt(rho_rows)[:, None] * start.extent[None, :]
     reach = np.where(np.isfinite(reach), reach, np.finfo(float).max)  # (inf q still fails)
-    sums = np.zeros((3, k * m))  # sum dH, sum n dH, sum dH^2, dH in units of kT
+    # one step per row: the engine's updates are elementwise in h, so a column runs each
+    # row at its own step (bit for bit as a run of that step alone)
+    ran = integrate(method, system, np.tile(start.q, (k, 1)), np.tile(start.p, (k, 1)),
+                    np.repeat(h_values, m), steps, energy_every=every,
+                    reference_energy=start.energy_reference, growth=growth * rho_rows ** 2,
+                    centre=start.reference, reach=reach, fit=every == 1, unit=start.kT,
+                    progress=progress)
+    which = np.repeat(np.arange(k), m)
+    failures = np.bincount(which[ran.escaped], minlength=k)
     unit = start.kT
-    failures = np.zeros(k, dtype=int)
-    # one step per row: the engine's updates are elementwise in h, so an (rows, 1) column
-    # runs each row at its own step (bit for bit as a run of that step alone)
-    hcol = np.repeat(h_values, m)[:, None]
-    with np.errstate(all="ignore"):
-        if processed:
-            q, p = engine.start(q, p, cast(float, hcol))
-        for n in range(1, steps + 1):
-            q, p, bad = _step(engine, q, p, hcol)
-            qo, po = engine.output(q, p, cast(float, hcol)) if processed else (q, p)
-            # (a NaN or infinite coordinate fails the comparison; a momentum, the energy
-            # test or the next step's coordinate)
-            bad |= ~np.all(np.abs(qo - ref) <= reach, axis=1)
-            measured = every == 1 or n % every == 0 or n == steps
-            if measured:
-                dH = system.energy(qo, po) - H0
-                bad |= ~(dH + (H0 - U_ref) <= limit)
-            if bad.any():
-                failures += np.bincount(which[bad], minlength=k)
-                keep = ~bad
-                q, p, hcol, which, H0, limit, reach = (
-                    q[keep], p[keep], hcol[keep], which[keep], H0[keep], limit[keep],
-                    reach[keep])
-                sums = sums[:, keep]
-                if measured:
-                    dH = dH[keep]
-                if not which.size:
-                    break
-            if every == 1:  # (in units of kT: squares of energies of 1e200 overflow)
-                x = dH / unit
-                sums[0] += x
-                sums[1] += n * x
-                sums[2] += x * x
-            if progress is not None and n % 256 == 0:
-                progress(n / steps)
-    out = []
     if every == 1:
-        N = float(steps)
-        sum_n = N * (N + 1) / 2
-        sum_nn = N * (N + 1) * (2 * N + 1) / 6
-        slope = (N * sums[1] - sum_n * sums[0]) / (N * sum_nn - sum_n ** 2) / hcol[:, 0]
-        variance = np.maximum(sums[2] / N - (sums[0] / N) ** 2, 0.0)
+        slope = ran.slopes() / np.repeat(h_values, m)
+        variance = ran.variances()
+    out = []
     for j in range(k):
-        mine = which == j
+        mine = (which == j) & ~ran.escaped
         count = int(mine.sum())
         drift = error = fluct = math.nan
         if every == 1 and count:
@@ -252,22 +211,4 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
             error = float(b.std(ddof=1) / math.sqrt(count)) * unit if count > 1 else math.nan
             fluct = float(math.sqrt(variance[mine].mean())) * unit
         out.append(Outcome(float(h_values[j]), m, int(failures[j]), steps, drift, error, fluct))
-    if progress is not None:
-        progress(1.0)
     return out
-
-
-def _step(engine: Engine, q: np.ndarray, p: np.ndarray, h: np.ndarray
-          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One step of every row; rows whose implicit stage iteration fails are returned
-    unchanged and marked (the batch is halved until the failing rows are alone)."""
-    try:
-        q1, p1 = engine.step(q, p, cast(float, h))
-        return q1, p1, np.zeros(q.shape[0], dtype=bool)
-    except SolverFailure:
-        if q.shape[0] == 1:
-            return q, p, np.ones(1, dtype=bool)
-    half = q.shape[0] // 2
-    qa, pa, fa = _step(engine, q[:half], p[:half], h[:half])
-    qb, pb, fb = _step(engine, q[half:], p[half:], h[half:])
-    return np.concatenate([qa, qb]), np.concatenate([pa, pb]), np.concatenate([fa, fb])
