@@ -1,6 +1,6 @@
-"""Ensembles of trajectories advanced together: the batched splitting step against an
-independent Verlet loop written here, trajectory by trajectory; the shell and thermal
-draws against their definitions."""
+"""Ensembles of trajectories advanced together: the batched engine on a compiled
+Hamiltonian against an independent Verlet loop written here, trajectory by trajectory; the
+shell and thermal draws against their definitions."""
 
 from __future__ import annotations
 
@@ -11,16 +11,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from stepsafe.core.ensemble import integrate, separable_system
 from stepsafe.files.expressions import parse
+from stepsafe.methods.library import resolve
+from stepsafe.methods.tableaux import splitting_from_operations
 from stepsafe.systems.compiler import FUNCTIONS, Compiled, from_tree
 from stepsafe.systems.dynamics import compiled_system
-from stepsafe.systems.integrate import (
-    energy_errors,
-    shell_states,
-    splitting_step,
-    summary,
-    thermal_states,
-)
+from stepsafe.systems.integrate import shell_states, summary, thermal_states
 
 FPU = ("(p1**2 + p2**2 + p3**2)/2 + q1**2/2 + a*q1**3/3 + (q2 - q1)**2/2 + a*(q2 - q1)**3/3"
        " + (q3 - q2)**2/2 + a*(q3 - q2)**3/3 + q3**2/2 - a*q3**3/3")
@@ -30,9 +27,7 @@ NAMES = ("q1", "q2", "q3", "p1", "p2", "p3")
 def _fpu(alpha: float):
     e = parse(FPU, FUNCTIONS)
     compiled = Compiled(from_tree(e.tree, e.text, NAMES, {"a": alpha}), NAMES)
-    system = compiled_system(compiled, 3, True)
-    return compiled, (lambda q: system.dH_dq(q, np.zeros_like(q))), \
-        (lambda p: system.dH_dp(np.zeros_like(p), p))
+    return compiled, compiled_system(compiled, 3, True)
 
 
 def _plain_verlet_energy_error(x0, h, steps, alpha):
@@ -65,12 +60,12 @@ def _plain_verlet_energy_error(x0, h, steps, alpha):
 def test_batched_verlet_matches_an_independent_loop_per_trajectory(seed, energy, h, alpha):
     """Every trajectory's energy error from the batched step equals the one from a plain
     per-trajectory Verlet loop (to 1e-9 relative: the same arithmetic up to rounding)."""
-    compiled, dV, dT = _fpu(alpha)
+    compiled, system = _fpu(alpha)
     rng = np.random.default_rng(seed)
     S = compiled.hessian(np.zeros(6))
     X0 = shell_states(np.zeros(6), S, energy, 6, rng)
-    errors = energy_errors(np.array([0.0, 1.0]), np.array([0.5, 0.5]), compiled.energy, dV, dT,
-                           X0, h, 60)
+    ran = integrate(resolve("verlet")[0], system, X0[:, :3], X0[:, 3:], h, 60)
+    errors = ran.worst / np.abs(ran.energy0)
     for x0, err in zip(X0, errors):
         assert err == pytest.approx(_plain_verlet_energy_error(x0, h, 60, alpha),
                                     rel=1e-9, abs=1e-15)
@@ -97,11 +92,12 @@ def test_thermal_states_have_the_boltzmann_covariance():
     np.testing.assert_allclose(np.cov(X.T), 0.3 * np.linalg.inv(S), rtol=0.05, atol=0.01)
 
 
-def test_a_step_skips_zero_coefficients_and_applies_the_rest_in_order():
-    """drift(0) kick(1) drift(1) on a free particle in a constant force g: p -= g h,
-    then q += p h (symplectic Euler, kick first)."""
+def test_a_step_applies_the_operations_in_order():
+    """kick(1) drift(1) on a free particle in a constant force g = 2: p -= g h, then
+    q += p h (symplectic Euler, kick first); the start is not modified."""
     q, p = np.array([[0.0]]), np.array([[1.0]])
-    q1, p1 = splitting_step(np.array([0.0, 1.0]), np.array([1.0]),
-                            lambda q: np.full_like(q, 2.0), lambda p: p, q, p, 0.1)
-    assert p1[0, 0] == pytest.approx(0.8) and q1[0, 0] == pytest.approx(0.08)
-    assert math.isclose(q[0, 0], 0.0)
+    euler = splitting_from_operations([("kick", 1.0), ("drift", 1.0)], name="euler-kd")
+    system = separable_system(lambda q: np.full_like(q, 2.0), lambda q: 2.0 * q[:, 0], [1.0])
+    ran = integrate(euler, system, q, p, 0.1, 1)
+    assert ran.p[0, 0] == pytest.approx(0.8) and ran.q[0, 0] == pytest.approx(0.08)
+    assert math.isclose(q[0, 0], 0.0) and ran.forces == 1

@@ -92,15 +92,15 @@ def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
     are numbers in ``time_unit`` (else the scene's, else the unit their texts name), or
     texts with a time unit (``"0.5 fs"``). See the module docstring for what is measured.
 
-    With ``ensemble`` (a number N of trajectories) a splitting method (or a composition
-    of one) runs N initial
-    conditions at once instead, drawn with ``seed`` around the elliptic equilibrium the
-    default start orbits (its Hessian ``S`` positive definite): on the energy shell
-    ``energy`` (H there is ``H_e + (x - x_e)^T S (x - x_e) / 2``: every phase and every
-    split of the energy among the modes) or, with ``kT`` instead, from the Boltzmann
-    distribution ``N(x_e, kT S^-1)`` of the quadratic model; the result is an
-    :class:`EnsembleReport` of the distribution of each trajectory's largest energy
-    error over every step (:mod:`stepsafe.systems.integrate`).
+    With ``ensemble`` (a number N of trajectories) the method runs N initial conditions
+    at once instead (:func:`stepsafe.core.ensemble.integrate`), drawn with ``seed``
+    around the elliptic equilibrium the default start orbits (its Hessian ``S`` positive
+    definite): on the energy shell ``energy`` (H there is
+    ``H_e + (x - x_e)^T S (x - x_e) / 2``: every phase and every split of the energy among
+    the modes) or, with ``kT`` instead, from the Boltzmann distribution
+    ``N(x_e, kT S^-1)`` of the quadratic model; the result is an :class:`EnsembleReport`
+    of the distribution of each trajectory's largest energy error over every step,
+    relative to its energy above the equilibrium's.
 
     >>> report = measure("verlet", [0.1], system={"hamiltonian": "p**2/2 + q**2/2",
     ...                  "box": {"q": [-1, 1], "p": [-1, 1]}}, initial=[0.0, 1.0])
@@ -182,9 +182,8 @@ def _ensemble(integrator: Integrator, h: Any, scene: Any, system: Any, time: Any
               time_unit: str | None, max_steps: int,
               progress: Callable[[float], None] | None) -> EnsembleReport:
     """:func:`measure` on an ensemble (see there)."""
-    from stepsafe.exceptions import MethodError
-    from stepsafe.methods.tableaux import Composition, Splitting
-    from stepsafe.systems.integrate import energy_errors, shell_states, thermal_states
+    from stepsafe.core.ensemble import engine_for, integrate
+    from stepsafe.systems.integrate import shell_states, thermal_states
     from stepsafe.systems.scene import time_unit_in_force
     from stepsafe.units import duration
     from stepsafe.units import time_unit as known_time_unit
@@ -204,16 +203,6 @@ def _ensemble(integrator: Integrator, h: Any, scene: Any, system: Any, time: Any
         raise StepsafeError("--ensemble: give the energy shell (--energy E) or the "
                             "temperature (--kT E), one of them")
     tableau = integrator.tableau
-    if isinstance(tableau, Composition):  # a composition of a splitting is one
-        try:
-            tableau = tableau.as_splitting()
-        except MethodError:
-            pass
-    if not isinstance(tableau, Splitting) or tableau.gradient is not None and \
-            np.any(tableau.gradient):
-        raise StepsafeError(f"--ensemble runs splitting methods (drift and kick "
-                            f"coefficients) only; {integrator.name} is a {integrator.kind} "
-                            "method")
     time_unit = known_time_unit(time_unit)
     steps = [h] if isinstance(h, (int, float, str)) else h
     time_unit = time_unit_in_force(time_unit, scene,
@@ -225,9 +214,10 @@ def _ensemble(integrator: Integrator, h: Any, scene: Any, system: Any, time: Any
             problem.equilibrium_energy is None:
         raise StepsafeError("--ensemble: no elliptic equilibrium (positive definite "
                             "Hessian) in the box to draw the trajectories around")
-    if not problem.system.separable:
-        raise StepsafeError("--ensemble runs splitting methods, which need a separable "
-                            "H = T(p) + V(q)")
+    try:
+        engine_for(tableau, problem.system)  # what the method cannot run on this H
+    except StepsafeError as exc:
+        raise StepsafeError(f"--ensemble: {exc}") from None
     if time is None:
         if problem.beta is None:
             raise StepsafeError("give the time to integrate (--time T)")
@@ -262,20 +252,14 @@ def _ensemble(integrator: Integrator, h: Any, scene: Any, system: Any, time: Any
         kT = positive_finite(kT, "--kT")
         X0 = thermal_states(centre, S, kT, count, rng)
     n = X0.shape[1] // 2
-    sys_ = problem.system
-
-    def dV(q: np.ndarray) -> np.ndarray:
-        return sys_.dH_dq(q, np.zeros_like(q))
-
-    def dT(p: np.ndarray) -> np.ndarray:
-        return sys_.dH_dp(np.zeros_like(p), p)
-
-    def H(X: np.ndarray) -> np.ndarray:
-        return sys_.energy(X[:, :n], X[:, n:])
-
+    q0, p0 = X0[:, :n], X0[:, n:]
     rows = []
     for k, (step, steps_n) in enumerate(zip(hs, counts)):
-        errors = energy_errors(tableau.drift, tableau.kick, H, dV, dT, X0, step, steps_n, H_e)
+        ran = integrate(tableau, problem.system, q0, p0, step, steps_n)
+        assert ran.worst is not None and ran.energy0 is not None
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = np.abs(ran.energy0 - H_e)
+            errors = ran.worst / np.where(scale > 0, scale, 1.0)
         unstable = int(np.sum(~(errors <= UNSTABLE)))
         with np.errstate(invalid="ignore"):
             q = np.quantile(errors, [0.5, 0.9, 0.99])

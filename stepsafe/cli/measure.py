@@ -112,7 +112,7 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
     prediction for the vibration the start orbits and the ratio measured / predicted, the
     nonlinear calibration of `advise --tol-...`.
 
-    With --ensemble N (splitting methods) it runs N trajectories at once instead, drawn
+    With --ensemble N it runs N trajectories at once instead, drawn
     with --seed around the elliptic equilibrium: on the energy shell --energy E (every
     phase; H = E in the equilibrium's quadratic model) or at the temperature --kT E, and
     prints the median, 90% and 99% quantiles and maximum over the trajectories of each

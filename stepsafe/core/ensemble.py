@@ -154,8 +154,9 @@ def engine_for(method: Method, system: System, **options: Any) -> Engine:
     try:
         return Engine(method, system, **options)
     except ValueError as exc:
-        name = getattr(method, "name", type(method).__name__)
-        raise StepsafeError(f"{name}: {exc}") from None
+        name, text = getattr(method, "name", type(method).__name__), str(exc)
+        raise StepsafeError(text if text.startswith(f"{name}:") else f"{name}: {text}"
+                            ) from None
 
 
 def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h: Any,

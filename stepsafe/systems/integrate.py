@@ -1,14 +1,7 @@
-"""Ensembles of trajectories: many initial conditions advanced together by a splitting
-method on a compiled Hamiltonian, and the distribution of their energy errors.
+"""Initial conditions of ensembles of trajectories, and the distribution of their errors.
 
-States are arrays of shape ``(N, 2n)`` (N trajectories of n degrees of freedom, q then p).
-One step of a splitting method ``drift(a_1 h) kick(b_1 h) drift(a_2 h) ...`` on a
-separable ``H = T(p) + V(q)`` is :func:`splitting_step`: ``drift(c)`` is
-``q += c dH/dp(p)``, ``kick(c)`` is ``p -= c dH/dq(q)``, each on the whole batch at once;
-the method enters only through its coefficient arrays and the Hamiltonian only through
-its batched gradients (any callables of shape ``(N, n) -> (N, n)``), so the same function
-serves every splitting method and every system.
-
+States are arrays of shape ``(N, 2n)`` (N trajectories of n degrees of freedom, q then p);
+the trajectories themselves run through :func:`stepsafe.core.ensemble.integrate`.
 Initial conditions (:func:`shell_states`, :func:`thermal_states`), seeded:
 
 * on an energy shell near a centre ``x_e`` with Hessian ``S``: states whose quadratic
@@ -18,49 +11,15 @@ Initial conditions (:func:`shell_states`, :func:`thermal_states`), seeded:
 * at a temperature ``kT``: positions and momenta from the Boltzmann distribution of the
   quadratic model at the centre, ``x ~ N(x_e, kT S^-1)`` (S the centre's Hessian).
 
-:func:`energy_errors` runs the batch for a number of steps and returns each trajectory's
-largest ``|H(x_k) - H(x_0)|`` over every step, relative to its ``|H(x_0) - H_e|``;
-:func:`summary` its median, quartiles, 5 and 95 percent quantiles and maximum.
+:func:`summary` gives the median, quartiles, 5 and 95 percent quantiles and maximum of
+the trajectories' errors.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-
-Gradient = Callable[[np.ndarray], np.ndarray]
-
-
-def splitting_step(drift: np.ndarray, kick: np.ndarray, dV: Gradient, dT: Gradient,
-                   q: np.ndarray, p: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
-    """One step of the splitting ``drift(a_1 h) kick(b_1 h) drift(a_2 h) ...``.
-
-    Parameters
-    ----------
-    drift, kick : ndarray
-        The coefficients ``a_i`` and ``b_i`` (``drift`` as long as ``kick`` or one
-        longer; zeros are skipped).
-    dV, dT : callable
-        ``dH/dq`` as a function of q alone and ``dH/dp`` of p alone, on arrays of shape
-        ``(N, n)``.
-    q, p : ndarray
-        The states, shape ``(N, n)`` each (not modified).
-    h : float
-        The step.
-
-    Returns
-    -------
-    q, p : ndarray
-        The states after the step.
-    """
-    for i, a in enumerate(drift):
-        if a:
-            q = q + (a * h) * dT(p)
-        if i < len(kick) and kick[i]:
-            p = p - (kick[i] * h) * dV(q)
-    return q, p
 
 
 def shell_states(centre: np.ndarray, hessian: np.ndarray, energy: float, count: int,
@@ -84,26 +43,6 @@ def thermal_states(centre: np.ndarray, hessian: np.ndarray, kT: float, count: in
     L = np.linalg.cholesky(S)
     y = rng.standard_normal((count, S.shape[0])) * np.sqrt(kT)
     return centre + np.linalg.solve(L.T, y.T).T
-
-
-def energy_errors(drift: np.ndarray, kick: np.ndarray, energy: Gradient, dV: Gradient,
-                  dT: Gradient, X0: np.ndarray, h: float, steps: int,
-                  reference_energy: float = 0.0) -> np.ndarray:
-    """For each trajectory from the rows of ``X0`` (shape ``(N, 2n)``), the largest
-    ``|H(x_k) - H(x_0)|`` over the steps ``k = 1 .. steps``, relative to
-    ``|H(x_0) - reference_energy|``; ``inf`` for a trajectory that left the finite
-    numbers. ``energy`` maps states ``(N, 2n)`` to ``(N,)``."""
-    n = X0.shape[1] // 2
-    q, p = X0[:, :n].copy(), X0[:, n:].copy()
-    e0 = energy(X0)
-    worst = np.zeros(X0.shape[0])
-    with np.errstate(all="ignore"):
-        for _ in range(steps):
-            q, p = splitting_step(drift, kick, dV, dT, q, p, h)
-            e = energy(np.hstack([q, p]))
-            worst = np.fmax(worst, np.where(np.isfinite(e), np.abs(e - e0), np.inf))
-        scale = np.abs(e0 - reference_energy)
-        return worst / np.where(scale > 0, scale, 1.0)
 
 
 @dataclass(frozen=True)
