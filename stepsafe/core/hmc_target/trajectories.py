@@ -6,48 +6,45 @@ A proposal from ``(q, p)`` runs L steps of the method at step h and returns
 draws one step per trajectory, ``h (1 + J u)`` with u uniform on (-1, 1) and L kept (as
 Stan's ``stepsize_jitter`` and :class:`stepsafe.core.hmc.Trajectory`).
 
-Splitting methods (compositions of one multiplied out, processed methods ``P^-1 K^L P``
-with P and P^-1 run once per trajectory) run as one vectorised loop over their drifts
-``q += c h M^-1 p`` and kicks ``p -= c h grad U(q)`` (operations as
-:attr:`stepsafe.methods.tableaux.Splitting.operations` gives them), the gradient reused
-where q has not moved since it was taken (first same as last). Any other method
-(Runge-Kutta, partitioned RK, force-gradient splittings) runs through the general engine
-:class:`stepsafe.core.integrator.Engine`, with the Hessian where it needs one.
+Every method runs through the shared engine over trajectories,
+:func:`stepsafe.core.ensemble.integrate`: splittings and compositions of them as their
+drifts ``q += c h M^-1 p`` and kicks ``p -= c h grad U(q)``, the gradient reused where q
+has not moved since it was taken (first same as last); processed methods ``P^-1 K^L P``
+with P and P^-1 run once per trajectory; Runge–Kutta and partitioned RK methods, and
+force-gradient splittings with the Hessian (the target's, or central differences).
 
-A trajectory whose state stops being finite is frozen there (its gradient no longer asked
-for) and its ``Delta`` is +inf: a divergent transition. Gradient evaluations are counted per
-trajectory; the gradient at the starting point is not (a sampler has it from the previous
-iteration).
+A trajectory whose state stops being finite (or whose implicit stage iteration fails) is
+frozen there (its gradient no longer asked for) and its ``Delta`` is +inf: a divergent
+transition. Gradient evaluations are counted per trajectory; the gradient at the starting
+point is not (a sampler has it from the previous iteration).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
+from stepsafe.core.ensemble import integrate
 from stepsafe.core.hmc_target.potential import Target, hessian_matrix
-from stepsafe.exceptions import StepsafeError
+from stepsafe.core.integrator import System
 from stepsafe.methods.families import is_symmetric
 from stepsafe.methods.tableaux import Composition, Method, Processed, Splitting
 
 
 @dataclass(frozen=True)
 class Scheme:
-    """A method as HMC runs it on a target.
+    """A method as HMC runs it on a target, with its cost.
 
-    ``operations`` is one step as ``("drift"|"kick", c)`` pairs (None: the method runs
-    through the general engine); ``prologue`` and ``epilogue`` are a processed method's
-    P and P^-1 (run once per trajectory); ``gradients_per_step`` counts the kicks of a step
-    as run with first-same-as-last (None where the engine counts them);
-    ``gradients_per_trajectory_extra`` is the processor's one-off cost (P and P^-1)."""
+    ``operations`` is one step (a processed method's kernel) as ``("drift"|"kick", c)``
+    pairs, None for a method that is not one drift/kick sequence; ``gradients_per_step``
+    counts the kicks of a step as run with first-same-as-last (None where the run counts
+    them); ``gradients_per_trajectory_extra`` is the processor's one-off cost (P and
+    P^-1)."""
 
     name: str
     method: Method
     operations: tuple[tuple[str, float], ...] | None
-    prologue: tuple[tuple[str, float], ...] = ()
-    epilogue: tuple[tuple[str, float], ...] = ()
     gradients_per_step: int | None = None
     gradients_per_trajectory_extra: int = 0
     symmetric: bool = True
@@ -91,8 +88,7 @@ def scheme(method: Method) -> Scheme:
         kernel = method.kernel_splitting
         if not kernel.force_gradient:
             ops = [(k, float(c)) for k, c in kernel.operations]
-            return Scheme(name, method, tuple(ops), tuple(method.processor_operations),
-                          tuple(method.inverse_operations), _kicks_per_step(ops),
+            return Scheme(name, method, tuple(ops), _kicks_per_step(ops),
                           2 * method.processor_evaluations, symmetric)
     return Scheme(name, method, None, symmetric=symmetric)
 
@@ -140,85 +136,22 @@ def energy_errors(target: Target, run: Scheme, q0: np.ndarray, p0: np.ndarray,
     with np.errstate(all="ignore"):
         u0 = pot.energy(q0) if energy0 is None else energy0
         g0 = pot.gradient(q0) if gradient0 is None else gradient0
-        hh = np.asarray(h, dtype=float)
-        hcol = hh[:, None] if hh.ndim == 1 else hh
-        if run.operations is None:
-            q, p, count = _engine_run(target, run, q0, p0, hcol, steps, scale)
-        else:
-            q, p, count = _splitting_run(target, run, q0, p0, g0, hcol, steps)
-        finite = np.isfinite(q).all(axis=1) & np.isfinite(p).all(axis=1)
+        ran = integrate(run.method, _system(target, scale), q0, p0, h, steps, energy_every=0,
+                        force0=g0)
+        finite = ~ran.escaped
         delta = np.full(q0.shape[0], np.inf)
         if finite.any():
-            qf, pf = q[finite], p[finite]
+            qf, pf = ran.q[finite], ran.p[finite]
             u1 = pot.energy(qf)
             delta[finite] = (u1 - u0[finite]) + (target.mass.kinetic(pf)
                                                  - target.mass.kinetic(p0[finite]))
         delta = np.where(np.isnan(delta), np.inf, delta)
-    return Proposals(delta, count / max(q0.shape[0], 1))
+    return Proposals(delta, ran.forces / max(q0.shape[0], 1))
 
 
-def _splitting_run(target: Target, run: Scheme, q: np.ndarray, p: np.ndarray,
-                   g: np.ndarray, h: np.ndarray, steps: int
-                   ) -> tuple[np.ndarray, np.ndarray, float]:
-    """The drift/kick loop (module docstring); returns q, p and the total gradient
-    evaluations (summed over trajectories)."""
-    pot, mass = target.potential, target.mass
-    n = q.shape[0]
-    live = np.ones(n, dtype=bool)
-    all_live = True
-    fresh = True  # g is the gradient at the current q
-    count = 0.0
-    q, p, g = q.copy(), p.copy(), g.copy()
-
-    def gradient_at(q: np.ndarray) -> np.ndarray:
-        nonlocal count
-        if all_live:
-            count += n
-            return pot.gradient(q)
-        out = np.full_like(q, np.nan)
-        idx = np.flatnonzero(live)
-        if idx.size:
-            out[idx] = pot.gradient(q[idx])
-            count += idx.size
-        return out
-
-    def apply(ops: tuple[tuple[str, float], ...]) -> None:
-        nonlocal q, p, g, fresh
-        for kind, c in ops:
-            if kind == "drift":
-                q = q + (c * h) * mass.velocity(p)
-                fresh = False
-            else:
-                if not fresh:
-                    g = gradient_at(q)
-                    fresh = True
-                p = p - (c * h) * g
-
-    def check() -> None:
-        nonlocal live, all_live
-        ok = np.isfinite(q).all(axis=1) & np.isfinite(p).all(axis=1)
-        if not ok.all():
-            live = live & ok
-            all_live = bool(live.all())
-            q[~live] = np.nan  # frozen: no gradient is taken there again
-            p[~live] = np.nan
-
-    apply(run.prologue)
-    assert run.operations is not None
-    for _ in range(steps):
-        apply(run.operations)
-        check()
-    apply(run.epilogue)
-    return q, p, count
-
-
-def _engine_run(target: Target, run: Scheme, q: np.ndarray, p: np.ndarray, h: np.ndarray,
-                steps: int, scale: float) -> tuple[np.ndarray, np.ndarray, float]:
-    """Methods without a drift/kick loop, through :class:`stepsafe.core.integrator.Engine`
-    (every trajectory in one batch; a stage iteration that fails for the batch is a
-    :class:`StepsafeError`)."""
-    from stepsafe.core.integrator import Engine, SolverFailure, System
-
+def _system(target: Target, scale: float) -> System:
+    """The target's equations of motion for the engine, with the Hessian a force-gradient
+    method asks for (the target's, or central differences over ``scale``)."""
     pot, mass = target.potential, target.mass
 
     def hessian(q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -228,21 +161,6 @@ def _engine_run(target: Target, run: Scheme, q: np.ndarray, p: np.ndarray, h: np
         M_inv = (np.diag(1.0 / mass.matrix) if mass.diagonal else np.linalg.inv(mass.matrix))
         return H, zero, np.broadcast_to(M_inv, (q.shape[0], d, d))
 
-    system = System(lambda q, p: pot.gradient(q), lambda q, p: mass.velocity(p),
-                    lambda q, p: target.hamiltonian(q, p), True, target.dimension,
-                    hessian=hessian)
-    try:
-        engine = Engine(run.method, system)
-    except ValueError as exc:
-        raise StepsafeError(f"{run.name}: {exc}") from None
-    step: Any = h  # one step per trajectory, a column broadcast against (n, d)
-    try:
-        q, p = engine.start(q, p, step)
-        for _ in range(steps):
-            q, p = engine.step(q, p, step)
-        q, p = engine.output(q, p, step)
-    except SolverFailure as exc:
-        raise StepsafeError(f"{run.name}: the stage equations failed on the target ({exc}); "
-                            "take a smaller step") from None
-    count = float(engine.force_evaluations + engine.output_evaluations) * q.shape[0]
-    return q, p, count
+    return System(lambda q, p: pot.gradient(q), lambda q, p: mass.velocity(p),
+                  lambda q, p: target.hamiltonian(q, p), True, target.dimension,
+                  hessian=hessian)
