@@ -278,7 +278,8 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
         H0_run, lim_run = H0, limit
         for k in range(1, steps + 1):
             q, p, bad = _step(engine, q, p, hcol)
-            bad |= ~(np.isfinite(q).all(axis=1) & np.isfinite(p).all(axis=1))
+            # (the box test below fails a coordinate that is not finite)
+            bad |= _not_finite(p) if reach_run is not None else _not_finite(q) | _not_finite(p)
             measured = measuring and (k % every == 0 or k == steps)
             if processed and (measured or reach_run is not None):
                 qo, po = engine.output(q, p, hcol)
@@ -345,6 +346,15 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
         progress(1.0)
     return Trajectories(q_out, p_out, H0, escaped, escaped_at, worst, last, sums, samples,
                         count[0], steps, float(unit))
+
+
+def _not_finite(x: np.ndarray) -> np.ndarray:
+    """The rows of x with a value that is not finite: by one sum over the whole array when
+    that is finite (then every value is: an infinity or NaN would make it so), by rows
+    when it is not (a sum of finite values may overflow)."""
+    if np.isfinite(np.add.reduce(x, axis=None)):
+        return np.zeros(x.shape[0], dtype=bool)
+    return ~np.isfinite(x).all(axis=1)
 
 
 def _step(engine: Engine, q: np.ndarray, p: np.ndarray, h: Any
