@@ -29,6 +29,13 @@ is a column. After each step k = 1 .. N it
   stored per step (memory O(n d) whatever N);
 * with ``sample_every`` m, stores ``dH_k`` at k = m, 2m, ... (NaN once escaped).
 
+An implicit step (and any step on an H that mixes q and p) iterates its stage equations
+until they change by at most ``tol`` times their size or 1
+(:class:`~stepsafe.core.integrator.Engine`): it runs in the coordinates ``q / Lq``,
+``p / Lp``, with ``Lq`` and ``Lp`` the powers of two at or just above the largest
+``|q0|`` and ``|p0|`` of the batch (exact, and the same trajectories in exact arithmetic),
+so that the test is relative in any units.
+
 Costs: the force evaluations (calls of ``dH/dq``) are counted row by row, summed over the
 trajectories; a force at the start given as ``force0`` is not counted (a sampler has it
 from its previous iteration).
@@ -242,8 +249,15 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
         count[0] += q.shape[0]
         return force(q, p)
 
-    engine = engine_for(method, dataclasses.replace(system, dH_dq=counted), tol=tol,
-                        max_iterations=max_iterations)
+    # an implicit step iterates its stages until they change by at most tol times their
+    # size (and 1): in units where the starts are of order 1 (powers of two, exact) that
+    # test is relative at every scale
+    Lq = Lp = 1.0
+    run_system = dataclasses.replace(system, dH_dq=counted)
+    if not method.explicit or not system.separable:
+        Lq, Lp = _unit(q0), _unit(p0)
+        run_system = _scaled(run_system, Lq, Lp)
+    engine = engine_for(method, run_system, tol=tol, max_iterations=max_iterations)
     processed = method.processor_operations is not None
     measuring = every > 0
     with np.errstate(all="ignore"):
@@ -259,17 +273,17 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
         ref = reach_run = None
         if reach is not None:
             ref = np.zeros((1, q0.shape[1])) if centre is None else \
-                np.asarray(centre, dtype=float)[None, :]
-            reach_run = np.asarray(reach, dtype=float)
+                np.asarray(centre, dtype=float)[None, :] / Lq
+            reach_run = np.asarray(reach, dtype=float) / Lq
             per_row = reach_run.ndim == 2
             reach_run = np.broadcast_to(reach_run, q0.shape) if per_row else reach_run[None, :]
-        q, p = q0, p0
+        q, p = (q0, p0) if Lq == Lp == 1.0 else (q0 / Lq, p0 / Lp)
         if force0 is not None:
-            engine.know_force(q, p, np.asarray(force0, dtype=float))
+            engine.know_force(q, p, np.asarray(force0, dtype=float) / Lp)
+        q_out, p_out = q.copy(), p.copy()
         q, p = engine.start(q, p, hcol)
 
         live = np.arange(n)  # the rows still running, in order
-        q_out, p_out = q0.copy(), p0.copy()
         escaped_at = np.zeros(n, dtype=int)
         worst = np.zeros(n) if measuring else None
         last = np.full(n, np.nan) if measuring else None
@@ -289,7 +303,7 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
                 bad |= ~np.all(np.abs(qo - ref) <= reach_run, axis=1)
             if measured:
                 assert H0_run is not None
-                dH = system.energy(qo, po) - H0_run
+                dH = run_system.energy(qo, po) - H0_run
                 bad |= ~np.isfinite(dH)
                 if lim_run is not None:
                     bad |= ~(dH + (H0_run - reference_energy) <= lim_run)
@@ -333,6 +347,9 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
             qo, po = engine.output(q, p, hcol) if processed else (q, p)
             out_bad = ~(np.isfinite(qo).all(axis=1) & np.isfinite(po).all(axis=1))
             q_out[live], p_out[live] = qo, po
+        if Lq != 1.0 or Lp != 1.0:
+            q_out *= Lq
+            p_out *= Lp
             if out_bad.any():  # (the output map itself left the finite numbers)
                 escaped_at[live[out_bad]] = steps
                 if worst is not None:
@@ -346,6 +363,35 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
         progress(1.0)
     return Trajectories(q_out, p_out, H0, escaped, escaped_at, worst, last, sums, samples,
                         count[0], steps, float(unit))
+
+
+def _unit(x: np.ndarray) -> float:
+    """The power of two at or just above the largest ``|x|`` (1 when that is 0 or not
+    finite)."""
+    with np.errstate(all="ignore"):
+        size = float(np.max(np.abs(x))) if x.size else 0.0
+    if not (size > 0 and np.isfinite(size)):
+        return 1.0
+    return float(np.ldexp(1.0, int(np.frexp(size)[1])))
+
+
+def _scaled(system: System, Lq: float, Lp: float) -> System:
+    """The system in the coordinates ``x = q / Lq``, ``y = p / Lp`` (Lq, Lp powers of two:
+    exact): ``dx/dt = dH/dp / Lq``, ``dy/dt = -dH/dq / Lp``, H unchanged in value."""
+    if Lq == Lp == 1.0:
+        return system
+    hessian = system.hessian
+
+    def scaled_hessian(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, ...]:
+        assert hessian is not None
+        H_qq, H_qp, H_pp = hessian(Lq * x, Lp * y)
+        return H_qq * (Lq / Lp), H_qp, H_pp * (Lp / Lq)
+
+    return System(lambda x, y: system.dH_dq(Lq * x, Lp * y) / Lp,
+                  lambda x, y: system.dH_dp(Lq * x, Lp * y) / Lq,
+                  lambda x, y: system.energy(Lq * x, Lp * y), system.separable,
+                  system.dimension, None,
+                  None if hessian is None else scaled_hessian)
 
 
 def _not_finite(x: np.ndarray) -> np.ndarray:
