@@ -14,9 +14,9 @@ the last run (wall clock):
    a run of 1e4 steps: Langevin sampling, 1024 Hessians of 100 x 100, the whole chain on a
    coarse grid, profiles along its three fastest modes, the confirmation and drift.
 
-The trajectories run the stated 1e4 steps in full (``--steps`` sets the run; beyond
-:data:`stepsafe.systems.thermal.limit.BAND_STEPS` they are capped, and the analysis says
-so).
+``--steps`` sets the run; the trajectories follow it up to
+:data:`stepsafe.systems.thermal.limit.BAND_STEPS` steps (beyond, they are capped, and the
+analysis says so).
 
 Measured on this project's machine (x86_64, 2 cores shared with other work, load average
 13.6-16.4 during the runs, numpy 2.4.6, one BLAS thread), ``--repeat 3``, medians; the wall
@@ -30,8 +30,8 @@ FPU-alpha, 100 dof, CPU                 15.0 s        60.3 s
 FPU-alpha, 100 dof, wall (loaded)       177 s         248 s
 ======================================  ============  ===========
 
-(``--steps 2000``: the work of the former cap of 2000 steps per trajectory; ``--steps
-1e4``: the stated run followed in full.)
+(``--steps 2000``: trajectories of 2000 steps, the cap; ``--steps 1e4`` with
+``BAND_STEPS = 10_000``: the stated run followed in full.)
 
 The defaults of :func:`stepsafe.systems.thermal.thermal_limit` are used throughout. The
 machine and its load average are printed with the table; numpy's BLAS runs with the thread
