@@ -82,12 +82,12 @@ def test_unreadable_file(tmp_path, monkeypatch, run, command):
 
 
 def test_internal_error_exits_3_with_a_hint(run, monkeypatch):
-    import stepsafe.core.regions
+    import stepsafe.api.linear
 
     def boom(*args, **kwargs):
         raise ZeroDivisionError("synthetic")
 
-    monkeypatch.setattr(stepsafe.core.regions, "find_region", boom)
+    monkeypatch.setattr(stepsafe.api.linear, "find_region", boom)
     code, out, err = run("region", "verlet")
     assert code == 3 and "internal error" in err and "--debug" in err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1

@@ -200,6 +200,7 @@ def test_verify_catches_a_never_preserved_claim(run, monkeypatch):
     still fail it (the status between points is recomputed too)."""
     import dataclasses
 
+    import stepsafe.api.linear as linear_api
     import stepsafe.core.regions as regions_module
 
     real = regions_module.find_region
@@ -208,7 +209,7 @@ def test_verify_catches_a_never_preserved_claim(run, monkeypatch):
         return dataclasses.replace(real(m, model, zmax, resolution), intervals=(),
                                    resonances=())
 
-    monkeypatch.setattr(regions_module, "find_region", nowhere)
+    monkeypatch.setattr(linear_api, "find_region", nowhere)
     code, _, err = run("region", "verlet", "--model", "oscillator", "--zmax", "1e9",
                        "--verify")
     assert code == 3 and "verification failed" in err

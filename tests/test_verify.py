@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import stepsafe.api.linear as linear_api
 import stepsafe.core.regions as regions_module
 from stepsafe.core.regions import Point
 
@@ -42,7 +43,7 @@ def test_a_wrong_float_answer_fails_verification(run, monkeypatch):
         return dataclasses.replace(region, intervals=(first._replace(hi=bad.z, hi_point=bad),)
                                    + region.intervals[1:])
 
-    monkeypatch.setattr(regions_module, "find_region", shifted)
+    monkeypatch.setattr(linear_api, "find_region", shifted)
     code, out, err = run("region", "verlet", "--model", "oscillator", "--verify", "--json")
     assert code == 3
     assert json.loads(out)["verify"]["ok"] is False

@@ -54,12 +54,23 @@ from stepsafe.api.inputs import (
 )
 from stepsafe.api.reports import DesignReport, HmcReport, HmcRow
 from stepsafe.arguments import public
+from stepsafe.core import hmc as core
+from stepsafe.core.advice import SHRINK, Modes, first_unsafe_z
+from stepsafe.core.design import OBJECTIVES, PARAMETERS, STABLE_LIMIT, family_member, minimax
+from stepsafe.core.design import design as core_design
+from stepsafe.core.hmc import MAX_EXACT_MODES, Trajectory
 from stepsafe.core.hmc_target.advice import TargetReport
 from stepsafe.core.hmc_target.draws import SEED as TARGET_SEED
+from stepsafe.core.regions import find_region, stable_run, validate_criterion
 from stepsafe.core.roots import EPS
+from stepsafe.core.solver import fixed_point_cost, step_limit
+from stepsafe.core.tradeoff import SOLVER_REACH
 from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
+from stepsafe.methods.families import is_symmetric
+from stepsafe.methods.tableaux import validate_gradient_cost
 from stepsafe.systems.loader import DENSE_LIMIT
-from stepsafe.systems.scene import Scene
+from stepsafe.systems.scene import Scene, scene_time_unit
+from stepsafe.units import duration
 
 #: Stall steps (L theta = 2 pi m) are reported within this relative distance of the target
 #: step (or within the jitter, if wider).
@@ -221,14 +232,8 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
     >>> [(r.method, r.rank) for r in rows]   # bcss2 costs fewer gradients per accepted time
     [('bcss2', 1), ('verlet', 2)]
     """
-    from stepsafe.core.hmc import Trajectory
-    from stepsafe.core.regions import validate_criterion
-    from stepsafe.units import duration
-
     steps = trajectory_steps
     _validated(target_accept, steps, None, jitter)  # the unit-free ones, before any work
-    from stepsafe.methods.tableaux import validate_gradient_cost
-
     validate_gradient_cost(gradient_cost)  # a bad value fails before any work
     criterion = validate_criterion(criterion)
     if not isinstance(allow_unstable_jitter, (bool, np.bool_)):
@@ -280,8 +285,6 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         rank += usable[k]
         out.append(HmcRow(**{**rows[k].__dict__, "rank": rank if usable[k] else None}))
     positive = betas[betas > 0]
-    from stepsafe.core.hmc import MAX_EXACT_MODES
-
     return HmcReport(tuple(out), target, steps, length, jitter, criterion, int(betas.size),
                      (float(positive.min()), float(positive.max())), p.time_unit,
                      bool(np.unique(positive).size > MAX_EXACT_MODES),
@@ -296,8 +299,6 @@ def _non_gaussian(found: Any, integrators: list[Integrator], inputs: dict[str, A
                   step: Any, criterion: str, curve: int, draws: Any, seed: Any,
                   allow_unstable_jitter: bool, target_for_every_length: bool) -> TargetReport:
     """``hmc`` on a target that is not Gaussian (:mod:`stepsafe.api.hmc_target`)."""
-    from stepsafe.units import duration
-
     others = sorted(k for k, v in inputs.items()
                     if v is not None and k not in ("scene", "system", "time_unit", "zmax",
                                                    "progress"))
@@ -320,8 +321,6 @@ def _non_gaussian(found: Any, integrators: list[Integrator], inputs: dict[str, A
     if time_unit is None and scene is not None and hasattr(scene, "time_unit"):
         time_unit = scene.time_unit
     elif time_unit is None and isinstance(scene, (str, Path)):
-        from stepsafe.systems.scene import scene_time_unit
-
         time_unit = scene_time_unit(scene)
     if length is not None:
         length = duration(length, "length", time_unit)
@@ -341,8 +340,6 @@ def _non_gaussian(found: Any, integrators: list[Integrator], inputs: dict[str, A
 def _quotient_below(z: float, beta: float) -> float:
     """``z / beta`` taken :data:`stepsafe.core.advice.SHRINK` lower, as advise and check
     take a gap's start in h: below it ``beta h < z`` exactly and as check computes it."""
-    from stepsafe.core.advice import SHRINK
-
     return float(z / beta * SHRINK)
 
 
@@ -384,8 +381,6 @@ def _given_length_searched(betas: np.ndarray, jitter: float) -> bool:
     stands for it): always without jitter; with jitter up to
     :data:`stepsafe.core.hmc.MAX_EXACT_MODES` distinct frequencies, beyond which each step
     of that search costs seconds to minutes."""
-    from stepsafe.core.hmc import MAX_EXACT_MODES
-
     return not jitter or np.unique(betas).size <= MAX_EXACT_MODES
 
 
@@ -393,13 +388,6 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
          target: float, step: float | None, criterion: str, zmax: float, curve: int = 0,
          gradient_cost: float = 1.0, allow_unstable_jitter: bool = False,
          every_length: bool = False) -> HmcRow:
-    from stepsafe.core import hmc as core
-    from stepsafe.core.advice import first_unsafe_z
-    from stepsafe.core.regions import find_region, stable_run
-    from stepsafe.core.solver import fixed_point_cost, step_limit
-    from stepsafe.core.tradeoff import SOLVER_REACH
-    from stepsafe.methods.families import is_symmetric
-
     m = integrator.tableau
     top = float(betas.max())
     with integrator.naming_its_file():
@@ -654,17 +642,9 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
     >>> [(c["method"], round(c["acceptance"], 2)) for c in report.comparison[:3]]
     [('designed-2stage', 0.98), ('verlet', 0.84), ('bcss2', 0.77)]
     """
-    from stepsafe.core import hmc as core
-    from stepsafe.core.design import PARAMETERS, STABLE_LIMIT, family_member
-    from stepsafe.core.design import design as core_design
-    from stepsafe.core.regions import find_region, stable_run
-
     if isinstance(stages, bool) or not isinstance(stages, (int, np.integer)) or \
             stages not in PARAMETERS:
         raise StepsafeError(f"stages must be 2 or 3, got {stages!r}")
-    from stepsafe.core.design import OBJECTIVES, minimax
-    from stepsafe.units import duration
-
     if objective not in OBJECTIVES:
         raise StepsafeError(f"objective must be one of {', '.join(OBJECTIVES)}, got "
                             f"{str(objective)[:40]!r}")
@@ -747,8 +727,6 @@ def _gaussian_betas(p: Any) -> tuple[np.ndarray, np.ndarray]:
     A precision eigenvalue that float64 cannot tell from 0 (within its rounding bound
     ``16 n eps |P|``, :mod:`stepsafe.systems.linear`) is refused as undecided, naming the
     file and key; only a certainly negative one is called negative."""
-    from stepsafe.core.advice import Modes
-
     source = (p.system.source or None) if p.system is not None else \
         (f"{p.scene}::$.modes" if p.scene is not None else None)
     if p.system is not None and p.system.modes is None:

@@ -19,11 +19,14 @@ from typing import Any
 import numpy as np
 
 from stepsafe.api.inputs import Integrator
-from stepsafe.core.hmc_target.advice import TargetReport
+from stepsafe.core.hmc import Trajectory
+from stepsafe.core.hmc_target.advice import TargetReport, hmc_on_target
 from stepsafe.core.hmc_target.draws import SEED, Draws, given_draws
 from stepsafe.core.hmc_target.potential import CallablePotential, Target, mass_matrix
 from stepsafe.exceptions import StepsafeError
-from stepsafe.systems.potential import PotentialTarget, is_potential, potential_target
+from stepsafe.systems.blackjax_bridge import jax_potential
+from stepsafe.systems.potential import PotentialTarget, is_potential, potential_target, read_draws
+from stepsafe.systems.scene import Scene, load_scene
 
 
 class _Guarded:
@@ -107,8 +110,6 @@ def callable_target(logdensity: Callable[[np.ndarray], Any],
                                 "leading axes), or install jax to differentiate a JAX "
                                 "log-density: pip install 'stepsafe[blackjax]'",
                                 "gradient") from None
-        from stepsafe.systems.blackjax_bridge import jax_potential
-
         inner = jax_potential(logdensity, d)
         names = ("logdensity", "logdensity")
     else:
@@ -164,8 +165,6 @@ def target_of(logdensity: Any, gradient: Any, start: Any, mass: Any, scene: Any,
 
 
 def _scene(scene: Any) -> Any:
-    from stepsafe.systems.scene import Scene, load_scene
-
     if isinstance(scene, Scene):
         return scene
     if isinstance(scene, (str, Path)):
@@ -184,8 +183,6 @@ def draws_of(draws: Any, found: PotentialTarget) -> Draws | None:
     if draws is None:
         return None
     if isinstance(draws, (str, Path)):
-        from stepsafe.systems.potential import read_draws
-
         return read_draws(draws, found.names)
     return given_draws(draws, found.target.dimension, "draws")
 
@@ -202,9 +199,6 @@ def on_target(found: PotentialTarget, integrators: Sequence[Integrator], *,
     TargetReport
         ``to_dict()`` is ``stepsafe hmc --json`` for such a target.
     """
-    from stepsafe.core.hmc import Trajectory
-    from stepsafe.core.hmc_target.advice import hmc_on_target
-
     if steps is None and length is None:
         raise StepsafeError("HMC on a non-Gaussian target needs the number of steps per "
                             "trajectory or the trajectory length (trajectory_steps= or "

@@ -15,6 +15,7 @@ are listed in :mod:`stepsafe.arguments`.
 from __future__ import annotations
 
 import copy
+import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -25,8 +26,20 @@ from typing import Any
 import numpy as np
 
 from stepsafe.arguments import public
-from stepsafe.exceptions import StepsafeError
+from stepsafe.core.advice import Modes, validate_margin
+from stepsafe.core.records import coefficients, json_ready, method_data, versioned
+from stepsafe.core.regions import DEFAULT_ZMAX
+from stepsafe.core.resonances import validate_orders
+from stepsafe.core.tradeoff import SOLVERS
+from stepsafe.exceptions import StepsafeError, positive_finite
+from stepsafe.methods.library import FAMILIES, _looks_like_path, builtin_dir, builtin_names, resolve
 from stepsafe.methods.protocol import MethodKind
+from stepsafe.methods.tableaux import validate_gradient_cost
+from stepsafe.systems.loader import analyse_system
+from stepsafe.systems.scene import Scene, time_unit_in_force
+from stepsafe.systems.scene import load_scene as _load
+from stepsafe.units import duration, implied_time_unit, parse_quantity, quantity
+from stepsafe.units import time_unit as known_time_unit
 
 #: Models accepted by :func:`region` besides ``"all"`` (which means the main three).
 REGION_MODELS = ("oscillator", "saddle", "inverted", "saddle-p")
@@ -79,15 +92,11 @@ class Integrator:
         plain ``evaluations`` for methods without force-gradient terms."""
         if self.evaluations is None or not self.gradient_evaluations:
             return self.evaluations
-        from stepsafe.methods.tableaux import validate_gradient_cost
-
         return self.evaluations + validate_gradient_cost(gradient_cost) * \
             self.gradient_evaluations
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe show METHOD --json`` prints."""
-        from stepsafe.core.records import coefficients, method_data, versioned
-
         return versioned({**method_data(self.tableau, self.entry),
                           "coefficients": coefficients(self.tableau)})
 
@@ -131,8 +140,6 @@ class Integrator:
     @contextmanager
     def naming_its_file(self) -> Iterator[None]:
         """An analysis error about a method read from a user's file names that file."""
-        from stepsafe.methods.library import builtin_dir
-
         try:
             yield
         except StepsafeError as exc:
@@ -178,8 +185,6 @@ def method(name: str, *, stages: int | None = None, base: str | None = None) -> 
     >>> method("gauss", stages=2).order
     4
     """
-    from stepsafe.methods.library import resolve
-
     name, base = as_text(name, "method"), as_text(base, "base", optional=True)
     stages = _stage_count(stages)
     tableau, entry = resolve(name, stages, base)
@@ -192,8 +197,6 @@ def method(name: str, *, stages: int | None = None, base: str | None = None) -> 
 def method_from_file(path: str | Path, *, base: str | None = None) -> Integrator:
     """A method file (YAML, see ``stepsafe schema method``), read by path even when its
     name is also a built-in's."""
-    from stepsafe.methods.library import _looks_like_path
-
     text = str(path)
     return method(text if _looks_like_path(text) else f"./{text}", base=base)
 
@@ -219,8 +222,6 @@ def single_force(integrator: Integrator) -> Integrator:
 
 
 def frozen_record(data: dict[str, Any]) -> Mapping[str, Any]:
-    from stepsafe.core.records import json_ready
-
     return MappingProxyType(json_ready(data))
 
 
@@ -258,8 +259,6 @@ def converted_betas(values: Mapping[str, UnitValues | None], time_unit: str | No
                ) -> list[np.ndarray]:
     """beta (rad per time unit) of each vibration given in another form (``CONVERTED``). A
     text must name its unit: a number is given as a number."""
-    from stepsafe.units import parse_quantity, quantity
-
     out = []
     for keyword, form in CONVERTED:
         given = values.get(keyword)
@@ -336,9 +335,6 @@ def betas_by_model(beta: Any, saddle_beta: Any, inverted_beta: Any, modes: Any,
 
 def step_in_unit(h: Any, time_unit: str | None) -> float:
     """A step ``h``: a number in ``time_unit``, or a text with a time unit (converted)."""
-    from stepsafe.exceptions import positive_finite
-    from stepsafe.units import duration
-
     return positive_finite(duration(h, "h", time_unit), "h")
 
 
@@ -434,14 +430,6 @@ def problem(method: Integrator | str | None = None, beta: ArrayLike | None = Non
     -------
     Problem
     """
-    import time
-
-    from stepsafe.core.advice import Modes, validate_margin
-    from stepsafe.core.regions import DEFAULT_ZMAX
-    from stepsafe.exceptions import positive_finite
-    from stepsafe.systems.scene import Scene, load_scene, time_unit_in_force
-    from stepsafe.units import time_unit as known_time_unit
-
     if zmax is not None:  # checked before any file is read or analysed
         zmax = positive_finite(zmax, "zmax")
     if budget is not None:
@@ -459,7 +447,7 @@ def problem(method: Integrator | str | None = None, beta: ArrayLike | None = Non
             loaded.time_unit = time_unit
         scene = scene.where or None
     elif scene is not None:
-        loaded = load_scene(as_text(scene, "scene"), time_unit)
+        loaded = _load(as_text(scene, "scene"), time_unit)
     else:
         loaded = Scene(time_unit=time_unit)
     margin = validate_margin(margin if margin is not None else
@@ -484,8 +472,6 @@ def problem(method: Integrator | str | None = None, beta: ArrayLike | None = Non
     elif loaded.modes and system is None:
         arrays, named = loaded.modes, loaded.labels
     elif system is not None or loaded.system is not None:
-        from stepsafe.systems.loader import analyse_system
-
         deadline = None if budget is None else time.monotonic() + budget
         tree, where, folder = ((system, "system", Path(".")) if system is not None
                                else (loaded.system, loaded.where, loaded.folder))
@@ -564,9 +550,6 @@ def problem_of(method: Integrator | str | None, beta: ArrayLike | None,
     nothing else does)."""
     given = inputs.pop("problem", None)
     if given is None:
-        from stepsafe.systems.scene import time_unit_in_force
-        from stepsafe.units import implied_time_unit
-
         if inputs.get("time_unit") is None and implied_time_unit(*times) is not None:
             inputs["time_unit"] = time_unit_in_force(None, inputs.get("scene"), *times,
                                                      inputs.get("h"), inputs.get("period"))
@@ -605,8 +588,6 @@ def _scene_method(method: Integrator | str | None, scene: Any, stages: int | Non
 
 
 def valid_order(order: int | None) -> int | None:
-    from stepsafe.core.resonances import validate_orders
-
     return None if order is None else validate_orders((order,))[0]
 
 
@@ -617,8 +598,6 @@ def valid_stage_solver(value: Any) -> str:
 
 
 def valid_solver(value: Any) -> str:
-    from stepsafe.core.tradeoff import SOLVERS
-
     if not isinstance(value, str) or value not in SOLVERS:
         raise StepsafeError(f"solver must be one of {', '.join(SOLVERS)}, got "
                             f"{str(value)[:20]!r}")
@@ -651,8 +630,6 @@ def z_values(z: Any) -> np.ndarray:
 
 def step_cost(integrator: Integrator, gradient_cost: float) -> float | int | None:
     """:meth:`Integrator.cost_per_step`, a bad ``gradient_cost`` as a StepsafeError."""
-    from stepsafe.methods.tableaux import validate_gradient_cost
-
     try:
         validate_gradient_cost(gradient_cost)
     except StepsafeError as exc:
@@ -676,8 +653,6 @@ def named_method(item: str) -> Integrator:
 
 
 def compared_methods(methods: Sequence[Integrator | str] | str | None) -> list[Integrator]:
-    from stepsafe.methods.library import FAMILIES, builtin_names
-
     if isinstance(methods, str) and methods == "all":
         return ([method(n) for n in builtin_names(single_force=True) if n not in FAMILIES]
                 + [method(f, stages=s) for f in FAMILIES for s in (2, 3)])
@@ -700,6 +675,4 @@ def compared_methods(methods: Sequence[Integrator | str] | str | None) -> list[I
 def load_scene(path: str | Path) -> Any:
     """A scene file (see ``stepsafe schema scene``) as a :class:`stepsafe.systems.scene.Scene`;
     pass its path as ``scene=`` to :func:`advise` or :func:`check`."""
-    from stepsafe.systems.scene import load_scene as _load
-
     return _load(as_text(path, "path"))

@@ -57,16 +57,38 @@ from stepsafe.api.reports import (
     RegionReport,
     SceneChecks,
 )
+from stepsafe.api.thermal import advise_at_temperature, check_at_temperature, request
 from stepsafe.arguments import public
-from stepsafe.exceptions import StepsafeError
-from stepsafe.systems.scene import Scene
+from stepsafe.core.accuracy import errors as core_errors
+from stepsafe.core.accuracy import kernel_errors
+from stepsafe.core.advice import Modes, check_step, validate_margin
+from stepsafe.core.advice import advise as core_advise
+from stepsafe.core.langevin import sampling
+from stepsafe.core.models import MAIN_MODELS
+from stepsafe.core.records import (
+    advice_data,
+    check_data,
+    compare_row,
+    label_limits,
+    nonlinear_data,
+    tradeoff_data,
+)
+from stepsafe.core.regions import CRITERIA, find_region, under_criterion, validate_criterion
+from stepsafe.core.resonances import DEFAULT_ORDERS, nonlinear_resonances, validate_orders
+from stepsafe.core.solver import step_limit, system_step_limit
+from stepsafe.core.tradeoff import Tolerance, tradeoff
+from stepsafe.core.transfer import has_form, transfer_matrix
+from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
+from stepsafe.reference.verify import DPS, TOLERANCE, verify_regions
+from stepsafe.systems.advice import system_advice, system_check
+from stepsafe.systems.scene import Scene, load_scene
+from stepsafe.units import implied_time_unit
+from stepsafe.units import time_unit as known_time_unit
 
 
 def _verification(integrator: Integrator, regions: Mapping[str, Any],
                   up_to: float | None = None) -> dict[str, Any]:
     """Recompute the regions' points with mpmath; a JSON-ready verdict."""
-    from stepsafe.reference.verify import DPS, TOLERANCE, verify_regions
-
     name, stages, base = integrator.reference
     checks = verify_regions(name, stages, base, dict(regions), up_to=up_to)
     worst = max((c.discrepancy for c in checks), default=0.0)
@@ -96,10 +118,6 @@ def region(method: Integrator | str, model: str = "all", *, zmax: float = 10.0,
     >>> round(region("verlet", "oscillator").first_boundary(), 12)
     2.0
     """
-    from stepsafe.core.models import MAIN_MODELS
-    from stepsafe.core.regions import find_region, under_criterion, validate_criterion
-    from stepsafe.exceptions import positive_finite
-
     integrator = as_integrator(method)
     criterion = validate_criterion(criterion, integrator.tableau)
     model, verify = as_text(model, "model"), as_flag(verify, "verify")
@@ -119,8 +137,6 @@ def region(method: Integrator | str, model: str = "all", *, zmax: float = 10.0,
             raise first_error
     nonlinear: tuple[Any, ...] = ()
     if "oscillator" in regions and regions["oscillator"].symplectic:
-        from stepsafe.core.resonances import nonlinear_resonances, validate_orders
-
         orders = validate_orders(resonance_orders)
         nonlinear = nonlinear_resonances(integrator.tableau, regions["oscillator"], orders)
     verdict = _verification(integrator, regions) if verify else None
@@ -272,10 +288,6 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
     >>> report.h_max_limited_by, f"{report.h_max:.6f}"
     ('boundary', '0.491688')
     """
-    from stepsafe.core.advice import advise as core_advise
-    from stepsafe.core.records import advice_data, tradeoff_data
-    from stepsafe.core.regions import validate_criterion
-
     criterion = None if criterion is None else validate_criterion(criterion)
     inputs = {"saddle_beta": saddle_beta, "inverted_beta": inverted_beta, "modes": modes,
               "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
@@ -298,8 +310,6 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
     criterion = validate_criterion(criterion, integrator.tableau)
     with integrator.naming_its_file():
         if p.system is not None:
-            from stepsafe.systems.advice import system_advice
-
             if tol_phase is not None or tol_energy is not None:
                 raise StepsafeError("--tol-phase/--tol-energy apply to frequencies, not yet "
                                     "to system: scenes")
@@ -311,8 +321,6 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
                                  resonance_order=valid_order(resonance_order), criterion=criterion)
             data = advice_data(result)
         else:
-            from stepsafe.core.tradeoff import Tolerance, tradeoff
-
             tols = tuple(Tolerance(k, valid_tolerance(k, v)) for k, v in
                          (("phase", tol_phase), ("energy", tol_energy)) if v is not None)
             res = tradeoff(integrator.tableau, p.modes, tols, p.margin, integrator.name,
@@ -330,12 +338,8 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
                 if integrator.tableau.hamiltonian else []
             if not integrator.tableau.hamiltonian:
                 data["stochastic"] = _stochastic_record(integrator, p, None)
-            from stepsafe.core.solver import step_limit
-
             data["fixed_point_limit"] = step_limit(integrator.tableau, p.modes.betas)
     if result is not None and p.labels:
-        from stepsafe.core.records import label_limits
-
         label_limits(data, p.modes.betas, p.labels)
     data["time_unit"] = p.time_unit
     if warm is not None:
@@ -356,8 +360,6 @@ def _stochastic_record(integrator: Integrator, p: Problem, h: float | None
     for every friction gamma > 0; at a step ``h``, how it samples the fastest vibration
     (stationary configurational and kinetic temperature over the true ones, 1 exact; see
     :func:`stepsafe.core.langevin.sampling`)."""
-    from stepsafe.core.langevin import sampling
-
     m = integrator.tableau
     coefficients = m.coefficients()
     record: dict[str, Any] = {
@@ -375,9 +377,6 @@ def _thermal_request(p: Problem, temperature: Any, kT: Any, length: Any, steps: 
                      max_drift: Any) -> Any:
     """The request at temperature of the keywords and the problem's scene (None: none,
     or T = 0)."""
-    from stepsafe.api.thermal import request
-    from stepsafe.systems.scene import load_scene
-
     scene = load_scene(p.scene, p.time_unit) if p.scene else None
     tree = p.system.tree if p.system is not None else None
     return request(temperature=temperature, kT=kT, length=length, steps=steps,
@@ -389,9 +388,6 @@ def _advise_at_temperature(p: Problem, warm: Any, data: dict[str, Any], criterio
     """The answer at temperature into ``data``: ``h_max``, ``h_max_limited_by`` and
     ``safe_h`` become it; the 0 K answer moves to ``zero_kelvin``. A harmonic system's
     answer is the 0 K one, islands included."""
-    from stepsafe.api.thermal import advise_at_temperature
-    from stepsafe.core.resonances import DEFAULT_ORDERS
-
     orders = tuple(range(3, order + 1)) if order is not None else DEFAULT_ORDERS[:2]
     thermal = advise_at_temperature(p, warm, data["h_max"], criterion, orders, progress)
     data["zero_kelvin"] = {key: data[key] for key in ("h_max", "h_max_limited_by", "safe_h")}
@@ -408,10 +404,6 @@ def _other_criterion(integrator: Integrator, p: Problem, result: Any,
                      ) -> dict[str, Any] | None:
     """The safe steps under the criterion not asked for, when they differ (with ``h``:
     whether that step is safe under it)."""
-    from stepsafe.core.advice import advise as core_advise
-    from stepsafe.core.records import advice_data
-    from stepsafe.core.regions import CRITERIA
-
     other = next((c for c in CRITERIA if c != result.criterion
                   and c in integrator.tableau.criteria), None)
     if other is None:
@@ -433,9 +425,6 @@ def _fastest_resonances(integrator: Integrator, result: Any, p: Problem,
                         order: int | None) -> list[dict[str, Any]]:
     """The nonlinear resonances of the fastest vibration below its first boundary (or
     below the resonance that caps it), with their steps h."""
-    from stepsafe.core.records import nonlinear_data
-    from stepsafe.core.resonances import DEFAULT_ORDERS, nonlinear_resonances
-
     region = result.regions.get("oscillator")
     betas = p.modes.betas.get("oscillator")
     if region is None or betas is None or not region.symplectic or not betas.max() > 0:
@@ -448,8 +437,6 @@ def _fastest_resonances(integrator: Integrator, result: Any, p: Problem,
 def _system_solver_limit(integrator: Integrator, p: Problem) -> float | None:
     """The step beyond which fixed-point iteration of an implicit method's stages diverges
     for the problem's frequencies or system (None: explicit, or no limit)."""
-    from stepsafe.core.solver import system_step_limit
-
     if integrator.explicit:
         return None
     if p.system is None:
@@ -580,10 +567,6 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
     >>> check("verlet", 0.49, [4.0]).safe
     True
     """
-    from stepsafe.core.advice import check_step
-    from stepsafe.core.records import check_data
-    from stepsafe.core.regions import validate_criterion
-
     criterion = None if criterion is None else validate_criterion(criterion)
     require_complete_search = as_flag(require_complete_search, "require_complete_search")
     inputs = {"saddle_beta": saddle_beta, "inverted_beta": inverted_beta, "modes": modes,
@@ -611,8 +594,6 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
     criterion = validate_criterion(criterion, integrator.tableau)
     with integrator.naming_its_file():
         if p.system is not None:
-            from stepsafe.systems.advice import system_check
-
             # (at temperature the engine's runs are those of the analysis at temperature)
             analysed = p.system if warm is None else p.system._replace(engine_check=None)
             data = system_check(integrator.tableau, analysed, step, p.margin, p.zmax,
@@ -639,8 +620,6 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
     data["scene"] = p.scene
     data["time_unit"] = p.time_unit
     if warm is not None:
-        from stepsafe.api.thermal import check_at_temperature
-
         thermal = check_at_temperature(p, warm, float(step), criterion, progress)
         data["thermal"] = thermal
         if not thermal["safe"]:
@@ -751,8 +730,6 @@ def check_scenes(scenes: Sequence[str | Path], *, method: Integrator | str | Non
     >>> checks.safe, checks.exit_code
     (False, 1)
     """
-    from stepsafe.units import time_unit as known_time_unit
-
     if isinstance(scenes, (str, Path)) or not isinstance(scenes, Sequence) or not scenes:
         raise StepsafeError("scenes must be a non-empty list of scene files")
     inputs: dict[str, Any] = {"method": method, "beta": beta, "saddle_beta": saddle_beta,
@@ -785,8 +762,6 @@ def check_scenes(scenes: Sequence[str | Path], *, method: Integrator | str | Non
 def _impulse_of(scene: Any, inputs: Mapping[str, Any]) -> Integrator | None:
     """The impulse method a scene is checked with (``method`` given, else the scene's), or
     None for any other method."""
-    from stepsafe.systems.scene import load_scene
-
     name = inputs.get("method")
     if isinstance(name, Integrator):
         return name if name.kind == "impulse" else None
@@ -834,10 +809,6 @@ def errors(method: Integrator | str, z: ArrayLike, model: str = "oscillator") ->
     >>> f"{table.phase[0]:.3e}"
     '4.171e-04'
     """
-    from stepsafe.core.accuracy import errors as core_errors
-    from stepsafe.core.accuracy import kernel_errors
-    from stepsafe.core.transfer import transfer_matrix
-
     integrator = as_integrator(method)
     model = as_text(model, "model")
     if model not in REGION_MODELS:
@@ -874,8 +845,6 @@ def transfer_matrices(method: Integrator | str, z: ArrayLike,
     >>> float(M[0, 0] + M[1, 1])   # 2 - z^2
     1.0
     """
-    from stepsafe.core.transfer import transfer_matrix
-
     integrator = as_integrator(method)
     model = as_text(model, "model")
     if model not in REGION_MODELS:
@@ -920,16 +889,7 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     >>> best.method, best.bound_by
     ('pefrl', 'accuracy')
     """
-    from stepsafe.core.advice import Modes, validate_margin
-    from stepsafe.core.records import compare_row
-    from stepsafe.core.regions import validate_criterion
-    from stepsafe.core.tradeoff import Tolerance, tradeoff
-    from stepsafe.exceptions import finite_real, positive_finite
-    from stepsafe.units import time_unit as known_time_unit
-
     criterion = validate_criterion(criterion)
-    from stepsafe.units import implied_time_unit
-
     time_unit = known_time_unit(time_unit) or implied_time_unit(period)
     converted = converted_betas({"ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
                             "period": period, "sigma": sigma}, time_unit)
@@ -943,8 +903,6 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     if jacobian_cost < 0:
         raise StepsafeError(f"jacobian_cost must be >= 0 force evaluations, got "
                             f"{jacobian_cost:g}")
-    from stepsafe.core.transfer import has_form
-
     rows = []
     compared = compared_methods(methods)
     if isinstance(methods, str) and methods == "all":  # every method that applies to the modes

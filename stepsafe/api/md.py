@@ -18,7 +18,17 @@ from typing import Any
 from stepsafe.api.inputs import Integrator, named_method
 from stepsafe.api.reports import ImpulseModesReport, ImpulseReport
 from stepsafe.arguments import public
+from stepsafe.core.advice import Modes, advise, check_step
+from stepsafe.core.impulse import impulse_method as build
+from stepsafe.core.impulse import impulse_splitting, total_frequency
+from stepsafe.core.regions import find_region, validate_criterion
+from stepsafe.core.resonances import DEFAULT_ORDERS, nonlinear_resonances, validate_orders
 from stepsafe.exceptions import StepsafeError, positive_finite
+from stepsafe.methods.tableaux import MAX_SUBSTEPS, Impulse
+from stepsafe.systems.multiple import coupled_impulse, coupled_impulse_preserved, read_split
+from stepsafe.systems.scene import Scene, load_scene, time_unit_in_force
+from stepsafe.units import duration, implied_time_unit
+from stepsafe.units import time_unit as known_time_unit
 
 #: The default search in beta H stops here at most (a slow force 1e6 times the fast one).
 ZMAX_CAP = 1e6
@@ -57,9 +67,6 @@ def impulse(outer: Integrator | str = "verlet", inner: Integrator | str | None =
     >>> impulse("respa-verlet", fast_beta=10.0, slow_beta=1.0).h_max == report.h_max
     True
     """
-    from stepsafe.units import implied_time_unit
-    from stepsafe.units import time_unit as known_time_unit
-
     method = impulse_method(outer, inner, substeps)
     return _impulse(method, fast_beta, slow_beta, step, criterion, zmax,
                     known_time_unit(time_unit) or implied_time_unit(step), resonance_order)
@@ -69,9 +76,6 @@ def impulse_method(outer: Integrator | str = "verlet", inner: Integrator | str |
                    substeps: int | None = None) -> Any:
     """The :class:`stepsafe.methods.tableaux.Impulse` of an impulse method (name, path or
     :class:`Integrator` of kind ``impulse``) or of an outer and an inner splitting."""
-    from stepsafe.core.impulse import impulse_method as build
-    from stepsafe.methods.tableaux import Impulse
-
     if isinstance(outer, Impulse) and inner is None:
         return _substeps_of(outer, substeps)
     outer_i = outer if isinstance(outer, Integrator) else named_method(_name(outer, "outer"))
@@ -93,8 +97,6 @@ def _substeps_of(method: Any, substeps: int | None) -> Any:
 
 
 def _substeps(value: Any) -> int:
-    from stepsafe.methods.tableaux import MAX_SUBSTEPS
-
     if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= MAX_SUBSTEPS:
         raise StepsafeError(f"substeps must be an integer from 1 to {MAX_SUBSTEPS}, got "
                             f"{value!r}")
@@ -111,12 +113,6 @@ def _name(value: Any, role: str) -> str:
 def _impulse(method: Any, fast: Any, slow: Any, step: float | str | None, criterion: str,
              zmax: float | None, time_unit: str | None, resonance_order: int | None
              ) -> ImpulseReport:
-    from stepsafe.core.advice import Modes, advise, check_step
-    from stepsafe.core.impulse import impulse_splitting, total_frequency
-    from stepsafe.core.regions import find_region, validate_criterion
-    from stepsafe.core.resonances import DEFAULT_ORDERS, nonlinear_resonances, validate_orders
-    from stepsafe.units import time_unit as known_time_unit
-
     criterion = validate_criterion(criterion)
     time_unit = known_time_unit(time_unit)
     fast, slow = _frequency(fast, "fast"), _frequency(slow, "slow")
@@ -206,8 +202,6 @@ def _frequency(value: Any, name: str) -> float:
 
 def _outer_step(step: Any, time_unit: str | None) -> float:
     """An outer step H: a number in the time unit, or a text with a time unit."""
-    from stepsafe.units import duration
-
     return positive_finite(duration(step, "step", time_unit), "step")
 
 
@@ -233,9 +227,6 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
     """
     import numpy as np
 
-    from stepsafe.systems.scene import Scene, load_scene, time_unit_in_force
-    from stepsafe.units import time_unit as known_time_unit
-
     if not isinstance(use_scene_step, (bool, np.bool_)):
         raise StepsafeError(f"use_scene_step must be True or False, got "
                             f"{type(use_scene_step).__name__}")
@@ -252,8 +243,6 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
         if loaded.pairs is not None:
             pairs, labels = loaded.pairs, (labels or loaded.pair_labels)
         elif loaded.system is not None:
-            from stepsafe.systems.multiple import read_split
-
             split = read_split(loaded.system, loaded.where, loaded.folder)
             if split.pairs is None:
                 if step is None and use_scene_step:
@@ -316,9 +305,6 @@ def _coupled_advice(method: Any, split: Any, step: float | None, criterion: str,
                     resonance_order: int | None, scene: Any) -> ImpulseModesReport:
     """advise/check on a split stiffness whose parts do not commute: the coupled analysis
     of the 2n x 2n outer step (its safe interval from 0; islands are not analysed)."""
-    from stepsafe.core.regions import validate_criterion
-    from stepsafe.systems.multiple import coupled_impulse, coupled_impulse_preserved
-
     where = f"{split.where}::$.system"
     if validate_criterion(criterion) != "structure":
         raise StepsafeError("the fast and slow parts do not commute, so the modes couple: the "

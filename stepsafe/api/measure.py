@@ -22,7 +22,12 @@ from stepsafe.api.reports import (
     Refinement,
 )
 from stepsafe.arguments import public
+from stepsafe.core.accuracy import errors, z_for_tolerance
+from stepsafe.core.ensemble import engine_for, integrate
+from stepsafe.core.integrator import Engine
+from stepsafe.core.regions import find_region
 from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
+from stepsafe.systems.integrate import shell_states, thermal_states
 from stepsafe.systems.measurement import (
     UNSTABLE,
     MeasuredSystem,
@@ -31,6 +36,9 @@ from stepsafe.systems.measurement import (
     reference_floor,
     run_steps,
 )
+from stepsafe.systems.scene import time_unit_in_force
+from stepsafe.units import duration
+from stepsafe.units import time_unit as known_time_unit
 
 #: Steps of one run at most by default (each costs the method's evaluations in Python)...
 MAX_STEPS = 2_000_000
@@ -108,11 +116,6 @@ def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
     >>> round(row.energy_ratio, 3), row.status   # the linear bound kappa - 1 is reached
     (1.0, 'ok')
     """
-    from stepsafe.core.integrator import Engine
-    from stepsafe.systems.scene import time_unit_in_force
-    from stepsafe.units import duration
-    from stepsafe.units import time_unit as known_time_unit
-
     integrator = as_integrator(method)
     if ensemble is not None or kT is not None:
         if initial is not None or budget is not None or solver != "fixed-point":
@@ -182,12 +185,6 @@ def _ensemble(integrator: Integrator, h: Any, scene: Any, system: Any, time: Any
               time_unit: str | None, max_steps: int,
               progress: Callable[[float], None] | None) -> EnsembleReport:
     """:func:`measure` on an ensemble (see there)."""
-    from stepsafe.core.ensemble import engine_for, integrate
-    from stepsafe.systems.integrate import shell_states, thermal_states
-    from stepsafe.systems.scene import time_unit_in_force
-    from stepsafe.units import duration
-    from stepsafe.units import time_unit as known_time_unit
-
     if count is None:
         raise StepsafeError("--kT needs --ensemble N (the number of trajectories)")
     if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or \
@@ -280,8 +277,6 @@ def _ensemble(integrator: Integrator, h: Any, scene: Any, system: Any, time: Any
 
 def _steps(steps: Sequence[float | str], time_unit: str | None) -> list[float]:
     """The step sizes h in ``time_unit`` (numbers, or texts with a time unit)."""
-    from stepsafe.units import duration
-
     try:
         items = list(steps)
     except TypeError:
@@ -323,9 +318,6 @@ def _prediction(integrator: Integrator, beta: float | None, h: float, T: float
     method's first boundary or without a vibration)."""
     if beta is None:
         return None, None
-    from stepsafe.core.accuracy import errors
-    from stepsafe.core.regions import find_region
-
     z = beta * h
     boundary = find_region(integrator.tableau, "oscillator", max(10.0, 1.1 * z)).first_boundary
     if boundary is not None and z >= boundary:
@@ -367,12 +359,6 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
     >>> r.limited_by, round(r.h / r.predicted, 2)   # the pendulum allows a little more
     ('tolerance', 1.01)
     """
-    from stepsafe.core.accuracy import z_for_tolerance
-    from stepsafe.core.regions import find_region
-    from stepsafe.systems.scene import time_unit_in_force
-    from stepsafe.units import duration
-    from stepsafe.units import time_unit as known_time_unit
-
     if not isinstance(quantity, str) or quantity not in ("energy", "trajectory"):
         raise StepsafeError(f"quantity must be energy or trajectory, got {quantity!r}")
     tol = positive_finite(tol, f"the {quantity} tolerance")
@@ -514,11 +500,6 @@ def work_precision(methods: Sequence[Integrator | str], *, scene: str | Path | N
     evenly by the methods still to run) is spent. Runs that do not finish (``budget``) are
     left out; unstable runs are kept (they have no error). One :class:`MeasureReport` per
     method, in the order given."""
-    from stepsafe.core.regions import find_region
-    from stepsafe.systems.scene import time_unit_in_force
-    from stepsafe.units import duration
-    from stepsafe.units import time_unit as known_time_unit
-
     began = _time.monotonic()
     if isinstance(methods, (str, Integrator)):
         methods = [methods]

@@ -11,7 +11,14 @@ from typing import Any
 import numpy as np
 
 from stepsafe.api.inputs import REGION_MODELS, Integrator
-from stepsafe.core.records import unversioned, versioned
+from stepsafe.core.records import (
+    json_ready,
+    method_data,
+    nonlinear_data,
+    region_data,
+    unversioned,
+    versioned,
+)
 from stepsafe.core.regions import ROUNDING_GAP_RULE
 
 # --------------------------------------------------------------------------- region
@@ -43,8 +50,6 @@ class RegionReport:
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe region METHOD --json`` prints."""
-        from stepsafe.core.records import method_data, region_data
-
         head = method_data(self.integrator.tableau, self.integrator.entry)
         models = {m: region_data(self.regions[m]) if m in self.regions
                   else {"not_analysed": self.not_analysed[m]}
@@ -56,8 +61,6 @@ class RegionReport:
         for m, z_star in self.structure_boundaries.items():
             out["models"][m]["structure_first_boundary"] = z_star
         if "oscillator" in self.regions and self.regions["oscillator"].symplectic:
-            from stepsafe.core.records import nonlinear_data
-
             out["models"]["oscillator"]["nonlinear_resonances"] = nonlinear_data(self.nonlinear)
         if self.verification is not None:
             out["verify"] = copy.deepcopy(dict(self.verification))
@@ -345,8 +348,6 @@ class HmcReport:
 
 
 def _row_dict(row: HmcRow) -> dict[str, Any]:
-    from stepsafe.core.records import json_ready
-
     out = {f.name: getattr(row, f.name) for f in fields(row)}
     at_step = None if row.at_step is None else dict(row.at_step)
     if at_step is not None and "largest_errors" in at_step:

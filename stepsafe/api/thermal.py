@@ -30,8 +30,16 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from stepsafe.core.regions import find_region, under_criterion
 from stepsafe.exceptions import StepsafeError, finite_real
+from stepsafe.systems.md import thermal as md_thermal
+from stepsafe.systems.md.engine import MOLAR_GAS_CONSTANT
+from stepsafe.systems.md.system import ENGINE_INTEGRATORS
+from stepsafe.systems.md.thermal import THERMALISATION, confirm_seeds
+from stepsafe.systems.scene import load_scene, parse_real
+from stepsafe.systems.thermal import thermal_check, thermal_limit
 from stepsafe.systems.thermal_scene import Minimum, is_harmonic, minima
+from stepsafe.units import ENERGY_UNITS, TIME_UNITS, duration, kelvin, thermal_energy
 
 #: The seed of every draw of the analysis at temperature.
 SEED = 0
@@ -116,8 +124,6 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
     -------
     Request or None
     """
-    from stepsafe.units import ENERGY_UNITS, duration, kelvin, thermal_energy
-
     keys = dict(getattr(scene, "thermal", None) or {})
     given = {"temperature": temperature, "kT": kT, "length": length, "steps": steps,
              "max_drift": max_drift}
@@ -160,8 +166,6 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
     elif k_value is not None:
         try:
             if isinstance(k_value, str) and not k_given:
-                from stepsafe.systems.scene import parse_real
-
                 k_value = parse_real(k_value)
             kt = finite_real(k_value, "kT")
         except (StepsafeError, TypeError):
@@ -202,8 +206,6 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
     elif s_value is not None:
         number = s_value
         if isinstance(number, str):
-            from stepsafe.systems.scene import parse_real
-
             number = parse_real(number)
         if isinstance(number, int) and not isinstance(number, bool):
             number = float(number) if abs(number) < 2 ** 1023 else math.inf
@@ -219,8 +221,6 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
     tolerance, d_given = value("max_drift")
     if tolerance is not None:
         if isinstance(tolerance, str) and not d_given:
-            from stepsafe.systems.scene import parse_real
-
             tolerance = parse_real(tolerance)
         number = math.nan
         if isinstance(tolerance, (int, float)) and not isinstance(tolerance, bool):
@@ -320,8 +320,6 @@ def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion:
         ``h_max_0K``, ``h_range`` (where the limit lies at the stated confidence), and
         each minimum's analysis (:func:`limit_record`).
     """
-    from stepsafe.systems.thermal import thermal_limit
-
     if _engine_analysis(p) is not None:
         return _engine_advice(p, req, h_zero, criterion, progress)
     found = _minima(p, req)
@@ -390,8 +388,6 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
         ``max_drift``; ``reasons`` says what fails, ``minima`` each check
         (:func:`check_record`).
     """
-    from stepsafe.systems.thermal import thermal_check
-
     if _engine_analysis(p) is not None:
         return _engine_check(p, req, h, criterion, progress)
     found = _minima(p, req)
@@ -511,16 +507,12 @@ def _engine_analysis(p: Any) -> Any:
 
 def _scale(p: Any) -> float:
     """Picoseconds per time unit of the problem (an engine works in ps)."""
-    from stepsafe.units import TIME_UNITS
-
     return float(TIME_UNITS[p.time_unit or "ps"] / TIME_UNITS["ps"])
 
 
 def _z_star(p: Any, criterion: str) -> float:
     """The end of the method's interval from 0 on the oscillator (its analysed range when
     it has none)."""
-    from stepsafe.core.regions import find_region, under_criterion
-
     with p.integrator.naming_its_file():
         region = under_criterion(find_region(p.integrator.tableau, "oscillator"), criterion)
     return float(region.first_boundary if region.first_boundary is not None else region.zmax)
@@ -530,10 +522,6 @@ def _engine_runs(p: Any, req: Request, run_length: float) -> Any:
     """The runs of the user's integrator in the engine: the method as OpenMM's integrator,
     at the request's temperature, with the seeds, duration and friction of the scene's
     ``runs:`` when it has one (its temperature must be the request's)."""
-    from stepsafe.systems.md import thermal as md_thermal
-    from stepsafe.systems.md.engine import MOLAR_GAS_CONSTANT
-    from stepsafe.systems.md.system import ENGINE_INTEGRATORS
-
     name = p.integrator.name
     integrator = ENGINE_INTEGRATORS.get(name)
     if integrator is None:
@@ -559,8 +547,6 @@ def _engine_runs(p: Any, req: Request, run_length: float) -> Any:
 
 
 def _scene_of(p: Any) -> Any:
-    from stepsafe.systems.scene import load_scene
-
     return load_scene(p.scene, p.time_unit) if p.scene else None
 
 
@@ -583,8 +569,6 @@ def _engine_advice(p: Any, req: Request, h_zero: float | None, criterion: str,
                    progress: Callable[[float], None] | None) -> dict[str, Any]:
     """The record of the answer at temperature on an engine's system
     (:func:`stepsafe.systems.md.thermal.thermal_limit`), in the problem's time unit."""
-    from stepsafe.systems.md.thermal import thermal_limit
-
     scale = _scale(p)
     z_star = _z_star(p, criterion)
     analysis = _engine_analysis(p)
@@ -594,8 +578,8 @@ def _engine_advice(p: Any, req: Request, h_zero: float | None, criterion: str,
         omega = float(analysis.spectrum.eigenvalues[0])
         run_length = float(req.steps or 1) * z_star / math.sqrt(omega) if omega > 0 else 1.0
     runs = _engine_runs(p, req, run_length)
-    r = thermal_limit(analysis, runs, z_star, run_length, _engine_progress(progress),
-                      engine_name="OpenMM")
+    r = md_thermal.thermal_limit(analysis, runs, z_star, run_length, _engine_progress(progress),
+                                 engine_name="OpenMM")
     h_t = p.margin * r.h_max / scale
     out = {**_request_record(req, criterion), "h_max_0K": h_zero}
     if h_zero is not None and h_zero <= h_t:
@@ -614,14 +598,12 @@ def _engine_check(p: Any, req: Request, h: float, criterion: str,
                   progress: Callable[[float], None] | None) -> dict[str, Any]:
     """The record of the check at temperature on an engine's system
     (:func:`stepsafe.systems.md.thermal.thermal_check`)."""
-    from stepsafe.systems.md.thermal import thermal_check
-
     scale = _scale(p)
     step = h / p.margin * scale
     run_length = req.length * scale if req.length is not None else float(req.steps or 1) * step
     runs = _engine_runs(p, req, run_length)
-    c = thermal_check(_engine_analysis(p), runs, _z_star(p, criterion), step, run_length,
-                      _engine_progress(progress))
+    c = md_thermal.thermal_check(_engine_analysis(p), runs, _z_star(p, criterion), step, run_length,
+                                 _engine_progress(progress))
     linear = c.linear
     entry = {"at": ENGINE_AT, "safe": c.safe, "reasons": list(c.reasons),
              "h_zero": p.margin * c.h_zero / scale,
@@ -662,8 +644,6 @@ def _runs_record(runs: Any, trials: list[Any], margin: float, scale: float
                  ) -> dict[str, Any]:
     """The runs in the engine, JSON-ready (steps in the time unit times the margin; drifts
     in kT per ps per degree of freedom)."""
-    from stepsafe.systems.md.thermal import THERMALISATION, confirm_seeds
-
     def trial(t: Any) -> dict[str, Any]:
         drift, error = t.record.drift()
         return {"h": margin * t.h / scale, "stage": t.stage, "verdict": t.verdict,

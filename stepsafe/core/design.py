@@ -62,7 +62,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize
 
 from stepsafe.methods.tableaux import Splitting
 
@@ -300,6 +299,8 @@ def minimax(stages: int, top: float) -> tuple[float, ...] | None:
     the parameters and refined by Nelder-Mead on the maximum over :data:`MINIMAX_Z` steps;
     None when no member is stable up to ``top``. For 2 stages at ``top = 2`` it is bcss2
     (b = 0.21178), as Blanes, Casas & Sanz-Serna define that method."""
+    from scipy.optimize import minimize
+
     z = top * np.arange(1, MINIMAX_Z + 1) / MINIMAX_Z
     lo, hi = 0.0, 0.5
     if stages == 2:
@@ -358,6 +359,8 @@ def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
     its grid on the normal approximation of the acceptance, refines by Nelder-Mead on it,
     ranks every candidate by the exact acceptance and polishes the best by Nelder-Mead on
     the exact one; ``Design.error_bound`` is then ``1 / alpha``."""
+    from scipy.optimize import minimize
+
     if objective not in OBJECTIVES:
         raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
     betas, counts, binned = _binned(np.asarray(betas, float), np.asarray(counts, float))

@@ -44,7 +44,6 @@ from functools import cached_property
 from typing import Literal, NamedTuple, Protocol, cast
 
 import numpy as np
-import scipy.linalg as sla
 
 from stepsafe.core.engine import (
     Jet,
@@ -495,6 +494,8 @@ class CoupledSystem:
         return float(min(limits))
 
     def _margin(self, h: float) -> float:
+        import scipy.linalg as sla
+
         out = self._evaluate(h)
         if out is None:
             return -np.inf
@@ -553,6 +554,8 @@ class CoupledSystem:
         """An upper bound on ``||L^-1||_2^2 = 1 / lambda_min(sign S)``: the computed smallest
         eigenvalue less its rounding bound (``4 (2n) eps |S|_F``), or, if that leaves
         nothing, ``||L^-1||_F^2``."""
+        import scipy.linalg as sla
+
         low = extreme_eigenvalue(self.sign * self.S)
         low -= 8 * self.n * EPS * float(np.linalg.norm(self.S))
         if low > 0:

@@ -35,8 +35,6 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-import scipy.linalg as sla
-from scipy.linalg import lapack
 
 EPS = float(np.finfo(float).eps)
 #: The frame is refused when its error estimate exceeds this fraction of |S~|_F (the
@@ -74,6 +72,8 @@ class DiagonalFrame:
 def diagonal_frame(S: np.ndarray) -> DiagonalFrame | None:
     """The frame of the module docstring, or None when ``S_pp`` is not definite (by
     Cholesky) or the frame's error bound exceeds :data:`MAX_RELATIVE_ERROR`."""
+    import scipy.linalg as sla
+
     n = S.shape[0] // 2
     S_qq, S_qp, S_pp = S[:n, :n], S[:n, n:], S[n:, n:]
     for sigma in (1.0, -1.0):
@@ -318,6 +318,8 @@ class Solver:
         """None if A is singular to working precision (no unique step). ``offset``: a bound
         on ``||A - I||_2`` (the stage matrices are ``I -+ c C``); below 1 it bounds A's
         condition rigorously and closely (Neumann: ``||A^-1|| <= 1 / (1 - offset)``)."""
+        from scipy.linalg import lapack
+
         close = offset is not None and offset < 1.0
         neumann = neumann_inverse = np.inf
         if offset is not None and close:
@@ -415,6 +417,8 @@ def _inverse(A: np.ndarray) -> np.ndarray | None:
     """``A^-1`` from its LU factors (``getri``; None if A is singular to working
     precision); any loss of symplecticity this costs is measured by the coupled analysis
     (the defect of M)."""
+    from scipy.linalg import lapack
+
     lu, piv, info = lapack.dgetrf(A)
     if info != 0 or not np.all(np.isfinite(lu)):
         return None

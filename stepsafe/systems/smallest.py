@@ -26,8 +26,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
-from scipy.linalg import blas, lapack
 
 UNIT_ROUNDOFF = 2.0**-53
 #: From this size on the value is found by Lanczos iterations instead of an eigensolver
@@ -86,6 +84,8 @@ def smallest(W: np.ndarray, floor: float) -> Smallest:
 
 def _smallest(W: np.ndarray, floor: float) -> Smallest:
     """:func:`smallest` of a W whose largest entry is in [1/2, 1)."""
+    from scipy.linalg import lapack
+
     shift = floor + allowance(W, floor)
     A = np.array(W, order="F")  # (Fortran order: LAPACK and BLAS take it without a copy)
     A[np.diag_indices_from(A)] -= shift
@@ -103,6 +103,8 @@ def extreme_eigenvalue(A: np.ndarray, highest: bool = False) -> float:
     """The smallest (or largest) eigenvalue of the symmetric A: LAPACK's ``syevr`` for that
     one alone, or, where it fails (it can on a tight cluster, all eigenvalues within
     rounding of one another), every eigenvalue by divide and conquer."""
+    import scipy.linalg as sla
+
     index = A.shape[0] - 1 if highest else 0
     try:
         return float(sla.eigh(A, eigvals_only=True, subset_by_index=[index, index],
@@ -116,6 +118,9 @@ def _lanczos(R: np.ndarray) -> float:
     only its upper triangle read), from a fixed random start (a start taken from a nearby
     W's Ritz vector can lack the direction of a new lowest eigenvalue, and stop on the
     next one)."""
+    import scipy.linalg as sla
+    from scipy.linalg import blas
+
     N = R.shape[0]
     steps = min(LANCZOS_STEPS, N)
     basis = np.zeros((steps + 1, N))
