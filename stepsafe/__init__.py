@@ -37,9 +37,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from stepsafe._version import __version__
 from stepsafe.exceptions import MethodError, StepsafeError
-
-__version__ = "0.1.0"
 
 #: Each public name and the module of :mod:`stepsafe.api` that defines it (loaded on first
 #: use, so that ``import stepsafe`` stays light).

@@ -1,9 +1,12 @@
 """Import discipline (start-up is part of the product: check runs on every commit).
 
-Decided: ``import stepsafe.cli`` loads click only; ``check`` and ``advise`` on a built-in
-method load numpy and PyYAML but never scipy, mpmath, sympy or matplotlib, and ``check``
-does not load rich either (its output is a few plain lines), nor ``numpy.ma`` (which numpy's
-set routines load: a tenth of the start-up). Timings live in benchmarks/.
+Decided: ``import stepsafe`` loads none of the third-party packages below (its API is loaded
+on first use). The command line imports the package's own modules at their tops, so
+``import stepsafe.cli`` loads what ``check`` needs, numpy and PyYAML, and no more; ``check``
+and ``advise`` on a built-in method never load scipy, mpmath, sympy, matplotlib, OpenMM or
+jax (each is imported inside the function that needs it), and ``check`` does not load rich
+either (its output is a few plain lines), nor ``numpy.ma`` (which numpy's set routines load:
+a tenth of the start-up). Timings live in benchmarks/ (``benchmarks/startup.py``).
 """
 
 from __future__ import annotations
@@ -14,12 +17,15 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-HEAVY = {"numpy", "numpy.ma", "scipy", "rich", "yaml", "mpmath", "sympy", "matplotlib"}
+HEAVY = {"numpy", "numpy.ma", "scipy", "rich", "yaml", "mpmath", "sympy", "matplotlib",
+         "openmm", "jax", "blackjax"}
 REPORT = ("print(json.dumps(sorted(({m.split('.')[0] for m in sys.modules} | set(sys.modules)) & "
           f"set({sorted(HEAVY)!r}))))")
 
 
-def loaded_after(*argv: str) -> set[str]:
+def loaded_after(*argv: str, module: str = "stepsafe.cli") -> set[str]:
+    """The heavy packages loaded by the command ``stepsafe ARGV`` (none: by importing
+    ``module``), in a fresh interpreter."""
     code = (
         "import sys, json\n"
         f"sys.argv = ['stepsafe', *{list(argv)!r}]\n"
@@ -27,15 +33,19 @@ def loaded_after(*argv: str) -> set[str]:
         "try:\n    main()\nexcept SystemExit:\n    pass\n"
         + REPORT
         if argv else
-        "import sys, json, stepsafe.cli\n" + REPORT
+        f"import sys, json, {module}\n" + REPORT
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
                          check=True).stdout
     return set(json.loads(out.strip().splitlines()[-1]))
 
 
-def test_cli_import_is_light():
-    assert loaded_after() == set()
+def test_package_import_loads_no_heavy_package():
+    assert loaded_after(module="stepsafe") == set()
+
+
+def test_cli_import_loads_only_what_check_needs():
+    assert loaded_after() <= {"numpy", "yaml"}
 
 
 def test_check_loads_numpy_and_yaml_only():
@@ -45,4 +55,5 @@ def test_check_loads_numpy_and_yaml_only():
 def test_advise_and_region_never_load_scipy_or_mpmath():
     for argv in (("advise", "--method", "yoshida4", "--beta", "3.2"),
                  ("region", "lobatto3ab", "-s", "3")):
-        assert not loaded_after(*argv) & {"numpy.ma", "scipy", "mpmath", "sympy", "matplotlib"}
+        assert not loaded_after(*argv) & {"numpy.ma", "scipy", "mpmath", "sympy", "matplotlib",
+                                          "openmm", "jax", "blackjax"}

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import click
 
-from stepsafe.cli.main import (
+from stepsafe.api import inputs, linear
+from stepsafe.api.md import impulse_method
+from stepsafe.cli.group import (
     FLOAT,
     INT,
     _input_error,
@@ -20,6 +22,10 @@ from stepsafe.cli.main import (
     method_options,
     one_format,
 )
+from stepsafe.cli.measure import measured_ranking, print_measured_ranking, work_precision_plot
+from stepsafe.cli.plots import plot_format, pyplot, save_figure
+from stepsafe.cli.report import print_compare, print_errors, print_json, print_tsv
+from stepsafe.cli.respa import draw_chart
 
 MODEL_ONE = click.Choice(("oscillator", "saddle", "inverted", "saddle-p"))
 MAX_POINTS = 100_000  # error --n: a table, not a sweep (bounded time and memory)
@@ -52,9 +58,6 @@ def error_cmd(method, stages, base, zs, zmin, zmax, count, model, as_json, tsv) 
       stepsafe error yoshida4 --zmin 1e-6 --zmax 1.5 --n 7 --json
     """
     import numpy as np
-
-    from stepsafe.api import inputs, linear
-    from stepsafe.cli.report import print_errors, print_json, print_tsv
 
     one_format(as_json, tsv)
     z = list(zs)
@@ -137,9 +140,6 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, jacobian_cost, me
       stepsafe compare --beta 1 --tol-energy 1e-4 --methods verlet,pefrl,yoshida4,bcss2
       stepsafe compare --beta 1 --tol-phase 1e-6 --tol-energy 1e-6 --methods pefrl,gauss:2
     """
-    from stepsafe.api import linear
-    from stepsafe.cli.report import print_compare, print_json, print_tsv
-
     one_format(as_json, tsv)
     if use_all and names:
         raise _input_error("give --methods or --all, not both")
@@ -155,8 +155,6 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, jacobian_cost, me
                                   or budget is not None):
         raise _input_error("--time, --initial and --budget apply to --measure SCENE")
     if measure_scene is not None:
-        from stepsafe.cli.measure import measured_ranking
-
         if tol_phase is None:
             raise _input_error("--measure needs --tol-phase (the trajectory error it gives "
                                "over --time is the measured tolerance)")
@@ -174,8 +172,6 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, jacobian_cost, me
     else:
         print_compare(data)
         if "measured" in data:
-            from stepsafe.cli.measure import print_measured_ranking
-
             print_measured_ranking(data["measured"])
 
 
@@ -245,8 +241,6 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, subst
 
     if scene_file is not None or methods is not None or h_range is not None \
             or initial is not None or budget is not None:
-        from stepsafe.cli.measure import work_precision_plot
-
         if method is not None:
             raise _input_error("give METHOD or --work-precision SCENE --methods M1,M2, not both")
         if scene_file is None or methods is None:
@@ -265,16 +259,11 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, subst
     zmax = 6.0 if zmax is None else zmax
     if not (math.isfinite(zmax) and zmax > 0):
         raise _input_error(f"zmax must be a positive finite number, got {zmax}")
-    plt = _pyplot()
+    plt = pyplot()
     import numpy as np
-
-    from stepsafe.api import inputs, linear
 
     integrator = inputs.method(method, stages=stages, base=base)
     if integrator.kind == "impulse" or ratio is not None or substeps is not None:
-        from stepsafe.api.md import impulse_method
-        from stepsafe.cli.respa import draw_chart
-
         if integrator.kind != "impulse":
             raise _input_error(f"--ratio and --substeps apply to impulse methods; "
                                f"{integrator.name} is a {integrator.kind} method")
@@ -289,7 +278,7 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, subst
     if output is None:
         safe_name = "".join(c if c.isalnum() or c in "-_." else "_" for c in integrator.name)
         output = f"{safe_name}-{model}.png"
-    fmt = _plot_format(output, plt)
+    fmt = plot_format(output, plt)
     region = linear.region(integrator, model, zmax=zmax).regions[model]
     z = np.linspace(zmax / 4000, zmax, 4000)
     M = linear.transfer_matrices(integrator, z, model)
@@ -299,14 +288,12 @@ def plot_cmd(method, stages, base, model, zmax, with_phase, output, ratio, subst
         # matplotlib's tick locator overflows on axes out to 1e308: cosmetic, not a result
         warnings.simplefilter("ignore")
         fig = _draw(plt, integrator, model, region, z, half, zmax, with_phase)
-    _save(fig, output, fmt)
+    save_figure(fig, output, fmt)
     click.echo(f"wrote {output}")
 
 
 def _draw(plt, integrator, model, region, z, half, zmax, with_phase):
     import numpy as np
-
-    from stepsafe.api import linear
 
     rows = 2 if with_phase else 1
     fig, axes = plt.subplots(rows, 1, figsize=(8, 3.2 * rows), sharex=True, squeeze=False)
@@ -331,57 +318,7 @@ def _draw(plt, integrator, model, region, z, half, zmax, with_phase):
     return fig
 
 
-def _pyplot():
-    """matplotlib.pyplot on the Agg backend, or a one-line error when it is missing."""
-    import logging
-
-    try:
-        logging.getLogger("matplotlib").setLevel(logging.ERROR)  # font cache, eps alpha notes
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        raise _input_error("plotting needs matplotlib: pip install matplotlib (from a clone "
-                           "of stepsafe: pip install '.[plot]')") from None
-    return plt
 
 
-def _plot_format(output: str, plt) -> str:
-    """The format named by the extension of ``output``; refuses anything that would not
-    write exactly that path."""
-    import os
-
-    formats = sorted(set(plt.figure().canvas.get_supported_filetypes()) - {"pgf"})
-    plt.close("all")
-    listed = ", ".join(formats)
-    if output == "-":
-        raise _input_error("-o -: plot writes a file, not standard output (give a path such "
-                           "as plot.png)")
-    if os.path.isdir(output) or output.endswith(("/", os.sep)):
-        raise _input_error(f"-o {output}: a directory, not a file (give a path such as "
-                           f"plot.png; formats: {listed})")
-    ext = os.path.splitext(os.path.basename(output))[1][1:].lower()
-    if not ext:
-        raise _input_error(f"-o {output}: no extension to choose the format from (one of: "
-                           f"{listed})")
-    if ext not in formats:
-        raise _input_error(f"-o {output}: unknown format .{ext} (one of: {listed})")
-    return ext
 
 
-def _save(fig, output: str, fmt: str) -> None:
-    """Write exactly ``output`` (the format is given, so matplotlib never adds an extension);
-    a file left half-written by a failure is removed unless it was there before."""
-    import os
-    import warnings
-
-    existed = os.path.lexists(output)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            fig.savefig(output, dpi=120, format=fmt)
-    except OSError as exc:
-        if not existed and os.path.isfile(output):
-            os.remove(output)
-        raise _input_error(f"cannot write {output}: {exc.strerror or exc}") from None

@@ -8,7 +8,9 @@ from typing import Any
 
 import click
 
-from stepsafe.cli.main import (
+from stepsafe.api import inputs
+from stepsafe.api.measure import DEFAULT_SEED, cost_at, measure, refine, work_precision
+from stepsafe.cli.group import (
     DURATION,
     FLOAT,
     INT,
@@ -19,6 +21,11 @@ from stepsafe.cli.main import (
     method_options_optional,
     one_format,
 )
+from stepsafe.cli.plots import plot_format, pyplot, save_figure
+from stepsafe.cli.progressbar import progress_bar
+from stepsafe.cli.report import print_json, print_tsv
+from stepsafe.exceptions import StepsafeError
+from stepsafe.systems.scene import load_scene, parse_real, time_unit_in_force
 
 #: Step sizes of --h-range at most.
 MAX_RANGE = 200
@@ -28,8 +35,6 @@ MAX_METHODS = 20
 
 def _numbers(text: str, option: str) -> list[float]:
     """Comma-separated plain numbers (``1e-3,0.1,8``)."""
-    from stepsafe.systems.scene import parse_real
-
     values = [parse_real(item) for item in text.split(",")]
     if any(v is None for v in values):
         raise _input_error(f"--{option} {text}: give plain numbers separated by commas")
@@ -129,18 +134,10 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
       stepsafe measure examples/pendulum.yaml --method yoshida4 --h-range 0.05,1,6 --energy 0
       stepsafe measure examples/pendulum.yaml --h 0.5 --time 50 --ensemble 1000 --kT 0.2
     """
-    from stepsafe.api.measure import measure
-    from stepsafe.cli.progressbar import progress_bar
-    from stepsafe.cli.report import print_json, print_tsv
-    from stepsafe.systems.scene import load_scene, time_unit_in_force
-
     one_format(as_json, tsv)
     hs = list(steps) + (_range(h_range) if h_range else [])
     time_unit = time_unit_in_force(time_unit, scene_file, hs, duration)
     loaded = load_scene(scene_file, time_unit)
-    from stepsafe.api import inputs
-    from stepsafe.exceptions import StepsafeError
-
     if method is None:
         if loaded.method is None:
             raise _input_error("no method: give --method METHOD or method: in the scene")
@@ -165,8 +162,6 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
                                "temperature), not both")
         if not 1 <= ensemble:
             raise _input_error(f"--ensemble {ensemble}: give a number of trajectories >= 1")
-        from stepsafe.api.measure import DEFAULT_SEED
-
         with progress_bar("measuring", not as_json) as progress:
             result = measure(integrator, hs or ([loaded.h] if loaded.h else []),
                              scene=scene_file, time=duration, energy=energy,
@@ -185,8 +180,6 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
         if hs or tsv or max_steps is not None or budget is not None:
             raise _input_error("--tol-* finds the step itself: give no --h, --h-range, --tsv, "
                                "--max-steps or --budget")
-        from stepsafe.api.measure import refine
-
         quantity, tol = (("energy", tol_energy) if tol_energy is not None
                          else ("trajectory", tol_trajectory))
         with progress_bar("refining", not as_json) as progress:
@@ -300,11 +293,6 @@ def work_precision_plot(scene_file: str, methods: str, h_range: str | None,
     """Measure every method at every step of the range (or at steps chosen per method
     within the budget: :func:`stepsafe.api.measure.work_precision`); draw error against
     cost."""
-    from stepsafe.api import inputs
-    from stepsafe.api.measure import measure, work_precision
-    from stepsafe.cli.accuracy import _plot_format, _pyplot, _save
-    from stepsafe.cli.progressbar import progress_bar
-
     hs = None if h_range is None else _range(h_range)
     names = [item.strip() for item in methods.split(",") if item.strip()]
     if not names or len(names) > MAX_METHODS:
@@ -312,8 +300,8 @@ def work_precision_plot(scene_file: str, methods: str, h_range: str | None,
                            "commas")
     integrators = [inputs.named_method(name) for name in names]
     start = None if initial is None else _numbers(initial, "initial")
-    plt = _pyplot()
-    fmt = _plot_format(output, plt)
+    plt = pyplot()
+    fmt = plot_format(output, plt)
     reports = []
     with progress_bar("measuring") as progress:
         if hs is None:
@@ -350,7 +338,7 @@ def work_precision_plot(scene_file: str, methods: str, h_range: str | None,
     ax.grid(True, which="both", lw=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    _save(fig, output, fmt)
+    save_figure(fig, output, fmt)
     click.echo(f"wrote {output}")
     for report in reports:
         usable = [r for r in report.rows if getattr(r, key) is not None]
@@ -397,10 +385,6 @@ def measured_ranking(data: dict[str, Any], scene_file: str, tol_phase: float, be
     ``2 sin(tol_phase beta T / 2)`` (the phase drift the linear model allows over T, beta
     the largest vibration compared), from its :func:`stepsafe.api.measure.work_precision`
     curve, beside the cost ``compare`` predicts; ratios to the linear ranking's first."""
-    from stepsafe.api import inputs
-    from stepsafe.api.measure import cost_at, work_precision
-    from stepsafe.cli.progressbar import progress_bar
-
     start = None if initial is None else _numbers(initial, "initial")
     rows = [r for r in data["methods"] if r["cost"] is not None]
     if not rows:

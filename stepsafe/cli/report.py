@@ -15,6 +15,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 from stepsafe.core.records import json_ready, versioned
+from stepsafe.text import printable
 
 
 def print_json(data: Any, record: bool = True) -> None:
@@ -33,8 +34,6 @@ def print_tsv(columns: Sequence[str], rows: Iterable[Mapping[str, Any]]) -> None
     ``--json`` keys), then one line per row. Numbers at full precision (the shortest text
     that reads back as the same float), true/false, an empty field for null; tabs and line
     breaks inside text become spaces, control characters are made visible."""
-    from stepsafe.text import printable
-
     def cell(value: Any) -> str:
         if value is None:
             return ""
@@ -118,8 +117,6 @@ def _lit(*parts: Any):
     "[red]x[/red]" or "[/]" is text, not a style, and ":smile:" is not an emoji), with
     control characters made visible. ``parts`` are strings or ``(string, style)`` pairs."""
     from rich.text import Text
-
-    from stepsafe.text import printable
 
     return Text.assemble(*((printable(p[0]), p[1]) if isinstance(p, tuple) else printable(p)
                            for p in parts))
@@ -377,8 +374,6 @@ def print_check(data: dict[str, Any]) -> None:
     """Plain click output: check runs in CI on every commit, so it does not import rich."""
     import click
 
-    from stepsafe.text import printable
-
     u = f" {data['time_unit']}" if data.get("time_unit") else ""
     h, name = fmt_exact(data["h"]) + u, printable(data["method"])
     scene = f"{printable(data['scene'])}: " if data.get("scene") else ""
@@ -561,8 +556,6 @@ def print_system(system: dict[str, Any], every: bool = False, unit: str | None =
     """The modes or equilibria a system: scene was reduced to: every one, or (beyond
     :data:`SUMMARY_ITEMS`, unless ``every``) the ones with the smallest h limit."""
     import click
-
-    from stepsafe.text import printable
 
     click.echo(f"System analysis: {system['analysis']}")
     items = system["items"]

@@ -6,7 +6,9 @@ from typing import Any
 
 import click
 
-from stepsafe.cli.main import (
+from stepsafe.api import inputs
+from stepsafe.api.md import impulse, impulse_advice, impulse_method
+from stepsafe.cli.group import (
     DURATION,
     EXIT_UNSAFE,
     FLOAT,
@@ -17,11 +19,17 @@ from stepsafe.cli.main import (
     criterion_option,
     main,
 )
+from stepsafe.cli.plots import plot_format, pyplot, save_figure
+from stepsafe.cli.report import fmt, fmt_below, print_json
+from stepsafe.core.impulse import stability_chart
+from stepsafe.core.regions import find_region
+from stepsafe.core.resonances import rotations
+from stepsafe.exceptions import StepsafeError
+from stepsafe.systems.scene import load_scene
+from stepsafe.units import implied_time_unit, quantity
 
 
 def _frequency(beta, wavenumber, which: str, unit) -> float:
-    from stepsafe.units import quantity
-
     given = [v for v in (beta, wavenumber) if v is not None]
     if len(given) != 1:
         raise _input_error(f"give the {which} frequency once: --{which}-beta B or "
@@ -92,13 +100,8 @@ def respa_cmd(method, outer, inner, substeps, fast_beta, slow_beta, fast_wavenum
       stepsafe respa --fast-wavenumber 3700 --slow-wavenumber 300 --time-unit fs \\
           --substeps 4 --step 2
     """
-    from stepsafe.api.md import impulse, impulse_method
-    from stepsafe.cli.report import print_json
-
     if method is not None and (outer is not None or inner is not None):
         raise _input_error(f"give the impulse method {method} or --outer/--inner, not both")
-    from stepsafe.units import implied_time_unit
-
     impulse_obj = impulse_method(method or outer or "verlet", inner, substeps)
     time_unit = time_unit or implied_time_unit(step)  # --step 2fs names the time unit
     fast = _frequency(fast_beta, fast_wavenumber, "fast", time_unit)
@@ -118,8 +121,6 @@ def respa_cmd(method, outer, inner, substeps, fast_beta, slow_beta, fast_wavenum
 
 
 def print_respa(data: dict[str, Any]) -> None:
-    from stepsafe.cli.report import fmt, fmt_below
-
     u = f" {data['time_unit']}" if data["time_unit"] else ""
     click.echo(f"{data['method']}: fast {fmt(data['fast'])}, slow {fmt(data['slow'])} rad/"
                f"{data['time_unit'] or 'time unit'}, {data['substeps']} substep(s) per outer "
@@ -162,13 +163,8 @@ def draw_chart(method: Any, ratio: float | None, output: str) -> None:
     the ray of the frequency ratio omega / Omega when given."""
     import numpy as np
 
-    from stepsafe.cli.accuracy import _plot_format, _pyplot, _save
-    from stepsafe.core.impulse import stability_chart
-    from stepsafe.core.regions import find_region
-    from stepsafe.core.resonances import rotations
-
-    plt = _pyplot()
-    fmt = _plot_format(output, plt)
+    plt = pyplot()
+    fmt = plot_format(output, plt)
     k = method.substeps
     z_inner = find_region(method.inner, "oscillator", 40.0).first_boundary
     x_top = 1.05 * k * (z_inner or 10.0)
@@ -193,7 +189,7 @@ def draw_chart(method: Any, ratio: float | None, output: str) -> None:
     ax.set_ylabel("omega H (slow)")
     ax.set_title(f"{method.name} with {k} substeps: unstable where shaded")
     fig.tight_layout()
-    _save(fig, output, fmt)
+    save_figure(fig, output, fmt)
 
 
 #: advise/check options that an impulse method cannot take (its frequencies come in
@@ -205,10 +201,6 @@ _SINGLE_FORCE_OPTIONS = ("beta", "frequency", "wavenumber", "period", "sigma", "
 def impulse_of(scene_file: str | None, options: dict) -> Any:
     """The impulse method advise/check were asked about (by --method or the scene's
     method:), or None for any other method. --substeps is refused for other methods."""
-    from stepsafe.api import inputs
-    from stepsafe.exceptions import StepsafeError
-    from stepsafe.systems.scene import load_scene
-
     name = options["method_name"]
     if name is None and scene_file is not None:
         ref = load_scene(scene_file, options["time_unit"]).method
@@ -239,8 +231,6 @@ def impulse_report(integrator: Any, scene_file: str | None, options: dict, *,
                    step: float | None, criterion: str, resonance_order: int | None, check: bool
                    ) -> dict[str, Any]:
     """advise or check (``step``, else the scene's h) of an impulse method on a scene."""
-    from stepsafe.api.md import impulse_advice
-
     return impulse_advice(integrator, scene=scene_file, substeps=options.get("substeps"),
                           step=step, time_unit=options["time_unit"], criterion=criterion,
                           resonance_order=resonance_order,
@@ -249,8 +239,6 @@ def impulse_report(integrator: Any, scene_file: str | None, options: dict, *,
 
 def print_impulse_modes(data: dict[str, Any], check: bool) -> None:
     """The text form of :meth:`stepsafe.api.reports.ImpulseModesReport.to_dict`."""
-    from stepsafe.cli.report import fmt, fmt_below
-
     unit = data["time_unit"]
     u = f" {unit}" if unit else ""
     per = f"rad/{unit}" if unit else "rad per time unit"
@@ -308,9 +296,6 @@ def _mode_table(modes: list, per: str, unit: str | None) -> None:
 def impulse_region(integrator: Any, ratio: float | None, substeps: int | None,
                    zmax: float | None, criterion: str, as_json: bool, other: bool) -> None:
     """``stepsafe region`` of an impulse method at the frequency ratio ``ratio``."""
-    from stepsafe.api.md import impulse
-    from stepsafe.cli.report import print_json
-
     if integrator.kind != "impulse":
         raise _input_error(f"--ratio and --substeps apply to impulse methods; "
                            f"{integrator.name} is a {integrator.kind} method")

@@ -8,7 +8,8 @@ from typing import Any
 
 import click
 
-from stepsafe.cli.main import (
+from stepsafe.api.hmc import TARGET_SEED, TargetError, TargetReport, design, hmc
+from stepsafe.cli.group import (
     DURATION,
     FLOAT,
     INT,
@@ -20,6 +21,10 @@ from stepsafe.cli.main import (
     one_format,
     target_options,
 )
+from stepsafe.cli.plots import plot_format, pyplot, save_figure
+from stepsafe.cli.progressbar import progress_bar
+from stepsafe.cli.report import _console, _lit, fmt, fmt_below, print_json, print_tsv
+from stepsafe.exceptions import StepsafeError
 
 #: Steps per method on the acceptance curve drawn by --plot.
 PLOT_POINTS = 200
@@ -98,17 +103,11 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
       stepsafe hmc target.yaml --all --json
       stepsafe hmc banana.yaml --steps 10 --methods verlet,bcss2
     """
-    from stepsafe.api.hmc import hmc
-    from stepsafe.cli.report import print_json, print_tsv
-
     one_format(as_json, tsv)
     if use_all and names:
         raise _input_error("give --methods or --all, not both")
     arrays, labels = command_line_modes(options, scene_file, step, length)
     methods = "all" if use_all else (None if names is None else names.split(","))
-    from stepsafe.api.hmc import TARGET_SEED, TargetReport
-    from stepsafe.cli.progressbar import progress_bar
-
     with progress_bar("hmc", not as_json) as progress, _naming_the_modes_file(options):
         report = hmc(methods, modes=arrays or None, labels=labels or None, scene=scene_file,
                      trajectory_steps=steps, length=length, jitter=jitter,
@@ -144,8 +143,6 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
 
 def print_hmc(data: dict[str, Any]) -> None:
     from rich.table import Table
-
-    from stepsafe.cli.report import _console, _lit, fmt, fmt_below
 
     console = _console()
     unit = data["time_unit"]
@@ -216,8 +213,6 @@ def print_hmc(data: dict[str, Any]) -> None:
 def print_hmc_target(data: dict[str, Any], scene_file: str | None) -> None:
     """The text of ``stepsafe hmc`` for a target given by its potential."""
     from rich.table import Table
-
-    from stepsafe.cli.report import _console, _lit, fmt, fmt_below
 
     console = _console()
     trajectory = (f"L = {data['steps']} steps" if data["steps"] else
@@ -293,10 +288,8 @@ def _error_cell(x: float | None) -> str:
 
 
 def _plot(data: dict[str, Any], output: str) -> None:
-    from stepsafe.cli.accuracy import _plot_format, _pyplot, _save
-
-    plt = _pyplot()
-    fmt = _plot_format(output, plt)
+    plt = pyplot()
+    fmt = plot_format(output, plt)
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for row in data["methods"]:
         if row["curve"]:
@@ -311,7 +304,7 @@ def _plot(data: dict[str, Any], output: str) -> None:
     ax.set_ylim(0, 1.02)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    _save(fig, output, fmt)
+    save_figure(fig, output, fmt)
 
 
 @main.command("design")
@@ -345,9 +338,6 @@ def design_cmd(scene_file, step, stages, jitter, name, output, as_json, **option
       stepsafe design --sigma 1 --sigma 0.1 --step 0.15 -o mine.yaml
       stepsafe hmc --sigma 1 --sigma 0.1 --length 5 --methods mine.yaml,bcss2
     """
-    from stepsafe.api.hmc import design
-    from stepsafe.cli.report import print_json
-
     arrays, labels = command_line_modes(options, scene_file, step)
     with _naming_the_modes_file(options):
         report = design(modes=arrays or None, labels=labels or None, scene=scene_file,
@@ -366,9 +356,6 @@ def design_cmd(scene_file, step, stages, jitter, name, output, as_json, **option
 def _naming_the_modes_file(options: dict) -> Iterator[None]:
     """A refusal of the target that names no file is about the --modes file when that
     file gave every frequency: it then names it."""
-    from stepsafe.api.hmc import TargetError
-    from stepsafe.exceptions import StepsafeError
-
     only_file = options["modes_file"] and not any(
         options[key] for key in ("beta", "frequency", "wavenumber", "period", "sigma",
                                  "saddle_beta", "inverted_beta"))
@@ -403,8 +390,6 @@ PARAM_DIGITS = 8
 
 def print_design(data: dict[str, Any], output: str | None) -> None:
     from rich.table import Table
-
-    from stepsafe.cli.report import _console, _lit, fmt
 
     console = _console()
     u = f" {data['time_unit']}" if data["time_unit"] else ""

@@ -7,6 +7,8 @@ from typing import Any
 
 import click
 
+from stepsafe.cli.group import DURATION, FLOAT, INT
+from stepsafe.cli.report import fmt_below
 from stepsafe.text import printable
 
 #: Significant digits shown: the measured figures are statistical (their spread is stated).
@@ -18,15 +20,11 @@ def _g(x: float | None) -> str:
 
 
 def _below(x: float) -> str:
-    from stepsafe.cli.report import fmt_below  # (not at import: the CLI starts light)
-
     return fmt_below(x, DIGITS)
 
 
 def thermal_options(func):
     """--temperature, --kT, --length, --steps and --max-drift."""
-    from stepsafe.cli.main import DURATION, FLOAT, INT
-
     opts = [
         click.option("--max-drift", "max_drift", type=FLOAT, default=None, metavar="D",
                      help="With a temperature: the largest acceptable energy drift, energy "
