@@ -46,9 +46,10 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from stepsafe.core.engine import leaf_key
-from stepsafe.core.models import ELLIPTIC
+from stepsafe.core.escalate import DPS, MP_WORK_BUDGET, reference_of
+from stepsafe.core.models import ELLIPTIC, GENERATORS
 from stepsafe.core.roots import EPS, refine_brackets
-from stepsafe.core.transfer import blocks_of, stage_operator, transfer_matrix
+from stepsafe.core.transfer import blocks_of, row_ops, stage_operator, transfer_matrix
 from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.library import high_precision_tableaux
 from stepsafe.methods.protocol import Block, Friction, Shears
@@ -88,8 +89,6 @@ def _polynomial_series(method: Splitting, model: str, terms: int) -> Series:
     is the exact matrix polynomial ``prod (I + c z^k e_dst e_src^T)`` of
     :func:`stepsafe.core.transfer.row_ops`, expanded (with absolute values alongside) and
     cut at ``terms``; it has no saddle form (a MethodError, as for the region)."""
-    from stepsafe.core.transfer import row_ops
-
     if model not in ("oscillator", "inverted"):
         method.euler_factors()  # raises: no saddle form
     ops = row_ops(method, model)
@@ -276,8 +275,6 @@ def _hp_series_parts(prk: PartitionedRK, model: str, series: Series) -> Parts:
     that bound, negligible: at least 60 digits)."""
     import mpmath as mp
 
-    from stepsafe.core.models import GENERATORS
-
     L = [[int(x) for x in row] for row in GENERATORS[model]]
     n = series.coef.shape[0]
     a = series.coef_abs
@@ -409,8 +406,6 @@ def _escalate(method: Method, model: str, z: np.ndarray, where: np.ndarray,
     float64 values), each kept only where its own bound (the reference's coefficients are
     good to about DPS digits) beats float64's: at tiny z the float series is the better."""
     import mpmath as mp
-
-    from stepsafe.core.escalate import DPS, MP_WORK_BUDGET, reference_of
 
     limit = int(max(16, MP_WORK_BUDGET / method.sample_work))
     ref = reference_of(method)

@@ -37,6 +37,7 @@ from stepsafe.core.regions import (
     under_criterion,
     validate_criterion,
 )
+from stepsafe.core.resonances import capped_at_resonance
 from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.methods.tableaux import Method
 
@@ -225,8 +226,6 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
         if model not in regions:
             regions[model] = under_criterion(find_region(method, model, zmax), criterion)
     if resonance_order is not None and "oscillator" in modes.betas:
-        from stepsafe.core.resonances import capped_at_resonance
-
         regions["oscillator"] = capped_at_resonance(method, regions["oscillator"],
                                                     resonance_order)
     limits: list[ModelLimit] = []
@@ -381,8 +380,6 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
     regions = {model: under_criterion(find_region(method, model, zmax), criterion)
                for model in modes.betas}
     if resonance_order is not None and "oscillator" in regions:
-        from stepsafe.core.resonances import capped_at_resonance
-
         regions["oscillator"] = capped_at_resonance(method, regions["oscillator"],
                                                     resonance_order)
     adv = advise(method, modes, margin, zmax, name, regions, criterion=criterion)

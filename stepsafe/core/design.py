@@ -63,6 +63,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stepsafe.core.hmc import OneStep, acceptances, errors_after
+from stepsafe.core.regions import find_region, stable_run
 from stepsafe.methods.tableaux import Splitting
 
 #: Parameter names of each family, by stage count.
@@ -211,8 +213,6 @@ def _stable_up_to(stages: int, params: np.ndarray, top: float) -> bool:
     """Whether the member keeps |tr M| <= 2 for every z in (0, top], by the region finder
     (float64 uncertainties included), under the rule for rounding gaps that ``hmc`` uses
     (:func:`stepsafe.core.regions.stable_run`: an M = +-I resonance does not end it)."""
-    from stepsafe.core.regions import find_region, stable_run
-
     return stable_run(find_region(family_member(stages, tuple(params)), "oscillator",
                                   top * 1.001)).reaches(top)
 
@@ -246,8 +246,6 @@ def _node_errors(stages: int, params: np.ndarray, z: np.ndarray, weights: np.nda
                  jitter: float, steps: int | None) -> tuple[np.ndarray, np.ndarray]:
     """Each mode's expected energy error at each jitter node (shape (rows, nodes, modes))
     after ``steps`` steps (None: its bound rho over every L), and the modes' weights."""
-    from stepsafe.core.hmc import OneStep, errors_after
-
     nodes = ((np.arange(JITTER_NODES) + 0.5) / JITTER_NODES * 2.0 - 1.0 if jitter
              else np.zeros(1))
     scaled = (z[None, :] * (1.0 + jitter * nodes[:, None])).ravel()
@@ -271,8 +269,6 @@ def acceptance_values(stages: int, params: np.ndarray, z: np.ndarray, weights: n
     the Gaussian acceptance ``2 P(Delta < 0)`` of :mod:`stepsafe.core.hmc`; else its normal
     approximation ``2 Phi(-sqrt(mu / 2))``, ``mu`` the total expected error (for the grid
     of the search only)."""
-    from stepsafe.core.hmc import acceptances
-
     params = np.atleast_2d(np.asarray(params, dtype=float))
     top = float(z.max()) * (1.0 + jitter)
     stable = _stable_rows(stages, params, top)

@@ -1,7 +1,7 @@
 """The float one-step map of a linear system: a step's blocks applied to a batch of matrices.
 
 One step of size h on ``x' = L x`` (x of size m = 2n, ``x = (q, p)``) is the product of
-its blocks (:func:`stepsafe.methods.protocol.linear_blocks`), block k run at ``w_k z``::
+its blocks (:func:`stepsafe.methods.tableaux.linear_blocks`), block k run at ``w_k z``::
 
     M(z) = M_k(w_k z) ... M_2(w_2 z) M_1(w_1 z)
 

@@ -25,6 +25,7 @@ import numpy as np
 
 from stepsafe.core.models import KICK_SIGN
 from stepsafe.core.roots import EPS
+from stepsafe.core.transfer import blocks_of, row_ops
 from stepsafe.methods.protocol import Shears
 from stepsafe.methods.tableaux import Method
 
@@ -58,8 +59,6 @@ def far_bound(method: Method, model: str) -> float:
     """
     if model not in KICK_SIGN:
         return np.inf
-    from stepsafe.core.transfer import blocks_of, row_ops
-
     blocks = blocks_of(method, model)
     if len(blocks) != 1 or not isinstance(blocks[0], Shears) or blocks[0].weight != 1.0:
         return np.inf

@@ -43,6 +43,7 @@ from typing import NamedTuple
 import numpy as np
 
 from stepsafe.core.accuracy import offsets
+from stepsafe.core.resonances import rotations
 from stepsafe.core.roots import EPS, narrowed
 from stepsafe.core.sets import distinct
 from stepsafe.methods.tableaux import Method
@@ -685,8 +686,6 @@ def stall_steps(method: Method, region, beta: float, steps: int, h_near: float,
     ``beta`` by a whole number m of turns, ``L theta(beta h) = 2 pi m``: its proposal is its
     starting point (a fixed-L sampler does not move that mode; jitter avoids it). At most
     :data:`MAX_STALLS` values of m nearest the middle are located."""
-    from stepsafe.core.resonances import rotations
-
     if steps < 3 or beta <= 0:
         return ()
     first = one_step(method, beta * h_near * np.array([1.0 - window, 1.0 + window]))

@@ -52,7 +52,12 @@ import numpy as np
 
 from stepsafe.exceptions import MethodError
 from stepsafe.methods.protocol import Shears, Stages
-from stepsafe.methods.tableaux import Method, PartitionedRK, step_end_stage
+from stepsafe.methods.tableaux import (
+    Method,
+    PartitionedRK,
+    splitting_from_operations,
+    step_end_stage,
+)
 
 Gradient = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -386,8 +391,6 @@ class Engine:
 def _as_prk(operations: tuple) -> PartitionedRK:
     """The PRK form of a splitting given by its operations (symplectic Euler factors: on a
     non-separable H each drift and kick is an implicit half of a symplectic Euler step)."""
-    from stepsafe.methods.tableaux import splitting_from_operations
-
     return splitting_from_operations(list(operations)).as_prk()
 
 

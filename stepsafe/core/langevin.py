@@ -48,9 +48,12 @@ from typing import Any
 
 import numpy as np
 
+from stepsafe.core.records import json_ready
+from stepsafe.core.regions import find_region
 from stepsafe.core.transfer import transfer_matrix
 from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.methods.langevin import Langevin
+from stepsafe.methods.library import resolve
 from stepsafe.methods.protocol import Friction, Shears
 
 #: Closed forms of the stationary covariance ``(Sigma_qq, Sigma_pp, Sigma_qp)`` at z (every
@@ -62,22 +65,11 @@ CLOSED_FORMS: dict[str, Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.
     "BAOA": lambda z: (np.ones_like(z), np.ones_like(z), z / 2.0),
 }
 
-#: The same as text (``show``), z = omega h, for every friction gamma > 0 and z < 2.
-CLOSED_FORM_TEXT: dict[str, str] = {
-    "BAOAB": "<q^2> m omega^2/kT = 1 (exact), <p^2>/(m kT) = 1 - z^2/4",
-    "ABOBA": "<q^2> m omega^2/kT = 1 (exact), <p^2>/(m kT) = 1/(1 - z^2/4)",
-    "OBABO": "<q^2> m omega^2/kT = 1/(1 - z^2/4), <p^2>/(m kT) = 1 (exact)",
-    "BAOA": "<q^2> m omega^2/kT = 1, <p^2>/(m kT) = 1 (both exact; the velocity half a "
-            "step behind the position), <q p> omega/kT = z/2",
-}
-
 
 def _langevin(method: Any) -> Langevin:
     """``method`` as a :class:`Langevin`: a Langevin object, a name or path of a method file
     of kind langevin, or a :class:`stepsafe.Integrator` of one."""
     if isinstance(method, str):
-        from stepsafe.methods.library import resolve
-
         method = resolve(method)[0]
     method = getattr(method, "tableau", method)
     if not isinstance(method, Langevin):
@@ -169,8 +161,6 @@ class LangevinReport:
     h_stable: float | None
 
     def to_dict(self) -> dict[str, Any]:
-        from stepsafe.core.records import json_ready
-
         return json_ready({"method": self.method, "letters": self.letters, "h": self.h,
                            "friction": self.friction, "kT": self.kT,
                            "h_stable": self.h_stable,
@@ -202,8 +192,6 @@ def sampling(method: Any, beta: Sequence[float] | float, h: float,
     -------
     LangevinReport
     """
-    from stepsafe.core.regions import find_region
-
     m = _langevin(method)
     h = positive_finite(h, "h")
     betas = np.atleast_1d(np.asarray(beta, dtype=float))
@@ -246,8 +234,6 @@ def step_for_tolerance(method: Any, tol: float, which: str = "configurational",
     tol = positive_finite(tol, "tol")
     if which not in ("configurational", "kinetic"):
         raise StepsafeError(f"which must be configurational or kinetic, got {which!r}")
-    from stepsafe.core.regions import find_region
-
     z_star = find_region(m, "oscillator").first_boundary
     limit = 10.0 if z_star is None else float(z_star)
     index = 0 if which == "configurational" else 1

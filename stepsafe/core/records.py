@@ -12,6 +12,7 @@ from typing import Any
 
 from stepsafe.core.models import ELLIPTIC
 from stepsafe.core.regions import Interval, Point, Region
+from stepsafe.methods.langevin import CLOSED_FORM_TEXT
 from stepsafe.methods.residuals import residuals
 
 #: The version of the shape of every ``--json`` record and ``to_dict()``: each record
@@ -122,11 +123,9 @@ def method_data(method, entry) -> dict[str, Any]:
 def stochastic_data(method) -> dict[str, Any]:
     """For a method that is not Hamiltonian (a Langevin splitting): what its analyses mean
     (``note``) and, where known, its stationary sampling of the harmonic oscillator in
-    closed form (``harmonic_sampling``, :data:`stepsafe.core.langevin.CLOSED_FORM_TEXT`)."""
+    closed form (``harmonic_sampling``, :data:`stepsafe.methods.langevin.CLOSED_FORM_TEXT`)."""
     if method.hamiltonian:
         return {}
-    from stepsafe.core.langevin import CLOSED_FORM_TEXT
-
     letters = method.coefficients().get("letters")
     return {"note": method.analysis_note,
             "harmonic_sampling": CLOSED_FORM_TEXT.get(letters)}

@@ -23,11 +23,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from stepsafe.core.accuracy import hamiltonian_only
 from stepsafe.core.engine import TOL_FACTOR
 from stepsafe.core.grid import Grid, default_resolution
 from stepsafe.core.regions import Interval, Point, Region, clear_of_bands
 from stepsafe.core.roots import EPS, refine_brackets
 from stepsafe.core.transfer import transfer_jet
+from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import Method
 
 #: The orders shown by ``region`` and ``advise``: n = 3, 4, 5, 6.
@@ -67,8 +69,6 @@ def validate_orders(orders) -> tuple[int, ...]:
     bools, not fractions), else a StepsafeError."""
     from numbers import Integral
 
-    from stepsafe.exceptions import StepsafeError
-
     items = None if isinstance(orders, (str, bytes)) else \
         list(orders) if isinstance(orders, (list, tuple, range)) else None
     if not items or any(isinstance(n, bool) or not isinstance(n, Integral)
@@ -93,8 +93,6 @@ def rotations(method: Method, region: Region, pairs: list[tuple[int, int]]
     first = region.first_interval
     if region.model != "oscillator" or first is None:
         return ()
-    from stepsafe.core.accuracy import hamiltonian_only
-
     hamiltonian_only(method)  # a rotation angle theta is a symplectic map's
     z_end = region.zmax if first.hi is None else first.hi
     dz = default_resolution(method)

@@ -50,6 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from stepsafe.core.sets import distinct
+from stepsafe.core.transfer import blocks_of, stage_operator
 from stepsafe.methods.protocol import Stages
 from stepsafe.methods.tableaux import Method, PartitionedRK, step_end_stage
 
@@ -75,8 +76,6 @@ class SolverCost:
 
 def _implicit_blocks(method: Method) -> list[Stages]:
     """The blocks of a step that solve stage equations (one per implicit substep)."""
-    from stepsafe.core.transfer import blocks_of
-
     if method.explicit:
         return []
     return [b for b in blocks_of(method, None) if isinstance(b, Stages)
@@ -107,8 +106,6 @@ def fixed_point_cost(method: Method, z: float, model: str = "oscillator",
     for the worse of the two unit states (see the module docstring); explicit methods cost
     their nominal evaluations and never diverge. A composition's substeps are all counted
     at its largest substep (an upper bound)."""
-    from stepsafe.core.transfer import stage_operator
-
     found = _prk_of(method)
     if found is None:
         return SolverCost(z, 0, getattr(method, "evaluations", None), np.inf)
@@ -161,8 +158,6 @@ def fixed_point_limit(method: Method, model: str = "oscillator") -> float:
     """``1 / rho(K)`` (over the largest substep): the z beyond which fixed-point iteration
     of the stages diverges on a separable model (oscillator, inverted: the Gauss-Seidel
     sweep's spectral radius is ``rho(z K)^2``); inf for explicit methods."""
-    from stepsafe.core.transfer import stage_operator
-
     found = _prk_of(method)
     if found is None:
         return np.inf

@@ -27,9 +27,10 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from stepsafe.core.accuracy import z_for_tolerance
+from stepsafe.core.accuracy import errors, z_for_tolerance
 from stepsafe.core.advice import Advice, Modes, advise
 from stepsafe.core.models import ELLIPTIC
+from stepsafe.core.solver import factorizations, fixed_point_cost, newton_cost, step_limit
 from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import Method
 
@@ -38,8 +39,6 @@ def energy_exact(method: Method) -> bool:
     """Whether the method's energy error on the oscillator is 0 at every step (to rounding,
     checked at z = 0.1, 0.5, 1): symplectic Runge-Kutta methods such as Gauss conserve
     every quadratic invariant, the linear model's energy among them."""
-    from stepsafe.core.accuracy import errors
-
     with np.errstate(all="ignore"):
         energy = np.asarray(errors(method, np.array([0.1, 0.5, 1.0])).energy, dtype=float)
     return bool(np.all(np.isfinite(energy)) and np.all(np.abs(energy) <= 1e-13))
@@ -180,8 +179,6 @@ class _Solved(NamedTuple):
 def _fixed_point(method: Method, modes: Modes, h: float, bound: str) -> _Solved | None:
     """Fixed-point iteration at h, h capped at :data:`SOLVER_REACH` of its convergence
     limit (None: it does not converge there)."""
-    from stepsafe.core.solver import fixed_point_cost, step_limit
-
     top = max(float(b.max()) for b in modes.betas.values())
     models = [m for m in modes.betas if m in ("oscillator", "inverted")] or ["oscillator"]
     h_limit = step_limit(method, modes.betas)
@@ -198,8 +195,6 @@ def _fixed_point(method: Method, modes: Modes, h: float, bound: str) -> _Solved 
 def _newton(method: Method, h: float, bound: str, jacobian_cost: float) -> _Solved:
     """Simplified Newton's method at h: its force evaluations and ``jacobian_cost`` per
     Jacobian (evaluated and factorised once per distinct substep)."""
-    from stepsafe.core.solver import factorizations, newton_cost
-
     cost_n = newton_cost(method, h)
     jacobians = factorizations(method)
     evals = cost_n.evaluations

@@ -2,7 +2,7 @@
 
 The step engine (docs/theory.md#the-one-step-matrix; :func:`stepsafe.core.engine.step_jet`,
 the one routine that also builds the 2n x 2n map of :mod:`stepsafe.systems.coupled`) turns
-the blocks of a method's step (:func:`stepsafe.methods.protocol.linear_blocks`) into
+the blocks of a method's step (:func:`stepsafe.methods.tableaux.linear_blocks`) into
 ``M(z)``, each block's matrix at
 ``w z`` for its weight w, multiplied in order; a test model (:class:`TestModel`) gives the
 matrix of each block:
@@ -67,9 +67,8 @@ from stepsafe.methods.protocol import (
     MethodKind,
     Shears,
     Stages,
-    linear_blocks,
 )
-from stepsafe.methods.tableaux import Method, PartitionedRK, RungeKutta, Splitting
+from stepsafe.methods.tableaux import Method, PartitionedRK, RungeKutta, Splitting, linear_blocks
 
 
 def has_form(method: Method, model: str) -> bool:
@@ -86,7 +85,7 @@ _BLOCKS: dict[tuple[int, str], tuple[MethodKind, tuple[Block, ...]]] = {}
 
 
 def blocks_of(method: MethodKind, model: str | None) -> tuple[Block, ...]:
-    """:func:`~stepsafe.methods.protocol.linear_blocks` of ``method`` on ``model``, cached
+    """:func:`~stepsafe.methods.tableaux.linear_blocks` of ``method`` on ``model``, cached
     per method object (the region finder evaluates the same method many times)."""
     key = (id(method), str(model))
     hit = _BLOCKS.get(key)

@@ -44,7 +44,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
-from stepsafe.exceptions import StepsafeError, unknown_key
+from stepsafe.exceptions import MethodError, StepsafeError, unknown_key
 from stepsafe.files.expressions import (
     EPS,
     FLOAT,
@@ -55,6 +55,12 @@ from stepsafe.files.expressions import (
     mpmath_backend,
     parse,
 )
+from stepsafe.methods import tableaux as m
+from stepsafe.methods.families import RECIPES
+from stepsafe.methods.langevin import LETTERS, MAX_LETTERS, Langevin
+from stepsafe.methods.residuals import written_residuals
+from stepsafe.methods.tableaux import MAX_SUBSTEPS
+from stepsafe.text import ascii_whole
 
 KINDS = ("rk", "prk", "splitting", "composition", "impulse", "processed", "langevin")
 MAX_STAGES = 200
@@ -173,8 +179,6 @@ def _text(value: Any, where: str, key: str) -> str:
 
 
 def _int(value: Any, where: str, key: str, lo: int = 0, hi: int = 10_000) -> int:
-    from stepsafe.text import ascii_whole
-
     number = ascii_whole(value, max_digits=30)
     if number is None:
         shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:57] + "..."
@@ -389,8 +393,6 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
                     raise _fail(where, f"gradient[{i}]", "a displaced-force kick needs a "
                                                          "nonzero kick coefficient")
     if kind == "impulse":
-        from stepsafe.methods.tableaux import MAX_SUBSTEPS
-
         extras = {"outer": _base_ref(tree["outer"], where, "outer"),
                   "inner": _base_ref(tree["inner"], where, "inner"),
                   "substeps": _int(tree["substeps"], where, "substeps", 1, MAX_SUBSTEPS)}
@@ -420,8 +422,6 @@ def validate_tree(tree: Any, where: str, backend: Backend = FLOAT) -> MethodData
 def _langevin(tree: dict, where: str, scope: _Scope) -> dict[str, Any]:
     """``letters`` (A, B and O, each present, O in one run up to a rotation, checked when
     the method is built), ``friction`` (>= 0) and ``kT`` (> 0) of a Langevin splitting."""
-    from stepsafe.methods.langevin import LETTERS, MAX_LETTERS
-
     letters = _text(tree["letters"], where, "letters")
     if not letters or len(letters) > MAX_LETTERS or any(ch not in LETTERS for ch in letters):
         raise _fail(where, "letters", f"must be a word of at most {MAX_LETTERS} of the letters "
@@ -553,14 +553,10 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
     to a method object (compositions only)."""
     import numpy as np
 
-    from stepsafe.methods import tableaux as m
-
     co = {k: np.array(v, dtype=float) for k, v in data.coefficients.items()}
     common: dict[str, Any] = dict(name=data.name, order=data.order,
                                   evaluations=data.evaluations, title=data.title)
     if data.kind in WRITTEN and "written" in data.extras:
-        from stepsafe.methods.residuals import written_residuals
-
         tableaux = data.extras["written"]
         if data.kind == "rk":
             tableaux = {"A_q": tableaux["A"], "b_q": tableaux["b"], "A_p": tableaux["A"],
@@ -577,8 +573,6 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
                            **common)
     def resolved(ref: Any, key: str):
         """The referenced method, an error naming this file's key otherwise."""
-        from stepsafe.exceptions import StepsafeError
-
         try:
             return resolve_base(ref)
         except StepsafeError as exc:
@@ -597,8 +591,6 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
 
         processor = part("processor", "processor")
         if not isinstance(processor, m.Splitting) or processor.force_gradient:
-            from stepsafe.exceptions import StepsafeError
-
             what = ("has force-gradient terms" if isinstance(processor, m.Splitting)
                     else f"is a {processor.kind} method")
             raise StepsafeError(f"the processor must be a plain splitting (drift/kick) "
@@ -607,9 +599,6 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
         with _naming_the_key(data.where, ("kernel",)):
             return m.Processed(part("kernel", "kernel"), processor, **common)
     if data.kind == "langevin":
-        from stepsafe.exceptions import MethodError, StepsafeError
-        from stepsafe.methods.langevin import Langevin
-
         try:
             return Langevin(data.extras["letters"], data.extras["friction"],
                             data.extras["kT"], name=data.name, order=data.order,
@@ -623,8 +612,6 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
                              **common)
     base = resolved(data.base, "base")
     if data.recipe:
-        from stepsafe.methods.families import RECIPES
-
         built = RECIPES[data.recipe](base, name=data.name)
         return m.Composition(built.base, built.weights, base_order=built.base_order, **common)
     return m.Composition(base, co["weights"], base_order=getattr(base, "order", None), **common)
@@ -634,8 +621,6 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
 def _naming_the_key(where: str, keys: tuple[str, ...]) -> Iterator[None]:
     """A :class:`MethodError` about one of ``keys`` (``the outer method ...``, ``the kernel
     of ...``) re-raised naming ``file::$.key``."""
-    from stepsafe.exceptions import MethodError, StepsafeError
-
     try:
         yield
     except MethodError as exc:

@@ -51,6 +51,17 @@ MAX_LETTERS = 64
 #: What a letter does: ``drift`` (A), ``kick`` (B) or the friction step (O).
 LETTERS = {"A": "drift", "B": "kick", "O": "friction"}
 
+#: What a word samples on the harmonic oscillator, in closed form, as text (``show``), z =
+#: omega h, for every friction gamma > 0 and z < 2 (the closed forms themselves:
+#: :data:`stepsafe.core.langevin.CLOSED_FORMS`).
+CLOSED_FORM_TEXT: dict[str, str] = {
+    "BAOAB": "<q^2> m omega^2/kT = 1 (exact), <p^2>/(m kT) = 1 - z^2/4",
+    "ABOBA": "<q^2> m omega^2/kT = 1 (exact), <p^2>/(m kT) = 1/(1 - z^2/4)",
+    "OBABO": "<q^2> m omega^2/kT = 1/(1 - z^2/4), <p^2>/(m kT) = 1 (exact)",
+    "BAOA": "<q^2> m omega^2/kT = 1, <p^2>/(m kT) = 1 (both exact; the velocity half a "
+            "step behind the position), <q p> omega/kT = z/2",
+}
+
 
 @dataclass(frozen=True, eq=False)
 class Langevin(MethodKind):

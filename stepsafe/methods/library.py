@@ -19,7 +19,13 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from stepsafe.exceptions import MethodError, StepsafeError
+from stepsafe.files.expressions import FLOAT
+from stepsafe.files.yamlio import load_yaml
+from stepsafe.methods import families
+from stepsafe.methods.families import gauss, is_symmetric, lobatto3ab
+from stepsafe.methods.fileformat import build_method, validate_tree
 from stepsafe.methods.protocol import HIGH_PRECISION_DIGITS
+from stepsafe.methods.tableaux import Composition
 
 FAMILIES = {
     "gauss": ("Gauss–Legendre collocation (order 2s)", 1),
@@ -53,8 +59,6 @@ def builtin_dir() -> Path:
 @lru_cache(maxsize=1)
 def _alias_index() -> dict[str, Path]:
     """Every name and alias of every built-in file (parses them all; used only on a miss)."""
-    from stepsafe.files.yamlio import load_yaml
-
     index: dict[str, Path] = {}
     for path in sorted(builtin_dir().glob("*.yaml")):
         tree = load_yaml(path)
@@ -83,8 +87,6 @@ def builtin_names(single_force: bool = False) -> list[str]:
 @lru_cache(maxsize=1)
 def _file_kinds() -> dict[str, str]:
     """The ``kind:`` of every built-in file, by name."""
-    from stepsafe.files.yamlio import load_yaml
-
     kinds = {}
     for path in builtin_dir().glob("*.yaml"):
         tree = load_yaml(path)
@@ -98,10 +100,6 @@ def _looks_like_path(name: str) -> bool:
 
 def load_file(path: str | Path, backend=None):
     """Validated :class:`~stepsafe.methods.fileformat.MethodData` of a method file."""
-    from stepsafe.files.expressions import FLOAT
-    from stepsafe.files.yamlio import load_yaml
-    from stepsafe.methods.fileformat import validate_tree
-
     return validate_tree(load_yaml(path), str(path), backend or FLOAT)
 
 
@@ -155,8 +153,6 @@ def high_precision_tableaux(prk: Any) -> tuple[list, list, list, list]:
 
     ex = prk.exact
     if isinstance(ex, partial):
-        from stepsafe.methods import families
-
         if ex.func is families._exact:
             A_q, b_q, A_p, b_p = families.high_precision_tableaux(*ex.args)
             return rows(A_q), list(b_q), rows(A_p), list(b_p)
@@ -187,8 +183,6 @@ def _find_file(name: str) -> Path:
 
 
 def _family(name: str, stages: int | None):
-    from stepsafe.methods.families import gauss, lobatto3ab
-
     title, smallest = FAMILIES[name]
     if stages is None:
         raise StepsafeError(f"{name} is a family: give the stage count with -s N (N >= {smallest})")
@@ -207,8 +201,6 @@ def _family(name: str, stages: int | None):
 def _build(data, depth: int, folder: Path):
     """Float method of a validated file; a base given as a relative path is found next to
     the file that names it."""
-    from stepsafe.methods.fileformat import build_method
-
     def local(name: str) -> str:
         return str(folder / name) if _looks_like_path(name) and not Path(name).is_absolute() \
             else name
@@ -225,9 +217,6 @@ def _build(data, depth: int, folder: Path):
 
 
 def _swap_base(method, entry: Entry, base: str, depth: int):
-
-    from stepsafe.methods.families import is_symmetric
-    from stepsafe.methods.tableaux import Composition
 
     if not isinstance(method, Composition):
         raise StepsafeError(f"--base applies to compositions; {entry.name} is a "

@@ -22,10 +22,10 @@ run at ``weight * h``::
 A composition ``Phi(g_k h) o ... o Phi(g_1 h)`` is its base's blocks once per weight, the
 weights multiplied. The linear analyses (:mod:`stepsafe.core.transfer` on the 2x2 test
 models, :mod:`stepsafe.systems.coupled` on 2n x 2n systems) read one description of these
-blocks, :func:`linear_blocks`: consecutive Shears merged into one splitting where every
-block is one, otherwise the blocks with their weights. The poles of the step (where a stage
-system is singular) are those of its blocks: a Stages block's stage operator, a Shears
-block's symplectic Euler factors on the diagonal (saddle) models.
+blocks, :func:`~stepsafe.methods.tableaux.linear_blocks`: consecutive Shears merged into one
+splitting where every block is one, otherwise the blocks with their weights. The poles of
+the step (where a stage system is singular) are those of its blocks: a Stages block's stage
+operator, a Shears block's symplectic Euler factors on the diagonal (saddle) models.
 
 Nothing here computes a transfer matrix: the methods are data, the numerics live in
 :mod:`stepsafe.core`.
@@ -86,24 +86,6 @@ class Friction:
 Block = Shears | Stages | Friction
 
 
-def linear_blocks(method: MethodKind, model: str | None = None) -> tuple[Block, ...]:
-    """The one description the linear step maps are built from: the blocks of
-    ``method.decomposition(model)``, a step made of splittings only as one merged splitting
-    (the operations of each scaled by its weight, ``w^3`` for a force-gradient term,
-    adjacent ones merged: :meth:`~stepsafe.methods.tableaux.Composition.as_splitting`), any
-    other step as it is."""
-    from stepsafe.methods.tableaux import splitting_from_operations
-
-    blocks = method.decomposition(model)
-    if len(blocks) == 1 and blocks[0].weight == 1.0 or \
-            not all(isinstance(b, Shears) for b in blocks):
-        return blocks
-    shears = [b for b in blocks if isinstance(b, Shears)]
-    ops = [(kind, (b.weight ** 3 if kind == "gradient" else b.weight) * coef)
-           for b in shears for kind, coef in b.splitting.operations]
-    return (Shears(splitting_from_operations(
-        ops, name=method.name, order=method.order, evaluations=method.evaluations,
-        title=method.title, exact=method.exact, displaced=shears[0].splitting.displaced)),)
 
 
 class MethodKind(ABC):

@@ -721,6 +721,24 @@ def splitting_from_operations(ops: list[tuple[str, float]], **fields: Any) -> Sp
                      **fields)
 
 
+def linear_blocks(method: MethodKind, model: str | None = None) -> tuple[Block, ...]:
+    """The one description the linear step maps are built from: the blocks of
+    ``method.decomposition(model)``, a step made of splittings only as one merged splitting
+    (the operations of each scaled by its weight, ``w^3`` for a force-gradient term,
+    adjacent ones merged: :meth:`~stepsafe.methods.tableaux.Composition.as_splitting`), any
+    other step as it is."""
+    blocks = method.decomposition(model)
+    if len(blocks) == 1 and blocks[0].weight == 1.0 or \
+            not all(isinstance(b, Shears) for b in blocks):
+        return blocks
+    shears = [b for b in blocks if isinstance(b, Shears)]
+    ops = [(kind, (b.weight ** 3 if kind == "gradient" else b.weight) * coef)
+           for b in shears for kind, coef in b.splitting.operations]
+    return (Shears(splitting_from_operations(
+        ops, name=method.name, order=method.order, evaluations=method.evaluations,
+        title=method.title, exact=method.exact, displaced=shears[0].splitting.displaced)),)
+
+
 #: Default cost of one force-gradient term (a Hessian-vector product ``V''(q) v``) in force
 #: evaluations. Reverse-mode automatic differentiation gives ``V''(q) v`` as the gradient
 #: of ``V'(q) . v`` at a small constant multiple of the cost of ``V'`` (Griewank &

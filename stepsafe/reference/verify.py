@@ -29,6 +29,9 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from stepsafe.core.regions import Point, Region
+from stepsafe.exceptions import StepsafeError
+from stepsafe.files.expressions import mpmath_backend
+from stepsafe.methods.library import FAMILIES, _find_file, _looks_like_path, load_file
 
 DPS = 40
 TOLERANCE = 1e-10
@@ -70,8 +73,6 @@ def mp_method(name: str, stages: int | None = None, base: str | None = None,
     :func:`stepsafe.methods.library.resolve`)."""
     import mpmath as mp
 
-    from stepsafe.files.expressions import mpmath_backend
-    from stepsafe.methods.library import FAMILIES, _find_file, _looks_like_path, load_file
     from stepsafe.reference import highprec as reference
 
     with mp.workdps(dps):
@@ -452,8 +453,6 @@ def verify_regions(name: str, stages: int | None, base: str | None,
     try:
         return _verify_regions(name, stages, base, regions, dps, up_to)
     except ValueError as exc:  # the reference has no form for the method (on a model)
-        from stepsafe.exceptions import StepsafeError
-
         raise StepsafeError(f"{name}: --verify cannot recompute this method with mpmath: "
                             f"{exc}") from exc
 

@@ -8,6 +8,7 @@ import copy
 from typing import Any
 
 from stepsafe.core.advice import advise, check_step, validate_margin
+from stepsafe.core.records import advice_data, check_data, limited_by_resonance
 from stepsafe.core.threads import blas_threads_for
 from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.methods.tableaux import Method
@@ -65,8 +66,6 @@ def system_advice(method: Method, report: SystemReport, margin: float = 1.0,
     """JSON-ready advice for a system (see advice_data for the common fields); with
     ``resonance_order`` N its vibrations also keep below their first nonlinear resonance
     of order at most N (decoupled modes only)."""
-    from stepsafe.core.records import advice_data, limited_by_resonance
-
     margin = validate_margin(margin)
     _coupled_criterion(report, criterion)
     _coupled_resonances(report, resonance_order)
@@ -132,8 +131,6 @@ def system_check(method: Method, report: SystemReport, h: float, margin: float =
     ``resonance_order``: see :func:`system_advice`. With ``require_complete_search`` a
     Hamiltonian whose equilibrium search cannot vouch for completeness fails the check
     (``safe`` False, ``search_failure`` says why), whatever its modes."""
-    from stepsafe.core.records import check_data
-
     margin = validate_margin(margin)
     h = positive_finite(h, "h")  # (the coupled analysis calls h <= 0 kept: no step at all)
     _coupled_criterion(report, criterion)

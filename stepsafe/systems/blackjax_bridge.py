@@ -40,6 +40,7 @@ from stepsafe.core.hmc_target.potential import CallablePotential, Target, mass_m
 from stepsafe.core.hmc_target.trajectories import scheme
 from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.families import is_symmetric
+from stepsafe.methods.library import resolve
 from stepsafe.methods.tableaux import Composition, Method, Processed, Splitting
 
 #: The optional extra that installs jax and blackjax.
@@ -63,8 +64,6 @@ def _require() -> tuple[Any, Any]:
 def _tableau(method: Any) -> Method:
     """A method object from a name, an integrator (with ``tableau``) or a tableau."""
     if isinstance(method, str):
-        from stepsafe.methods.library import resolve
-
         name, _, stages = method.strip().partition(":")
         return resolve(name, int(stages) if stages.isdigit() else None)[0]
     return getattr(method, "tableau", method)

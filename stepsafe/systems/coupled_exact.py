@@ -18,6 +18,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from stepsafe.core.transfer import blocks_of
 from stepsafe.methods.protocol import Shears
 from stepsafe.methods.tableaux import Method
 
@@ -39,8 +40,6 @@ MAX_BISECTIONS = 200
 def euler_factors(method: Method | None) -> list[tuple[str, float]] | None:
     """The method's symplectic Euler factors ``("DK" | "KD", weight)`` (a splitting or a
     composition of splittings without force gradients), or None."""
-    from stepsafe.core.transfer import blocks_of
-
     if method is None:
         return None
     blocks = blocks_of(method, None)

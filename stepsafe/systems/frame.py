@@ -36,6 +36,8 @@ from functools import cached_property
 
 import numpy as np
 
+from stepsafe.systems.smallest import extreme_eigenvalue
+
 EPS = float(np.finfo(float).eps)
 #: The frame is refused when its error estimate exceeds this fraction of |S~|_F (the
 #: estimate is a worst case growing with n: 7.6e-11 at n = 400, 2.9e-10 at n = 800 for a
@@ -395,8 +397,6 @@ class Solver:
 def norm_2(X: np.ndarray) -> float:
     """A bound on ``||X||_2``: the square root of the largest eigenvalue of ``X^T X``,
     widened by that eigenvalue's rounding (``4 n eps ||X^T X||_F``)."""
-    from stepsafe.systems.smallest import extreme_eigenvalue
-
     if not X.size or not np.any(X):
         return 0.0
     gram = X.T @ X

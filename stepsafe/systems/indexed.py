@@ -26,6 +26,7 @@ import re
 from typing import Any
 
 from stepsafe.exceptions import StepsafeError
+from stepsafe.systems.manydof import FUNCTIONS
 
 #: Length of the text before expansion, and nodes after it, at most.
 MAX_TEXT = 20_000
@@ -200,8 +201,6 @@ def read_indexed(tree: dict[str, Any], where: str, number) -> tuple[Any, list, l
                 raise _Fail(f"fixed.{label}", "is one of the variables; fixed entries lie "
                                               "outside the range")
             fixed[f"{match.group(1)}[{k}]"] = number(value, f"fixed.{label}")
-        from stepsafe.systems.manydof import FUNCTIONS
-
         expanded = expand(tree["hamiltonian"], arrays, sizes, fixed, FUNCTIONS)
     except _Fail as exc:
         raise fail(exc.key, str(exc)) from None

@@ -26,8 +26,30 @@ import numpy as np
 
 from stepsafe.core.advice import Modes
 from stepsafe.exceptions import StepsafeError, unknown_key
+from stepsafe.exceptions import StepsafeError as _E
+from stepsafe.files.expressions import ExpressionError
 from stepsafe.methods.tableaux import Method
+from stepsafe.systems.coupled import coupled_safe_steps
+from stepsafe.systems.coupled_exact import EXACT_SIZE
+from stepsafe.systems.dynamics import separable_terms
+from stepsafe.systems.indexed import read_indexed
+from stepsafe.systems.linear import (
+    EPS,
+    LinearMode,
+    check_square,
+    gaussian_modes,
+    hessian_modes,
+    is_diagonal,
+    separable_modes,
+    sparse_extreme_modes,
+)
+from stepsafe.systems.manydof import MAX_DOF, MAX_STARTS, ManyDofHamiltonian, find_many, parse_many
+from stepsafe.systems.matrixfile import read_matrix
+from stepsafe.systems.md import system as md
+from stepsafe.systems.nonlinear import GRID, find_equilibria, parse_hamiltonian
+from stepsafe.systems.scene import number, parse_real
 from stepsafe.systems.walks import RESOLUTION, Walks
+from stepsafe.units import ENERGY_UNITS, LENGTH_UNITS, MASS_UNITS, TIME_UNITS, stiffness_scale
 
 DENSE_LIMIT = 2000
 #: Relative uncertainty of an equilibrium's beta: its Hessian is exact to ~30 digits (see
@@ -67,9 +89,6 @@ def _fail(where: str, path: str, message: str) -> StepsafeError:
 
 
 def _matrix(value: Any, where: str, key: str, folder: Path, sparse_ok: bool = False):
-    from stepsafe.systems.matrixfile import read_matrix
-    from stepsafe.systems.scene import parse_real
-
     if isinstance(value, str):
         try:
             return read_matrix(folder / value, value, sparse_ok)
@@ -118,8 +137,6 @@ def _array(value: Any, where: str, key: str, sparse_ok: bool):
 
 
 def _float(value: Any, where: str, key: str) -> float:
-    from stepsafe.systems.scene import number
-
     return number(value, where, f"system.{key}")
 
 
@@ -130,8 +147,6 @@ def analyse_system(tree: Any, where: str, folder: Path, method: Method,
     """Read a ``system:`` mapping and decide the analysis for ``method`` (``progress`` and
     ``deadline``: see :func:`stepsafe.systems.coupled.coupled_safe_steps`; ``time_unit``:
     the scene's, which a stiffness given with ``units:`` is converted to)."""
-    from stepsafe.exceptions import StepsafeError as _E
-
     if not isinstance(tree, dict):
         raise _fail(where, "", "must be a mapping (stiffness/mass, hessian or hamiltonian)")
     if "openmm" in tree:
@@ -199,10 +214,6 @@ def _md_system(tree: dict, where: str, folder: Path, time_unit: str | None,
     vibrations only (a Langevin splitting) takes the undecided modes as vibrations (their
     barrier half is the rigid-body motion rounding leaves near 0) and refuses a
     configuration with a barrier beyond rounding (not a minimum)."""
-    from stepsafe.systems.linear import EPS, LinearMode
-    from stepsafe.systems.md import system as md
-    from stepsafe.units import TIME_UNITS
-
     def fail(key: str, message: str) -> StepsafeError:
         return _fail(where, key, message)
 
@@ -367,8 +378,6 @@ def _covariance(tree, where, folder) -> SystemReport:
     """A Gaussian target for HMC given by its covariance (and a mass matrix, the
     preconditioner): the frequencies are ``1/sqrt(mu)`` for the eigenvalues ``mu`` of
     ``L^T Sigma L`` (``M = L L^T``), i.e. those of the precision ``Sigma^-1`` against M."""
-    from stepsafe.systems.linear import gaussian_modes
-
     C = _matrix(tree["covariance"], where, "covariance", folder, sparse_ok=True)
     if hasattr(C, "toarray"):
         if C.shape[0] > DENSE_LIMIT:
@@ -388,8 +397,6 @@ def units_scale(tree: dict, where: str, time_unit: str | None) -> float | None:
     """The factor a stiffness given with ``units: {energy:, length:, mass:}`` is multiplied
     by so that its frequencies (against the mass) are in rad per ``time_unit``
     (:func:`stepsafe.units.stiffness_scale`); None without ``units:``."""
-    from stepsafe.units import ENERGY_UNITS, LENGTH_UNITS, MASS_UNITS, stiffness_scale
-
     if "units" not in tree:
         return None
     units = tree["units"]
@@ -409,8 +416,6 @@ def units_scale(tree: dict, where: str, time_unit: str | None) -> float | None:
 
 def _stiffness(tree, where, folder, key: str = "stiffness", all_modes: bool = False,
                time_unit: str | None = None) -> SystemReport:
-    from stepsafe.systems.linear import is_diagonal, separable_modes, sparse_extreme_modes
-
     K = _matrix(tree[key], where, key, folder, sparse_ok=True)
     scale = units_scale(tree, where, time_unit)
     if scale is not None:
@@ -449,9 +454,6 @@ def _stiffness(tree, where, folder, key: str = "stiffness", all_modes: bool = Fa
 
 def _hessian(tree, where, folder, method, zmax, progress=None, deadline=None
              ) -> SystemReport:
-    from stepsafe.systems.coupled import coupled_safe_steps
-    from stepsafe.systems.linear import check_square, hessian_modes
-
     S = check_square(_matrix(tree["hessian"], where, "hessian", folder), "hessian")
     if S.shape[0] > 2 * DENSE_LIMIT:
         raise StepsafeError(f"a {S.shape[0]} x {S.shape[0]} Hessian is too large")
@@ -471,10 +473,6 @@ def _hessian(tree, where, folder, method, zmax, progress=None, deadline=None
 
 
 def _hamiltonian(tree, where, method, zmax, deadline=None) -> SystemReport:
-    from stepsafe.files.expressions import ExpressionError
-    from stepsafe.systems.dynamics import separable_terms
-    from stepsafe.systems.nonlinear import GRID, find_equilibria, parse_hamiltonian
-
     if "q" in tree or "p" in tree:
         return _hamiltonian_many(tree, where, method, zmax, deadline)
     for key in ("energy_below", "sizes", "fixed"):
@@ -570,16 +568,11 @@ def search_record(search: Any) -> dict[str, Any]:
 
 def read_many(tree, where):
     """The n-dof Hamiltonian of a ``system:`` with ``q:`` and ``p:`` lists and its box."""
-    from stepsafe.systems.manydof import parse_many
-
     params_tree = tree.get("parameters", {})
     if not isinstance(params_tree, dict):
         raise _fail(where, "parameters", "must be a mapping of names to numbers")
     params = {k: _float(v, where, f"parameters.{k}") for k, v in params_tree.items()}
     if isinstance(tree.get("q"), str) or isinstance(tree.get("p"), str):
-        from stepsafe.systems.indexed import read_indexed
-        from stepsafe.systems.manydof import MAX_DOF, ManyDofHamiltonian
-
         expanded, qs, ps, box = read_indexed(tree, where,
                                              lambda v, key: _float(v, where, key))
         if len(qs) != len(ps):
@@ -624,8 +617,6 @@ def read_many(tree, where):
 def _hamiltonian_many(tree, where, method, zmax, deadline=None) -> SystemReport:
     """Equilibria of an n-dof Hamiltonian, each linearised exactly and analysed: decoupled
     where its Hessian separates for this method, the coupled analysis otherwise."""
-    from stepsafe.systems.manydof import find_many
-
     H, lo, hi = read_many(tree, where)
     _force_gradient_needs_separable(method, H.separable, where)
     starts = _starts(tree, where) if "starts" in tree else None
@@ -683,8 +674,6 @@ def _hamiltonian_many(tree, where, method, zmax, deadline=None) -> SystemReport:
 def _starts(tree: dict, where: str) -> int:
     """``starts:``, the number of Newton starts: a whole number up to
     :data:`stepsafe.systems.manydof.MAX_STARTS`."""
-    from stepsafe.systems.manydof import MAX_STARTS
-
     starts = _float(tree["starts"], where, "starts")
     if starts != int(starts) or not 1 <= starts <= MAX_STARTS:
         raise _fail(where, "starts", f"must be a whole number from 1 to {MAX_STARTS}")
@@ -705,9 +694,6 @@ def _analyse_hessian(S, method, zmax, item, grouped, errors, coupled) -> bool:
     """An equilibrium's exact linearisation ``S``: its decoupled modes added to
     ``grouped``/``errors`` (the item's ``model`` lists their models, ``analysis`` how), or
     the coupled analysis appended to ``coupled`` (the item's ``h_limit``); True if coupled."""
-    from stepsafe.systems.coupled import coupled_safe_steps
-    from stepsafe.systems.linear import hessian_modes
-
     d = hessian_modes(S, method)
     if d is None:
         result = coupled_safe_steps(method, S, zmax)
@@ -733,8 +719,6 @@ def _with_undecided(item: dict[str, Any], result) -> dict[str, Any]:
 
 def _undecided_notes(coupled: list[Any]) -> list[str]:
     """One note per coupled analysis whose boundary float64 could not place."""
-    from stepsafe.systems.coupled_exact import EXACT_SIZE
-
     notes = []
     for result, S in coupled:
         if result.undecided_to is None:

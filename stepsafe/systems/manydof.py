@@ -52,7 +52,9 @@ import numpy as np
 from stepsafe.exceptions import StepsafeError
 from stepsafe.files.expressions import ExpressionError, parse
 from stepsafe.systems.compiler import Compiled, NotReal, from_tree, trace
+from stepsafe.systems.dynamics import compiled_system
 from stepsafe.systems.intervals import Certified, certified_equilibria, certified_gaps
+from stepsafe.systems.linear import hamiltonian_matrix, normalised
 from stepsafe.systems.walks import Walks, descend, explore
 
 FUNCTIONS = ("sin", "cos", "exp", "log", "sqrt", "cosh", "sinh", "tanh")
@@ -550,8 +552,6 @@ def _classify(H: ManyDofHamiltonian, x: np.ndarray) -> ManyDofEquilibrium:
     """The type from the eigenvalues of J S; an eigenvalue within the rounding of the
     eigensolver (a few 1e3 (2n) eps |mu|_max, as stepsafe.systems.linear counts it) of a
     zero real or imaginary part has that part zero, one within it of 0 is a zero mode."""
-    from stepsafe.systems.linear import hamiltonian_matrix, normalised
-
     jet = H.jet(x)
     S = 0.5 * (jet.h + jet.h.T)
     # in the units where S is of order 1 (exact powers of two; the rates scale back)
@@ -587,6 +587,4 @@ def _classify(H: ManyDofHamiltonian, x: np.ndarray) -> ManyDofEquilibrium:
 def system_of(H: ManyDofHamiltonian):
     """The equations of motion for :mod:`stepsafe.core.integrator` (the compiled
     gradient; see :func:`stepsafe.systems.dynamics.compiled_system`)."""
-    from stepsafe.systems.dynamics import compiled_system
-
     return compiled_system(H.compiled, len(H.q), H.separable, H._key)

@@ -49,7 +49,21 @@ from typing import Any
 
 import numpy as np
 
+from stepsafe.core.integrator import Engine, SolverFailure
 from stepsafe.exceptions import StepsafeError, finite_real
+from stepsafe.systems.dynamics import (
+    check_finite_start,
+    exact_linear,
+    hamiltonian_system,
+    linear_system,
+    stiffness_hessian,
+)
+from stepsafe.systems.linear import check_square
+from stepsafe.systems.loader import _matrix, analyse_system, read_many, units_scale
+from stepsafe.systems.manydof import centres as elliptic_centres
+from stepsafe.systems.manydof import parse_many, system_of
+from stepsafe.systems.nonlinear import parse_hamiltonian
+from stepsafe.systems.scene import load_scene
 
 #: States buffered between two vectorised energy evaluations at most (the energy is
 #: evaluated at every step, in chunks of this many steps, and not stored)...
@@ -113,8 +127,6 @@ def run_steps(tableau: Any, problem: MeasuredSystem, h: float, n: int, exact: np
     the energy reduced at every step (:class:`EnergyTrace`), the final state compared with
     ``exact``; ``tick(k)`` is called every 1024 steps and at the end. Status ``ok``,
     ``unstable``, ``solver failed`` or ``budget`` (the ``deadline`` passed)."""
-    from stepsafe.core.integrator import Engine, SolverFailure
-
     began = _time.perf_counter()
     engine = Engine(tableau, problem.system, solver=solver)
     system = problem.system
@@ -343,8 +355,6 @@ def measured_system(tableau: Any, scene: Any, system: Mapping[str, Any] | None,
     """The system to measure on (a scene's ``system:``, or ``system`` itself), its start
     (``initial``, or near its elliptic equilibrium with ``energy``) and its reference
     solution; ``tableau`` is the method whose analysis finds the equilibria."""
-    from stepsafe.systems.scene import load_scene
-
     if energy is not None:
         energy = finite_real(energy, "energy")
     if system is not None:
@@ -372,10 +382,6 @@ def measured_system(tableau: Any, scene: Any, system: Mapping[str, Any] | None,
 
 
 def _expression_problem(tableau, tree, where, folder, initial, energy) -> MeasuredSystem:
-    from stepsafe.systems.dynamics import check_finite_start, hamiltonian_system
-    from stepsafe.systems.loader import analyse_system
-    from stepsafe.systems.nonlinear import parse_hamiltonian
-
     try:
         items = analyse_system(tree, where, folder, tableau).items
     except StepsafeError:
@@ -433,11 +439,6 @@ def _many_problem(tree, where, initial, energy) -> MeasuredSystem:
     """An n-dof Hamiltonian expression: the start given, or the lowest elliptic equilibrium
     with its first coordinate moved by a tenth of the box; the prediction for its fastest
     frequency."""
-    from stepsafe.systems.dynamics import check_finite_start
-    from stepsafe.systems.loader import read_many
-    from stepsafe.systems.manydof import centres as elliptic_centres
-    from stepsafe.systems.manydof import parse_many, system_of
-
     if energy is not None:
         raise StepsafeError("--energy applies to 1-dof Hamiltonians; give --initial for "
                             "named coordinates")
@@ -656,10 +657,6 @@ def _momentum_for(system, q: float, p: float, energy: float) -> float:
 
 def _linear_problem(tree, where, folder, initial, time_unit: str | None = None
                     ) -> MeasuredSystem:
-    from stepsafe.systems.dynamics import exact_linear, linear_system, stiffness_hessian
-    from stepsafe.systems.linear import check_square
-    from stepsafe.systems.loader import _matrix, units_scale
-
     keys = set(tree)
     if "hessian" in keys:
         S = check_square(_matrix(tree["hessian"], where, "hessian", folder), "hessian")

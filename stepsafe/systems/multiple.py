@@ -21,7 +21,12 @@ from typing import Any
 
 import numpy as np
 
+from stepsafe.core.regions import find_region
+from stepsafe.core.threads import blas_threads_for
 from stepsafe.exceptions import StepsafeError, unknown_key
+from stepsafe.systems.coupled import CoupledSystem, coupled_safe_steps
+from stepsafe.systems.linear import _cond, check_square, is_positive_definite
+from stepsafe.systems.loader import _matrix
 
 EPS = float(np.finfo(float).eps)
 
@@ -62,9 +67,6 @@ class SplitStiffness:
 def read_split(tree: Any, where: str, folder: Path) -> SplitStiffness:
     """Read ``system: {stiffness_fast:, stiffness_slow:, mass:}`` and decouple it when the
     mass-weighted parts commute (rows in ascending total frequency)."""
-    from stepsafe.systems.linear import check_square, is_positive_definite
-    from stepsafe.systems.loader import _matrix
-
     def fail(key: str, message: str) -> StepsafeError:
         return StepsafeError(message, f"{where}::$.system.{key}" if key else where)
 
@@ -121,8 +123,6 @@ def read_split(tree: Any, where: str, folder: Path) -> SplitStiffness:
                                      "no force and nothing limits its step; remove it")
     pairs = _common_modes(A_f, A_s, unit)
     errors = None
-    from stepsafe.systems.linear import _cond
-
     # the fastest frequency (which sets h_max) to a relative 16 n eps cond(M) / 2
     coupled_error = 16 * n * EPS * _cond(M) / 2
     if coupled_error > MAX_RELATIVE_ERROR:
@@ -226,9 +226,6 @@ def coupled_impulse(method: Any, split: SplitStiffness, zmax: float | None = Non
     positive definite, so ``Q(h) = M^T J - J M > 0`` decides. ``zmax`` in
     ``z = H sqrt(lambda_max(A_f + A_s))`` (default: just past the inner method's own
     limit for the fastest fast frequency)."""
-    from stepsafe.core.regions import find_region
-    from stepsafe.systems.coupled import coupled_safe_steps
-
     if zmax is None:
         top = float(np.sqrt(np.linalg.eigvalsh(split.A_f + split.A_s)[-1]))
         fast = float(np.sqrt(max(np.linalg.eigvalsh(split.A_f)[-1], 0.0)))
@@ -245,9 +242,6 @@ def coupled_impulse(method: Any, split: SplitStiffness, zmax: float | None = Non
 
 def coupled_impulse_preserved(method: Any, split: SplitStiffness, h: float) -> bool:
     """Whether one outer step H = h keeps the structure of the coupled system."""
-    from stepsafe.core.threads import blas_threads_for
-    from stepsafe.systems.coupled import CoupledSystem
-
     S = _coupled_matrix(split)
     with blas_threads_for(S.shape[0]):
         system = CoupledSystem(None, S, lambda unit: ImpulseSteps(method, split.A_f,

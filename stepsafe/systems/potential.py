@@ -34,6 +34,10 @@ from stepsafe.core.hmc_target.draws import Draws, given_draws
 from stepsafe.core.hmc_target.potential import Target, mass_matrix
 from stepsafe.exceptions import StepsafeError, unknown_key
 from stepsafe.files.expressions import ExpressionError, parse
+from stepsafe.files.yamlio import read_bytes
+from stepsafe.systems.compiler import Compiled, from_tree
+from stepsafe.systems.manydof import FUNCTIONS
+from stepsafe.systems.scene import number, parse_real
 
 #: The keys of a ``system:`` that gives a potential.
 POTENTIAL_KEYS = ("potential", "q", "parameters", "mass", "start")
@@ -104,10 +108,6 @@ def potential_target(tree: Any, where: str = "") -> PotentialTarget:
     -------
     PotentialTarget
     """
-    from stepsafe.systems.compiler import Compiled, from_tree
-    from stepsafe.systems.manydof import FUNCTIONS
-    from stepsafe.systems.scene import number
-
     if not is_potential(tree):
         raise _fail(where, "", "must be a mapping with potential:")
     for key in tree:
@@ -180,8 +180,6 @@ def _key(where: str, key: str) -> str:
 def _numbers(value: Any, where: str, key: str) -> Any:
     """A number, a list of numbers or a list of lists of numbers from YAML (texts read as
     plain decimals) or the API, as nested lists of floats; None stays None."""
-    from stepsafe.systems.scene import parse_real
-
     if value is None:
         return None
     if isinstance(value, np.ndarray):
@@ -220,8 +218,6 @@ def read_draws(path: str | Path, names: tuple[str, ...]) -> Draws:
     Draws
         Marked ``given``; errors name the file.
     """
-    from stepsafe.files.yamlio import read_bytes
-
     where = str(path)
     d = len(names)
     data = read_bytes(path, MAX_DRAWS_BYTES)
@@ -293,6 +289,4 @@ def read_draws(path: str | Path, names: tuple[str, ...]) -> Draws:
 
 
 def _float_or_none(cell: str) -> float | None:
-    from stepsafe.systems.scene import parse_real
-
     return parse_real(cell)

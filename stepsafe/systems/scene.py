@@ -46,11 +46,15 @@ import numpy as np
 from stepsafe.core.models import MODELS
 from stepsafe.exceptions import StepsafeError, unknown_key
 from stepsafe.files.yamlio import QuotedText, load_yaml, read_bytes
+from stepsafe.files.yamlio import load_yaml as _load
+from stepsafe.methods.library import _looks_like_path
 from stepsafe.units import (
     ENERGY_UNITS,
     FORMS,
     SIGMA_RULE,
     TIME_UNITS,
+    angular_frequencies,
+    any_frequency,
     duration,
     implied_time_unit,
     parse_quantity,
@@ -308,8 +312,6 @@ def _near_scene(name: str, folder: Path) -> str:
     composition's ``base`` is next to its method file), never relative to the working
     directory, so a scene means the same from wherever it is checked. Names of built-in
     methods are left alone."""
-    from stepsafe.methods.library import _looks_like_path
-
     if not _looks_like_path(name) or Path(name).is_absolute():
         return name
     return str(folder / name)
@@ -412,8 +414,6 @@ def scene_time_unit(path: Any) -> str | None:
     """The time unit a scene file's values are in: its ``time_unit:``, else the unit its
     ``h:`` and periods name; None where it names none (or cannot be read: loading it
     reports that)."""
-    from stepsafe.files.yamlio import load_yaml as _load
-
     if not isinstance(path, (str, Path)):
         return None
     try:
@@ -442,8 +442,6 @@ def time_unit_in_force(time_unit: str | None, scene: Any, *values: Any) -> str |
 def _pairs_list(items: list, where: str, time_unit: str | None
                 ) -> tuple[np.ndarray, tuple[str | None, ...]]:
     """The (fast, slow) angular frequencies of an impulse scene's modes, and their labels."""
-    from stepsafe.units import any_frequency
-
     keys = ("fast", "slow", "label")
     pairs, labels = [], []
     for i, item in enumerate(items):
@@ -576,8 +574,6 @@ def _converted(values: np.ndarray, form: str, time_unit: str | None, rows: _CsvP
     """beta (rad per time unit) of a column of sigma (1/sigma), wavenumber (cm-1),
     frequency (cycles per time unit) or period (time units), as the same entry of a
     ``modes:`` list gives; an error names the line of the first value that has none."""
-    from stepsafe.units import angular_frequencies
-
     try:
         betas = angular_frequencies(form, values, time_unit)
     except StepsafeError as exc:

@@ -18,6 +18,10 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from stepsafe.exceptions import StepsafeError
+from stepsafe.systems.dynamics import hamiltonian_system
+from stepsafe.systems.loader import read_many
+from stepsafe.systems.manydof import system_of
+from stepsafe.systems.nonlinear import parse_hamiltonian
 from stepsafe.systems.thermal.potential import Potential, of_system
 
 #: Minima analysed at most (each is sampled and scanned on its own).
@@ -48,11 +52,6 @@ def minima(tree: Mapping[str, Any], items: list[dict[str, Any]], where: str) -> 
     """Every minimum of a Hamiltonian ``system:`` among the equilibria ``items`` its
     analysis found (elliptic, at p = 0), as a :class:`Minimum`; a system the analysis at
     temperature cannot use is refused naming ``$.system.hamiltonian``."""
-    from stepsafe.systems.dynamics import hamiltonian_system
-    from stepsafe.systems.loader import read_many
-    from stepsafe.systems.manydof import system_of
-    from stepsafe.systems.nonlinear import parse_hamiltonian
-
     key = f"{where}::$.system.hamiltonian"
     many = "q" in tree or "p" in tree
     if many:

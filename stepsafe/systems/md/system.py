@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 
 from stepsafe.exceptions import StepsafeError, unknown_key
+from stepsafe.systems.md import openmm_engine as oe
 from stepsafe.systems.md.constraints import (
     KINDS,
     ConstrainedSpace,
@@ -60,6 +61,7 @@ from stepsafe.systems.md.constraints import (
     rigid_body_basis,
 )
 from stepsafe.systems.md.engine import Topology, mobile_particles
+from stepsafe.systems.md.enginerun import DRIFT_TOLERANCE, TrialSpec, run_trials
 from stepsafe.systems.md.hessian import (
     LANCZOS_TOL,
     HessianVectorProduct,
@@ -70,6 +72,7 @@ from stepsafe.systems.md.hessian import (
     hessian,
 )
 from stepsafe.systems.md.hmr import Repartition, repartition, rigid_waters
+from stepsafe.systems.scene import parse_real
 
 #: The keys of ``system:`` for an OpenMM system.
 KEYS = ("openmm", "positions", "constraints", "hydrogen_mass", "minimize", "runs")
@@ -217,8 +220,6 @@ def settings(tree: dict[str, Any], fail: Callable[[str, str], StepsafeError]) ->
 
 def _runs(value: Any, fail: Callable[[str, str], StepsafeError]) -> Runs:
     """``runs: {temperature: 300 K, seeds: [1, 2, 3], duration: 2 ps, friction: 1}``."""
-    from stepsafe.systems.scene import parse_real
-
     if not isinstance(value, dict):
         raise fail("runs", "must be a mapping {temperature:, seeds:, duration:, friction:}")
     unknown = set(value) - set(RUN_KEYS)
@@ -258,8 +259,6 @@ def _runs(value: Any, fail: Callable[[str, str], StepsafeError]) -> Runs:
 def _amu(value: Any) -> float | None:
     """A mass in amu: a number, or a text ``"3"``, ``"3 amu"`` (also ``Da``, ``u``,
     ``g/mol``); None if it is neither."""
-    from stepsafe.systems.scene import parse_real
-
     if isinstance(value, bool):
         return None
     if isinstance(value, (int, float, np.integer, np.floating)):
@@ -279,8 +278,6 @@ def load_engine(system: Any, positions: Any, folder: Path,
     """An :class:`~stepsafe.systems.md.openmm_engine.OpenMMEngine` on the Reference platform
     from file names (read next to the scene, ``folder``) or, from Python, an
     ``openmm.System`` and positions (an (N, 3) array in nm or an OpenMM ``Quantity``)."""
-    from stepsafe.systems.md import openmm_engine as oe
-
     if positions is None:
         raise fail("positions", "missing: the coordinates (a .pdb, .cif/.pdbx or serialized "
                                 "State .xml file; in Python an (N, 3) array in nm)")
@@ -464,8 +461,6 @@ def engine_check(analysis: MDAnalysis, method: str, step_ps: float) -> dict[str,
     dict
         JSON-ready.
     """
-    from stepsafe.systems.md.enginerun import DRIFT_TOLERANCE, TrialSpec, run_trials
-
     runs = analysis.settings.runs
     if runs is None:
         raise StepsafeError("no runs: were asked for")
