@@ -25,6 +25,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from stepsafe.core.transfer import has_form, pole_locations, transfer_jet, transfer_matrix
+from stepsafe.methods.exact import high_precision
 from stepsafe.methods.library import FAMILIES, builtin_names, resolve
 from stepsafe.methods.protocol import Block, Friction, MethodKind, Stages
 from stepsafe.methods.tableaux import Composition
@@ -170,14 +171,14 @@ def test_symmetric_methods_and_only_they_are_their_own_adjoint(item):
 @pytest.mark.parametrize("item", SHIPPED, ids=_ids)
 def test_transfer_matrix_agrees_with_the_independent_reference(item):
     """The float64 M(z) of every method against its mpmath reference at 40 digits
-    (:meth:`MethodKind.high_precision`: its own definition, or its parts through
-    :mod:`stepsafe.reference.highprec`, which shares no code with the float path)."""
+    (:func:`stepsafe.methods.exact.high_precision`: its own definition, or its parts, in
+    mpmath code that shares nothing with the float path)."""
     import mpmath as mp
 
     m = _method(*item)
     if not _single_force(m):
         pytest.skip("an impulse method steps two forces")
-    reference = m.high_precision()
+    reference = high_precision(m)
     for model in _models(m):
         z = _away_from_poles(m, model, np.array([0.25, 0.9, 1.7]))
         M = transfer_matrix(m, z, model)

@@ -22,6 +22,7 @@ from support import method
 from stepsafe.core.models import MODELS
 from stepsafe.core.regions import find_region
 from stepsafe.core.transfer import has_form, transfer_jet
+from stepsafe.methods import exact
 from stepsafe.methods.library import builtin_names
 from stepsafe.reference import highprec as mpref
 from stepsafe.reference.verify import check_point
@@ -132,12 +133,12 @@ def test_legendre_nodes_by_newton_are_the_polynomial_roots(s):
     by Newton's method and certified by sign changes, against mpmath.polyroots on the
     shifted Legendre polynomial's coefficients, at 60 digits."""
     with mp.workdps(60):
-        gauss = [(1 + x) / 2 for x in mpref._gauss_nodes(s)]
-        lobatto = [(1 + x) / 2 for x in mpref._lobatto_interior(s)]
-        leg = mpref._shifted_legendre(s)
+        gauss = [(1 + x) / 2 for x in exact._gauss_nodes(s)]
+        lobatto = [(1 + x) / 2 for x in exact._lobatto_interior(s)]
+        leg = exact._shifted_legendre(s)
         for found, roots, count in (
-                (gauss, mpref._real_roots(leg, s), s),
-                (lobatto, mpref._real_roots([k * leg[k] for k in range(1, len(leg))], s),
+                (gauss, exact._real_roots(leg, s), s),
+                (lobatto, exact._real_roots([k * leg[k] for k in range(1, len(leg))], s),
                  s - 1)):
             assert len(found) == len(roots) == count
             assert all(abs(a - b) < mp.mpf(10) ** -55 for a, b in zip(found, roots))

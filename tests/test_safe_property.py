@@ -22,6 +22,7 @@ from hypothesis import strategies as st
 from support import method
 
 from stepsafe.core.advice import Modes, check_step
+from stepsafe.methods.exact import high_precision
 from stepsafe.methods.tableaux import Composition, PartitionedRK, RungeKutta, Splitting
 from stepsafe.reference import highprec as R
 
@@ -42,7 +43,7 @@ def _mp_function(m):
     to rounding and so lose the oscillator's type near z = 1e9), else from the float
     coefficients taken as exact."""
     if getattr(m, "exact", None) is not None:
-        return m.high_precision()
+        return high_precision(m)
     if isinstance(m, Composition):
         flat = m.flattened()
         inner = _mp_function(flat.base)

@@ -40,7 +40,6 @@ from 0, never beyond the first boundary.
 from __future__ import annotations
 
 import math
-from functools import partial
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -51,7 +50,7 @@ from stepsafe.core.models import ELLIPTIC, GENERATORS
 from stepsafe.core.roots import EPS, refine_brackets
 from stepsafe.core.transfer import blocks_of, row_ops, stage_operator, transfer_matrix
 from stepsafe.exceptions import StepsafeError
-from stepsafe.methods.library import high_precision_tableaux
+from stepsafe.methods.exact import high_precision_tableaux
 from stepsafe.methods.protocol import Block, Friction, Shears
 from stepsafe.methods.tableaux import Method, PartitionedRK, Splitting
 
@@ -261,7 +260,7 @@ def _hp_parts(method: Method, model: str, series: Series) -> Parts | None:
     ex = prk.exact
     key = (model, series.coef.shape[0], prk.A_q.tobytes(), prk.b_q.tobytes(),
            prk.A_p.tobytes(), prk.b_p.tobytes(),
-           (ex.func.__module__, ex.func.__name__, ex.args) if isinstance(ex, partial) else None)
+           ex)
     if key not in _HP_CACHE:
         if len(_HP_CACHE) > 32:
             _HP_CACHE.clear()

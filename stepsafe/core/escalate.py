@@ -32,6 +32,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from stepsafe.core.mproots import locate_pole, refine_root
+from stepsafe.methods.exact import high_precision
 from stepsafe.methods.protocol import HIGH_PRECISION_DIGITS
 from stepsafe.methods.tableaux import Method
 
@@ -59,8 +60,8 @@ class Decision(NamedTuple):
 def reference_of(method: Method) -> Reference:
     """The high-precision transfer matrix of ``method``: its own ``exact`` definition when
     it has one, else built from its parts, float coefficients taken as exact
-    (:meth:`~stepsafe.methods.protocol.MethodKind.high_precision`)."""
-    return method.high_precision()
+    (:func:`stepsafe.methods.exact.high_precision`)."""
+    return high_precision(method)
 
 
 class _Undecided(Exception):

@@ -19,13 +19,10 @@ diagonal entry (Lobatto), so ``W^-1`` is explicit and well conditioned.
 
 from __future__ import annotations
 
-from functools import lru_cache, partial
-from typing import Any
-
 import numpy as np
 
 from stepsafe.exceptions import MethodError
-from stepsafe.methods.protocol import HIGH_PRECISION_DIGITS
+from stepsafe.methods.protocol import Exact
 from stepsafe.methods.tableaux import Composition, Method, PartitionedRK, RungeKutta
 
 #: Largest stage count accepted for the families (accuracy verified up to here by tests).
@@ -116,7 +113,7 @@ def gauss(s: int) -> RungeKutta:
     A = W @ _integration_matrix(s) @ W.T @ np.diag(b)
     return RungeKutta(A, b, c, name=f"gauss-s{s}", order=2 * s, evaluations=s,
                       title=f"{s}-stage Gauss–Legendre collocation",
-                      exact=partial(_exact, "gauss", s))
+                      exact=Exact("family", "gauss", s))
 
 
 def lobatto3a(s: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -143,37 +140,7 @@ def lobatto3ab(s: int) -> PartitionedRK:
     return PartitionedRK(A_a, b, A_b, b.copy(), name=f"lobatto3ab-s{s}", order=2 * s - 2,
                          evaluations=s - 1,
                          title=f"{s}-stage Lobatto IIIA–IIIB pair",
-                         exact=partial(_exact, "lobatto3ab", s))
-
-
-def high_precision_tableaux(family: str, s: int) -> tuple[Any, Any, Any, Any]:
-    """``(A_q, b_q, A_p, b_p)`` of the family member at the working mpmath precision (nodes
-    and weights computed at that precision, :mod:`stepsafe.reference.highprec`)."""
-    from stepsafe.reference import highprec as R
-
-    if family == "gauss":
-        A, b, _ = R.gauss_tableau(s)
-        return A, b, A, b
-    A, b, _ = R.lobatto_IIIA_tableau(s)
-    B, _, _ = R.lobatto_IIIB_tableau(s)
-    return A, b, B, b
-
-
-@lru_cache(maxsize=16)
-def _exact(family: str, s: int):
-    """The family member's transfer matrix at high precision (:mod:`stepsafe.reference.highprec`:
-    nodes and weights computed at raised precision, not rounded to float64)."""
-    import mpmath as mp
-
-    from stepsafe.reference import highprec as R
-
-    with mp.workdps(HIGH_PRECISION_DIGITS + 10):
-        if family == "gauss":
-            A, b, _ = R.gauss_tableau(s)
-            return R.prk_transfer(A, b, A, b)
-        A, b, _ = R.lobatto_IIIA_tableau(s)
-        B, _, _ = R.lobatto_IIIB_tableau(s)
-        return R.prk_transfer(A, b, B, b)
+                         exact=Exact("family", "lobatto3ab", s))
 
 
 def _recipe_order(base: Method, recipe: str) -> int:

@@ -37,12 +37,11 @@ every friction, Verlet's limit.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 from stepsafe.exceptions import MethodError
-from stepsafe.methods.protocol import Block, Friction, MethodKind, Shears
+from stepsafe.methods.protocol import Block, Exact, Friction, MethodKind, Shears
 from stepsafe.methods.residuals import Residuals
 from stepsafe.methods.tableaux import Splitting, splitting_from_operations
 
@@ -76,7 +75,7 @@ class Langevin(MethodKind):
     order: int | None = None
     evaluations: int | None = None
     title: str = ""
-    exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
+    exact: Exact | None = field(default=None, compare=False, repr=False)
 
     kind = "langevin"
 
@@ -212,37 +211,6 @@ class Langevin(MethodKind):
                               "for every friction is not the region of its Hamiltonian part "
                               "(use a word symmetric about its O steps, as BAOAB or OBABO)")
         return part
-
-    def high_precision(self) -> Callable[[Any, str], Any]:
-        """The mean map in mpmath: the reference's splitting matrices of the A/B runs and
-        ``diag(1, exp(-gamma w z))`` for each O, multiplied in order."""
-        if self.exact is not None:
-            return self.exact()
-        import mpmath as mp
-
-        from stepsafe.reference import highprec as R
-
-        parts: list[tuple[Any, Any, float | None]] = []
-        for block in self.decomposition():
-            if isinstance(block, Shears):
-                s = block.splitting
-                parts.append((s.drift.tolist(), s.kick.tolist(), None))
-            else:
-                assert isinstance(block, Friction)
-                parts.append((None, None, block.weight * block.gamma))
-
-        def mean_map(z, model: str):
-            M = mp.eye(2)
-            for drift, kick, k in parts:
-                if k is None:
-                    F = R.transfer_matrix_splitting(drift, kick, z, model)
-                else:
-                    F = mp.matrix([[1, 0], [0, mp.exp(-mp.mpf(k) * z)]])
-                M = F * M
-            return M
-
-        return mean_map
-
 
 def _runs(word: str) -> int:
     """Runs of O in the word, counted cyclically (a run across its end counts once)."""

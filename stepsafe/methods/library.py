@@ -14,17 +14,16 @@ from __future__ import annotations
 
 import difflib
 from dataclasses import replace
-from functools import lru_cache, partial
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, NamedTuple
 
 from stepsafe.exceptions import MethodError, StepsafeError
 from stepsafe.files.expressions import FLOAT
 from stepsafe.files.yamlio import load_yaml
-from stepsafe.methods import families
 from stepsafe.methods.families import gauss, is_symmetric, lobatto3ab
 from stepsafe.methods.fileformat import build_method, validate_tree
-from stepsafe.methods.protocol import HIGH_PRECISION_DIGITS
+from stepsafe.methods.protocol import Exact
 from stepsafe.methods.tableaux import Composition
 
 FAMILIES = {
@@ -125,46 +124,12 @@ def resolve(name: str, stages: int | None = None, base: str | None = None,
         path = _find_file(name)
         data = load_file(path)
         method = replace(_build(data, _depth, Path(path).parent),
-                         exact=partial(_exact, str(path), None, None))
+                         exact=Exact("file", str(path), None, None))
         entry = _entry(data, path)
     if base is not None:
         method, entry = _swap_base(method, entry, base, _depth)
-        method = replace(method, exact=partial(_exact, name, stages, base))
+        method = replace(method, exact=Exact("file", name, stages, base))
     return method, entry
-
-
-def _exact(name: str, stages: int | None, base: str | None):
-    """The method's transfer matrix at high precision, from its definition (see
-    :mod:`stepsafe.reference.verify`; read only when the region finder escalates a point)."""
-    from stepsafe.reference.verify import mp_method, mp_transfer
-
-    return mp_transfer(mp_method(name, stages, base, HIGH_PRECISION_DIGITS))
-
-
-def high_precision_tableaux(prk: Any) -> tuple[list, list, list, list]:
-    """``(A_q, b_q, A_p, b_p)`` as mpmath numbers at the working precision: a Gauss or
-    Lobatto family member's tableau computed at that precision, a library file's decimals
-    read exactly, else the float coefficients taken as exact."""
-    import mpmath as mp
-
-    def rows(A):
-        return [[A[i, j] for j in range(A.cols)] for i in range(A.rows)] \
-            if isinstance(A, mp.matrix) else [list(r) for r in A]
-
-    ex = prk.exact
-    if isinstance(ex, partial):
-        if ex.func is families._exact:
-            A_q, b_q, A_p, b_p = families.high_precision_tableaux(*ex.args)
-            return rows(A_q), list(b_q), rows(A_p), list(b_p)
-        if ex.func is _exact:
-            from stepsafe.reference.verify import mp_method
-
-            m = mp_method(*ex.args, dps=mp.mp.dps)
-            if m.kind == "prk" and len(m.data["b_q"]) == prk.stages:
-                d = m.data
-                return rows(d["A_q"]), list(d["b_q"]), rows(d["A_p"]), list(d["b_p"])
-    return ([[mp.mpf(float(x)) for x in r] for r in prk.A_q], [mp.mpf(float(x)) for x in prk.b_q],
-            [[mp.mpf(float(x)) for x in r] for r in prk.A_p], [mp.mpf(float(x)) for x in prk.b_p])
 
 
 def _find_file(name: str) -> Path:

@@ -34,9 +34,8 @@ Nothing here computes a transfer matrix: the methods are data, the numerics live
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
 if TYPE_CHECKING:  # pragma: no cover
     from stepsafe.methods.residuals import Residuals
@@ -46,12 +45,27 @@ if TYPE_CHECKING:  # pragma: no cover
 DIAGONAL_MODELS = ("saddle", "saddle-p")
 #: Every test model (:mod:`stepsafe.core.models`).
 ALL_MODELS = ("oscillator", "saddle", "inverted", "saddle-p")
-#: Digits of the high-precision transfer matrices a method defines (its ``exact`` and
-#: :meth:`MethodKind.high_precision`); :mod:`stepsafe.core.escalate` decides at these.
+#: Digits of the high-precision transfer matrices of a method (its ``exact`` definition, or its
+#: parts: :func:`stepsafe.methods.exact.high_precision`); :mod:`stepsafe.core.escalate` decides
+#: at these.
 HIGH_PRECISION_DIGITS = 40
 #: The criteria of :mod:`stepsafe.core.regions` (``structure``: the flow's type and its
 #: orientation; ``stability``: the type alone).
 ALL_CRITERIA = ("structure", "stability")
+
+
+class Exact(NamedTuple):
+    """A method's exact definition, from which its high-precision transfer matrix is built
+    (:func:`stepsafe.methods.exact.defined`): a Gauss or Lobatto IIIA-IIIB family member
+    (``source="family"``, ``name`` ``gauss`` or ``lobatto3ab``, ``stages``), its tableau
+    computed at raised precision; or a method file (``source="file"``, ``name`` a built-in
+    name or a path, ``stages`` of a family base, ``base`` swapped in), read with its decimal
+    literals exact."""
+
+    source: str
+    name: str
+    stages: int | None
+    base: str | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -110,8 +124,10 @@ class MethodKind(ABC):
       are restricted, ``analysis_note`` saying why;
     * the cost of analysing it: ``reach`` (how far the substeps reach, in h), ``sample_work``
       (relative cost of one transfer matrix);
-    * :meth:`high_precision` (its transfer matrix in mpmath, from the independent
-      reference) and :meth:`coefficients` (its arrays, as ``show --json`` prints them).
+    * :meth:`coefficients` (its arrays, as ``show --json`` prints them).
+
+    Its transfer matrix in mpmath is built from ``exact`` or from these by
+    :func:`stepsafe.methods.exact.high_precision`.
     """
 
     kind: ClassVar[str]
@@ -119,7 +135,7 @@ class MethodKind(ABC):
     title: str
     order: int | None
     evaluations: int | None
-    exact: Callable[[], Any] | None
+    exact: Exact | None
 
     # ---------------------------------------------------------------- identity
     @property
@@ -250,10 +266,3 @@ class MethodKind(ABC):
     def sample_work(self) -> float:
         """Relative cost of one evaluation of M(z) (see :mod:`stepsafe.core.grid`)."""
         return 1.0
-
-    @abstractmethod
-    def high_precision(self) -> Callable[[Any, str], Any]:
-        """``Mfun(z, model)``: its transfer matrix at z (an mpf) as an mpmath matrix, from
-        its own ``exact`` definition when it has one, else from its parts through the
-        independent reference (:mod:`stepsafe.reference.highprec`), the float coefficients
-        taken as exact."""

@@ -19,16 +19,16 @@ made later sees the coefficients the method was built with); they validate shape
 finiteness when built and raise :class:`~stepsafe.exceptions.MethodError`. Nothing here
 knows of files or terminals.
 
-``exact`` (optional, never compared) returns the method's transfer matrix at high
-precision, ``Mfun(z, model)`` in mpmath, built from its definition rather than from the
-rounded floats (family tableaux at raised precision, decimal literals read exactly); the
-region finder asks it where float64 cannot decide (:mod:`stepsafe.core.escalate`). Without it
-the float coefficients are taken as exact.
+``exact`` (optional, never compared) names the method's exact definition
+(:class:`~stepsafe.methods.protocol.Exact`: a family member, or a method file read with its
+decimal literals exact), from which :mod:`stepsafe.methods.exact` builds its transfer matrix
+at high precision rather than from the rounded floats; the region finder asks for it where
+float64 cannot decide (:mod:`stepsafe.core.escalate`). Without it the float coefficients are
+taken as exact.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
@@ -39,6 +39,7 @@ from stepsafe.exceptions import MethodError
 from stepsafe.methods.protocol import (
     DIAGONAL_MODELS,
     Block,
+    Exact,
     MethodKind,
     Shears,
     Stages,
@@ -93,13 +94,6 @@ def _prk_reach(prk: PartitionedRK) -> float:
     return float(max(1.0, np.abs(prk.A_q).sum(axis=1).max(), np.abs(prk.A_p).sum(axis=1).max()))
 
 
-def _prk_reference(prk: PartitionedRK) -> Callable[[Any, str], Any]:
-    from stepsafe.reference import highprec as R
-
-    return R.prk_transfer(prk.A_q.tolist(), prk.b_q.tolist(), prk.A_p.tolist(),
-                          prk.b_p.tolist())
-
-
 def _square(values, name: str, size: int) -> np.ndarray:
     """``values`` as a read-only (size, size) float copy."""
     arr = np.array(values, dtype=float)
@@ -124,7 +118,7 @@ class PartitionedRK(MethodKind):
     order: int | None = None
     evaluations: int | None = None
     title: str = ""
-    exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
+    exact: Exact | None = field(default=None, compare=False, repr=False)
     #: the symplecticity residuals of the coefficients as a method file writes them
     #: (:func:`stepsafe.methods.residuals.written_residuals`); None: the floats as given
     written: Any = field(default=None, compare=False, repr=False)
@@ -178,10 +172,6 @@ class PartitionedRK(MethodKind):
         s = self.stages
         return float((2 * s) ** 3 if not self.explicit else s * s)
 
-    def high_precision(self) -> Callable[[Any, str], Any]:
-        return self.exact() if self.exact is not None else _prk_reference(self)
-
-
 @dataclass(frozen=True, eq=False)
 class RungeKutta(MethodKind):
     """Runge–Kutta method ``(A, b, c)``; the PRK with both tableaux equal."""
@@ -193,7 +183,7 @@ class RungeKutta(MethodKind):
     order: int | None = None
     evaluations: int | None = None
     title: str = ""
-    exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
+    exact: Exact | None = field(default=None, compare=False, repr=False)
     #: as :attr:`PartitionedRK.written`
     written: Any = field(default=None, compare=False, repr=False)
 
@@ -255,10 +245,6 @@ class RungeKutta(MethodKind):
         s = self.stages
         return float((2 * s) ** 3 if not self.explicit else s * s)
 
-    def high_precision(self) -> Callable[[Any, str], Any]:
-        return self.exact() if self.exact is not None else _prk_reference(self.as_prk())
-
-
 @dataclass(frozen=True, eq=False)
 class Splitting(MethodKind):
     """Splitting method ``drift(a_1 h) kick(b_1 h) drift(a_2 h) ...`` for ``H = T(p) + V(q)``.
@@ -288,7 +274,7 @@ class Splitting(MethodKind):
     order: int | None = None
     evaluations: int | None = None
     title: str = ""
-    exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
+    exact: Exact | None = field(default=None, compare=False, repr=False)
     gradient: np.ndarray | None = None
     displaced: bool = False
 
@@ -483,16 +469,6 @@ class Splitting(MethodKind):
         extra = 0 if self.gradient is None else int(np.count_nonzero(self.gradient))
         return float(max(1, self.drift.size + self.kick.size + extra))
 
-    def high_precision(self) -> Callable[[Any, str], Any]:
-        if self.exact is not None:
-            return self.exact()
-        from stepsafe.reference import highprec as R
-
-        drift, kick = self.drift.tolist(), self.kick.tolist()
-        gradient = None if self.gradient is None else self.gradient.tolist()
-        return lambda z, model: R.transfer_matrix_splitting(drift, kick, z, model, gradient)
-
-
 #: Any method kind (the protocol every kind implements).
 Method = MethodKind
 
@@ -508,7 +484,7 @@ class Composition(MethodKind):
     evaluations: int | None = None
     title: str = ""
     base_order: int | None = field(default=None)
-    exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
+    exact: Exact | None = field(default=None, compare=False, repr=False)
 
     kind = "composition"
 
@@ -640,19 +616,6 @@ class Composition(MethodKind):
         """The base's, once per substep."""
         flat = self.flattened()
         return float(flat.weights.size) * flat.base.sample_work
-
-    def high_precision(self) -> Callable[[Any, str], Any]:
-        """Its own ``exact``, else the product of its base's high-precision matrices at
-        ``g_k z``."""
-        if self.exact is not None:
-            return self.exact()
-        from stepsafe.reference import highprec as R
-
-        inner = self.base.high_precision()
-        weights = [float(g) for g in self.weights]
-        return lambda z, model: R.transfer_matrix_composition(lambda x: inner(x, model),
-                                                              weights, z)
-
 
 def step_end_stage(prk: PartitionedRK) -> int | None:
     """The stage whose position ends at the step's ``q_{n+1}`` (its ``A_q`` row is ``b_q``,
@@ -800,7 +763,7 @@ class Impulse(MethodKind):
     order: int | None = None
     evaluations: int | None = None
     title: str = ""
-    exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
+    exact: Exact | None = field(default=None, compare=False, repr=False)
 
     kind = "impulse"
 
@@ -891,10 +854,6 @@ class Impulse(MethodKind):
     def decomposition(self, model: str | None = None) -> tuple[Block, ...]:
         raise self._two_forces()
 
-    def high_precision(self) -> Callable[[Any, str], Any]:
-        raise self._two_forces()
-
-
 @dataclass(frozen=True, eq=False)
 class Processed(MethodKind):
     """Processed method ``psi_h = P_h^-1 o K_h o P_h``: a kernel K and a processor P.
@@ -926,7 +885,7 @@ class Processed(MethodKind):
     order: int | None = None
     evaluations: int | None = None
     title: str = ""
-    exact: Callable[[], Any] | None = field(default=None, compare=False, repr=False)
+    exact: Exact | None = field(default=None, compare=False, repr=False)
 
     kind = "processed"
 
@@ -1031,9 +990,6 @@ class Processed(MethodKind):
         return {"kernel": {"drift": kernel.drift.tolist(), "kick": kernel.kick.tolist()},
                 "processor": {"drift": self.processor.drift.tolist(),
                               "kick": self.processor.kick.tolist()}}
-
-    def high_precision(self) -> Callable[[Any, str], Any]:
-        return self.exact() if self.exact is not None else self.per_step().high_precision()
 
     def region_method(self, model: str = "oscillator") -> Splitting:
         """The kernel, except on the ``inverted`` model. On the oscillator the kernel's

@@ -1,10 +1,11 @@
 """``--verify``: recompute every reported point with mpmath from the method's coefficients.
 
 The method is rebuilt at high precision from its definition, independently of the float64
-path: method files are re-read with the mpmath backend of the expression evaluator (decimal
-literals exactly), family tableaux come from :mod:`stepsafe.reference.highprec` (nodes and weights
-at raised precision), recipes from their formulas; M(z) is then computed by
-:mod:`stepsafe.reference.highprec` alone (stage equations solved with mpmath). Each
+path (:func:`stepsafe.methods.exact.mp_method`): method files are re-read with the mpmath
+backend of the expression evaluator (decimal literals exactly), family tableaux computed
+with nodes and weights at raised precision, recipes from their formulas; M(z) is then
+computed in mpmath alone (:func:`stepsafe.methods.exact.mp_transfer`, stage equations
+solved with mpmath). Each
 reported point is re-derived in a bracket around it:
 
 * a boundary (``root``): a sign change of ``tr M -+ 2``, refined at the working precision;
@@ -24,23 +25,15 @@ Imports mpmath, so only the commands run with ``--verify`` (and the tests) load 
 from __future__ import annotations
 
 from collections.abc import Callable
-from functools import lru_cache
-from pathlib import Path
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 from stepsafe.core.regions import Point, Region
 from stepsafe.exceptions import StepsafeError
-from stepsafe.files.expressions import mpmath_backend
-from stepsafe.methods.library import FAMILIES, _find_file, _looks_like_path, load_file
+from stepsafe.methods.exact import MPMethod, mp_method, mp_transfer
+from stepsafe.reference import highprec as reference
 
 DPS = 40
 TOLERANCE = 1e-10
-
-
-class MPMethod(NamedTuple):
-    kind: str  # "prk", "splitting", "composition", "processed", "langevin"
-    order: int | None
-    data: dict[str, Any]
 
 
 class Check(NamedTuple):
@@ -58,205 +51,6 @@ class Check(NamedTuple):
         return self.discrepancy <= self.allowed
 
 
-def _rows(A) -> list[list]:
-    import mpmath as mp
-
-    if isinstance(A, mp.matrix):
-        return [[A[i, j] for j in range(A.cols)] for i in range(A.rows)]
-    return [list(r) for r in A]
-
-
-@lru_cache(maxsize=64)
-def mp_method(name: str, stages: int | None = None, base: str | None = None,
-              dps: int = DPS) -> MPMethod:
-    """The method at ``dps`` digits (resolved as by
-    :func:`stepsafe.methods.library.resolve`)."""
-    import mpmath as mp
-
-    from stepsafe.reference import highprec as reference
-
-    with mp.workdps(dps):
-        if name in FAMILIES:
-            assert stages is not None  # (a family is resolved with its stages)
-            if name == "gauss":
-                A, b, _ = reference.gauss_tableau(stages)
-                A, b = _rows(A), list(b)
-                out = MPMethod("prk", 2 * stages, {"A_q": A, "b_q": b, "A_p": A, "b_p": b})
-            else:
-                A, b, _ = reference.lobatto_IIIA_tableau(stages)
-                B, _, _ = reference.lobatto_IIIB_tableau(stages)
-                out = MPMethod("prk", 2 * stages - 2, {"A_q": _rows(A), "b_q": list(b),
-                                                       "A_p": _rows(B), "b_p": list(b)})
-        else:
-            data = load_file(_find_file(name), backend=mpmath_backend())
-            co = dict(data.coefficients)
-            if data.kind == "composition":
-                ref = data.base
-                folder = Path(data.where).parent
-                ref_name = ref if isinstance(ref, str) else ref["name"]
-                if _looks_like_path(ref_name) and not Path(ref_name).is_absolute():
-                    ref_name = str(folder / ref_name)
-                inner = mp_method(ref_name, None if isinstance(ref, str) else ref.get("stages"),
-                                  dps=dps)
-                if data.recipe:
-                    assert inner.order is not None  # (a recipe's base states its order)
-                    co["weights"] = _recipe_weights(data.recipe, inner.order)
-                out = MPMethod("composition", data.order, {"base": inner,
-                                                           "weights": co["weights"]})
-            elif data.kind == "processed":
-                folder = Path(data.where).parent
-
-                def part(ref):
-                    if isinstance(ref, dict) and "drift" in ref:
-                        return MPMethod("splitting", None, dict(ref))
-                    ref_name = ref if isinstance(ref, str) else ref["name"]
-                    if _looks_like_path(ref_name) and not Path(ref_name).is_absolute():
-                        ref_name = str(folder / ref_name)
-                    return mp_method(ref_name, None if isinstance(ref, str)
-                                     else ref.get("stages"), dps=dps)
-
-                out = MPMethod("processed", data.order,
-                               {"kernel": part(data.extras["kernel"]),
-                                "processor": part(data.extras["processor"])})
-            elif data.kind == "langevin":
-                out = MPMethod("langevin", data.order, dict(data.extras))
-            elif data.kind in ("rk", "prk"):
-                if data.kind == "rk":
-                    co = {"A_q": co["A"], "b_q": co["b"], "A_p": co["A"], "b_p": co["b"]}
-                out = MPMethod("prk", data.order, co)
-            else:
-                if "gradient" in co:  # how integrations evaluate the force-gradient kick
-                    co["displaced"] = data.extras.get("gradient_form") == "displaced-force"
-                out = MPMethod("splitting", data.order, co)
-        if base is not None:
-            if out.kind != "composition":
-                raise ValueError("--base applies to compositions")
-            bname, _, bstages = base.partition(":")
-            out = MPMethod("composition", None, {
-                "base": mp_method(bname, int(bstages) if bstages else None, dps=dps),
-                "weights": out.data["weights"]})
-    return out
-
-
-def _recipe_weights(recipe: str, base_order: int) -> list:
-    import mpmath as mp
-
-    k = base_order + 1
-    if recipe == "triple-jump":
-        g1 = 1 / (2 - mp.root(2, k))
-        return [g1, -mp.root(2, k) * g1, g1]
-    p = 1 / (4 - mp.root(4, k))
-    return [p, p, 1 - 4 * p, p, p]
-
-
-def mp_transfer(m: MPMethod) -> Callable:
-    """``Mfun(z, model)``: the mpmath transfer matrix of ``m``."""
-    from stepsafe.reference import highprec as reference
-
-    if m.kind == "langevin":  # the map of the mean
-        letters, friction = m.data["letters"], m.data["friction"]
-        return lambda z, model: reference.transfer_matrix_langevin(letters, friction, z, model)
-    if m.kind == "processed":  # the full one-step map P^-1 K P (the kernel's trace)
-        drift, kick = mp_processed_splitting(m)
-        kernel = mp_transfer(m.data["kernel"])
-        # on the diagonal models every drift and kick is a diagonal matrix, so P commutes
-        # with K and P^-1 K P = K exactly (as the float analysis takes it); merging P's
-        # factors into the kernel's, as for the other models, would change the implicit
-        # Euler factors there
-        return lambda z, model: (kernel(z, model) if model in ("saddle", "saddle-p") else
-                                 reference.transfer_matrix_splitting(drift, kick, z, model))
-    if m.kind == "composition" and m.data["base"].kind == "splitting" \
-            and "gradient" not in m.data["base"].data:
-        # a composition of a splitting is a splitting: one pass of scalar updates (its
-        # coefficients multiplied out once per working precision)
-        from mpmath import mp
-
-        flat: dict[int, tuple[list, list]] = {}
-
-        def composed(z, model: str):
-            if mp.prec not in flat:
-                flat[mp.prec] = _flat_splitting(m.data["weights"],
-                                                m.data["base"].data["drift"],
-                                                m.data["base"].data["kick"])
-            return reference.transfer_matrix_splitting(*flat[mp.prec], z, model)
-
-        return composed
-    if m.kind == "composition":
-        inner = mp_transfer(m.data["base"])
-        weights = m.data["weights"]
-        return lambda z, model: reference.transfer_matrix_composition(
-            lambda x: inner(x, model), weights, z)
-    if m.kind == "splitting":
-        d, k, g = m.data["drift"], m.data["kick"], m.data.get("gradient")
-        return lambda z, model: reference.transfer_matrix_splitting(d, k, z, model, g)
-    return reference.prk_transfer(*(m.data[key] for key in ("A_q", "b_q", "A_p", "b_p")))
-
-
-def _operations(m: MPMethod, scale=1) -> list[list]:
-    """``[kind, coefficient]`` of a splitting or of a composition of one, in order."""
-    if m.kind == "composition":
-        return [op for g in m.data["weights"] for op in _operations(m.data["base"], g * scale)]
-    if m.kind != "splitting":
-        raise ValueError("a processed method's kernel and processor are splittings")
-    out = []
-    for i, a in enumerate(m.data["drift"]):
-        out.append(["drift", scale * a])
-        if i < len(m.data["kick"]):
-            out.append(["kick", scale * m.data["kick"][i]])
-    return out
-
-
-def mp_processed_splitting(m: MPMethod) -> tuple[list, list]:
-    """drift/kick lists of the one-step map ``P^-1 K P`` of a processed method: P's
-    operations, the kernel's, then P's reversed with negated coefficients. The merged
-    coefficients are summed at 512 bits or more, whatever the caller's precision, so that
-    the sums stay those of the coefficients (exact for decimals read at up to 150 digits)."""
-    import mpmath as mp
-
-    with mp.workprec(max(mp.mp.prec, 512)):
-        return _processed_splitting(m)
-
-
-def _processed_splitting(m: MPMethod) -> tuple[list, list]:
-    pre = _operations(m.data["processor"])
-    ops = pre + _operations(m.data["kernel"]) + [[k, -c] for k, c in reversed(pre)]
-    drift: list = []
-    kick: list = []
-    for kind, c in ops:
-        if kind == "drift":
-            if len(drift) > len(kick):
-                drift[-1] += c
-            else:
-                drift.append(c)
-        elif len(drift) == len(kick):
-            if kick:
-                kick[-1] += c
-            else:
-                drift.append(0)
-                kick.append(c)
-        else:
-            kick.append(c)
-    return drift, kick
-
-
-def _flat_splitting(weights, drift, kick) -> tuple[list, list]:
-    """drift/kick lists of ``weights`` applied to a splitting, with the drifts that meet
-    across substeps added (the sequence alternates drift, kick, drift, ...)."""
-    ops: list[list] = []  # [kind, coefficient], alternating
-    for g in weights:
-        for i, a in enumerate(drift):
-            for kind, c in (("d", a), ("k", kick[i] if i < len(kick) else None)):
-                if c is None:
-                    continue
-                if ops and ops[-1][0] == kind:
-                    ops[-1][1] += g * c
-                else:
-                    ops.append([kind, g * c])
-    if ops and ops[0][0] == "k":
-        ops.insert(0, ["d", 0])
-    return [c for k, c in ops if k == "d"], [c for k, c in ops if k == "k"]
-
-
 def _tr(M):
     return M[0, 0] + M[1, 1]
 
@@ -264,8 +58,6 @@ def _tr(M):
 def check_point(Mfun: Callable, model: str, p: Point, dps: int = DPS) -> Check:
     """Re-derive one reported point at ``dps`` digits (see the module docstring)."""
     import mpmath as mp
-
-    from stepsafe.reference import highprec as reference
 
     allowed = TOLERANCE + p.uncertainty / abs(p.z)
     with mp.workdps(dps):
@@ -409,8 +201,6 @@ def check_status(Mfun: Callable, model: str, z: float, claimed: int,
     the claim errs on the safe side."""
     import mpmath as mp
 
-    from stepsafe.reference import highprec as reference
-
     point = Point(z, "status", 0.0, {1: "preserved", -1: "reversed", 0: "not preserved"}[
         claimed])
     # the quantities that decide (tr M -+ 2, M's entries, ...) can be far below 1 (2 - tr M
@@ -462,8 +252,6 @@ def _verify_regions(name: str, stages: int | None, base: str | None,
     m = mp_method(name, stages, base, dps)
     Mfun = mp_transfer(m)
     if m.kind == "langevin":  # its region is that of its drifts and kicks from the O step
-        from stepsafe.reference import highprec as reference
-
         drift, kick = reference.langevin_hamiltonian_part(m.data["letters"])
         Mfun = mp_transfer(MPMethod("splitting", None, {"drift": drift, "kick": kick}))
     out = []
