@@ -17,8 +17,9 @@
    (800 with ``--big``) with pefrl, as a ratio to one ``numpy.linalg.eig`` of the same
    size (interleaved medians, one BLAS thread for both), and at 200 dof with two threads;
    with ``--big`` also a 5000-dof dense stiffness.
-4. Start-up: ``stepsafe check`` on a scene file and ``stepsafe advise`` on a built-in, as
-   ratios to ``python -c "import numpy"`` measured in the same run. Goals: 2x and 3x.
+4. Start-up (benchmarks/startup.py): ``import stepsafe``, ``stepsafe check`` on a built-in
+   and on a scene file and ``stepsafe advise`` on a built-in, as ratios to
+   ``python -c "import numpy"``, interleaved in the same rounds. Goals: 2x and 3x.
 5. Equilibrium search: ``stepsafe advise`` on each shipped Hamiltonian scene, and the
    Henon-Heiles search with its walks as a ratio to its Newton starts alone.
 
@@ -265,24 +266,13 @@ def bench_scale(big: bool) -> None:
 
 
 def bench_startup() -> None:
-    py = sys.executable
-    # bytecode cached, as for an installed package (pip compiles it); a sandbox that sets
-    # PYTHONDONTWRITEBYTECODE would otherwise time compiling stepsafe's sources each run
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
-    env["PYTHONPATH"] = str(ROOT)
+    """The start-up figures of benchmarks/startup.py (interleaved rounds, medians)."""
+    from startup import COMMANDS, medians
 
-    def run(args):
-        return lambda: subprocess.run(args, capture_output=True, cwd=ROOT, env=env)
-
-    base = timed(run([py, "-c", "import numpy"]), repeat=11)
-    check = timed(run([py, "-m", "stepsafe", "check", "examples/scene.yaml"]), repeat=11)
-    adv = timed(run([py, "-m", "stepsafe", "advise", "--method", "yoshida4", "--beta", "3.2"]),
-                repeat=11)
-    row("python -c 'import numpy'", f"{base * 1e3:.0f} ms", "1.00x", "")
-    row("stepsafe check examples/scene.yaml", f"{check * 1e3:.0f} ms", f"{check / base:.2f}x",
-        "goal <= 2x")
-    row("stepsafe advise --method yoshida4 --beta 3.2", f"{adv * 1e3:.0f} ms",
-        f"{adv / base:.2f}x", "goal <= 3x")
+    figures = medians(repeat=11)
+    base = figures[0]
+    for (label, _, goal), t in zip(COMMANDS, figures):
+        row(label, f"{t * 1e3:.0f} ms", f"{t / base:.2f}x", f"goal {goal}" if goal else "")
 
 
 # ------------------------------------------------------------------ 5. equilibrium search

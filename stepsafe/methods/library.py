@@ -12,7 +12,6 @@ so that editable installs and wheels behave alike.
 
 from __future__ import annotations
 
-import difflib
 from dataclasses import replace
 from functools import lru_cache
 from pathlib import Path
@@ -133,6 +132,8 @@ def resolve(name: str, stages: int | None = None, base: str | None = None,
 
 
 def _find_file(name: str) -> Path:
+    import difflib
+
     if _looks_like_path(name) or Path(name).is_file():
         return Path(name)
     path = builtin_dir() / f"{name}.yaml"

@@ -20,14 +20,16 @@ Integer and float arrays of any width are accepted and converted to float64.
 from __future__ import annotations
 
 import re
-import zipfile
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
 from stepsafe.exceptions import StepsafeError
 from stepsafe.files.yamlio import open_regular
+
+if TYPE_CHECKING:  # pragma: no cover
+    import zipfile
 
 MAX_FILE_BYTES = 512 << 20  # a matrix file, and the declared unpacked size of an .npz
 MAX_DENSE_BYTES = 200_000_000  # a dense matrix as float64: at most 5000 x 5000
@@ -176,6 +178,8 @@ def _central_directory(fh) -> tuple[int, int] | None:
     """``(entries, bytes)`` of the zip central directory, from its end record (zip64 aware),
     or None if the stdlib helper is missing. zipfile.ZipFile would build one object per
     entry of a directory that can fill the whole file."""
+    import zipfile
+
     end_record = getattr(zipfile, "_EndRecData", None)
     entries = getattr(zipfile, "_ECD_ENTRIES_TOTAL", None)
     size = getattr(zipfile, "_ECD_SIZE", None)
@@ -189,6 +193,8 @@ def _central_directory(fh) -> tuple[int, int] | None:
 
 
 def _read_npz(fh, label: str, sparse_ok: bool):
+    import zipfile
+
     directory = _central_directory(fh)
     if directory is not None and (directory[0] > MAX_NPZ_MEMBERS
                                   or directory[1] > MAX_NPZ_MEMBERS * 1024):
