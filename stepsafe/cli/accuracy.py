@@ -1,7 +1,6 @@
 """Commands on accuracy and cost: ``error``, ``compare`` and ``plot``.
 
-Registered on the main group by :mod:`stepsafe.cli`; like every command they import what
-they use inside their bodies.
+Registered on the group of :mod:`stepsafe.cli.group` when :mod:`stepsafe.cli` is imported.
 """
 
 from __future__ import annotations
