@@ -49,7 +49,9 @@ def test_cli_import_loads_only_what_check_needs():
 
 
 def test_check_loads_numpy_and_yaml_only():
-    assert loaded_after("check", "examples/scene.yaml") == {"numpy", "yaml"}
+    for argv in (("check", "examples/scene.yaml"),
+                 ("check", "--method", "verlet", "--step", "0.5", "--beta", "1")):
+        assert loaded_after(*argv) == {"numpy", "yaml"}, argv
 
 
 def test_advise_and_region_never_load_scipy_or_mpmath():
