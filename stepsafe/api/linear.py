@@ -15,7 +15,6 @@ False
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
@@ -56,6 +55,7 @@ from stepsafe.api.reports import (
     ErrorTable,
     RegionReport,
     SceneChecks,
+    record_fields,
 )
 from stepsafe.api.thermal import advise_at_temperature, check_at_temperature, request
 from stepsafe.arguments import public
@@ -346,11 +346,9 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
         _advise_at_temperature(p, warm, data, criterion, order, progress)
     verdict = (_verification(integrator, result.regions)
                if as_flag(verify, "verify") and result else None)
-    safe = tuple((float(lo), hi) for lo, hi in data["safe_h"])
-    return AdviceReport(data["method"], data["h_max"], data["h_max_limited_by"], safe,
-                        data["horizon"], frozen_record(data), result,
-                        None if verdict is None else frozen_record(verdict),
-                        tuple((float(lo), float(hi)) for lo, hi in data.get("undecided_h", ())))
+    return AdviceReport(**record_fields(AdviceReport, data, advice=result,
+                                        verification=None if verdict is None
+                                        else frozen_record(verdict)))
 
 
 def _stochastic_record(integrator: Integrator, p: Problem, h: float | None
@@ -629,10 +627,9 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
     if as_flag(verify, "verify") and result is not None:
         top = max(float(b.max()) for b in p.modes.betas.values()) * float(step) / p.margin
         verdict = _verification(integrator, result.advice.regions, up_to=1.05 * top)
-    return CheckReport(data["method"], float(step), bool(data["safe"]), data["h_max"],
-                       tuple(MappingProxyType(f) for f in copy.deepcopy(data["failures"])),
-                       p.scene, frozen_record(data), result,
-                       None if verdict is None else frozen_record(verdict))
+    return CheckReport(**record_fields(CheckReport, data, result=result,
+                                       verification=None if verdict is None
+                                       else frozen_record(verdict)))
 
 
 #: The inputs that describe a method's single-force frequencies: an impulse method's modes

@@ -6,7 +6,8 @@ from __future__ import annotations
 import copy
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
-from typing import Any
+from types import MappingProxyType
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -75,6 +76,53 @@ def _ordered(models: Mapping[str, Any]) -> list[str]:
 # --------------------------------------------------------------------------- advise
 
 
+def _frozen(value: Any) -> Any:
+    """A JSON value made immutable: objects as read-only mappings, arrays as tuples."""
+    if isinstance(value, Mapping):
+        return MappingProxyType({k: _frozen(v) for k, v in value.items()})
+    if isinstance(value, (list, tuple)):
+        return tuple(_frozen(v) for v in value)
+    return value
+
+
+def _plain(value: Any) -> Any:
+    """A field's value as JSON: mappings as dicts, tuples as lists, a nested report as its
+    record (without ``schema_version``)."""
+    if hasattr(value, "to_dict"):
+        return unversioned(value.to_dict())
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def json_attribute(report_type: type, key: str) -> str:
+    """The attribute of ``report_type`` that holds its JSON record's ``key`` (the key
+    itself unless the type's ``JSON_NAMES`` renames it)."""
+    return getattr(report_type, "JSON_NAMES", {}).get(key, key)
+
+
+def record_fields(report_type: type, data: Mapping[str, Any], **objects: Any) -> dict[str, Any]:
+    """The constructor keywords of a report whose JSON record is ``data``: each key's value
+    (frozen) under its field, ``keys`` the keys in their order, and ``objects`` (results
+    that are not in the JSON). A key without a field is an error of the code."""
+    known = {f.name for f in fields(report_type)}
+    values = {}
+    for key, value in json_ready(dict(data)).items():
+        name = json_attribute(report_type, key)
+        if name not in known or name in objects or name == "keys":
+            raise TypeError(f"{report_type.__name__} has no field for the JSON key {key!r}")
+        values[name] = _frozen(value)
+    return {**values, **objects, "keys": tuple(data)}
+
+
+def _record_of(report: Any) -> dict[str, Any]:
+    """The JSON record of a keyed report: each of its ``keys`` from its field."""
+    return {key: _plain(getattr(report, json_attribute(type(report), key)))
+            for key in report.keys}
+
+
 @dataclass(frozen=True)
 class AdviceReport:
     """Safe steps: ``h_max`` ends the safe interval from 0 (``h_max_limited_by``:
@@ -85,23 +133,93 @@ class AdviceReport:
     core result (with the regions used) for decoupled modes. ``undecided_h``: intervals of
     h that float64 could not decide in the coupled analysis of a nearly semidefinite
     system too large for the high-precision criterion (neither certified nor certainly
-    unsafe)."""
+    unsafe).
 
+    Each key of ``stepsafe advise --json`` is a field (``verify`` is
+    :attr:`verification`); ``keys`` lists those this report carries, in their order
+    (the optional ones appear only where they apply). Steps are in :attr:`time_unit`.
+    """
+
+    #: the method's name
     method: str
+    #: the end of the safe interval of h from 0 (None: no end below the horizon)
     h_max: float | None
+    #: what ends it: ``boundary``, ``resonance n:m``, ``horizon``, ``none`` (with a
+    #: temperature, the ``limited_by`` of :attr:`thermal`)
     h_max_limited_by: str
+    #: every safe open interval of h, ``(lo, hi)``; hi None: no end below the horizon
     safe_h: tuple[tuple[float, float | None], ...]
+    #: how far in h the analysis looked (None: no limit)
     horizon: float | None
-    record: Mapping[str, Any] = field(repr=False)
+    #: the core result with the regions used (decoupled modes; not in the JSON)
     advice: Any = field(repr=False, default=None)
+    #: the ``--verify`` verdict (JSON ``verify``): mpmath's recomputation of the points
     verification: Mapping[str, Any] | None = None
+    #: intervals of h float64 could not decide in a coupled analysis (systems)
     undecided_h: tuple[tuple[float, float], ...] = ()
+    #: F in (0, 1]: every frequency taken up to 1/F times larger
+    margin: float = 1.0
+    #: ``structure`` (type and orientation kept) or ``stability`` (type only)
+    criterion: str = "structure"
+    #: the mode that ends h_max: its model, beta (rad per time unit), h_limit, the
+    #: boundary's z and kind (and ``label``); None unless a boundary ends it
+    limiting: Mapping[str, Any] | None = field(repr=False, default=None)
+    #: per model (``oscillator``, ``saddle``, ``inverted``, ...): its fastest beta, how many
+    #: modes, its first boundary z and the h it allows
+    models: Mapping[str, Mapping[str, Any]] = field(repr=False, default_factory=dict)
+    #: the unit of every step (None: the time unit of 1/beta)
+    time_unit: str | None = None
+    #: the fastest vibration's nonlinear resonances n theta = 2 pi m (orders 3 to 6 and up
+    #: to ``resonance_order``): resonance ``n:m``, z and h
+    nonlinear_resonances: tuple[Mapping[str, Any], ...] = field(repr=False, default=())
+    #: implicit methods: the h where fixed-point iteration of the stages stops converging
+    #: (in the time unit; None: explicit, or no limit)
+    fixed_point_limit: float | None = None
+    #: the safe steps under the criterion not asked for, where its h_max differs
+    other_criterion: Mapping[str, Any] | None = field(repr=False, default=None)
+    #: a Langevin splitting: its letters, friction, kT, what its stability means and (at
+    #: a step) how it samples the fastest vibration
+    stochastic: Mapping[str, Any] | None = field(repr=False, default=None)
+    #: a system: its analysis, its modes or equilibria (``items``: type, beta, h_limit),
+    #: notes and the equilibrium search
+    system: Mapping[str, Any] | None = field(repr=False, default=None)
+    #: at temperature: the request (kT, run) and each minimum's measured frequencies,
+    #: resonance-band scans and drift (:mod:`stepsafe.api.thermal`)
+    thermal: Mapping[str, Any] | None = field(repr=False, default=None)
+    #: at temperature: the 0 K answer (``h_max``, ``h_max_limited_by``, ``safe_h``)
+    zero_kelvin: Mapping[str, Any] | None = field(repr=False, default=None)
+    #: with tolerances: per mode, the tolerance bound's z and h (time unit) and what
+    #: limits it
+    accuracy: tuple[Mapping[str, Any], ...] = field(repr=False, default=())
+    #: with tolerances: the step to use, in the time unit (None: none)
+    h: float | None = None
+    #: with tolerances: which limit sets ``h`` (``safety``, ``phase``, ``energy``,
+    #: ``solver``)
+    bound_by: str | None = None
+    #: with tolerances: force evaluations per step (a force gradient counted at its cost)
+    evaluations: float | None = None
+    #: with tolerances: fixed-point iterations of the stages per step (implicit methods)
+    solver_iterations: int | None = None
+    #: with tolerances: force evaluations per unit of simulated time at ``h``
+    cost_per_unit_time: float | None = None
+    #: with tolerances, a processed method: forces of its processor, at the start and at
+    #: each output (``{"start": n, "per_output": n}``)
+    processor_evaluations: Mapping[str, int] | None = None
+    #: the JSON keys this report carries, in their order (``verify`` aside)
+    keys: tuple[str, ...] = field(repr=False, default=())
+
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({"verify": "verification"})
+
+    @property
+    def record(self) -> Mapping[str, Any]:
+        """The JSON record without ``schema_version`` and ``verify`` (read-only)."""
+        return MappingProxyType(_record_of(self))
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe advise ... --json`` prints."""
-        out = copy.deepcopy(dict(self.record))
+        out = _record_of(self)
         if self.verification is not None:
-            out["verify"] = copy.deepcopy(dict(self.verification))
+            out["verify"] = _plain(self.verification)
         return versioned(out)
 
 
@@ -111,23 +229,79 @@ class AdviceReport:
 @dataclass(frozen=True)
 class CheckReport:
     """Whether step ``h`` keeps every mode's structure (``safe``), the failing modes with
-    their reasons, and the safe steps for all modes (``h_max``, ``safe_h``)."""
+    their reasons, and the safe steps for all modes (``h_max``, ``safe_h``).
 
+    Each key of this check's entry in ``stepsafe check --json`` is a field (``verify`` is
+    :attr:`verification`); ``keys`` lists those it carries, in their order. Steps are in
+    :attr:`time_unit`.
+    """
+
+    #: the method's name
     method: str
+    #: the step checked, in the time unit
     h: float
+    #: every mode keeps its structure at h (and every further condition asked for holds)
     safe: bool
+    #: the end of the safe interval of h from 0 (None: no end below the horizon)
     h_max: float | None
+    #: the failing modes: model, beta (rad per time unit), z = beta h / margin, reason,
+    #: ``largest_safe_h`` (and ``label``)
     failures: tuple[Mapping[str, Any], ...]
+    #: the scene file (None: the command line)
     scene: str | None
-    record: Mapping[str, Any] = field(repr=False)
+    #: the core result (decoupled modes; not in the JSON)
     result: Any = field(repr=False, default=None)
+    #: the ``--verify`` verdict (JSON ``verify``)
     verification: Mapping[str, Any] | None = None
+    #: F in (0, 1]: every frequency taken up to 1/F times larger
+    margin: float = 1.0
+    #: h lies in the safe interval from 0 (not in an island beyond it)
+    in_primary_interval: bool = False
+    #: how many modes (or degrees of freedom of a coupled system) were checked
+    modes: int = 0
+    #: how many of them fail
+    failing: int = 0
+    #: what ends h_max (see :attr:`AdviceReport.h_max_limited_by`)
+    h_max_limited_by: str | None = None
+    #: every safe open interval of h, ``(lo, hi)``; hi None: no end below the horizon
+    safe_h: tuple[tuple[float, float | None], ...] = ()
+    #: ``structure`` or ``stability``
+    criterion: str = "structure"
+    #: the verdict under the criterion not asked for, where its h_max differs
+    other_criterion: Mapping[str, Any] | None = field(repr=False, default=None)
+    #: a Langevin splitting: what its verdict means and how it samples at h
+    stochastic: Mapping[str, Any] | None = field(repr=False, default=None)
+    #: why fixed-point iteration of the stages fails at h (implicit methods)
+    solver_failure: str | None = None
+    #: the unit of every step (None: the time unit of 1/beta)
+    time_unit: str | None = None
+    #: a system: its analysis, modes or equilibria and the equilibrium search
+    system: Mapping[str, Any] | None = field(repr=False, default=None)
+    #: an MD engine's system checked with runs: the runs and their verdict
+    engine_runs: Mapping[str, Any] | None = field(repr=False, default=None)
+    #: why those runs fail the step
+    engine_failure: str | None = None
+    #: why the equilibrium search cannot vouch for completeness (when required)
+    search_failure: str | None = None
+    #: at temperature: the request and each minimum's probes, reasons and verdict
+    thermal: Mapping[str, Any] | None = field(repr=False, default=None)
+    #: why the step fails at temperature
+    thermal_failure: str | None = None
+    #: the JSON keys this check's entry carries, in their order (``verify`` aside)
+    keys: tuple[str, ...] = field(repr=False, default=())
+
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({"verify": "verification"})
+
+    @property
+    def record(self) -> Mapping[str, Any]:
+        """This check's entry without ``verify`` (read-only)."""
+        return MappingProxyType(_record_of(self))
 
     def entry(self) -> dict[str, Any]:
         """This check's entry of ``checks`` in ``stepsafe check ... --json``."""
-        out = copy.deepcopy(dict(self.record))
+        out = _record_of(self)
         if self.verification is not None:
-            out["verify"] = copy.deepcopy(dict(self.verification))
+            out["verify"] = _plain(self.verification)
         return out
 
     def to_dict(self) -> dict[str, Any]:
