@@ -435,16 +435,29 @@ class CompareReport:
     solver: str = "best"
     criterion: str = "structure"
     jacobian_cost: float = 1.0
+    #: ``compare --measure SCENE``: each method's measured cost on the scene's system at
+    #: the trajectory error the phase tolerance allows over the run (``scene``, ``time``,
+    #: ``tolerance``), beside the predicted cost, both as ratios to the first method's
+    #: (None: not measured)
+    measured: Mapping[str, Any] | None = field(repr=False, default=None)
+
+    #: what ``cost`` counts
+    COST_UNIT: ClassVar[str] = "force evaluations per unit of simulated time"
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
+        "methods": "rows", "cost_unit": "COST_UNIT"})
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe compare ... --json`` prints."""
         from dataclasses import asdict
 
-        return versioned({"modes": dict(self.modes), "tolerances": dict(self.tolerances),
-                "margin": self.margin, "time_unit": self.time_unit, "solver": self.solver,
-                "jacobian_cost": self.jacobian_cost, "criterion": self.criterion,
-                "cost_unit": "force evaluations per unit of simulated time",
-                "methods": [_compare_row_dict(asdict(r)) for r in self.rows]})
+        out = {"modes": dict(self.modes), "tolerances": dict(self.tolerances),
+               "margin": self.margin, "time_unit": self.time_unit, "solver": self.solver,
+               "jacobian_cost": self.jacobian_cost, "criterion": self.criterion,
+               "cost_unit": self.COST_UNIT,
+               "methods": [_compare_row_dict(asdict(r)) for r in self.rows]}
+        if self.measured is not None:
+            out["measured"] = _plain(self.measured)
+        return versioned(out)
 
 
 def _compare_row_dict(row: dict[str, Any]) -> dict[str, Any]:
@@ -593,16 +606,31 @@ class ImpulseReport:
     #: ``{"resonance": "3:1", "h": ...}``: Ma, Izaguirre & Skeel's limit near a third of the
     #: fast period is the 3:1
     nonlinear: tuple[Mapping[str, Any], ...] = ()
+    #: ``region METHOD --ratio R``: the frequency ratio omega/Omega (slow over fast) of a
+    #: fast frequency 1, so that every step is Omega H (None: frequencies given)
+    ratio: float | None = None
+
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
+        "method": "name", "nonlinear_resonances": "nonlinear"})
+
+    @property
+    def units(self) -> str | None:
+        """With a :attr:`ratio`: what the steps are, ``Omega H (fast frequency 1)``."""
+        return None if self.ratio is None else "Omega H (fast frequency 1)"
 
     def to_dict(self) -> dict[str, Any]:
-        """What ``stepsafe respa ... --json`` prints."""
-        return versioned({"method": self.name, "substeps": self.substeps, "fast": self.fast,
-                "slow": self.slow, "beta": self.beta, "criterion": self.criterion,
-                "h_max": self.h_max, "safe_h": [list(iv) for iv in self.safe_h],
-                "bands": [copy.deepcopy(dict(b)) for b in self.bands],
-                "horizon": self.horizon, "step": self.step, "safe": self.safe,
-                "reason": self.reason, "time_unit": self.time_unit,
-                "nonlinear_resonances": [dict(r) for r in self.nonlinear]})
+        """What ``stepsafe respa ... --json`` prints (``region METHOD --ratio R --json``:
+        with ``ratio`` and ``units``)."""
+        out = {"method": self.name, "substeps": self.substeps, "fast": self.fast,
+               "slow": self.slow, "beta": self.beta, "criterion": self.criterion,
+               "h_max": self.h_max, "safe_h": [list(iv) for iv in self.safe_h],
+               "bands": [copy.deepcopy(dict(b)) for b in self.bands],
+               "horizon": self.horizon, "step": self.step, "safe": self.safe,
+               "reason": self.reason, "time_unit": self.time_unit,
+               "nonlinear_resonances": [dict(r) for r in self.nonlinear]}
+        if self.ratio is not None:
+            out.update(ratio=self.ratio, units=self.units)
+        return versioned(out)
 
 
 @dataclass(frozen=True)

@@ -5,6 +5,8 @@ Registered on the group of :mod:`stepsafe.cli.group` when :mod:`stepsafe.cli` is
 
 from __future__ import annotations
 
+import dataclasses
+
 import click
 
 from stepsafe.api import inputs, linear
@@ -145,11 +147,12 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, jacobian_cost, me
     arrays, _ = command_line_modes(options)
     methods = "all" if use_all else (None if names is None else names.split(","))
     margin = options["margin"]
-    data = linear.compare(methods, modes=arrays, tol_phase=tol_phase, tol_energy=tol_energy,
-                       margin=1.0 if margin is None else margin, zmax=options["zmax"],
-                       time_unit=options["time_unit"], solver=solver,
-                       criterion=criterion, gradient_cost=gradient_cost,
-                       jacobian_cost=jacobian_cost).to_dict()
+    report = linear.compare(methods, modes=arrays, tol_phase=tol_phase, tol_energy=tol_energy,
+                            margin=1.0 if margin is None else margin, zmax=options["zmax"],
+                            time_unit=options["time_unit"], solver=solver,
+                            criterion=criterion, gradient_cost=gradient_cost,
+                            jacobian_cost=jacobian_cost)
+    data = report.to_dict()
     if measure_scene is None and (duration is not None or initial is not None
                                   or budget is not None):
         raise _input_error("--time, --initial and --budget apply to --measure SCENE")
@@ -160,8 +163,9 @@ def compare_cmd(names, use_all, tol_phase, tol_energy, solver, jacobian_cost, me
         vibrations = arrays.get("oscillator")
         if vibrations is None or not len(vibrations):
             raise _input_error("--measure needs the vibrations compared (--beta, ...)")
-        data["measured"] = measured_ranking(data, measure_scene, tol_phase,
-                                            float(max(vibrations)), duration, initial, budget)
+        measured = measured_ranking(data, measure_scene, tol_phase, float(max(vibrations)),
+                                    duration, initial, budget)
+        data = dataclasses.replace(report, measured=measured).to_dict()
     if as_json:
         print_json(data)
     elif tsv:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import click
@@ -308,7 +309,7 @@ def impulse_region(integrator: Any, ratio: float | None, substeps: int | None,
     report = impulse(integrator, None, substeps=substeps, fast_beta=1.0, slow_beta=ratio,
                      criterion=criterion,
                      zmax=None if zmax is None else zmax * (1.0 + ratio * ratio) ** 0.5)
-    data = {**report.to_dict(), "ratio": ratio, "units": "Omega H (fast frequency 1)"}
+    data = dataclasses.replace(report, ratio=ratio).to_dict()
     if as_json:
         print_json(data)
     else:
