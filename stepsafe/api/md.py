@@ -10,6 +10,7 @@ resonances cluster near whole numbers), and the verdict for a step.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from types import MappingProxyType
@@ -296,7 +297,8 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
     failures = tuple(MappingProxyType({"mode": i, "label": labels[i], "reason": r.reason})
                      for i, r in enumerate(reports) if r.safe is False)
     verdict = None if step is None else not failures
-    return ImpulseModesReport(chosen.name, chosen.substeps, reports[0].criterion, reports,
+    labelled = tuple(dataclasses.replace(r, label=label) for r, label in zip(reports, labels))
+    return ImpulseModesReport(chosen.name, chosen.substeps, reports[0].criterion, labelled,
                               labels, h_max, safe_h, horizon, limiting, step, verdict,
                               failures, loaded.time_unit, loaded.where or None)
 

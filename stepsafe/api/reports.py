@@ -45,24 +45,75 @@ class RegionReport:
     #: under ``stability``: each model's first boundary under ``structure``
     structure_boundaries: Mapping[str, float | None] = field(default_factory=dict)
 
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({"verify": "verification"})
+
     def first_boundary(self, model: str = "oscillator") -> float | None:
         """z*, the end of the preserved interval from 0 (None: none below zmax)."""
         return self.regions[model].first_boundary
 
+    @property
+    def method(self) -> str:
+        """The method's name."""
+        return str(self._head["method"])
+
+    @property
+    def title(self) -> str:
+        """The method's title (with its reference)."""
+        return str(self._head["title"])
+
+    @property
+    def kind(self) -> str:
+        """The method's kind (``rk``, ``prk``, ``splitting``, ``composition``, ...)."""
+        return str(self._head["kind"])
+
+    @property
+    def stages(self) -> int | None:
+        """The method's stages (None: not a fixed number)."""
+        return self._head["stages"]
+
+    @property
+    def order(self) -> int | None:
+        """The method's order of accuracy (None: not known)."""
+        return self._head["order"]
+
+    @property
+    def symplectic(self) -> bool:
+        """Whether the method is symplectic."""
+        return bool(self._head["symplectic"])
+
+    @property
+    def _head(self) -> dict[str, Any]:
+        from stepsafe.core.records import method_data
+
+        return method_data(self.integrator.tableau, self.integrator.entry)
+
+    @property
+    def models(self) -> dict[str, dict[str, Any]]:
+        """Per model, its region as JSON (:func:`stepsafe.core.records.region_data`:
+        intervals, islands, resonances, poles of z = beta h, zmax), with its
+        ``structure_first_boundary`` under ``stability`` and the oscillator's
+        ``nonlinear_resonances``; a model without a form for this method:
+        ``{"not_analysed": why}``."""
+        from stepsafe.core.records import nonlinear_data, region_data
+
+        models: dict[str, dict[str, Any]] = {
+            m: region_data(self.regions[m]) if m in self.regions
+            else {"not_analysed": self.not_analysed[m]}
+            for m in (*self.regions, *self.not_analysed)}
+        out = {m: models[m] for m in _ordered(models)}
+        for m, z_star in self.structure_boundaries.items():
+            out[m]["structure_first_boundary"] = z_star
+        if "oscillator" in self.regions and self.regions["oscillator"].symplectic:
+            out["oscillator"]["nonlinear_resonances"] = nonlinear_data(self.nonlinear)
+        return out
+
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe region METHOD --json`` prints."""
-        head = method_data(self.integrator.tableau, self.integrator.entry)
-        models = {m: region_data(self.regions[m]) if m in self.regions
-                  else {"not_analysed": self.not_analysed[m]}
-                  for m in (*self.regions, *self.not_analysed)}
+        head = self._head
         out = {key: head[key] for key in ("method", "title", "kind", "stages", "order",
                                           "symplectic")}
-        out["models"] = {m: models[m] for m in _ordered(models)}
+        out["models"] = self.models
         out["criterion"] = self.criterion
-        for m, z_star in self.structure_boundaries.items():
-            out["models"][m]["structure_first_boundary"] = z_star
-        if "oscillator" in self.regions and self.regions["oscillator"].symplectic:
-            out["models"]["oscillator"]["nonlinear_resonances"] = nonlinear_data(self.nonlinear)
         if self.verification is not None:
             out["verify"] = copy.deepcopy(dict(self.verification))
         return versioned(out)
@@ -319,9 +370,14 @@ class CheckError:
     message: str
     where: str | None = None
 
+    #: no verdict: the file could not be checked
+    safe: ClassVar[None] = None
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({"error": "message"})
+
     def entry(self) -> dict[str, Any]:
         """Its entry of ``checks`` in ``stepsafe check ... --json``: ``safe`` is null."""
-        return {"scene": self.scene, "safe": None, "error": self.message, "where": self.where}
+        return {"scene": self.scene, "safe": self.safe, "error": self.message,
+                "where": self.where}
 
 
 @dataclass(frozen=True)
@@ -374,19 +430,61 @@ class ErrorTable:
     overflow: np.ndarray = field(repr=False)
     kernel_energy: np.ndarray | None = field(repr=False, default=None)
 
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
+        "phase_error": "phase_definition"})
+
+    @property
+    def phase_definition(self) -> str:
+        """What ``phase_error`` measures: ``theta/z - 1`` on the oscillator, ``log(mu)/z -
+        1`` on a saddle or barrier."""
+        return "theta/z - 1" if self.model == "oscillator" else "log(mu)/z - 1"
+
+    @property
+    def rows(self) -> tuple[ErrorRow, ...]:
+        """One row per z, in order (see :class:`ErrorRow`)."""
+        oscillator = self.model == "oscillator"
+        kernel = self.kernel_energy is not None and oscillator
+        kernel_energy = self.energy if self.kernel_energy is None or not kernel \
+            else self.kernel_energy
+        return tuple(
+            ErrorRow(float(zz), None if over else _finite(p),
+                     _finite(en) if oscillator and not over else None, bool(over),
+                     None if over or not kernel else _finite(ken), kernel)
+            for zz, p, en, over, ken in zip(self.z, self.phase, self.energy, self.overflow,
+                                            kernel_energy))
+
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe error METHOD --json`` prints."""
-        oscillator = self.model == "oscillator"
-        rows = [{"z": float(zz), "phase_error": None if over else _finite(p),
-                 "energy_error": _finite(en) if oscillator and not over
-                 else None, "overflow": bool(over)}
-                for zz, p, en, over in zip(self.z, self.phase, self.energy, self.overflow)]
-        if self.kernel_energy is not None and oscillator:
-            for row, en, over in zip(rows, self.kernel_energy, self.overflow):
-                row["kernel_energy_error"] = None if over else _finite(en)
         return versioned({"method": self.method, "model": self.model,
-                "phase_error": "theta/z - 1" if self.model == "oscillator"
-                else "log(mu)/z - 1", "rows": rows})
+                          "phase_error": self.phase_definition,
+                          "rows": [row.to_dict() for row in self.rows]})
+
+
+@dataclass(frozen=True)
+class ErrorRow:
+    """The accuracy of one step at one z = beta h (dimensionless); None where the structure
+    is lost or M(z) leaves float64."""
+
+    #: z = beta h
+    z: float
+    #: theta/z - 1 (vibration) or log(mu)/z - 1 (saddle, barrier)
+    phase_error: float | None
+    #: the relative energy error bound (vibrations only)
+    energy_error: float | None
+    #: M(z) left float64 at this z
+    overflow: bool
+    #: a processed method: the energy error bound of its kernel run alone
+    kernel_energy_error: float | None = None
+    #: whether the row carries ``kernel_energy_error`` (a processed method, oscillator)
+    processed: bool = field(repr=False, default=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """This row of ``stepsafe error --json``."""
+        out: dict[str, Any] = {"z": self.z, "phase_error": self.phase_error,
+                               "energy_error": self.energy_error, "overflow": self.overflow}
+        if self.processed:
+            out["kernel_energy_error"] = self.kernel_energy_error
+        return out
 
 
 def _finite(x: float) -> float | None:
@@ -422,6 +520,16 @@ class CompareRow:
     solver: str | None = None
     jacobians: int | None = None
 
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
+        "processor_evaluations": "processor_cost"})
+
+    @property
+    def processor_cost(self) -> Mapping[str, int] | None:
+        """``processor_evaluations`` as the JSON gives it: ``{"start": n, "per_output":
+        n}`` (None: not a processed method)."""
+        n = self.processor_evaluations
+        return None if n is None else {"start": n, "per_output": n}
+
 
 @dataclass(frozen=True)
 class CompareReport:
@@ -448,26 +556,26 @@ class CompareReport:
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe compare ... --json`` prints."""
-        from dataclasses import asdict
-
         out = {"modes": dict(self.modes), "tolerances": dict(self.tolerances),
                "margin": self.margin, "time_unit": self.time_unit, "solver": self.solver,
                "jacobian_cost": self.jacobian_cost, "criterion": self.criterion,
                "cost_unit": self.COST_UNIT,
-               "methods": [_compare_row_dict(asdict(r)) for r in self.rows]}
+               "methods": [_compare_row_dict(r) for r in self.rows]}
         if self.measured is not None:
             out["measured"] = _plain(self.measured)
         return versioned(out)
 
 
-def _compare_row_dict(row: dict[str, Any]) -> dict[str, Any]:
-    row["tolerance_status"] = list(row["tolerance_status"])
-    if row["processor_evaluations"] is None:
-        del row["processor_evaluations"]  # only processed methods have one
+def _compare_row_dict(row: CompareRow) -> dict[str, Any]:
+    from dataclasses import asdict
+
+    out = asdict(row)
+    out["tolerance_status"] = list(row.tolerance_status)
+    if row.processor_evaluations is None:
+        del out["processor_evaluations"]  # only processed methods have one
     else:
-        n = row["processor_evaluations"]
-        row["processor_evaluations"] = {"start": n, "per_output": n}
-    return row
+        out["processor_evaluations"] = row.processor_cost
+    return out
 
 
 @dataclass(frozen=True)
@@ -519,6 +627,24 @@ class HmcReport:
     #: over L); False: for the L (or T) given
     target_for_every_length: bool = True
 
+    #: what the gradient figures count
+    COST_UNIT: ClassVar[str] = "gradient evaluations"
+    #: how M = +-I points that float64 rounds into gaps of the stable steps are counted
+    ROUNDING_GAPS: ClassVar[str] = ROUNDING_GAP_RULE
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
+        "target_accept": "target", "cost_unit": "COST_UNIT",
+        "rounding_gaps": "ROUNDING_GAPS", "methods": "rows"})
+
+    @property
+    def beta_min(self) -> float:
+        """The slowest mode's angular frequency 1/sigma, rad per time unit."""
+        return self.beta_range[0]
+
+    @property
+    def beta_max(self) -> float:
+        """The fastest mode's angular frequency 1/sigma, rad per time unit."""
+        return self.beta_range[1]
+
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe hmc ... --json`` prints."""
         return versioned({"target_accept": self.target, "steps": self.steps,
@@ -527,10 +653,9 @@ class HmcReport:
                           "jitter": self.jitter,
                           "allow_unstable_jitter": self.allow_unstable_jitter,
                           "criterion": self.criterion, "modes": self.modes,
-                          "beta_min": self.beta_range[0], "beta_max": self.beta_range[1],
+                          "beta_min": self.beta_min, "beta_max": self.beta_max,
                           "time_unit": self.time_unit, "approximate": self.approximate,
-                          "cost_unit": "gradient evaluations",
-                          "rounding_gaps": ROUNDING_GAP_RULE,
+                          "cost_unit": self.COST_UNIT, "rounding_gaps": self.ROUNDING_GAPS,
                           "methods": [copy.deepcopy(_row_dict(r)) for r in self.rows]})
 
 
@@ -569,12 +694,17 @@ class DesignReport:
     binned: bool = False
     time_unit: str | None = None
 
+    #: how M = +-I points that float64 rounds into gaps of the stable steps are counted
+    ROUNDING_GAPS: ClassVar[str] = ROUNDING_GAP_RULE
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
+        "rounding_gaps": "ROUNDING_GAPS"})
+
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe design ... --json`` prints."""
         return versioned({"name": self.name, "stages": self.stages, "params": dict(self.params),
                 "step": self.step, "modes": self.modes, "binned": self.binned,
                 "time_unit": self.time_unit, "method_file": self.method_file,
-                "rounding_gaps": ROUNDING_GAP_RULE,
+                "rounding_gaps": self.ROUNDING_GAPS,
                 "comparison": [{**c, "resonance_h": list(c["resonance_h"])}
                                for c in self.comparison]})
 
@@ -606,6 +736,9 @@ class ImpulseReport:
     #: ``{"resonance": "3:1", "h": ...}``: Ma, Izaguirre & Skeel's limit near a third of the
     #: fast period is the 3:1
     nonlinear: tuple[Mapping[str, Any], ...] = ()
+    #: one mode of several (:class:`ImpulseModesReport`): its name in the scene (None:
+    #: none; in the JSON of the modes only)
+    label: str | None = None
     #: ``region METHOD --ratio R``: the frequency ratio omega/Omega (slow over fast) of a
     #: fast frequency 1, so that every step is Omega H (None: frequencies given)
     ratio: float | None = None
@@ -659,15 +792,24 @@ class ImpulseModesReport:
     #: split stiffness whose parts do not commute (then ``modes`` is empty)
     analysis: str = "decoupled: each mode's outer step on its own oscillator"
 
+    #: the kind of method
+    KIND: ClassVar[str] = "impulse"
+    #: the keys of each mode's :class:`ImpulseReport` that its row in the JSON leaves out
+    #: (they are the whole report's)
+    SHARED: ClassVar[tuple[str, ...]] = ("method", "substeps", "criterion", "time_unit",
+                                         "step")
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
+        "method": "name", "kind": "KIND", "limiting_mode": "limiting"})
+
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe advise`` / ``check`` print with ``--json`` for an impulse method."""
         modes = []
-        for label, mode in zip(self.labels, self.modes):
+        for mode in self.modes:
             row = unversioned(mode.to_dict())
-            for key in ("method", "substeps", "criterion", "time_unit", "step"):
+            for key in self.SHARED:
                 row.pop(key)
-            modes.append({"label": label, **row})
-        return versioned({"method": self.name, "kind": "impulse", "substeps": self.substeps,
+            modes.append({"label": mode.label, **row})
+        return versioned({"method": self.name, "kind": self.KIND, "substeps": self.substeps,
                 "criterion": self.criterion, "time_unit": self.time_unit,
                 "scene": self.scene, "h_max": self.h_max,
                 "safe_h": [list(iv) for iv in self.safe_h], "horizon": self.horizon,
@@ -731,12 +873,15 @@ class MeasureRow:
 
     @property
     def energy_ratio(self) -> float | None:
+        """The measured energy error over the predicted one (None: either is missing, or
+        the prediction is rounding of 0)."""
         return _ratio(self.energy_error, self.predicted_energy_error)
 
     @property
     def trajectory_ratio(self) -> float | None:
-        """None once the predicted phase drift reaches half a turn (the prediction is then
-        the largest error, 2, not the error)."""
+        """The measured trajectory error over the predicted one; None once the predicted
+        phase drift reaches half a turn (the prediction is then the largest error, 2, not
+        the error)."""
         if self.predicted_trajectory_error is not None and \
                 self.predicted_trajectory_error >= 2.0:
             return None
@@ -832,6 +977,8 @@ class EnsembleReport:
     time_unit: str | None = None
     states: tuple[tuple[float, ...], ...] = field(repr=False, default=())
 
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({"ensemble": "count"})
+
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe measure --ensemble N --json`` prints."""
         return versioned({"method": self.method, "system": self.system,
@@ -877,7 +1024,11 @@ class Refinement:
     #: floor, an upper bound
     below_reference: bool = False
 
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({"predicted_h": "predicted"})
+
     def to_dict(self) -> dict[str, Any]:
+        """What ``stepsafe measure --tol-energy T --json`` (or ``--tol-trajectory``)
+        prints."""
         return versioned({"quantity": self.quantity, "tol": self.tol, "h": self.h,
                           "error": self.error, "below_reference": self.below_reference,
                           "predicted_h": self.predicted, "h_safe": self.h_safe,

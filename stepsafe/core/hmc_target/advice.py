@@ -31,9 +31,10 @@ run.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from types import MappingProxyType
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -84,7 +85,31 @@ class TargetRow:
     laplace_rank: int | None = None
     notes: tuple[str, ...] = ()
 
+    #: the keys of this row in ``hmc --json`` held by :attr:`estimate` (the figures at
+    #: ``h_target``) or named otherwise
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
+        **{key: f"estimate.{key}" for key in (
+            "steps", "acceptance", "acceptance_se", "divergent", "expected_error",
+            "expected_error_se", "gradients_per_proposal", "gradients_per_accepted",
+            "gradients_per_time")},
+        "divergence_onset": "onset", "at_step": "at_step_record"})
+
+    @property
+    def at_step_record(self) -> dict[str, Any] | None:
+        """The figures at the step asked for (``hmc --step H``), with the Laplace
+        acceptance there, as ``hmc --json`` gives them (None: no step asked for)."""
+        if self.at_step is None:
+            return None
+        return {"h": self.at_step.h, "steps": self.at_step.steps,
+                "acceptance": self.at_step.acceptance,
+                "acceptance_se": self.at_step.acceptance_se,
+                "divergent": self.at_step.divergent,
+                "expected_error": _finite(self.at_step.expected_error),
+                "gradients_per_accepted": self.at_step.gradients_per_accepted,
+                "laplace_acceptance": self.laplace_at_step}
+
     def to_dict(self) -> dict[str, Any]:
+        """This method's row of ``hmc --json``."""
         e = self.estimate
         out: dict[str, Any] = {
             "method": self.method, "evaluations": self.evaluations,
@@ -109,14 +134,7 @@ class TargetRow:
             "divergence_onset": None if self.onset is None else {
                 "h_clean": self.onset.h_clean, "h_divergent": self.onset.h_divergent,
                 "proposals": self.onset.proposals, "scanned_to": self.onset.scanned_to},
-            "at_step": None if self.at_step is None else {
-                "h": self.at_step.h, "steps": self.at_step.steps,
-                "acceptance": self.at_step.acceptance,
-                "acceptance_se": self.at_step.acceptance_se,
-                "divergent": self.at_step.divergent,
-                "expected_error": _finite(self.at_step.expected_error),
-                "gradients_per_accepted": self.at_step.gradients_per_accepted,
-                "laplace_acceptance": self.laplace_at_step},
+            "at_step": self.at_step_record,
             "notes": list(self.notes)}
         return out
 
@@ -142,30 +160,52 @@ class TargetReport:
     seed: int
     notes: tuple[str, ...] = field(default=())
 
-    def to_dict(self) -> dict[str, Any]:
-        d = self.draws
+    #: what the gradient figures count
+    COST_UNIT: ClassVar[str] = "gradient evaluations"
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
+        "steps": "trajectory.steps", "length": "trajectory.length",
+        "jitter": "trajectory.jitter", "cost_unit": "COST_UNIT",
+        "laplace": "laplace_record", "methods": "rows"})
+
+    @property
+    def frequencies(self) -> dict[str, Any]:
+        """The spread of the largest frequency over the draws, as ``hmc --json`` gives
+        it: how it was found, over how many draws, ``omega_max`` (rad per time unit) and
+        its quantiles, the share of draws with an inverted mode, the Lanczos residual."""
+        return {"how": self.spread.how, "draws": self.spread.draws,
+                "omega_max": self.spread.top,
+                "omega_max_quantiles": {str(k): v for k, v in
+                                        self.spread.quantiles().items()},
+                "inverted_share": self.spread.inverted_share(),
+                "lanczos_residual": (None if self.spread.residual is None else
+                                     float(self.spread.residual.max()))}
+
+    @property
+    def laplace_record(self) -> dict[str, Any] | None:
+        """The Gaussian (Laplace) approximation at the mode, as ``hmc --json`` gives it:
+        whether its Hessian is positive definite, the search converged, the gradient norm
+        there and its slowest and fastest beta (None: not found)."""
         lap = self.laplace
+        if lap is None:
+            return None
+        return {"positive_definite": lap.positive_definite, "converged": lap.converged,
+                "gradient_norm": lap.gradient_norm,
+                "beta_min": float(lap.betas[0]) if lap.positive_definite else None,
+                "beta_max": float(lap.betas[-1]) if lap.positive_definite else None}
+
+    def to_dict(self) -> dict[str, Any]:
+        """What ``stepsafe hmc SCENE --json`` prints for a potential target."""
+        d = self.draws
         return versioned({
             "target_accept": self.target_accept, "steps": self.trajectory.steps,
             "length": self.trajectory.length, "jitter": self.trajectory.jitter,
             "allow_unstable_jitter": self.allow_unstable_jitter,
             "dimension": self.dimension, "seed": self.seed,
-            "cost_unit": "gradient evaluations",
+            "cost_unit": self.COST_UNIT,
             "draws": {"source": d.source, "chains": d.chains, "per_chain": d.per_chain,
                       "seed": d.seed, "sampler_step": d.step, "sampler_max_steps": d.max_steps,
                       "sampler_acceptance": d.acceptance, "sampler_divergent": d.divergent},
-            "frequencies": {"how": self.spread.how, "draws": self.spread.draws,
-                            "omega_max": self.spread.top,
-                            "omega_max_quantiles": {str(k): v for k, v in
-                                                    self.spread.quantiles().items()},
-                            "inverted_share": self.spread.inverted_share(),
-                            "lanczos_residual": (None if self.spread.residual is None else
-                                                 float(self.spread.residual.max()))},
-            "laplace": None if lap is None else {
-                "positive_definite": lap.positive_definite, "converged": lap.converged,
-                "gradient_norm": lap.gradient_norm,
-                "beta_min": float(lap.betas[0]) if lap.positive_definite else None,
-                "beta_max": float(lap.betas[-1]) if lap.positive_definite else None},
+            "frequencies": self.frequencies, "laplace": self.laplace_record,
             "methods": [r.to_dict() for r in self.rows], "notes": list(self.notes)})
 
 

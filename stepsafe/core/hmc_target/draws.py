@@ -28,7 +28,10 @@ result.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
+from typing import ClassVar
 
 import numpy as np
 
@@ -138,12 +141,19 @@ class Draws:
     acceptance: float | None = None
     divergent: int = 0
 
+    #: the keys of ``hmc --json``'s ``draws`` record named after this sampler's attributes
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
+        "sampler_step": "step", "sampler_max_steps": "max_steps",
+        "sampler_acceptance": "acceptance", "sampler_divergent": "divergent"})
+
     @property
     def chains(self) -> int:
+        """How many chains."""
         return int(self.positions.shape[0])
 
     @property
     def per_chain(self) -> int:
+        """Draws per chain."""
         return int(self.positions.shape[1])
 
     @property
