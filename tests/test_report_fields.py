@@ -1,6 +1,7 @@
 """Every key of every command's ``--json`` is a typed attribute of the report the command
 built, holding that key's value; the command prints that report's ``to_dict()`` unchanged;
-and each closed record of the JSON Schemas names exactly the keys its report can carry.
+each output fits its command's JSON Schema; and each closed record of those schemas names
+exactly the keys its report can carry.
 
 The inputs cover each shape of the output: decoupled modes, tolerances, a Langevin
 splitting, a 1-dof Hamiltonian, a coupled system, a scene at temperature, an impulse
@@ -196,6 +197,20 @@ def test_every_json_key_is_a_typed_field_of_the_report_printed(run, printed_repo
     assert assert_covered(report, data, args[0]) >= len(data) - 1
 
 
+@pytest.mark.parametrize("args", RUNS, ids=[" ".join(Path(a).name for a in r[:4])
+                                           for r in RUNS])
+def test_every_shape_of_output_is_valid_against_its_command_schema(run, args):
+    """Each of these outputs (systems, tolerances, temperature, verification, a potential
+    target, ensembles) fits the schema ``stepsafe schema output COMMAND`` prints, whose
+    advise and check records are closed."""
+    jsonschema = pytest.importorskip("jsonschema")
+    from stepsafe.api.schemas import output_schema
+
+    code, out, err = run(*args, "--json")
+    assert code in (0, 1, 2), err
+    jsonschema.Draft202012Validator(output_schema(args[0])).validate(json.loads(out))
+
+
 def test_a_record_key_without_a_typed_field_is_refused():
     """A report built from a record refuses a key it has no field for (a key cannot reach
     the JSON around the typed fields)."""
@@ -224,3 +239,60 @@ def test_record_fields_give_json_values_back_unchanged():
     with pytest.raises(TypeError):
         report.record["h_max"] = 1.0  # type: ignore[index]
 
+
+
+def _json_keys(owner: type, not_in_json: set[str], derived: set[str]) -> set[str]:
+    """The keys a report type's JSON can carry: its fields (less those not in its JSON)
+    under their JSON names, plus the keys ``derived`` from them by properties or
+    constants."""
+    renamed = dict(getattr(owner, "JSON_NAMES", {}))
+    inverse = {attribute: key for key, attribute in renamed.items()}
+    names = {f.name for f in dataclasses.fields(owner)} - not_in_json
+    return {inverse.get(name, name) for name in names} | derived
+
+
+def _properties(schema: dict[str, Any]) -> set[str]:
+    return set(schema["properties"]) - {"schema_version"}
+
+
+#: Each closed record of :mod:`stepsafe.api.schemas`, the report type it describes, that
+#: type's fields that are not in its JSON, and its JSON keys computed from other fields.
+CLOSED = [
+    ("LINEAR_ADVICE", reports.AdviceReport, {"advice", "keys"}, set()),
+    ("CHECK_ENTRY", reports.CheckReport, {"result", "keys"}, set()),
+    ("IMPULSE_MODES", reports.ImpulseModesReport, {"labels"}, {"kind"}),
+    ("RESPA", reports.ImpulseReport, {"method", "label", "ratio"}, set()),
+    ("IMPULSE_REGION", reports.ImpulseReport, {"method", "label"}, {"units"}),
+    ("COMPARE", reports.CompareReport, set(), {"cost_unit"}),
+    ("HMC", reports.HmcReport, {"beta_range"},
+     {"beta_min", "beta_max", "cost_unit", "rounding_gaps"}),
+    ("HMC_TARGET", TargetReport, {"trajectory", "spread", "laplace"},
+     {"steps", "length", "jitter", "cost_unit", "frequencies", "laplace"}),
+    ("DESIGN", reports.DesignReport, set(), {"rounding_gaps"}),
+    ("ERROR", reports.ErrorTable, {"z", "phase", "energy", "overflow", "kernel_energy"},
+     {"phase_error", "rows"}),
+    ("MEASURE_RUNS", reports.MeasureReport, set(), set()),
+    ("REFINEMENT", reports.Refinement, set(), set()),
+    ("ENSEMBLE", reports.EnsembleReport, {"states"}, set()),
+]
+
+
+@pytest.mark.parametrize("name, owner, not_in_json, derived", CLOSED,
+                         ids=[c[0] for c in CLOSED])
+def test_closed_schema_records_name_exactly_the_keys_of_their_report(name, owner,
+                                                                     not_in_json, derived):
+    """The hand-written JSON Schema of a command's record states exactly the keys its
+    report type can carry: a field added to the report without its schema, or a schema
+    key with no field, fails here."""
+    from stepsafe.api import schemas
+
+    schema = getattr(schemas, name)
+    if "anyOf" in schema:
+        schema = schema["anyOf"][0]
+    if "properties" not in schema:  # a dict of properties (MEASURE_RUNS)
+        schema = {"properties": schema}
+    else:
+        assert schema.get("additionalProperties") is False, f"{name} is not closed"
+    assert _properties(schema) == _json_keys(owner, not_in_json, derived)
+    for attribute in derived:  # each derived key is declared on the type
+        assert _declared(owner, json_attribute(owner, attribute).split(".")[0]), attribute

@@ -122,25 +122,43 @@ THERMAL_ADVICE = record({**THERMAL_REQUEST, "h_max": NUM_OR_NULL, "h_max_0K": NU
 THERMAL_CHECK = record({**THERMAL_REQUEST, "safe": BOOL, "reasons": array(STR)},
                        closed=False)
 
+#: A processed method's processor forces: once at the start and at each output.
+PROCESSOR = record({"start": INT, "per_output": INT})
+
+#: ``advise --json`` for a method that is not impulse: the fields of
+#: :class:`~stepsafe.api.reports.AdviceReport`, the optional ones where they apply.
 LINEAR_ADVICE = top({"method": STR, "margin": NUM, "h_max": NUM_OR_NULL,
                      "h_max_limited_by": STR_OR_NULL, "safe_h": INTERVALS,
                      "criterion": STR, "time_unit": STR_OR_NULL},
-                    {"stochastic": STOCHASTIC, "thermal": THERMAL_ADVICE,
+                    {"horizon": NUM_OR_NULL, "limiting": OBJECT_OR_NULL, "models": OBJECT,
+                     "nonlinear_resonances": NONLINEAR, "fixed_point_limit": NUM_OR_NULL,
+                     "other_criterion": OBJECT, "undecided_h": INTERVALS,
+                     "stochastic": STOCHASTIC, "system": OBJECT, "thermal": THERMAL_ADVICE,
                      "zero_kelvin": record({"h_max": NUM_OR_NULL,
                                             "h_max_limited_by": STR_OR_NULL,
-                                            "safe_h": INTERVALS})}, closed=False)
+                                            "safe_h": INTERVALS}),
+                     "accuracy": array(OBJECT), "h": NUM_OR_NULL, "bound_by": STR,
+                     "evaluations": NUM_OR_NULL, "solver_iterations": NUM_OR_NULL,
+                     "cost_per_unit_time": NUM_OR_NULL, "processor_evaluations": PROCESSOR,
+                     "verify": OBJECT})
 
+#: One entry of ``check --json``: the fields of :class:`~stepsafe.api.reports.CheckReport`
+#: (the optional ones where they apply), a file that could not be checked, or an impulse
+#: method's check.
 CHECK_ENTRY = {"anyOf": [
-    record({"method": STR, "h": NUM, "margin": NUM, "safe": BOOL, "modes": INT,
-            "failing": INT, "failures": array(FAILURE), "h_max": NUM_OR_NULL,
-            "safe_h": INTERVALS, "criterion": STR, "scene": STR_OR_NULL,
-            "time_unit": STR_OR_NULL},
-           {"stochastic": STOCHASTIC, "thermal": THERMAL_CHECK, "thermal_failure": STR,
+    record({"method": STR, "h": NUM, "margin": NUM, "safe": BOOL,
+            "in_primary_interval": BOOL, "modes": INT, "failing": INT,
+            "failures": array(FAILURE), "h_max": NUM_OR_NULL, "safe_h": INTERVALS,
+            "criterion": STR, "scene": STR_OR_NULL, "time_unit": STR_OR_NULL},
+           {"h_max_limited_by": STR_OR_NULL, "other_criterion": OBJECT,
+            "stochastic": STOCHASTIC, "solver_failure": STR, "system": OBJECT,
+            "search_failure": STR, "thermal": THERMAL_CHECK, "thermal_failure": STR,
             # an MD engine's system checked with runs: (stepsafe.systems.md.system)
             "engine_failure": STR,
             "engine_runs": record({"integrator": STR, "temperature": NUM,
                                    "verdict": STR, "seeds": array(INT),
-                                   "summary": STR}, closed=False)}, closed=False),
+                                   "summary": STR}, closed=False),
+            "verify": OBJECT}),
     record({"scene": STR_OR_NULL, "safe": {"const": None}, "error": STR,
             "where": STR_OR_NULL}),
     record({"method": STR, "kind": {"const": "impulse"}, "safe": BOOL_OR_NULL},
