@@ -52,6 +52,7 @@ from stepsafe.api.inputs import (
     problem_of,
     step_cost,
 )
+from stepsafe.api.keywords import shared_keywords
 from stepsafe.api.reports import DesignReport, HmcReport, HmcRow
 from stepsafe.arguments import public
 from stepsafe.core import hmc as core
@@ -103,6 +104,7 @@ def _validated(target: float, steps: int | None, length: float | None,
 
 
 @public()
+@shared_keywords
 def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         beta: ArrayLike | None = None, sigma: ArrayLike | None = None,
         saddle_beta: ArrayLike | None = None, inverted_beta: ArrayLike | None = None,
@@ -143,36 +145,7 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
     ----------
     methods : list of Integrator or str, or "all", optional
         The methods (names, ``family:N``, paths, Integrators); None: :data:`HMC_DEFAULT`.
-    beta : array_like, optional
-        Angular frequencies of the target's modes, rad per time unit (beta = 1/sigma for
-        unit mass).
-    sigma : array_like, optional
-        Standard deviations of the target's modes (unit mass), in the units of q.
-    saddle_beta, inverted_beta : array_like, optional
-        Rates of saddles and barrier tops, rad per time unit (refused: a Gaussian target
-        has only vibrations).
-    modes : mapping, optional
-        ``{model: betas}``, rad per time unit.
-    ordinary_frequency : number, text or list, optional
-        f = beta / (2 pi): cycles per time unit, or texts with a frequency unit.
-    wavenumber : number, text or list, optional
-        In cm^-1 (``3700`` or ``"3700 cm-1"``); needs a time unit.
-    period : number, text or list, optional
-        T = 2 pi / beta: in the time unit, or texts with a time unit (``"9 fs"``).
-    time_unit : str, optional
-        The unit of every step and length in and out (``"fs"``, ...); default: the
-        scene's, else the unit the texts name, else the time unit of 1/beta.
-    labels : mapping, optional
-        Names of the modes given by keyword, per model.
-    system : mapping, optional
-        ``{"covariance": C}`` or ``{"precision": P}``, with an optional ``"mass"``.
-    scene : str, Path or Scene, optional
-        A scene file (``stepsafe schema scene``) or a :func:`~stepsafe.load_scene` result.
-    zmax : float, optional
-        How far in z = beta*h (dimensionless) each method's region is analysed
-        (default: the scene's, else 10).
-    budget : float, optional
-        Seconds after which the analysis of a coupled system stops.
+    <keywords: target>
     progress : callable, optional
         Called with the fraction of methods done.
     problem : Problem, optional
@@ -552,6 +525,7 @@ DESIGN_REFERENCES = ("verlet", "bcss2", "bcss3", "mclachlan2-min")
 
 
 @public()
+@shared_keywords
 def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
            name: str | None = None, beta: ArrayLike | None = None, sigma: ArrayLike | None = None,
            saddle_beta: ArrayLike | None = None, inverted_beta: ArrayLike | None = None,
@@ -590,36 +564,7 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
         j in [0, 1): the design averages over ``step (1 +- j)``.
     name : str, optional
         The designed method's name (default ``designed-2stage`` / ``designed-3stage``).
-    beta : array_like, optional
-        Angular frequencies of the target's modes, rad per time unit (beta = 1/sigma for
-        unit mass).
-    sigma : array_like, optional
-        Standard deviations of the target's modes (unit mass), in the units of q.
-    saddle_beta, inverted_beta : array_like, optional
-        Rates of saddles and barrier tops, rad per time unit (refused: a Gaussian target
-        has only vibrations).
-    modes : mapping, optional
-        ``{model: betas}``, rad per time unit.
-    ordinary_frequency : number, text or list, optional
-        f = beta / (2 pi): cycles per time unit, or texts with a frequency unit.
-    wavenumber : number, text or list, optional
-        In cm^-1 (``3700`` or ``"3700 cm-1"``); needs a time unit.
-    period : number, text or list, optional
-        T = 2 pi / beta: in the time unit, or texts with a time unit (``"9 fs"``).
-    time_unit : str, optional
-        The unit of every step and length in and out (``"fs"``, ...); default: the
-        scene's, else the unit the texts name, else the time unit of 1/beta.
-    labels : mapping, optional
-        Names of the modes given by keyword, per model.
-    system : mapping, optional
-        ``{"covariance": C}`` or ``{"precision": P}``, with an optional ``"mass"``.
-    scene : str, Path or Scene, optional
-        A scene file (``stepsafe schema scene``) or a :func:`~stepsafe.load_scene` result.
-    zmax : float, optional
-        How far in z = beta*h (dimensionless) each method's region is analysed
-        (default: the scene's, else 10).
-    budget : float, optional
-        Seconds after which the analysis of a coupled system stops.
+    <keywords: target>
     problem : Problem, optional
         A :func:`~stepsafe.problem` built beforehand, given instead of the target's
         keywords above.

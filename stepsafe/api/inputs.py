@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from stepsafe.api.keywords import shared_keywords
 from stepsafe.arguments import public
 from stepsafe.core.advice import Modes, validate_margin
 from stepsafe.core.records import coefficients, json_ready, method_data, versioned
@@ -339,6 +340,7 @@ def step_in_unit(h: Any, time_unit: str | None) -> float:
 
 
 @public()
+@shared_keywords
 def problem(method: Integrator | str | None = None, beta: ArrayLike | None = None, *,
             saddle_beta: ArrayLike | None = None, inverted_beta: ArrayLike | None = None,
             modes: Mapping[str, ArrayLike] | None = None,
@@ -365,66 +367,16 @@ def problem(method: Integrator | str | None = None, beta: ArrayLike | None = Non
     ----------
     method : Integrator or str, optional
         The method (name, ``family`` with ``stages``, or path); default: the scene's.
-    beta : array_like, optional
-        Angular frequencies of vibrations, rad per time unit.
-    saddle_beta, inverted_beta : array_like, optional
-        Rates of saddles (H = beta p q) and of barrier tops (p' = +beta^2 q), rad per time
-        unit.
-    modes : mapping, optional
-        ``{model: betas}``, rad per time unit (models as in :func:`region`).
-    ordinary_frequency : number, text or list, optional
-        f = beta / (2 pi) of vibrations: cycles per time unit, or texts with a frequency
-        unit (``"100 THz"``, ``"3 ps-1"``).
-    wavenumber : number, text or list, optional
-        Vibrations in cm^-1 (``3700`` or ``"3700 cm-1"``); needs a time unit.
-    period : number, text or list, optional
-        T = 2 pi / beta of vibrations: in the time unit, or texts with a time unit
-        (``"9 fs"``).
-    sigma : array_like, optional
-        Standard deviations of a Gaussian target (HMC, unit mass), in the units of q:
-        beta = 1 / sigma.
-    time_unit : str, optional
-        The unit of every step in and out (``"fs"``, ``"ps"``, ...; see
-        :data:`stepsafe.units.TIME_UNITS`). Default: the scene's, else the unit that the
-        texts of ``h`` and ``period`` name, else the time unit of 1/beta.
+    <keywords: frequencies>
     h : float or str, optional
         The step to check, in the time unit or as a text with a time unit (``"0.5 fs"``);
         default: the scene's ``h:``.
-    labels : mapping, optional
-        Names of the modes given by keyword, per model.
-    system : mapping, optional
-        ``{"stiffness": K, "mass": M}``, ``{"precision": P}`` or ``{"covariance": C}`` with
-        an optional mass, ``{"hessian": H}``, or a scene's ``system:`` (a Hamiltonian).
+    <keywords: analysis>
     scene : str or Path, optional
         A scene file (see ``stepsafe schema scene``), or a :func:`load_scene` result.
-    stages, base : optional
-        A family's stage count; a composition's base.
-    margin : float, optional
-        F in (0, 1]: every frequency may be up to 1/F times larger (default: the scene's,
-        else 1).
-    zmax : float, optional
-        How far in z = beta*h to analyse (default: the scene's, else 10).
     progress : callable, optional
         Called with the fraction done of a coupled analysis.
-    budget : float, optional
-        Seconds after which a coupled analysis stops (steps above the h reached are then
-        not analysed).
-    openmm_system : openmm.System or str, optional
-        An OpenMM System (or its ``XmlSerializer`` file) whose instantaneous normal modes
-        are analysed (``pip install 'stepsafe[openmm]'``;
-        :mod:`stepsafe.systems.md.system`); as a scene's
-        ``system: {openmm:, positions:}``.
-    positions : array_like or str, optional
-        With ``openmm_system``: (N, 3) positions in nm (or an OpenMM Quantity), or a
-        ``.pdb``/``.cif``/State ``.xml`` file.
-    constraints : {"none", "h-bonds", "all-bonds", "h-angles"}, optional
-        Distance constraints added to an OpenMM system's own by OpenMM's ``createSystem``
-        rule (needs a PDB or PDBx structure).
-    hydrogen_mass : float or str, optional
-        Hydrogen mass repartitioning of an OpenMM system, amu (``3`` or ``"3 amu"``).
-    minimize : bool, optional
-        Minimise an OpenMM system's energy before the analysis (default: the scene's, else
-        no).
+    <keywords: openmm>
 
     Returns
     -------

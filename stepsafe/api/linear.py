@@ -45,6 +45,7 @@ from stepsafe.api.inputs import (
     valid_tolerance,
     z_values,
 )
+from stepsafe.api.keywords import shared_keywords
 from stepsafe.api.md import impulse_advice
 from stepsafe.api.reports import (
     AdviceReport,
@@ -150,6 +151,7 @@ def region(method: Integrator | str, model: str = "all", *, zmax: float = 10.0,
 
 
 @public()
+@shared_keywords
 def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None, *,
            saddle_beta: ArrayLike | None = None, inverted_beta: ArrayLike | None = None,
            modes: Mapping[str, ArrayLike] | None = None,
@@ -177,64 +179,10 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
     ----------
     method : Integrator or str, optional
         The method (name, family with ``stages``, or path); default: the scene's.
-    beta : array_like, optional
-        Angular frequencies of vibrations, rad per time unit.
-    saddle_beta, inverted_beta : array_like, optional
-        Rates of saddles (H = beta p q) and of barrier tops (p' = +beta^2 q), rad per
-        time unit.
-    modes : mapping, optional
-        ``{model: betas}``, rad per time unit (models as in :func:`region`).
-    ordinary_frequency : number, text or list, optional
-        f = beta / (2 pi) of vibrations: cycles per time unit, or texts with a frequency
-        unit (``"100 THz"``, ``"3 ps-1"``).
-    wavenumber : number, text or list, optional
-        Vibrations in cm^-1 (``3700`` or ``"3700 cm-1"``); needs a time unit.
-    period : number, text or list, optional
-        T = 2 pi / beta of vibrations: in the time unit, or texts with a time unit
-        (``"9 fs"``).
-    sigma : array_like, optional
-        Standard deviations of a Gaussian target (unit mass), in the units of q:
-        beta = 1 / sigma.
-    time_unit : str, optional
-        The unit of every step in and out (``"fs"``, ``"ps"``, ...); default: the
-        scene's, else the unit the texts of steps and periods name, else the time unit
-        of 1/beta.
-    labels : mapping, optional
-        Names of the modes given by keyword, per model.
-    system : mapping, optional
-        A system instead of frequencies: ``{"stiffness": K, "mass": M}``,
-        ``{"precision": P}``, ``{"covariance": C}``, ``{"hessian": H}`` or a
-        Hamiltonian (see :func:`problem`).
-    scene : str, Path or Scene, optional
-        A scene file (``stepsafe schema scene``) or a :func:`load_scene` result.
-    stages, base : int, str, optional
-        A family's stage count; a composition's base.
-    margin : float, optional
-        F in (0, 1]: every frequency may be up to 1/F times larger (default: the
-        scene's, else 1).
-    zmax : float, optional
-        How far in z = beta*h (dimensionless) to analyse (default: the scene's, else 10).
-    budget : float, optional
-        Seconds after which a coupled analysis stops.
-    progress : callable, optional
-        Called with the fraction done.
-    openmm_system : openmm.System or str, optional
-        An OpenMM System (or its ``XmlSerializer`` file) whose instantaneous normal modes
-        are analysed, with ``positions`` (needs ``pip install 'stepsafe[openmm]'``; see
-        :func:`problem`).
-    positions : array_like or str, optional
-        (N, 3) positions in nm (or an OpenMM Quantity), or a ``.pdb``/``.cif``/State
-        ``.xml`` file.
-    constraints : str, optional
-        ``none``, ``h-bonds``, ``all-bonds`` or ``h-angles``: constraints added to an OpenMM
-        system's own by OpenMM's ``createSystem`` rule.
-    hydrogen_mass : float or str, optional
-        Hydrogen mass repartitioning of an OpenMM system, amu (``3`` or ``"3 amu"``).
-    minimize : bool, optional
-        Minimise an OpenMM system's energy first (default: the scene's, else no).
-    problem : Problem, optional
-        A :func:`problem` built beforehand, given instead of the method, the frequencies
-        and the keywords above.
+    <keywords: frequencies>
+    <keywords: analysis>
+    <keywords: openmm>
+    <keywords: scene>
     tol_phase, tol_energy : float, optional
         Also bound the phase (growth-rate) error theta/z - 1 and the relative energy
         error (dimensionless), and add the usable step and its cost (implicit methods:
@@ -444,6 +392,7 @@ def _system_solver_limit(integrator: Integrator, p: Problem) -> float | None:
 
 
 @public()
+@shared_keywords
 def check(method: Integrator | str | None = None, h: float | str | None = None,
           beta: ArrayLike | None = None, *,
           saddle_beta: ArrayLike | None = None, inverted_beta: ArrayLike | None = None,
@@ -474,64 +423,10 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
     h : float or str, optional
         The step: a number in the time unit, or a text with a time unit (``"0.5 fs"``,
         converted); default: the scene's ``h:``.
-    beta : array_like, optional
-        Angular frequencies of vibrations, rad per time unit.
-    saddle_beta, inverted_beta : array_like, optional
-        Rates of saddles (H = beta p q) and of barrier tops (p' = +beta^2 q), rad per
-        time unit.
-    modes : mapping, optional
-        ``{model: betas}``, rad per time unit (models as in :func:`region`).
-    ordinary_frequency : number, text or list, optional
-        f = beta / (2 pi) of vibrations: cycles per time unit, or texts with a frequency
-        unit (``"100 THz"``, ``"3 ps-1"``).
-    wavenumber : number, text or list, optional
-        Vibrations in cm^-1 (``3700`` or ``"3700 cm-1"``); needs a time unit.
-    period : number, text or list, optional
-        T = 2 pi / beta of vibrations: in the time unit, or texts with a time unit
-        (``"9 fs"``).
-    sigma : array_like, optional
-        Standard deviations of a Gaussian target (unit mass), in the units of q:
-        beta = 1 / sigma.
-    time_unit : str, optional
-        The unit of every step in and out (``"fs"``, ``"ps"``, ...); default: the
-        scene's, else the unit the texts of steps and periods name, else the time unit
-        of 1/beta.
-    labels : mapping, optional
-        Names of the modes given by keyword, per model.
-    system : mapping, optional
-        A system instead of frequencies: ``{"stiffness": K, "mass": M}``,
-        ``{"precision": P}``, ``{"covariance": C}``, ``{"hessian": H}`` or a
-        Hamiltonian (see :func:`problem`).
-    scene : str, Path or Scene, optional
-        A scene file (``stepsafe schema scene``) or a :func:`load_scene` result.
-    stages, base : int, str, optional
-        A family's stage count; a composition's base.
-    margin : float, optional
-        F in (0, 1]: every frequency may be up to 1/F times larger (default: the
-        scene's, else 1).
-    zmax : float, optional
-        How far in z = beta*h (dimensionless) to analyse (default: the scene's, else 10).
-    budget : float, optional
-        Seconds after which a coupled analysis stops.
-    progress : callable, optional
-        Called with the fraction done.
-    openmm_system : openmm.System or str, optional
-        An OpenMM System (or its ``XmlSerializer`` file) whose instantaneous normal modes
-        are analysed, with ``positions`` (needs ``pip install 'stepsafe[openmm]'``; see
-        :func:`problem`).
-    positions : array_like or str, optional
-        (N, 3) positions in nm (or an OpenMM Quantity), or a ``.pdb``/``.cif``/State
-        ``.xml`` file.
-    constraints : str, optional
-        ``none``, ``h-bonds``, ``all-bonds`` or ``h-angles``: constraints added to an OpenMM
-        system's own by OpenMM's ``createSystem`` rule.
-    hydrogen_mass : float or str, optional
-        Hydrogen mass repartitioning of an OpenMM system, amu (``3`` or ``"3 amu"``).
-    minimize : bool, optional
-        Minimise an OpenMM system's energy first (default: the scene's, else no).
-    problem : Problem, optional
-        A :func:`problem` built beforehand, given instead of the method, the frequencies
-        and the keywords above.
+    <keywords: frequencies>
+    <keywords: analysis>
+    <keywords: openmm>
+    <keywords: scene>
     resonance_order : int, optional
         N: a vibration at or beyond its first nonlinear resonance of order at most N is
         unsafe too.
@@ -640,6 +535,7 @@ _SINGLE_FORCE = ("beta", "saddle_beta", "inverted_beta", "modes", "ordinary_freq
 
 
 @public()
+@shared_keywords
 def check_scenes(scenes: Sequence[str | Path], *, method: Integrator | str | None = None,
                  h: float | str | None = None, beta: ArrayLike | None = None,
                  saddle_beta: ArrayLike | None = None, inverted_beta: ArrayLike | None = None,
@@ -673,43 +569,8 @@ def check_scenes(scenes: Sequence[str | Path], *, method: Integrator | str | Non
     h : float or str, optional
         The step for every scene, in its time unit or as a text with a time unit
         (``"0.5 fs"``); default: each scene's ``h:``.
-    beta : array_like, optional
-        Angular frequencies of vibrations, rad per time unit, for every scene.
-    saddle_beta, inverted_beta : array_like, optional
-        Rates of saddles (H = beta p q) and of barrier tops (p' = +beta^2 q), rad per
-        time unit.
-    modes : mapping, optional
-        ``{model: betas}``, rad per time unit (models as in :func:`region`).
-    ordinary_frequency : number, text or list, optional
-        f = beta / (2 pi) of vibrations: cycles per time unit, or texts with a frequency
-        unit (``"100 THz"``, ``"3 ps-1"``).
-    wavenumber : number, text or list, optional
-        Vibrations in cm^-1 (``3700`` or ``"3700 cm-1"``); needs a time unit.
-    period : number, text or list, optional
-        T = 2 pi / beta of vibrations: in the time unit, or texts with a time unit
-        (``"9 fs"``).
-    sigma : array_like, optional
-        Standard deviations of a Gaussian target (unit mass), in the units of q:
-        beta = 1 / sigma.
-    time_unit : str, optional
-        The unit of every step in and out (``"fs"``, ``"ps"``, ...); default: the
-        scene's, else the unit the texts of steps and periods name, else the time unit
-        of 1/beta.
-    labels : mapping, optional
-        Names of the modes given by keyword, per model.
-    system : mapping, optional
-        A system instead of frequencies: ``{"stiffness": K, "mass": M}``,
-        ``{"precision": P}``, ``{"covariance": C}``, ``{"hessian": H}`` or a
-        Hamiltonian (see :func:`problem`).
-    stages, base : int, str, optional
-        A family's stage count; a composition's base.
-    margin : float, optional
-        F in (0, 1]: every frequency may be up to 1/F times larger (default: the
-        scene's, else 1).
-    zmax : float, optional
-        How far in z = beta*h (dimensionless) to analyse (default: the scene's, else 10).
-    budget : float, optional
-        Seconds after which a coupled analysis stops.
+    <keywords: frequencies>
+    <keywords: analysis>
     progress : callable, optional
         Called with the fraction done.
     resonance_order, criterion, verify, solver, require_complete_search
