@@ -183,6 +183,23 @@ def method(name: str, *, stages: int | None = None, base: str | None = None) -> 
 
     ``base`` swaps the base of a composition (``"midpoint"``, or ``"gauss:2"``).
 
+    Parameters
+    ----------
+    name : str
+        A built-in method's name or alias, a family's name (with ``stages``), or the path
+        of a method file.
+    stages : int, optional
+        The member of a family: its number of stages.
+    base : str, optional
+        The base method of a composition, in place of its own.
+
+    Returns
+    -------
+    Integrator
+        The method, with its tableau and its library entry.
+
+    Examples
+    --------
     >>> method("gauss", stages=2).order
     4
     """
@@ -197,7 +214,22 @@ def method(name: str, *, stages: int | None = None, base: str | None = None) -> 
 @public()
 def method_from_file(path: str | Path, *, base: str | None = None) -> Integrator:
     """A method file (YAML, see ``stepsafe schema method``), read by path even when its
-    name is also a built-in's."""
+    name is also a built-in's.
+
+    Parameters
+    ----------
+    path : str or Path
+        The method file.
+    base : str, optional
+        The base method of a composition, in place of its own.
+
+    Returns
+    -------
+    Integrator
+        The method the file defines.
+    """
+    from stepsafe.methods.library import _looks_like_path
+
     text = str(path)
     return method(text if _looks_like_path(text) else f"./{text}", base=base)
 
@@ -626,5 +658,19 @@ def compared_methods(methods: Sequence[Integrator | str] | str | None) -> list[I
 @public()
 def load_scene(path: str | Path) -> Any:
     """A scene file (see ``stepsafe schema scene``) as a :class:`stepsafe.systems.scene.Scene`;
-    pass its path as ``scene=`` to :func:`advise` or :func:`check`."""
+    pass its path as ``scene=`` to :func:`advise` or :func:`check`.
+
+    Parameters
+    ----------
+    path : str or Path
+        The scene file (YAML).
+
+    Returns
+    -------
+    Scene
+        The scene's method, frequencies or system, step and options, validated (bad input
+        raises :class:`~stepsafe.exceptions.StepsafeError` naming the file and key).
+    """
+    from stepsafe.systems.scene import load_scene as _load
+
     return _load(as_text(path, "path"))

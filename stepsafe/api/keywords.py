@@ -15,7 +15,7 @@ from collections.abc import Callable
 from typing import TypeVar
 
 #: The problem's frequencies, in every form, and the unit of steps (``problem``,
-#: ``advise``, ``check``, ``check_scenes``).
+#: ``advise``, ``check``, ``check_scenes``, ``compare``).
 FREQUENCIES = """\
 beta : array_like, optional
     Angular frequencies of vibrations, rad per time unit.
@@ -38,13 +38,13 @@ sigma : array_like, optional
 time_unit : str, optional
     The unit of every step in and out (``"fs"``, ``"ps"``, ...; see
     :data:`stepsafe.units.TIME_UNITS`). Default: the scene's, else the unit that the
-    texts of steps and periods name, else the time unit of 1/beta.
-labels : mapping, optional
-    Names of the modes given by keyword, per model."""
+    texts of steps and periods name, else the time unit of 1/beta."""
 
-#: A system instead of frequencies, the method's family, and how far and how long the
-#: analysis looks (``problem``, ``advise``, ``check``, ``check_scenes``).
+#: The modes' names, a system instead of frequencies, the method's family, and how far
+#: and how long the analysis looks (``problem``, ``advise``, ``check``, ``check_scenes``).
 ANALYSIS = """\
+labels : mapping, optional
+    Names of the modes given by keyword, per model.
 system : mapping, optional
     A system instead of frequencies: ``{"stiffness": K, "mass": M}``,
     ``{"precision": P}`` or ``{"covariance": C}`` with an optional mass,

@@ -116,6 +116,29 @@ def region(method: Integrator | str, model: str = "all", *, zmax: float = 10.0,
     orientation join the intervals). None: the method's own (``structure``; ``stability``
     for a Langevin splitting, the only one that applies to it).
 
+    Parameters
+    ----------
+    method : Integrator or str
+        The method (name, ``family:N``, path or Integrator).
+    model : str
+        ``oscillator``, ``saddle``, ``inverted`` (a barrier top), another model of
+        :data:`~stepsafe.api.inputs.REGION_MODELS`, or ``all``.
+    zmax : float
+        How far in z = beta*h (dimensionless) to analyse.
+    verify : bool
+        Recompute the regions' points with mpmath (50 digits): ``verification``.
+    resonance_orders : sequence of int
+        The orders n (3 or more) of the oscillator's nonlinear resonances listed.
+    criterion : str, optional
+        ``structure`` or ``stability`` (see above).
+
+    Returns
+    -------
+    RegionReport
+        The regions per model; ``to_dict()`` is ``stepsafe region METHOD --json``.
+
+    Examples
+    --------
     >>> round(region("verlet", "oscillator").first_boundary(), 12)
     2.0
     """
@@ -663,6 +686,24 @@ OVERFLOW = 1e150
 def errors(method: Integrator | str, z: ArrayLike, model: str = "oscillator") -> ErrorTable:
     """Phase and energy errors of one step at each z = beta*h > 0.
 
+    Parameters
+    ----------
+    method : Integrator or str
+        The method (name, ``family:N``, path or Integrator).
+    z : array_like
+        The points z = beta*h (dimensionless, positive).
+    model : str
+        ``oscillator`` (phase error theta/z - 1 and the relative energy error bound),
+        ``saddle`` or ``inverted`` (growth-rate error log(mu)/z - 1).
+
+    Returns
+    -------
+    ErrorTable
+        The errors at each z, NaN where the structure is lost; ``to_dict()`` is
+        ``stepsafe error METHOD --json``.
+
+    Examples
+    --------
     >>> table = errors("verlet", [0.1])
     >>> f"{table.phase[0]:.3e}"
     '4.171e-04'
@@ -699,6 +740,23 @@ def transfer_matrices(method: Integrator | str, z: ArrayLike,
     tr M > 2 (saddle, barrier). NaN where the implicit stage equations are singular (a pole);
     entries may overflow to inf far out; no warning is raised.
 
+    Parameters
+    ----------
+    method : Integrator or str
+        The method (name, ``family:N``, path or Integrator).
+    z : array_like
+        The points z = beta*h (dimensionless).
+    model : str
+        ``oscillator`` (q'' = -beta^2 q), ``saddle`` (H = beta p q) or ``inverted``
+        (q'' = +beta^2 q).
+
+    Returns
+    -------
+    numpy.ndarray
+        M(z), shape (len(z), 2, 2), read-only.
+
+    Examples
+    --------
     >>> M = transfer_matrices("verlet", [1.0])[0]
     >>> float(M[0, 0] + M[1, 1])   # 2 - z^2
     1.0
@@ -717,6 +775,7 @@ def transfer_matrices(method: Integrator | str, z: ArrayLike,
 
 
 @public()
+@shared_keywords
 def compare(methods: Sequence[Integrator | str] | str | None = None,
             beta: ArrayLike | None = None, *, saddle_beta: ArrayLike | None = None,
             inverted_beta: ArrayLike | None = None,
@@ -743,6 +802,35 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     step follows ``criterion`` (see :func:`advise`). A force-gradient method costs its
     forces plus ``gradient_cost`` forces per force-gradient term.
 
+    Parameters
+    ----------
+    methods : list of Integrator or str, or "all", optional
+        The methods (see above).
+    <keywords: frequencies>
+    tol_phase, tol_energy : float, optional
+        Bounds on the phase (growth-rate) error theta/z - 1 and on the relative energy
+        error (dimensionless); the accurate step meets both.
+    margin : float
+        F in (0, 1]: every frequency may be up to 1/F times larger.
+    zmax : float, optional
+        How far in z = beta*h (dimensionless) each method's region is analysed (default
+        10).
+    solver : str
+        ``best``, ``fixed-point``, ``newton`` or ``nominal`` (see above).
+    criterion : str
+        ``structure`` or ``stability``.
+    gradient_cost : float
+        Force evaluations one force-gradient term costs.
+    jacobian_cost : float
+        Force evaluations one Jacobian evaluated and factorised costs (Newton).
+
+    Returns
+    -------
+    CompareReport
+        The rows, cheapest first; ``to_dict()`` is ``stepsafe compare --json``.
+
+    Examples
+    --------
     >>> best = compare(["verlet", "pefrl"], [1.0], tol_phase=1e-6).rows[0]
     >>> best.method, best.bound_by
     ('pefrl', 'accuracy')

@@ -62,6 +62,35 @@ def impulse(outer: Integrator | str = "verlet", inner: Integrator | str | None =
     order at most N (the 3:1 is the limit near a third of the fast period that Ma,
     Izaguirre & Skeel, SIAM J. Sci. Comput. 24 (2003) 1951, found for impulse methods).
 
+    Parameters
+    ----------
+    outer : Integrator or str
+        The outer method, or an impulse method (see above).
+    inner : Integrator or str, optional
+        The inner method (default ``verlet``).
+    substeps : int, optional
+        Inner steps per outer drift (default: the impulse method's, else 4).
+    fast_beta, slow_beta : float
+        Angular frequencies of the fast and the slow force, rad per time unit.
+    step : float or str, optional
+        An outer step H to judge, in the time unit or as a text with a time unit.
+    criterion : str
+        ``stability`` or ``structure`` (see above).
+    zmax : float, optional
+        How far in beta H (dimensionless) to search (see above).
+    time_unit : str, optional
+        The unit of every step in and out (default: the time unit of 1/beta).
+    resonance_order : int, optional
+        N: keep H below the first nonlinear resonance of order at most N.
+
+    Returns
+    -------
+    ImpulseReport
+        ``h_max``, ``safe_h`` and the bands in the time unit (and the verdict on
+        ``step``); ``to_dict()`` is ``stepsafe respa --json``.
+
+    Examples
+    --------
     >>> report = impulse("verlet", "verlet", substeps=4, fast_beta=10.0, slow_beta=1.0)
     >>> round(10.0 * report.h_max / 3.141592653589793, 4)   # just below Omega H = pi
     0.9649
@@ -222,6 +251,38 @@ def impulse_advice(method: Integrator | str | None = None, pairs: Any = None, *,
     here win over the scene's. Each mode is its own oscillator of frequency
     ``sqrt(fast^2 + slow^2)`` (:func:`impulse`); H is safe when it is safe for every mode.
 
+    Parameters
+    ----------
+    method : Integrator or str, optional
+        The impulse method (default: the scene's).
+    pairs : list of (float, float), optional
+        ``(fast, slow)`` angular frequencies of each mode, rad per time unit.
+    labels : list of str, optional
+        The modes' names, in the order of ``pairs``.
+    scene : str, optional
+        A scene file giving the modes, the method and the step.
+    substeps : int, optional
+        Inner steps per outer drift (default: the method's).
+    step : float or str, optional
+        An outer step H to judge, in the time unit or as a text with a time unit.
+    time_unit : str, optional
+        The unit of every step in and out (default: the scene's, else the time unit of
+        1/beta).
+    criterion : str
+        ``stability`` or ``structure`` (as for :func:`impulse`).
+    resonance_order : int, optional
+        N: keep H below each mode's first nonlinear resonance of order at most N.
+    use_scene_step : bool
+        Judge the scene's ``h:`` when ``step`` is not given.
+
+    Returns
+    -------
+    ImpulseModesReport
+        The safe steps for all modes, the limiting mode and each mode's report;
+        ``to_dict()`` is ``stepsafe advise SCENE --json`` for an impulse method.
+
+    Examples
+    --------
     >>> report = impulse_advice("respa-verlet", [(10.0, 1.0), (4.0, 2.0)])
     >>> report.limiting, round(report.h_max, 6)   # the fastest mode's band near Omega H = pi
     (0, 0.303118)

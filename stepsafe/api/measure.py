@@ -110,6 +110,47 @@ def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
     of the distribution of each trajectory's largest energy error over every step,
     relative to its energy above the equilibrium's.
 
+    Parameters
+    ----------
+    method : Integrator or str
+        The method (name, ``family:N``, path or Integrator).
+    h : float, str or list of them
+        The step sizes, in the time unit or as texts with a time unit.
+    scene : str or Path, optional
+        A scene file whose ``system:`` is run.
+    system : mapping, optional
+        Or the mapping a scene's ``system:`` holds.
+    time : float or str, optional
+        How long each run lasts, in the time unit or as a text with a time unit.
+    initial : list of float, optional
+        The start, q then p.
+    energy : float, optional
+        The start's energy (1-dof Hamiltonian), or the ensemble's energy shell.
+    time_unit : str, optional
+        The unit of steps and times in and out.
+    solver : str
+        ``fixed-point`` or ``newton`` (implicit methods).
+    max_steps : int
+        The most steps one run may take.
+    budget : float, optional
+        Seconds after which the run under way stops.
+    progress : callable, optional
+        Called with the fraction done.
+    ensemble : int, optional
+        N: run N trajectories at once (see above).
+    kT : float, optional
+        With ``ensemble``: draw from the Boltzmann distribution at this thermal energy, in
+        the system's energy unit.
+    seed : int
+        The seed of the ensemble's draws.
+
+    Returns
+    -------
+    MeasureReport or EnsembleReport
+        A row per step size; ``to_dict()`` is ``stepsafe measure --json``.
+
+    Examples
+    --------
     >>> report = measure("verlet", [0.1], system={"hamiltonian": "p**2/2 + q**2/2",
     ...                  "box": {"q": [-1, 1], "p": [-1, 1]}}, initial=[0.0, 1.0])
     >>> row = report.rows[0]
@@ -354,6 +395,39 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
     ``time`` is required and h stays below it).
     ``quantity``: ``energy`` or ``trajectory`` (see :class:`MeasureRow`).
 
+    Parameters
+    ----------
+    method : Integrator or str
+        The method (name, ``family:N``, path or Integrator).
+    quantity : str
+        ``energy`` or ``trajectory``.
+    tol : float
+        The largest error allowed (relative, dimensionless).
+    scene : str or Path, optional
+        A scene file whose ``system:`` is run.
+    system : mapping, optional
+        Or the mapping a scene's ``system:`` holds.
+    time : float or str, optional
+        How long each run lasts, in the time unit or as a text with a time unit.
+    initial : list of float, optional
+        The start, q then p.
+    energy : float, optional
+        The start's energy (1-dof Hamiltonian).
+    time_unit : str, optional
+        The unit of steps and times in and out.
+    solver : str
+        ``fixed-point`` or ``newton`` (implicit methods).
+    progress : callable, optional
+        Called with the fraction done.
+
+    Returns
+    -------
+    Refinement
+        The step found, its error, the prediction and every run; ``to_dict()`` is
+        ``stepsafe measure --tol-energy T --json`` (or ``--tol-trajectory``).
+
+    Examples
+    --------
     >>> r = refine("verlet", "energy", 1e-3, system={"hamiltonian": "p**2/2 - cos(q)",
     ...            "box": {"q": [-4, 4], "p": [-1, 1]}}, initial=[0.0, 0.5], time=20.0)
     >>> r.limited_by, round(r.h / r.predicted, 2)   # the pendulum allows a little more
