@@ -88,6 +88,24 @@ problem : Problem, optional
     A :func:`problem` built beforehand, given instead of the method, the frequencies
     and the keywords above."""
 
+#: The system a measurement runs and how (``measure``, ``refine``).
+RUN = """\
+scene : str or Path, optional
+    A scene file whose ``system:`` is run.
+system : mapping, optional
+    Or the mapping a scene's ``system:`` holds.
+time : float or str, optional
+    How long each run lasts, in the time unit or as a text with a time unit.
+initial : list of float, optional
+    The start, q then p.
+energy : float, optional
+    The start's energy (a 1-dof Hamiltonian's), or an ensemble's energy shell.
+time_unit : str, optional
+    The unit of steps and times in and out (default: the scene's, else the unit their
+    texts name).
+solver : str
+    How implicit methods solve their stages: ``fixed-point`` or ``newton``."""
+
 #: A Gaussian target's modes (``hmc``, ``design``).
 TARGET = """\
 beta : array_like, optional
@@ -123,7 +141,7 @@ budget : float, optional
 
 #: Each block by the name its marker line gives.
 BLOCKS = {"frequencies": FREQUENCIES, "analysis": ANALYSIS, "openmm": OPENMM,
-          "scene": SCENE, "target": TARGET}
+          "scene": SCENE, "run": RUN, "target": TARGET}
 
 _MARKER = re.compile(r"( *)<keywords: ([a-z]+)>")
 

@@ -12,6 +12,7 @@ from typing import Any, overload
 import numpy as np
 
 from stepsafe.api.inputs import Integrator, as_integrator
+from stepsafe.api.keywords import shared_keywords
 from stepsafe.api.reports import (
     NEGLIGIBLE,
     EnsembleReport,
@@ -79,6 +80,7 @@ def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
 
 
 @public()
+@shared_keywords
 def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
             scene: str | Path | None = None,
             system: Mapping[str, Any] | None = None, time: float | str | None = None,
@@ -116,20 +118,7 @@ def measure(method: Integrator | str, h: Sequence[float | str] | float | str, *,
         The method (name, ``family:N``, path or Integrator).
     h : float, str or list of them
         The step sizes, in the time unit or as texts with a time unit.
-    scene : str or Path, optional
-        A scene file whose ``system:`` is run.
-    system : mapping, optional
-        Or the mapping a scene's ``system:`` holds.
-    time : float or str, optional
-        How long each run lasts, in the time unit or as a text with a time unit.
-    initial : list of float, optional
-        The start, q then p.
-    energy : float, optional
-        The start's energy (1-dof Hamiltonian), or the ensemble's energy shell.
-    time_unit : str, optional
-        The unit of steps and times in and out.
-    solver : str
-        ``fixed-point`` or ``newton`` (implicit methods).
+    <keywords: run>
     max_steps : int
         The most steps one run may take.
     budget : float, optional
@@ -382,6 +371,7 @@ NO_VIBRATION_START = 1000
 
 
 @public()
+@shared_keywords
 def refine(method: Integrator | str, quantity: str, tol: float, *,
            scene: str | Path | None = None, system: Mapping[str, Any] | None = None,
            time: float | str | None = None, initial: Sequence[float] | None = None,
@@ -403,20 +393,7 @@ def refine(method: Integrator | str, quantity: str, tol: float, *,
         ``energy`` or ``trajectory``.
     tol : float
         The largest error allowed (relative, dimensionless).
-    scene : str or Path, optional
-        A scene file whose ``system:`` is run.
-    system : mapping, optional
-        Or the mapping a scene's ``system:`` holds.
-    time : float or str, optional
-        How long each run lasts, in the time unit or as a text with a time unit.
-    initial : list of float, optional
-        The start, q then p.
-    energy : float, optional
-        The start's energy (1-dof Hamiltonian).
-    time_unit : str, optional
-        The unit of steps and times in and out.
-    solver : str
-        ``fixed-point`` or ``newton`` (implicit methods).
+    <keywords: run>
     progress : callable, optional
         Called with the fraction done.
 
