@@ -38,12 +38,12 @@ class RegionReport:
     regions: Mapping[str, Any]
     not_analysed: Mapping[str, str] = field(default_factory=dict)
     verification: Mapping[str, Any] | None = None
-    #: oscillator: the nonlinear resonances n theta = 2 pi m in the interval from 0
     nonlinear: tuple[Any, ...] = ()
-    #: ``structure`` or ``stability`` (see :func:`region`)
+    """oscillator: the nonlinear resonances n theta = 2 pi m in the interval from 0"""
     criterion: str = "structure"
-    #: under ``stability``: each model's first boundary under ``structure``
+    """``structure`` or ``stability`` (see :func:`region`)"""
     structure_boundaries: Mapping[str, float | None] = field(default_factory=dict)
+    """under ``stability``: each model's first boundary under ``structure``"""
 
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({"verify": "verification"})
 
@@ -191,73 +191,73 @@ class AdviceReport:
     (the optional ones appear only where they apply). Steps are in :attr:`time_unit`.
     """
 
-    #: the method's name
     method: str
-    #: the end of the safe interval of h from 0 (None: no end below the horizon)
+    """the method's name"""
     h_max: float | None
-    #: what ends it: ``boundary``, ``resonance n:m``, ``horizon``, ``none`` (with a
-    #: temperature, the ``limited_by`` of :attr:`thermal`)
+    """the end of the safe interval of h from 0 (None: no end below the horizon)"""
     h_max_limited_by: str
-    #: every safe open interval of h, ``(lo, hi)``; hi None: no end below the horizon
+    """what ends it: ``boundary``, ``resonance n:m``, ``horizon``, ``none`` (with a
+    temperature, the ``limited_by`` of :attr:`thermal`)"""
     safe_h: tuple[tuple[float, float | None], ...]
-    #: how far in h the analysis looked (None: no limit)
+    """every safe open interval of h, ``(lo, hi)``; hi None: no end below the horizon"""
     horizon: float | None
-    #: the core result with the regions used (decoupled modes; not in the JSON)
+    """how far in h the analysis looked (None: no limit)"""
     advice: Any = field(repr=False, default=None)
-    #: the ``--verify`` verdict (JSON ``verify``): mpmath's recomputation of the points
+    """the core result with the regions used (decoupled modes; not in the JSON)"""
     verification: Mapping[str, Any] | None = None
-    #: intervals of h float64 could not decide in a coupled analysis (systems)
+    """the ``--verify`` verdict (JSON ``verify``): mpmath's recomputation of the points"""
     undecided_h: tuple[tuple[float, float], ...] = ()
-    #: F in (0, 1]: every frequency taken up to 1/F times larger
+    """intervals of h float64 could not decide in a coupled analysis (systems)"""
     margin: float = 1.0
-    #: ``structure`` (type and orientation kept) or ``stability`` (type only)
+    """F in (0, 1]: every frequency taken up to 1/F times larger"""
     criterion: str = "structure"
-    #: the mode that ends h_max: its model, beta (rad per time unit), h_limit, the
-    #: boundary's z and kind (and ``label``); None unless a boundary ends it
+    """``structure`` (type and orientation kept) or ``stability`` (type only)"""
     limiting: Mapping[str, Any] | None = field(repr=False, default=None)
-    #: per model (``oscillator``, ``saddle``, ``inverted``, ...): its fastest beta, how many
-    #: modes, its first boundary z and the h it allows
+    """the mode that ends h_max: its model, beta (rad per time unit), h_limit, the
+    boundary's z and kind (and ``label``); None unless a boundary ends it"""
     models: Mapping[str, Mapping[str, Any]] = field(repr=False, default_factory=dict)
-    #: the unit of every step (None: the time unit of 1/beta)
+    """per model (``oscillator``, ``saddle``, ``inverted``, ...): its fastest beta, how many
+    modes, its first boundary z and the h it allows"""
     time_unit: str | None = None
-    #: the fastest vibration's nonlinear resonances n theta = 2 pi m (orders 3 to 6 and up
-    #: to ``resonance_order``): resonance ``n:m``, z and h
+    """the unit of every step (None: the time unit of 1/beta)"""
     nonlinear_resonances: tuple[Mapping[str, Any], ...] = field(repr=False, default=())
-    #: implicit methods: the h where fixed-point iteration of the stages stops converging
-    #: (in the time unit; None: explicit, or no limit)
+    """the fastest vibration's nonlinear resonances n theta = 2 pi m (orders 3 to 6 and up
+    to ``resonance_order``): resonance ``n:m``, z and h"""
     fixed_point_limit: float | None = None
-    #: the safe steps under the criterion not asked for, where its h_max differs
+    """implicit methods: the h where fixed-point iteration of the stages stops converging
+    (in the time unit; None: explicit, or no limit)"""
     other_criterion: Mapping[str, Any] | None = field(repr=False, default=None)
-    #: a Langevin splitting: its letters, friction, kT, what its stability means and (at
-    #: a step) how it samples the fastest vibration
+    """the safe steps under the criterion not asked for, where its h_max differs"""
     stochastic: Mapping[str, Any] | None = field(repr=False, default=None)
-    #: a system: its analysis, its modes or equilibria (``items``: type, beta, h_limit),
-    #: notes and the equilibrium search
+    """a Langevin splitting: its letters, friction, kT, what its stability means and (at
+    a step) how it samples the fastest vibration"""
     system: Mapping[str, Any] | None = field(repr=False, default=None)
-    #: at temperature: the request (kT, run) and each minimum's measured frequencies,
-    #: resonance-band scans and drift (:mod:`stepsafe.api.thermal`)
+    """a system: its analysis, its modes or equilibria (``items``: type, beta, h_limit),
+    notes and the equilibrium search"""
     thermal: Mapping[str, Any] | None = field(repr=False, default=None)
-    #: at temperature: the 0 K answer (``h_max``, ``h_max_limited_by``, ``safe_h``)
+    """at temperature: the request (kT, run) and each minimum's measured frequencies,
+    resonance-band scans and drift (:mod:`stepsafe.api.thermal`)"""
     zero_kelvin: Mapping[str, Any] | None = field(repr=False, default=None)
-    #: with tolerances: per mode, the tolerance bound's z and h (time unit) and what
-    #: limits it
+    """at temperature: the 0 K answer (``h_max``, ``h_max_limited_by``, ``safe_h``)"""
     accuracy: tuple[Mapping[str, Any], ...] = field(repr=False, default=())
-    #: with tolerances: the step to use, in the time unit (None: none)
+    """with tolerances: per mode, the tolerance bound's z and h (time unit) and what
+    limits it"""
     h: float | None = None
-    #: with tolerances: which limit sets ``h`` (``safety``, ``phase``, ``energy``,
-    #: ``solver``)
+    """with tolerances: the step to use, in the time unit (None: none)"""
     bound_by: str | None = None
-    #: with tolerances: force evaluations per step (a force gradient counted at its cost)
+    """with tolerances: which limit sets ``h`` (``safety``, ``phase``, ``energy``,
+    ``solver``)"""
     evaluations: float | None = None
-    #: with tolerances: fixed-point iterations of the stages per step (implicit methods)
+    """with tolerances: force evaluations per step (a force gradient counted at its cost)"""
     solver_iterations: int | None = None
-    #: with tolerances: force evaluations per unit of simulated time at ``h``
+    """with tolerances: fixed-point iterations of the stages per step (implicit methods)"""
     cost_per_unit_time: float | None = None
-    #: with tolerances, a processed method: forces of its processor, at the start and at
-    #: each output (``{"start": n, "per_output": n}``)
+    """with tolerances: force evaluations per unit of simulated time at ``h``"""
     processor_evaluations: Mapping[str, int] | None = None
-    #: the JSON keys this report carries, in their order (``verify`` aside)
+    """with tolerances, a processed method: forces of its processor, at the start and at
+    each output (``{"start": n, "per_output": n}``)"""
     keys: tuple[str, ...] = field(repr=False, default=())
+    """the JSON keys this report carries, in their order (``verify`` aside)"""
 
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({"verify": "verification"})
 
@@ -287,59 +287,59 @@ class CheckReport:
     :attr:`time_unit`.
     """
 
-    #: the method's name
     method: str
-    #: the step checked, in the time unit
+    """the method's name"""
     h: float
-    #: every mode keeps its structure at h (and every further condition asked for holds)
+    """the step checked, in the time unit"""
     safe: bool
-    #: the end of the safe interval of h from 0 (None: no end below the horizon)
+    """every mode keeps its structure at h (and every further condition asked for holds)"""
     h_max: float | None
-    #: the failing modes: model, beta (rad per time unit), z = beta h / margin, reason,
-    #: ``largest_safe_h`` (and ``label``)
+    """the end of the safe interval of h from 0 (None: no end below the horizon)"""
     failures: tuple[Mapping[str, Any], ...]
-    #: the scene file (None: the command line)
+    """the failing modes: model, beta (rad per time unit), z = beta h / margin, reason,
+    ``largest_safe_h`` (and ``label``)"""
     scene: str | None
-    #: the core result (decoupled modes; not in the JSON)
+    """the scene file (None: the command line)"""
     result: Any = field(repr=False, default=None)
-    #: the ``--verify`` verdict (JSON ``verify``)
+    """the core result (decoupled modes; not in the JSON)"""
     verification: Mapping[str, Any] | None = None
-    #: F in (0, 1]: every frequency taken up to 1/F times larger
+    """the ``--verify`` verdict (JSON ``verify``)"""
     margin: float = 1.0
-    #: h lies in the safe interval from 0 (not in an island beyond it)
+    """F in (0, 1]: every frequency taken up to 1/F times larger"""
     in_primary_interval: bool = False
-    #: how many modes (or degrees of freedom of a coupled system) were checked
+    """h lies in the safe interval from 0 (not in an island beyond it)"""
     modes: int = 0
-    #: how many of them fail
+    """how many modes (or degrees of freedom of a coupled system) were checked"""
     failing: int = 0
-    #: what ends h_max (see :attr:`AdviceReport.h_max_limited_by`)
+    """how many of them fail"""
     h_max_limited_by: str | None = None
-    #: every safe open interval of h, ``(lo, hi)``; hi None: no end below the horizon
+    """what ends h_max (see :attr:`AdviceReport.h_max_limited_by`)"""
     safe_h: tuple[tuple[float, float | None], ...] = ()
-    #: ``structure`` or ``stability``
+    """every safe open interval of h, ``(lo, hi)``; hi None: no end below the horizon"""
     criterion: str = "structure"
-    #: the verdict under the criterion not asked for, where its h_max differs
+    """``structure`` or ``stability``"""
     other_criterion: Mapping[str, Any] | None = field(repr=False, default=None)
-    #: a Langevin splitting: what its verdict means and how it samples at h
+    """the verdict under the criterion not asked for, where its h_max differs"""
     stochastic: Mapping[str, Any] | None = field(repr=False, default=None)
-    #: why fixed-point iteration of the stages fails at h (implicit methods)
+    """a Langevin splitting: what its verdict means and how it samples at h"""
     solver_failure: str | None = None
-    #: the unit of every step (None: the time unit of 1/beta)
+    """why fixed-point iteration of the stages fails at h (implicit methods)"""
     time_unit: str | None = None
-    #: a system: its analysis, modes or equilibria and the equilibrium search
+    """the unit of every step (None: the time unit of 1/beta)"""
     system: Mapping[str, Any] | None = field(repr=False, default=None)
-    #: an MD engine's system checked with runs: the runs and their verdict
+    """a system: its analysis, modes or equilibria and the equilibrium search"""
     engine_runs: Mapping[str, Any] | None = field(repr=False, default=None)
-    #: why those runs fail the step
+    """an MD engine's system checked with runs: the runs and their verdict"""
     engine_failure: str | None = None
-    #: why the equilibrium search cannot vouch for completeness (when required)
+    """why those runs fail the step"""
     search_failure: str | None = None
-    #: at temperature: the request and each minimum's probes, reasons and verdict
+    """why the equilibrium search cannot vouch for completeness (when required)"""
     thermal: Mapping[str, Any] | None = field(repr=False, default=None)
-    #: why the step fails at temperature
+    """at temperature: the request and each minimum's probes, reasons and verdict"""
     thermal_failure: str | None = None
-    #: the JSON keys this check's entry carries, in their order (``verify`` aside)
+    """why the step fails at temperature"""
     keys: tuple[str, ...] = field(repr=False, default=())
+    """the JSON keys this check's entry carries, in their order (``verify`` aside)"""
 
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({"verify": "verification"})
 
@@ -370,8 +370,8 @@ class CheckError:
     message: str
     where: str | None = None
 
-    #: no verdict: the file could not be checked
     safe: ClassVar[None] = None
+    """no verdict: the file could not be checked"""
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({"error": "message"})
 
     def entry(self) -> dict[str, Any]:
@@ -465,18 +465,18 @@ class ErrorRow:
     """The accuracy of one step at one z = beta h (dimensionless); None where the structure
     is lost or M(z) leaves float64."""
 
-    #: z = beta h
     z: float
-    #: theta/z - 1 (vibration) or log(mu)/z - 1 (saddle, barrier)
+    """z = beta h"""
     phase_error: float | None
-    #: the relative energy error bound (vibrations only)
+    """theta/z - 1 (vibration) or log(mu)/z - 1 (saddle, barrier)"""
     energy_error: float | None
-    #: M(z) left float64 at this z
+    """the relative energy error bound (vibrations only)"""
     overflow: bool
-    #: a processed method: the energy error bound of its kernel run alone
+    """M(z) left float64 at this z"""
     kernel_energy_error: float | None = None
-    #: whether the row carries ``kernel_energy_error`` (a processed method, oscillator)
+    """a processed method: the energy error bound of its kernel run alone"""
     processed: bool = field(repr=False, default=False)
+    """whether the row carries ``kernel_energy_error`` (a processed method, oscillator)"""
 
     def to_dict(self) -> dict[str, Any]:
         """This row of ``stepsafe error --json``."""
@@ -514,10 +514,10 @@ class CompareRow:
     cost: float | None
     rank: int | None
     processor_evaluations: int | None = None
-    #: implicit methods: the stage solver counted (``fixed-point`` or ``newton``; with
-    #: ``solver="best"`` the cheaper at its step) and Newton's Jacobians per step (each
-    #: costing :attr:`CompareReport.jacobian_cost` force evaluations in ``cost``)
     solver: str | None = None
+    """implicit methods: the stage solver counted (``fixed-point`` or ``newton``; with
+    ``solver="best"`` the cheaper at its step) and Newton's Jacobians per step (each
+    costing :attr:`CompareReport.jacobian_cost` force evaluations in ``cost``)"""
     jacobians: int | None = None
 
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
@@ -543,14 +543,14 @@ class CompareReport:
     solver: str = "best"
     criterion: str = "structure"
     jacobian_cost: float = 1.0
-    #: ``compare --measure SCENE``: each method's measured cost on the scene's system at
-    #: the trajectory error the phase tolerance allows over the run (``scene``, ``time``,
-    #: ``tolerance``), beside the predicted cost, both as ratios to the first method's
-    #: (None: not measured)
     measured: Mapping[str, Any] | None = field(repr=False, default=None)
+    """``compare --measure SCENE``: each method's measured cost on the scene's system at
+    the trajectory error the phase tolerance allows over the run (``scene``, ``time``,
+    ``tolerance``), beside the predicted cost, both as ratios to the first method's
+    (None: not measured)"""
 
-    #: what ``cost`` counts
     COST_UNIT: ClassVar[str] = "force evaluations per unit of simulated time"
+    """what ``cost`` counts"""
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
         "methods": "rows", "cost_unit": "COST_UNIT"})
 
@@ -584,9 +584,9 @@ class HmcRow:
     does not exist, e.g. no step reaches the target)."""
 
     method: str
-    #: gradient evaluations per step (first same as last merged; a force gradient counted
-    #: at ``gradient_cost``; None for an implicit method, whose count depends on h)
     evaluations: float | None
+    """gradient evaluations per step (first same as last merged; a force gradient counted
+    at ``gradient_cost``; None for an implicit method, whose count depends on h)"""
     symmetric: bool
     stability_h: float | None  # end of |tr M| <= 2 from 0 for the fastest mode
     structure_h: float | None  # end of the structure-preserving interval from 0
@@ -602,8 +602,8 @@ class HmcRow:
     at_step: Mapping[str, Any] | None = None
     stalls: tuple[Mapping[str, Any], ...] = ()
     notes: tuple[str, ...] = ()
-    #: (h, predicted acceptance, its bound over every L) up to the limit searched, if asked
     curve: tuple[tuple[float, float, float], ...] = ()
+    """(h, predicted acceptance, its bound over every L) up to the limit searched, if asked"""
 
 
 @dataclass(frozen=True)
@@ -621,16 +621,16 @@ class HmcReport:
     beta_range: tuple[float, float]
     time_unit: str | None = None
     approximate: bool = False
-    #: False: the step at target keeps ``h (1 + jitter)`` within the criterion's limit
     allow_unstable_jitter: bool = False
-    #: True: the step at target reaches the target for every trajectory length (the bound
-    #: over L); False: for the L (or T) given
+    """False: the step at target keeps ``h (1 + jitter)`` within the criterion's limit"""
     target_for_every_length: bool = True
+    """True: the step at target reaches the target for every trajectory length (the bound
+    over L); False: for the L (or T) given"""
 
-    #: what the gradient figures count
     COST_UNIT: ClassVar[str] = "gradient evaluations"
-    #: how M = +-I points that float64 rounds into gaps of the stable steps are counted
+    """what the gradient figures count"""
     ROUNDING_GAPS: ClassVar[str] = ROUNDING_GAP_RULE
+    """how M = +-I points that float64 rounds into gaps of the stable steps are counted"""
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
         "target_accept": "target", "cost_unit": "COST_UNIT",
         "rounding_gaps": "ROUNDING_GAPS", "methods": "rows"})
@@ -694,8 +694,8 @@ class DesignReport:
     binned: bool = False
     time_unit: str | None = None
 
-    #: how M = +-I points that float64 rounds into gaps of the stable steps are counted
     ROUNDING_GAPS: ClassVar[str] = ROUNDING_GAP_RULE
+    """how M = +-I points that float64 rounds into gaps of the stable steps are counted"""
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
         "rounding_gaps": "ROUNDING_GAPS"})
 
@@ -732,16 +732,16 @@ class ImpulseReport:
     reason: str | None = None
     time_unit: str | None = None
     method: Any = None
-    #: n:m nonlinear resonances of the outer step (n theta = 2 pi m) below h_max, as
-    #: ``{"resonance": "3:1", "h": ...}``: Ma, Izaguirre & Skeel's limit near a third of the
-    #: fast period is the 3:1
     nonlinear: tuple[Mapping[str, Any], ...] = ()
-    #: one mode of several (:class:`ImpulseModesReport`): its name in the scene (None:
-    #: none; in the JSON of the modes only)
+    """n:m nonlinear resonances of the outer step (n theta = 2 pi m) below h_max, as
+    ``{"resonance": "3:1", "h": ...}``: Ma, Izaguirre & Skeel's limit near a third of the
+    fast period is the 3:1"""
     label: str | None = None
-    #: ``region METHOD --ratio R``: the frequency ratio omega/Omega (slow over fast) of a
-    #: fast frequency 1, so that every step is Omega H (None: frequencies given)
+    """one mode of several (:class:`ImpulseModesReport`): its name in the scene (None:
+    none; in the JSON of the modes only)"""
     ratio: float | None = None
+    """``region METHOD --ratio R``: the frequency ratio omega/Omega (slow over fast) of a
+    fast frequency 1, so that every step is Omega H (None: frequencies given)"""
 
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
         "method": "name", "nonlinear_resonances": "nonlinear"})
@@ -788,16 +788,16 @@ class ImpulseModesReport:
     failures: tuple[Mapping[str, Any], ...] = ()
     time_unit: str | None = None
     scene: str | None = None
-    #: how the modes were analysed: each on its own, or (``coupled``) the 2n x 2n step of a
-    #: split stiffness whose parts do not commute (then ``modes`` is empty)
     analysis: str = "decoupled: each mode's outer step on its own oscillator"
+    """how the modes were analysed: each on its own, or (``coupled``) the 2n x 2n step of a
+    split stiffness whose parts do not commute (then ``modes`` is empty)"""
 
-    #: the kind of method
     KIND: ClassVar[str] = "impulse"
-    #: the keys of each mode's :class:`ImpulseReport` that its row in the JSON leaves out
-    #: (they are the whole report's)
+    """the kind of method"""
     SHARED: ClassVar[tuple[str, ...]] = ("method", "substeps", "criterion", "time_unit",
                                          "step")
+    """the keys of each mode's :class:`ImpulseReport` that its row in the JSON leaves out
+    (they are the whole report's)"""
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
         "method": "name", "kind": "KIND", "limiting_mode": "limiting"})
 
@@ -852,24 +852,24 @@ class MeasureRow:
     iterations_per_step: float | None
     predicted_energy_error: float | None
     predicted_trajectory_error: float | None
-    #: Hessian evaluations (and stage-matrix factorisations) per unit time: simplified
-    #: Newton's method takes one per implicit step, on top of the force evaluations
     jacobians_per_time: float | None = None
-    #: force-gradient terms (Hessian-vector products) per unit time, on top of the forces
+    """Hessian evaluations (and stage-matrix factorisations) per unit time: simplified
+    Newton's method takes one per implicit step, on top of the force evaluations"""
     gradients_per_time: float | None = None
-    #: the reference's own error at ``time``, relative as ``trajectory_error`` (None: the
-    #: exact flow); a trajectory error below it is not a number: ``trajectory_error`` is
-    #: then None and ``below_reference`` True (the error is less than this floor)
+    """force-gradient terms (Hessian-vector products) per unit time, on top of the forces"""
     reference_error: float | None = None
+    """the reference's own error at ``time``, relative as ``trajectory_error`` (None: the
+    exact flow); a trajectory error below it is not a number: ``trajectory_error`` is
+    then None and ``below_reference`` True (the error is less than this floor)"""
     below_reference: bool = False
-    #: the energy error against time: the share of its variance the least-squares line
-    #: through every step explains, and ``drift`` (at least one half) or ``bounded``
     energy_r2: float | None = None
+    """the energy error against time: the share of its variance the least-squares line
+    through every step explains, and ``drift`` (at least one half) or ``bounded``"""
     energy_behaviour: str | None = None
-    #: the scene's declared invariants, measured like the energy
     invariants: tuple[InvariantRow, ...] = ()
-    #: wall-clock seconds per unit of simulated time of the run (monitoring included)
+    """the scene's declared invariants, measured like the energy"""
     seconds_per_time: float | None = None
+    """wall-clock seconds per unit of simulated time of the run (monitoring included)"""
 
     @property
     def energy_ratio(self) -> float | None:
@@ -1020,9 +1020,9 @@ class Refinement:
     h_safe: float | None
     limited_by: str
     runs: MeasureReport
-    #: the trajectory error at ``h`` is below the reference's own error: ``error`` is that
-    #: floor, an upper bound
     below_reference: bool = False
+    """the trajectory error at ``h`` is below the reference's own error: ``error`` is that
+    floor, an upper bound"""
 
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({"predicted_h": "predicted"})
 
