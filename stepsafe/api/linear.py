@@ -213,15 +213,15 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
     resonance_order : int, optional
         N: also keep every vibration below its first nonlinear resonance
         n theta = 2 pi m with n <= N; the resonances of orders 3 to 6 (and up to N) of
-        the fastest vibration are listed in ``record["nonlinear_resonances"]`` either way.
+        the fastest vibration are listed in ``nonlinear_resonances`` either way.
     solver : str
         How implicit stages are costed: ``fixed-point`` iteration, or ``nominal`` (one
         evaluation per stage).
     criterion : str, optional
         ``structure`` (type and orientation) or ``stability`` (type only: ``|tr M| <= 2``
         for vibrations); where the other criterion gives another ``h_max``,
-        ``record["other_criterion"]`` holds it. Default: the method's own (``structure``;
-        ``stability`` for a Langevin splitting, whose ``record["stochastic"]`` says what
+        ``other_criterion`` holds it. Default: the method's own (``structure``;
+        ``stability`` for a Langevin splitting, whose ``stochastic`` says what
         its verdict means).
     verify : bool
         Recompute the regions' points with mpmath (50 digits): ``verification``.
@@ -232,8 +232,8 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
         Analyse at this temperature, in kelvin (``300`` or ``"300 K"``; the scene's
         ``energy_unit:`` names the system's energy unit): ``h_max`` is then the smallest
         of the 0 K one, the linear limit at temperature and the first resonance band
-        measured below it (``record["thermal"]["limited_by"]`` says which;
-        ``record["zero_kelvin"]`` holds the 0 K answer), and ``resonance_order`` excludes
+        measured below it (``thermal["limited_by"]`` says which;
+        ``zero_kelvin`` holds the 0 K answer), and ``resonance_order`` excludes
         the measured bands, not the points (:mod:`stepsafe.api.thermal`). An OpenMM
         system is sampled by OpenMM and its limit measured by runs of the method in OpenMM
         (:mod:`stepsafe.systems.md.thermal`; ``limited_by`` ``"OpenMM runs"``). At T = 0
@@ -454,23 +454,23 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
         N: a vibration at or beyond its first nonlinear resonance of order at most N is
         unsafe too.
     criterion : str, optional
-        As for :func:`advise` (``record["other_criterion"]`` says whether ``h`` is safe
+        As for :func:`advise` (``other_criterion`` says whether ``h`` is safe
         under the other one, when its ``h_max`` differs).
     verify : bool
         Recompute the regions' points up to the step with mpmath: ``verification``.
     solver : str
         ``fixed-point`` (the default): an implicit method's step must also lie below the
         convergence limit of fixed-point iteration of its stages for every vibration and
-        barrier (``record["solver_failure"]`` says why not); ``newton`` has no such limit.
+        barrier (``solver_failure`` says why not); ``newton`` has no such limit.
     require_complete_search : bool
         A system given by a Hamiltonian fails when its equilibrium search cannot vouch
-        that it found every equilibrium (``record["system"]["search"]`` says what was
-        searched, ``record["search_failure"]`` why it falls short; see
+        that it found every equilibrium (``system["search"]`` says what was
+        searched, ``search_failure`` why it falls short; see
         :mod:`stepsafe.systems.walks`); other inputs are unaffected.
     temperature, kT, length, steps, max_drift : optional
         As for :func:`advise`: the step is unsafe too when it lies above the linear limit
         at temperature, an ensemble of thermal trajectories at that step is not clear of
-        failures, or its measured drift exceeds ``max_drift`` (``record["thermal"]``;
+        failures, or its measured drift exceeds ``max_drift`` (``thermal``;
         ``resonance_order`` then leaves the points to that measurement); on an OpenMM
         system, when runs of the method in OpenMM at that step fail.
 
