@@ -70,22 +70,29 @@ def test_expanding_puts_each_block_at_its_marker_with_the_marker_indentation():
         keywords.expand("    <keywords: nothing>")
 
 
-@pytest.mark.parametrize("name", SHARED)
-def test_the_api_reference_reads_the_parameters_help_shows(name):
-    """griffe, reading the source as mkdocstrings does with the docs' extension
-    (``docs/hooks/shared_keywords.py``), finds the same parameters, with the same
-    descriptions, as ``help()``."""
+@pytest.fixture(scope="module")
+def static_package():
+    """The package as griffe reads it from the source, with the docs' extension."""
     griffe = pytest.importorskip("griffe")
     sys.path.insert(0, str(ROOT / "docs" / "hooks"))
     try:
         from shared_keywords import SharedKeywords
     finally:
         sys.path.remove(str(ROOT / "docs" / "hooks"))
-    package = griffe.load("stepsafe", search_paths=[str(ROOT)], resolve_aliases=False,
-                          extensions=griffe.load_extensions(SharedKeywords()))
+    return griffe.load("stepsafe", search_paths=[str(ROOT)], resolve_aliases=False,
+                       extensions=griffe.load_extensions(SharedKeywords()))
+
+
+@pytest.mark.parametrize("name", SHARED)
+def test_the_api_reference_reads_the_parameters_help_shows(static_package, name):
+    """griffe, reading the source as mkdocstrings does with the docs' extension
+    (``docs/hooks/shared_keywords.py``), finds the same parameters, with the same
+    descriptions, as ``help()``."""
+    import griffe
+
     func = getattr(stepsafe, name)
     module = inspect.unwrap(func).__module__.removeprefix("stepsafe.")
-    static = package[f"{module}.{name}"].docstring
+    static = static_package[f"{module}.{name}"].docstring
     runtime = griffe.Docstring(inspect.getdoc(func))
 
     def parameters(docstring):
