@@ -228,7 +228,6 @@ def method_from_file(path: str | Path, *, base: str | None = None) -> Integrator
     Integrator
         The method the file defines.
     """
-    from stepsafe.methods.library import _looks_like_path
 
     text = str(path)
     return method(text if _looks_like_path(text) else f"./{text}", base=base)
@@ -671,6 +670,5 @@ def load_scene(path: str | Path) -> Any:
         The scene's method, frequencies or system, step and options, validated (bad input
         raises :class:`~stepsafe.exceptions.StepsafeError` naming the file and key).
     """
-    from stepsafe.systems.scene import load_scene as _load
 
     return _load(as_text(path, "path"))

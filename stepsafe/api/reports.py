@@ -83,7 +83,6 @@ class RegionReport:
 
     @property
     def _head(self) -> dict[str, Any]:
-        from stepsafe.core.records import method_data
 
         return method_data(self.integrator.tableau, self.integrator.entry)
 
@@ -94,7 +93,6 @@ class RegionReport:
         ``structure_first_boundary`` under ``stability`` and the oscillator's
         ``nonlinear_resonances``; a model without a form for this method:
         ``{"not_analysed": why}``."""
-        from stepsafe.core.records import nonlinear_data, region_data
 
         models: dict[str, dict[str, Any]] = {
             m: region_data(self.regions[m]) if m in self.regions
