@@ -4,8 +4,11 @@ For each method: the stability limit of the fastest mode (and the structure limi
 differs), the predicted acceptance rate as a function of h (:mod:`stepsafe.core.hmc`), the
 largest step whose acceptance reaches the target (default 0.8, Stan's ``adapt_delta``), and
 the cost in gradient evaluations per proposal, per accepted proposal and per accepted unit
-of simulated time; methods are ranked by the last (at a fixed integration time it orders
-them as the cost per accepted proposal does).
+of simulated time. Methods are ranked by the report's ``ranked_by``
+(:data:`stepsafe.core.hmc.RANKINGS`): with the trajectory given (L steps, or an integration
+time T, L = floor(T / h)) by gradient evaluations per accepted proposal at the L the sampler
+runs, ``(L e + overhead) / acceptance``; without one by gradient evaluations per accepted unit
+of simulated time (there is no L to count a proposal by).
 
 Jitter. A sampler with jitter J draws each step from ``h (1 - J, 1 + J)``: the step at
 target is searched below ``limit / (1 + J)`` (rounded down so that ``h (1 + J)`` computed in
@@ -112,7 +115,8 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         mass: ArrayLike | None = None, draws: ArrayLike | str | Path | None = None,
         seed: int = TARGET_SEED) -> HmcReport | TargetReport:
     """HMC on a target with each of ``methods``: the step at target, the acceptance and
-    the cost, methods ranked by gradient evaluations per accepted unit of simulated time.
+    the cost, methods ranked by gradient evaluations per accepted proposal at the L run (L
+    or T given), else per accepted unit of simulated time (the report's ``ranked_by``).
 
     With L (``trajectory_steps``) or T (``length``) given, the step at target is the
     largest whose acceptance for that trajectory reaches ``target_accept`` at every step up
@@ -218,7 +222,7 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         One row per method, ranked; ``to_dict()`` is ``stepsafe hmc --json``.
 
     >>> rows = hmc(["verlet", "bcss2"], sigma=list(np.linspace(0.5, 1.0, 20)), length=5.0).rows
-    >>> [(r.method, r.rank) for r in rows]   # bcss2 costs fewer gradients per accepted time
+    >>> [(r.method, r.rank) for r in rows]   # bcss2: fewer gradients per accepted proposal
     [('bcss2', 1), ('verlet', 2)]
     """
     from stepsafe.core.hmc import Trajectory
@@ -272,9 +276,16 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         if progress is not None:
             progress((k + 1) / len(integrators))
     # a method that is not reversible does not sample the target: listed, not ranked
-    usable = [r.gradients_per_time is not None and r.symmetric for r in rows]
-    order = sorted(range(len(rows)), key=lambda k: (not usable[k],
-                                                    rows[k].gradients_per_time or 0.0))
+    from stepsafe.core.hmc import ranked_by
+
+    key = ranked_by(trajectory)
+
+    def cost(row: HmcRow) -> float | None:
+        value = getattr(row, key)
+        return None if value is None else float(value)
+
+    usable = [cost(r) is not None and r.symmetric for r in rows]
+    order = sorted(range(len(rows)), key=lambda k: (not usable[k], cost(rows[k]) or 0.0))
     out, rank = [], 0
     for k in order:
         rank += usable[k]
@@ -288,7 +299,7 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
                      bool(allow_unstable_jitter),
                      bool(target_for_every_length or trajectory.steps is None
                           and trajectory.length is None
-                          or not _given_length_searched(betas, jitter)))
+                          or not _given_length_searched(betas, jitter)), key)
 
 
 def _non_gaussian(found: Any, integrators: list[Integrator], inputs: dict[str, Any], *,

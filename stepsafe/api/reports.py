@@ -310,8 +310,9 @@ class HmcRow:
 
 @dataclass(frozen=True)
 class HmcReport:
-    """Methods ranked by gradient evaluations per accepted unit of simulated time at the
-    largest step reaching ``target`` acceptance."""
+    """Methods ranked by ``ranked_by`` at the largest step reaching ``target`` acceptance:
+    gradient evaluations per accepted proposal at the L run when the trajectory is given,
+    else per accepted unit of simulated time (:data:`stepsafe.core.hmc.RANKINGS`)."""
 
     rows: tuple[HmcRow, ...]
     target: float
@@ -328,6 +329,8 @@ class HmcReport:
     #: True: the step at target reaches the target for every trajectory length (the bound
     #: over L); False: for the L (or T) given
     target_for_every_length: bool = True
+    #: the row key methods are ranked by (:data:`stepsafe.core.hmc.RANKINGS`)
+    ranked_by: str = "gradients_per_time"
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe hmc ... --json`` prints."""
@@ -340,6 +343,7 @@ class HmcReport:
                           "beta_min": self.beta_range[0], "beta_max": self.beta_range[1],
                           "time_unit": self.time_unit, "approximate": self.approximate,
                           "cost_unit": "gradient evaluations",
+                          "ranked_by": self.ranked_by,
                           "rounding_gaps": ROUNDING_GAP_RULE,
                           "methods": [copy.deepcopy(_row_dict(r)) for r in self.rows]})
 

@@ -183,7 +183,8 @@ HMC = top({"target_accept": NUM, "steps": INT_OR_NULL, "length": NUM_OR_NULL,
            "target_for_every_length": BOOL,
            "jitter": NUM, "allow_unstable_jitter": BOOL, "criterion": STR, "modes": INT,
            "beta_min": NUM, "beta_max": NUM, "time_unit": STR_OR_NULL, "approximate": BOOL,
-           "cost_unit": STR, "rounding_gaps": STR, "methods": array(HMC_ROW)})
+           "cost_unit": STR, "ranked_by": STR, "rounding_gaps": STR,
+           "methods": array(HMC_ROW)})
 
 #: A target that is not Gaussian (a potential): figures estimated on draws.
 HMC_TARGET_ROW = record({"method": STR, "evaluations": INT_OR_NULL, "symmetric": BOOL,

@@ -82,7 +82,9 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
     Gaussian target: 2 P(Delta < 0) of the energy error Delta, from the one-step matrix
     of every mode), the largest h whose acceptance reaches --target-accept, and the
     gradient evaluations per proposal, per accepted proposal and per accepted unit of
-    simulated time, by which methods are ranked. Steps are in the time unit of sigma.
+    simulated time. Methods are ranked by gradients per accepted proposal at the L run
+    (--steps L, or --length T with L = floor(T/h)); without either, per accepted unit of
+    simulated time (JSON: ranked_by). Steps are in the time unit of sigma.
 
     A scene whose system: gives a potential (U = -log pi, with q: names, optional
     parameters:, mass: and start:) is not Gaussian: the acceptance (with its standard
@@ -198,8 +200,7 @@ def print_hmc(data: dict[str, Any]) -> None:
                   + ("for every trajectory length; the acceptance shown is for the trajectory "
                      "given. " if data["target_for_every_length"] else
                      "for the trajectory given at every step up to it. ")
-                  + "Ranked by gradient evaluations per accepted unit of simulated time there "
-                  "(equivalently per accepted proposal at a fixed integration time).")
+                  + _ranking_line(data["ranked_by"], data["steps"], data["length"]))
     if data["jitter"]:
         console.print(_lit(
             f"Jitter: h at target keeps h(1 + {data['jitter']:g}) within the "
@@ -283,8 +284,24 @@ def print_hmc_target(data: dict[str, Any], scene_file: str | None) -> None:
                   "method's own trajectories, ± its Monte Carlo standard error; divergent: "
                   "dH > 1000. h at target stays within the stiffest draw's stability limit"
                   + (" over 1 + J." if data["jitter"] and not data["allow_unstable_jitter"]
-                     else ".") + " Ranked by gradient evaluations per accepted unit of "
-                  "simulated time on the target; Laplace: the Gaussian at the mode.")
+                     else ".") + " " + _ranking_line(data["ranked_by"], data["steps"],
+                                                     data["length"])
+                  + " Laplace: the Gaussian at the mode, ranked by the same criterion at its "
+                  "own h at target" + ("; the ranks differ for "
+                                       + ", ".join(r["method"] for r in data["ranking_differs"])
+                                       if data["ranking_differs"] else
+                                       "; the two rankings agree") + ".")
+
+
+def _ranking_line(key: str, steps: int | None, length: float | None) -> str:
+    """The sentence naming what the methods are ranked by (``ranked_by``)."""
+    if key == "gradients_per_accepted":
+        run = (f"L = {steps}" if steps else "L = floor(T/h) at each method's h at target"
+               if length else "the L given")
+        return (f"Ranked by {key}: gradient evaluations per accepted proposal at the L run "
+                f"({run}).")
+    return (f"Ranked by {key}: gradient evaluations per accepted unit of simulated time (no "
+            "trajectory length given: --steps or --length ranks per accepted proposal).")
 
 
 def _error_cell(x: float | None) -> str:

@@ -270,6 +270,23 @@ class Trajectory:
         return None
 
 
+#: What methods are ranked by (a report's ``ranked_by``, a row's key of that name): with the
+#: trajectory given (L steps, or an integration time T and ``L = floor(T / h)`` at each
+#: method's step), the gradient evaluations per accepted proposal at the L the sampler runs,
+#: ``(L e + overhead) / alpha`` (``e`` per step, ``alpha`` the acceptance); without one,
+#: per accepted unit of simulated time, ``e / (alpha h)`` (no L to count a proposal by).
+RANKINGS = {
+    "gradients_per_accepted": "gradient evaluations per accepted proposal at the L run",
+    "gradients_per_time": "gradient evaluations per accepted unit of simulated time",
+}
+
+
+def ranked_by(trajectory: Trajectory) -> str:
+    """The key of :data:`RANKINGS` that methods on ``trajectory`` are ranked by."""
+    given = trajectory.steps is not None or trajectory.length is not None
+    return "gradients_per_accepted" if given else "gradients_per_time"
+
+
 def _distinct(betas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     values, counts = np.unique(np.asarray(betas, dtype=float), return_counts=True)
     keep = values > 0

@@ -216,7 +216,7 @@ def blackjax_hmc(logdensity: Callable, initial_position: Any, *,
         A position of shape (d,) inside the target's support: the mode search starts there.
     method
         A method (name, integrator or splitting) or several (the best ranked is chosen:
-        fewest gradient evaluations per accepted unit of time); default
+        fewest gradient evaluations per accepted proposal at ``trajectory_steps``); default
         :data:`DEFAULT_METHODS`.
     target_accept
         The acceptance to reach.
