@@ -26,6 +26,7 @@ from stepsafe.core.hmc import Trajectory
 from stepsafe.core.hmc_target.advice import TargetRow, _ranked, hmc_on_target
 from stepsafe.core.hmc_target.draws import find_mode, sample
 from stepsafe.core.hmc_target.potential import CallablePotential, target
+from stepsafe.exceptions import StepsafeError
 from stepsafe.reference import highprec as R
 
 SPLITTINGS = ["verlet", "mclachlan2-min", "bcss2", "bcss3", "pefrl"]
@@ -154,3 +155,37 @@ def test_where_the_rankings_differ_is_listed():
     rows = _ranked([row("a", 10.0, 20.0), row("b", 12.0, 15.0), row("c", 30.0, 40.0)])
     assert [(r.method, r.rank, r.laplace_rank) for r in rows] == [
         ("a", 1, 2), ("b", 2, 1), ("c", 3, 3)]
+
+
+# --------------------------------------------------------------------------- seeds
+
+def test_a_seed_with_a_gaussian_target_is_refused_not_ignored(run):
+    """The Gaussian figures draw no random numbers: the same with any seed, so a seed given
+    is refused (exit 2, one line) rather than silently ignored; --help says so."""
+    with pytest.raises(StepsafeError, match="deterministic"):
+        hmc(["verlet"], sigma=[1.0], trajectory_steps=10, seed=3)
+    code, _, err = run("hmc", "--sigma", "1", "--steps", "10", "--seed", "3")
+    assert code == 2 and "deterministic" in err and len(err.strip().splitlines()) == 1
+    code, out, _ = run("hmc", "--help")
+    assert code == 0 and "Refused for a Gaussian target" in " ".join(out.split())
+
+
+def test_the_seed_of_a_target_drives_its_momenta_and_is_stated():
+    """On a potential the estimate's momenta come from the seed: one seed twice gives the
+    same figures, another seed others (within Monte Carlo error), and the report states
+    it."""
+    rng = np.random.default_rng(5)
+    draws = rng.standard_normal((400, 2))
+    kwargs = dict(logdensity=lambda q: -0.5 * np.sum(q * q, axis=-1),
+                  gradient=lambda q: -q, start=np.zeros(2), draws=draws,
+                  trajectory_steps=6, step=1.2)
+    first = hmc(["verlet"], seed=11, **kwargs)
+    again = hmc(["verlet"], seed=11, **kwargs)
+    other = hmc(["verlet"], seed=12, **kwargs)
+    at = [r.rows[0].at_step for r in (first, again, other)]
+    assert at[0].acceptance == at[1].acceptance
+    assert at[0].acceptance != at[2].acceptance
+    assert abs(at[0].acceptance - at[2].acceptance) < 4 * np.hypot(at[0].acceptance_se,
+                                                                    at[2].acceptance_se)
+    assert first.to_dict()["seed"] == 11 and other.to_dict()["seed"] == 12
+    assert hmc(["verlet"], **kwargs).to_dict()["seed"] == 20240611

@@ -113,7 +113,7 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         logdensity: Callable[..., Any] | None = None,
         gradient: Callable[..., Any] | None = None, start: ArrayLike | None = None,
         mass: ArrayLike | None = None, draws: ArrayLike | str | Path | None = None,
-        seed: int = TARGET_SEED) -> HmcReport | TargetReport:
+        seed: int | None = None) -> HmcReport | TargetReport:
     """HMC on a target with each of ``methods``: the step at target, the acceptance and
     the cost, methods ranked by gradient evaluations per accepted proposal at the L run (L
     or T given), else per accepted unit of simulated time (the report's ``ranked_by``).
@@ -213,8 +213,11 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         Draws from a target that is not Gaussian, shape (n, d) or (chains, n, d), or a
         file (:func:`stepsafe.systems.potential.read_draws`); default: a short adaptive
         HMC run of stepsafe's own.
-    seed : int
-        Seed of that run and of the estimate's momenta (stated in the report).
+    seed : int, optional
+        Seed of that run and of the estimate's momenta (stated in the report; default
+        :data:`~stepsafe.core.hmc_target.draws.SEED`). A target that is not Gaussian only: a
+        Gaussian target's figures are exact and draw no random numbers (the jitter average
+        is a quadrature), so a seed given with one is refused rather than ignored.
 
     Returns
     -------
@@ -254,12 +257,18 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
                                                   "progress": progress},
                              steps=steps, length=length, jitter=jitter,
                              target_accept=target_accept, step=step, criterion=criterion,
-                             curve=curve, draws=draws, seed=seed,
+                             curve=curve, draws=draws,
+                             seed=TARGET_SEED if seed is None else seed,
                              allow_unstable_jitter=bool(allow_unstable_jitter),
                              target_for_every_length=bool(target_for_every_length))
     if draws is not None:
         raise StepsafeError("draws= go with a target that is not Gaussian (logdensity= or a "
                             "potential:); a Gaussian target's acceptance is exact")
+    if seed is not None:
+        raise StepsafeError("seed= (--seed) goes with a target that is not Gaussian "
+                            "(logdensity= or a potential:): a Gaussian target's figures are "
+                            "exact and deterministic, no random numbers are drawn (the "
+                            "jitter average is a quadrature)")
     p = problem_of(integrators[0], beta, inputs, times=(step, length))
     if length is not None:
         length = duration(length, "length", p.time_unit)

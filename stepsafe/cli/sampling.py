@@ -62,7 +62,9 @@ PLOT_POINTS = 200
                    "stepsafe's own.")
 @click.option("--seed", type=INT, default=None, metavar="N",
               help="A target given by its potential: the seed of the warm-up draws and of "
-                   "the estimate's momenta [default: 20240611].")
+                   "the estimate's momenta, stated in the output [default: 20240611]. "
+                   "Refused for a Gaussian target, whose figures are exact and "
+                   "deterministic (no random numbers are drawn).")
 @click.option("--plot", "plot_file", default=None, metavar="FILE.png",
               help="Draw the predicted acceptance against h for each method (needs "
                    "matplotlib).")
@@ -108,7 +110,7 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
         raise _input_error("give --methods or --all, not both")
     arrays, labels = command_line_modes(options, scene_file, step, length)
     methods = "all" if use_all else (None if names is None else names.split(","))
-    from stepsafe.api.hmc import TARGET_SEED, TargetReport
+    from stepsafe.api.hmc import TargetReport
     from stepsafe.cli.progressbar import progress_bar
 
     with progress_bar("hmc", not as_json) as progress, _naming_the_modes_file(options):
@@ -119,7 +121,7 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
                      step=step, criterion=criterion, time_unit=options["time_unit"],
                      zmax=options["zmax"], curve=0 if plot_file is None else PLOT_POINTS,
                      gradient_cost=gradient_cost, progress=progress, draws=draws_file,
-                     seed=TARGET_SEED if seed is None else seed)
+                     seed=seed)
     data = report.to_dict()
     if isinstance(report, TargetReport):
         if as_json:
