@@ -708,8 +708,12 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
     widest = betas * (1.0 + errors)
     values, counts = np.unique(widest[betas > 0], return_counts=True)
     given = core.Trajectory(steps, length, jitter)
+    # the AIA-style minimax member: compared with, and a start of the acceptance design
+    # (so that the design beats or ties it on its own objective)
+    params_aia = (minimax(stages, float(widest.max()) * step * (1.0 + jitter))
+                  if objective == "acceptance" else None)
     found = core_design(stages, values, counts.astype(float), step, jitter, objective,
-                        given.steps_at(step))
+                        given.steps_at(step), () if params_aia is None else (params_aia,))
     if found is None:
         top = values.max()
         past = (f"; past h = {3.0 / top:g} only members with an M = -I point are, of which "
@@ -724,10 +728,8 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
     over = given if (steps is not None or length is not None) else core.Trajectory(
         jitter=jitter)
     extra = []
-    if objective == "acceptance":
-        params_aia = minimax(stages, float(widest.max()) * step * (1.0 + jitter))
-        if params_aia is not None:
-            extra = [("aia-minimax", family_member(stages, params_aia, "aia-minimax"), stages)]
+    if params_aia is not None:
+        extra = [("aia-minimax", family_member(stages, params_aia, "aia-minimax"), stages)]
     for label, tableau, evals in [(name, designed, stages)] + extra + [
             (ref, (i := compared_methods([ref])[0]).tableau, int(i.evaluations or 0))
             for ref in DESIGN_REFERENCES]:  # the references are explicit: evaluations known
@@ -755,7 +757,10 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
     return DesignReport(name, stages, MappingProxyType(params), step,
                         _method_file(name, stages, params, step, jitter, betas.size,
                                      objective, given.steps_at(step)),
-                        tuple(rows), int(betas.size), found.binned, p.time_unit)
+                        tuple(rows), int(betas.size), found.binned, p.time_unit, objective,
+                        steps, length, jitter,
+                        None if params_aia is None else MappingProxyType(
+                            dict(zip(PARAMETERS[stages], params_aia))))
 
 
 def _gaussian_betas(p: Any) -> tuple[np.ndarray, np.ndarray]:

@@ -384,12 +384,26 @@ class DesignReport:
     modes: int
     binned: bool = False
     time_unit: str | None = None
+    #: what the design minimises (:data:`stepsafe.core.design.OBJECTIVES`)
+    objective: str = "error-bound"
+    #: the trajectory of the comparison: L, or T with L = floor(T / h); neither: every L
+    steps: int | None = None
+    length: float | None = None
+    jitter: float = 0.0
+    #: the AIA-style minimax member's parameters (objective ``acceptance``; None: none is
+    #: stable up to the top of the step distribution)
+    aia_params: Mapping[str, float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe design ... --json`` prints."""
         return versioned({"name": self.name, "stages": self.stages, "params": dict(self.params),
                 "step": self.step, "modes": self.modes, "binned": self.binned,
-                "time_unit": self.time_unit, "method_file": self.method_file,
+                "time_unit": self.time_unit, "objective": self.objective,
+                "steps": self.steps, "length": self.length, "jitter": self.jitter,
+                "trajectory": (f"L = {self.steps}" if self.steps is not None else
+                               f"T = {self.length:g}" if self.length is not None else None),
+                "aia_params": None if self.aia_params is None else dict(self.aia_params),
+                "method_file": self.method_file,
                 "rounding_gaps": ROUNDING_GAP_RULE,
                 "comparison": [{**c, "resonance_h": list(c["resonance_h"])}
                                for c in self.comparison]})

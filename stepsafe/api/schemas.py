@@ -200,7 +200,7 @@ HMC_TARGET_ROW = record({"method": STR, "evaluations": INT_OR_NULL, "symmetric":
 
 HMC_TARGET = top({"target_accept": NUM, "steps": INT_OR_NULL, "length": NUM_OR_NULL,
                   "jitter": NUM, "allow_unstable_jitter": BOOL, "dimension": INT, "seed": INT,
-                  "cost_unit": STR,
+                  "cost_unit": STR, "ranked_by": STR, "ranking_differs": array(OBJECT),
                   "draws": record({"source": STR, "chains": INT, "per_chain": INT},
                                   closed=False),
                   "frequencies": record({"how": STR, "draws": INT, "omega_max": NUM,
@@ -211,6 +211,8 @@ HMC_TARGET = top({"target_accept": NUM, "steps": INT_OR_NULL, "length": NUM_OR_N
 DESIGN = top({"name": STR, "stages": INT, "params": {"type": "object",
                                                      "additionalProperties": NUM},
               "step": NUM, "modes": INT, "binned": BOOL, "time_unit": STR_OR_NULL,
+              "objective": STR, "steps": INT_OR_NULL, "length": NUM_OR_NULL, "jitter": NUM,
+              "trajectory": STR_OR_NULL, "aia_params": OBJECT_OR_NULL,
               "method_file": STR, "rounding_gaps": STR,
               "comparison": array(record({"method": STR, "evaluations": NUM,
                                           "h": NUM_OR_NULL, "resonance_h": array(NUM)},

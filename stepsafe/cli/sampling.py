@@ -341,37 +341,57 @@ def _plot(data: dict[str, Any], output: str) -> None:
 @click.option("--stages", type=click.Choice(("2", "3")), default="2", show_default=True,
               help="2: one free coefficient b; 3: two (b, a).")
 @click.option("--jitter", type=FLOAT, default=0.0, show_default=True, metavar="J",
-              help="Average over steps H(1-J)..H(1+J), as a jittered sampler draws them.")
+              help="The step distribution: each step uniform in H(1-J)..H(1+J), as a "
+                   "jittered sampler draws them; the objective is averaged over it.")
+@click.option("--objective", type=click.Choice(("error-bound", "acceptance")),
+              default="error-bound", show_default=True,
+              help="error-bound: the expected energy error summed over the modes (each at "
+                   "its bound over every L); acceptance: what hmc ranks by, gradients per "
+                   "accepted proposal for --steps/--length (the reciprocal of the "
+                   "predicted acceptance), compared with the AIA-style minimax member.")
+@click.option("--steps", type=INT, default=None, metavar="L",
+              help="Steps per trajectory the sampler runs (with --objective acceptance: "
+                   "the L designed for; else the L of the comparison).")
+@click.option("--length", type=DURATION, default=None, metavar="T",
+              help="Integration time per trajectory instead of --steps: L = max(1, "
+                   "floor(T/h)) (in the time unit, or with one: 5fs).")
 @click.option("--name", default=None, metavar="NAME",
               help="Name in the method file [default: designed-2stage / designed-3stage].")
 @click.option("-o", "--output", default=None, metavar="FILE.yaml",
               help="Write the method file here (else it is printed).")
 @target_options
-def design_cmd(scene_file, step, stages, jitter, name, output, as_json, **options) -> None:
+def design_cmd(scene_file, step, stages, jitter, objective, steps, length, name, output,
+               as_json, **options) -> None:
     """Design a 2- or 3-stage HMC splitting for your Gaussian target and step.
 
     Chooses the free coefficient(s) of the palindromic 2- or 3-stage splitting family of
-    Blanes, Casas & Sanz-Serna (2014) that minimise the expected energy error of the
-    target at step H (averaged over the jitter interval, every mode kept stable), and
-    writes a method file every command accepts (stepsafe hmc --methods FILE, region,
-    advise, ...). The figures compare it with verlet, bcss2, bcss3 and mclachlan2-min at
-    the same gradient evaluations per unit of simulated time. The coefficients are shown
-    to 8 digits (further ones change the objective by less than its rounding); the method
-    file and --json carry every digit.
+    Blanes, Casas & Sanz-Serna (2014) for the target at step H, every mode kept stable up
+    to H(1+J), and writes a method file every command accepts (stepsafe hmc --methods
+    FILE, region, advise, ...). The objective (--objective) is the expected energy error
+    summed over the modes, or what hmc ranks by: gradient evaluations per accepted
+    proposal for the trajectory given (--steps L or --length T; neither: each mode at its
+    bound over L), averaged over the jitter; the latter is compared with the AIA-style
+    minimax member (the smallest worst error bound up to the fastest mode's z). The
+    figures compare it with verlet, bcss2, bcss3 and mclachlan2-min at the same gradient
+    evaluations per unit of simulated time. The coefficients are shown to 8 digits
+    (further ones change the objective by less than its rounding); the method file and
+    --json carry every digit.
 
     \b
     Examples:
       stepsafe design --sigma 1 --sigma 0.1 --step 0.15 -o mine.yaml
+      stepsafe design --sigma 1 --sigma 0.1 --step 0.15 --objective acceptance --steps 20
       stepsafe hmc --sigma 1 --sigma 0.1 --length 5 --methods mine.yaml,bcss2
     """
     from stepsafe.api.hmc import design
     from stepsafe.cli.report import print_json
 
-    arrays, labels = command_line_modes(options, scene_file, step)
+    arrays, labels = command_line_modes(options, scene_file, step, length)
     with _naming_the_modes_file(options):
         report = design(modes=arrays or None, labels=labels or None, scene=scene_file,
                         step=step, stages=int(stages), jitter=jitter, name=name,
-                        time_unit=options["time_unit"], zmax=options["zmax"])
+                        time_unit=options["time_unit"], zmax=options["zmax"],
+                        objective=objective, trajectory_steps=steps, length=length)
     data = report.to_dict()
     if output is not None:
         _write_new_text(output, report.method_file)
@@ -379,6 +399,26 @@ def design_cmd(scene_file, step, stages, jitter, name, output, as_json, **option
         print_json(data)
         return
     print_design(data, output)
+
+
+def _against_aia(data: dict[str, Any]) -> str:
+    """The sentence comparing the designed member with the AIA-style minimax one on the
+    objective (gradient evaluations per accepted proposal, or per accepted unit of time
+    when no trajectory is given)."""
+    rows = {r["method"]: r for r in data["comparison"]}
+    ours, aia = rows[data["name"]], rows.get("aia-minimax")
+    key = ("gradients_per_accepted" if ours.get("gradients_per_accepted") is not None
+           else "gradients_per_time")
+    what = ("gradients per accepted proposal" if key == "gradients_per_accepted" else
+            "gradients per accepted unit of time")
+    if aia is None:
+        return (f"Objective: {what}; no AIA-style minimax member is stable up to the top of "
+                "the step distribution.")
+    params = ", ".join(f"{k} = {v:.8g}" for k, v in data["aia_params"].items())
+    if ours[key] is None or aia[key] is None:
+        return f"Objective: {what}; AIA-style minimax member: {params}."
+    return (f"Objective, {what}: {data['name']} {ours[key]:.5g}, AIA-style minimax "
+            f"({params}) {aia[key]:.5g}; AIA / designed = {aia[key] / ours[key]:.4g}.")
 
 
 @contextmanager
@@ -435,14 +475,26 @@ def print_design(data: dict[str, Any], output: str | None) -> None:
                        f"{fmt(data['step'])}{u}"
                        + (" (frequencies binned for the search)" if data["binned"] else "")))
     table = Table(title="At the same gradient evaluations per unit of simulated time")
-    for col in ("method", "grads/step", f"h{u}", "error bound (every L)",
-                "acceptance (every L)", "grads/accepted time unit"):
+    trajectory = data.get("trajectory") or "every L"
+    per_proposal = data["objective"] == "acceptance"
+    columns = ["method", "grads/step", f"h{u}",
+               "error bound (every L)" if trajectory == "every L" else
+               f"mean dH ({trajectory})", f"acceptance ({trajectory})"]
+    columns += ["L", "grads/accepted"] if per_proposal else []
+    for col in columns + [f"grads/accepted time{u and ' unit'}"]:
         table.add_column(col, overflow="fold")
     for r in data["comparison"]:
-        table.add_row(r["method"], str(r["evaluations"]), fmt(r["h"], 6),
-                      _error_cell(r["error_bound"]), f"{r['acceptance']:.4f}",
-                      "-" if r["gradients_per_time"] is None else fmt(r["gradients_per_time"], 5))
+        cells = [r["method"], str(r["evaluations"]), fmt(r["h"], 6),
+                 _error_cell(r["error_bound"]), f"{r['acceptance']:.4f}"]
+        if per_proposal:
+            cells += ["-" if r["steps"] is None else str(r["steps"]),
+                      "-" if r["gradients_per_accepted"] is None else
+                      fmt(r["gradients_per_accepted"], 5)]
+        table.add_row(*cells, "-" if r["gradients_per_time"] is None else
+                      fmt(r["gradients_per_time"], 5))
     console.print(table)
+    if per_proposal:
+        console.print(_lit(_against_aia(data)))
     for r in data["comparison"]:
         for h in r["resonance_h"]:
             console.print(_lit(f"{r['method']}: M = ±I within rounding at h = {fmt(h)}{u} "
