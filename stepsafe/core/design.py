@@ -413,13 +413,13 @@ def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
     # Nelder-Mead from the best grid points and from the published members (the landscape
     # has narrow valleys: bcss3 lies in one)
     order = np.argsort(values, kind="stable")[:STARTS]
-    starts = [grid[i] for i in order if np.isfinite(values[i])]
-    starts += [np.array(m) for m in KNOWN[stages] if np.isfinite(searched(np.array(m)))]
+    begins = [grid[i] for i in order if np.isfinite(values[i])]
+    begins += [np.array(m) for m in KNOWN[stages] if np.isfinite(searched(np.array(m)))]
     given = [np.array(m, dtype=float) for m in starts_given]
-    starts += [m for m in given if np.isfinite(searched(m))]
+    begins += [m for m in given if np.isfinite(searched(m))]
     step = (hi - lo) / GRID[stages]
     found_points = [m for m in given if inside(m)]
-    for start in starts:
+    for start in begins:
         simplex = np.vstack([start] + [start + step * np.eye(start.size)[i]
                                        for i in range(start.size)])
         found = minimize(searched, start, method="Nelder-Mead",
