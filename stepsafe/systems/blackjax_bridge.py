@@ -61,7 +61,13 @@ def _require() -> tuple[Any, Any]:
 
 
 def _tableau(method: Any) -> Method:
-    """A method object from a name, an integrator (with ``tableau``) or a tableau."""
+    """A method object from a name, an integrator (with ``tableau``), a tableau, or the
+    report of ``stepsafe.design`` (its designed member, every digit)."""
+    if hasattr(method, "method_file") and hasattr(method, "params"):  # a DesignReport
+        from stepsafe.core.design import family_member
+
+        return family_member(int(method.stages), tuple(float(v) for v in
+                                                       method.params.values()), method.name)
     if isinstance(method, str):
         from stepsafe.methods.library import resolve
 
@@ -88,8 +94,9 @@ def coefficients(method: Any) -> Export:
     Parameters
     ----------
     method
-        A method name (``"bcss2"``), a :class:`stepsafe.api.Integrator`, or a splitting or
-        composition of one (library or designed).
+        A method name (``"bcss2"``) or method file, a :class:`stepsafe.api.Integrator`, a
+        splitting or composition of one (library or designed), or the report of
+        :func:`stepsafe.design` (its designed member).
 
     Returns
     -------
