@@ -414,7 +414,7 @@ def _against_aia(data: dict[str, Any]) -> str:
     if aia is None:
         return (f"Objective: {what}; no AIA-style minimax member is stable up to the top of "
                 "the step distribution.")
-    params = ", ".join(f"{k} = {v:.8g}" for k, v in data["aia_params"].items())
+    params = ", ".join(f"{k} = {v:.6g}" for k, v in data["aia_params"].items())
     if ours[key] is None or aia[key] is None:
         return f"Objective: {what}; AIA-style minimax member: {params}."
     return (f"Objective, {what}: {data['name']} {ours[key]:.5g}, AIA-style minimax "
@@ -481,7 +481,7 @@ def print_design(data: dict[str, Any], output: str | None) -> None:
                "error bound (every L)" if trajectory == "every L" else
                f"mean dH ({trajectory})", f"acceptance ({trajectory})"]
     columns += ["L", "grads/accepted"] if per_proposal else []
-    for col in columns + [f"grads/accepted time{u and ' unit'}"]:
+    for col in columns + ["grads/accepted time unit"]:
         table.add_column(col, overflow="fold")
     for r in data["comparison"]:
         cells = [r["method"], str(r["evaluations"]), fmt(r["h"], 6),
