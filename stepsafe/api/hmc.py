@@ -608,8 +608,9 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
     ``length`` T, L = floor(T / step); neither: each mode at its bound over L) and the jitter, at
     ``step`` the reciprocal of the predicted acceptance; the comparison then also lists
     the minimax member (``aia-minimax``: the smallest worst rho over (0, beta_max step
-    (1 + jitter)], the adaptive integrators' choice) and gives every row's acceptance for
-    that trajectory. ``trajectory_steps`` or ``length`` alone (the default objective) only sets the
+    (1 + jitter)], the adaptive integrators' choice; the report's ``aia_params``), which is
+    also a starting point of the design, so that the designed member's objective is at most
+    the minimax member's; and gives every row's acceptance for that trajectory. ``trajectory_steps`` or ``length`` alone (the default objective) only sets the
     trajectory of the comparison.
 
     Parameters
