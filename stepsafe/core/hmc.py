@@ -679,13 +679,15 @@ def _errors(method: Method, z: np.ndarray, steps: int | None) -> np.ndarray:
     gigabytes)."""
     flat = z.ravel()
     out = np.empty(flat.size)
-    for start in range(0, flat.size, ERROR_CHUNK):
-        out[start:start + ERROR_CHUNK] = errors_after(
-            one_step(method, flat[start:start + ERROR_CHUNK]), steps)
+    piece = min(ERROR_CHUNK, CHUNK_ELEMENTS)
+    for start in range(0, flat.size, piece):
+        out[start:start + piece] = errors_after(one_step(method, flat[start:start + piece]),
+                                                steps)
     return out.reshape(z.shape)
 
 
-#: :func:`_errors` evaluates z in pieces of this many elements: each of the few dozen
+#: :func:`_errors` evaluates z in pieces of this many elements (at most
+#: :data:`CHUNK_ELEMENTS`): each of the few dozen
 #: temporaries of the one-step matrices is then 128 KiB, which stays in cache and in the
 #: allocator's reused memory (2^18 elements per piece took twice the CPU time, much of it
 #: in page faults of fresh 2 MiB arrays). Elementwise work: the pieces change no value.
