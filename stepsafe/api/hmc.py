@@ -610,7 +610,8 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
     the minimax member (``aia-minimax``: the smallest worst rho over (0, beta_max step
     (1 + jitter)], the adaptive integrators' choice; the report's ``aia_params``), which is
     also a starting point of the design, so that the designed member's objective is at most
-    the minimax member's; and gives every row's acceptance for that trajectory. ``trajectory_steps`` or ``length`` alone (the default objective) only sets the
+    the minimax member's; and gives every row's acceptance for that trajectory.
+    ``trajectory_steps`` or ``length`` alone (the default objective) only sets the
     trajectory of the comparison.
 
     Parameters
