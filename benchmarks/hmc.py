@@ -36,6 +36,27 @@ banana c = 0.3, verlet + bcss2, L = 10    -                      7.9 s, 0.8 s   
 With a given L and jitter, most of the time is one jittered acceptance of the L given per
 method at its step at target (about 30 s of CPU on 10^5 distinct frequencies: the average
 follows every mode's turns of L theta across the jitter), not the search.
+
+Second round (``--before`` main at 00ddcb8, ``--only "L = 20" --repeat 3``, medians of
+interleaved runs, load average 11-15): the per-mode errors evaluated in pieces of 2^14
+elements instead of 2^18 (cache-sized temporaries; the larger pieces spent much of their
+time in page faults of fresh arrays), the Chebyshev factor's elliptic and hyperbolic
+branches each on its own entries, and the lumped modes' mean and variance from their
+errors (``a + b = E``, ``a^2 + b^2 = E^2 + E``) rather than from their weights. Figures
+within 5e-14 relative of main's on six targets (3 to 10^5 modes, L, T, jitter).
+
+========================================  =====================  ===================  =====
+case                                      before: wall, CPU      after: wall, CPU     ratio
+========================================  =====================  ===================  =====
+10^5 modes, L = 20                        54.0 s, 5.5 s          24.9 s, 3.1 s        1.7x
+10^5 modes, L = 20, jitter 0.1            290.9 s, 35.0 s        154.9 s, 26.6 s      1.3x
+========================================  =====================  ===================  =====
+
+Where the jittered case's CPU goes now (cProfile): the one-step matrices and their offsets
+of 10^5 modes at each of about 3400 quadrature nodes (two thirds), the Gil-Pelaez
+integral of the 2048 largest errors per node (a fifth). The node count is set by the turns
+of L theta of the fastest modes and the kinks of the acceptance at L theta = k pi; the
+jitter costs about 8x because each node evaluates every mode.
 """
 
 from __future__ import annotations

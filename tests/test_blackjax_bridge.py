@@ -129,6 +129,38 @@ def test_one_blackjax_step_is_the_transfer_matrix(m):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-14 * max(1.0, np.abs(want).max()))
 
 
+@pytest.mark.parametrize("stages", [2, 3])
+def test_a_design_exports_its_member_from_the_report_and_its_method_file(tmp_path, stages):
+    """The report of stepsafe.design and the method file it writes export the same list,
+    the designed member's kick/drift coefficients in BlackJAX's order, every digit."""
+    from stepsafe import design
+
+    report = design(sigma=[1.0, 0.5], step=0.5, stages=stages)
+    path = tmp_path / "mine.yaml"
+    path.write_text(report.method_file)
+    from_report, from_file = bridge.coefficients(report), bridge.coefficients(str(path))
+    p = report.params
+    want = ((p["b"], 0.5, 1 - 2 * p["b"], 0.5, p["b"]) if stages == 2 else
+            (p["b"], p["a"], 0.5 - p["b"], 1 - 2 * p["a"], 0.5 - p["b"], p["a"], p["b"]))
+    assert from_report.coefficients == pytest.approx(want, rel=1e-15, abs=1e-16)
+    assert from_file.coefficients == pytest.approx(want, rel=1e-15, abs=1e-16)
+    assert from_report.gradients_per_step == from_report.blackjax_gradients_per_step == stages
+
+
+@pytest.mark.blackjax
+@needs_blackjax
+def test_a_designed_report_runs_as_its_transfer_matrix_in_blackjax():
+    from stepsafe import design
+
+    report = design(sigma=[1.0, 0.5], step=0.5, stages=3)
+    member = family_member(3, (report.params["b"], report.params["a"]))
+    factory = bridge.integrator(report)
+    for z in (0.3, 1.4):
+        want = transfer_matrix(member, [z])[0]
+        np.testing.assert_allclose(_one_step_matrix(factory, z), want, rtol=0,
+                                   atol=1e-14 * max(1.0, np.abs(want).max()))
+
+
 def test_blackjax_counts_a_gradient_per_drift():
     assert bridge.coefficients("verlet").blackjax_gradients_per_step == 1
     position_form = bridge.coefficients("mclachlan2-min")

@@ -396,17 +396,20 @@ def test_regression_acceptance_matches_an_independent_sampler(regression, name, 
 
 
 @pytest.mark.slow
-def test_regression_ranking_flips_the_laplace_one_as_measured(regression):
+def test_regression_cost_per_time_flips_the_laplace_one_as_measured(regression):
     """At each method's step at target (L = 10), verlet costs fewer gradients per
     accepted unit of time than bcss3 on the target, and more at the mode's Gaussian; the
-    independent sampler measures the target's order."""
+    independent sampler measures the target's order. Per accepted proposal at L = 10 (the
+    ranking) verlet is first on both: ``10 e / alpha`` with alpha in [0.8, 1] at each
+    method's step at target."""
     t, laplace, draws = regression
     report = hmc_on_target(t, [method("verlet"), method("bcss3")], Trajectory(steps=10),
                            draws=draws, laplace=laplace, onset=False)
     rows = {r.method: r for r in report.rows}
-    assert rows["verlet"].rank == 1 and rows["bcss3"].rank == 2
-    assert rows["verlet"].laplace_rank == 2 and rows["bcss3"].laplace_rank == 1
-    assert any("differs from the Gaussian" in n for n in report.notes)
+    assert rows["verlet"].estimate.gradients_per_time < rows["bcss3"].estimate.gradients_per_time
+    assert rows["verlet"].laplace_gradients_per_time > rows["bcss3"].laplace_gradients_per_time
+    assert rows["verlet"].rank == rows["verlet"].laplace_rank == 1
+    assert report.to_dict()["ranking_differs"] == []
     rng = np.random.default_rng(23)
     energy, gradient, _ = logistic_regression()
     start = _regression_start(rng, 400)

@@ -4,8 +4,11 @@ For each method: the stability limit of the fastest mode (and the structure limi
 differs), the predicted acceptance rate as a function of h (:mod:`stepsafe.core.hmc`), the
 largest step whose acceptance reaches the target (default 0.8, Stan's ``adapt_delta``), and
 the cost in gradient evaluations per proposal, per accepted proposal and per accepted unit
-of simulated time; methods are ranked by the last (at a fixed integration time it orders
-them as the cost per accepted proposal does).
+of simulated time. Methods are ranked by the report's ``ranked_by``
+(:data:`stepsafe.core.hmc.RANKINGS`): with the trajectory given (L steps, or an integration
+time T, L = floor(T / h)) by gradient evaluations per accepted proposal at the L the sampler
+runs, ``(L e + overhead) / acceptance``; without one by gradient evaluations per accepted unit
+of simulated time (there is no L to count a proposal by).
 
 Jitter. A sampler with jitter J draws each step from ``h (1 - J, 1 + J)``: the step at
 target is searched below ``limit / (1 + J)`` (rounded down so that ``h (1 + J)`` computed in
@@ -123,9 +126,10 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         logdensity: Callable[..., Any] | None = None,
         gradient: Callable[..., Any] | None = None, start: ArrayLike | None = None,
         mass: ArrayLike | None = None, draws: ArrayLike | str | Path | None = None,
-        seed: int = TARGET_SEED) -> HmcReport | TargetReport:
+        seed: int | None = None) -> HmcReport | TargetReport:
     """HMC on a target with each of ``methods``: the step at target, the acceptance and
-    the cost, methods ranked by gradient evaluations per accepted unit of simulated time.
+    the cost, methods ranked by gradient evaluations per accepted proposal at the L run (L
+    or T given), else per accepted unit of simulated time (the report's ``ranked_by``).
 
     With L (``trajectory_steps``) or T (``length``) given, the step at target is the
     largest whose acceptance for that trajectory reaches ``target_accept`` at every step up
@@ -193,8 +197,11 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         Draws from a target that is not Gaussian, shape (n, d) or (chains, n, d), or a
         file (:func:`stepsafe.systems.potential.read_draws`); default: a short adaptive
         HMC run of stepsafe's own.
-    seed : int
-        Seed of that run and of the estimate's momenta (stated in the report).
+    seed : int, optional
+        Seed of that run and of the estimate's momenta (stated in the report; default
+        :data:`~stepsafe.core.hmc_target.draws.SEED`). A target that is not Gaussian only: a
+        Gaussian target's figures are exact and draw no random numbers (the jitter average
+        is a quadrature), so a seed given with one is refused rather than ignored.
 
     Returns
     -------
@@ -202,7 +209,7 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         One row per method, ranked; ``to_dict()`` is ``stepsafe hmc --json``.
 
     >>> rows = hmc(["verlet", "bcss2"], sigma=list(np.linspace(0.5, 1.0, 20)), length=5.0).rows
-    >>> [(r.method, r.rank) for r in rows]   # bcss2 costs fewer gradients per accepted time
+    >>> [(r.method, r.rank) for r in rows]   # bcss2: fewer gradients per accepted proposal
     [('bcss2', 1), ('verlet', 2)]
     """
     steps = trajectory_steps
@@ -228,12 +235,18 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
                                                   "progress": progress},
                              steps=steps, length=length, jitter=jitter,
                              target_accept=target_accept, step=step, criterion=criterion,
-                             curve=curve, draws=draws, seed=seed,
+                             curve=curve, draws=draws,
+                             seed=TARGET_SEED if seed is None else seed,
                              allow_unstable_jitter=bool(allow_unstable_jitter),
                              target_for_every_length=bool(target_for_every_length))
     if draws is not None:
         raise StepsafeError("draws= go with a target that is not Gaussian (logdensity= or a "
                             "potential:); a Gaussian target's acceptance is exact")
+    if seed is not None:
+        raise StepsafeError("seed= (--seed) goes with a target that is not Gaussian "
+                            "(logdensity= or a potential:): a Gaussian target's figures are "
+                            "exact and deterministic, no random numbers are drawn (the "
+                            "jitter average is a quadrature)")
     p = problem_of(integrators[0], beta, inputs, times=(step, length))
     if length is not None:
         length = duration(length, "length", p.time_unit)
@@ -250,9 +263,14 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         if progress is not None:
             progress((k + 1) / len(integrators))
     # a method that is not reversible does not sample the target: listed, not ranked
-    usable = [r.gradients_per_time is not None and r.symmetric for r in rows]
-    order = sorted(range(len(rows)), key=lambda k: (not usable[k],
-                                                    rows[k].gradients_per_time or 0.0))
+    key = core.ranked_by(trajectory)
+
+    def cost(row: HmcRow) -> float | None:
+        value = getattr(row, key)
+        return None if value is None else float(value)
+
+    usable = [cost(r) is not None and r.symmetric for r in rows]
+    order = sorted(range(len(rows)), key=lambda k: (not usable[k], cost(rows[k]) or 0.0))
     out, rank = [], 0
     for k in order:
         rank += usable[k]
@@ -264,7 +282,7 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
                      bool(allow_unstable_jitter),
                      bool(target_for_every_length or trajectory.steps is None
                           and trajectory.length is None
-                          or not _given_length_searched(betas, jitter)))
+                          or not _given_length_searched(betas, jitter)), key)
 
 
 def _non_gaussian(found: Any, integrators: list[Integrator], inputs: dict[str, Any], *,
@@ -550,8 +568,10 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
     ``length`` T, L = floor(T / step); neither: each mode at its bound over L) and the jitter, at
     ``step`` the reciprocal of the predicted acceptance; the comparison then also lists
     the minimax member (``aia-minimax``: the smallest worst rho over (0, beta_max step
-    (1 + jitter)], the adaptive integrators' choice) and gives every row's acceptance for
-    that trajectory. ``trajectory_steps`` or ``length`` alone (the default objective) only sets the
+    (1 + jitter)], the adaptive integrators' choice; the report's ``aia_params``), which is
+    also a starting point of the design, so that the designed member's objective is at most
+    the minimax member's; and gives every row's acceptance for that trajectory.
+    ``trajectory_steps`` or ``length`` alone (the default objective) only sets the
     trajectory of the comparison.
 
     Parameters
@@ -613,8 +633,12 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
     widest = betas * (1.0 + errors)
     values, counts = np.unique(widest[betas > 0], return_counts=True)
     given = core.Trajectory(steps, length, jitter)
+    # the AIA-style minimax member: compared with, and a start of the acceptance design
+    # (so that the design beats or ties it on its own objective)
+    params_aia = (minimax(stages, float(widest.max()) * step * (1.0 + jitter))
+                  if objective == "acceptance" else None)
     found = core_design(stages, values, counts.astype(float), step, jitter, objective,
-                        given.steps_at(step))
+                        given.steps_at(step), () if params_aia is None else (params_aia,))
     if found is None:
         top = values.max()
         past = (f"; past h = {3.0 / top:g} only members with an M = -I point are, of which "
@@ -629,10 +653,8 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
     over = given if (steps is not None or length is not None) else core.Trajectory(
         jitter=jitter)
     extra = []
-    if objective == "acceptance":
-        params_aia = minimax(stages, float(widest.max()) * step * (1.0 + jitter))
-        if params_aia is not None:
-            extra = [("aia-minimax", family_member(stages, params_aia, "aia-minimax"), stages)]
+    if params_aia is not None:
+        extra = [("aia-minimax", family_member(stages, params_aia, "aia-minimax"), stages)]
     for label, tableau, evals in [(name, designed, stages)] + extra + [
             (ref, (i := compared_methods([ref])[0]).tableau, int(i.evaluations or 0))
             for ref in DESIGN_REFERENCES]:  # the references are explicit: evaluations known
@@ -660,7 +682,10 @@ def design(*, step: float | str, stages: int = 2, jitter: float = 0.0,
     return DesignReport(name, stages, MappingProxyType(params), step,
                         _method_file(name, stages, params, step, jitter, betas.size,
                                      objective, given.steps_at(step)),
-                        tuple(rows), int(betas.size), found.binned, p.time_unit)
+                        tuple(rows), int(betas.size), found.binned, p.time_unit, objective,
+                        steps, length, jitter,
+                        None if params_aia is None else MappingProxyType(
+                            dict(zip(PARAMETERS[stages], params_aia))))
 
 
 def _gaussian_betas(p: Any) -> tuple[np.ndarray, np.ndarray]:

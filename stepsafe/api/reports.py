@@ -606,8 +606,9 @@ class HmcRow:
 
 @dataclass(frozen=True)
 class HmcReport:
-    """Methods ranked by gradient evaluations per accepted unit of simulated time at the
-    largest step reaching ``target`` acceptance."""
+    """Methods ranked by ``ranked_by`` at the largest step reaching ``target`` acceptance:
+    gradient evaluations per accepted proposal at the L run when the trajectory is given,
+    else per accepted unit of simulated time (:data:`stepsafe.core.hmc.RANKINGS`)."""
 
     rows: tuple[HmcRow, ...]
     target: float
@@ -624,6 +625,8 @@ class HmcReport:
     target_for_every_length: bool = True
     """True: the step at target reaches the target for every trajectory length (the bound
     over L); False: for the L (or T) given"""
+    ranked_by: str = "gradients_per_time"
+    """the row key methods are ranked by (:data:`stepsafe.core.hmc.RANKINGS`)"""
 
     COST_UNIT: ClassVar[str] = "gradient evaluations"
     """what the gradient figures count"""
@@ -653,7 +656,8 @@ class HmcReport:
                           "criterion": self.criterion, "modes": self.modes,
                           "beta_min": self.beta_min, "beta_max": self.beta_max,
                           "time_unit": self.time_unit, "approximate": self.approximate,
-                          "cost_unit": self.COST_UNIT, "rounding_gaps": self.ROUNDING_GAPS,
+                          "cost_unit": self.COST_UNIT, "ranked_by": self.ranked_by,
+                          "rounding_gaps": self.ROUNDING_GAPS,
                           "methods": [copy.deepcopy(_row_dict(r)) for r in self.rows]})
 
 
@@ -691,17 +695,36 @@ class DesignReport:
     modes: int
     binned: bool = False
     time_unit: str | None = None
+    #: what the design minimises (:data:`stepsafe.core.design.OBJECTIVES`)
+    objective: str = "error-bound"
+    #: the trajectory of the comparison: L, or T with L = floor(T / h); neither: every L
+    steps: int | None = None
+    length: float | None = None
+    jitter: float = 0.0
+    #: the AIA-style minimax member's parameters (objective ``acceptance``; None: none is
+    #: stable up to the top of the step distribution)
+    aia_params: Mapping[str, float] | None = None
 
     ROUNDING_GAPS: ClassVar[str] = ROUNDING_GAP_RULE
     """how M = +-I points that float64 rounds into gaps of the stable steps are counted"""
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
         "rounding_gaps": "ROUNDING_GAPS"})
 
+    @property
+    def trajectory(self) -> str | None:
+        """The comparison's trajectory as text: ``L = n``, ``T = t``, or None (every L)."""
+        return (f"L = {self.steps}" if self.steps is not None else
+                f"T = {self.length:g}" if self.length is not None else None)
+
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe design ... --json`` prints."""
         return versioned({"name": self.name, "stages": self.stages, "params": dict(self.params),
                 "step": self.step, "modes": self.modes, "binned": self.binned,
-                "time_unit": self.time_unit, "method_file": self.method_file,
+                "time_unit": self.time_unit, "objective": self.objective,
+                "steps": self.steps, "length": self.length, "jitter": self.jitter,
+                "trajectory": self.trajectory,
+                "aia_params": None if self.aia_params is None else dict(self.aia_params),
+                "method_file": self.method_file,
                 "rounding_gaps": self.ROUNDING_GAPS,
                 "comparison": [{**c, "resonance_h": list(c["resonance_h"])}
                                for c in self.comparison]})

@@ -201,7 +201,8 @@ HMC = top({"target_accept": NUM, "steps": INT_OR_NULL, "length": NUM_OR_NULL,
            "target_for_every_length": BOOL,
            "jitter": NUM, "allow_unstable_jitter": BOOL, "criterion": STR, "modes": INT,
            "beta_min": NUM, "beta_max": NUM, "time_unit": STR_OR_NULL, "approximate": BOOL,
-           "cost_unit": STR, "rounding_gaps": STR, "methods": array(HMC_ROW)})
+           "cost_unit": STR, "ranked_by": STR, "rounding_gaps": STR,
+           "methods": array(HMC_ROW)})
 
 #: A target that is not Gaussian (a potential): figures estimated on draws.
 HMC_TARGET_ROW = record({"method": STR, "evaluations": INT_OR_NULL, "symmetric": BOOL,
@@ -217,7 +218,7 @@ HMC_TARGET_ROW = record({"method": STR, "evaluations": INT_OR_NULL, "symmetric":
 
 HMC_TARGET = top({"target_accept": NUM, "steps": INT_OR_NULL, "length": NUM_OR_NULL,
                   "jitter": NUM, "allow_unstable_jitter": BOOL, "dimension": INT, "seed": INT,
-                  "cost_unit": STR,
+                  "cost_unit": STR, "ranked_by": STR, "ranking_differs": array(OBJECT),
                   "draws": record({"source": STR, "chains": INT, "per_chain": INT},
                                   closed=False),
                   "frequencies": record({"how": STR, "draws": INT, "omega_max": NUM,
@@ -228,6 +229,8 @@ HMC_TARGET = top({"target_accept": NUM, "steps": INT_OR_NULL, "length": NUM_OR_N
 DESIGN = top({"name": STR, "stages": INT, "params": {"type": "object",
                                                      "additionalProperties": NUM},
               "step": NUM, "modes": INT, "binned": BOOL, "time_unit": STR_OR_NULL,
+              "objective": STR, "steps": INT_OR_NULL, "length": NUM_OR_NULL, "jitter": NUM,
+              "trajectory": STR_OR_NULL, "aia_params": OBJECT_OR_NULL,
               "method_file": STR, "rounding_gaps": STR,
               "comparison": array(record({"method": STR, "evaluations": NUM,
                                           "h": NUM_OR_NULL, "resonance_h": array(NUM)},

@@ -8,7 +8,7 @@ from typing import Any
 
 import click
 
-from stepsafe.api.hmc import TARGET_SEED, TargetError, TargetReport, design, hmc
+from stepsafe.api.hmc import TargetError, TargetReport, design, hmc
 from stepsafe.cli.group import (
     DURATION,
     FLOAT,
@@ -67,7 +67,9 @@ PLOT_POINTS = 200
                    "stepsafe's own.")
 @click.option("--seed", type=INT, default=None, metavar="N",
               help="A target given by its potential: the seed of the warm-up draws and of "
-                   "the estimate's momenta [default: 20240611].")
+                   "the estimate's momenta, stated in the output [default: 20240611]. "
+                   "Refused for a Gaussian target, whose figures are exact and "
+                   "deterministic (no random numbers are drawn).")
 @click.option("--plot", "plot_file", default=None, metavar="FILE.png",
               help="Draw the predicted acceptance against h for each method (needs "
                    "matplotlib).")
@@ -87,7 +89,9 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
     Gaussian target: 2 P(Delta < 0) of the energy error Delta, from the one-step matrix
     of every mode), the largest h whose acceptance reaches --target-accept, and the
     gradient evaluations per proposal, per accepted proposal and per accepted unit of
-    simulated time, by which methods are ranked. Steps are in the time unit of sigma.
+    simulated time. Methods are ranked by gradients per accepted proposal at the L run
+    (--steps L, or --length T with L = floor(T/h)); without either, per accepted unit of
+    simulated time (JSON: ranked_by). Steps are in the time unit of sigma.
 
     A scene whose system: gives a potential (U = -log pi, with q: names, optional
     parameters:, mass: and start:) is not Gaussian: the acceptance (with its standard
@@ -116,7 +120,7 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
                      step=step, criterion=criterion, time_unit=options["time_unit"],
                      zmax=options["zmax"], curve=0 if plot_file is None else PLOT_POINTS,
                      gradient_cost=gradient_cost, progress=progress, draws=draws_file,
-                     seed=TARGET_SEED if seed is None else seed)
+                     seed=seed)
     data = report.to_dict()
     if isinstance(report, TargetReport):
         if as_json:
@@ -195,8 +199,7 @@ def print_hmc(data: dict[str, Any]) -> None:
                   + ("for every trajectory length; the acceptance shown is for the trajectory "
                      "given. " if data["target_for_every_length"] else
                      "for the trajectory given at every step up to it. ")
-                  + "Ranked by gradient evaluations per accepted unit of simulated time there "
-                  "(equivalently per accepted proposal at a fixed integration time).")
+                  + _ranking_line(data["ranked_by"], data["steps"], data["length"]))
     if data["jitter"]:
         console.print(_lit(
             f"Jitter: h at target keeps h(1 + {data['jitter']:g}) within the "
@@ -278,8 +281,24 @@ def print_hmc_target(data: dict[str, Any], scene_file: str | None) -> None:
                   "method's own trajectories, ± its Monte Carlo standard error; divergent: "
                   "dH > 1000. h at target stays within the stiffest draw's stability limit"
                   + (" over 1 + J." if data["jitter"] and not data["allow_unstable_jitter"]
-                     else ".") + " Ranked by gradient evaluations per accepted unit of "
-                  "simulated time on the target; Laplace: the Gaussian at the mode.")
+                     else ".") + " " + _ranking_line(data["ranked_by"], data["steps"],
+                                                     data["length"])
+                  + " Laplace: the Gaussian at the mode, ranked by the same criterion at its "
+                  "own h at target" + ("; the ranks differ for "
+                                       + ", ".join(r["method"] for r in data["ranking_differs"])
+                                       if data["ranking_differs"] else
+                                       "; the two rankings agree") + ".")
+
+
+def _ranking_line(key: str, steps: int | None, length: float | None) -> str:
+    """The sentence naming what the methods are ranked by (``ranked_by``)."""
+    if key == "gradients_per_accepted":
+        run = (f"L = {steps}" if steps else "L = floor(T/h) at each method's h at target"
+               if length else "the L given")
+        return (f"Ranked by {key}: gradient evaluations per accepted proposal at the L run "
+                f"({run}).")
+    return (f"Ranked by {key}: gradient evaluations per accepted unit of simulated time (no "
+            "trajectory length given: --steps or --length ranks per accepted proposal).")
 
 
 def _error_cell(x: float | None) -> str:
@@ -315,34 +334,54 @@ def _plot(data: dict[str, Any], output: str) -> None:
 @click.option("--stages", type=click.Choice(("2", "3")), default="2", show_default=True,
               help="2: one free coefficient b; 3: two (b, a).")
 @click.option("--jitter", type=FLOAT, default=0.0, show_default=True, metavar="J",
-              help="Average over steps H(1-J)..H(1+J), as a jittered sampler draws them.")
+              help="The step distribution: each step uniform in H(1-J)..H(1+J), as a "
+                   "jittered sampler draws them; the objective is averaged over it.")
+@click.option("--objective", type=click.Choice(("error-bound", "acceptance")),
+              default="error-bound", show_default=True,
+              help="error-bound: the expected energy error summed over the modes (each at "
+                   "its bound over every L); acceptance: what hmc ranks by, gradients per "
+                   "accepted proposal for --steps/--length (the reciprocal of the "
+                   "predicted acceptance), compared with the AIA-style minimax member.")
+@click.option("--steps", type=INT, default=None, metavar="L",
+              help="Steps per trajectory the sampler runs (with --objective acceptance: "
+                   "the L designed for; else the L of the comparison).")
+@click.option("--length", type=DURATION, default=None, metavar="T",
+              help="Integration time per trajectory instead of --steps: L = max(1, "
+                   "floor(T/h)) (in the time unit, or with one: 5fs).")
 @click.option("--name", default=None, metavar="NAME",
               help="Name in the method file [default: designed-2stage / designed-3stage].")
 @click.option("-o", "--output", default=None, metavar="FILE.yaml",
               help="Write the method file here (else it is printed).")
 @target_options
-def design_cmd(scene_file, step, stages, jitter, name, output, as_json, **options) -> None:
+def design_cmd(scene_file, step, stages, jitter, objective, steps, length, name, output,
+               as_json, **options) -> None:
     """Design a 2- or 3-stage HMC splitting for your Gaussian target and step.
 
     Chooses the free coefficient(s) of the palindromic 2- or 3-stage splitting family of
-    Blanes, Casas & Sanz-Serna (2014) that minimise the expected energy error of the
-    target at step H (averaged over the jitter interval, every mode kept stable), and
-    writes a method file every command accepts (stepsafe hmc --methods FILE, region,
-    advise, ...). The figures compare it with verlet, bcss2, bcss3 and mclachlan2-min at
-    the same gradient evaluations per unit of simulated time. The coefficients are shown
-    to 8 digits (further ones change the objective by less than its rounding); the method
-    file and --json carry every digit.
+    Blanes, Casas & Sanz-Serna (2014) for the target at step H, every mode kept stable up
+    to H(1+J), and writes a method file every command accepts (stepsafe hmc --methods
+    FILE, region, advise, ...). The objective (--objective) is the expected energy error
+    summed over the modes, or what hmc ranks by: gradient evaluations per accepted
+    proposal for the trajectory given (--steps L or --length T; neither: each mode at its
+    bound over L), averaged over the jitter; the latter is compared with the AIA-style
+    minimax member (the smallest worst error bound up to the fastest mode's z). The
+    figures compare it with verlet, bcss2, bcss3 and mclachlan2-min at the same gradient
+    evaluations per unit of simulated time. The coefficients are shown to 8 digits
+    (further ones change the objective by less than its rounding); the method file and
+    --json carry every digit.
 
     \b
     Examples:
       stepsafe design --sigma 1 --sigma 0.1 --step 0.15 -o mine.yaml
+      stepsafe design --sigma 1 --sigma 0.1 --step 0.15 --objective acceptance --steps 20
       stepsafe hmc --sigma 1 --sigma 0.1 --length 5 --methods mine.yaml,bcss2
     """
-    arrays, labels = command_line_modes(options, scene_file, step)
+    arrays, labels = command_line_modes(options, scene_file, step, length)
     with _naming_the_modes_file(options):
         report = design(modes=arrays or None, labels=labels or None, scene=scene_file,
                         step=step, stages=int(stages), jitter=jitter, name=name,
-                        time_unit=options["time_unit"], zmax=options["zmax"])
+                        time_unit=options["time_unit"], zmax=options["zmax"],
+                        objective=objective, trajectory_steps=steps, length=length)
     data = report.to_dict()
     if output is not None:
         _write_new_text(output, report.method_file)
@@ -350,6 +389,26 @@ def design_cmd(scene_file, step, stages, jitter, name, output, as_json, **option
         print_json(data)
         return
     print_design(data, output)
+
+
+def _against_aia(data: dict[str, Any]) -> str:
+    """The sentence comparing the designed member with the AIA-style minimax one on the
+    objective (gradient evaluations per accepted proposal, or per accepted unit of time
+    when no trajectory is given)."""
+    rows = {r["method"]: r for r in data["comparison"]}
+    ours, aia = rows[data["name"]], rows.get("aia-minimax")
+    key = ("gradients_per_accepted" if ours.get("gradients_per_accepted") is not None
+           else "gradients_per_time")
+    what = ("gradients per accepted proposal" if key == "gradients_per_accepted" else
+            "gradients per accepted unit of time")
+    if aia is None:
+        return (f"Objective: {what}; no AIA-style minimax member is stable up to the top of "
+                "the step distribution.")
+    params = ", ".join(f"{k} = {v:.6g}" for k, v in data["aia_params"].items())
+    if ours[key] is None or aia[key] is None:
+        return f"Objective: {what}; AIA-style minimax member: {params}."
+    return (f"Objective, {what}: {data['name']} {ours[key]:.5g}, AIA-style minimax "
+            f"({params}) {aia[key]:.5g}; AIA / designed = {aia[key] / ours[key]:.4g}.")
 
 
 @contextmanager
@@ -401,14 +460,26 @@ def print_design(data: dict[str, Any], output: str | None) -> None:
                        f"{fmt(data['step'])}{u}"
                        + (" (frequencies binned for the search)" if data["binned"] else "")))
     table = Table(title="At the same gradient evaluations per unit of simulated time")
-    for col in ("method", "grads/step", f"h{u}", "error bound (every L)",
-                "acceptance (every L)", "grads/accepted time unit"):
+    trajectory = data.get("trajectory") or "every L"
+    per_proposal = data["objective"] == "acceptance"
+    columns = ["method", "grads/step", f"h{u}",
+               "error bound (every L)" if trajectory == "every L" else
+               f"mean dH ({trajectory})", f"acceptance ({trajectory})"]
+    columns += ["L", "grads/accepted"] if per_proposal else []
+    for col in columns + ["grads/accepted time unit"]:
         table.add_column(col, overflow="fold")
     for r in data["comparison"]:
-        table.add_row(r["method"], str(r["evaluations"]), fmt(r["h"], 6),
-                      _error_cell(r["error_bound"]), f"{r['acceptance']:.4f}",
-                      "-" if r["gradients_per_time"] is None else fmt(r["gradients_per_time"], 5))
+        cells = [r["method"], str(r["evaluations"]), fmt(r["h"], 6),
+                 _error_cell(r["error_bound"]), f"{r['acceptance']:.4f}"]
+        if per_proposal:
+            cells += ["-" if r["steps"] is None else str(r["steps"]),
+                      "-" if r["gradients_per_accepted"] is None else
+                      fmt(r["gradients_per_accepted"], 5)]
+        table.add_row(*cells, "-" if r["gradients_per_time"] is None else
+                      fmt(r["gradients_per_time"], 5))
     console.print(table)
+    if per_proposal:
+        console.print(_lit(_against_aia(data)))
     for r in data["comparison"]:
         for h in r["resonance_h"]:
             console.print(_lit(f"{r['method']}: M = ±I within rounding at h = {fmt(h)}{u} "

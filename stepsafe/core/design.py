@@ -59,6 +59,7 @@ of the objective, said in the result; the final figures use every mode.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -343,7 +344,8 @@ MINIMAX_Z = 1024
 
 def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
            jitter: float = 0.0, objective: str = "error-bound",
-           steps: int | None = None) -> Design | None:
+           steps: int | None = None,
+           starts: Sequence[tuple[float, ...]] = ()) -> Design | None:
     """The family member of ``stages`` stages minimising ``objective`` at step ``h`` for the
     frequencies ``betas`` (``counts`` modes each); None when no member keeps every mode
     stable up to ``h (1 + jitter)``.
@@ -354,11 +356,15 @@ def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
     each mode at its bound over L) averaged over the jitter. The acceptance design searches
     its grid on the normal approximation of the acceptance, refines by Nelder-Mead on it,
     ranks every candidate by the exact acceptance and polishes the best by Nelder-Mead on
-    the exact one; ``Design.error_bound`` is then ``1 / alpha``."""
+    the exact one; ``Design.error_bound`` is then ``1 / alpha``. ``starts`` are further
+    members to start from (such as the minimax member of :func:`minimax`): each is a
+    candidate too, so the result's objective is at most theirs among those confirmed
+    stable."""
     from scipy.optimize import minimize
 
     if objective not in OBJECTIVES:
         raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+    starts_given = tuple(starts)
     betas, counts, binned = _binned(np.asarray(betas, float), np.asarray(counts, float))
     z = betas * h
     top = float(z.max()) * (1.0 + jitter)
@@ -406,11 +412,13 @@ def design(stages: int, betas: np.ndarray, counts: np.ndarray, h: float,
     # Nelder-Mead from the best grid points and from the published members (the landscape
     # has narrow valleys: bcss3 lies in one)
     order = np.argsort(values, kind="stable")[:STARTS]
-    starts = [grid[i] for i in order if np.isfinite(values[i])]
-    starts += [np.array(m) for m in KNOWN[stages] if np.isfinite(searched(np.array(m)))]
+    begins = [grid[i] for i in order if np.isfinite(values[i])]
+    begins += [np.array(m) for m in KNOWN[stages] if np.isfinite(searched(np.array(m)))]
+    given = [np.array(m, dtype=float) for m in starts_given]
+    begins += [m for m in given if np.isfinite(searched(m))]
     step = (hi - lo) / GRID[stages]
-    found_points = []
-    for start in starts:
+    found_points = [m for m in given if inside(m)]
+    for start in begins:
         simplex = np.vstack([start] + [start + step * np.eye(start.size)[i]
                                        for i in range(start.size)])
         found = minimize(searched, start, method="Nelder-Mead",

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from stepsafe.core.design import family_member
 from stepsafe.core.hmc import Trajectory
 from stepsafe.core.hmc_target.advice import TargetReport, hmc_on_target
 from stepsafe.core.hmc_target.draws import SEED, given_draws
@@ -62,7 +63,11 @@ def _require() -> tuple[Any, Any]:
 
 
 def _tableau(method: Any) -> Method:
-    """A method object from a name, an integrator (with ``tableau``) or a tableau."""
+    """A method object from a name, an integrator (with ``tableau``), a tableau, or the
+    report of ``stepsafe.design`` (its designed member, every digit)."""
+    if hasattr(method, "method_file") and hasattr(method, "params"):  # a DesignReport
+        return family_member(int(method.stages), tuple(float(v) for v in
+                                                       method.params.values()), method.name)
     if isinstance(method, str):
         name, _, stages = method.strip().partition(":")
         return resolve(name, int(stages) if stages.isdigit() else None)[0]
@@ -87,8 +92,9 @@ def coefficients(method: Any) -> Export:
     Parameters
     ----------
     method
-        A method name (``"bcss2"``), a :class:`stepsafe.api.Integrator`, or a splitting or
-        composition of one (library or designed).
+        A method name (``"bcss2"``) or method file, a :class:`stepsafe.api.Integrator`, a
+        splitting or composition of one (library or designed), or the report of
+        :func:`stepsafe.design` (its designed member).
 
     Returns
     -------
@@ -215,7 +221,7 @@ def blackjax_hmc(logdensity: Callable, initial_position: Any, *,
         A position of shape (d,) inside the target's support: the mode search starts there.
     method
         A method (name, integrator or splitting) or several (the best ranked is chosen:
-        fewest gradient evaluations per accepted unit of time); default
+        fewest gradient evaluations per accepted proposal at ``trajectory_steps``); default
         :data:`DEFAULT_METHODS`.
     target_accept
         The acceptance to reach.

@@ -21,11 +21,13 @@ For each method:
 * where divergent proposals start (a scan of h on the estimate);
 * the Laplace step at target, and the Laplace ranking.
 
-Methods are ranked by gradient evaluations per accepted unit of simulated time, as the
-Gaussian ``hmc`` ranks them: at a fixed integration time T this is the order of gradient
-evaluations per accepted proposal (``T / h`` steps of ``e`` gradients over the acceptance).
-Non-reversible (non-symmetric) methods are listed, not ranked; non-symplectic ones are not
-run.
+Methods are ranked by gradient evaluations per accepted proposal at the L the sampler runs
+(``ranked_by``, :data:`stepsafe.core.hmc.RANKINGS`; the trajectory is always given here):
+``(L e + extra) / alpha`` with the estimated acceptance ``alpha`` at each method's step at
+target. The Laplace ranking is the same criterion on the Gaussian at the mode (its own step
+at target and exact acceptance), and the report lists the methods whose two ranks differ
+(``ranking_differs``). Non-reversible (non-symmetric) methods are listed, not ranked;
+non-symplectic ones are not run.
 """
 
 from __future__ import annotations
@@ -78,6 +80,7 @@ class TargetRow:
     laplace_expected_error: float | None = None
     laplace_h_target: float | None = None
     laplace_gradients_per_time: float | None = None
+    laplace_gradients_per_accepted: float | None = None
     onset: Onset | None = None
     at_step: Estimate | None = None
     laplace_at_step: float | None = None
@@ -130,6 +133,7 @@ class TargetRow:
             "laplace_expected_error": _finite(self.laplace_expected_error),
             "laplace_h_target": self.laplace_h_target,
             "laplace_gradients_per_time": self.laplace_gradients_per_time,
+            "laplace_gradients_per_accepted": self.laplace_gradients_per_accepted,
             "laplace_rank": self.laplace_rank,
             "divergence_onset": None if self.onset is None else {
                 "h_clean": self.onset.h_clean, "h_divergent": self.onset.h_divergent,
@@ -168,6 +172,18 @@ class TargetReport:
         "laplace": "laplace_record", "methods": "rows"})
 
     @property
+    def ranked_by(self) -> str:
+        """The row key methods are ranked by (:data:`stepsafe.core.hmc.RANKINGS`)."""
+        return gaussian.ranked_by(self.trajectory)
+
+    @property
+    def ranking_differs(self) -> list[dict[str, Any]]:
+        """The methods ranked differently on the target and at the mode (Laplace), each
+        with both ranks."""
+        return [{"method": r.method, "rank": r.rank, "laplace_rank": r.laplace_rank}
+                for r in self.rows if _differs(r)]
+
+    @property
     def frequencies(self) -> dict[str, Any]:
         """The spread of the largest frequency over the draws, as ``hmc --json`` gives
         it: how it was found, over how many draws, ``omega_max`` (rad per time unit) and
@@ -201,12 +217,19 @@ class TargetReport:
             "length": self.trajectory.length, "jitter": self.trajectory.jitter,
             "allow_unstable_jitter": self.allow_unstable_jitter,
             "dimension": self.dimension, "seed": self.seed,
-            "cost_unit": self.COST_UNIT,
+            "cost_unit": self.COST_UNIT, "ranked_by": self.ranked_by,
+            "ranking_differs": self.ranking_differs,
             "draws": {"source": d.source, "chains": d.chains, "per_chain": d.per_chain,
                       "seed": d.seed, "sampler_step": d.step, "sampler_max_steps": d.max_steps,
                       "sampler_acceptance": d.acceptance, "sampler_divergent": d.divergent},
             "frequencies": self.frequencies, "laplace": self.laplace_record,
             "methods": [r.to_dict() for r in self.rows], "notes": list(self.notes)})
+
+
+def _differs(row: TargetRow) -> bool:
+    """Whether the method is ranked both on the target and at the mode, differently."""
+    return row.rank is not None and row.laplace_rank is not None and \
+        row.rank != row.laplace_rank
 
 
 def _within(h: float, factor: float) -> float:
@@ -283,11 +306,11 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
         rows.append(_row(m, target_accept, trajectory, step, estimator, freq, betas,
                          allow_unstable_jitter, onset, zmax))
     rows = _ranked(rows)
-    differ = [r.method for r in rows if r.rank is not None and r.laplace_rank is not None
-              and r.rank != r.laplace_rank]
+    differ = [f"{r.method} (rank {r.rank}, Laplace {r.laplace_rank})" for r in rows
+              if _differs(r)]
     if differ:
-        notes.append("the ranking on the target differs from the Gaussian (Laplace) one for "
-                     + ", ".join(differ))
+        notes.append("by gradients per accepted proposal, the ranking on the target differs "
+                     "from the Gaussian (Laplace) one for " + ", ".join(differ))
     return TargetReport(tuple(rows), float(target_accept), trajectory,
                         bool(allow_unstable_jitter), target.dimension, draws, freq, laplace,
                         seed, tuple(notes))
@@ -331,7 +354,7 @@ def _row(m: Method, target_accept: float, trajectory: Trajectory, step: float | 
         if share > 0:
             notes.append(f"{100 * share:.3g}% of the jittered steps h (1 +- {jitter:g}) pass "
                          f"the stiffest draw's stability limit {h_stable:.6g}")
-    lap_acc = lap_err = lap_h = lap_cost = lap_at = None
+    lap_acc = lap_err = lap_h = lap_cost = lap_accepted = lap_at = None
     if betas is not None:
         if h_target is not None:
             a = gaussian.acceptance_at(m, betas, h_target, trajectory)
@@ -344,8 +367,9 @@ def _row(m: Method, target_accept: float, trajectory: Trajectory, step: float | 
             a = gaussian.acceptance_at(m, betas, lap_h, trajectory)
             L = trajectory.steps_at(lap_h)
             if a.rate > 0 and L:
-                lap_cost = (run.gradients_per_step * L + run.gradients_per_trajectory_extra) \
-                    / (a.rate * L * lap_h)
+                per_proposal = run.gradients_per_step * L + run.gradients_per_trajectory_extra
+                lap_cost = per_proposal / (a.rate * L * lap_h)
+                lap_accepted = per_proposal / a.rate
         if step is not None:
             lap_at = gaussian.acceptance_at(m, betas, step, trajectory).rate
     at_step = None if step is None else estimator.estimate(run, step, trajectory)
@@ -358,23 +382,23 @@ def _row(m: Method, target_accept: float, trajectory: Trajectory, step: float | 
                      f"(energy error > 1000)")
     return TargetRow(run.name, run.gradients_per_step, run.symmetric, float(z_star), h_stable,
                      laplace_h, h_target, None if found is None else found.h_se, est,
-                     lap_acc, lap_err, lap_h, lap_cost, scan, at_step, lap_at,
+                     lap_acc, lap_err, lap_h, lap_cost, lap_accepted, scan, at_step, lap_at,
                      notes=tuple(notes))
 
 
 def _ranked(rows: list[TargetRow]) -> list[TargetRow]:
-    """Rows sorted by gradients per accepted unit of time on the target (symmetric ones
+    """Rows sorted by gradients per accepted proposal on the target (symmetric ones
     ranked), each with its rank there and its rank by the Laplace figures."""
     def cost(r: TargetRow) -> float | None:
-        return None if r.estimate is None else r.estimate.gradients_per_time
+        return None if r.estimate is None else r.estimate.gradients_per_accepted
 
     index = range(len(rows))
     usable = sorted((k for k in index if rows[k].symmetric and cost(rows[k]) is not None),
                     key=lambda k: cost(rows[k]) or 0.0)
     rank = {k: n + 1 for n, k in enumerate(usable)}
     lap = sorted((k for k in index if rows[k].symmetric
-                  and rows[k].laplace_gradients_per_time is not None),
-                 key=lambda k: rows[k].laplace_gradients_per_time or 0.0)
+                  and rows[k].laplace_gradients_per_accepted is not None),
+                 key=lambda k: rows[k].laplace_gradients_per_accepted or 0.0)
     lap_rank = {k: n + 1 for n, k in enumerate(lap)}
     out = [TargetRow(**{**rows[k].__dict__, "rank": rank.get(k),
                         "laplace_rank": lap_rank.get(k)}) for k in index]
