@@ -78,8 +78,11 @@ from stepsafe.systems.thermal.trajectories import (
 LOW = 0.35
 #: ... and ends at this fraction of it.
 TOP = 0.999
-#: Steps per trajectory at most in band scans and drift measurements.
-BAND_STEPS = 2000
+#: Steps per trajectory at most in band scans and drift measurements: a run of up to this
+#: many steps is followed for its whole length (memory does not grow with the steps: the
+#: trajectories are streamed, see :mod:`stepsafe.core.ensemble`); a longer one is followed
+#: this far, and the analysis says so.
+BAND_STEPS = 10_000
 FRAMES = 1000
 TRAJECTORIES = 500
 #: Systems with at most this many degrees of freedom are integrated whole.
