@@ -43,6 +43,7 @@ step is not clear of failures (:func:`.bands.judge`).
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -246,6 +247,15 @@ def _run_time(h: float, length: float | None, steps: float | None) -> float:
     return float(steps) * h
 
 
+def _run_steps(h: float, length: float | None, steps: float | None) -> int:
+    """The run's number of steps at step ``h``: ``steps`` rounded up, else ``length / h``
+    rounded up (a quotient within a few rounding errors of an integer counts as it)."""
+    if steps is not None:
+        return math.ceil(float(steps))
+    ratio = _run_time(h, length, steps) / h
+    return math.ceil(ratio * (1.0 - 4.0 * sys.float_info.epsilon))
+
+
 def _validate_run(length, steps) -> tuple[float | None, float | None]:
     if (length is None) == (steps is None):
         raise StepsafeError("give the run's length (simulated time) or its number of steps, "
@@ -397,7 +407,7 @@ def thermal_limit(method: Method, pot: Potential, kT: float, *, length: float | 
     notes: list[str] = list(zero.notes) + list(linear.ensemble.notes)
     h_lo = LOW * linear.h_linear
     h_hi = TOP * linear.h_linear
-    n_steps = int(min(band_steps, math.ceil(_run_time(h_lo, length, steps) / h_lo)))
+    n_steps = int(min(band_steps, _run_steps(h_lo, length, steps)))
     n_steps = max(n_steps, 2)
     targets = _targets(pot, kT, linear.ensemble, trajectories, seed, whole_up_to,
                        modes_profiled, grid_points)
@@ -568,7 +578,7 @@ def thermal_check(method: Method, pot: Potential, kT: float, h: float, *,
     reasons = []
     if h >= linear.h_linear:
         reasons.append("above the linear limit at temperature")
-    n_steps = max(2, int(min(band_steps, math.ceil(run_length / h))))
+    n_steps = max(2, int(min(band_steps, _run_steps(h, length, steps))))
     targets = _targets(pot, kT, linear.ensemble, trajectories, seed, whole_up_to,
                        modes_profiled, bands_.GRID_POINTS)
     ratio = max(1.0, linear.omega.upper / zero.omega_zero)
