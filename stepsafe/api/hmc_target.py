@@ -217,7 +217,8 @@ def on_target(found: PotentialTarget, integrators: Sequence[Integrator], *,
                          target_accept=target_accept, step=step, draws=given,
                          seed=int(seed), start=found.start,
                          allow_unstable_jitter=allow_unstable_jitter,
-                         zmax=10.0 if zmax is None else float(zmax))
+                         zmax=10.0 if zmax is None else float(zmax),
+                         where=found.where or None)
 
 
 __all__ = ["SEED", "TargetReport", "callable_target", "on_target", "target_of"]

@@ -230,9 +230,10 @@ def print_hmc_target(data: dict[str, Any], scene_file: str | None) -> None:
         console.print(_lit(f"Draws: stepsafe's warm-up HMC, {d['chains']} chains x "
                            f"{d['per_chain']} (verlet, step {fmt(d['sampler_step'], 4)}, "
                            f"acceptance {d['sampler_acceptance']:.3g}, "
-                           f"{d['sampler_divergent']} divergent)"))
+                           f"{d['sampler_divergent']} divergent)" + _diagnosed(d)))
     else:
-        console.print(_lit(f"Draws: given, {d['chains']} chain(s) x {d['per_chain']}"))
+        console.print(_lit(f"Draws: given, {d['chains']} chain(s) x {d['per_chain']}"
+                           + _diagnosed(d)))
     q = f["omega_max_quantiles"]
     lap = data["laplace"]
     console.print(_lit(f"Stiffest frequency over {f['draws']} draws ({f['how']}): median "
@@ -299,6 +300,15 @@ def _ranking_line(key: str, steps: int | None, length: float | None) -> str:
                 f"({run}).")
     return (f"Ranked by {key}: gradient evaluations per accepted unit of simulated time (no "
             "trajectory length given: --steps or --length ranks per accepted proposal).")
+
+
+def _diagnosed(d: dict[str, Any]) -> str:
+    """The draws' R-hat and effective sample size, when computed."""
+    if d.get("rhat") is None or d.get("effective_size") is None:
+        return ""
+    verdict = "converged" if d["converged"] else "NOT converged"
+    return (f"; R-hat {d['rhat']:.4f}, effective sample size {d['effective_size']:.4g} "
+            f"({verdict})")
 
 
 def _error_cell(x: float | None) -> str:

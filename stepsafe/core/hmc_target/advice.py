@@ -42,7 +42,16 @@ import numpy as np
 
 from stepsafe.core import hmc as gaussian
 from stepsafe.core.hmc import Trajectory
-from stepsafe.core.hmc_target.draws import SEED, Draws, Laplace, find_mode, sample
+from stepsafe.core.hmc_target.draws import (
+    ESS_LIMIT,
+    RHAT_LIMIT,
+    SEED,
+    Draws,
+    Laplace,
+    find_mode,
+    flat_direction,
+    sample,
+)
 from stepsafe.core.hmc_target.estimate import (
     Estimate,
     Estimator,
@@ -221,7 +230,9 @@ class TargetReport:
             "ranking_differs": self.ranking_differs,
             "draws": {"source": d.source, "chains": d.chains, "per_chain": d.per_chain,
                       "seed": d.seed, "sampler_step": d.step, "sampler_max_steps": d.max_steps,
-                      "sampler_acceptance": d.acceptance, "sampler_divergent": d.divergent},
+                      "sampler_acceptance": d.acceptance, "sampler_divergent": d.divergent,
+                      "rhat": _finite(d.rhat), "effective_size":
+                      _finite(d.effective_size), "converged": d.converged},
             "frequencies": self.frequencies, "laplace": self.laplace_record,
             "methods": [r.to_dict() for r in self.rows], "notes": list(self.notes)})
 
@@ -245,7 +256,7 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
                   draws: Draws | None = None, laplace: Laplace | None = None,
                   seed: int = SEED, start: np.ndarray | None = None,
                   allow_unstable_jitter: bool = False, onset: bool = True,
-                  zmax: float = 10.0) -> TargetReport:
+                  zmax: float = 10.0, where: str | None = None) -> TargetReport:
     """HMC with each of ``methods`` on ``target`` (module docstring).
 
     Parameters
@@ -275,6 +286,9 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
         Scan for the step where divergent proposals start.
     zmax
         How far in z the methods' stability is analysed.
+    where
+        The scene file whose ``system:`` gives the target, named in refusals (None: the
+        Python keywords).
 
     Returns
     -------
@@ -290,14 +304,27 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
         laplace = find_mode(target, start)
     if laplace is None:
         notes.append("no mode found (or d too large for a dense Hessian): no Laplace figures")
-    elif not laplace.positive_definite:
+    flat = None if laplace is None else flat_direction(target, laplace)
+    if flat is not None:
+        raise StepsafeError(
+            "the target is improper: U rises by less than 1 over a distance of "
+            f"{flat:.3g} from its mode along a direction where its curvature is not positive, so "
+            "exp(-U) does not integrate (give a proper prior along it)",
+            f"{where}::$.system.potential" if where else "logdensity")
+    if laplace is not None and not laplace.positive_definite:
         notes.append("the Hessian at the mode found is not positive definite: no Laplace "
                      "figures")
     if draws is None:
-        draws = sample(target, seed=seed, laplace=laplace, start=start)
+        draws = sample(target, seed=seed, laplace=laplace, start=start, where=where)
+    if draws.converged is False:
+        notes.append(f"the draws have not converged (R-hat {draws.rhat:.4g}, limit "
+                     f"{RHAT_LIMIT:g}; effective sample size {draws.effective_size:.4g}, limit "
+                     f"{ESS_LIMIT:g}): they may not represent the target and the estimates "
+                     "may be off by more than their standard errors")
     freq = spread(target, draws, seed=seed + 2)
     if not freq.top > 0:
-        raise StepsafeError("the target has no positive curvature at any draw: no step limit")
+        raise StepsafeError("the target has no positive curvature at any draw: no step limit",
+                            f"{where}::$.system.potential" if where else "logdensity")
     estimator = Estimator(target, draws, seed=seed + 1,
                           scale=float(np.median(draws.flat.std(axis=0))) or 1.0)
     betas = laplace.betas if laplace is not None and laplace.positive_definite else None

@@ -9,20 +9,34 @@ scaled by BFGS's inverse-Hessian estimate) gives the Laplace approximation
 ``beta_k^2`` of the Gaussian analysis at the mode.
 
 Warm-up sampler. ``chains`` chains of HMC with kick-drift-kick Verlet under the target's
-own mass matrix, vectorised over chains, started from the Laplace approximation (or around
-the start given when there is none). Each iteration draws the number of steps uniformly
-from ``1 .. L_max`` and the step uniformly from ``h (0.9, 1.1)`` (both avoid periodic
-orbits), accepts each chain with probability ``min(1, e^-Delta)`` and, during warm-up,
-adapts h by dual averaging (Hoffman & Gelman, JMLR 15 (2014) 1593, algorithm 5: gamma =
+own mass matrix, vectorised over chains. They start over-dispersed, from
+``N(mode, DISPERSION^2 (nabla^2 U)^-1)`` (around the start given, scaled by the curvature
+there, when there is no positive definite Laplace approximation); a start where U or its
+gradient is not finite (outside the support) is redrawn at half its distance from the centre
+(:func:`starts`). Each iteration draws, per chain, the step ``h / STEP_RANGE^u`` (u uniform
+on (0, 1): smaller steps let chains cross regions stiffer than the typical one) and the
+number of steps ``ceil(T u' / h_i)`` (u' uniform, capped at :data:`MAX_WARMUP_STEPS`), so
+that the integration time is uniform up to ``T = pi`` times the largest standard deviation
+of the mass-weighted target (Laplace's at first, re-estimated from the chains' covariance at
+the end of each eighth of the warm-up). Both are drawn independently of the state, so each
+iteration is a valid Metropolis-Hastings step: a proposal is accepted with probability
+``min(1, e^-Delta)`` and one with a non-finite energy is never accepted. During warm-up h is
+adapted by dual averaging (Hoffman & Gelman, JMLR 15 (2014) 1593, algorithm 5: gamma =
 0.05, t0 = 10, kappa = 0.75) so that the mean acceptance statistic over the chains
-approaches :data:`WARMUP_ACCEPT`, a conservative 0.9: few divergent transitions and a
-small bias from a still-adapting step. The integration time is ``pi/2`` times the largest
-standard deviation of the mass-weighted target (Laplace's, re-estimated from the chains'
-covariance at the end of each warm-up window), so that ``L_max = ceil(T / h)`` is capped at
-:data:`MAX_WARMUP_STEPS`. After warm-up the step is frozen and every iteration of every
-chain is kept; the Monte Carlo error of anything averaged over them comes from the chains'
-autocorrelation (:mod:`stepsafe.core.hmc_target.statistics`). The seed is part of the
-result.
+approaches :data:`WARMUP_ACCEPT`, a conservative 0.9; at the end of each eighth a chain whose
+mean acceptance over it is below :data:`STUCK` times the median chain's (stuck where the
+common step does not fit) is moved to the position of another chain. The warm-up iterations
+are discarded; after them the step is frozen and every iteration of every chain is kept.
+
+Diagnostics. Over the kept draws, the rank-normalised split R-hat and the effective sample
+size (:mod:`stepsafe.core.hmc_target.statistics`) of every coordinate and of U; the draws
+count as converged when the largest R-hat is at most :data:`RHAT_LIMIT` and the smallest
+ESS at least :data:`ESS_LIMIT`. The Monte Carlo error of anything averaged over the draws
+comes from the chains' autocorrelation (the same module). The seed is part of the result.
+
+Improper targets (:func:`flat_direction`): along a direction where the Hessian at the mode
+has no positive curvature, U is followed out to far beyond the other directions' scale; if
+it never rises by 1, exp(-U) does not integrate and the target is refused.
 """
 
 from __future__ import annotations
@@ -36,6 +50,7 @@ from typing import ClassVar
 import numpy as np
 
 from stepsafe.core.hmc_target.potential import Target, hessian_matrix
+from stepsafe.core.hmc_target.statistics import effective_size, rhat
 from stepsafe.exceptions import StepsafeError
 
 #: The warm-up sampler's target for the mean acceptance statistic (conservative).
@@ -46,6 +61,20 @@ MAX_WARMUP_STEPS = 256
 CHAINS = 32
 WARMUP = 300
 KEEP = 150
+#: The warm-up chains start this many Laplace standard deviations out (over-dispersed) ...
+DISPERSION = 2.0
+#: ... and a start outside the support is redrawn nearer the centre up to this many times.
+REDRAWS = 30
+#: Each iteration's step is h / STEP_RANGE**u, u uniform on (0, 1) (and the integration
+#: time uniform up to pi times the largest standard deviation).
+STEP_RANGE = 4.0
+#: During warm-up a chain whose acceptance over a window is below this fraction of the
+#: median chain's is moved to another chain's position.
+STUCK = 0.5
+#: Converged draws: R-hat at most this, and an effective sample size at least ...
+RHAT_LIMIT = 1.01
+#: ... this (for every coordinate and U).
+ESS_LIMIT = 400.0
 #: Default seed (stated in every result).
 SEED = 20240611
 #: Largest dimension for which the Laplace approximation's dense Hessian is formed.
@@ -125,6 +154,50 @@ def find_mode(target: Target, start: np.ndarray | None = None) -> Laplace | None
     return Laplace(mode, H, lam, float(np.linalg.norm(g)), bool(found.success))
 
 
+#: A direction is flat when U rises by less than 1 out to this many standard deviations of
+#: the other directions (by decades from 1).
+FLAT_REACH = 1e12
+#: ... tested along the Hessian's eigenvectors at the mode whose eigenvalue is at most this
+#: fraction of the largest (or not positive).
+FLAT_CURVATURE = 1e-8
+
+
+def flat_direction(target: Target, laplace: Laplace) -> float | None:
+    """Whether exp(-U) is improper along a direction of vanishing curvature at the mode.
+
+    Along each eigenvector v (mass-weighted) of the Hessian at the mode with eigenvalue at
+    most :data:`FLAT_CURVATURE` times the largest, U is evaluated at ``mode +- t v`` for
+    ``t = s 10^k`` up to ``s FLAT_REACH`` (s the largest standard deviation of the curved
+    directions, 1 without any). A proper target's U grows without bound (or leaves the
+    support) along every direction; if it rises by less than 1 at every t on both sides,
+    the density does not decay along v and its integral diverges.
+
+    Returns
+    -------
+    float or None
+        The distance ``s FLAT_REACH`` tested along a flat direction, or None (none flat).
+    """
+    lam = laplace.eigenvalues
+    if not lam.size or not np.isfinite(lam).all():
+        return None
+    top = float(np.abs(lam).max())
+    W = target.mass.weighted(laplace.hessian)
+    lam, V = np.linalg.eigh(0.5 * (W + W.T))
+    curved = lam[lam > FLAT_CURVATURE * top]
+    s = float(1.0 / math.sqrt(curved.min())) if curved.size and top > 0 else 1.0
+    reach = s * FLAT_REACH
+    ts = s * 10.0 ** np.arange(0, round(math.log10(FLAT_REACH)) + 1)
+    u0, _, _ = _finite(target, laplace.mode[None, :])
+    for k in np.flatnonzero(~(lam > FLAT_CURVATURE * top)):
+        v = np.asarray(target.mass.weigh_vector(V[:, k]), dtype=float)
+        points = laplace.mode + np.concatenate([ts, -ts])[:, None] * v
+        with np.errstate(all="ignore"):
+            rise = np.asarray(target.potential.energy(points), dtype=float) - u0[0]
+        if not (rise >= 1.0).any() and np.isfinite(rise).all():
+            return reach
+    return None
+
+
 @dataclass(frozen=True)
 class Draws:
     """Positions from the target, shape (chains, n, d), with where they came from.
@@ -140,6 +213,16 @@ class Draws:
     max_steps: int | None = None
     acceptance: float | None = None
     divergent: int = 0
+    rhat: float | None = None
+    effective_size: float | None = None
+
+    @property
+    def converged(self) -> bool | None:
+        """R-hat at most :data:`RHAT_LIMIT` and ESS at least :data:`ESS_LIMIT` (None
+        without diagnostics)."""
+        if self.rhat is None or self.effective_size is None:
+            return None
+        return bool(self.rhat <= RHAT_LIMIT and self.effective_size >= ESS_LIMIT)
 
     #: the keys of ``hmc --json``'s ``draws`` record named after this sampler's attributes
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
@@ -194,6 +277,9 @@ def given_draws(positions: np.ndarray, dimension: int, where: str = "draws") -> 
         raise StepsafeError("draws need at least 2 per chain", where)
     if not np.isfinite(arr).all():
         raise StepsafeError("draws have a non-finite entry", where)
+    if arr.shape[1] >= 4:
+        r, ess = diagnostics(arr)
+        return Draws(arr, "given", rhat=r, effective_size=ess)
     return Draws(arr, "given")
 
 
@@ -223,10 +309,91 @@ def _leapfrog(target: Target, q: np.ndarray, p: np.ndarray, g: np.ndarray,
     return q, p, g
 
 
+def _where(where: str | None, key: str) -> str:
+    """The file::key (or the keyword) an error about the target names."""
+    return f"{where}::$.system.{key}" if where else key
+
+
+def _finite(target: Target, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """U, grad U and which rows have both finite."""
+    with np.errstate(all="ignore"):
+        u = np.asarray(target.potential.energy(q), dtype=float)
+        g = np.asarray(target.potential.gradient(q), dtype=float)
+    return u, g, np.isfinite(u) & np.isfinite(g).all(axis=1)
+
+
+def starts(target: Target, rng: np.random.Generator, chains: int,
+           laplace: Laplace | None = None, start: np.ndarray | None = None,
+           where: str | None = None) -> tuple[np.ndarray, float, float]:
+    """Dispersed starting points inside the support, with a first step and spread.
+
+    The chains start from ``centre + DISPERSION * S z`` (z standard normal), where the centre
+    is the mode with ``S S^T = (nabla^2 U)^-1`` when the Laplace approximation is positive
+    definite, else the start given (the origin) with S the mass-weighted inverse square
+    roots of the curvature magnitudes there. A start where U or its gradient is not finite
+    (outside the support) is redrawn at half the distance from the centre, up to
+    :data:`REDRAWS` times, then put at the centre itself.
+
+    Returns
+    -------
+    (positions (chains, d), first step, spread)
+        The first step ``1 / (2 sqrt(lambda_max))`` and the largest standard deviation
+        ``1 / sqrt(lambda_min)`` of the mass-weighted curvature at the centre.
+
+    Raises
+    ------
+    StepsafeError
+        When U or its gradient is not finite at the centre (naming the start).
+    """
+    d = target.dimension
+    mass, pot = target.mass, target.potential
+    if laplace is not None and laplace.positive_definite:
+        W = mass.weighted(laplace.hessian)
+        lam, V = np.linalg.eigh(0.5 * (W + W.T))
+        centre = laplace.mode
+
+        def offset(z: np.ndarray) -> np.ndarray:
+            return np.asarray(mass.weigh_vector((z / np.sqrt(lam)) @ V.T))
+        spread = float(1.0 / math.sqrt(lam[0]))
+        h = 0.5 / math.sqrt(lam[-1])
+    else:
+        # the curvature where the chains start sets the first step and spread (its
+        # magnitudes: the start need not be a minimum)
+        centre = np.zeros(d) if start is None else np.asarray(start, float).reshape(d)
+        with np.errstate(all="ignore"):
+            lam = np.abs(np.linalg.eigvalsh(mass.weighted(
+                hessian_matrix(pot, centre[None, :], 1e-3 * (np.abs(centre) + 1.0))[0])))
+        lam = lam[np.isfinite(lam) & (lam > 0)]
+        top = float(lam.max()) if lam.size else 1.0
+        spread, h = 1.0 / math.sqrt(float(lam.min()) if lam.size else 1.0), 0.5 / math.sqrt(top)
+
+        def offset(z: np.ndarray) -> np.ndarray:
+            return np.asarray(spread * mass.weigh_vector(z))
+    _, _, ok0 = _finite(target, centre[None, :])
+    if not ok0[0]:
+        raise StepsafeError("the target's energy or its gradient is not finite at "
+                            + ("its mode" if laplace is not None and laplace.positive_definite
+                               else "the start") + ": give a start inside the target's support",
+                            _where(where, "start"))
+    step = offset(DISPERSION * rng.standard_normal((chains, d)))
+    q = centre + step
+    for _ in range(REDRAWS):
+        _, _, ok = _finite(target, q)
+        if ok.all():
+            break
+        step = np.where(ok[:, None], step, 0.5 * step)
+        q = centre + step
+    else:
+        _, _, ok = _finite(target, q)
+        q = np.where(ok[:, None], q, centre)
+    return q, h, spread
+
+
 def sample(target: Target, *, chains: int = CHAINS, warmup: int = WARMUP, keep: int = KEEP,
            seed: int = SEED, laplace: Laplace | None = None,
-           start: np.ndarray | None = None) -> Draws:
-    """Draws from the target by the warm-up sampler of the module docstring.
+           start: np.ndarray | None = None, where: str | None = None) -> Draws:
+    """Draws from the target by the warm-up sampler of the module docstring, with their
+    convergence diagnostics.
 
     Parameters
     ----------
@@ -240,6 +407,8 @@ def sample(target: Target, *, chains: int = CHAINS, warmup: int = WARMUP, keep: 
         The Laplace approximation to start from (:func:`find_mode`), if any.
     start
         Where chains start when there is no (positive definite) Laplace approximation.
+    where
+        The scene file whose ``system:`` gives the target (named in errors), if any.
 
     Returns
     -------
@@ -248,42 +417,24 @@ def sample(target: Target, *, chains: int = CHAINS, warmup: int = WARMUP, keep: 
     rng = np.random.default_rng(seed)
     d = target.dimension
     mass, pot = target.mass, target.potential
-    if laplace is not None and laplace.positive_definite:
-        # N(mode, H^-1): q = mode + C^-T V diag(lambda^-1/2) z with C^-1 H C^-T = V L V^T
-        W = mass.weighted(laplace.hessian)
-        lam, V = np.linalg.eigh(0.5 * (W + W.T))
-        z = rng.standard_normal((chains, d)) / np.sqrt(lam)
-        q = laplace.mode + mass.weigh_vector(z @ V.T)
-        spread = float(1.0 / math.sqrt(lam[0]))
-        h = 0.5 / math.sqrt(lam[-1])
-    else:
-        # the curvature where the chains start sets the first step and spread (its
-        # magnitudes: the start need not be a minimum)
-        centre = np.zeros(d) if start is None else np.asarray(start, float).reshape(d)
-        with np.errstate(all="ignore"):
-            lam = np.abs(np.linalg.eigvalsh(mass.weighted(
-                hessian_matrix(pot, centre[None, :], 1e-3 * (np.abs(centre) + 1.0))[0])))
-        lam = lam[np.isfinite(lam) & (lam > 0)]
-        top = float(lam.max()) if lam.size else 1.0
-        spread, h = 1.0 / math.sqrt(float(lam.min()) if lam.size else 1.0), 0.5 / math.sqrt(top)
-        q = centre + 0.1 * spread * mass.weigh_vector(rng.standard_normal((chains, d)))
-    with np.errstate(all="ignore"):
-        u = pot.energy(q)
-        g = pot.gradient(q)
-    if not (np.isfinite(u).all() and np.isfinite(g).all()):
-        raise StepsafeError("the target's energy or gradient is not finite where the chains "
-                            "start (its mode, or the start given): give a start inside "
-                            "the target's support")
+    q, h, spread = starts(target, rng, chains, laplace, start, where)
+    u, g, _ = _finite(target, q)
     # dual averaging state
     mu, log_bar, s_bar, t0, gamma, kappa = math.log(10 * h), 0.0, 0.0, 10.0, 0.05, 0.75
-    windows = {warmup // 4, warmup // 2, (3 * warmup) // 4}
+    ends = {round(warmup * k / 8) for k in range(1, 8)}
     kept = np.empty((chains, keep, d))
-    stats, divergent = [], 0
+    kept_u = np.empty((chains, keep))
+    window = np.zeros(chains)
+    window_len = 0
+    stats, divergent, L_max = [], 0, 1
     for it in range(warmup + keep):
         adapting = it < warmup
-        L_max = int(min(MAX_WARMUP_STEPS, max(1, math.ceil(0.5 * math.pi * spread / h))))
-        steps = rng.integers(1, L_max + 1, size=chains)
-        hs = h * rng.uniform(0.9, 1.1, size=chains)
+        length = math.pi * spread
+        hs = h * STEP_RANGE ** -rng.uniform(size=chains)
+        steps = np.minimum(np.ceil(rng.uniform(size=chains) * length / hs),
+                           MAX_WARMUP_STEPS).astype(int)
+        steps = np.maximum(steps, 1)
+        L_max = max(L_max, int(steps.max()))
         p = mass.momenta(rng.standard_normal((chains, d)))
         with np.errstate(all="ignore"):
             q1, p1, g1 = _leapfrog(target, q, p, g, hs, steps)
@@ -295,7 +446,7 @@ def sample(target: Target, *, chains: int = CHAINS, warmup: int = WARMUP, keep: 
                                 - mass.kinetic(p))
             delta = np.where(np.isfinite(delta), delta, np.inf)
             accept_prob = np.exp(-np.maximum(delta, 0.0))
-        accept = rng.uniform(size=chains) < accept_prob
+        accept = (rng.uniform(size=chains) < accept_prob) & np.isfinite(delta)
         q = np.where(accept[:, None], q1, q)
         g = np.where(accept[:, None], g1, g)
         u = np.where(accept, u1, u)
@@ -305,17 +456,42 @@ def sample(target: Target, *, chains: int = CHAINS, warmup: int = WARMUP, keep: 
             log_h = mu - math.sqrt(t) / gamma * s_bar
             log_bar = t ** -kappa * log_h + (1 - t ** -kappa) * log_bar
             h = math.exp(log_h)
-            if it + 1 in windows and it > 10:
+            window += accept_prob
+            window_len += 1
+            if it + 1 in ends and it > 10:
+                # chains whose acceptance over the window is far below the others' are
+                # stuck where the common step does not fit: moved to another chain
+                rate = window / window_len
+                stuck = rate < STUCK * float(np.median(rate))
+                if stuck.any() and not stuck.all():
+                    donors = rng.choice(np.flatnonzero(~stuck), size=int(stuck.sum()))
+                    q[stuck], g[stuck], u[stuck] = q[donors], g[donors], u[donors]
+                window[:], window_len = 0.0, 0
                 centred = q - q.mean(axis=0)
                 white = mass.whiten(centred)  # C^T (q - mean): unit-mass coordinates
                 cov = white.T @ white / max(chains - 1, 1)
                 top = float(np.linalg.eigvalsh(cov)[-1]) if d > 1 else float(cov[0, 0])
-                spread = max(spread, math.sqrt(max(top, 0.0)))
+                if math.isfinite(top) and top > 0:
+                    spread = math.sqrt(top)
             if it + 1 == warmup:
                 h = math.exp(log_bar)
         else:
             kept[:, it - warmup] = q
+            kept_u[:, it - warmup] = u
             stats.append(float(accept_prob.mean()))
             divergent += int((delta > 1000).sum())
+    r, ess = diagnostics(kept, kept_u)
     return Draws(kept, "warm-up", seed, h, L_max, float(np.mean(stats)) if stats else None,
-                 divergent)
+                 divergent, r, ess)
+
+
+def diagnostics(positions: np.ndarray, energies: np.ndarray | None = None
+                ) -> tuple[float, float]:
+    """The largest rank-normalised split R-hat and the smallest effective sample size over
+    the coordinates of the draws (chains, n, d) and their energies U, when given
+    (:mod:`stepsafe.core.hmc_target.statistics`)."""
+    series = [positions[..., k] for k in range(positions.shape[-1])]
+    if energies is not None:
+        series.append(energies)
+    return (max(rhat(x) for x in series),
+            min(effective_size(x) if np.isfinite(x).all() else 0.0 for x in series))

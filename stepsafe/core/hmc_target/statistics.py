@@ -86,3 +86,46 @@ def chain_mean(x: np.ndarray) -> Mean:
 
 #: Beyond this size a statistic's squares may overflow: its mean gets no standard error.
 HUGE = 1e150
+
+
+def _normal_scores(x: np.ndarray) -> np.ndarray:
+    """Rank-normalised values: ``Phi^-1((r - 3/8) / (S + 1/4))`` with r the rank of each
+    entry among all S (ties share their mean rank)."""
+    from scipy.special import ndtri
+    from scipy.stats import rankdata
+
+    r = rankdata(x, method="average").reshape(x.shape)
+    return np.asarray(ndtri((r - 0.375) / (x.size + 0.25)), dtype=float)
+
+
+def _split_rhat(x: np.ndarray) -> float:
+    """The potential scale reduction of x (chains, n) with each chain split in halves."""
+    m, n = x.shape
+    half = n // 2
+    s = np.concatenate([x[:, :half], x[:, n - half:]], axis=0)
+    W = float(np.mean(np.var(s, axis=1, ddof=1)))
+    B_over_n = float(np.var(s.mean(axis=1), ddof=1))
+    if not W > 0:
+        return 1.0 if not B_over_n > 0 else math.inf
+    var_plus = (half - 1) / half * W + B_over_n
+    return float(math.sqrt(var_plus / W))
+
+
+def rhat(x: np.ndarray) -> float:
+    """Rank-normalised split R-hat of x (shape (chains, n), n >= 4; one chain is split in
+    halves too): the larger of the split potential scale reduction
+    ``sqrt(((n'-1)/n' W + B/n') / W)`` of the rank-normalised values and of the
+    rank-normalised distances from the median (W the mean within-half variance, ``B/n'``
+    the variance of the half means, n' = n // 2; Vehtari, Gelman, Simpson, Carpenter and
+    Buerkner, Bayesian Analysis 16 (2021) 667). Near 1 when the chains agree; above 1.01
+    they have not mixed. inf where x has a non-finite entry."""
+    x = np.asarray(x, dtype=float)
+    if x.ndim == 1:
+        x = x[None, :]
+    if x.shape[1] < 4:
+        return math.inf
+    if not np.isfinite(x).all():
+        return math.inf
+    bulk = _split_rhat(_normal_scores(x))
+    tail = _split_rhat(_normal_scores(np.abs(x - np.median(x))))
+    return max(bulk, tail)
