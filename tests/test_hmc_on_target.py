@@ -199,16 +199,16 @@ def test_bad_log_densities_are_refused(kwargs, match):
 def test_the_hmc_guide_banana_figures():
     """The figures the HMC guide (docs/guides/hmc.md) quotes for examples/banana.yaml
     with verlet at L = 10: the Gaussian at the mode predicts 0.92 at the step at target
-    (about 0.79, the stiffest draw's limit), the estimate is 0.88 with 0.8% divergent,
-    divergences start near h = 0.63 (to the Monte Carlo error of the seeded draws)."""
+    (about 0.79, the stiffest draw's limit), the estimate is 0.88 with 0.7% divergent,
+    divergences start near h = 0.64 (to the Monte Carlo error of the seeded draws)."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent
     readme = (root / "docs" / "guides" / "hmc.md").read_text()
     text = " ".join(readme.split())
     assert ("predicts 0.92 for verlet with L = 10 at its step at target (h ≈ 0.79" in text
-            and "estimates 0.88 ± 0.003 there, with 0.8% of the proposals divergent" in text
-            and "divergences starting at h ≈ 0.63" in text)
+            and "estimates 0.88 ± 0.002 there, with 0.7% of the proposals divergent" in text
+            and "divergences starting at h ≈ 0.64" in text)
     row = hmc(["verlet"], scene=str(root / "examples" / "banana.yaml"),
               trajectory_steps=10).rows[0]
     assert abs(row.h_target - 0.79) < 0.005 and round(row.laplace_acceptance, 2) == 0.92
@@ -216,7 +216,7 @@ def test_the_hmc_guide_banana_figures():
     assert abs(row.estimate.acceptance - 0.88) < 0.005 + 3 * row.estimate.acceptance_se
     assert row.estimate.acceptance_se < 0.005
     assert 0.003 < row.estimate.divergent < 0.01
-    assert abs(row.onset.h_clean - 0.63) < 0.01 and row.onset.h_divergent < 0.64
+    assert abs(row.onset.h_clean - 0.64) < 0.01 and row.onset.h_divergent < 0.66
 
 
 @pytest.mark.blackjax

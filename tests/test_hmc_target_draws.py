@@ -289,5 +289,26 @@ def test_the_draws_state_their_diagnostics():
     total = d["chains"] * d["per_chain"]
     assert d["effective_size"] <= total * math.log10(total)
     assert d["converged"] == (d["rhat"] <= 1.01 and d["effective_size"] >= 400)
-    code, _ = _hmc_code(BANANA_1, "--steps", "10", "--methods", "verlet")
+
+
+DOUBLE_WELL = (
+    "system:\n"
+    '  potential: "10*(x**2 - 4)**2"\n'
+    "  q: [x]\n"
+    "  start: [0]\n"
+)
+
+
+def test_draws_split_between_separated_wells_are_not_converged():
+    """U = 10 (x^2 - 4)^2 started on its barrier (160 above the wells): the chains fall into
+    either well and never cross, so their R-hat is far above 1.01; hmc says so (JSON, note)
+    and --require-converged exits 1 after the report, 0 without it."""
+    data = _hmc_json(DOUBLE_WELL, "--steps", "10", "--methods", "verlet")
+    assert data["draws"]["converged"] is False and data["draws"]["rhat"] > 1.1
+    assert any("have not converged" in n for n in data["notes"])
+    code, err = _hmc_code(DOUBLE_WELL, "--steps", "10", "--methods", "verlet",
+                          "--require-converged")
+    assert code == 1 and "--require-converged" in err, (code, err)
+    code, _ = _hmc_code(BANANA_1, "--steps", "10", "--methods", "verlet",
+                        "--require-converged")
     assert code == 0

@@ -70,6 +70,10 @@ PLOT_POINTS = 200
                    "the estimate's momenta, stated in the output [default: 20240611]. "
                    "Refused for a Gaussian target, whose figures are exact and "
                    "deterministic (no random numbers are drawn).")
+@click.option("--require-converged", is_flag=True,
+              help="A target given by its potential: exit 1 (after the report) when the "
+                   "draws have not converged (R-hat above 1.01 or an effective sample "
+                   "size below 400).")
 @click.option("--plot", "plot_file", default=None, metavar="FILE.png",
               help="Draw the predicted acceptance against h for each method (needs "
                    "matplotlib).")
@@ -78,8 +82,8 @@ PLOT_POINTS = 200
 @gradient_cost_option
 @target_options
 def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_jitter,
-            target_accept, target_for_every_length, step, draws_file, seed, plot_file, tsv,
-            criterion, as_json, gradient_cost, **options) -> None:
+            target_accept, target_for_every_length, step, draws_file, seed, require_converged,
+            plot_file, tsv, criterion, as_json, gradient_cost, **options) -> None:
     """HMC on a target: acceptance rate, step size and cost per method.
 
     The target: standard deviations (--sigma, unit mass), frequencies (--beta =
@@ -132,6 +136,10 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
                        "laplace_rank"), data["methods"])
         else:
             print_hmc_target(data, scene_file)
+        if require_converged and report.draws.converged is False:
+            click.echo("stepsafe: the draws have not converged (--require-converged)",
+                       err=True)
+            raise SystemExit(1)
         return
     if plot_file is not None:
         _plot(data, plot_file)

@@ -60,7 +60,7 @@ MAX_WARMUP_STEPS = 256
 #: Default chains, warm-up iterations and kept iterations per chain.
 CHAINS = 32
 WARMUP = 300
-KEEP = 150
+KEEP = 300
 #: The warm-up chains start this many Laplace standard deviations out (over-dispersed) ...
 DISPERSION = 2.0
 #: ... and a start outside the support is redrawn nearer the centre up to this many times.
