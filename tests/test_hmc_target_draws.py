@@ -141,10 +141,6 @@ def _funnel():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=(
-    "the warm-up draws on Neal's funnel do not reach its neck (v < -7.4, where verlet at "
-    "h = 0.05 diverges) in proportion: their R-hat exceeds 1.01 and hmc says they have not "
-    "converged, but the divergent share on them is not the exact draws' one"))
 def test_hmc_divergent_share_on_the_funnel_agrees_with_exact_draws():
     """At h = 0.05 the divergent share on the warm-up draws must be within a factor 2 of the
     share on exact draws (binomial noise on 4800 proposals is far smaller)."""

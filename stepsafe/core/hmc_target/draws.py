@@ -13,8 +13,10 @@ own mass matrix, vectorised over chains. They start over-dispersed, from
 ``N(mode, DISPERSION^2 (nabla^2 U)^-1)`` (around the start given, scaled by the curvature
 there, when there is no positive definite Laplace approximation); a start where U or its
 gradient is not finite (outside the support) is redrawn at half its distance from the centre
-(:func:`starts`). Each iteration draws, per chain, the step ``h / STEP_RANGE^u`` (u uniform
-on (0, 1): smaller steps let chains cross regions stiffer than the typical one) and the
+(:func:`starts`). Each iteration draws, per chain, the step ``h / R^u`` (u uniform on
+(0, 1): smaller steps let chains cross regions stiffer than the typical one; R starts at
+:data:`STEP_RANGE` and grows fourfold, up to :data:`MAX_STEP_RANGE`, after each warm-up
+window in which a chain was stuck, and is fixed after warm-up) and the
 number of steps ``ceil(T u' / h_i)`` (u' uniform, capped at :data:`MAX_WARMUP_STEPS`), so
 that the integration time is uniform up to ``T = pi`` times the largest standard deviation
 of the mass-weighted target (Laplace's at first, re-estimated from the chains' covariance at
@@ -65,9 +67,11 @@ KEEP = 300
 DISPERSION = 2.0
 #: ... and a start outside the support is redrawn nearer the centre up to this many times.
 REDRAWS = 30
-#: Each iteration's step is h / STEP_RANGE**u, u uniform on (0, 1) (and the integration
-#: time uniform up to pi times the largest standard deviation).
+#: Each iteration's step is h / R**u, u uniform on (0, 1) (and the integration time uniform
+#: up to pi times the largest standard deviation), R from STEP_RANGE ...
 STEP_RANGE = 4.0
+#: ... multiplied by 4 at the end of a warm-up window with a stuck chain, up to this.
+MAX_STEP_RANGE = 64.0
 #: During warm-up a chain whose acceptance over a window is below this fraction of the
 #: median chain's is moved to another chain's position.
 STUCK = 0.5
@@ -427,10 +431,11 @@ def sample(target: Target, *, chains: int = CHAINS, warmup: int = WARMUP, keep: 
     window = np.zeros(chains)
     window_len = 0
     stats, divergent, L_max = [], 0, 1
+    step_range = STEP_RANGE
     for it in range(warmup + keep):
         adapting = it < warmup
         length = math.pi * spread
-        hs = h * STEP_RANGE ** -rng.uniform(size=chains)
+        hs = h * step_range ** -rng.uniform(size=chains)
         steps = np.minimum(np.ceil(rng.uniform(size=chains) * length / hs),
                            MAX_WARMUP_STEPS).astype(int)
         steps = np.maximum(steps, 1)
@@ -463,6 +468,8 @@ def sample(target: Target, *, chains: int = CHAINS, warmup: int = WARMUP, keep: 
                 # stuck where the common step does not fit: moved to another chain
                 rate = window / window_len
                 stuck = rate < STUCK * float(np.median(rate))
+                if stuck.any():
+                    step_range = min(4.0 * step_range, MAX_STEP_RANGE)
                 if stuck.any() and not stuck.all():
                     donors = rng.choice(np.flatnonzero(~stuck), size=int(stuck.sum()))
                     q[stuck], g[stuck], u[stuck] = q[donors], g[donors], u[donors]
