@@ -295,6 +295,7 @@ DOUBLE_WELL = (
 )
 
 
+@pytest.mark.slow
 def test_draws_split_between_separated_wells_are_not_converged():
     """U = 10 (x^2 - 4)^2 started on its barrier (160 above the wells): the chains fall into
     either well and never cross, so their R-hat is far above 1.01; hmc says so (JSON, note)
