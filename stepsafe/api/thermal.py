@@ -26,7 +26,8 @@ answer on one machine.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -45,6 +46,11 @@ from stepsafe.units import ENERGY_UNITS, TIME_UNITS, duration, kelvin, thermal_e
 SEED = 0
 #: The energy unit of an MD engine's system (OpenMM's).
 ENGINE_ENERGY = "kJ/mol"
+#: The default largest acceptable failure probability of a run at temperature (as
+#: :data:`stepsafe.systems.thermal.bands.MAX_FAILURE`).
+MAX_FAILURE = 1e-3
+#: The smallest accepted: ``ln(20) / MIN_FAILURE`` trajectories per probe.
+MIN_FAILURE = 1e-5
 
 
 @dataclass(frozen=True)
@@ -65,6 +71,12 @@ class Request:
         Or its number of steps.
     max_drift : float or None
         The largest acceptable energy drift, energy per time unit (the whole system).
+    max_failure : float or None
+        The largest acceptable failure probability of a run, when given (else
+        :data:`MAX_FAILURE`, :attr:`failure`).
+    key : str
+        Where the temperature came from: the option and keyword (``--kT, kT=``) or the
+        scene's key (``$.kT``), for errors of the analysis.
     """
 
     kT: float
@@ -73,9 +85,16 @@ class Request:
     length: float | None
     steps: float | None
     max_drift: float | None = None
+    max_failure: float | None = None
+    key: str = "--kT, kT="
 
     def run(self) -> dict[str, Any]:
         return {"length": self.length, "steps": self.steps}
+
+    @property
+    def failure(self) -> float:
+        """The largest acceptable failure probability: given, or :data:`MAX_FAILURE`."""
+        return MAX_FAILURE if self.max_failure is None else self.max_failure
 
 
 def _where(scene: Any, key: str) -> str | None:
@@ -90,7 +109,8 @@ def _fail(message: str, scene: Any, key: str, given: bool) -> StepsafeError:
 
 
 def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
-            steps: Any = None, max_drift: Any = None, scene: Any = None, system: Any = None,
+            steps: Any = None, max_drift: Any = None, max_failure: Any = None,
+            scene: Any = None, system: Any = None,
             time_unit: str | None = None) -> Request | None:
     """The request of the keywords (the command line's options), else of the scene's
     ``temperature:``, ``kT:``, ``length:`` and ``steps:`` (each keyword wins over the
@@ -113,6 +133,11 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
         The largest acceptable ``|drift| + 2 SE`` of the energy, in the system's energy
         unit per time unit: ``advise`` lowers the step until the measured drift meets it
         (``limited_by`` ``"drift"``), ``check`` fails a step whose drift does not.
+    max_failure : float, optional
+        The largest acceptable probability that a trajectory of the run fails, in (0, 0.1]
+        (default :data:`MAX_FAILURE`): ``check`` needs none of
+        ``ln(20) / max_failure`` thermal trajectories at the step to fail, ``advise``
+        confirms its answer so on a fresh ensemble.
     scene : stepsafe.systems.scene.Scene, optional
         The scene file read (its keys and where they are).
     system : mapping, optional
@@ -126,7 +151,7 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
     """
     keys = dict(getattr(scene, "thermal", None) or {})
     given = {"temperature": temperature, "kT": kT, "length": length, "steps": steps,
-             "max_drift": max_drift}
+             "max_drift": max_drift, "max_failure": max_failure}
 
     def value(key: str) -> tuple[Any, bool]:
         if given.get(key) is not None:
@@ -178,7 +203,7 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
         temperature_k = None
         unit = unit if k_given is False else unit
     else:
-        for key in ("length", "steps", "max_drift"):
+        for key in ("length", "steps", "max_drift", "max_failure"):
             v, g = value(key)
             if v is not None:
                 raise _fail("applies to the analysis at temperature: give a temperature "
@@ -232,7 +257,25 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
             raise _fail(f"max_drift must be a positive finite energy per time unit, got "
                         f"{str(tolerance)[:40]!r}", scene, "max_drift", d_given)
         tolerance = number
-    return Request(kt, temperature_k, unit, run_length, run_steps, tolerance)
+    p_value, p_given = value("max_failure")
+    p_max = None
+    if p_value is not None:
+        if isinstance(p_value, str) and not p_given:
+            from stepsafe.systems.scene import parse_real
+
+            p_value = parse_real(p_value)
+        p_max = math.nan
+        if isinstance(p_value, (int, float)) and not isinstance(p_value, bool):
+            try:
+                p_max = float(p_value)
+            except OverflowError:
+                pass
+        if not MIN_FAILURE <= p_max <= 0.1:
+            raise _fail(f"max_failure must be a probability in [{MIN_FAILURE:g}, 0.1], got "
+                        f"{str(p_value)[:40]!r}", scene, "max_failure", p_given)
+    name = "temperature" if temperature_k is not None else "kT"
+    key = f"--{name}, {name}=" if (t_given or k_given) else f"$.{name}"
+    return Request(kt, temperature_k, unit, run_length, run_steps, tolerance, p_max, key)
 
 
 def _minima(p: Any, req: Request) -> list[Minimum] | None:
@@ -276,19 +319,50 @@ def _progress(progress: Callable[[float], None] | None, count: int
 
 
 def _harmonic_record(req: Request, h_zero: float | None, criterion: str) -> dict[str, Any]:
-    return {**_request_record(req, criterion), "h_max": h_zero, "h_max_0K": h_zero,
-            "limited_by": "0 K", "harmonic": True, "minima": [],
+    return {**_request_record(req, criterion, ensemble=False), "h_max": h_zero,
+            "h_max_0K": h_zero, "limited_by": "0 K", "harmonic": True, "minima": [],
             "notes": ["the system is linear (harmonic): its frequencies do not depend on "
                       "amplitude and its map has no resonance bands below the linear limit, "
                       "so the answer at temperature is the 0 K one"]}
 
 
-def _request_record(req: Request, criterion: str) -> dict[str, Any]:
+def _request_record(req: Request, criterion: str, ensemble: bool = True) -> dict[str, Any]:
     """The request, with the criterion (``structure`` or ``stability``) of the method's
-    interval z* that the 0 K limit and the linear limit at temperature rest on."""
-    return {"kT": req.kT, "criterion": criterion, "temperature": req.temperature,
-            "energy_unit": req.energy_unit, "run": req.run(), "max_drift": req.max_drift,
-            "seed": SEED}
+    interval z* that the 0 K limit and the linear limit at temperature rest on; with
+    ``ensemble`` (a ``hamiltonian:`` analysed by thermal ensembles) the failure threshold,
+    the trajectories that can show it and the confidence."""
+    from stepsafe.systems.thermal.bands import CONFIDENCE, trajectories_for
+
+    out = {"kT": req.kT, "criterion": criterion, "temperature": req.temperature,
+           "energy_unit": req.energy_unit, "run": req.run(), "max_drift": req.max_drift,
+           "seed": SEED}
+    if ensemble:
+        out.update(max_failure=req.failure,
+                   trajectories=trajectories_for(req.failure, CONFIDENCE),
+                   confidence=CONFIDENCE)
+    return out
+
+
+def _no_failure_threshold(req: Request) -> None:
+    """An engine's runs are judged by their own seeds, not by a failure threshold."""
+    if req.max_failure is not None:
+        raise StepsafeError("max_failure: applies to a hamiltonian: system's thermal "
+                            "ensembles; an MD engine's system is judged by its seeded runs "
+                            "in the engine (give no max_failure)")
+
+
+@contextmanager
+def _naming_the_scene(p: Any, req: Request) -> Iterator[None]:
+    """An error of the analysis (a potential not finite or not confining at that kT) names
+    the scene's Hamiltonian and where the temperature came from."""
+    try:
+        yield
+    except StepsafeError as exc:
+        if exc.where:
+            raise
+        where = f"{p.scene}::$.system.hamiltonian" if p.scene else None
+        raise StepsafeError(f"at kT = {req.kT:.6g} ({req.key}): {exc.message}",
+                            where) from None
 
 
 def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion: str,
@@ -328,11 +402,12 @@ def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion:
     each = []
     report = _progress(progress, len(found))
     for i, m in enumerate(found):
-        with p.integrator.naming_its_file():
+        with p.integrator.naming_its_file(), _naming_the_scene(p, req):
             r = thermal_limit(p.integrator.tableau, m.potential, req.kT, length=req.length,
                               steps=None if req.steps is None else req.steps,
                               criterion=criterion, orders=orders, seed=SEED,
-                              drift_tolerance=req.max_drift, progress=report(i))
+                              drift_tolerance=req.max_drift, max_failure=req.failure,
+                              progress=report(i))
         each.append((m, r))
     best_m, best = min(each, key=lambda e: e[1].h_max)
     h_t = p.margin * best.h_max
@@ -392,22 +467,27 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
         return _engine_check(p, req, h, criterion, progress)
     found = _minima(p, req)
     if found is None:
-        return {**_request_record(req, criterion), "safe": True, "harmonic": True,
-                "reasons": [], "minima": [],
+        return {**_request_record(req, criterion, ensemble=False), "safe": True,
+                "harmonic": True, "reasons": [], "minima": [],
                 "notes": _harmonic_record(req, None, criterion)["notes"]}
     step = h / p.margin
     each, reasons = [], []
     for i, m in enumerate(found):
-        with p.integrator.naming_its_file():
+        with p.integrator.naming_its_file(), _naming_the_scene(p, req):
             c = thermal_check(p.integrator.tableau, m.potential, req.kT, step,
                               length=req.length, steps=req.steps, criterion=criterion,
-                              seed=SEED)
+                              max_failure=req.failure, seed=SEED)
         if progress is not None:
             progress((i + 1) / len(found))
         each.append(check_record(m, c, p.margin))
         reasons += [f"{r} (minimum at {m.label})" for r in c.reasons]
         d = c.drift
-        if req.max_drift is not None and d is not None and not d.bound(2.0) <= req.max_drift:
+        if req.max_drift is not None and d is not None and d.failed:
+            reasons.append(f"{d.failed} of {d.trajectories} trajectories failed: the "
+                           f"ensemble's energy is not bounded, so no drift meets max_drift "
+                           f"{req.max_drift:g} (minimum at {m.label})")
+        elif req.max_drift is not None and d is not None and \
+                not d.bound(2.0) <= req.max_drift:
             reasons.append(f"the energy drift {d.rate:.3g} +- {d.error:.2g} per time unit "
                            f"(2 standard errors) exceeds max_drift {req.max_drift:g} "
                            f"(minimum at {m.label})")
@@ -478,14 +558,26 @@ def limit_record(m: Minimum, r: Any, margin: float = 1.0) -> dict[str, Any]:
             "h_band": scaled(r.h_band), "h_drift": scaled(r.h_drift),
             "frequencies": _frequency_record(r.linear),
             "scans": [_scan_record(sc, margin) for sc in r.scans],
-            "drift": _drift_record(r.drift, margin), "seed": r.seed, "notes": list(r.notes)}
+            "drift": _drift_record(r.drift, margin),
+            "confirmation": _confirmation_record(r.confirmation, margin), "seed": r.seed,
+            "notes": list(r.notes)}
+
+
+def _confirmation_record(c: Any, margin: float) -> dict[str, Any] | None:
+    if c is None:
+        return None
+    return {"h": margin * c.h, "max_failure": c.max_failure, "confidence": c.confidence,
+            "trajectories": c.trajectories, "steps": c.steps, "seed": c.seed,
+            "failures": c.failures, "upper": c.upper,
+            "rejected": [{"h": margin * h, "failures": k} for h, k in c.rejected]}
 
 
 def check_record(m: Minimum, c: Any, margin: float = 1.0) -> dict[str, Any]:
     """One minimum's :class:`~stepsafe.systems.thermal.ThermalCheck`, JSON-ready."""
     probes = [{"target": name, "h": margin * pr.h, "verdict": pr.verdict,
                "trajectories": pr.trajectories, "failures": pr.failures, "steps": pr.steps,
-               "probability": pr.probability, "lower": pr.lower, "upper": pr.upper}
+               "probability": pr.probability, "lower": pr.lower, "upper": pr.upper,
+               "max_failure": pr.threshold}
               for name, pr in c.probes]
     h_linear = None if c.linear is None else margin * c.linear.h_linear
     return {"at": m.label, "safe": c.safe, "reasons": list(c.reasons),
@@ -577,11 +669,12 @@ def _engine_advice(p: Any, req: Request, h_zero: float | None, criterion: str,
     else:
         omega = float(analysis.spectrum.eigenvalues[0])
         run_length = float(req.steps or 1) * z_star / math.sqrt(omega) if omega > 0 else 1.0
+    _no_failure_threshold(req)
     runs = _engine_runs(p, req, run_length)
     r = md_thermal.thermal_limit(analysis, runs, z_star, run_length, _engine_progress(progress),
                                  engine_name="OpenMM")
     h_t = p.margin * r.h_max / scale
-    out = {**_request_record(req, criterion), "h_max_0K": h_zero}
+    out = {**_request_record(req, criterion, ensemble=False), "h_max_0K": h_zero}
     if h_zero is not None and h_zero <= h_t:
         out.update(h_max=h_zero, limited_by="0 K")
     else:
@@ -601,6 +694,7 @@ def _engine_check(p: Any, req: Request, h: float, criterion: str,
     scale = _scale(p)
     step = h / p.margin * scale
     run_length = req.length * scale if req.length is not None else float(req.steps or 1) * step
+    _no_failure_threshold(req)
     runs = _engine_runs(p, req, run_length)
     c = md_thermal.thermal_check(_engine_analysis(p), runs, _z_star(p, criterion), step, run_length,
                                  _engine_progress(progress))
@@ -616,8 +710,9 @@ def _engine_check(p: Any, req: Request, h: float, criterion: str,
     if c.limit is not None:
         entry["engine_runs"].update(_scan_limits(c.limit, p.margin, scale))
         entry["h_max"] = p.margin * c.h_max / scale
-    return {**_request_record(req, criterion), "safe": c.safe, "reasons": list(c.reasons),
-            "harmonic": False, "margin": p.margin, "minima": [entry], "notes": list(c.notes)}
+    return {**_request_record(req, criterion, ensemble=False), "safe": c.safe,
+            "reasons": list(c.reasons), "harmonic": False, "margin": p.margin,
+            "minima": [entry], "notes": list(c.notes)}
 
 
 

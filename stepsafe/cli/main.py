@@ -403,7 +403,8 @@ def _no_temperature(warm: dict) -> None:
     given = next((key for key, value in warm.items() if value is not None), None)
     if given is not None:
         option = {"length": "--length", "steps": "--steps", "kT": "--kT",
-                  "max_drift": "--max-drift"}.get(given, "--temperature")
+                  "max_drift": "--max-drift",
+                  "max_failure": "--max-failure"}.get(given, "--temperature")
         raise _input_error(f"{option}: the analysis at temperature does not apply to "
                            "impulse (multiple time stepping) methods yet")
 

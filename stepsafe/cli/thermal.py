@@ -24,8 +24,14 @@ def _below(x: float) -> str:
 
 
 def thermal_options(func):
-    """--temperature, --kT, --length, --steps and --max-drift."""
+    """--temperature, --kT, --length, --steps, --max-drift and --max-failure."""
     opts = [
+        click.option("--max-failure", "max_failure", type=FLOAT, default=None, metavar="P",
+                     help="With a temperature: the largest acceptable probability that a "
+                          "trajectory of the run fails (default 0.001, from 1e-5 to 0.1): "
+                          "check needs none of ln(20)/P thermal trajectories at the step to "
+                          "fail (P = 0.001: 2995), advise confirms its answer so on a fresh "
+                          "ensemble."),
         click.option("--max-drift", "max_drift", type=FLOAT, default=None, metavar="D",
                      help="With a temperature: the largest acceptable energy drift, energy "
                           "per time unit (advise lowers h until the measured drift meets "
@@ -53,7 +59,7 @@ def thermal_keywords(options: dict[str, Any]) -> dict[str, Any]:
     """The API's keywords of the options (removed from ``options``)."""
     return {"temperature": options.pop("temperature"), "kT": options.pop("kT"),
             "length": options.pop("run_length"), "steps": options.pop("run_steps"),
-            "max_drift": options.pop("max_drift")}
+            "max_drift": options.pop("max_drift"), "max_failure": options.pop("max_failure")}
 
 
 def zero_kelvin_view(data: dict[str, Any]) -> dict[str, Any]:
@@ -173,6 +179,16 @@ def _print_minimum(m: dict[str, Any], u: str, margin: float) -> None:
             click.echo(f"    no band in h = [{_g(sc['h_range'][0])}, {_g(sc['h_range'][1])}]"
                        f"{u} ({sc['target']}: {sc['trajectories']} trajectories x "
                        f"{sc['steps']} steps)")
+    c = m.get("confirmation")
+    if c is not None and c["h"] > 0:
+        click.echo(f"    confirmed at h = {_g(c['h'])}{u} on a fresh ensemble (seed "
+                   f"{c['seed']}): {c['failures']} of {c['trajectories']} trajectories "
+                   f"failed in {c['steps']} steps, failure probability below "
+                   f"{c['upper']:.2g} at {c['confidence']:.0%} confidence (max_failure "
+                   f"{c['max_failure']:g})")
+    elif c is not None:
+        click.echo(f"    no step confirmed on a fresh ensemble (seed {c['seed']}, "
+                   f"{c['trajectories']} trajectories)")
     _print_drift(m.get("drift"), u, "    ")
     if "engine_runs" in m:
         _print_engine_runs(m["engine_runs"], u, "    ")
@@ -184,8 +200,14 @@ def _print_drift(d: dict[str, Any] | None, u: str, indent: str) -> None:
     if d is None:
         return
     per = f"/{u.strip()}" if u else " per time unit"
-    click.echo(f"{indent}drift at h = {_g(d['h'])}{u}: {d['rate']:.3g} +- {d['error']:.2g} "
-               f"energy{per} (fluctuation {d['fluctuation']:.3g}; {d['failed']} of "
+    if d["failed"]:
+        rate = "not bounded (trajectories failed; the survivors' slope is no drift)"
+    elif d["rate"] is None or d["error"] is None:
+        rate = "not finite in float64"
+    else:
+        rate = f"{d['rate']:.3g} +- {d['error']:.2g} energy{per}"
+    fluct = "" if d["fluctuation"] is None else f"fluctuation {d['fluctuation']:.3g}; "
+    click.echo(f"{indent}drift at h = {_g(d['h'])}{u}: {rate} ({fluct}{d['failed']} of "
                f"{d['trajectories']} trajectories failed in {d['steps']} steps)")
 
 
@@ -215,7 +237,9 @@ def print_thermal_check(entry: dict[str, Any]) -> None:
         for p in m["probes"]:
             click.echo(f"    {p['target']} at h: {p['failures']} of {p['trajectories']} "
                        f"trajectories failed in {p['steps']} steps ({p['verdict']}; failure "
-                       f"probability {p['lower']:.2g} to {p['upper']:.2g})")
+                       f"probability {p['lower']:.2g} to {p['upper']:.2g} at "
+                       f"{t['confidence']:.0%} confidence, max_failure "
+                       f"{p['max_failure']:g})")
         _print_drift(m.get("drift"), u, "    ")
         if "engine_runs" in m:
             _print_engine_runs(m["engine_runs"], u, "    ")

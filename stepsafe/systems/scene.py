@@ -62,10 +62,12 @@ from stepsafe.units import (
 )
 
 SCENE_KEYS = ("method", "h", "time_unit", "margin", "zmax", "modes", "system", "substeps",
-              "temperature", "kT", "energy_unit", "length", "steps", "max_drift")
+              "temperature", "kT", "energy_unit", "length", "steps", "max_drift",
+              "max_failure")
 #: The keys of the analysis at temperature, kept as written and read by
 #: :func:`stepsafe.api.thermal.request` (which names the key of a bad value).
-THERMAL_KEYS = ("temperature", "kT", "energy_unit", "length", "steps", "max_drift")
+THERMAL_KEYS = ("temperature", "kT", "energy_unit", "length", "steps", "max_drift",
+                "max_failure")
 MAX_CSV_BYTES = 256 << 20
 MAX_CSV_ROWS = 10_000_000  # rows of a modes CSV, counted (newlines) before parsing
 #: Modes of an impulse scene: each (fast, slow) pair is a region of its own.
@@ -147,6 +149,10 @@ def json_schema() -> dict[str, Any]:
             "max_drift": {"type": "number", "exclusiveMinimum": 0,
                           "description": "at temperature: the largest acceptable energy "
                                          "drift, energy per time unit"},
+            "max_failure": {"type": "number", "minimum": 1e-5, "maximum": 0.1,
+                            "description": "at temperature: the largest acceptable "
+                                           "probability that a trajectory of the run fails "
+                                           "(default 0.001)"},
             "modes": {"type": "array", "minItems": 1, "items": {
                 "type": "object", "additionalProperties": False,
                 "oneOf": [{"required": [form]} for form in FORMS]

@@ -10,8 +10,12 @@ number k of the m trajectories that fail within the steps run:
 * one-sided Clopper-Pearson bounds at level ``confidence`` on the failure probability P,
   ``lower = Beta^-1(1 - confidence; k, m - k + 1)`` and
   ``upper = Beta^-1(confidence; k + 1, m - k)``;
-* ``clear`` when ``upper < threshold``, ``band`` when ``lower > threshold``, otherwise
-  ``undecided`` (treated as unsafe: never a clear verdict the sample does not support).
+* ``clear`` when no trajectory failed (``k = 0``) and ``upper < threshold``; ``band`` when
+  ``lower > threshold``; ``failures observed`` for any other ``k > 0`` and ``undecided``
+  for ``k = 0`` with ``upper >= threshold`` (both unsafe: a step is never clear while a
+  trajectory of its sample failed, nor while the sample cannot bound the probability
+  below the threshold). With ``k = 0`` the upper bound is ``1 - (1 - confidence)^(1/m)``:
+  :func:`trajectories_for` gives the smallest m that can show ``P < threshold``.
 
 The grid is uniform in h plus points at relative offsets ``+-OFFSETS`` around each linear
 resonance point of each mode (``h = z_r / omega_k``, ``z_r`` from
@@ -38,8 +42,14 @@ from stepsafe.methods.tableaux import Method
 from stepsafe.systems.thermal.potential import Potential
 from stepsafe.systems.thermal.trajectories import DISTANCE, GROWTH, Outcome, Start, run
 
+#: The failure probability a band scan screens for (500 trajectories per step can show
+#: it with none failed).
 THRESHOLD = 0.01
 CONFIDENCE = 0.95
+#: The default largest acceptable failure probability of a run at temperature: the
+#: confirmation of an advised step and the check of a step use
+#: ``trajectories_for(MAX_FAILURE)`` trajectories and need every one to survive.
+MAX_FAILURE = 1e-3
 BISECTIONS = 6
 GRID_POINTS = 48
 #: A scan tests the energy every this many steps (escapes at every step).
@@ -58,6 +68,27 @@ def clopper_pearson(k: int, m: int, confidence: float = CONFIDENCE) -> tuple[flo
     return lower, upper
 
 
+def trajectories_for(threshold: float, confidence: float = CONFIDENCE) -> int:
+    """The smallest m whose zero failures show ``P < threshold`` at ``confidence``:
+    ``1 - (1 - confidence)^(1/m) < threshold``, i.e. ``m > ln(1 - confidence) /
+    ln(1 - threshold)`` (about ``ln 20 / threshold`` at 95%).
+
+    Parameters
+    ----------
+    threshold : float
+        In (0, 1).
+    confidence : float
+        In (0, 1).
+
+    Returns
+    -------
+    int
+    """
+    if not (0 < threshold < 1 and 0 < confidence < 1):
+        raise StepsafeError(f"the failure threshold must lie in (0, 1), got {threshold}")
+    return int(math.floor(math.log1p(-confidence) / math.log1p(-threshold))) + 1
+
+
 @dataclass(frozen=True)
 class Probe:
     """The ensemble at one h: failures, their bounds, the verdict, and the energy drift.
@@ -69,7 +100,9 @@ class Probe:
     probability, lower, upper : float
         ``failures / trajectories`` and its one-sided bounds.
     verdict : str
-        ``"clear"``, ``"band"`` or ``"undecided"``.
+        ``"clear"``, ``"band"``, ``"failures observed"`` or ``"undecided"``.
+    threshold : float
+        The failure probability the verdict was judged against.
     drift, drift_error, fluctuation : float
         See :class:`stepsafe.systems.thermal.trajectories.Outcome` (NaN in a scan).
     """
@@ -85,6 +118,7 @@ class Probe:
     drift: float
     drift_error: float
     fluctuation: float
+    threshold: float = THRESHOLD
 
     @property
     def clear(self) -> bool:
@@ -93,12 +127,16 @@ class Probe:
 
 def judge(outcome: Outcome, threshold: float = THRESHOLD,
           confidence: float = CONFIDENCE) -> Probe:
-    """The :class:`Probe` of an outcome."""
+    """The :class:`Probe` of an outcome: ``clear`` only with no failure and the upper
+    bound below ``threshold`` (module docstring)."""
     k, m = outcome.failures, outcome.trajectories
     lower, upper = clopper_pearson(k, m, confidence)
-    verdict = "clear" if upper < threshold else "band" if lower > threshold else "undecided"
+    if k == 0:
+        verdict = "clear" if upper < threshold else "undecided"
+    else:
+        verdict = "band" if lower > threshold else "failures observed"
     return Probe(outcome.h, m, k, outcome.steps, k / m, lower, upper, verdict, outcome.drift,
-                 outcome.drift_error, outcome.fluctuation)
+                 outcome.drift_error, outcome.fluctuation, threshold)
 
 
 @dataclass(frozen=True)

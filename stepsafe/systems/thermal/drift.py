@@ -61,8 +61,11 @@ class Drift:
 
     def bound(self, sigmas: float = 2.0) -> float:
         """``|rate| + sigmas * error``: what the drift may reach at that many standard
-        errors."""
-        return abs(self.rate) + sigmas * self.error
+        errors; inf when a trajectory failed (the slope is fitted on the survivors, and an
+        ensemble that loses trajectories has no bounded energy) or the rate is not
+        finite."""
+        b = abs(self.rate) + sigmas * self.error
+        return b if self.failed == 0 and math.isfinite(b) else math.inf
 
 
 def from_outcome(outcome: Outcome, kT: float, dimension: int, seed: int) -> Drift:

@@ -23,10 +23,15 @@ linearisation at the minimum.
   along a mode of the minimum misses what localised thermal fluctuations do (an FPU chain
   of 100 masses fails 10% below the linear limit at temperature while the profiles of its
   fastest modes stay clear): the whole system decides;
-* a **confirmation**: the whole system at the resulting step (at ``TOP h_max`` when a
-  linear limit, a supremum, sets it) with the energy tested at every step; when it is not
-  clear, the largest step found clear by bisection below it (``"resonance band ...
-  (whole system)"``);
+* a **confirmation** on a fresh ensemble: ``trajectories_for(max_failure)`` thermal
+  initial conditions of the whole system drawn with an independent seed
+  (``seed + CONFIRM_SEED``), run at the resulting step (at ``TOP h_max`` when a linear
+  limit, a supremum, sets it) with the energy tested at every step. The scan's edge is the
+  largest step one sample happened to find clear, a selection that favours lucky samples;
+  the fresh ensemble is not selected. When one of its trajectories fails, the step goes
+  down to the next step the scan judged clear below it (by ``STEP_DOWN`` when there is
+  none) and is confirmed again, at most ``CONFIRM_TRIES`` times (``"resonance band ...
+  (whole system)"``); the record states the confirming ensemble, its seed and failures;
 * the **drift** measured in that run (:mod:`.drift`); with a ``drift_tolerance`` the step
   is lowered, by bisection on measured drifts, until ``|drift| + 2 SE`` meets it.
 
@@ -36,8 +41,9 @@ lower edge; ``"resonance band"`` when none is within 5%), ``"drift"``; at ``kT =
 answer is exactly the 0 K one (``"0 K"``) and nothing is sampled.
 
 :func:`thermal_check` judges one step: UNSAFE above the linear limit at temperature, or
-when an ensemble (the whole system, and for large systems the profiles too) at that very
-step is not clear of failures (:func:`.bands.judge`).
+when an ensemble of ``trajectories_for(max_failure)`` trajectories (the whole system, and
+for large systems the profiles too) at that very step has a failure or cannot show the
+failure probability below ``max_failure`` (:func:`.bands.judge`).
 """
 
 from __future__ import annotations
@@ -69,7 +75,6 @@ from stepsafe.systems.thermal.sampling import Ensemble, draw, minimum_modes, one
 from stepsafe.systems.thermal.trajectories import (
     DISTANCE,
     GROWTH,
-    Outcome,
     Start,
     run,
     thermal_start,
@@ -99,6 +104,12 @@ WHOLE_TRAJECTORIES = 300
 ORDERS = (3, 4)
 #: Drift tolerance is met when ``|drift| + SIGMAS * SE`` is within it.
 SIGMAS = 2.0
+#: The confirming ensemble's seed is the analysis's seed plus this.
+CONFIRM_SEED = 1000
+#: Confirmations tried at most, stepping down after each that sees a failure ...
+CONFIRM_TRIES = 12
+#: ... to the next step the scan judged clear below, or by this factor without one.
+STEP_DOWN = 0.97
 
 
 @dataclass(frozen=True)
@@ -122,6 +133,38 @@ class AtTemperature:
     frequencies: Frequencies
     ensemble: Ensemble
     run_frames: float
+
+
+@dataclass(frozen=True)
+class Confirmation:
+    """The fresh ensemble at the advised step.
+
+    Attributes
+    ----------
+    h : float
+        The step confirmed (0 when none was).
+    max_failure, confidence : float
+        The failure probability it must show to be exceeded with at most ``1 - confidence``
+        probability.
+    trajectories, steps, seed : int
+        The ensemble: its size, steps per trajectory and seed (independent of the scan's).
+    failures : int
+        At h.
+    upper : float
+        The one-sided upper bound on the failure probability at h.
+    rejected : tuple of (float, int)
+        The steps above h tried first and their failures.
+    """
+
+    h: float
+    max_failure: float
+    confidence: float
+    trajectories: int
+    steps: int
+    seed: int
+    failures: int
+    upper: float
+    rejected: tuple[tuple[float, int], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -158,6 +201,8 @@ class ThermalLimit:
         The run as stated.
     seed : int
     notes : tuple of str
+    confirmation : Confirmation or None
+        The fresh ensemble that confirmed ``h_max`` (None at 0 K).
     """
 
     kT: float
@@ -176,6 +221,7 @@ class ThermalLimit:
     run_length: float | None = None
     seed: int = 0
     notes: tuple[str, ...] = ()
+    confirmation: Confirmation | None = None
 
 
 @dataclass(frozen=True)
@@ -297,9 +343,10 @@ class _Target:
 
 
 def _targets(pot: Potential, kT: float, ensemble: Ensemble, trajectories: int, seed: int,
-             whole_up_to: int, count_modes: int, grid_points: int) -> list[_Target]:
+             whole_up_to: int, count_modes: int, grid_points: int,
+             whole_trajectories: int = WHOLE_TRAJECTORIES) -> list[_Target]:
     """The whole system when small; else the whole system on a coarse grid (with
-    ``WHOLE_TRAJECTORIES``) and 1-D profiles along the fastest modes, tabulated."""
+    ``whole_trajectories``) and 1-D profiles along the fastest modes, tabulated."""
     found = minimum_modes(pot)
     omegas = tuple(float(w) for w in found.omegas)
     if pot.dimension <= whole_up_to:
@@ -307,7 +354,7 @@ def _targets(pot: Potential, kT: float, ensemble: Ensemble, trajectories: int, s
                         omegas[-1], omegas, grid_points)]
     fastest = modes(pot, pot.minimum, count=count_modes)
     out = [_Target("whole system (coarse grid)", pot,
-                   _start_from(pot, kT, ensemble, WHOLE_TRAJECTORIES, seed), omegas[-1],
+                   _start_from(pot, kT, ensemble, whole_trajectories, seed), omegas[-1],
                    tuple(float(w) for w in fastest.omegas), COARSE_POINTS, refine=False)]
     for j in range(fastest.eigenvalues.size - 1, -1, -1):
         omega = math.sqrt(max(float(fastest.eigenvalues[j]), 0.0))
@@ -348,6 +395,7 @@ def thermal_limit(method: Method, pot: Potential, kT: float, *, length: float | 
                   grid_points: int = bands_.GRID_POINTS, bisections: int = bands_.BISECTIONS,
                   drift_tolerance: float | None = None, whole_up_to: int = WHOLE_UP_TO,
                   modes_profiled: int = MODES, seed: int = 0,
+                  max_failure: float = bands_.MAX_FAILURE,
                   progress: Callable[[str, float], None] | None = None) -> ThermalLimit:
     """The largest step at temperature (module docstring).
 
@@ -372,8 +420,9 @@ def thermal_limit(method: Method, pot: Potential, kT: float, *, length: float | 
     band_steps : int
         Steps per trajectory at most (fewer when the run is shorter).
     threshold, confidence : float
-        A band is where the failure probability exceeds ``threshold`` (one-sided bounds at
-        ``confidence``); also the confidence of the frequency bound.
+        The scans screen for steps whose failure probability is not shown below
+        ``threshold`` (one-sided bounds at ``confidence``); also the confidence of the
+        frequency bound.
     grid_points, bisections : int
         The uniform grid's size and the halvings of each band edge.
     drift_tolerance : float, optional
@@ -383,7 +432,11 @@ def thermal_limit(method: Method, pot: Potential, kT: float, *, length: float | 
     modes_profiled : int
         Profiles along this many fastest modes beyond that.
     seed : int
-        Seed of every draw (stated in the record).
+        Seed of every draw (stated in the record); the confirmation's is
+        ``seed + CONFIRM_SEED``.
+    max_failure : float
+        The largest acceptable failure probability of a run: the confirmation runs
+        ``trajectories_for(max_failure)`` trajectories and needs every one to survive.
     progress : callable, optional
         ``progress(stage, fraction)``.
 
@@ -391,6 +444,7 @@ def thermal_limit(method: Method, pot: Potential, kT: float, *, length: float | 
     -------
     ThermalLimit
     """
+    m_confirm = bands_.trajectories_for(max_failure, confidence)
     kT = finite_real(kT, "kT")
     if kT < 0:
         raise StepsafeError(f"kT must not be negative, got {kT}")
@@ -448,27 +502,32 @@ def thermal_limit(method: Method, pot: Potential, kT: float, *, length: float | 
     if h_band is not None and h_band < h_max:
         h_max, h_high = h_band, band_top
         limited_by = "resonance band" + (f" {band_name}" if band_name != "unnamed" else "")
-    # the whole system at h_max, every step's energy: its drift, and a confirmation that
-    # it is clear of failures (else the largest clear step below, by bisection)
+    # the whole system at h_max on a fresh ensemble, every step's energy: a confirmation
+    # that it is clear of failures (else the next clear step below), and its drift
     whole = targets[0].start
+    fresh = thermal_start(pot, kT, m_confirm, seed + CONFIRM_SEED)
     rho_whole = rho_function(method, zero.omega_zero * ratio, h_hi)
-    drift, h_drift = None, None
+    drift, h_drift, confirmation = None, None, None
     if h_max > 0:
         # a linear limit is a supremum: the run goes at the scan's last step below it
         at = h_max if limited_by.startswith("resonance") else TOP * h_max
-        at, drift, lowered = _confirm(method, pot, whole, at, scans[0], n_steps, rho_whole,
-                                      threshold, confidence, bisections)
+        at, drift, confirmation = _confirm(method, pot, fresh, at, scans, n_steps,
+                                           rho_whole, max_failure, confidence)
+        lowered = bool(confirmation.rejected)
         if lowered:
             h_max = at
             h_high = math.inf
             near = bands_.names_near(
-                [(z / w, f"{name} of the mode of omega = {w:.6g}")
+                [(z / w, f"{name}" + (f" of the mode of omega = {w:.6g}"
+                                       if len(targets[0].modes) > 1 else ""))
                  for z, name in zero.resonances for w in targets[0].modes], h_max, h_max)
             limited_by = "resonance band" + (f" {near[0]}" if near else "") + \
                 " (whole system)"
-            notes.append(f"the whole system fails above h = {h_max:.6g} (confirmed at the "
-                         f"step, every step's energy tested)")
-        if drift_tolerance is not None:
+            notes.append(f"the whole system fails above h = {h_max:.6g}: a fresh ensemble "
+                         f"(seed {fresh.seed}) saw failures at "
+                         + ", ".join(f"h = {x:.6g} ({k} of {m_confirm})"
+                                     for x, k in confirmation.rejected))
+        if drift_tolerance is not None and h_max > 0:
             tol = positive_finite(drift_tolerance, "drift_tolerance")
             if drift is None or not drift.bound(SIGMAS) <= tol:
                 h_drift, h_high, drift = _drift_limit(method, pot, whole, h_lo * 0.25, h_max,
@@ -477,43 +536,32 @@ def thermal_limit(method: Method, pot: Potential, kT: float, *, length: float | 
     return ThermalLimit(kT, h_max, limited_by, zero, (h_max, max(h_max, h_high)),
                         linear.h_linear, h_band, h_drift, linear, tuple(scans),
                         tuple(t.table for t in targets if t.table is not None), drift, steps,
-                        length, seed, tuple(notes))
+                        length, seed, tuple(notes), confirmation)
 
 
-def _confirm(method: Method, pot: Potential, start: Start, h: float, scan: bands_.BandScan,
-             steps: int, rho, threshold: float, confidence: float, rounds: int
-             ) -> tuple[float, Drift | None, bool]:
-    """The whole system at h with the energy tested at every step: ``(h, drift, False)``
-    when clear; else the largest step found clear by bisection below it, from the largest
-    step the whole-system scan judged clear (or the scan's start, halved until clear),
-    with ``True``; ``(0, None, True)`` when nothing is clear down to a sixteenth of it."""
-    def attempt(x: float) -> tuple[bands_.Probe, Outcome]:
+def _confirm(method: Method, pot: Potential, start: Start, h: float,
+             scans: list[bands_.BandScan], steps: int, rho, max_failure: float,
+             confidence: float) -> tuple[float, Drift | None, Confirmation]:
+    """The fresh ensemble ``start`` at h with the energy tested at every step; while one
+    of its trajectories fails (or its bound is not below ``max_failure``), the next step
+    below that every scan judged clear (``STEP_DOWN`` times the step without one), at most
+    ``CONFIRM_TRIES`` steps: ``(h, drift, confirmation)``, h = 0 and no drift when none
+    was clear."""
+    clear = sorted({p.h for p in scans[0].probes if p.clear}, reverse=True)
+    rejected: list[tuple[float, int]] = []
+    x = h
+    for _ in range(CONFIRM_TRIES):
         out = run(method, pot, start, [x], steps, rho(np.array([x])), GROWTH, DISTANCE)[0]
-        return bands_.judge(out, threshold, confidence), out
-
-    probe, out = attempt(h)
-    if probe.clear:
-        return h, from_outcome(out, start.kT, pot.dimension, start.seed), False
-    below = [p.h for p in scan.probes if p.clear and p.h < h]
-    lo = max(below) if below else scan.h_range[0]
-    good = None
-    for _ in range(5):
-        pr, o = attempt(lo)
+        pr = bands_.judge(out, max_failure, confidence)
         if pr.clear:
-            good = o
-            break
-        lo *= 0.5
-    if good is None:
-        return 0.0, None, True
-    hi = h
-    for _ in range(rounds):
-        mid = 0.5 * (lo + hi)
-        pr, o = attempt(mid)
-        if pr.clear:
-            lo, good = mid, o
-        else:
-            hi = mid
-    return lo, from_outcome(good, start.kT, pot.dimension, start.seed), True
+            return x, from_outcome(out, start.kT, pot.dimension, start.seed), Confirmation(
+                x, max_failure, confidence, pr.trajectories, pr.steps, start.seed,
+                pr.failures, pr.upper, tuple(rejected))
+        rejected.append((x, pr.failures))
+        below = [c for c in clear if c < x]
+        x = below[0] if below else STEP_DOWN * x
+    return 0.0, None, Confirmation(0.0, max_failure, confidence, start.size, steps,
+                                   start.seed, 0, 1.0, tuple(rejected))
 
 
 def _drift(method: Method, pot: Potential, start: Start, h: float, steps: int, rho) -> Drift:
@@ -543,27 +591,37 @@ def _drift_limit(method: Method, pot: Potential, start: Start, lo: float, hi: fl
 def thermal_check(method: Method, pot: Potential, kT: float, h: float, *,
                   length: float | None = None, steps: float | None = None,
                   criterion: str = "structure", frames: int = FRAMES,
-                  trajectories: int = TRAJECTORIES, band_steps: int = BAND_STEPS,
-                  threshold: float = bands_.THRESHOLD, confidence: float = bands_.CONFIDENCE,
+                  trajectories: int | None = None, band_steps: int = BAND_STEPS,
+                  max_failure: float = bands_.MAX_FAILURE,
+                  confidence: float = bands_.CONFIDENCE,
                   whole_up_to: int = WHOLE_UP_TO, modes_profiled: int = MODES,
                   seed: int = 0) -> ThermalCheck:
     """Whether the step h is safe at temperature: not above the linear limit at
-    temperature and clear of failures at h itself (every target probed at h with the
-    same conventions as :func:`thermal_limit`). At ``kT = 0``: ``h < h_zero``.
+    temperature and clear of failures at h itself: every target probed at h (with the
+    same conventions as :func:`thermal_limit`) loses none of its trajectories and so shows
+    the failure probability below ``max_failure`` at ``confidence``. At ``kT = 0``:
+    ``h < h_zero``.
 
     Parameters
     ----------
-    method, pot, kT, length, steps, criterion, frames, trajectories, band_steps, threshold,
-    confidence, whole_up_to, modes_profiled, seed
+    method, pot, kT, length, steps, criterion, frames, band_steps, confidence,
+    whole_up_to, modes_profiled, seed
         As for :func:`thermal_limit` (``steps`` here at the step h).
     h : float
         The step.
+    trajectories : int, optional
+        Per target (default ``trajectories_for(max_failure)``, the fewest that can show
+        the failure probability below it).
+    max_failure : float
+        The largest acceptable failure probability.
 
     Returns
     -------
     ThermalCheck
     """
     h = positive_finite(h, "h")
+    count = bands_.trajectories_for(max_failure, confidence) if trajectories is None \
+        else int(trajectories)
     kT = finite_real(kT, "kT")
     if kT < 0:
         raise StepsafeError(f"kT must not be negative, got {kT}")
@@ -579,8 +637,8 @@ def thermal_check(method: Method, pot: Potential, kT: float, h: float, *,
     if h >= linear.h_linear:
         reasons.append("above the linear limit at temperature")
     n_steps = max(2, int(min(band_steps, _run_steps(h, length, steps))))
-    targets = _targets(pot, kT, linear.ensemble, trajectories, seed, whole_up_to,
-                       modes_profiled, bands_.GRID_POINTS)
+    targets = _targets(pot, kT, linear.ensemble, count, seed, whole_up_to,
+                       modes_profiled, bands_.GRID_POINTS, count)
     ratio = max(1.0, linear.omega.upper / zero.omega_zero)
     probes = []
     for t in targets:
@@ -590,12 +648,16 @@ def thermal_check(method: Method, pot: Potential, kT: float, h: float, *,
             # largest thermal frequency is infinite and nothing but overflow would count
             # as a failure: the probe uses the minimum's frequency, to say what runs do
             rho = float(rho_function(method, t.omega, h)(np.array([h]))[0])
-        pr = bands_.probe(method, t.potential, t.start, h, n_steps, rho, threshold, confidence)
+        pr = bands_.probe(method, t.potential, t.start, h, n_steps, rho, max_failure,
+                          confidence)
         probes.append((t.name, pr))
         if not pr.clear:
-            what = "in a resonance band" if pr.verdict == "band" else "failures not excluded"
+            what = {"band": "in a resonance band", "failures observed": "failures observed",
+                    }.get(pr.verdict, "failures not excluded")
             reasons.append(f"{what} ({t.name}: {pr.failures} of {pr.trajectories} "
-                           f"trajectories failed in {pr.steps} steps)")
+                           f"trajectories failed in {pr.steps} steps; failure probability "
+                           f"up to {pr.upper:.2g} at {confidence:.0%} confidence, "
+                           f"max_failure {max_failure:g})")
     _, pr = probes[0]  # the whole system's
     drift = Drift(h, pr.drift, pr.drift_error, pr.fluctuation, kT, pot.dimension,
                   pr.trajectories, pr.failures, pr.steps, targets[0].start.seed)
