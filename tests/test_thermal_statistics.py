@@ -262,3 +262,92 @@ def test_a_refused_temperature_names_the_scene_file_and_key(which, kt_morse, kt_
     assert "\n" not in line, line
     assert "scene.yaml" in line, line
     assert "$.kT" in line or "--kT" in line, line
+
+
+# ------------------------------------------------------------ the rule a clear step meets
+
+@settings(max_examples=60, deadline=None)
+@given(m=st.integers(1, 10 ** 7), data=st.data(),
+       threshold=st.floats(1e-7, 0.999, exclude_max=True))
+def test_a_step_with_an_observed_failure_is_never_clear(m, data, threshold):
+    """Whatever the sample size and the threshold, one failed trajectory makes the step not
+    clear; with none, it is clear exactly when the zero-failure bound
+    ``1 - 0.05^(1/m)`` (closed form) lies below the threshold."""
+    from stepsafe.systems.thermal.bands import judge
+    from stepsafe.systems.thermal.trajectories import Outcome
+
+    k = data.draw(st.integers(1, m))
+    probe = judge(Outcome(1.0, m, k, 100, 0.0, 0.0, 0.0), threshold)
+    assert not probe.clear
+    assert probe.verdict in ("band", "failures observed")
+    none = judge(Outcome(1.0, m, 0, 100, 0.0, 0.0, 0.0), threshold)
+    bound = -math.expm1(math.log(0.05) / m)
+    if abs(bound - threshold) > 1e-9 * threshold:
+        assert none.clear == (bound < threshold)
+
+
+@settings(max_examples=60, deadline=None)
+@given(threshold=st.floats(1e-6, 0.5))
+def test_the_trajectory_count_is_the_fewest_whose_zero_failures_show_the_threshold(
+        threshold):
+    """``trajectories_for(P)``: zero failures in m show ``P`` (the 95% bound
+    ``1 - 0.05^(1/m)``, in 50-digit arithmetic, below P) and in m - 1 do not."""
+    import mpmath
+
+    from stepsafe.systems.thermal.bands import trajectories_for
+
+    m = trajectories_for(threshold)
+    mpmath.mp.dps = 50
+
+    def bound(n):
+        return 1 - mpmath.mpf("0.05") ** (mpmath.mpf(1) / n)
+
+    assert bound(m) < threshold
+    assert m == 1 or bound(m - 1) >= threshold
+    assert m <= 1.01 * math.log(20) / threshold + 1
+
+
+def test_a_drift_with_a_failed_trajectory_or_an_overflow_meets_no_tolerance():
+    """The drift of an ensemble that lost a trajectory, or whose rate is not finite, is
+    unbounded: no max_drift is met by it."""
+    from stepsafe.systems.thermal.drift import Drift
+
+    kept = Drift(1.0, 1e-9, 1e-10, 1e-3, 0.1, 1, 500, 0, 100, 0)
+    assert kept.bound() == pytest.approx(1.2e-9)
+    assert Drift(**{**kept.__dict__, "failed": 1}).bound() == math.inf
+    assert Drift(**{**kept.__dict__, "rate": math.inf}).bound() == math.inf
+    assert Drift(**{**kept.__dict__, "error": math.nan}).bound() == math.inf
+
+
+@pytest.mark.parametrize("where, value", [("option", "0"), ("option", "0.5"),
+                                          ("option", "nan"), ("scene", "-1"),
+                                          ("scene", "1e-9"), ("scene", "abc")])
+def test_a_bad_failure_threshold_is_refused_naming_its_key(where, value):
+    scene = _quartic_scene(0.1, 0.1, 1000, 1.0, 1.0, 1.0)
+    args: tuple[str, ...] = ("--step", "0.5")
+    if where == "scene":
+        scene += f"max_failure: {value}\n"
+    else:
+        args += ("--max-failure", value)
+    code, out, err = _check(scene, *args)
+    assert code == 2, (code, out, err)
+    line = err.strip()
+    assert "\n" not in line
+    assert ("scene.yaml::$.max_failure" in line) if where == "scene" else \
+        ("max_failure" in line or "--max-failure" in line), line
+
+
+def test_check_states_the_failure_threshold_and_the_trajectories_it_needs():
+    """The record of a check at temperature states max_failure, the trajectories that can
+    show it (ln 20 / P for P = 0.01: 299) and, for the step, the failures and the bound."""
+    import json
+
+    code, out, err = _check(_quartic_scene(0.1, 0.1, 1000, 1.0, 1.0, 1.0), "--step", "0.5",
+                            "--max-failure", "0.01", "--json")
+    assert code == 0, err
+    t = json.loads(out)["checks"][0]["thermal"]
+    assert t["max_failure"] == 0.01 and t["trajectories"] == 299
+    probe = t["minima"][0]["probes"][0]
+    assert probe["trajectories"] == 299 and probe["failures"] == 0
+    assert probe["upper"] == pytest.approx(1 - 0.05 ** (1 / 299), rel=1e-9)
+    assert probe["max_failure"] == 0.01

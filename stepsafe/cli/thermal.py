@@ -169,8 +169,7 @@ def _print_minimum(m: dict[str, Any], u: str, margin: float) -> None:
                         f" +- {_g(lo['uncertainty'])}" if lo["uncertainty"] is not None
                         else " (edge uncertainty not measured)"))
             what = ("band" if b["peak"] > sc["threshold"] else
-                    "steps not shown clear (failures not excluded at "
-                    f"{sc['confidence']:.0%} confidence)")
+                    "steps with failures observed")
             click.echo(f"    {what} {b['name']} {edge}, peak failure fraction "
                        f"{b['peak']:.2g} ({sc['target']}: {sc['trajectories']} trajectories "
                        f"x {sc['steps']} steps, scanned h in [{_g(sc['h_range'][0])}, "

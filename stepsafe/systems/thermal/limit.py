@@ -29,8 +29,8 @@ linearisation at the minimum.
   limit, a supremum, sets it) with the energy tested at every step. The scan's edge is the
   largest step one sample happened to find clear, a selection that favours lucky samples;
   the fresh ensemble is not selected. When one of its trajectories fails, the step goes
-  down to the next step the scan judged clear below it (by ``STEP_DOWN`` when there is
-  none) and is confirmed again, at most ``CONFIRM_TRIES`` times (``"resonance band ...
+  down to the next step the scan judged clear below it, by the factor ``STEP_DOWN`` at
+  least, and is confirmed again, at most ``CONFIRM_TRIES`` times (``"resonance band ...
   (whole system)"``); the record states the confirming ensemble, its seed and failures;
 * the **drift** measured in that run (:mod:`.drift`); with a ``drift_tolerance`` the step
   is lowered, by bisection on measured drifts, until ``|drift| + 2 SE`` meets it.
@@ -107,8 +107,8 @@ SIGMAS = 2.0
 #: The confirming ensemble's seed is the analysis's seed plus this.
 CONFIRM_SEED = 1000
 #: Confirmations tried at most, stepping down after each that sees a failure ...
-CONFIRM_TRIES = 12
-#: ... to the next step the scan judged clear below, or by this factor without one.
+CONFIRM_TRIES = 24
+#: ... to the next step the scan judged clear below, but by this factor at least.
 STEP_DOWN = 0.97
 
 
@@ -544,7 +544,7 @@ def _confirm(method: Method, pot: Potential, start: Start, h: float,
              confidence: float) -> tuple[float, Drift | None, Confirmation]:
     """The fresh ensemble ``start`` at h with the energy tested at every step; while one
     of its trajectories fails (or its bound is not below ``max_failure``), the next step
-    below that every scan judged clear (``STEP_DOWN`` times the step without one), at most
+    below that the scan judged clear, ``STEP_DOWN`` times the step at least, at most
     ``CONFIRM_TRIES`` steps: ``(h, drift, confirmation)``, h = 0 and no drift when none
     was clear."""
     clear = sorted({p.h for p in scans[0].probes if p.clear}, reverse=True)
@@ -559,7 +559,7 @@ def _confirm(method: Method, pot: Potential, start: Start, h: float,
                 pr.failures, pr.upper, tuple(rejected))
         rejected.append((x, pr.failures))
         below = [c for c in clear if c < x]
-        x = below[0] if below else STEP_DOWN * x
+        x = max(below[0], STEP_DOWN * x) if below else STEP_DOWN * x
     return 0.0, None, Confirmation(0.0, max_failure, confidence, start.size, steps,
                                    start.seed, 0, 1.0, tuple(rejected))
 
