@@ -189,12 +189,14 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
         kt = thermal_energy(T, unit)
         temperature_k: float | None = T
     elif k_value is not None:
+        written = k_value
         try:
             if isinstance(k_value, str) and not k_given:
                 k_value = parse_real(k_value)
             kt = finite_real(k_value, "kT")
         except (StepsafeError, TypeError):
-            raise _fail(f"kT must be a finite number >= 0 (energy), got {k_value!r}", scene,
+            raise _fail(f"kT must be a finite number >= 0 (energy), got {str(written)[:40]!r}",
+                        scene,
                         "kT", k_given) from None
         if kt < 0:
             raise _fail(f"kT must not be negative, got {kt:g}", scene, "kT", k_given)
