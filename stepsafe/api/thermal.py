@@ -19,6 +19,12 @@ frequency at each, and runs of the method in the engine in place of bands; ``lim
 ``"OpenMM runs"``), in the engine's energy unit, kJ/mol.
 At ``T = 0`` (or without a temperature) nothing changes.
 
+A step is safe at temperature only when none of the thermal trajectories run at it fails:
+``max_failure=`` (default :data:`MAX_FAILURE`) sets how many, the fewest
+(``ln(20) / max_failure``) whose zero failures show the failure probability below it at
+95% confidence; ``check`` runs them at the step, ``advise`` confirms its answer on them,
+drawn with a seed of their own (the record's ``confirmation``).
+
 Every draw is seeded (``seed``, stated in the record): the same inputs give the same
 answer on one machine.
 """

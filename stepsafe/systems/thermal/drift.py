@@ -6,7 +6,9 @@ in time ``t = n h``; the drift is the slope of the ensemble mean (the mean of th
 trajectories' slopes, least squares being linear), its standard error the spread of the
 slopes over ``sqrt(trajectories)`` (independent trajectories), the fluctuation the root
 mean square over trajectories of the standard deviation of ``dH`` over time. Trajectories
-that fail (:mod:`stepsafe.systems.thermal.trajectories`) are left out and counted.
+that fail (:mod:`stepsafe.systems.thermal.trajectories`) are left out of the fit and
+counted; an ensemble with a failed trajectory has no bounded energy, so its drift meets no
+tolerance (:meth:`Drift.bound` is inf), whatever the survivors' slope.
 
 A stable map's energy error oscillates without growing; a least-squares slope over a finite
 run of N steps still picks up part of that oscillation (at most ``3 A / (N h)`` for an
