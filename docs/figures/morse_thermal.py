@@ -121,7 +121,7 @@ def dumps(data: dict) -> str:
 
 def draw(data: dict, path: Path) -> None:
     """The figure, from the data alone: one panel per temperature, failure fraction (log
-    scale; none failed: on the axis) against z, the 1% threshold, the resonance points,
+    scale; none failed: on the axis) against z, the failure threshold, the resonance points,
     the 0 K limit, the linear limit at temperature and the bands, and h_max."""
     import matplotlib
 
@@ -150,7 +150,8 @@ def draw(data: dict, path: Path) -> None:
         ax.axvline(data["z_star"], color="k", lw=1.5, label="0 K linear limit z* = 2")
         ax.axvline(panel["h_linear"], color="tab:red", ls="--", lw=1.2,
                    label="linear limit at temperature")
-        ax.axhline(0.01, color="0.4", ls="-.", lw=0.8, label="1% threshold")
+        ax.axhline(1e-3, color="0.4", ls="-.", lw=0.8,
+                   label="max_failure 0.001 (check: no failure of its 2995)")
         ax.semilogy(z, np.where(f > 0, f, np.nan), "o-", color="tab:blue", ms=3, lw=1,
                     label=f"failed, of {m} trajectories in {steps} steps (check at z)")
         none = f == 0
