@@ -45,6 +45,7 @@ from stepsafe.systems.md.system import ENGINE_INTEGRATORS
 from stepsafe.systems.md.thermal import THERMALISATION, confirm_seeds
 from stepsafe.systems.scene import load_scene, parse_real
 from stepsafe.systems.thermal import thermal_check, thermal_limit
+from stepsafe.systems.thermal.bands import CONFIDENCE, trajectories_for
 from stepsafe.systems.thermal_scene import Minimum, is_harmonic, minima
 from stepsafe.units import ENERGY_UNITS, TIME_UNITS, duration, kelvin, thermal_energy
 
@@ -269,8 +270,6 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
     p_max = None
     if p_value is not None:
         if isinstance(p_value, str) and not p_given:
-            from stepsafe.systems.scene import parse_real
-
             p_value = parse_real(p_value)
         p_max = math.nan
         if isinstance(p_value, (int, float)) and not isinstance(p_value, bool):
@@ -339,8 +338,6 @@ def _request_record(req: Request, criterion: str, ensemble: bool = True) -> dict
     interval z* that the 0 K limit and the linear limit at temperature rest on; with
     ``ensemble`` (a ``hamiltonian:`` analysed by thermal ensembles) the failure threshold,
     the trajectories that can show it and the confidence."""
-    from stepsafe.systems.thermal.bands import CONFIDENCE, trajectories_for
-
     out = {"kT": req.kT, "criterion": criterion, "temperature": req.temperature,
            "energy_unit": req.energy_unit, "run": req.run(), "max_drift": req.max_drift,
            "seed": SEED}
