@@ -61,8 +61,15 @@ def _openmm_atoms(name: str) -> int:
 SLOW_OPENMM_ATOMS = 200
 
 
+def _at_temperature(name: str) -> bool:
+    """Whether a scene states a temperature (its analysis runs thermal ensembles: seconds)."""
+    tree = yaml.safe_load((ROOT / "examples" / name).read_text())
+    return isinstance(tree, dict) and ("temperature" in tree or "kT" in tree)
+
+
 @pytest.mark.parametrize("name", [
-    pytest.param(n, marks=pytest.mark.slow) if _openmm_atoms(n) > SLOW_OPENMM_ATOMS else n
+    pytest.param(n, marks=pytest.mark.slow)
+    if _openmm_atoms(n) > SLOW_OPENMM_ATOMS or _at_temperature(n) else n
     for n in EXAMPLES if _kind(n) == "scene"])
 def test_scene_runs_with_advise_and_check(run, name):
     """advise answers (exit 0); check answers a scene with h: (0 or 1, as advise's safe

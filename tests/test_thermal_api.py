@@ -399,7 +399,8 @@ def test_a_temperature_the_engine_cannot_answer_is_refused_not_answered_at_0K(ru
     assert message in err and len(err.strip().splitlines()) == 1
 
 
-@pytest.mark.parametrize("criterion", ["structure", "stability"])
+@pytest.mark.parametrize("criterion", [
+    "structure", pytest.param("stability", marks=pytest.mark.slow)])
 def test_json_says_which_criterion_and_which_answer_was_applied(morse_scene, criterion):
     """The criterion keeps its name at temperature: the record's ``criterion`` and the
     thermal record's are the one given, and each minimum's z* and 0 K limit are the first
