@@ -179,6 +179,26 @@ def reduced_coordinate_frequencies(p):
     return sorted((float(v) for v in lam), reverse=True)
 
 
+def one_water(**create):
+    """One flexible TIP3P molecule (OpenMM's ``amber14/tip3p.xml``, vacuum, no cutoff, no
+    constraints unless ``create`` asks, no centre-of-mass remover) at the force field's
+    equilibrium geometry, as (System, positions in nm). Needs OpenMM."""
+    from openmm import app
+
+    ff = app.ForceField("amber14/tip3p.xml")
+    top = app.Topology()
+    res = top.addResidue("HOH", top.addChain())
+    o = top.addAtom("O", app.element.oxygen, res)
+    for name in ("H1", "H2"):
+        top.addBond(o, top.addAtom(name, app.element.hydrogen, res))
+    system = ff.createSystem(top, nonbondedMethod=app.NoCutoff, removeCMMotion=False,
+                             **{"rigidWater": False, "constraints": None, **create})
+    r0, theta = TIP3P["r0"], TIP3P["theta0"]
+    x = np.array([[0.0, 0.0, 0.0], [r0, 0.0, 0.0],
+                  [r0 * math.cos(theta), r0 * math.sin(theta), 0.0]])
+    return system, x
+
+
 def water_cluster(directory, n_side=2, spacing=0.31, **create):
     """Write ``system.xml`` (flexible TIP3P waters from OpenMM's ``amber14/tip3p.xml``, in
     vacuum, no cutoff, no constraints unless ``create`` asks, no centre-of-mass remover) and

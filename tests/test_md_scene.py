@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import pytest
 import yaml
-from md_support import tip3p_isolated_frequencies, water_cluster
+from md_support import one_water, tip3p_isolated_frequencies, water_cluster
 
 import stepsafe
 from stepsafe.exceptions import StepsafeError
@@ -43,22 +43,6 @@ def cluster(tmp_path_factory):
     folder = tmp_path_factory.mktemp("cluster")
     water_cluster(folder)
     return folder
-
-
-def one_water(**create):
-    """One TIP3P molecule at its force field's exact geometry, as (System, positions in nm)."""
-    ff = app.ForceField("amber14/tip3p.xml")
-    top = app.Topology()
-    res = top.addResidue("HOH", top.addChain())
-    o = top.addAtom("O", app.element.oxygen, res)
-    for name in ("H1", "H2"):
-        top.addBond(o, top.addAtom(name, app.element.hydrogen, res))
-    system = ff.createSystem(top, nonbondedMethod=app.NoCutoff, removeCMMotion=False,
-                             **{"rigidWater": False, "constraints": None, **create})
-    r0, theta = 0.09572, 1.82421813418
-    x = np.array([[0.0, 0.0, 0.0], [r0, 0.0, 0.0], [r0 * math.cos(theta), r0 * math.sin(theta),
-                                                     0.0]])
-    return system, x
 
 
 # --- the limit against closed forms -------------------------------------------------------

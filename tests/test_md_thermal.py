@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from md_support import TIP3P, single_water_hessian
+from md_support import TIP3P, one_water, single_water_hessian
 
 from stepsafe.systems.md import enginerun as er
 from stepsafe.systems.md import thermal as th
@@ -84,24 +84,11 @@ openmm_only = pytest.mark.openmm
 
 
 def one_water_engine():
-    openmm = pytest.importorskip("openmm")
-    from openmm import app
-
+    """One TIP3P molecule at its equilibrium geometry behind the engine interface."""
+    pytest.importorskip("openmm")
     from stepsafe.systems.md import openmm_engine as oe
 
-    ff = app.ForceField("amber14/tip3p.xml")
-    top = app.Topology()
-    res = top.addResidue("HOH", top.addChain())
-    o = top.addAtom("O", app.element.oxygen, res)
-    for name in ("H1", "H2"):
-        top.addBond(o, top.addAtom(name, app.element.hydrogen, res))
-    system = ff.createSystem(top, nonbondedMethod=app.NoCutoff, rigidWater=False,
-                             removeCMMotion=False)
-    assert isinstance(system, openmm.System)
-    r0, theta = TIP3P["r0"], TIP3P["theta0"]
-    x = np.array([[0.0, 0.0, 0.0], [r0, 0.0, 0.0],
-                  [r0 * math.cos(theta), r0 * math.sin(theta), 0.0]])
-    return oe.OpenMMEngine(system, x)
+    return oe.OpenMMEngine(*one_water())
 
 
 @openmm_only

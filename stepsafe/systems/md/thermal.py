@@ -470,6 +470,20 @@ def _runs_note(runs: Runs, run_length: float) -> tuple[str, ...]:
             f"{run_length:.3g} ps: failures that take longer to develop are not excluded",)
 
 
+def _at_temperature(analysis, runs: Runs, z_star: float, run_length: float,
+                    progress: Progress | None):
+    """What :func:`thermal_limit` and :func:`thermal_check` both start from: the engine, the
+    0 K frequency and limit, kT (kJ/mol) and the linear limit over OpenMM's snapshots."""
+    z_star = positive_finite(z_star, "z_star")
+    run_length = positive_finite(run_length, "length")
+    omega_zero, h_zero = _zero(analysis, z_star)
+    engine = analysis.engine
+    kT = MOLAR_GAS_CONSTANT * runs.temperature
+    linear = linear_at_temperature(engine, runs.temperature, z_star, omega_zero, run_length,
+                                   progress)
+    return engine, omega_zero, h_zero, kT, linear
+
+
 def thermal_limit(analysis, runs: Runs, z_star: float, run_length: float,
                   progress: Progress | None = None, engine_name: str = "engine"
                   ) -> EngineThermalLimit:
@@ -495,13 +509,8 @@ def thermal_limit(analysis, runs: Runs, z_star: float, run_length: float,
     -------
     EngineThermalLimit
     """
-    z_star = positive_finite(z_star, "z_star")
-    run_length = positive_finite(run_length, "length")
-    omega_zero, h_zero = _zero(analysis, z_star)
-    engine = analysis.engine
-    kT = MOLAR_GAS_CONSTANT * runs.temperature
-    linear = linear_at_temperature(engine, runs.temperature, z_star, omega_zero, run_length,
-                                   progress)
+    engine, omega_zero, h_zero, kT, linear = _at_temperature(analysis, runs, z_star,
+                                                             run_length, progress)
     found = scan(engine, runs, linear.h_linear, min(0.5 * h_zero, linear.ensemble.h or h_zero),
                  progress)
     omega_point = linear.omega.estimate
@@ -538,13 +547,8 @@ def thermal_check(analysis, runs: Runs, z_star: float, h: float, run_length: flo
     EngineThermalCheck
     """
     h = positive_finite(h, "h")
-    z_star = positive_finite(z_star, "z_star")
-    run_length = positive_finite(run_length, "length")
-    omega_zero, h_zero = _zero(analysis, z_star)
-    engine = analysis.engine
-    kT = MOLAR_GAS_CONSTANT * runs.temperature
-    linear = linear_at_temperature(engine, runs.temperature, z_star, omega_zero, run_length,
-                                   progress)
+    engine, omega_zero, h_zero, kT, linear = _at_temperature(analysis, runs, z_star,
+                                                             run_length, progress)
     reasons: list[str] = []
     trial = None
     if h >= linear.h_linear:
