@@ -194,9 +194,13 @@ GUIDE = (ROOT / "docs" / "guides" / "openmm.md").read_text()
 
 
 def readme_rows(system):
-    """The engine-validation table's rows for ``system``: (constraints and H mass, h_max)."""
+    """The engine-validation table's rows for ``system``: (constraints and H mass, h_max).
+    The table is the guide's one headed ``| system (minimised, vacuum) | constraints, H mass``
+    (other tables name the same systems)."""
+    header = "| system (minimised, vacuum) | constraints, H mass |"
+    table = next(block for block in GUIDE.split("\n\n") if block.startswith(header))
     rows = []
-    for line in GUIDE.splitlines():
+    for line in table.splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
         if line.startswith("| ") and cells[0].startswith(system):
             rows.append((cells[1], cells[2]))

@@ -284,22 +284,23 @@ def _own_drift(h, kT, steps=2000, m=500, seed=7):
 
 @pytest.mark.slow  # two analyses at temperature and the test's own drift run
 def test_max_drift_limits_the_step_where_the_measured_drift_meets_it():
-    """advise with max_drift 1e-8 (energy per time unit) at kT/D = 0.006: the step is
+    """advise with max_drift 1e-9 (energy per time unit, below the drift bound at the
+    free limit) at kT/D = 0.006: the step is
     lowered until the measured drift (plus 2 standard errors) meets it and the record says
     so; the test's own Verlet drift at that step is within the tolerance (3 of its own
     standard errors allowed); check at that step with the tolerance is SAFE, and a
     tolerance a thousand times below the measured bound fails it."""
     scene = str(Path(__file__).parent.parent / "examples" / "morse.yaml")
     free = stepsafe.advise(scene=scene)
-    r = stepsafe.advise(scene=scene, max_drift=1e-8)
+    r = stepsafe.advise(scene=scene, max_drift=1e-9)
     t = r.record["thermal"]
-    assert t["limited_by"] == "drift" == r.h_max_limited_by and t["max_drift"] == 1e-8
+    assert t["limited_by"] == "drift" == r.h_max_limited_by and t["max_drift"] == 1e-9
     assert r.h_max < free.h_max
     d = t["minima"][0]["drift"]
-    assert d["h"] == r.h_max and abs(d["rate"]) + 2 * d["error"] <= 1e-8
+    assert d["h"] == r.h_max and abs(d["rate"]) + 2 * d["error"] <= 1e-9
     rate, error = _own_drift(r.h_max, 0.003)
-    assert abs(rate) <= 1e-8 + 3 * error
-    ok = stepsafe.check(scene=scene, h=0.9 * r.h_max, max_drift=1e-8)
+    assert abs(rate) <= 1e-9 + 3 * error
+    ok = stepsafe.check(scene=scene, h=0.9 * r.h_max, max_drift=1e-9)
     assert ok.safe, ok.record["thermal"]["reasons"]
     probe = ok.record["thermal"]["minima"][0]["drift"]
     tight = (abs(probe["rate"]) + 2 * probe["error"]) / 1000
@@ -351,7 +352,8 @@ def test_progress_at_temperature_never_goes_back_and_stays_in_the_unit_interval(
 def test_resonance_order_at_temperature_excludes_the_measured_band_not_the_point():
     """At kT/D = 2e-4 the 4:1 band of Verlet on the Morse bond is narrow: with
     --resonance-order 4 the 0 K answer stops at the point sqrt 2, the answer at
-    temperature at the band's measured lower edge, just below it; inside the band the
+    temperature at the band's measured lower edge or, where the fresh ensemble that confirms
+    it loses a trajectory, at most 10% below it; inside the band the
     test's own integration loses trajectories, at the answer it loses none beyond the
     threshold; a step past the band's upper edge, unsafe at 0 K with the order, is SAFE at
     temperature, and the test's own integration loses no trajectory there."""
@@ -363,8 +365,9 @@ def test_resonance_order_at_temperature_excludes_the_measured_band_not_the_point
     warm = stepsafe.advise(scene=scene, kT=kT, resonance_order=4)
     band = next(b for sc in warm.record["thermal"]["minima"][0]["scans"]
                 for b in sc["bands"] if b["name"] == "4:1")
-    assert warm.h_max_limited_by == "resonance band 4:1"
-    assert warm.h_max == band["lower"]["clear"] < math.sqrt(2) < band["upper"]["clear"]
+    assert warm.h_max_limited_by.startswith("resonance band 4:1")
+    assert 0.9 * band["lower"]["clear"] <= warm.h_max <= band["lower"]["clear"]
+    assert band["lower"]["clear"] < math.sqrt(2) < band["upper"]["clear"]
     inside = 0.5 * (band["lower"]["unsafe"] + band["upper"]["unsafe"])
     assert _own_escapes(inside, kT) > 0.05
     assert _own_escapes(warm.h_max, kT) <= 0.01 + 2.3 * math.sqrt(0.01 * 0.99 / 2000)
