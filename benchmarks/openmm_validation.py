@@ -1,7 +1,10 @@
 """stepsafe's limits on real MD systems against OpenMM's own integrators: the table of
 docs/guides/openmm.md (engine validation), printed, not asserted.
 
-    python benchmarks/openmm_validation.py [--seeds 1 2 3] [--duration 5] [--json FILE]
+    python benchmarks/openmm_validation.py [--only 0 1 2 3] [--integrators verlet ...]
+        [--stages warm scan check] [--seeds 1 2 3] [--duration 5] [--length "5 ps"]
+        [--check-seeds 11 ... 16] [--json FILE] [--reuse FILE ...]
+    python benchmarks/openmm_validation.py --table --reuse FILE ...
 
 Systems (the scenes committed in examples/, built by
 ``stepsafe.systems.md.openmm_engine.write_example_system`` from files in the OpenMM wheel):
@@ -24,7 +27,23 @@ by that much; Verlet *drifts* when the mean slope of its total energy over the s
 0.01 kT per ps per degree of freedom. The scan of a system and integrator stops at the first
 step where every seed blew up.
 
-The machine, the versions and the seeds are printed with the table.
+Stages (``--stages``; the 0 K limit is always computed, in seconds):
+
+* ``warm``: stepsafe's own limit at 300 K for a run of ``--length``, ``stepsafe.advise(...,
+  temperature=300, length=...)`` (OpenMM's snapshots, the linear limit at temperature, and a
+  bisection of runs of the same integrator in OpenMM: seeds 1-3, 2 ps each, confirmed in
+  seeds 1-6; docs/guides/openmm.md, "At temperature"), minutes per row;
+* ``scan``: OpenMM's runs at the fractions :data:`FRACTIONS` of the 0 K limit, as above;
+* ``check``: OpenMM's runs at stepsafe's step at 300 K in the scan's protocol (``--duration``
+  ps), in ``--check-seeds`` (none of stepsafe's own seeds), needing ``warm`` in this run or in
+  a ``--reuse`` file.
+
+Each row also says whether stepsafe's step at 300 K is *consistent* with OpenMM: below the
+scan's first failing step and run in every seed of the check; anything else is printed as a
+``FALSE SAFE``. ``--json`` writes the rows; ``--reuse`` reads earlier files (a later file's
+stage replaces an earlier one's), so rows and stages can run apart and ``--table`` prints the
+whole table from their files. The machine, the versions, the seeds, and each stage's wall time
+with the load average are printed.
 """
 
 from __future__ import annotations
@@ -82,27 +101,172 @@ def bands(safe_h: list, h_max: float) -> str:
     return "none" if not gaps else ", ".join(f"{lo:.3g}-{hi:.3g} fs" for lo, hi in gaps)
 
 
+def trial(system_xml: str, state: str, integrator: str, step: float, h_max: float,
+          seeds: tuple[int, ...], duration: float) -> dict:
+    """OpenMM's runs at ``step`` (fs) in the scan's protocol (module docstring), as a record
+    (``fraction`` of the 0 K ``h_max``)."""
+    from stepsafe.systems.md import enginerun as er
+
+    t1 = time.time()
+    record = er.run_trials(system_xml, state, er.TrialSpec(
+        integrator, step / 1000.0, duration, temperature=300.0, friction=1.0, seeds=seeds,
+        equilibration=1.0, equilibration_step=min(1.0, 0.35 * h_max) / 1000.0,
+        equilibration_friction=10.0, sample_every=10))
+    drift, se = record.drift()
+    return {"fraction": step / h_max, "step_fs": step, "seeds": list(seeds),
+            "duration_ps": duration, "verdict": record.verdict(),
+            "blowup_steps": [r.blowup_step for r in record.runs],
+            "blew_up": [r.blew_up for r in record.runs],
+            "reasons": [r.reason for r in record.runs], "drift": drift, "drift_se": se,
+            "kinetic_temperature": [r.kinetic_temperature for r in record.runs],
+            "seconds": time.time() - t1, "load": os.getloadavg()[0]}
+
+
+def shown(run: dict) -> str:
+    """One line: the step, the verdict, each seed's blow-up step, the drift and T_kin."""
+    steps = ", ".join("-" if s is None else str(s) for s in run["blowup_steps"])
+    temps = ", ".join("-" if t is None or math.isnan(t) else f"{t:.0f}"
+                      for t in run["kinetic_temperature"])
+    return (f"{run['step_fs']:.3f} fs ({run['fraction']:.2f} h_max): {run['verdict']}; blow-up "
+            f"step per seed {steps}; drift {run['drift']:+.1e} ± {run['drift_se']:.1e} "
+            f"kT/ps/dof; T_kin {temps} K ({run['seconds']:.0f} s, load {run['load']:.1f})")
+
+
+def measured(run: dict, integrator: str) -> str:
+    """Verlet's drift with its standard error, or LangevinMiddle's kinetic temperatures."""
+    if integrator == "verlet":
+        return f"{run['drift']:+.1e} ± {run['drift_se']:.1e} kT/ps/dof"
+    return ", ".join(f"{t:.0f}" for t in run["kinetic_temperature"]) + " K"
+
+
+def seed_list(seeds: list) -> str:
+    """``1-3`` for consecutive seeds, else ``1, 5, 9``."""
+    if len(seeds) > 2 and seeds == list(range(seeds[0], seeds[-1] + 1)):
+        return f"{seeds[0]}-{seeds[-1]}"
+    return ", ".join(map(str, seeds))
+
+
+def consistency(row: dict) -> str | None:
+    """Whether stepsafe's step at 300 K is one OpenMM runs: ``None`` without that step,
+    else ``"consistent"`` (OpenMM ran it in every seed of the check, it lies below the scan's
+    first failing step) or what contradicts it, starting ``FALSE SAFE``."""
+    warm, check = row.get("warm"), row.get("check")
+    if warm is None:
+        return None
+    h = warm["h_max_fs"]
+    failed = [r for r in row.get("runs", []) if r["verdict"] != "stable"]
+    problems = []
+    if failed and h >= failed[0]["step_fs"]:
+        problems.append(f"at or above the scan's first failing step {failed[0]['step_fs']:.3f} "
+                        "fs")
+    if check is not None and check["verdict"] != "stable":
+        problems.append(f"OpenMM's check there: {check['verdict']}")
+    if problems:
+        return "FALSE SAFE: " + "; ".join(problems)
+    return "consistent" if check is not None else "consistent with the scan (no check run)"
+
+
+def table(rows: list, temperature: float, length: str) -> str:
+    """The guide's table, one line per row (system and integrator) of ``rows``."""
+    head = ("| system | integrator | constraints, H mass | stepsafe h_max (0 K) | unsafe bands "
+            f"below it | stepsafe h_max at {temperature:g} K (a run of {length}) | OpenMM "
+            f"at 300 K: largest step run | drift there (Verlet) or T_kin (LangevinMiddle) | "
+            "first step that failed: blow-up step per seed | OpenMM at stepsafe's 300 K step |")
+    lines = [head, "|" + "---|" * head.count(" | ") + "---|"]
+    for row in rows:
+        ok = [r for r in row["runs"] if r["verdict"] == "stable"]
+        bad = [r for r in row["runs"] if r["verdict"] != "stable"]
+        if not row["runs"]:
+            ran = there = failed = "not run"
+        else:
+            ran, there = "none", ""
+            if ok:
+                ran = f"{ok[-1]['step_fs']:.2f} fs ({ok[-1]['fraction']:.2f} h_max)"
+                there = measured(ok[-1], row["integrator"])
+            if not bad:
+                failed = f"none up to {row['runs'][-1]['fraction']:.2f} h_max"
+            else:
+                first = bad[0]
+                what = first["verdict"] if first["verdict"] != "drifts" else \
+                    f"drifts {first['drift']:+.1e} kT/ps/dof"
+                steps = ", ".join("-" if s is None else str(s) for s in first["blowup_steps"])
+                failed = f"{first['step_fs']:.2f} fs ({first['fraction']:.2f} h_max): {what}" + \
+                    (f"; {steps}" if first["verdict"] == "blew up" else "")
+        warm, check = row.get("warm"), row.get("check")
+        hot = "not run" if warm is None else \
+            f"{warm['h_max_fs']:.3f} fs ({warm['h_max_fs'] / row['h_max_fs']:.2f} h_max)"
+        if check is None:
+            at = "not run"
+        else:
+            at = (f"{check['verdict']} in seeds {seed_list(check['seeds'])}, "
+                  f"{check['duration_ps']:g} ps: {measured(check, row['integrator'])}")
+            if check["verdict"] == "blew up":
+                at += "; " + ", ".join("-" if s is None else str(s)
+                                       for s in check["blowup_steps"])
+        name = "Verlet" if row["integrator"] == "verlet" else "LangevinMiddle"
+        lines.append(f"| {row['system']} | {name} | {row['constraints']} | "
+                     f"{row['h_max_fs']:.3f} fs | {row['bands']} | {hot} | {ran} | {there} | "
+                     f"{failed} | {at} |")
+    return "\n".join(lines)
+
+
+def merged(files: list[Path]) -> list[dict]:
+    """The rows of earlier runs' ``--json`` files, in the order of SYSTEMS and INTEGRATORS;
+    a later file's stage (warm, scan, check) replaces an earlier one's."""
+    rows: dict[tuple[int, str], dict] = {}
+    for path in files:
+        for row in json.loads(path.read_text()):
+            if "index" not in row:  # files written before rows carried their index
+                row["index"] = next(k for k, (label, _, _, rule, mass) in enumerate(SYSTEMS)
+                                    if label == row["system"] and row["constraints"] ==
+                                    rule + (f", H {mass:g} amu" if mass else ""))
+            key = (row["index"], row["integrator"])
+            old = rows.setdefault(key, dict(row))
+            for stage in ("warm", "check"):
+                if row.get(stage) is not None:
+                    old[stage] = row[stage]
+            if row.get("runs"):
+                old["runs"] = row["runs"]
+            old.setdefault("runs", [])
+    return [rows[key] for key in sorted(rows, key=lambda k: (k[0], INTEGRATORS.index(k[1])))]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3],
+                        help="seeds of the scan")
     parser.add_argument("--duration", type=float, default=5.0, help="ps per run")
     parser.add_argument("--only", type=int, nargs="*", help="rows of SYSTEMS to run (0-3)")
     parser.add_argument("--integrators", nargs="+", default=list(INTEGRATORS),
                         choices=INTEGRATORS)
-    parser.add_argument("--temperature", type=float,
-                        help="also stepsafe's h_max at this temperature (K), with --length")
-    parser.add_argument("--length", default="5 ps", help="the run's length at temperature")
-    parser.add_argument("--no-scan", action="store_true",
-                        help="stepsafe's limits only, no OpenMM scan")
-    parser.add_argument("--json", type=Path, help="also write every run to this file")
+    parser.add_argument("--stages", nargs="+", default=["warm", "scan", "check"],
+                        choices=["warm", "scan", "check"],
+                        help="what to run besides the 0 K limit: stepsafe's limit at 300 K, "
+                        "the scan of fractions of the 0 K limit, OpenMM at the 300 K limit")
+    parser.add_argument("--length", default="5 ps", help="the run's length at 300 K")
+    parser.add_argument("--check-seeds", type=int, nargs="+", default=[11, 12, 13, 14, 15, 16],
+                        help="seeds of OpenMM's runs at stepsafe's step at 300 K")
+    parser.add_argument("--reuse", type=Path, nargs="*", default=[],
+                        help="earlier --json files: their 300 K limits serve the check stage "
+                        "and their rows fill the table")
+    parser.add_argument("--table", action="store_true",
+                        help="run nothing: print the table of the --reuse files")
+    parser.add_argument("--json", type=Path, help="also write every row to this file")
     args = parser.parse_args()
+    temperature = 300.0
+    earlier = merged(args.reuse)
+    if args.table:
+        print(table(earlier, temperature, args.length))
+        for row in earlier:
+            print(f"{row['system']}; {row['constraints']}; {row['integrator']}: "
+                  f"{consistency(row)}")
+        return
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
     import numpy
     import openmm
 
     import stepsafe
-    from stepsafe.systems.md import enginerun as er
     from stepsafe.systems.md import openmm_engine as oe
 
     seeds = tuple(args.seeds)
@@ -111,7 +275,7 @@ def main() -> None:
           f"{numpy.__version__}, OpenMM {openmm.__version__} (CPU platform, 1 thread); seeds "
           f"{', '.join(map(str, seeds))}; {args.duration:g} ps per run at 300 K", flush=True)
     started = time.time()
-    rows, log = [], []
+    rows: list[dict] = []
     tmp = Path(tempfile.mkdtemp(prefix="stepsafe-validation-"))
     for index, (label, name, kind, rule, mass) in enumerate(SYSTEMS):
         if args.only and index not in args.only:
@@ -132,82 +296,48 @@ def main() -> None:
             band = bands(report.record["safe_h"], h_max)
             print(f"\n{label}; {cons}; {integrator}: stepsafe h_max {h_max:.4f} fs "
                   f"({time.time() - t0:.0f} s)", flush=True)
-            warm = None
-            if args.temperature is not None:
-                t2 = time.time()
+            row = {"index": index, "system": label, "constraints": cons,
+                   "integrator": integrator, "h_max_fs": h_max, "bands": band, "warm": None,
+                   "runs": [], "check": None}
+            before = next((r for r in earlier if (r["index"], r["integrator"]) ==
+                           (index, integrator)), None)
+            if "warm" in args.stages:
+                t2, load = time.time(), os.getloadavg()[0]
                 hot = stepsafe.advise(integrator, scene=str(scene), **extra,
-                                      temperature=args.temperature, length=args.length)
-                warm = {"h_max_fs": float(hot.h_max),
-                        "limited_by": hot.record.get("h_max_limited_by"),
-                        "seconds": time.time() - t2}
-                print(f"  at {args.temperature:g} K ({args.length}): stepsafe h_max "
-                      f"{warm['h_max_fs']:.4f} fs, limited by {warm['limited_by']} "
-                      f"({warm['seconds']:.0f} s)", flush=True)
-            runs = []
-            for fraction in () if args.no_scan else FRACTIONS:
-                step = fraction * h_max
-                t1 = time.time()
-                record = er.run_trials(system_xml, state, er.TrialSpec(
-                    integrator, step / 1000.0, args.duration, temperature=300.0, friction=1.0,
-                    seeds=seeds, equilibration=1.0,
-                    equilibration_step=min(1.0, 0.35 * h_max) / 1000.0,
-                    equilibration_friction=10.0, sample_every=10))
-                drift, se = record.drift()
-                run = {"fraction": fraction, "step_fs": step, "verdict": record.verdict(),
-                       "blowup_steps": [r.blowup_step for r in record.runs],
-                       "reasons": [r.reason for r in record.runs],
-                       "drift": drift, "drift_se": se,
-                       "kinetic_temperature": [r.kinetic_temperature for r in record.runs],
-                       "seconds": time.time() - t1}
-                runs.append(run)
-                shown = ", ".join("-" if s is None else str(s) for s in run["blowup_steps"])
-                temps = ", ".join("-" if math.isnan(t) else f"{t:.0f}"
-                                  for t in run["kinetic_temperature"])
-                print(f"  {step:.3f} fs ({fraction:.2f} h_max): {run['verdict']}; blow-up "
-                      f"step per seed {shown}; drift {drift:+.1e} ± {se:.1e} kT/ps/dof; "
-                      f"T_kin {temps} K ({run['seconds']:.0f} s)", flush=True)
-                if all(r.blew_up for r in record.runs):
+                                      temperature=temperature, length=args.length)
+                thermal = hot.record["thermal"]
+                row["warm"] = {"h_max_fs": float(hot.h_max),
+                               "limited_by": thermal.get("limited_by"),
+                               "length": args.length, "seconds": time.time() - t2,
+                               "load": [load, os.getloadavg()[0]], "thermal": thermal}
+                print(f"  at {temperature:g} K ({args.length}): stepsafe h_max "
+                      f"{row['warm']['h_max_fs']:.4f} fs, limited by "
+                      f"{row['warm']['limited_by']} ({row['warm']['seconds']:.0f} s, load "
+                      f"{load:.1f} to {os.getloadavg()[0]:.1f})", flush=True)
+            elif before is not None:
+                row["warm"] = before.get("warm")
+            for fraction in FRACTIONS if "scan" in args.stages else ():
+                run = trial(system_xml, state, integrator, fraction * h_max, h_max, seeds,
+                            args.duration)
+                row["runs"].append(run)
+                print("  " + shown(run), flush=True)
+                if all(run["blew_up"]):
                     break
-            rows.append({"system": label, "constraints": cons, "integrator": integrator,
-                         "h_max_fs": h_max, "bands": band, "warm": warm, "runs": runs})
+            if "check" in args.stages and row["warm"] is not None:
+                run = trial(system_xml, state, integrator, row["warm"]["h_max_fs"], h_max,
+                            tuple(args.check_seeds), args.duration)
+                row["check"] = run
+                print("  at stepsafe's 300 K step, seeds "
+                      f"{seed_list(args.check_seeds)}: " + shown(run), flush=True)
+            rows.append(row)
             if args.json:
-                args.json.write_text(json.dumps(log + rows[-1:], indent=1, default=str))
-            log.append(rows[-1])
+                args.json.write_text(json.dumps(rows, indent=1, default=str))
     print(f"\n(all runs: {time.time() - started:.0f} s)\n")
-    hot = "" if args.temperature is None else f" stepsafe h_max at {args.temperature:g} K |"
-    print("| system | integrator | constraints, H mass | stepsafe h_max (0 K) |" + hot +
-          " unsafe bands below it | OpenMM at 300 K: largest step run | drift there (Verlet) "
-          "or T_kin (LangevinMiddle) | first step that failed: blow-up step per seed |")
-    print("|---|---|---|---|---|---|---|---|" + ("" if not hot else "---|"))
+    print(table(merged(args.reuse + [args.json]) if args.json else rows, temperature,
+                args.length))
     for row in rows:
-        ok = [r for r in row["runs"] if r["verdict"] == "stable"]
-        bad = [r for r in row["runs"] if r["verdict"] != "stable"]
-        good = ok[-1] if ok else None
-        first = bad[0] if bad else None
-        if good is None:
-            ran, measured = "none", ""
-        else:
-            ran = f"{good['step_fs']:.2f} fs ({good['fraction']:.2f} h_max)"
-            if row["integrator"] == "verlet":
-                measured = f"{good['drift']:+.1e} ± {good['drift_se']:.1e} kT/ps/dof"
-            else:
-                measured = ", ".join(f"{t:.0f}" for t in good["kinetic_temperature"]) + " K"
-        if not row["runs"]:
-            ran = measured = failed = "not run"
-        elif first is None:
-            failed = "none up to " + f"{row['runs'][-1]['fraction']:.2f} h_max"
-        else:
-            steps = ", ".join("-" if s is None else str(s) for s in first["blowup_steps"])
-            what = first["verdict"] if first["verdict"] != "drifts" else \
-                f"drifts {first['drift']:+.1e} kT/ps/dof"
-            failed = f"{first['step_fs']:.2f} fs ({first['fraction']:.2f} h_max): {what}" + \
-                (f"; {steps}" if first["verdict"] == "blew up" else "")
-        name = "Verlet" if row["integrator"] == "verlet" else "LangevinMiddle"
-        warm = "" if row["warm"] is None else f" {row['warm']['h_max_fs']:.3f} fs |"
-        print(f"| {row['system']} | {name} | {row['constraints']} | {row['h_max_fs']:.3f} fs |"
-              f"{warm} {row['bands']} | {ran} | {measured} | {failed} |")
-    if args.json:
-        args.json.write_text(json.dumps(log, indent=1, default=str))
+        print(f"{row['system']}; {row['constraints']}; {row['integrator']}: "
+              f"{consistency(row)}")
 
 
 if __name__ == "__main__":
