@@ -78,6 +78,48 @@ def test_safe_steps_run_in_openmm_and_unsafe_steps_fail(name, integrator, rule):
     assert all(r.blew_up for r in above.runs), [r.reason for r in above.runs]
 
 
+#: The guide's validation table: OpenMM's steps, as fractions of the 0 K limit, and the
+#: length of each run at 300 K, ps (the limit at 300 K is asked for a run of that length).
+FRACTIONS, DURATION = (0.7, 0.8, 0.9, 0.95, 1.0, 1.05), 5.0
+
+
+@pytest.mark.slow
+def test_water_cluster_limit_at_300_K_lies_below_openmm_s_first_failure_and_runs_there():
+    """The ordering every row of the guide's validation table keeps, on the 8-water cluster
+    with Verlet: stepsafe's h_max at 300 K for a run of 5 ps (its own runs in OpenMM: seeds
+    1-6, 2 ps each) lies below the 0 K limit and below the first step of OpenMM's scan that
+    fails, and OpenMM runs that h_max in six other seeds (11-16), 5 ps each, without a
+    blow-up or a drift beyond the tolerance. The scan is the table's: per seed 1-3, 1 ps of
+    LangevinMiddle at 300 K (friction 10/ps, step 0.35 h_max at most 1 fs), then 5 ps of
+    VerletIntegrator at 0.7, 0.8, ... of the 0 K h_max, up to the first failure (some step
+    must fail: at 1.05 every run blows up)."""
+    from stepsafe.systems.md import enginerun as er
+
+    scene = ROOT / "examples" / "water-cluster.yaml"
+    h_zero = stepsafe.advise(scene=str(scene)).h_max
+    warm = stepsafe.advise(scene=str(scene), temperature=300, length=f"{DURATION:g} ps")
+    assert warm.record["thermal"]["limited_by"] == "OpenMM runs"
+    assert warm.h_max < h_zero
+    engine = prepared(scene)
+    system, state = engine.system_xml(), engine.state_xml()
+
+    def runs(h_fs, seeds):
+        return er.run_trials(system, state, er.TrialSpec(
+            "verlet", h_fs / 1000.0, DURATION, temperature=300.0, seeds=seeds,
+            equilibration=1.0, equilibration_step=min(1.0, 0.35 * h_zero) / 1000.0,
+            equilibration_friction=10.0))
+
+    first_failure = None
+    for fraction in FRACTIONS:
+        if runs(fraction * h_zero, (1, 2, 3)).verdict() != "stable":
+            first_failure = fraction * h_zero
+            break
+    assert first_failure is not None
+    assert warm.h_max < first_failure
+    there = runs(warm.h_max, (11, 12, 13, 14, 15, 16))
+    assert there.verdict() == "stable", [r.reason for r in there.runs]
+
+
 def water_box(folder: Path, edge: float, cutoff: float) -> Path:
     """A scene (Verlet, fs, minimised) on a box of flexible TIP3P water with PME."""
     from stepsafe.systems.md import openmm_engine as oe
