@@ -284,13 +284,13 @@ def main() -> None:
         extra = {} if rule == "none" else {"constraints": rule}
         if mass is not None:
             extra["hydrogen_mass"] = mass
-        t0 = time.time()
         engine = prepared_engine(scene, rule, mass)
         state = engine.state_xml()
         xml, _ = oe.write_example_system(kind, tmp, constraints=rule, hydrogen_mass=mass)
         system_xml = xml.read_text()
         cons = rule + (f", H {mass:g} amu" if mass else "")
         for integrator in args.integrators:
+            t0 = time.time()
             report = stepsafe.advise(integrator, scene=str(scene), **extra)
             h_max = float(report.h_max)
             band = bands(report.record["safe_h"], h_max)
