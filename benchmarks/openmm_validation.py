@@ -36,7 +36,8 @@ Stages (``--stages``; the 0 K limit is always computed, in seconds):
 * ``scan``: OpenMM's runs at the fractions :data:`FRACTIONS` of the 0 K limit, as above;
 * ``check``: OpenMM's runs at stepsafe's step at 300 K in the scan's protocol (``--duration``
   ps), in ``--check-seeds`` (none of stepsafe's own seeds), needing ``warm`` in this run or in
-  a ``--reuse`` file.
+  a ``--reuse`` file; with many seeds (``--check-seeds $(seq 101 130)``) a failure rate, and
+  with ``--check-steps`` at other steps (fs) instead.
 
 Each row also says whether stepsafe's step at 300 K is *consistent* with OpenMM: below the
 scan's first failing step and run in every seed of the check; anything else is printed as a
@@ -246,6 +247,9 @@ def main() -> None:
     parser.add_argument("--length", default="5 ps", help="the run's length at 300 K")
     parser.add_argument("--check-seeds", type=int, nargs="+", default=[11, 12, 13, 14, 15, 16],
                         help="seeds of OpenMM's runs at stepsafe's step at 300 K")
+    parser.add_argument("--check-steps", type=float, nargs="+",
+                        help="with the check stage: run OpenMM at these steps (fs) instead "
+                        "of stepsafe's step at 300 K (a failure rate below it)")
     parser.add_argument("--reuse", type=Path, nargs="*", default=[],
                         help="earlier --json files: their 300 K limits serve the check stage "
                         "and their rows fill the table")
@@ -323,12 +327,21 @@ def main() -> None:
                 print("  " + shown(run), flush=True)
                 if all(run["blew_up"]):
                     break
-            if "check" in args.stages and row["warm"] is not None:
+            if "check" in args.stages and args.check_steps:
+                row["checks_at"] = []
+                for step in args.check_steps:
+                    run = trial(system_xml, state, integrator, step, h_max,
+                                tuple(args.check_seeds), args.duration)
+                    row["checks_at"].append(run)
+                    print(f"  seeds {seed_list(args.check_seeds)}: " + shown(run) +
+                          f"; {sum(run['blew_up'])} blew up", flush=True)
+            elif "check" in args.stages and row["warm"] is not None:
                 run = trial(system_xml, state, integrator, row["warm"]["h_max_fs"], h_max,
                             tuple(args.check_seeds), args.duration)
                 row["check"] = run
                 print("  at stepsafe's 300 K step, seeds "
-                      f"{seed_list(args.check_seeds)}: " + shown(run), flush=True)
+                      f"{seed_list(args.check_seeds)}: " + shown(run) +
+                      f"; {sum(run['blew_up'])} blew up", flush=True)
             rows.append(row)
             if args.json:
                 args.json.write_text(json.dumps(rows, indent=1, default=str))
