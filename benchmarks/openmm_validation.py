@@ -137,7 +137,9 @@ def measured(run: dict, integrator: str) -> str:
     """Verlet's drift with its standard error, or LangevinMiddle's kinetic temperatures."""
     if integrator == "verlet":
         return f"{run['drift']:+.1e} ± {run['drift_se']:.1e} kT/ps/dof"
-    return ", ".join(f"{t:.0f}" for t in run["kinetic_temperature"]) + " K"
+    temps = [t for t in run["kinetic_temperature"] if t is not None and math.isfinite(t)]
+    return ", ".join(f"{t:.0f}" for t in temps) + " K" if len(temps) < 4 else \
+        f"{min(temps):.0f}-{max(temps):.0f} K"
 
 
 def seed_list(seeds: list) -> str:
@@ -149,9 +151,9 @@ def seed_list(seeds: list) -> str:
 
 def consistency(row: dict) -> str | None:
     """Whether stepsafe's step at 300 K is one OpenMM runs: ``None`` without that step,
-    else ``"consistent"`` (OpenMM ran it in every seed of the check, it lies below the scan's
-    first failing step) or what contradicts it, starting ``FALSE SAFE``."""
-    warm, check = row.get("warm"), row.get("check")
+    else ``"consistent"`` (OpenMM ran it in every seed of every check, it lies below the
+    scan's first failing step) or what contradicts it, starting ``FALSE SAFE``."""
+    warm = row.get("warm")
     if warm is None:
         return None
     h = warm["h_max_fs"]
@@ -160,11 +162,26 @@ def consistency(row: dict) -> str | None:
     if failed and h >= failed[0]["step_fs"]:
         problems.append(f"at or above the scan's first failing step {failed[0]['step_fs']:.3f} "
                         "fs")
-    if check is not None and check["verdict"] != "stable":
-        problems.append(f"OpenMM's check there: {check['verdict']}")
+    for check in row.get("checks", []):
+        if check["verdict"] != "stable":
+            problems.append(f"OpenMM at that step, seeds {seed_list(check['seeds'])}: "
+                            f"{check['verdict']} ({sum(check['blew_up'])} of "
+                            f"{len(check['seeds'])} blew up)")
     if problems:
         return "FALSE SAFE: " + "; ".join(problems)
-    return "consistent" if check is not None else "consistent with the scan (no check run)"
+    return "consistent" if row.get("checks") else "consistent with the scan (no check run)"
+
+
+def checked(check: dict, integrator: str) -> str:
+    """A check's cell: how many seeds ran, those that blew up and when, the drift or
+    T_kin of the others."""
+    seeds, steps = check["seeds"], check["blowup_steps"]
+    blew = [(s, b) for s, b, up in zip(seeds, steps, check["blew_up"]) if up]
+    head = f"seeds {seed_list(seeds)}, {check['duration_ps']:g} ps: "
+    if not blew:
+        return head + f"{len(seeds)} of {len(seeds)} ran, " + measured(check, integrator)
+    where = ", ".join(f"seed {s} at step {b}" for s, b in blew)
+    return head + f"{len(blew)} of {len(seeds)} blew up ({where})"
 
 
 def table(rows: list, temperature: float, length: str) -> str:
@@ -193,17 +210,11 @@ def table(rows: list, temperature: float, length: str) -> str:
                 steps = ", ".join("-" if s is None else str(s) for s in first["blowup_steps"])
                 failed = f"{first['step_fs']:.2f} fs ({first['fraction']:.2f} h_max): {what}" + \
                     (f"; {steps}" if first["verdict"] == "blew up" else "")
-        warm, check = row.get("warm"), row.get("check")
+        warm = row.get("warm")
         hot = "not run" if warm is None else \
             f"{warm['h_max_fs']:.3f} fs ({warm['h_max_fs'] / row['h_max_fs']:.2f} h_max)"
-        if check is None:
-            at = "not run"
-        else:
-            at = (f"{check['verdict']} in seeds {seed_list(check['seeds'])}, "
-                  f"{check['duration_ps']:g} ps: {measured(check, row['integrator'])}")
-            if check["verdict"] == "blew up":
-                at += "; " + ", ".join("-" if s is None else str(s)
-                                       for s in check["blowup_steps"])
+        at = "; ".join(checked(c, row["integrator"]) for c in row.get("checks", [])) or \
+            "not run"
         name = "Verlet" if row["integrator"] == "verlet" else "LangevinMiddle"
         lines.append(f"| {row['system']} | {name} | {row['constraints']} | "
                      f"{row['h_max_fs']:.3f} fs | {row['bands']} | {hot} | {ran} | {there} | "
@@ -213,7 +224,8 @@ def table(rows: list, temperature: float, length: str) -> str:
 
 def merged(files: list[Path]) -> list[dict]:
     """The rows of earlier runs' ``--json`` files, in the order of SYSTEMS and INTEGRATORS;
-    a later file's stage (warm, scan, check) replaces an earlier one's."""
+    a later file's 300 K limit or scan replaces an earlier one's, and its check one in the
+    same seeds."""
     rows: dict[tuple[int, str], dict] = {}
     for path in files:
         for row in json.loads(path.read_text()):
@@ -222,13 +234,16 @@ def merged(files: list[Path]) -> list[dict]:
                                     if label == row["system"] and row["constraints"] ==
                                     rule + (f", H {mass:g} amu" if mass else ""))
             key = (row["index"], row["integrator"])
-            old = rows.setdefault(key, dict(row))
-            for stage in ("warm", "check"):
-                if row.get(stage) is not None:
-                    old[stage] = row[stage]
+            if row.get("check") is not None:  # files written before rows had checks
+                row["checks"] = [row["check"]]
+            old = rows.setdefault(key, {**row, "runs": [], "checks": [], "warm": None})
+            if row.get("warm") is not None:
+                old["warm"] = row["warm"]
             if row.get("runs"):
                 old["runs"] = row["runs"]
-            old.setdefault("runs", [])
+            for check in row.get("checks") or []:
+                old["checks"] = [c for c in old["checks"] if c["seeds"] != check["seeds"]] + \
+                    [check]
     return [rows[key] for key in sorted(rows, key=lambda k: (k[0], INTEGRATORS.index(k[1])))]
 
 
@@ -302,7 +317,7 @@ def main() -> None:
                   f"({time.time() - t0:.0f} s)", flush=True)
             row = {"index": index, "system": label, "constraints": cons,
                    "integrator": integrator, "h_max_fs": h_max, "bands": band, "warm": None,
-                   "runs": [], "check": None}
+                   "runs": [], "checks": []}
             before = next((r for r in earlier if (r["index"], r["integrator"]) ==
                            (index, integrator)), None)
             if "warm" in args.stages:
@@ -338,7 +353,7 @@ def main() -> None:
             elif "check" in args.stages and row["warm"] is not None:
                 run = trial(system_xml, state, integrator, row["warm"]["h_max_fs"], h_max,
                             tuple(args.check_seeds), args.duration)
-                row["check"] = run
+                row["checks"].append(run)
                 print("  at stepsafe's 300 K step, seeds "
                       f"{seed_list(args.check_seeds)}: " + shown(run) +
                       f"; {sum(run['blew_up'])} blew up", flush=True)
