@@ -180,8 +180,10 @@ def checked(check: dict, integrator: str) -> str:
     head = f"seeds {seed_list(seeds)}, {check['duration_ps']:g} ps: "
     if not blew:
         return head + f"{len(seeds)} of {len(seeds)} ran, " + measured(check, integrator)
-    where = ", ".join(f"seed {s} at step {b}" for s, b in blew)
-    return head + f"{len(blew)} of {len(seeds)} blew up ({where})"
+    plural = "s" if len(blew) > 1 else ""
+    return head + (f"{len(blew)} of {len(seeds)} blew up (seed{plural} "
+                   f"{', '.join(str(s) for s, _ in blew)} at step{plural} "
+                   f"{', '.join(str(b) for _, b in blew)})")
 
 
 def table(rows: list, temperature: float, length: str) -> str:
