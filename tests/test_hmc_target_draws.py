@@ -309,3 +309,65 @@ def test_draws_split_between_separated_wells_are_not_converged():
     code, _ = _hmc_code(BANANA_1, "--steps", "10", "--methods", "verlet",
                         "--require-converged")
     assert code == 0
+
+
+def _normal_logdensity(q):
+    return -0.5 * (q * q).sum(-1)
+
+
+def _normal_gradient(q):
+    return -q
+
+
+def test_require_converged_refuses_draws_that_fail_a_diagnostic_and_names_it():
+    """From Python, require_converged=True raises a StepsafeError naming the diagnostic
+    that fails, before any estimate: chains drawn independently from N(0, 1) but shifted
+    apart by 3 standard deviations fail R-hat; 4 chains of 50 independent draws (at most
+    about 200 effective) fail the effective sample size; 3 draws per chain cannot be
+    checked. The same draws are accepted without the keyword (a note says so)."""
+    from stepsafe import hmc
+    from stepsafe.exceptions import StepsafeError
+
+    rng = np.random.default_rng(11)
+    shifted = rng.normal(size=(8, 200, 1)) + 3.0 * np.arange(8)[:, None, None]
+    short = rng.normal(size=(4, 50, 1))
+    tiny = rng.normal(size=(8, 3, 1))
+    kw = dict(logdensity=_normal_logdensity, gradient=_normal_gradient, start=[0.0],
+              trajectory_steps=5)
+    for draws, named in ((shifted, "R-hat"), (short, "effective sample size"),
+                         (tiny, "cannot be checked")):
+        with pytest.raises(StepsafeError) as caught:
+            hmc(["verlet"], draws=draws, require_converged=True, **kw)
+        assert named in str(caught.value) and "require_converged" in str(caught.value)
+        assert caught.value.where == "draws"
+    report = hmc(["verlet"], draws=short, **kw)
+    assert report.draws.converged is False
+    assert any("have not converged" in n for n in report.notes)
+
+
+def test_require_converged_passes_converged_draws():
+    """16 chains of 200 independent N(0, 1) draws converge (R-hat at most 1.01, effective
+    size above 400): the estimate runs, and its acceptance of Verlet on N(0, 1) at the step
+    found agrees with the exact Gaussian one within 4 standard errors."""
+    from stepsafe import hmc
+
+    draws = np.random.default_rng(12).normal(size=(16, 200, 1))
+    report = hmc(["verlet"], logdensity=_normal_logdensity, gradient=_normal_gradient,
+                 start=[0.0], trajectory_steps=5, draws=draws, require_converged=True)
+    assert report.draws.converged is True
+    row = report.rows[0]
+    exact = hmc(["verlet"], sigma=[1.0], trajectory_steps=5, step=row.h_target)
+    want = exact.rows[0].at_step["acceptance"]
+    got = row.estimate
+    assert abs(got.acceptance - want) < 4 * got.acceptance_se, (got.acceptance, want)
+
+
+def test_require_converged_is_refused_where_nothing_is_drawn():
+    from stepsafe import hmc
+    from stepsafe.exceptions import StepsafeError
+
+    with pytest.raises(StepsafeError, match="require_converged"):
+        hmc(["verlet"], sigma=[1.0], trajectory_steps=5, require_converged=True)
+    with pytest.raises(StepsafeError, match="True or False"):
+        hmc(["verlet"], logdensity=_normal_logdensity, gradient=_normal_gradient,
+            start=[0.0], trajectory_steps=5, require_converged="yes")

@@ -126,7 +126,8 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         logdensity: Callable[..., Any] | None = None,
         gradient: Callable[..., Any] | None = None, start: ArrayLike | None = None,
         mass: ArrayLike | None = None, draws: ArrayLike | str | Path | None = None,
-        seed: int | None = None) -> HmcReport | TargetReport:
+        seed: int | None = None, require_converged: bool = False
+        ) -> HmcReport | TargetReport:
     """HMC on a target with each of ``methods``: the step at target, the acceptance and
     the cost, methods ranked by gradient evaluations per accepted proposal at the L run (L
     or T given), else per accepted unit of simulated time (the report's ``ranked_by``).
@@ -202,6 +203,13 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         :data:`~stepsafe.core.hmc_target.draws.SEED`). A target that is not Gaussian only: a
         Gaussian target's figures are exact and draw no random numbers (the jitter average
         is a quadrature), so a seed given with one is refused rather than ignored.
+    require_converged : bool
+        Refuse (:class:`~stepsafe.exceptions.StepsafeError` naming the diagnostic that
+        fails) draws that have not converged: the largest rank-normalised split R-hat over
+        the coordinates and U above 1.01, or the smallest effective sample size below 400
+        (or too few draws per chain to compute them), checked before any estimate. A target
+        that is not Gaussian only, as ``seed``. The command line's ``--require-converged``
+        prints the report and exits 1 instead.
 
     Returns
     -------
@@ -224,6 +232,9 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
     if not isinstance(target_for_every_length, (bool, np.bool_)):
         raise StepsafeError("target_for_every_length must be True or False, got "
                             f"{str(target_for_every_length)[:20]!r}")
+    if not isinstance(require_converged, (bool, np.bool_)):
+        raise StepsafeError("require_converged must be True or False, got "
+                            f"{str(require_converged)[:20]!r}")
     integrators = compared_methods(HMC_DEFAULT if methods is None else methods)
     inputs = {"sigma": sigma, "saddle_beta": saddle_beta, "inverted_beta": inverted_beta,
               "modes": modes, "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
@@ -238,7 +249,8 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
                              curve=curve, draws=draws,
                              seed=TARGET_SEED if seed is None else seed,
                              allow_unstable_jitter=bool(allow_unstable_jitter),
-                             target_for_every_length=bool(target_for_every_length))
+                             target_for_every_length=bool(target_for_every_length),
+                             require_converged=bool(require_converged))
     if draws is not None:
         raise StepsafeError("draws= go with a target that is not Gaussian (logdensity= or a "
                             "potential:); a Gaussian target's acceptance is exact")
@@ -247,6 +259,10 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
                             "(logdensity= or a potential:): a Gaussian target's figures are "
                             "exact and deterministic, no random numbers are drawn (the "
                             "jitter average is a quadrature)")
+    if require_converged:
+        raise StepsafeError("require_converged= (--require-converged) goes with a target "
+                            "that is not Gaussian (logdensity= or a potential:): a Gaussian "
+                            "target's figures are exact, no draws are made")
     p = problem_of(integrators[0], beta, inputs, times=(step, length))
     if length is not None:
         length = duration(length, "length", p.time_unit)
@@ -288,7 +304,8 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
 def _non_gaussian(found: Any, integrators: list[Integrator], inputs: dict[str, Any], *,
                   steps: int | None, length: Any, jitter: float, target_accept: float,
                   step: Any, criterion: str, curve: int, draws: Any, seed: Any,
-                  allow_unstable_jitter: bool, target_for_every_length: bool) -> TargetReport:
+                  allow_unstable_jitter: bool, target_for_every_length: bool,
+                  require_converged: bool = False) -> TargetReport:
     """``hmc`` on a target that is not Gaussian (:mod:`stepsafe.api.hmc_target`)."""
     others = sorted(k for k, v in inputs.items()
                     if v is not None and k not in ("scene", "system", "time_unit", "zmax",
@@ -321,7 +338,7 @@ def _non_gaussian(found: Any, integrators: list[Integrator], inputs: dict[str, A
     report = on_target(found, integrators, steps=steps, length=length, jitter=jitter,
                        target_accept=target, step=step, draws=draws, seed=seed,
                        allow_unstable_jitter=allow_unstable_jitter,
-                       zmax=inputs.get("zmax"))
+                       zmax=inputs.get("zmax"), require_converged=require_converged)
     progress = inputs.get("progress")
     if progress is not None:
         progress(1.0)

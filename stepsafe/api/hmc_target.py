@@ -190,7 +190,7 @@ def draws_of(draws: Any, found: PotentialTarget) -> Draws | None:
 def on_target(found: PotentialTarget, integrators: Sequence[Integrator], *,
               steps: int | None, length: float | None, jitter: float, target_accept: float,
               step: float | None, draws: Any, seed: Any, allow_unstable_jitter: bool,
-              zmax: float | None) -> TargetReport:
+              zmax: float | None, require_converged: bool = False) -> TargetReport:
     """HMC with each method on the target (module docstring; the arguments as
     :func:`stepsafe.api.hmc.hmc` takes them, already checked).
 
@@ -218,7 +218,7 @@ def on_target(found: PotentialTarget, integrators: Sequence[Integrator], *,
                          seed=int(seed), start=found.start,
                          allow_unstable_jitter=allow_unstable_jitter,
                          zmax=10.0 if zmax is None else float(zmax),
-                         where=found.where or None)
+                         where=found.where or None, require_converged=require_converged)
 
 
 __all__ = ["SEED", "TargetReport", "callable_target", "on_target", "target_of"]

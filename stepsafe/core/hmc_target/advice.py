@@ -251,12 +251,31 @@ def _within(h: float, factor: float) -> float:
     return q
 
 
+def unconverged(draws: Draws) -> str | None:
+    """Why ``draws`` do not count as converged, naming the diagnostic that fails and its
+    limit (R-hat above :data:`RHAT_LIMIT`, effective sample size below
+    :data:`ESS_LIMIT`, or none computed: too few draws per chain); None when they do."""
+    if draws.converged is None:
+        return ("the draws' convergence cannot be checked: R-hat and the effective sample "
+                "size need at least 4 draws per chain")
+    failed = []
+    if draws.rhat is not None and not draws.rhat <= RHAT_LIMIT:
+        failed.append(f"R-hat {draws.rhat:.4g} is above {RHAT_LIMIT:g}")
+    if draws.effective_size is not None and not draws.effective_size >= ESS_LIMIT:
+        failed.append(f"the effective sample size {draws.effective_size:.4g} is below "
+                      f"{ESS_LIMIT:g}")
+    if not failed:
+        return None
+    return f"the draws have not converged: {' and '.join(failed)}"
+
+
 def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Trajectory, *,
                   target_accept: float = gaussian.DEFAULT_TARGET, step: float | None = None,
                   draws: Draws | None = None, laplace: Laplace | None = None,
                   seed: int = SEED, start: np.ndarray | None = None,
                   allow_unstable_jitter: bool = False, onset: bool = True,
-                  zmax: float = 10.0, where: str | None = None) -> TargetReport:
+                  zmax: float = 10.0, where: str | None = None,
+                  require_converged: bool = False) -> TargetReport:
     """HMC with each of ``methods`` on ``target`` (module docstring).
 
     Parameters
@@ -289,6 +308,8 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
     where
         The scene file whose ``system:`` gives the target, named in refusals (None: the
         Python keywords).
+    require_converged
+        Refuse draws that have not converged (:func:`unconverged`), before any estimate.
 
     Returns
     -------
@@ -316,6 +337,12 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
                      "figures")
     if draws is None:
         draws = sample(target, seed=seed, laplace=laplace, start=start, where=where)
+    if require_converged:
+        refusal = unconverged(draws)
+        if refusal is not None:
+            raise StepsafeError(refusal + " (require_converged; --require-converged on the "
+                                "command line)",
+                                f"{where}::$.system.potential" if where else "draws")
     if draws.converged is False:
         notes.append(f"the draws have not converged (R-hat {draws.rhat:.4g}, limit "
                      f"{RHAT_LIMIT:g}; effective sample size {draws.effective_size:.4g}, limit "
