@@ -44,9 +44,10 @@ result says so (``approximate``).
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -534,17 +535,20 @@ def _gauss_rules(t: np.ndarray, w: np.ndarray, starts: np.ndarray, points: int
     ``points`` distinct t). The recurrence of the orthonormal polynomials by the discretised
     Stieltjes procedure (stable for a discrete measure when ``points`` is small against its
     support), then the eigenvalues of each Jacobi matrix (Golub-Welsch)."""
-    segment = np.repeat(np.arange(starts.size), np.diff(np.append(starts, t.size)))
+    sizes = np.diff(np.append(starts, t.size))
     total = np.add.reduceat(w, starts)
     alpha, beta = np.zeros((starts.size, points)), np.zeros((starts.size, points))
-    p_prev, p = np.zeros_like(t), (1.0 / np.sqrt(total))[segment]
+    p_prev, p = np.zeros_like(t), np.repeat(1.0 / np.sqrt(total), sizes)
+    wt = w * t
     with np.errstate(divide="ignore", invalid="ignore"):
         for k in range(points):
-            alpha[:, k] = np.add.reduceat(w * p * p * t, starts)
-            nxt = (t - alpha[segment, k]) * p - (beta[segment, k - 1] * p_prev if k else 0.0)
+            alpha[:, k] = np.add.reduceat(wt * p * p, starts)
+            nxt = (t - np.repeat(alpha[:, k], sizes)) * p
+            if k:
+                nxt -= np.repeat(beta[:, k - 1], sizes) * p_prev
             if k + 1 < points:
                 beta[:, k] = np.sqrt(np.add.reduceat(w * nxt * nxt, starts))
-                p_prev, p = p, nxt / beta[segment, k]
+                p_prev, p = p, nxt / np.repeat(beta[:, k], sizes)
     jacobi = np.zeros((starts.size, points, points))
     index = np.arange(points)
     jacobi[:, index, index] = alpha
@@ -554,6 +558,53 @@ def _gauss_rules(t: np.ndarray, w: np.ndarray, starts: np.ndarray, points: int
     nodes, vectors = np.zeros((starts.size, points)), np.zeros((starts.size, points, points))
     nodes[good], vectors[good] = np.linalg.eigh(jacobi[good])
     return nodes, total[:, None] * vectors[:, 0, :] ** 2
+
+
+#: Bins of the spectrum start at multiples of its size over this (see :func:`_mode_rule`).
+RULE_GRAINS = 4096
+#: The Gauss rules of the bins of the last spectrum seen: its digest and rule by bin.
+_BIN_RULES: dict[str, Any] = {"digest": None, "rules": {}}
+
+
+def _bin_rules(values: np.ndarray, counts: np.ndarray, starts: np.ndarray,
+               stops: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes and weights of the bins ``values[start:stop]``: each bin of more than
+    ``2 RULE_POINTS`` modes by its :data:`RULE_POINTS`-point Gauss rule (in
+    ``t = (beta - mid) / half``), the others as they are. Rules are kept for the spectrum
+    last seen (identified by a digest of ``values`` and ``counts``): a search evaluates
+    many steps on one spectrum, and bins recur. The digest samples a thousand values and
+    counts: a stale rule can only fail :func:`_mode_rule`'s check against every mode,
+    never pass for a wrong spectrum unchecked."""
+    stride = max(1, values.size // 1024)
+    digest = hashlib.blake2b(np.concatenate([values[::stride], counts[::stride],
+                                             [values.size, values[-1], counts.sum()]]
+                                            ).tobytes(), digest_size=16).hexdigest()
+    if _BIN_RULES["digest"] != digest:
+        _BIN_RULES["digest"], _BIN_RULES["rules"] = digest, {}
+    known: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = _BIN_RULES["rules"]
+    wanted = [(int(lo), int(hi)) for lo, hi in zip(starts, stops)
+              if hi - lo > 2 * RULE_POINTS and (int(lo), int(hi)) not in known]
+    if wanted:
+        lo_, hi_ = np.array(wanted).T
+        index = np.concatenate([np.arange(lo, hi) for lo, hi in wanted])
+        mid = 0.5 * (values[lo_] + values[hi_ - 1])
+        half = 0.5 * (values[hi_ - 1] - values[lo_])
+        sizes = hi_ - lo_
+        t = (values[index] - np.repeat(mid, sizes)) / np.repeat(half, sizes)
+        t_rule, w_rule = _gauss_rules(t, counts[index],
+                                      np.concatenate([[0], np.cumsum(sizes)[:-1]]),
+                                      RULE_POINTS)
+        for k, key in enumerate(wanted):
+            known[key] = (mid[k] + half[k] * np.clip(t_rule[k], -1.0, 1.0), w_rule[k])
+    nodes, weights = [], []
+    for lo, hi in zip(starts, stops):
+        if hi - lo > 2 * RULE_POINTS:
+            nodes.append(known[(int(lo), int(hi))][0])
+            weights.append(known[(int(lo), int(hi))][1])
+        else:
+            nodes.append(values[lo:hi])
+            weights.append(counts[lo:hi])
+    return np.concatenate(nodes), np.concatenate(weights)
 
 
 def _mode_rule(method: Method, values: np.ndarray, counts: np.ndarray, h: float,
@@ -586,23 +637,16 @@ def _mode_rule(method: Method, values: np.ndarray, counts: np.ndarray, h: float,
     turn = (0 if steps is None else steps) * theta + np.maximum(log_rho, np.log(EPS))
     cumulative = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(turn)))])
     cuts = np.flatnonzero(np.diff(np.floor(cumulative / RULE_VARIATION))) + 1
+    # cut points snapped down to a grain of the spectrum: nearby steps share bins, whose
+    # rules are then computed once (the check below holds whatever the bins)
+    grain = max(1, values.size // RULE_GRAINS)
+    cuts = distinct(cuts // grain * grain)
+    cuts = cuts[cuts > 0]
     starts = np.concatenate([[0], cuts])
     stops = np.concatenate([cuts, [values.size]])
     if RULE_POINTS * starts.size > values.size // 2:
         return None
-    mid = 0.5 * (values[starts] + values[stops - 1])
-    half = 0.5 * (values[stops - 1] - values[starts])
-    segment = np.repeat(np.arange(starts.size), stops - starts)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (values - mid[segment]) / half[segment]
-    t_rule, w_rule = _gauss_rules(t, counts, starts, RULE_POINTS)
-    # bins of few modes keep them (a rule would not save anything)
-    few = (stops - starts) <= 2 * RULE_POINTS
-    kept = few[segment]
-    nodes = [values[kept],
-             (mid[~few, None] + half[~few, None] * np.clip(t_rule[~few], -1.0, 1.0)).ravel()]
-    weights = [counts[kept], w_rule[~few].ravel()]
-    rule, rule_weights = np.concatenate(nodes), np.concatenate(weights)
+    rule, rule_weights = _bin_rules(values, counts, starts, stops)
     if rule.size > values.size // 2:
         return None
     for s in ends:
