@@ -371,3 +371,110 @@ def test_require_converged_is_refused_where_nothing_is_drawn():
     with pytest.raises(StepsafeError, match="True or False"):
         hmc(["verlet"], logdensity=_normal_logdensity, gradient=_normal_gradient,
             start=[0.0], trajectory_steps=5, require_converged="yes")
+
+
+# ------------------------------------------------------------ slowly growing potentials
+
+def _log_target(alpha, scale, d, quadratic=0):
+    """U = sum of the first ``quadratic`` coordinates^2 / 2 + alpha log(1 + |y / scale|^2)
+    over the others: exp(-U) ~ |y|^-(2 alpha) far out, integrable over the k = d -
+    quadratic log coordinates iff 2 alpha > k. Its mode (the origin) and Laplace figures."""
+    from stepsafe.core.hmc_target.draws import find_mode
+    from stepsafe.core.hmc_target.potential import CallablePotential, target
+
+    def energy(q):
+        x, y = q[..., :quadratic], q[..., quadratic:] / scale
+        return 0.5 * (x * x).sum(-1) + alpha * np.log1p((y * y).sum(-1))
+
+    def gradient(q):
+        x, y = q[..., :quadratic], q[..., quadratic:] / scale
+        return np.concatenate([x, 2 * alpha * y / (1 + (y * y).sum(-1))[..., None] / scale],
+                              axis=-1)
+
+    found = target(CallablePotential(energy, gradient, d))
+    return found, find_mode(found, np.full(d, 0.1 * min(scale, 1.0)))
+
+
+@settings(max_examples=25, deadline=None)
+@given(d=st.integers(1, 4), power=st.floats(0.02, 1.0), log_scale=st.floats(-50, 50))
+def test_log_growth_too_slow_for_the_dimension_is_improper(d, power, log_scale):
+    """alpha log(1 + |q / s|^2) in d dimensions with 2 alpha <= d (power * d, power in
+    (0, 1], the limit included: exp(-U) ~ r^-d) is improper: found, at every scale."""
+    from stepsafe.core.hmc_target.draws import slow_direction
+
+    found, laplace = _log_target(0.5 * power * d, 10.0 ** log_scale, d)
+    slow = slow_direction(found, laplace)
+    assert slow is not None and slow.slope <= d * (1 + 1e-9)
+
+
+@settings(max_examples=25, deadline=None)
+@given(d=st.integers(1, 4), nu=st.floats(1.0, 60.0), log_scale=st.floats(-50, 50))
+def test_student_t_tails_are_proper(d, nu, log_scale):
+    """A Student-t with nu >= 1 degrees of freedom in d dimensions (Cauchy at nu = 1):
+    U = (nu + d) / 2 log(1 + |q|^2 / (nu s^2)), exp(-U) ~ r^-(nu + d): never refused."""
+    from stepsafe.core.hmc_target.draws import slow_direction
+
+    found, laplace = _log_target(0.5 * (nu + d), math.sqrt(nu) * 10.0 ** log_scale, d)
+    assert slow_direction(found, laplace) is None
+
+
+@settings(max_examples=20, deadline=None)
+@given(quadratic=st.integers(1, 3), power=st.floats(0.02, 4.0))
+def test_one_slow_coordinate_beside_normal_ones_is_improper_iff_its_tail_diverges(
+        quadratic, power):
+    """x^2/2 over ``quadratic`` coordinates plus (power / 2) log(1 + y^2): exp(-U) ~ |y|^-power
+    integrates over y iff power > 1, whatever the other coordinates (a tube around the y
+    axis, not a cone: the normal coordinates do not widen with y)."""
+    from stepsafe.core.hmc_target.draws import slow_direction
+
+    found, laplace = _log_target(0.5 * power, 1.0, quadratic + 1, quadratic)
+    slow = slow_direction(found, laplace)
+    assert (slow is not None) == (power <= 1.0), (power, slow)
+    if slow is not None:
+        assert slow.neighbourhood == "tube"
+
+
+def test_a_slowly_growing_improper_target_is_refused_with_file_and_key():
+    """U = x^2/2 + log(1 + y^2)/2 (the density ~ 1/|y|) and U = log(1 + x^2 + y^2)/10:
+    one line naming the scene file and its potential, exit 2; from Python, a
+    StepsafeError naming logdensity."""
+    from stepsafe import hmc
+    from stepsafe.exceptions import StepsafeError
+
+    for pot in ("x**2/2 + log(1 + y**2)/2", "log(1 + x**2 + y**2)/10"):
+        scene = ("system:\n"
+                 f'  potential: "{pot}"\n'
+                 "  q: [x, y]\n"
+                 "  start: [0.1, 0.1]\n")
+        code, err = _hmc_code(scene, "--steps", "10", "--methods", "verlet")
+        assert code == 2 and "target.yaml::$.system.potential" in err, (pot, code, err)
+        assert "improper" in err and len(err.strip().splitlines()) == 1, err
+    with pytest.raises(StepsafeError) as caught:
+        hmc(["verlet"], logdensity=lambda q: -0.1 * np.log1p((q * q).sum(-1)),
+            gradient=lambda q: -0.2 * q / (1 + (q * q).sum(-1))[..., None],
+            start=[0.1, 0.1, 0.1], trajectory_steps=10)
+    assert caught.value.where == "logdensity" and "improper" in str(caught.value)
+
+
+STUDENT_T3 = (
+    "system:\n"
+    '  potential: "2*log(1 + x**2/3)"\n'
+    "  q: [x]\n"
+    "  start: [0.5]\n"
+)
+
+
+def test_a_student_t_with_three_degrees_is_analysed_and_agrees_with_exact_draws():
+    """U = 2 log(1 + x^2 / 3), Student-t with nu = 3: not refused; the acceptance of
+    Verlet at L = 10 at the step found agrees within 4 combined standard errors with the
+    test's own Verlet from 200000 exact t draws (numpy's standard_t)."""
+    data = _hmc_json(STUDENT_T3, "--steps", "10", "--methods", "verlet")
+    row = data["methods"][0]
+    h = row["h_target"]
+    rng = np.random.default_rng(21)
+    q = rng.standard_t(3, size=(200_000, 1))
+    dh = _verlet_energy_errors(lambda x: 4 * x / (3 + x * x),
+                               lambda x: 2 * np.log1p((x * x).sum(-1) / 3), q, h, 10, rng)
+    acc, se, _ = _summary(dh)
+    assert abs(row["acceptance"] - acc) < 4 * math.hypot(se, row["acceptance_se"]), \
+        (row["acceptance"], row["acceptance_se"], acc, se)

@@ -51,6 +51,7 @@ from stepsafe.core.hmc_target.draws import (
     find_mode,
     flat_direction,
     sample,
+    slow_direction,
 )
 from stepsafe.core.hmc_target.estimate import (
     Estimate,
@@ -331,6 +332,18 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
             "the target is improper: U rises by less than 1 over a distance of "
             f"{flat:.3g} from its mode along a direction where its curvature is not positive, so "
             "exp(-U) does not integrate (give a proper prior along it)",
+            f"{where}::$.system.potential" if where else "logdensity")
+    slow = None if laplace is None else slow_direction(target, laplace)
+    if slow is not None:
+        region = ("a tube around it, whose integral diverges for a power at most 1"
+                  if slow.neighbourhood == "tube" else
+                  f"a cone around it, whose integral diverges in {slow.dimension} dimensions "
+                  f"for a power at most {slow.dimension}")
+        raise StepsafeError(
+            f"the target is improper: far from its mode U grows only like {slow.slope:.3g} "
+            f"log r along a direction (r from {slow.inner:.3g} to {slow.outer:.3g}), so "
+            f"exp(-U) decays like r^-{slow.slope:.3g} over {region} (give a proper prior, "
+            "or a potential that grows faster)",
             f"{where}::$.system.potential" if where else "logdensity")
     if laplace is not None and not laplace.positive_definite:
         notes.append("the Hessian at the mode found is not positive definite: no Laplace "

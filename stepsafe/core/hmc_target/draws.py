@@ -38,7 +38,9 @@ comes from the chains' autocorrelation (the same module). The seed is part of th
 
 Improper targets (:func:`flat_direction`): along a direction where the Hessian at the mode
 has no positive curvature, U is followed out to far beyond the other directions' scale; if
-it never rises by 1, exp(-U) does not integrate and the target is refused.
+it never rises by 1, exp(-U) does not integrate and the target is refused. Nor where U
+grows only like ``alpha log r`` far out (:func:`slow_direction`): along a ray with
+``alpha <= 1`` and a tube around it, or ``alpha <= d`` and a cone, the integral diverges.
 """
 
 from __future__ import annotations
@@ -199,6 +201,106 @@ def flat_direction(target: Target, laplace: Laplace) -> float | None:
             rise = np.asarray(target.potential.energy(points), dtype=float) - u0[0]
         if not (rise >= 1.0).any() and np.isfinite(rise).all():
             return reach
+    return None
+
+
+#: Slowly growing U: the growth of U per factor e in distance from the mode is measured over
+#: the last :data:`SLOW_DECADES` decades up to :data:`FLAT_REACH` standard deviations ...
+SLOW_DECADES = 3
+#: ... along at most this many directions (each eigenvector of the mass-weighted Hessian
+#: at the mode, both ways; beyond, this many of them) ...
+SLOW_RAYS = 32
+#: ... and the neighbourhood of each ray (a tube of one standard deviation, a cone of a
+#: tenth of the distance) is sampled along at most this many other eigenvectors.
+SLOW_SIDES = 8
+
+
+@dataclass(frozen=True)
+class SlowGrowth:
+    """A direction from the mode along which exp(-U) does not integrate: U grows by
+    ``slope`` per factor e in distance over ``[inner, outer]`` and stays within 1 of its
+    value on the ray over a ``neighbourhood`` ("tube" of constant width, or "cone" widening
+    with the distance) around it."""
+
+    slope: float
+    inner: float
+    outer: float
+    neighbourhood: str
+    dimension: int
+
+
+def slow_direction(target: Target, laplace: Laplace) -> SlowGrowth | None:
+    """Whether exp(-U) is improper because U grows too slowly far from the mode.
+
+    Along a ray ``mode + r v`` (v an eigenvector of the mass-weighted Hessian at the mode,
+    both ways), ``U`` is evaluated at ``r = s 10^k`` up to ``s FLAT_REACH`` (s the largest
+    standard deviation of the curved directions). Where it grows like ``alpha log r`` (every
+    one of the last :data:`SLOW_DECADES` decades rises by at most ``alpha ln 10``), the
+    density along the ray decays like ``r^-alpha``, and
+
+    * if U stays within 1 of the ray's value at one standard deviation (of the Laplace
+      approximation; s where it has none) on each side along the other eigenvectors (a
+      tube of constant cross-section around the ray), the integral over
+      that tube is at least ``e^-1`` times ``int r^-alpha dr``, which diverges for
+      ``alpha <= 1``;
+    * if U stays within 1 of it at distance r / 10 (a cone, whose cross-section grows like
+      ``r^(d-1)``), the integral over the cone diverges for ``alpha <= d``.
+
+    The neighbourhood is sampled at its extreme points along at most :data:`SLOW_SIDES`
+    eigenvectors, not everywhere: a valley narrowing along the ray between the samples is
+    not seen. A proper heavy tail (Student-t with nu > 0 degrees of freedom in d dimensions:
+    ``alpha = nu + d``) is never below either bound.
+
+    Returns
+    -------
+    SlowGrowth or None
+        The first such direction found, or None.
+    """
+    lam = laplace.eigenvalues
+    if not lam.size or not np.isfinite(lam).all():
+        return None
+    d = int(lam.size)
+    top = float(np.abs(lam).max())
+    W = target.mass.weighted(laplace.hessian)
+    lam, V = np.linalg.eigh(0.5 * (W + W.T))
+    curved = lam[lam > FLAT_CURVATURE * top]
+    s = float(1.0 / math.sqrt(curved.min())) if curved.size and top > 0 else 1.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sd = np.where(lam > FLAT_CURVATURE * top, 1.0 / np.sqrt(lam), s)
+    decades = round(math.log10(FLAT_REACH))
+    ts = s * 10.0 ** np.arange(decades - SLOW_DECADES, decades + 1)
+    # distances in the mass-weighted metric, as flat_direction measures them
+    vectors = np.array([np.asarray(target.mass.weigh_vector(V[:, k]), dtype=float)
+                        for k in range(d)])
+    rays = np.arange(d) if d <= SLOW_RAYS else np.linspace(0, d - 1, SLOW_RAYS).round()
+    for k in rays.astype(int):
+        others = [j for j in range(d) if j != k][:SLOW_SIDES]
+        for sign in (1.0, -1.0):
+            v = sign * vectors[k]
+            ray = laplace.mode + ts[:, None] * v
+            with np.errstate(all="ignore"):
+                u = np.asarray(target.potential.energy(ray), dtype=float)
+            rise = np.diff(u) / math.log(10.0)
+            if not np.isfinite(u).all():
+                continue
+            alpha = float(rise.max())
+            for neighbourhood, width, bound in (("tube", np.ones_like(ts), 1.0),
+                                                 ("cone", ts / 10.0, float(d))):
+                if alpha > bound * (1.0 + 1e-9) or (neighbourhood == "cone" and d == 1):
+                    continue
+                if others:
+                    # the tube: one standard deviation of each other direction
+                    step = (width[:, None] * (sd[others][None, :] if neighbourhood == "tube"
+                                              else 1.0))
+                    side = np.concatenate([
+                        ray[:, None, :] + sgn * step[:, :, None] * vectors[others][None]
+                        for sgn in (1.0, -1.0)], axis=1)
+                    with np.errstate(all="ignore"):
+                        u_side = np.asarray(target.potential.energy(
+                            side.reshape(-1, d)), dtype=float).reshape(ts.size, -1)
+                    if not (u_side - u[:, None] <= 1.0).all():
+                        continue
+                return SlowGrowth(alpha, float(ts[0]), float(ts[-1]), neighbourhood, d)
     return None
 
 
