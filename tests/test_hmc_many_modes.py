@@ -150,3 +150,18 @@ def test_gauss_rules_of_discrete_measures_integrate_polynomials(seed, size, poin
             want = np.sum(w[part] * t[part] ** k)
             got = np.sum(weights[seg] * nodes[seg] ** k)
             assert abs(got - want) <= 1e-11 * np.sum(w[part]), (k, got, want)
+
+
+def test_a_report_on_many_modes_is_exact_where_the_rule_stands():
+    """3000 distinct standard deviations, L = 10: the rule stands for them at the step at
+    target, so neither the row nor the report says approximate; the acceptance there is
+    every mode's within TOLERANCE."""
+    from stepsafe import hmc
+
+    sigma = np.geomspace(0.1, 1.0, 3000)
+    report = hmc(["verlet"], sigma=sigma, trajectory_steps=10)
+    row = report.rows[0]
+    assert not report.approximate and not any("approximate" in n for n in row.notes)
+    m = method("verlet")
+    want = every_mode(m, 1.0 / sigma, row.h_target, H.Trajectory(steps=10))
+    assert abs(row.acceptance - want) < TOLERANCE

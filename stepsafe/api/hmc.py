@@ -79,6 +79,12 @@ from stepsafe.units import duration
 #: Stall steps (L theta = 2 pi m) are reported within this relative distance of the target
 #: step (or within the jitter, if wider).
 STALL_WINDOW = 0.1
+#: A row's note when its acceptance at h at target is approximate (the report's
+#: ``approximate`` says whether any row has it).
+APPROXIMATE_NOTE = ("the acceptance at h at target is approximate (more distinct modes than "
+                    "a checked rule of the spectrum stands for, turns of L theta across the "
+                    "jitter, or steps L than float64 integrates exactly: above 1e6 steps "
+                    "L theta carries an error of eps L pi)")
 #: Methods compared when none are named: the integrators HMC codes ship.
 HMC_DEFAULT = ("verlet", "mclachlan2-min", "bcss2", "bcss3", "yoshida4", "pefrl")
 
@@ -294,7 +300,7 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
     positive = betas[betas > 0]
     return HmcReport(tuple(out), target, steps, length, jitter, criterion, int(betas.size),
                      (float(positive.min()), float(positive.max())), p.time_unit,
-                     bool(np.unique(positive).size > MAX_EXACT_MODES),
+                     any(APPROXIMATE_NOTE in r.notes for r in rows),
                      bool(allow_unstable_jitter),
                      bool(target_for_every_length or trajectory.steps is None
                           and trajectory.length is None
@@ -512,9 +518,7 @@ def _row(integrator: Integrator, betas: np.ndarray, errors: np.ndarray, trajecto
                          + (", which the acceptance averaged over the jitter hides"
                             if unstable < 1.0 else ""))
     if at_target.get("approximate"):
-        notes.append("the acceptance at h at target is approximate (more distinct modes, "
-                     "turns of L theta across the jitter, or steps L than float64 integrates "
-                     "exactly: above 1e6 steps L theta carries an error of eps L pi)")
+        notes.append(APPROXIMATE_NOTE)
     for where, h in (("h at target", h_target), ("the step asked for", step)):
         wanted = trajectory.capped(h) if h else None
         if wanted is not None:

@@ -620,6 +620,7 @@ class HmcReport:
     beta_range: tuple[float, float]
     time_unit: str | None = None
     approximate: bool = False
+    """True: some row's acceptance at h at target is approximate (its notes say why)"""
     allow_unstable_jitter: bool = False
     """False: the step at target keeps ``h (1 + jitter)`` within the criterion's limit"""
     target_for_every_length: bool = True
