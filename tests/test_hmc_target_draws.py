@@ -11,6 +11,7 @@ independent terms. Nothing here calls stepsafe's samplers or integrators.
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import tempfile
@@ -435,16 +436,20 @@ def test_one_slow_coordinate_beside_normal_ones_is_improper_iff_its_tail_diverge
 
 
 def test_a_slowly_growing_improper_target_is_refused_with_file_and_key():
-    """U = x^2/2 + log(1 + y^2)/2 (the density ~ 1/|y|) and U = log(1 + x^2 + y^2)/10:
-    one line naming the scene file and its potential, exit 2; from Python, a
-    StepsafeError naming logdensity."""
+    """U = x^2/2 + log(1 + y^2)/2 (the density ~ 1/|y|) and U = log(1 + x^2 + y^2)/10,
+    with unit or a dense mass (which does not change whether exp(-U) integrates): one line
+    naming the scene file and its potential, exit 2; from Python, a StepsafeError naming
+    logdensity."""
     from stepsafe import hmc
     from stepsafe.exceptions import StepsafeError
 
-    for pot in ("x**2/2 + log(1 + y**2)/2", "log(1 + x**2 + y**2)/10"):
+    for pot, mass in itertools.product(("x**2/2 + log(1 + y**2)/2",
+                                        "log(1 + x**2 + y**2)/10"),
+                                       ("", "  mass: [[2, 0.5], [0.5, 1]]\n")):
         scene = ("system:\n"
                  f'  potential: "{pot}"\n'
                  "  q: [x, y]\n"
+                 + mass +
                  "  start: [0.1, 0.1]\n")
         code, err = _hmc_code(scene, "--steps", "10", "--methods", "verlet")
         assert code == 2 and "target.yaml::$.system.potential" in err, (pot, code, err)

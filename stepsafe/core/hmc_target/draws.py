@@ -207,8 +207,8 @@ def flat_direction(target: Target, laplace: Laplace) -> float | None:
 #: Slowly growing U: the growth of U per factor e in distance from the mode is measured over
 #: the last :data:`SLOW_DECADES` decades up to :data:`FLAT_REACH` standard deviations ...
 SLOW_DECADES = 3
-#: ... along at most this many directions (each eigenvector of the mass-weighted Hessian
-#: at the mode, both ways; beyond, this many of them) ...
+#: ... along at most this many directions (each eigenvector of the Hessian at the mode,
+#: both ways; beyond, this many of them spread over its spectrum) ...
 SLOW_RAYS = 32
 #: ... and the neighbourhood of each ray (a tube of one standard deviation, a cone of a
 #: tenth of the distance) is sampled along at most this many other eigenvectors.
@@ -232,11 +232,11 @@ class SlowGrowth:
 def slow_direction(target: Target, laplace: Laplace) -> SlowGrowth | None:
     """Whether exp(-U) is improper because U grows too slowly far from the mode.
 
-    Along a ray ``mode + r v`` (v an eigenvector of the mass-weighted Hessian at the mode,
-    both ways), ``U`` is evaluated at ``r = s 10^k`` up to ``s FLAT_REACH`` (s the largest
-    standard deviation of the curved directions). Where it grows like ``alpha log r`` (every
-    one of the last :data:`SLOW_DECADES` decades rises by at most ``alpha ln 10``), the
-    density along the ray decays like ``r^-alpha``, and
+    Along a ray ``mode + r v`` (v a unit eigenvector of the Hessian of U at the mode, both
+    ways), ``U`` is evaluated at ``r = s 10^k`` up to ``s FLAT_REACH`` (s the largest
+    standard deviation ``1 / sqrt(lambda)`` of the curved directions). Where it grows like
+    ``alpha log r`` (every one of the last :data:`SLOW_DECADES` decades rises by at most
+    ``alpha ln 10``), the density along the ray decays like ``r^-alpha``, and
 
     * if U stays within 1 of the ray's value at one standard deviation (of the Laplace
       approximation; s where it has none) on each side along the other eigenvectors (a
@@ -260,23 +260,24 @@ def slow_direction(target: Target, laplace: Laplace) -> SlowGrowth | None:
     if not lam.size or not np.isfinite(lam).all():
         return None
     d = int(lam.size)
+    # U's own geometry: the Hessian's eigenvectors in q (the mass plays no part in whether
+    # exp(-U) integrates, and weighting by it would tilt the rays off a slow axis)
+    H = np.asarray(laplace.hessian, dtype=float)
+    lam, V = np.linalg.eigh(0.5 * (H + H.T))
     top = float(np.abs(lam).max())
-    W = target.mass.weighted(laplace.hessian)
-    lam, V = np.linalg.eigh(0.5 * (W + W.T))
     curved = lam[lam > FLAT_CURVATURE * top]
     s = float(1.0 / math.sqrt(curved.min())) if curved.size and top > 0 else 1.0
     with np.errstate(divide="ignore", invalid="ignore"):
         sd = np.where(lam > FLAT_CURVATURE * top, 1.0 / np.sqrt(lam), s)
     decades = round(math.log10(FLAT_REACH))
     ts = s * 10.0 ** np.arange(decades - SLOW_DECADES, decades + 1)
-    # distances in the mass-weighted metric, as flat_direction measures them
-    vectors = np.array([np.asarray(target.mass.weigh_vector(V[:, k]), dtype=float)
-                        for k in range(d)])
-    rays = np.arange(d) if d <= SLOW_RAYS else np.linspace(0, d - 1, SLOW_RAYS).round()
-    for k in rays.astype(int):
-        others = [j for j in range(d) if j != k][:SLOW_SIDES]
+    rays = (np.arange(d) if d <= SLOW_RAYS
+            else np.linspace(0, d - 1, SLOW_RAYS).round().astype(int))
+    for k in rays:
+        others = [j for j in range(min(d, SLOW_SIDES + 1)) if j != k][:SLOW_SIDES]
+        sides = V[:, others].T
         for sign in (1.0, -1.0):
-            v = sign * vectors[k]
+            v = sign * V[:, k]
             ray = laplace.mode + ts[:, None] * v
             with np.errstate(all="ignore"):
                 u = np.asarray(target.potential.energy(ray), dtype=float)
@@ -293,7 +294,7 @@ def slow_direction(target: Target, laplace: Laplace) -> SlowGrowth | None:
                     step = (width[:, None] * (sd[others][None, :] if neighbourhood == "tube"
                                               else 1.0))
                     side = np.concatenate([
-                        ray[:, None, :] + sgn * step[:, :, None] * vectors[others][None]
+                        ray[:, None, :] + sgn * step[:, :, None] * sides[None]
                         for sgn in (1.0, -1.0)], axis=1)
                     with np.errstate(all="ignore"):
                         u_side = np.asarray(target.potential.energy(
