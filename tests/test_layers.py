@@ -10,6 +10,11 @@ library), ``core`` (the float analysis), ``systems`` (scenes, coupled systems), 
 ``cli``, and the package root. ``reference`` (mpmath) sits beside them: it may import the
 layers below ``api``, and only ``api``, ``cli``, the root and the tests import it.
 
+A module that only some inputs reach is named at the top of its user with
+``lazy_module("stepsafe.x.y")`` (:mod:`stepsafe.lazy`) and loaded on first use; it is held
+to the same rules as an import (layers, no cycle between packages), except that it runs no
+code when its user loads.
+
 There are no exceptions.
 """
 
@@ -22,9 +27,9 @@ PACKAGE = Path(__file__).resolve().parent.parent / "stepsafe"
 
 #: The rank of each layer (a top-level module or package of stepsafe); an import may go to
 #: an equal or lower rank. ``reference`` is checked separately (see :func:`allowed`).
-RANK = {"_version": 0, "exceptions": 0, "text": 0, "units": 0, "arguments": 0, "files": 1,
-        "methods": 2, "core": 3, "systems": 4, "reference": 4, "api": 5, "cli": 6, "": 7,
-        "__main__": 7}
+RANK = {"_version": 0, "lazy": 0, "exceptions": 0, "text": 0, "units": 0, "arguments": 0,
+        "files": 1, "methods": 2, "core": 3, "systems": 4, "reference": 4, "api": 5, "cli": 6,
+        "": 7, "__main__": 7}
 
 #: The layers that may import ``reference``.
 REFERENCE_USERS = {"reference", "api", "cli", "", "__main__"}
@@ -90,6 +95,26 @@ def _imports(path: Path, top_only: bool = False, in_functions: bool = False
     return out
 
 
+def _is_lazy_call(node: ast.AST) -> bool:
+    return isinstance(node, ast.Call) and (
+        (isinstance(node.func, ast.Name) and node.func.id == "lazy_module")
+        or (isinstance(node.func, ast.Attribute) and node.func.attr == "lazy_module"))
+
+
+def _lazy_imports(path: Path) -> list[tuple[str, int]]:
+    """The modules ``path`` names with ``lazy_module("...")`` (loaded on first use), with
+    their lines; a name that is not a constant text is returned as ``"?"``."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    out = []
+    for node in ast.walk(tree):
+        if _is_lazy_call(node):
+            args = node.args  # type: ignore[attr-defined]
+            name = args[0].value if (len(args) == 1 and isinstance(args[0], ast.Constant)
+                                     and isinstance(args[0].value, str)) else "?"
+            out.append((name, node.lineno))
+    return out
+
+
 MODULES = sorted(PACKAGE.rglob("*.py"))
 
 
@@ -107,7 +132,7 @@ def _violations() -> set[tuple[str, str, int]]:
     out = set()
     for path in MODULES:
         me = _module_name(path)
-        for imported, line in _imports(path):
+        for imported, line in _imports(path) + _lazy_imports(path):
             if not allowed(me, imported):
                 out.add((me, imported, line))
     return out
@@ -184,11 +209,12 @@ def test_cycle_finder_finds_a_cycle():
 
 
 def test_no_import_cycle_between_packages():
-    """Counting every import, at the top or in a function."""
+    """Counting every import, at the top or in a function, and every module loaded on
+    first use (``lazy_module``)."""
     graph: dict[str, set[str]] = {}
     for path in MODULES:
         me = _module_name(path)
-        for imported, _ in _imports(path):
+        for imported, _ in _imports(path) + _lazy_imports(path):
             if _layer(imported) != _layer(me):
                 graph.setdefault(_layer(me), set()).add(_layer(imported))
     assert _cycles(graph) == []
@@ -210,3 +236,40 @@ def test_layer_rule_refuses_upward_and_reference_imports():
     assert not allowed("stepsafe.methods.library", "stepsafe.systems.scene")
     assert not allowed("stepsafe.systems.scene", "stepsafe.reference.highprec")
     assert not allowed("stepsafe.files.yamlio", "stepsafe.methods.tableaux")
+
+
+def test_modules_loaded_on_first_use_are_named_at_module_top():
+    """Every ``lazy_module`` call is at module level (beside the imports, not in a
+    function) and writes out the full name of a module of the package."""
+    found = []
+    for path in MODULES:
+        me = _module_name(path)
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        in_functions = {id(n) for n in _in_functions(tree)}
+        for node in ast.walk(tree):
+            if _is_lazy_call(node) and id(node) in in_functions:
+                found.append(f"{me}:{node.lineno}: lazy_module inside a function")
+        for name, line in _lazy_imports(path):
+            target = PACKAGE.parent / name.replace(".", "/")
+            if not (name.startswith("stepsafe.") and (target.with_suffix(".py").exists()
+                                                      or (target / "__init__.py").exists())):
+                found.append(f"{me}:{line}: lazy_module({name!r}) names no module of the "
+                             "package")
+    assert not found, "\n".join(found)
+
+
+def test_lazy_module_finder_finds_the_named_modules(tmp_path):
+    """The finder itself: calls by name or through the module, with their lines; a name
+    that is not written out is reported as unknown."""
+    path = tmp_path / "m.py"
+    path.write_text("from stepsafe.lazy import lazy_module\nimport stepsafe.lazy as lz\n"
+                    "a = lazy_module('stepsafe.api.md')\nb = lz.lazy_module('stepsafe.cli.respa')\n"
+                    "c = lazy_module(NAME)\n", encoding="utf-8")
+    assert _lazy_imports(path) == [("stepsafe.api.md", 3), ("stepsafe.cli.respa", 4), ("?", 5)]
+
+
+def test_a_lazy_module_to_a_higher_layer_is_an_upward_import():
+    """The rule applied to modules loaded on first use: a core module may not name an api
+    module, an api module may name a systems module."""
+    assert not allowed("stepsafe.core.escalate", "stepsafe.api.linear")
+    assert allowed("stepsafe.api.inputs", "stepsafe.systems.loader")

@@ -2,11 +2,17 @@
 numbers, times with units), the option groups, the exit codes and the one-line error
 contract. Every command module (:mod:`.main`, :mod:`.accuracy`, :mod:`.measure`,
 :mod:`.respa`, :mod:`.sampling`) registers its commands on :data:`main`.
+
+The group loads a command's module when the command is looked up (:data:`COMMANDS`, click's
+lazily loading group): ``stepsafe check`` loads :mod:`.main` and what it imports, not the
+HMC, measurement or multiple-time-stepping commands. ``--help``, shell completion and the
+generated command-line reference look every command up, and so load them all.
 """
 
 from __future__ import annotations
 
 import sys
+from typing import Any
 
 import click
 
@@ -16,8 +22,9 @@ from stepsafe.cli import output
 from stepsafe.cli.output import is_output_error
 from stepsafe.cli.progressbar import progress_bar
 from stepsafe.exceptions import StepsafeError
+from stepsafe.lazy import lazy_module, loaded
 from stepsafe.methods.library import builtin_names
-from stepsafe.systems.scene import load_modes, time_unit_in_force
+from stepsafe.systems.scene import load_modes, load_scene, time_unit_in_force
 from stepsafe.text import printable
 from stepsafe.units import TIME_UNITS, parse_quantity, quantity
 
@@ -100,13 +107,35 @@ TIME_HELP = ("in --time-unit (else the time unit of 1/beta), or with a unit, con
              "0.5fs, '0.5 fs', 2e-15s")
 
 
+#: Each command and the module that defines it (and registers it on :data:`main` when
+#: loaded): a command loads its own module only (tests/test_imports.py checks the table
+#: against the commands the modules define).
+COMMANDS = {name: module for module, names in (
+    (lazy_module("stepsafe.cli.main"),
+     ("methods", "show", "region", "advise", "check", "schema", "validate")),
+    (lazy_module("stepsafe.cli.accuracy"), ("error", "compare", "plot")),
+    (lazy_module("stepsafe.cli.measure"), ("measure",)),
+    (lazy_module("stepsafe.cli.respa"), ("respa",)),
+    (lazy_module("stepsafe.cli.sampling"), ("hmc", "design")),
+) for name in names}
+
+
 class _Group(click.Group):
     """Owns every exit path: one-line errors with the documented exit codes.
 
     Usage errors (unknown option or command, bad choice, missing argument, a bare
     ``stepsafe``) are one line on stderr and exit 2, never click's multi-line Usage block.
     ``-h`` is not a help alias (``--help`` is): on ``check`` it would read as the step.
+    A command's module is loaded when the command is looked up (:data:`COMMANDS`).
     """
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(set(self.commands) | set(COMMANDS))
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name not in self.commands and cmd_name in COMMANDS:
+            loaded(COMMANDS[cmd_name])  # its module registers its commands on the group
+        return self.commands.get(cmd_name)
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True,
              **extra):
@@ -192,9 +221,12 @@ def _error_line(message: str, prefix: str = "stepsafe: error: ") -> None:
 def _usage_message(exc: click.UsageError, group: click.Group, args: list[str]) -> str:
     ctx = exc.ctx
     command = ctx.command if ctx is not None else None
+    names = sorted(set(group.commands) | set(COMMANDS))
     if command is None:  # some parser errors carry no context: name the command given
-        name = next((a for a in args if a in group.commands), None)
-        command = group.commands[name] if name else group
+        name = next((a for a in args if a in names), None)
+        if name in COMMANDS:
+            loaded(COMMANDS[name])
+        command = group.commands.get(name, group) if name else group
     where = PROG if command is group else f"{PROG} {command.name}"
     takes_step = any(p.name == "h" for p in command.params)
     if isinstance(exc, click.NoSuchOption) and exc.option_name in ("-h", "-H", "--H"):
@@ -203,7 +235,7 @@ def _usage_message(exc: click.UsageError, group: click.Group, args: list[str]) -
             f"{exc.option_name} is not an option: for help use --help"
     elif isinstance(exc, click.exceptions.NoArgsIsHelpError) or (
             command is group and exc.message == "Missing command."):
-        message = f"missing command (one of: {', '.join(sorted(group.commands))})"
+        message = f"missing command (one of: {', '.join(names)})"
     else:
         message = exc.format_message().rstrip(".")
     return f"{message} (see '{where} --help')"
@@ -449,3 +481,38 @@ def one_format(as_json: bool, tsv: bool) -> None:
 
 def _input_error(message: str):
     return StepsafeError(message)
+
+
+#: advise/check options that an impulse method cannot take (its frequencies come in
+#: fast/slow pairs from a scene file).
+_SINGLE_FORCE_OPTIONS = ("beta", "frequency", "wavenumber", "period", "sigma", "saddle_beta",
+                         "inverted_beta", "modes_file", "margin", "zmax", "budget", "verify")
+
+
+def impulse_of(scene_file: str | None, options: dict) -> Any:
+    """The impulse method advise/check were asked about (by --method or the scene's
+    method:), or None for any other method. --substeps is refused for other methods."""
+    name = options["method_name"]
+    if name is None and scene_file is not None:
+        ref = load_scene(scene_file, options["time_unit"]).method
+        name = None if ref is None or ref.stages or ref.base else ref.name
+    integrator = None
+    if name is not None and options["stages"] is None and options["base"] is None:
+        try:
+            integrator = inputs.method(name)
+        except StepsafeError:
+            integrator = None  # the analysis of any other method reports it in context
+    if integrator is None or integrator.kind != "impulse":
+        if options.get("substeps") is not None:
+            raise _input_error("--substeps applies to impulse (multiple time stepping) "
+                               "methods only")
+        return None
+    given = [key for key in _SINGLE_FORCE_OPTIONS if options.get(key) not in (None, (), False)]
+    if given:
+        raise _input_error(f"--{given[0].replace('_', '-')} does not apply to the impulse "
+                           f"method {integrator.name}: its modes come as fast: and slow: "
+                           "frequencies in a scene file (or use stepsafe respa for one pair)")
+    if scene_file is None:
+        raise _input_error(f"{integrator.name} is an impulse method: give a scene file whose "
+                           "modes give fast: and slow: frequencies (or use stepsafe respa)")
+    return integrator

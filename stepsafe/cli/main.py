@@ -10,11 +10,11 @@ The group, its option types and shared options are in :mod:`.group`.
 from __future__ import annotations
 
 import sys
+from typing import TYPE_CHECKING
 
 import click
 
 from stepsafe.api import inputs, linear, reports
-from stepsafe.api.md import impulse_advice
 from stepsafe.api.schemas import output_schema
 from stepsafe.cli.group import (
     DURATION,
@@ -31,6 +31,7 @@ from stepsafe.cli.group import (
     _problem,
     criterion_option,
     gradient_cost_option,
+    impulse_of,
     main,
     method_options,
     scene_options,
@@ -48,7 +49,6 @@ from stepsafe.cli.report import (
     print_system,
     print_tsv,
 )
-from stepsafe.cli.respa import impulse_of, impulse_region, impulse_report, print_impulse_modes
 from stepsafe.cli.thermal import (
     print_thermal_advice,
     print_thermal_check,
@@ -59,11 +59,19 @@ from stepsafe.cli.thermal import (
 from stepsafe.core.regions import DEFAULT_ZMAX
 from stepsafe.exceptions import StepsafeError
 from stepsafe.files.yamlio import load_yaml
+from stepsafe.lazy import lazy_module
 from stepsafe.methods.fileformat import json_schema as method_schema
 from stepsafe.methods.library import FAMILIES, builtin_names, resolve
 from stepsafe.methods.residuals import residuals
 from stepsafe.systems.scene import SCENE_KEYS
 from stepsafe.systems.scene import json_schema as scene_schema
+
+if TYPE_CHECKING:
+    from stepsafe.api import md
+    from stepsafe.cli import respa
+else:  # impulse (multiple time stepping) methods only
+    md = lazy_module("stepsafe.api.md")
+    respa = lazy_module("stepsafe.cli.respa")
 
 
 @main.command("methods")
@@ -150,7 +158,7 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
     """
     integrator = inputs.method(method, stages=stages, base=base)
     if integrator.kind == "impulse" or ratio is not None or substeps is not None:
-        impulse_region(integrator, ratio, substeps, zmax, criterion, as_json,
+        respa.impulse_region(integrator, ratio, substeps, zmax, criterion, as_json,
                        verify or model != "all")
         return
 
@@ -247,9 +255,9 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, crite
         _no_temperature(warm)
         if tol_phase is not None or tol_energy is not None:
             raise _input_error("--tol-phase/--tol-energy do not apply to impulse methods")
-        data = impulse_report(impulse, scene_file, options, step=None, criterion=criterion,
+        data = respa.impulse_report(impulse, scene_file, options, step=None, criterion=criterion,
                               resonance_order=resonance_order, check=False)
-        print_json(data) if as_json else print_impulse_modes(data, check=False)
+        print_json(data) if as_json else respa.print_impulse_modes(data, check=False)
         return
     problem = _problem(scene_files[0] if scene_files else None, options, not as_json,
                        length=warm["length"])
@@ -353,7 +361,7 @@ def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as
                     where = f"{entry['where']}: " if entry["where"] else ""
                     click.echo(f"{entry['scene']}: NOT CHECKED: {where}{entry['error']}")
             elif entry.get("kind") == "impulse":
-                print_impulse_modes(entry, check=True)
+                respa.print_impulse_modes(entry, check=True)
             else:
                 print_check(entry)
                 if entry.get("engine_runs") and entry["safe"]:
@@ -383,7 +391,7 @@ def _check_one(scene_file, h, options: dict, resonance_order, criterion: str, ve
     warm = warm or {}
     if impulse is not None:
         _no_temperature(warm)
-        report = impulse_advice(impulse, scene=scene_file, substeps=options.get("substeps"),
+        report = md.impulse_advice(impulse, scene=scene_file, substeps=options.get("substeps"),
                                 step=h, time_unit=options["time_unit"], criterion=criterion,
                                 resonance_order=resonance_order, use_scene_step=h is None)
         if report.step is None:

@@ -7,7 +7,6 @@ from typing import Any
 
 import click
 
-from stepsafe.api import inputs
 from stepsafe.api.md import impulse, impulse_advice, impulse_method
 from stepsafe.cli.group import (
     DURATION,
@@ -25,8 +24,6 @@ from stepsafe.cli.report import fmt, fmt_below, print_json
 from stepsafe.core.impulse import stability_chart
 from stepsafe.core.regions import find_region
 from stepsafe.core.resonances import rotations
-from stepsafe.exceptions import StepsafeError
-from stepsafe.systems.scene import load_scene
 from stepsafe.units import implied_time_unit, quantity
 
 
@@ -191,41 +188,6 @@ def draw_chart(method: Any, ratio: float | None, output: str) -> None:
     ax.set_title(f"{method.name} with {k} substeps: unstable where shaded")
     fig.tight_layout()
     save_figure(fig, output, fmt)
-
-
-#: advise/check options that an impulse method cannot take (its frequencies come in
-#: fast/slow pairs from a scene file).
-_SINGLE_FORCE_OPTIONS = ("beta", "frequency", "wavenumber", "period", "sigma", "saddle_beta",
-                         "inverted_beta", "modes_file", "margin", "zmax", "budget", "verify")
-
-
-def impulse_of(scene_file: str | None, options: dict) -> Any:
-    """The impulse method advise/check were asked about (by --method or the scene's
-    method:), or None for any other method. --substeps is refused for other methods."""
-    name = options["method_name"]
-    if name is None and scene_file is not None:
-        ref = load_scene(scene_file, options["time_unit"]).method
-        name = None if ref is None or ref.stages or ref.base else ref.name
-    integrator = None
-    if name is not None and options["stages"] is None and options["base"] is None:
-        try:
-            integrator = inputs.method(name)
-        except StepsafeError:
-            integrator = None  # the analysis of any other method reports it in context
-    if integrator is None or integrator.kind != "impulse":
-        if options.get("substeps") is not None:
-            raise _input_error("--substeps applies to impulse (multiple time stepping) "
-                               "methods only")
-        return None
-    given = [key for key in _SINGLE_FORCE_OPTIONS if options.get(key) not in (None, (), False)]
-    if given:
-        raise _input_error(f"--{given[0].replace('_', '-')} does not apply to the impulse "
-                           f"method {integrator.name}: its modes come as fast: and slow: "
-                           "frequencies in a scene file (or use stepsafe respa for one pair)")
-    if scene_file is None:
-        raise _input_error(f"{integrator.name} is an impulse method: give a scene file whose "
-                           "modes give fast: and slow: frequencies (or use stepsafe respa)")
-    return integrator
 
 
 def impulse_report(integrator: Any, scene_file: str | None, options: dict, *,
