@@ -18,7 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import stepsafe
-from stepsafe.api.thermal import request
+from stepsafe.api.temperature import request
 from stepsafe.exceptions import StepsafeError
 from stepsafe.systems.scene import load_scene
 

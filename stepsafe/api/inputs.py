@@ -21,7 +21,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -33,14 +33,19 @@ from stepsafe.core.regions import DEFAULT_ZMAX
 from stepsafe.core.resonances import validate_orders
 from stepsafe.core.tradeoff import SOLVERS
 from stepsafe.exceptions import StepsafeError, positive_finite
+from stepsafe.lazy import lazy_module
 from stepsafe.methods.library import FAMILIES, _looks_like_path, builtin_dir, builtin_names, resolve
 from stepsafe.methods.protocol import MethodKind
 from stepsafe.methods.tableaux import validate_gradient_cost
-from stepsafe.systems.loader import analyse_system
 from stepsafe.systems.scene import Scene, time_unit_in_force
 from stepsafe.systems.scene import load_scene as _load
 from stepsafe.units import duration, implied_time_unit, parse_quantity, quantity
 from stepsafe.units import time_unit as known_time_unit
+
+if TYPE_CHECKING:
+    from stepsafe.systems import loader
+else:  # a scene's system: (matrices, a Hamiltonian, an MD engine's system) only
+    loader = lazy_module("stepsafe.systems.loader")
 
 #: Models accepted by :func:`region` besides ``"all"`` (which means the main three).
 REGION_MODELS = ("oscillator", "saddle", "inverted", "saddle-p")
@@ -461,7 +466,7 @@ def problem(method: Integrator | str | None = None, beta: ArrayLike | None = Non
         if md_where is not None:
             tree, where, folder = system, md_where, (loaded.folder if md_where == loaded.where
                                                      else Path("."))
-        report = analyse_system(tree, where, folder, integrator.tableau, zmax, progress,
+        report = loader.analyse_system(tree, where, folder, integrator.tableau, zmax, progress,
                                 deadline, loaded.time_unit)
         arrays = report.modes.betas if report.modes is not None else {"oscillator": [0.0]}
         named = {}

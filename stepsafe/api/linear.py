@@ -18,7 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -46,7 +46,6 @@ from stepsafe.api.inputs import (
     z_values,
 )
 from stepsafe.api.keywords import shared_keywords
-from stepsafe.api.md import impulse_advice
 from stepsafe.api.reports import (
     AdviceReport,
     CheckError,
@@ -58,7 +57,7 @@ from stepsafe.api.reports import (
     SceneChecks,
     record_fields,
 )
-from stepsafe.api.thermal import advise_at_temperature, check_at_temperature, request
+from stepsafe.api.temperature import request
 from stepsafe.arguments import public
 from stepsafe.core.accuracy import errors as core_errors
 from stepsafe.core.accuracy import kernel_errors
@@ -80,26 +79,35 @@ from stepsafe.core.solver import step_limit, system_step_limit
 from stepsafe.core.tradeoff import Tolerance, tradeoff
 from stepsafe.core.transfer import has_form, transfer_matrix
 from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
-from stepsafe.reference.verify import DPS, TOLERANCE, verify_regions
-from stepsafe.systems.advice import system_advice, system_check
+from stepsafe.lazy import lazy_module
 from stepsafe.systems.scene import Scene, load_scene
 from stepsafe.units import implied_time_unit
 from stepsafe.units import time_unit as known_time_unit
+
+if TYPE_CHECKING:
+    from stepsafe.api import md, thermal
+    from stepsafe.reference import verify
+    from stepsafe.systems import advice as systems_advice
+else:  # what only some inputs reach: an impulse method, a temperature, --verify, a system:
+    md = lazy_module("stepsafe.api.md")
+    thermal = lazy_module("stepsafe.api.thermal")
+    verify = lazy_module("stepsafe.reference.verify")
+    systems_advice = lazy_module("stepsafe.systems.advice")
 
 
 def _verification(integrator: Integrator, regions: Mapping[str, Any],
                   up_to: float | None = None) -> dict[str, Any]:
     """Recompute the regions' points with mpmath; a JSON-ready verdict."""
     name, stages, base = integrator.reference
-    checks = verify_regions(name, stages, base, dict(regions), up_to=up_to)
+    checks = verify.verify_regions(name, stages, base, dict(regions), up_to=up_to)
     worst = max((c.discrepancy for c in checks), default=0.0)
     failed = [{"model": c.model, "z": c.point.z, "kind": c.point.kind,
                "reference": c.reference,
                "discrepancy": None if c.discrepancy == float("inf") else c.discrepancy}
               for c in checks if not c.ok]
-    return {"digits": DPS, "points": len(checks),
+    return {"digits": verify.DPS, "points": len(checks),
             "largest_discrepancy": None if worst == float("inf") else worst,
-            "tolerance": TOLERANCE, "ok": not failed, "failed": failed,
+            "tolerance": verify.TOLERANCE, "ok": not failed, "failed": failed,
             "conservative": sum(c.conservative for c in checks)}
 
 
@@ -289,7 +297,7 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
             if tol_phase is not None or tol_energy is not None:
                 raise StepsafeError("--tol-phase/--tol-energy apply to frequencies, not yet "
                                     "to system: scenes")
-            data = system_advice(integrator.tableau, p.system, p.margin, p.zmax,
+            data = systems_advice.system_advice(integrator.tableau, p.system, p.margin, p.zmax,
                                  integrator.name, criterion, valid_order(resonance_order))
             data["fixed_point_limit"] = _system_solver_limit(integrator, p)
         elif tol_phase is None and tol_energy is None:
@@ -364,13 +372,13 @@ def _advise_at_temperature(p: Problem, warm: Any, data: dict[str, Any], criterio
     ``safe_h`` become it; the 0 K answer moves to ``zero_kelvin``. A harmonic system's
     answer is the 0 K one, islands included."""
     orders = tuple(range(3, order + 1)) if order is not None else DEFAULT_ORDERS[:2]
-    thermal = advise_at_temperature(p, warm, data["h_max"], criterion, orders, progress)
+    found = thermal.advise_at_temperature(p, warm, data["h_max"], criterion, orders, progress)
     data["zero_kelvin"] = {key: data[key] for key in ("h_max", "h_max_limited_by", "safe_h")}
-    data["thermal"] = thermal
-    if thermal["limited_by"] != "0 K":
-        data["h_max"] = thermal["h_max"]
-        data["h_max_limited_by"] = thermal["limited_by"]
-    if data["h_max"] is not None and not thermal["harmonic"]:
+    data["thermal"] = found
+    if found["limited_by"] != "0 K":
+        data["h_max"] = found["h_max"]
+        data["h_max_limited_by"] = found["limited_by"]
+    if data["h_max"] is not None and not found["harmonic"]:
         data["safe_h"] = [[0.0, data["h_max"]]] if data["h_max"] > 0 else []
 
 
@@ -520,7 +528,7 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
         if p.system is not None:
             # (at temperature the engine's runs are those of the analysis at temperature)
             analysed = p.system if warm is None else p.system._replace(engine_check=None)
-            data = system_check(integrator.tableau, analysed, step, p.margin, p.zmax,
+            data = systems_advice.system_check(integrator.tableau, analysed, step, p.margin, p.zmax,
                                 integrator.name, criterion, valid_order(resonance_order),
                                 require_complete_search)
         else:
@@ -544,11 +552,11 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
     data["scene"] = p.scene
     data["time_unit"] = p.time_unit
     if warm is not None:
-        thermal = check_at_temperature(p, warm, float(step), criterion, progress)
-        data["thermal"] = thermal
-        if not thermal["safe"]:
+        found = thermal.check_at_temperature(p, warm, float(step), criterion, progress)
+        data["thermal"] = found
+        if not found["safe"]:
             data["safe"] = False
-            data["thermal_failure"] = "at temperature " + "; ".join(thermal["reasons"])
+            data["thermal_failure"] = "at temperature " + "; ".join(found["reasons"])
     verdict = None
     if as_flag(verify, "verify") and result is not None:
         top = max(float(b.max()) for b in p.modes.betas.values()) * float(step) / p.margin
@@ -677,7 +685,7 @@ def _impulse_check(integrator: Integrator, scene: Any, h: Any, substeps: int | N
         raise StepsafeError(f"{(given or ['verify'])[0]} does not apply to the impulse method "
                             f"{integrator.name}: its modes come as fast: and slow: frequencies "
                             "in a scene file (or use stepsafe.impulse for one pair)")
-    report = impulse_advice(integrator, scene=as_text(scene, "scene"), substeps=substeps, step=h,
+    report = md.impulse_advice(integrator, scene=as_text(scene, "scene"), substeps=substeps, step=h,
                             time_unit=inputs.get("time_unit"),
                             criterion="structure" if criterion is None else criterion,
                             resonance_order=resonance_order, use_scene_step=h is None)

@@ -20,8 +20,8 @@ frequency at each, and runs of the method in the engine in place of bands; ``lim
 At ``T = 0`` (or without a temperature) nothing changes.
 
 A step is safe at temperature only when none of the thermal trajectories run at it fails:
-``max_failure=`` (default :data:`MAX_FAILURE`) sets how many, the fewest
-(``ln(20) / max_failure``) whose zero failures show the failure probability below it at
+``max_failure=`` (default :data:`stepsafe.api.temperature.MAX_FAILURE`) sets how many, the
+fewest (``ln(20) / max_failure``) whose zero failures show the failure probability below it at
 95% confidence; ``check`` runs them at the step, ``advise`` confirms its answer on them,
 drawn with a seed of their own (the record's ``confirmation``).
 
@@ -34,257 +34,23 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass
 from typing import Any
 
+from stepsafe.api.temperature import Request, where_in_scene
 from stepsafe.core.regions import find_region, under_criterion
-from stepsafe.exceptions import StepsafeError, finite_real
+from stepsafe.exceptions import StepsafeError
 from stepsafe.systems.md import thermal as md_thermal
 from stepsafe.systems.md.engine import MOLAR_GAS_CONSTANT
 from stepsafe.systems.md.system import ENGINE_INTEGRATORS
 from stepsafe.systems.md.thermal import THERMALISATION, confirm_seeds
-from stepsafe.systems.scene import load_scene, parse_real
+from stepsafe.systems.scene import load_scene
 from stepsafe.systems.thermal import thermal_check, thermal_limit
 from stepsafe.systems.thermal.bands import CONFIDENCE, trajectories_for
 from stepsafe.systems.thermal_scene import Minimum, is_harmonic, minima
-from stepsafe.units import ENERGY_UNITS, TIME_UNITS, duration, kelvin, thermal_energy
+from stepsafe.units import TIME_UNITS
 
 #: The seed of every draw of the analysis at temperature.
 SEED = 0
-#: The energy unit of an MD engine's system (OpenMM's).
-ENGINE_ENERGY = "kJ/mol"
-#: The default largest acceptable failure probability of a run at temperature (as
-#: :data:`stepsafe.systems.thermal.bands.MAX_FAILURE`).
-MAX_FAILURE = 1e-3
-#: The smallest accepted: ``ln(20) / MIN_FAILURE`` trajectories per probe.
-MIN_FAILURE = 1e-5
-
-
-@dataclass(frozen=True)
-class Request:
-    """A validated request for the analysis at temperature.
-
-    Attributes
-    ----------
-    kT : float
-        Thermal energy in the system's energy unit (> 0).
-    temperature : float or None
-        In kelvin, when given so.
-    energy_unit : str or None
-        The unit of kT (None: the system's own).
-    length : float or None
-        The run's simulated time, in the time unit.
-    steps : float or None
-        Or its number of steps.
-    max_drift : float or None
-        The largest acceptable energy drift, energy per time unit (the whole system).
-    max_failure : float or None
-        The largest acceptable failure probability of a run, when given (else
-        :data:`MAX_FAILURE`, :attr:`failure`).
-    key : str
-        Where the temperature came from: the option and keyword (``--kT, kT=``) or the
-        scene's key (``$.kT``), for errors of the analysis.
-    """
-
-    kT: float
-    temperature: float | None
-    energy_unit: str | None
-    length: float | None
-    steps: float | None
-    max_drift: float | None = None
-    max_failure: float | None = None
-    key: str = "--kT, kT="
-
-    def run(self) -> dict[str, Any]:
-        return {"length": self.length, "steps": self.steps}
-
-    @property
-    def failure(self) -> float:
-        """The largest acceptable failure probability: given, or :data:`MAX_FAILURE`."""
-        return MAX_FAILURE if self.max_failure is None else self.max_failure
-
-
-def _where(scene: Any, key: str) -> str | None:
-    return f"{scene.where}::$.{key}" if scene is not None and scene.where else None
-
-
-def _fail(message: str, scene: Any, key: str, given: bool) -> StepsafeError:
-    """An error naming the key: the keyword (option) when given, else the scene's key."""
-    if given:
-        return StepsafeError(message if message.startswith(key) else f"{key}: {message}")
-    return StepsafeError(message, _where(scene, key))
-
-
-def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
-            steps: Any = None, max_drift: Any = None, max_failure: Any = None,
-            scene: Any = None, system: Any = None,
-            time_unit: str | None = None) -> Request | None:
-    """The request of the keywords (the command line's options), else of the scene's
-    ``temperature:``, ``kT:``, ``length:`` and ``steps:`` (each keyword wins over the
-    scene's key), checked: None without a temperature or at T = 0; a bad value is an error
-    naming its key.
-
-    Parameters
-    ----------
-    temperature : float or str, optional
-        Kelvin (``300``, ``"300 K"``); needs the system's energy unit (the scene's
-        ``energy_unit:``, or ``units: {energy:}`` of a stiffness).
-    kT : float, optional
-        Thermal energy in the system's energy unit (>= 0).
-    length : float or str, optional
-        The run's simulated time: in the time unit, or a text with a time unit
-        (``"10 ps"``).
-    steps : int, optional
-        Or the run's number of steps.
-    max_drift : float, optional
-        The largest acceptable ``|drift| + 2 SE`` of the energy, in the system's energy
-        unit per time unit: ``advise`` lowers the step until the measured drift meets it
-        (``limited_by`` ``"drift"``), ``check`` fails a step whose drift does not.
-    max_failure : float, optional
-        The largest acceptable probability that a trajectory of the run fails, in (0, 0.1]
-        (default :data:`MAX_FAILURE`): ``check`` needs none of
-        ``ln(20) / max_failure`` thermal trajectories at the step to fail, ``advise``
-        confirms its answer so on a fresh ensemble.
-    scene : stepsafe.systems.scene.Scene, optional
-        The scene file read (its keys and where they are).
-    system : mapping, optional
-        The ``system:`` mapping (for its energy unit).
-    time_unit : str, optional
-        The unit of ``length``.
-
-    Returns
-    -------
-    Request or None
-    """
-    keys = dict(getattr(scene, "thermal", None) or {})
-    given = {"temperature": temperature, "kT": kT, "length": length, "steps": steps,
-             "max_drift": max_drift, "max_failure": max_failure}
-
-    def value(key: str) -> tuple[Any, bool]:
-        if given.get(key) is not None:
-            return given[key], True
-        return keys.get(key), False
-
-    t_value, t_given = value("temperature")
-    k_value, k_given = value("kT")
-    if t_value is not None and k_value is not None:
-        raise _fail("give temperature (kelvin) or kT (energy), not both", scene,
-                    "temperature" if t_given or not k_given else "kT", t_given or k_given)
-    unit = keys.get("energy_unit")
-    if unit is not None and unit not in ENERGY_UNITS:
-        raise StepsafeError(f"must be one of {', '.join(ENERGY_UNITS)}, got {str(unit)[:20]!r}",
-                            _where(scene, "energy_unit"))
-    units = system.get("units") if isinstance(system, Mapping) else None
-    if unit is None and isinstance(units, Mapping) and units.get("energy") in ENERGY_UNITS:
-        unit = units["energy"]
-    if isinstance(system, Mapping) and "openmm" in system:  # the engine's energies
-        if unit not in (None, ENGINE_ENERGY):
-            raise StepsafeError(f"an OpenMM system's energies are in {ENGINE_ENERGY}, not "
-                                f"{unit}", _where(scene, "energy_unit"))
-        unit = ENGINE_ENERGY
-    if t_value is not None:
-        try:
-            T = kelvin(t_value)
-        except StepsafeError as exc:
-            raise _fail(exc.message, scene, "temperature", t_given) from None
-        if T == 0:
-            return None
-        if unit is None:
-            raise _fail("the system's energy has no unit: give energy_unit: in the scene "
-                        "(kcal/mol, kJ/mol, eV, hartree or J), or kT in its own energy unit",
-                        scene, "temperature", t_given)
-        kt = thermal_energy(T, unit)
-        temperature_k: float | None = T
-    elif k_value is not None:
-        written = k_value
-        try:
-            if isinstance(k_value, str) and not k_given:
-                k_value = parse_real(k_value)
-            kt = finite_real(k_value, "kT")
-        except (StepsafeError, TypeError):
-            raise _fail(f"kT must be a finite number >= 0 (energy), got {str(written)[:40]!r}",
-                        scene,
-                        "kT", k_given) from None
-        if kt < 0:
-            raise _fail(f"kT must not be negative, got {kt:g}", scene, "kT", k_given)
-        if kt == 0:
-            return None
-        temperature_k = None
-        unit = unit if k_given is False else unit
-    else:
-        for key in ("length", "steps", "max_drift", "max_failure"):
-            v, g = value(key)
-            if v is not None:
-                raise _fail("applies to the analysis at temperature: give a temperature "
-                            "(or kT) too", scene, key, g)
-        return None
-    if not math.isfinite(kt) or kt <= 0:
-        raise _fail(f"kT = {kt!r} is not a positive finite energy", scene,
-                    "temperature" if temperature_k is not None else "kT", True)
-    l_value, l_given = value("length")
-    s_value, s_given = value("steps")
-    if l_given or s_given:  # the run given by keyword replaces the scene's
-        l_value, s_value = given["length"], given["steps"]
-    if l_value is not None and s_value is not None:
-        raise _fail("give the run's length or its steps, not both", scene, "length",
-                    l_given)
-    run_length = run_steps = None
-    if l_value is not None:
-        try:
-            run_length = duration(l_value, "length", time_unit, plain_text=not l_given)
-        except StepsafeError as exc:
-            raise _fail(exc.message, scene, "length", l_given) from None
-        if not (math.isfinite(run_length) and run_length > 0):
-            raise _fail(f"length must be a positive finite time, got {l_value!r}", scene,
-                        "length", l_given)
-    elif s_value is not None:
-        number = s_value
-        if isinstance(number, str):
-            number = parse_real(number)
-        if isinstance(number, int) and not isinstance(number, bool):
-            number = float(number) if abs(number) < 2 ** 1023 else math.inf
-        if not isinstance(number, float) or \
-                not (math.isfinite(number) and number >= 1 and number == int(number)):
-            raise _fail(f"steps must be a whole number >= 1, got {str(s_value)[:40]!r}",
-                        scene, "steps", s_given)
-        run_steps = number
-    else:
-        raise _fail("give the run's length (simulated time, --length / length:) or its "
-                    "number of steps (--steps / steps:): how far into the tails a run "
-                    "reaches depends on it", scene, "length", t_given or k_given)
-    tolerance, d_given = value("max_drift")
-    if tolerance is not None:
-        if isinstance(tolerance, str) and not d_given:
-            tolerance = parse_real(tolerance)
-        number = math.nan
-        if isinstance(tolerance, (int, float)) and not isinstance(tolerance, bool):
-            try:
-                number = float(tolerance)
-            except OverflowError:  # (an int beyond float64)
-                pass
-        if not (math.isfinite(number) and number > 0):
-            raise _fail(f"max_drift must be a positive finite energy per time unit, got "
-                        f"{str(tolerance)[:40]!r}", scene, "max_drift", d_given)
-        tolerance = number
-    p_value, p_given = value("max_failure")
-    p_max = None
-    if p_value is not None:
-        if isinstance(p_value, str) and not p_given:
-            p_value = parse_real(p_value)
-        p_max = math.nan
-        if isinstance(p_value, (int, float)) and not isinstance(p_value, bool):
-            try:
-                p_max = float(p_value)
-            except OverflowError:
-                pass
-        if not MIN_FAILURE <= p_max <= 0.1:
-            raise _fail(f"max_failure must be a probability in [{MIN_FAILURE:g}, 0.1], got "
-                        f"{str(p_value)[:40]!r}", scene, "max_failure", p_given)
-    name = "temperature" if temperature_k is not None else "kT"
-    key = f"--{name}, {name}=" if (t_given or k_given) else f"$.{name}"
-    return Request(kt, temperature_k, unit, run_length, run_steps, tolerance, p_max, key)
-
-
 def _minima(p: Any, req: Request) -> list[Minimum] | None:
     """The minima of the problem's potential (None: harmonic, the 0 K answer holds)."""
     if p.integrator.kind == "langevin":
@@ -638,7 +404,7 @@ def _engine_runs(p: Any, req: Request, run_length: float) -> Any:
     if abs(chosen.temperature - T) > 1e-9 * T:
         raise StepsafeError(f"the runs' temperature {chosen.temperature:g} K is not the "
                             f"temperature asked for, {T:g} K",
-                            _where(_scene_of(p), "system.runs.temperature"))
+                            where_in_scene(_scene_of(p), "system.runs.temperature"))
     return md_thermal.Runs(integrator, T, chosen.seeds, chosen.duration, chosen.friction,
                            tolerance)
 

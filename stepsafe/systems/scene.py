@@ -65,7 +65,7 @@ SCENE_KEYS = ("method", "h", "time_unit", "margin", "zmax", "modes", "system", "
               "temperature", "kT", "energy_unit", "length", "steps", "max_drift",
               "max_failure")
 #: The keys of the analysis at temperature, kept as written and read by
-#: :func:`stepsafe.api.thermal.request` (which names the key of a bad value).
+#: :func:`stepsafe.api.temperature.request` (which names the key of a bad value).
 THERMAL_KEYS = ("temperature", "kT", "energy_unit", "length", "steps", "max_drift",
                 "max_failure")
 MAX_CSV_BYTES = 256 << 20
