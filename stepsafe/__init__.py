@@ -46,9 +46,11 @@ _MODULES = {name: module for module, names in {
     "inputs": ("Integrator", "PartitionedTableau", "Problem", "method", "method_from_file",
                "problem", "load_scene"),
     "reports": ("RegionReport", "AdviceReport", "CheckReport", "CheckError", "SceneChecks",
-                "ErrorTable", "CompareReport", "CompareRow", "HmcReport", "HmcRow",
-                "DesignReport", "ImpulseReport", "ImpulseModesReport", "MeasureReport",
-                "MeasureRow", "Refinement", "EnsembleReport", "EnsembleRow"),
+                "ErrorTable", "CompareReport", "CompareRow"),
+    "hmc_reports": ("HmcReport", "HmcRow", "DesignReport"),
+    "md_reports": ("ImpulseReport", "ImpulseModesReport"),
+    "measure_reports": ("MeasureReport", "MeasureRow", "Refinement", "EnsembleReport",
+                        "EnsembleRow"),
     "linear": ("region", "advise", "check", "check_scenes", "errors", "compare",
                "transfer_matrices"),
     "hmc": ("hmc", "design"),
@@ -61,6 +63,11 @@ if TYPE_CHECKING:  # pragma: no cover
     from stepsafe.api.hmc import (  # noqa: F401
         design,
         hmc,
+    )
+    from stepsafe.api.hmc_reports import (  # noqa: F401
+        DesignReport,
+        HmcReport,
+        HmcRow,
     )
     from stepsafe.api.inputs import (  # noqa: F401
         Integrator,
@@ -84,9 +91,20 @@ if TYPE_CHECKING:  # pragma: no cover
         impulse,
         impulse_advice,
     )
+    from stepsafe.api.md_reports import (  # noqa: F401
+        ImpulseModesReport,
+        ImpulseReport,
+    )
     from stepsafe.api.measure import (  # noqa: F401
         measure,
         refine,
+    )
+    from stepsafe.api.measure_reports import (  # noqa: F401
+        EnsembleReport,
+        EnsembleRow,
+        MeasureReport,
+        MeasureRow,
+        Refinement,
     )
     from stepsafe.api.reports import (  # noqa: F401
         AdviceReport,
@@ -94,17 +112,7 @@ if TYPE_CHECKING:  # pragma: no cover
         CheckReport,
         CompareReport,
         CompareRow,
-        DesignReport,
-        EnsembleReport,
-        EnsembleRow,
         ErrorTable,
-        HmcReport,
-        HmcRow,
-        ImpulseModesReport,
-        ImpulseReport,
-        MeasureReport,
-        MeasureRow,
-        Refinement,
         RegionReport,
         SceneChecks,
     )

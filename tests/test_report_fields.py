@@ -22,7 +22,7 @@ from typing import Any
 
 import pytest
 
-from stepsafe.api import reports
+from stepsafe.api import hmc_reports, md_reports, measure_reports, reports
 from stepsafe.api.reports import json_attribute
 from stepsafe.core.hmc_target.advice import TargetReport
 from stepsafe.core.records import json_ready
@@ -82,9 +82,10 @@ RUNS = [
 #: Every type whose ``to_dict()`` a command prints.
 REPORTS = (reports.RegionReport, reports.AdviceReport, reports.CheckReport,
            reports.SceneChecks, reports.ErrorTable, reports.CompareReport,
-           reports.HmcReport, TargetReport, reports.DesignReport, reports.ImpulseReport,
-           reports.ImpulseModesReport, reports.MeasureReport, reports.Refinement,
-           reports.EnsembleReport)
+           hmc_reports.HmcReport, TargetReport, hmc_reports.DesignReport,
+           md_reports.ImpulseReport, md_reports.ImpulseModesReport,
+           measure_reports.MeasureReport, measure_reports.Refinement,
+           measure_reports.EnsembleReport)
 
 
 def _declared(owner: type, name: str) -> bool:
@@ -245,17 +246,17 @@ def _properties(schema: dict[str, Any]) -> set[str]:
 CLOSED = [
     ("LINEAR_ADVICE", reports.AdviceReport, {"advice", "keys"}),
     ("CHECK_ENTRY", reports.CheckReport, {"result", "keys"}),
-    ("IMPULSE_MODES", reports.ImpulseModesReport, {"labels"}),
-    ("RESPA", reports.ImpulseReport, {"method", "label", "ratio"}),
-    ("IMPULSE_REGION", reports.ImpulseReport, {"method", "label"}),
+    ("IMPULSE_MODES", md_reports.ImpulseModesReport, {"labels"}),
+    ("RESPA", md_reports.ImpulseReport, {"method", "label", "ratio"}),
+    ("IMPULSE_REGION", md_reports.ImpulseReport, {"method", "label"}),
     ("COMPARE", reports.CompareReport, set()),
-    ("HMC", reports.HmcReport, {"beta_range"}),
+    ("HMC", hmc_reports.HmcReport, {"beta_range"}),
     ("HMC_TARGET", TargetReport, {"trajectory", "spread", "laplace"}),
-    ("DESIGN", reports.DesignReport, set()),
+    ("DESIGN", hmc_reports.DesignReport, set()),
     ("ERROR", reports.ErrorTable, {"z", "phase", "energy", "overflow", "kernel_energy"}),
-    ("MEASURE_RUNS", reports.MeasureReport, set()),
-    ("REFINEMENT", reports.Refinement, set()),
-    ("ENSEMBLE", reports.EnsembleReport, {"states"}),
+    ("MEASURE_RUNS", measure_reports.MeasureReport, set()),
+    ("REFINEMENT", measure_reports.Refinement, set()),
+    ("ENSEMBLE", measure_reports.EnsembleReport, {"states"}),
 ]
 
 

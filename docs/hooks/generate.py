@@ -63,7 +63,7 @@ def api_reference() -> str:
     for name in stepsafe.__all__:
         if not name.startswith("__"):
             modules.setdefault(getattr(stepsafe, name).__module__, []).append(name)
-    order = sorted(modules, key=lambda m: (m == "stepsafe.api.reports",
+    order = sorted(modules, key=lambda m: (m.endswith("reports"),
                                            m == "stepsafe.exceptions"))
     return "\n".join(f"::: {module}\n    options:\n      members:\n"
                      + "".join(f"        - {name}\n" for name in modules[module])

@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from stepsafe.api.hmc_reports import DesignReport, HmcReport, HmcRow
 from stepsafe.api.hmc_target import on_target, target_of
 from stepsafe.api.inputs import (
     ArrayLike,
@@ -56,7 +57,6 @@ from stepsafe.api.inputs import (
     step_cost,
 )
 from stepsafe.api.keywords import shared_keywords
-from stepsafe.api.reports import DesignReport, HmcReport, HmcRow
 from stepsafe.arguments import public
 from stepsafe.core import hmc as core
 from stepsafe.core.advice import SHRINK, Modes, first_unsafe_z

@@ -17,7 +17,7 @@ from types import MappingProxyType
 from typing import Any
 
 from stepsafe.api.inputs import Integrator, named_method
-from stepsafe.api.reports import ImpulseModesReport, ImpulseReport
+from stepsafe.api.md_reports import ImpulseModesReport, ImpulseReport
 from stepsafe.arguments import public
 from stepsafe.core.advice import Modes, advise, check_step
 from stepsafe.core.impulse import impulse_method as build

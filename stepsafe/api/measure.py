@@ -13,7 +13,7 @@ import numpy as np
 
 from stepsafe.api.inputs import Integrator, as_integrator
 from stepsafe.api.keywords import shared_keywords
-from stepsafe.api.reports import (
+from stepsafe.api.measure_reports import (
     NEGLIGIBLE,
     EnsembleReport,
     EnsembleRow,

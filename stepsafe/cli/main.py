@@ -385,7 +385,7 @@ def _check_one(scene_file, h, options: dict, resonance_order, criterion: str, ve
                solver: str, require_complete_search: bool, show_progress: bool,
                warm: dict | None = None):
     """The check of one scene (or of the command line alone): an impulse method's
-    :class:`~stepsafe.api.reports.ImpulseModesReport`, else a
+    :class:`~stepsafe.api.md_reports.ImpulseModesReport`, else a
     :class:`~stepsafe.api.reports.CheckReport`."""
     impulse = impulse_of(scene_file, {**options, "verify": verify})
     warm = warm or {}

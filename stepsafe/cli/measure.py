@@ -208,7 +208,7 @@ def measure_cmd(scene_file, method, stages, base, steps, h_range, duration, init
 
 
 def print_measure(data: dict[str, Any]) -> None:
-    """The text form of :meth:`stepsafe.api.reports.MeasureReport.to_dict`."""
+    """The text form of :meth:`stepsafe.api.measure_reports.MeasureReport.to_dict`."""
     unit = data["time_unit"] or "time unit"
 
     def g(x: float | None, digits: int = 3) -> str:
@@ -262,7 +262,7 @@ def print_measure(data: dict[str, Any]) -> None:
 
 
 def print_ensemble(data: dict[str, Any]) -> None:
-    """The text form of :meth:`stepsafe.api.reports.EnsembleReport.to_dict`."""
+    """The text form of :meth:`stepsafe.api.measure_reports.EnsembleReport.to_dict`."""
     def g(x: float | None) -> str:
         return "inf" if x is None else f"{x:.3g}"
 
@@ -348,7 +348,7 @@ def work_precision_plot(scene_file: str, methods: str, h_range: str | None,
 
 
 def print_refinement(data: dict[str, Any]) -> None:
-    """The text form of :meth:`stepsafe.api.reports.Refinement.to_dict`."""
+    """The text form of :meth:`stepsafe.api.measure_reports.Refinement.to_dict`."""
     unit = data["runs"]["time_unit"]
     u = f" {unit}" if unit else ""
     what = "energy spread" if data["quantity"] == "energy" else "trajectory error"

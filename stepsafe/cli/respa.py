@@ -201,7 +201,7 @@ def impulse_report(integrator: Any, scene_file: str | None, options: dict, *,
 
 
 def print_impulse_modes(data: dict[str, Any], check: bool) -> None:
-    """The text form of :meth:`stepsafe.api.reports.ImpulseModesReport.to_dict`."""
+    """The text form of :meth:`stepsafe.api.md_reports.ImpulseModesReport.to_dict`."""
     unit = data["time_unit"]
     u = f" {unit}" if unit else ""
     per = f"rad/{unit}" if unit else "rad per time unit"
