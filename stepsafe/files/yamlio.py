@@ -13,6 +13,7 @@ sockets are refused before they are opened (reading them could block forever or 
 
 from __future__ import annotations
 
+import copy
 import os
 import stat
 from typing import Any
@@ -168,7 +169,41 @@ def load_yaml(path: str | os.PathLike) -> Any:
     return parse_yaml(text, str(path))
 
 
+#: Documents already parsed in this process, by (text, where): one command reads a scene
+#: or a method file several times (the method of a scene, its base method, the scene again
+#: for its frequencies), and parsing is most of the cost of reading.
+_PARSED: dict[tuple[str, str], Any] = {}
+#: Only short documents are kept (method and scene files are a few kB), and a few of them.
+_PARSED_SIZE, _PARSED_COUNT = 1 << 16, 64
+
+
+def _copy(tree: Any) -> Any:
+    """A parsed document that shares no list or mapping with ``tree`` (strings are
+    immutable and shared)."""
+    if type(tree) is dict:
+        return {key: _copy(value) for key, value in tree.items()}
+    if type(tree) is list:
+        return [_copy(value) for value in tree]
+    if isinstance(tree, str):
+        return tree
+    return copy.deepcopy(tree)  # what an explicit tag builds (!!set, !!binary, ...)
+
+
 def parse_yaml(text: str, where: str = "<string>") -> Any:
+    """Parse one YAML document strictly (see the module's description); a document parsed
+    before in this process is returned again, as a copy the caller may change."""
+    key = (text, where)
+    if key in _PARSED:
+        return _copy(_PARSED[key])
+    data = _parse(text, where)
+    if len(text) <= _PARSED_SIZE:
+        if len(_PARSED) >= _PARSED_COUNT:
+            _PARSED.pop(next(iter(_PARSED)))
+        _PARSED[key] = _copy(data)
+    return data
+
+
+def _parse(text: str, where: str) -> Any:
     if not text.strip():
         raise StepsafeError("empty file", where)
     try:
