@@ -148,7 +148,7 @@ def test_every_frequency_and_time_keyword_says_its_unit():
         assert unit in " ".join(entry.split()), key
     from click.testing import CliRunner
 
-    from stepsafe.cli.main import main
+    from stepsafe.cli import main
 
     for command, options in (("check", {"--beta": "rad per time unit",
                                         "--saddle-beta": "R p q", "--frequency": "cycles",

@@ -63,7 +63,6 @@ from stepsafe.core.accuracy import errors as core_errors
 from stepsafe.core.accuracy import kernel_errors
 from stepsafe.core.advice import Modes, check_step, validate_margin
 from stepsafe.core.advice import advise as core_advise
-from stepsafe.core.langevin import sampling
 from stepsafe.core.models import MAIN_MODELS
 from stepsafe.core.records import (
     advice_data,
@@ -86,10 +85,12 @@ from stepsafe.units import time_unit as known_time_unit
 
 if TYPE_CHECKING:
     from stepsafe.api import md, thermal
+    from stepsafe.core import langevin
     from stepsafe.reference import verify
     from stepsafe.systems import advice as systems_advice
 else:  # what only some inputs reach: an impulse method, a temperature, --verify, a system:
     md = lazy_module("stepsafe.api.md")
+    langevin = lazy_module("stepsafe.core.langevin")  # Langevin splittings only
     thermal = lazy_module("stepsafe.api.thermal")
     verify = lazy_module("stepsafe.reference.verify")
     systems_advice = lazy_module("stepsafe.systems.advice")
@@ -350,7 +351,7 @@ def _stochastic_record(integrator: Integrator, p: Problem, h: float | None
         "stability": "of the mean map, for every friction gamma > 0", "sampling": None}
     betas = p.modes.betas.get("oscillator")
     if h is not None and betas is not None and betas.size:
-        mode = sampling(m, [float(betas.max())], h).modes[0]
+        mode = langevin.sampling(m, [float(betas.max())], h).modes[0]
         record["sampling"] = mode.to_dict()
     return record
 

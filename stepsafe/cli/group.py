@@ -1,10 +1,10 @@
 """The ``stepsafe`` click group and what its commands share: the option types (ASCII
 numbers, times with units), the option groups, the exit codes and the one-line error
-contract. Every command module (:mod:`.main`, :mod:`.accuracy`, :mod:`.measure`,
+contract. Every command module (:mod:`.commands`, :mod:`.accuracy`, :mod:`.measure`,
 :mod:`.respa`, :mod:`.sampling`) registers its commands on :data:`main`.
 
 The group loads a command's module when the command is looked up (:data:`COMMANDS`, click's
-lazily loading group): ``stepsafe check`` loads :mod:`.main` and what it imports, not the
+lazily loading group): ``stepsafe check`` loads :mod:`.commands` and what it imports, not the
 HMC, measurement or multiple-time-stepping commands. ``--help``, shell completion and the
 generated command-line reference look every command up, and so load them all.
 """
@@ -111,7 +111,7 @@ TIME_HELP = ("in --time-unit (else the time unit of 1/beta), or with a unit, con
 #: loaded): a command loads its own module only (tests/test_imports.py checks the table
 #: against the commands the modules define).
 COMMANDS = {name: module for module, names in (
-    (lazy_module("stepsafe.cli.main"),
+    (lazy_module("stepsafe.cli.commands"),
      ("methods", "show", "region", "advise", "check", "schema", "validate")),
     (lazy_module("stepsafe.cli.accuracy"), ("error", "compare", "plot")),
     (lazy_module("stepsafe.cli.measure"), ("measure",)),

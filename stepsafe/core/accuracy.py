@@ -40,7 +40,7 @@ from 0, never beyond the first boundary.
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -50,9 +50,14 @@ from stepsafe.core.models import ELLIPTIC, GENERATORS
 from stepsafe.core.roots import EPS, refine_brackets
 from stepsafe.core.transfer import blocks_of, row_ops, stage_operator, transfer_matrix
 from stepsafe.exceptions import StepsafeError
-from stepsafe.methods.exact import high_precision_tableaux
+from stepsafe.lazy import lazy_module
 from stepsafe.methods.protocol import Block, Friction, Shears
 from stepsafe.methods.tableaux import Method, PartitionedRK, Splitting
+
+if TYPE_CHECKING:
+    from stepsafe.methods import exact
+else:  # figures float64 cannot give to the printed digits
+    exact = lazy_module("stepsafe.methods.exact")
 
 SERIES_TERMS = 64
 SERIES_Z = 0.5
@@ -283,7 +288,7 @@ def _hp_series_parts(prk: PartitionedRK, model: str, series: Series) -> Parts:
     k = np.arange(n)
     for dps in (60, 120, 240, 480):
         with mp.workdps(dps):
-            Aq, bq, Ap, bp = high_precision_tableaux(prk)
+            Aq, bq, Ap, bp = exact.high_precision_tableaux(prk)
             s = len(bq)
             Xq = [[mp.mpf(1)] * s, [mp.mpf(0)] * s]  # stage vectors of the columns (q0, p0)
             Xp = [[mp.mpf(0)] * s, [mp.mpf(1)] * s]

@@ -27,14 +27,20 @@ when a point needs it.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-from stepsafe.core.mproots import locate_pole, refine_root
-from stepsafe.methods.exact import high_precision
+from stepsafe.lazy import lazy_module
 from stepsafe.methods.protocol import HIGH_PRECISION_DIGITS
 from stepsafe.methods.tableaux import Method
+
+if TYPE_CHECKING:
+    from stepsafe.core import mproots
+    from stepsafe.methods import exact
+else:  # the few points float64 cannot decide
+    mproots = lazy_module("stepsafe.core.mproots")
+    exact = lazy_module("stepsafe.methods.exact")
 
 DPS = HIGH_PRECISION_DIGITS
 ESCALATE_REL = 1e-12
@@ -61,7 +67,7 @@ def reference_of(method: Method) -> Reference:
     """The high-precision transfer matrix of ``method``: its own ``exact`` definition when
     it has one, else built from its parts, float coefficients taken as exact
     (:func:`stepsafe.methods.exact.high_precision`)."""
-    return high_precision(method)
+    return exact.high_precision(method)
 
 
 class _Undecided(Exception):
@@ -141,7 +147,7 @@ class Escalation:
                 da, db = dg(a + 2 * step), dg(b - 2 * step)
                 if (da > 0) == (db > 0):
                     return Decision()  # monotone, no sign change: no boundary
-                zm = refine_root(dg, a + 2 * step, b - 2 * step, tol=b * mp.mpf("1e-12"))
+                zm = mproots.refine_root(dg, a + 2 * step, b - 2 * step, tol=b * mp.mpf("1e-12"))
                 gm = g(zm)
             except ZeroDivisionError:
                 return None
@@ -176,7 +182,7 @@ class Escalation:
                     a, b = a0, b0
                     if _same_sign(g(mp.mpf(a)), g(mp.mpf(b))):
                         raise _Undecided
-                r = refine_root(g, mp.mpf(a), mp.mpf(b), tol=_digits(b))
+                r = mproots.refine_root(g, mp.mpf(a), mp.mpf(b), tol=_digits(b))
                 noise = _noise(level, digits)
                 root = float(r)
                 u = float(np.spacing(root))
@@ -224,11 +230,11 @@ class Escalation:
                 if ga == 0:
                     found.append(a)
                 elif gb != 0 and (ga > 0) != (gb > 0) and not self.exhausted:
-                    found.append(refine_root(g, a, b, tol=_digits(b)))
+                    found.append(mproots.refine_root(g, a, b, tol=_digits(b)))
             if not found and not self.exhausted:  # an even pole: |1/tr M| touches zero
                 k = min(range(count), key=lambda i: abs(gs[i]))
                 a, b = xs[max(k - 1, 0)], xs[min(k + 1, count - 1)]
-                even = locate_pole(g, a, b, tol=_digits(b))
+                even = mproots.locate_pole(g, a, b, tol=_digits(b))
                 found = [] if even is None else [even]
             if not found:
                 return None

@@ -1,4 +1,5 @@
-"""The ``stepsafe`` command line.
+"""The core commands of the ``stepsafe`` command line: methods, show, region, advise, check,
+schema and validate.
 
 Exit codes (stable, for CI scripts): 0 ok; 1 the check found an unsafe step; 2 bad input
 (the tool could not answer: unknown method, malformed file, bad option); 3 internal error
@@ -15,7 +16,6 @@ from typing import TYPE_CHECKING
 import click
 
 from stepsafe.api import inputs, linear, reports
-from stepsafe.api.schemas import output_schema
 from stepsafe.cli.group import (
     DURATION,
     EXIT_INPUT,
@@ -67,11 +67,12 @@ from stepsafe.systems.scene import SCENE_KEYS
 from stepsafe.systems.scene import json_schema as scene_schema
 
 if TYPE_CHECKING:
-    from stepsafe.api import md
+    from stepsafe.api import md, schemas
     from stepsafe.cli import respa
-else:  # impulse (multiple time stepping) methods only
-    md = lazy_module("stepsafe.api.md")
+else:
+    md = lazy_module("stepsafe.api.md")  # impulse (multiple time stepping) methods only
     respa = lazy_module("stepsafe.cli.respa")
+    schemas = lazy_module("stepsafe.api.schemas")  # the schema command only
 
 
 @main.command("methods")
@@ -465,7 +466,7 @@ def schema_cmd(which: str, command: str | None) -> None:
         raise _input_error("give a COMMAND after 'output' (stepsafe schema output hmc), and "
                            "only there")
     if command is not None:
-        print_json(output_schema(command), record=False)
+        print_json(schemas.output_schema(command), record=False)
         return
     print_json(method_schema() if which == "method" else scene_schema(), record=False)
 
