@@ -5,8 +5,9 @@ matplotlib, mpmath, OpenMM or jax, are imported inside the functions that need t
 start-up stays light: tests/test_imports.py).
 
 Layers, lowest first: the shared basics (``exceptions``, ``text``, ``units``,
-``arguments``), ``files`` (method files, YAML, expressions), ``methods`` (tableaux and the
-library), ``core`` (the float analysis), ``systems`` (scenes, coupled systems), ``api``,
+``arguments``, ``lazy``, ``comparison``), ``files`` (method files, YAML, expressions),
+``methods`` (tableaux and the library), ``core`` (the float analysis), ``systems`` (scenes,
+coupled systems), ``api``,
 ``cli``, and the package root. ``reference`` (mpmath) sits beside them: it may import the
 layers below ``api``, and only ``api``, ``cli``, the root and the tests import it.
 
@@ -27,9 +28,9 @@ PACKAGE = Path(__file__).resolve().parent.parent / "stepsafe"
 
 #: The rank of each layer (a top-level module or package of stepsafe); an import may go to
 #: an equal or lower rank. ``reference`` is checked separately (see :func:`allowed`).
-RANK = {"_version": 0, "lazy": 0, "exceptions": 0, "text": 0, "units": 0, "arguments": 0,
-        "files": 1, "methods": 2, "core": 3, "systems": 4, "reference": 4, "api": 5, "cli": 6,
-        "": 7, "__main__": 7}
+RANK = {"_version": 0, "lazy": 0, "comparison": 0, "exceptions": 0, "text": 0, "units": 0,
+        "arguments": 0, "files": 1, "methods": 2, "core": 3, "systems": 4, "reference": 4,
+        "api": 5, "cli": 6, "": 7, "__main__": 7}
 
 #: The layers that may import ``reference``.
 REFERENCE_USERS = {"reference", "api", "cli", "", "__main__"}

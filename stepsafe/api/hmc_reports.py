@@ -10,11 +10,13 @@ from dataclasses import dataclass, fields
 from types import MappingProxyType
 from typing import Any, ClassVar
 
+from stepsafe.comparison import compared
 from stepsafe.core.records import json_ready, versioned
 from stepsafe.core.regions import ROUNDING_GAP_RULE
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class HmcRow:
     """One method's HMC figures (steps in the time unit of 1/beta; None where a figure
     does not exist, e.g. no step reaches the target)."""
@@ -42,7 +44,8 @@ class HmcRow:
     """(h, predicted acceptance, its bound over every L) up to the limit searched, if asked"""
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class HmcReport:
     """Methods ranked by ``ranked_by`` at the largest step reaching ``target`` acceptance:
     gradient evaluations per accepted proposal at the L run when the trajectory is given,
@@ -113,7 +116,8 @@ def _row_dict(row: HmcRow) -> dict[str, Any]:
     return out
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class DesignReport:
     """A 2- or 3-stage splitting designed for a Gaussian target at step ``step``, its method
     file (``method_file``, YAML that every command accepts) and the figures that justify it:

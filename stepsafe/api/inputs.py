@@ -27,6 +27,7 @@ import numpy as np
 
 from stepsafe.api.keywords import shared_keywords
 from stepsafe.arguments import public
+from stepsafe.comparison import compared
 from stepsafe.core.advice import Modes, validate_margin
 from stepsafe.core.records import coefficients, json_ready, method_data, versioned
 from stepsafe.core.regions import DEFAULT_ZMAX
@@ -52,7 +53,8 @@ REGION_MODELS = ("oscillator", "saddle", "inverted", "saddle-p")
 ArrayLike = Sequence[float] | np.ndarray | float
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class PartitionedTableau:
     """One step of a partitioned Runge–Kutta method for q' = dH/dp, p' = -dH/dq:
     stages Q_i = q + h sum_j A_q[i, j] dH/dp(Q_j, P_j), P_i = p - h sum_j A_p[i, j]
@@ -68,7 +70,8 @@ class PartitionedTableau:
         return int(self.b_q.size)
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class Integrator:
     """A method ready to analyse: its identity, and its coefficients as ``tableau``.
 
@@ -265,7 +268,8 @@ def frozen_record(data: dict[str, Any]) -> Mapping[str, Any]:
 # --------------------------------------------------------------------------- inputs
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class Problem:
     """What advise and check analyse: a method, the frequencies (``modes``) or an analysed
     system, the margin, zmax, and the step (given, or named by the scene). Built by

@@ -10,10 +10,12 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, ClassVar
 
+from stepsafe.comparison import compared
 from stepsafe.core.records import unversioned, versioned
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class ImpulseReport:
     """Safe outer steps H of an impulse (r-RESPA) integrator for one fast and one slow
     frequency: ``h_max`` ends the safe interval from 0, ``safe_h`` lists every safe interval
@@ -70,7 +72,8 @@ class ImpulseReport:
         return versioned(out)
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class ImpulseModesReport:
     """Safe outer steps H of an impulse method for several modes, each with its own fast
     and slow frequency (``modes[i]`` is mode i's :class:`ImpulseReport`): ``safe_h`` is

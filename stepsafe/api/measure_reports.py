@@ -10,10 +10,12 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, ClassVar
 
+from stepsafe.comparison import compared
 from stepsafe.core.records import unversioned, versioned
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class InvariantRow:
     """A conserved quantity the scene declares, along one run: ``spread`` (max - min of
     ``(I(x_k) - I(x_0)) / |I(x_0)|``, absolute when ``I(x_0) = 0``), ``drift`` (the
@@ -32,7 +34,8 @@ class InvariantRow:
                 "behaviour": self.behaviour}
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class MeasureRow:
     """What one step size h did on the system (None where not measured or predicted)."""
 
@@ -100,7 +103,8 @@ class MeasureRow:
                 "seconds_per_time": self.seconds_per_time}
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class MeasureReport:
     """Measured errors and cost of ``method`` on the system for each h (``rows``), from
     ``initial`` (q then p), with the linear predictions for the vibration of angular
@@ -124,7 +128,8 @@ class MeasureReport:
                               "rows": [r.to_dict() for r in self.rows]}))
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class EnsembleRow:
     """One step ``h`` run for ``steps`` steps (up to ``time``) on every trajectory of an
     ensemble: the distribution of each trajectory's largest energy error
@@ -150,7 +155,8 @@ class EnsembleRow:
                 "q90": self.q90, "q99": self.q99, "max": self.max, "unstable": self.unstable}
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class EnsembleReport:
     """``method`` run on ``count`` trajectories at once for each h (``rows``): states
     drawn with ``seed`` either on the quadratic energy shell ``energy`` around the
@@ -195,7 +201,8 @@ def _ratio(measured: float | None, predicted: float | None) -> float | None:
     return measured / predicted
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class Refinement:
     """The largest step ``h`` (within the safe steps for the vibration the start orbits)
     whose measured ``quantity`` (``energy``: the energy spread; ``trajectory``: the

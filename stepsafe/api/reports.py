@@ -17,6 +17,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from stepsafe.api.inputs import REGION_MODELS, Integrator
+from stepsafe.comparison import compared
 from stepsafe.core.records import (
     json_ready,
     method_data,
@@ -29,7 +30,8 @@ from stepsafe.core.records import (
 # --------------------------------------------------------------------------- region
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class RegionReport:
     """Every interval of z = beta*h where the method keeps each model's structure.
 
@@ -176,7 +178,8 @@ def _record_of(report: Any) -> dict[str, Any]:
             for key in report.keys}
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class AdviceReport:
     """Safe steps: ``h_max`` ends the safe interval from 0 (``h_max_limited_by``:
     ``boundary``, ``resonance n:m`` when the nonlinear resonance n theta = 2 pi m of the
@@ -279,7 +282,8 @@ class AdviceReport:
 # --------------------------------------------------------------------------- check
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class CheckReport:
     """Whether step ``h`` keeps every mode's structure (``safe``), the failing modes with
     their reasons, and the safe steps for all modes (``h_max``, ``safe_h``).
@@ -363,7 +367,8 @@ class CheckReport:
         return versioned({"safe": self.safe, "checks": [self.entry()]})
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class CheckError:
     """A scene file that could not be checked (bad input: exit code 2): its file, the
     message and where (the file and key) the error lies."""
@@ -382,7 +387,8 @@ class CheckError:
                 "where": self.where}
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class SceneChecks:
     """The checks of several scene files, in their order: each a :class:`CheckReport`, an
     impulse method's :class:`~stepsafe.respa_advice.ImpulseModesReport`, or a
@@ -415,7 +421,8 @@ class SceneChecks:
 # --------------------------------------------------------------------------- errors
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class ErrorTable:
     """Accuracy of one step at each z: ``phase`` (theta/z - 1 for a vibration, log(mu)/z - 1
     for a saddle or barrier) and ``energy`` (relative energy error bound, vibrations), NaN
@@ -462,7 +469,8 @@ class ErrorTable:
                           "rows": [row.to_dict() for row in self.rows]})
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class ErrorRow:
     """The accuracy of one step at one z = beta h (dimensionless); None where the structure
     is lost or M(z) leaves float64."""
@@ -493,7 +501,8 @@ def _finite(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class CompareRow:
     """One method in a :class:`CompareReport`: ``first_boundary`` z* on the oscillator,
     ``h_max`` the safe limit, ``h_tol`` the largest step meeting the tolerances (0: none
@@ -533,7 +542,8 @@ class CompareRow:
         return None if n is None else {"start": n, "per_output": n}
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class CompareReport:
     """Methods ranked by cost per unit of simulated time for the same frequencies."""
 

@@ -13,6 +13,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from stepsafe.comparison import compared
 from stepsafe.exceptions import StepsafeError, finite_real
 from stepsafe.systems.scene import parse_real
 from stepsafe.units import ENERGY_UNITS, duration, kelvin, thermal_energy
@@ -26,7 +27,8 @@ MAX_FAILURE = 1e-3
 MIN_FAILURE = 1e-5
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class Request:
     """A validated request for the analysis at temperature.
 

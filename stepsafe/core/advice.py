@@ -28,6 +28,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from stepsafe.comparison import compared
 from stepsafe.core.models import MODELS
 from stepsafe.core.regions import (
     DEFAULT_ZMAX,
@@ -42,7 +43,8 @@ from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.methods.tableaux import Method
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class Modes:
     """Frequencies grouped by model: ``betas[model]`` is an array of beta >= 0, and
     ``errors[model]`` (same shape) the relative uncertainty of each: 0 for frequencies the
@@ -102,7 +104,8 @@ class ModelLimit(NamedTuple):
     # within its stated error); None when unbounded (beta_max = 0 or no z*)
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class Advice:
     """Safe steps for a method and a set of modes."""
 
@@ -335,7 +338,8 @@ class Failure(NamedTuple):
     index: int = -1  # type: ignore[assignment]
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class CheckResult:
     method: str
     h: float

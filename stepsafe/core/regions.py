@@ -45,6 +45,7 @@ from typing import NamedTuple, cast
 
 import numpy as np
 
+from stepsafe.comparison import compared
 from stepsafe.core.engine import TOL_FACTOR, Jet
 from stepsafe.core.escalate import ESCALATE_REL, Escalation
 from stepsafe.core.grid import (
@@ -102,7 +103,8 @@ class Interval(NamedTuple):
         return self.lo < z and (self.hi is None or z < self.hi)
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class Region:
     """Where a method preserves a model's structure, up to ``zmax``."""
 

@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from stepsafe.comparison import compared
 from stepsafe.core.accuracy import hamiltonian_only
 from stepsafe.core.engine import TOL_FACTOR
 from stepsafe.core.grid import Grid, default_resolution
@@ -39,7 +40,8 @@ DEFAULT_ORDERS = (3, 4, 5, 6)
 MAX_ORDER = 50
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class NonlinearResonance:
     """``n theta(z) = 2 pi m`` at ``z`` (within ``uncertainty``): the n:m resonance."""
 

@@ -49,6 +49,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stepsafe.comparison import compared
 from stepsafe.core.sets import distinct
 from stepsafe.core.transfer import blocks_of, stage_operator
 from stepsafe.methods.protocol import Stages
@@ -62,7 +63,8 @@ MAX_ITERATIONS = 1000
 NEWTON_ITERATIONS = 2
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class SolverCost:
     """Fixed-point iterations and force evaluations of one step at ``z`` (None where the
     iteration diverges or needs more than :data:`MAX_ITERATIONS`), and ``limit`` =

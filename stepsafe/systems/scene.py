@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from stepsafe.comparison import compared
 from stepsafe.core.models import MODELS
 from stepsafe.exceptions import StepsafeError, unknown_key
 from stepsafe.files.yamlio import QuotedText, load_yaml, read_bytes
@@ -482,7 +483,8 @@ def _pairs_list(items: list, where: str, time_unit: str | None
     return np.array(pairs, dtype=float), tuple(labels)
 
 
-@dataclass(frozen=True)
+@compared
+@dataclass(frozen=True, eq=False)
 class ModesFile:
     """A modes file's frequencies grouped by model, and per model the modes' labels in the
     same order (None where a mode has none; a model without labels is absent)."""
