@@ -8,8 +8,12 @@ arrays of z values and indices the region finder uses.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-from numpy.typing import ArrayLike
+
+if TYPE_CHECKING:  # (numpy.typing is a module of its own to load: annotations only)
+    from numpy.typing import ArrayLike
 
 
 def distinct(values: ArrayLike) -> np.ndarray:
