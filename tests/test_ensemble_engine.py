@@ -207,6 +207,38 @@ def test_the_implicit_midpoint_rule_matches_its_own_fixed_point_iteration_at_eve
     np.testing.assert_allclose(ran.worst / ran.energy0, errors, rtol=1e-6, atol=1e-13)
 
 
+@pytest.mark.parametrize("name", ["verlet", "yoshida4"])
+@settings(max_examples=10, deadline=None)
+@given(length=st.integers(-100, 100), energy=st.integers(-100, 100),
+       mass=st.integers(-100, 100), h=st.floats(0.05, 0.6), stop=st.integers(1, 4),
+       seed=st.integers(0, 2**32 - 1))
+def test_a_run_stopped_at_its_escapes_sees_the_escapes_of_the_full_run_up_to_then(
+        name, length, energy, mass, h, stop, seed):
+    """``stop_escapes`` s ends the run after the step of its s-th escape, at every scale:
+    the rows that escaped by then, and when, are those of the test's own integration of
+    the full run (each trajectory depends on its start alone); the steps reported are the
+    step of the s-th escape; a run whose s-th escape never comes runs every step."""
+    method = resolve(name)[0]
+    well = Scaled(10.0 ** length, 10.0 ** energy, 10.0 ** mass * np.array([1.0, 1.5]))
+    q0, p0 = _starts(well, np.random.default_rng(seed), 12)
+    step, steps = h * well.tau, math.ceil(12 / h)
+    start, one, output = CASES[name](method)
+    full = integrate(method, well.system(), q0, p0, step, steps, growth=GROWTH)
+    escaped, _ = _reference(well, one, q0, p0, step, steps, start, output)
+    np.testing.assert_array_equal(full.escaped, escaped)
+    ran = integrate(method, well.system(), q0, p0, step, steps, growth=GROWTH,
+                    stop_escapes=stop)
+    times = np.sort(full.escaped_at[full.escaped])
+    if times.size >= stop and times[stop - 1] < steps:
+        assert ran.steps == times[stop - 1]
+    else:
+        assert ran.steps == steps
+    seen = full.escaped & (full.escaped_at <= ran.steps)
+    np.testing.assert_array_equal(ran.escaped, seen)
+    np.testing.assert_array_equal(ran.escaped_at[seen], full.escaped_at[seen])
+    assert int(ran.escaped.sum()) >= min(stop, int(full.escaped.sum()))
+
+
 def test_escaped_rows_are_frozen_and_ask_for_no_more_forces():
     """Two rows, one far above the barrier: it escapes at some step k; after it the force
     is asked for the other row alone. Verlet takes one force per step (first same as

@@ -375,6 +375,8 @@ def _advise_at_temperature(p: Problem, warm: Any, data: dict[str, Any], criterio
     orders = tuple(range(3, order + 1)) if order is not None else DEFAULT_ORDERS[:2]
     found = thermal.advise_at_temperature(p, warm, data["h_max"], criterion, orders, progress)
     data["zero_kelvin"] = {key: data[key] for key in ("h_max", "h_max_limited_by", "safe_h")}
+    # no step at all is confirmed safe at temperature (h_max 0): said, not hidden in a 0
+    found["confirmed"] = found["h_max"] is None or found["h_max"] > 0
     data["thermal"] = found
     if found["limited_by"] != "0 K":
         data["h_max"] = found["h_max"]

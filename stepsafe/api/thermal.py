@@ -340,7 +340,8 @@ def _confirmation_record(c: Any, margin: float) -> dict[str, Any] | None:
     return {"h": margin * c.h, "max_failure": c.max_failure, "confidence": c.confidence,
             "trajectories": c.trajectories, "steps": c.steps, "seed": c.seed,
             "failures": c.failures, "upper": c.upper,
-            "rejected": [{"h": margin * h, "failures": k} for h, k in c.rejected]}
+            "rejected": [{"h": margin * h, "failures": k, "steps": n}
+                         for h, k, n in c.rejected]}
 
 
 def check_record(m: Minimum, c: Any, margin: float = 1.0) -> dict[str, Any]:

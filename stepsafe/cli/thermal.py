@@ -89,7 +89,10 @@ def print_thermal_advice(data: dict[str, Any]) -> None:
         return
     h0 = t["h_max_0K"]
     zero = "none" if h0 is None else f"h < {_below(h0)}{u}"
-    if t["limited_by"] == "0 K":
+    if not t["h_max"] > 0:
+        click.echo(click.style("No step confirmed safe", fg="red") + " at this temperature: "
+                   + _no_step(t, u) + f" (at 0 K: {zero})")
+    elif t["limited_by"] == "0 K":
         click.echo(click.style("Safe", fg="green") + f": 0 < h < {_below(t['h_max'])}{u}, "
                    "the 0 K limit (no band or thermal frequency below it)")
     else:
@@ -107,6 +110,26 @@ def print_thermal_advice(data: dict[str, Any]) -> None:
     click.echo(f"  Reproducible: every draw seeded ({t['seed']}); the failure criterion: "
                + (t["minima"][0]["scans"][0]["failure"] if t["minima"] and
                   t["minima"][0]["scans"] else "none") + ".")
+
+
+def _no_step(t: dict[str, Any], u: str) -> str:
+    """Why no step is safe at temperature: the lowest step tried and what failed there."""
+    for m in t["minima"]:
+        if m["h_max"] is not None and m["h_max"] > 0:
+            continue
+        at = ("" if "engine_runs" in m else f" at the minimum {printable(m['at'])}")
+        c = m.get("confirmation")
+        if c is not None and c.get("rejected"):
+            low = min(r["h"] for r in c["rejected"])
+            return (f"a fresh ensemble lost trajectories at every step tried{at}, down to "
+                    f"h = {_g(low)}{u}")
+        first = [sc["h_range"][0] for sc in m["scans"]
+                 if sc["bands"] and sc["bands"][0]["lower"] is None]
+        if first:
+            return (f"the thermal trajectories fail from the scan's first step h = "
+                    f"{_g(min(first))}{u}{at} on; smaller steps were not scanned")
+        return f"{m['limited_by']}{at}"
+    return t["limited_by"]
 
 
 #: How an engine's runs are reproduced.
@@ -151,7 +174,9 @@ def _print_engine_runs(r: dict[str, Any], u: str, indent: str) -> None:
 
 def _print_minimum(m: dict[str, Any], u: str, margin: float) -> None:
     what = printable(m["at"]) if "engine_runs" in m else f"minimum at {printable(m['at'])}"
-    click.echo(f"  {what}: h < {_below(m['h_max'])}{u} ({m['limited_by']})")
+    limit = (f"h < {_below(m['h_max'])}{u}" if m["h_max"] is not None and m["h_max"] > 0
+             else "no step confirmed")
+    click.echo(f"  {what}: {limit} ({m['limited_by']})")
     f = m["frequencies"]
     if f is not None:
         click.echo(f"    largest frequency over {f['frames']} thermal frames "

@@ -27,7 +27,11 @@ is a column. After each step k = 1 .. N it
   ``b = (N sum k x - S_1 sum x) / (N S_2 - S_1^2)`` (``S_1 = N (N + 1) / 2``,
   ``S_2 = N (N + 1) (2N + 1) / 6``), and the variance of ``dH`` over time, with nothing
   stored per step (memory O(n d) whatever N);
-* with ``sample_every`` m, stores ``dH_k`` at k = m, 2m, ... (NaN once escaped).
+* with ``sample_every`` m, stores ``dH_k`` at k = m, 2m, ... (NaN once escaped);
+* with ``stop_escapes`` s, stops after the step at which the s-th row escaped: a caller
+  whose verdict is settled by s escapes (a step with one failure is not safe) need not run
+  the rest. Each row's trajectory is the same whether the run stops or not (its start
+  alone decides it), so the escapes seen are those of the full run up to that step.
 
 An implicit step (and any step on an H that mixes q and p) iterates its stage equations
 until they change by at most ``tol`` times their size or 1
@@ -84,7 +88,8 @@ class Trajectories:
     forces : float
         Force evaluations summed over the trajectories.
     steps : int
-        N.
+        N: the steps run (fewer than asked when the run stopped at ``stop_escapes``
+        escapes; the fit and ``last`` are over them).
     unit : float
         The unit of ``sums``.
     """
@@ -172,6 +177,7 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
               fit: bool = False, unit: float = 1.0, sample_every: int = 0,
               energy0: np.ndarray | None = None, force0: np.ndarray | None = None,
               tol: float = 1e-14, max_iterations: int = 200,
+              stop_escapes: int | None = None,
               progress: Callable[[float], None] | None = None) -> Trajectories:
     """Advance the trajectories from the rows of ``(q0, p0)`` by ``steps`` steps of the
     method (module docstring).
@@ -212,6 +218,8 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
     tol, max_iterations : float, int
         The stage iteration of implicit methods
         (:class:`~stepsafe.core.integrator.Engine`).
+    stop_escapes : int, optional
+        Stop after the step at which this many rows have escaped (module docstring).
     progress : callable, optional
         Called with the fraction of steps done.
 
@@ -290,6 +298,8 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
         sums = np.zeros((3, n)) if fit else None
         samples = np.full((steps // sample_every, n), np.nan) if sample_every else None
         H0_run, lim_run = H0, limit
+        stop = n + 1 if stop_escapes is None else max(1, int(stop_escapes))
+        ran = steps
         for k in range(1, steps + 1):
             q, p, bad = _step(engine, q, p, hcol)
             # (the box test below fails a coordinate that is not finite)
@@ -328,10 +338,11 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
                     dH = dH[keep]
                 if not live.size:
                     break
+            stopping = n - live.size >= stop
             if measured:
                 assert worst is not None
                 worst[live] = np.fmax(worst[live], np.abs(dH))
-                if k == steps:
+                if k == steps or stopping:
                     assert last is not None
                     last[live] = dH
                 if sums is not None:  # (in units: squares of energies of 1e200 overflow)
@@ -343,6 +354,10 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
                     samples[k // sample_every - 1, live] = dH
             if progress is not None and k % 256 == 0:
                 progress(k / steps)
+            if stopping:
+                ran = k
+                break
+        out_bad = np.zeros(live.size, dtype=bool)
         if live.size:
             qo, po = engine.output(q, p, hcol) if processed else (q, p)
             out_bad = ~(np.isfinite(qo).all(axis=1) & np.isfinite(po).all(axis=1))
@@ -351,7 +366,7 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
             q_out *= Lq
             p_out *= Lp
             if out_bad.any():  # (the output map itself left the finite numbers)
-                escaped_at[live[out_bad]] = steps
+                escaped_at[live[out_bad]] = ran
                 if worst is not None:
                     worst[live[out_bad]] = np.inf
         escaped = escaped_at > 0
@@ -362,7 +377,7 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
     if progress is not None:
         progress(1.0)
     return Trajectories(q_out, p_out, H0, escaped, escaped_at, worst, last, sums, samples,
-                        count[0], steps, float(unit))
+                        count[0], ran, float(unit))
 
 
 def _unit(x: np.ndarray) -> float:

@@ -60,12 +60,24 @@ OFFSETS = (0.0025, 0.005, 0.01, 0.02, 0.04)
 
 def clopper_pearson(k: int, m: int, confidence: float = CONFIDENCE) -> tuple[float, float]:
     """One-sided ``confidence`` lower and upper bounds on a binomial probability from k
-    successes in m trials (exact, Clopper-Pearson)."""
-    from scipy.stats import beta
+    successes in m trials (exact, Clopper-Pearson): quantiles of Beta distributions, the
+    inverse of the regularised incomplete beta function."""
+    from scipy.special import betaincinv
 
-    lower = 0.0 if k == 0 else float(beta.ppf(1.0 - confidence, k, m - k + 1))
-    upper = 1.0 if k == m else float(beta.ppf(confidence, k + 1, m - k))
+    lower = 0.0 if k == 0 else float(betaincinv(k, m - k + 1, 1.0 - confidence))
+    upper = 1.0 if k == m else float(betaincinv(k + 1, m - k, confidence))
     return lower, upper
+
+
+def band_failures(m: int, threshold: float = THRESHOLD,
+                  confidence: float = CONFIDENCE) -> int:
+    """The fewest failures k of m trajectories whose lower bound exceeds ``threshold``
+    (the verdict ``band``; more failures keep it, since the bound grows with k); ``m + 1``
+    when even ``k = m`` does not."""
+    for k in range(1, m + 1):
+        if clopper_pearson(k, m, confidence)[0] > threshold:
+            return k
+    return m + 1
 
 
 def trajectories_for(threshold: float, confidence: float = CONFIDENCE) -> int:
@@ -370,7 +382,13 @@ def names_near(resonances: Sequence[tuple[float, str]], a: float, b: float) -> t
 
 def probe(method: Method, pot: Potential, start: Start, h: float, steps: int, rho: float,
           threshold: float = THRESHOLD, confidence: float = CONFIDENCE,
-          growth: float = GROWTH, distance: float = DISTANCE) -> Probe:
-    """The ensemble's verdict at one step h (see :func:`judge`)."""
-    out = run(method, pot, start, [h], steps, [rho], growth, distance)[0]
+          growth: float = GROWTH, distance: float = DISTANCE,
+          progress: Callable[[float], None] | None = None) -> Probe:
+    """The ensemble's verdict at one step h (see :func:`judge`). The run stops once
+    :func:`band_failures` trajectories have failed: the verdict is ``band`` then, as it
+    would be after every step (the bound only grows with more failures); the probe's
+    ``steps`` says how far it went, its failures are those seen by then."""
+    out = run(method, pot, start, [h], steps, [rho], growth, distance,
+              stop_failures=band_failures(start.size, threshold, confidence),
+              progress=progress)[0]
     return judge(out, threshold, confidence)

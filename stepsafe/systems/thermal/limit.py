@@ -152,8 +152,9 @@ class Confirmation:
         At h.
     upper : float
         The one-sided upper bound on the failure probability at h.
-    rejected : tuple of (float, int)
-        The steps above h tried first and their failures.
+    rejected : tuple of (float, int, int)
+        The steps above h tried first: each with the failures seen when its run stopped
+        (at its first failure) and the steps it had run then.
     """
 
     h: float
@@ -164,7 +165,7 @@ class Confirmation:
     seed: int
     failures: int
     upper: float
-    rejected: tuple[tuple[float, int], ...] = ()
+    rejected: tuple[tuple[float, int, int], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -512,7 +513,8 @@ def thermal_limit(method: Method, pot: Potential, kT: float, *, length: float | 
         # a linear limit is a supremum: the run goes at the scan's last step below it
         at = h_max if limited_by.startswith("resonance") else TOP * h_max
         at, drift, confirmation = _confirm(method, pot, fresh, at, scans, n_steps,
-                                           rho_whole, max_failure, confidence)
+                                           rho_whole, max_failure, confidence,
+                                           report("confirmation"))
         lowered = bool(confirmation.rejected)
         if lowered:
             h_max = at
@@ -523,10 +525,13 @@ def thermal_limit(method: Method, pot: Potential, kT: float, *, length: float | 
                  for z, name in zero.resonances for w in targets[0].modes], h_max, h_max)
             limited_by = "resonance band" + (f" {near[0]}" if near else "") + \
                 " (whole system)"
-            notes.append(f"the whole system fails above h = {h_max:.6g}: a fresh ensemble "
+            where = (f"above h = {h_max:.6g}" if h_max > 0 else
+                     f"at every step tried ({len(confirmation.rejected)}, stepping down by "
+                     f"{1 - STEP_DOWN:.0%} at least)")
+            notes.append(f"the whole system fails {where}: a fresh ensemble "
                          f"(seed {fresh.seed}) saw failures at "
-                         + ", ".join(f"h = {x:.6g} ({k} of {m_confirm})"
-                                     for x, k in confirmation.rejected))
+                         + ", ".join(f"h = {x:.6g} ({k} of {m_confirm} by step {n})"
+                                     for x, k, n in confirmation.rejected))
         if drift_tolerance is not None and h_max > 0:
             tol = positive_finite(drift_tolerance, "drift_tolerance")
             if drift is None or not drift.bound(SIGMAS) <= tol:
@@ -541,23 +546,27 @@ def thermal_limit(method: Method, pot: Potential, kT: float, *, length: float | 
 
 def _confirm(method: Method, pot: Potential, start: Start, h: float,
              scans: list[bands_.BandScan], steps: int, rho, max_failure: float,
-             confidence: float) -> tuple[float, Drift | None, Confirmation]:
-    """The fresh ensemble ``start`` at h with the energy tested at every step; while one
-    of its trajectories fails (or its bound is not below ``max_failure``), the next step
+             confidence: float, progress: Callable[[float], None] | None = None
+             ) -> tuple[float, Drift | None, Confirmation]:
+    """The fresh ensemble ``start`` at h with the energy tested at every step, stopped
+    at its first failure; while one of its trajectories fails (or its bound is not below
+    ``max_failure``), the next step
     below that the scan judged clear, ``STEP_DOWN`` times the step at least, at most
     ``CONFIRM_TRIES`` steps: ``(h, drift, confirmation)``, h = 0 and no drift when none
     was clear."""
     clear = sorted({p.h for p in scans[0].probes if p.clear}, reverse=True)
-    rejected: list[tuple[float, int]] = []
+    rejected: list[tuple[float, int, int]] = []
     x = h
     for _ in range(CONFIRM_TRIES):
-        out = run(method, pot, start, [x], steps, rho(np.array([x])), GROWTH, DISTANCE)[0]
+        # one failure settles a step (it is not clear): the run stops there
+        out = run(method, pot, start, [x], steps, rho(np.array([x])), GROWTH, DISTANCE,
+                  stop_failures=1, progress=progress)[0]
         pr = bands_.judge(out, max_failure, confidence)
         if pr.clear:
             return x, from_outcome(out, start.kT, pot.dimension, start.seed), Confirmation(
                 x, max_failure, confidence, pr.trajectories, pr.steps, start.seed,
                 pr.failures, pr.upper, tuple(rejected))
-        rejected.append((x, pr.failures))
+        rejected.append((x, pr.failures, pr.steps))
         below = [c for c in clear if c < x]
         x = max(below[0], STEP_DOWN * x) if below else STEP_DOWN * x
     return 0.0, None, Confirmation(0.0, max_failure, confidence, start.size, steps,

@@ -129,7 +129,8 @@ class Outcome:
     h : float
     trajectories, failures : int
     steps : int
-        Steps every surviving trajectory ran.
+        Steps every surviving trajectory ran (fewer than asked when the run stopped at
+        ``stop_failures`` failures).
     drift, drift_error : float
         Mean energy drift per unit time over the survivors and its standard error (NaN
         with fewer than 2 survivors).
@@ -148,6 +149,7 @@ class Outcome:
 
 def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
         rho, growth: float = GROWTH, distance: float = DISTANCE, energy_every: int = 1,
+        stop_failures: int | None = None,
         progress: Callable[[float], None] | None = None) -> list[Outcome]:
     """Run the start at every h for ``steps`` steps (module docstring).
 
@@ -167,6 +169,11 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
         Measure the energy every this many steps (and at the last). Above 1 the energy
         test runs only there and no drift is measured (``drift`` NaN): for band scans,
         where the energy costs as much as the force.
+    stop_failures : int, optional
+        With one h: stop after the step at which this many trajectories have failed
+        (their verdict is then settled; every trajectory is the one the full run would
+        follow, so the failures seen are those of the full run up to that step, and
+        ``steps`` says how far it went).
     progress : callable, optional
         Called with the fraction of steps done.
 
@@ -182,6 +189,8 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
         raise StepsafeError(f"at least 2 steps are needed, got {steps}")
     every = max(1, int(energy_every))
     k, m = h_values.size, start.size
+    if stop_failures is not None and k != 1:
+        raise StepsafeError("a run stopped at its failures takes one step h")
     system = system_of(pot)
     rho_rows = np.repeat(rho, m)
     with np.errstate(over="ignore", invalid="ignore"):
@@ -193,7 +202,7 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
                     np.repeat(h_values, m), steps, energy_every=every,
                     reference_energy=start.energy_reference, growth=growth * rho_rows ** 2,
                     centre=start.reference, reach=reach, fit=every == 1, unit=start.kT,
-                    progress=progress)
+                    stop_escapes=stop_failures, progress=progress)
     which = np.repeat(np.arange(k), m)
     failures = np.bincount(which[ran.escaped], minlength=k)
     unit = start.kT
@@ -210,5 +219,6 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
             drift = float(b.mean()) * unit
             error = float(b.std(ddof=1) / math.sqrt(count)) * unit if count > 1 else math.nan
             fluct = float(math.sqrt(variance[mine].mean())) * unit
-        out.append(Outcome(float(h_values[j]), m, int(failures[j]), steps, drift, error, fluct))
+        out.append(Outcome(float(h_values[j]), m, int(failures[j]), ran.steps, drift, error,
+                           fluct))
     return out
