@@ -19,8 +19,10 @@ from hypothesis import strategies as st
 
 import stepsafe
 from stepsafe.api.temperature import request
+from stepsafe.api.thermal import followed
 from stepsafe.exceptions import StepsafeError
 from stepsafe.systems.scene import load_scene
+from stepsafe.systems.thermal.limit import run_steps
 
 MORSE = """method: verlet
 system:
@@ -444,3 +446,89 @@ def test_json_says_which_criterion_and_which_answer_was_applied(morse_scene, cri
     assert linear.record["thermal"]["criterion"] == criterion
     assert linear.record["thermal"]["limited_by"] == "0 K"
     assert linear.h_max == plain.h_max and linear.safe_h == plain.safe_h
+
+
+@settings(max_examples=60, deadline=None)
+@given(scale=st.integers(-100, 100), x=st.floats(0.5, 2.0), n=st.integers(1, 10 ** 6),
+       follow=st.integers(1, 10 ** 6), by_length=st.booleans())
+def test_a_run_longer_than_the_trajectories_follow_is_refused_at_every_scale(
+        scale, x, n, follow, by_length):
+    """A run of n steps at h (given as steps, or as the length n h in any time unit from
+    1e-100 to 1e100) passes when n <= follow_steps and is refused otherwise, with a
+    StepsafeError naming the run's key, the steps and what to give instead."""
+    h = x * 10.0 ** scale
+    run = {"length": n * h} if by_length else {"steps": n}
+    r = request(kT=0.1, follow_steps=follow, **run)
+    assert r is not None and r.follow == follow
+    assert run_steps(h, r.length, r.steps) == n
+    if n <= follow:
+        followed(r, h)
+        return
+    with pytest.raises(StepsafeError) as info:
+        followed(r, h)
+    key = "--length" if by_length else "--steps"
+    assert info.value.message.startswith(f"{key}, ")
+    assert f"the run's {n} steps" in info.value.message
+    assert f"--follow-steps {n}" in info.value.message
+
+
+def test_follow_steps_defaults_to_ten_thousand_and_refuses_bad_values(tmp_path):
+    r = request(kT=0.1, steps=10)
+    assert r is not None and r.follow == 10_000
+    for bad in (0, -3, 1.5, "many", True, 10 ** 9):
+        with pytest.raises(StepsafeError, match="follow_steps"):
+            request(kT=0.1, steps=10, follow_steps=bad)
+    path = tmp_path / "s.yaml"
+    path.write_text(MORSE + "kT: 0.003\nsteps: 20000\nfollow_steps: 0\n")
+    with pytest.raises(StepsafeError) as info:
+        request(scene=load_scene(path))
+    assert info.value.where == f"{path}::$.follow_steps"
+
+
+def test_check_and_advise_refuse_a_run_longer_than_followed_naming_the_key(tmp_path):
+    """``steps: 20000`` in a scene (trajectories follow 10000 by default): check and
+    advise exit 2 with one line naming the file and key, before any ensemble runs; the
+    same run on the command line names the option; ``--follow-steps`` at the run's length
+    lets it be followed."""
+    path = tmp_path / "long.yaml"
+    path.write_text(MORSE + "h: 0.8\nkT: 0.003\nsteps: 20000\n")
+    run = _cli("check", str(path))
+    assert run.returncode == 2 and run.stdout == "", run.stderr
+    assert run.stderr.count("\n") == 1 and f"{path}::$.steps" in run.stderr
+    assert "--follow-steps 20000" in run.stderr
+    with pytest.raises(StepsafeError, match="--follow-steps 20000") as info:
+        stepsafe.advise(scene=str(path))
+    assert info.value.where == f"{path}::$.steps"
+    with pytest.raises(StepsafeError, match="^--steps, steps="):
+        stepsafe.advise(scene=str(path), steps=30_000, follow_steps=29_999)
+    with pytest.raises(StepsafeError, match="--length, length="):
+        stepsafe.check(scene=str(path), length=2e4, follow_steps=24_999)
+    r = stepsafe.check(scene=str(path), steps=60, follow_steps=60)
+    assert r.safe and r.record["thermal"]["follow_steps"] == 60
+    assert r.record["thermal"]["minima"][0]["probes"][0]["steps"] == 60
+
+
+@pytest.mark.slow  # (an analysis at temperature whose 24 confirmations all fail: ~5 s)
+def test_advise_says_plainly_when_no_step_is_confirmed_safe_at_temperature():
+    """The 4-mass FPU chain at kT = 0.55 (its bonds' barrier is 4.8 kT high): a fresh
+    ensemble loses trajectories at every step tried, so no step is safe at temperature.
+    The text says so (never "0 < h < 0"), the JSON has ``h_max`` 0, ``confirmed`` false
+    and no safe step, and advise exits 0 as it does for "No safe step" at 0 K."""
+    scene = str(Path(__file__).resolve().parent.parent / "examples" / "fpu-alpha.yaml")
+    args = ("advise", scene, "--kT", "0.55", "--steps", "100")
+    text = _cli(*args)
+    assert text.returncode == 0, text.stderr
+    assert "No step confirmed safe at this temperature" in text.stdout
+    assert "< 0," not in text.stdout and "h < 0 " not in text.stdout
+    assert "no step confirmed (" in text.stdout
+    run = _cli(*args, "--json")
+    assert run.returncode == 0, run.stderr
+    data = json.loads(run.stdout)
+    t = data["thermal"]
+    assert t["confirmed"] is False and t["h_max"] == 0 == data["h_max"]
+    assert data["safe_h"] == []
+    c = t["minima"][0]["confirmation"]
+    assert c["h"] == 0 and len(c["rejected"]) == 24
+    assert all(x["failures"] >= 1 and 1 <= x["steps"] <= 100 for x in c["rejected"])
+    low = min(x["h"] for x in c["rejected"])
+    assert f"down to h = {low:.6g}" in text.stdout

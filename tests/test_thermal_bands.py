@@ -215,3 +215,19 @@ def test_band_failures_is_the_fewest_failures_whose_binomial_tail_rules_out_the_
         assert tail(k) < 0.05 * (1 + 1e-9)
     if k > 1:
         assert tail(k - 1) >= 0.05 * (1 - 1e-9)
+
+
+def test_a_scan_and_a_probe_report_their_progress_in_order():
+    """The progress of a scan (grid and bisections) and of a probe: fractions in [0, 1]
+    that never go back, the last one 1."""
+    pot = morse()
+    start = thermal_start(pot, 0.006, 40, seed=3)
+    for job in ("scan", "probe"):
+        seen: list[float] = []
+        if job == "scan":
+            scan(method("verlet"), pot, start, np.array([0.8, 1.7]), 300, _verlet_rho,
+                 bisections=2, progress=seen.append)
+        else:
+            probe(method("verlet"), pot, start, 0.8, 300, 1.2, progress=seen.append)
+        assert seen and seen[-1] == 1.0
+        assert all(0.0 <= a <= b <= 1.0 for a, b in zip(seen, seen[1:]))

@@ -203,8 +203,8 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
            criterion: str | None = None, verify: bool = False, gradient_cost: float = 1.0,
            temperature: float | str | None = None, kT: float | None = None,
            length: float | str | None = None, steps: int | None = None,
-           max_drift: float | None = None,
-           max_failure: float | None = None) -> AdviceReport:
+           max_drift: float | None = None, max_failure: float | None = None,
+           follow_steps: int | None = None) -> AdviceReport:
     """Safe step sizes for a method and angular frequencies ``beta`` (or a scene, or a
     system), with the inputs of :func:`problem`.
 
@@ -262,6 +262,10 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
         With a temperature: the largest acceptable probability that a trajectory of the
         run fails (default 0.001, in [1e-5, 0.1]): the answer is confirmed on a fresh
         ensemble of ``ln(20) / max_failure`` thermal trajectories, none of which may fail.
+    follow_steps : int, optional
+        With a temperature: the most steps the thermal trajectories follow (default
+        10000). A run of more steps at the answer is refused (a ``StepsafeError``), not
+        judged by its first steps.
 
     Returns
     -------
@@ -284,7 +288,8 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
               "constraints": constraints, "hydrogen_mass": hydrogen_mass,
               "minimize": minimize}  # (beside problem=, progress reports on the thermal work)
     p = problem_of(method, beta, inputs, (length,))
-    warm = _thermal_request(p, temperature, kT, length, steps, max_drift, max_failure)
+    warm = _thermal_request(p, temperature, kT, length, steps, max_drift, max_failure,
+                            follow_steps)
     if warm is not None and (tol_phase is not None or tol_energy is not None):
         raise StepsafeError("temperature: the answer at temperature does not bound the phase "
                             "or energy error yet; give tol_phase/tol_energy without it")
@@ -357,13 +362,15 @@ def _stochastic_record(integrator: Integrator, p: Problem, h: float | None
 
 
 def _thermal_request(p: Problem, temperature: Any, kT: Any, length: Any, steps: Any,
-                     max_drift: Any, max_failure: Any = None) -> Any:
+                     max_drift: Any, max_failure: Any = None, follow_steps: Any = None
+                     ) -> Any:
     """The request at temperature of the keywords and the problem's scene (None: none,
     or T = 0)."""
     scene = load_scene(p.scene, p.time_unit) if p.scene else None
     tree = p.system.tree if p.system is not None else None
     return request(temperature=temperature, kT=kT, length=length, steps=steps,
-                   max_drift=max_drift, max_failure=max_failure, scene=scene, system=tree,
+                   max_drift=max_drift, max_failure=max_failure, follow_steps=follow_steps,
+                   scene=scene, system=tree,
                    time_unit=p.time_unit)
 
 
@@ -453,7 +460,7 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
           require_complete_search: bool = False, temperature: float | str | None = None,
           kT: float | None = None, length: float | str | None = None,
           steps: int | None = None, max_drift: float | None = None,
-          max_failure: float | None = None) -> CheckReport:
+          max_failure: float | None = None, follow_steps: int | None = None) -> CheckReport:
     """Is step ``h`` safe for every frequency? A scene may give the step (``h:``). A step
     exactly on a resonance or a pole is unsafe.
 
@@ -485,8 +492,10 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
         that it found every equilibrium (``system["search"]`` says what was
         searched, ``search_failure`` why it falls short; see
         :mod:`stepsafe.systems.walks`); other inputs are unaffected.
-    temperature, kT, length, steps, max_drift, max_failure : optional
-        As for :func:`advise`: the step is unsafe too when it lies above the linear limit
+    temperature, kT, length, steps, max_drift, max_failure, follow_steps : optional
+        As for :func:`advise` (a run of more steps at h than ``follow_steps`` is refused
+        before anything is run): the step is unsafe too when it lies above the linear
+        limit
         at temperature, a trajectory of an ensemble of ``ln(20) / max_failure`` thermal
         trajectories at that step fails, or its measured drift exceeds ``max_drift``
         (a failed trajectory fails it too; ``thermal``;
@@ -522,7 +531,8 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
     if step is None:
         raise StepsafeError(f"{p.scene or 'check'}: no step: give --step H or h: in the "
                             "scene file (h= in Python)")
-    warm = _thermal_request(p, temperature, kT, length, steps, max_drift, max_failure)
+    warm = _thermal_request(p, temperature, kT, length, steps, max_drift, max_failure,
+                            follow_steps)
     if warm is not None:
         resonance_order = None  # (the measured bands replace the resonance points)
     integrator, result = p.integrator, None

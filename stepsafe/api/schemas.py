@@ -117,10 +117,11 @@ THERMAL_REQUEST = {"kT": NUM, "criterion": {"enum": ["structure", "stability"]},
                    "minima": array(record({"at": STR}, closed=False))}
 
 THERMAL_ADVICE = record({**THERMAL_REQUEST, "h_max": NUM_OR_NULL, "h_max_0K": NUM_OR_NULL,
-                         "limited_by": STR}, closed=False)
+                         "limited_by": STR, "confirmed": BOOL},
+                        {"follow_steps": INT}, closed=False)
 
 THERMAL_CHECK = record({**THERMAL_REQUEST, "safe": BOOL, "reasons": array(STR)},
-                       closed=False)
+                       {"follow_steps": INT}, closed=False)
 
 #: A processed method's processor forces: once at the start and at each output.
 PROCESSOR = record({"start": INT, "per_output": INT})

@@ -1,6 +1,7 @@
 """The request for an analysis at temperature: the keywords (the command line's options) and
 the scene's keys ``temperature:``, ``kT:``, ``energy_unit:``, ``length:``, ``steps:``,
-``max_drift:`` and ``max_failure:``, checked (a bad value is an error naming its key).
+``max_drift:``, ``max_failure:`` and ``follow_steps:``, checked (a bad value is an error
+naming its key).
 
 Every ``advise`` and ``check`` reads them; the analysis itself (:mod:`stepsafe.api.thermal`)
 is loaded only when a temperature is given.
@@ -25,6 +26,11 @@ ENGINE_ENERGY = "kJ/mol"
 MAX_FAILURE = 1e-3
 #: The smallest accepted: ``ln(20) / MIN_FAILURE`` trajectories per probe.
 MIN_FAILURE = 1e-5
+#: The most steps the thermal trajectories follow by default (``follow_steps``; as
+#: :data:`stepsafe.systems.thermal.limit.BAND_STEPS`).
+FOLLOW_STEPS = 10_000
+#: ... and at most, whatever is asked (the cost grows in proportion to the steps).
+MAX_FOLLOW_STEPS = 10 ** 8
 
 
 @compared
@@ -52,6 +58,13 @@ class Request:
     key : str
         Where the temperature came from: the option and keyword (``--kT, kT=``) or the
         scene's key (``$.kT``), for errors of the analysis.
+    follow_steps : int or None
+        The most steps the thermal trajectories follow, when given (else
+        :data:`FOLLOW_STEPS`, :attr:`follow`).
+    run_key : str
+        Where the run came from: the option and keyword (``--steps, steps=``) or the
+        scene's key with its file (``scene.yaml::$.steps``), for a run longer than the
+        trajectories follow.
     """
 
     kT: float
@@ -62,6 +75,8 @@ class Request:
     max_drift: float | None = None
     max_failure: float | None = None
     key: str = "--kT, kT="
+    follow_steps: int | None = None
+    run_key: str = "--steps, steps="
 
     def run(self) -> dict[str, Any]:
         return {"length": self.length, "steps": self.steps}
@@ -70,6 +85,11 @@ class Request:
     def failure(self) -> float:
         """The largest acceptable failure probability: given, or :data:`MAX_FAILURE`."""
         return MAX_FAILURE if self.max_failure is None else self.max_failure
+
+    @property
+    def follow(self) -> int:
+        """The most steps the thermal trajectories follow: given, or :data:`FOLLOW_STEPS`."""
+        return FOLLOW_STEPS if self.follow_steps is None else self.follow_steps
 
 
 def where_in_scene(scene: Any, key: str) -> str | None:
@@ -86,7 +106,7 @@ def _fail(message: str, scene: Any, key: str, given: bool) -> StepsafeError:
 
 def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
             steps: Any = None, max_drift: Any = None, max_failure: Any = None,
-            scene: Any = None, system: Any = None,
+            follow_steps: Any = None, scene: Any = None, system: Any = None,
             time_unit: str | None = None) -> Request | None:
     """The request of the keywords (the command line's options), else of the scene's
     ``temperature:``, ``kT:``, ``length:`` and ``steps:`` (each keyword wins over the
@@ -114,6 +134,9 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
         (default :data:`MAX_FAILURE`): ``check`` needs none of
         ``ln(20) / max_failure`` thermal trajectories at the step to fail, ``advise``
         confirms its answer so on a fresh ensemble.
+    follow_steps : int, optional
+        The most steps the thermal trajectories follow (default :data:`FOLLOW_STEPS`, at
+        most :data:`MAX_FOLLOW_STEPS`): a run of more steps is refused.
     scene : stepsafe.systems.scene.Scene, optional
         The scene file read (its keys and where they are).
     system : mapping, optional
@@ -127,7 +150,7 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
     """
     keys = dict(getattr(scene, "thermal", None) or {})
     given = {"temperature": temperature, "kT": kT, "length": length, "steps": steps,
-             "max_drift": max_drift, "max_failure": max_failure}
+             "max_drift": max_drift, "max_failure": max_failure, "follow_steps": follow_steps}
 
     def value(key: str) -> tuple[Any, bool]:
         if given.get(key) is not None:
@@ -181,7 +204,7 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
         temperature_k = None
         unit = unit if k_given is False else unit
     else:
-        for key in ("length", "steps", "max_drift", "max_failure"):
+        for key in ("length", "steps", "max_drift", "max_failure", "follow_steps"):
             v, g = value(key)
             if v is not None:
                 raise _fail("applies to the analysis at temperature: give a temperature "
@@ -249,6 +272,22 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
         if not MIN_FAILURE <= p_max <= 0.1:
             raise _fail(f"max_failure must be a probability in [{MIN_FAILURE:g}, 0.1], got "
                         f"{str(p_value)[:40]!r}", scene, "max_failure", p_given)
+    f_value, f_given = value("follow_steps")
+    follow = None
+    if f_value is not None:
+        number = parse_real(f_value) if isinstance(f_value, str) and not f_given else f_value
+        if isinstance(number, float) and math.isfinite(number) and number == int(number):
+            number = int(number)
+        if isinstance(number, bool) or not isinstance(number, int) or \
+                not 1 <= number <= MAX_FOLLOW_STEPS:
+            raise _fail(f"follow_steps must be a whole number of steps in [1, "
+                        f"{MAX_FOLLOW_STEPS:.0e}], got {str(f_value)[:40]!r}", scene,
+                        "follow_steps", f_given)
+        follow = number
     name = "temperature" if temperature_k is not None else "kT"
     key = f"--{name}, {name}=" if (t_given or k_given) else f"$.{name}"
-    return Request(kt, temperature_k, unit, run_length, run_steps, tolerance, p_max, key)
+    run_name = "length" if run_length is not None else "steps"
+    run_key = (f"--{run_name}, {run_name}=" if (l_given or s_given)
+               else (where_in_scene(scene, run_name) or f"$.{run_name}"))
+    return Request(kt, temperature_k, unit, run_length, run_steps, tolerance, p_max, key,
+                   follow, run_key)

@@ -46,11 +46,32 @@ from stepsafe.systems.md.thermal import THERMALISATION, confirm_seeds
 from stepsafe.systems.scene import load_scene
 from stepsafe.systems.thermal import thermal_check, thermal_limit
 from stepsafe.systems.thermal.bands import CONFIDENCE, trajectories_for
+from stepsafe.systems.thermal.limit import run_steps
 from stepsafe.systems.thermal_scene import Minimum, is_harmonic, minima
 from stepsafe.units import TIME_UNITS
 
 #: The seed of every draw of the analysis at temperature.
 SEED = 0
+
+
+def followed(req: Request, h: float) -> None:
+    """Refuse a run at step h longer than the thermal trajectories follow
+    (``req.follow``): its later steps are not followed, so nothing would show them safe (a
+    :class:`StepsafeError` naming the run's key, with what to give instead)."""
+    n = run_steps(h, req.length, req.steps)
+    if n <= req.follow:
+        return
+    option = "--steps" if req.steps is not None else "--length"
+    message = (f"the run's {n} steps at h = {h:.6g} are more than the thermal trajectories "
+               f"follow ({req.follow}): failures that develop after step {req.follow} would "
+               f"not be seen, so no step is called safe for this run; give --follow-steps "
+               f"{n} (follow_steps:) to follow it all (the cost grows in proportion to the "
+               f"steps), or a shorter run ({option})")
+    if req.run_key.startswith("--"):
+        raise StepsafeError(f"{req.run_key}: {message}")
+    raise StepsafeError(message, req.run_key)
+
+
 def _minima(p: Any, req: Request) -> list[Minimum] | None:
     """The minima of the problem's potential (None: harmonic, the 0 K answer holds)."""
     if p.integrator.kind == "langevin":
@@ -108,14 +129,19 @@ def _request_record(req: Request, criterion: str, ensemble: bool = True) -> dict
            "energy_unit": req.energy_unit, "run": req.run(), "max_drift": req.max_drift,
            "seed": SEED}
     if ensemble:
-        out.update(max_failure=req.failure,
+        out.update(max_failure=req.failure, follow_steps=req.follow,
                    trajectories=trajectories_for(req.failure, CONFIDENCE),
                    confidence=CONFIDENCE)
     return out
 
 
 def _no_failure_threshold(req: Request) -> None:
-    """An engine's runs are judged by their own seeds, not by a failure threshold."""
+    """An engine's runs are judged by their own seeds, not by a failure threshold, and
+    last what the engine's analysis states, not ``follow_steps``."""
+    if req.follow_steps is not None:
+        raise StepsafeError("follow_steps: applies to a hamiltonian: system's thermal "
+                            "trajectories; an MD engine's runs last what its analysis "
+                            "states (give no follow_steps)")
     if req.max_failure is not None:
         raise StepsafeError("max_failure: applies to a hamiltonian: system's thermal "
                             "ensembles; an MD engine's system is judged by its seeded runs "
@@ -170,6 +196,8 @@ def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion:
     found = _minima(p, req)
     if found is None:
         return _harmonic_record(req, h_zero, criterion)
+    if h_zero is not None and h_zero > 0:
+        followed(req, h_zero / p.margin)  # (every step at temperature is smaller)
     each = []
     report = _progress(progress, len(found))
     for i, m in enumerate(found):
@@ -178,9 +206,11 @@ def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion:
                               steps=None if req.steps is None else req.steps,
                               criterion=criterion, orders=orders, seed=SEED,
                               drift_tolerance=req.max_drift, max_failure=req.failure,
-                              progress=report(i))
+                              band_steps=req.follow, progress=report(i))
         each.append((m, r))
     best_m, best = min(each, key=lambda e: e[1].h_max)
+    if best.h_max > 0:
+        followed(req, best.h_max)  # the confirmation followed this many steps at most
     h_t = p.margin * best.h_max
     out = {**_request_record(req, criterion), "h_max_0K": h_zero}
     if h_zero is not None and h_zero <= h_t:
@@ -191,20 +221,8 @@ def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion:
     out["margin"] = p.margin
     out["minima"] = [limit_record(m, r, p.margin) for m, r in each]
     out["harmonic"] = False
-    ran = min((sc.steps for _, r in each for sc in r.scans), default=None)
-    out["notes"] = _shorter_runs(req, ran, best.h_max)
+    out["notes"] = []
     return out
-
-
-def _shorter_runs(req: Request, ran: int | None, h: float) -> list[str]:
-    """A note when the ensembles ran fewer steps than the user's run at step h."""
-    if ran is None or not h > 0:
-        return []
-    total = req.steps if req.steps is not None else (req.length or 0.0) / h
-    if total <= ran:
-        return []
-    return [f"the thermal trajectories ran {ran} steps of the run's {total:.3g}: failures "
-            "that take longer to develop are not excluded"]
 
 
 def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
@@ -242,12 +260,13 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
                 "harmonic": True, "reasons": [], "minima": [],
                 "notes": _harmonic_record(req, None, criterion)["notes"]}
     step = h / p.margin
+    followed(req, step)
     each, reasons = [], []
     for i, m in enumerate(found):
         with p.integrator.naming_its_file(), _naming_the_scene(p, req):
             c = thermal_check(p.integrator.tableau, m.potential, req.kT, step,
                               length=req.length, steps=req.steps, criterion=criterion,
-                              max_failure=req.failure, seed=SEED)
+                              max_failure=req.failure, band_steps=req.follow, seed=SEED)
         if progress is not None:
             progress((i + 1) / len(found))
         each.append(check_record(m, c, p.margin))
@@ -262,10 +281,8 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
             reasons.append(f"the energy drift {d.rate:.3g} +- {d.error:.2g} per time unit "
                            f"(2 standard errors) exceeds max_drift {req.max_drift:g} "
                            f"(minimum at {m.label})")
-    ran = min((pr["steps"] for m in each for pr in m["probes"]), default=None)
     return {**_request_record(req, criterion), "safe": not reasons, "reasons": reasons,
-            "harmonic": False, "margin": p.margin, "minima": each,
-            "notes": _shorter_runs(req, ran, step)}
+            "harmonic": False, "margin": p.margin, "minima": each, "notes": []}
 
 
 def _edge(e: Any) -> dict[str, Any] | None:

@@ -413,7 +413,8 @@ def _no_temperature(warm: dict) -> None:
     if given is not None:
         option = {"length": "--length", "steps": "--steps", "kT": "--kT",
                   "max_drift": "--max-drift",
-                  "max_failure": "--max-failure"}.get(given, "--temperature")
+                  "max_failure": "--max-failure",
+                  "follow_steps": "--follow-steps"}.get(given, "--temperature")
         raise _input_error(f"{option}: the analysis at temperature does not apply to "
                            "impulse (multiple time stepping) methods yet")
 

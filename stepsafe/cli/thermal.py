@@ -24,8 +24,14 @@ def _below(x: float) -> str:
 
 
 def thermal_options(func):
-    """--temperature, --kT, --length, --steps, --max-drift and --max-failure."""
+    """--temperature, --kT, --length, --steps, --max-drift, --max-failure and
+    --follow-steps."""
     opts = [
+        click.option("--follow-steps", "follow_steps", type=INT, default=None, metavar="N",
+                     help="With a temperature: the most steps the thermal trajectories "
+                          "follow (default 10000). A run of more steps is refused, not "
+                          "judged by its first steps: raise N to follow it all (the cost "
+                          "grows in proportion), or state a shorter run."),
         click.option("--max-failure", "max_failure", type=FLOAT, default=None, metavar="P",
                      help="With a temperature: the largest acceptable probability that a "
                           "trajectory of the run fails (default 0.001, from 1e-5 to 0.1): "
@@ -59,7 +65,8 @@ def thermal_keywords(options: dict[str, Any]) -> dict[str, Any]:
     """The API's keywords of the options (removed from ``options``)."""
     return {"temperature": options.pop("temperature"), "kT": options.pop("kT"),
             "length": options.pop("run_length"), "steps": options.pop("run_steps"),
-            "max_drift": options.pop("max_drift"), "max_failure": options.pop("max_failure")}
+            "max_drift": options.pop("max_drift"), "max_failure": options.pop("max_failure"),
+            "follow_steps": options.pop("follow_steps")}
 
 
 def zero_kelvin_view(data: dict[str, Any]) -> dict[str, Any]:

@@ -357,10 +357,10 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
             if stopping:
                 ran = k
                 break
-        out_bad = np.zeros(live.size, dtype=bool)
+        out_bad: np.ndarray = np.zeros(live.size, dtype=bool)
         if live.size:
             qo, po = engine.output(q, p, hcol) if processed else (q, p)
-            out_bad = ~(np.isfinite(qo).all(axis=1) & np.isfinite(po).all(axis=1))
+            out_bad = np.asarray(~(np.isfinite(qo).all(axis=1) & np.isfinite(po).all(axis=1)))
             q_out[live], p_out[live] = qo, po
         if Lq != 1.0 or Lp != 1.0:
             q_out *= Lq

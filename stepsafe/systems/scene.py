@@ -64,11 +64,11 @@ from stepsafe.units import (
 
 SCENE_KEYS = ("method", "h", "time_unit", "margin", "zmax", "modes", "system", "substeps",
               "temperature", "kT", "energy_unit", "length", "steps", "max_drift",
-              "max_failure")
+              "max_failure", "follow_steps")
 #: The keys of the analysis at temperature, kept as written and read by
 #: :func:`stepsafe.api.temperature.request` (which names the key of a bad value).
 THERMAL_KEYS = ("temperature", "kT", "energy_unit", "length", "steps", "max_drift",
-                "max_failure")
+                "max_failure", "follow_steps")
 MAX_CSV_BYTES = 256 << 20
 MAX_CSV_ROWS = 10_000_000  # rows of a modes CSV, counted (newlines) before parsing
 #: Modes of an impulse scene: each (fast, slow) pair is a region of its own.
@@ -154,6 +154,10 @@ def json_schema() -> dict[str, Any]:
                             "description": "at temperature: the largest acceptable "
                                            "probability that a trajectory of the run fails "
                                            "(default 0.001)"},
+            "follow_steps": {"type": "integer", "minimum": 1,
+                             "description": "at temperature: the most steps the thermal "
+                                            "trajectories follow (default 10000); a longer "
+                                            "run is refused"},
             "modes": {"type": "array", "minItems": 1, "items": {
                 "type": "object", "additionalProperties": False,
                 "oneOf": [{"required": [form]} for form in FORMS]

@@ -313,7 +313,7 @@ def scan(method: Method, pot: Potential, start: Start, h_values, steps: int,
         report = None if progress is None else (
             lambda f: progress((part + f) / total))
         outs = run(method, pot, start, hs, steps, rho_of(hs), growth, distance, energy_every,
-                   report)
+                   progress=report)
         return [judge(o, threshold, confidence) for o in outs]
 
     probes = measure(h_values, 0)
@@ -332,6 +332,8 @@ def scan(method: Method, pot: Potential, start: Start, h_values, steps: int,
         extra += found
         for br, pr in zip(brackets, found):
             br[0 if pr.clear else 1] = pr.h
+    if progress is not None:  # (done, though bisections may have ended early)
+        progress(1.0)
     every = sorted(probes + extra, key=lambda p: p.h)
     inside = [p.h for p in every if p.verdict == "band"]
 

@@ -294,7 +294,7 @@ def _run_time(h: float, length: float | None, steps: float | None) -> float:
     return float(steps) * h
 
 
-def _run_steps(h: float, length: float | None, steps: float | None) -> int:
+def run_steps(h: float, length: float | None, steps: float | None) -> int:
     """The run's number of steps at step ``h``: ``steps`` rounded up, else ``length / h``
     rounded up (a quotient within a few rounding errors of an integer counts as it)."""
     if steps is not None:
@@ -462,7 +462,7 @@ def thermal_limit(method: Method, pot: Potential, kT: float, *, length: float | 
     notes: list[str] = list(zero.notes) + list(linear.ensemble.notes)
     h_lo = LOW * linear.h_linear
     h_hi = TOP * linear.h_linear
-    n_steps = int(min(band_steps, _run_steps(h_lo, length, steps)))
+    n_steps = int(min(band_steps, run_steps(h_lo, length, steps)))
     n_steps = max(n_steps, 2)
     targets = _targets(pot, kT, linear.ensemble, trajectories, seed, whole_up_to,
                        modes_profiled, grid_points)
@@ -526,8 +526,7 @@ def thermal_limit(method: Method, pot: Potential, kT: float, *, length: float | 
             limited_by = "resonance band" + (f" {near[0]}" if near else "") + \
                 " (whole system)"
             where = (f"above h = {h_max:.6g}" if h_max > 0 else
-                     f"at every step tried ({len(confirmation.rejected)}, stepping down by "
-                     f"{1 - STEP_DOWN:.0%} at least)")
+                     f"at every step tried ({len(confirmation.rejected)} steps)")
             notes.append(f"the whole system fails {where}: a fresh ensemble "
                          f"(seed {fresh.seed}) saw failures at "
                          + ", ".join(f"h = {x:.6g} ({k} of {m_confirm} by step {n})"
@@ -645,7 +644,7 @@ def thermal_check(method: Method, pot: Potential, kT: float, h: float, *,
     reasons = []
     if h >= linear.h_linear:
         reasons.append("above the linear limit at temperature")
-    n_steps = max(2, int(min(band_steps, _run_steps(h, length, steps))))
+    n_steps = max(2, int(min(band_steps, run_steps(h, length, steps))))
     targets = _targets(pot, kT, linear.ensemble, count, seed, whole_up_to,
                        modes_profiled, bands_.GRID_POINTS, count)
     ratio = max(1.0, linear.omega.upper / zero.omega_zero)
