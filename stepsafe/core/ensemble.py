@@ -280,8 +280,8 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
             limit = np.where(np.isnan(limit), np.inf, limit)
         ref = reach_run = None
         if reach is not None:
-            ref = np.zeros((1, q0.shape[1])) if centre is None else \
-                np.asarray(centre, dtype=float)[None, :] / Lq
+            ref = None if centre is None or not np.any(np.asarray(centre)) else \
+                np.asarray(centre, dtype=float)[None, :] / Lq  # (None: the origin)
             reach_run = np.asarray(reach, dtype=float) / Lq
             per_row = reach_run.ndim == 2
             reach_run = np.broadcast_to(reach_run, q0.shape) if per_row else reach_run[None, :]
@@ -310,7 +310,7 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
             else:
                 qo, po = q, p
             if reach_run is not None:
-                bad |= ~np.all(np.abs(qo - ref) <= reach_run, axis=1)
+                bad |= ~(np.abs(qo if ref is None else qo - ref) <= reach_run).all(axis=1)
             if measured:
                 assert H0_run is not None
                 dH = run_system.energy(qo, po) - H0_run

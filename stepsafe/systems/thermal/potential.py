@@ -418,9 +418,10 @@ def system_of(pot: Potential) -> System:
     """The equations of motion ``q' = M^-1 p``, ``p' = -grad U(q)`` for
     :class:`stepsafe.core.integrator.Engine`."""
     inverse = 1.0 / pot.masses
+    unit = bool(np.all(inverse == 1.0))  # (then M^-1 p is p itself: one pass fewer)
 
     def energy(q: Array, p: Array) -> Array:
-        return pot.energy(q) + 0.5 * np.einsum("mi,mi->m", p * inverse, p)
+        return pot.energy(q) + 0.5 * np.einsum("mi,mi->m", p if unit else p * inverse, p)
 
     hessian = None
     if pot.hessian is not None:
@@ -433,7 +434,8 @@ def system_of(pot: Potential) -> System:
             return (np.asarray(full(q), dtype=float), zero,
                     np.broadcast_to(np.diag(inverse), (m, n, n)))
 
-    return System(dH_dq=lambda q, p: pot.gradient(q), dH_dp=lambda q, p: p * inverse,
+    return System(dH_dq=lambda q, p: pot.gradient(q),
+                  dH_dp=(lambda q, p: p) if unit else (lambda q, p: p * inverse),
                   energy=energy, separable=True, dimension=pot.dimension, hessian=hessian)
 
 
