@@ -56,6 +56,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--steps", type=float, default=1e4)
+    parser.add_argument("--follow", type=int, default=10_000,
+                        help="the most steps the trajectories follow (follow_steps)")
+    parser.add_argument("--only", default="", help="run only the cases whose label has this")
     args = parser.parse_args()
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = str(args.threads)
@@ -63,7 +66,7 @@ def main() -> None:
     import numpy as np
 
     from stepsafe.methods.library import resolve
-    from stepsafe.systems.thermal import from_callables, thermal_limit
+    from stepsafe.systems.thermal import from_callables, thermal_check, thermal_limit
 
     def morse():
         def energy(q):
@@ -110,8 +113,12 @@ def main() -> None:
     print(f"machine: {platform.machine()} {platform.processor() or ''} "
           f"cpus {os.cpu_count()}, load {os.getloadavg()[0]:.2f}, "
           f"numpy {np.__version__}, BLAS threads {args.threads}, run of {args.steps:g} steps")
-    for label, pot, kT, goal in (("Morse, 1 dof, kT = 0.006", morse(), 0.006, "a few s"),
-                                 ("FPU-alpha, 100 dof, kT = 0.05", fpu(100), 0.05, "< 60 s")):
+    cases = (("Morse, 1 dof, kT = 0.003", morse(), 0.003, 0.8, "a few s"),
+             ("FPU-alpha, 100 dof, kT = 0.05", fpu(100), 0.05, 0.7, "< 60 s"))
+    summary = []
+    for label, pot, kT, h_check, goal in cases:
+        if args.only and args.only not in label:
+            continue
         walls, cpus = [], []
         for _ in range(max(1, args.repeat)):
             marks: list[tuple[str, float]] = []
@@ -121,7 +128,8 @@ def main() -> None:
                     marks.append((stage, time.perf_counter()))
 
             t0, c0 = time.perf_counter(), time.process_time()
-            r = thermal_limit(verlet, pot, kT, steps=args.steps, progress=progress)
+            r = thermal_limit(verlet, pot, kT, steps=args.steps, band_steps=args.follow,
+                              progress=progress)
             walls.append(time.perf_counter() - t0)
             cpus.append(time.process_time() - c0)
         total = walls[-1]
@@ -130,14 +138,58 @@ def main() -> None:
               f"{min(sc.steps for sc in r.scans)} steps")
         e = r.linear.ensemble
         print(f"  sampling: {e.how}, {e.size} frames, seed {e.seed}")
+        c = r.confirmation
+        if c is not None:
+            print(f"  confirmation (seed {c.seed}): {c.trajectories} trajectories at h = "
+                  f"{c.h:.6g}; rejected " + (", ".join(
+                      f"h = {x:.6g} ({k} failed by step {n})" for x, k, n in c.rejected)
+                      or "none"))
         starts = [t0] + [stamp for _, stamp in marks] + [t0 + total]
-        names = ["sampling, frequencies, starts"] + [stage for stage, _ in marks[:-1]] + [
-            f"{marks[-1][0]}, confirmation, drift" if marks else "the rest"]
+        names = ["sampling, frequencies, starts"] + [stage for stage, _ in marks] + []
         print("  stages of the last run (wall clock):")
         for name, a, b in zip(names, starts[:-1], starts[1:]):
             print(f"    {name[:56]:56s} {b - a:8.2f} s")
-        print(f"  median of {len(walls)}: wall {statistics.median(walls):8.2f} s, "
-              f"CPU {statistics.median(cpus):8.2f} s   goal {goal}")
+        print(f"  advise (thermal_limit), median of {len(walls)}: wall "
+              f"{statistics.median(walls):8.2f} s, CPU {statistics.median(cpus):8.2f} s   "
+              f"goal {goal}")
+        summary.append((f"{label}, advise", statistics.median(cpus)))
+        walls, cpus = [], []
+        for _ in range(max(1, args.repeat)):
+            t0, c0 = time.perf_counter(), time.process_time()
+            k = thermal_check(verlet, pot, kT, h_check, steps=args.steps,
+                              band_steps=args.follow)
+            walls.append(time.perf_counter() - t0)
+            cpus.append(time.process_time() - c0)
+        print(f"  check at h = {h_check}: {'SAFE' if k.safe else 'UNSAFE'}; " + "; ".join(
+            f"{name}: {pr.failures} of {pr.trajectories} failed in {pr.steps} steps"
+            for name, pr in k.probes))
+        print(f"  check (thermal_check), median of {len(walls)}: wall "
+              f"{statistics.median(walls):8.2f} s, CPU {statistics.median(cpus):8.2f} s   "
+              f"goal {goal}")
+        summary.append((f"{label}, check", statistics.median(cpus)))
+    if not args.only or "command" in args.only:
+        import resource
+        import subprocess
+
+        for command in ("advise", "check"):
+            walls, cpus = [], []
+            for _ in range(max(1, args.repeat)):
+                before = resource.getrusage(resource.RUSAGE_CHILDREN)
+                t0 = time.perf_counter()
+                subprocess.run([sys.executable, "-m", "stepsafe", command,
+                                str(ROOT / "examples" / "morse.yaml")], check=True,
+                               capture_output=True)
+                walls.append(time.perf_counter() - t0)
+                after = resource.getrusage(resource.RUSAGE_CHILDREN)
+                cpus.append(after.ru_utime + after.ru_stime - before.ru_utime
+                            - before.ru_stime)
+            print(f"\nstepsafe {command} examples/morse.yaml (kT = 0.003, 10^4 steps; start-up "
+                  f"and the 0 K analysis included), median of {len(walls)}: wall "
+                  f"{statistics.median(walls):8.2f} s, CPU {statistics.median(cpus):8.2f} s")
+            summary.append((f"stepsafe {command} examples/morse.yaml", statistics.median(cpus)))
+    print("\nmedian CPU time per analysis:")
+    for name, cpu in summary:
+        print(f"  {name:48s} {cpu:8.2f} s")
     print(f"\nload average after: {os.getloadavg()[0]:.2f}")
 
 

@@ -10,8 +10,6 @@ import math
 import mpmath as mp
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 from support import method
 from thermal_support import (
     boltzmann_1d,
@@ -24,7 +22,7 @@ from thermal_support import (
     verlet,
 )
 
-from stepsafe.systems.thermal.bands import band_failures, clopper_pearson, grid, judge, probe, scan
+from stepsafe.systems.thermal.bands import clopper_pearson, grid, probe, scan
 from stepsafe.systems.thermal.limit import thermal_check
 from stepsafe.systems.thermal.trajectories import run, thermal_start
 
@@ -139,18 +137,11 @@ def test_cubic_and_quartic_bands_match_an_independent_verlet_integration(kind, c
 
 
 def test_probe_of_a_safe_step_is_clear_and_of_a_band_step_is_not():
-    """A probe stops once its failures settle the verdict ``band``: the verdict is the
-    full run's, its failures are those of the full run by the step it stopped at."""
     pot = morse()
     start = thermal_start(pot, 0.006, 500, seed=8)
-    clear = probe(method("verlet"), pot, start, 0.8, 1000, 1.2)
-    assert clear.verdict == "clear" and clear.steps == 1000
+    assert probe(method("verlet"), pot, start, 0.8, 1000, 1.2).verdict == "clear"
     inside = probe(method("verlet"), pot, start, 1.70056, 1000, 4.0)
-    full = judge(run(method("verlet"), pot, start, [1.70056], 1000, [4.0])[0])
-    assert full.verdict == inside.verdict == "band" and full.lower > 0.5
-    assert inside.failures >= band_failures(500) and inside.steps < 1000
-    early = judge(run(method("verlet"), pot, start, [1.70056], inside.steps, [4.0])[0])
-    assert early.failures == inside.failures
+    assert inside.verdict == "band" and inside.lower > 0.5 and inside.steps == 1000
 
 
 def test_grid_holds_the_resonance_points_and_their_neighbours():
@@ -197,24 +188,6 @@ def test_pefrl_4_to_1_step_at_low_temperature_is_safe_as_measured():
                          -1.5, 12.0, m=2000)[0]
     assert own == 0.0
     assert thermal_check(method("pefrl"), morse(), 0.006, 1.5635, steps=1e4).safe
-
-
-@settings(max_examples=40, deadline=None)
-@given(m=st.integers(1, 400), threshold=st.floats(1e-4, 0.5))
-def test_band_failures_is_the_fewest_failures_whose_binomial_tail_rules_out_the_threshold(
-        m, threshold):
-    """``band_failures`` k: the Clopper-Pearson lower bound exceeds the threshold p exactly
-    when ``P(Binomial(m, p) >= k) < 5%`` (the tail summed term by term here), and k is the
-    fewest such."""
-    def tail(k):
-        return sum(math.comb(m, j) * threshold ** j * (1 - threshold) ** (m - j)
-                   for j in range(k, m + 1))
-
-    k = band_failures(m, threshold)
-    if k <= m:
-        assert tail(k) < 0.05 * (1 + 1e-9)
-    if k > 1:
-        assert tail(k - 1) >= 0.05 * (1 - 1e-9)
 
 
 def test_a_scan_and_a_probe_report_their_progress_in_order():

@@ -69,17 +69,6 @@ def clopper_pearson(k: int, m: int, confidence: float = CONFIDENCE) -> tuple[flo
     return lower, upper
 
 
-def band_failures(m: int, threshold: float = THRESHOLD,
-                  confidence: float = CONFIDENCE) -> int:
-    """The fewest failures k of m trajectories whose lower bound exceeds ``threshold``
-    (the verdict ``band``; more failures keep it, since the bound grows with k); ``m + 1``
-    when even ``k = m`` does not."""
-    for k in range(1, m + 1):
-        if clopper_pearson(k, m, confidence)[0] > threshold:
-            return k
-    return m + 1
-
-
 def trajectories_for(threshold: float, confidence: float = CONFIDENCE) -> int:
     """The smallest m whose zero failures show ``P < threshold`` at ``confidence``:
     ``1 - (1 - confidence)^(1/m) < threshold``, i.e. ``m > ln(1 - confidence) /
@@ -386,11 +375,7 @@ def probe(method: Method, pot: Potential, start: Start, h: float, steps: int, rh
           threshold: float = THRESHOLD, confidence: float = CONFIDENCE,
           growth: float = GROWTH, distance: float = DISTANCE,
           progress: Callable[[float], None] | None = None) -> Probe:
-    """The ensemble's verdict at one step h (see :func:`judge`). The run stops once
-    :func:`band_failures` trajectories have failed: the verdict is ``band`` then, as it
-    would be after every step (the bound only grows with more failures); the probe's
-    ``steps`` says how far it went, its failures are those seen by then."""
-    out = run(method, pot, start, [h], steps, [rho], growth, distance,
-              stop_failures=band_failures(start.size, threshold, confidence),
-              progress=progress)[0]
+    """The ensemble's verdict at one step h (see :func:`judge`), over every step: its
+    failure fraction is the run's (an unsafe step's too)."""
+    out = run(method, pot, start, [h], steps, [rho], growth, distance, progress=progress)[0]
     return judge(out, threshold, confidence)
