@@ -204,3 +204,15 @@ def test_a_scan_and_a_probe_report_their_progress_in_order():
             probe(method("verlet"), pot, start, 0.8, 300, 1.2, progress=seen.append)
         assert seen and seen[-1] == 1.0
         assert all(0.0 <= a <= b <= 1.0 for a, b in zip(seen, seen[1:]))
+
+
+def test_a_check_reports_the_progress_of_each_probe():
+    """thermal_check reports ``(stage, fraction)`` for the ensemble it runs at h: the
+    whole system's probe, fractions in [0, 1] that never go back, ending at 1."""
+    seen: list[tuple[str, float]] = []
+    c = thermal_check(method("verlet"), morse(), 0.003, 0.8, steps=300, trajectories=60,
+                      frames=256, progress=lambda stage, f: seen.append((stage, f)))
+    assert c.safe and {stage for stage, _ in seen} == {"probe (whole system)"}
+    fractions = [f for _, f in seen]
+    assert fractions[-1] == 1.0
+    assert all(0.0 <= a <= b <= 1.0 for a, b in zip(fractions, fractions[1:]))

@@ -262,11 +262,13 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
     step = h / p.margin
     followed(req, step)
     each, reasons = [], []
+    report = _progress(progress, len(found))
     for i, m in enumerate(found):
         with p.integrator.naming_its_file(), _naming_the_scene(p, req):
             c = thermal_check(p.integrator.tableau, m.potential, req.kT, step,
                               length=req.length, steps=req.steps, criterion=criterion,
-                              max_failure=req.failure, band_steps=req.follow, seed=SEED)
+                              max_failure=req.failure, band_steps=req.follow, seed=SEED,
+                              progress=report(i))
         if progress is not None:
             progress((i + 1) / len(found))
         each.append(check_record(m, c, p.margin))

@@ -596,6 +596,17 @@ def _drift_limit(method: Method, pot: Potential, start: Start, lo: float, hi: fl
     return lo, hi, best
 
 
+def _stage(progress: Callable[[str, float], None] | None, stage: str
+           ) -> Callable[[float], None] | None:
+    """``fraction -> progress(stage, fraction)`` (None without a progress)."""
+    if progress is None:
+        return None
+
+    def report(fraction: float) -> None:
+        progress(stage, fraction)
+    return report
+
+
 def thermal_check(method: Method, pot: Potential, kT: float, h: float, *,
                   length: float | None = None, steps: float | None = None,
                   criterion: str = "structure", frames: int = FRAMES,
@@ -603,7 +614,8 @@ def thermal_check(method: Method, pot: Potential, kT: float, h: float, *,
                   max_failure: float = bands_.MAX_FAILURE,
                   confidence: float = bands_.CONFIDENCE,
                   whole_up_to: int = WHOLE_UP_TO, modes_profiled: int = MODES,
-                  seed: int = 0) -> ThermalCheck:
+                  seed: int = 0,
+                  progress: Callable[[str, float], None] | None = None) -> ThermalCheck:
     """Whether the step h is safe at temperature: not above the linear limit at
     temperature and clear of failures at h itself: every target probed at h (with the
     same conventions as :func:`thermal_limit`) loses none of its trajectories and so shows
@@ -622,6 +634,8 @@ def thermal_check(method: Method, pot: Potential, kT: float, h: float, *,
         the failure probability below it).
     max_failure : float
         The largest acceptable failure probability.
+    progress : callable, optional
+        ``progress(stage, fraction)``, one stage per target probed.
 
     Returns
     -------
@@ -657,7 +671,7 @@ def thermal_check(method: Method, pot: Potential, kT: float, h: float, *,
             # as a failure: the probe uses the minimum's frequency, to say what runs do
             rho = float(rho_function(method, t.omega, h)(np.array([h]))[0])
         pr = bands_.probe(method, t.potential, t.start, h, n_steps, rho, max_failure,
-                          confidence)
+                          confidence, progress=_stage(progress, f"probe ({t.name})"))
         probes.append((t.name, pr))
         if not pr.clear:
             what = {"band": "in a resonance band", "failures observed": "failures observed",
