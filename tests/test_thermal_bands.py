@@ -211,7 +211,8 @@ def test_a_check_reports_the_progress_of_each_probe():
     whole system's probe, fractions in [0, 1] that never go back, ending at 1."""
     seen: list[tuple[str, float]] = []
     c = thermal_check(method("verlet"), morse(), 0.003, 0.8, steps=300, trajectories=60,
-                      frames=256, progress=lambda stage, f: seen.append((stage, f)))
+                      max_failure=0.06, frames=256,
+                      progress=lambda stage, f: seen.append((stage, f)))
     assert c.safe and {stage for stage, _ in seen} == {"probe (whole system)"}
     fractions = [f for _, f in seen]
     assert fractions[-1] == 1.0
