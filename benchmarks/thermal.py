@@ -31,15 +31,16 @@ Measured on this project's machine (x86_64, 2 cores shared with other work, load
 every confirmation try ran all its 10^4 steps, the Beta quantiles came from scipy.stats)
 and after (a confirmation try stops at its first failure; Clopper-Pearson bounds from
 scipy.special; unit masses and a box centred at the origin cost two passes fewer per
-step). The answers are the same (h_max 1.19393 and 0.766525; the same steps rejected):
+step; on glibc freed temporaries stay in the heap instead of being mmapped afresh at every
+operation, which cost the commands a third of their CPU time in the kernel). The answers are the same (h_max 1.19393 and 0.766525; the same steps rejected):
 
 ==========================================  ==========  ==========  ========
 case (10^4 steps, 2995 trajectories)        before      after       ratio
 ==========================================  ==========  ==========  ========
-Morse, 1 dof, advise (median of 3)          3.98 s      3.29 s      0.83
+Morse, 1 dof, advise (median of 3)          3.98 s      3.21 s      0.81
 Morse, 1 dof, check (median of 3)           0.81 s      0.72 s      0.89
-stepsafe advise examples/morse.yaml         10.41 s     9.77 s      0.94
-stepsafe check examples/morse.yaml          2.06 s      1.99 s      0.97
+stepsafe advise examples/morse.yaml         10.41 s     5.26 s      0.51
+stepsafe check examples/morse.yaml          2.06 s      1.74 s      0.84
 FPU-alpha, 100 dof, advise (1 run)          190.0 s     153.3 s     0.81
 FPU-alpha, 100 dof, check at 0.7 (1 run)    46.3 s      41.4 s      0.89
 ==========================================  ==========  ==========  ========
@@ -49,9 +50,9 @@ The 100-dof ``advise`` is still above the minute: its confirmation steps down th
 late (steps 8056, 6970 and 9899 of 10^4), so each costs nearly a whole run of 2995 x 100
 dof x 10^4 steps (about 32 s of CPU here); the coarse whole-chain scan and its bisections
 (300 trajectories at 12 steps, then 6 sequential rounds) take most of the rest. The
-stages of a run are printed (wall clock). The commands on the Morse scene spend most of
-their time beyond the functions' in the scene's compiled gradient, called once per step
-for a few thousand rows (the 0 K analysis and start-up take about 0.7 s).
+stages of a run are printed (wall clock). The commands on the Morse scene take about
+2 s more than the functions: start-up and the 0 K analysis (about 0.7 s) and the scene's
+compiled expression in place of a numpy potential.
 
 The defaults of :func:`stepsafe.systems.thermal.thermal_limit` and
 :func:`~stepsafe.systems.thermal.thermal_check` are used throughout. The machine and its
