@@ -32,7 +32,8 @@ every confirmation try ran all its 10^4 steps, the Beta quantiles came from scip
 and after (a confirmation try stops at its first failure; Clopper-Pearson bounds from
 scipy.special; unit masses and a box centred at the origin cost two passes fewer per
 step; on glibc freed temporaries stay in the heap instead of being mmapped afresh at every
-operation, which cost the commands a third of their CPU time in the kernel). The answers are the same (h_max 1.19393 and 0.766525; the same steps rejected):
+operation, which cost the commands a third of their CPU time in the kernel). The answers
+are the same (h_max 1.19393 and 0.766525; the same steps rejected):
 
 ==========================================  ==========  ==========  ========
 case (10^4 steps, 2995 trajectories)        before      after       ratio
