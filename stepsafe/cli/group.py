@@ -19,6 +19,7 @@ import click
 from stepsafe._version import __version__
 from stepsafe.api import inputs
 from stepsafe.cli import output
+from stepsafe.cli.allocator import keep_freed_memory
 from stepsafe.cli.output import is_output_error
 from stepsafe.cli.progressbar import progress_bar
 from stepsafe.exceptions import StepsafeError
@@ -144,6 +145,7 @@ class _Group(click.Group):
         # shell completion (_STEPSAFE_COMPLETE=bash_source stepsafe): click answers and exits
         self._main_shell_completion(extra, prog_name or PROG, complete_var)
         args = sys.argv[1:] if args is None else list(args)
+        keep_freed_memory()
         sys.exit(self._run(args, extra))
 
     def _run(self, args: list[str], extra: dict) -> int:

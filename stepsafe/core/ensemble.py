@@ -43,19 +43,11 @@ so that the test is relative in any units.
 Costs: the force evaluations (calls of ``dH/dq``) are counted row by row, summed over the
 trajectories; a force at the start given as ``force0`` is not counted (a sampler has it
 from its previous iteration).
-
-Memory: every array operation of a step makes a temporary of the batch's size (a few
-hundred kB for thousands of rows). glibc's allocator hands blocks that large to the kernel
-(mmap) and back at every free, so each temporary page-faults afresh: on the Morse scene's
-analysis at temperature a third of the CPU time was the kernel's. On glibc the first run
-therefore raises the allocator's mmap and trim thresholds (``mallopt``) to 32 MB and
-64 MB, so freed temporaries are reused in place; results are unchanged.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, cast
@@ -235,7 +227,6 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
     -------
     Trajectories
     """
-    _keep_freed_memory()
     q0 = np.asarray(q0, dtype=float)
     p0 = np.asarray(p0, dtype=float)
     if q0.ndim != 2 or p0.shape != q0.shape:
@@ -387,30 +378,6 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
         progress(1.0)
     return Trajectories(q_out, p_out, H0, escaped, escaped_at, worst, last, sums, samples,
                         count[0], ran, float(unit))
-
-
-#: glibc ``mallopt`` parameters (malloc.h) and the values set (bytes).
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-_TRIM_BYTES, _MMAP_BYTES = 64 << 20, 32 << 20
-_ALLOCATOR: list[bool] = []
-
-
-def _keep_freed_memory() -> None:
-    """Once per process, on glibc: keep freed blocks up to 32 MB in the heap (module
-    docstring); elsewhere, nothing."""
-    if _ALLOCATOR:
-        return
-    _ALLOCATOR.append(True)
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_BYTES)
-        libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_BYTES)
-    except (OSError, AttributeError):  # (not glibc: its allocator is left as it is)
-        pass
 
 
 def _unit(x: np.ndarray) -> float:
