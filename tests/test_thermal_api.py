@@ -90,15 +90,15 @@ def test_keywords_win_over_the_scenes_keys_and_a_length_takes_the_time_unit(tmp_
     ("kT: 1\nsteps: 10\nmax_drift: 0\n", "positive", "max_drift"),
     ("kT: 1\nsteps: 10\nmax_drift: .inf\n", "positive", "max_drift"),
 ])
-def test_bad_scene_values_exit_2_naming_the_file_and_key(tmp_path, keys, message, key):
+def test_bad_scene_values_exit_2_naming_the_file_and_key(tmp_path, run, keys, message, key):
     path = tmp_path / "bad.yaml"
     path.write_text(MORSE + keys)
     with pytest.raises(StepsafeError, match=message) as info:
         request(scene=load_scene(path))
     assert info.value.where == f"{path}::$.{key}"
-    run = _cli("check", str(path), "--step", "0.5")
-    assert run.returncode == 2 and run.stdout == ""
-    assert f"$.{key}" in run.stderr and len(run.stderr.strip().splitlines()) == 1
+    code, out, err = run("check", str(path), "--step", "0.5")
+    assert code == 2 and out == ""
+    assert f"$.{key}" in err and len(err.strip().splitlines()) == 1
 
 
 @settings(max_examples=60, deadline=None)
