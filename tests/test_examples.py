@@ -60,6 +60,14 @@ def _openmm_atoms(name: str) -> int:
 #: run in the slow set.
 SLOW_OPENMM_ATOMS = 200
 
+#: Examples whose run as shipped takes seconds and is in the slow set, each with the test
+#: of the default run that runs the same file.
+SLOW_EXAMPLES = {
+    "lagrange-points.yaml": "test_manydof.py::test_lagrange_points analyses it (mu = 0.01)",
+    "tradeoff.py": "test_accuracy.py::test_tradeoff_example_measures_what_it_predicts runs "
+                   "it on two methods",
+}
+
 
 def _at_temperature(name: str) -> bool:
     """Whether a scene states a temperature (its analysis runs thermal ensembles: seconds)."""
@@ -69,7 +77,7 @@ def _at_temperature(name: str) -> bool:
 
 @pytest.mark.parametrize("name", [
     pytest.param(n, marks=pytest.mark.slow)
-    if _openmm_atoms(n) > SLOW_OPENMM_ATOMS or _at_temperature(n) else n
+    if _openmm_atoms(n) > SLOW_OPENMM_ATOMS or _at_temperature(n) or n in SLOW_EXAMPLES else n
     for n in EXAMPLES if _kind(n) == "scene"])
 def test_scene_runs_with_advise_and_check(run, name):
     """advise answers (exit 0); check answers a scene with h: (0 or 1, as advise's safe
@@ -133,7 +141,9 @@ def test_modes_file_runs_with_the_commands_that_take_one(run, name):
         assert code == 0, (args, err)
 
 
-@pytest.mark.parametrize("name", [n for n in EXAMPLES if _kind(n) == "program"])
+@pytest.mark.parametrize("name", [
+    pytest.param(n, marks=pytest.mark.slow) if n in SLOW_EXAMPLES else n
+    for n in EXAMPLES if _kind(n) == "program"])
 def test_program_runs_as_shipped(name, tmp_path):
     """The program runs with its own defaults (in tmp_path, where it writes its output)
     and exits 0; a table shipped beside it has the columns it writes."""
@@ -164,3 +174,13 @@ def test_workflow_calls_stepsafe_check(name):
     job = yaml.safe_load((ROOT / "examples" / name).read_text())
     runs = [step.get("run", "") for j in job["jobs"].values() for step in j["steps"]]
     assert any("stepsafe check" in r for r in runs)
+
+
+def test_each_slow_example_is_run_in_the_default_run_elsewhere():
+    """An example left to the slow set names a default-run test that runs the same file."""
+    for name, where in SLOW_EXAMPLES.items():
+        assert name in EXAMPLES
+        path, test = where.split(" ")[0].split("::")
+        text = (ROOT / "tests" / path).read_text()
+        body = text[text.index(f"def {test}("):]
+        assert Path(name).stem in body.split("\ndef ")[0], (name, where)
