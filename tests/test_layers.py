@@ -22,6 +22,7 @@ There are no exceptions.
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parent.parent / "stepsafe"
@@ -63,12 +64,18 @@ def _in_functions(tree: ast.AST) -> list[ast.AST]:
             for n in ast.walk(f)]
 
 
+@functools.cache
+def _tree(path: Path) -> ast.Module:
+    """The parsed module (parsed once: every test reads the same files, none changes them)."""
+    return ast.parse(path.read_text(encoding="utf-8"))
+
+
 def _imports(path: Path, top_only: bool = False, in_functions: bool = False
              ) -> list[tuple[str, int]]:
     """The package's own modules that ``path`` imports (at its top only, or inside its
     functions only), with their lines (``from stepsafe import x`` counts as the root, or as
     ``stepsafe.x`` when x is a module)."""
-    tree = ast.parse(path.read_text(encoding="utf-8"))
+    tree = _tree(path)
     me = _module_name(path)
     package = me if path.name == "__init__.py" else me.rpartition(".")[0]
     skip = _type_checking_nodes(tree)
@@ -105,7 +112,7 @@ def _is_lazy_call(node: ast.AST) -> bool:
 def _lazy_imports(path: Path) -> list[tuple[str, int]]:
     """The modules ``path`` names with ``lazy_module("...")`` (loaded on first use), with
     their lines; a name that is not a constant text is returned as ``"?"``."""
-    tree = ast.parse(path.read_text(encoding="utf-8"))
+    tree = _tree(path)
     out = []
     for node in ast.walk(tree):
         if _is_lazy_call(node):
@@ -245,7 +252,7 @@ def test_modules_loaded_on_first_use_are_named_at_module_top():
     found = []
     for path in MODULES:
         me = _module_name(path)
-        tree = ast.parse(path.read_text(encoding="utf-8"))
+        tree = _tree(path)
         in_functions = {id(n) for n in _in_functions(tree)}
         for node in ast.walk(tree):
             if _is_lazy_call(node) and id(node) in in_functions:
