@@ -435,16 +435,49 @@ def test_one_slow_coordinate_beside_normal_ones_is_improper_iff_its_tail_diverge
         assert slow.neighbourhood == "tube"
 
 
+@settings(max_examples=25, deadline=None)
+@given(quadratic=st.integers(1, 3), height=st.floats(0.01, 100.0),
+       log_width=st.floats(-50, 50))
+def test_a_potential_bounded_along_a_direction_is_improper(quadratic, height, log_width):
+    """|x / w|^2 / 2 over ``quadratic`` coordinates plus ``height * tanh(y^2 / w^2)``: U
+    stays below its value at infinity along y (growth alpha -> 0 per factor e), so exp(-U)
+    tends to e^-height there and does not integrate, although the curvature at the mode is
+    positive in every direction: found flat, or growing slower than the tube's bound 1, at
+    every height and scale."""
+    from stepsafe.core.hmc_target.draws import find_mode, flat_direction, slow_direction
+    from stepsafe.core.hmc_target.potential import CallablePotential, target
+
+    w = 10.0 ** log_width
+
+    def energy(q):
+        x, y = q[..., :quadratic] / w, q[..., quadratic] / w
+        return 0.5 * (x * x).sum(-1) + height * np.tanh(y * y)
+
+    def gradient(q):
+        x, y = q[..., :quadratic] / w, q[..., quadratic] / w
+        gy = height * 2 * y / np.cosh(y * y) ** 2 / w
+        return np.concatenate([x / w, np.nan_to_num(gy)[..., None]], axis=-1)
+
+    found = target(CallablePotential(energy, gradient, quadratic + 1))
+    laplace = find_mode(found, np.full(quadratic + 1, 0.1 * w))
+    assert laplace is not None
+    slow = slow_direction(found, laplace)
+    assert flat_direction(found, laplace) is not None or (
+        slow is not None and slow.slope <= 1.0), (laplace, slow)
+
+
 def test_a_slowly_growing_improper_target_is_refused_with_file_and_key():
-    """U = x^2/2 + log(1 + y^2)/2 (the density ~ 1/|y|) and U = log(1 + x^2 + y^2)/10,
-    with unit or a dense mass (which does not change whether exp(-U) integrates): one line
-    naming the scene file and its potential, exit 2; from Python, a StepsafeError naming
+    """U = x^2/2 + log(1 + y^2)/2 (the density ~ 1/|y|), U = log(1 + x^2 + y^2)/10 and
+    U = x^2/2 + 4.5 tanh(y^2/9) (bounded along y, positive curvature at the mode), with
+    unit or a dense mass (which does not change whether exp(-U) integrates): one line naming
+    the scene file and its potential, exit 2; from Python, a StepsafeError naming
     logdensity."""
     from stepsafe import hmc
     from stepsafe.exceptions import StepsafeError
 
     for pot, mass in itertools.product(("x**2/2 + log(1 + y**2)/2",
-                                        "log(1 + x**2 + y**2)/10"),
+                                        "log(1 + x**2 + y**2)/10",
+                                        "x**2/2 + 4.5*tanh(y**2/9)"),
                                        ("", "  mass: [[2, 0.5], [0.5, 1]]\n")):
         scene = ("system:\n"
                  f'  potential: "{pot}"\n'
