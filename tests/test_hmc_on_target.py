@@ -198,25 +198,29 @@ def test_bad_log_densities_are_refused(kwargs, match):
 
 def test_the_hmc_guide_banana_figures():
     """The figures the HMC guide (docs/guides/hmc.md) quotes for examples/banana.yaml
-    with verlet at L = 10: the Gaussian at the mode predicts 0.92 at the step at target
-    (about 0.79, the stiffest draw's limit), the estimate is 0.88 with 0.7% divergent,
-    divergences start near h = 0.64 (to the Monte Carlo error of the seeded draws)."""
+    with verlet at L = 10: divergences start near h = 0.64, below the stiffest draw's limit
+    0.79, and h at target is capped there; the Gaussian at the mode predicts 0.98 at that
+    step, the estimate is 0.95 with none divergent (to the Monte Carlo error of the seeded
+    draws)."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parent.parent
     readme = (root / "docs" / "guides" / "hmc.md").read_text()
     text = " ".join(readme.split())
-    assert ("predicts 0.92 for verlet with L = 10 at its step at target (h ≈ 0.79" in text
-            and "estimates 0.88 ± 0.002 there, with 0.7% of the proposals divergent" in text
-            and "divergences starting at h ≈ 0.64" in text)
-    row = hmc(["verlet"], scene=str(root / "examples" / "banana.yaml"),
-              trajectory_steps=10).rows[0]
-    assert abs(row.h_target - 0.79) < 0.005 and round(row.laplace_acceptance, 2) == 0.92
-    assert row.h_target == row.stability_h
-    assert abs(row.estimate.acceptance - 0.88) < 0.005 + 3 * row.estimate.acceptance_se
-    assert row.estimate.acceptance_se < 0.005
-    assert 0.003 < row.estimate.divergent < 0.01
+    assert ("finds verlet's divergent proposals starting at h ≈ 0.64, below the stiffest "
+            "draw's stability limit 0.79 (where 0.7% of the proposals diverge)" in text
+            and "predicts 0.98 for verlet with L = 10 at that step" in text
+            and "0.95 ± 0.001, with no proposal divergent" in text)
+    report = hmc(["verlet"], scene=str(root / "examples" / "banana.yaml"),
+                 trajectory_steps=10, step=0.787)
+    row = report.rows[0]
+    assert abs(row.stability_h - 0.79) < 0.005
     assert abs(row.onset.h_clean - 0.64) < 0.01 and row.onset.h_divergent < 0.66
+    assert row.h_target == row.onset.h_clean and row.capped_by == "divergence onset"
+    assert round(row.laplace_acceptance, 2) == 0.98
+    assert abs(row.estimate.acceptance - 0.95) < 0.005 + 3 * row.estimate.acceptance_se
+    assert row.estimate.acceptance_se < 0.005 and row.estimate.divergent == 0.0
+    assert 0.003 < row.at_step.divergent < 0.01
 
 
 @pytest.mark.blackjax

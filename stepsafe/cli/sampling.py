@@ -260,7 +260,8 @@ def print_hmc_target(data: dict[str, Any], scene_file: str | None) -> None:
                f"{r['acceptance']:.3f} ± {r['acceptance_se']:.3f}")
         table.add_row("-" if r["rank"] is None else str(r["rank"]), r["method"],
                       "-" if r["stability_h"] is None else fmt_below(r["stability_h"], 4),
-                      "-" if r["h_target"] is None else fmt_below(r["h_target"], 4),
+                      "-" if r["h_target"] is None else fmt_below(r["h_target"], 4)
+                      + _CAPS.get(r["capped_by"], ""),
                       "-" if r["steps"] is None else str(r["steps"]), acc,
                       "-" if r["divergent"] is None else f"{100 * r['divergent']:.2g}%",
                       _error_cell(r["expected_error"]),
@@ -286,17 +287,23 @@ def print_hmc_target(data: dict[str, Any], scene_file: str | None) -> None:
             console.print(_lit(f"{r['method']}: {line}"))
     for note in data["notes"]:
         console.print(_lit(note))
-    console.print("acceptance: E[min(1, exp(-dH))] over the draws with fresh momenta and each "
+    console.print(_lit("acceptance: E[min(1, exp(-dH))] over the draws with fresh momenta and each "
                   "method's own trajectories, ± its Monte Carlo standard error; divergent: "
                   "dH > 1000. h at target stays within the stiffest draw's stability limit"
-                  + (" over 1 + J." if data["jitter"] and not data["allow_unstable_jitter"]
-                     else ".") + " " + _ranking_line(data["ranked_by"], data["steps"],
+                  + (" over 1 + J" if data["jitter"] and not data["allow_unstable_jitter"]
+                     else "") + " and below the onset of divergent proposals (the limit "
+                  "that binds in brackets)." + " " + _ranking_line(data["ranked_by"], data["steps"],
                                                      data["length"])
                   + " Laplace: the Gaussian at the mode, ranked by the same criterion at its "
                   "own h at target" + ("; the ranks differ for "
                                        + ", ".join(r["method"] for r in data["ranking_differs"])
                                        if data["ranking_differs"] else
-                                       "; the two rankings agree") + ".")
+                                       "; the two rankings agree") + "."))
+
+
+#: How the text table marks the limit that capped h at target (``capped_by``).
+_CAPS = {"stability": " (stability)", "stability over 1 + J": " (stability/(1+J))",
+         "divergence onset": " (divergences)"}
 
 
 def _ranking_line(key: str, steps: int | None, length: float | None) -> str:

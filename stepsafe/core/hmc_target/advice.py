@@ -12,7 +12,13 @@ For each method:
   T with ``L = floor(T / h)``) and jitter J, searched on the estimate with common random
   numbers (:mod:`stepsafe.core.hmc_target.estimate`) below ``h_stable / (1 + J)``, so that
   no jittered step passes the stiffest region's limit, unless ``allow_unstable_jitter``
-  (then below ``h_stable``, and the share of jittered steps beyond it is stated);
+  (then below ``h_stable``, and the share of jittered steps beyond it is stated); and
+  below the divergence onset (the largest step of the scan below at which none of the
+  proposals diverged), since nonlinear instability can set in before the linear limit of
+  the stiffest draw (a light tail such as U = x^4/4 has draws stiffer than any seen). The
+  row's ``capped_by`` names the limit that bound the step (``"stability"``,
+  ``"stability over 1 + J"``, ``"divergence onset"``; None where the acceptance falls to
+  the target below every limit);
 * at that step: the estimated acceptance with its standard error, the divergence rate, the
   mean energy error, gradient evaluations per proposal, per accepted proposal and per
   accepted unit of simulated time; and the Gaussian figures at the mode at the same step
@@ -97,6 +103,7 @@ class TargetRow:
     rank: int | None = None
     laplace_rank: int | None = None
     notes: tuple[str, ...] = ()
+    capped_by: str | None = None
 
     #: the keys of this row in ``hmc --json`` held by :attr:`estimate` (the figures at
     #: ``h_target``) or named otherwise
@@ -129,6 +136,7 @@ class TargetRow:
             "symmetric": self.symmetric, "z_star": self.z_star,
             "stability_h": self.stability_h, "laplace_stability_h": self.laplace_stability_h,
             "h_target": self.h_target, "h_target_se": self.h_target_se,
+            "capped_by": self.capped_by,
             "steps": None if e is None else e.steps,
             "acceptance": None if e is None else e.acceptance,
             "acceptance_se": None if e is None else e.acceptance_se,
@@ -406,12 +414,27 @@ def _row(m: Method, target_accept: float, trajectory: Trajectory, step: float | 
     laplace_h = None if betas is None else float(z_star / betas.max())
     jitter = trajectory.jitter
     h_hi = h_stable if (allow_unstable_jitter or not jitter) else _within(h_stable, 1 + jitter)
-    found = target_step(estimator, run, target_accept, h_hi, trajectory)
+    cap = "stability" if h_hi == h_stable else "stability over 1 + J"
+    # the onset of divergences on the same proposals bounds the search too (scanned up to
+    # h_hi at least, so that the bound is known where it binds)
+    reach = max(ONSET_REACH * max(h_stable, laplace_h or 0.0), h_hi) if onset else h_hi
+    scan = divergence_onset(estimator, run, reach, trajectory)
+    if scan.h_divergent is not None and (scan.h_clean is None or scan.h_clean < h_hi):
+        h_hi, cap = scan.h_clean or 0.0, "divergence onset"
+    found = None if h_hi <= 0 else target_step(estimator, run, target_accept, h_hi, trajectory)
     est = None if found is None else found.estimate
     h_target = None if found is None else found.h
+    capped_by = None if found is None or not found.capped else cap
     if found is None:
         notes.append(f"no step up to h = {h_hi:.6g} reaches acceptance {target_accept:g} on "
-                     "the target")
+                     "the target" + (" without divergent proposals"
+                                     if cap == "divergence onset" else ""))
+    elif capped_by == "divergence onset":
+        notes.append(f"h at target is capped at h = {h_hi:.6g}, the onset of divergent "
+                     f"proposals (none of {scan.proposals} diverged there; at least one at "
+                     f"h = {scan.h_divergent:.6g}), below the stiffest draw's stability limit "
+                     f"{h_stable:.6g}" + (f" over 1 + J = {1 + jitter:g}" if jitter and not
+                                          allow_unstable_jitter else ""))
     elif found.capped:
         notes.append(f"h at target is capped at h = {h_hi:.6g}: the stability limit of the "
                      "stiffest draw" + (f" over 1 + J = {1 + jitter:g}" if h_hi < h_stable
@@ -440,17 +463,14 @@ def _row(m: Method, target_accept: float, trajectory: Trajectory, step: float | 
         if step is not None:
             lap_at = gaussian.acceptance_at(m, betas, step, trajectory).rate
     at_step = None if step is None else estimator.estimate(run, step, trajectory)
-    scan = None
-    if onset:
-        reach = ONSET_REACH * max(h_stable, laplace_h or 0.0)
-        scan = divergence_onset(estimator, run, reach, trajectory)
     if est is not None and est.divergent > 0:
         notes.append(f"{100 * est.divergent:.3g}% of the proposals at h at target diverge "
                      f"(energy error > 1000)")
     return TargetRow(run.name, run.gradients_per_step, run.symmetric, float(z_star), h_stable,
                      laplace_h, h_target, None if found is None else found.h_se, est,
-                     lap_acc, lap_err, lap_h, lap_cost, lap_accepted, scan, at_step, lap_at,
-                     notes=tuple(notes))
+                     lap_acc, lap_err, lap_h, lap_cost, lap_accepted,
+                     scan if onset else None, at_step, lap_at, notes=tuple(notes),
+                     capped_by=capped_by)
 
 
 def _ranked(rows: list[TargetRow]) -> list[TargetRow]:
