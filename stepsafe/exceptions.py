@@ -22,6 +22,12 @@ class MethodError(StepsafeError):
     """A method definition is malformed (wrong shape, non-finite coefficient, ...)."""
 
 
+class NotConverged(StepsafeError):
+    """Draws from a target fail a convergence diagnostic and convergence was required
+    (``require_converged``): the estimates on them would not be verified. The command line
+    exits 1 with it (the input is well formed; the answer is not established)."""
+
+
 def positive_finite(value, name: str) -> float:
     """``value`` (a real number: not a bool, not a text) as a float > 0 and finite, else a
     :class:`StepsafeError` naming ``name``."""

@@ -210,12 +210,15 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         Gaussian target's figures are exact and draw no random numbers (the jitter average
         is a quadrature), so a seed given with one is refused rather than ignored.
     require_converged : bool
-        Refuse (:class:`~stepsafe.exceptions.StepsafeError` naming the diagnostic that
-        fails) draws that have not converged: the largest rank-normalised split R-hat over
-        the coordinates and U above 1.01, or the smallest effective sample size below 400
-        (or too few draws per chain to compute them), checked before any estimate. A target
-        that is not Gaussian only, as ``seed``. The command line's ``--require-converged``
-        prints the report and exits 1 instead.
+        Refuse (:class:`~stepsafe.exceptions.NotConverged`, a StepsafeError naming the
+        diagnostic that fails) draws that have not converged: the largest rank-normalised
+        split R-hat over the coordinates and U above 1.01, or the smallest effective sample
+        size below 400 (or too few draws per chain to compute them), checked before any
+        estimate. A target that is not Gaussian only, as ``seed``. Without it, draws that
+        fail a diagnostic still give a report, marked ``verified`` False with the reason in
+        ``unverified``: its estimates may be off by more than their standard errors and its
+        h at target is not a recommendation (the command line prints it and exits 1;
+        ``--require-converged`` there refuses before the estimates, as this keyword).
 
     Returns
     -------

@@ -221,6 +221,7 @@ HMC_TARGET_ROW = record({"method": STR, "evaluations": INT_OR_NULL, "symmetric":
 HMC_TARGET = top({"target_accept": NUM, "steps": INT_OR_NULL, "length": NUM_OR_NULL,
                   "jitter": NUM, "allow_unstable_jitter": BOOL, "dimension": INT, "seed": INT,
                   "cost_unit": STR, "ranked_by": STR, "ranking_differs": array(OBJECT),
+                  "verified": BOOL, "unverified": STR_OR_NULL,
                   "draws": record({"source": STR, "chains": INT, "per_chain": INT},
                                   closed=False),
                   "frequencies": record({"how": STR, "draws": INT, "omega_max": NUM,

@@ -24,7 +24,7 @@ from stepsafe.cli.group import (
 from stepsafe.cli.plots import plot_format, pyplot, save_figure
 from stepsafe.cli.progressbar import progress_bar
 from stepsafe.cli.report import _console, _lit, fmt, fmt_below, print_json, print_tsv
-from stepsafe.exceptions import StepsafeError
+from stepsafe.exceptions import NotConverged, StepsafeError
 
 #: Steps per method on the acceptance curve drawn by --plot.
 PLOT_POINTS = 200
@@ -50,7 +50,8 @@ PLOT_POINTS = 200
 @click.option("--allow-unstable-jitter", is_flag=True,
               help="Search h at target up to the limit itself, as without jitter: the "
                    "longest jittered steps may then be unstable (their share is noted; "
-                   "Stan reports such trajectories as divergent transitions).")
+                   "Stan reports such trajectories as divergent transitions); on a target "
+                   "given by its potential, also past the onset of divergent proposals.")
 @click.option("--target-accept", type=FLOAT, default=0.8, show_default=True, metavar="A",
               help="Acceptance rate to reach (Stan's adapt_delta default), for the "
                    "trajectory given (--steps or --length).")
@@ -71,9 +72,11 @@ PLOT_POINTS = 200
                    "Refused for a Gaussian target, whose figures are exact and "
                    "deterministic (no random numbers are drawn).")
 @click.option("--require-converged", is_flag=True,
-              help="A target given by its potential: exit 1 (after the report) when the "
-                   "draws have not converged (R-hat above 1.01 or an effective sample "
-                   "size below 400).")
+              help="A target given by its potential: when the draws have not converged "
+                   "(R-hat above 1.01 or an effective sample size below 400), exit 1 "
+                   "before the estimates, naming the diagnostic. Without it such draws "
+                   "still give the report, marked unverified (no h at target is "
+                   "recommended), and the exit code is 1 after it.")
 @click.option("--plot", "plot_file", default=None, metavar="FILE.png",
               help="Draw the predicted acceptance against h for each method (needs "
                    "matplotlib).")
@@ -117,14 +120,20 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
     arrays, labels = command_line_modes(options, scene_file, step, length)
     methods = "all" if use_all else (None if names is None else names.split(","))
     with progress_bar("hmc", not as_json) as progress, _naming_the_modes_file(options):
-        report = hmc(methods, modes=arrays or None, labels=labels or None, scene=scene_file,
-                     trajectory_steps=steps, length=length, jitter=jitter,
-                     allow_unstable_jitter=allow_unstable_jitter, target_accept=target_accept,
-                     target_for_every_length=target_for_every_length,
-                     step=step, criterion=criterion, time_unit=options["time_unit"],
-                     zmax=options["zmax"], curve=0 if plot_file is None else PLOT_POINTS,
-                     gradient_cost=gradient_cost, progress=progress, draws=draws_file,
-                     seed=seed)
+        try:
+            report = hmc(methods, modes=arrays or None, labels=labels or None,
+                         scene=scene_file, trajectory_steps=steps, length=length,
+                         jitter=jitter, allow_unstable_jitter=allow_unstable_jitter,
+                         target_accept=target_accept,
+                         target_for_every_length=target_for_every_length,
+                         step=step, criterion=criterion, time_unit=options["time_unit"],
+                         zmax=options["zmax"], curve=0 if plot_file is None else PLOT_POINTS,
+                         gradient_cost=gradient_cost, progress=progress, draws=draws_file,
+                         seed=seed, require_converged=require_converged)
+        except NotConverged as exc:
+            line = NotConverged(exc.message.replace("require_converged; ", ""), exc.where)
+            click.echo(f"stepsafe: {line}", err=True)
+            raise SystemExit(1) from None
     data = report.to_dict()
     if isinstance(report, TargetReport):
         if as_json:
@@ -136,9 +145,10 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
                        "laplace_rank"), data["methods"])
         else:
             print_hmc_target(data, scene_file)
-        if require_converged and report.draws.converged is False:
-            click.echo("stepsafe: the draws have not converged (--require-converged)",
-                       err=True)
+        if report.unverified is not None:
+            click.echo(f"stepsafe: {report.unverified}: the estimates are unverified and h "
+                       "at target is not a recommendation (draws from a converged run: "
+                       "--draws FILE)", err=True)
             raise SystemExit(1)
         return
     if plot_file is not None:
@@ -260,8 +270,7 @@ def print_hmc_target(data: dict[str, Any], scene_file: str | None) -> None:
                f"{r['acceptance']:.3f} ± {r['acceptance_se']:.3f}")
         table.add_row("-" if r["rank"] is None else str(r["rank"]), r["method"],
                       "-" if r["stability_h"] is None else fmt_below(r["stability_h"], 4),
-                      "-" if r["h_target"] is None else fmt_below(r["h_target"], 4)
-                      + _CAPS.get(r["capped_by"], ""),
+                      _target_cell(r["h_target"], r["capped_by"], data["verified"]),
                       "-" if r["steps"] is None else str(r["steps"]), acc,
                       "-" if r["divergent"] is None else f"{100 * r['divergent']:.2g}%",
                       _error_cell(r["expected_error"]),
@@ -287,6 +296,10 @@ def print_hmc_target(data: dict[str, Any], scene_file: str | None) -> None:
             console.print(_lit(f"{r['method']}: {line}"))
     for note in data["notes"]:
         console.print(_lit(note))
+    if not data["verified"]:
+        console.print(_lit(f"UNVERIFIED: {data['unverified']}: the acceptance and its "
+                           "standard error assume draws that represent the target, and h at "
+                           "target is not a recommendation"))
     console.print(_lit("acceptance: E[min(1, exp(-dH))] over the draws with fresh momenta and each "
                   "method's own trajectories, ± its Monte Carlo standard error; divergent: "
                   "dH > 1000. h at target stays within the stiffest draw's stability limit"
@@ -302,8 +315,17 @@ def print_hmc_target(data: dict[str, Any], scene_file: str | None) -> None:
 
 
 #: How the text table marks the limit that capped h at target (``capped_by``).
-_CAPS = {"stability": " (stability)", "stability over 1 + J": " (stability/(1+J))",
-         "divergence onset": " (divergences)"}
+_CAPS = {"stability": "stability", "stability over 1 + J": "stability/(1+J)",
+         "divergence onset": "divergences"}
+
+
+def _target_cell(h: float | None, capped_by: str | None, verified: bool) -> str:
+    """h at target with the limit that capped it and, for draws that fail the convergence
+    diagnostics, "unverified"."""
+    if h is None:
+        return "-"
+    tags = [t for t in (_CAPS.get(capped_by or ""), None if verified else "unverified") if t]
+    return fmt_below(h, 4) + (f" ({', '.join(tags)})" if tags else "")
 
 
 def _ranking_line(key: str, steps: int | None, length: float | None) -> str:

@@ -14,7 +14,8 @@ For each method:
   no jittered step passes the stiffest region's limit, unless ``allow_unstable_jitter``
   (then below ``h_stable``, and the share of jittered steps beyond it is stated); and
   below the divergence onset (the largest step of the scan below at which none of the
-  proposals diverged), since nonlinear instability can set in before the linear limit of
+  proposals diverged; not with ``allow_unstable_jitter``, which accepts divergent jittered
+  steps), since nonlinear instability can set in before the linear limit of
   the stiffest draw (a light tail such as U = x^4/4 has draws stiffer than any seen). The
   row's ``capped_by`` names the limit that bound the step (``"stability"``,
   ``"stability over 1 + J"``, ``"divergence onset"``; None where the acceptance falls to
@@ -71,7 +72,7 @@ from stepsafe.core.hmc_target.potential import Target
 from stepsafe.core.hmc_target.trajectories import scheme
 from stepsafe.core.records import versioned
 from stepsafe.core.regions import find_region, stable_run
-from stepsafe.exceptions import StepsafeError
+from stepsafe.exceptions import NotConverged, StepsafeError
 from stepsafe.methods.tableaux import Method
 
 #: The divergence scan runs up to this multiple of the larger stability step (draws', mode's).
@@ -182,6 +183,20 @@ class TargetReport:
     seed: int
     notes: tuple[str, ...] = field(default=())
 
+    @property
+    def unverified(self) -> str | None:
+        """Why the estimates are not verified: the draws fail a convergence diagnostic
+        (:func:`unconverged`), so they may not represent the target (a mode they missed
+        changes the acceptance by more than its standard error, which assumes they do),
+        and h at target is not a recommendation; None when the draws pass (or cannot be
+        checked: given draws with fewer than 4 per chain, said in a note)."""
+        return unconverged(self.draws) if self.draws.converged is False else None
+
+    @property
+    def verified(self) -> bool:
+        """Whether the draws pass the convergence diagnostics (:attr:`unverified`)."""
+        return self.unverified is None
+
     #: what the gradient figures count
     COST_UNIT: ClassVar[str] = "gradient evaluations"
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
@@ -242,6 +257,7 @@ class TargetReport:
                       "sampler_acceptance": d.acceptance, "sampler_divergent": d.divergent,
                       "rhat": _finite(d.rhat), "effective_size":
                       _finite(d.effective_size), "converged": d.converged},
+            "verified": self.verified, "unverified": self.unverified,
             "frequencies": self.frequencies, "laplace": self.laplace_record,
             "methods": [r.to_dict() for r in self.rows], "notes": list(self.notes)})
 
@@ -269,7 +285,7 @@ def unconverged(draws: Draws) -> str | None:
                 "size need at least 4 draws per chain")
     failed = []
     if draws.rhat is not None and not draws.rhat <= RHAT_LIMIT:
-        failed.append(f"R-hat {draws.rhat:.4g} is above {RHAT_LIMIT:g}")
+        failed.append(f"R-hat {draws.rhat:.4f} is above {RHAT_LIMIT:g}")
     if draws.effective_size is not None and not draws.effective_size >= ESS_LIMIT:
         failed.append(f"the effective sample size {draws.effective_size:.4g} is below "
                       f"{ESS_LIMIT:g}")
@@ -309,7 +325,8 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
     start
         Where the mode search (and, without a mode, the chains) start.
     allow_unstable_jitter
-        Search steps up to the stability limit itself rather than its quotient by 1 + J.
+        Search steps up to the stability limit itself rather than its quotient by 1 + J,
+        and past the onset of divergent proposals.
     onset
         Scan for the step where divergent proposals start.
     zmax
@@ -361,14 +378,15 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
     if require_converged:
         refusal = unconverged(draws)
         if refusal is not None:
-            raise StepsafeError(refusal + " (require_converged; --require-converged on the "
-                                "command line)",
-                                f"{where}::$.system.potential" if where else "draws")
+            raise NotConverged(refusal + " (require_converged; --require-converged on the "
+                               "command line)",
+                               f"{where}::$.system.potential" if where else "draws")
     if draws.converged is False:
-        notes.append(f"the draws have not converged (R-hat {draws.rhat:.4g}, limit "
+        notes.append(f"the draws have not converged (R-hat {draws.rhat:.4f}, limit "
                      f"{RHAT_LIMIT:g}; effective sample size {draws.effective_size:.4g}, limit "
-                     f"{ESS_LIMIT:g}): they may not represent the target and the estimates "
-                     "may be off by more than their standard errors")
+                     f"{ESS_LIMIT:g}): they may not represent the target, the estimates may "
+                     "be off by more than their standard errors, and h at target is not a "
+                     "recommendation (unverified)")
     freq = spread(target, draws, seed=seed + 2)
     if not freq.top > 0:
         raise StepsafeError("the target has no positive curvature at any draw: no step limit",
@@ -419,7 +437,8 @@ def _row(m: Method, target_accept: float, trajectory: Trajectory, step: float | 
     # h_hi at least, so that the bound is known where it binds)
     reach = max(ONSET_REACH * max(h_stable, laplace_h or 0.0), h_hi) if onset else h_hi
     scan = divergence_onset(estimator, run, reach, trajectory)
-    if scan.h_divergent is not None and (scan.h_clean is None or scan.h_clean < h_hi):
+    if not allow_unstable_jitter and scan.h_divergent is not None and (
+            scan.h_clean is None or scan.h_clean < h_hi):
         h_hi, cap = scan.h_clean or 0.0, "divergence onset"
     found = None if h_hi <= 0 else target_step(estimator, run, target_accept, h_hi, trajectory)
     est = None if found is None else found.estimate
