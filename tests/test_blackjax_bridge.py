@@ -211,6 +211,7 @@ def _banana_logdensity(q):
 def test_blackjax_acceptance_on_the_banana_is_the_estimate():
     settings = bridge.blackjax_hmc(_banana_logdensity, np.array([0.1, 0.2]),
                                    method="verlet", trajectory_steps=10)
+    assert settings.verified, settings.report.unverified
     rng = np.random.default_rng(5)
     x = rng.standard_normal(256)
     start = np.stack([x, 0.3 * x * x + rng.standard_normal(256)], axis=1)  # exact draws
@@ -218,6 +219,26 @@ def test_blackjax_acceptance_on_the_banana_is_the_estimate():
     measured = chain_mean(run.acceptance)
     se = np.hypot(measured.se, settings.acceptance_se)
     assert abs(measured.value - settings.acceptance) < 3 * se, (measured, settings.acceptance)
+
+
+@pytest.mark.blackjax
+@needs_blackjax
+def test_draws_that_fail_a_diagnostic_give_unverified_settings_or_a_refusal():
+    """Chains of N(0, 1) draws shifted 3 apart fail R-hat: the settings say they are not
+    verified (naming R-hat), and require_converged=True refuses them naming R-hat."""
+    from stepsafe.exceptions import NotConverged
+
+    def logdensity(q):
+        return -0.5 * (q * q).sum()
+
+    draws = (np.random.default_rng(11).normal(size=(8, 200, 1))
+             + 3.0 * np.arange(8)[:, None, None])
+    settings = bridge.blackjax_hmc(logdensity, np.zeros(1), method="verlet",
+                                   trajectory_steps=5, draws=draws)
+    assert not settings.verified and "R-hat" in settings.report.unverified
+    with pytest.raises(NotConverged, match="R-hat"):
+        bridge.blackjax_hmc(logdensity, np.zeros(1), method="verlet", trajectory_steps=5,
+                            draws=draws, require_converged=True)
 
 
 @pytest.mark.slow

@@ -189,7 +189,9 @@ class Settings:
     ``num_integration_steps`` and ``inverse_mass_matrix`` as they are; ``jitter`` is the
     relative jitter of the step the estimate assumed (0: none; :func:`sample` applies it);
     ``report`` holds every figure behind the choice (estimated acceptance with its
-    standard error, divergences, Laplace figures, the other methods)."""
+    standard error, divergences, Laplace figures, the other methods); ``verified`` is
+    False when the draws it was estimated on fail the convergence diagnostics (the reason
+    in ``report.unverified``): the step is then not a recommendation."""
 
     integrator: Callable
     step_size: float
@@ -202,12 +204,18 @@ class Settings:
     acceptance_se: float
     report: TargetReport
 
+    @property
+    def verified(self) -> bool:
+        """Whether the draws behind the estimate pass R-hat and the effective sample size
+        (:attr:`stepsafe.core.hmc_target.advice.TargetReport.verified`)."""
+        return self.report.verified
+
 
 def blackjax_hmc(logdensity: Callable, initial_position: Any, *,
                  method: Any | Sequence[Any] | None = None, target_accept: float = 0.8,
                  trajectory_steps: int = 10, jitter: float = 0.0,
                  inverse_mass_matrix: Any | None = None, draws: Any | None = None,
-                 seed: int = SEED) -> Settings:
+                 seed: int = SEED, require_converged: bool = False) -> Settings:
     """The integrator, step size and number of steps stepsafe recommends for BlackJAX's HMC
     on a JAX log-density: the step reaching ``target_accept`` at ``trajectory_steps`` steps
     per trajectory, estimated on the target itself (:mod:`stepsafe.core.hmc_target`), with
@@ -237,6 +245,10 @@ def blackjax_hmc(logdensity: Callable, initial_position: Any, *,
         short adaptive run of stepsafe's own).
     seed
         Seed of stepsafe's draws and common random numbers.
+    require_converged
+        Refuse draws that fail R-hat or the effective sample size
+        (:class:`~stepsafe.exceptions.NotConverged`, naming the diagnostic) before any
+        estimate; without it such draws give settings with ``verified`` False.
 
     Returns
     -------
@@ -266,7 +278,7 @@ def blackjax_hmc(logdensity: Callable, initial_position: Any, *,
                             f"{steps!r}")
     report = hmc_on_target(target, tableaux, Trajectory(steps=int(steps), jitter=jitter),
                            target_accept=target_accept, draws=given, seed=seed, start=q0,
-                           onset=False)
+                           onset=False, require_converged=bool(require_converged))
     best = next((r for r in report.rows if r.rank == 1), None)
     if best is None or best.h_target is None or best.estimate is None:
         raise StepsafeError(f"no method reaches acceptance {target_accept:g} at {steps} "
