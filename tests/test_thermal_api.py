@@ -351,14 +351,15 @@ def test_progress_at_temperature_never_goes_back_and_stays_in_the_unit_interval(
 
 
 @pytest.mark.slow  # an analysis at temperature, two checks and the test's own runs
-def test_resonance_order_at_temperature_excludes_the_measured_band_not_the_point():
+def test_resonance_order_at_temperature_excludes_the_measured_band_and_the_point():
     """At kT/D = 2e-4 the 4:1 band of Verlet on the Morse bond is narrow: with
     --resonance-order 4 the 0 K answer stops at the point sqrt 2, the answer at
     temperature at the band's measured lower edge or, where the fresh ensemble that confirms
     it loses a trajectory, at most 10% below it; inside the band the
     test's own integration loses trajectories, at the answer it loses none beyond the
-    threshold; a step past the band's upper edge, unsafe at 0 K with the order, is SAFE at
-    temperature, and the test's own integration loses no trajectory there."""
+    threshold. A step past the band's upper edge, where the test's own integration loses no
+    trajectory, is SAFE at temperature without the order and stays unsafe with it, as at
+    0 K: a temperature never passes a step the 0 K check refuses."""
     scene = str(Path(__file__).parent.parent / "examples" / "morse.yaml")
     kT = 1e-4
     zero = stepsafe.advise(scene=scene, kT=0, resonance_order=4)
@@ -369,13 +370,15 @@ def test_resonance_order_at_temperature_excludes_the_measured_band_not_the_point
                 for b in sc["bands"] if b["name"] == "4:1")
     assert warm.h_max_limited_by.startswith("resonance band 4:1")
     assert 0.9 * band["lower"]["clear"] <= warm.h_max <= band["lower"]["clear"]
+    assert warm.h_max <= zero.h_max
     assert band["lower"]["clear"] < math.sqrt(2) < band["upper"]["clear"]
     inside = 0.5 * (band["lower"]["unsafe"] + band["upper"]["unsafe"])
     assert _own_escapes(inside, kT) > 0.05
     assert _own_escapes(warm.h_max, kT) <= 0.01 + 2.3 * math.sqrt(0.01 * 0.99 / 2000)
     past = 1.01 * band["upper"]["clear"]
     assert not stepsafe.check(scene=scene, h=past, resonance_order=4).safe
-    assert stepsafe.check(scene=scene, h=past, resonance_order=4, kT=kT).safe
+    assert not stepsafe.check(scene=scene, h=past, resonance_order=4, kT=kT).safe
+    assert stepsafe.check(scene=scene, h=past, kT=kT).safe
     assert _own_escapes(past, kT) == 0.0
 
 

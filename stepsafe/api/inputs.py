@@ -534,17 +534,26 @@ def _labels(labels: Mapping[str, Sequence[str | None]] | None,
 
 
 def problem_of(method: Integrator | str | None, beta: ArrayLike | None,
-                inputs: dict[str, Any], times: Sequence[Any] = ()) -> Problem:
+                inputs: dict[str, Any], times: Sequence[Any] = (), run: Any = None
+                ) -> Problem:
     """A ``problem=`` given (it already holds the method, frequencies and options: any of
     them given beside it would be ignored, so that is refused), else :func:`problem` of
     the inputs (their names are checked by :func:`stepsafe.arguments.public`). ``times``
     are steps or durations of the caller (texts with a unit name the time unit when
-    nothing else does)."""
+    nothing else does). ``run`` is the length of a run at temperature (``length=``): its
+    unit names the time unit only of frequencies that have a unit of their own (a
+    wavenumber, a period); where nothing else names a time unit and the frequencies are
+    plain numbers (a system in its own units), there is no unit to convert it into, and
+    that is refused rather than the frequencies' unit taken from the length."""
     given = inputs.pop("problem", None)
     if given is None:
         if inputs.get("time_unit") is None and implied_time_unit(*times) is not None:
             inputs["time_unit"] = time_unit_in_force(None, inputs.get("scene"), *times,
                                                      inputs.get("h"), inputs.get("period"))
+        if run is not None and inputs.get("time_unit") is None and time_unit_in_force(
+                None, inputs.get("scene"), inputs.get("h"), inputs.get("period")) is None:
+            return problem_for_run(lambda unit: problem(method, beta,
+                                                        **{**inputs, "time_unit": unit}), run)
         return problem(method, beta, **inputs)
     if not isinstance(given, Problem):
         raise StepsafeError(f"problem must be a stepsafe.Problem (from stepsafe.problem), got "
@@ -556,6 +565,29 @@ def problem_of(method: Integrator | str | None, beta: ArrayLike | None,
                             f"give {', '.join(extra)} to stepsafe.problem instead (beside "
                             "problem= it would be ignored)")
     return given
+
+
+def problem_for_run(build: Callable[[str | None], Problem], run: Any) -> Problem:
+    """The problem ``build(time_unit)`` of inputs in which nothing names a time unit, with
+    the length of a run at temperature ``run`` (``--length``, ``length=``): when its text
+    names a unit, that unit is the time unit only of frequencies that need one (a
+    wavenumber, a frequency in THz: ``build(None)`` refuses them); frequencies that are
+    plain numbers (a system in its own units) are per a time unit nobody stated, which the
+    length cannot be converted into: refused, naming the length."""
+    named = implied_time_unit(run)
+    if named is None:
+        return build(None)
+    try:  # without a time unit: do the frequencies need one?
+        found = build(None)
+    except StepsafeError:
+        return build(named)
+    if found.time_unit is not None:  # (named by an input read, e.g. a --modes file)
+        return found
+    raise StepsafeError(f"--length, length=: {str(run)[:40]!r} is in {named}, but the system "
+                        "states no time unit to convert it into (its frequencies are plain "
+                        "numbers, per its own time unit): give the length as a number in "
+                        "that unit, or the run's steps (--steps, steps=), or state the unit "
+                        "(--time-unit, time_unit: in the scene)")
 
 
 def _scene_method(method: Integrator | str | None, scene: Any, stages: int | None,
@@ -579,8 +611,18 @@ def _scene_method(method: Integrator | str | None, scene: Any, stages: int | Non
         raise StepsafeError(message, f"{scene.where}::$.method") from None
 
 
-def valid_order(order: int | None) -> int | None:
-    return None if order is None else validate_orders((order,))[0]
+def valid_order(order: Any) -> int | None:
+    """``resonance_order`` (``--resonance-order``): None, or a whole number from 3 to
+    :data:`stepsafe.core.resonances.MAX_ORDER` (a numpy integer too; not a bool, a
+    fraction or a text), else a StepsafeError naming the key."""
+    if order is None:
+        return None
+    try:
+        return validate_orders((order,))[0]
+    except StepsafeError as exc:
+        raise StepsafeError("--resonance-order, resonance_order=: " + exc.message.replace(
+            "resonance orders must be integers", "must be an integer").replace(
+            f"got {str((order,))[:40]}", f"got {str(order)[:40]}")) from None
 
 
 def valid_stage_solver(value: Any) -> str:

@@ -244,7 +244,9 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
         of the 0 K one, the linear limit at temperature and the first resonance band
         measured below it (``thermal["limited_by"]`` says which;
         ``zero_kelvin`` holds the 0 K answer), and ``resonance_order`` excludes
-        the measured bands, not the points (:mod:`stepsafe.api.thermal`). An OpenMM
+        the measured bands as well as the points (the 0 K answer keeps below them:
+        a temperature never passes a step the 0 K answer refuses;
+        :mod:`stepsafe.api.thermal`). An OpenMM
         system is sampled by OpenMM and its limit measured by runs of the method in OpenMM
         (:mod:`stepsafe.systems.md.thermal`; ``limited_by`` ``"OpenMM runs"``). At T = 0
         (or without a temperature) nothing changes.
@@ -278,6 +280,7 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
     ('boundary', '0.491688')
     """
     criterion = None if criterion is None else validate_criterion(criterion)
+    order = valid_order(resonance_order)  # (checked before anything is analysed)
     inputs = {"saddle_beta": saddle_beta, "inverted_beta": inverted_beta, "modes": modes,
               "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
               "period": period, "sigma": sigma, "time_unit": time_unit, "labels": labels,
@@ -287,15 +290,13 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
               "openmm_system": openmm_system, "positions": positions,
               "constraints": constraints, "hydrogen_mass": hydrogen_mass,
               "minimize": minimize}  # (beside problem=, progress reports on the thermal work)
-    p = problem_of(method, beta, inputs, (length,))
+    p = problem_of(method, beta, inputs, run=length)
     warm = _thermal_request(p, temperature, kT, length, steps, max_drift, max_failure,
                             follow_steps)
     if warm is not None and (tol_phase is not None or tol_energy is not None):
         raise StepsafeError("temperature: the answer at temperature does not bound the phase "
                             "or energy error yet; give tol_phase/tol_energy without it")
-    order = valid_order(resonance_order)
-    # at temperature the measured bands replace the resonance points
-    resonance_order = None if warm is not None else resonance_order
+    # (at temperature the points stay excluded: the 0 K answer caps the one measured)
     integrator, result = p.integrator, None
     criterion = validate_criterion(criterion, integrator.tableau)
     with integrator.naming_its_file():
@@ -499,7 +500,7 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
         at temperature, a trajectory of an ensemble of ``ln(20) / max_failure`` thermal
         trajectories at that step fails, or its measured drift exceeds ``max_drift``
         (a failed trajectory fails it too; ``thermal``;
-        ``resonance_order`` then leaves the points to that measurement); on an OpenMM
+        ``resonance_order`` keeps excluding the points, as at 0 K); on an OpenMM
         system, when runs of the method in OpenMM at that step fail.
 
     Returns
@@ -512,6 +513,7 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
     True
     """
     criterion = None if criterion is None else validate_criterion(criterion)
+    resonance_order = valid_order(resonance_order)  # (checked before anything is analysed)
     require_complete_search = as_flag(require_complete_search, "require_complete_search")
     inputs = {"saddle_beta": saddle_beta, "inverted_beta": inverted_beta, "modes": modes,
               "ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
@@ -523,7 +525,7 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
               "constraints": constraints, "hydrogen_mass": hydrogen_mass,
               "minimize": minimize}  # (beside problem=, progress reports on the thermal work)
     if problem is None:
-        p = problem_of(method, beta, {**inputs, "h": h}, (length,))
+        p = problem_of(method, beta, {**inputs, "h": h}, run=length)
         step = p.h
     else:
         p = problem_of(method, beta, inputs)
@@ -533,8 +535,6 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
                             "scene file (h= in Python)")
     warm = _thermal_request(p, temperature, kT, length, steps, max_drift, max_failure,
                             follow_steps)
-    if warm is not None:
-        resonance_order = None  # (the measured bands replace the resonance points)
     integrator, result = p.integrator, None
     criterion = validate_criterion(criterion, integrator.tableau)
     with integrator.naming_its_file():

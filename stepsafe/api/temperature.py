@@ -12,10 +12,11 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
+from numbers import Integral, Real
 from typing import Any
 
 from stepsafe.comparison import compared
-from stepsafe.exceptions import StepsafeError, finite_real
+from stepsafe.exceptions import StepsafeError
 from stepsafe.systems.scene import parse_real
 from stepsafe.units import ENERGY_UNITS, duration, kelvin, thermal_energy
 
@@ -90,6 +91,24 @@ class Request:
     def follow(self) -> int:
         """The most steps the thermal trajectories follow: given, or :data:`FOLLOW_STEPS`."""
         return FOLLOW_STEPS if self.follow_steps is None else self.follow_steps
+
+
+def _number(value: Any, scene_text: bool) -> float:
+    """A number given as one (an int, a float, a numpy scalar or 0-d array of one) as a
+    float (an int beyond float64: inf), or a scene file's text of one (``scene_text``);
+    nan for anything else (a bool, a keyword's text, an array of several values)."""
+    if isinstance(value, str):
+        number = parse_real(value) if scene_text else None
+        return math.nan if number is None else float(number)
+    if hasattr(value, "dtype") and getattr(value, "ndim", None) == 0 and \
+            value.dtype.kind in "iuf":
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, Real):
+        return math.nan
+    if isinstance(value, Integral):
+        whole = int(value)
+        return float(whole) if abs(whole) < 2 ** 1023 else math.inf if whole > 0 else -math.inf
+    return float(value)
 
 
 def where_in_scene(scene: Any, key: str) -> str | None:
@@ -188,15 +207,10 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
         kt = thermal_energy(T, unit)
         temperature_k: float | None = T
     elif k_value is not None:
-        written = k_value
-        try:
-            if isinstance(k_value, str) and not k_given:
-                k_value = parse_real(k_value)
-            kt = finite_real(k_value, "kT")
-        except (StepsafeError, TypeError):
-            raise _fail(f"kT must be a finite number >= 0 (energy), got {str(written)[:40]!r}",
-                        scene,
-                        "kT", k_given) from None
+        kt = _number(k_value, not k_given)
+        if not math.isfinite(kt):
+            raise _fail(f"kT must be a finite number >= 0 (energy), got {str(k_value)[:40]!r}",
+                        scene, "kT", k_given)
         if kt < 0:
             raise _fail(f"kT must not be negative, got {kt:g}", scene, "kT", k_given)
         if kt == 0:
@@ -230,13 +244,8 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
             raise _fail(f"length must be a positive finite time, got {l_value!r}", scene,
                         "length", l_given)
     elif s_value is not None:
-        number = s_value
-        if isinstance(number, str):
-            number = parse_real(number)
-        if isinstance(number, int) and not isinstance(number, bool):
-            number = float(number) if abs(number) < 2 ** 1023 else math.inf
-        if not isinstance(number, float) or \
-                not (math.isfinite(number) and number >= 1 and number == int(number)):
+        number = _number(s_value, not s_given)
+        if not (math.isfinite(number) and number >= 1 and number == int(number)):
             raise _fail(f"steps must be a whole number >= 1, got {str(s_value)[:40]!r}",
                         scene, "steps", s_given)
         run_steps = number
@@ -246,14 +255,7 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
                     "reaches depends on it", scene, "length", t_given or k_given)
     tolerance, d_given = value("max_drift")
     if tolerance is not None:
-        if isinstance(tolerance, str) and not d_given:
-            tolerance = parse_real(tolerance)
-        number = math.nan
-        if isinstance(tolerance, (int, float)) and not isinstance(tolerance, bool):
-            try:
-                number = float(tolerance)
-            except OverflowError:  # (an int beyond float64)
-                pass
+        number = _number(tolerance, not d_given)
         if not (math.isfinite(number) and number > 0):
             raise _fail(f"max_drift must be a positive finite energy per time unit, got "
                         f"{str(tolerance)[:40]!r}", scene, "max_drift", d_given)
@@ -261,25 +263,16 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
     p_value, p_given = value("max_failure")
     p_max = None
     if p_value is not None:
-        if isinstance(p_value, str) and not p_given:
-            p_value = parse_real(p_value)
-        p_max = math.nan
-        if isinstance(p_value, (int, float)) and not isinstance(p_value, bool):
-            try:
-                p_max = float(p_value)
-            except OverflowError:
-                pass
+        p_max = _number(p_value, not p_given)
         if not MIN_FAILURE <= p_max <= 0.1:
             raise _fail(f"max_failure must be a probability in [{MIN_FAILURE:g}, 0.1], got "
                         f"{str(p_value)[:40]!r}", scene, "max_failure", p_given)
     f_value, f_given = value("follow_steps")
     follow = None
     if f_value is not None:
-        number = parse_real(f_value) if isinstance(f_value, str) and not f_given else f_value
-        if isinstance(number, float) and math.isfinite(number) and number == int(number):
-            number = int(number)
-        if isinstance(number, bool) or not isinstance(number, int) or \
-                not 1 <= number <= MAX_FOLLOW_STEPS:
+        real = _number(f_value, not f_given)
+        number = int(real) if math.isfinite(real) and real == int(real) else 0
+        if not 1 <= number <= MAX_FOLLOW_STEPS:
             raise _fail(f"follow_steps must be a whole number of steps in [1, "
                         f"{MAX_FOLLOW_STEPS:.0e}], got {str(f_value)[:40]!r}", scene,
                         "follow_steps", f_given)

@@ -214,7 +214,7 @@ def region_cmd(method: str, stages: int | None, base: str | None, model: str,
               help="Also keep every vibration below its first nonlinear resonance "
                    "n theta = 2 pi m of order n <= N (3 or more; Verlet: 4:1 at "
                    "beta*h = sqrt 2, 3:1 at sqrt 3). The points only: the band around "
-                   "each widens with amplitude (--temperature measures the bands instead); "
+                   "each widens with amplitude (--temperature also measures the bands); "
                    "resonances between modes are not analysed.")
 @click.option("--solver", type=click.Choice(("fixed-point", "newton", "nominal")),
               default="fixed-point", show_default=True,
@@ -297,8 +297,8 @@ def advise_cmd(tol_phase, tol_energy, every_mode, resonance_order, solver, crite
 @click.option("--resonance-order", type=INT, default=None, metavar="N",
               help="Also fail a vibration at or beyond its first nonlinear resonance "
                    "n theta = 2 pi m of order n <= N (3 or more). The points only: the "
-                   "band around each widens with amplitude (--temperature measures the "
-                   "bands instead); resonances between modes are not analysed.")
+                   "band around each widens with amplitude (--temperature also measures "
+                   "the bands); resonances between modes are not analysed.")
 @click.option("--solver", type=click.Choice(("fixed-point", "newton")), default="fixed-point",
               show_default=True,
               help="How an implicit method's stages are solved: with fixed-point iteration a "
@@ -373,7 +373,8 @@ def check_cmd(h, every_mode, resonance_order, solver, criterion, scene_files, as
                     print_thermal_check(entry)
                 if "verify" in entry:
                     _print_verify(entry["verify"])
-        if resonance_order is not None and not any(
+        if resonance_order is not None and any("error" not in entry for entry in
+                                               data["checks"]) and not any(
                 "thermal" in entry for entry in data["checks"]):
             click.echo(RESONANCE_CAVEAT)
     for verdict in verdicts:

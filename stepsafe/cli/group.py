@@ -418,17 +418,26 @@ def scene_options(func):
 def _problem(scene_file, options: dict, show_progress: bool = False, h=None, length=None):
     """The scene file merged with the command-line options (the options win); ``h`` the
     step to check (a number, or a text with a time unit); ``length`` a run's time (its
-    unit names the time unit where nothing else does)."""
-    options = dict(options)  # (the time unit found is this scene's alone)
-    modes, labels = command_line_modes(options, scene_file, h, length)
-    with progress_bar("coupled analysis", show_progress) as progress:
-        return inputs.problem(options["method_name"], modes=modes, labels=labels,
-                           scene=scene_file, stages=options["stages"], base=options["base"],
-                           margin=options["margin"], zmax=options["zmax"],
-                           time_unit=options["time_unit"], h=h, progress=progress,
-                           budget=options["budget"], constraints=options["constraints"],
-                           hydrogen_mass=options["hydrogen_mass"],
-                           minimize=options["minimize"])
+    unit names the time unit where nothing else does and the frequencies need one: see
+    :func:`stepsafe.api.inputs.problem_for_run`)."""
+    def build(unit):
+        given = dict(options)  # (the time unit found is this scene's alone)
+        if unit is not None:
+            given["time_unit"] = unit
+        modes, labels = command_line_modes(given, scene_file, h)
+        with progress_bar("coupled analysis", show_progress) as progress:
+            return inputs.problem(given["method_name"], modes=modes, labels=labels,
+                               scene=scene_file, stages=given["stages"], base=given["base"],
+                               margin=given["margin"], zmax=given["zmax"],
+                               time_unit=given["time_unit"], h=h, progress=progress,
+                               budget=given["budget"], constraints=given["constraints"],
+                               hydrogen_mass=given["hydrogen_mass"],
+                               minimize=given["minimize"])
+
+    if length is not None and options["time_unit"] is None and time_unit_in_force(
+            None, scene_file, h, list(options["period"])) is None:
+        return inputs.problem_for_run(build, length)
+    return build(None)
 
 
 def command_line_modes(options: dict, scene_file: str | None = None, *times
