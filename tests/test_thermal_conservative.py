@@ -245,3 +245,30 @@ def test_numpy_numbers_are_the_numbers_and_texts_are_refused(steps, kT, kind):
             request(**good, **{key: str(steps)})
         with pytest.raises(StepsafeError, match=f"^{key}|^--{key}"):
             request(**good, **{key: np.array([n, n])})
+
+
+QUARTIC = """kT: 0.1
+steps: 2000
+system:
+  hamiltonian: "p**2/2 + q**2/2 + 0.1*q**4"
+  box: {q: [-3, 3], p: [-1, 1]}
+"""
+
+
+@pytest.mark.slow  # an analysis at temperature per case (about 8 s of CPU each)
+@pytest.mark.parametrize("name, margin", [("bcss2", None), ("blanes-moan4", 0.9)])
+def test_advise_at_temperature_gives_no_step_above_the_one_its_fresh_ensemble_ran(
+        tmp_path, name, margin):
+    """A quartic well at kT = 0.1 is limited by the linear limit at temperature, a
+    supremum: the fresh ensemble that confirms the answer runs just below it, and h_max
+    (times the margin) is that step, not the limit above it."""
+    path = tmp_path / "quartic.yaml"
+    path.write_text(QUARTIC)
+    r = stepsafe.advise(name, scene=str(path), margin=margin)
+    t = r.record["thermal"]
+    m = t["minima"][0]
+    assert t["limited_by"] == "linear at temperature"
+    # (the record's steps, the confirmation's too, are in the time unit times the margin)
+    assert r.h_max == t["h_max"] == m["confirmation"]["h"]
+    assert m["confirmation"]["failures"] == 0 and m["drift"]["h"] == m["confirmation"]["h"]
+    assert r.h_max < m["h_linear"] <= 1.002 * r.h_max

@@ -31,7 +31,8 @@ linearisation at the minimum.
   the fresh ensemble is not selected. When one of its trajectories fails, the step goes
   down to the next step the scan judged clear below it, by the factor ``STEP_DOWN`` at
   least, and is confirmed again, at most ``CONFIRM_TRIES`` times (``"resonance band ...
-  (whole system)"``); the record states the confirming ensemble, its seed and failures;
+  (whole system)"``); the record states the confirming ensemble, its seed and failures.
+  ``h_max`` is the step it confirmed: no step above one the fresh ensemble ran is given;
 * the **drift** measured in that run (:mod:`.drift`); with a ``drift_tolerance`` the step
   is lowered, by bisection on measured drifts, until ``|drift| + 2 SE`` meets it.
 
@@ -197,7 +198,7 @@ class ThermalLimit:
     tables : tuple of Tabulated
         The tabulated profiles behind profile scans.
     drift : Drift or None
-        Of the whole system at ``h_max`` (at ``TOP h_max`` below a linear limit).
+        Of the whole system at ``h_max`` (the step confirmed).
     run_steps, run_length : float or None
         The run as stated.
     seed : int
@@ -516,8 +517,8 @@ def thermal_limit(method: Method, pot: Potential, kT: float, *, length: float | 
                                            rho_whole, max_failure, confidence,
                                            report("confirmation"))
         lowered = bool(confirmation.rejected)
+        h_max = at  # the answer is a step the fresh ensemble ran (TOP below a linear limit)
         if lowered:
-            h_max = at
             h_high = math.inf
             near = bands_.names_near(
                 [(z / w, f"{name}" + (f" of the mode of omega = {w:.6g}"
