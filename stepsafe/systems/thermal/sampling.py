@@ -6,7 +6,9 @@ Three ways, the most exact that applies:
   Gaussian draws ``x = sqrt(kT) L^-T xi`` with ``K = L L^T`` (Cholesky), ``xi ~ N(0, I)``;
 * **one coordinate**: exact draws by the inverse of the distribution function, tabulated by
   the trapezoid rule on a uniform grid over the well of the minimum up to ``U - U(q0) =
-  cut kT`` on both sides (the mass beyond is below ``e^-cut`` relative);
+  cut kT`` on both sides (the mass beyond is below ``e^-cut`` relative); a barrier below
+  that is crossed, and the grid covers the basins beyond it up to the wall where U rises
+  ``cut kT`` above the lowest of them (:func:`well`);
 * otherwise **Langevin dynamics**, BAOAB (Leimkuhler & Matthews 2013): with ``F = -grad U``
   and ``c = exp(-gamma h)``, one step is ``p += h F / 2; q += h M^-1 p / 2;
   p = c p + sqrt((1 - c^2) kT) M^1/2 xi; q += h M^-1 p / 2; p += h F / 2``. Its
@@ -45,6 +47,9 @@ CUT = 40.0
 REACH = 64
 #: ... where U must be at least this many kT above the minimum.
 PLATEAU = 12.0
+#: Past a barrier below the cut, the walk goes on this many times further for the wall
+#: that confines the basins beyond it.
+BEYOND = 4
 #: Grid points of the 1-D distribution function.
 GRID = 20001
 #: Langevin step in units of the fastest 0 K period: ``h = Z_SAMPLE / omega_max``.
@@ -187,12 +192,17 @@ def gaussian(pot: Potential, kT: float, count: int, rng: np.random.Generator) ->
 
 def well(pot: Potential, kT: float, cut: float = CUT
          ) -> tuple[float, float, tuple[str, ...]]:
-    """The interval around a 1-D minimum where ``U - U(q0) < cut kT``, found by walking out
-    from ``q0`` in steps of an eighth of the thermal amplitude ``a = sqrt(kT / U'')``.
+    """The interval around a 1-D minimum where ``U - U_low < cut kT`` (``U_low`` the lowest
+    U met so far: ``U(q0)``, or a lower basin's), found by walking out from ``q0`` in steps
+    of an eighth of the thermal amplitude ``a = sqrt(kT / U'')``, up to ``REACH a`` (and
+    ``BEYOND`` times further once U has fallen past a barrier).
 
-    A side where U falls before ``cut kT`` (a barrier to a lower region) ends at the
-    barrier's top, one where it levels off (a dissociation plateau) at ``REACH a``; there
-    ``U - U(q0)`` must be at least ``PLATEAU kT`` (the density left out is below
+    A side where U falls before ``cut kT`` (a barrier to another basin) goes on over the
+    barrier: when U rises again ``cut kT`` above the lowest U met, the side ends there and
+    the interval holds both basins (the distribution is confined by the walls beyond; a
+    barrier of a few kT is crossed by every run). A side where U never rises that far ends
+    at the barrier's top, one where U levels off (a dissociation plateau) at ``REACH a``;
+    there ``U - U(q0)`` must be at least ``PLATEAU kT`` (the density left out is below
     ``e^-PLATEAU`` of the peak there), else the distribution is not confined at this
     temperature (a :class:`StepsafeError`). Returns ``(lo, hi, notes)``.
     """
@@ -208,18 +218,29 @@ def well(pot: Potential, kT: float, cut: float = CUT
     notes = []
     last = 8 * REACH
     for sign in (-1.0, 1.0):
-        k = np.arange(1, last + 1)
+        k = np.arange(1, BEYOND * last + 1)
         s = s0 + sign * step * k
         with np.errstate(all="ignore"):
             u = pot.energy(s[:, None]) - u0
         bad = ~np.isfinite(u)
-        hit = np.flatnonzero((u >= cut * kT) | bad)
+        near = slice(0, last)
+        hit = np.flatnonzero((u[near] >= cut * kT) | bad[near])
         end = int(hit[0]) if hit.size else last - 1
         if hit.size and bad[end]:
             raise StepsafeError(f"U is not finite at {s[end]:.6g}, inside the well at "
                                 f"kT = {kT:.6g}")
         falls = np.flatnonzero(np.diff(u[:end + 1]) < 0)
-        if falls.size:  # a barrier below the cut: the well ends at its top
+        if falls.size:  # a barrier below the cut: over it, does U rise again?
+            low = np.minimum.accumulate(np.minimum(u, 0.0))
+            wall = np.flatnonzero(bad | (u - low >= cut * kT))
+            if wall.size and not bad[wall[0]] and low[wall[0]] < u[falls[0]]:
+                ends.append(float(s[wall[0]]))
+                notes.append(f"a barrier {u[falls[0]] / kT:.3g} kT above the minimum, at "
+                             f"{s[falls[0]]:.6g}, below the {cut:g} kT drawn: the "
+                             f"distribution is drawn over the basins beyond it too, up to "
+                             f"{s[wall[0]]:.6g} where U rises {cut:g} kT above the lowest "
+                             f"U met")
+                continue
             end = int(falls[0])
         elif hit.size:
             ends.append(float(s[end]))
