@@ -12,6 +12,9 @@ from pathlib import Path
 import mpmath as mp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from test_thermal_conservative import _cli
 
 import stepsafe
 from stepsafe.exceptions import StepsafeError
@@ -140,3 +143,52 @@ def test_the_1d_double_well_s_verdicts_are_its_2d_twin_s_and_the_own_integration
         f, g = k / m, own[0.9] / 10000
         se = math.sqrt(f * (1 - f) / m + g * (1 - g) / 10000)
         assert abs(f - g) <= 4.5 * se, (name, k, m, own[0.9])
+
+
+def _morse(scale_e: float, scale_l: float, kept: bool):
+    """U = E (1 - e^(-q/L))^2 / 2, unit mass; ``kept`` writes 1 - e^-x as -expm1(-x), which
+    keeps its digits near the minimum."""
+    def one_minus(x):
+        return -np.expm1(-x) if kept else 1.0 - np.exp(-x)
+
+    return from_callables(lambda q: 0.5 * scale_e * one_minus(q[:, 0] / scale_l) ** 2,
+                          lambda q: scale_e / scale_l * one_minus(q / scale_l)
+                          * np.exp(-q / scale_l),
+                          [1.0], minimum=[0.0],
+                          hessian=lambda q: (scale_e / scale_l ** 2 * (
+                              2 * np.exp(-2 * q / scale_l) - np.exp(-q / scale_l)))[:, :, None])
+
+
+@settings(max_examples=40, deadline=None)
+@given(log_e=st.floats(-250, 250), log_l=st.floats(-100, 100), kept=st.booleans(),
+       log_ratio=st.floats(-6, -1.5))
+def test_a_resolved_well_is_drawn_at_every_scale(log_e, log_l, kept, log_ratio):
+    """Morse at kT/E from 1e-6 to 0.03, E and L over 500 and 200 decades: float64 resolves U
+    (its rounding is about 1e-16 of E (1 - e^-x) ~ 1e-16 sqrt(kT E), far below kT), so the
+    well is drawn, the same in units of L at every scale."""
+    e, length = 10.0 ** log_e, 10.0 ** log_l
+    kT = 10.0 ** log_ratio * e
+    lo, hi, _ = well(_morse(e, length, kept), kT)
+    lo1, hi1, _ = well(_morse(1.0, 1.0, kept), 10.0 ** log_ratio)
+    assert lo / length == pytest.approx(lo1, rel=1e-6)
+    assert hi / length == pytest.approx(hi1, rel=1e-6)
+
+
+@pytest.mark.parametrize("kT", [1e-24, 1e-28, 1e-40, 1e-100, 4.9e-324])
+def test_a_well_float64_does_not_resolve_at_kT_is_refused_as_such(kT):
+    """U = (1 - e^-q)^2/2 at kT <= 1e-24: 1 - e^-q near q ~ sqrt(kT) keeps only
+    1e-16 / sqrt(kT) of its digits (at 1e-28 the energy's noise is 1.6% of kT; from about
+    1e-32 on e^-q rounds to 1 and U to 0): refused as unresolved, not as a band or as
+    "not confined". Written with expm1 the same well is resolved down to kT = 1e-100."""
+    with pytest.raises(StepsafeError, match="^float64 does not resolve U at kT"):
+        well(_morse(1.0, 1.0, kept=False), kT)
+    if kT >= 1e-100:
+        lo, hi, _ = well(_morse(1.0, 1.0, kept=True), kT)
+        assert lo < 0 < hi
+
+
+def test_check_at_a_kT_float64_cannot_resolve_exits_2_naming_it():
+    morse = str(Path(__file__).parent.parent / "examples" / "morse.yaml")
+    code, out, err = _cli("check", morse, "--step", "0.8", "--kT", "1e-28")
+    assert code == 2 and out == "" and err.count("\n") == 1
+    assert "$.system.hamiltonian" in err and "float64 does not resolve U" in err

@@ -50,6 +50,10 @@ PLATEAU = 12.0
 #: Past a barrier below the cut, the walk goes on this many times further for the wall
 #: that confines the basins beyond it.
 BEYOND = 4
+#: Points over +-4 thermal amplitudes where a 1-D U must be resolved in float64 ...
+RESOLVE = 801
+#: ... its rounding noise below this many kT.
+NOISE = 1e-5
 #: Grid points of the 1-D distribution function.
 GRID = 20001
 #: Langevin step in units of the fastest 0 K period: ``h = Z_SAMPLE / omega_max``.
@@ -213,6 +217,7 @@ def well(pot: Potential, kT: float, cut: float = CUT
     if not curvature > 0:
         raise StepsafeError("the potential has no positive curvature at its minimum")
     amplitude = math.sqrt(kT / curvature)
+    resolved(pot, s0, u0, amplitude, kT)
     step = amplitude / 8.0
     ends = []
     notes = []
@@ -255,6 +260,35 @@ def well(pot: Potential, kT: float, cut: float = CUT
                      f"distribution is taken up to {what} (the density left out is below "
                      f"e^-{u[end] / kT:.3g} of the peak there)")
     return ends[0], ends[1], tuple(notes)
+
+
+def resolved(pot: Potential, s0: float, u0: float, amplitude: float, kT: float) -> None:
+    """A :class:`StepsafeError` unless float64 resolves the 1-D U at this kT: on ``RESOLVE``
+    points over ``q0 +- 4 a`` (``a`` the thermal amplitude) U must vary (the curvature
+    predicts 8 kT at the ends; a U that float64 holds constant there, as
+    ``(1 - exp(-q))^2 / 2`` at kT below about 1e-32, is not resolved), and the rounding
+    noise of the computed U, estimated from its fourth differences
+    (``sqrt(mean(d4^2) / 70)``: the variance of a fourth difference of independent errors
+    is 70 times theirs; a smooth U's fourth difference is ``(a / 100)^4 U^(4)``, far
+    below), must stay below ``NOISE kT``. Beyond that the energy's rounding, not the
+    dynamics, decides which trajectories seem to fail."""
+    x = s0 + amplitude * np.linspace(-4.0, 4.0, RESOLVE)
+    with np.errstate(all="ignore"):
+        u = pot.energy(x[:, None]) - u0
+    if not np.all(np.isfinite(u)):
+        return  # (the walk says where U is not finite)
+    with np.errstate(all="ignore"):
+        w = u / kT  # (in kT: nothing overflows at any scale)
+    spread = float(np.max(np.abs(w))) if np.all(np.isfinite(w)) else math.inf
+    noise = math.sqrt(float(np.mean(np.diff(w, 4) ** 2)) / 70.0) if spread < math.inf else 0.0
+    if not spread > 1e-3 or noise > NOISE:
+        raise StepsafeError(
+            f"float64 does not resolve U at kT = {kT:.3g}: over 4 thermal amplitudes "
+            f"({4 * amplitude:.3g}) each side of the minimum its computed value varies by "
+            f"{spread:.3g} kT (the curvature predicts 8) with rounding noise about "
+            f"{noise:.2g} kT, so rounding, not the dynamics, would decide which "
+            f"trajectories fail: no verdict at this kT (write U to keep its digits near the "
+            f"minimum, e.g. expm1(-q) for 1 - exp(-q), or give a larger kT)")
 
 
 def one_dimensional(pot: Potential, kT: float, count: int, rng: np.random.Generator,
