@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from md_support import TIP3P, one_water, single_water_hessian
 
 from stepsafe.systems.md import enginerun as er
@@ -21,6 +23,19 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 # --- the scan, on engines whose runs fail above a known step -------------------------------
+
+def _record(spec, fails):
+    """The TrialRecord of ``spec`` whose seed s blows up when ``fails(s)``, stopping at the
+    first blow-up when the spec says so."""
+    runs = []
+    for s in spec.seeds:
+        bad = bool(fails(s))
+        runs.append(er.SeedRun(s, bad, 10 if bad else None, "", spec.steps, 0.0, 0.0, 0.0,
+                               300.0))
+        if bad and spec.stop_at_blowup:
+            break
+    return er.TrialRecord(spec, 30, tuple(runs))
+
 
 class Threshold:
     """An engine whose run of seed s at step h blows up when ``h >= edge(s)``; it counts the
@@ -35,23 +50,22 @@ class Threshold:
 
     def trials(self, spec, progress=None, worker=None):
         self.steps.append((spec.step, spec.seeds))
-        runs = tuple(er.SeedRun(s, spec.step >= self.edge(s), 10 if spec.step >= self.edge(s)
-                                else None, "", spec.steps, 0.0, 0.0, 0.0, 300.0)
-                     for s in spec.seeds)
-        return er.TrialRecord(spec, 30, runs)
+        return _record(spec, lambda s: spec.step >= self.edge(s))
 
 
 RUNS = th.Runs("verlet", 300.0)
+#: The seeds of the scan's first confirmation.
+FIRST = th.confirm_seeds(RUNS.seeds, th.confirmations(th.MAX_FAILURE, th.CONFIDENCE, 0))
 
 
 @pytest.mark.parametrize("edge", [0.5, 0.71, 0.8, 0.95, 0.9985, 1.2])
 def test_scan_finds_the_largest_passing_step_within_its_resolution(edge):
     """Every seed fails from ``edge`` on (h_linear = 1): the scan's step passes and lies
     within RESOLUTION of the edge below it (or at TOP when the edge is above it), every
-    step it calls failing failed, and the step was confirmed by other seeds."""
+    step it calls failing failed, and the step was confirmed by the first confirmation's
+    fresh seeds (72 for a failure probability below 0.05 at 95% over the confirmations)."""
     engine = Threshold(lambda s: edge)
     found = th.scan(engine, RUNS, 1.0, 1e-3)
-    every = RUNS.seeds + th.confirm_seeds(RUNS.seeds)
     if edge > th.TOP:
         assert found.h_clear == th.TOP and found.h_fail is None
     else:
@@ -59,23 +73,143 @@ def test_scan_finds_the_largest_passing_step_within_its_resolution(edge):
         assert below < edge <= found.h_fail
         assert found.h_fail / below - 1 <= th.RESOLUTION * (1 + 1e-12)
         assert (below, RUNS.seeds) in engine.steps
-    assert engine.steps[-1] == (found.h_clear, every)
-    assert tuple(r.seed for r in found.confirmed.runs) == every
+    assert engine.steps[-1] == (found.h_clear, FIRST)
+    assert len(FIRST) == 72 and not set(FIRST) & set(RUNS.seeds)
+    assert tuple(r.seed for r in found.confirmed.runs) == FIRST
     assert not found.confirmed.blew_up
 
 
-def test_scan_lowers_a_step_the_confirmation_seeds_fail():
-    """The bisection seeds fail from 0.9 on, the confirmation's from 0.85: the step given is
-    below 0.85, at most BACKOFF below, and passed in every seed."""
+def test_scan_lowers_a_step_the_confirmation_seeds_fail_and_confirms_on_fresh_seeds():
+    """The bisection seeds fail from 0.9 on, the others from 0.85: the first confirmation
+    (BACKOFF below the bisection's step, above 0.85) stops at its first seed, the step is
+    lowered by 2 BACKOFF below 0.85 and passes in the second confirmation's seeds (86, none
+    of the first's)."""
     engine = Threshold(lambda s: 0.9 if s in RUNS.seeds else 0.85)
     found = th.scan(engine, RUNS, 1.0, 1e-3)
-    assert 0.85 * (1 - th.BACKOFF) <= found.h_clear < 0.85
-    assert not found.confirmed.blew_up and len(found.confirmed.runs) == 6
+    assert 0.85 <= found.h_fail < 0.9 * (1 - th.BACKOFF)
+    assert found.h_clear == found.h_fail * (1 - 2 * th.BACKOFF) < 0.85
+    first, second = [t for t in found.trials if t.stage.startswith("confirmation")]
+    assert [r.seed for r in first.record.runs] == [FIRST[0]] and not first.passed
+    assert first.planned == FIRST
+    seeds = [r.seed for r in found.confirmed.runs]
+    assert len(seeds) == 86 and seeds[0] == FIRST[-1] + 1 and second.passed
+    assert not found.confirmed.blew_up
 
 
 def test_scan_gives_no_step_when_every_run_fails():
     found = th.scan(Threshold(lambda s: 0.0), RUNS, 1.0, 1e-3)
     assert found.h_clear == 0.0 and found.confirmed is None
+
+
+def test_the_record_of_the_runs_states_their_seeds_counts_and_failure_limit():
+    """The JSON record of a scan (run of 20 ps, runs of 10 ps): the failure limit per run and
+    its confidence, the runs a check and each confirmation need, the seeds of each step
+    (the confirmation's fresh, all planned run), its Clopper-Pearson bound 1 - 0.025^(1/72),
+    and that the runs do not follow the whole run."""
+    import json
+
+    from stepsafe.api import thermal as api_thermal
+
+    found = th.scan(Threshold(lambda s: 0.8), RUNS, 1.0, 1e-3)
+    rec = json.loads(json.dumps(api_thermal._runs_record(RUNS, list(found.trials), 1.0, 1.0,
+                                                         20.0)))
+    assert rec["max_failure"] == 0.05 and rec["failure_per"] == "run"
+    assert rec["confidence"] == 0.95 and rec["check_runs"] == 59
+    assert rec["confirmation_runs"] == [72, 86, 99, 113]
+    assert rec["seeds"] == [1, 2, 3] and rec["duration"] == 10.0
+    assert rec["max_duration"] == 10.0 and rec["run_length"] == 20.0 and not rec["followed"]
+    bisection = [t for t in rec["trials"] if not t["stage"].startswith("confirmation")]
+    assert all(t["seeds"] == [1, 2, 3] or t["failures"] == 1 for t in bisection)
+    last = rec["trials"][-1]
+    assert last["stage"] == "confirmation 1" and last["seeds"] == list(FIRST)
+    assert last["planned_seeds"] == 72 and last["failures"] == 0
+    assert last["confidence"] == 0.975
+    assert last["upper"] == pytest.approx(1 - 0.025 ** (1 / 72), rel=1e-9) and \
+        last["upper"] < 0.05
+
+
+@settings(deadline=None, max_examples=12)
+@given(st.floats(1e-4, 0.5), st.floats(0.5, 0.999))
+def test_confirmation_runs_are_the_fewest_whose_zero_failures_bound_the_probability(p, c):
+    """m = confirmations(p, c): zero failures in m runs put the one-sided Clopper-Pearson
+    bound (1 - (1 - c)^(1/m), from scipy's beta quantile) below p, in m - 1 runs not; the
+    scan's k-th confirmation at level 1 - (1 - c) / 2^(k+1)."""
+    from scipy.stats import beta
+
+    for attempt, level in [(None, c)] + [(k, 1 - (1 - c) / 2 ** (k + 1)) for k in range(4)]:
+        m = th.confirmations(p, c, attempt)
+        assert beta.ppf(level, 1, m) < p
+        assert m == 1 or beta.ppf(level, 1, m - 1) >= p * (1 - 1e-12)
+
+
+def test_default_failure_limit_needs_59_runs_at_the_step_and_72_in_a_first_confirmation():
+    """1 - 0.05^(1/59) = 0.0495 < 0.05 <= 1 - 0.05^(1/58) = 0.0503; 0.025^(1/72) and
+    0.025^(1/71) likewise around 0.95."""
+    assert th.MAX_FAILURE == 0.05 and th.CONFIDENCE == 0.95
+    assert th.confirmations(0.05) == 59
+    assert 1 - 0.05 ** (1 / 59) < 0.05 <= 1 - 0.05 ** (1 / 58)
+    assert th.confirmations(0.05, attempt=0) == 72
+    assert 1 - 0.025 ** (1 / 72) < 0.05 <= 1 - 0.025 ** (1 / 71)
+
+
+class Curve:
+    """An engine whose run of seed s at step h fails when ``u_s < q(h)``, ``u_s`` uniform in
+    [0, 1) drawn from (draw, s): the failure probability of a run at h is exactly q(h), and a
+    seed that fails at h fails at every larger step (as a real run's chance does)."""
+
+    def __init__(self, q, draw):
+        self.q = q
+        self.u = np.random.default_rng(draw).random(1000)
+
+    def trial_worker(self):
+        return nullcontext()
+
+    def trials(self, spec, progress=None, worker=None):
+        q = self.q(spec.step)
+        return _record(spec, lambda s: self.u[s] < q)
+
+
+def false_safe_rate(q, draws, runs=RUNS):
+    """The fraction of ``draws`` scans whose step has a failure probability above the limit
+    (a false SAFE), and the steps given."""
+    bad, steps = 0, []
+    for d in range(draws):
+        found = th.scan(Curve(q, d), runs, 1.0, 1e-3)
+        steps.append(found.h_clear)
+        bad += found.h_clear > 0 and q(found.h_clear) > runs.max_failure
+    return bad / draws, steps
+
+
+@pytest.mark.slow
+def test_a_failure_rate_just_above_the_limit_everywhere_is_passed_rarely():
+    """Every step's runs fail with probability 0.055, just above the 0.05 limit: the scan
+    tries every confirmation; each passes with probability (0.945)^m, m = 72, 86, 99, 113,
+    together at most 3.0% (59 runs in each would give 13%). Over 4000 seeded draws the
+    false SAFE rate stays below 5% (its expectation <= 3.0%, standard deviation 0.27%)."""
+    expected = sum(0.945 ** th.confirmations(0.05, attempt=k) for k in range(th.LOWERINGS))
+    assert expected < 0.031
+    rate, _ = false_safe_rate(lambda h: 0.055, 4000)
+    assert rate < 0.05
+
+
+@pytest.mark.slow
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(st.floats(0.2, 0.99), st.floats(1e-3, 0.2), st.floats(1e-6, 0.3))
+def test_over_failure_curves_the_scan_gives_a_step_above_the_limit_at_most_5_percent(
+        mid, width, floor):
+    """Failure curves q(h) = floor + (1 - floor) / (1 + exp(-(h - mid) / width)) (a rate
+    that rises with the step from a floor): over 300 seeded draws, the steps whose failure
+    probability exceeds 0.05 are given at most 5% of the time (binomial: with a true rate of
+    5% or less, 30 or more of 300 has probability below 2e-4), and when the floor is below
+    the limit near the first failures a step is found."""
+    def q(h):
+        z = min(max((h - mid) / width, -700.0), 700.0)
+        return floor + (1 - floor) / (1 + math.exp(-z))
+
+    rate, steps = false_safe_rate(q, 300)
+    assert rate < 30 / 300
+    if floor < 1e-3 and width < 0.02:
+        assert sum(h > 0 for h in steps) > 250
 
 
 # --- frequencies at OpenMM's thermal snapshots ----------------------------------------------
@@ -210,7 +344,9 @@ def test_water_cluster_limit_at_300_K_is_below_0_K_and_openmm_agrees(cluster_at_
     assert warm.h_max < h0 and t["limited_by"] == "OpenMM runs"
     runs = t["minima"][0]["engine_runs"]
     assert runs["h_clear"] == pytest.approx(warm.h_max) and runs["h_fail"] > warm.h_max
-    assert set(runs["confirmed_seeds"]) == {1, 2, 3, 4, 5, 6}
+    confirmed = runs["confirmed_seeds"]
+    assert len(confirmed) in runs["confirmation_runs"] and min(confirmed) > max(runs["seeds"])
+    assert runs["max_failure"] == th.MAX_FAILURE and runs["duration"] == 10.0
     unsafe = 0.95 * h0
     assert stepsafe.check(scene=scene, h=unsafe).safe
     hot = stepsafe.check(scene=scene, h=unsafe, temperature=300, length="10 ps")
@@ -258,8 +394,10 @@ def test_runs_at_another_temperature_than_asked_are_refused_naming_the_key(tmp_p
 @pytest.mark.slow
 def test_scene_temperature_and_runs_give_the_check_and_its_json(tmp_path, run):
     """``temperature:``, ``length:`` and ``h:`` in the scene, ``runs:`` with two seeds of
-    1 ps: the check at 2.7 fs exits 1, its JSON fits the schema and states the seeds run
-    (the two and two others), their length and the drift tolerance ``--max-drift`` sets."""
+    1 ps: the check at 2.7 fs exits 1, its JSON fits the schema and states the seeds run at
+    the step (fresh ones after the two, 29 planned for ``--max-failure 0.1``: 1 - 0.05^(1/29)
+    < 0.1), their length against the run's, the failure limit per run and the drift
+    tolerance ``--max-drift`` sets."""
     pytest.importorskip("openmm")
     jsonschema = pytest.importorskip("jsonschema")
     import json
@@ -269,15 +407,22 @@ def test_scene_temperature_and_runs_give_the_check_and_its_json(tmp_path, run):
     scene = cluster_scene(tmp_path, temperature="300 K", length="10 ps", h=2.7,
                           system={"runs": {"temperature": "300 K", "seeds": [11, 12],
                                            "duration": "1 ps"}})
-    code, out, err = run("check", scene, "--json", "--max-drift", "0.5")
+    code, out, err = run("check", scene, "--json", "--max-drift", "0.5", "--max-failure",
+                         "0.1")
     assert code == 1, err
     data = json.loads(out)
     jsonschema.validate(data, output_schema("check"))
     entry = data["checks"][0]
     assert "engine_runs" not in entry  # (the 0 K check runs nothing at temperature)
     runs = entry["thermal"]["minima"][0]["engine_runs"]
-    assert runs["seeds"] == [11, 12] and runs["confirm_seeds"] == [13, 14]
-    assert runs["duration"] == 1.0 and runs["trials"][0]["seeds"] == [11, 12, 13, 14]
+    assert runs["seeds"] == [11, 12] and runs["check_runs"] == 29
+    assert runs["max_failure"] == 0.1 and runs["failure_per"] == "run"
+    assert runs["confidence"] == 0.95
+    at_step = runs["trials"][0]
+    assert at_step["planned_seeds"] == 29 and at_step["stage"] == "at the step"
+    assert at_step["seeds"] == list(range(13, 13 + len(at_step["seeds"])))
+    assert at_step["verdict"] != "stable" or at_step["upper"] < 0.1
+    assert runs["duration"] == 1.0 and runs["run_length"] == 10.0 and not runs["followed"]
     assert entry["thermal"]["temperature"] == 300.0 and entry["thermal"]["energy_unit"] == \
         "kJ/mol"
     # --max-drift: kJ/mol per fs for the 24 atoms, as kT per ps per degree of freedom

@@ -42,7 +42,7 @@ from stepsafe.exceptions import StepsafeError
 from stepsafe.systems.md import thermal as md_thermal
 from stepsafe.systems.md.engine import MOLAR_GAS_CONSTANT
 from stepsafe.systems.md.system import ENGINE_INTEGRATORS
-from stepsafe.systems.md.thermal import THERMALISATION, confirm_seeds
+from stepsafe.systems.md.thermal import THERMALISATION
 from stepsafe.systems.scene import load_scene
 from stepsafe.systems.thermal import thermal_check, thermal_limit
 from stepsafe.systems.thermal.bands import CONFIDENCE, trajectories_for
@@ -135,17 +135,13 @@ def _request_record(req: Request, criterion: str, ensemble: bool = True) -> dict
     return out
 
 
-def _no_failure_threshold(req: Request) -> None:
-    """An engine's runs are judged by their own seeds, not by a failure threshold, and
-    last what the engine's analysis states, not ``follow_steps``."""
+def _no_follow_steps(req: Request) -> None:
+    """An engine's runs last what the engine's analysis states (the run's length, at most
+    :data:`stepsafe.systems.md.thermal.MAX_DURATION`), not ``follow_steps``."""
     if req.follow_steps is not None:
         raise StepsafeError("follow_steps: applies to a hamiltonian: system's thermal "
                             "trajectories; an MD engine's runs last what its analysis "
                             "states (give no follow_steps)")
-    if req.max_failure is not None:
-        raise StepsafeError("max_failure: applies to a hamiltonian: system's thermal "
-                            "ensembles; an MD engine's system is judged by its seeded runs "
-                            "in the engine (give no max_failure)")
 
 
 @contextmanager
@@ -418,15 +414,16 @@ def _engine_runs(p: Any, req: Request, run_length: float) -> Any:
         n_dof = analysis.engine.degrees_of_freedom()
         tolerance = req.max_drift / _scale(p) / (max(n_dof, 1) * MOLAR_GAS_CONSTANT * T)
     chosen = analysis.settings.runs
+    failure = md_thermal.MAX_FAILURE if req.max_failure is None else req.max_failure
     if chosen is None:
-        return md_thermal.Runs(integrator, T, duration=min(md_thermal.DURATION, run_length),
-                               tolerance=tolerance)
+        return md_thermal.Runs(integrator, T, duration=min(md_thermal.MAX_DURATION, run_length),
+                               tolerance=tolerance, max_failure=failure)
     if abs(chosen.temperature - T) > 1e-9 * T:
         raise StepsafeError(f"the runs' temperature {chosen.temperature:g} K is not the "
                             f"temperature asked for, {T:g} K",
                             where_in_scene(_scene_of(p), "system.runs.temperature"))
     return md_thermal.Runs(integrator, T, chosen.seeds, chosen.duration, chosen.friction,
-                           tolerance)
+                           tolerance, failure)
 
 
 def _scene_of(p: Any) -> Any:
@@ -460,7 +457,7 @@ def _engine_advice(p: Any, req: Request, h_zero: float | None, criterion: str,
     else:
         omega = float(analysis.spectrum.eigenvalues[0])
         run_length = float(req.steps or 1) * z_star / math.sqrt(omega) if omega > 0 else 1.0
-    _no_failure_threshold(req)
+    _no_follow_steps(req)
     runs = _engine_runs(p, req, run_length)
     r = md_thermal.thermal_limit(analysis, runs, z_star, run_length, _engine_progress(progress),
                                  engine_name="OpenMM")
@@ -485,7 +482,7 @@ def _engine_check(p: Any, req: Request, h: float, criterion: str,
     scale = _scale(p)
     step = h / p.margin * scale
     run_length = req.length * scale if req.length is not None else float(req.steps or 1) * step
-    _no_failure_threshold(req)
+    _no_follow_steps(req)
     runs = _engine_runs(p, req, run_length)
     c = md_thermal.thermal_check(_engine_analysis(p), runs, _z_star(p, criterion), step, run_length,
                                  _engine_progress(progress))
@@ -497,7 +494,7 @@ def _engine_check(p: Any, req: Request, h: float, criterion: str,
              "seed": int(runs.seeds[0]),
              "engine_runs": _runs_record(runs, ([] if c.trial is None else [c.trial])
                                          + ([] if c.limit is None else list(c.limit.trials)),
-                                         p.margin, scale)}
+                                         p.margin, scale, run_length)}
     if c.limit is not None:
         entry["engine_runs"].update(_scan_limits(c.limit, p.margin, scale))
         entry["h_max"] = p.margin * c.h_max / scale
@@ -526,14 +523,18 @@ def _engine_frequencies(linear: Any, scale: float) -> dict[str, Any]:
                          "thin": e.thin, "tau": e.tau}}
 
 
-def _runs_record(runs: Any, trials: list[Any], margin: float, scale: float
-                 ) -> dict[str, Any]:
+def _runs_record(runs: Any, trials: list[Any], margin: float, scale: float,
+                 run_length: float) -> dict[str, Any]:
     """The runs in the engine, JSON-ready (steps in the time unit times the margin; drifts
-    in kT per ps per degree of freedom)."""
+    in kT per ps per degree of freedom; ``duration``, ``max_duration`` and the user's
+    ``run_length`` in ps; ``max_failure`` the failure probability of one run that the
+    confirmations bound at ``confidence``, with the runs each needs)."""
     def trial(t: Any) -> dict[str, Any]:
         drift, error = t.record.drift()
         return {"h": margin * t.h / scale, "stage": t.stage, "verdict": t.verdict,
                 "seeds": [r.seed for r in t.record.runs],
+                "planned_seeds": len(t.planned), "failures": t.failures,
+                "confidence": t.confidence, "upper": t.upper,
                 "drift": drift if math.isfinite(drift) else None,
                 "drift_error": error if math.isfinite(error) else None,
                 "runs": [{"seed": r.seed, "blew_up": r.blew_up, "step": r.blowup_step,
@@ -541,7 +542,13 @@ def _runs_record(runs: Any, trials: list[Any], margin: float, scale: float
 
     return {"engine": "OpenMM", "integrator": runs.integrator,
             "temperature": runs.temperature, "seeds": list(runs.seeds),
-            "confirm_seeds": list(confirm_seeds(runs.seeds)), "duration": runs.duration,
+            "max_failure": runs.max_failure, "failure_per": "run",
+            "confidence": runs.confidence,
+            "check_runs": md_thermal.confirmations(runs.max_failure, runs.confidence),
+            "confirmation_runs": [md_thermal.confirmations(runs.max_failure, runs.confidence, k)
+                                  for k in range(md_thermal.LOWERINGS)],
+            "duration": runs.duration, "max_duration": md_thermal.MAX_DURATION,
+            "run_length": run_length, "followed": md_thermal.followed(runs, run_length),
             "thermalisation": THERMALISATION, "friction": runs.friction,
             "drift_tolerance": runs.tolerance, "energy_bound": 0.5,
             "trials": [trial(t) for t in trials]}
@@ -554,7 +561,7 @@ def engine_limit_record(r: Any, margin: float, scale: float) -> dict[str, Any]:
         return None if x is None else margin * x / scale
 
     found = r.scan
-    runs = _runs_record(found.runs, list(found.trials), margin, scale)
+    runs = _runs_record(found.runs, list(found.trials), margin, scale, r.run_length)
     runs.update(_scan_limits(found, margin, scale))
     return {"at": ENGINE_AT, "h_max": step(r.h_max), "limited_by": r.limited_by,
             "h_range": [step(r.h_range[0]), step(r.h_range[1])], "h_zero": step(r.h_zero),

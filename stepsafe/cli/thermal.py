@@ -96,16 +96,20 @@ def print_thermal_advice(data: dict[str, Any]) -> None:
         return
     h0 = t["h_max_0K"]
     zero = "none" if h0 is None else f"h < {_below(h0)}{u}"
+    runs = t["minima"][0].get("engine_runs") if t["minima"] else None
+    safe = click.style("Safe", fg="green")
+    if runs is not None and not runs.get("followed", True):
+        safe += f" for a run of at most {_g(runs['duration'])} ps (runs this long were followed)"
     if not t["h_max"] > 0:
         click.echo(click.style("No step confirmed safe", fg="red") + " at this temperature: "
                    + _no_step(t, u) + f" (at 0 K: {zero})")
     elif t["limited_by"] == "0 K":
-        click.echo(click.style("Safe", fg="green") + f": 0 < h < {_below(t['h_max'])}{u}, "
+        click.echo(safe + f": 0 < h < {_below(t['h_max'])}{u}, "
                    "the 0 K limit (no band or thermal frequency below it)")
     else:
         where = ("" if t["minima"] and "engine_runs" in t["minima"][0]
                  else f" at the minimum {printable(t['at'])}")
-        click.echo(click.style("Safe", fg="green") + f": 0 < h < {_below(t['h_max'])}{u}, "
+        click.echo(safe + f": 0 < h < {_below(t['h_max'])}{u}, "
                    f"limited by the {t['limited_by']}{where} (at 0 K: {zero})")
     for m in t["minima"]:
         _print_minimum(m, u, data.get("margin", 1.0))
@@ -145,7 +149,25 @@ _ENGINE_REPRODUCIBLE = ("the engine's runs are on its CPU platform with one thre
 
 
 def _seeds(seeds: list[int]) -> str:
-    return ", ".join(str(k) for k in seeds)
+    """``1, 2, 3`` for up to three seeds; runs of consecutive ones as ``4-75``."""
+    parts: list[str] = []
+    start = prev = None
+    for k in seeds:
+        if prev is not None and k == prev + 1:
+            prev = k
+            continue
+        if start is not None:
+            parts.append(_span(start, prev))
+        start = prev = k
+    if start is not None:
+        parts.append(_span(start, prev))
+    return ", ".join(parts)
+
+
+def _span(a: Any, b: Any) -> str:
+    if a == b:
+        return str(a)
+    return f"{a}, {b}" if b == a + 1 else (f"{a}, {a + 1}, {b}" if b == a + 2 else f"{a}-{b}")
 
 
 def _print_engine_runs(r: dict[str, Any], u: str, indent: str) -> None:
@@ -159,6 +181,14 @@ def _print_engine_runs(r: dict[str, Any], u: str, indent: str) -> None:
                   "of freedom" if r["integrator"] == "verlet" else
                   f"the kinetic energy exceeds its mean by more than "
                   f"{_g(r['energy_bound'])} n_dof kT)"))
+    if "max_failure" in r:
+        click.echo(f"{indent}a step passes when no run fails in {r['check_runs']} fresh seeds "
+                   f"(check) or {', '.join(map(str, r['confirmation_runs']))} "
+                   f"(advise's confirmations, stopping at the first failure): the failure "
+                   f"probability of one run of {_g(r['duration'])} ps below "
+                   f"{_g(r['max_failure'])} at {r['confidence']:.0%} confidence"
+                   + ("" if r["followed"] else
+                      f" (the run's {_g(r['run_length'])} ps are not followed to their end)"))
     for t in r["trials"]:
         blown = [x for x in t["runs"] if x["blew_up"]]
         how = "; ".join(f"seed {x['seed']} by step {x['step']}" if x["step"] is not None
@@ -166,9 +196,15 @@ def _print_engine_runs(r: dict[str, Any], u: str, indent: str) -> None:
         drift = "" if t["drift"] is None else (", drift" + (" of the others" if blown else "")
                                                 + f" {t['drift']:.2g}") + (
             "" if t["drift_error"] is None else f" +- {t['drift_error']:.1g}")
+        ran = len(t["seeds"])
+        planned = t.get("planned_seeds", ran)
+        of = f"; {ran} of {planned} run, stopped at the first failure" if ran < planned else ""
+        bound = "" if t.get("upper") is None else (
+            f"; failure probability of a run < {t['upper']:.2g} at "
+            f"{t['confidence']:.1%} confidence")
         click.echo(f"{indent}  h = {_g(t['h'])}{u} ({t['stage']}; seeds "
-                   f"{_seeds(t['seeds'])}): {t['verdict']}" + (f" ({how})" if how else "")
-                   + drift)
+                   f"{_seeds(t['seeds'])}{of}): {t['verdict']}" + (f" ({how})" if how else "")
+                   + drift + bound)
     if r.get("h_clear") is not None:
         fail = "" if r["h_fail"] is None else f", fail at {_g(r['h_fail'])}{u}"
         drift = "" if r["drift"] is None else (

@@ -92,6 +92,8 @@ class TrialSpec:
         Integrator constraint tolerance (OpenMM's default 1e-5 when None).
     timeout : float
         Seconds a seed's process may take before it is stopped (an error, not a verdict).
+    stop_at_blowup : bool
+        Run no further seed after one blows up (the record holds the seeds run).
     """
 
     integrator: str
@@ -109,6 +111,7 @@ class TrialSpec:
     threads: int = 1
     constraint_tolerance: float | None = None
     timeout: float = 1800.0
+    stop_at_blowup: bool = False
 
     def __post_init__(self) -> None:
         if self.integrator not in INTEGRATORS:
@@ -411,7 +414,8 @@ def run_trials(system_xml: str, state_xml: str, spec: TrialSpec, *,
         sys_path, pos_path = Path(tmp) / "system.xml", Path(tmp) / "state.xml"
         sys_path.write_text(system_xml)
         pos_path.write_text(state_xml)
-        base = {k: v for k, v in asdict(spec).items() if k not in ("seeds", "timeout")}
+        base = {k: v for k, v in asdict(spec).items()
+                if k not in ("seeds", "timeout", "stop_at_blowup")}
         base.update(system=str(sys_path), positions=str(pos_path), steps=spec.steps,
                     equilibration_steps=max(1, round(spec.equilibration / spec.equilibration_step)))
         for done, seed in enumerate(spec.seeds):
@@ -420,6 +424,8 @@ def run_trials(system_xml: str, state_xml: str, spec: TrialSpec, *,
                 runs.append(SeedRun(int(seed), True, None,
                                     f"engine process crashed (signal {out['crashed']})", 0,
                                     *(float("nan"),) * 4))
+                if spec.stop_at_blowup:
+                    break
                 continue
             if "error" in out:
                 raise StepsafeError(out["error"])
@@ -432,4 +438,6 @@ def run_trials(system_xml: str, state_xml: str, spec: TrialSpec, *,
             runs.append(_seed_run(out, n_dof, spec.integrator))
             if progress is not None:
                 progress("trials", done + 1, len(spec.seeds))
+            if spec.stop_at_blowup and runs[-1].blew_up:
+                break
     return TrialRecord(spec, n_dof, tuple(runs))

@@ -23,24 +23,36 @@ kJ/mol, K; :class:`~stepsafe.systems.md.engine.DynamicsEngine`):
    The **linear limit at temperature** is ``z* / omega_q`` (``z*`` the end of the method's
    interval from 0 on the oscillator), never above the 0 K limit ``z* / omega_0``.
 3. **Runs of the user's integrator in the engine** (:mod:`~stepsafe.systems.md.enginerun`:
-   per seed, 1 ps of thermalisation, then :data:`DURATION` ps or the user's run if shorter):
-   a step *fails* when a seed blows up (a non-finite energy, the engine stopping, or the total
-   energy moving by more than half of n_dof kT; with a thermostat, the kinetic energy
-   exceeding its mean by that much) or, for Verlet, the mean energy drift exceeds
+   per seed, 1 ps of thermalisation, then the user's run, at most :data:`MAX_DURATION` ps
+   unless the scene's ``runs: duration:`` sets the length): a run *fails* when it blows up (a
+   non-finite energy, the engine stopping, or the total energy moving by more than half of
+   n_dof kT; with a thermostat, the kinetic energy exceeding its mean by that much); for
+   Verlet a step also fails when the mean energy drift over its runs exceeds
    :data:`~stepsafe.systems.md.enginerun.DRIFT_TOLERANCE` kT per ps per degree of freedom.
-   First at ``TOP h_linear``; if it fails, from ``LOW h_linear`` (halved until it passes) by
-   bisection to a relative width :data:`RESOLUTION`. The step given is :data:`BACKOFF` below
-   the largest step found to pass (near the first failures a run passes or fails by chance)
-   and is run there in every seed and as many others (:func:`confirm_seeds`); a step that
-   fails there is lowered by :data:`BACKOFF` again.
+   Runs at a step stop at their first blow-up.
+
+   *Bisection* (cheap, seeds :data:`SEEDS`): first at ``TOP h_linear``; if a seed fails,
+   from ``LOW h_linear`` (halved until it passes) by bisection to a relative width
+   :data:`RESOLUTION`. *Confirmation* (the statistical rule): with p the probability that
+   one run of the system fails at a step, the step given must show ``p < max_failure``
+   (:data:`MAX_FAILURE` unless the user gives one) at :data:`CONFIDENCE`. The step lies
+   :data:`BACKOFF` below the bisection's largest passing step and is run in m fresh seeds
+   (:func:`confirm_seeds`), m the fewest whose zero failures put the one-sided
+   Clopper-Pearson bound ``1 - a^(1/m)`` below ``max_failure``; a confirmation with a failure
+   lowers the step (by ``2^(k+1) BACKOFF`` after confirmation k: 6%, 12%, 24%) and confirms
+   again on fresh seeds, :data:`LOWERINGS` confirmations at most. Confirmation k (from 0)
+   uses ``a = (1 - CONFIDENCE) / 2^(k+1)`` (:func:`confirmations`: 72, 86, 99, 113 runs for
+   ``max_failure = 0.05``), so the chance that any of them passes a step whose p exceeds
+   ``max_failure`` stays below ``1 - CONFIDENCE``.
 
 ``h_max`` is the smaller of the linear limit at temperature (``limited_by`` ``"linear at
 temperature"``) and the confirmed step (``"<engine> runs"``), with the drift measured there.
-A check at h fails at or above the linear limit at temperature, when a run at h itself
-(every seed, the confirmation's too) fails, or, when they pass, at or above that ``h_max``
-(the same scan): check and advise agree on both sides of it. The runs are statistical: a step
-found to pass in these seeds over these durations may fail in a longer run; the record
-states both.
+A check at h fails at or above the linear limit at temperature; when any of
+``confirmations(max_failure)`` runs at h itself in fresh seeds (59 for 0.05 at 95%) fails;
+when they pass, at or above that ``h_max`` (the same scan), so that check and advise agree on
+both sides of it; and when the user's run is longer than the runs (a failure that takes longer
+to develop is not excluded). The verdicts bound the failure probability of one run of the
+stated length, not of a longer one; the record states the runs, their seeds and the bound.
 """
 
 from __future__ import annotations
@@ -63,6 +75,8 @@ from stepsafe.systems.md.enginerun import (
 )
 from stepsafe.systems.md.hessian import HessianVectorProduct, extreme_eigenvalues
 from stepsafe.systems.md.system import eigenvalue_errors
+from stepsafe.systems.thermal.bands import CONFIDENCE as CONFIDENCE_
+from stepsafe.systems.thermal.bands import clopper_pearson, trajectories_for
 from stepsafe.systems.thermal.extremes import RunExtreme, run_extreme
 from stepsafe.systems.thermal.inm import Frequencies
 from stepsafe.systems.thermal.limit import AtTemperature
@@ -80,9 +94,15 @@ SPACING = 0.025
 #: Frames per seed, and the seeds of the sampling chains.
 FRAMES = 30
 SAMPLING_SEEDS = (1, 2, 3, 4)
-#: Seeds of the runs of the user's integrator, and their length at most (ps).
+#: Seeds of the bisection's runs of the user's integrator.
 SEEDS = (1, 2, 3)
-DURATION = 2.0
+#: The runs follow the user's run up to this length (ps); a longer run is not followed to its
+#: end (the check says so and is not SAFE; ``runs: duration:`` in the scene sets another).
+MAX_DURATION = 10.0
+#: The default largest acceptable failure probability of one run of the system (a blow-up in
+#: one seed's run of the run's length), and the confidence of its bound.
+MAX_FAILURE = 0.05
+CONFIDENCE = CONFIDENCE_
 #: Friction of the user's LangevinMiddle in the runs, 1/ps (when the method is one).
 RUN_FRICTION = 1.0
 #: The runs start at this fraction of the linear limit at temperature ...
@@ -96,7 +116,8 @@ RESOLUTION = 0.02
 #: fails by chance (the water cluster at 300 K passed at 2.507 fs and drifted at 2.505 fs in
 #: the same seeds).
 BACKOFF = 0.03
-#: Lowerings of the step after a failed confirmation, and halvings of LOW, at most.
+#: Confirmations of the step (each after a failed one lowers it), and halvings of LOW, at
+#: most.
 LOWERINGS = 4
 #: Lanczos's relative tolerance at the snapshots (its residual is added to the error).
 LANCZOS_TOL = 1e-6
@@ -104,19 +125,49 @@ LANCZOS_TOL = 1e-6
 Progress = Callable[[str, float], None]
 
 
-def confirm_seeds(seeds: tuple[int, ...]) -> tuple[int, ...]:
-    """As many seeds again, none of ``seeds``: ``max + 1, max + 2, ...``.
+def confirmations(max_failure: float, confidence: float = CONFIDENCE,
+                  attempt: int | None = None) -> int:
+    """How many runs a confirmation needs, none failing, to show the failure probability of
+    one run below ``max_failure``: the fewest m whose zero failures put the one-sided
+    Clopper-Pearson bound ``1 - alpha^(1/m)`` below it, ``alpha = 1 - confidence`` for a
+    single confirmation (``attempt`` None: a check's runs at its step) and ``alpha / 2^(k+1)``
+    for the scan's confirmation number ``attempt = k`` (0, 1, ...), so that the scan's
+    confirmations together give a step whose failure probability exceeds ``max_failure``
+    with probability at most ``alpha`` (``sum_k alpha / 2^(k+1) < alpha``).
+
+    Parameters
+    ----------
+    max_failure : float
+        In (0, 1).
+    confidence : float
+        In (0, 1).
+    attempt : int, optional
+
+    Returns
+    -------
+    int
+        59 for ``max_failure = 0.05`` at 95%; 72, 86, 99, ... for the scan's.
+    """
+    level = confidence if attempt is None else 1.0 - (1.0 - confidence) / 2 ** (attempt + 1)
+    return trajectories_for(max_failure, level)
+
+
+def confirm_seeds(seeds: tuple[int, ...], count: int, offset: int = 0) -> tuple[int, ...]:
+    """``count`` seeds none of ``seeds``, after the first ``offset`` such ones:
+    ``max + 1 + offset, ..., max + offset + count``.
 
     Parameters
     ----------
     seeds : tuple of int
+        The bisection's.
+    count, offset : int
 
     Returns
     -------
     tuple of int
     """
     top = max(seeds)
-    return tuple(top + 1 + k for k in range(len(seeds)))
+    return tuple(top + 1 + offset + k for k in range(count))
 
 
 @dataclass(frozen=True)
@@ -129,44 +180,71 @@ class Runs:
         The engine's integrator (``verlet`` or ``langevin-middle``).
     temperature : float
     seeds : tuple of int
-        Of the bisection; the confirmation adds :func:`confirm_seeds`.
+        Of the bisection; the confirmations run :func:`confirm_seeds` (fresh ones each).
     duration : float
-        Each run's production length.
+        Each run's production length (the user's run, at most :data:`MAX_DURATION`).
     friction : float
         Of the user's LangevinMiddle.
     tolerance : float
         Verlet's drift tolerance, kT per ps per degree of freedom.
+    max_failure : float
+        The largest acceptable failure probability of one run (a seed's run of ``duration``).
+    confidence : float
+        Of the Clopper-Pearson bound that shows it (:func:`confirmations`).
     """
 
     integrator: str
     temperature: float
     seeds: tuple[int, ...] = SEEDS
-    duration: float = DURATION
+    duration: float = MAX_DURATION
     friction: float = RUN_FRICTION
     tolerance: float = DRIFT_TOLERANCE
+    max_failure: float = MAX_FAILURE
+    confidence: float = CONFIDENCE
 
-    def spec(self, h: float, seeds: tuple[int, ...], equilibration_step: float) -> TrialSpec:
+    def spec(self, h: float, seeds: tuple[int, ...], equilibration_step: float,
+             stop_at_blowup: bool = True) -> TrialSpec:
         return TrialSpec(self.integrator, h, self.duration, temperature=self.temperature,
                          friction=self.friction, seeds=seeds, equilibration=THERMALISATION,
-                         equilibration_step=equilibration_step)
+                         equilibration_step=equilibration_step,
+                         stop_at_blowup=stop_at_blowup)
 
 
 @dataclass(frozen=True)
 class Trial:
-    """The runs at one step (ps): ``passed`` when no seed blew up and (Verlet) the mean
-    drift is within ``tolerance`` kT per ps per degree of freedom; ``stage`` says why the
-    step was run."""
+    """The runs at one step (ps): ``passed`` when every seed of ``planned`` ran without a
+    blow-up and (Verlet) the mean drift is within ``tolerance`` kT per ps per degree of
+    freedom (the runs stop at the first blow-up: ``record`` holds the seeds run); ``stage``
+    says why the step was run; ``confidence`` (None: a bisection's step) that of the bound
+    on the failure probability the passing seeds show."""
 
     h: float
     record: TrialRecord
     passed: bool
     stage: str
     tolerance: float = DRIFT_TOLERANCE
+    planned: tuple[int, ...] = ()
+    confidence: float | None = None
 
     @property
     def verdict(self) -> str:
         """``"stable"``, ``"drifts"`` or ``"blew up"``."""
         return self.record.verdict(self.tolerance)
+
+    @property
+    def failures(self) -> int:
+        """Seeds that blew up."""
+        return sum(1 for r in self.record.runs if r.blew_up)
+
+    @property
+    def upper(self) -> float | None:
+        """The one-sided Clopper-Pearson upper bound on the failure probability of one run
+        at ``confidence`` when every planned seed ran without failing (None otherwise: a run
+        stopped at its first failure bounds nothing)."""
+        if self.confidence is None or self.failures or len(self.record.runs) < len(
+                self.planned):
+            return None
+        return clopper_pearson(0, len(self.record.runs), self.confidence)[1]
 
 
 @dataclass(frozen=True)
@@ -182,7 +260,7 @@ class Scan:
     h_fail : float or None
         The smallest step that failed (None: none failed).
     confirmed : TrialRecord or None
-        Every seed's run at ``h_clear`` (bisection and confirmation seeds).
+        The confirmation's runs at ``h_clear`` (fresh seeds, none failed).
     """
 
     runs: Runs
@@ -376,10 +454,11 @@ def linear_at_temperature(engine: DynamicsEngine, temperature: float, z_star: fl
 
 
 def _trial(engine: DynamicsEngine, runs: Runs, h: float, seeds: tuple[int, ...], eq_step: float,
-           stage: str, worker: Any = None, seeds_done: Any = None) -> Trial:
+           stage: str, worker: Any = None, seeds_done: Any = None,
+           confidence: float | None = None) -> Trial:
     record = engine.trials(runs.spec(h, seeds, eq_step), progress=seeds_done, worker=worker)
-    return Trial(h, record, record.verdict(runs.tolerance) == "stable", stage,
-                 runs.tolerance)
+    passed = record.verdict(runs.tolerance) == "stable" and len(record.runs) == len(seeds)
+    return Trial(h, record, passed, stage, runs.tolerance, seeds, confidence)
 
 
 def scan(engine: DynamicsEngine, runs: Runs, h_linear: float, eq_step: float,
@@ -412,11 +491,15 @@ def _scan(engine: DynamicsEngine, runs: Runs, h_linear: float, eq_step: float,
           report: Callable[[float], None], worker: Any) -> Scan:
     trials: list[Trial] = []
 
-    def attempt(h: float, seeds: tuple[int, ...], stage: str) -> Trial:
-        t = _trial(engine, runs, h, seeds, eq_step, stage, worker)
+    def attempt_at(h: float, seeds: tuple[int, ...], stage: str,
+                   confidence: float | None = None) -> Trial:
+        t = _trial(engine, runs, h, seeds, eq_step, stage, worker, confidence=confidence)
         trials.append(t)
         report(1.0 - 0.5 ** len(trials))
         return t
+
+    def attempt(h: float, seeds: tuple[int, ...], stage: str) -> Trial:
+        return attempt_at(h, seeds, stage)
 
     top = TOP * h_linear
     h_fail: float | None = None
@@ -440,15 +523,21 @@ def _scan(engine: DynamicsEngine, runs: Runs, h_linear: float, eq_step: float,
             else:
                 h_fail = t.h
     # near the step where the seeds first fail a run passes or fails by chance (not at
-    # one sharp step): the step given lies BACKOFF below the bisection's, run in every seed
-    every = runs.seeds + confirm_seeds(runs.seeds)
+    # one sharp step): the step given lies BACKOFF below the bisection's and is confirmed on
+    # fresh seeds, enough that none failing bounds the failure probability of a run below
+    # max_failure; a confirmation stops at its first failure and the step is lowered
     h = clear.h if h_fail is None else clear.h * (1.0 - BACKOFF)
-    for _ in range(LOWERINGS):
-        c = attempt(h, every, "confirmation (every seed)")
+    offset = 0
+    for k in range(LOWERINGS):
+        count = confirmations(runs.max_failure, runs.confidence, k)
+        level = 1.0 - (1.0 - runs.confidence) / 2 ** (k + 1)
+        seeds = confirm_seeds(runs.seeds, count, offset)
+        offset += count
+        c = attempt_at(h, seeds, f"confirmation {k + 1}", level)
         if c.passed:
             report(1.0)
             return Scan(runs, tuple(trials), h, h_fail, c.record)
-        h_fail, h = h, h * (1.0 - BACKOFF)
+        h_fail, h = h, h * (1.0 - BACKOFF * 2 ** (k + 1))
     return Scan(runs, tuple(trials), 0.0, h_fail, None)
 
 
@@ -463,8 +552,23 @@ def _zero(analysis, z_star: float) -> tuple[float, float]:
     return omega, z_star / omega
 
 
+def followed(runs: Runs, run_length: float) -> bool:
+    """Whether each run in the engine lasts the user's whole run (ps).
+
+    Parameters
+    ----------
+    runs : Runs
+    run_length : float
+
+    Returns
+    -------
+    bool
+    """
+    return run_length <= runs.duration * (1 + 1e-12)
+
+
 def _runs_note(runs: Runs, run_length: float) -> tuple[str, ...]:
-    if run_length <= runs.duration * (1 + 1e-12):
+    if followed(runs, run_length):
         return ()
     return (f"the runs in the engine last {runs.duration:g} ps of the run's "
             f"{run_length:.3g} ps: failures that take longer to develop are not excluded",)
@@ -554,11 +658,12 @@ def thermal_check(analysis, runs: Runs, z_star: float, h: float, run_length: flo
     if h >= linear.h_linear:
         reasons.append("above the linear limit at temperature")
     else:
-        seeds = runs.seeds + confirm_seeds(runs.seeds)
+        seeds = confirm_seeds(runs.seeds, confirmations(runs.max_failure, runs.confidence))
         report = _stage(progress, "step")
         trial = _trial(engine, runs, h, seeds,
                        min(0.5 * h_zero, linear.ensemble.h or h_zero), "at the step",
-                       seeds_done=lambda stage, done, total: report(done / (total or 1)))
+                       seeds_done=lambda stage, done, total: report(done / (total or 1)),
+                       confidence=runs.confidence)
         found = h_max = None
         if not trial.passed:
             reasons.append(f"the runs in the engine at h: {trial_summary(trial, runs)}")
@@ -570,6 +675,11 @@ def thermal_check(analysis, runs: Runs, z_star: float, h: float, run_length: flo
             if h >= h_max:
                 reasons.append("at or above the largest step the runs in the engine pass "
                                "(the limit at temperature advise gives)")
+        if not reasons and not followed(runs, run_length):
+            reasons.append(f"the run's {run_length:.4g} ps are longer than the runs in the "
+                           f"engine ({runs.duration:g} ps; at most {MAX_DURATION:g} unless "
+                           "the scene's runs: duration: says): failures that take longer to "
+                           "develop are not excluded")
         return EngineThermalCheck(h, not reasons, tuple(reasons), runs.temperature, kT,
                                   z_star, omega_zero, h_zero, linear, trial, runs, run_length,
                                   _runs_note(runs, run_length), found, h_max)
@@ -591,8 +701,10 @@ def trial_summary(trial: Trial, runs: Runs) -> str:
     str
     """
     record = trial.record
-    head = (f"{runs.integrator}, {len(record.runs)} seeds of {runs.duration:g} ps: "
-            f"{trial.verdict}")
+    ran = len(record.runs)
+    of = f"{ran} of {len(trial.planned)} seeds" if ran < len(trial.planned) else \
+        f"{ran} seeds"
+    head = f"{runs.integrator}, {of} of {runs.duration:g} ps: {trial.verdict}"
     blown = [r for r in record.runs if r.blew_up]
     if blown:
         return head + " (" + "; ".join(
