@@ -264,6 +264,9 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
         With a temperature: the largest acceptable probability that a trajectory of the
         run fails (default 0.001, in [1e-5, 0.1]): the answer is confirmed on a fresh
         ensemble of ``ln(20) / max_failure`` thermal trajectories, none of which may fail.
+        On an OpenMM system: the probability that one run of the system in OpenMM fails
+        (default 0.05): the answer is confirmed on 72 or more fresh runs
+        (:func:`stepsafe.systems.md.thermal.confirmations`), none of which may fail.
     follow_steps : int, optional
         With a temperature: the most steps the thermal trajectories follow (default
         10000). A run of more steps at the answer is refused (a ``StepsafeError``), not
@@ -501,7 +504,9 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
         trajectories at that step fails, or its measured drift exceeds ``max_drift``
         (a failed trajectory fails it too; ``thermal``;
         ``resonance_order`` keeps excluding the points, as at 0 K); on an OpenMM
-        system, when runs of the method in OpenMM at that step fail.
+        system, when any of ``ln(20) / max_failure`` fresh runs of the method in OpenMM at
+        that step fails (59 for the default 0.05 per run), or the run is longer than the
+        runs in OpenMM.
 
     Returns
     -------

@@ -23,7 +23,11 @@ A step is safe at temperature only when none of the thermal trajectories run at 
 ``max_failure=`` (default :data:`stepsafe.api.temperature.MAX_FAILURE`) sets how many, the
 fewest (``ln(20) / max_failure``) whose zero failures show the failure probability below it at
 95% confidence; ``check`` runs them at the step, ``advise`` confirms its answer on them,
-drawn with a seed of their own (the record's ``confirmation``).
+drawn with a seed of their own (the record's ``confirmation``). On an OpenMM system the
+failures counted are runs of the system in OpenMM, ``max_failure`` (default
+:data:`stepsafe.systems.md.thermal.MAX_FAILURE`, 0.05) is per run, and ``check`` needs none of
+``confirmations(max_failure)`` fresh runs at the step to fail (59 for 0.05); the record's
+``engine_runs`` states the seeds, counts, run length and bounds.
 
 Every draw is seeded (``seed``, stated in the record): the same inputs give the same
 answer on one machine.

@@ -34,10 +34,14 @@ def thermal_options(func):
                           "grows in proportion), or state a shorter run."),
         click.option("--max-failure", "max_failure", type=FLOAT, default=None, metavar="P",
                      help="With a temperature: the largest acceptable probability that a "
-                          "trajectory of the run fails (default 0.001, from 1e-5 to 0.1): "
-                          "check needs none of ln(20)/P thermal trajectories at the step to "
-                          "fail (P = 0.001: 2995), advise confirms its answer so on a fresh "
-                          "ensemble."),
+                          "run fails, from 1e-5 to 0.1. A scene's Hamiltonian: per thermal "
+                          "trajectory, default 0.001; check needs none of ln(20)/P "
+                          "trajectories at the step to fail (P = 0.001: 2995), advise "
+                          "confirms its answer so on a fresh ensemble. An OpenMM system: per "
+                          "run of the system in OpenMM (the run's length, at most 10 ps), "
+                          "default 0.05; check needs none of ln(20)/P runs at the step to "
+                          "fail (P = 0.05: 59), advise confirms its answer on 72 or more "
+                          "fresh runs."),
         click.option("--max-drift", "max_drift", type=FLOAT, default=None, metavar="D",
                      help="With a temperature: the largest acceptable energy drift, energy "
                           "per time unit (advise lowers h until the measured drift meets "
