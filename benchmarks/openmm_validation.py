@@ -3,7 +3,7 @@ docs/guides/openmm.md (engine validation), printed, not asserted.
 
     python benchmarks/openmm_validation.py [--only 0 1 2 3] [--integrators verlet ...]
         [--stages warm scan check] [--seeds 1 2 3] [--duration 5] [--length "5 ps"]
-        [--check-seeds 11 ... 16] [--json FILE] [--reuse FILE ...]
+        [--check-seeds 1001 ... 1030] [--json FILE] [--reuse FILE ...]
     python benchmarks/openmm_validation.py --table --reuse FILE ...
 
 Systems (the scenes committed in examples/, built by
@@ -30,14 +30,16 @@ step where every seed blew up.
 Stages (``--stages``; the 0 K limit is always computed, in seconds):
 
 * ``warm``: stepsafe's own limit at 300 K for a run of ``--length``, ``stepsafe.advise(...,
-  temperature=300, length=...)`` (OpenMM's snapshots, the linear limit at temperature, and a
-  bisection of runs of the same integrator in OpenMM: seeds 1-3, 2 ps each, confirmed in
-  seeds 1-6; docs/guides/openmm.md, "At temperature"), minutes per row;
+  temperature=300, length=...)`` (OpenMM's snapshots, the linear limit at temperature, a
+  bisection of runs of the same integrator in OpenMM in seeds 1-3, and a confirmation in 72
+  or more fresh seeds, each run as long as ``--length``: the failure probability of one run
+  below 0.05 at 95% confidence; docs/guides/openmm.md, "At temperature"), minutes per row;
 * ``scan``: OpenMM's runs at the fractions :data:`FRACTIONS` of the 0 K limit, as above;
 * ``check``: OpenMM's runs at stepsafe's step at 300 K in the scan's protocol (``--duration``
-  ps), in ``--check-seeds`` (none of stepsafe's own seeds), needing ``warm`` in this run or in
-  a ``--reuse`` file; with many seeds (``--check-seeds $(seq 101 130)``) a failure rate, and
-  with ``--check-steps`` at other steps (fs) instead.
+  ps), in ``--check-seeds`` (choose none of stepsafe's own seeds: its confirmations use 4 up
+  to 373), needing ``warm`` in this run or in a ``--reuse`` file; with many seeds
+  (``--check-seeds $(seq 1001 1030)``) a failure rate, and with ``--check-steps`` at other
+  steps (fs) instead.
 
 Each row also says whether stepsafe's step at 300 K is *consistent* with OpenMM: below the
 scan's first failing step and run in every seed of the check; anything else is printed as a
@@ -262,8 +264,9 @@ def main() -> None:
                         help="what to run besides the 0 K limit: stepsafe's limit at 300 K, "
                         "the scan of fractions of the 0 K limit, OpenMM at the 300 K limit")
     parser.add_argument("--length", default="5 ps", help="the run's length at 300 K")
-    parser.add_argument("--check-seeds", type=int, nargs="+", default=[11, 12, 13, 14, 15, 16],
-                        help="seeds of OpenMM's runs at stepsafe's step at 300 K")
+    parser.add_argument("--check-seeds", type=int, nargs="+", default=list(range(1001, 1031)),
+                        help="seeds of OpenMM's runs at stepsafe's step at 300 K (none of "
+                        "stepsafe's own, 1-373)")
     parser.add_argument("--check-steps", type=float, nargs="+",
                         help="with the check stage: run OpenMM at these steps (fs) instead "
                         "of stepsafe's step at 300 K (a failure rate below it)")
