@@ -215,10 +215,10 @@ def table(rows: list, temperature: float, length: str) -> str:
                 failed = f"{first['step_fs']:.2f} fs ({first['fraction']:.2f} h_max): {what}" + \
                     (f"; {steps}" if first["verdict"] == "blew up" else "")
         warm = row.get("warm")
-        hot = "not run" if warm is None else \
+        hot = "not computed" if warm is None else \
             f"{warm['h_max_fs']:.3f} fs ({warm['h_max_fs'] / row['h_max_fs']:.2f} h_max)"
         at = "; ".join(checked(c, row["integrator"]) for c in row.get("checks", [])) or \
-            "not run"
+            ("-" if warm is None else "not run")
         name = "Verlet" if row["integrator"] == "verlet" else "LangevinMiddle"
         lines.append(f"| {row['system']} | {name} | {row['constraints']} | "
                      f"{row['h_max_fs']:.3f} fs | {row['bands']} | {hot} | {ran} | {there} | "
@@ -229,7 +229,7 @@ def table(rows: list, temperature: float, length: str) -> str:
 def merged(files: list[Path]) -> list[dict]:
     """The rows of earlier runs' ``--json`` files, in the order of SYSTEMS and INTEGRATORS;
     a later file's 300 K limit or scan replaces an earlier one's, and its check one in the
-    same seeds."""
+    same seeds; checks at another step than the row's 300 K limit are left out."""
     rows: dict[tuple[int, str], dict] = {}
     for path in files:
         for row in json.loads(path.read_text()):
@@ -248,6 +248,10 @@ def merged(files: list[Path]) -> list[dict]:
             for check in row.get("checks") or []:
                 old["checks"] = [c for c in old["checks"] if c["seeds"] != check["seeds"]] + \
                     [check]
+    for row in rows.values():  # a check at another step than the row's 300 K limit is dropped
+        warm = row.get("warm")
+        row["checks"] = [c for c in row["checks"] if warm is not None and
+                         abs(c["step_fs"] - warm["h_max_fs"]) <= 1e-9 * warm["h_max_fs"]]
     return [rows[key] for key in sorted(rows, key=lambda k: (k[0], INTEGRATORS.index(k[1])))]
 
 
