@@ -128,6 +128,62 @@ def test_the_record_of_the_runs_states_their_seeds_counts_and_failure_limit():
         last["upper"] < 0.05
 
 
+#: Runs of 5 ps.
+RUNS_5PS = th.Runs("verlet", 300.0, duration=5.0)
+
+
+def checked(monkeypatch, engine, h, run_length, runs=RUNS_5PS):
+    """thermal_check of step h on ``engine`` with the linear limit at temperature 1 (its
+    snapshots and frequencies replaced: only the runs are under test)."""
+    from types import SimpleNamespace
+
+    linear = SimpleNamespace(h_linear=1.0, ensemble=SimpleNamespace(h=1e-3))
+    monkeypatch.setattr(th, "_at_temperature",
+                        lambda analysis, r, z, length, progress: (engine, 1.0, 2.0, 2.49,
+                                                                  linear))
+    return th.thermal_check(None, runs, 2.0, h, run_length)
+
+
+def test_check_runs_the_clopper_pearson_count_at_its_step(monkeypatch):
+    """Runs fail from 0.8 (h_linear 1): at 0.5 every one of the 59 fresh seeds after the
+    bisection's runs (bound 1 - 0.05^(1/59) < 0.05) and the check is SAFE; at 0.85 it stops
+    at its first seed, UNSAFE; at 0.79 the runs pass but the step lies above the limit the
+    scan gives (BACKOFF below its bisection), UNSAFE."""
+    engine = Threshold(lambda s: 0.8)
+    c = checked(monkeypatch, engine, 0.5, 5.0)
+    assert c.safe and c.trial.planned == th.confirm_seeds((1, 2, 3), 59)
+    assert len(c.trial.record.runs) == 59 and c.trial.upper == pytest.approx(
+        1 - 0.05 ** (1 / 59), rel=1e-9) and c.trial.upper < 0.05
+    bad = checked(monkeypatch, engine, 0.85, 5.0)
+    assert not bad.safe and len(bad.trial.record.runs) == 1 and bad.trial.upper is None
+    assert "1 of 59 seeds" in bad.reasons[0]
+    near = checked(monkeypatch, engine, 0.79, 5.0)
+    assert not near.safe and near.h_max < 0.79 and near.reasons == (
+        "at or above the largest step the runs in the engine pass (the limit at temperature "
+        "advise gives)",)
+
+
+def test_check_of_a_run_longer_than_the_runs_is_not_safe(monkeypatch):
+    """Runs of 5 ps that all pass do not make a 20 ps run SAFE: the reason names both
+    lengths."""
+    c = checked(monkeypatch, Threshold(lambda s: 0.8), 0.5, 20.0)
+    assert not c.safe and c.trial.passed
+    assert c.reasons[0].startswith("the run's 20 ps are longer than the runs in the engine "
+                                   "(5 ps")
+
+
+@settings(deadline=None, max_examples=20)
+@given(st.floats(0.06, 0.5))
+def test_check_passes_a_step_whose_runs_fail_more_often_than_the_limit_rarely(q):
+    """A step whose runs fail with probability q > 0.05: the check passes it only when all
+    59 of its runs pass, probability (1 - q)^59 < 0.05 (0.026 at q = 0.06); over 200 seeded
+    draws the fraction of SAFE verdicts stays within that and a binomial margin."""
+    with pytest.MonkeyPatch.context() as mp:
+        safe = sum(checked(mp, Curve(lambda h: q, d), 0.5, 5.0).safe for d in range(200))
+    p = (1 - q) ** 59
+    assert p < 0.05 and safe <= 200 * p + 4 * math.sqrt(200 * p) + 1
+
+
 @settings(deadline=None, max_examples=12)
 @given(st.floats(1e-4, 0.5), st.floats(0.5, 0.999))
 def test_confirmation_runs_are_the_fewest_whose_zero_failures_bound_the_probability(p, c):
@@ -456,3 +512,15 @@ def test_water_cluster_with_langevin_middle_at_300_K_against_openmm():
     assert any(blew), blew
     blew, _ = own_runs(engine, 0.999 * warm.h_max / 1000.0, langevin=True)
     assert not any(blew), blew
+
+
+@given(st.lists(st.integers(1, 400), unique=True))
+def test_printed_seed_lists_name_every_seed_run_in_order(seeds):
+    """The text output's seed lists (``4-75`` for consecutive runs) expand to the seeds."""
+    from stepsafe.cli.thermal import _seeds
+
+    out = []
+    for part in _seeds(seeds).split(", ") if seeds else []:
+        a, _, b = part.partition("-")
+        out.extend(range(int(a), int(b or a) + 1))
+    assert out == seeds
