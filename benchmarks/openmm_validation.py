@@ -153,8 +153,10 @@ def seed_list(seeds: list) -> str:
 
 def consistency(row: dict) -> str | None:
     """Whether stepsafe's step at 300 K is one OpenMM runs: ``None`` without that step,
-    else ``"consistent"`` (OpenMM ran it in every seed of every check, it lies below the
-    scan's first failing step) or what contradicts it, starting ``FALSE SAFE``."""
+    else ``"consistent"`` (it lies below the scan's first failing step, OpenMM ran it in
+    every seed of every check, or the seeds that blew up do not show a failure probability
+    per run above the one stepsafe bounds: their 95% Clopper-Pearson lower bound is below
+    it) or what contradicts it, starting ``FALSE SAFE``."""
     warm = row.get("warm")
     if warm is None:
         return None
@@ -164,14 +166,41 @@ def consistency(row: dict) -> str | None:
     if failed and h >= failed[0]["step_fs"]:
         problems.append(f"at or above the scan's first failing step {failed[0]['step_fs']:.3f} "
                         "fs")
+    limit = failure_limit(warm)
+    within = []
     for check in row.get("checks", []):
-        if check["verdict"] != "stable":
-            problems.append(f"OpenMM at that step, seeds {seed_list(check['seeds'])}: "
-                            f"{check['verdict']} ({sum(check['blew_up'])} of "
-                            f"{len(check['seeds'])} blew up)")
+        k, n = sum(check["blew_up"]), len(check["seeds"])
+        lower, upper = rate_interval(k, n)
+        what = (f"OpenMM at that step, seeds {seed_list(check['seeds'])}: {check['verdict']} "
+                f"({k} of {n} blew up; failure probability per run {lower:.2g} to "
+                f"{upper:.2g}, 95%)")
+        if check["verdict"] == "drifts" or (k and lower > limit):
+            problems.append(what)
+        elif k:
+            within.append(what)
     if problems:
         return "FALSE SAFE: " + "; ".join(problems)
+    if within:
+        return (f"consistent with a failure probability per run below {limit:g}: "
+                + "; ".join(within))
     return "consistent" if row.get("checks") else "consistent with the scan (no check run)"
+
+
+def failure_limit(warm: dict) -> float:
+    """The failure probability per run stepsafe's 300 K limit bounds (its record's
+    ``max_failure``)."""
+    minima = warm.get("thermal", {}).get("minima") or [{}]
+    return float(minima[0].get("engine_runs", {}).get("max_failure", 0.0))
+
+
+def rate_interval(k: int, n: int) -> tuple[float, float]:
+    """The failure probability per run k failures in n show: from the one-sided 95%
+    Clopper-Pearson lower bound to the upper one."""
+    from scipy.stats import beta
+
+    lower = 0.0 if k == 0 else float(beta.ppf(0.05, k, n - k + 1))
+    upper = 1.0 if k == n else float(beta.ppf(0.95, k + 1, n - k))
+    return lower, upper
 
 
 def checked(check: dict, integrator: str) -> str:
@@ -180,12 +209,15 @@ def checked(check: dict, integrator: str) -> str:
     seeds, steps = check["seeds"], check["blowup_steps"]
     blew = [(s, b) for s, b, up in zip(seeds, steps, check["blew_up"]) if up]
     head = f"seeds {seed_list(seeds)}, {check['duration_ps']:g} ps: "
+    lower, upper = rate_interval(len(blew), len(seeds))
     if not blew:
-        return head + f"{len(seeds)} of {len(seeds)} ran, " + measured(check, integrator)
+        return head + f"{len(seeds)} of {len(seeds)} ran, " + measured(check, integrator) + \
+            f"; failure probability per run < {upper:.2g} (95%)"
     plural = "s" if len(blew) > 1 else ""
     return head + (f"{len(blew)} of {len(seeds)} blew up (seed{plural} "
                    f"{', '.join(str(s) for s, _ in blew)} at step{plural} "
-                   f"{', '.join(str(b) for _, b in blew)})")
+                   f"{', '.join(str(b) for _, b in blew)}); failure probability per run "
+                   f"{lower:.2g} to {upper:.2g} (95%)")
 
 
 def table(rows: list, temperature: float, length: str) -> str:
