@@ -173,7 +173,7 @@ def consistency(row: dict) -> str | None:
         lower, upper = rate_interval(k, n)
         what = (f"OpenMM at that step, seeds {seed_list(check['seeds'])}: {check['verdict']} "
                 f"({k} of {n} blew up; failure probability per run {lower:.2g} to "
-                f"{upper:.2g}, 95%)")
+                f"{upper:.2g}, one-sided 95% bounds)")
         if check["verdict"] == "drifts" or (k and lower > limit):
             problems.append(what)
         elif k:
@@ -217,7 +217,7 @@ def checked(check: dict, integrator: str) -> str:
     return head + (f"{len(blew)} of {len(seeds)} blew up (seed{plural} "
                    f"{', '.join(str(s) for s, _ in blew)} at step{plural} "
                    f"{', '.join(str(b) for _, b in blew)}); failure probability per run "
-                   f"{lower:.2g} to {upper:.2g} (95%)")
+                   f"{lower:.2g} to {upper:.2g}, one-sided 95% bounds")
 
 
 def table(rows: list, temperature: float, length: str) -> str:
