@@ -410,9 +410,13 @@ def test_water_cluster_limit_at_300_K_is_below_0_K_and_openmm_agrees(cluster_at_
     safe = 0.999 * warm.h_max
     assert stepsafe.check(scene=scene, h=safe, temperature=300, length="10 ps").safe
     above = stepsafe.check(scene=scene, h=1.01 * warm.h_max, temperature=300, length="10 ps")
-    assert not above.safe and above.record["thermal"]["reasons"] == [
+    # (UNSAFE because a run at the step itself fails, or, when all 59 pass, because the
+    # step lies above the limit advise gives)
+    reasons = above.record["thermal"]["reasons"]
+    assert not above.safe and len(reasons) == 1, reasons
+    assert reasons[0].startswith("the runs in the engine at h: verlet, ") or reasons[0] == (
         "at or above the largest step the runs in the engine pass (the limit at temperature "
-        "advise gives)"]
+        "advise gives)")
     engine = oe.load(ROOT / "examples" / "water-cluster" / "system.xml",
                      ROOT / "examples" / "water-cluster" / "structure.pdb", platform="CPU",
                      threads=1)
