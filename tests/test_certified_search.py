@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from test_compiler import expressions
 
 import stepsafe
-from stepsafe.files.expressions import parse
+from stepsafe.files.expressions import ExpressionError, parse
 from stepsafe.systems.compiler import FUNCTIONS, Compiled, from_tree
 from stepsafe.systems.intervals import certified_equilibria, evaluate
 
@@ -43,8 +43,8 @@ def test_interval_enclosures_contain_every_value_and_derivative(text, lo, width,
                  - mp.mpf(float(box_lo[i]))) for i in range(2)]
             try:
                 v, g, Hm = c.mp_jet(x)
-            except stepsafe.exceptions.StepsafeError:
-                continue
+            except (stepsafe.exceptions.StepsafeError, ExpressionError):
+                continue  # not defined there (a derivative of cbrt at 0, a pole)
             values = [v, *g, *(h for row in Hm for h in row)]
         for value, box in zip(values, enclosures):
             if box.empty[0]:
