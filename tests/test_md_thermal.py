@@ -163,6 +163,29 @@ def test_check_runs_the_clopper_pearson_count_at_its_step(monkeypatch):
         "advise gives)",)
 
 
+def test_limit_where_no_run_fails_is_the_confirmed_step_and_check_agrees_on_both_sides(
+        monkeypatch):
+    """No run fails below 1.2 (h_linear 1): advise's h_max is the step its confirmation ran,
+    TOP h_linear, limited by the linear limit at temperature; check is SAFE just below it
+    and UNSAFE at it and between it and the linear limit."""
+    from types import SimpleNamespace
+
+    engine = Threshold(lambda s: 1.2)
+    linear = SimpleNamespace(h_linear=1.0, ensemble=SimpleNamespace(h=1e-3),
+                             omega=SimpleNamespace(estimate=1.9))
+    monkeypatch.setattr(th, "_at_temperature",
+                        lambda analysis, r, z, length, progress: (engine, 1.0, 2.0, 2.49,
+                                                                  linear))
+    limit = th.thermal_limit(None, RUNS_5PS, 2.0, 5.0)
+    assert limit.h_max == limit.scan.h_clear == th.TOP
+    assert limit.limited_by == "linear at temperature"
+    assert tuple(r.seed for r in limit.scan.confirmed.runs) == FIRST
+    assert checked(monkeypatch, engine, 0.9999 * limit.h_max, 5.0).safe
+    for h in (limit.h_max, 0.5 * (limit.h_max + 1.0)):
+        c = checked(monkeypatch, engine, h, 5.0)
+        assert not c.safe and c.h_max == limit.h_max
+
+
 def test_check_of_a_run_longer_than_the_runs_is_not_safe(monkeypatch):
     """Runs of 5 ps that all pass do not make a 20 ps run SAFE: the reason names both
     lengths."""

@@ -45,8 +45,9 @@ kJ/mol, K; :class:`~stepsafe.systems.md.engine.DynamicsEngine`):
    ``max_failure = 0.05``), so the chance that any of them passes a step whose p exceeds
    ``max_failure`` stays below ``1 - CONFIDENCE``.
 
-``h_max`` is the smaller of the linear limit at temperature (``limited_by`` ``"linear at
-temperature"``) and the confirmed step (``"<engine> runs"``), with the drift measured there.
+``h_max`` is the confirmed step, with the drift measured there; ``limited_by`` is ``"linear
+at temperature"`` when it is the first step tried, ``TOP h_linear``, and ``"<engine> runs"``
+when runs failed above it.
 A check at h fails at or above the linear limit at temperature; when any of
 ``confirmations(max_failure)`` runs at h itself in fresh seeds (59 for 0.05 at 95%) fails;
 when they pass, at or above that ``h_max`` (the same scan), so that check and advise agree on
@@ -620,10 +621,11 @@ def thermal_limit(analysis, runs: Runs, z_star: float, run_length: float,
     omega_point = linear.omega.estimate
     h_high = min(h_zero, z_star / omega_point) if omega_point > 0 else h_zero
     notes = list(_runs_note(runs, run_length))
+    h_max = found.h_clear
     if found.h_clear >= TOP * linear.h_linear:
-        h_max, limited_by = linear.h_linear, "linear at temperature"
+        limited_by = "linear at temperature"
     else:
-        h_max, limited_by = found.h_clear, f"{engine_name} runs"
+        limited_by = f"{engine_name} runs"
         h_high = found.h_fail if found.h_fail is not None else h_high
         if found.h_clear == 0:
             notes.append(f"every run failed down to {found.trials[-1].h:.4g} ps")
@@ -670,8 +672,7 @@ def thermal_check(analysis, runs: Runs, z_star: float, h: float, run_length: flo
         else:
             found = scan(engine, runs, linear.h_linear,
                          min(0.5 * h_zero, linear.ensemble.h or h_zero), progress, "limit")
-            h_max = linear.h_linear if found.h_clear >= TOP * linear.h_linear \
-                else found.h_clear
+            h_max = found.h_clear
             if h >= h_max:
                 reasons.append("at or above the largest step the runs in the engine pass "
                                "(the limit at temperature advise gives)")
