@@ -89,7 +89,13 @@ class HmcReport:
         return self.beta_range[1]
 
     def to_dict(self) -> dict[str, Any]:
-        """What ``stepsafe hmc ... --json`` prints."""
+        """What ``stepsafe hmc ... --json`` prints.
+
+        Returns
+        -------
+        dict
+            The record, with ``schema_version``.
+        """
         return versioned({"target_accept": self.target, "steps": self.steps,
                           "length": self.length,
                           "target_for_every_length": self.target_for_every_length,
@@ -160,7 +166,13 @@ class DesignReport:
                 f"T = {self.length:g}" if self.length is not None else None)
 
     def to_dict(self) -> dict[str, Any]:
-        """What ``stepsafe design ... --json`` prints."""
+        """What ``stepsafe design ... --json`` prints.
+
+        Returns
+        -------
+        dict
+            The record, with ``schema_version``.
+        """
         return versioned({"name": self.name, "stages": self.stages, "params": dict(self.params),
                 "step": self.step, "modes": self.modes, "binned": self.binned,
                 "time_unit": self.time_unit, "objective": self.objective,

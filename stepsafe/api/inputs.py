@@ -98,14 +98,31 @@ class Integrator:
     def cost_per_step(self, gradient_cost: float = 1.0) -> float | int | None:
         """Work per step in force evaluations: ``evaluations + gradient_cost *
         gradient_evaluations`` (see :data:`stepsafe.methods.tableaux.GRADIENT_COST`); the
-        plain ``evaluations`` for methods without force-gradient terms."""
+        plain ``evaluations`` for methods without force-gradient terms.
+
+        Parameters
+        ----------
+        gradient_cost : float
+            The cost of one force-gradient term in force evaluations (> 0).
+
+        Returns
+        -------
+        float or int or None
+            Force evaluations per step (None: the method file states none).
+        """
         if self.evaluations is None or not self.gradient_evaluations:
             return self.evaluations
         return self.evaluations + validate_gradient_cost(gradient_cost) * \
             self.gradient_evaluations
 
     def to_dict(self) -> dict[str, Any]:
-        """What ``stepsafe show METHOD --json`` prints."""
+        """What ``stepsafe show METHOD --json`` prints.
+
+        Returns
+        -------
+        dict
+            The record, with ``schema_version``.
+        """
         return versioned({**method_data(self.tableau, self.entry),
                           "coefficients": coefficients(self.tableau)})
 

@@ -59,7 +59,13 @@ class ImpulseReport:
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe respa ... --json`` prints (``region METHOD --ratio R --json``:
-        with ``ratio`` and ``units``)."""
+        with ``ratio`` and ``units``).
+
+        Returns
+        -------
+        dict
+            The record, with ``schema_version``.
+        """
         out = {"method": self.name, "substeps": self.substeps, "fast": self.fast,
                "slow": self.slow, "beta": self.beta, "criterion": self.criterion,
                "h_max": self.h_max, "safe_h": [list(iv) for iv in self.safe_h],
@@ -109,7 +115,13 @@ class ImpulseModesReport:
         "method": "name", "kind": "KIND", "limiting_mode": "limiting"})
 
     def to_dict(self) -> dict[str, Any]:
-        """What ``stepsafe advise`` / ``check`` print with ``--json`` for an impulse method."""
+        """What ``stepsafe advise`` / ``check`` print with ``--json`` for an impulse method.
+
+        Returns
+        -------
+        dict
+            The record, with ``schema_version``.
+        """
         modes = []
         for mode in self.modes:
             row = unversioned(mode.to_dict())

@@ -86,6 +86,13 @@ class MeasureRow:
         return _ratio(self.trajectory_error, self.predicted_trajectory_error)
 
     def to_dict(self) -> dict[str, Any]:
+        """One row of the measurement, as JSON.
+
+        Returns
+        -------
+        dict
+            One entry of ``rows`` in ``stepsafe measure --json``.
+        """
         return {"h": self.h, "steps": self.steps, "time": self.time, "status": self.status,
                 "energy_error": self.energy_error, "energy_drift": self.energy_drift,
                 "trajectory_error": self.trajectory_error,
@@ -120,7 +127,13 @@ class MeasureReport:
     time_unit: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        """What ``stepsafe measure --json`` prints."""
+        """What ``stepsafe measure --json`` prints.
+
+        Returns
+        -------
+        dict
+            The record, with ``schema_version``.
+        """
         return versioned(copy.deepcopy({"method": self.method, "system": self.system,
                               "initial": list(self.initial), "energy": self.energy,
                               "beta": self.beta, "reference": self.reference,
@@ -151,6 +164,13 @@ class EnsembleRow:
     errors: tuple[float, ...] = field(repr=False, default=())
 
     def to_dict(self) -> dict[str, Any]:
+        """One row of the ensemble, as JSON.
+
+        Returns
+        -------
+        dict
+            One entry of ``rows`` in ``stepsafe measure --ensemble N --json``.
+        """
         return {"h": self.h, "steps": self.steps, "time": self.time, "median": self.median,
                 "q90": self.q90, "q99": self.q99, "max": self.max, "unstable": self.unstable}
 
@@ -181,7 +201,13 @@ class EnsembleReport:
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({"ensemble": "count"})
 
     def to_dict(self) -> dict[str, Any]:
-        """What ``stepsafe measure --ensemble N --json`` prints."""
+        """What ``stepsafe measure --ensemble N --json`` prints.
+
+        Returns
+        -------
+        dict
+            The record, with ``schema_version``.
+        """
         return versioned({"method": self.method, "system": self.system,
                           "ensemble": self.count, "seed": self.seed, "draw": self.draw,
                           "energy": self.energy, "kT": self.kT,
@@ -230,7 +256,13 @@ class Refinement:
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe measure --tol-energy T --json`` (or ``--tol-trajectory``)
-        prints."""
+        prints.
+
+        Returns
+        -------
+        dict
+            The record, with ``schema_version``.
+        """
         return versioned({"quantity": self.quantity, "tol": self.tol, "h": self.h,
                           "error": self.error, "below_reference": self.below_reference,
                           "predicted_h": self.predicted, "h_safe": self.h_safe,

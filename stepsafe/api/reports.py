@@ -54,7 +54,18 @@ class RegionReport:
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({"verify": "verification"})
 
     def first_boundary(self, model: str = "oscillator") -> float | None:
-        """z*, the end of the preserved interval from 0 (None: none below zmax)."""
+        """z*, the end of the preserved interval from 0 (None: none below zmax).
+
+        Parameters
+        ----------
+        model : str
+            ``"oscillator"`` or another model of the report's ``regions``.
+
+        Returns
+        -------
+        float or None
+            z* of ``model``.
+        """
         return self.regions[model].first_boundary
 
     @property
@@ -112,7 +123,13 @@ class RegionReport:
         return out
 
     def to_dict(self) -> dict[str, Any]:
-        """What ``stepsafe region METHOD --json`` prints."""
+        """What ``stepsafe region METHOD --json`` prints.
+
+        Returns
+        -------
+        dict
+            The record, with ``schema_version``.
+        """
         head = self._head
         out = {key: head[key] for key in ("method", "title", "kind", "stages", "order",
                                           "symplectic")}
@@ -272,7 +289,13 @@ class AdviceReport:
         return MappingProxyType(_record_of(self))
 
     def to_dict(self) -> dict[str, Any]:
-        """What ``stepsafe advise ... --json`` prints."""
+        """What ``stepsafe advise ... --json`` prints.
+
+        Returns
+        -------
+        dict
+            The record, with ``schema_version``.
+        """
         out = _record_of(self)
         if self.verification is not None:
             out["verify"] = _plain(self.verification)
@@ -355,7 +378,13 @@ class CheckReport:
         return MappingProxyType(_record_of(self))
 
     def entry(self) -> dict[str, Any]:
-        """This check's entry of ``checks`` in ``stepsafe check ... --json``."""
+        """This check's entry of ``checks`` in ``stepsafe check ... --json``.
+
+        Returns
+        -------
+        dict
+            The entry (no ``schema_version``: the enclosing record has it).
+        """
         out = _record_of(self)
         if self.verification is not None:
             out["verify"] = _plain(self.verification)
@@ -363,7 +392,13 @@ class CheckReport:
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe check ... --json`` prints for this input:
-        ``{"safe": safe, "checks": [entry]}``."""
+        ``{"safe": safe, "checks": [entry]}``.
+
+        Returns
+        -------
+        dict
+            The record, with ``schema_version``.
+        """
         return versioned({"safe": self.safe, "checks": [self.entry()]})
 
 
@@ -382,7 +417,13 @@ class CheckError:
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({"error": "message"})
 
     def entry(self) -> dict[str, Any]:
-        """Its entry of ``checks`` in ``stepsafe check ... --json``: ``safe`` is null."""
+        """Its entry of ``checks`` in ``stepsafe check ... --json``: ``safe`` is null.
+
+        Returns
+        -------
+        dict
+            The entry: ``where``, ``error`` and ``safe`` (null).
+        """
         return {"scene": self.scene, "safe": self.safe, "error": self.message,
                 "where": self.where}
 
@@ -412,7 +453,13 @@ class SceneChecks:
 
     def to_dict(self) -> dict[str, Any]:
         """What ``stepsafe check A.yaml B.yaml ... --json`` prints:
-        ``{"safe": safe, "checks": [one entry per file]}``."""
+        ``{"safe": safe, "checks": [one entry per file]}``.
+
+        Returns
+        -------
+        dict
+            The record, with ``schema_version``.
+        """
         return versioned({"safe": self.safe,
                 "checks": [unversioned(c.to_dict()) if not isinstance(c, (CheckReport, CheckError))
                            else c.entry() for c in self.checks]})
@@ -463,7 +510,13 @@ class ErrorTable:
                                             kernel_energy))
 
     def to_dict(self) -> dict[str, Any]:
-        """What ``stepsafe error METHOD --json`` prints."""
+        """What ``stepsafe error METHOD --json`` prints.
+
+        Returns
+        -------
+        dict
+            The record, with ``schema_version``.
+        """
         return versioned({"method": self.method, "model": self.model,
                           "phase_error": self.phase_definition,
                           "rows": [row.to_dict() for row in self.rows]})
@@ -567,7 +620,13 @@ class CompareReport:
         "methods": "rows", "cost_unit": "COST_UNIT"})
 
     def to_dict(self) -> dict[str, Any]:
-        """What ``stepsafe compare ... --json`` prints."""
+        """What ``stepsafe compare ... --json`` prints.
+
+        Returns
+        -------
+        dict
+            The record, with ``schema_version``.
+        """
         out = {"modes": dict(self.modes), "tolerances": dict(self.tolerances),
                "margin": self.margin, "time_unit": self.time_unit, "solver": self.solver,
                "jacobian_cost": self.jacobian_cost, "criterion": self.criterion,
