@@ -58,6 +58,27 @@ def test_public_function_documents_every_parameter_and_what_it_returns(name):
     assert sorted(names) == sorted(inspect.signature(func).parameters), name
 
 
+#: The public methods of the public classes (``Class.method``), those a class defines itself.
+METHODS = sorted(
+    f"{name}.{attr}" for name in stepsafe.__all__ if inspect.isclass(getattr(stepsafe, name))
+    for attr, member in vars(getattr(stepsafe, name)).items()
+    if not attr.startswith("_") and inspect.isfunction(member))
+
+
+@pytest.mark.parametrize("qualname", METHODS)
+def test_public_method_documents_its_parameters_and_what_it_returns(qualname):
+    """A public class's own method: a Returns section, and Parameters naming each parameter
+    after ``self`` when it has any (context managers, which return nothing, excepted)."""
+    cls_name, attr = qualname.split(".")
+    func = vars(getattr(stepsafe, cls_name))[attr]
+    doc = inspect.getdoc(func) or ""
+    params = list(inspect.signature(func).parameters)[1:]
+    if params:
+        assert sorted(documented(doc)) == sorted(params), qualname
+    if "contextmanager" not in inspect.getsource(func).split("def ", 1)[0]:
+        assert "Returns\n-------" in doc, qualname
+
+
 def test_expanding_puts_each_block_at_its_marker_with_the_marker_indentation():
     doc = "Intro.\n\n    Parameters\n    ----------\n    x : int\n        An x.\n" \
           "    <keywords: scene>\n    y : int\n        A y.\n"
