@@ -72,7 +72,13 @@ from stepsafe.core.records import (
     nonlinear_data,
     tradeoff_data,
 )
-from stepsafe.core.regions import CRITERIA, find_region, under_criterion, validate_criterion
+from stepsafe.core.regions import (
+    CRITERIA,
+    find_region,
+    shared_regions,
+    under_criterion,
+    validate_criterion,
+)
 from stepsafe.core.resonances import DEFAULT_ORDERS, nonlinear_resonances, validate_orders
 from stepsafe.core.solver import step_limit, system_step_limit
 from stepsafe.core.tradeoff import Tolerance, tradeoff
@@ -302,7 +308,7 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
     # (at temperature the points stay excluded: the 0 K answer caps the one measured)
     integrator, result = p.integrator, None
     criterion = validate_criterion(criterion, integrator.tableau)
-    with integrator.naming_its_file():
+    with integrator.naming_its_file(), shared_regions():
         if p.system is not None:
             if tol_phase is not None or tol_energy is not None:
                 raise StepsafeError("--tol-phase/--tol-energy apply to frequencies, not yet "
@@ -542,7 +548,7 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
                             follow_steps)
     integrator, result = p.integrator, None
     criterion = validate_criterion(criterion, integrator.tableau)
-    with integrator.naming_its_file():
+    with integrator.naming_its_file(), shared_regions():
         if p.system is not None:
             # (at temperature the engine's runs are those of the analysis at temperature)
             analysed = p.system if warm is None else p.system._replace(engine_check=None)

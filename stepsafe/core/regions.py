@@ -39,6 +39,9 @@ reported instead (for RK methods from the stability polynomials, :mod:`.rkstabil
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import NamedTuple, cast
@@ -400,14 +403,42 @@ def find_region(method: Method, model: str = "oscillator", zmax: float = DEFAULT
     check_model(model)
     zmax = _validate_zmax(zmax)
     analysed_on(method, model)
+    shared = _SHARED.get()
+    key = (id(method), model, zmax, resolution)
+    if shared is not None and key in shared and shared[key][0] is method:
+        return shared[key][1]
     region = _find_region(method.region_method(model), model, zmax, resolution)
-    if "structure" in method.criteria:
-        return region
-    from dataclasses import replace
+    if "structure" not in method.criteria:
+        region = replace(under_criterion(region, "stability"), symplectic=False,
+                         notes=region.notes + ((method.analysis_note,)
+                                               if method.analysis_note else ()))
+    if shared is not None:
+        shared[key] = (method, region)
+    return region
 
-    return replace(under_criterion(region, "stability"), symplectic=False,
-                   notes=region.notes + ((method.analysis_note,) if method.analysis_note
-                                         else ()))
+
+#: The regions found inside a :func:`shared_regions` block, by ``(id(method), model, zmax,
+#: resolution)``; each entry holds its method, so that the id stays that method's.
+_SHARED: ContextVar[dict[tuple, tuple[Method, Region]] | None] = ContextVar(
+    "stepsafe_shared_regions", default=None)
+
+
+@contextmanager
+def shared_regions() -> Iterator[None]:
+    """Inside the block, :func:`find_region` analyses each method (the same object), model,
+    zmax and resolution once and returns that region again to later calls: a region is
+    immutable and its analysis depends on nothing else, so the answers are those of
+    separate calls. A command that answers under both criteria (its other criterion's safe
+    steps come from the same structure regions) analyses each model once. A block inside
+    another shares the outer one's regions; nothing is kept after the outermost ends."""
+    if _SHARED.get() is not None:
+        yield
+        return
+    token = _SHARED.set({})
+    try:
+        yield
+    finally:
+        _SHARED.reset(token)
 
 
 def analysed_on(method: Method, model: str) -> None:
