@@ -132,8 +132,6 @@ def resolve(name: str, stages: int | None = None, base: str | None = None,
 
 
 def _find_file(name: str) -> Path:
-    import difflib
-
     if _looks_like_path(name) or Path(name).is_file():
         return Path(name)
     path = builtin_dir() / f"{name}.yaml"
@@ -142,6 +140,8 @@ def _find_file(name: str) -> Path:
     index = _alias_index()
     if name in index:
         return index[name]
+    import difflib  # (only for a name that is not found)
+
     known = sorted(set(index) | set(FAMILIES))
     close = difflib.get_close_matches(name, known, n=3, cutoff=0.5)
     hint = f"; did you mean {', '.join(close)}?" if close else "; see 'stepsafe methods'"
