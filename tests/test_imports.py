@@ -10,8 +10,10 @@ thermal, HMC, measurement or r-RESPA ones, nor the mpmath reference, whatever th
 step and frequencies of a linear check; ``check`` and ``advise`` on a built-in method never
 load scipy, mpmath, sympy, matplotlib, OpenMM or jax (each is imported inside the function
 that needs it), and ``check`` does not load rich either (its output is a few plain lines),
-nor ``numpy.ma`` (which numpy's set routines load: a tenth of the start-up). Timings live in
-benchmarks/ (``benchmarks/startup.py``).
+nor ``numpy.ma`` (which numpy's set routines load: a tenth of the start-up); a check of an
+explicit method's frequencies printed as text loads neither the modules of tolerances, error
+tables, resonance orders and stage solvers nor :mod:`json`. Timings live in benchmarks/
+(``benchmarks/startup.py``).
 """
 
 from __future__ import annotations
@@ -115,6 +117,25 @@ def test_a_linear_check_loads_no_module_of_the_other_user_groups():
     found = json.loads(out.strip().splitlines()[-1])
     assert {0, 1} <= set(found["codes"]), found["codes"]
     assert [m for m in found["modules"] if m.startswith(NOT_LINEAR)] == []
+
+
+#: What only tolerances, error tables, a resonance order, an implicit method's stage solver
+#: or ``--json`` need: a check of an explicit method's frequencies, printed as text, loads none.
+NOT_PLAIN_CHECK = {"stepsafe.core.accuracy", "stepsafe.core.tradeoff",
+                   "stepsafe.core.resonances", "stepsafe.core.solver", "json", "difflib"}
+
+
+def test_a_plain_check_loads_no_module_of_tolerances_resonances_or_json():
+    for argv in (("check", "examples/scene.yaml"),
+                 ("check", "--method", "verlet", "--step", "0.5", "--beta", "1"),
+                 ("check", "--method", "pefrl", "--step", "0.5", "--saddle-beta", "1")):
+        code = (f"import sys\nsys.argv = ['stepsafe', *{list(argv)!r}]\n"
+                "from stepsafe.cli import main\n"
+                "try:\n    main()\nexcept SystemExit:\n    pass\n"
+                f"print(sorted(set(sys.modules) & {NOT_PLAIN_CHECK!r}))")
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             cwd=ROOT, check=True).stdout
+        assert out.strip().splitlines()[-1] == "[]", argv
 
 
 #: The top-level names of the modules loaded from site-packages (third-party packages),

@@ -31,8 +31,6 @@ from stepsafe.comparison import compared
 from stepsafe.core.advice import Modes, validate_margin
 from stepsafe.core.records import coefficients, json_ready, method_data, versioned
 from stepsafe.core.regions import DEFAULT_ZMAX
-from stepsafe.core.resonances import validate_orders
-from stepsafe.core.tradeoff import SOLVERS
 from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.lazy import lazy_module
 from stepsafe.methods.library import FAMILIES, _looks_like_path, builtin_dir, builtin_names, resolve
@@ -44,9 +42,14 @@ from stepsafe.units import duration, implied_time_unit, parse_quantity, quantity
 from stepsafe.units import time_unit as known_time_unit
 
 if TYPE_CHECKING:
+    from stepsafe.core import resonances, tradeoff
     from stepsafe.systems import loader
-else:  # a scene's system: (matrices, a Hamiltonian, an MD engine's system) only
+else:
+    # a scene's system: (matrices, a Hamiltonian, an MD engine's system) only
     loader = lazy_module("stepsafe.systems.loader")
+    # a resonance order; a solver for tolerances
+    resonances = lazy_module("stepsafe.core.resonances")
+    tradeoff = lazy_module("stepsafe.core.tradeoff")
 
 #: Models accepted by :func:`region` besides ``"all"`` (which means the main three).
 REGION_MODELS = ("oscillator", "saddle", "inverted", "saddle-p")
@@ -635,7 +638,7 @@ def valid_order(order: Any) -> int | None:
     if order is None:
         return None
     try:
-        return validate_orders((order,))[0]
+        return resonances.validate_orders((order,))[0]
     except StepsafeError as exc:
         raise StepsafeError("--resonance-order, resonance_order=: " + exc.message.replace(
             "resonance orders must be integers", "must be an integer").replace(
@@ -649,8 +652,8 @@ def valid_stage_solver(value: Any) -> str:
 
 
 def valid_solver(value: Any) -> str:
-    if not isinstance(value, str) or value not in SOLVERS:
-        raise StepsafeError(f"solver must be one of {', '.join(SOLVERS)}, got "
+    if not isinstance(value, str) or value not in tradeoff.SOLVERS:
+        raise StepsafeError(f"solver must be one of {', '.join(tradeoff.SOLVERS)}, got "
                             f"{str(value)[:20]!r}")
     return value
 

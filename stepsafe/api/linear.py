@@ -59,8 +59,6 @@ from stepsafe.api.reports import (
 )
 from stepsafe.api.temperature import request
 from stepsafe.arguments import public
-from stepsafe.core.accuracy import errors as core_errors
-from stepsafe.core.accuracy import kernel_errors
 from stepsafe.core.advice import Modes, check_step, validate_margin
 from stepsafe.core.advice import advise as core_advise
 from stepsafe.core.models import MAIN_MODELS
@@ -79,9 +77,6 @@ from stepsafe.core.regions import (
     under_criterion,
     validate_criterion,
 )
-from stepsafe.core.resonances import DEFAULT_ORDERS, nonlinear_resonances, validate_orders
-from stepsafe.core.solver import step_limit, system_step_limit
-from stepsafe.core.tradeoff import Tolerance, tradeoff
 from stepsafe.core.transfer import has_form, transfer_matrix
 from stepsafe.exceptions import StepsafeError, finite_real, positive_finite
 from stepsafe.lazy import lazy_module
@@ -91,7 +86,11 @@ from stepsafe.units import time_unit as known_time_unit
 
 if TYPE_CHECKING:
     from stepsafe.api import md, thermal
+    from stepsafe.core import accuracy as core_accuracy
     from stepsafe.core import langevin
+    from stepsafe.core import resonances as core_resonances
+    from stepsafe.core import solver as core_solver
+    from stepsafe.core import tradeoff as core_tradeoff
     from stepsafe.reference import verify
     from stepsafe.systems import advice as systems_advice
 else:  # what only some inputs reach: an impulse method, a temperature, --verify, a system:
@@ -100,6 +99,12 @@ else:  # what only some inputs reach: an impulse method, a temperature, --verify
     thermal = lazy_module("stepsafe.api.thermal")
     verify = lazy_module("stepsafe.reference.verify")
     systems_advice = lazy_module("stepsafe.systems.advice")
+    # nonlinear resonances (advise, a resonance order), stage solvers (advise, implicit
+    # methods), tolerances and errors
+    core_resonances = lazy_module("stepsafe.core.resonances")
+    core_solver = lazy_module("stepsafe.core.solver")
+    core_tradeoff = lazy_module("stepsafe.core.tradeoff")
+    core_accuracy = lazy_module("stepsafe.core.accuracy")
 
 
 def _verification(integrator: Integrator, regions: Mapping[str, Any],
@@ -176,8 +181,9 @@ def region(method: Integrator | str, model: str = "all", *, zmax: float = 10.0,
             raise first_error
     nonlinear: tuple[Any, ...] = ()
     if "oscillator" in regions and regions["oscillator"].symplectic:
-        orders = validate_orders(resonance_orders)
-        nonlinear = nonlinear_resonances(integrator.tableau, regions["oscillator"], orders)
+        orders = core_resonances.validate_orders(resonance_orders)
+        nonlinear = core_resonances.nonlinear_resonances(integrator.tableau,
+                                                         regions["oscillator"], orders)
     verdict = _verification(integrator, regions) if verify else None
     structure = {}
     if criterion != "structure":
@@ -321,12 +327,12 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
                                  resonance_order=valid_order(resonance_order), criterion=criterion)
             data = advice_data(result)
         else:
-            tols = tuple(Tolerance(k, valid_tolerance(k, v)) for k, v in
+            tols = tuple(core_tradeoff.Tolerance(k, valid_tolerance(k, v)) for k, v in
                          (("phase", tol_phase), ("energy", tol_energy)) if v is not None)
-            res = tradeoff(integrator.tableau, p.modes, tols, p.margin, integrator.name,
-                           step_cost(integrator, gradient_cost), p.zmax,
-                           valid_order(resonance_order),
-                           valid_solver(solver), criterion)
+            res = core_tradeoff.tradeoff(integrator.tableau, p.modes, tols, p.margin,
+                                         integrator.name, step_cost(integrator, gradient_cost),
+                                         p.zmax, valid_order(resonance_order),
+                                         valid_solver(solver), criterion)
             result = res.advice
             data = tradeoff_data(res)
         if result is not None:
@@ -338,7 +344,7 @@ def advise(method: Integrator | str | None = None, beta: ArrayLike | None = None
                 if integrator.tableau.hamiltonian else []
             if not integrator.tableau.hamiltonian:
                 data["stochastic"] = _stochastic_record(integrator, p, None)
-            data["fixed_point_limit"] = step_limit(integrator.tableau, p.modes.betas)
+            data["fixed_point_limit"] = core_solver.step_limit(integrator.tableau, p.modes.betas)
     if result is not None and p.labels:
         label_limits(data, p.modes.betas, p.labels)
     data["time_unit"] = p.time_unit
@@ -389,7 +395,7 @@ def _advise_at_temperature(p: Problem, warm: Any, data: dict[str, Any], criterio
     """The answer at temperature into ``data``: ``h_max``, ``h_max_limited_by`` and
     ``safe_h`` become it; the 0 K answer moves to ``zero_kelvin``. A harmonic system's
     answer is the 0 K one, islands included."""
-    orders = tuple(range(3, order + 1)) if order is not None else DEFAULT_ORDERS[:2]
+    orders = tuple(range(3, order + 1)) if order is not None else core_resonances.DEFAULT_ORDERS[:2]
     found = thermal.advise_at_temperature(p, warm, data["h_max"], criterion, orders, progress)
     data["zero_kelvin"] = {key: data[key] for key in ("h_max", "h_max_limited_by", "safe_h")}
     # no step at all is confirmed safe at temperature (h_max 0): said, not hidden in a 0
@@ -432,8 +438,8 @@ def _fastest_resonances(integrator: Integrator, result: Any, p: Problem,
     betas = p.modes.betas.get("oscillator")
     if region is None or betas is None or not region.symplectic or not betas.max() > 0:
         return []
-    orders = tuple(range(3, max(order or 0, max(DEFAULT_ORDERS)) + 1))
-    found = nonlinear_resonances(integrator.tableau, region, orders)
+    orders = tuple(range(3, max(order or 0, max(core_resonances.DEFAULT_ORDERS)) + 1))
+    found = core_resonances.nonlinear_resonances(integrator.tableau, region, orders)
     return nonlinear_data(found, float(betas.max()), p.margin)
 
 
@@ -443,9 +449,10 @@ def _system_solver_limit(integrator: Integrator, p: Problem) -> float | None:
     if integrator.explicit:
         return None
     if p.system is None:
-        return system_step_limit(integrator.tableau, p.modes.betas, [])
+        return core_solver.system_step_limit(integrator.tableau, p.modes.betas, [])
     betas = p.system.modes.betas if p.system.modes is not None else None
-    return system_step_limit(integrator.tableau, betas, [S for _, S in p.system.coupled])
+    return core_solver.system_step_limit(integrator.tableau, betas,
+                                         [S for _, S in p.system.coupled])
 
 
 @public()
@@ -756,10 +763,10 @@ def errors(method: Integrator | str, z: ArrayLike, model: str = "oscillator") ->
     if not zs.size or not np.all(np.isfinite(zs) & (zs > 0)):
         raise StepsafeError("z must be positive finite numbers")
     with np.errstate(all="ignore"):  # far out, M(z) overflows: those rows say so
-        e = core_errors(integrator.tableau, zs, model)
+        e = core_accuracy.errors(integrator.tableau, zs, model)
         M = np.asarray(transfer_matrix(integrator.tableau, zs, model))
         size = np.abs(M).max(axis=(1, 2))
-        kernel = kernel_errors(integrator.tableau, zs, model)
+        kernel = core_accuracy.kernel_errors(integrator.tableau, zs, model)
     overflow = ~(np.isfinite(M).all(axis=(1, 2)) & (size <= OVERFLOW))
     phase = np.where(overflow, np.nan, np.asarray(e.phase, dtype=float))
     energy = np.where(overflow, np.nan, np.asarray(e.energy, dtype=float))
@@ -880,7 +887,7 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
     converted = converted_betas({"ordinary_frequency": ordinary_frequency, "wavenumber": wavenumber,
                             "period": period, "sigma": sigma}, time_unit)
     grid = Modes.from_arrays(betas_by_model(beta, saddle_beta, inverted_beta, modes, converted))
-    tolerances = tuple(Tolerance(k, valid_tolerance(k, v)) for k, v in
+    tolerances = tuple(core_tradeoff.Tolerance(k, valid_tolerance(k, v)) for k, v in
                        (("phase", tol_phase), ("energy", tol_energy)) if v is not None)
     margin = validate_margin(margin)
     if zmax is not None:
@@ -896,9 +903,10 @@ def compare(methods: Sequence[Integrator | str] | str | None = None,
                                                for model in grid.betas)]
     for integrator in compared:
         with integrator.naming_its_file():
-            res = tradeoff(integrator.tableau, grid, tolerances, margin, integrator.name,
-                           step_cost(integrator, gradient_cost), zmax, solver=valid_solver(solver),
-                           criterion=criterion, jacobian_cost=jacobian_cost)
+            res = core_tradeoff.tradeoff(integrator.tableau, grid, tolerances, margin,
+                                         integrator.name, step_cost(integrator, gradient_cost),
+                                         zmax, solver=valid_solver(solver),
+                                         criterion=criterion, jacobian_cost=jacobian_cost)
         rows.append(compare_row(res, integrator.explicit))
     rows.sort(key=lambda r: (r["cost"] is None, r["cost"] or 0.0))
     ranked = []

@@ -8,7 +8,6 @@ a pipe.
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from collections.abc import Iterable, Mapping, Sequence
@@ -26,6 +25,8 @@ def print_json(data: Any, record: bool = True) -> None:
         data = versioned(data)
     elif record and isinstance(data, list):
         data = [versioned(x) if isinstance(x, Mapping) else x for x in data]
+    import json  # (the text output of a command needs none of it)
+
     sys.stdout.write(json.dumps(json_ready(data), indent=2, allow_nan=False) + "\n")
 
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -38,9 +38,14 @@ from stepsafe.core.regions import (
     under_criterion,
     validate_criterion,
 )
-from stepsafe.core.resonances import capped_at_resonance
 from stepsafe.exceptions import StepsafeError, positive_finite
+from stepsafe.lazy import lazy_module
 from stepsafe.methods.tableaux import Method
+
+if TYPE_CHECKING:
+    from stepsafe.core import resonances
+else:  # with a resonance order only
+    resonances = lazy_module("stepsafe.core.resonances")
 
 
 @compared
@@ -229,7 +234,7 @@ def advise(method: Method, modes: Modes, margin: float = 1.0, zmax: float = DEFA
         if model not in regions:
             regions[model] = under_criterion(find_region(method, model, zmax), criterion)
     if resonance_order is not None and "oscillator" in modes.betas:
-        regions["oscillator"] = capped_at_resonance(method, regions["oscillator"],
+        regions["oscillator"] = resonances.capped_at_resonance(method, regions["oscillator"],
                                                     resonance_order)
     limits: list[ModelLimit] = []
     unsafe: list[np.ndarray] = [np.zeros((0, 2))]
@@ -384,7 +389,7 @@ def check_step(method: Method, modes: Modes, h: float, margin: float = 1.0,
     regions = {model: under_criterion(find_region(method, model, zmax), criterion)
                for model in modes.betas}
     if resonance_order is not None and "oscillator" in regions:
-        regions["oscillator"] = capped_at_resonance(method, regions["oscillator"],
+        regions["oscillator"] = resonances.capped_at_resonance(method, regions["oscillator"],
                                                     resonance_order)
     adv = advise(method, modes, margin, zmax, name, regions, criterion=criterion)
     failures: list[Failure] = []
