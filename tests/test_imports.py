@@ -119,10 +119,12 @@ def test_a_linear_check_loads_no_module_of_the_other_user_groups():
     assert [m for m in found["modules"] if m.startswith(NOT_LINEAR)] == []
 
 
-#: What only tolerances, error tables, a resonance order, an implicit method's stage solver
-#: or ``--json`` need: a check of an explicit method's frequencies, printed as text, loads none.
+#: What only tolerances, error tables, a resonance order, an implicit method's stage solver,
+#: a Langevin splitting or ``--json`` need: a check of an explicit method's frequencies,
+#: printed as text, loads none.
 NOT_PLAIN_CHECK = {"stepsafe.core.accuracy", "stepsafe.core.tradeoff",
-                   "stepsafe.core.resonances", "stepsafe.core.solver", "json", "difflib"}
+                   "stepsafe.core.resonances", "stepsafe.core.solver",
+                   "stepsafe.methods.langevin", "json", "difflib"}
 
 
 def test_a_plain_check_loads_no_module_of_tolerances_resonances_or_json():

@@ -8,12 +8,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from stepsafe.core.models import ELLIPTIC
 from stepsafe.core.regions import Interval, Point, Region
-from stepsafe.methods.langevin import CLOSED_FORM_TEXT
+from stepsafe.lazy import lazy_module
 from stepsafe.methods.residuals import residuals
+
+if TYPE_CHECKING:
+    from stepsafe.methods import langevin
+else:  # Langevin splittings only
+    langevin = lazy_module("stepsafe.methods.langevin")
 
 #: The version of the shape of every ``--json`` record and ``to_dict()``: each record
 #: carries it as ``schema_version`` (first key); ``stepsafe schema output COMMAND`` prints
@@ -128,7 +133,7 @@ def stochastic_data(method) -> dict[str, Any]:
         return {}
     letters = method.coefficients().get("letters")
     return {"note": method.analysis_note,
-            "harmonic_sampling": CLOSED_FORM_TEXT.get(letters)}
+            "harmonic_sampling": langevin.CLOSED_FORM_TEXT.get(letters)}
 
 
 def processor_data(method) -> dict[str, Any]:

@@ -42,7 +42,7 @@ import math
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from stepsafe.exceptions import MethodError, StepsafeError, unknown_key
 from stepsafe.files.expressions import (
@@ -55,12 +55,17 @@ from stepsafe.files.expressions import (
     mpmath_backend,
     parse,
 )
+from stepsafe.lazy import lazy_module
 from stepsafe.methods import tableaux as m
 from stepsafe.methods.families import RECIPES
-from stepsafe.methods.langevin import LETTERS, MAX_LETTERS, Langevin
 from stepsafe.methods.residuals import written_residuals
 from stepsafe.methods.tableaux import MAX_SUBSTEPS
 from stepsafe.text import ascii_whole
+
+if TYPE_CHECKING:
+    from stepsafe.methods import langevin
+else:  # Langevin splittings only
+    langevin = lazy_module("stepsafe.methods.langevin")
 
 KINDS = ("rk", "prk", "splitting", "composition", "impulse", "processed", "langevin")
 MAX_STAGES = 200
@@ -423,8 +428,9 @@ def _langevin(tree: dict, where: str, scope: _Scope) -> dict[str, Any]:
     """``letters`` (A, B and O, each present, O in one run up to a rotation, checked when
     the method is built), ``friction`` (>= 0) and ``kT`` (> 0) of a Langevin splitting."""
     letters = _text(tree["letters"], where, "letters")
-    if not letters or len(letters) > MAX_LETTERS or any(ch not in LETTERS for ch in letters):
-        raise _fail(where, "letters", f"must be a word of at most {MAX_LETTERS} of the letters "
+    most, known = langevin.MAX_LETTERS, langevin.LETTERS
+    if not letters or len(letters) > most or any(ch not in known for ch in letters):
+        raise _fail(where, "letters", f"must be a word of at most {most} of the letters "
                                       f"A (drift), B (kick) and O (friction), got "
                                       f"{letters[:40]!r}")
     out: dict[str, Any] = {"letters": letters}
@@ -600,7 +606,7 @@ def build_method(data: MethodData, resolve_base: Callable[[Any], Any]):
             return m.Processed(part("kernel", "kernel"), processor, **common)
     if data.kind == "langevin":
         try:
-            return Langevin(data.extras["letters"], data.extras["friction"],
+            return langevin.Langevin(data.extras["letters"], data.extras["friction"],
                             data.extras["kT"], name=data.name, order=data.order,
                             evaluations=data.evaluations, title=data.title)
         except MethodError as exc:
