@@ -5,7 +5,17 @@ as a float and ``no`` as False; here the schema layer decides every type, STYLE.
 Refused, each with a one-line :class:`~stepsafe.exceptions.StepsafeError` naming the file:
 files over :data:`MAX_BYTES`, binary or non-UTF-8 content, aliases and anchors (no alias
 bombs), duplicate keys, nesting deeper than :data:`MAX_DEPTH`, more than :data:`MAX_NODES`
-nodes, non-string keys, and anything that is not valid YAML.
+nodes, non-string keys, an explicit tag that cannot read its value (``!!int a``), and
+anything that is not valid YAML.
+
+A document is read by libyaml's scanner and parser (PyYAML's C extension) when PyYAML has
+it, with the same composing and constructing in Python; a document libyaml does not read,
+or one that is refused, is read again by PyYAML's pure-Python scanner and parser, whose
+messages every error reports. Where the two scanners are known to differ, libyaml accepts
+what PyYAML refuses (a tab after a plain scalar, a byte-order mark inside the text, a
+comment right after a block scalar's header), so a text with a tab, a byte-order mark or
+``|#`` is read by PyYAML alone; ``tests/test_yaml_readers.py`` compares the two on every
+shipped file and on drawn documents.
 
 Every input file of stepsafe is opened through :func:`open_regular`: FIFOs, devices and
 sockets are refused before they are opened (reading them could block forever or never end).
@@ -15,12 +25,21 @@ from __future__ import annotations
 
 import copy
 import os
+import re
 import stat
 from typing import Any
 
 import yaml
+from yaml.composer import Composer
+from yaml.constructor import SafeConstructor
+from yaml.resolver import Resolver
 
 from stepsafe.exceptions import StepsafeError
+
+try:  # libyaml, when PyYAML was built with it
+    from yaml._yaml import CParser
+except ImportError:  # pragma: no cover - a PyYAML without its C extension
+    CParser = None  # type: ignore[assignment,misc]
 
 MAX_BYTES = 1 << 20
 MAX_DEPTH = 32
@@ -33,16 +52,13 @@ class QuotedText(str):
     quoted expressions such as ``"2/3"``, read it like any other string."""
 
 
-class _StrictLoader(yaml.SafeLoader):
-    """SafeLoader without implicit typing, aliases, merge keys or duplicate keys; bounded in
-    size."""
+class _Strict:
+    """The composing and constructing of the strict reader: no implicit typing, aliases,
+    anchors, merge keys or duplicate keys; bounded in size and depth."""
 
     yaml_implicit_resolvers: dict = {}
-
-    def __init__(self, stream: str) -> None:
-        super().__init__(stream)
-        self._depth = 0
-        self._nodes = 0
+    _depth = 0
+    _nodes = 0
 
     def compose_node(self, parent, index):  # noqa: ANN001 - PyYAML's signature
         if self.check_event(yaml.AliasEvent):
@@ -58,16 +74,28 @@ class _StrictLoader(yaml.SafeLoader):
         if self._depth > MAX_DEPTH:
             raise StepsafeError(f"line {event.start_mark.line + 1}: nested deeper than {MAX_DEPTH}")
         try:
-            return super().compose_node(parent, index)
+            return super().compose_node(parent, index)  # type: ignore[misc]
         finally:
             self._depth -= 1
 
+    def construct_object(self, node, deep=False):  # noqa: ANN001
+        try:
+            return super().construct_object(node, deep=deep)  # type: ignore[misc]
+        except (ValueError, TypeError, AttributeError, LookupError, ArithmeticError):
+            # an explicit tag whose constructor fails on the value (!!int a, !!timestamp x)
+            tag = str(node.tag).replace("tag:yaml.org,2002:", "!!")
+            shown = node.value if isinstance(node.value, str) else "this node"
+            raise StepsafeError(f"line {node.start_mark.line + 1}: {tag} cannot read "
+                                f"{str(shown)[:40]!r}") from None
+
     def construct_scalar(self, node):  # noqa: ANN001
-        value = super().construct_scalar(node)
+        value = super().construct_scalar(node)  # type: ignore[misc]
         return QuotedText(value) if node.style in ("'", '"') else value
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False
                           ) -> dict[Any, Any]:
+        if not isinstance(node, yaml.MappingNode):  # (!!set a): PyYAML's refusal
+            return super().construct_mapping(node, deep=True)  # type: ignore[misc]
         seen: set[Any] = set()
         for key_node, _ in node.value:
             if not isinstance(key_node, yaml.ScalarNode):
@@ -80,10 +108,31 @@ class _StrictLoader(yaml.SafeLoader):
                 raise StepsafeError(f"line {key_node.start_mark.line + 1}: duplicate key "
                                     f"{key_node.value!r}")
             seen.add(key_node.value)
-        return super().construct_mapping(node, deep=True)
+        return super().construct_mapping(node, deep=True)  # type: ignore[misc]
 
     def construct_sequence(self, node, deep=False):  # noqa: ANN001
-        return super().construct_sequence(node, deep=True)
+        return super().construct_sequence(node, deep=True)  # type: ignore[misc]
+
+
+class _StrictLoader(_Strict, yaml.SafeLoader):
+    """The strict reader on PyYAML's pure-Python scanner and parser: its messages are those
+    every error of a file reports."""
+
+
+#: The strict reader on libyaml's scanner and parser, None without PyYAML's C extension.
+_FastStrictLoader: type | None = None
+if CParser is not None:
+    class _LibyamlStrictLoader(_Strict, Composer, SafeConstructor, Resolver, CParser):
+        """The strict reader on libyaml's scanner and parser: the same composing and
+        constructing, on the events libyaml reads."""
+
+        def __init__(self, stream: str) -> None:
+            CParser.__init__(self, stream)
+            Composer.__init__(self)
+            SafeConstructor.__init__(self)
+            Resolver.__init__(self)
+
+    _FastStrictLoader = _LibyamlStrictLoader
 
 
 def _kind(mode: int) -> str:
@@ -206,12 +255,13 @@ def parse_yaml(text: str, where: str = "<string>") -> Any:
 def _parse(text: str, where: str) -> Any:
     if not text.strip():
         raise StepsafeError("empty file", where)
-    try:
-        loader = _StrictLoader(text)
+    if _FastStrictLoader is not None and libyaml_reads_alike(text):
         try:
-            data = loader.get_single_data()
-        finally:
-            loader.dispose()
+            return _load(_FastStrictLoader, text)
+        except Exception:  # noqa: BLE001 - any refusal: the pure-Python reader says why
+            pass
+    try:
+        data = _load(_StrictLoader, text)
     except StepsafeError as exc:
         raise StepsafeError(exc.message, where) from None
     except yaml.YAMLError as exc:
@@ -222,3 +272,31 @@ def _parse(text: str, where: str) -> Any:
     except RecursionError:
         raise StepsafeError(f"nested deeper than {MAX_DEPTH}", where) from None
     return data
+
+
+def libyaml_reads_alike(text: str) -> bool:
+    """Whether ``text`` is read by libyaml first: it has none of :data:`_LIBYAML_APART`.
+
+    Parameters
+    ----------
+    text : str
+        A document.
+
+    Returns
+    -------
+    bool
+    """
+    return _LIBYAML_APART.search(text) is None
+
+
+#: Where libyaml's scanner accepts what PyYAML's refuses: a tab (after a plain scalar), a
+#: byte-order mark inside the text, a comment right after a block scalar's header (``|#``).
+_LIBYAML_APART = re.compile(r"[\t\ufeff]|[|>][-+0-9]*#")
+
+
+def _load(loader_class: type, text: str) -> Any:
+    loader = loader_class(text)
+    try:
+        return loader.get_single_data()
+    finally:
+        loader.dispose()
