@@ -298,6 +298,10 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
         sums = np.zeros((3, n)) if fit else None
         samples = np.full((steps // sample_every, n), np.nan) if sample_every else None
         H0_run, lim_run = H0, limit
+        # per running row, compacted as rows escape (written back at the end)
+        excess_run = None if H0 is None else H0 - reference_energy
+        worst_run = np.zeros(n) if measuring else None
+        sums_run = np.zeros((3, n)) if fit else None
         stop = n + 1 if stop_escapes is None else max(1, int(stop_escapes))
         ran = steps
         for k in range(1, steps + 1):
@@ -316,7 +320,8 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
                 dH = run_system.energy(qo, po) - H0_run
                 bad |= ~np.isfinite(dH)
                 if lim_run is not None:
-                    bad |= ~(dH + (H0_run - reference_energy) <= lim_run)
+                    assert excess_run is not None
+                    bad |= ~(dH + excess_run <= lim_run)
             if bad.any():
                 gone = live[bad]
                 q_out[gone], p_out[gone] = q[bad], p[bad]
@@ -330,6 +335,12 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
                     hcol = hcol[keep]
                 if H0_run is not None:
                     H0_run = H0_run[keep]
+                if excess_run is not None:
+                    excess_run = excess_run[keep]
+                if worst_run is not None:
+                    worst_run = worst_run[keep]
+                if sums_run is not None:
+                    sums_run = sums_run[:, keep]
                 if lim_run is not None:
                     lim_run = lim_run[keep]
                 if reach_run is not None and per_row:
@@ -340,16 +351,16 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
                     break
             stopping = n - live.size >= stop
             if measured:
-                assert worst is not None
-                worst[live] = np.fmax(worst[live], np.abs(dH))
+                assert worst_run is not None
+                worst_run = np.fmax(worst_run, np.abs(dH))
                 if k == steps or stopping:
                     assert last is not None
                     last[live] = dH
-                if sums is not None:  # (in units: squares of energies of 1e200 overflow)
+                if sums_run is not None:  # (in units: squares of energies of 1e200 overflow)
                     x = dH / unit
-                    sums[0, live] += x
-                    sums[1, live] += k * x
-                    sums[2, live] += x * x
+                    sums_run[0] += x
+                    sums_run[1] += k * x
+                    sums_run[2] += x * x
                 if samples is not None and k % sample_every == 0:
                     samples[k // sample_every - 1, live] = dH
             if progress is not None and k % 256 == 0:
@@ -357,6 +368,10 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
             if stopping:
                 ran = k
                 break
+        if worst is not None and worst_run is not None:
+            worst[live] = worst_run
+        if sums is not None and sums_run is not None:
+            sums[:, live] = sums_run
         out_bad: np.ndarray = np.zeros(live.size, dtype=bool)
         if live.size:
             qo, po = engine.output(q, p, hcol) if processed else (q, p)
