@@ -1,8 +1,10 @@
 """Ensembles of trajectories of a method's own map on a potential, many steps at once.
 
 One run advances ``m`` thermal initial conditions at each of ``k`` steps h together, as
-``k m`` rows of one array, through :func:`stepsafe.core.ensemble.integrate` (the method's
-nonlinear map; h is a column, one value per row). At every step it
+``k m`` rows, through :func:`stepsafe.core.ensemble.integrate` (the method's nonlinear map;
+h is a column, one value per row), in blocks of rows (:data:`BLOCK_VALUES`) that each run
+all their steps in turn: a row's trajectory does not depend on the block it runs in (for
+an implicit method, up to its stage iteration's tolerance). At every step it
 
 * measures the exact energy ``H = U(q) + p^T M^-1 p / 2`` of every row (on the processor's
   output for a processed method) and accumulates, per row, ``sum dH``, ``sum n dH`` and
@@ -46,6 +48,12 @@ from stepsafe.systems.thermal.sampling import draw, momenta
 GROWTH = 4.0
 #: A coordinate beyond ``DISTANCE`` times the initial ensemble's extent is a failure.
 DISTANCE = 10.0
+#: A run integrates its rows in blocks of at most this many state values (rows times
+#: degrees of freedom), one block after the other over all its steps: every array of a
+#: step is then 64 KiB, which stays in cache and which glibc's allocator serves from freed
+#: memory (a step of 3000 rows of 100 dof made temporaries of 2.4 MB, each mapped afresh
+#: and page-faulted: twice the CPU time of the blocks).
+BLOCK_VALUES = 8192
 
 
 @dataclass(frozen=True)
@@ -129,11 +137,11 @@ class Outcome:
     h : float
     trajectories, failures : int
     steps : int
-        Steps every surviving trajectory ran (fewer than asked when the run stopped at
-        ``stop_failures`` failures).
+        Steps every surviving trajectory ran; when the run stopped at ``stop_failures``
+        failures, the step at which the last of them failed.
     drift, drift_error : float
         Mean energy drift per unit time over the survivors and its standard error (NaN
-        with fewer than 2 survivors).
+        with fewer than 2 survivors, and when the run stopped at its failures).
     fluctuation : float
         Root mean square over survivors of the standard deviation of ``H_n - H_0``.
     """
@@ -170,10 +178,11 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
         test runs only there and no drift is measured (``drift`` NaN): for band scans,
         where the energy costs as much as the force.
     stop_failures : int, optional
-        With one h: stop after the step at which this many trajectories have failed
-        (their verdict is then settled; every trajectory is the one the full run would
-        follow, so the failures seen are those of the full run up to that step, and
-        ``steps`` says how far it went).
+        With one h: stop once this many trajectories have failed (their verdict is then
+        settled): the block where the last of them failed stops after that step and the
+        blocks after it do not run. Every trajectory is the one the full run would
+        follow, so each failure seen is one of the full run's, and ``steps`` says at which
+        step the last was seen.
     progress : callable, optional
         Called with the fraction of steps done.
 
@@ -192,33 +201,63 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
     if stop_failures is not None and k != 1:
         raise StepsafeError("a run stopped at its failures takes one step h")
     system = system_of(pot)
+    rows = k * m
     rho_rows = np.repeat(rho, m)
+    h_rows = np.repeat(h_values, m)
     with np.errstate(over="ignore", invalid="ignore"):
         reach = distance * np.sqrt(rho_rows)[:, None] * start.extent[None, :]
     reach = np.where(np.isfinite(reach), reach, np.finfo(float).max)  # (inf q still fails)
+    growth_rows = growth * rho_rows ** 2
+    q0, p0 = np.tile(start.q, (k, 1)), np.tile(start.p, (k, 1))
+    block = block_rows(pot.dimension)
+    escaped = np.zeros(rows, dtype=bool)
+    slope = np.full(rows, np.nan)
+    variance = np.full(rows, np.nan)
+    ran_steps, done, seen = steps, rows, 0
     # one step per row: the engine's updates are elementwise in h, so a column runs each
-    # row at its own step (bit for bit as a run of that step alone)
-    ran = integrate(method, system, np.tile(start.q, (k, 1)), np.tile(start.p, (k, 1)),
-                    np.repeat(h_values, m), steps, energy_every=every,
-                    reference_energy=start.energy_reference, growth=growth * rho_rows ** 2,
-                    centre=start.reference, reach=reach, fit=every == 1, unit=start.kT,
-                    stop_escapes=stop_failures, progress=progress)
+    # row at its own step (bit for bit as a run of that step alone); a block of rows runs
+    # all its steps before the next block starts
+    for a in range(0, rows, block):
+        b = slice(a, min(rows, a + block))
+        size = b.stop - b.start
+        report = None if progress is None else (
+            lambda f, a=a, size=size: progress((a + f * size) / rows))
+        ran = integrate(method, system, q0[b], p0[b], h_rows[b], steps, energy_every=every,
+                        reference_energy=start.energy_reference, growth=growth_rows[b],
+                        centre=start.reference, reach=reach[b], fit=every == 1,
+                        unit=start.kT,
+                        stop_escapes=None if stop_failures is None else stop_failures - seen,
+                        progress=report)
+        escaped[b] = ran.escaped
+        seen += int(ran.escaped.sum())
+        if every == 1:
+            slope[b] = ran.slopes() / h_rows[b]
+            variance[b] = ran.variances()
+        if stop_failures is not None and seen >= stop_failures:
+            ran_steps, done = ran.steps, b.stop
+            break
+    if progress is not None:
+        progress(1.0)
+    stopped = done < rows or ran_steps < steps
     which = np.repeat(np.arange(k), m)
-    failures = np.bincount(which[ran.escaped], minlength=k)
+    failures = np.bincount(which[escaped], minlength=k)
     unit = start.kT
-    if every == 1:
-        slope = ran.slopes() / np.repeat(h_values, m)
-        variance = ran.variances()
     out = []
     for j in range(k):
-        mine = (which == j) & ~ran.escaped
+        mine = (which == j) & ~escaped
         count = int(mine.sum())
         drift = error = fluct = math.nan
-        if every == 1 and count:
-            b = slope[mine]
-            drift = float(b.mean()) * unit
-            error = float(b.std(ddof=1) / math.sqrt(count)) * unit if count > 1 else math.nan
+        if every == 1 and count and not stopped:
+            b_i = slope[mine]
+            drift = float(b_i.mean()) * unit
+            error = float(b_i.std(ddof=1) / math.sqrt(count)) * unit if count > 1 else math.nan
             fluct = float(math.sqrt(variance[mine].mean())) * unit
-        out.append(Outcome(float(h_values[j]), m, int(failures[j]), ran.steps, drift, error,
+        out.append(Outcome(float(h_values[j]), m, int(failures[j]), ran_steps, drift, error,
                            fluct))
     return out
+
+
+def block_rows(dimension: int) -> int:
+    """The rows of one block of a run: :data:`BLOCK_VALUES` values of its state at most
+    (one row at least)."""
+    return max(1, BLOCK_VALUES // max(1, int(dimension)))
