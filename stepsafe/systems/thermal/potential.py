@@ -549,28 +549,52 @@ def tabulate(pot: Potential, lo: float, hi: float, points: int = 20001) -> Tabul
     start_energy = np.concatenate([[0.0], np.cumsum(ends * width)])[:-1]
     u_lo = float(pot.energy(np.array([[lo]]))[0])
 
-    def locate(x: Array) -> tuple[Array, Array, Array]:
+    # the pieces' coefficients as contiguous rows, gathered with take (one call each)
+    c0, c1, c2, c3 = (np.ascontiguousarray(c[j]) for j in range(4))
+    e0, e1, e2, e3 = (np.ascontiguousarray(pieces[j]) for j in range(4))
+
+    def locate(x: Array) -> tuple[Array, Array, Array | None]:
+        """The cell i of each x, ``t = x - s_i``, and which x lie on the table (None: all;
+        outside, x is taken at lo and its value replaced by NaN)."""
         x = np.asarray(x, dtype=float)[:, 0]
-        with np.errstate(invalid="ignore"):
-            inside = (x >= lo) & (x <= hi)
-            i = np.clip(((np.where(inside, x, lo) - lo) / width).astype(np.intp), 0,
-                        cells - 1)
-        return i, np.where(inside, x, lo) - s[i], inside
+        inside = None
+        if not (x.size and lo <= x.min() and x.max() <= hi):  # (a NaN fails both)
+            with np.errstate(invalid="ignore"):
+                inside = (x >= lo) & (x <= hi)
+            x = np.where(inside, x, lo)
+        i = ((x - lo) / width).astype(np.intp)
+        np.minimum(i, cells - 1, out=i)
+        return i, x - s.take(i), inside
+
+    def horner(a: Array, b: Array, c_: Array, d: Array, i: Array, t: Array) -> Array:
+        """``((a_i t + b_i) t + c_i) t + d_i``."""
+        v = a.take(i)
+        v *= t
+        v += b.take(i)
+        v *= t
+        v += c_.take(i)
+        v *= t
+        v += d.take(i)
+        return v
 
     def gradient(x: Array) -> Array:
         i, t, inside = locate(x)
-        v = ((c[0, i] * t + c[1, i]) * t + c[2, i]) * t + c[3, i]
-        return np.where(inside, v, np.nan)[:, None]
+        v = horner(c0, c1, c2, c3, i, t)
+        return (v if inside is None else np.where(inside, v, np.nan))[:, None]
 
     def energy_from_lo(x: Array) -> Array:
         i, t, inside = locate(x)
-        v = (((pieces[0, i] * t + pieces[1, i]) * t + pieces[2, i]) * t + pieces[3, i]) * t
-        return np.where(inside, u_lo + start_energy[i] + v, np.nan)
+        v = horner(e0, e1, e2, e3, i, t)
+        v *= t
+        w = start_energy.take(i)
+        w += u_lo
+        w += v
+        return w if inside is None else np.where(inside, w, np.nan)
 
     def hessian(x: Array) -> Array:
         i, t, inside = locate(x)
-        v = (3 * c[0, i] * t + 2 * c[1, i]) * t + c[2, i]
-        return np.where(inside, v, np.nan)[:, None, None]
+        v = (3 * c0.take(i) * t + 2 * c1.take(i)) * t + c2.take(i)
+        return (v if inside is None else np.where(inside, v, np.nan))[:, None, None]
 
     shift = 0.0
     if lo <= 0 <= hi:
