@@ -22,7 +22,15 @@ from thermal_support import (
     verlet,
 )
 
-from stepsafe.systems.thermal.bands import clopper_pearson, grid, probe, scan
+from stepsafe.systems.thermal import trajectories
+from stepsafe.systems.thermal.bands import (
+    band_failures,
+    clopper_pearson,
+    grid,
+    judge,
+    probe,
+    scan,
+)
 from stepsafe.systems.thermal.limit import thermal_check
 from stepsafe.systems.thermal.trajectories import run, thermal_start
 
@@ -56,6 +64,75 @@ def test_many_steps_at_once_equal_each_step_alone_bit_for_bit():
     together = run(method("verlet"), pot, start, hs, 300, [3.0, 3.0, 3.0])
     alone = [run(method("verlet"), pot, start, [h], 300, [3.0])[0] for h in hs]
     assert together == alone
+
+
+@pytest.mark.parametrize("m, threshold, confidence", [
+    (1, 0.01, 0.95), (10, 0.01, 0.95), (300, 0.01, 0.95), (500, 0.01, 0.95),
+    (2995, 0.01, 0.95), (299, 0.001, 0.99), (50, 0.3, 0.9), (5, 0.9, 0.95)])
+def test_band_failures_are_the_fewest_whose_binomial_tail_at_the_threshold_is_rare(
+        m, threshold, confidence):
+    """``band_failures`` is the least k with ``P(X >= k | p = threshold) < 1 - confidence``
+    (the lower bound above the threshold), summed at 30 digits; None when no k is."""
+    mp.mp.dps = 30
+    t = mp.mpf(threshold)
+
+    def tail(k):
+        return mp.fsum(mp.binomial(m, i) * t ** i * (1 - t) ** (m - i) for i in range(k, m + 1))
+
+    alpha = 1 - mp.mpf(confidence)
+    own = next((k for k in range(1, m + 1) if tail(k) < alpha), None)
+    assert band_failures(m, threshold, confidence) == own
+    if own is not None:
+        assert clopper_pearson(own, m, confidence)[0] > threshold
+
+
+@pytest.mark.parametrize("kT, hs", [(0.03, [0.8, 1.40784, 1.70056]), (0.006, [1.9, 1.5])])
+def test_a_run_in_blocks_equals_the_run_in_one_block_bit_for_bit(monkeypatch, kT, hs):
+    """Rows run block by block (7 rows a block here) follow the trajectories of one block:
+    the same failures, drift, its error and fluctuation to the last bit."""
+    pot = morse()
+    start = thermal_start(pot, kT, 64, seed=3)
+    monkeypatch.setattr(trajectories, "BLOCK_VALUES", 10 ** 9)
+    whole = run(method("verlet"), pot, start, hs, 300, _verlet_rho(hs))
+    monkeypatch.setattr(trajectories, "BLOCK_VALUES", 7)
+    blocks = run(method("verlet"), pot, start, hs, 300, _verlet_rho(hs))
+    assert blocks == whole
+    assert any(o.failures for o in whole)  # (the test can fail: rows are dropped)
+
+
+def test_a_run_stopped_at_its_failures_sees_failures_of_the_full_run(monkeypatch):
+    """A run stopped at its s-th failure counts s failures or more (those of its last
+    step), each one of the full run's, by a step the full run reaches; a run with no
+    failure is not stopped and equals the full run."""
+    pot = morse()
+    start = thermal_start(pot, 0.006, 200, seed=5)
+    monkeypatch.setattr(trajectories, "BLOCK_VALUES", 16)
+    for h, stop in ((1.70056, 1), (1.70056, 5), (1.5, 3)):
+        full, = run(method("verlet"), pot, start, [h], 400, _verlet_rho([h]))
+        cut, = run(method("verlet"), pot, start, [h], 400, _verlet_rho([h]),
+                   stop_failures=stop)
+        assert full.failures >= stop, full
+        # (rows failing at the same step as the s-th all count)
+        assert stop <= cut.failures <= full.failures and 1 <= cut.steps <= 400
+        assert judge(cut).verdict != "clear" and math.isnan(cut.drift)
+    full, = run(method("verlet"), pot, start, [0.5], 400, _verlet_rho([0.5]))
+    cut, = run(method("verlet"), pot, start, [0.5], 400, _verlet_rho([0.5]), stop_failures=1)
+    assert full.failures == 0 and cut == full
+
+
+def test_bisection_points_stopped_at_a_band_keep_the_full_runs_verdicts():
+    """Every point of a bisected scan (stopped once its failures make a band) has the
+    verdict of the ensemble run in full at that step."""
+    pot = morse()
+    start = thermal_start(pot, 0.03, 300, seed=7)
+    got = scan(method("verlet"), pot, start, [0.7, 1.3], 300, _verlet_rho, bisections=3)
+    # (the test can fail: a bisection point is a band, stopped before the run's end)
+    assert any(p.verdict == "band" and p.steps < 300 for p in got.probes)
+    for p in got.probes:
+        full, = run(method("verlet"), pot, start, [p.h], 300, _verlet_rho([p.h]),
+                    energy_every=8)
+        assert judge(full).verdict == p.verdict, (p, full)
+        assert p.failures <= full.failures
 
 
 def _own_fractions(step, energy, force, kT, hs, rho, lo, hi, m=4000, seed=1):

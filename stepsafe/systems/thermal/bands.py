@@ -21,12 +21,15 @@ The grid is uniform in h plus points at relative offsets ``+-OFFSETS`` around ea
 resonance point of each mode (``h = z_r / omega_k``, ``z_r`` from
 :func:`stepsafe.core.resonances.nonlinear_resonances`). Every edge between a clear and an
 unsafe grid point is bisected ``bisections`` times with the same initial conditions (common
-random numbers); the edge is reported as the bracket ``(clear, unsafe)``, its statistical
-uncertainty half the bracket's width (the h on its clear side was judged clear, the one on
-the other side not, at the stated confidence). Bands narrower than the grid's spacing can
-be missed between grid points: :attr:`BandScan.spacing` says how fine it was. A scan tests
-escapes at every step and the energy every ``ENERGY_EVERY`` steps (the energy costs as much
-as a force); it measures no drift (:mod:`.drift` does, at chosen steps, over every step).
+random numbers; a bisection point stops once its failures make it a band, the verdict
+a full run would give: its ``failures`` are then that count and its ``steps`` where the
+last of them was seen); the edge is reported as the bracket ``(clear, unsafe)``, its
+statistical uncertainty half the bracket's width (the h on its clear side was judged
+clear, the one on the other side not, at the stated confidence). Bands narrower than the
+grid's spacing can be missed between grid points: :attr:`BandScan.spacing` says how fine
+it was. A scan tests escapes at every step and the energy every ``ENERGY_EVERY`` steps
+(the energy costs as much as a force); it measures no drift (:mod:`.drift` does, at
+chosen steps, over every step).
 """
 
 from __future__ import annotations
@@ -67,6 +70,35 @@ def clopper_pearson(k: int, m: int, confidence: float = CONFIDENCE) -> tuple[flo
     lower = 0.0 if k == 0 else float(betaincinv(k, m - k + 1, 1.0 - confidence))
     upper = 1.0 if k == m else float(betaincinv(k + 1, m - k, confidence))
     return lower, upper
+
+
+def band_failures(m: int, threshold: float = THRESHOLD,
+                  confidence: float = CONFIDENCE) -> int | None:
+    """The fewest failures k of m trajectories whose lower bound exceeds ``threshold``
+    (``lower(k, m) > threshold``: the verdict is ``band`` whatever the others do; the
+    lower bound grows with k), None when even ``k = m`` does not.
+
+    Parameters
+    ----------
+    m : int
+        Trajectories.
+    threshold, confidence : float
+        As for :func:`judge`.
+
+    Returns
+    -------
+    int or None
+    """
+    if not clopper_pearson(m, m, confidence)[0] > threshold:
+        return None
+    lo, hi = 0, m  # lower(lo) <= threshold < lower(hi)
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if clopper_pearson(mid, m, confidence)[0] > threshold:
+            hi = mid
+        else:
+            lo = mid
+    return hi
 
 
 def trajectories_for(threshold: float, confidence: float = CONFIDENCE) -> int:
@@ -305,6 +337,20 @@ def scan(method: Method, pot: Potential, start: Start, h_values, steps: int,
                    progress=report)
         return [judge(o, threshold, confidence) for o in outs]
 
+    stop = band_failures(start.size, threshold, confidence)
+
+    def bisect(hs: np.ndarray, part: int) -> list[Probe]:
+        # each point alone, stopped once its failures make it a band
+        found = []
+        for j, h in enumerate(hs):
+            report = None if progress is None else (
+                lambda f, j=j: progress((part + (j + f) / hs.size) / total))
+            one = np.array([h])
+            out, = run(method, pot, start, one, steps, rho_of(one), growth, distance,
+                       energy_every, stop_failures=stop, progress=report)
+            found.append(judge(out, threshold, confidence))
+        return found
+
     probes = measure(h_values, 0)
     clear = np.array([p.clear for p in probes])
     brackets = []  # (clear h, unsafe h, is_lower_edge)
@@ -317,7 +363,7 @@ def scan(method: Method, pot: Potential, start: Start, h_values, steps: int,
         if not brackets:
             break
         mids = np.array([0.5 * (c + u) for c, u in brackets])
-        found = measure(mids, 1 + r)
+        found = bisect(mids, 1 + r)
         extra += found
         for br, pr in zip(brackets, found):
             br[0 if pr.clear else 1] = pr.h
