@@ -120,6 +120,25 @@ def test_a_run_stopped_at_its_failures_sees_failures_of_the_full_run(monkeypatch
     assert full.failures == 0 and cut == full
 
 
+def test_rows_run_first_change_no_value_of_a_full_run(monkeypatch):
+    """A run with some rows first (blocks of 5 rows) has the failures, the failed rows,
+    the drift, its error and fluctuation of the run in the start's order, bit for bit; a
+    run stopped at its first failure with the failed rows first stops in the first
+    block, at a row the full run lost."""
+    pot = morse()
+    start = thermal_start(pot, 0.006, 120, seed=8)
+    monkeypatch.setattr(trajectories, "BLOCK_VALUES", 5)
+    hs = [1.40784, 1.2]
+    plain = run(method("verlet"), pot, start, hs, 300, _verlet_rho(hs))
+    lost = plain[0].failed
+    assert len(lost) == plain[0].failures >= 2  # (the test can fail: rows are lost)
+    first = [lost[-1], 7, lost[0], 100]
+    assert run(method("verlet"), pot, start, hs, 300, _verlet_rho(hs), first=first) == plain
+    cut, = run(method("verlet"), pot, start, hs[:1], 300, _verlet_rho(hs[:1]),
+               stop_failures=1, first=lost[::-1])
+    assert cut.failed and set(cut.failed) <= set(lost[-5:])
+
+
 def test_bisection_points_stopped_at_a_band_keep_the_full_runs_verdicts():
     """Every point of a bisected scan (stopped once its failures make a band) has the
     verdict of the ensemble run in full at that step."""

@@ -553,14 +553,19 @@ def _confirm(method: Method, pot: Potential, start: Start, h: float,
     ``max_failure``), the next step
     below that the scan judged clear, ``STEP_DOWN`` times the step at least, at most
     ``CONFIRM_TRIES`` steps: ``(h, drift, confirmation)``, h = 0 and no drift when none
-    was clear."""
+    was clear. Each try runs first the trajectories that failed in the tries before it:
+    the order changes what a rejection costs, not which steps are rejected."""
     clear = sorted({p.h for p in scans[0].probes if p.clear}, reverse=True)
     rejected: list[tuple[float, int, int]] = []
     x = h
+    suspects: list[int] = []  # the trajectories that failed at the steps above, latest first
     for _ in range(CONFIRM_TRIES):
-        # one failure settles a step (it is not clear): the run stops there
+        # one failure settles a step (it is not clear): the run stops there; the
+        # trajectories that failed above run first (at a step just below they often fail
+        # again, and the rejection then costs a block, not a run)
         out = run(method, pot, start, [x], steps, rho(np.array([x])), GROWTH, DISTANCE,
-                  stop_failures=1, progress=progress)[0]
+                  stop_failures=1, first=suspects, progress=progress)[0]
+        suspects = list(out.failed) + [i for i in suspects if i not in out.failed]
         pr = bands_.judge(out, max_failure, confidence)
         if pr.clear:
             return x, from_outcome(out, start.kT, pot.dimension, start.seed), Confirmation(
