@@ -306,22 +306,30 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
         ran = steps
         for k in range(1, steps + 1):
             q, p, bad = _step(engine, q, p, hcol)
-            # (the box test below fails a coordinate that is not finite)
-            bad |= _not_finite(p) if reach_run is not None else _not_finite(q) | _not_finite(p)
+            # (the box test below fails a coordinate that is not finite; each test first
+            # over the whole batch, by rows only when some row fails it)
+            if reach_run is None:
+                bad |= _not_finite(q) | _not_finite(p)
+            elif not np.isfinite(np.add.reduce(p, axis=None)):
+                bad |= _not_finite(p)
             measured = measuring and (k % every == 0 or k == steps)
             if processed and (measured or reach_run is not None):
                 qo, po = engine.output(q, p, hcol)
             else:
                 qo, po = q, p
             if reach_run is not None:
-                bad |= ~(np.abs(qo if ref is None else qo - ref) <= reach_run).all(axis=1)
+                inside = np.abs(qo if ref is None else qo - ref) <= reach_run
+                if not inside.all():
+                    bad |= ~inside.all(axis=1)
             if measured:
                 assert H0_run is not None
                 dH = run_system.energy(qo, po) - H0_run
-                bad |= ~np.isfinite(dH)
+                fine = np.isfinite(dH)
                 if lim_run is not None:
                     assert excess_run is not None
-                    bad |= ~(dH + excess_run <= lim_run)
+                    fine &= dH + excess_run <= lim_run
+                if not fine.all():
+                    bad |= ~fine
             if bad.any():
                 gone = live[bad]
                 q_out[gone], p_out[gone] = q[bad], p[bad]
