@@ -22,6 +22,7 @@ from thermal_support import (
     verlet,
 )
 
+from stepsafe.exceptions import StepsafeError
 from stepsafe.systems.thermal import trajectories
 from stepsafe.systems.thermal.bands import (
     band_failures,
@@ -137,6 +138,9 @@ def test_rows_run_first_change_no_value_of_a_full_run(monkeypatch):
     cut, = run(method("verlet"), pot, start, hs[:1], 300, _verlet_rho(hs[:1]),
                stop_failures=1, first=lost[::-1])
     assert cut.failed and set(cut.failed) <= set(lost[-5:])
+    for bad in ([0, 0], [120], [-1]):
+        with pytest.raises(StepsafeError, match="distinct rows of the 120 starts"):
+            run(method("verlet"), pot, start, hs, 300, _verlet_rho(hs), first=bad)
 
 
 def test_bisection_points_stopped_at_a_band_keep_the_full_runs_verdicts():
