@@ -20,8 +20,17 @@ def _glibc() -> bool:
 
 
 @pytest.mark.skipif(not _glibc(), reason="glibc's mallopt only")
-def test_glibc_accepts_both_allocator_thresholds():
+def test_glibc_accepts_both_allocator_thresholds(monkeypatch):
+    """... and the process records it: thermal runs then take blocks of the larger size."""
+    from stepsafe.core import memory
+    from stepsafe.systems.thermal import trajectories
+
+    monkeypatch.setattr(memory, "keeps_freed", False)
+    assert trajectories.block_rows(100) == trajectories.BLOCK_VALUES // 100
     assert allocator.keep_freed_memory() is True
+    assert memory.keeps_freed is True
+    assert trajectories.block_rows(100) == trajectories.BLOCK_VALUES_KEPT // 100
+    assert trajectories.block_rows(10 ** 9) == 1
 
 
 def test_the_numeric_core_does_not_set_the_allocator():
