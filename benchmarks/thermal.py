@@ -2,12 +2,12 @@
 in under a minute"), printed, not asserted.
 
     python benchmarks/thermal.py [--threads N] [--repeat N] [--steps N] [--follow N]
-                                 [--only LABEL]
+                                 [--only LABEL] [--keep-freed]
 
 Each case is run ``--repeat`` times (default 3): printed are the medians of the wall clock
 and of the process's CPU time (on a machine shared with other work the CPU time is the
 figure to compare; the load average before and after is printed), the stages of the last
-``advise`` run (wall clock), and a summary of the median CPU times:
+``advise`` run (wall clock and CPU time), and a summary of the median CPU times:
 
 1. a Morse bond ``U = (1 - e^-q)^2 / 2`` (1 dof) at kT = 0.003 (``examples/morse.yaml``)
    with velocity Verlet, a run of 1e4 steps: ``thermal_limit`` (what ``advise`` runs:
@@ -25,6 +25,9 @@ figure to compare; the load average before and after is printed), the stages of 
 
 ``--steps`` sets the run and ``--follow`` how far the trajectories follow it
 (``follow_steps``; the commands refuse a longer run, the functions cap it).
+``--keep-freed`` first makes glibc's allocator keep freed memory, as the command line
+does (:mod:`stepsafe.cli.allocator`; thermal runs then take larger blocks), so that the
+functions run as a command runs them.
 
 Measured on this project's machine (x86_64, 2 cores shared with other work, load average
 8-14 during the runs, numpy 2.4.6, one BLAS thread), CPU time, before (main at 334c072:
@@ -82,12 +85,19 @@ def main() -> None:
     parser.add_argument("--follow", type=int, default=10_000,
                         help="the most steps the trajectories follow (follow_steps)")
     parser.add_argument("--only", default="", help="run only the cases whose label has this")
+    parser.add_argument("--keep-freed", action="store_true",
+                        help="make the allocator keep freed memory first, as the command "
+                             "line does (stepsafe.cli.allocator)")
     args = parser.parse_args()
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = str(args.threads)
 
     import numpy as np
 
+    if args.keep_freed:
+        from stepsafe.cli.allocator import keep_freed_memory
+
+        print(f"allocator keeps freed memory: {keep_freed_memory()}")
     from stepsafe.methods.library import resolve
     from stepsafe.systems.thermal import from_callables, thermal_check, thermal_limit
 
@@ -144,11 +154,11 @@ def main() -> None:
             continue
         walls, cpus = [], []
         for _ in range(max(1, args.repeat)):
-            marks: list[tuple[str, float]] = []
+            marks: list[tuple[str, float, float]] = []
 
             def progress(stage: str, fraction: float, marks=marks) -> None:
                 if not marks or marks[-1][0] != stage:
-                    marks.append((stage, time.perf_counter()))
+                    marks.append((stage, time.perf_counter(), time.process_time()))
 
             t0, c0 = time.perf_counter(), time.process_time()
             r = thermal_limit(verlet, pot, kT, steps=args.steps, band_steps=args.follow,
@@ -168,11 +178,12 @@ def main() -> None:
                       f"h = {x:.6g} ({k} failed" + (f" by step {n[0]})" if n else ")")
                       for x, k, *n in c.rejected)
                       or "none"))
-        starts = [t0] + [stamp for _, stamp in marks] + [t0 + total]
-        names = ["sampling, frequencies, starts"] + [stage for stage, _ in marks] + []
-        print("  stages of the last run (wall clock):")
+        starts = [(t0, c0)] + [(wall, cpu) for _, wall, cpu in marks] + [
+            (t0 + total, c0 + cpus[-1])]
+        names = ["sampling, frequencies, starts"] + [stage for stage, _, _ in marks]
+        print("  stages of the last run (wall clock, CPU time):")
         for name, a, b in zip(names, starts[:-1], starts[1:]):
-            print(f"    {name[:56]:56s} {b - a:8.2f} s")
+            print(f"    {name[:56]:56s} {b[0] - a[0]:8.2f} s {b[1] - a[1]:8.2f} s")
         print(f"  advise (thermal_limit), median of {len(walls)}: wall "
               f"{statistics.median(walls):8.2f} s, CPU {statistics.median(cpus):8.2f} s   "
               f"goal {goal}")
