@@ -29,34 +29,60 @@ figure to compare; the load average before and after is printed), the stages of 
 does (:mod:`stepsafe.cli.allocator`; thermal runs then take larger blocks), so that the
 functions run as a command runs them.
 
-Measured on this project's machine (x86_64, 2 cores shared with other work, load average
-8-14 during the runs, numpy 2.4.6, one BLAS thread), CPU time, before (main at 334c072:
-every confirmation try ran all its 10^4 steps, the Beta quantiles came from scipy.stats)
-and after (a confirmation try stops at its first failure; Clopper-Pearson bounds from
-scipy.special; unit masses and a box centred at the origin cost two passes fewer per
-step; on glibc freed temporaries stay in the heap instead of being mmapped afresh at every
-operation, which cost the commands a third of their CPU time in the kernel). The answers
-are the same (h_max 1.19393 and 0.766525; the same steps rejected):
+Measured on this project's machine (x86_64, 2 cores shared with other work, numpy 2.4.6,
+one BLAS thread), CPU time, main at 8098456 ("before") and this version ("after") run
+side by side at a load average of 9-10 (CPU time under such a load runs above what an
+idle machine measures). An earlier round had taken the 100-dof ``advise`` from 190 s to
+153 s and ``check`` from 46 s to 41 s (at a load of 8-14; confirmations stopped at their
+first failure, the commands' allocator setting). The answers are the same (h_max 1.19393
+and 0.766525; the same steps rejected, each with one failure, seen by another step where
+the blocks' order finds another failing trajectory first; the JSON of ``advise
+examples/morse.yaml`` at kT 0.003 and 0.015 is identical):
 
 ==========================================  ==========  ==========  ========
 case (10^4 steps, 2995 trajectories)        before      after       ratio
 ==========================================  ==========  ==========  ========
-Morse, 1 dof, advise (median of 3)          3.98 s      3.21 s      0.81
-Morse, 1 dof, check (median of 3)           0.81 s      0.72 s      0.89
-stepsafe advise examples/morse.yaml         10.41 s     5.26 s      0.51
-stepsafe check examples/morse.yaml          2.06 s      1.74 s      0.84
-FPU-alpha, 100 dof, advise (1 run)          190.0 s     153.3 s     0.81
-FPU-alpha, 100 dof, check at 0.7 (1 run)    46.3 s      41.4 s      0.89
+Morse, 1 dof, advise (median of 3)          3.61 s      3.38 s      0.94
+Morse, 1 dof, check (median of 3)           0.77 s      0.45 s      0.58
+stepsafe advise examples/morse.yaml         5.77 s      5.85 s      1.01
+stepsafe check examples/morse.yaml          1.75 s      1.60 s      0.91
+FPU-alpha, 100 dof, advise (1 run)          163.5 s     89.5 s      0.55
+FPU-alpha, 100 dof, check at 0.7 (1 run)    40.0 s      39.0 s      0.97
+the same, ``--keep-freed``, advise          -           73.4 s
+the same, ``--keep-freed``, check           -           27.8 s
 ==========================================  ==========  ==========  ========
 
-The 100-dof ``advise`` is still above the minute: its confirmation steps down three times
-(from the scan's edge 0.7927 to 0.7665), and each rejected step's first failure comes
-late (steps 8056, 6970 and 9899 of 10^4), so each costs nearly a whole run of 2995 x 100
-dof x 10^4 steps (about 32 s of CPU here); the coarse whole-chain scan and its bisections
-(300 trajectories at 12 steps, then 6 sequential rounds) take most of the rest. The
-stages of a run are printed (wall clock). The commands on the Morse scene take about
-2 s more than the functions: start-up and the 0 K analysis (about 0.7 s) and the scene's
-compiled expression in place of a numpy potential.
+(``--keep-freed`` runs the functions as the command line runs them; the commands set
+the allocator before too, so the Morse commands compare like with like.)
+
+What changed: a run integrates its trajectories in blocks of 8192 state values (81
+trajectories of 100 dof), each over all its steps; every temporary is then 64 KiB, which
+glibc serves from freed memory, where a step of 2995 x 100 made 2.4 MB temporaries that
+were mapped and page-faulted afresh (a whole-chain run of 10^4 steps with the energy at
+every step: about 42 s in one array, 26 s in blocks; with the command line's allocator
+setting, ``--keep-freed``, and its blocks of 65536 values, 655 trajectories, about 18-20
+s against 20-23 s in one array). A confirmation stopped at its first failure skips the
+blocks after it, and runs first the trajectories that failed at
+the steps above (in the Morse bond at kT 0.015, 13 of the 18 trajectories lost at
+h = 0.943 were among the 14 lost 0.02% above; in this chain the trajectory lost at the
+scan's edge survived the next step tried, so that order saved little here). A bisection
+point of a scan stops once its failures make it a band. The tabulated profiles take half
+the time per force. The engine keeps per-row sums compacted and tests the whole batch
+before testing rows.
+
+Where the 100-dof ``advise`` goes (CPU time of its stages, load 9-10, ``--keep-freed``):
+sampling, 1024 Hessians and the starts 2.8 s; the coarse whole-chain scan (12 steps of 300
+trajectories, then 6 sequential bisection rounds) 22 s; the three profiles 12 s; the
+confirmation 36 s, of which the final full run of 2995 trajectories is about 20 s (the
+``check`` is mostly one such run) and the three rejected steps near the scan's edge
+(0.7927, 0.7919, 0.7902, each losing a trajectory late, after step 8000) the rest. It is
+still above the minute. What is left: the rejected steps (a rule that skips clear scan
+points within 1% of a rejected step takes the chain to 0.7689 with one rejection, about
+12 s less, but takes the Morse bond at kT 0.003 from 1.1939 down to 1.1728, the step just
+below its edge that passes now being skipped); the per-step cost of the user's numpy potential (its energy and force are 60%
+of a block's step); the scan's 3600 trajectories over the full run. The commands on the
+Morse scene take about 2 s more than the functions: start-up and the 0 K analysis (about
+0.7 s) and the scene's compiled expression in place of a numpy potential.
 
 The defaults of :func:`stepsafe.systems.thermal.thermal_limit` and
 :func:`~stepsafe.systems.thermal.thermal_check` are used throughout. The machine and its
