@@ -155,7 +155,7 @@ class Confirmation:
         The one-sided upper bound on the failure probability at h.
     rejected : tuple of (float, int, int)
         The steps above h tried first: each with the failures seen when its run stopped
-        (at its first failure) and the steps it had run then.
+        (at its first failure) and the step by which it was seen.
     """
 
     h: float
