@@ -79,8 +79,9 @@ confirmation 36 s, of which the final full run of 2995 trajectories is about 20 
 still above the minute. What is left: the rejected steps (a rule that skips clear scan
 points within 1% of a rejected step takes the chain to 0.7689 with one rejection, about
 12 s less, but takes the Morse bond at kT 0.003 from 1.1939 down to 1.1728, the step just
-below its edge that passes now being skipped); the per-step cost of the user's numpy potential (its energy and force are 60%
-of a block's step); the scan's 3600 trajectories over the full run. The commands on the
+below its edge that passes now being skipped); the per-step cost of the user's numpy
+potential (its energy and force are 60% of a block's step); the scan's 3600 trajectories
+over the full run. The commands on the
 Morse scene take about 2 s more than the functions: start-up and the 0 K analysis (about
 0.7 s) and the scene's compiled expression in place of a numpy potential.
 
