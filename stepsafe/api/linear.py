@@ -57,7 +57,7 @@ from stepsafe.api.reports import (
     SceneChecks,
     record_fields,
 )
-from stepsafe.api.temperature import request
+from stepsafe.api.temperature import request, where_in_scene
 from stepsafe.arguments import public
 from stepsafe.core.advice import Modes, check_step, validate_margin
 from stepsafe.core.advice import advise as core_advise
@@ -583,7 +583,12 @@ def check(method: Integrator | str | None = None, h: float | str | None = None,
     data["scene"] = p.scene
     data["time_unit"] = p.time_unit
     if warm is not None:
-        found = thermal.check_at_temperature(p, warm, float(step), criterion, progress)
+        # (the scene's margin: when no keyword gave one, and the problem's is the scene's)
+        scene = load_scene(p.scene, p.time_unit) if p.scene else None
+        margin_key = where_in_scene(scene, "margin") if margin is None and \
+            scene is not None and scene.margin == p.margin else "--margin, margin="
+        found = thermal.check_at_temperature(p, warm, float(step), criterion, progress,
+                                             margin_key)
         data["thermal"] = found
         if not found["safe"]:
             data["safe"] = False

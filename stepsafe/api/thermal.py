@@ -225,8 +225,31 @@ def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion:
     return out
 
 
+def no_margin(p: Any, margin_key: str | None) -> None:
+    """Refuse a margin below 1 at temperature in a check (a :class:`StepsafeError` naming
+    where it came from).
+
+    A margin F promises every frequency up to ``1 / F`` times larger, so a verdict with it
+    is about every step from h to ``h / F``. At 0 K failure grows with the step and ``h / F``
+    is the worst of them; at temperature a resonance band is an island in h (a step can fail
+    while a larger one is clear), so an ensemble at ``h / F`` says nothing of h, and
+    ensembles on a grid between would not show that no band lies between their points.
+    ``advise`` carries the margin soundly (its steps below the first band it scanned stay
+    below it when divided by F)."""
+    if p.margin >= 1.0:
+        return
+    message = (f"a margin {p.margin:g} stands for every step from h to h/{p.margin:g}, and at "
+               f"temperature a resonance band can lie between them (bands are islands in "
+               f"h), so no ensemble shows them all safe: check h with no margin, or ask "
+               f"advise (its range carries the margin)")
+    if margin_key is None or margin_key.startswith("--"):
+        raise StepsafeError(f"{margin_key or '--margin, margin='}: {message}")
+    raise StepsafeError(message, margin_key)
+
+
 def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
-                         progress: Callable[[float], None] | None = None) -> dict[str, Any]:
+                         progress: Callable[[float], None] | None = None,
+                         margin_key: str | None = None) -> dict[str, Any]:
     """The record of the check of step h at temperature for :func:`stepsafe.check`.
 
     Parameters
@@ -241,11 +264,14 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
         ``structure`` or ``stability``.
     progress : callable, optional
         Called with the fraction done.
+    margin_key : str, optional
+        Where a margin below 1 came from (the option, or the scene's key), which is
+        refused at temperature (:func:`no_margin`) unless the system is harmonic.
 
     Returns
     -------
     dict
-        ``safe``: h over the margin lies below every minimum's linear limit at
+        ``safe``: h lies below every minimum's linear limit at
         temperature (z* under ``criterion``, stated), an ensemble at h itself is clear
         of failures
         (:func:`stepsafe.systems.thermal.thermal_check`) and its drift meets
@@ -253,13 +279,15 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
         (:func:`check_record`).
     """
     if _engine_analysis(p) is not None:
+        no_margin(p, margin_key)
         return _engine_check(p, req, h, criterion, progress)
     found = _minima(p, req)
     if found is None:
         return {**_request_record(req, criterion, ensemble=False), "safe": True,
                 "harmonic": True, "reasons": [], "minima": [],
                 "notes": _harmonic_record(req, None, criterion)["notes"]}
-    step = h / p.margin
+    no_margin(p, margin_key)
+    step = h
     followed(req, step)
     each, reasons = [], []
     report = _progress(progress, len(found))
@@ -364,8 +392,9 @@ def _confirmation_record(c: Any, margin: float) -> dict[str, Any] | None:
 
 
 def check_record(m: Minimum, c: Any, margin: float = 1.0) -> dict[str, Any]:
-    """One minimum's :class:`~stepsafe.systems.thermal.ThermalCheck`, JSON-ready."""
-    probes = [{"target": name, "h": margin * pr.h, "verdict": pr.verdict,
+    """One minimum's :class:`~stepsafe.systems.thermal.ThermalCheck`, JSON-ready (each
+    probe's ``h`` the step its ensemble ran; the limits times the margin)."""
+    probes = [{"target": name, "h": pr.h, "verdict": pr.verdict,
                "trajectories": pr.trajectories, "failures": pr.failures, "steps": pr.steps,
                "probability": pr.probability, "lower": pr.lower, "upper": pr.upper,
                "max_failure": pr.threshold}

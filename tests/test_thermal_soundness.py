@@ -1,0 +1,129 @@
+"""Verdicts at temperature cover every step they speak for: a margin (every step from h to
+h/F) is refused by ``check`` at temperature, since a resonance band is an island in h; a
+trajectory that leaves the well counts as failed whatever its start's energy.
+
+The references are the test's own: velocity Verlet written here (kick h/2, drift h, kick
+h/2) on the Morse bond H = p^2/2 + (1 - e^-q)^2/2 (well depth D = 1/2), from exact Boltzmann
+draws of the 1-D well (inverse transform of the distribution function on a fine grid) and
+N(0, kT) momenta, with fixed seeds; failure probabilities are bounded by Clopper-Pearson at
+95%.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import stepsafe
+from stepsafe.exceptions import StepsafeError
+
+ROOT = Path(__file__).resolve().parent.parent
+MORSE = str(ROOT / "examples" / "morse.yaml")
+
+
+def _morse_energy(q, p):
+    return 0.5 * p * p + 0.5 * np.expm1(-q) ** 2
+
+
+def _morse_force(q):
+    e = np.exp(-q)
+    return e * np.expm1(-q)
+
+
+def _boltzmann(kT: float, count: int, rng: np.random.Generator, lo: float = -1.5,
+               hi: float = 12.0) -> tuple[np.ndarray, np.ndarray]:
+    """Exact draws of exp(-H / kT) on [lo, hi] (q by the inverse of the distribution
+    function on 400001 points, p ~ N(0, kT))."""
+    s = np.linspace(lo, hi, 400001)
+    w = np.exp(-(0.5 * np.expm1(-s) ** 2) / kT)
+    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]))])
+    q = np.interp(rng.random(count), cdf / cdf[-1], s)
+    return q, rng.standard_normal(count) * math.sqrt(kT)
+
+
+def _verlet_escapes(q, p, h, steps, out_at=8.0):
+    """Velocity Verlet for every row; a row has left the well when q > ``out_at`` at any
+    step (U(8) > 0.9993 D) or when at the end it is unbound outside it (H > D, q > 3).
+    Returns the boolean mask of rows that left."""
+    q, p = q.copy(), p.copy()
+    gone = np.zeros(q.size, dtype=bool)
+    f = _morse_force(q)
+    with np.errstate(all="ignore"):
+        for _ in range(steps):
+            p += 0.5 * h * f
+            q += h * p
+            f = _morse_force(q)
+            p += 0.5 * h * f
+            gone |= ~(np.isfinite(q) & (q <= out_at))
+    unbound = (_morse_energy(q, p) > 0.5) & (q > 3.0)
+    return gone | unbound
+
+
+def _clopper_pearson(k: int, m: int) -> tuple[float, float]:
+    from scipy.stats import beta
+
+    lo = 0.0 if k == 0 else float(beta.ppf(0.025, k, m - k + 1))
+    hi = 1.0 if k == m else float(beta.ppf(0.975, k + 1, m - k))
+    return lo, hi
+
+
+def _cli(*args: str) -> tuple[int, str, str]:
+    from click.testing import CliRunner
+
+    from stepsafe.cli import main
+
+    result = CliRunner().invoke(main, list(args), catch_exceptions=False)
+    return result.exit_code, result.stdout, result.stderr
+
+
+# --- a margin at temperature ------------------------------------------------------------
+
+
+def test_a_band_lies_inside_the_steps_a_margin_stands_for_so_one_ensemble_cannot_judge_them():
+    """The cold Morse bond (kT = 3e-4, 10^4 steps) at h = 1.41421, just inside the 4:1
+    band, dissociates in most of the test's own runs while h / 0.95 loses none: the steps
+    a margin 0.95 stands for are not all judged by a run at h / F, and check refuses the
+    margin there instead of calling h safe."""
+    rng = np.random.default_rng(2024)
+    q, p = _boltzmann(3e-4, 300, rng, -0.5, 1.0)
+    h = 1.41421
+    inside = _verlet_escapes(q, p, h, 10_000, out_at=4.0)
+    beside = _verlet_escapes(q, p, h / 0.95, 10_000, out_at=4.0)
+    assert _clopper_pearson(int(inside.sum()), q.size)[0] > 0.5
+    assert not beside.any()
+    with pytest.raises(StepsafeError, match="margin"):
+        stepsafe.check(scene=MORSE, h=h, kT=3e-4, steps=10_000, margin=0.95)
+
+
+@settings(max_examples=25, deadline=None)
+@given(margin=st.floats(1e-6, 1.0, exclude_max=True), h=st.floats(1e-3, 3.0),
+       kT=st.floats(1e-4, 0.02))
+def test_check_never_judges_a_margin_below_one_at_temperature(margin, h, kT):
+    with pytest.raises(StepsafeError, match="margin"):
+        stepsafe.check(scene=MORSE, h=h, kT=kT, steps=100, margin=margin)
+
+
+def test_the_command_line_refuses_a_margin_at_temperature_in_one_line_with_exit_2(tmp_path):
+    code, out, err = _cli("check", MORSE, "--kT", "0.0003", "--steps", "10000", "--step",
+                          "1.41421", "--margin", "0.95")
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and "--margin" in err
+    scene = tmp_path / "morse.yaml"
+    scene.write_text(Path(MORSE).read_text() + "margin: 0.9\n")
+    code, out, err = _cli("check", str(scene), "--step", "1.41421")
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and f"{scene}::$.margin" in err
+
+
+def test_a_harmonic_system_keeps_its_margin_at_temperature():
+    """A linear system's answer at temperature is the 0 K one, where failure grows with
+    the step and h / F is the worst of the steps the margin stands for: Verlet on omega =
+    1 is preserved for z < 2."""
+    assert stepsafe.check("verlet", beta=[1.0], h=1.5, margin=0.9, kT=0.1, steps=100).safe
+    assert not stepsafe.check("verlet", beta=[1.0], h=1.85, margin=0.9, kT=0.1,
+                              steps=100).safe
