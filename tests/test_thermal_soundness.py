@@ -100,7 +100,7 @@ def test_a_band_lies_inside_the_steps_a_margin_stands_for_so_one_ensemble_cannot
         stepsafe.check(scene=MORSE, h=h, kT=3e-4, steps=10_000, margin=0.95)
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=8, deadline=None)
 @given(margin=st.floats(1e-6, 1.0, exclude_max=True), h=st.floats(1e-3, 3.0),
        kT=st.floats(1e-4, 0.02))
 def test_check_never_judges_a_margin_below_one_at_temperature(margin, h, kT):
@@ -127,3 +127,117 @@ def test_a_harmonic_system_keeps_its_margin_at_temperature():
     assert stepsafe.check("verlet", beta=[1.0], h=1.5, margin=0.9, kT=0.1, steps=100).safe
     assert not stepsafe.check("verlet", beta=[1.0], h=1.85, margin=0.9, kT=0.1,
                               steps=100).safe
+
+
+# --- a trajectory that leaves the well fails ----------------------------------------------
+
+
+def _reference_escapes(h: float, seeds=(11, 12), count: int = 4000, kT: float = 0.0357,
+                       steps: int = 50) -> tuple[int, int]:
+    """Bonds that leave the Morse well in the test's own runs: (left, trajectories)."""
+    left = total = 0
+    for seed in seeds:
+        q, p = _boltzmann(kT, count, np.random.default_rng(seed))
+        left += int(_verlet_escapes(q, p, h, steps).sum())
+        total += count
+    return left, total
+
+
+def _scene(tmp_path: Path, energy: float = 1.0, length: float = 1.0, mass: float = 1.0) -> str:
+    """The Morse bond with its energy, length and mass scaled (time unit
+    ``length sqrt(mass / energy)``)."""
+    path = tmp_path / f"morse-{energy:g}-{length:g}-{mass:g}.yaml"
+    momentum = math.sqrt(mass * energy)
+    path.write_text("method: verlet\nsystem:\n  hamiltonian: "
+                    f"\"p**2/(2*{mass!r}) + {energy!r}*(1 - exp(-q/{length!r}))**2/2\"\n"
+                    f"  box: {{q: [{-length!r}, {5 * length!r}], "
+                    f"p: [{-momentum!r}, {momentum!r}]}}\n")
+    return str(path)
+
+
+def test_a_bond_that_leaves_the_well_in_a_short_run_is_a_failure():
+    """kT/D = 0.071, 50 steps at h = 0.87: the test's own runs lose about 0.4% of the bonds
+    (they leave the well: their energy passes the well depth out beyond it), whose
+    ceiling relative to the start's energy and distance ceiling a short run does not
+    reach; check's 2995 trajectories see as many and say UNSAFE for max_failure 0.001."""
+    left, total = _reference_escapes(0.87)
+    lo, hi = _clopper_pearson(left, total)
+    assert lo > 0.002  # well above max_failure: 2995 trajectories see ~10
+    r = stepsafe.check(scene=MORSE, h=0.87, kT=0.0357, steps=50)
+    assert not r.safe
+    (probe,) = r.thermal["minima"][0]["probes"]
+    k, m = probe["failures"], probe["trajectories"]
+    assert m == 2995 and probe["h"] == 0.87
+    # the same probability: stepsafe's count within the two-sided 99.9% range a binomial of
+    # the reference's fraction gives
+    from scipy.stats import binom
+
+    assert binom.ppf(0.0005, m, lo) <= k <= binom.ppf(0.9995, m, hi)
+
+
+def test_a_step_whose_bonds_stay_bound_is_clear_of_escapes():
+    """At h = 0.5 none of the test's own 8000 bonds leaves in 50 steps, nor does any of
+    check's: the escape test counts no bound trajectory."""
+    assert _reference_escapes(0.5)[0] == 0
+    r = stepsafe.check(scene=MORSE, h=0.5, kT=0.0357, steps=50)
+    assert r.safe
+    assert r.thermal["minima"][0]["probes"][0]["failures"] == 0
+
+
+@pytest.mark.slow  # one check per example, about 1.5 s of CPU each
+@settings(max_examples=6, deadline=None)
+@given(log_energy=st.floats(-100.0, 100.0), log_length=st.floats(-100.0, 100.0),
+       log_mass=st.floats(-50.0, 50.0))
+def test_escapes_are_counted_at_every_scale(tmp_path_factory, log_energy, log_length,
+                                            log_mass):
+    """The bond with energy, length and mass scaled by powers of ten loses its escaping
+    trajectories as the bond in its own units does (the reference: about 0.4% at h =
+    0.87, none at 0.5)."""
+    energy, length, mass = 10.0 ** log_energy, 10.0 ** log_length, 10.0 ** log_mass
+    scene = _scene(tmp_path_factory.mktemp("scaled"), energy, length, mass)
+    unit = length * math.sqrt(mass / energy)
+    kT = 0.0357 * energy
+    hot = stepsafe.check(scene=scene, h=0.87 * unit, kT=kT, steps=50)
+    assert not hot.safe
+    assert hot.thermal["minima"][0]["probes"][0]["failures"] >= 4
+    cool = stepsafe.check(scene=scene, h=0.5 * unit, kT=kT, steps=50)
+    assert cool.safe
+
+
+def _bond_with_spectators(tmp_path: Path, omegas: list[float]) -> str:
+    """The Morse bond q_1 beside harmonic coordinates of the given frequencies (separable:
+    the bond's dynamics is the bond's alone)."""
+    n = 1 + len(omegas)
+    springs = "".join(f" + {0.5 * w * w!r}*q[{i + 2}]**2" for i, w in enumerate(omegas))
+    kinetic = " + ".join(f"p[{i + 1}]**2/2" for i in range(n))
+    path = tmp_path / f"morse-{n}.yaml"
+    path.write_text("method: verlet\nsystem:\n"
+                    f"  hamiltonian: \"{kinetic} + (1 - exp(-q[1]))**2/2{springs}\"\n"
+                    f"  q: \"q[1..{n}]\"\n  p: \"p[1..{n}]\"\n"
+                    "  box: {q: [-1, 5], p: [-1, 1]}\n")
+    return str(path)
+
+
+def test_a_bond_that_leaves_its_well_beside_other_coordinates_is_a_failure(tmp_path):
+    """The bond beside a slow harmonic coordinate (omega = 0.5), 50 steps at h = 0.85:
+    the test's own runs of the bond lose 0.13-0.36% (95%) of it, more than max_failure
+    0.001; check's whole-system ensemble sees the bonds leave and says UNSAFE; at h = 0.5
+    none leaves in either."""
+    left, total = _reference_escapes(0.85)
+    assert _clopper_pearson(left, total)[0] > 0.001
+    scene = _bond_with_spectators(tmp_path, [0.5])
+    r = stepsafe.check(scene=scene, h=0.85, kT=0.0357, steps=50)
+    assert not r.safe
+    assert r.thermal["minima"][0]["probes"][0]["failures"] >= 3
+    assert _reference_escapes(0.5)[0] == 0
+    assert stepsafe.check(scene=scene, h=0.5, kT=0.0357, steps=50).safe
+
+
+@pytest.mark.slow  # one check of a Langevin-drawn system per example
+@settings(max_examples=4, deadline=None)
+@given(omegas=st.lists(st.floats(0.2, 0.9), min_size=1, max_size=3))
+def test_escapes_are_counted_beside_any_spectators(tmp_path_factory, omegas):
+    scene = _bond_with_spectators(tmp_path_factory.mktemp("spectators"), omegas)
+    r = stepsafe.check(scene=scene, h=0.87, kT=0.0357, steps=50)
+    assert not r.safe
+    assert r.thermal["minima"][0]["probes"][0]["failures"] >= 3

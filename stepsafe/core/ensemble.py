@@ -15,9 +15,11 @@ is a column. After each step k = 1 .. N it
   batch is halved until the failing rows are alone), when a coordinate leaves
   ``|q - centre| <= reach`` (optional), or when, with a ``growth`` g given,
   ``H_k - E_ref > g (H_0 - E_ref)`` (``(H_k - H_0) + (H_0 - E_ref) <= g max(H_0 - E_ref, 0)``
-  fails; a NaN bound is no bound). An escaped row is **frozen**: its state is kept as it
-  was at that step, and no force is asked for it again (the arrays shrink to the rows
-  still running, the force just taken going with them);
+  fails; a NaN bound is no bound), or when a caller's test ``leaves(q, p)`` of the output
+  state holds (where the energy is measured). An escaped row is
+  **frozen**: its state is kept as it was at that step, and no force is asked for it
+  again (the arrays shrink to the rows still running, the force just taken going with
+  them);
 * measures, every ``energy_every`` steps and at the last (0: never), the energy error
   ``dH_k = H_k - H_0`` of every running row, on the method's output (``P^-1`` of the state
   for a processed method; ``H_0`` that of the given start), and keeps each row's largest
@@ -178,6 +180,7 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
               energy0: np.ndarray | None = None, force0: np.ndarray | None = None,
               tol: float = 1e-14, max_iterations: int = 200,
               stop_escapes: int | None = None,
+              leaves: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
               progress: Callable[[float], None] | None = None) -> Trajectories:
     """Advance the trajectories from the rows of ``(q0, p0)`` by ``steps`` steps of the
     method (module docstring).
@@ -220,6 +223,9 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
         (:class:`~stepsafe.core.integrator.Engine`).
     stop_escapes : int, optional
         Stop after the step at which this many rows have escaped (module docstring).
+    leaves : callable, optional
+        ``leaves(q, p)`` of the running rows' output state (r, d): True for those that
+        escape (tested where the energy is measured).
     progress : callable, optional
         Called with the fraction of steps done.
 
@@ -238,8 +244,9 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
     every = int(energy_every)
     if every < 0:
         raise StepsafeError(f"energy_every must not be negative, got {every}")
-    if every == 0 and (growth is not None or fit or sample_every):
-        raise StepsafeError("the growth test, the fit and the samples need the energy")
+    if every == 0 and (growth is not None or fit or sample_every or leaves is not None):
+        raise StepsafeError("the growth and escape tests, the fit and the samples need the "
+                            "energy")
     if fit and every != 1:
         raise StepsafeError("the energy fit needs the energy at every step")
     if sample_every and every != 1 and sample_every % every:
@@ -328,6 +335,8 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
                 if lim_run is not None:
                     assert excess_run is not None
                     fine &= dH + excess_run <= lim_run
+                if leaves is not None:
+                    fine &= ~np.asarray(leaves(qo * Lq, po * Lp), dtype=bool)
                 if not fine.all():
                     bad |= ~fine
             if bad.any():

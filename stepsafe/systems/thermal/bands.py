@@ -276,12 +276,23 @@ def grid(h_lo: float, h_hi: float, points: int = GRID_POINTS,
     return np.unique(h[(h >= h_lo) & (h <= h_hi)])
 
 
-def criterion_text(growth: float = GROWTH, distance: float = DISTANCE) -> str:
-    return (f"a trajectory fails when its state is not finite, a coordinate leaves "
-            f"{distance:g} sqrt(rho) times the initial ensemble's extent around the minimum, "
-            f"or its energy above the minimum exceeds {growth:g} rho^2 times its initial one "
-            f"(rho: the largest energy ratio of the linear map's invariant ellipse at that "
-            f"step)")
+def criterion_text(growth: float = GROWTH, distance: float = DISTANCE,
+                   start: Start | None = None) -> str:
+    """The failure criterion in words (with the start's well exits, when it has some)."""
+    out = (f"a trajectory fails when its state is not finite, a coordinate leaves "
+           f"{distance:g} sqrt(rho) times the initial ensemble's extent around the minimum, "
+           f"or its energy above the minimum exceeds {growth:g} rho^2 times its initial one "
+           f"(rho: the largest energy ratio of the linear map's invariant ellipse at that "
+           f"step)")
+    if start is None:
+        return out
+    for e in start.exits:
+        along = f" along q_{e.axis + 1}" if start.q.shape[1] > 1 else ""
+        out += (f"; or it leaves the well{along}: its sqrt(m) (q - q0) passes {e.at:.6g}, "
+                f"where the profile levels off or tops a barrier "
+                f"{e.energy / start.kT:.3g} kT above the minimum, or lies beyond "
+                f"{e.edge:.6g} with more energy than that in that coordinate")
+    return out
 
 
 def scan(method: Method, pot: Potential, start: Start, h_values, steps: int,
@@ -400,7 +411,7 @@ def scan(method: Method, pot: Potential, start: Start, h_values, steps: int,
     spacing = float(np.max(np.diff(h_values))) if h_values.size > 1 else 0.0
     return BandScan(all_probes, tuple(bands), (float(h_values[0]), float(h_values[-1])),
                     spacing, threshold, confidence, start.size, int(steps), start.seed,
-                    target, start.how, criterion_text(growth, distance))
+                    target, start.how, criterion_text(growth, distance, start))
 
 
 def _edge_between(edges: list[Edge], a: float, b: float) -> Edge:

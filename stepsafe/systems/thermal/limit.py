@@ -72,7 +72,13 @@ from stepsafe.systems.thermal.potential import (
     profile,
     tabulate,
 )
-from stepsafe.systems.thermal.sampling import Ensemble, draw, minimum_modes, one_dimensional
+from stepsafe.systems.thermal.sampling import (
+    Ensemble,
+    draw,
+    exits,
+    minimum_modes,
+    one_dimensional,
+)
 from stepsafe.systems.thermal.trajectories import (
     DISTANCE,
     GROWTH,
@@ -372,7 +378,7 @@ def _targets(pot: Potential, kT: float, ensemble: Ensemble, trajectories: int, s
         if not math.isfinite(table.error):
             raise StepsafeError(f"the {name} is not finite within {half:.6g} of the minimum")
         start = thermal_start(table.potential, kT, trajectories, s_seed, s,
-                              "exact 1-D (inverse distribution function)")
+                              "exact 1-D (inverse distribution function)", exits(prof, kT))
         notes += (f"{name}: tabulated on [{-half:.6g}, {half:.6g}], force within "
                   f"{table.relative_error:.2g} of its largest value",)
         out.append(_Target(name, table.potential, start, omega, (omega,), grid_points,
@@ -585,8 +591,9 @@ def _drift(method: Method, pot: Potential, start: Start, h: float, steps: int, r
 
 def _drift_limit(method: Method, pot: Potential, start: Start, lo: float, hi: float,
                  steps: int, rho, tol: float, rounds: int) -> tuple[float, float, Drift]:
-    """The largest h in ``[lo, hi]`` found by bisection whose drift bound meets ``tol``, the
-    smallest found not to, and the drift at the first."""
+    """The largest h in ``[lo, hi]`` found by bisection whose drift bound meets ``tol`` (none
+    of the start's trajectories failing: :meth:`Drift.bound`), the smallest found not to,
+    and the drift at the first."""
     low = _drift(method, pot, start, lo, steps, rho)
     if not low.bound(SIGMAS) <= tol:
         raise StepsafeError(f"the drift at h = {lo:.6g} already exceeds the tolerance "

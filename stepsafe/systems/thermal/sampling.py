@@ -31,6 +31,7 @@ gives the same configurations, bit for bit, on one machine.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -39,7 +40,7 @@ import numpy as np
 from stepsafe.exceptions import StepsafeError, positive_finite
 from stepsafe.systems.thermal.extremes import integrated_time
 from stepsafe.systems.thermal.inm import EXACT_UP_TO, Modes, modes
-from stepsafe.systems.thermal.potential import Potential
+from stepsafe.systems.thermal.potential import Potential, mode_direction, profile
 
 #: The well is tabulated up to this many kT above the minimum (1-D exact draws).
 CUT = 40.0
@@ -194,6 +195,36 @@ def gaussian(pot: Potential, kT: float, count: int, rng: np.random.Generator) ->
     return q0[None, :] + math.sqrt(kT) * solve_triangular(L, xi, trans="T", lower=True).T
 
 
+@dataclass(frozen=True)
+class Exit:
+    """A side of a 1-D well that does not confine: U levels off (a dissociation plateau) or
+    falls past a barrier before it rises ``cut kT`` (:func:`well`); for a system of several
+    coordinates, a side of its profile along one of them (:func:`axis_exits`).
+
+    Attributes
+    ----------
+    side : float
+        -1 (below the minimum) or +1 (above).
+    at : float
+        Where the well ends on that side: the barrier's top, or where U levels off.
+    energy : float
+        ``U(at) - U(q0)``: the energy above the minimum that leaves the well there.
+    edge : float
+        The first point out from the minimum where ``U - U(q0)`` reaches ``energy - kT``:
+        beyond it a trajectory of energy above ``energy`` is not turned back by the well.
+    axis : int
+        The coordinate (0 for one); for :func:`axis_exits` ``at`` and ``edge`` are
+        mass-weighted displacements from the minimum, ``sqrt(m) (q - q0)`` of that
+        coordinate.
+    """
+
+    side: float
+    at: float
+    energy: float
+    edge: float
+    axis: int = 0
+
+
 def well(pot: Potential, kT: float, cut: float = CUT
          ) -> tuple[float, float, tuple[str, ...]]:
     """The interval around a 1-D minimum where ``U - U_low < cut kT`` (``U_low`` the lowest
@@ -210,6 +241,38 @@ def well(pot: Potential, kT: float, cut: float = CUT
     ``e^-PLATEAU`` of the peak there), else the distribution is not confined at this
     temperature (a :class:`StepsafeError`). Returns ``(lo, hi, notes)``.
     """
+    lo, hi, notes, _ = _walk(pot, kT, cut)
+    return lo, hi, notes
+
+
+def exits(pot: Potential, kT: float, cut: float = CUT) -> tuple[Exit, ...]:
+    """The sides of a 1-D well at ``kT`` that end at a plateau or a barrier's top, not at
+    a wall (:func:`well`, :class:`Exit`): where a trajectory leaves the well."""
+    return _walk(pot, kT, cut)[3]
+
+
+def axis_exits(pot: Potential, kT: float, cut: float = CUT) -> tuple[Exit, ...]:
+    """The exits of the profiles along each coordinate through the minimum,
+    ``u(s) = U(q0 + s e_i / sqrt(m_i))`` (:func:`exits`; positions in s): where a
+    trajectory leaves along one coordinate. A profile whose well the walk cannot bound
+    (not confined, not resolved, not finite) gives none."""
+    if pot.minimum is None:
+        return ()
+    out: list[Exit] = []
+    for i in range(pot.dimension):
+        e = np.zeros(pot.dimension)
+        e[i] = 1.0
+        try:
+            found = exits(profile(pot, pot.minimum, mode_direction(pot, e)), kT, cut)
+        except StepsafeError:
+            continue
+        out += [dataclasses.replace(x, axis=i) for x in found]
+    return tuple(out)
+
+
+def _walk(pot: Potential, kT: float, cut: float
+          ) -> tuple[float, float, tuple[str, ...], tuple[Exit, ...]]:
+    """:func:`well` and :func:`exits` from one walk each side."""
     s0 = float(pot.minimum[0]) if pot.minimum is not None else 0.0
     u0 = float(pot.energy(np.array([[s0]]))[0])
     found = modes(pot, np.array([s0]))
@@ -221,6 +284,7 @@ def well(pot: Potential, kT: float, cut: float = CUT
     step = amplitude / 8.0
     ends = []
     notes = []
+    out: list[Exit] = []
     last = 8 * REACH
     for sign in (-1.0, 1.0):
         k = np.arange(1, BEYOND * last + 1)
@@ -255,11 +319,13 @@ def well(pot: Potential, kT: float, cut: float = CUT
                                 f"it levels off or falls: the distribution at kT = {kT:.6g} "
                                 f"is not confined")
         ends.append(float(s[end]))
+        edge = int(np.flatnonzero(u[:end + 1] >= u[end] - kT)[0])
+        out.append(Exit(sign, float(s[end]), float(u[end]), float(s[edge])))
         what = "a barrier" if falls.size else f"{REACH} thermal amplitudes"
         notes.append(f"U levels off or falls {u[end] / kT:.3g} kT above the minimum: the "
                      f"distribution is taken up to {what} (the density left out is below "
                      f"e^-{u[end] / kT:.3g} of the peak there)")
-    return ends[0], ends[1], tuple(notes)
+    return ends[0], ends[1], tuple(notes), tuple(out)
 
 
 def resolved(pot: Potential, s0: float, u0: float, amplitude: float, kT: float) -> None:

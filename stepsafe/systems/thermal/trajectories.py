@@ -20,6 +20,18 @@ an implicit method, up to its stage iteration's tolerance). At every step it
   ellipse reaches ``sqrt(rho)`` times further in q than the exact orbit of the same energy
   (Verlet near its limit: ``rho = 1 / (1 - z^2/4)``); beyond ``growth`` (``distance``)
   times that the energy (coordinate) is not the bounded oscillation of a stable map.
+  A row also fails when it **leaves the well**, whatever its start's energy. Along each
+  coordinate i the profile through the minimum ``u(s) = U(q0 + s e_i / sqrt(m_i))`` may
+  end, on a side, at a plateau or a barrier's top ``E`` above the minimum (at least 12 kT;
+  :func:`stepsafe.systems.thermal.sampling.axis_exits`; a one-coordinate well's own
+  sides). A row fails when its ``s = sqrt(m_i) (q_i - q0_i)`` passes that point, or lies
+  beyond the side's edge (where u is within kT of ``E``) with the energy of that
+  coordinate, ``p_i^2 / (2 m_i) + U(q) - U(q with q_i = q0_i)``, above ``E`` (unbound:
+  the well no longer turns it back; for one coordinate it is ``H - U_ref``, for a
+  separable U that coordinate's own energy). Both are tested where the energy is
+  measured. The ceilings above scale with the start's energy, which may exceed ``E`` by
+  itself, and a row that has just left moves slowly, short of ``distance`` times the
+  extent in a short run.
   An implicit method whose stage iteration fails on some rows fails those rows (found by
   halving the batch).
 
@@ -43,7 +55,7 @@ from stepsafe.core.ensemble import integrate
 from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import Method
 from stepsafe.systems.thermal.potential import Potential, system_of
-from stepsafe.systems.thermal.sampling import draw, momenta
+from stepsafe.systems.thermal.sampling import Exit, axis_exits, draw, momenta
 
 #: Energy beyond ``GROWTH rho^2`` times the initial energy (above U_ref) is a failure.
 GROWTH = 4.0
@@ -80,6 +92,8 @@ class Start:
     seed : int
     how : str
         How the configurations were drawn.
+    exits : tuple of Exit
+        Where the well can be left along a coordinate (empty: confined).
     """
 
     q: np.ndarray
@@ -90,6 +104,7 @@ class Start:
     extent: np.ndarray
     seed: int
     how: str
+    exits: tuple[Exit, ...] = ()
 
     @property
     def size(self) -> int:
@@ -97,7 +112,8 @@ class Start:
 
 
 def thermal_start(pot: Potential, kT: float, count: int, seed: int = 0,
-                  configurations: np.ndarray | None = None, how: str = "") -> Start:
+                  configurations: np.ndarray | None = None, how: str = "",
+                  well_exits: tuple[Exit, ...] | None = None) -> Start:
     """``count`` thermal initial conditions: configurations drawn by
     :func:`stepsafe.systems.thermal.sampling.draw` with ``seed`` (or the given ones),
     momenta from ``default_rng((seed, 1))``.
@@ -113,6 +129,9 @@ def thermal_start(pot: Potential, kT: float, count: int, seed: int = 0,
         ``(count, n)`` configurations already drawn.
     how : str
         How those were drawn.
+    well_exits : tuple of Exit, optional
+        Where the well can be left (default: ``axis_exits(pot, kT)``, none for a
+        quadratic potential).
 
     Returns
     -------
@@ -130,7 +149,37 @@ def thermal_start(pot: Potential, kT: float, count: int, seed: int = 0,
     extent = np.max(np.abs(q - q0[None, :]), axis=0)
     extent = np.where(extent > 0, extent, np.sqrt(kT / pot.masses))
     U0 = float(pot.energy(q0[None, :])[0])
-    return Start(q, p, float(kT), q0, U0, extent, seed, how)
+    if well_exits is None:
+        well_exits = () if pot.quadratic else axis_exits(pot, kT)
+    return Start(q, p, float(kT), q0, U0, extent, seed, how, tuple(well_exits))
+
+
+def leaving(pot: Potential, start: Start
+            ) -> Callable[[np.ndarray, np.ndarray], np.ndarray] | None:
+    """The test of rows that leave the start's well (module docstring) on output states
+    ``q``, ``p`` (r, n); None when it has no exit."""
+    if not start.exits:
+        return None
+    root = np.sqrt(pot.masses)
+    q0 = start.reference
+
+    def leaves(q: np.ndarray, p: np.ndarray) -> np.ndarray:
+        out = np.zeros(q.shape[0], dtype=bool)
+        with np.errstate(all="ignore"):
+            for e in start.exits:
+                i = e.axis
+                s = root[i] * (q[:, i] - q0[i])
+                out |= e.side * (s - e.at) > 0
+                near = np.flatnonzero((e.side * (s - e.edge) > 0) & ~out)
+                if near.size:  # (rare: within kT of the exit's energy)
+                    x = q[near]
+                    back = x.copy()
+                    back[:, i] = q0[i]
+                    own = 0.5 * p[near, i] ** 2 / pot.masses[i] + (pot.energy(x)
+                                                                 - pot.energy(back))
+                    out[near] |= ~(own <= e.energy)
+        return out
+    return leaves
 
 
 @dataclass(frozen=True)
@@ -233,6 +282,7 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
     # one step per row: the engine's updates are elementwise in h, so a column runs each
     # row at its own step (bit for bit as a run of that step alone); a block of rows runs
     # all its steps before the next block starts
+    leaves = leaving(pot, start)
     for a in range(0, rows, block):
         b = slice(a, min(rows, a + block))
         size = b.stop - b.start
@@ -241,7 +291,7 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
         ran = integrate(method, system, q0[b], p0[b], h_rows[b], steps, energy_every=every,
                         reference_energy=start.energy_reference, growth=growth_rows[b],
                         centre=start.reference, reach=reach[b], fit=every == 1,
-                        unit=start.kT,
+                        unit=start.kT, leaves=leaves,
                         stop_escapes=None if stop_failures is None else stop_failures - seen,
                         progress=report)
         escaped[perm[b]] = ran.escaped
