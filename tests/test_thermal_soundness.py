@@ -241,3 +241,48 @@ def test_escapes_are_counted_beside_any_spectators(tmp_path_factory, omegas):
     r = stepsafe.check(scene=scene, h=0.87, kT=0.0357, steps=50)
     assert not r.safe
     assert r.thermal["minima"][0]["probes"][0]["failures"] >= 3
+
+
+# --- a step limited by the drift ----------------------------------------------------------
+
+
+def _drift_limited(steps: int, max_drift: float) -> tuple[float, dict, dict]:
+    r = stepsafe.advise(scene=MORSE, kT=0.015, steps=steps, max_drift=max_drift)
+    assert r.h_max_limited_by == "drift"
+    (m,) = r.thermal["minima"]
+    return r.h_max, m["confirmation"], m["drift"]
+
+
+def _assert_confirmed_and_checked(steps: int, max_drift: float) -> float:
+    """advise's drift-limited step is the one its fresh ensemble ran: all of its
+    trajectories_for(max_failure) trajectories clear and the drift bound within
+    max_drift there; check of that step (the same initial conditions) agrees."""
+    from stepsafe.systems.thermal.bands import trajectories_for
+
+    h, confirmation, drift = _drift_limited(steps, max_drift)
+    m = trajectories_for(1e-3)
+    assert confirmation["h"] == h and confirmation["trajectories"] == m
+    assert confirmation["failures"] == 0 and confirmation["steps"] == steps
+    assert drift["h"] == h and drift["trajectories"] == m and drift["failed"] == 0
+    assert drift["seed"] == confirmation["seed"]
+    assert abs(drift["rate"]) + 2.0 * drift["error"] <= max_drift
+    c = stepsafe.check(scene=MORSE, h=h, kT=0.015, steps=steps, max_drift=max_drift)
+    assert c.safe
+    assert c.thermal["minima"][0]["drift"]["rate"] == drift["rate"]
+    # the test's own Verlet from its own exact draws loses none of as many bonds there
+    q, p = _boltzmann(0.015, m, np.random.default_rng(7))
+    assert not _verlet_escapes(q, p, h, steps).any()
+    return h
+
+
+def test_a_step_limited_by_the_drift_is_confirmed_on_the_fresh_ensemble_and_checked_safe():
+    _assert_confirmed_and_checked(500, 2e-9)
+
+
+@pytest.mark.slow  # two analyses over 10^4 steps with a drift bisection on 2995 trajectories
+def test_the_drift_limit_of_a_ten_thousand_step_run_is_confirmed_and_checked_safe():
+    """kT/D = 0.03, 10^4 steps, max_drift 1e-10 (near the drift's own noise): the step
+    given is confirmed and checked safe; 0.7, inside the range a bisection on 500
+    trajectories gave, is not in it."""
+    assert _assert_confirmed_and_checked(10_000, 1e-10) < 0.7
+

@@ -34,7 +34,9 @@ linearisation at the minimum.
   (whole system)"``); the record states the confirming ensemble, its seed and failures.
   ``h_max`` is the step it confirmed: no step above one the fresh ensemble ran is given;
 * the **drift** measured in that run (:mod:`.drift`); with a ``drift_tolerance`` the step
-  is lowered, by bisection on measured drifts, until ``|drift| + 2 SE`` meets it.
+  is lowered, by bisection on drifts measured on the same fresh ensemble, until none of
+  its trajectories fails and ``|drift| + 2 SE`` meets it (the rule :func:`thermal_check`'s
+  caller applies to a step): the step given is one the fresh ensemble ran and passed.
 
 ``h_max`` is the smallest of these and ``limited_by`` says which: ``"linear at
 temperature"``, ``"resonance band n:m"`` (the linear resonance point nearest to the band's
@@ -44,11 +46,14 @@ answer is exactly the 0 K one (``"0 K"``) and nothing is sampled.
 :func:`thermal_check` judges one step: UNSAFE above the linear limit at temperature, or
 when an ensemble of ``trajectories_for(max_failure)`` trajectories (the whole system, and
 for large systems the profiles too) at that very step has a failure or cannot show the
-failure probability below ``max_failure`` (:func:`.bands.judge`).
+failure probability below ``max_failure`` (:func:`.bands.judge`). The whole system's
+ensemble is drawn as :func:`thermal_limit`'s confirmation (seed ``seed + CONFIRM_SEED``):
+at the step ``advise`` gives, the check runs the trajectories that confirmed it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 from collections.abc import Callable
@@ -352,17 +357,21 @@ class _Target:
 
 def _targets(pot: Potential, kT: float, ensemble: Ensemble, trajectories: int, seed: int,
              whole_up_to: int, count_modes: int, grid_points: int,
-             whole_trajectories: int = WHOLE_TRAJECTORIES) -> list[_Target]:
+             whole_trajectories: int = WHOLE_TRAJECTORIES,
+             whole: Start | None = None) -> list[_Target]:
     """The whole system when small; else the whole system on a coarse grid (with
-    ``whole_trajectories``) and 1-D profiles along the fastest modes, tabulated."""
+    ``whole_trajectories``) and 1-D profiles along the fastest modes, tabulated. The whole
+    system starts from ``whole`` when given (else from the ensemble's configurations)."""
     found = minimum_modes(pot)
     omegas = tuple(float(w) for w in found.omegas)
     if pot.dimension <= whole_up_to:
-        return [_Target("whole system", pot, _start_from(pot, kT, ensemble, trajectories, seed),
-                        omegas[-1], omegas, grid_points)]
+        start = whole if whole is not None else _start_from(pot, kT, ensemble, trajectories,
+                                                            seed)
+        return [_Target("whole system", pot, start, omegas[-1], omegas, grid_points)]
     fastest = modes(pot, pot.minimum, count=count_modes)
-    out = [_Target("whole system (coarse grid)", pot,
-                   _start_from(pot, kT, ensemble, whole_trajectories, seed), omegas[-1],
+    start = whole if whole is not None else _start_from(pot, kT, ensemble, whole_trajectories,
+                                                        seed)
+    out = [_Target("whole system (coarse grid)", pot, start, omegas[-1],
                    tuple(float(w) for w in fastest.omegas), COARSE_POINTS, refine=False)]
     for j in range(fastest.eigenvalues.size - 1, -1, -1):
         omega = math.sqrt(max(float(fastest.eigenvalues[j]), 0.0))
@@ -512,7 +521,6 @@ def thermal_limit(method: Method, pot: Potential, kT: float, *, length: float | 
         limited_by = "resonance band" + (f" {band_name}" if band_name != "unnamed" else "")
     # the whole system at h_max on a fresh ensemble, every step's energy: a confirmation
     # that it is clear of failures (else the next clear step below), and its drift
-    whole = targets[0].start
     fresh = thermal_start(pot, kT, m_confirm, seed + CONFIRM_SEED)
     rho_whole = rho_function(method, zero.omega_zero * ratio, h_hi)
     drift, h_drift, confirmation = None, None, None
@@ -541,9 +549,17 @@ def thermal_limit(method: Method, pot: Potential, kT: float, *, length: float | 
         if drift_tolerance is not None and h_max > 0:
             tol = positive_finite(drift_tolerance, "drift_tolerance")
             if drift is None or not drift.bound(SIGMAS) <= tol:
-                h_drift, h_high, drift = _drift_limit(method, pot, whole, h_lo * 0.25, h_max,
+                # bisected on the fresh ensemble itself: the step given has its m
+                # trajectories clear of failures and its drift bound within tol, the rule
+                # a check of that step applies
+                h_drift, h_high, drift = _drift_limit(method, pot, fresh, h_lo * 0.25, h_max,
                                                       n_steps, rho_whole, tol, bisections)
                 h_max, limited_by = h_drift, "drift"
+                confirmation = dataclasses.replace(
+                    confirmation, h=h_drift, trajectories=drift.trajectories,
+                    steps=drift.steps, failures=drift.failed,
+                    upper=bands_.clopper_pearson(drift.failed, drift.trajectories,
+                                                 confidence)[1])
     return ThermalLimit(kT, h_max, limited_by, zero, (h_max, max(h_max, h_high)),
                         linear.h_linear, h_band, h_drift, linear, tuple(scans),
                         tuple(t.table for t in targets if t.table is not None), drift, steps,
@@ -672,8 +688,11 @@ def thermal_check(method: Method, pot: Potential, kT: float, h: float, *,
     if h >= linear.h_linear:
         reasons.append("above the linear limit at temperature")
     n_steps = max(2, int(min(band_steps, run_steps(h, length, steps))))
+    # the whole system from the very initial conditions advise confirms its answer on: at
+    # the step advise gives, check runs the trajectories that confirmed it
     targets = _targets(pot, kT, linear.ensemble, count, seed, whole_up_to,
-                       modes_profiled, bands_.GRID_POINTS, count)
+                       modes_profiled, bands_.GRID_POINTS, count,
+                       thermal_start(pot, kT, count, seed + CONFIRM_SEED))
     ratio = max(1.0, linear.omega.upper / zero.omega_zero)
     probes = []
     for t in targets:
