@@ -286,3 +286,36 @@ def test_the_drift_limit_of_a_ten_thousand_step_run_is_confirmed_and_checked_saf
     trajectories gave, is not in it."""
     assert _assert_confirmed_and_checked(10_000, 1e-10) < 0.7
 
+
+# --- the range advise states is the range check judges -----------------------------------
+
+
+@settings(max_examples=200, deadline=None)
+@given(length=st.floats(1e-200, 1e200), follow=st.integers(2, 10 ** 8))
+def test_the_steps_advise_states_from_are_exactly_those_whose_runs_are_followed(length,
+                                                                                 follow):
+    """``h_min`` (the lower end of advise's range for a run given by its length) is the
+    smallest step check does not refuse as a run longer than followed: every step from it
+    is followed, and a step 1e-9 below it is not."""
+    from stepsafe.api.temperature import Request
+    from stepsafe.api.thermal import followed, followed_from
+
+    req = Request(1.0, None, None, length, None, follow_steps=follow, run_key="--length")
+    low = followed_from(req)
+    for h in (low, low * (1 + 1e-12), low * 1.5, low * 1e3):
+        followed(req, h)
+    with pytest.raises(StepsafeError, match="more than the thermal trajectories follow"):
+        followed(req, low * (1 - 1e-9))
+    assert followed_from(Request(1.0, None, None, None, 100.0)) is None
+
+
+@pytest.mark.slow  # an analysis at 300 K and two checks
+def test_advise_states_no_step_whose_run_is_longer_than_followed():
+    r = stepsafe.advise(scene=str(ROOT / "examples" / "morse-300K.yaml"))
+    (low, high), = r.safe_h
+    assert low == r.thermal["h_min"] > 0 and high == r.h_max
+    scene = str(ROOT / "examples" / "morse-300K.yaml")
+    assert stepsafe.check(scene=scene, h=low).safe
+    with pytest.raises(StepsafeError, match="more than the thermal trajectories follow"):
+        stepsafe.check(scene=scene, h=low * (1 - 1e-6))
+

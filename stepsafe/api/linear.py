@@ -405,7 +405,9 @@ def _advise_at_temperature(p: Problem, warm: Any, data: dict[str, Any], criterio
         data["h_max"] = found["h_max"]
         data["h_max_limited_by"] = found["limited_by"]
     if data["h_max"] is not None and not found["harmonic"]:
-        data["safe_h"] = [[0.0, data["h_max"]]] if data["h_max"] > 0 else []
+        # (below h_min a run of the stated length has more steps than were followed)
+        low = found.get("h_min") or 0.0
+        data["safe_h"] = [[low, data["h_max"]]] if data["h_max"] > low else []
 
 
 def _other_criterion(integrator: Integrator, p: Problem, result: Any,

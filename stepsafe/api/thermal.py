@@ -36,6 +36,7 @@ answer on one machine.
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from typing import Any
@@ -74,6 +75,23 @@ def followed(req: Request, h: float) -> None:
     if req.run_key.startswith("--"):
         raise StepsafeError(f"{req.run_key}: {message}")
     raise StepsafeError(message, req.run_key)
+
+
+def followed_from(req: Request) -> float | None:
+    """The smallest step whose run the thermal trajectories follow whole: ``length /
+    follow`` for a run given by its length (a smaller step makes more than ``follow``
+    steps, refused by :func:`followed`); None for a run given by its steps (every step's
+    run has that many)."""
+    if req.length is None:
+        return None
+    # the smallest float whose run_steps is within follow (run_steps counts a quotient
+    # within 4 rounding errors of an integer as it): up from just below length / follow
+    h = req.length / req.follow * (1.0 - 8.0 * sys.float_info.epsilon)
+    for _ in range(64):
+        if run_steps(h, req.length, None) <= req.follow:
+            return h
+        h = math.nextafter(h, math.inf)
+    return req.length / req.follow * (1.0 + 16.0 * sys.float_info.epsilon)
 
 
 def _minima(p: Any, req: Request) -> list[Minimum] | None:
@@ -186,7 +204,9 @@ def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion:
     -------
     dict
         ``h_max`` (the smallest of ``h_zero`` and each minimum's limit at temperature
-        times the margin), ``limited_by`` (``"0 K"`` when ``h_zero`` is the smaller),
+        times the margin), ``h_min`` (:func:`followed_from`: the safe steps are
+        ``h_min <= h < h_max``; None: from 0), ``limited_by`` (``"0 K"`` when ``h_zero``
+        is the smaller),
         ``criterion`` (the one given: the limits rest on the method's z* under it),
         ``h_max_0K``, ``h_range`` (where the limit lies at the stated confidence), and
         each minimum's analysis (:func:`limit_record`).
@@ -218,6 +238,7 @@ def advise_at_temperature(p: Any, req: Request, h_zero: float | None, criterion:
     else:
         out.update(h_max=h_t, limited_by=best.limited_by, at=best_m.label)
     out["h_range"] = [p.margin * best.h_range[0], p.margin * best.h_range[1]]
+    out["h_min"] = followed_from(req)
     out["margin"] = p.margin
     out["minima"] = [limit_record(m, r, p.margin) for m, r in each]
     out["harmonic"] = False

@@ -8,7 +8,7 @@ from typing import Any
 import click
 
 from stepsafe.cli.group import DURATION, FLOAT, INT
-from stepsafe.cli.report import fmt_below
+from stepsafe.cli.report import fmt_above, fmt_below
 from stepsafe.text import printable
 
 #: Significant digits shown: the measured figures are statistical (their spread is stated).
@@ -90,6 +90,12 @@ def _condition(t: dict[str, Any], unit: str) -> str:
     return f"{kT}, a run of {length}"
 
 
+def _from(t: dict[str, Any], u: str) -> str:
+    """``0 < h``, or ``h_min <= h`` when smaller steps make runs longer than followed."""
+    low = t.get("h_min")
+    return "0 < h" if low is None else f"{fmt_above(low, DIGITS)}{u} <= h"
+
+
 def print_thermal_advice(data: dict[str, Any]) -> None:
     """The answer at temperature under the 0 K report."""
     t = data["thermal"]
@@ -108,13 +114,16 @@ def print_thermal_advice(data: dict[str, Any]) -> None:
         click.echo(click.style("No step confirmed safe", fg="red") + " at this temperature: "
                    + _no_step(t, u) + f" (at 0 K: {zero})")
     elif t["limited_by"] == "0 K":
-        click.echo(safe + f": 0 < h < {_below(t['h_max'])}{u}, "
+        click.echo(safe + f": {_from(t, u)} < {_below(t['h_max'])}{u}, "
                    "the 0 K limit (no band or thermal frequency below it)")
     else:
         where = ("" if t["minima"] and "engine_runs" in t["minima"][0]
                  else f" at the minimum {printable(t['at'])}")
-        click.echo(safe + f": 0 < h < {_below(t['h_max'])}{u}, "
+        click.echo(safe + f": {_from(t, u)} < {_below(t['h_max'])}{u}, "
                    f"limited by the {t['limited_by']}{where} (at 0 K: {zero})")
+    if t.get("h_min") is not None and t["h_max"] > 0:
+        click.echo(f"  (below h = {fmt_above(t['h_min'], DIGITS)}{u} the run has more than the "
+                   f"{t['follow_steps']} steps followed: give --follow-steps to follow it)")
     for m in t["minima"]:
         _print_minimum(m, u, data.get("margin", 1.0))
     for note in t.get("notes", ()):
