@@ -319,3 +319,36 @@ def test_advise_states_no_step_whose_run_is_longer_than_followed():
     with pytest.raises(StepsafeError, match="more than the thermal trajectories follow"):
         stepsafe.check(scene=scene, h=low * (1 - 1e-6))
 
+
+# --- a curved valley is drawn -------------------------------------------------------------
+
+
+def test_a_curved_valley_is_drawn_from_chains_that_start_inside_it():
+    """U = (1 - e^-(x - 3y^2))^2/2 + 0.005 y^2 at kT = 0.003: a Morse bond along the curved
+    s = x - 3y^2 beside a soft y, confined. The harmonic approximation at the minimum
+    (Hessian diag(1, 0.01)) draws y ~ 0.55 and so s ~ -0.9, deep in the wall; the chains
+    start inside the valley instead, and their draws match the exact ones (with s as a
+    coordinate the density factorises: s from the Morse Boltzmann distribution, y ~
+    N(0, kT/0.01), unit Jacobian)."""
+    from stepsafe.systems.thermal.potential import from_callables
+    from stepsafe.systems.thermal.sampling import draw
+
+    def energy(q):
+        x, y = q[:, 0], q[:, 1]
+        return 0.5 * np.expm1(-(x - 3 * y * y)) ** 2 + 0.005 * y * y
+
+    def gradient(q):
+        x, y = q[:, 0], q[:, 1]
+        s = x - 3 * y * y
+        d = -np.exp(-s) * np.expm1(-s)
+        return np.stack([d, -6 * y * d + 0.01 * y], 1)
+
+    kT = 0.003
+    pot = from_callables(energy, gradient, [1.0, 1.0], minimum=[0.0, 0.0])
+    found = draw(pot, kT, 1024, 0)
+    y = found.q[:, 1]
+    s = found.q[:, 0] - 3 * y * y
+    exact_s, _ = _boltzmann(kT, 200_000, np.random.default_rng(3), -1.0, 8.0)
+    assert np.std(s) == pytest.approx(np.std(exact_s), rel=0.1)
+    assert np.mean(s) == pytest.approx(np.mean(exact_s), abs=0.01)
+    assert np.mean(y * y) == pytest.approx(kT / 0.01, rel=0.25)  # 64 chains

@@ -17,7 +17,9 @@ Three ways, the most exact that applies:
   ``omega_max`` the largest 0 K frequency at the minimum (default ``z_sample = 0.1``), and the
   friction ``gamma = 2 omega_min`` damps the slowest 0 K mode critically (every other mode is
   underdamped and relaxes at the rate gamma). Chains start from the harmonic
-  approximation's exact draws (a configuration near equilibrium) with thermal momenta, are
+  approximation's exact draws (a configuration near equilibrium; at the minimum where U
+  exceeds that approximation by more than ``CUT`` kT, as in a curved valley whose
+  harmonic draws run into its wall) with thermal momenta, are
   run ``burn_in`` steps (``burn_damping / (gamma h)``: that many relaxation times), and
   ``U`` along the second half of the burn-in gives its integrated autocorrelation time
   ``tau`` (in steps; Sokal's automatic window, ``W >= 5 tau``; the burn-in is doubled, up
@@ -391,10 +393,16 @@ def langevin(pot: Potential, kT: float, count: int, rng: np.random.Generator, se
     frames = -(-count // chains)
     masses = pot.masses
     r = 1.0 / np.sqrt(masses)
-    # start: exact draws of the harmonic approximation where every mode is known
+    # start: exact draws of the harmonic approximation where every mode is known; a draw
+    # where U exceeds its quadratic approximation by more than CUT kT (a curved valley: the
+    # harmonic draw runs into the wall) starts at the minimum instead
     if found.vectors.shape[1] == n:
         xi = rng.standard_normal((chains, n))
         q = q0[None, :] + (xi * np.sqrt(kT / lam)[None, :]) @ found.vectors.T * r[None, :]
+        with np.errstate(all="ignore"):
+            excess = (pot.energy(q) - float(pot.energy(q0[None, :])[0])) / kT \
+                - 0.5 * np.sum(xi * xi, axis=1)
+        q[~(excess <= CUT)] = q0
     else:
         q = np.broadcast_to(q0, (chains, n)).copy()
     p = momenta(pot, kT, chains, rng)
