@@ -352,3 +352,34 @@ def test_a_curved_valley_is_drawn_from_chains_that_start_inside_it():
     assert np.std(s) == pytest.approx(np.std(exact_s), rel=0.1)
     assert np.mean(s) == pytest.approx(np.mean(exact_s), abs=0.01)
     assert np.mean(y * y) == pytest.approx(kT / 0.01, rel=0.25)  # 64 chains
+
+
+# --- refusals say what can be done and why ------------------------------------------------
+
+
+@settings(max_examples=30, deadline=None)
+@given(steps=st.floats(1.0000001e8, 1e300))
+def test_a_run_beyond_what_can_be_followed_is_told_to_be_shorter_only(steps):
+    """No advice to follow more steps than follow_steps accepts (1e8)."""
+    from stepsafe.api.temperature import Request
+    from stepsafe.api.thermal import followed
+
+    req = Request(1.0, None, None, None, steps, run_key="--steps")
+    with pytest.raises(StepsafeError) as info:
+        followed(req, 0.5)
+    message = info.value.message
+    assert "give --follow-steps" not in message and "give a shorter run (--steps)" in message
+    assert len(message) < 400
+
+
+@pytest.mark.parametrize("kT", [0.5, 1.3575, 3.0])
+def test_a_potential_that_falls_below_its_minimum_nearby_is_refused_as_not_confined(
+        tmp_path, kT):
+    """U = q^2/2 - 0.3 (1 - e^-q)^2 falls without bound as q -> -inf: within a few thermal
+    amplitudes of its minimum at these kT U drops below U(0), and the refusal says the
+    distribution is not confined (its steep differences are not rounding)."""
+    scene = tmp_path / "falls.yaml"
+    scene.write_text("method: verlet\nsystem:\n  hamiltonian: \"p**2/2 + q**2/2 - "
+                     "0.3*(1 - exp(-q))**2\"\n  box: {q: [-3, 10], p: [-1, 1]}\n")
+    with pytest.raises(StepsafeError, match="not confined"):
+        stepsafe.check(scene=str(scene), h=1.3, kT=kT, steps=2)

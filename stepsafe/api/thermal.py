@@ -41,7 +41,7 @@ from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from typing import Any
 
-from stepsafe.api.temperature import Request, where_in_scene
+from stepsafe.api.temperature import MAX_FOLLOW_STEPS, Request, where_in_scene
 from stepsafe.core.regions import find_region, under_criterion
 from stepsafe.exceptions import StepsafeError
 from stepsafe.systems.md import thermal as md_thermal
@@ -67,11 +67,15 @@ def followed(req: Request, h: float) -> None:
     if n <= req.follow:
         return
     option = "--steps" if req.steps is not None else "--length"
-    message = (f"the run's {n} steps at h = {h:.6g} are more than the thermal trajectories "
+    remedy = (f"give --follow-steps {n} (follow_steps:) to follow it all (the cost grows in "
+              f"proportion to the steps), or a shorter run ({option})"
+              if n <= MAX_FOLLOW_STEPS else
+              f"that is more than the {MAX_FOLLOW_STEPS:.0e} steps they can follow: give a "
+              f"shorter run ({option})")
+    steps = f"{n}" if n <= MAX_FOLLOW_STEPS else f"{n:.3g}"
+    message = (f"the run's {steps} steps at h = {h:.6g} are more than the thermal trajectories "
                f"follow ({req.follow}): failures that develop after step {req.follow} would "
-               f"not be seen, so no step is called safe for this run; give --follow-steps "
-               f"{n} (follow_steps:) to follow it all (the cost grows in proportion to the "
-               f"steps), or a shorter run ({option})")
+               f"not be seen, so no step is called safe for this run; {remedy}")
     if req.run_key.startswith("--"):
         raise StepsafeError(f"{req.run_key}: {message}")
     raise StepsafeError(message, req.run_key)

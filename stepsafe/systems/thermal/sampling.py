@@ -303,7 +303,8 @@ def _walk(pot: Potential, kT: float, cut: float
         falls = np.flatnonzero(np.diff(u[:end + 1]) < 0)
         if falls.size:  # a barrier below the cut: over it, does U rise again?
             low = np.minimum.accumulate(np.minimum(u, 0.0))
-            wall = np.flatnonzero(bad | (u - low >= cut * kT))
+            with np.errstate(invalid="ignore"):  # (-inf - -inf where U falls without bound)
+                wall = np.flatnonzero(bad | (u - low >= cut * kT))
             if wall.size and not bad[wall[0]] and low[wall[0]] < u[falls[0]]:
                 ends.append(float(s[wall[0]]))
                 notes.append(f"a barrier {u[falls[0]] / kT:.3g} kT above the minimum, at "
@@ -339,7 +340,9 @@ def resolved(pot: Potential, s0: float, u0: float, amplitude: float, kT: float) 
     (``sqrt(mean(d4^2) / 70)``: the variance of a fourth difference of independent errors
     is 70 times theirs; a smooth U's fourth difference is ``(a / 100)^4 U^(4)``, far
     below), must stay below ``NOISE kT``. Beyond that the energy's rounding, not the
-    dynamics, decides which trajectories seem to fail."""
+    dynamics, decides which trajectories seem to fail. Where U falls more than kT below
+    its value at the minimum within that window, its differences are the fall, not
+    rounding: the walk of :func:`well` judges it (a barrier, or not confined)."""
     x = s0 + amplitude * np.linspace(-4.0, 4.0, RESOLVE)
     with np.errstate(all="ignore"):
         u = pot.energy(x[:, None]) - u0
@@ -347,6 +350,8 @@ def resolved(pot: Potential, s0: float, u0: float, amplitude: float, kT: float) 
         return  # (the walk says where U is not finite)
     with np.errstate(all="ignore"):
         w = u / kT  # (in kT: nothing overflows at any scale)
+    if np.all(np.isfinite(w)) and float(np.min(w)) < -1.0:
+        return  # (U falls below the minimum's value nearby: the walk says it is not confined)
     spread = float(np.max(np.abs(w))) if np.all(np.isfinite(w)) else math.inf
     noise = math.sqrt(float(np.mean(np.diff(w, 4) ** 2)) / 70.0) if spread < math.inf else 0.0
     if not spread > 1e-3 or noise > NOISE:
