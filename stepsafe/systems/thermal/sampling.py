@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -281,6 +282,11 @@ def _walk(pot: Potential, kT: float, cut: float
     curvature = float(found.eigenvalues[-1]) * float(pot.masses[0])
     if not curvature > 0:
         raise StepsafeError("the potential has no positive curvature at its minimum")
+    if curvature < sys.float_info.min:
+        raise StepsafeError(f"the curvature at the minimum, {curvature:.3g}, is below "
+                            f"float64's normal numbers (it keeps fewer digits than the "
+                            f"analysis needs): give the potential in units where it is "
+                            f"larger")
     amplitude = math.sqrt(kT / curvature)
     resolved(pot, s0, u0, amplitude, kT)
     step = amplitude / 8.0
