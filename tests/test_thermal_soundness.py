@@ -100,7 +100,7 @@ def test_a_band_lies_inside_the_steps_a_margin_stands_for_so_one_ensemble_cannot
         stepsafe.check(scene=MORSE, h=h, kT=3e-4, steps=10_000, margin=0.95)
 
 
-@settings(max_examples=8, deadline=None)
+@settings(max_examples=5, deadline=None)
 @given(margin=st.floats(1e-6, 1.0, exclude_max=True), h=st.floats(1e-3, 3.0),
        kT=st.floats(1e-4, 0.02))
 def test_check_never_judges_a_margin_below_one_at_temperature(margin, h, kT):
