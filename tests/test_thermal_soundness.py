@@ -383,3 +383,34 @@ def test_a_potential_that_falls_below_its_minimum_nearby_is_refused_as_not_confi
                      "0.3*(1 - exp(-q))**2\"\n  box: {q: [-3, 10], p: [-1, 1]}\n")
     with pytest.raises(StepsafeError, match="not confined"):
         stepsafe.check(scene=str(scene), h=1.3, kT=kT, steps=2)
+
+
+# --- a draw over several basins -----------------------------------------------------------
+
+
+def test_the_upper_minimum_of_a_tilted_double_well_is_judged_by_what_its_runs_do(tmp_path):
+    """U = (q^2 - 1)^2/4 + 0.05 q at kT = 0.02 (barriers 10 and 15 kT, below the 40 kT
+    drawn): the draws for either minimum cover both basins, most of them in the lower one.
+    The test's own Verlet from exact draws over [-2, 2] loses no trajectory (|q| > 3 or
+    not finite) in 1000 steps at h = 0.3; check at the upper minimum finds none either
+    (the growth test measures energies from the lowest U of the region drawn, not from the
+    upper minimum's U, which most starts lie below)."""
+    rng = np.random.default_rng(5)
+    s = np.linspace(-2.0, 2.0, 400001)
+    w = np.exp(-((s * s - 1.0) ** 2 / 4 + 0.05 * s) / 0.02)
+    cdf = np.concatenate([[0.0], np.cumsum(0.5 * (w[1:] + w[:-1]))])
+    q = np.interp(rng.random(2995), cdf / cdf[-1], s)
+    p = rng.standard_normal(2995) * math.sqrt(0.02)
+    with np.errstate(all="ignore"):
+        for _ in range(1000):
+            p -= 0.15 * ((q * q - 1.0) * q + 0.05)
+            q += 0.3 * p
+            p -= 0.15 * ((q * q - 1.0) * q + 0.05)
+    assert np.all(np.isfinite(q) & (np.abs(q) <= 3.0))
+    scene = tmp_path / "tilt.yaml"
+    scene.write_text("method: verlet\nkT: 0.02\nsteps: 1000\nsystem:\n  hamiltonian: "
+                     "\"p**2/2 + (q**2 - 1)**2/4 + 0.05*q\"\n  box: {q: [-2, 2], p: [-1, 1]}\n")
+    r = stepsafe.check(scene=str(scene), h=0.3)
+    assert r.safe
+    assert len(r.thermal["minima"]) == 2
+    assert all(m["probes"][0]["failures"] == 0 for m in r.thermal["minima"])

@@ -86,7 +86,9 @@ class Start:
     reference : ndarray
         ``q_ref`` (n,), the minimum.
     energy_reference : float
-        ``U_ref = U(q_ref)``.
+        ``U_ref``: the lowest U of the region drawn, ``U(q_ref)`` for one well (with several
+        basins drawn, the lowest U over the starts and, for one coordinate, over a fine grid
+        of their range).
     extent : ndarray
         The largest ``|q - q_ref|`` of each coordinate over the start ``(n,)``.
     seed : int
@@ -149,6 +151,15 @@ def thermal_start(pot: Potential, kT: float, count: int, seed: int = 0,
     extent = np.max(np.abs(q - q0[None, :]), axis=0)
     extent = np.where(extent > 0, extent, np.sqrt(kT / pot.masses))
     U0 = float(pot.energy(q0[None, :])[0])
+    # the growth test's U_ref: the lowest U of the region drawn (a draw over several basins
+    # holds starts below the analysed minimum's U): over the starts and, for one
+    # coordinate, a fine grid over their range
+    with np.errstate(all="ignore"):
+        low = [U0, float(np.nanmin(pot.energy(q)))] if q.shape[0] else [U0]
+        if pot.dimension == 1 and q.shape[0]:
+            grid = np.linspace(float(q.min()), float(q.max()), 20001)[:, None]
+            low.append(float(np.nanmin(pot.energy(grid))))
+    U0 = min(x for x in low if math.isfinite(x)) if any(map(math.isfinite, low)) else U0
     if well_exits is None:
         well_exits = () if pot.quadratic else axis_exits(pot, kT)
     return Start(q, p, float(kT), q0, U0, extent, seed, how, tuple(well_exits))
