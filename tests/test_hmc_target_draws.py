@@ -615,3 +615,43 @@ def test_an_estimate_off_by_more_than_its_error_is_never_a_verified_answer():
         assert "R-hat" in result.stderr, result.stderr
     else:
         assert result.exit_code == (0 if data["verified"] else 1), result.stderr
+
+
+# ------------------------------------------------------------ the Hessian at the mode
+
+@settings(max_examples=30, deadline=None)
+@given(log_k=st.floats(-8, 8), log_a=st.floats(-1, 1), c=st.floats(0.1, 1.0),
+       m=st.floats(-5, 5), at_mode=st.booleans())
+def test_the_laplace_hessian_of_a_callable_banana_is_exact_at_every_scale(
+        log_k, log_a, c, m, at_mode):
+    """The banana U = x^2/2 + (y - c x^2)^2/2 in x = (X - m k) / k, y = Y / (a k), given as
+    numpy callables and started at its mode (m k, 0) or near it: the Hessian of the Laplace
+    approximation is the exact one at the mode found (diag(1 / k^2, 1 / (a k)^2) at the
+    mode itself) to 1e-6 at every scale k from 1e-8 to 1e8 (its curvature changes within a
+    few standard deviations of the mode, so a difference width that does not follow k
+    averages the wrong curvature)."""
+    from stepsafe.core.hmc_target.draws import find_mode
+    from stepsafe.core.hmc_target.potential import CallablePotential, target
+
+    k, a = 10.0 ** log_k, 10.0 ** log_a
+    centre = m * k
+
+    def energy(q):
+        x, y = (q[..., 0] - centre) / k, q[..., 1] / (a * k)
+        return 0.5 * x * x + 0.5 * (y - c * x * x) ** 2
+
+    def gradient(q):
+        x, y = (q[..., 0] - centre) / k, q[..., 1] / (a * k)
+        r = y - c * x * x
+        return np.stack([(x - 2 * c * x * r) / k, r / (a * k)], axis=-1)
+
+    start = np.array([centre, 0.0]) if at_mode else np.array([centre + 0.5 * k, -0.5 * a * k])
+    laplace = find_mode(target(CallablePotential(energy, gradient, 2)), start)
+    assert laplace is not None and laplace.converged
+    # the exact Hessian at the mode found (the search stops within its tolerance of (m k, 0))
+    x, y = (laplace.mode[0] - centre) / k, laplace.mode[1] / (a * k)
+    assert abs(x) < 1e-3 and abs(y) < 1e-3, laplace.mode
+    exact = np.array([[1 - 2 * c * (y - c * x * x) + 4 * c * c * x * x, -2 * c * x / a],
+                      [-2 * c * x / a, 1 / (a * a)]]) / k**2
+    assert np.abs(laplace.hessian - exact).max() <= 1e-6 * np.abs(exact).max(), (
+        laplace.hessian, exact)

@@ -2,8 +2,8 @@
 adaptive HMC run of its own, or draws the user supplies.
 
 Mode. ``U`` is minimised by BFGS (scipy) from the start given (the origin by default); the
-Hessian there (the potential's own, else central differences of the gradient with steps
-scaled by BFGS's inverse-Hessian estimate) gives the Laplace approximation
+Hessian there (the potential's own, else central differences of the gradient with widths
+that follow the target's own scale, :func:`own_scale_hessian`) gives the Laplace approximation
 ``N(mode, (nabla^2 U)^-1)`` when it is positive definite. Its mass-weighted eigenvalues
 ``lambda_k`` (:mod:`stepsafe.core.hmc_target.potential`) are the squared frequencies
 ``beta_k^2`` of the Gaussian analysis at the mode.
@@ -53,7 +53,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from stepsafe.core.hmc_target.potential import Target, hessian_matrix
+from stepsafe.core.hmc_target.potential import Potential, Target, hessian_matrix
 from stepsafe.core.hmc_target.statistics import effective_size, rhat
 from stepsafe.exceptions import StepsafeError
 
@@ -151,13 +151,57 @@ def find_mode(target: Target, start: np.ndarray | None = None) -> Laplace | None
         inv = np.asarray(getattr(found, "hess_inv", np.eye(d)), dtype=float)
         spread = np.sqrt(np.clip(np.diag(inv), 1e-300, None)) if inv.shape == (d, d) \
             else np.ones(d)
-        H = hessian_matrix(pot, mode[None, :], spread)[0]
-        if not np.isfinite(H).all():
+        H = own_scale_hessian(pot, mode, spread)
+        if H is None:
             return None
         W = target.mass.weighted(H)
         lam = np.linalg.eigvalsh(0.5 * (W + W.T))
         g = target.mass.unweigh_gradient(jac(mode)[None, :])[0]
     return Laplace(mode, H, lam, float(np.linalg.norm(g)), bool(found.success))
+
+
+#: The difference width of the Hessian at the mode follows the target's own scale: at most
+#: this many rounds ...
+SCALE_ROUNDS = 60
+#: ... until no coordinate's scale ``1 / sqrt(H_jj)`` changes by more than this factor.
+SCALE_AGREE = 1.5
+
+
+def own_scale_hessian(potential: Potential, q: np.ndarray, spread: np.ndarray
+                      ) -> np.ndarray | None:
+    """``nabla^2 U(q)`` by central differences whose widths follow U's own length scale.
+
+    The width along coordinate j is ``FD_STEP * s_j``; the scale ``s_j`` starts at
+    ``spread_j`` and is replaced by ``1 / sqrt(H_jj)`` of the Hessian taken with it,
+    where that curvature is positive and finite, until no ``s_j`` changes by more than
+    :data:`SCALE_AGREE` (at most :data:`SCALE_ROUNDS` rounds; each round is two batched
+    gradient calls). A width far beyond the scale (a quasi-Newton search that stopped at
+    once leaves ``spread`` = 1 whatever the target's size) averages the curvature over
+    many standard deviations; one far below it is only rounding. Coordinates without
+    positive curvature keep the width they had. With the potential's own ``hessian`` the
+    widths play no part.
+
+    Returns
+    -------
+    (d, d) array or None
+        None when an entry is not finite.
+    """
+    s = np.asarray(spread, dtype=float).copy()
+    with np.errstate(all="ignore"):
+        for _ in range(SCALE_ROUNDS):
+            H = hessian_matrix(potential, q[None, :], s)[0]
+            if not np.isfinite(H).all():
+                return None
+            if getattr(potential, "hessian", None) is not None:
+                return H
+            c = np.diag(H)
+            own = np.where((c > 0) & np.isfinite(c), 1.0 / np.sqrt(np.where(c > 0, c, 1.0)),
+                           s)
+            own = np.clip(own, 1e-300, 1e300)
+            if (np.maximum(own / s, s / own) <= SCALE_AGREE).all():
+                return H
+            s = own
+    return H
 
 
 #: A direction is flat when U rises by less than 1 out to this many standard deviations of
