@@ -655,3 +655,82 @@ def test_the_laplace_hessian_of_a_callable_banana_is_exact_at_every_scale(
                       [-2 * c * x / a, 1 / (a * a)]]) / k**2
     assert np.abs(laplace.hessian - exact).max() <= 1e-6 * np.abs(exact).max(), (
         laplace.hessian, exact)
+
+
+# ------------------------------------------------------------ directions of any scale
+
+def _axes_target(energy, gradient, d):
+    from stepsafe.core.hmc_target.draws import find_mode
+    from stepsafe.core.hmc_target.potential import CallablePotential, target
+
+    found = target(CallablePotential(energy, gradient, d))
+    return found, find_mode(found, np.zeros(d))
+
+
+@settings(max_examples=40, deadline=None)
+@given(log_s=st.lists(st.floats(-12, 12), min_size=1, max_size=4))
+def test_a_gaussian_with_any_standard_deviation_per_direction_is_proper(log_s):
+    """U = sum of q_i^2 / (2 s_i^2) with every s_i from 1e-12 to 1e12 (ratios up to 1e24):
+    exp(-U) integrates, so neither the flat-direction nor the slow-growth check finds an
+    improper direction (each direction is followed in units of its own standard deviation,
+    whatever the others')."""
+    from stepsafe.core.hmc_target.draws import flat_direction, slow_direction
+
+    s = 10.0 ** np.array(log_s)
+    found, laplace = _axes_target(lambda q: 0.5 * ((q / s) ** 2).sum(-1),
+                                  lambda q: q / s**2, s.size)
+    assert laplace is not None and laplace.positive_definite
+    np.testing.assert_allclose(np.sort(laplace.eigenvalues), np.sort(1 / s**2), rtol=1e-9)
+    assert flat_direction(found, laplace) is None
+    assert slow_direction(found, laplace) is None
+
+
+@settings(max_examples=40, deadline=None)
+@given(log_a=st.lists(st.floats(-12, 12), min_size=0, max_size=3), log_b=st.floats(-12, 12),
+       kind=st.sampled_from(["log", "tanh", "isotropic-log"]))
+def test_an_improper_direction_is_found_beside_directions_of_any_scale(log_a, log_b, kind):
+    """Quadratic directions of standard deviations a_i beside one improper direction of
+    scale b, each from 1e-12 to 1e12: (1/2) log(1 + (y/b)^2) (density ~ 1/|y|),
+    4.5 tanh((y/b)^2) (bounded) or log(1 + |q/s|^2)/10 over every coordinate (density
+    ~ r^-0.2): found flat or slowly growing at every combination of scales."""
+    from stepsafe.core.hmc_target.draws import flat_direction, slow_direction
+
+    a = 10.0 ** np.array(log_a, dtype=float)
+    b = 10.0 ** log_b
+    k = a.size
+    if kind == "isotropic-log":
+        s = np.append(a, b)
+
+        def energy(q):
+            return 0.1 * np.log1p(((q / s) ** 2).sum(-1))
+
+        def gradient(q):
+            return 0.2 * q / s**2 / (1 + ((q / s) ** 2).sum(-1))[..., None]
+    else:
+        def energy(q):
+            x, y = q[..., :k] / a, q[..., k] / b
+            tail = 0.5 * np.log1p(y * y) if kind == "log" else 4.5 * np.tanh(y * y)
+            return 0.5 * (x * x).sum(-1) + tail
+
+        def gradient(q):
+            x, y = q[..., :k] / a, q[..., k] / b
+            gy = y / (1 + y * y) if kind == "log" else np.nan_to_num(9 * y / np.cosh(y * y) ** 2)
+            return np.concatenate([x / a, (gy / b)[..., None]], axis=-1)
+
+    found, laplace = _axes_target(energy, gradient, k + 1)
+    assert laplace is not None
+    slow = slow_direction(found, laplace)
+    assert flat_direction(found, laplace) is not None or slow is not None, (laplace, slow)
+
+
+def test_a_gaussian_of_standard_deviations_1_and_1e12_is_analysed_not_refused():
+    """x ~ N(0, 1), y ~ N(0, 1e24) with the mass that whitens it: a proper target, analysed
+    (exit 0, its draws converged); it is not refused as improper."""
+    data = _hmc_json("system:\n"
+                     '  potential: "x**2/2 + y**2/(2*s**2)"\n'
+                     "  q: [x, y]\n"
+                     "  parameters: {s: 1e12}\n"
+                     "  start: [0, 0]\n"
+                     "  mass: [1, 1.0e-24]\n", "--steps", "10", "--methods", "verlet")
+    assert data["laplace"]["beta_min"] == pytest.approx(1.0, rel=1e-9)
+    assert data["methods"][0]["h_target"] is not None

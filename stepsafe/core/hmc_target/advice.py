@@ -353,9 +353,12 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
         notes.append("no mode found (or d too large for a dense Hessian): no Laplace figures")
     flat = None if laplace is None else flat_direction(target, laplace)
     if flat is not None:
+        along = ("where its curvature is not positive" if not flat.curvature > 0 else
+                 f"where its curvature is {flat.curvature:.3g} ({flat.scales:.3g} of its own "
+                 "standard deviations)")
         raise StepsafeError(
             "the target is improper: U rises by less than 1 over a distance of "
-            f"{flat:.3g} from its mode along a direction where its curvature is not positive, so "
+            f"{flat.distance:.3g} from its mode along a direction {along}, so "
             "exp(-U) does not integrate (give a proper prior along it)",
             f"{where}::$.system.potential" if where else "logdensity")
     slow = None if laplace is None else slow_direction(target, laplace)

@@ -37,8 +37,9 @@ ESS at least :data:`ESS_LIMIT`. The Monte Carlo error of anything averaged over 
 comes from the chains' autocorrelation (the same module). The seed is part of the result.
 
 Improper targets (:func:`flat_direction`): along a direction where the Hessian at the mode
-has no positive curvature, U is followed out to far beyond the other directions' scale; if
-it never rises by 1, exp(-U) does not integrate and the target is refused. Nor where U
+has (next to) no curvature, U is followed out by decades of the direction's own standard
+deviation to the float64 range; if it never rises by 1, exp(-U) does not integrate and the
+target is refused. Nor where U
 grows only like ``alpha log r`` far out (:func:`slow_direction`): along a ray with
 ``alpha <= 1`` and a tube around it, or ``alpha <= d`` and a cone, the integral diverges.
 """
@@ -204,28 +205,65 @@ def own_scale_hessian(potential: Potential, q: np.ndarray, spread: np.ndarray
     return H
 
 
-#: A direction is flat when U rises by less than 1 out to this many standard deviations of
-#: the other directions (by decades from 1).
+#: A direction is flat when U rises by less than 1 along it (by decades) out to at least
+#: this many of its own standard deviations ...
 FLAT_REACH = 1e12
 #: ... tested along the Hessian's eigenvectors at the mode whose eigenvalue is at most this
-#: fraction of the largest (or not positive).
+#: fraction of the largest (or not positive) ...
 FLAT_CURVATURE = 1e-8
+#: ... and followed out to this distance in q (the float64 range), or to the first point
+#: where U is not finite.
+FLOAT_REACH = 1e300
 
 
-def flat_direction(target: Target, laplace: Laplace) -> float | None:
+@dataclass(frozen=True)
+class Flat:
+    """A direction from the mode along which U rises by less than 1 out to ``distance``
+    (``scales`` of its own standard deviation ``1 / sqrt(curvature)``, or of the largest
+    standard deviation of the curved directions where ``curvature`` is not positive)."""
+
+    distance: float
+    curvature: float
+    scales: float
+
+
+def _own_scales(H: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """For unit directions ``V[:, k]`` in q: the curvature ``v^T H v`` along each, its own
+    standard deviation ``1 / sqrt(curvature)`` where that is positive, and the largest such
+    standard deviation (1 without any), which stands for the others."""
+    with np.errstate(all="ignore"):
+        c = np.einsum("ik,ij,jk->k", V, H, V)
+        own = np.where(c > 0, 1.0 / np.sqrt(np.where(c > 0, c, 1.0)), np.nan)
+    fine = np.isfinite(own) & (own > 0)
+    fallback = float(own[fine].max()) if fine.any() else 1.0
+    return c, np.where(fine, own, fallback), fallback
+
+
+def _decades(first: float, last: float) -> np.ndarray:
+    """``first * 10^k`` for k = 0, 1, ... while at most ``last`` (at least ``first``)."""
+    n = max(int(math.floor(math.log10(last / first))), 0) if first < last else 0
+    return first * 10.0 ** np.arange(n + 1)
+
+
+def flat_direction(target: Target, laplace: Laplace) -> Flat | None:
     """Whether exp(-U) is improper along a direction of vanishing curvature at the mode.
 
-    Along each eigenvector v (mass-weighted) of the Hessian at the mode with eigenvalue at
-    most :data:`FLAT_CURVATURE` times the largest, U is evaluated at ``mode +- t v`` for
-    ``t = s 10^k`` up to ``s FLAT_REACH`` (s the largest standard deviation of the curved
-    directions, 1 without any). A proper target's U grows without bound (or leaves the
-    support) along every direction; if it rises by less than 1 at every t on both sides,
-    the density does not decay along v and its integral diverges.
+    Along each eigenvector v (mass-weighted, then taken as a unit direction u in q) of the
+    Hessian at the mode with eigenvalue at most :data:`FLAT_CURVATURE` times the largest,
+    U is evaluated at ``mode +- t u`` for ``t = s 10^k``, from the direction's own standard
+    deviation ``s = 1 / sqrt(u^T H u)`` (where that curvature is positive; else the largest
+    standard deviation of the directions where it is) out to :data:`FLOAT_REACH`, each side
+    up to its first point where U is not finite (+inf: outside the support, so U rises).
+    A proper target's U grows without bound (or leaves the support) along every direction;
+    a side where U rises by less than 1 at every finite point, out to at least
+    :data:`FLAT_REACH` standard deviations, has a density that does not decay, and its
+    integral diverges.
 
     Returns
     -------
-    float or None
-        The distance ``s FLAT_REACH`` tested along a flat direction, or None (none flat).
+    Flat or None
+        The first such direction (its reach, curvature and reach in standard deviations),
+        or None (none flat).
     """
     lam = laplace.eigenvalues
     if not lam.size or not np.isfinite(lam).all():
@@ -233,18 +271,29 @@ def flat_direction(target: Target, laplace: Laplace) -> float | None:
     top = float(np.abs(lam).max())
     W = target.mass.weighted(laplace.hessian)
     lam, V = np.linalg.eigh(0.5 * (W + W.T))
-    curved = lam[lam > FLAT_CURVATURE * top]
-    s = float(1.0 / math.sqrt(curved.min())) if curved.size and top > 0 else 1.0
-    reach = s * FLAT_REACH
-    ts = s * 10.0 ** np.arange(0, round(math.log10(FLAT_REACH)) + 1)
+    flat = np.flatnonzero(~(lam > FLAT_CURVATURE * top))
+    if not flat.size:
+        return None
+    H = 0.5 * (laplace.hessian + laplace.hessian.T)
+    U = np.asarray(target.mass.weigh_vector(V.T), dtype=float).T
+    U = U / np.linalg.norm(U, axis=0)
+    curv, own, _ = _own_scales(H, U)
     u0, _, _ = _finite(target, laplace.mode[None, :])
-    for k in np.flatnonzero(~(lam > FLAT_CURVATURE * top)):
-        v = np.asarray(target.mass.weigh_vector(V[:, k]), dtype=float)
-        points = laplace.mode + np.concatenate([ts, -ts])[:, None] * v
+    for k in flat:
+        ts = _decades(float(own[k]), FLOAT_REACH)
+        points = laplace.mode + np.concatenate([ts, -ts])[:, None] * U[:, k]
         with np.errstate(all="ignore"):
-            rise = np.asarray(target.potential.energy(points), dtype=float) - u0[0]
-        if not (rise >= 1.0).any() and np.isfinite(rise).all():
-            return reach
+            rise = (np.asarray(target.potential.energy(points), dtype=float)
+                    - u0[0]).reshape(2, -1)
+        for side in rise:
+            bad = ~np.isfinite(side)
+            end = int(np.argmax(bad)) if bad.any() else side.size
+            if side[:end].size and (side[:end] >= 1.0).any():
+                continue
+            if end < side.size and side[end] == np.inf:
+                continue
+            if end and ts[end - 1] >= FLAT_REACH * own[k] * (1 - 1e-12):
+                return Flat(float(ts[end - 1]), float(curv[k]), float(ts[end - 1] / own[k]))
     return None
 
 
@@ -277,8 +326,9 @@ def slow_direction(target: Target, laplace: Laplace) -> SlowGrowth | None:
     """Whether exp(-U) is improper because U grows too slowly far from the mode.
 
     Along a ray ``mode + r v`` (v a unit eigenvector of the Hessian of U at the mode, both
-    ways), ``U`` is evaluated at ``r = s 10^k`` up to ``s FLAT_REACH`` (s the largest
-    standard deviation ``1 / sqrt(lambda)`` of the curved directions). Where it grows like
+    ways), ``U`` is evaluated at ``r = s 10^k`` up to ``s FLAT_REACH`` (s the ray's own
+    standard deviation ``1 / sqrt(lambda)`` where its eigenvalue is positive, else the
+    largest of the others'; the window ends at :data:`FLOAT_REACH` at most). Where it grows like
     ``alpha log r`` (every one of the last :data:`SLOW_DECADES` decades rises by at most
     ``alpha ln 10``), the density along the ray decays like ``r^-alpha``, and
 
@@ -308,16 +358,13 @@ def slow_direction(target: Target, laplace: Laplace) -> SlowGrowth | None:
     # exp(-U) integrates, and weighting by it would tilt the rays off a slow axis)
     H = np.asarray(laplace.hessian, dtype=float)
     lam, V = np.linalg.eigh(0.5 * (H + H.T))
-    top = float(np.abs(lam).max())
-    curved = lam[lam > FLAT_CURVATURE * top]
-    s = float(1.0 / math.sqrt(curved.min())) if curved.size and top > 0 else 1.0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        sd = np.where(lam > FLAT_CURVATURE * top, 1.0 / np.sqrt(lam), s)
-    decades = round(math.log10(FLAT_REACH))
-    ts = s * 10.0 ** np.arange(decades - SLOW_DECADES, decades + 1)
+    # each direction's own standard deviation (its curvature's, where positive)
+    _, sd, _ = _own_scales(0.5 * (H + H.T), V)
+    window = 10.0 ** np.arange(-SLOW_DECADES, 1)
     rays = (np.arange(d) if d <= SLOW_RAYS
             else np.linspace(0, d - 1, SLOW_RAYS).round().astype(int))
     for k in rays:
+        ts = min(float(sd[k]) * FLAT_REACH, FLOAT_REACH) * window
         others = [j for j in range(min(d, SLOW_SIDES + 1)) if j != k][:SLOW_SIDES]
         sides = V[:, others].T
         for sign in (1.0, -1.0):
