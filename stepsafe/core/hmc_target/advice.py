@@ -185,12 +185,12 @@ class TargetReport:
 
     @property
     def unverified(self) -> str | None:
-        """Why the estimates are not verified: the draws fail a convergence diagnostic
-        (:func:`unconverged`), so they may not represent the target (a mode they missed
-        changes the acceptance by more than its standard error, which assumes they do),
-        and h at target is not a recommendation; None when the draws pass (or cannot be
-        checked: given draws with fewer than 4 per chain, said in a note)."""
-        return unconverged(self.draws) if self.draws.converged is False else None
+        """Why the estimates are not verified: the draws fail a convergence diagnostic or
+        cannot be checked (:func:`unconverged`), so they may not represent the target (a
+        mode they missed changes the acceptance by more than its standard error, which
+        assumes they do), and h at target is not a recommendation; None only when the
+        draws pass."""
+        return unconverged(self.draws)
 
     @property
     def verified(self) -> bool:
@@ -256,7 +256,8 @@ class TargetReport:
                       "seed": d.seed, "sampler_step": d.step, "sampler_max_steps": d.max_steps,
                       "sampler_acceptance": d.acceptance, "sampler_divergent": d.divergent,
                       "rhat": _finite(d.rhat), "effective_size":
-                      _finite(d.effective_size), "converged": d.converged},
+                      _finite(d.effective_size), "stuck_chains": d.stuck,
+                      "converged": d.converged},
             "verified": self.verified, "unverified": self.unverified,
             "frequencies": self.frequencies, "laplace": self.laplace_record,
             "methods": [r.to_dict() for r in self.rows], "notes": list(self.notes)})
@@ -280,6 +281,9 @@ def unconverged(draws: Draws) -> str | None:
     """Why ``draws`` do not count as converged, naming the diagnostic that fails and its
     limit (R-hat above :data:`RHAT_LIMIT`, effective sample size below
     :data:`ESS_LIMIT`, or none computed: too few draws per chain); None when they do."""
+    if draws.stuck:
+        return (f"the draws have not converged: {draws.stuck} of {draws.chains} chain(s) "
+                "stay at one position throughout (every proposal rejected)")
     if draws.converged is None:
         return ("the draws' convergence cannot be checked: R-hat and the effective sample "
                 "size need at least 4 draws per chain")
@@ -384,12 +388,17 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
             raise NotConverged(refusal + " (require_converged; --require-converged on the "
                                "command line)",
                                f"{where}::$.system.potential" if where else "draws")
-    if draws.converged is False:
+    if draws.converged is False and not draws.stuck and draws.rhat is not None \
+            and draws.effective_size is not None:
         notes.append(f"the draws have not converged (R-hat {draws.rhat:.4f}, limit "
                      f"{RHAT_LIMIT:g}; effective sample size {draws.effective_size:.4g}, limit "
                      f"{ESS_LIMIT:g}): they may not represent the target, the estimates may "
                      "be off by more than their standard errors, and h at target is not a "
                      "recommendation (unverified)")
+    elif draws.converged is not True:
+        notes.append(f"{unconverged(draws)}: they may not represent the target, the "
+                     "estimates may be off by more than their standard errors, and h at "
+                     "target is not a recommendation (unverified)")
     freq = spread(target, draws, seed=seed + 2)
     if not freq.top > 0:
         raise StepsafeError("the target has no positive curvature at any draw: no step limit",

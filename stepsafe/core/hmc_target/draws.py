@@ -413,11 +413,15 @@ class Draws:
     divergent: int = 0
     rhat: float | None = None
     effective_size: float | None = None
+    #: chains whose draws are all one position (:func:`stuck_chains`)
+    stuck: int = 0
 
     @property
     def converged(self) -> bool | None:
-        """R-hat at most :data:`RHAT_LIMIT` and ESS at least :data:`ESS_LIMIT` (None
-        without diagnostics)."""
+        """R-hat at most :data:`RHAT_LIMIT` and ESS at least :data:`ESS_LIMIT`, and no
+        chain stuck at one position (None without diagnostics and no stuck chain)."""
+        if self.stuck:
+            return False
         if self.rhat is None or self.effective_size is None:
             return None
         return bool(self.rhat <= RHAT_LIMIT and self.effective_size >= ESS_LIMIT)
@@ -475,10 +479,22 @@ def given_draws(positions: np.ndarray, dimension: int, where: str = "draws") -> 
         raise StepsafeError("draws need at least 2 per chain", where)
     if not np.isfinite(arr).all():
         raise StepsafeError("draws have a non-finite entry", where)
+    stuck = stuck_chains(arr)
     if arr.shape[1] >= 4:
         r, ess = diagnostics(arr)
-        return Draws(arr, "given", rhat=r, effective_size=ess)
-    return Draws(arr, "given")
+        return Draws(arr, "given", rhat=r, effective_size=ess, stuck=stuck)
+    return Draws(arr, "given", stuck=stuck)
+
+
+def stuck_chains(positions: np.ndarray) -> int:
+    """How many chains of the draws (chains, n, d) stay at one position throughout: a
+    chain of HMC on a continuous target that never moves rejected every proposal, so its
+    draws do not represent the target however well R-hat and the effective sample size of
+    a constant series read (the same position repeated has no between- or within-chain
+    variance)."""
+    if positions.shape[1] < 2:
+        return 0
+    return int((positions == positions[:, :1]).all(axis=(1, 2)).sum())
 
 
 def _leapfrog(target: Target, q: np.ndarray, p: np.ndarray, g: np.ndarray,
@@ -683,7 +699,7 @@ def sample(target: Target, *, chains: int = CHAINS, warmup: int = WARMUP, keep: 
             divergent += int((delta > 1000).sum())
     r, ess = diagnostics(kept, kept_u)
     return Draws(kept, "warm-up", seed, h, L_max, float(np.mean(stats)) if stats else None,
-                 divergent, r, ess)
+                 divergent, r, ess, stuck_chains(kept))
 
 
 def diagnostics(positions: np.ndarray, energies: np.ndarray | None = None

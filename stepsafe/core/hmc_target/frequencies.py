@@ -116,11 +116,13 @@ CHUNK_ELEMENTS = 2**20
 
 
 def _scales(flat: np.ndarray) -> np.ndarray:
-    """The draws' spread along each axis (the length of central differences), where it is
-    0 the mean absolute position, else 1."""
+    """The draws' spread along each axis (the length of central differences); where it is
+    below 1e-8 of the mean absolute position (0, or the rounding of identical draws), that
+    mean absolute position, else 1."""
     s = flat.std(axis=0) if flat.shape[0] > 1 else np.zeros(flat.shape[1])
     fallback = np.abs(flat).mean(axis=0)
-    return np.where(s > 0, s, np.where(fallback > 0, fallback, 1.0))
+    return np.where((s > 0) & (s > 1e-8 * fallback), s,
+                    np.where(fallback > 0, fallback, 1.0))
 
 
 def lanczos_extremes(target: Target, q: np.ndarray, scale: np.ndarray, *, seed: int = 0,
