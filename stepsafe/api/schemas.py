@@ -222,6 +222,7 @@ HMC_TARGET = top({"target_accept": NUM, "steps": INT_OR_NULL, "length": NUM_OR_N
                   "jitter": NUM, "allow_unstable_jitter": BOOL, "dimension": INT, "seed": INT,
                   "cost_unit": STR, "ranked_by": STR, "ranking_differs": array(OBJECT),
                   "verified": BOOL, "unverified": STR_OR_NULL,
+                  "mode_search": OBJECT_OR_NULL,
                   "draws": record({"source": STR, "chains": INT, "per_chain": INT},
                                   closed=False),
                   "frequencies": record({"how": STR, "draws": INT, "omega_max": NUM,

@@ -68,6 +68,7 @@ from stepsafe.core.hmc_target.estimate import (
     target_step,
 )
 from stepsafe.core.hmc_target.frequencies import Spread, spread
+from stepsafe.core.hmc_target.modes import MODE_MASS, Survey, survey
 from stepsafe.core.hmc_target.potential import Target
 from stepsafe.core.hmc_target.trajectories import scheme
 from stepsafe.core.records import versioned
@@ -182,15 +183,19 @@ class TargetReport:
     laplace: Laplace | None
     seed: int
     notes: tuple[str, ...] = field(default=())
+    #: the search for other modes and the draws' visits to them (None: not searched)
+    modes: Survey | None = None
 
     @property
     def unverified(self) -> str | None:
         """Why the estimates are not verified: the draws fail a convergence diagnostic or
-        cannot be checked (:func:`unconverged`), so they may not represent the target (a
+        cannot be checked (:func:`unconverged`), or miss a mode the mode search found
+        (:mod:`stepsafe.core.hmc_target.modes`), so they may not represent the target (a
         mode they missed changes the acceptance by more than its standard error, which
         assumes they do), and h at target is not a recommendation; None only when the
-        draws pass."""
-        return unconverged(self.draws)
+        draws pass both."""
+        return unconverged(self.draws) or (None if self.modes is None
+                                           else self.modes.missed_text())
 
     @property
     def verified(self) -> bool:
@@ -259,6 +264,7 @@ class TargetReport:
                       _finite(d.effective_size), "stuck_chains": d.stuck,
                       "converged": d.converged},
             "verified": self.verified, "unverified": self.unverified,
+            "mode_search": None if self.modes is None else self.modes.record(),
             "frequencies": self.frequencies, "laplace": self.laplace_record,
             "methods": [r.to_dict() for r in self.rows], "notes": list(self.notes)})
 
@@ -380,10 +386,18 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
     if laplace is not None and not laplace.positive_definite:
         notes.append("the Hessian at the mode found is not positive definite: no Laplace "
                      "figures")
+    modes = None if laplace is None else survey(target, laplace, seed + 3)
+    if modes is None:
+        notes.append("no search for other modes (it starts from a positive definite "
+                     "Laplace approximation at the mode found): modes the draws do not "
+                     "visit are not looked for")
     if draws is None:
         draws = sample(target, seed=seed, laplace=laplace, start=start, where=where)
+    if modes is not None:
+        modes = modes.visited_by(draws)
+        notes.append(_survey_note(modes))
     if require_converged:
-        refusal = unconverged(draws)
+        refusal = unconverged(draws) or (None if modes is None else modes.missed_text())
         if refusal is not None:
             raise NotConverged(refusal + " (require_converged; --require-converged on the "
                                "command line)",
@@ -418,7 +432,20 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
                      "from the Gaussian (Laplace) one for " + ", ".join(differ))
     return TargetReport(tuple(rows), float(target_accept), trajectory,
                         bool(allow_unstable_jitter), target.dimension, draws, freq, laplace,
-                        seed, tuple(notes))
+                        seed, tuple(notes), modes)
+
+
+def _survey_note(modes: Survey) -> str:
+    """What the mode search covered, what it found and what it does not cover."""
+    n = len(modes.modes) - 1
+    found = ("found no other mode" if not n else
+             f"found {n} other mode(s), {len(modes.missed)} of them missed by the draws")
+    return (f"mode search: {modes.starts} starts at each of "
+            f"{', '.join(f'{s:g}' for s in modes.scales)} Laplace standard deviations from "
+            f"the mode found, {modes.iterations} descent steps each, {found}"
+            + (f" ({modes.stopped})" if modes.stopped else "")
+            + "; a mode whose basin none of these starts reached, or with a Laplace share "
+            f"below {MODE_MASS:g}, is not covered")
 
 
 def _row(m: Method, target_accept: float, trajectory: Trajectory, step: float | None,
