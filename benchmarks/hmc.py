@@ -12,8 +12,10 @@ against that source tree, the two interleaved run by run, side by side; a run pa
 Cases: ``hmc(None, sigma=S)`` with 10^5 standard deviations S log-uniform on [0.1, 1]
 (seed 0) and L unknown (the bound over L), L = 20, jitter 0.1, and L = 20 with jitter 0.1;
 and :func:`stepsafe.core.hmc_target.advice.hmc_on_target` on the banana
-``x^2/2 + (y - 0.3 x^2)^2/2`` with verlet and bcss2 at L = 10 (warm-up draws, the
-frequency spread, the step searches, the Laplace figures and the divergence scan).
+``x^2/2 + (y - 0.3 x^2)^2/2`` with verlet and bcss2 at L = 10 (the mode search, warm-up
+draws, the frequency spread, the step searches, the Laplace figures and the divergence
+scan), and on a Gaussian of 100 standard deviations log-uniform on [0.1, 1] (seed 0) given
+as numpy callables, with verlet at L = 10.
 
 Measured on this project's machine (x86_64, 2 cores shared with other jobs, load average
 10-13, Python 3.11.7, numpy 2.4), one run each; CPU time is the figure to compare (wall
@@ -117,12 +119,23 @@ BANANA = (
     "    return np.stack([x - 0.6 * x * r, r], axis=-1)\n"
     "hmc_on_target(target(CallablePotential(energy, gradient, 2)),\n"
     "              [method('verlet').tableau, method('bcss2').tableau], Trajectory(steps=10))\n")
+GAUSSIAN_100 = (
+    "import numpy as np\n"
+    "from stepsafe import method\n"
+    "from stepsafe.core.hmc import Trajectory\n"
+    "from stepsafe.core.hmc_target.advice import hmc_on_target\n"
+    "from stepsafe.core.hmc_target.potential import CallablePotential, target\n"
+    "s = np.exp(np.random.default_rng(0).uniform(np.log(0.1), 0.0, 100))\n"
+    "hmc_on_target(target(CallablePotential(lambda q: 0.5 * ((q / s) ** 2).sum(-1),\n"
+    "                                       lambda q: q / s ** 2, 100)),\n"
+    "              [method('verlet').tableau], Trajectory(steps=10))\n")
 CASES = {
     "10^5 modes, L unknown": SETUP + "hmc(None, sigma=sigma)\n",
     "10^5 modes, L = 20": SETUP + "hmc(None, sigma=sigma, **{L: 20})\n",
     "10^5 modes, jitter 0.1": SETUP + "hmc(None, sigma=sigma, jitter=0.1)\n",
     "10^5 modes, L = 20, jitter 0.1": SETUP + "hmc(None, sigma=sigma, jitter=0.1, **{L: 20})\n",
     "banana c = 0.3, verlet + bcss2, L = 10": BANANA,
+    "Gaussian d = 100 (callable), verlet, L = 10": GAUSSIAN_100,
 }
 
 
@@ -193,7 +206,7 @@ def main() -> None:
             continue
         before, after = [], []
         for _ in range(args.repeat):  # interleaved: before, after, before, after, ...
-            if args.before is not None and "banana" not in label:
+            if args.before is not None:
                 before.append(timed(code, args.before, args.timeout))
             after.append(timed(code, None, args.timeout))
         row = {"case": label, "before": _cell(before, args.timeout),
