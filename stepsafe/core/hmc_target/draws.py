@@ -241,8 +241,9 @@ def _own_scales(H: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray, f
 
 def _decades(first: float, last: float) -> np.ndarray:
     """``first * 10^k`` for k = 0, 1, ... while at most ``last`` (at least ``first``)."""
-    n = max(int(math.floor(math.log10(last / first))), 0) if first < last else 0
-    return first * 10.0 ** np.arange(n + 1)
+    lo = math.log10(first)
+    n = max(int(math.floor(math.log10(last) - lo)), 0) if first < last else 0
+    return 10.0 ** (lo + np.arange(n + 1))
 
 
 def flat_direction(target: Target, laplace: Laplace) -> Flat | None:
