@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from hypothesis import HealthCheck, Phase, assume, given, settings
+from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 from stepsafe.cli import main
@@ -447,14 +447,14 @@ def test_one_slow_coordinate_beside_normal_ones_is_improper_iff_its_tail_diverge
 
 @settings(max_examples=25, deadline=None)
 @given(quadratic=st.integers(1, 3), height=st.floats(0.01, 100.0),
-       log_width=st.floats(-6, 6))
+       log_width=st.floats(-12, 12))
 def test_a_potential_bounded_along_a_direction_is_improper(quadratic, height, log_width):
     """|x / w|^2 / 2 over ``quadratic`` coordinates plus ``height * tanh(y^2 / w^2)``: U
     stays below its value at infinity along y (growth alpha -> 0 per factor e), so exp(-U)
     tends to e^-height there and does not integrate, although the curvature at the mode is
     positive in every direction: found flat, or growing slower than the tube's bound 1, at
-    every height and at scales 10^-6 to 10^6 (the mode search by BFGS from a unit inverse
-    Hessian does not converge on a callable potential much further out)."""
+    every height and at scales 10^-12 to 10^12 (the mode search runs in the target's own
+    length scale)."""
     from stepsafe.core.hmc_target.draws import find_mode, flat_direction, slow_direction
     from stepsafe.core.hmc_target.potential import CallablePotential, target
 
@@ -633,10 +633,6 @@ def test_the_laplace_hessian_of_a_callable_banana_is_exact_at_every_scale(
     from stepsafe.core.hmc_target.draws import find_mode
     from stepsafe.core.hmc_target.potential import CallablePotential, target
 
-    if not at_mode:
-        # a search from elsewhere stops by an absolute gradient tolerance: not to 1e-3 of
-        # the scale beyond about 1e+-4
-        assume(abs(log_k) <= 4)
     k, a = 10.0 ** log_k, 10.0 ** log_a
     centre = m * k
 

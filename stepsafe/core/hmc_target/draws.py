@@ -1,7 +1,10 @@
 """Draws from the target: the mode and its Gaussian (Laplace) approximation, a short
 adaptive HMC run of its own, or draws the user supplies.
 
-Mode. ``U`` is minimised by BFGS (scipy) from the start given (the origin by default); the
+Mode. ``U`` is minimised by BFGS (scipy) from the start given (the origin by default), in
+coordinates scaled by the target's own length per coordinate there (from its curvature,
+where positive: :func:`own_scale_hessian`), so that the search stops at the same relative
+precision at every scale; the
 Hessian there (the potential's own, else central differences of the gradient with widths
 that follow the target's own scale, :func:`own_scale_hessian`) gives the Laplace approximation
 ``N(mode, (nabla^2 U)^-1)`` when it is positive definite. Its mass-weighted eigenvalues
@@ -29,6 +32,10 @@ approaches :data:`WARMUP_ACCEPT`, a conservative 0.9; at the end of each eighth 
 mean acceptance over it is below :data:`STUCK` times the median chain's (stuck where the
 common step does not fit) is moved to the position of another chain. The warm-up iterations
 are discarded; after them the step is frozen and every iteration of every chain is kept.
+When the kept draws narrowly fail the diagnostics below (R-hat above :data:`RHAT_LIMIT` but
+at most :data:`EXTEND_RHAT`, or too small an effective sample size), the chains run on at
+the frozen step and the kept iterations double, up to :data:`EXTEND` times ``keep``: with
+300 draws per chain the split R-hat of well-mixed chains scatters around 1.01 itself.
 
 Diagnostics. Over the kept draws, the rank-normalised split R-hat and the effective sample
 size (:mod:`stepsafe.core.hmc_target.statistics`) of every coordinate and of U; the draws
@@ -82,6 +89,11 @@ STUCK = 0.5
 RHAT_LIMIT = 1.01
 #: ... this (for every coordinate and U).
 ESS_LIMIT = 400.0
+#: Kept draws whose R-hat is above RHAT_LIMIT but at most this (or whose ESS is short) ...
+EXTEND_RHAT = 1.05
+#: ... are extended by running the chains on, doubling the kept iterations up to this many
+#: times ``keep``.
+EXTEND = 4
 #: Default seed (stated in every result).
 SEED = 20240611
 #: Largest dimension for which the Laplace approximation's dense Hessian is formed.
@@ -144,14 +156,23 @@ def find_mode(target: Target, start: np.ndarray | None = None) -> Laplace | None
         return np.asarray(pot.gradient(x[None, :]), dtype=float)[0]
 
     with np.errstate(all="ignore"):
-        found = minimize(fun, x0, jac=jac, method="BFGS",
+        # the search runs in z = (x - x0) / s, s the target's own length per coordinate at
+        # the start (its curvature's, where positive), so that its tolerance on the
+        # gradient means the same at every scale
+        H0 = own_scale_hessian(pot, x0, np.ones(d))
+        c0 = np.diag(H0) if H0 is not None else np.zeros(d)
+        s = np.where((c0 > 0) & np.isfinite(c0), 1.0 / np.sqrt(np.where(c0 > 0, c0, 1.0)),
+                     1.0)
+        s = np.clip(s, 1e-300, 1e300)
+        found = minimize(lambda z: fun(x0 + s * z), np.zeros(d),
+                         jac=lambda z: s * jac(x0 + s * z), method="BFGS",
                          options={"gtol": 1e-10, "maxiter": 200 * max(d, 10)})
-        mode = np.asarray(found.x, dtype=float)
+        mode = x0 + s * np.asarray(found.x, dtype=float)
         if not np.isfinite(mode).all() or not math.isfinite(float(found.fun)):
             return None
         inv = np.asarray(getattr(found, "hess_inv", np.eye(d)), dtype=float)
-        spread = np.sqrt(np.clip(np.diag(inv), 1e-300, None)) if inv.shape == (d, d) \
-            else np.ones(d)
+        spread = s * np.sqrt(np.clip(np.diag(inv), 1e-300, None)) if inv.shape == (d, d) \
+            else s
         H = own_scale_hessian(pot, mode, spread)
         if H is None:
             return None
@@ -643,7 +664,18 @@ def sample(target: Target, *, chains: int = CHAINS, warmup: int = WARMUP, keep: 
     window_len = 0
     stats, divergent, L_max = [], 0, 1
     step_range = STEP_RANGE
-    for it in range(warmup + keep):
+    it, total = 0, warmup + keep
+    while True:
+        if it == total:
+            r, ess = diagnostics(kept, kept_u)
+            n = kept.shape[1]
+            if (r <= RHAT_LIMIT and ess >= ESS_LIMIT) or not r <= EXTEND_RHAT or \
+                    2 * n > EXTEND * keep:
+                break
+            # near the limits: the chains run on at the frozen step, twice as long
+            kept = np.concatenate([kept, np.empty_like(kept)], axis=1)
+            kept_u = np.concatenate([kept_u, np.empty_like(kept_u)], axis=1)
+            total += n
         adapting = it < warmup
         length = math.pi * spread
         hs = h * step_range ** -rng.uniform(size=chains)
@@ -698,7 +730,7 @@ def sample(target: Target, *, chains: int = CHAINS, warmup: int = WARMUP, keep: 
             kept_u[:, it - warmup] = u
             stats.append(float(accept_prob.mean()))
             divergent += int((delta > 1000).sum())
-    r, ess = diagnostics(kept, kept_u)
+        it += 1
     return Draws(kept, "warm-up", seed, h, L_max, float(np.mean(stats)) if stats else None,
                  divergent, r, ess, stuck_chains(kept))
 
