@@ -164,8 +164,14 @@ def find_mode(target: Target, start: np.ndarray | None = None) -> Laplace | None
         s = np.where((c0 > 0) & np.isfinite(c0), 1.0 / np.sqrt(np.where(c0 > 0, c0, 1.0)),
                      1.0)
         s = np.clip(s, 1e-300, 1e300)
-        found = minimize(lambda z: fun(x0 + s * z), np.zeros(d),
-                         jac=lambda z: s * jac(x0 + s * z), method="BFGS",
+
+        def scaled(z: np.ndarray) -> float:
+            return fun(x0 + s * z)
+
+        def scaled_jac(z: np.ndarray) -> np.ndarray:
+            return s * jac(x0 + s * z)
+
+        found = minimize(scaled, np.zeros(d), jac=scaled_jac, method="BFGS",
                          options={"gtol": 1e-10, "maxiter": 200 * max(d, 10)})
         mode = x0 + s * np.asarray(found.x, dtype=float)
         if not np.isfinite(mode).all() or not math.isfinite(float(found.fun)):
