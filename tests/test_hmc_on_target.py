@@ -160,6 +160,8 @@ def test_cli_runs_a_potential_scene_with_given_draws(run, tmp_path):
     ({"potential": "x**2", "q": "x"}, (), "system.q", "list"),
     ({"potential": "x**2", "q": ["x"]}, ("--jitter", "0.1"), "system.steps"[:0], "--steps"),
     ({"potential": "x**2", "q": ["x"], "start": [1, 2]}, (), "system.start", "1 numbers"),
+    ({"potential": "x**65/65 + y**2/2", "q": ["x", "y"]}, (), "system.potential", "powers"),
+    ({"potential": "x**1000000 + y**2", "q": ["x", "y"]}, (), "system.potential", "powers"),
 ])
 def test_bad_potential_scenes_name_the_file_and_key(run, tmp_path, system, args, where, match):
     import yaml

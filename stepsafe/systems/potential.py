@@ -147,7 +147,11 @@ def potential_target(tree: Any, where: str = "") -> PotentialTarget:
     if unknown:
         raise _fail(where, "potential", f"unknown name {sorted(unknown)[0]!r} (use the names "
                                         "of q:, the parameters and pi)")
-    program = Compiled(from_tree(expr.tree, text.strip(), tuple(names), params), tuple(names))
+    try:
+        program = Compiled(from_tree(expr.tree, text.strip(), tuple(names), params),
+                           tuple(names))
+    except ExpressionError as exc:
+        raise _fail(where, "potential", f"{exc} in {text[:60]!r}") from None
     potential = ExpressionPotential(text, tuple(names), program)
     d = len(names)
     mass = tree.get("mass")
