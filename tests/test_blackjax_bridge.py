@@ -259,3 +259,56 @@ def test_the_hmc_guide_blackjax_example_prints_what_it_shows(monkeypatch, capsys
     monkeypatch.chdir(root)
     exec(compile(textwrap.dedent(code), "docs/guides/hmc.md", "exec"), {})
     assert capsys.readouterr().out == shown
+
+
+@pytest.mark.blackjax
+@needs_blackjax
+@pytest.mark.parametrize("kwargs, where", [
+    ({"jitter": 1.0}, "jitter"), ({"jitter": 1.5}, "jitter"), ({"jitter": -0.5}, "jitter"),
+    ({"jitter": float("nan")}, None), ({"jitter": float("inf")}, None),
+    ({"jitter": 10.0}, "jitter"), ({"seed": -3}, "seed"), ({"seed": 2**63}, "seed"),
+    ({"seed": 1.5}, "seed"), ({"seed": True}, "seed"),
+])
+def test_blackjax_hmc_refuses_a_jitter_outside_0_1_and_a_bad_seed(kwargs, where):
+    """The jitter J draws steps h (1 + J u), u in (-1, 1): J must be in [0, 1) (J >= 1
+    gives steps down to 0 or negative), as stepsafe.hmc requires; the seed an integer in
+    [0, 2^63). A StepsafeError before any work, never a raw exception."""
+    with pytest.raises(StepsafeError) as caught:
+        bridge.blackjax_hmc(lambda q: -0.5 * (q * q).sum(), np.zeros(2), trajectory_steps=10,
+                            method="verlet", **kwargs)
+    assert where is None or caught.value.where == where
+    assert ("jitter" if "jitter" in kwargs else "seed") in str(caught.value)
+
+
+def _vector_logdensity(q):
+    return -0.5 * q**2  # no sum: a vector
+
+
+def _branching_logdensity(q):
+    if q[0] > 0:  # a Python branch on a traced value
+        return -0.5 * (q * q).sum()
+    return -(q * q).sum()
+
+
+def _numpy_logdensity(q):
+    return -0.5 * float(np.sum(np.asarray(q) ** 2))  # numpy on a traced value
+
+
+@pytest.mark.blackjax
+@needs_blackjax
+@pytest.mark.parametrize("logdensity, match", [
+    (_vector_logdensity, "must return a scalar"),
+    (_branching_logdensity, "TracerBoolConversionError"),
+    (_numpy_logdensity, "TracerArrayConversionError"),
+])
+def test_a_jax_logdensity_that_cannot_be_traced_is_refused_naming_logdensity(logdensity, match):
+    """A JAX log-density that returns a vector or fails when JAX traces it is refused with a
+    StepsafeError naming ``logdensity``, from blackjax_hmc and from stepsafe.hmc alike."""
+    from stepsafe import hmc
+
+    for call in (lambda: bridge.blackjax_hmc(logdensity, np.zeros(2), trajectory_steps=5),
+                 lambda: hmc(["verlet"], logdensity=logdensity, start=np.zeros(2),
+                             trajectory_steps=5)):
+        with pytest.raises(StepsafeError, match=match) as caught:
+            call()
+        assert caught.value.where == "logdensity"

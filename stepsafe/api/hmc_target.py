@@ -22,43 +22,11 @@ from stepsafe.api.inputs import Integrator
 from stepsafe.core.hmc import Trajectory
 from stepsafe.core.hmc_target.advice import TargetReport, hmc_on_target
 from stepsafe.core.hmc_target.draws import SEED, Draws, given_draws
-from stepsafe.core.hmc_target.potential import CallablePotential, Target, mass_matrix
+from stepsafe.core.hmc_target.potential import CallablePotential, Guarded, Target, mass_matrix
 from stepsafe.exceptions import StepsafeError
 from stepsafe.systems.blackjax_bridge import jax_potential
 from stepsafe.systems.potential import PotentialTarget, is_potential, potential_target, read_draws
 from stepsafe.systems.scene import Scene, load_scene
-
-
-class _Guarded:
-    """A user's numpy callables with their failures and wrong shapes turned into a
-    :class:`StepsafeError` naming the keyword (never a traceback)."""
-
-    def __init__(self, inner: CallablePotential, names: tuple[str, str]) -> None:
-        self.inner, self.names = inner, names
-        self.dimension = inner.dimension
-        self.hessian = getattr(inner, "hessian", None)
-        self.hvp = getattr(inner, "hvp", None)
-
-    def _call(self, fn: Callable[[np.ndarray], np.ndarray], q: np.ndarray, key: str,
-              shape: tuple[int, ...]) -> np.ndarray:
-        try:
-            out = np.asarray(fn(q), dtype=float)
-        except StepsafeError:
-            raise
-        except Exception as exc:  # the user's code: reported, not a crash
-            raise StepsafeError(f"{key} raised {type(exc).__name__}: {str(exc)[:120]}",
-                                key) from None
-        if out.shape != shape:
-            raise StepsafeError(f"{key} returned shape {out.shape} for positions of shape "
-                                f"{q.shape}; expected {shape} (batched over leading axes)",
-                                key)
-        return out
-
-    def energy(self, q: np.ndarray) -> np.ndarray:
-        return self._call(self.inner.energy, q, self.names[0], q.shape[:-1])
-
-    def gradient(self, q: np.ndarray) -> np.ndarray:
-        return self._call(self.inner.gradient, q, self.names[1], q.shape)
 
 
 def callable_target(logdensity: Callable[[np.ndarray], Any],
@@ -116,7 +84,7 @@ def callable_target(logdensity: Callable[[np.ndarray], Any],
         inner = CallablePotential(lambda q: -np.asarray(logdensity(q), dtype=float),
                                   lambda q: -np.asarray(gradient(q), dtype=float), d)
         names = ("logdensity", "gradient")
-    potential = _Guarded(inner, names)
+    potential = Guarded(inner, names)
     with np.errstate(all="ignore"):
         u0 = potential.energy(q0[None, :])
         g0 = potential.gradient(q0[None, :])

@@ -37,9 +37,14 @@ from stepsafe.core.design import family_member
 from stepsafe.core.hmc import Trajectory
 from stepsafe.core.hmc_target.advice import TargetReport, hmc_on_target
 from stepsafe.core.hmc_target.draws import SEED, given_draws
-from stepsafe.core.hmc_target.potential import CallablePotential, Target, mass_matrix
+from stepsafe.core.hmc_target.potential import (
+    CallablePotential,
+    Guarded,
+    Target,
+    mass_matrix,
+)
 from stepsafe.core.hmc_target.trajectories import scheme
-from stepsafe.exceptions import StepsafeError
+from stepsafe.exceptions import StepsafeError, finite_real
 from stepsafe.methods.families import is_symmetric
 from stepsafe.methods.library import resolve
 from stepsafe.methods.tableaux import Composition, Method, Processed, Splitting
@@ -156,12 +161,22 @@ def jax_potential(logdensity: Callable, dimension: int) -> CallablePotential:
     jax, _ = _require()
     import jax.numpy as jnp
 
+    d = int(dimension)
+    try:
+        with jax.enable_x64(True):
+            shape = jax.eval_shape(logdensity, jax.ShapeDtypeStruct((d,), jnp.float64)).shape
+    except Exception as exc:  # the user's code: reported, not a crash
+        raise StepsafeError(f"logdensity raised {type(exc).__name__} when traced by JAX at a "
+                            f"position of shape ({d},): {str(exc).splitlines()[0][:120]}",
+                            "logdensity") from None
+    if tuple(shape) != ():
+        raise StepsafeError(f"logdensity must return a scalar (log pi at one position of shape "
+                            f"({d},)), it returned shape {tuple(shape)}", "logdensity")
     grad = jax.grad(logdensity)
     energy = jax.jit(jax.vmap(lambda q: -logdensity(q)))
     gradient = jax.jit(jax.vmap(lambda q: -grad(q)))
     hessian = jax.jit(jax.vmap(lambda q: -jax.hessian(logdensity)(q)))
     hvp = jax.jit(jax.vmap(lambda q, v: -jax.jvp(grad, (q,), (v,))[1]))
-    d = int(dimension)
 
     def batched(fn: Callable, tail: tuple[int, ...]) -> Callable:
         # batches padded to a power of two: a jitted function compiles once per shape, and
@@ -257,13 +272,20 @@ def blackjax_hmc(logdensity: Callable, initial_position: Any, *,
     _require()
     q0 = np.asarray(initial_position, dtype=float).ravel()
     d = q0.size
+    if not 0.0 <= finite_real(jitter, "jitter") < 1.0:
+        raise StepsafeError(f"jitter must be a number in [0, 1), got {jitter!r}", "jitter")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or \
+            not 0 <= seed < 2**63:
+        raise StepsafeError(f"seed must be an integer from 0 to 2^63 - 1, got {seed!r}",
+                            "seed")
     if inverse_mass_matrix is None:
         inverse = np.ones(d)
     else:
         inverse = np.asarray(inverse_mass_matrix, dtype=float)
     inv_mass = mass_matrix(inverse, d, "inverse_mass_matrix")  # validates shape and SPD
     mass = 1.0 / inv_mass.matrix if inv_mass.diagonal else np.linalg.inv(inv_mass.matrix)
-    target = Target(jax_potential(logdensity, d), mass_matrix(mass, d, "inverse_mass_matrix"))
+    target = Target(Guarded(jax_potential(logdensity, d), ("logdensity", "logdensity")),
+                    mass_matrix(mass, d, "inverse_mass_matrix"))
     names = (DEFAULT_METHODS if method is None else
              [method] if isinstance(method, (str, Splitting, Composition)) or hasattr(
                  method, "tableau") else list(method))

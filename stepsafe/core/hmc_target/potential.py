@@ -68,6 +68,43 @@ class CallablePotential:
         return np.asarray(self.gradient_fn(q), dtype=float)
 
 
+class Guarded:
+    """A user's potential (numpy or JAX callables) with their failures and wrong shapes
+    turned into a :class:`StepsafeError` naming the keyword (never a traceback): ``names``
+    are the keywords of the energy's and the gradient's functions."""
+
+    def __init__(self, inner: CallablePotential, names: tuple[str, str]) -> None:
+        self.inner, self.names = inner, names
+        self.dimension = inner.dimension
+        hessian, hvp = getattr(inner, "hessian", None), getattr(inner, "hvp", None)
+        d = self.dimension
+        self.hessian = None if hessian is None else (
+            lambda q: self._call(hessian, q, names[1], q.shape + (d,)))
+        self.hvp = None if hvp is None else (
+            lambda q, v: self._call(lambda x: hvp(x, v), q, names[1], q.shape))
+
+    def _call(self, fn: Callable[[np.ndarray], np.ndarray], q: np.ndarray, key: str,
+              shape: tuple[int, ...]) -> np.ndarray:
+        try:
+            out = np.asarray(fn(q), dtype=float)
+        except StepsafeError:
+            raise
+        except Exception as exc:  # the user's code: reported, not a crash
+            raise StepsafeError(f"{key} raised {type(exc).__name__}: {str(exc)[:120]}",
+                                key) from None
+        if out.shape != shape:
+            raise StepsafeError(f"{key} returned shape {out.shape} for positions of shape "
+                                f"{q.shape}; expected {shape} (batched over leading axes)",
+                                key)
+        return out
+
+    def energy(self, q: np.ndarray) -> np.ndarray:
+        return self._call(self.inner.energy, q, self.names[0], q.shape[:-1])
+
+    def gradient(self, q: np.ndarray) -> np.ndarray:
+        return self._call(self.inner.gradient, q, self.names[1], q.shape)
+
+
 def from_logdensity(logdensity: Callable[[np.ndarray], np.ndarray],
                     gradient: Callable[[np.ndarray], np.ndarray], dimension: int,
                     hessian: Callable[[np.ndarray], np.ndarray] | None = None
