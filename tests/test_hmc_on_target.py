@@ -265,3 +265,15 @@ def test_many_modes_with_jitter_take_the_bound_for_the_given_length_and_say_so()
     bound = gaussian.acceptance_at(method("verlet"), 1 / sigma, row.h_target,
                                    gaussian.Trajectory(jitter=0.05))
     assert bound.rate >= 0.8 - 1e-9
+
+
+@settings(max_examples=3, deadline=None)
+@given(log_length=st.floats(6.5, 300))
+def test_a_trajectory_length_beyond_a_million_steps_is_refused_naming_length(log_length):
+    """--length T on a potential target: L = floor(T/h) is held to at most 10^6 steps per
+    trajectory (as --steps is): a T that needs more at the steps searched is refused in
+    bounded time, naming the length, never run for hours."""
+    with pytest.raises(StepsafeError, match="shorter length") as caught:
+        hmc(["verlet"], logdensity=lambda q: -0.5 * (q * q).sum(-1), gradient=lambda q: -q,
+            start=[0.1, 0.1], length=10.0 ** log_length)
+    assert caught.value.where == "length"

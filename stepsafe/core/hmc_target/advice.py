@@ -51,6 +51,7 @@ from stepsafe.core import hmc as gaussian
 from stepsafe.core.hmc import Trajectory
 from stepsafe.core.hmc_target.draws import (
     ESS_LIMIT,
+    KEEP,
     RHAT_LIMIT,
     SEED,
     Draws,
@@ -417,7 +418,7 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
     if not freq.top > 0:
         raise StepsafeError("the target has no positive curvature at any draw: no step limit",
                             f"{where}::$.system.potential" if where else "logdensity")
-    estimator = Estimator(target, draws, seed=seed + 1,
+    estimator = Estimator(target, _thinned(draws), seed=seed + 1,
                           scale=float(np.median(draws.flat.std(axis=0))) or 1.0)
     betas = laplace.betas if laplace is not None and laplace.positive_definite else None
     rows = []
@@ -433,6 +434,19 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
     return TargetReport(tuple(rows), float(target_accept), trajectory,
                         bool(allow_unstable_jitter), target.dimension, draws, freq, laplace,
                         seed, tuple(notes), modes)
+
+
+def _thinned(draws: Draws) -> Draws:
+    """The warm-up's draws for the estimates: a kept run extended past :data:`KEEP` per
+    chain (to pass the diagnostics) is thinned back to about KEEP per chain, every k-th
+    draw, so the estimates cost what they cost unextended (their standard errors come from
+    the thinned chains' own autocorrelation); given draws are used as given."""
+    k = draws.per_chain // KEEP
+    if draws.source != "warm-up" or k < 2:
+        return draws
+    return Draws(draws.positions[:, ::k], draws.source, draws.seed, draws.step,
+                 draws.max_steps, draws.acceptance, draws.divergent, draws.rhat,
+                 draws.effective_size, draws.stuck)
 
 
 def _survey_note(modes: Survey) -> str:

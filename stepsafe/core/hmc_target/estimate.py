@@ -45,6 +45,9 @@ from stepsafe.exceptions import StepsafeError
 
 #: The energy error beyond which a proposal counts as divergent (BlackJAX, Stan).
 DIVERGENCE = 1000.0
+#: At most this many steps per trajectory (L = floor(T / h) for a trajectory length T),
+#: as the number of steps given is limited.
+MAX_STEPS = 10**6
 #: The target search: grid points up to the upper end (walked upwards) ...
 TARGET_GRID = 16
 #: ... then narrowed to this relative width (the estimate's noise is coarser).
@@ -136,6 +139,12 @@ class Estimator:
         if steps is None:
             raise StepsafeError("the acceptance on a target needs the number of steps or the "
                                 "trajectory length")
+        if trajectory.steps is None and steps > MAX_STEPS:
+            raise StepsafeError(
+                f"the trajectory length T = {trajectory.length:.6g} gives L = floor(T/h) "
+                f"above {MAX_STEPS} steps per trajectory at h = {h:.6g} (at most {MAX_STEPS}, "
+                "as for the number of steps): give a shorter length (--length T on the "
+                "command line)", "length")
         hs = h * (1.0 + trajectory.jitter * self.u) if trajectory.jitter else h
         out = energy_errors(self.target, run, self.q, self.p, hs, steps, self.energy,
                             self.gradient, self.scale)
