@@ -819,3 +819,68 @@ def _normal_energy(q):
 
 def _normal_gradient_u(q):
     return q
+
+
+# ------------------------------------------------------------ a gradient given by the user
+
+def _scaled_banana(k, offset, c=0.3):
+    """The banana U = x^2/2 + (y - c x^2)^2/2 in (x, y) = q / k, plus a constant, with its
+    exact gradient."""
+    def energy(q):
+        x, y = q[..., 0] / k, q[..., 1] / k
+        return offset + 0.5 * x * x + 0.5 * (y - c * x * x) ** 2
+
+    def gradient(q):
+        x, y = q[..., 0] / k, q[..., 1] / k
+        r = y - c * x * x
+        return np.stack([x - 2 * c * x * r, r], axis=-1) / k
+
+    return energy, gradient
+
+
+@settings(max_examples=30, deadline=None)
+@given(log_k=st.floats(-8, 8), offset=st.sampled_from([0.0, 1e6, -1e12, 1e15]),
+       start=st.tuples(st.floats(-3, 3), st.floats(-3, 3)),
+       wrong=st.sampled_from(["none", "twice", "sign", "swapped"]))
+def test_a_gradient_inconsistent_with_its_energy_is_found_and_a_right_one_never(
+        log_k, offset, start, wrong):
+    """The gradient check compares the gradient given with central differences of the
+    energy: the exact gradient of the banana passes at every scale k from 1e-8 to 1e8 and
+    with constants up to 1e15 added to U (where rounding makes a difference unjudgeable,
+    it is not judged), at any start; twice it, its negative or its coordinates swapped are
+    found (at the start, or at the mode when the start cannot tell) wherever U's constant
+    leaves the differences judgeable (below 1e12 here)."""
+    from stepsafe.core.hmc_target.draws import find_mode, gradient_mismatch
+    from stepsafe.core.hmc_target.potential import CallablePotential
+
+    k = 10.0 ** log_k
+    energy, exact = _scaled_banana(k, offset)
+    given = {"none": exact, "twice": lambda q: 2 * exact(q), "sign": lambda q: -exact(q),
+             "swapped": lambda q: exact(q)[..., ::-1]}[wrong]
+    pot = CallablePotential(energy, given, 2)
+    q0 = k * np.array(start)
+    found = gradient_mismatch(pot, q0)
+    if found is None and wrong != "none":
+        from stepsafe.core.hmc_target.potential import target
+
+        laplace = find_mode(target(CallablePotential(energy, exact, 2)), q0)
+        found = gradient_mismatch(pot, laplace.mode)
+    if wrong == "none":
+        assert found is None, found
+    elif abs(offset) < 1e12:
+        # (beyond, U's rounding at the differences' widths leaves nothing to judge)
+        assert found is not None
+
+
+def test_hmc_refuses_a_gradient_that_is_not_the_log_densitys_naming_gradient():
+    """stepsafe.hmc with logdensity= and a gradient= that is twice, minus or the swapped
+    true one: a StepsafeError naming gradient, before any sampling."""
+    from stepsafe import hmc
+    from stepsafe.exceptions import StepsafeError
+
+    energy, exact = _scaled_banana(1.0, 0.0)
+    for wrong in (lambda q: -2 * exact(q), exact, lambda q: -exact(q)[..., ::-1]):
+        with pytest.raises(StepsafeError, match="not that of the log-density") as caught:
+            hmc(["verlet"], logdensity=lambda q: -energy(q), gradient=wrong,
+                start=[0.3, 0.2], trajectory_steps=10)
+        assert caught.value.where == "gradient"

@@ -186,7 +186,17 @@ def on_target(found: PotentialTarget, integrators: Sequence[Integrator], *,
                          seed=int(seed), start=found.start,
                          allow_unstable_jitter=allow_unstable_jitter,
                          zmax=10.0 if zmax is None else float(zmax),
-                         where=found.where or None, require_converged=require_converged)
+                         where=found.where or None, require_converged=require_converged,
+                         check_gradient=_given_gradient(found.target))
+
+
+def _given_gradient(target: Target) -> str | None:
+    """The keyword of a numpy gradient the user gave beside the log-density (checked
+    against it), or None (a scene's exact gradient, JAX's)."""
+    pot = target.potential
+    if isinstance(pot, Guarded) and pot.names == ("logdensity", "gradient"):
+        return "gradient"
+    return None
 
 
 __all__ = ["SEED", "TargetReport", "callable_target", "on_target", "target_of"]

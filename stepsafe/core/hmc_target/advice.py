@@ -51,13 +51,13 @@ from stepsafe.core import hmc as gaussian
 from stepsafe.core.hmc import Trajectory
 from stepsafe.core.hmc_target.draws import (
     ESS_LIMIT,
-    KEEP,
     RHAT_LIMIT,
     SEED,
     Draws,
     Laplace,
     find_mode,
     flat_direction,
+    gradient_mismatch,
     sample,
     slow_direction,
 )
@@ -311,7 +311,8 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
                   seed: int = SEED, start: np.ndarray | None = None,
                   allow_unstable_jitter: bool = False, onset: bool = True,
                   zmax: float = 10.0, where: str | None = None,
-                  require_converged: bool = False) -> TargetReport:
+                  require_converged: bool = False,
+                  check_gradient: str | None = None) -> TargetReport:
     """HMC with each of ``methods`` on ``target`` (module docstring).
 
     Parameters
@@ -347,6 +348,12 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
         Python keywords).
     require_converged
         Refuse draws that have not converged (:func:`unconverged`), before any estimate.
+    check_gradient
+        The keyword of a gradient the user gave beside the energy: it is compared with
+        central differences of the energy near the start and the mode, and refused, naming
+        the keyword, where they disagree
+        (:func:`stepsafe.core.hmc_target.draws.gradient_mismatch`); None: not checked (an
+        exact or automatic gradient).
 
     Returns
     -------
@@ -358,6 +365,23 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
         raise StepsafeError("HMC on a target needs the number of steps per trajectory or the "
                             "trajectory length (the acceptance depends on it)")
     notes: list[str] = []
+    if check_gradient is not None:
+        at = (np.zeros(target.dimension) if start is None
+              else np.asarray(start, dtype=float).reshape(target.dimension))
+        mismatch = gradient_mismatch(target.potential, at)
+        if mismatch is None and laplace is None:
+            laplace = find_mode(target, start)
+            if laplace is not None:
+                mismatch = gradient_mismatch(target.potential, laplace.mode)
+        if mismatch is not None:
+            x = mismatch.position
+            point = ", ".join(f"{v:.6g}" for v in x[:4]) + (", ..." if x.size > 4 else "")
+            raise StepsafeError(
+                f"component {mismatch.axis} of the gradient of log pi is "
+                f"{-mismatch.gradient:.6g} at q = ({point}), where central differences of the "
+                f"log-density give {-mismatch.difference:.6g}: the gradient given is not that "
+                "of the log-density (check its sign, factor and coordinate order)",
+                check_gradient)
     if laplace is None:
         laplace = find_mode(target, start)
     if laplace is None:
@@ -418,7 +442,7 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
     if not freq.top > 0:
         raise StepsafeError("the target has no positive curvature at any draw: no step limit",
                             f"{where}::$.system.potential" if where else "logdensity")
-    estimator = Estimator(target, _thinned(draws), seed=seed + 1,
+    estimator = Estimator(target, draws, seed=seed + 1,
                           scale=float(np.median(draws.flat.std(axis=0))) or 1.0)
     betas = laplace.betas if laplace is not None and laplace.positive_definite else None
     rows = []
@@ -434,19 +458,6 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
     return TargetReport(tuple(rows), float(target_accept), trajectory,
                         bool(allow_unstable_jitter), target.dimension, draws, freq, laplace,
                         seed, tuple(notes), modes)
-
-
-def _thinned(draws: Draws) -> Draws:
-    """The warm-up's draws for the estimates: a kept run extended past :data:`KEEP` per
-    chain (to pass the diagnostics) is thinned back to about KEEP per chain, every k-th
-    draw, so the estimates cost what they cost unextended (their standard errors come from
-    the thinned chains' own autocorrelation); given draws are used as given."""
-    k = draws.per_chain // KEEP
-    if draws.source != "warm-up" or k < 2:
-        return draws
-    return Draws(draws.positions[:, ::k], draws.source, draws.seed, draws.step,
-                 draws.max_steps, draws.acceptance, draws.divergent, draws.rhat,
-                 draws.effective_size, draws.stuck)
 
 
 def _survey_note(modes: Survey) -> str:

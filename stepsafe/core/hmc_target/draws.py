@@ -232,6 +232,75 @@ def own_scale_hessian(potential: Potential, q: np.ndarray, spread: np.ndarray
     return H
 
 
+#: The gradient check: at most this many coordinates ...
+GRADIENT_AXES = 8
+#: ... at one of their own standard deviations from the point checked, where a central
+#: difference of U of each of these widths (in standard deviations) ...
+GRADIENT_WIDTHS = (1e-1, 1e-2, 1e-3, 1e-4)
+#: ... differs from the gradient given by more than this fraction: inconsistent.
+GRADIENT_TOLERANCE = 1e-2
+
+
+@dataclass(frozen=True)
+class Mismatch:
+    """Where the gradient given disagrees with the energy: component ``axis`` of grad U is
+    ``gradient`` at ``position``, central differences of U give ``difference``."""
+
+    axis: int
+    position: np.ndarray
+    gradient: float
+    difference: float
+
+
+def gradient_mismatch(potential: Potential, q: np.ndarray) -> Mismatch | None:
+    """Whether the potential's gradient disagrees with its own energy near ``q``.
+
+    Along each of the first :data:`GRADIENT_AXES` coordinates j, with the length
+    ``s_j = 1 / sqrt(|H_jj|)`` from the curvature of the gradient given at q (its
+    magnitude; ``|q_j| + 1`` where it vanishes), the point ``x = q + s_j e_j`` is taken,
+    where ``dU/dq_j`` is of the order of ``1 / s_j`` for a smooth target; the central
+    difference ``(U(x + w e_j) - U(x - w e_j)) / 2w`` for each width ``w = c s_j`` of
+    :data:`GRADIENT_WIDTHS` is compared with the gradient's j-th component there. The two
+    are inconsistent when they differ by more than :data:`GRADIENT_TOLERANCE` of the larger
+    at every width judged (the widths span truncation and rounding: a smooth U agrees at one
+    of them); a width where U's rounding could move the difference by a tenth of the
+    tolerance is not judged, nor a point where either is not finite.
+
+    Returns
+    -------
+    Mismatch or None
+        The first disagreement found; None.
+    """
+    d = q.size
+    with np.errstate(all="ignore"):
+        H = own_scale_hessian(potential, q, np.abs(q) + 1.0)
+        c = np.abs(np.diag(H)) if H is not None else np.zeros(d)
+        s = np.where(np.isfinite(c) & (c > 0), 1.0 / np.sqrt(np.where(c > 0, c, 1.0)),
+                     np.abs(q) + 1.0)
+        for j in range(min(d, GRADIENT_AXES)):
+            x = q.copy()
+            x[j] += s[j]
+            g = float(np.asarray(potential.gradient(x[None, :]), dtype=float)[0, j])
+            widths = np.array(GRADIENT_WIDTHS) * s[j]
+            shift = np.zeros((widths.size, d))
+            shift[:, j] = widths
+            up = np.asarray(potential.energy(x + shift), dtype=float)
+            down = np.asarray(potential.energy(x - shift), dtype=float)
+            fd = (up - down) / (2.0 * widths)
+            # a width is judged where U's rounding cannot move the difference by a tenth of
+            # the tolerance
+            noise = np.finfo(float).eps * (np.abs(up) + np.abs(down)) / (2.0 * widths)
+            fine = np.isfinite(fd) & (noise <= 0.1 * GRADIENT_TOLERANCE * np.maximum(
+                np.abs(fd), abs(g)))
+            if not math.isfinite(g) or not fine.any():
+                continue
+            gap = np.abs(fd[fine] - g)
+            if (gap > GRADIENT_TOLERANCE * np.maximum(np.abs(fd[fine]), abs(g))).all() and \
+                    (gap > 0).all():
+                return Mismatch(j, x, g, float(fd[fine][np.argmin(gap)]))
+    return None
+
+
 #: A direction is flat when U rises by less than 1 along it (by decades) out to at least
 #: this many of its own standard deviations ...
 FLAT_REACH = 1e12
