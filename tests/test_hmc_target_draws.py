@@ -884,3 +884,32 @@ def test_hmc_refuses_a_gradient_that_is_not_the_log_densitys_naming_gradient():
             hmc(["verlet"], logdensity=lambda q: -energy(q), gradient=wrong,
                 start=[0.3, 0.2], trajectory_steps=10)
         assert caught.value.where == "gradient"
+
+
+@settings(max_examples=2, deadline=None)
+@given(log_s=st.tuples(st.floats(-4, 4), st.floats(-4, 4)))
+def test_force_gradient_estimates_are_the_same_at_every_scale_of_each_coordinate(log_s):
+    """Two logistic marginals U = sum of z + 2 log(1 + e^-z), z = q / s, with the mass 1/s^2
+    that whitens them and exact draws scaled by s: the same system as s = (1, 1) in other
+    units, so chin-4a's estimate at h = 1.5 (a force-gradient method, whose Hessian comes
+    from differences of the gradient over each coordinate's own spread) is the same to
+    1e-6 whatever the scale of each coordinate (s from 1e-4 to 1e4)."""
+    from stepsafe import hmc
+
+    z = np.random.default_rng(4).logistic(size=(8, 400, 2))
+
+    def at(s):
+        s = np.asarray(s, dtype=float)
+
+        def logdensity(q):
+            y = q / s
+            return -(y + 2 * np.log1p(np.exp(-y))).sum(-1)
+
+        def gradient(q):
+            return -np.tanh(q / s / 2) / s
+
+        report = hmc(["chin-4a"], logdensity=logdensity, gradient=gradient, start=[0.0, 0.0],
+                     mass=1 / s**2, trajectory_steps=10, step=1.5, draws=z * s)
+        return report.rows[0].at_step.acceptance
+
+    assert at(10.0 ** np.array(log_s)) == pytest.approx(at([1.0, 1.0]), rel=1e-6)

@@ -68,7 +68,7 @@ from stepsafe.core.hmc_target.estimate import (
     divergence_onset,
     target_step,
 )
-from stepsafe.core.hmc_target.frequencies import Spread, spread
+from stepsafe.core.hmc_target.frequencies import Spread, coordinate_scales, spread
 from stepsafe.core.hmc_target.modes import MODE_MASS, Survey, survey
 from stepsafe.core.hmc_target.potential import Target
 from stepsafe.core.hmc_target.trajectories import scheme
@@ -443,7 +443,7 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
         raise StepsafeError("the target has no positive curvature at any draw: no step limit",
                             f"{where}::$.system.potential" if where else "logdensity")
     estimator = Estimator(target, draws, seed=seed + 1,
-                          scale=float(np.median(draws.flat.std(axis=0))) or 1.0)
+                          scale=coordinate_scales(draws.flat))
     betas = laplace.betas if laplace is not None and laplace.positive_definite else None
     rows = []
     for m in methods:

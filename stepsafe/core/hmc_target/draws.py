@@ -469,7 +469,7 @@ def slow_direction(target: Target, laplace: Laplace) -> SlowGrowth | None:
             ray = laplace.mode + ts[:, None] * v
             with np.errstate(all="ignore"):
                 u = np.asarray(target.potential.energy(ray), dtype=float)
-            rise = np.diff(u) / math.log(10.0)
+                rise = np.diff(u) / math.log(10.0)
             if not np.isfinite(u).all():
                 continue
             alpha = float(rise.max())

@@ -108,11 +108,12 @@ class Estimator:
     seed
         Seed of the momenta and jitter variates.
     scale
-        Length scale of central differences where a method needs a Hessian.
+        Length scale of central differences where a method needs a Hessian: one for
+        every coordinate, or one per coordinate (the draws' spread along each).
     """
 
-    def __init__(self, target: Target, draws: Draws, seed: int = 0, scale: float = 1.0
-                 ) -> None:
+    def __init__(self, target: Target, draws: Draws, seed: int = 0,
+                 scale: float | np.ndarray = 1.0) -> None:
         self.target = target
         self.draws = draws
         self.seed = seed

@@ -92,7 +92,7 @@ def spread(target: Target, draws: Draws, *, seed: int = 0, limit: int = MAX_DRAW
     Spread
     """
     q = _subset(draws, limit)
-    scale = _scales(draws.flat)
+    scale = coordinate_scales(draws.flat)
     d = target.dimension
     with np.errstate(all="ignore"):
         if d <= EXACT_LIMIT:
@@ -115,7 +115,7 @@ def _eigenvalues(target: Target, q: np.ndarray, scale: np.ndarray) -> np.ndarray
 CHUNK_ELEMENTS = 2**20
 
 
-def _scales(flat: np.ndarray) -> np.ndarray:
+def coordinate_scales(flat: np.ndarray) -> np.ndarray:
     """The draws' spread along each axis (the length of central differences); where it is
     below 1e-8 of the mean absolute position (0, or the rounding of identical draws), that
     mean absolute position, else 1."""

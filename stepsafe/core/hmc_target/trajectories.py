@@ -104,7 +104,8 @@ class Proposals:
 
 def energy_errors(target: Target, run: Scheme, q0: np.ndarray, p0: np.ndarray,
                   h: float | np.ndarray, steps: int, energy0: np.ndarray | None = None,
-                  gradient0: np.ndarray | None = None, scale: float = 1.0) -> Proposals:
+                  gradient0: np.ndarray | None = None,
+                  scale: float | np.ndarray = 1.0) -> Proposals:
     """Run the proposals from ``(q0, p0)`` (shape (n, d)) at step ``h`` (a number, or one
     per trajectory of shape (n,)) for ``steps`` steps.
 
@@ -149,7 +150,7 @@ def energy_errors(target: Target, run: Scheme, q0: np.ndarray, p0: np.ndarray,
     return Proposals(delta, ran.forces / max(q0.shape[0], 1))
 
 
-def _system(target: Target, scale: float) -> System:
+def _system(target: Target, scale: float | np.ndarray) -> System:
     """The target's equations of motion for the engine, with the Hessian a force-gradient
     method asks for (the target's, or central differences over ``scale``)."""
     pot, mass = target.potential, target.mass
