@@ -277,3 +277,38 @@ def test_a_trajectory_length_beyond_a_million_steps_is_refused_naming_length(log
         hmc(["verlet"], logdensity=lambda q: -0.5 * (q * q).sum(-1), gradient=lambda q: -q,
             start=[0.1, 0.1], length=10.0 ** log_length)
     assert caught.value.where == "length"
+
+
+def test_a_draws_csv_with_a_byte_order_mark_reads_its_header(tmp_path):
+    """A CSV of draws exported with a UTF-8 byte-order mark before its header (as
+    spreadsheets write it) reads the same as without."""
+    from stepsafe.systems.potential import read_draws
+
+    rng = np.random.default_rng(2)
+    rows = "\n".join(f"{float(x)!r},{float(y)!r}" for x, y in rng.normal(size=(20, 2)))
+    plain, marked = tmp_path / "plain.csv", tmp_path / "marked.csv"
+    plain.write_text("x,y\n" + rows + "\n", encoding="utf-8")
+    marked.write_text("x,y\n" + rows + "\n", encoding="utf-8-sig")
+    assert marked.read_bytes().startswith(b"\xef\xbb\xbf")
+    a, b = read_draws(plain, ("x", "y")), read_draws(marked, ("x", "y"))
+    np.testing.assert_array_equal(a.positions, b.positions)
+
+
+@pytest.mark.parametrize("system, match", [
+    pytest.param({"potential": "x + y + z - (k - 1)*(log(x) + log(y) + log(z))",
+                  "q": ["x", "y", "z"], "parameters": {"k": 0.5}, "start": [0.5, 0.5, 0.5]},
+                 "nowhere positive", marks=pytest.mark.slow),  # samples first: ~5 s
+    ({"potential": "x**2/2 + y**2/2", "q": ["x", "y"], "mass": [1e-308, 1e-308]},
+     "not finite in float64"),
+])
+def test_a_target_without_a_finite_positive_curvature_is_refused_saying_why(
+        run, tmp_path, system, match):
+    """Gamma(1/2)^3 has negative curvature everywhere (no linear stability limit to bound
+    the search); unit curvature over masses of 1e-308 overflows float64: each refusal says
+    which, naming the scene's potential, exit 2."""
+    import yaml
+
+    scene = tmp_path / "t.yaml"
+    scene.write_text(yaml.safe_dump({"system": system}))
+    code, out, err = run("hmc", str(scene), "--steps", "10", "--methods", "verlet")
+    assert code == 2 and match in err and "t.yaml::$.system.potential" in err, (out, err)

@@ -238,7 +238,7 @@ def read_draws(path: str | Path, names: tuple[str, ...]) -> Draws:
     if b"\x00" in data:
         raise StepsafeError("binary file: draws are a .npy array or CSV text", where)
     try:
-        text = data.decode("utf-8")
+        text = data.decode("utf-8-sig")  # a leading byte-order mark, as spreadsheets write
     except UnicodeDecodeError as exc:
         raise StepsafeError(f"not UTF-8 text (byte {exc.start})", where) from None
     rows = [line.split("#", 1)[0].strip() for line in text.splitlines()]

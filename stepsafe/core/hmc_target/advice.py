@@ -440,8 +440,16 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
                      "target is not a recommendation (unverified)")
     freq = spread(target, draws, seed=seed + 2)
     if not freq.top > 0:
-        raise StepsafeError("the target has no positive curvature at any draw: no step limit",
-                            f"{where}::$.system.potential" if where else "logdensity")
+        blame = ("draws" if draws.source == "given" else
+                 f"{where}::$.system.potential" if where else "logdensity")
+        if not (np.isfinite(freq.omega_max).all() and np.isfinite(freq.lambda_min).all()):
+            raise StepsafeError("the curvature of the target at the draws is not finite in "
+                                "float64 (it overflows there): rescale the target, its mass "
+                                "or the draws", blame)
+        raise StepsafeError("the target has no positive curvature at any draw, so there is no "
+                            "linear stability limit to bound the step search (a density "
+                            "whose curvature is nowhere positive, such as a Gamma of shape "
+                            "below 1, is not analysed)", blame)
     estimator = Estimator(target, draws, seed=seed + 1,
                           scale=coordinate_scales(draws.flat))
     betas = laplace.betas if laplace is not None and laplace.positive_definite else None
