@@ -312,3 +312,12 @@ def test_a_target_without_a_finite_positive_curvature_is_refused_saying_why(
     scene.write_text(yaml.safe_dump({"system": system}))
     code, out, err = run("hmc", str(scene), "--steps", "10", "--methods", "verlet")
     assert code == 2 and match in err and "t.yaml::$.system.potential" in err, (out, err)
+
+
+def test_a_gaussian_option_beside_a_potential_scene_is_refused_naming_the_option(run, tmp_path):
+    """--sigma beside a scene whose system gives a potential: one line, exit 2, naming the
+    command-line options (not only the Python keyword they become)."""
+    scene = tmp_path / "t.yaml"
+    scene.write_text('system:\n  potential: "x**2/2"\n  q: [x]\n')
+    code, _, err = run("hmc", str(scene), "--sigma", "1", "--steps", "5", "--methods", "verlet")
+    assert code == 2 and "--sigma" in err and len(err.strip().splitlines()) == 1, err

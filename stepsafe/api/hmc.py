@@ -321,7 +321,8 @@ def _non_gaussian(found: Any, integrators: list[Integrator], inputs: dict[str, A
                                                    "progress"))
     if others:
         raise StepsafeError(f"give the target once: {others[0]}= beside a log-density or a "
-                            "potential")
+                            "potential (on the command line: --sigma, --beta, --modes or "
+                            "another frequency option beside a potential scene)")
     if criterion != "stability":
         raise StepsafeError("a target that is not Gaussian is searched below the stability "
                             "limit of the stiffest draw: criterion structure applies to "
