@@ -913,3 +913,26 @@ def test_force_gradient_estimates_are_the_same_at_every_scale_of_each_coordinate
         return report.rows[0].at_step.acceptance
 
     assert at(10.0 ** np.array(log_s)) == pytest.approx(at([1.0, 1.0]), rel=1e-6)
+
+
+@settings(max_examples=20, deadline=None)
+@given(d=st.integers(2, 5), bad=st.sampled_from([np.inf, -np.inf, np.nan]),
+       row=st.integers(0, 3), dense=st.booleans())
+def test_a_momentum_that_overflowed_gives_non_finite_velocities_not_an_error(d, bad, row,
+                                                                          dense):
+    """A kick whose force overflows leaves a non-finite momentum: with a diagonal or a
+    dense mass, M^-1 p of that row is non-finite (the trajectory diverges and is frozen)
+    and every other row is M^-1 p exactly as without it."""
+    from stepsafe.core.hmc_target.potential import mass_matrix
+
+    rng = np.random.default_rng(d)
+    A = rng.normal(size=(d, d))
+    M = A @ A.T + d * np.eye(d) if dense else rng.uniform(0.5, 2.0, d)
+    mass = mass_matrix(M, d)
+    p = rng.normal(size=(4, d))
+    clean = mass.velocity(p)
+    p[row, 0] = bad
+    v = mass.velocity(p)
+    assert not np.isfinite(v[row]).all()
+    others = [k for k in range(4) if k != row]
+    np.testing.assert_allclose(v[others], clean[others], rtol=1e-12)

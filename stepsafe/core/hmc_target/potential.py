@@ -157,13 +157,14 @@ class Mass:
         return int(self.matrix.shape[0])
 
     def velocity(self, p: np.ndarray) -> np.ndarray:
-        """``M^-1 p`` (rows of p: momenta)."""
+        """``M^-1 p`` (rows of p: momenta); a non-finite row gives a non-finite row (a
+        diverging trajectory, frozen by its integrator), not an error."""
         if self.diagonal:
             return p / self.matrix
         import scipy.linalg as sl
 
         flat = p.reshape(-1, self.dimension).T
-        out = sl.cho_solve((self.factor, True), flat)
+        out = sl.cho_solve((self.factor, True), flat, check_finite=False)
         return out.T.reshape(p.shape)
 
     def kinetic(self, p: np.ndarray) -> np.ndarray:
@@ -196,7 +197,8 @@ class Mass:
         import scipy.linalg as sl
 
         flat = v.reshape(-1, self.dimension).T
-        return sl.solve_triangular(self.factor.T, flat, lower=False).T.reshape(v.shape)
+        return sl.solve_triangular(self.factor.T, flat, lower=False,
+                                   check_finite=False).T.reshape(v.shape)
 
     def whiten(self, q: np.ndarray) -> np.ndarray:
         """``C^T q``: positions in the coordinates where the mass is the identity (the
@@ -212,7 +214,8 @@ class Mass:
         import scipy.linalg as sl
 
         flat = g.reshape(-1, self.dimension).T
-        return sl.solve_triangular(self.factor, flat, lower=True).T.reshape(g.shape)
+        return sl.solve_triangular(self.factor, flat, lower=True,
+                                   check_finite=False).T.reshape(g.shape)
 
 
 def mass_matrix(mass: Any, dimension: int, where: str = "mass") -> Mass:
