@@ -208,7 +208,7 @@ class TargetReport:
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
         "steps": "trajectory.steps", "length": "trajectory.length",
         "jitter": "trajectory.jitter", "cost_unit": "COST_UNIT",
-        "laplace": "laplace_record", "methods": "rows"})
+        "laplace": "laplace_record", "methods": "rows", "mode_search": "modes"})
 
     @property
     def ranked_by(self) -> str:

@@ -526,7 +526,8 @@ class Draws:
     #: the keys of ``hmc --json``'s ``draws`` record named after this sampler's attributes
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
         "sampler_step": "step", "sampler_max_steps": "max_steps",
-        "sampler_acceptance": "acceptance", "sampler_divergent": "divergent"})
+        "sampler_acceptance": "acceptance", "sampler_divergent": "divergent",
+        "stuck_chains": "stuck"})
 
     @property
     def chains(self) -> int:

@@ -35,8 +35,10 @@ mode can miss by a factor (hence the margin :data:`MISSED`).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from types import MappingProxyType
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -72,11 +74,15 @@ class Mode:
     """A mode: its position, U there, Laplace share (of the modes found), and the share of
     the draws in its ellipsoid (None before the draws are compared)."""
 
-    position: np.ndarray
+    position: tuple[float, ...]
     energy: float
     hessian: np.ndarray
     share: float
     visited: float | None = None
+
+    #: the keys of ``hmc --json``'s records of modes named after other attributes
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
+        "laplace_share": "share", "draws_within": "visited"})
 
     @property
     def missed(self) -> bool:
@@ -87,7 +93,7 @@ class Mode:
 
     def record(self) -> dict[str, Any]:
         """This mode as ``hmc --json`` gives it."""
-        return {"position": [float(x) for x in self.position], "energy": self.energy,
+        return {"position": list(self.position), "energy": self.energy,
                 "laplace_share": self.share, "draws_within": self.visited,
                 "missed": self.missed}
 
@@ -104,6 +110,20 @@ class Survey:
     modes: tuple[Mode, ...]
     stopped: str | None = None
 
+    #: the share below which a mode is not checked (:data:`MODE_MASS`)
+    MODE_MASS: ClassVar[float] = MODE_MASS
+    #: what the search covers
+    COVERS: ClassVar[str] = "modes whose basin of descent one of the starts reached"
+    #: the keys of ``hmc --json``'s ``mode_search`` named after other attributes
+    JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
+        "starts_per_scale": "starts", "missed_count": "missed_count",
+        "mode_mass": "MODE_MASS", "covers": "COVERS"})
+
+    @property
+    def missed_count(self) -> int:
+        """How many modes the draws miss."""
+        return len(self.missed)
+
     @property
     def missed(self) -> tuple[Mode, ...]:
         """The modes the draws miss (:attr:`Mode.missed`), the first never among them."""
@@ -118,7 +138,7 @@ class Survey:
         radius = float(chi2.ppf(ELLIPSOID, d))
         modes = []
         for m in self.modes:
-            x = flat - m.position
+            x = flat - np.asarray(m.position)
             inside = np.einsum("ni,ij,nj->n", x, m.hessian, x) <= radius
             modes.append(Mode(m.position, m.energy, m.hessian, m.share,
                               float(inside.mean())))
@@ -129,8 +149,8 @@ class Survey:
         return {"starts_per_scale": self.starts, "scales": list(self.scales),
                 "iterations": self.iterations, "stopped": self.stopped,
                 "modes": [m.record() for m in self.modes],
-                "missed": len(self.missed), "mode_mass": MODE_MASS,
-                "covers": "modes whose basin of descent one of the starts reached"}
+                "missed_count": self.missed_count, "mode_mass": self.MODE_MASS,
+                "covers": self.COVERS}
 
     def missed_text(self) -> str | None:
         """Why the draws do not represent the target, naming the modes they miss; None."""
@@ -191,7 +211,7 @@ def survey(target: Target, laplace: Laplace, seed: int) -> Survey | None:
         return sl.solve_triangular(L, g.T, lower=True).T
 
     u_mode = float(u_of(mode[None, :])[0])
-    first = Mode(mode, u_mode, H, 1.0)
+    first = Mode(tuple(float(x) for x in mode), u_mode, H, 1.0)
     rng = np.random.default_rng(seed)
     z = np.concatenate([s * rng.standard_normal((per_scale, d)) for s in SCALES])
     stopped = None
@@ -231,7 +251,8 @@ def survey(target: Target, laplace: Laplace, seed: int) -> Survey | None:
             if zm is None or np.linalg.norm(zm) <= SAME:
                 continue
             qm = to_q(zm[None, :])[0]
-            if any(np.linalg.norm(L.T @ (qm - m.position)) <= SAME for m in found[1:]):
+            if any(np.linalg.norm(L.T @ (qm - np.asarray(m.position))) <= SAME
+                   for m in found[1:]):
                 continue
             Hm = own_scale_hessian(pot, qm, np.sqrt(np.diag(np.linalg.inv(H))))
             if Hm is None:
@@ -239,7 +260,8 @@ def survey(target: Target, laplace: Laplace, seed: int) -> Survey | None:
             Hm = 0.5 * (Hm + Hm.T)
             if not np.linalg.eigvalsh(Hm)[0] > 0:
                 continue
-            found.append(Mode(qm, float(u_of(qm[None, :])[0]), Hm, 0.0))
+            found.append(Mode(tuple(float(x) for x in qm), float(u_of(qm[None, :])[0]), Hm,
+                              0.0))
     except StepsafeError as exc:
         stopped = f"the search stopped: {exc}"
     # Laplace masses: exp(-U) det(H)^-1/2, as shares of their sum
