@@ -70,7 +70,7 @@ def test_gaussian_ranking_is_gradients_per_accepted_proposal_at_the_L_run(trajec
     sigma, n = 0.5, 4
     report = hmc(SPLITTINGS, sigma=[sigma] * n, **trajectory)
     assert report.ranked_by == "gradients_per_accepted"
-    independent = {}
+    independent, per_time = {}, {}
     for row in report.rows:
         m = method(row.method)
         L = trajectory.get("trajectory_steps") or max(1, math.floor(3.0 / row.h_target))
@@ -79,8 +79,12 @@ def test_gaussian_ranking_is_gradients_per_accepted_proposal_at_the_L_run(trajec
         assert row.acceptance == pytest.approx(acc, rel=1e-9, abs=1e-12)
         assert row.evaluations == kicks_per_step(m)
         independent[row.method] = L * kicks_per_step(m) / acc
+        per_time[row.method] = kicks_per_step(m) / (acc * row.h_target)
         assert row.gradients_per_accepted == pytest.approx(independent[row.method], rel=1e-9)
-    order = sorted(independent, key=independent.get)
+    # costs equal to 5 digits tie (h at target is searched to 1e-6): the cost per accepted
+    # unit of time orders them
+    order = sorted(independent, key=lambda name: (float(f"{independent[name]:.5g}"),
+                                                  per_time[name]))
     assert [r.method for r in report.rows] == order
     assert [r.rank for r in report.rows] == list(range(1, len(order) + 1))
 

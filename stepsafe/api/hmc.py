@@ -37,6 +37,7 @@ offered here.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -85,6 +86,9 @@ APPROXIMATE_NOTE = ("the acceptance at h at target is approximate (more distinct
                     "a checked rule of the spectrum stands for, turns of L theta across the "
                     "jitter, or steps L than float64 integrates exactly: above 1e6 steps "
                     "L theta carries an error of eps L pi)")
+#: Significant digits of a ranking's cost that order the methods (fewer than the search for
+#: h at target resolves).
+RANK_DIGITS = 5
 #: Methods compared when none are named: the integrators HMC codes ship.
 HMC_DEFAULT = ("verlet", "mclachlan2-min", "bcss2", "bcss3", "yoshida4", "pefrl")
 
@@ -294,8 +298,17 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         value = getattr(row, key)
         return None if value is None else float(value)
 
+    other = next(name for name in core.RANKINGS if name != key)
+
+    def figure(value: float | None) -> float:
+        # costs that agree to RANK_DIGITS digits tie (h at target is found to a relative
+        # 1e-6, so further digits are the search's, not the method's): the other ranking,
+        # then the order given, decides
+        return math.inf if value is None else float(f"{float(value):.{RANK_DIGITS}g}")
+
     usable = [cost(r) is not None and r.symmetric for r in rows]
-    order = sorted(range(len(rows)), key=lambda k: (not usable[k], cost(rows[k]) or 0.0))
+    order = sorted(range(len(rows)), key=lambda k: (
+        not usable[k], figure(cost(rows[k])), figure(getattr(rows[k], other)), k))
     out, rank = [], 0
     for k in order:
         rank += usable[k]

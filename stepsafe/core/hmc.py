@@ -699,8 +699,51 @@ def acceptance_curve(method: Method, betas: np.ndarray, hs: np.ndarray,
 EXACT_STEPS = 10**6
 
 
-#: The target step is searched on this many grid points below the upper end, then narrowed
+#: The target step is searched on at least this many grid points below the upper end, then
+#: narrowed
 TARGET_GRID = 32
+#: ... and on this many points per half-turn of what makes a given trajectory's acceptance
+#: oscillate in h (:func:`target_grid`), up to :data:`MAX_TARGET_GRID` points.
+HALF_TURN_POINTS = 4
+MAX_TARGET_GRID = 1024
+
+
+def target_grid(trajectory: Trajectory, h_hi: float, least: int = TARGET_GRID) -> np.ndarray:
+    """The grid of steps in ``(0, h_hi]`` a search for the step at target walks.
+
+    With L steps given, an oscillator's energy error after L steps carries the factor
+    ``sin^2(L theta(h))``; over ``0 < h <= h_hi`` the per-step angle theta rises from 0 to
+    at most pi, so the acceptance dips at most L times, once per half-turn of ``L theta``:
+    the grid has :data:`HALF_TURN_POINTS` points per half-turn, ``4 L``. With an
+    integration time T, ``L = floor(T / h)`` jumps at ``h = T / k``, teeth of width
+    ``h^2 / T`` near h; the grid puts :data:`HALF_TURN_POINTS` points in each tooth from
+    ``h_hi / 2`` up, ``16 T / h_hi`` points (where the acceptance is near 1 further down, a
+    tooth's dip does not reach the target). Unknown L (the bound over every L): ``least``.
+    Always at least ``least`` and at most :data:`MAX_TARGET_GRID` points.
+
+    Parameters
+    ----------
+    trajectory : Trajectory
+        L, or the integration time, and the jitter.
+    h_hi : float
+        The upper end (> 0).
+    least : int
+        The fewest points.
+
+    Returns
+    -------
+    numpy.ndarray
+        The steps, increasing, the last ``h_hi``.
+    """
+    turns = 0.0
+    if trajectory.steps is not None:
+        turns = float(trajectory.steps)
+    elif trajectory.length is not None:
+        with np.errstate(over="ignore"):
+            turns = 4.0 * trajectory.length / h_hi
+    wanted = HALF_TURN_POINTS * turns if math.isfinite(turns) else MAX_TARGET_GRID
+    n = int(min(MAX_TARGET_GRID, max(least, math.ceil(wanted))))
+    return h_hi * (np.arange(1, n + 1) / n)
 #: ... to this relative width (a prediction: finer says nothing more).
 TARGET_RTOL = 1e-6
 
@@ -712,7 +755,7 @@ PEAK_GRID = 1024
 def target_step(method: Method, betas: np.ndarray, target: float, h_hi: float,
                 trajectory: Trajectory = Trajectory(), h_lo: float = 0.0) -> float | None:
     """The largest h below ``h_hi`` such that the predicted acceptance is at least
-    ``target`` at every step from 0 to h, checked on a grid of :data:`TARGET_GRID` steps and
+    ``target`` at every step from 0 to h, checked on the grid of :func:`target_grid` and
     at every local maximum of the total error bound ``sum_k rho(beta_k h)`` (located on
     :data:`PEAK_GRID` steps and refined by a parabola), then narrowed to
     :data:`TARGET_RTOL` (:func:`stepsafe.core.roots.narrowed`: regula falsi between the
@@ -736,7 +779,7 @@ def target_step(method: Method, betas: np.ndarray, target: float, h_hi: float,
             lo, f_lo = 0.0, 1.0 - target
     known = lo  # every step up to it reaches the target
     bad: tuple[float, float] | None = None
-    for h in h_hi * (np.arange(1, TARGET_GRID + 1) / TARGET_GRID):
+    for h in target_grid(trajectory, h_hi):
         if h <= known:
             continue
         f = excess(float(h))

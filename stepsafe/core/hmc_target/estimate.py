@@ -17,9 +17,11 @@ function of h: a search for the step at target acceptance is a root search on on
 and differences between methods or steps are not blurred by independent noise.
 
 Step at target (:func:`target_step`). The largest h below ``h_hi`` with the estimated
-acceptance at least the target at every step of a grid of :data:`TARGET_GRID` steps up to
-h, then narrowed to :data:`TARGET_RTOL` (regula falsi, :func:`narrowed`); its standard error
-is the acceptance's standard error there divided by the slope of the estimate (a central
+acceptance at least the target at every step of a grid up to h (at least
+:data:`TARGET_GRID` steps, more for a given L or integration time: the acceptance of a given
+trajectory oscillates in h, :func:`stepsafe.core.hmc.target_grid`), then narrowed to
+:data:`TARGET_RTOL` (regula falsi, :func:`narrowed`); its standard error is the
+acceptance's standard error there divided by the slope of the estimate (a central
 difference), none where the step is capped at ``h_hi``.
 
 Divergence onset (:func:`divergence_onset`). On a grid of steps the first with a divergent
@@ -35,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stepsafe.core.hmc import Trajectory
+from stepsafe.core.hmc import Trajectory, target_grid
 from stepsafe.core.hmc_target.draws import Draws
 from stepsafe.core.hmc_target.potential import Target
 from stepsafe.core.hmc_target.statistics import chain_mean
@@ -221,7 +223,7 @@ def target_step(estimator: Estimator, run: Scheme, target: float, h_hi: float,
 
     lo, f_lo = 0.0, 1.0 - target
     hi = f_hi = None
-    for h in h_hi * np.arange(1, TARGET_GRID + 1) / TARGET_GRID:
+    for h in target_grid(trajectory, h_hi, TARGET_GRID):
         f = excess(float(h))
         if f < 0:
             hi, f_hi = float(h), f
