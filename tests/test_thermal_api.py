@@ -61,6 +61,18 @@ def test_temperature_in_kelvin_is_the_boltzmann_energy_in_the_scenes_unit(tmp_pa
         pytest.approx(2.585e-2, rel=1e-3)
 
 
+def test_a_temperature_keyword_wins_over_the_scenes_kT_and_kT_over_its_temperature(tmp_path):
+    """The scene's ``kT:`` and a ``temperature=`` keyword (or its ``temperature:`` and
+    ``kT=``) are not both given: the keyword wins, as every keyword over the scene's key."""
+    path = tmp_path / "s.yaml"
+    path.write_text(MORSE + "energy_unit: kJ/mol\nkT: 0.5\nsteps: 10\n")
+    r = request(temperature="300K", scene=load_scene(path))
+    assert r.temperature == 300.0 and r.kT == pytest.approx(2.494, rel=1e-3)
+    path.write_text(MORSE + "energy_unit: kJ/mol\ntemperature: 300 K\nsteps: 10\n")
+    r = request(kT=0.6, scene=load_scene(path))
+    assert r.kT == 0.6 and r.temperature is None
+
+
 def test_keywords_win_over_the_scenes_keys_and_a_length_takes_the_time_unit(tmp_path):
     path = tmp_path / "s.yaml"
     path.write_text(MORSE + "time_unit: fs\nkT: 0.5\nlength: 2 ps\n")

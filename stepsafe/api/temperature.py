@@ -129,8 +129,9 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
             time_unit: str | None = None) -> Request | None:
     """The request of the keywords (the command line's options), else of the scene's
     ``temperature:``, ``kT:``, ``length:`` and ``steps:`` (each keyword wins over the
-    scene's key), checked: None without a temperature or at T = 0; a bad value is an error
-    naming its key.
+    scene's key; a temperature keyword also wins over the scene's ``kT:``, and kT over its
+    ``temperature:``), checked: None without a temperature or at T = 0; a bad value is an
+    error naming its key.
 
     Parameters
     ----------
@@ -178,9 +179,15 @@ def request(*, temperature: Any = None, kT: Any = None, length: Any = None,
 
     t_value, t_given = value("temperature")
     k_value, k_given = value("kT")
+    if t_value is not None and k_value is not None and t_given != k_given:
+        # a keyword wins over the scene's key, as length over steps: the other is the scene's
+        if t_given:
+            k_value = None
+        else:
+            t_value = None
     if t_value is not None and k_value is not None:
         raise _fail("give temperature (kelvin) or kT (energy), not both", scene,
-                    "temperature" if t_given or not k_given else "kT", t_given or k_given)
+                    "temperature", t_given)
     unit = keys.get("energy_unit")
     if unit is not None and unit not in ENERGY_UNITS:
         raise StepsafeError(f"must be one of {', '.join(ENERGY_UNITS)}, got {str(unit)[:20]!r}",
