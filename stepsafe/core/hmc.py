@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -779,6 +780,7 @@ def target_step(method: Method, betas: np.ndarray, target: float, h_hi: float,
             lo, f_lo = 0.0, 1.0 - target
     known = lo  # every step up to it reaches the target
     bad: tuple[float, float] | None = None
+    walked: list[tuple[float, float]] = [(lo, f_lo)] if lo > 0 else []
     for h in target_grid(trajectory, h_hi):
         if h <= known:
             continue
@@ -786,6 +788,20 @@ def target_step(method: Method, betas: np.ndarray, target: float, h_hi: float,
         if f < 0:
             bad = (float(h), f)
             break
+        walked.append((float(h), f))
+        # a dip narrower than the grid's spacing: its lowest point, between the neighbours
+        # of a grid step lower than both, or past the first step walked when it rises from it
+        ends = None
+        if len(walked) >= 3 and walked[-2][1] < min(walked[-3][1], f):
+            ends = (walked[-3][0], walked[-1][0])
+        elif len(walked) == 2 and known > 0 and walked[0][1] < f:
+            ends = (walked[0][0], walked[1][0])
+        if ends is not None:
+            dip = _lowest(excess, *ends)
+            if dip[1] < 0:
+                bad = dip
+                lo, f_lo = max(w for w in walked if w[0] < dip[0])
+                break
         lo, f_lo = float(h), f
     reach = h_hi if bad is None else bad[0]
     good = [(lo, f_lo)] if lo > 0 else []
@@ -812,6 +828,25 @@ def target_step(method: Method, betas: np.ndarray, target: float, h_hi: float,
         else:
             return None
     return narrowed(excess, lo, f_lo, hi, f_hi, TARGET_RTOL)
+
+
+def _lowest(f: Callable[[float], float], a: float, b: float,
+            rtol: float = TARGET_RTOL) -> tuple[float, float]:
+    """The lowest point of ``f`` on ``[a, b]`` by golden-section search (f with one minimum
+    there), to a bracket ``rtol * b`` wide: ``(h, f(h))``."""
+    ratio = (math.sqrt(5.0) - 1.0) / 2.0
+    c, d = b - ratio * (b - a), a + ratio * (b - a)
+    fc, fd = f(c), f(d)
+    while b - a > rtol * b:
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - ratio * (b - a)
+            fc = f(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + ratio * (b - a)
+            fd = f(d)
+    return (c, fc) if fc < fd else (d, fd)
 
 
 def _bound_peaks(method: Method, betas: np.ndarray, h_hi: float,
