@@ -170,6 +170,7 @@ def _hmc_code(scene: str, *args: str) -> tuple[int, str]:
         return result.exit_code, result.stderr
 
 
+@pytest.mark.slow
 @settings(max_examples=3, deadline=None, suppress_health_check=list(HealthCheck),
           phases=(Phase.explicit, Phase.reuse, Phase.generate))
 @given(k=st.floats(1.5, 3.0), theta_exp=st.integers(-3, 3))

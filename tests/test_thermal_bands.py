@@ -70,7 +70,8 @@ def test_many_steps_at_once_equal_each_step_alone_bit_for_bit():
 
 @pytest.mark.parametrize("m, threshold, confidence", [
     (1, 0.01, 0.95), (10, 0.01, 0.95), (300, 0.01, 0.95), (500, 0.01, 0.95),
-    (2995, 0.01, 0.95), (299, 0.001, 0.99), (50, 0.3, 0.9), (5, 0.9, 0.95)])
+    pytest.param(2995, 0.01, 0.95, marks=pytest.mark.slow), (299, 0.001, 0.99), (50, 0.3, 0.9),
+    (5, 0.9, 0.95)])
 def test_band_failures_are_the_fewest_whose_binomial_tail_at_the_threshold_is_rare(
         m, threshold, confidence):
     """``band_failures`` is the least k with ``P(X >= k | p = threshold) < 1 - confidence``
