@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_hmc_target_draws import _verlet_energy_errors
 
 from stepsafe import hmc
 
@@ -67,17 +68,7 @@ def _exact_draws(w: float, n: int, rng: np.random.Generator, k: float = 1.0) -> 
 def _verlet_acceptance(energy, gradient, q, h, steps, rng):
     """Mean of min(1, e^-dH) over L Verlet steps from each row of q with p ~ N(0, I), its
     standard error, and the divergent share."""
-    p = rng.normal(size=q.shape)
-    h0 = energy(q) + 0.5 * (p * p).sum(-1)
-    with np.errstate(all="ignore"):
-        g = gradient(q)
-        for _ in range(steps):
-            p = p - 0.5 * h * g
-            q = q + h * p
-            g = gradient(q)
-            p = p - 0.5 * h * g
-        dh = energy(q) + 0.5 * (p * p).sum(-1) - h0
-    dh = np.where(np.isfinite(dh), dh, np.inf)
+    dh = _verlet_energy_errors(gradient, energy, q, h, steps, rng)
     a = np.exp(-np.maximum(dh, 0.0))
     return float(a.mean()), float(a.std(ddof=1) / math.sqrt(a.size)), float((dh > 1000).mean())
 
