@@ -287,11 +287,16 @@ def criterion_text(growth: float = GROWTH, distance: float = DISTANCE,
     if start is None:
         return out
     for e in start.exits:
-        along = f" along q_{e.axis + 1}" if start.q.shape[1] > 1 else ""
-        out += (f"; or it leaves the well{along}: its sqrt(m) (q - q0) passes {e.at:.6g}, "
+        if e.direction is not None:
+            along = f" along the normal mode of omega = {e.omega:.6g}"
+            where, what = "e . sqrt(M)", "direction"
+        else:
+            along = f" along q_{e.axis + 1}" if start.q.shape[1] > 1 else ""
+            where, what = "sqrt(m)", "coordinate"
+        out += (f"; or it leaves the well{along}: its {where} (q - q0) passes {e.at:.6g}, "
                 f"where the profile levels off or tops a barrier "
                 f"{e.energy / start.kT:.3g} kT above the minimum, or lies beyond "
-                f"{e.edge:.6g} with more energy than that in that coordinate")
+                f"{e.edge:.6g} with more energy than that in that {what}")
     return out
 
 

@@ -54,6 +54,15 @@ PLATEAU = 12.0
 #: Past a barrier below the cut, the walk goes on this many times further for the wall
 #: that confines the basins beyond it.
 BEYOND = 4
+#: A normal mode whose mass-weighted unit vector has a component whose square exceeds
+#: ``1 - AXIS_ALONG`` lies along that coordinate (its profile is the coordinate's).
+AXIS_ALONG = 1e-9
+#: Beyond ``EXACT_UP_TO`` coordinates, the profiles along this many of the fastest modes are
+#: walked for exits (Lanczos finds no more at a bounded cost).
+MODE_EXITS_LARGE = 3
+#: Points of the walk's first look out from the minimum (16 thermal amplitudes; a side
+#: rising to the cut within them is settled by them).
+FIRST = 128
 #: Points over +-4 thermal amplitudes where a 1-D U must be resolved in float64 ...
 RESOLVE = 801
 #: ... its rounding noise below this many kT.
@@ -202,7 +211,8 @@ def gaussian(pot: Potential, kT: float, count: int, rng: np.random.Generator) ->
 class Exit:
     """A side of a 1-D well that does not confine: U levels off (a dissociation plateau) or
     falls past a barrier before it rises ``cut kT`` (:func:`well`); for a system of several
-    coordinates, a side of its profile along one of them (:func:`axis_exits`).
+    coordinates, a side of its profile along a coordinate (:func:`axis_exits`) or along a
+    normal mode at the minimum (:func:`mode_exits`).
 
     Attributes
     ----------
@@ -216,9 +226,14 @@ class Exit:
         The first point out from the minimum where ``U - U(q0)`` reaches ``energy - kT``:
         beyond it a trajectory of energy above ``energy`` is not turned back by the well.
     axis : int
-        The coordinate (0 for one); for :func:`axis_exits` ``at`` and ``edge`` are
-        mass-weighted displacements from the minimum, ``sqrt(m) (q - q0)`` of that
-        coordinate.
+        The coordinate (0 for one; -1 along a normal mode); for a system of several
+        coordinates ``at`` and ``edge`` are positions ``s`` on the profile
+        ``u(s) = U(q0 + s M^-1/2 e)``: ``s = e . M^1/2 (q - q0)``, for a coordinate
+        ``sqrt(m) (q - q0)`` of that coordinate.
+    direction : tuple of float, optional
+        The mass-weighted unit vector e of a normal mode's profile (None along a coordinate).
+    omega : float
+        That mode's frequency at the minimum (NaN along a coordinate).
     """
 
     side: float
@@ -226,6 +241,8 @@ class Exit:
     energy: float
     edge: float
     axis: int = 0
+    direction: tuple[float, ...] | None = None
+    omega: float = math.nan
 
 
 def well(pot: Potential, kT: float, cut: float = CUT
@@ -265,12 +282,56 @@ def axis_exits(pot: Potential, kT: float, cut: float = CUT) -> tuple[Exit, ...]:
     for i in range(pot.dimension):
         e = np.zeros(pot.dimension)
         e[i] = 1.0
-        try:
-            found = exits(profile(pot, pot.minimum, mode_direction(pot, e)), kT, cut)
-        except StepsafeError:
-            continue
-        out += [dataclasses.replace(x, axis=i) for x in found]
+        out += [dataclasses.replace(x, axis=i) for x in _profile_exits(pot, e, kT, cut)]
     return tuple(out)
+
+
+def mode_exits(pot: Potential, kT: float, cut: float = CUT) -> tuple[Exit, ...]:
+    """The exits of the profiles along the normal modes at the minimum,
+    ``u(s) = U(q0 + s M^-1/2 e)`` for each unit eigenvector e of the mass-weighted Hessian
+    (:func:`exits`; positions in s): where a trajectory leaves along a combination of
+    coordinates, as a bond written as the difference of two of them dissociates. Every
+    mode for ``n <= EXACT_UP_TO`` (one eigendecomposition), the ``MODE_EXITS_LARGE``
+    fastest beyond (Lanczos); a mode of curvature not above its error bound (a free
+    direction) is left out, and so is one that lies along a coordinate (``e_i^2 > 1 -
+    AXIS_ALONG``: :func:`axis_exits` walks that profile). None for one coordinate, or where
+    the modes at the minimum cannot be found."""
+    n = pot.dimension
+    if pot.minimum is None or n == 1:
+        return ()
+    try:
+        found = modes(pot, pot.minimum, count=None if n <= EXACT_UP_TO else MODE_EXITS_LARGE)
+    except StepsafeError:
+        return ()
+    if not (np.all(np.isfinite(found.eigenvalues)) and np.isfinite(found.error)):
+        return ()
+    out: list[Exit] = []
+    for j in range(found.eigenvalues.size):
+        e = found.vectors[:, j] / np.linalg.norm(found.vectors[:, j])
+        if not found.eigenvalues[j] > found.error or np.max(e * e) > 1.0 - AXIS_ALONG:
+            continue
+        omega = math.sqrt(float(found.eigenvalues[j]))
+        out += [dataclasses.replace(x, axis=-1, direction=tuple(float(v) for v in e),
+                                    omega=omega) for x in _profile_exits(pot, e, kT, cut)]
+    return tuple(out)
+
+
+def well_exits(pot: Potential, kT: float, cut: float = CUT) -> tuple[Exit, ...]:
+    """Where a trajectory leaves the well of the minimum: :func:`axis_exits` and
+    :func:`mode_exits`."""
+    return axis_exits(pot, kT, cut) + mode_exits(pot, kT, cut)
+
+
+def _profile_exits(pot: Potential, e: np.ndarray, kT: float, cut: float
+                   ) -> tuple[Exit, ...]:
+    """:func:`exits` of the profile along the mass-weighted unit vector e (none where the
+    walk cannot bound its well)."""
+    if pot.minimum is None:
+        return ()
+    try:
+        return exits(profile(pot, pot.minimum, mode_direction(pot, e)), kT, cut)
+    except StepsafeError:
+        return ()
 
 
 def _walk(pot: Potential, kT: float, cut: float
@@ -295,14 +356,20 @@ def _walk(pot: Potential, kT: float, cut: float
     out: list[Exit] = []
     last = 8 * REACH
     for sign in (-1.0, 1.0):
-        k = np.arange(1, BEYOND * last + 1)
-        s = s0 + sign * step * k
-        with np.errstate(all="ignore"):
-            u = pot.energy(s[:, None]) - u0
-        bad = ~np.isfinite(u)
-        near = slice(0, last)
-        hit = np.flatnonzero((u[near] >= cut * kT) | bad[near])
-        end = int(hit[0]) if hit.size else last - 1
+        # the first FIRST points decide a side that rises to the cut (or stops being
+        # finite) without falling on the way, the usual wall; any other side is walked
+        # whole, as if that look had not been taken
+        for size in (FIRST, BEYOND * last):
+            k = np.arange(1, size + 1)
+            s = s0 + sign * step * k
+            with np.errstate(all="ignore"):
+                u = pot.energy(s[:, None]) - u0
+            bad = ~np.isfinite(u)
+            near = slice(0, last)
+            hit = np.flatnonzero((u[near] >= cut * kT) | bad[near])
+            end = int(hit[0]) if hit.size else last - 1
+            if hit.size and (bad[end] or not np.any(np.diff(u[:end + 1]) < 0)):
+                break
         if hit.size and bad[end]:
             raise StepsafeError(f"U is not finite at {s[end]:.6g}, inside the well at "
                                 f"kT = {kT:.6g}")

@@ -56,7 +56,8 @@ from stepsafe.core.ensemble import Trajectories, integrate
 from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import Method
 from stepsafe.systems.thermal.potential import Potential, system_of
-from stepsafe.systems.thermal.sampling import Exit, axis_exits, draw, momenta
+from stepsafe.systems.thermal.sampling import Exit, draw, momenta
+from stepsafe.systems.thermal.sampling import well_exits as well_exits_of
 
 #: Energy beyond ``GROWTH rho^2`` times the initial energy (above U_ref) is a failure.
 GROWTH = 4.0
@@ -136,8 +137,8 @@ def thermal_start(pot: Potential, kT: float, count: int, seed: int = 0,
     how : str
         How those were drawn.
     well_exits : tuple of Exit, optional
-        Where the well can be left (default: ``axis_exits(pot, kT)``, none for a
-        quadratic potential).
+        Where the well can be left (default: ``well_exits(pot, kT)``, along the
+        coordinates and the normal modes; none for a quadratic potential).
 
     Returns
     -------
@@ -165,7 +166,7 @@ def thermal_start(pot: Potential, kT: float, count: int, seed: int = 0,
             low.append(float(np.nanmin(pot.energy(grid))))
     U0 = min(x for x in low if math.isfinite(x)) if any(map(math.isfinite, low)) else U0
     if well_exits is None:
-        well_exits = () if pot.quadratic else axis_exits(pot, kT)
+        well_exits = () if pot.quadratic else well_exits_of(pot, kT)
     return Start(q, p, float(kT), q0, U0, extent, seed, how, tuple(well_exits))
 
 
@@ -177,11 +178,17 @@ def leaving(pot: Potential, start: Start
         return None
     root = np.sqrt(pot.masses)
     q0 = start.reference
+    along = [e for e in start.exits if e.direction is None]
+    modal = [e for e in start.exits if e.direction is not None]
+    # the normal-mode exits' directions, one column each: s = (q - q0) . (e sqrt(m)) and
+    # its velocity p . (e / sqrt(m)); the point of the profile behind q is q - s e / sqrt(m)
+    unit = np.array([e.direction for e in modal], dtype=float).T.reshape(pot.dimension, -1)
+    weigh, back_along = unit * root[:, None], unit / root[:, None]
 
     def leaves(q: np.ndarray, p: np.ndarray) -> np.ndarray:
         out = np.zeros(q.shape[0], dtype=bool)
         with np.errstate(all="ignore"):
-            for e in start.exits:
+            for e in along:
                 i = e.axis
                 s = root[i] * (q[:, i] - q0[i])
                 out |= e.side * (s - e.at) > 0
@@ -193,6 +200,18 @@ def leaving(pot: Potential, start: Start
                     own = 0.5 * p[near, i] ** 2 / pot.masses[i] + (pot.energy(x)
                                                                  - pot.energy(back))
                     out[near] |= ~(own <= e.energy)
+            if modal:
+                s_all = (q - q0[None, :]) @ weigh
+                for j, e in enumerate(modal):
+                    s = s_all[:, j]
+                    out |= e.side * (s - e.at) > 0
+                    near = np.flatnonzero((e.side * (s - e.edge) > 0) & ~out)
+                    if near.size:  # (rare: within kT of the exit's energy)
+                        x = q[near]
+                        back = x - s[near, None] * back_along[None, :, j]
+                        speed = p[near] @ back_along[:, j]
+                        own = 0.5 * speed ** 2 + (pot.energy(x) - pot.energy(back))
+                        out[near] |= ~(own <= e.energy)
         return out
     return leaves
 
