@@ -287,7 +287,12 @@ def criterion_text(growth: float = GROWTH, distance: float = DISTANCE,
     if start is None:
         return out
     for e in start.exits:
-        if e.direction is not None:
+        if e.split:
+            n = start.q.shape[1]
+            along = (f" where q_1..q_{e.split} part from q_{e.split + 1}..q_{n} (centre of "
+                     f"mass fixed)")
+            where, what = "e . sqrt(M)", "direction"
+        elif e.direction is not None:
             along = f" along the normal mode of omega = {e.omega:.6g}"
             where, what = "e . sqrt(M)", "direction"
         else:

@@ -211,8 +211,9 @@ def gaussian(pot: Potential, kT: float, count: int, rng: np.random.Generator) ->
 class Exit:
     """A side of a 1-D well that does not confine: U levels off (a dissociation plateau) or
     falls past a barrier before it rises ``cut kT`` (:func:`well`); for a system of several
-    coordinates, a side of its profile along a coordinate (:func:`axis_exits`) or along a
-    normal mode at the minimum (:func:`mode_exits`).
+    coordinates, a side of its profile along a coordinate (:func:`axis_exits`), a normal
+    mode at the minimum (:func:`mode_exits`) or a split of the coordinates in two groups
+    (:func:`split_exits`).
 
     Attributes
     ----------
@@ -226,14 +227,16 @@ class Exit:
         The first point out from the minimum where ``U - U(q0)`` reaches ``energy - kT``:
         beyond it a trajectory of energy above ``energy`` is not turned back by the well.
     axis : int
-        The coordinate (0 for one; -1 along a normal mode); for a system of several
+        The coordinate (0 for one; -1 along a mode or a split); for a system of several
         coordinates ``at`` and ``edge`` are positions ``s`` on the profile
         ``u(s) = U(q0 + s M^-1/2 e)``: ``s = e . M^1/2 (q - q0)``, for a coordinate
         ``sqrt(m) (q - q0)`` of that coordinate.
     direction : tuple of float, optional
-        The mass-weighted unit vector e of a normal mode's profile (None along a coordinate).
+        The mass-weighted unit vector e of the profile (None along a coordinate).
     omega : float
-        That mode's frequency at the minimum (NaN along a coordinate).
+        Along a normal mode, its frequency at the minimum (else NaN).
+    split : int
+        Along :func:`split_direction`, the first coordinate of the second group (else 0).
     """
 
     side: float
@@ -243,6 +246,7 @@ class Exit:
     axis: int = 0
     direction: tuple[float, ...] | None = None
     omega: float = math.nan
+    split: int = 0
 
 
 def well(pot: Potential, kT: float, cut: float = CUT
@@ -316,10 +320,59 @@ def mode_exits(pot: Potential, kT: float, cut: float = CUT) -> tuple[Exit, ...]:
     return tuple(out)
 
 
+def split_direction(masses: np.ndarray, k: int) -> np.ndarray:
+    """The mass-weighted unit vector e that moves coordinates ``0..k-1`` rigidly against
+    ``k..n-1`` at a fixed centre of mass: ``q - q0 = s M^-1/2 e`` shifts the first group by
+    ``-s t M_B`` and the second by ``s t M_A`` (``M_A``, ``M_B`` their masses, ``M`` the
+    sum, ``t = 1 / sqrt(M_A M_B M)``), so that ``s = e . M^1/2 (q - q0) = t (M_A S_B -
+    M_B S_A)`` with ``S = sum m_j (q_j - q0_j)`` over each group: ``sqrt(M_A M_B / M)``
+    times the distance between the groups' centres of mass."""
+    m = np.asarray(masses, dtype=float)
+    return split_shifts(m, k) * np.sqrt(m)
+
+
+def split_shifts(masses: np.ndarray, k: int) -> np.ndarray:
+    """``M^-1/2 e`` of :func:`split_direction`: ``-t M_B`` on the first k coordinates,
+    ``t M_A`` on the others."""
+    m = np.asarray(masses, dtype=float)
+    a, b = float(np.sum(m[:k])), float(np.sum(m[k:]))
+    # (t M_B and t M_A as ratios: M_A M_B M may overflow or underflow)
+    whole = a + b
+    return np.where(np.arange(m.size) < k, -math.sqrt(b / whole) / math.sqrt(a),
+                    math.sqrt(a / whole) / math.sqrt(b))
+
+
+def split_exits(pot: Potential, kT: float, cut: float = CUT) -> tuple[Exit, ...]:
+    """The exits of the profiles along :func:`split_direction` for ``k = 1..n-1``: where
+    the coordinates before k and from k on part, as a chain of bonds written
+    ``q[i+1] - q[i]`` dissociates at one of its bonds (a direction no normal mode of the
+    chain follows: each stretches some bonds and compresses others). Directions that lie
+    along a coordinate or a normal mode at the minimum (squared cosine above ``1 -
+    AXIS_ALONG``) are left out: those profiles are walked already."""
+    n = pot.dimension
+    if pot.minimum is None or n == 1:
+        return ()
+    try:
+        walked = modes(pot, pot.minimum,
+                       count=None if n <= EXACT_UP_TO else MODE_EXITS_LARGE).vectors
+    except StepsafeError:
+        walked = np.zeros((n, 0))
+    out: list[Exit] = []
+    for k in range(1, n):
+        e = split_direction(pot.masses, k)
+        e = e / np.linalg.norm(e)
+        if np.max(e * e) > 1.0 - AXIS_ALONG or (
+                walked.shape[1] and np.max((e @ walked) ** 2) > 1.0 - AXIS_ALONG):
+            continue
+        out += [dataclasses.replace(x, axis=-1, direction=tuple(float(v) for v in e),
+                                    split=k) for x in _profile_exits(pot, e, kT, cut)]
+    return tuple(out)
+
+
 def well_exits(pot: Potential, kT: float, cut: float = CUT) -> tuple[Exit, ...]:
-    """Where a trajectory leaves the well of the minimum: :func:`axis_exits` and
-    :func:`mode_exits`."""
-    return axis_exits(pot, kT, cut) + mode_exits(pot, kT, cut)
+    """Where a trajectory leaves the well of the minimum: :func:`axis_exits`,
+    :func:`mode_exits` and :func:`split_exits`."""
+    return axis_exits(pot, kT, cut) + mode_exits(pot, kT, cut) + split_exits(pot, kT, cut)
 
 
 def _profile_exits(pot: Potential, e: np.ndarray, kT: float, cut: float

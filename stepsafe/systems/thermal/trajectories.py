@@ -56,7 +56,7 @@ from stepsafe.core.ensemble import Trajectories, integrate
 from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import Method
 from stepsafe.systems.thermal.potential import Potential, system_of
-from stepsafe.systems.thermal.sampling import Exit, draw, momenta
+from stepsafe.systems.thermal.sampling import Exit, draw, momenta, split_shifts
 from stepsafe.systems.thermal.sampling import well_exits as well_exits_of
 
 #: Energy beyond ``GROWTH rho^2`` times the initial energy (above U_ref) is a failure.
@@ -176,42 +176,68 @@ def leaving(pot: Potential, start: Start
     ``q``, ``p`` (r, n); None when it has no exit."""
     if not start.exits:
         return None
+    n = pot.dimension
     root = np.sqrt(pot.masses)
     q0 = start.reference
     along = [e for e in start.exits if e.direction is None]
-    modal = [e for e in start.exits if e.direction is not None]
-    # the normal-mode exits' directions, one column each: s = (q - q0) . (e sqrt(m)) and
-    # its velocity p . (e / sqrt(m)); the point of the profile behind q is q - s e / sqrt(m)
-    unit = np.array([e.direction for e in modal], dtype=float).T.reshape(pot.dimension, -1)
-    weigh, back_along = unit * root[:, None], unit / root[:, None]
+    modal = [e for e in start.exits if e.direction is not None and not e.split]
+    splits = [e for e in start.exits if e.split]
+    # a coordinate's s = sqrt(m_i) (q_i - q0_i), its velocity p_i / sqrt(m_i); the point of
+    # the profile behind q is q with q_i = q0_i
+    axes = np.array([e.axis for e in along], dtype=np.intp)
+    # a normal mode's s = (q - q0) . (e sqrt(m)), its velocity p . (e / sqrt(m)), one column
+    # each; the point behind q is q - s e / sqrt(m)
+    unit = np.array([e.direction for e in modal], dtype=float).T.reshape(n, -1)
+    weigh, behind = unit * root[:, None], unit / root[:, None]
+    # a split's s from running sums of m (q - q0) over each group (its velocity from those
+    # of p): O(n) a row for all of them, where a dense direction costs O(n) each
+    cuts = np.array([e.split for e in splits], dtype=np.intp)
+    shifts = np.array([split_shifts(pot.masses, int(k)) for k in cuts]).reshape(-1, n)
+
+    first, second = shifts[:, 0], shifts[:, -1]
+    # (the splits' columns of the running sum: a slice when they are consecutive, as they
+    # are for a chain)
+    heads: slice | np.ndarray = cuts - 1
+    if cuts.size and np.array_equal(cuts, np.arange(cuts[0], cuts[0] + cuts.size)):
+        heads = slice(int(cuts[0]) - 1, int(cuts[0]) - 1 + cuts.size)
+
+    def split_coordinate(v: np.ndarray) -> np.ndarray:
+        """``sum_j shift_j v_j`` of every split ``(r, k)`` (v = m (q - q0), or p)."""
+        running = np.cumsum(v, axis=1)
+        head = running[:, heads]
+        return first * head + second * (running[:, -1:] - head)
+
+    exits = along + modal + splits
+    side = np.array([e.side for e in exits])
+    at = side * np.array([e.at for e in exits])
+    edge = side * np.array([e.edge for e in exits])
+    energy = np.array([e.energy for e in exits])
+    # the displacement along each exit's direction (n,) that takes s to 0
+    back = np.zeros((len(exits), n))
+    back[np.arange(axes.size), axes] = 1.0 / root[axes]
+    back[axes.size:axes.size + len(modal)] = behind.T
+    back[axes.size + len(modal):] = shifts
+
+    def positions(q: np.ndarray) -> np.ndarray:
+        x = q - q0[None, :]
+        return np.concatenate([root[axes] * x[:, axes], x @ weigh,
+                               split_coordinate(pot.masses[None, :] * x)], axis=1)
+
+    def speeds(p: np.ndarray) -> np.ndarray:
+        return np.concatenate([p[:, axes] / root[axes], p @ behind, split_coordinate(p)],
+                              axis=1)
 
     def leaves(q: np.ndarray, p: np.ndarray) -> np.ndarray:
-        out = np.zeros(q.shape[0], dtype=bool)
         with np.errstate(all="ignore"):
-            for e in along:
-                i = e.axis
-                s = root[i] * (q[:, i] - q0[i])
-                out |= e.side * (s - e.at) > 0
-                near = np.flatnonzero((e.side * (s - e.edge) > 0) & ~out)
-                if near.size:  # (rare: within kT of the exit's energy)
-                    x = q[near]
-                    back = x.copy()
-                    back[:, i] = q0[i]
-                    own = 0.5 * p[near, i] ** 2 / pot.masses[i] + (pot.energy(x)
-                                                                 - pot.energy(back))
-                    out[near] |= ~(own <= e.energy)
-            if modal:
-                s_all = (q - q0[None, :]) @ weigh
-                for j, e in enumerate(modal):
-                    s = s_all[:, j]
-                    out |= e.side * (s - e.at) > 0
-                    near = np.flatnonzero((e.side * (s - e.edge) > 0) & ~out)
-                    if near.size:  # (rare: within kT of the exit's energy)
-                        x = q[near]
-                        back = x - s[near, None] * back_along[None, :, j]
-                        speed = p[near] @ back_along[:, j]
-                        own = 0.5 * speed ** 2 + (pot.energy(x) - pot.energy(back))
-                        out[near] |= ~(own <= e.energy)
+            s = positions(q)
+            out = np.any(side * s > at, axis=1)
+            rows, which = np.nonzero((side * s > edge) & ~out[:, None])
+            if rows.size:  # (rare: within kT of an exit's energy)
+                x = q[rows]
+                speed = speeds(p[rows])[np.arange(rows.size), which]
+                own = 0.5 * speed ** 2 + (pot.energy(x) - pot.energy(
+                    x - s[rows, which][:, None] * back[which]))
+                out[rows[~(own <= energy[which])]] = True
         return out
     return leaves
 
