@@ -30,7 +30,7 @@ from stepsafe.methods.library import resolve
 from stepsafe.systems.thermal.bands import clopper_pearson
 from stepsafe.systems.thermal.limit import thermal_check
 from stepsafe.systems.thermal.potential import Potential, from_callables
-from stepsafe.systems.thermal.sampling import axis_exits, mode_exits, well_exits
+from stepsafe.systems.thermal.sampling import axis_exits, mode_exits, split_exits, well_exits
 
 VERLET = resolve("verlet")[0]
 KT, STEPS, HOT, COOL = 0.0357, 50, 0.87, 0.5
@@ -217,3 +217,115 @@ def test_a_rotated_bond_gets_the_one_coordinate_bonds_verdict_at_every_scale(
         alone = thermal_check(VERLET, morse(), KT, h, steps=STEPS)
         rotated = thermal_check(VERLET, pot, KT * energy, h * unit, steps=STEPS)
         assert alone.safe is safe and rotated.safe is safe
+
+
+# --- a chain of bonds ---------------------------------------------------------------------
+
+
+def _chain(bonds: int, spring: float = 0.005) -> Potential:
+    """``bonds`` Morse bonds ``q[i+1] - q[i]`` between particles of mass 2 (reduced mass 1
+    each), a weak spring ``spring (sum q)^2`` on the centre of mass."""
+    n = bonds + 1
+
+    def energy(q):
+        return 0.5 * np.sum(np.expm1(-np.diff(q, axis=1)) ** 2, axis=1) \
+            + spring * np.sum(q, axis=1) ** 2
+
+    def gradient(q):
+        r = np.diff(q, axis=1)
+        g = -np.exp(-r) * np.expm1(-r)
+        out = np.zeros_like(q)
+        out[:, :-1] -= g
+        out[:, 1:] += g
+        return out + 2 * spring * np.sum(q, axis=1)[:, None]
+
+    return from_callables(energy, gradient, np.full(n, 2.0), minimum=np.zeros(n))
+
+
+def _chain_reference(bonds: int, h: float, count: int = 8000, seed: int = 3,
+                     spring: float = 0.005) -> tuple[int, int]:
+    """(left, trajectories) of the test's own Verlet runs of :func:`_chain`: exact draws
+    (the bond lengths are independent 1-D Boltzmann draws, the sum of q Gaussian: U is a
+    sum over them and the change of variables is linear), a trajectory left when a bond
+    passes 8 or ends unbound beyond 3 (its pair's relative motion, reduced mass 1)."""
+    rng = np.random.default_rng(seed)
+    n, m = bonds + 1, 2.0
+    r = np.stack([boltzmann_1d(lambda s: 0.5 * np.expm1(-s) ** 2, KT, count, rng, -1.5, 12.0)
+                  for _ in range(bonds)], axis=1)
+    total = rng.standard_normal(count) * math.sqrt(KT / (2 * spring))
+    q = np.concatenate([np.zeros((count, 1)), np.cumsum(r, axis=1)], axis=1)
+    q += ((total - q.sum(axis=1)) / n)[:, None]
+    p = rng.standard_normal((count, n)) * math.sqrt(KT * m)
+    pot = _chain(bonds, spring)
+    gone = np.zeros(count, dtype=bool)
+    f = -pot.gradient(q)
+    with np.errstate(all="ignore"):
+        for _ in range(STEPS):
+            p += 0.5 * h * f
+            q += h * p / m
+            f = -pot.gradient(q)
+            p += 0.5 * h * f
+            gone |= ~(np.all(np.isfinite(q), axis=1) & np.all(np.diff(q, axis=1) <= 8.0,
+                                                              axis=1))
+    r, v = np.diff(q, axis=1), np.diff(p / m, axis=1)
+    unbound = np.any((0.5 * v * v + 0.5 * np.expm1(-r) ** 2 > 0.5) & (r > 3.0), axis=1)
+    return int((gone | unbound).sum()), count
+
+
+def test_a_chain_whose_bonds_leave_in_a_short_run_is_a_failure():
+    """Two bonds in a chain: each can leave alone, along no normal mode (the symmetric
+    stretch stretches both, the antisymmetric one compresses one). 50 steps at h = 0.87:
+    the test's own runs lose 0.5-1% of the chains, check's trajectories see them leave
+    where the groups part; at h = 0.5 the reference's failure probability is below
+    max_failure (the rare leaving there is thermal: as many at h = 0.2) and check's runs
+    lose none."""
+    left, total = _chain_reference(2, HOT)
+    assert clopper_pearson(left, total)[0] > 0.003
+    pot = _chain(2)
+    hot = thermal_check(VERLET, pot, KT, HOT, steps=STEPS)
+    assert not hot.safe and hot.probes[0][1].failures >= 6
+    left, total = _chain_reference(2, COOL)
+    assert clopper_pearson(left, total)[1] < 0.001
+    cool = thermal_check(VERLET, pot, KT, COOL, steps=STEPS)
+    assert cool.safe and cool.probes[0][1].failures == 0
+
+
+def test_the_chain_is_left_where_its_groups_part():
+    """Every bond of a chain gives an exit where the particles before it part from those
+    after, at the one-coordinate bond's plateau (energy and stretch; the bond's stretch is
+    ``s / sqrt(mu)``, mu the reduced mass of the two groups)."""
+    for bonds in (2, 3, 5):
+        found = split_exits(_chain(bonds), KT)
+        assert sorted(e.split for e in found) == list(range(1, bonds + 1))
+        (alone,) = axis_exits(morse(), KT)
+        for e in found:
+            a, b = 2.0 * e.split, 2.0 * (bonds + 1 - e.split)
+            stretch = abs(e.at) / math.sqrt(a * b / (a + b))
+            assert math.isclose(e.energy, alone.energy, rel_tol=1e-6)
+            assert math.isclose(stretch, abs(alone.at), rel_tol=1e-6)
+            assert e.side * e.at > 0
+
+
+@pytest.mark.parametrize("which", ["split", "mode"])
+def test_a_row_leaves_past_the_exit_or_beyond_its_edge_with_more_energy_than_it(which):
+    """Rows placed on the exit's direction: past ``at`` they have left; between the edge
+    and ``at`` they have left with the outward speed that makes their energy along the
+    direction exceed the exit's, not at rest; short of the edge they have not."""
+    from stepsafe.systems.thermal.trajectories import leaving, thermal_start
+
+    pot = _chain(2) if which == "split" else _two_particles("rotated")
+    start = thermal_start(pot, KT, 8, configurations=np.zeros((8, pot.dimension)))
+    exits = [e for e in start.exits if (e.split > 0) == (which == "split")
+             and e.direction is not None]
+    assert exits
+    test = leaving(pot, start)
+    for e in exits:
+        d = np.asarray(e.direction) / np.sqrt(pot.masses)
+        s = np.array([1.001 * e.at, 0.5 * (e.edge + e.at), 0.5 * (e.edge + e.at),
+                      0.9 * e.edge])
+        q = s[:, None] * d[None, :]
+        u = pot.energy(q)
+        p = np.zeros_like(q)
+        speed = math.sqrt(2.0 * (e.energy - u[1]) + 2.0 * KT)
+        p[1] = e.side * speed * d * pot.masses  # (s' = e . p / sqrt(m))
+        assert test(q, p).tolist() == [True, True, False, False]
