@@ -20,18 +20,29 @@ an implicit method, up to its stage iteration's tolerance). At every step it
   ellipse reaches ``sqrt(rho)`` times further in q than the exact orbit of the same energy
   (Verlet near its limit: ``rho = 1 / (1 - z^2/4)``); beyond ``growth`` (``distance``)
   times that the energy (coordinate) is not the bounded oscillation of a stable map.
-  A row also fails when it **leaves the well**, whatever its start's energy. Along each
-  coordinate i the profile through the minimum ``u(s) = U(q0 + s e_i / sqrt(m_i))`` may
-  end, on a side, at a plateau or a barrier's top ``E`` above the minimum (at least 12 kT;
-  :func:`stepsafe.systems.thermal.sampling.axis_exits`; a one-coordinate well's own
-  sides). A row fails when its ``s = sqrt(m_i) (q_i - q0_i)`` passes that point, or lies
-  beyond the side's edge (where u is within kT of ``E``) with the energy of that
-  coordinate, ``p_i^2 / (2 m_i) + U(q) - U(q with q_i = q0_i)``, above ``E`` (unbound:
-  the well no longer turns it back; for one coordinate it is ``H - U_ref``, for a
-  separable U that coordinate's own energy). Both are tested where the energy is
-  measured. The ceilings above scale with the start's energy, which may exceed ``E`` by
-  itself, and a row that has just left moves slowly, short of ``distance`` times the
-  extent in a short run.
+  A row also fails when it **leaves the well**, whatever its start's energy. Along a
+  direction through the minimum, a mass-weighted unit vector e, the profile
+  ``u(s) = U(q0 + s M^-1/2 e)`` may end, on a side, at a plateau or a barrier's top ``E``
+  above the minimum (at least 12 kT; :func:`stepsafe.systems.thermal.sampling.exits`; a
+  one-coordinate well's own sides). The directions walked
+  (:func:`stepsafe.systems.thermal.sampling.well_exits`) are each coordinate, each normal
+  mode of the mass-weighted Hessian at the minimum (a bond written ``q2 - q1`` or
+  ``q1 + q2`` dissociates along its mode and along no coordinate), and each split of the
+  coordinates into those before k and those from k on, moved apart at a fixed centre of
+  mass (a chain of bonds ``q[i+1] - q[i]`` dissociates at one bond, along no normal mode:
+  each mode stretches some bonds and compresses others); a direction that coincides with
+  one already walked is walked once. A row fails when its ``s = e . M^1/2 (q - q0)``
+  passes that point, or lies beyond the side's edge (where u is within kT of ``E``) with
+  the energy of that direction, ``(e . M^-1/2 p)^2 / 2 + U(q) - U(q - s M^-1/2 e)``,
+  above ``E`` (unbound: the well no longer turns it back; for one coordinate it is
+  ``H - U_ref``, for a U separable along e that direction's own energy). Both are tested
+  where the energy is measured. The ceilings above scale with the start's energy, which
+  may exceed ``E`` by itself, and a row that has just left moves slowly, short of
+  ``distance`` times the extent in a short run. A bond that parts along none of those
+  directions (atoms in two or three dimensions whose coordinates' order does not split
+  its fragments; beyond ``EXACT_UP_TO`` coordinates, a mode other than the fastest
+  ``MODE_EXITS_LARGE``; within modes of one repeated frequency, walked in one basis of
+  their space, a combination other than its vectors) is seen by the ceilings alone.
   An implicit method whose stage iteration fails on some rows fails those rows (found by
   halving the batch).
 
