@@ -246,25 +246,33 @@ def _chain(bonds: int, spring: float = 0.005, energy: float = 1.0, length: float
     return from_callables(energy_of, gradient, np.full(n, 2.0 * mass), minimum=np.zeros(n))
 
 
-def _chain_reference(bonds: int, h: float, count: int = 8000, seed: int = 3,
-                     spring: float = 0.005) -> tuple[int, int]:
-    """(left, trajectories) of the test's own Verlet runs of :func:`_chain`: exact draws
-    (the bond lengths are independent 1-D Boltzmann draws, the sum of q Gaussian: U is a
-    sum over them and the change of variables is linear), a trajectory left when a bond
-    passes 8 or ends unbound beyond 3 (its pair's relative motion, reduced mass 1)."""
+def _chain_starts(bonds: int, count: int, seed: int, kT: float = KT,
+                  spring: float = 0.005) -> tuple[np.ndarray, np.ndarray]:
+    """Exact draws of :func:`_chain` (the bond lengths are independent 1-D Boltzmann draws,
+    the sum of q Gaussian: U is a sum over them and the change of variables is linear),
+    momenta N(0, kT m)."""
     rng = np.random.default_rng(seed)
     n, m = bonds + 1, 2.0
-    r = np.stack([boltzmann_1d(lambda s: 0.5 * np.expm1(-s) ** 2, KT, count, rng, -1.5, 12.0)
+    r = np.stack([boltzmann_1d(lambda s: 0.5 * np.expm1(-s) ** 2, kT, count, rng, -1.5, 12.0)
                   for _ in range(bonds)], axis=1)
-    total = rng.standard_normal(count) * math.sqrt(KT / (2 * spring))
+    total = rng.standard_normal(count) * math.sqrt(kT / (2 * spring))
     q = np.concatenate([np.zeros((count, 1)), np.cumsum(r, axis=1)], axis=1)
     q += ((total - q.sum(axis=1)) / n)[:, None]
-    p = rng.standard_normal((count, n)) * math.sqrt(KT * m)
-    pot = _chain(bonds, spring)
-    gone = np.zeros(count, dtype=bool)
+    return q, rng.standard_normal((count, n)) * math.sqrt(kT * m)
+
+
+def _chain_leaves(q: np.ndarray, p: np.ndarray, h: float, steps: int = STEPS,
+                  spring: float = 0.005) -> np.ndarray:
+    """The test's own Verlet runs of :func:`_chain` from q, p: the mask of the trajectories
+    that left (a bond passes 8, or ends unbound beyond 3: its pair's relative motion,
+    reduced mass 1)."""
+    m = 2.0
+    pot = _chain(q.shape[1] - 1, spring)
+    q, p = q.copy(), p.copy()
+    gone = np.zeros(q.shape[0], dtype=bool)
     f = -pot.gradient(q)
     with np.errstate(all="ignore"):
-        for _ in range(STEPS):
+        for _ in range(steps):
             p += 0.5 * h * f
             q += h * p / m
             f = -pot.gradient(q)
@@ -273,7 +281,35 @@ def _chain_reference(bonds: int, h: float, count: int = 8000, seed: int = 3,
                                                               axis=1))
     r, v = np.diff(q, axis=1), np.diff(p / m, axis=1)
     unbound = np.any((0.5 * v * v + 0.5 * np.expm1(-r) ** 2 > 0.5) & (r > 3.0), axis=1)
-    return int((gone | unbound).sum()), count
+    return gone | unbound
+
+
+def _chain_reference(bonds: int, h: float, count: int = 8000, seed: int = 3
+                     ) -> tuple[int, int]:
+    """(left, trajectories) of the test's own runs of :func:`_chain`."""
+    return int(_chain_leaves(*_chain_starts(bonds, count, seed), h).sum()), count
+
+
+def test_the_failure_test_sees_the_chains_that_leave_in_the_reference():
+    """The same 20000 exact starts of the two-bond chain (kT 0.04, 20 steps at h = 0.85)
+    through stepsafe's run and the test's own: stepsafe's failures are the reference's
+    (at least 80% of them seen, at most a fifth as many others)."""
+    from stepsafe.systems.thermal.sampling import minimum_modes
+    from stepsafe.systems.thermal.trajectories import Start, run
+
+    kT, h, steps = 0.04, 0.85, 20
+    q, p = _chain_starts(2, 20000, 3, kT)
+    left = _chain_leaves(q, p, h, steps)
+    assert left.sum() >= 20
+    pot = _chain(2)
+    rho = 1.0 / (1.0 - (h * float(minimum_modes(pot).omegas[-1])) ** 2 / 4.0)
+    start = Start(q, p, kT, np.zeros(3), 0.0, np.max(np.abs(q), axis=0), 0, "exact",
+                  well_exits(pot, kT))
+    (out,) = run(VERLET, pot, start, [h], steps, [rho])
+    seen = np.zeros(q.shape[0], dtype=bool)
+    seen[list(out.failed)] = True
+    assert (seen & left).sum() >= 0.8 * left.sum()
+    assert (seen & ~left).sum() <= 0.2 * left.sum()
 
 
 def test_a_chain_whose_bonds_leave_in_a_short_run_is_a_failure():
