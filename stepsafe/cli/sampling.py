@@ -147,7 +147,7 @@ def hmc_cmd(scene_file, names, use_all, steps, length, jitter, allow_unstable_ji
             print_hmc_target(data, scene_file)
         if report.unverified is not None:
             click.echo(f"stepsafe: {report.unverified}: the estimates are unverified and h "
-                       "at target is not a recommendation (draws from a converged run: "
+                       "at target is not a recommendation (draws that represent the target: "
                        "--draws FILE)", err=True)
             raise SystemExit(1)
         return
@@ -272,7 +272,7 @@ def print_hmc_target(data: dict[str, Any], scene_file: str | None) -> None:
                       "-" if r["stability_h"] is None else fmt_below(r["stability_h"], 4),
                       _target_cell(r["h_target"], r["capped_by"], data["verified"]),
                       "-" if r["steps"] is None else str(r["steps"]), acc,
-                      "-" if r["divergent"] is None else f"{100 * r['divergent']:.2g}%",
+                      _divergent_cell(r["divergent"], r.get("divergent_bound")),
                       _error_cell(r["expected_error"]),
                       "-" if r["gradients_per_accepted"] is None else
                       fmt(r["gradients_per_accepted"], 4),
@@ -283,9 +283,13 @@ def print_hmc_target(data: dict[str, Any], scene_file: str | None) -> None:
     for r in data["methods"]:
         lines = list(r["notes"])
         on = r["divergence_onset"]
-        if on is not None and on["h_divergent"] is not None:
-            lines.append(f"divergent proposals start between h = {fmt(on['h_clean'], 4)} and "
-                         f"{fmt(on['h_divergent'], 4)}")
+        if on is not None and on["h_divergent"] is not None and \
+                r["capped_by"] != "divergence onset":  # its note states the scan's figures
+            lines.append(
+                f"first divergent proposals at h = {fmt(on['h_divergent'], 4)}" +
+                ("" if on["h_clean"] is None else
+                 f"; none of {on['proposals']} at h = {fmt(on['h_clean'], 4)} (a rate below "
+                 f"{on['rate_bound_clean']:.2g} at 95%)"))
         at = r["at_step"]
         if at:
             lines.append(f"at h = {fmt(at['h'])}: acceptance {at['acceptance']:.3f} ± "
@@ -302,10 +306,12 @@ def print_hmc_target(data: dict[str, Any], scene_file: str | None) -> None:
                            "target is not a recommendation"))
     console.print(_lit("acceptance: E[min(1, exp(-dH))] over the draws with fresh momenta and each "
                   "method's own trajectories, ± its Monte Carlo standard error; divergent: "
-                  "dH > 1000. h at target stays within the stiffest draw's stability limit"
+                  "dH > 1000 (< x: none diverged, the rate's 95% upper bound). h at target "
+                  "stays within the stiffest draw's stability limit"
                   + (" over 1 + J" if data["jitter"] and not data["allow_unstable_jitter"]
-                     else "") + " and below the onset of divergent proposals (the limit "
-                  "that binds in brackets)." + " " + _ranking_line(data["ranked_by"], data["steps"],
+                     else "") + " and at or below the largest step scanned with no divergent "
+                  "proposal (the limit that binds in brackets). "
+                  + _ranking_line(data["ranked_by"], data["steps"],
                                                      data["length"])
                   + " Laplace: the Gaussian at the mode, ranked by the same criterion at its "
                   "own h at target" + ("; the ranks differ for "
@@ -346,6 +352,16 @@ def _diagnosed(d: dict[str, Any]) -> str:
     verdict = "converged" if d["converged"] else "NOT converged"
     return (f"; R-hat {d['rhat']:.4f}, effective sample size {d['effective_size']:.4g} "
             f"({verdict})")
+
+
+def _divergent_cell(share: float | None, bound: float | None) -> str:
+    """The divergent share of the proposals; where none diverged, the 95% upper bound on
+    the rate that measures (``< bound``), not a rate of 0."""
+    if share is None:
+        return "-"
+    if share == 0 and bound is not None:
+        return f"< {100 * bound:.2g}%"
+    return f"{100 * share:.2g}%"
 
 
 def _error_cell(x: float | None) -> str:

@@ -50,6 +50,7 @@ import numpy as np
 from stepsafe.core import hmc as gaussian
 from stepsafe.core.hmc import Trajectory
 from stepsafe.core.hmc_target.draws import (
+    DIVERGENT,
     ESS_LIMIT,
     RHAT_LIMIT,
     SEED,
@@ -71,6 +72,7 @@ from stepsafe.core.hmc_target.estimate import (
 from stepsafe.core.hmc_target.frequencies import Spread, coordinate_scales, spread
 from stepsafe.core.hmc_target.modes import MODE_MASS, Survey, survey
 from stepsafe.core.hmc_target.potential import Target
+from stepsafe.core.hmc_target.statistics import rate_bound
 from stepsafe.core.hmc_target.trajectories import scheme
 from stepsafe.core.records import versioned
 from stepsafe.core.regions import find_region, stable_run
@@ -127,6 +129,7 @@ class TargetRow:
                 "acceptance": self.at_step.acceptance,
                 "acceptance_se": self.at_step.acceptance_se,
                 "divergent": self.at_step.divergent,
+                "divergent_bound": _bound(self.at_step),
                 "expected_error": _finite(self.at_step.expected_error),
                 "gradients_per_accepted": self.at_step.gradients_per_accepted,
                 "laplace_acceptance": self.laplace_at_step}
@@ -144,6 +147,7 @@ class TargetRow:
             "acceptance": None if e is None else e.acceptance,
             "acceptance_se": None if e is None else e.acceptance_se,
             "divergent": None if e is None else e.divergent,
+            "divergent_bound": None if e is None else _bound(e),
             "expected_error": None if e is None else _finite(e.expected_error),
             "expected_error_se": None if e is None else _finite(e.expected_error_se),
             "gradients_per_proposal": None if e is None else e.gradients_per_proposal,
@@ -158,10 +162,18 @@ class TargetRow:
             "laplace_rank": self.laplace_rank,
             "divergence_onset": None if self.onset is None else {
                 "h_clean": self.onset.h_clean, "h_divergent": self.onset.h_divergent,
-                "proposals": self.onset.proposals, "scanned_to": self.onset.scanned_to},
+                "proposals": self.onset.proposals, "scanned_to": self.onset.scanned_to,
+                "rate_bound_clean": None if self.onset.h_clean is None else
+                rate_bound(0, self.onset.proposals)},
             "at_step": self.at_step_record,
             "notes": list(self.notes)}
         return out
+
+
+def _bound(e: Estimate) -> float:
+    """The 95% upper bound on the divergence rate of an estimate's proposals
+    (:func:`~stepsafe.core.hmc_target.statistics.rate_bound`): what "none diverged" measures."""
+    return rate_bound(e.divergent_count, e.proposals)
 
 
 def _finite(x: float | None) -> float | None:
@@ -193,14 +205,16 @@ class TargetReport:
         cannot be checked (:func:`unconverged`), or miss a mode the mode search found
         (:mod:`stepsafe.core.hmc_target.modes`), so they may not represent the target (a
         mode they missed changes the acceptance by more than its standard error, which
-        assumes they do), and h at target is not a recommendation; None only when the
-        draws pass both."""
-        return unconverged(self.draws) or (None if self.modes is None
-                                           else self.modes.missed_text())
+        assumes they do), or come from a sampler whose kept run had divergent transitions
+        at every step it tried (:func:`diverged`), and h at target is not a
+        recommendation; None only when the draws pass all three."""
+        return unconverged(self.draws) or diverged(self.draws) or (
+            None if self.modes is None else self.modes.missed_text())
 
     @property
     def verified(self) -> bool:
-        """Whether the draws pass the convergence diagnostics (:attr:`unverified`)."""
+        """Whether the draws pass the convergence diagnostics, the divergence check and the
+        mode search (:attr:`unverified`)."""
         return self.unverified is None
 
     #: what the gradient figures count
@@ -303,6 +317,29 @@ def unconverged(draws: Draws) -> str | None:
     if not failed:
         return None
     return f"the draws have not converged: {' and '.join(failed)}"
+
+
+def diverged(draws: Draws) -> str | None:
+    """Why draws from the warm-up sampler whose kept run had divergent transitions (energy
+    error above :data:`~stepsafe.core.hmc_target.draws.DIVERGENT`) at its own step and at
+    every refit (:func:`~stepsafe.core.hmc_target.draws.sample`) do not count: a
+    divergent transition is a trajectory the integrator could not follow, almost always
+    through a region stiffer than the step allows (a funnel's neck); the chain rejects it
+    and stays out, so the draws under-represent that region, R-hat and the effective
+    sample size cannot tell, and the acceptance and divergence rate estimated on them are
+    too optimistic there. None when the draws have none (or are given)."""
+    if draws.source != "warm-up" or not draws.divergent:
+        return None
+    n = draws.chains * draws.per_chain
+    tried = draws.refit_steps
+    return (f"the warm-up sampler's kept run had {draws.divergent} divergent transitions of "
+            f"{n} (energy error above {DIVERGENT:g}) at its step {draws.step:.4g}"
+            + (f", and its refits at step{'s' if len(tried) > 1 else ''} "
+               f"{', '.join(f'{h:.4g}' for h in tried)} diverged too" if tried else "")
+            + ": its trajectories cannot follow the target somewhere, likely a region of "
+            "high curvature (such as a funnel's neck), so the draws likely miss that region "
+            "and the estimates may be off by more than their standard errors (give exact "
+            "draws, or reparametrise the target)")
 
 
 def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Trajectory, *,
@@ -422,7 +459,8 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
         modes = modes.visited_by(draws)
         notes.append(_survey_note(modes))
     if require_converged:
-        refusal = unconverged(draws) or (None if modes is None else modes.missed_text())
+        refusal = unconverged(draws) or diverged(draws) or (
+            None if modes is None else modes.missed_text())
         if refusal is not None:
             raise NotConverged(refusal + " (require_converged; --require-converged on the "
                                "command line)",
@@ -438,6 +476,12 @@ def hmc_on_target(target: Target, methods: Sequence[Method], trajectory: Traject
         notes.append(f"{unconverged(draws)}: they may not represent the target, the "
                      "estimates may be off by more than their standard errors, and h at "
                      "target is not a recommendation (unverified)")
+    if draws.refit_steps and not draws.divergent:
+        notes.append(f"the warm-up sampler's first kept run had {draws.first_divergent} "
+                     f"divergent transition(s) at its step {draws.first_step:.4g}; the kept "
+                     f"run was made afresh at step {draws.step:.4g}, where none of its "
+                     f"{draws.chains * draws.per_chain} transitions diverged: these draws "
+                     "are that run's")
     freq = spread(target, draws, seed=seed + 2)
     if not freq.top > 0:
         blame = ("draws" if draws.source == "given" else
@@ -521,8 +565,10 @@ def _row(m: Method, target_accept: float, trajectory: Trajectory, step: float | 
                      "the target" + (" without divergent proposals"
                                      if cap == "divergence onset" else ""))
     elif capped_by == "divergence onset":
-        notes.append(f"h at target is capped at h = {h_hi:.6g}, the onset of divergent "
-                     f"proposals (none of {scan.proposals} diverged there; at least one at "
+        notes.append(f"h at target is capped at h = {h_hi:.6g}, the largest step scanned "
+                     f"at which none of the {scan.proposals} proposals diverged (a divergence "
+                     f"rate below {rate_bound(0, scan.proposals):.2g} at 95% confidence "
+                     "there, not shown to be 0; at least one diverged at "
                      f"h = {scan.h_divergent:.6g}), below the stiffest draw's stability limit "
                      f"{h_stable:.6g}" + (f" over 1 + J = {1 + jitter:g}" if jitter and not
                                           allow_unstable_jitter else ""))

@@ -94,6 +94,12 @@ EXTEND_RHAT = 1.05
 #: ... are extended by running the chains on, doubling the kept iterations up to this many
 #: times ``keep``.
 EXTEND = 4
+#: A transition whose energy error exceeds this is divergent (Stan's and BlackJAX's rule) ...
+DIVERGENT = 1000.0
+#: ... and a kept run with one is made afresh at the frozen step over this factor ...
+REFIT_FACTOR = 2.0
+#: ... up to this many times, until a kept run has none.
+REFITS = 3
 #: Default seed (stated in every result).
 SEED = 20240611
 #: Largest dimension for which the Laplace approximation's dense Hessian is formed.
@@ -512,6 +518,13 @@ class Draws:
     effective_size: float | None = None
     #: chains whose draws are all one position (:func:`stuck_chains`)
     stuck: int = 0
+    #: the sampler's first kept run: its frozen step and divergent transitions (the
+    #: draws are that run's when no refit ran without any) ...
+    first_step: float | None = None
+    first_divergent: int = 0
+    #: ... and the frozen steps of the refits tried after it, in order; each but the last
+    #: had a divergent transition, the last too when ``divergent`` is not 0
+    refit_steps: tuple[float, ...] = ()
 
     @property
     def converged(self) -> bool | None:
@@ -527,7 +540,8 @@ class Draws:
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
         "sampler_step": "step", "sampler_max_steps": "max_steps",
         "sampler_acceptance": "acceptance", "sampler_divergent": "divergent",
-        "stuck_chains": "stuck"})
+        "stuck_chains": "stuck", "sampler_first_step": "first_step",
+        "sampler_first_divergent": "first_divergent", "sampler_refit_steps": "refit_steps"})
 
     @property
     def chains(self) -> int:
@@ -731,30 +745,15 @@ def sample(target: Target, *, chains: int = CHAINS, warmup: int = WARMUP, keep: 
     mass, pot = target.mass, target.potential
     q, h, spread = starts(target, rng, chains, laplace, start, where)
     u, g, _ = _finite(target, q)
-    # dual averaging state
-    mu, log_bar, s_bar, t0, gamma, kappa = math.log(10 * h), 0.0, 0.0, 10.0, 0.05, 0.75
-    ends = {round(warmup * k / 8) for k in range(1, 8)}
-    kept = np.empty((chains, keep, d))
-    kept_u = np.empty((chains, keep))
-    window = np.zeros(chains)
-    window_len = 0
-    stats, divergent, L_max = [], 0, 1
     step_range = STEP_RANGE
-    it, total = 0, warmup + keep
-    while True:
-        if it == total:
-            r, ess = diagnostics(kept, kept_u)
-            n = kept.shape[1]
-            if (r <= RHAT_LIMIT and ess >= ESS_LIMIT) or not r <= EXTEND_RHAT or \
-                    2 * n > EXTEND * keep:
-                break
-            # near the limits: the chains run on at the frozen step, twice as long
-            kept = np.concatenate([kept, np.empty_like(kept)], axis=1)
-            kept_u = np.concatenate([kept_u, np.empty_like(kept_u)], axis=1)
-            total += n
-        adapting = it < warmup
+    L_max = 1
+
+    def iterate(h_now: float) -> tuple[np.ndarray, np.ndarray]:
+        """One HMC iteration of every chain at nominal step ``h_now``: the acceptance
+        probabilities and energy errors (inf where a trajectory stopped being finite)."""
+        nonlocal q, g, u, L_max
         length = math.pi * spread
-        hs = h * step_range ** -rng.uniform(size=chains)
+        hs = h_now * step_range ** -rng.uniform(size=chains)
         steps = np.minimum(np.ceil(rng.uniform(size=chains) * length / hs),
                            MAX_WARMUP_STEPS).astype(int)
         steps = np.maximum(steps, 1)
@@ -774,41 +773,99 @@ def sample(target: Target, *, chains: int = CHAINS, warmup: int = WARMUP, keep: 
         q = np.where(accept[:, None], q1, q)
         g = np.where(accept[:, None], g1, g)
         u = np.where(accept, u1, u)
-        if adapting:
-            t = it + 1
-            s_bar = (1 - 1 / (t + t0)) * s_bar + (WARMUP_ACCEPT - accept_prob.mean()) / (t + t0)
-            log_h = mu - math.sqrt(t) / gamma * s_bar
-            log_bar = t ** -kappa * log_h + (1 - t ** -kappa) * log_bar
-            h = math.exp(log_h)
-            window += accept_prob
-            window_len += 1
-            if it + 1 in ends and it > 10:
-                # chains whose acceptance over the window is far below the others' are
-                # stuck where the common step does not fit: moved to another chain
-                rate = window / window_len
-                stuck = rate < STUCK * float(np.median(rate))
-                if stuck.any():
-                    step_range = min(4.0 * step_range, MAX_STEP_RANGE)
-                if stuck.any() and not stuck.all():
-                    donors = rng.choice(np.flatnonzero(~stuck), size=int(stuck.sum()))
-                    q[stuck], g[stuck], u[stuck] = q[donors], g[donors], u[donors]
-                window[:], window_len = 0.0, 0
-                centred = q - q.mean(axis=0)
-                white = mass.whiten(centred)  # C^T (q - mean): unit-mass coordinates
-                cov = white.T @ white / max(chains - 1, 1)
-                top = float(np.linalg.eigvalsh(cov)[-1]) if d > 1 else float(cov[0, 0])
-                if math.isfinite(top) and top > 0:
-                    spread = math.sqrt(top)
-            if it + 1 == warmup:
-                h = math.exp(log_bar)
-        else:
-            kept[:, it - warmup] = q
-            kept_u[:, it - warmup] = u
+        return accept_prob, delta
+
+    # dual averaging state
+    mu, log_bar, s_bar, t0, gamma, kappa = math.log(10 * h), 0.0, 0.0, 10.0, 0.05, 0.75
+    ends = {round(warmup * k / 8) for k in range(1, 8)}
+    window = np.zeros(chains)
+    window_len = 0
+    for it in range(warmup):
+        accept_prob, _ = iterate(h)
+        t = it + 1
+        s_bar = (1 - 1 / (t + t0)) * s_bar + (WARMUP_ACCEPT - accept_prob.mean()) / (t + t0)
+        log_h = mu - math.sqrt(t) / gamma * s_bar
+        log_bar = t ** -kappa * log_h + (1 - t ** -kappa) * log_bar
+        h = math.exp(log_h)
+        window += accept_prob
+        window_len += 1
+        if it + 1 in ends and it > 10:
+            # chains whose acceptance over the window is far below the others' are
+            # stuck where the common step does not fit: moved to another chain
+            rate = window / window_len
+            stuck = rate < STUCK * float(np.median(rate))
+            if stuck.any():
+                step_range = min(4.0 * step_range, MAX_STEP_RANGE)
+            if stuck.any() and not stuck.all():
+                donors = rng.choice(np.flatnonzero(~stuck), size=int(stuck.sum()))
+                q[stuck], g[stuck], u[stuck] = q[donors], g[donors], u[donors]
+            window[:], window_len = 0.0, 0
+            centred = q - q.mean(axis=0)
+            white = mass.whiten(centred)  # C^T (q - mean): unit-mass coordinates
+            cov = white.T @ white / max(chains - 1, 1)
+            top = float(np.linalg.eigvalsh(cov)[-1]) if d > 1 else float(cov[0, 0])
+            if math.isfinite(top) and top > 0:
+                spread = math.sqrt(top)
+        if it + 1 == warmup:
+            h = math.exp(log_bar)
+
+    def run(h_now: float, stop_at_divergence: bool) -> _Kept | None:
+        """The kept iterations at the frozen step ``h_now``, extended while the diagnostics
+        narrowly fail (module docstring); None at the first divergent transition when
+        ``stop_at_divergence``."""
+        kept = np.empty((chains, keep, d))
+        kept_u = np.empty((chains, keep))
+        stats: list[float] = []
+        divergent, i, total = 0, 0, keep
+        while True:
+            if i == total:
+                r, ess = diagnostics(kept, kept_u)
+                n = kept.shape[1]
+                if (r <= RHAT_LIMIT and ess >= ESS_LIMIT) or not r <= EXTEND_RHAT or \
+                        2 * n > EXTEND * keep:
+                    return _Kept(kept, h_now, float(np.mean(stats)) if stats else None,
+                                 divergent, r, ess)
+                # near the limits: the chains run on at the frozen step, twice as long
+                kept = np.concatenate([kept, np.empty_like(kept)], axis=1)
+                kept_u = np.concatenate([kept_u, np.empty_like(kept_u)], axis=1)
+                total += n
+            accept_prob, delta = iterate(h_now)
+            kept[:, i] = q
+            kept_u[:, i] = u
             stats.append(float(accept_prob.mean()))
-            divergent += int((delta > 1000).sum())
-        it += 1
-    return Draws(kept, "warm-up", seed, h, L_max, float(np.mean(stats)) if stats else None,
-                 divergent, r, ess, stuck_chains(kept))
+            divergent += int((delta > DIVERGENT).sum())
+            if divergent and stop_at_divergence:
+                return None
+            i += 1
+
+    first = run(h, False)
+    assert first is not None
+    found, refits = first, []
+    if first.divergent:
+        # divergent transitions: the frozen step is halved and the kept run made afresh
+        # from where the chains are, until one runs without any (or REFITS tries)
+        for k in range(1, REFITS + 1):
+            refits.append(h / REFIT_FACTOR ** k)
+            again = run(refits[-1], True)
+            if again is not None:
+                found = again
+                break
+    return Draws(found.positions, "warm-up", seed, found.step, L_max, found.acceptance,
+                 found.divergent, found.rhat, found.effective_size,
+                 stuck_chains(found.positions), first.step, first.divergent, tuple(refits))
+
+
+@dataclass(frozen=True)
+class _Kept:
+    """One kept run of the warm-up sampler: positions (chains, n, d), its frozen step, mean
+    acceptance statistic, divergent transitions and diagnostics."""
+
+    positions: np.ndarray
+    step: float
+    acceptance: float | None
+    divergent: int
+    rhat: float
+    effective_size: float
 
 
 def diagnostics(positions: np.ndarray, energies: np.ndarray | None = None

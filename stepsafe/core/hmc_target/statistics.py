@@ -129,3 +129,38 @@ def rhat(x: np.ndarray) -> float:
     bulk = _split_rhat(_normal_scores(x))
     tail = _split_rhat(_normal_scores(np.abs(x - np.median(x))))
     return max(bulk, tail)
+
+
+#: The confidence of :func:`rate_bound`.
+RATE_CONFIDENCE = 0.95
+
+
+def rate_bound(count: int, n: int, confidence: float = RATE_CONFIDENCE) -> float:
+    """The one-sided Clopper-Pearson upper bound on a rate seen ``count`` times in ``n``
+    trials: the p with ``P(Binomial(n, p) <= count) = 1 - confidence``, the inverse of the
+    regularised incomplete beta ``I_p(count + 1, n - count) = confidence``; for ``count =
+    0`` it is ``1 - (1 - confidence)^(1/n)`` (about ``3 / n`` at 95%, the rule of three),
+    and 1 for ``count = n``. The trials are taken as independent (proposals from
+    correlated draws with fresh momenta are not quite: the bound is that of ``n``
+    independent ones).
+
+    Parameters
+    ----------
+    count
+        How many times the event was seen, 0 <= count <= n.
+    n
+        Trials, at least 1.
+    confidence
+        In (0, 1).
+
+    Returns
+    -------
+    float
+    """
+    if count >= n:
+        return 1.0
+    if count <= 0:
+        return float(-math.expm1(math.log1p(-confidence) / n))
+    from scipy.special import betaincinv
+
+    return float(betaincinv(count + 1, n - count, confidence))
