@@ -275,6 +275,9 @@ class TargetReport:
             "draws": {"source": d.source, "chains": d.chains, "per_chain": d.per_chain,
                       "seed": d.seed, "sampler_step": d.step, "sampler_max_steps": d.max_steps,
                       "sampler_acceptance": d.acceptance, "sampler_divergent": d.divergent,
+                      "sampler_first_step": d.first_step,
+                      "sampler_first_divergent": d.first_divergent,
+                      "sampler_refit_steps": list(d.refit_steps),
                       "rhat": _finite(d.rhat), "effective_size":
                       _finite(d.effective_size), "stuck_chains": d.stuck,
                       "converged": d.converged},
