@@ -39,7 +39,7 @@ def _hmc(scene: str, *args: str) -> tuple[int, str, str]:
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "target.yaml"
         path.write_text(scene)
-        result = CliRunner().invoke(main, ["hmc", str(path), *args])
+        result = CliRunner().invoke(main, ["hmc", str(path), *args], env={"COLUMNS": "250"})
         return result.exit_code, result.stdout, result.stderr
 
 

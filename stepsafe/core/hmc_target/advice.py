@@ -114,7 +114,8 @@ class TargetRow:
     #: ``h_target``) or named otherwise
     JSON_NAMES: ClassVar[Mapping[str, str]] = MappingProxyType({
         **{key: f"estimate.{key}" for key in (
-            "steps", "acceptance", "acceptance_se", "divergent", "expected_error",
+            "steps", "acceptance", "acceptance_se", "divergent", "divergent_bound",
+            "expected_error",
             "expected_error_se", "gradients_per_proposal", "gradients_per_accepted",
             "gradients_per_time")},
         "divergence_onset": "onset", "at_step": "at_step_record"})
@@ -129,7 +130,7 @@ class TargetRow:
                 "acceptance": self.at_step.acceptance,
                 "acceptance_se": self.at_step.acceptance_se,
                 "divergent": self.at_step.divergent,
-                "divergent_bound": _bound(self.at_step),
+                "divergent_bound": self.at_step.divergent_bound,
                 "expected_error": _finite(self.at_step.expected_error),
                 "gradients_per_accepted": self.at_step.gradients_per_accepted,
                 "laplace_acceptance": self.laplace_at_step}
@@ -147,7 +148,7 @@ class TargetRow:
             "acceptance": None if e is None else e.acceptance,
             "acceptance_se": None if e is None else e.acceptance_se,
             "divergent": None if e is None else e.divergent,
-            "divergent_bound": None if e is None else _bound(e),
+            "divergent_bound": None if e is None else e.divergent_bound,
             "expected_error": None if e is None else _finite(e.expected_error),
             "expected_error_se": None if e is None else _finite(e.expected_error_se),
             "gradients_per_proposal": None if e is None else e.gradients_per_proposal,
@@ -163,17 +164,10 @@ class TargetRow:
             "divergence_onset": None if self.onset is None else {
                 "h_clean": self.onset.h_clean, "h_divergent": self.onset.h_divergent,
                 "proposals": self.onset.proposals, "scanned_to": self.onset.scanned_to,
-                "rate_bound_clean": None if self.onset.h_clean is None else
-                rate_bound(0, self.onset.proposals)},
+                "rate_bound_clean": self.onset.rate_bound_clean},
             "at_step": self.at_step_record,
             "notes": list(self.notes)}
         return out
-
-
-def _bound(e: Estimate) -> float:
-    """The 95% upper bound on the divergence rate of an estimate's proposals
-    (:func:`~stepsafe.core.hmc_target.statistics.rate_bound`): what "none diverged" measures."""
-    return rate_bound(e.divergent_count, e.proposals)
 
 
 def _finite(x: float | None) -> float | None:

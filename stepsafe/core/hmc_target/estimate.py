@@ -40,7 +40,7 @@ import numpy as np
 from stepsafe.core.hmc import Trajectory, target_grid
 from stepsafe.core.hmc_target.draws import Draws
 from stepsafe.core.hmc_target.potential import Target
-from stepsafe.core.hmc_target.statistics import chain_mean
+from stepsafe.core.hmc_target.statistics import chain_mean, rate_bound
 from stepsafe.core.hmc_target.trajectories import Scheme, energy_errors
 from stepsafe.core.roots import narrowed
 from stepsafe.exceptions import StepsafeError
@@ -82,6 +82,13 @@ class Estimate:
     expected_error_se: float
     gradients_per_proposal: float
     effective_size: float
+
+    @property
+    def divergent_bound(self) -> float:
+        """The one-sided 95% upper bound on the divergence rate that ``divergent_count`` of
+        ``proposals`` measures (:func:`~stepsafe.core.hmc_target.statistics.rate_bound`):
+        about ``3 / proposals`` where none diverged, not 0."""
+        return rate_bound(self.divergent_count, self.proposals)
 
     @property
     def gradients_per_accepted(self) -> float | None:
@@ -268,6 +275,13 @@ class Onset:
     h_divergent: float | None
     proposals: int
     scanned_to: float
+
+    @property
+    def rate_bound_clean(self) -> float | None:
+        """The 95% upper bound on the divergence rate at ``h_clean``, where none of the
+        proposals diverged (:func:`~stepsafe.core.hmc_target.statistics.rate_bound`; None
+        without ``h_clean``)."""
+        return None if self.h_clean is None else rate_bound(0, self.proposals)
 
 
 def divergence_onset(estimator: Estimator, run: Scheme, h_max: float,
