@@ -217,11 +217,13 @@ def hmc(methods: Sequence[Integrator | str] | str | None = None, *,
         Refuse (:class:`~stepsafe.exceptions.NotConverged`, a StepsafeError naming the
         diagnostic that fails) draws that have not converged: the largest rank-normalised
         split R-hat over the coordinates and U above 1.01, or the smallest effective sample
-        size below 400 (or too few draws per chain to compute them), checked before any
-        estimate. A target that is not Gaussian only, as ``seed``. Without it, draws that
-        fail a diagnostic still give a report, marked ``verified`` False with the reason in
-        ``unverified``: its estimates may be off by more than their standard errors and its
-        h at target is not a recommendation (the command line prints it and exits 1;
+        size below 400 (or too few draws per chain to compute them), a warm-up whose kept
+        run and its refits at smaller steps all had divergent transitions, or a mode the
+        mode search found that the draws miss, checked before any estimate. A target that
+        is not Gaussian only, as ``seed``. Without it, such draws still give a report,
+        marked ``verified`` False with the reason in ``unverified``: its estimates may be
+        off by more than their standard errors and its h at target is not a recommendation
+        (the command line prints it and exits 1;
         ``--require-converged`` there refuses before the estimates, as this keyword).
 
     Returns

@@ -37,6 +37,17 @@ at most :data:`EXTEND_RHAT`, or too small an effective sample size), the chains 
 the frozen step and the kept iterations double, up to :data:`EXTEND` times ``keep``: with
 300 draws per chain the split R-hat of well-mixed chains scatters around 1.01 itself.
 
+Divergent transitions. A kept transition whose energy error exceeds :data:`DIVERGENT` (or
+whose trajectory stopped being finite) is divergent: the integrator could not follow the
+trajectory, almost always through a region stiffer than the step allows, and the chain
+rejected it, so the chains under-visit that region (a funnel's neck) while R-hat and the
+effective sample size can read well. A kept run with one is made afresh, from where the
+chains are, at the frozen step divided by :data:`REFIT_FACTOR`, up to :data:`REFITS` times;
+a refit stops at its first divergent transition (so that a target where every step diverges
+costs little more). The draws are those of the first kept run without a divergent
+transition; when every refit diverged, those of the first run, with its count
+(``divergent``), which the report then treats as unverified.
+
 Diagnostics. Over the kept draws, the rank-normalised split R-hat and the effective sample
 size (:mod:`stepsafe.core.hmc_target.statistics`) of every coordinate and of U; the draws
 count as converged when the largest R-hat is at most :data:`RHAT_LIMIT` and the smallest
