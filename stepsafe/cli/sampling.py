@@ -73,8 +73,9 @@ PLOT_POINTS = 200
                    "deterministic (no random numbers are drawn).")
 @click.option("--require-converged", is_flag=True,
               help="A target given by its potential: when the draws have not converged "
-                   "(R-hat above 1.01 or an effective sample size below 400), exit 1 "
-                   "before the estimates, naming the diagnostic. Without it such draws "
+                   "(R-hat above 1.01 or an effective sample size below 400), the warm-up "
+                   "diverged at its step and every refit, or the draws miss a mode found, "
+                   "exit 1 before the estimates, naming why. Without it such draws "
                    "still give the report, marked unverified (no h at target is "
                    "recommended), and the exit code is 1 after it.")
 @click.option("--plot", "plot_file", default=None, metavar="FILE.png",
