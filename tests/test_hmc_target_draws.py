@@ -185,7 +185,9 @@ def _hmc_code(scene: str, *args: str) -> tuple[int, str]:
 @given(k=st.floats(1.5, 3.0), theta_exp=st.integers(-3, 3))
 def test_a_positive_support_target_started_at_its_mode_is_analysed(k, theta_exp):
     """A proper target whose energy is finite at its mode (the start given) is analysed:
-    a report (exit 0, or 1 with the draws' failing diagnostic named), never a refusal."""
+    a report (exit 0, or 1 with the draws' failing diagnostic named: R-hat and ESS, or the
+    warm-up's divergent transitions where trajectories leave the support near x = 0, whose
+    curvature grows without bound), never a refusal."""
     theta = 10.0 ** theta_exp
     scene = ("system:\n"
              f'  potential: "-(k - 1)*log(x) + x/theta"\n'
@@ -193,7 +195,8 @@ def test_a_positive_support_target_started_at_its_mode_is_analysed(k, theta_exp)
              f"  parameters: {{k: {k!r}, theta: {theta!r}}}\n"
              f"  start: [{(k - 1) * theta!r}]\n")
     code, err = _hmc_code(scene, "--steps", "10", "--methods", "verlet")
-    assert code == 0 or (code == 1 and "have not converged" in err), err
+    assert code == 0 or (code == 1 and ("have not converged" in err
+                                        or "divergent transitions" in err)), err
 
 
 @pytest.mark.slow
