@@ -266,11 +266,9 @@ BANANA_CASES = [(0.1, "verlet", VERLET, 1.1547), (0.1, "bcss2", BCSS2, 2.4033),
 
 @pytest.fixture(scope="module")
 def banana_draws():
-    """stepsafe's own warm-up draws of each banana (fixed seed 1; over seeds 1 to 12 the
-    estimate of bcss2 at c = 0.3 scatters about the acceptance on 200000 exact draws with
-    an rms of 1.2 of its standard errors)."""
+    """stepsafe's own warm-up draws of each banana (its default seed)."""
     return {c: sample(target(banana(c)), laplace=find_mode(target(banana(c)),
-                                                           np.array([0.3, 0.2])), seed=1)
+                                                           np.array([0.3, 0.2])))
             for c in (0.1, 0.3, 1.0)}
 
 
@@ -287,7 +285,10 @@ def test_banana_acceptance_and_divergences_match_an_independent_sampler(
     pot = banana(c)
     measured, se, div, div_se = independent_hmc(pot.energy, pot.gradient, ops, h, 10, start,
                                                 4, rng)
-    assert abs(est.acceptance - measured) < 3 * np.hypot(se, est.acceptance_se), \
+    # (4 combined standard errors: six comparisons, and over sampler seeds 1 to 12 the
+    # estimate of bcss2 at c = 0.3 scatters about the acceptance on 200000 exact draws
+    # with an rms of 1.2 of its standard errors, the chains' correlation not all in them)
+    assert abs(est.acceptance - measured) < 4 * np.hypot(se, est.acceptance_se), \
         (est.acceptance, est.acceptance_se, measured, se)
     div_est_se = np.sqrt(max(est.divergent * (1 - est.divergent), 1 / est.proposals)
                          / est.proposals)
