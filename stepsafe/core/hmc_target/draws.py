@@ -273,8 +273,9 @@ def gradient_mismatch(potential: Potential, q: np.ndarray) -> Mismatch | None:
     """Whether the potential's gradient disagrees with its own energy near ``q``.
 
     Along each of the first :data:`GRADIENT_AXES` coordinates j, with the length
-    ``s_j = 1 / sqrt(|H_jj|)`` from the curvature of the gradient given at q (its
-    magnitude; ``|q_j| + 1`` where it vanishes), the point ``x = q + s_j e_j`` is taken,
+    ``s_j = 1 / sqrt(max_k |H_jk|)`` from how the gradient given changes at q (the largest
+    magnitude in row j of its Jacobian: a wrong gradient's diagonal may vanish where its
+    row does not; ``|q_j| + 1`` where the row vanishes), the point ``x = q + s_j e_j`` is taken,
     where ``dU/dq_j`` is of the order of ``1 / s_j`` for a smooth target; the central
     difference ``(U(x + w e_j) - U(x - w e_j)) / 2w`` for each width ``w = c s_j`` of
     :data:`GRADIENT_WIDTHS` is compared with the gradient's j-th component there. The two
@@ -291,7 +292,7 @@ def gradient_mismatch(potential: Potential, q: np.ndarray) -> Mismatch | None:
     d = q.size
     with np.errstate(all="ignore"):
         H = own_scale_hessian(potential, q, np.abs(q) + 1.0)
-        c = np.abs(np.diag(H)) if H is not None else np.zeros(d)
+        c = np.max(np.abs(H), axis=1) if H is not None else np.zeros(d)
         s = np.where(np.isfinite(c) & (c > 0), 1.0 / np.sqrt(np.where(c > 0, c, 1.0)),
                      np.abs(q) + 1.0)
         for j in range(min(d, GRADIENT_AXES)):
