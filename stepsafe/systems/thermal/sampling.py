@@ -80,6 +80,17 @@ SPAN = 20
 CHAINS = 64
 #: Largest n whose quadratic potential is drawn exactly (a dense Cholesky factor).
 GAUSSIAN_UP_TO = 4096
+#: Dispersed chains start where a profile through the minimum first rises this many kT ...
+RISE = 4.0
+#: ... and this many of them run beside the chains started near the minimum.
+FAR = 32
+#: The near and the dispersed chains must agree on the mean and the spread of every
+#: coordinate and of U within this many standard errors (:func:`disagreement`) ...
+AGREE = 6.0
+#: ... and while it is not, the burn-in is doubled, at most this many times.
+DOUBLINGS = 5
+#: Snapshots of the chains kept per burn-in stage for :func:`disagreement`.
+SNAPSHOTS = 64
 
 
 @dataclass(frozen=True)
@@ -504,10 +515,125 @@ def one_dimensional(pot: Potential, kT: float, count: int, rng: np.random.Genera
     return np.interp(rng.random(count), cdf, s)[:, None], notes
 
 
+def disagreement(record: np.ndarray, near: int) -> np.ndarray:
+    """How far chains started apart disagree, per recorded quantity.
+
+    ``record`` ``(snapshots, chains, k)`` holds k quantities along the chains; the first
+    ``near`` chains started near the minimum, the others dispersed. For each quantity x and
+    for ``x`` and ``(x - xbar)^2`` (``xbar`` the mean over every chain), each chain's mean
+    over its record is one value; chains are independent, so when the dispersed chains
+    sample what the near ones do the two groups' means of these values differ by
+    ``|m_near - m_far|`` with standard error ``s sqrt(1 / C_near + 1 / C_far)`` (``s^2`` the
+    variance of the near chains' means, ``C`` a group's chains) whatever the autocorrelation
+    along a chain. Returns that difference in standard errors ``(k,)``, the larger of the
+    two moments: large where dispersed chains still sit where they started (the spread
+    differs) or drift apart (the mean differs); ``inf`` where the groups differ and the
+    near chains do not vary. Unchanged by ``x -> a x + b``, so at every scale."""
+    x = record - record.mean(axis=(0, 1))[None, None, :]
+    size = np.max(np.abs(x), axis=(0, 1))
+    x = x / np.where(np.isfinite(size) & (size > 0), size, 1.0)[None, None, :]
+    out = np.zeros(x.shape[2])
+    for moment in (x, x * x):
+        m = moment.mean(axis=0)  # (chains, k): each chain's mean
+        a, b = m[:near], m[near:]
+        if a.shape[0] < 2 or b.shape[0] < 2:
+            return np.full(x.shape[2], math.inf)
+        diff = np.abs(a.mean(axis=0) - b.mean(axis=0))
+        se = np.sqrt(a.var(axis=0, ddof=1) * (1.0 / a.shape[0] + 1.0 / b.shape[0]))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(se > 0, diff / se, np.where(diff > 0, math.inf, 0.0))
+        out = np.maximum(out, np.where(np.isfinite(size), z, math.inf))
+    return out
+
+
+@dataclass(frozen=True)
+class Dispersed:
+    """Starts far from the minimum for the mixing diagnostic (:func:`dispersed`).
+
+    Attributes
+    ----------
+    q : ndarray
+        Configurations ``(k, n)``.
+    omegas : ndarray
+        Per coordinate ``(n,)``, the slowest frequency its profiles suggest:
+        ``min sqrt(2 RISE kT) / s`` over the sides walked along directions ``e`` with
+        ``e_i^2 >= 1/2`` (``s`` where the side starts, mass-weighted: a harmonic direction
+        of frequency omega gives omega), ``inf`` where none is.
+    omega : float
+        The same over every side walked.
+    """
+
+    q: np.ndarray
+    omegas: np.ndarray
+    omega: float
+
+
+def dispersed(pot: Potential, kT: float, found: Modes, count: int,
+              rng: np.random.Generator, rise: float = RISE) -> Dispersed:
+    """``count`` starts away from the minimum, chosen without trusting its curvature.
+
+    Along each mass-weighted coordinate axis and each known normal mode ``e`` (for
+    ``n > EXACT_UP_TO``, ``count`` axes drawn at random), the profile
+    ``u(s) = U(q0 + s M^-1/2 e) - U(q0)`` is walked out on both sides in steps of half the
+    thermal amplitude ``a = sqrt(kT / e^T W e)`` (W the mass-weighted Hessian at the
+    minimum) up to ``BEYOND REACH a``; the side starts where u first reaches ``rise kT``
+    (the last finite point before U stops being finite), or at the reach when it never
+    does. The starts kept are those farthest out in units of their own ``a``: where the
+    curvature at the minimum says least about how far the distribution extends (a
+    harmonic direction rises ``rise kT`` at ``sqrt(2 rise) a``)."""
+    n = pot.dimension
+    if count < 1:
+        return Dispersed(np.empty((0, n)), np.full(n, math.inf), math.inf)
+    q0 = np.asarray(pot.minimum, dtype=float)
+    u0 = float(pot.energy(q0[None, :])[0])
+    if n <= EXACT_UP_TO:
+        axes = np.eye(n)
+    else:
+        axes = np.eye(n)[rng.choice(n, size=min(count, n), replace=False)]
+    e = np.concatenate([axes, found.vectors.T], axis=0)
+    lam = found.eigenvalues
+    if found.vectors.shape[1] == n:  # e^T W e from the complete modes
+        curv = (e @ found.vectors) ** 2 @ lam
+    else:
+        d = e / np.sqrt(pot.masses)[None, :]
+        curv = np.einsum("kn,kn->k", d, pot.product(np.broadcast_to(q0, d.shape), d).product)
+    positive = lam[lam > found.error]
+    floor = float(positive[0]) if positive.size else float(lam[-1])
+    curv = np.where(np.isfinite(curv) & (curv > found.error), curv, floor)
+    k = np.arange(1, 2 * BEYOND * REACH + 1, dtype=float)
+    starts, reach, omegas = [], [], np.full(n, math.inf)
+    omega = math.inf
+    for row, c in zip(e, curv):
+        a = math.sqrt(kT / float(c))
+        d = row / np.sqrt(pot.masses)
+        for sign in (-1.0, 1.0):
+            s = sign * 0.5 * a * k
+            with np.errstate(all="ignore"):
+                u = (pot.energy(q0[None, :] + s[:, None] * d[None, :]) - u0) / kT
+            stop = np.flatnonzero(~(u < rise))
+            j = int(stop[0]) if stop.size else k.size - 1
+            if stop.size and not np.isfinite(u[j]):
+                j -= 1
+            if j < 0:
+                continue
+            starts.append(q0 + s[j] * d)
+            reach.append(abs(float(s[j])) / a)
+            w = math.sqrt(2.0 * rise * kT) / abs(float(s[j]))
+            omega = min(omega, w)
+            along = row * row >= 0.5
+            omegas[along] = np.minimum(omegas[along], w)
+    if not starts:
+        return Dispersed(np.empty((0, n)), omegas, math.inf)
+    order = np.argsort(-np.asarray(reach), kind="stable")[:count]
+    q = np.asarray(starts)[order]
+    return Dispersed(np.asarray(q[np.arange(count) % q.shape[0]]), omegas, omega)
+
+
 def langevin(pot: Potential, kT: float, count: int, rng: np.random.Generator, seed: int,
              chains: int = CHAINS, z_sample: float = Z_SAMPLE, friction: float | None = None,
-             burn_damping: float = BURN_DAMPING) -> Ensemble:
-    """Configurations by BAOAB Langevin dynamics (module docstring), ``chains`` at once."""
+             burn_damping: float = BURN_DAMPING, far: int = FAR) -> Ensemble:
+    """Configurations by BAOAB Langevin dynamics (module docstring), ``chains`` at once,
+    beside ``far`` chains started dispersed (:func:`dispersed`) that judge the mixing."""
     n = pot.dimension
     found = minimum_modes(pot)
     q0 = np.asarray(pot.minimum, dtype=float)
@@ -537,25 +663,42 @@ def langevin(pot: Potential, kT: float, count: int, rng: np.random.Generator, se
     else:
         q = np.broadcast_to(q0, (chains, n)).copy()
     p = momenta(pot, kT, chains, rng)
-    c = math.exp(-gamma * h)
-    noise = np.sqrt((1.0 - c * c) * kT * masses)[None, :]
+    # the dispersed chains draw from a generator of their own: the near chains' draws are
+    # those they would be without them
+    rng_far = np.random.default_rng([seed, 1])
+    spread = dispersed(pot, kT, found, far, rng_far)
+    far = spread.q.shape[0]
+    q = np.concatenate([q, spread.q])
+    p = np.concatenate([p, momenta(pot, kT, far, rng_far)])
     half = 0.5 * h
     state = {"q": q, "p": p, "F": -pot.gradient(q)}
+    kept: list[np.ndarray] = []  # snapshots (rows, n + 1): coordinates and U
 
     def run(steps: int, record: bool = False) -> np.ndarray:
-        """``steps`` BAOAB steps; U at each step when ``record`` (else an empty array)."""
+        """``steps`` BAOAB steps at the friction ``gamma``; U of the near chains at each
+        step when ``record`` (else an empty array), with about ``SNAPSHOTS`` snapshots of
+        every chain kept."""
+        c = np.array([math.exp(-g * h) for g in gamma])[None, :]
+        noise = np.sqrt((1.0 - c * c) * kT * masses[None, :])
         q, p, F = state["q"], state["p"], state["F"]
         out = np.empty((steps if record else 0, chains))
+        every = max(1, steps // SNAPSHOTS)
         with np.errstate(all="ignore"):
             for k in range(steps):
                 p = p + half * F
                 q = q + half * p / masses
-                p = c * p + noise * rng.standard_normal((chains, n))
+                xi = rng.standard_normal((chains, n))
+                if far:
+                    xi = np.concatenate([xi, rng_far.standard_normal((far, n))])
+                p = c * p + noise * xi
                 q = q + half * p / masses
                 F = -pot.gradient(q)
                 p = p + half * F
                 if record:
-                    out[k] = pot.energy(q)
+                    u = pot.energy(q)
+                    out[k] = u[:chains]
+                    if k % every == every - 1:
+                        kept.append(np.concatenate([q, u[:, None]], axis=1))
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(p))):
             raise StepsafeError(f"the Langevin chains at kT = {kT:.6g} left every finite "
                                 f"value (h = {h:.6g}): the distribution is not confined, "
@@ -563,7 +706,15 @@ def langevin(pot: Potential, kT: float, count: int, rng: np.random.Generator, se
         state.update(q=q, p=p, F=F)
         return out
 
-    burn = math.ceil(burn_damping / (gamma * h))
+    def mixing() -> tuple[float, int]:
+        """The largest disagreement over the coordinates and U (index n) on the snapshots
+        kept, with where it is."""
+        values = disagreement(np.asarray(kept), chains)
+        worst = int(np.argmax(values))
+        return float(values[worst]), worst
+
+    gamma = np.full(n, gamma)  # (per coordinate: lowered where the profiles say it is slow)
+    burn = math.ceil(burn_damping / (float(np.max(gamma)) * h))
     notes: list[str] = []
     run(burn - burn // 2)
     trace = run(burn // 2, record=True)
@@ -572,20 +723,58 @@ def langevin(pot: Potential, kT: float, count: int, rng: np.random.Generator, se
     for _ in range(6):  # the record must span SPAN tau: doubled up to 6 times
         if SPAN * tau <= trace.shape[0]:
             break
+        kept.clear()
         more = run(trace.shape[0], record=True)
         trace = np.concatenate([trace, more])
         total += more.shape[0]
         tau = integrated_time(trace)
+    gap, worst = mixing() if far else (1.0, 0)
+    if gap >= AGREE:
+        # the chains started apart disagree: the minimum's curvature misjudged the slowest
+        # motion. Its friction is set from the profiles' slowest frequency instead (when
+        # lower) and the burn-in doubled, with every chain, until they agree
+        first = gap
+        if friction is None:
+            lowered = np.minimum(gamma, spread.omegas)
+            if np.array_equal(lowered, gamma):  # (no coordinate stands out: all of them)
+                lowered = np.minimum(gamma, spread.omega)
+            gamma = lowered
+        stage = max(total, math.ceil(burn_damping / (float(np.min(gamma)) * h)))
+        for _ in range(DOUBLINGS):
+            kept.clear()
+            trace = run(stage, record=True)
+            total += stage
+            gap, worst = mixing()
+            if gap < AGREE:
+                break
+            stage = total
+        what = "U" if worst == n else f"coordinate {worst}"
+        low = float(np.min(gamma))
+        if gap >= AGREE:
+            raise StepsafeError(
+                f"the Langevin draws at kT = {kT:.6g} have not mixed: chains started "
+                f"{RISE:g} kT up the profiles through the minimum still disagree about "
+                f"the mean or spread of {what} ({gap:.3g} standard errors apart) after "
+                f"{total} steps of h = {h:.6g} at friction down to {low:.3g}, so draws near "
+                f"the minimum would miss part of the distribution: no verdict on them (make "
+                f"the slow coordinate's well narrower, or its walls steeper, or analyse it on "
+                f"its own)")
+        tau = integrated_time(trace)
+        notes.append(f"chains started {RISE:g} kT up the profiles through the minimum "
+                     f"disagreed with those started near it ({first:.3g} standard errors "
+                     f"apart); the draws are taken at friction down to {low:.3g} after a "
+                     f"burn-in of {total} steps, when they agree ({gap:.2g})")
     if SPAN * tau > trace.shape[0]:
         notes.append(f"the autocorrelation time of U ({tau:.3g} steps) is not resolved "
                      f"by {trace.shape[0]} steps of burn-in")
     thin = max(1, math.ceil(2 * tau))
+    far = 0  # (the frames come from the near chains)
+    state.update(q=state["q"][:chains], p=state["p"][:chains], F=state["F"][:chains])
     configs = np.empty((frames, chains, n))
     for f in range(frames):
         run(thin)
         configs[f] = state["q"]
     q_out = configs.transpose(1, 0, 2).reshape(chains * frames, n)
     chain = np.repeat(np.arange(chains), frames)
-    return Ensemble(q_out, chain, kT, "Langevin (BAOAB)", seed, h, gamma, total, thin, tau,
-                    chains, tuple(notes))
-
+    return Ensemble(q_out, chain, kT, "Langevin (BAOAB)", seed, h, float(np.min(gamma)), total,
+                    thin, tau, chains, tuple(notes))
