@@ -596,7 +596,7 @@ def dispersed(pot: Potential, kT: float, found: Modes, count: int,
         curv = (e @ found.vectors) ** 2 @ lam
     else:
         d = e / np.sqrt(pot.masses)[None, :]
-        curv = np.einsum("kn,kn->k", d, pot.product(np.broadcast_to(q0, d.shape), d).product)
+        curv = np.einsum("kn,kn->k", d, pot.product(np.broadcast_to(q0, d.shape), d).value)
     positive = lam[lam > found.error]
     floor = float(positive[0]) if positive.size else float(lam[-1])
     curv = np.where(np.isfinite(curv) & (curv > found.error), curv, floor)
@@ -675,10 +675,10 @@ def langevin(pot: Potential, kT: float, count: int, rng: np.random.Generator, se
     kept: list[np.ndarray] = []  # snapshots (rows, n + 1): coordinates and U
 
     def run(steps: int, record: bool = False) -> np.ndarray:
-        """``steps`` BAOAB steps at the friction ``gamma``; U of the near chains at each
+        """``steps`` BAOAB steps at the frictions ``rates``; U of the near chains at each
         step when ``record`` (else an empty array), with about ``SNAPSHOTS`` snapshots of
         every chain kept."""
-        c = np.array([math.exp(-g * h) for g in gamma])[None, :]
+        c = np.array([math.exp(-g * h) for g in rates])[None, :]
         noise = np.sqrt((1.0 - c * c) * kT * masses[None, :])
         q, p, F = state["q"], state["p"], state["F"]
         out = np.empty((steps if record else 0, chains))
@@ -713,8 +713,8 @@ def langevin(pot: Potential, kT: float, count: int, rng: np.random.Generator, se
         worst = int(np.argmax(values))
         return float(values[worst]), worst
 
-    gamma = np.full(n, gamma)  # (per coordinate: lowered where the profiles say it is slow)
-    burn = math.ceil(burn_damping / (float(np.max(gamma)) * h))
+    rates = np.full(n, gamma)  # (per coordinate: lowered where the profiles say it is slow)
+    burn = math.ceil(burn_damping / (float(np.max(rates)) * h))
     notes: list[str] = []
     run(burn - burn // 2)
     trace = run(burn // 2, record=True)
@@ -735,11 +735,11 @@ def langevin(pot: Potential, kT: float, count: int, rng: np.random.Generator, se
         # lower) and the burn-in doubled, with every chain, until they agree
         first = gap
         if friction is None:
-            lowered = np.minimum(gamma, spread.omegas)
-            if np.array_equal(lowered, gamma):  # (no coordinate stands out: all of them)
-                lowered = np.minimum(gamma, spread.omega)
-            gamma = lowered
-        stage = max(total, math.ceil(burn_damping / (float(np.min(gamma)) * h)))
+            lowered = np.minimum(rates, spread.omegas)
+            if np.array_equal(lowered, rates):  # (no coordinate stands out: all of them)
+                lowered = np.minimum(rates, spread.omega)
+            rates = lowered
+        stage = max(total, math.ceil(burn_damping / (float(np.min(rates)) * h)))
         for _ in range(DOUBLINGS):
             kept.clear()
             trace = run(stage, record=True)
@@ -749,7 +749,7 @@ def langevin(pot: Potential, kT: float, count: int, rng: np.random.Generator, se
                 break
             stage = total
         what = "U" if worst == n else f"coordinate {worst}"
-        low = float(np.min(gamma))
+        low = float(np.min(rates))
         if gap >= AGREE:
             raise StepsafeError(
                 f"the Langevin draws at kT = {kT:.6g} have not mixed: chains started "
@@ -776,5 +776,5 @@ def langevin(pot: Potential, kT: float, count: int, rng: np.random.Generator, se
         configs[f] = state["q"]
     q_out = configs.transpose(1, 0, 2).reshape(chains * frames, n)
     chain = np.repeat(np.arange(chains), frames)
-    return Ensemble(q_out, chain, kT, "Langevin (BAOAB)", seed, h, float(np.min(gamma)), total,
+    return Ensemble(q_out, chain, kT, "Langevin (BAOAB)", seed, h, float(np.min(rates)), total,
                     thin, tau, chains, tuple(notes))
