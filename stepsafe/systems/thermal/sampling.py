@@ -25,7 +25,14 @@ Three ways, the most exact that applies:
   ``tau`` (in steps; Sokal's automatic window, ``W >= 5 tau``; the burn-in is doubled, up
   to six times, until that record spans ``SPAN tau``, else a note says so). Frames are then
   taken every ``thin = ceil(2 tau)`` steps, several chains advancing together as rows of
-  one array.
+  one array. The minimum's curvature may misjudge the slowest motion (a narrow dimple in
+  a wide flat region), so ``FAR`` more chains start dispersed (:func:`dispersed`: where
+  the profiles along the coordinates and the normal modes first rise ``RISE`` kT) with a
+  generator of their own, and at the end of the burn-in both groups must agree on the
+  mean and spread of every coordinate and of U (:func:`disagreement` below ``AGREE``).
+  When they do not, the friction of the coordinates whose profiles rise slowly is lowered
+  to the frequency those profiles suggest and the burn-in is run again, doubled up to
+  ``DOUBLINGS`` times, until they do (with a note), else the draws are refused.
 
 Every draw comes from ``numpy.random.default_rng(seed)`` in a fixed order: the same seed
 gives the same configurations, bit for bit, on one machine.
