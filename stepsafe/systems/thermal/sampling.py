@@ -96,6 +96,8 @@ FAR = 32
 AGREE = 6.0
 #: ... and while it is not, the burn-in is doubled, at most this many times.
 DOUBLINGS = 5
+#: ... and the steps run to mix are bounded by this (or eight times the first burn-in).
+MIX_STEPS = 1 << 18
 #: Snapshots of the chains kept per burn-in stage for :func:`disagreement`.
 SNAPSHOTS = 64
 
@@ -747,7 +749,10 @@ def langevin(pot: Potential, kT: float, count: int, rng: np.random.Generator, se
                 lowered = np.minimum(rates, spread.omega)
             rates = lowered
         stage = max(total, math.ceil(burn_damping / (float(np.min(rates)) * h)))
+        budget = max(MIX_STEPS, 8 * total)
         for _ in range(DOUBLINGS):
+            if total + stage > budget:
+                break
             kept.clear()
             trace = run(stage, record=True)
             total += stage
