@@ -314,7 +314,7 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
     no_margin(p, margin_key)
     step = h
     followed(req, step)
-    each, reasons = [], []
+    each, reasons, notes = [], [], []
     report = _progress(progress, len(found))
     for i, m in enumerate(found):
         with p.integrator.naming_its_file(), _naming_the_scene(p, req):
@@ -326,6 +326,9 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
             progress((i + 1) / len(found))
         each.append(check_record(m, c, p.margin))
         reasons += [f"{r} (minimum at {m.label})" for r in c.reasons]
+        if c.linear is not None:  # (how the draws were made: a note on their mixing)
+            notes += [n if len(found) == 1 else f"minimum at {m.label}: {n}"
+                      for n in c.linear.ensemble.notes]
         d = c.drift
         if req.max_drift is not None and d is not None and d.failed:
             reasons.append(f"{d.failed} of {d.trajectories} trajectories failed: the "
@@ -337,7 +340,7 @@ def check_at_temperature(p: Any, req: Request, h: float, criterion: str,
                            f"(2 standard errors) exceeds max_drift {req.max_drift:g} "
                            f"(minimum at {m.label})")
     return {**_request_record(req, criterion), "safe": not reasons, "reasons": reasons,
-            "harmonic": False, "margin": p.margin, "minima": each, "notes": []}
+            "harmonic": False, "margin": p.margin, "minima": each, "notes": notes}
 
 
 def _edge(e: Any) -> dict[str, Any] | None:
