@@ -98,6 +98,9 @@ AGREE = 6.0
 DOUBLINGS = 5
 #: ... and the steps run to mix are bounded by this (or eight times the first burn-in).
 MIX_STEPS = 1 << 18
+#: The profiles of the dispersed starts are walked geometrically up to 2^FARTHEST times
+#: their linear reach.
+FARTHEST = 30
 #: Snapshots of the chains kept per burn-in stage for :func:`disagreement`.
 SNAPSHOTS = 64
 
@@ -585,11 +588,13 @@ def dispersed(pot: Potential, kT: float, found: Modes, count: int,
     ``n > EXACT_UP_TO``, ``count`` axes drawn at random), the profile
     ``u(s) = U(q0 + s M^-1/2 e) - U(q0)`` is walked out on both sides in steps of half the
     thermal amplitude ``a = sqrt(kT / e^T W e)`` (W the mass-weighted Hessian at the
-    minimum) up to ``BEYOND REACH a``; the side starts where u first reaches ``rise kT``
-    (the last finite point before U stops being finite), or at the reach when it never
-    does. The starts kept are those farthest out in units of their own ``a``: where the
-    curvature at the minimum says least about how far the distribution extends (a
-    harmonic direction rises ``rise kT`` at ``sqrt(2 rise) a``)."""
+    minimum) up to ``BEYOND REACH a``, then in steps of a factor ``2^1/4`` up to
+    ``2^FARTHEST`` times that (a region flat far beyond the curvature's scale); the side
+    starts where u first reaches ``rise kT`` (on the geometric part, or where U stops
+    being finite, at the point before), or at ``BEYOND REACH a`` when it never does. The
+    starts kept are those farthest out in units of their own ``a``: where the curvature at
+    the minimum says least about how far the distribution extends (a harmonic direction
+    rises ``rise kT`` at ``sqrt(2 rise) a``)."""
     n = pot.dimension
     if count < 1:
         return Dispersed(np.empty((0, n)), np.full(n, math.inf), math.inf)
@@ -609,7 +614,9 @@ def dispersed(pot: Potential, kT: float, found: Modes, count: int,
     positive = lam[lam > found.error]
     floor = float(positive[0]) if positive.size else float(lam[-1])
     curv = np.where(np.isfinite(curv) & (curv > found.error), curv, floor)
-    k = np.arange(1, 2 * BEYOND * REACH + 1, dtype=float)
+    linear = 2 * BEYOND * REACH  # (points of the walk in steps of a / 2; then geometric)
+    k = np.concatenate([np.arange(1, linear + 1, dtype=float),
+                        linear * 2.0 ** (np.arange(1, 4 * FARTHEST + 1) / 4.0)])
     starts, reach, omegas = [], [], np.full(n, math.inf)
     omega = math.inf
     for row, c in zip(e, curv):
@@ -620,9 +627,9 @@ def dispersed(pot: Potential, kT: float, found: Modes, count: int,
             with np.errstate(all="ignore"):
                 u = (pot.energy(q0[None, :] + s[:, None] * d[None, :]) - u0) / kT
             stop = np.flatnonzero(~(u < rise))
-            j = int(stop[0]) if stop.size else k.size - 1
-            if stop.size and not np.isfinite(u[j]):
-                j -= 1
+            j = int(stop[0]) if stop.size else linear - 1
+            if stop.size and (j >= linear or not np.isfinite(u[j])):
+                j -= 1  # (the last point below: the geometric steps overshoot a steep wall)
             if j < 0:
                 continue
             starts.append(q0 + s[j] * d)
