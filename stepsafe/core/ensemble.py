@@ -180,7 +180,8 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
               energy0: np.ndarray | None = None, force0: np.ndarray | None = None,
               tol: float = 1e-14, max_iterations: int = 200,
               stop_escapes: int | None = None,
-              leaves: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+              leaves: Callable[[np.ndarray, np.ndarray, np.ndarray | None], np.ndarray]
+              | None = None,
               progress: Callable[[float], None] | None = None) -> Trajectories:
     """Advance the trajectories from the rows of ``(q0, p0)`` by ``steps`` steps of the
     method (module docstring).
@@ -224,8 +225,9 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
     stop_escapes : int, optional
         Stop after the step at which this many rows have escaped (module docstring).
     leaves : callable, optional
-        ``leaves(q, p)`` of the running rows' output state (r, d): True for those that
-        escape (tested where the energy is measured).
+        ``leaves(q, p, excess)`` of the running rows' output state (r, d) and their
+        initial energies above ``reference_energy`` (r,): True for those that escape
+        (tested where the energy is measured).
     progress : callable, optional
         Called with the fraction of steps done.
 
@@ -336,7 +338,7 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
                     assert excess_run is not None
                     fine &= dH + excess_run <= lim_run
                 if leaves is not None:
-                    fine &= ~np.asarray(leaves(qo * Lq, po * Lp), dtype=bool)
+                    fine &= ~np.asarray(leaves(qo * Lq, po * Lp, excess_run), dtype=bool)
                 if not fine.all():
                     bad |= ~fine
             if bad.any():

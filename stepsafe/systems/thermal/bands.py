@@ -287,7 +287,10 @@ def criterion_text(growth: float = GROWTH, distance: float = DISTANCE,
     if start is None:
         return out
     for e in start.exits:
-        if e.split:
+        if e.valley is not None:
+            along = " along the floor of a valley (its relaxed profile)"
+            where, what = "e . sqrt(M)", "valley"
+        elif e.split:
             n = start.q.shape[1]
             along = (f" where q_1..q_{e.split} part from q_{e.split + 1}..q_{n} (centre of "
                      f"mass fixed)")

@@ -43,7 +43,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -67,6 +67,14 @@ AXIS_ALONG = 1e-9
 #: Beyond ``EXACT_UP_TO`` coordinates, the profiles along this many of the fastest modes are
 #: walked for exits (Lanczos finds no more at a bounded cost).
 MODE_EXITS_LARGE = 3
+#: Relaxed profiles (:func:`relaxed_exits`) are walked for at most this many coordinates
+#: (every direction's walk costs ``O(n^2)`` a step: ``O(n^3)`` in all).
+RELAXED_UP_TO = 128
+#: A relaxed valley whose floor at its exit lies along a straight exit's direction (squared
+#: cosine above ``1 - ALONG_LINE``) at no lower energy is that exit, walked already.
+ALONG_LINE = 1e-4
+#: Newton steps on the floor of a relaxed profile at each of its points.
+RELAX_STEPS = 3
 #: Points of the walk's first look out from the minimum (16 thermal amplitudes; a side
 #: rising to the cut within them is settled by them).
 FIRST = 128
@@ -260,6 +268,12 @@ class Exit:
         Along a normal mode, its frequency at the minimum (else NaN).
     split : int
         Along :func:`split_direction`, the first coordinate of the second group (else 0).
+    valley : ndarray, optional
+        Along a relaxed profile (:func:`relaxed_exits`), the displacement ``q - q0`` of its
+        floor ``(k, n)`` at ``s = side * j * spacing``, ``j = 0..k-1`` (None along a straight
+        profile, whose displacement is ``s M^-1/2 e``).
+    spacing : float
+        The spacing of ``valley`` in s (NaN along a straight profile).
     """
 
     side: float
@@ -270,6 +284,8 @@ class Exit:
     direction: tuple[float, ...] | None = None
     omega: float = math.nan
     split: int = 0
+    valley: np.ndarray | None = field(default=None, compare=False, repr=False)
+    spacing: float = math.nan
 
 
 def well(pot: Potential, kT: float, cut: float = CUT
@@ -323,24 +339,31 @@ def mode_exits(pot: Potential, kT: float, cut: float = CUT) -> tuple[Exit, ...]:
     direction) is left out, and so is one that lies along a coordinate (``e_i^2 > 1 -
     AXIS_ALONG``: :func:`axis_exits` walks that profile). None for one coordinate, or where
     the modes at the minimum cannot be found."""
+    out: list[Exit] = []
+    for e, omega in _mode_directions(pot):
+        out += [dataclasses.replace(x, axis=-1, direction=tuple(float(v) for v in e),
+                                    omega=omega) for x in _profile_exits(pot, e, kT, cut)]
+    return tuple(out)
+
+
+def _mode_directions(pot: Potential) -> list[tuple[np.ndarray, float]]:
+    """The unit mass-weighted directions :func:`mode_exits` walks, with their frequencies."""
     n = pot.dimension
     if pot.minimum is None or n == 1:
-        return ()
+        return []
     try:
         found = modes(pot, pot.minimum, count=None if n <= EXACT_UP_TO else MODE_EXITS_LARGE)
     except StepsafeError:
-        return ()
+        return []
     if not (np.all(np.isfinite(found.eigenvalues)) and np.isfinite(found.error)):
-        return ()
-    out: list[Exit] = []
+        return []
+    out = []
     for j in range(found.eigenvalues.size):
         e = found.vectors[:, j] / np.linalg.norm(found.vectors[:, j])
         if not found.eigenvalues[j] > found.error or np.max(e * e) > 1.0 - AXIS_ALONG:
             continue
-        omega = math.sqrt(float(found.eigenvalues[j]))
-        out += [dataclasses.replace(x, axis=-1, direction=tuple(float(v) for v in e),
-                                    omega=omega) for x in _profile_exits(pot, e, kT, cut)]
-    return tuple(out)
+        out.append((e, math.sqrt(float(found.eigenvalues[j]))))
+    return out
 
 
 def split_direction(masses: np.ndarray, k: int) -> np.ndarray:
@@ -372,30 +395,255 @@ def split_exits(pot: Potential, kT: float, cut: float = CUT) -> tuple[Exit, ...]
     chain follows: each stretches some bonds and compresses others). Directions that lie
     along a coordinate or a normal mode at the minimum (squared cosine above ``1 -
     AXIS_ALONG``) are left out: those profiles are walked already."""
+    out: list[Exit] = []
+    for e, k in _split_directions(pot):
+        out += [dataclasses.replace(x, axis=-1, direction=tuple(float(v) for v in e),
+                                    split=k) for x in _profile_exits(pot, e, kT, cut)]
+    return tuple(out)
+
+
+def _split_directions(pot: Potential) -> list[tuple[np.ndarray, int]]:
+    """The unit mass-weighted directions :func:`split_exits` walks, with their k."""
     n = pot.dimension
     if pot.minimum is None or n == 1:
-        return ()
+        return []
     try:
         walked = modes(pot, pot.minimum,
                        count=None if n <= EXACT_UP_TO else MODE_EXITS_LARGE).vectors
     except StepsafeError:
         walked = np.zeros((n, 0))
-    out: list[Exit] = []
+    out = []
     for k in range(1, n):
         e = split_direction(pot.masses, k)
         e = e / np.linalg.norm(e)
         if np.max(e * e) > 1.0 - AXIS_ALONG or (
                 walked.shape[1] and np.max((e @ walked) ** 2) > 1.0 - AXIS_ALONG):
             continue
-        out += [dataclasses.replace(x, axis=-1, direction=tuple(float(v) for v in e),
-                                    split=k) for x in _profile_exits(pot, e, kT, cut)]
-    return tuple(out)
+        out.append((e, k))
+    return out
 
 
 def well_exits(pot: Potential, kT: float, cut: float = CUT) -> tuple[Exit, ...]:
     """Where a trajectory leaves the well of the minimum: :func:`axis_exits`,
-    :func:`mode_exits` and :func:`split_exits`."""
-    return axis_exits(pot, kT, cut) + mode_exits(pot, kT, cut) + split_exits(pot, kT, cut)
+    :func:`mode_exits` and :func:`split_exits`, and :func:`relaxed_exits` along the same
+    directions where their valleys leave lower."""
+    straight = axis_exits(pot, kT, cut) + mode_exits(pot, kT, cut) + split_exits(pot, kT, cut)
+    return straight + relaxed_exits(pot, kT, straight, cut)
+
+
+def relaxed_exits(pot: Potential, kT: float, straight: tuple[Exit, ...] = (),
+                  cut: float = CUT) -> tuple[Exit, ...]:
+    """The exits of the *relaxed* profiles along the directions of :func:`axis_exits`,
+    :func:`mode_exits` and :func:`split_exits`: where a trajectory leaves the well along a
+    curved valley, which no straight line through the minimum follows.
+
+    In mass-weighted coordinates ``y = M^1/2 (q - q0)`` the relaxed profile along a unit
+    vector e is ``u(s) = min U(q0 + M^-1/2 (s e + w))`` over ``w`` orthogonal to e: the
+    lowest U on the hyperplane ``e . y = s``, never above the straight profile (``w = 0``).
+    A trajectory that crosses that hyperplane has at least ``u(s)`` there, so a barrier top
+    or plateau E of u is the least energy that leaves the well along e, whatever the path.
+    The walk goes out from the minimum in steps of an eighth of the thermal spread of s,
+    ``a = sqrt(kT e^T W^-1 e)`` (W the mass-weighted Hessian at the minimum: the standard
+    deviation of s in the harmonic approximation), up to ``8 REACH`` steps. At each s the
+    floor ``w`` starts from the lowest of the previous s's floor, its linear extrapolation
+    and 0 (so u never exceeds the straight profile), and takes ``RELAX_STEPS`` Newton steps
+    of the minimum's curvature restricted to the hyperplane,
+    ``dw = -(W^-1 - c c^T / (e . c)) g`` with ``c = W^-1 e`` and ``g = M^-1/2 grad U`` (the
+    exact minimiser of a quadratic U in one step; ``e . dw = 0``), each halved until U does
+    not rise. A minimum not reached gives a u above the true one: the walk then finds an
+    exit no lower than the true valley's, or none, as a straight profile would.
+
+    A side ends at a wall where ``u - min(0, lowest u met)`` reaches ``cut kT`` with no fall
+    of more than kT before it (confined), or, past such a fall (a barrier), where u rises
+    again that far above the lowest u met (the basins beyond are drawn: no exit); otherwise
+    a barrier's top, or where u levels off at ``8 REACH`` steps, is an exit when it is at
+    least ``PLATEAU kT`` above the minimum (a lower one is left to the straight walks and
+    the draws). Its ``edge`` is the first point where u reaches ``energy - kT``, and
+    ``valley`` holds the floor's displacement up to the exit.
+
+    Only exits below those of the straight walk of the same direction and side by more than
+    kT are returned (``straight``: the exits found so; a relaxed profile is never above
+    the straight one, and where they agree the straight exit stands), and of those only
+    the ones whose floor at the exit does not lie along a straight exit's direction
+    (squared cosine ``1 - ALONG_LINE``) at an energy above that exit's less kT (the same
+    straight valley, reached from another direction). The walks of every
+    direction and side run together as rows of one array: per step, ``1 + 2 RELAX_STEPS``
+    evaluations of U or its gradient on up to ``6 n`` rows and ``RELAX_STEPS`` products
+    with ``n x n`` matrices; beyond ``RELAXED_UP_TO`` coordinates (or where the Hessian at
+    the minimum is not positive definite) no relaxed walk is made.
+
+    Parameters
+    ----------
+    pot : Potential
+        With its minimum.
+    kT : float
+    straight : tuple of Exit
+        The straight profiles' exits of the same directions.
+    cut : float
+        The wall, in kT.
+
+    Returns
+    -------
+    tuple of Exit
+        With ``axis`` (the coordinate, -1 for a mode or a split), ``direction`` (always set),
+        ``omega``, ``split``, ``valley`` and ``spacing``.
+    """
+    n = pot.dimension
+    if pot.minimum is None or n == 1 or n > RELAXED_UP_TO:
+        return ()
+    try:
+        found = modes(pot, pot.minimum)
+    except StepsafeError:
+        return ()
+    lam = found.eigenvalues
+    if not (lam.size == n and np.all(np.isfinite(lam)) and np.isfinite(found.error)
+            and lam[0] > found.error):
+        return ()
+    directions: list[tuple[np.ndarray, int, float, int]] = []  # (e, axis, omega, split)
+    for i in range(n):
+        e = np.zeros(n)
+        e[i] = 1.0
+        directions.append((e, i, math.nan, 0))
+    directions += [(e, -1, omega, 0) for e, omega in _mode_directions(pot)]
+    directions += [(e, -1, math.nan, k) for e, k in _split_directions(pot)]
+    walks = [(d, sign) for d in range(len(directions)) for sign in (-1.0, 1.0)]
+    unit = np.array([directions[d][0] * sign for d, sign in walks])
+    u, spacing, _ = _relax(pot, kT, lam, found.vectors, unit, cut, record=False)
+    keep: list[tuple[int, tuple[int, float, int]]] = []
+    for w in range(len(walks)):
+        end = _relaxed_end(u[w], cut)
+        if end is None:
+            continue
+        d, sign = walks[w]
+        e, axis = directions[d][0], directions[d][1]
+        rival = [x.energy for x in straight if x.side == sign and _same(x, e, axis)]
+        if rival and not end[1] * kT < min(rival) - kT:
+            continue
+        keep.append((w, end))
+    if not keep:
+        return ()
+    chosen = np.array([w for w, _ in keep])
+    _, _, path = _relax(pot, kT, lam, found.vectors, unit[chosen], cut, record=True)
+    out = []
+    root = np.sqrt(pot.masses)
+    lines = [(x.side * _unit_of(x, n), x.energy) for x in straight]
+    for j, (w, (top, energy, edge)) in enumerate(keep):
+        floor = path[j, top] / np.linalg.norm(path[j, top])
+        if any(float(line @ floor) ** 2 > 1.0 - ALONG_LINE and energy * kT >= low - kT
+               for line, low in lines if float(line @ floor) > 0):
+            continue  # (a valley that runs straight out along a walked exit: that exit)
+        d, sign = walks[w]
+        e, axis, omega, split = directions[d]
+        ds = float(spacing[w])
+        out.append(Exit(sign, sign * top * ds, energy * kT, sign * edge * ds, axis,
+                        tuple(float(v) for v in e), omega, split,
+                        path[j, :top + 1] / root[None, :], ds))
+    return tuple(out)
+
+
+def _unit_of(x: Exit, n: int) -> np.ndarray:
+    """The mass-weighted unit vector of a straight exit's direction."""
+    if x.direction is not None:
+        return np.asarray(x.direction, dtype=float)
+    e = np.zeros(n)
+    e[x.axis] = 1.0
+    return e
+
+
+def _same(x: Exit, e: np.ndarray, axis: int) -> bool:
+    """Whether the straight exit x is along the direction e (coordinate ``axis``, or -1)."""
+    if x.direction is None:
+        return axis >= 0 and x.axis == axis
+    return axis < 0 and bool(np.array_equal(np.asarray(x.direction), e))
+
+
+def _relax(pot: Potential, kT: float, lam: np.ndarray, vectors: np.ndarray,
+           unit: np.ndarray, cut: float, record: bool
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The relaxed walks of :func:`relaxed_exits` along the rows of ``unit`` (signed unit
+    directions ``(w, n)``; ``lam``, ``vectors``: every mode at the minimum): ``(u, spacing,
+    path)``, ``u`` the profiles in kT above the minimum at ``s = j * spacing``, ``j =
+    0..8 REACH`` (``(w, 8 REACH + 1)``, NaN past a walk's wall), ``spacing`` ``(w,)``, and,
+    when ``record``, the floors ``y = s e + w`` ``(w, 8 REACH + 1, n)`` (else empty)."""
+    q0 = np.asarray(pot.minimum, dtype=float)
+    root = np.sqrt(pot.masses)
+    count, n = unit.shape
+    top = float(lam[-1])
+    rel = lam / top
+    eV = unit @ vectors  # (e in the modes' basis)
+    spread = np.sqrt(np.sum(eV * eV / rel[None, :], axis=1))
+    step = math.sqrt(kT / top) * spread / 8.0  # (an eighth of the thermal spread of s)
+    # c / (e . c) with c = W^-1 e, in y: scale-free
+    lead = ((eV / rel[None, :]) @ vectors.T) / (spread ** 2)[:, None]
+    u0 = float(pot.energy(q0[None, :])[0])
+    last = 8 * REACH
+
+    def level(y: np.ndarray) -> np.ndarray:
+        with np.errstate(all="ignore"):
+            v = (pot.energy(q0[None, :] + y / root[None, :]) - u0) / kT
+        return np.where(np.isnan(v), np.inf, v)
+
+    u = np.full((count, last + 1), np.nan)
+    u[:, 0] = 0.0
+    path = np.zeros((count, last + 1, n) if record else (0, 0, 0))
+    w = np.zeros((count, n))
+    before = np.zeros((count, n))
+    low = np.zeros(count)
+    live = np.arange(count)
+    for j in range(1, last + 1):
+        if not live.size:
+            break
+        base = (j * step[live])[:, None] * unit[live]
+        guesses = np.stack([w[live], 2.0 * w[live] - before[live], np.zeros((live.size, n))])
+        values = level((base[None] + guesses).reshape(-1, n)).reshape(3, live.size)
+        pick = np.argmin(values, axis=0)
+        cur = values[pick, np.arange(live.size)]
+        floor = guesses[pick, np.arange(live.size)]
+        before[live] = w[live]
+        eta = np.ones(live.size)
+        for _ in range(RELAX_STEPS):
+            with np.errstate(all="ignore"):
+                g = pot.gradient(q0[None, :] + (base + floor) / root[None, :]) / root[None, :]
+                t = (g @ vectors) / lam[None, :]
+                move = t @ vectors.T - lead[live] * np.sum(eV[live] * t, axis=1)[:, None]
+                trial = floor - eta[:, None] * move
+            value = level(base + trial)
+            better = value < cur
+            floor = np.where(better[:, None], trial, floor)
+            cur = np.where(better, value, cur)
+            eta = np.where(better, np.minimum(1.0, 2.0 * eta), 0.5 * eta)
+        w[live] = floor
+        u[live, j] = cur
+        if record:
+            path[live, j] = base + floor
+        low[live] = np.minimum(low[live], cur)
+        with np.errstate(invalid="ignore"):
+            done = ~np.isfinite(cur) | (cur - low[live] >= cut)
+        live = live[~done]
+    return u, step, path
+
+
+def _relaxed_end(u: np.ndarray, cut: float) -> tuple[int, float, int] | None:
+    """The exit of one relaxed walk's ``u`` (:func:`_relax`, in kT): ``(index of the exit
+    point, its u, index of the edge)``, or None (:func:`relaxed_exits`)."""
+    u = u[:int(np.flatnonzero(~np.isnan(u))[-1]) + 1]
+    if not np.all(np.isfinite(u)):
+        return None
+    highest = np.maximum.accumulate(u)
+    low = np.minimum.accumulate(np.minimum(u, 0.0))
+    falls = np.flatnonzero(u < highest - 1.0)
+    if falls.size:
+        end = int(np.argmax(u[:falls[0]]))
+        if np.any(u[falls[0]:] - low[falls[0]:] >= cut):
+            return None  # (the basins beyond are confined by a wall: drawn)
+    elif u[-1] - low[-1] >= cut or u.size < 8 * REACH + 1:
+        return None  # (a wall)
+    else:
+        end = u.size - 1
+    if not u[end] >= PLATEAU:
+        return None
+    edge = int(np.flatnonzero(u[:end + 1] >= u[end] - 1.0)[0])
+    return end, float(u[end]), edge
 
 
 def _profile_exits(pot: Potential, e: np.ndarray, kT: float, cut: float

@@ -182,17 +182,20 @@ def thermal_start(pot: Potential, kT: float, count: int, seed: int = 0,
 
 
 def leaving(pot: Potential, start: Start
-            ) -> Callable[[np.ndarray, np.ndarray], np.ndarray] | None:
+            ) -> Callable[..., np.ndarray] | None:
     """The test of rows that leave the start's well (module docstring) on output states
-    ``q``, ``p`` (r, n); None when it has no exit."""
+    ``q``, ``p`` (r, n), with the rows' initial energies above ``U_ref`` (r,) when known;
+    None when it has no exit."""
     if not start.exits:
         return None
     n = pot.dimension
     root = np.sqrt(pot.masses)
     q0 = start.reference
     along = [e for e in start.exits if e.direction is None]
-    modal = [e for e in start.exits if e.direction is not None and not e.split]
-    splits = [e for e in start.exits if e.split]
+    modal = [e for e in start.exits
+             if e.direction is not None and not e.split and e.valley is None]
+    splits = [e for e in start.exits if e.split and e.valley is None]
+    valleys = [e for e in start.exits if e.valley is not None]
     # a coordinate's s = sqrt(m_i) (q_i - q0_i), its velocity p_i / sqrt(m_i); the point of
     # the profile behind q is q with q_i = q0_i
     axes = np.array([e.axis for e in along], dtype=np.intp)
@@ -218,13 +221,17 @@ def leaving(pot: Potential, start: Start
         head = running[:, heads]
         return first * head + second * (running[:, -1:] - head)
 
-    exits = along + modal + splits
+    # a relaxed profile's s as a mode's; the point behind q is q less the valley floor's
+    # displacement at s, and the speed along the valley is that along the floor's tangent
+    floor = np.array([e.direction for e in valleys], dtype=float).T.reshape(n, -1) * root[:, None]
+    straight = len(along) + len(modal) + len(splits)
+    exits = along + modal + splits + valleys
     side = np.array([e.side for e in exits])
     at = side * np.array([e.at for e in exits])
     edge = side * np.array([e.edge for e in exits])
     energy = np.array([e.energy for e in exits])
     # the displacement along each exit's direction (n,) that takes s to 0
-    back = np.zeros((len(exits), n))
+    back = np.zeros((straight, n))
     back[np.arange(axes.size), axes] = 1.0 / root[axes]
     back[axes.size:axes.size + len(modal)] = behind.T
     back[axes.size + len(modal):] = shifts
@@ -232,24 +239,55 @@ def leaving(pot: Potential, start: Start
     def positions(q: np.ndarray) -> np.ndarray:
         x = q - q0[None, :]
         return np.concatenate([root[axes] * x[:, axes], x @ weigh,
-                               split_coordinate(pot.masses[None, :] * x)], axis=1)
+                               split_coordinate(pot.masses[None, :] * x), x @ floor], axis=1)
 
     def speeds(p: np.ndarray) -> np.ndarray:
         return np.concatenate([p[:, axes] / root[axes], p @ behind, split_coordinate(p)],
                               axis=1)
 
-    def leaves(q: np.ndarray, p: np.ndarray) -> np.ndarray:
+    def leaves(q: np.ndarray, p: np.ndarray, excess: np.ndarray | None = None) -> np.ndarray:
         with np.errstate(all="ignore"):
             s = positions(q)
-            out = np.any(side * s > at, axis=1)
+            past = side * s > at
+            if valleys and excess is not None:  # (a row that starts above a relaxed
+                # exit's energy may leave by the exact flow: not the step's failure)
+                past[:, straight:] &= ~(excess[:, None] > energy[None, straight:])
+            out = np.any(past, axis=1)
             rows, which = np.nonzero((side * s > edge) & ~out[:, None])
+            rows_v, beyond = rows[which >= straight], which[which >= straight]
+            if excess is not None:
+                bound = ~(excess[rows_v] > energy[beyond])
+                rows_v, beyond = rows_v[bound], beyond[bound]
+            lined = which < straight
+            rows, which = rows[lined], which[lined]
             if rows.size:  # (rare: within kT of an exit's energy)
                 x = q[rows]
                 speed = speeds(p[rows])[np.arange(rows.size), which]
                 own = 0.5 * speed ** 2 + (pot.energy(x) - pot.energy(
                     x - s[rows, which][:, None] * back[which]))
                 out[rows[~(own <= energy[which])]] = True
+            for j in np.unique(beyond):
+                mine = rows_v[beyond == j]
+                out[mine[valley_leaves(valleys[j - straight], q[mine], p[mine],
+                                       side[j] * s[mine, j])]] = True
         return out
+
+    def valley_leaves(exit: Exit, q: np.ndarray, p: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """Rows beyond a relaxed exit's edge (at ``s``, measured out from the minimum) whose
+        energy along its valley, ``(t . M^-1/2 p)^2 / 2 + U(q) - U(q - v(s))`` with ``v``
+        the floor's displacement and t its unit tangent (mass-weighted), both interpolated
+        linearly, exceeds the exit's."""
+        table = exit.valley
+        assert table is not None
+        at = s / exit.spacing
+        j = np.clip(np.floor(at).astype(np.intp), 0, table.shape[0] - 2)
+        part = (at - j)[:, None]
+        shift = (1.0 - part) * table[j] + part * table[j + 1]
+        tangent = (table[j + 1] - table[j]) * root[None, :]
+        tangent /= np.linalg.norm(tangent, axis=1)[:, None]
+        speed = np.sum(tangent * p / root[None, :], axis=1)
+        own = 0.5 * speed ** 2 + (pot.energy(q) - pot.energy(q - shift))
+        return ~(own <= exit.energy)
     return leaves
 
 
