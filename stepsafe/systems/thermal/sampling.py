@@ -73,8 +73,13 @@ RELAXED_UP_TO = 128
 #: A relaxed valley whose floor at its exit lies along a straight exit's direction (squared
 #: cosine above ``1 - ALONG_LINE``) at no lower energy is that exit, walked already.
 ALONG_LINE = 1e-4
-#: Newton steps on the floor of a relaxed profile at each of its points.
-RELAX_STEPS = 3
+#: A floor that moves more than this many times the step in s jumped to another branch of
+#: the hyperplane's minima (a fall there is no barrier).
+JUMP = 8.0
+#: Newton steps on the floor of a relaxed profile at each of its points ...
+RELAX_STEPS = 2
+#: ... and its points, a quarter of the thermal spread of s apart (out to ``REACH`` spreads).
+RELAX_POINTS = 4 * REACH
 #: Points of the walk's first look out from the minimum (16 thermal amplitudes; a side
 #: rising to the cut within them is settled by them).
 FIRST = 128
@@ -442,12 +447,12 @@ def relaxed_exits(pot: Potential, kT: float, straight: tuple[Exit, ...] = (),
     lowest U on the hyperplane ``e . y = s``, never above the straight profile (``w = 0``).
     A trajectory that crosses that hyperplane has at least ``u(s)`` there, so a barrier top
     or plateau E of u is the least energy that leaves the well along e, whatever the path.
-    The walk goes out from the minimum in steps of an eighth of the thermal spread of s,
+    The walk goes out from the minimum in steps of a quarter of the thermal spread of s,
     ``a = sqrt(kT e^T W^-1 e)`` (W the mass-weighted Hessian at the minimum: the standard
-    deviation of s in the harmonic approximation), up to ``8 REACH`` steps. At each s the
-    floor ``w`` starts from the lowest of the previous s's floor, its linear extrapolation
-    and 0 (so u never exceeds the straight profile), and takes ``RELAX_STEPS`` Newton steps
-    of the minimum's curvature restricted to the hyperplane,
+    deviation of s in the harmonic approximation), up to ``RELAX_POINTS = 4 REACH`` steps.
+    At each s the floor ``w`` starts from the lowest of the previous s's floor, its linear
+    extrapolation and 0 (so u never exceeds the straight profile), and takes
+    ``RELAX_STEPS`` Newton steps of the minimum's curvature restricted to the hyperplane,
     ``dw = -(W^-1 - c c^T / (e . c)) g`` with ``c = W^-1 e`` and ``g = M^-1/2 grad U`` (the
     exact minimiser of a quadratic U in one step; ``e . dw = 0``), each halved until U does
     not rise. A minimum not reached gives a u above the true one: the walk then finds an
@@ -456,7 +461,7 @@ def relaxed_exits(pot: Potential, kT: float, straight: tuple[Exit, ...] = (),
     A side ends at a wall where ``u - min(0, lowest u met)`` reaches ``cut kT`` with no fall
     of more than kT before it (confined), or, past such a fall (a barrier), where u rises
     again that far above the lowest u met (the basins beyond are drawn: no exit); otherwise
-    a barrier's top, or where u levels off at ``8 REACH`` steps, is an exit when it is at
+    a barrier's top, or where u levels off at ``RELAX_POINTS`` steps, is an exit when it is at
     least ``PLATEAU kT`` above the minimum (a lower one is left to the straight walks and
     the draws). Its ``edge`` is the first point where u reaches ``energy - kT``, and
     ``valley`` holds the floor's displacement up to the exit.
@@ -468,9 +473,10 @@ def relaxed_exits(pot: Potential, kT: float, straight: tuple[Exit, ...] = (),
     (squared cosine ``1 - ALONG_LINE``) at an energy above that exit's less kT (the same
     straight valley, reached from another direction). The walks of every
     direction and side run together as rows of one array: per step, ``1 + 2 RELAX_STEPS``
-    evaluations of U or its gradient on up to ``6 n`` rows and ``RELAX_STEPS`` products
-    with ``n x n`` matrices; beyond ``RELAXED_UP_TO`` coordinates (or where the Hessian at
-    the minimum is not positive definite) no relaxed walk is made.
+    evaluations of U or its gradient on up to ``6 n`` rows (the first on three times as
+    many) and ``RELAX_STEPS`` products with an ``n x n`` matrix; beyond ``RELAXED_UP_TO``
+    coordinates (or where the Hessian at the minimum is not positive definite) no relaxed
+    walk is made.
 
     Parameters
     ----------
@@ -508,10 +514,10 @@ def relaxed_exits(pot: Potential, kT: float, straight: tuple[Exit, ...] = (),
     directions += [(e, -1, math.nan, k) for e, k in _split_directions(pot)]
     walks = [(d, sign) for d in range(len(directions)) for sign in (-1.0, 1.0)]
     unit = np.array([directions[d][0] * sign for d, sign in walks])
-    u, spacing, _ = _relax(pot, kT, lam, found.vectors, unit, cut, record=False)
+    u, jumped, spacing, _ = _relax(pot, kT, lam, found.vectors, unit, cut, record=False)
     keep: list[tuple[int, tuple[int, float, int]]] = []
     for w in range(len(walks)):
-        end = _relaxed_end(u[w], cut)
+        end = _relaxed_end(u[w], jumped[w], cut)
         if end is None:
             continue
         d, sign = walks[w]
@@ -523,7 +529,7 @@ def relaxed_exits(pot: Potential, kT: float, straight: tuple[Exit, ...] = (),
     if not keep:
         return ()
     chosen = np.array([w for w, _ in keep])
-    _, _, path = _relax(pot, kT, lam, found.vectors, unit[chosen], cut, record=True)
+    _, _, _, path = _relax(pot, kT, lam, found.vectors, unit[chosen], cut, record=True)
     out = []
     root = np.sqrt(pot.masses)
     lines = [(x.side * _unit_of(x, n), x.energy) for x in straight]
@@ -559,12 +565,14 @@ def _same(x: Exit, e: np.ndarray, axis: int) -> bool:
 
 def _relax(pot: Potential, kT: float, lam: np.ndarray, vectors: np.ndarray,
            unit: np.ndarray, cut: float, record: bool
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The relaxed walks of :func:`relaxed_exits` along the rows of ``unit`` (signed unit
-    directions ``(w, n)``; ``lam``, ``vectors``: every mode at the minimum): ``(u, spacing,
-    path)``, ``u`` the profiles in kT above the minimum at ``s = j * spacing``, ``j =
-    0..8 REACH`` (``(w, 8 REACH + 1)``, NaN past a walk's wall), ``spacing`` ``(w,)``, and,
-    when ``record``, the floors ``y = s e + w`` ``(w, 8 REACH + 1, n)`` (else empty)."""
+    directions ``(w, n)``; ``lam``, ``vectors``: every mode at the minimum): ``(u, jumped,
+    spacing, path)``, ``u`` the profiles in kT above the minimum at ``s = j * spacing``, ``j =
+    0..RELAX_POINTS`` (``(w, RELAX_POINTS + 1)``, NaN past a walk's wall), ``jumped``
+    where the floor moved more than ``JUMP`` steps in s (same shape), ``spacing``
+    ``(w,)``, and, when ``record``, the floors ``y = s e + w`` ``(w, RELAX_POINTS + 1, n)``
+    (else empty)."""
     q0 = np.asarray(pot.minimum, dtype=float)
     root = np.sqrt(pot.masses)
     count, n = unit.shape
@@ -572,11 +580,12 @@ def _relax(pot: Potential, kT: float, lam: np.ndarray, vectors: np.ndarray,
     rel = lam / top
     eV = unit @ vectors  # (e in the modes' basis)
     spread = np.sqrt(np.sum(eV * eV / rel[None, :], axis=1))
-    step = math.sqrt(kT / top) * spread / 8.0  # (an eighth of the thermal spread of s)
-    # c / (e . c) with c = W^-1 e, in y: scale-free
+    step = math.sqrt(kT / top) * spread / 4.0  # (a quarter of the thermal spread of s)
+    # W^-1 top and c / (e . c) with c = W^-1 e, in y: scale-free
+    inverse = (vectors / rel[None, :]) @ vectors.T
     lead = ((eV / rel[None, :]) @ vectors.T) / (spread ** 2)[:, None]
     u0 = float(pot.energy(q0[None, :])[0])
-    last = 8 * REACH
+    last = RELAX_POINTS
 
     def level(y: np.ndarray) -> np.ndarray:
         with np.errstate(all="ignore"):
@@ -585,6 +594,7 @@ def _relax(pot: Potential, kT: float, lam: np.ndarray, vectors: np.ndarray,
 
     u = np.full((count, last + 1), np.nan)
     u[:, 0] = 0.0
+    jump = np.zeros((count, last + 1), dtype=bool)
     path = np.zeros((count, last + 1, n) if record else (0, 0, 0))
     w = np.zeros((count, n))
     before = np.zeros((count, n))
@@ -604,14 +614,16 @@ def _relax(pot: Potential, kT: float, lam: np.ndarray, vectors: np.ndarray,
         for _ in range(RELAX_STEPS):
             with np.errstate(all="ignore"):
                 g = pot.gradient(q0[None, :] + (base + floor) / root[None, :]) / root[None, :]
-                t = (g @ vectors) / lam[None, :]
-                move = t @ vectors.T - lead[live] * np.sum(eV[live] * t, axis=1)[:, None]
+                m = (g / top) @ inverse
+                move = m - lead[live] * np.sum(unit[live] * m, axis=1)[:, None]
                 trial = floor - eta[:, None] * move
             value = level(base + trial)
             better = value < cur
             floor = np.where(better[:, None], trial, floor)
             cur = np.where(better, value, cur)
             eta = np.where(better, np.minimum(1.0, 2.0 * eta), 0.5 * eta)
+        with np.errstate(invalid="ignore"):
+            jump[live, j] = np.linalg.norm(floor - w[live], axis=1) > JUMP * step[live]
         w[live] = floor
         u[live, j] = cur
         if record:
@@ -620,23 +632,28 @@ def _relax(pot: Potential, kT: float, lam: np.ndarray, vectors: np.ndarray,
         with np.errstate(invalid="ignore"):
             done = ~np.isfinite(cur) | (cur - low[live] >= cut)
         live = live[~done]
-    return u, step, path
+    return u, jump, step, path
 
 
-def _relaxed_end(u: np.ndarray, cut: float) -> tuple[int, float, int] | None:
-    """The exit of one relaxed walk's ``u`` (:func:`_relax`, in kT): ``(index of the exit
-    point, its u, index of the edge)``, or None (:func:`relaxed_exits`)."""
+def _relaxed_end(u: np.ndarray, jumped: np.ndarray, cut: float
+                 ) -> tuple[int, float, int] | None:
+    """The exit of one relaxed walk's ``u`` (:func:`_relax`, in kT; ``jumped`` where its
+    floor jumped): ``(index of the exit point, its u, index of the edge)``, or None
+    (:func:`relaxed_exits`)."""
     u = u[:int(np.flatnonzero(~np.isnan(u))[-1]) + 1]
     if not np.all(np.isfinite(u)):
         return None
     highest = np.maximum.accumulate(u)
     low = np.minimum.accumulate(np.minimum(u, 0.0))
     falls = np.flatnonzero(u < highest - 1.0)
+    if falls.size and np.any(jumped[int(np.argmax(u[:falls[0]])):falls[0] + 1]):
+        falls = falls[:0]  # (the floor jumped to a lower branch: no barrier, the u before
+        # it was above the hyperplane's least U)
     if falls.size:
         end = int(np.argmax(u[:falls[0]]))
         if np.any(u[falls[0]:] - low[falls[0]:] >= cut):
             return None  # (the basins beyond are confined by a wall: drawn)
-    elif u[-1] - low[-1] >= cut or u.size < 8 * REACH + 1:
+    elif u[-1] - low[-1] >= cut or u.size < RELAX_POINTS + 1:
         return None  # (a wall)
     else:
         end = u.size - 1
