@@ -178,7 +178,6 @@ def _left(h: float, count: int = 4000, seed: int = 5) -> int:
     return int(gone.sum())
 
 
-@pytest.mark.slow  # the reference's 2 x 4000 runs and two checks: about 10 s of CPU
 def test_the_coupled_bond_that_leaves_along_its_valley_in_a_short_run_is_a_failure():
     """kT 0.03, 20 steps: at h = 1.0 the test's own runs lose 0.4-0.6% of the bonds (well
     above max_failure 0.001) and check's 2995 trajectories see them leave (UNSAFE); at

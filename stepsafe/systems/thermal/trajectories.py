@@ -35,14 +35,31 @@ an implicit method, up to its stage iteration's tolerance). At every step it
   passes that point, or lies beyond the side's edge (where u is within kT of ``E``) with
   the energy of that direction, ``(e . M^-1/2 p)^2 / 2 + U(q) - U(q - s M^-1/2 e)``,
   above ``E`` (unbound: the well no longer turns it back; for one coordinate it is
-  ``H - U_ref``, for a U separable along e that direction's own energy). Both are tested
-  where the energy is measured. The ceilings above scale with the start's energy, which
-  may exceed ``E`` by itself, and a row that has just left moves slowly, short of
+  ``H - U_ref``, for a U separable along e that direction's own energy). Along each of
+  those directions the *relaxed* profile is walked too
+  (:func:`stepsafe.systems.thermal.sampling.relaxed_exits`): ``u(s)`` the least U on the
+  hyperplane ``e . M^1/2 (q - q0) = s``, which every trajectory that reaches s crosses,
+  found by following the floor ``v(s)`` (the displacement ``q - q0`` where that least U
+  lies) out from the minimum; it levels off where a valley bends away from every straight
+  line (a bond coupled to a coordinate that its stretch shifts). Its exit is kept where it
+  is lower, by more than kT, than the straight profile's along the same direction and
+  side, and does not run straight out along a walked exit. A row fails at a relaxed exit
+  when s passes its point, or lies beyond its edge with the energy along the valley,
+  ``(t . M^-1/2 p)^2 / 2 + U(q) - U(q - v(s))`` (t the floor's unit tangent in
+  mass-weighted coordinates), above ``E``: the straight test with the floor in place of
+  the line, the same for a U separable along it. A row whose start's energy
+  ``H_0 - U_ref`` is above a relaxed exit's ``E`` is not failed by that exit: the exact
+  flow may take it out too, and such starts, rare but more frequent with more
+  coordinates, would otherwise fail runs at any step. Both are tested where the energy
+  is measured. The ceilings above scale with the start's energy, which may exceed ``E``
+  by itself, and a row that has just left moves slowly, short of
   ``distance`` times the extent in a short run. A bond that parts along none of those
-  directions (atoms in two or three dimensions whose coordinates' order does not split
-  its fragments; beyond ``EXACT_UP_TO`` coordinates, a mode other than the fastest
-  ``MODE_EXITS_LARGE``; within modes of one repeated frequency, walked in one basis of
-  their space, a combination other than its vectors) is seen by the ceilings alone.
+  directions, straight or relaxed (atoms in two or three dimensions whose coordinates'
+  order does not split its fragments; beyond ``EXACT_UP_TO`` coordinates, a mode other
+  than the fastest ``MODE_EXITS_LARGE``; within modes of one repeated frequency, walked in
+  one basis of their space, a combination other than its vectors; beyond
+  ``RELAXED_UP_TO`` coordinates, a bent valley; a valley whose floor the relaxed walk
+  loses to another branch of the hyperplane's minima) is seen by the ceilings alone.
   An implicit method whose stage iteration fails on some rows fails those rows (found by
   halving the batch).
 
