@@ -5,10 +5,9 @@ from __future__ import annotations
 import json
 import os
 
-# one BLAS/OpenMP thread and one thread for trajectory blocks per test process: with
-# pytest -n 2 on two cores more threads only oversubscribe (set before anything imports
-# numpy or stepsafe; tests/test_blocks.py runs the blocks on threads itself)
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "STEPSAFE_THREADS"):
+# one BLAS/OpenMP thread per test process: with pytest -n 2 on two cores, threaded BLAS
+# on small matrices only oversubscribes (set before anything imports numpy)
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import pytest  # noqa: E402
