@@ -1,4 +1,4 @@
-"""Threads: BLAS threads for dense kernels, and threads for trajectory ensembles.
+"""BLAS threads for dense kernels.
 
 On the 2-core machines this project is measured on, a multithreaded BLAS spends more time
 synchronising than computing on the matrices of a system analysis, and on a busy machine
@@ -8,8 +8,7 @@ eigenvalues of a 2500 x 2500 stiffness 19.4 s with two threads against 1.1 s wit
 another process kept one core busy (``benchmarks/run.py`` prints the two-thread ratio).
 The kernels therefore run with :data:`THREADS` BLAS threads, one unless the environment
 variable ``STEPSAFE_BLAS_THREADS`` says otherwise (``0``: the library's default, for
-machines with cores to spare). Ensembles of trajectories integrate their blocks on
-:data:`TRAJECTORY_THREADS` threads.
+machines with cores to spare).
 """
 
 from __future__ import annotations
@@ -41,28 +40,3 @@ def blas_threads_for(size: int) -> Iterator[None]:
 
     with threadpool_limits(limits=THREADS, user_api="blas"):
         yield
-
-
-def _available_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
-
-
-def _trajectory_threads() -> int:
-    try:
-        asked = int(os.environ.get("STEPSAFE_THREADS", "0"))
-    except ValueError:
-        asked = 0
-    return asked if asked > 0 else min(2, _available_cores())
-
-
-#: Threads that integrate blocks of a thermal ensemble at once, where the allocator keeps
-#: freed memory (:mod:`stepsafe.core.memory`): ``STEPSAFE_THREADS`` if set to a positive
-#: number, else the cores this process may use, at most 2. numpy releases the interpreter
-#: lock inside its array operations, so two blocks of 512 KiB arrays run 1.45x as fast on
-#: two threads as one after the other; blocks of 64 KiB under glibc's default thresholds
-#: ran 0.7x as fast (measured on a 100-dof chain, ``benchmarks/thermal.py``), so with the
-#: default allocator the blocks run on one thread.
-TRAJECTORY_THREADS = _trajectory_threads()

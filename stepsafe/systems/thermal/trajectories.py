@@ -78,9 +78,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stepsafe.core import memory, threads
-from stepsafe.core.blocks import in_order
-from stepsafe.core.ensemble import Trajectories, integrate
+from stepsafe.core import memory
+from stepsafe.core.ensemble import integrate
 from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import Method
 from stepsafe.systems.thermal.potential import Potential, system_of
@@ -101,9 +100,6 @@ BLOCK_VALUES = 8192
 #: the command line): 512 KiB arrays, a quarter less CPU time per step than 64 KiB ones
 #: for 100 dof (fewer Python operations per trajectory).
 BLOCK_VALUES_KEPT = 1 << 16
-#: Blocks are split in two (for two threads) only while each half holds this many values:
-#: below it the arrays are too small for the threads to gain.
-SPLIT_VALUES = 1 << 13
 
 
 @dataclass(frozen=True)
@@ -400,33 +396,34 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
     # h, rho, the reach and the growth bound are per start)
     perm = (np.arange(k)[:, None] * m + order[None, :]).ravel()
     q0, p0 = np.tile(start.q[order], (k, 1)), np.tile(start.p[order], (k, 1))
-    blocks = block_slices(rows, pot.dimension)
+    block = block_rows(pot.dimension)
     escaped = np.zeros(rows, dtype=bool)
     slope = np.full(rows, np.nan)
     variance = np.full(rows, np.nan)
+    ran_steps, done, seen = steps, rows, 0
     # one step per row: the engine's updates are elementwise in h, so a column runs each
     # row at its own step (bit for bit as a run of that step alone); a block of rows runs
-    # all its steps in turn
+    # all its steps before the next block starts
     leaves = leaving(pot, start)
-
-    def run_block(i: int, budget: int | None,
-                  report: Callable[[float], None] | None) -> Trajectories:
-        b = blocks[i]
-        return integrate(method, system, q0[b], p0[b], h_rows[b], steps, energy_every=every,
-                         reference_energy=start.energy_reference, growth=growth_rows[b],
-                         centre=start.reference, reach=reach[b], fit=every == 1,
-                         unit=start.kT, leaves=leaves, stop_escapes=budget, progress=report)
-
-    ran_steps, done = steps, rows
-    finished = in_order(run_block, [b.stop - b.start for b in blocks], stop_failures,
-                        threads.TRAJECTORY_THREADS if memory.keeps_freed else 1, progress)
-    for b, ran in zip(blocks, finished):
+    for a in range(0, rows, block):
+        b = slice(a, min(rows, a + block))
+        size = b.stop - b.start
+        report = None if progress is None else (
+            lambda f, a=a, size=size: progress((a + f * size) / rows))
+        ran = integrate(method, system, q0[b], p0[b], h_rows[b], steps, energy_every=every,
+                        reference_energy=start.energy_reference, growth=growth_rows[b],
+                        centre=start.reference, reach=reach[b], fit=every == 1,
+                        unit=start.kT, leaves=leaves,
+                        stop_escapes=None if stop_failures is None else stop_failures - seen,
+                        progress=report)
         escaped[perm[b]] = ran.escaped
+        seen += int(ran.escaped.sum())
         if every == 1:
             slope[perm[b]] = ran.slopes() / h_rows[b]
             variance[perm[b]] = ran.variances()
-    if stop_failures is not None and int(escaped.sum()) >= stop_failures:
-        ran_steps, done = finished[-1].steps, blocks[len(finished) - 1].stop
+        if stop_failures is not None and seen >= stop_failures:
+            ran_steps, done = ran.steps, b.stop
+            break
     if progress is not None:
         progress(1.0)
     stopped = done < rows or ran_steps < steps
@@ -457,19 +454,6 @@ def _order(m: int, first: Sequence[int]) -> np.ndarray:
     rest = np.ones(m, dtype=bool)
     rest[lead] = False
     return np.concatenate([lead, np.flatnonzero(rest)])
-
-
-def block_slices(rows: int, dimension: int) -> list[slice]:
-    """The blocks of a run of ``rows`` rows: of :func:`block_rows` rows at most, equal to a
-    row, and, where the allocator keeps freed memory (then blocks run on threads:
-    :data:`stepsafe.core.threads.TRAJECTORY_THREADS`), an even number of them when each
-    would still hold :data:`SPLIT_VALUES` values (whatever the machine's cores: the blocks,
-    and so an implicit method's iterations, are the same on every machine)."""
-    count = -(-rows // block_rows(dimension))
-    if memory.keeps_freed and count % 2 and rows * dimension >= 2 * SPLIT_VALUES:
-        count += 1
-    size = -(-rows // max(1, count))
-    return [slice(a, min(rows, a + size)) for a in range(0, rows, size)]
 
 
 def block_rows(dimension: int) -> int:
