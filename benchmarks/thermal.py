@@ -70,13 +70,20 @@ point of a scan stops once its failures make it a band. The tabulated profiles t
 the time per force. The engine keeps per-row sums compacted and tests the whole batch
 before testing rows.
 
-Where the 100-dof ``advise`` goes (CPU time of its stages, load 9-10, ``--keep-freed``):
-sampling, 1024 Hessians and the starts 2.8 s; the coarse whole-chain scan (12 steps of 300
-trajectories, then 6 sequential bisection rounds) 22 s; the three profiles 12 s; the
-confirmation 36 s, of which the final full run of 2995 trajectories is about 20 s (the
-``check`` is mostly one such run) and the three rejected steps near the scan's edge
-(0.7927, 0.7919, 0.7902, each losing a trajectory late, after step 8000) the rest. It is
-still above the minute. What is left: the rejected steps (a rule that skips clear scan
+Where the 100-dof ``advise`` goes, on an idle machine (load about 1, ``--keep-freed``, one
+thread), with the exits along normal modes, splits and valleys and the mixing check of the
+draws: sampling, 1024 Hessians, the exits and the starts 3.2 s; the coarse whole-chain scan
+(12 steps of 300 trajectories, then 6 sequential bisection rounds) 20 s; the three
+profiles 12 s; the confirmation 27 s, of which the final full run of 2995 trajectories is
+about 19 s (the ``check``, 26 s, is mostly one such run) and the three rejected steps near
+the scan's edge (0.7927, 0.7919, 0.7902, each losing a trajectory late) the rest: 62.5 s
+in all. A confirmation runs its hottest starts first (after those that failed above): the
+trajectories the start's order found lost at those steps rank 9th, 339th and 384th of
+2995 by energy, so each rejection now costs part of the first block, and the
+confirmation went from 31.7 to 25-27 s. Two threads integrating blocks at once were
+measured and not kept: 55.9 s of wall clock for 85 s of CPU against 60.7 s for 61 s
+(memory-bound blocks and the interpreter lock).
+What is left: the rejected steps (a rule that skips clear scan
 points within 1% of a rejected step takes the chain to 0.7689 with one rejection, about
 12 s less, but takes the Morse bond at kT 0.003 from 1.1939 down to 1.1728, the step just
 below its edge that passes now being skipped); the per-step cost of the user's numpy
