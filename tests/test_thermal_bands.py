@@ -10,6 +10,8 @@ import math
 import mpmath as mp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from support import method
 from thermal_support import (
     boltzmann_1d,
@@ -322,3 +324,20 @@ def test_a_check_reports_the_progress_of_each_probe():
     fractions = [f for _, f in seen]
     assert fractions[-1] == 1.0
     assert all(0.0 <= a <= b <= 1.0 for a, b in zip(fractions, fractions[1:]))
+
+
+@settings(max_examples=50, deadline=None)
+@given(rows=st.integers(1, 5000), block=st.integers(1, 700), stopping=st.booleans())
+def test_a_run_s_blocks_cover_its_rows_once_in_order(rows, block, stopping):
+    """The blocks are consecutive, cover every row once, hold at most ``block`` rows, and a
+    run that stops at its failures starts with a quarter block, doubling."""
+    from stepsafe.systems.thermal.trajectories import _blocks
+
+    got = _blocks(rows, block, stopping)
+    assert got[0].start == 0 and got[-1].stop == rows
+    assert all(a.stop == b.start for a, b in zip(got, got[1:]))
+    sizes = [b.stop - b.start for b in got]
+    assert all(0 < s <= block for s in sizes)
+    first = max(1, block // 4) if stopping else block
+    assert sizes[0] == min(rows, first)
+    assert all(s == min(block, 2 * p) for p, s in zip(sizes, sizes[1:-1]))
