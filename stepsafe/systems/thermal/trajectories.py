@@ -78,7 +78,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from stepsafe.core import memory
 from stepsafe.core.ensemble import integrate
 from stepsafe.exceptions import StepsafeError
 from stepsafe.methods.tableaux import Method
@@ -92,14 +91,13 @@ GROWTH = 4.0
 DISTANCE = 10.0
 #: A run integrates its rows in blocks of at most this many state values (rows times
 #: degrees of freedom), one block after the other over all its steps: every array of a
-#: step is then 64 KiB, which stays in cache and which glibc's allocator serves from freed
-#: memory (a step of 3000 rows of 100 dof made temporaries of 2.4 MB, each mapped afresh
-#: and page-faulted: twice the CPU time of the blocks) ...
-BLOCK_VALUES = 8192
-#: ... or this many where the allocator keeps freed memory (:mod:`stepsafe.core.memory`,
-#: the command line): 512 KiB arrays, a quarter less CPU time per step than 64 KiB ones
-#: for 100 dof (fewer Python operations per trajectory).
-BLOCK_VALUES_KEPT = 1 << 16
+#: step is then 512 KiB. A step of 3000 rows of 100 dof made temporaries of 2.4 MB, which
+#: glibc's default thresholds map afresh and page-fault at each allocation (twice the CPU
+#: time of the blocks); blocks of 64 KiB cost more Python operations per trajectory: the
+#: 100-dof chain's ``advise`` took 69 s with them, 58 s with these, with the default
+#: allocator and with the command line's (55 s), which keeps freed memory
+#: (``benchmarks/thermal.py``).
+BLOCK_VALUES = 1 << 16
 
 
 @dataclass(frozen=True)
@@ -469,6 +467,5 @@ def _order(m: int, first: Sequence[int]) -> np.ndarray:
 
 def block_rows(dimension: int) -> int:
     """The rows of one block of a run: :data:`BLOCK_VALUES` values of its state at most
-    (:data:`BLOCK_VALUES_KEPT` where the allocator keeps freed memory; one row at least)."""
-    values = BLOCK_VALUES_KEPT if memory.keeps_freed else BLOCK_VALUES
-    return max(1, values // max(1, int(dimension)))
+    (one row at least)."""
+    return max(1, BLOCK_VALUES // max(1, int(dimension)))
