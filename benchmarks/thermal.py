@@ -26,8 +26,7 @@ figure to compare; the load average before and after is printed), the stages of 
 ``--steps`` sets the run and ``--follow`` how far the trajectories follow it
 (``follow_steps``; the commands refuse a longer run, the functions cap it).
 ``--keep-freed`` first makes glibc's allocator keep freed memory, as the command line
-does (:mod:`stepsafe.cli.allocator`; thermal runs then take larger blocks), so that the
-functions run as a command runs them.
+does (:mod:`stepsafe.cli.allocator`), so that the functions run as a command runs them.
 
 Measured on this project's machine (x86_64, 2 cores shared with other work, numpy 2.4.6,
 one BLAS thread), CPU time, main at 8098456 ("before") and this version ("after") run
