@@ -368,7 +368,7 @@ def test_a_row_leaves_past_the_exit_or_beyond_its_edge_with_more_energy_than_it(
         p = np.zeros_like(q)
         speed = math.sqrt(2.0 * (e.energy - u[1]) + 2.0 * KT)
         p[1] = e.side * speed * d * pot.masses  # (s' = e . p / sqrt(m))
-        assert test(q, p).tolist() == [True, True, False, False]
+        assert test.leaves(q, p).tolist() == [True, True, False, False]
 
 
 @pytest.mark.slow  # two checks of a Langevin-drawn chain per example, about 1 s each

@@ -181,7 +181,7 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
               tol: float = 1e-14, max_iterations: int = 200,
               stop_escapes: int | None = None,
               leaves: Callable[[np.ndarray, np.ndarray, np.ndarray | None], np.ndarray]
-              | None = None,
+              | None = None, leave_data: np.ndarray | None = None,
               progress: Callable[[float], None] | None = None) -> Trajectories:
     """Advance the trajectories from the rows of ``(q0, p0)`` by ``steps`` steps of the
     method (module docstring).
@@ -225,9 +225,11 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
     stop_escapes : int, optional
         Stop after the step at which this many rows have escaped (module docstring).
     leaves : callable, optional
-        ``leaves(q, p, excess)`` of the running rows' output state (r, d) and their
-        initial energies above ``reference_energy`` (r,): True for those that escape
-        (tested where the energy is measured).
+        ``leaves(q, p, data)`` of the running rows' output state (r, d) and their rows of
+        ``leave_data`` (None without it): True for those that escape (tested where the
+        energy is measured).
+    leave_data : ndarray, optional
+        Per row (n, ...), what ``leaves`` needs of each row's start.
     progress : callable, optional
         Called with the fraction of steps done.
 
@@ -309,6 +311,7 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
         H0_run, lim_run = H0, limit
         # per running row, compacted as rows escape (written back at the end)
         excess_run = None if H0 is None else H0 - reference_energy
+        data_run = None if leave_data is None else np.asarray(leave_data)
         worst_run = np.zeros(n) if measuring else None
         sums_run = np.zeros((3, n)) if fit else None
         stop = n + 1 if stop_escapes is None else max(1, int(stop_escapes))
@@ -338,7 +341,7 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
                     assert excess_run is not None
                     fine &= dH + excess_run <= lim_run
                 if leaves is not None:
-                    fine &= ~np.asarray(leaves(qo * Lq, po * Lp, excess_run), dtype=bool)
+                    fine &= ~np.asarray(leaves(qo * Lq, po * Lp, data_run), dtype=bool)
                 if not fine.all():
                     bad |= ~fine
             if bad.any():
@@ -356,6 +359,8 @@ def integrate(method: Method, system: System, q0: np.ndarray, p0: np.ndarray, h:
                     H0_run = H0_run[keep]
                 if excess_run is not None:
                     excess_run = excess_run[keep]
+                if data_run is not None:
+                    data_run = data_run[keep]
                 if worst_run is not None:
                     worst_run = worst_run[keep]
                 if sums_run is not None:

@@ -47,12 +47,14 @@ an implicit method, up to its stage iteration's tolerance). At every step it
   when s passes its point, or lies beyond its edge with the energy along the valley,
   ``(t . M^-1/2 p)^2 / 2 + U(q) - U(q - v(s))`` (t the floor's unit tangent in
   mass-weighted coordinates), above ``E``: the straight test with the floor in place of
-  the line, the same for a U separable along it. A row whose start's energy
-  ``H_0 - U_ref`` is above a relaxed exit's ``E`` is not failed by that exit: the exact
-  flow may take it out too, and such starts, rare but more frequent with more
-  coordinates, would otherwise fail runs at any step. Both are tested where the energy
-  is measured. The ceilings above scale with the start's energy, which may exceed ``E``
-  by itself, and a row that has just left moves slowly, short of
+  the line, the same for a U separable along it. A row whose start's energy along the
+  valley (the same expression at its start) is within ``VALLEY_EXCHANGE`` kT of a
+  relaxed exit's ``E`` or above is not failed by that exit: the exact flow may take it
+  out too, with energy drawn from the other coordinates, and such starts would
+  otherwise fail runs at any step (the start's whole energy would exempt nearly every
+  row of a system of many coordinates, whose energy is some kT in each). Both are tested
+  where the energy is measured. The ceilings above scale with the start's energy, which
+  may exceed ``E`` by itself, and a row that has just left moves slowly, short of
   ``distance`` times the extent in a short run. A bond that parts along none of those
   directions, straight or relaxed (atoms in two or three dimensions whose coordinates'
   order does not split its fragments; beyond ``EXACT_UP_TO`` coordinates, a mode other
@@ -75,6 +77,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -89,6 +92,9 @@ from stepsafe.systems.thermal.sampling import well_exits as well_exits_of
 GROWTH = 4.0
 #: A coordinate beyond ``DISTANCE`` times the initial ensemble's extent is a failure.
 DISTANCE = 10.0
+#: A row that starts with at least its valley exit's energy less this many kT along the
+#: valley is not failed by that exit (:func:`leaving`).
+VALLEY_EXCHANGE = 3.0
 #: A run integrates its rows in blocks of at most this many state values (rows times
 #: degrees of freedom), one block after the other over all its steps: every array of a
 #: step is then 512 KiB. A step of 3000 rows of 100 dof made temporaries of 2.4 MB, which
@@ -192,11 +198,28 @@ def thermal_start(pot: Potential, kT: float, count: int, seed: int = 0,
     return Start(q, p, float(kT), q0, U0, extent, seed, how, tuple(well_exits))
 
 
-def leaving(pot: Potential, start: Start
-            ) -> Callable[..., np.ndarray] | None:
-    """The test of rows that leave the start's well (module docstring) on output states
-    ``q``, ``p`` (r, n), with the rows' initial energies above ``U_ref`` (r,) when known;
-    None when it has no exit."""
+class WellTest(NamedTuple):
+    """Whether rows leave the start's well (module docstring).
+
+    Attributes
+    ----------
+    leaves : callable
+        ``leaves(q, p, start_energies=None)``: True for the rows of the output states
+        ``q``, ``p`` (r, n) that have left; ``start_energies`` (r, k), when given, are the
+        rows' initial energies along each valley exit (:attr:`along_valleys` of their
+        starts): a row that started above a valley exit's energy may leave along it by
+        the exact flow, and that exit does not fail it.
+    along_valleys : callable
+        ``along_valleys(q, p)``: the energies (r, k) of states along each valley exit.
+    """
+
+    leaves: Callable[..., np.ndarray]
+    along_valleys: Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def leaving(pot: Potential, start: Start) -> WellTest | None:
+    """The test of rows that leave the start's well (module docstring); None when it has
+    no exit."""
     if not start.exits:
         return None
     n = pot.dimension
@@ -256,18 +279,25 @@ def leaving(pot: Potential, start: Start
         return np.concatenate([p[:, axes] / root[axes], p @ behind, split_coordinate(p)],
                               axis=1)
 
-    def leaves(q: np.ndarray, p: np.ndarray, excess: np.ndarray | None = None) -> np.ndarray:
+    # a row that starts within VALLEY_EXCHANGE kT of a valley exit's energy along it may
+    # gain the rest from the other coordinates by the exact flow
+    exempt = energy[straight:] - VALLEY_EXCHANGE * start.kT
+
+    def leaves(q: np.ndarray, p: np.ndarray,
+               start_energies: np.ndarray | None = None) -> np.ndarray:
         with np.errstate(all="ignore"):
             s = positions(q)
             past = side * s > at
-            if valleys and excess is not None:  # (a row that starts above a relaxed
-                # exit's energy may leave by the exact flow: not the step's failure)
-                past[:, straight:] &= ~(excess[:, None] > energy[None, straight:])
+            if valleys and start_energies is not None:  # (a row that starts above a
+                # relaxed exit's energy along it may leave by the exact flow: not the
+                # step's failure)
+                past[:, straight:] &= ~(start_energies > exempt[None, :])
             out = np.any(past, axis=1)
             rows, which = np.nonzero((side * s > edge) & ~out[:, None])
             rows_v, beyond = rows[which >= straight], which[which >= straight]
-            if excess is not None:
-                bound = ~(excess[rows_v] > energy[beyond])
+            if start_energies is not None:
+                bound = ~(start_energies[rows_v, beyond - straight]
+                          > exempt[beyond - straight])
                 rows_v, beyond = rows_v[bound], beyond[bound]
             lined = which < straight
             rows, which = rows[lined], which[lined]
@@ -285,9 +315,19 @@ def leaving(pot: Potential, start: Start
 
     def valley_leaves(exit: Exit, q: np.ndarray, p: np.ndarray, s: np.ndarray) -> np.ndarray:
         """Rows beyond a relaxed exit's edge (at ``s``, measured out from the minimum) whose
-        energy along its valley, ``(t . M^-1/2 p)^2 / 2 + U(q) - U(q - v(s))`` with ``v``
-        the floor's displacement and t its unit tangent (mass-weighted), both interpolated
-        linearly, exceeds the exit's."""
+        energy along its valley (:func:`valley_energy`) exceeds the exit's."""
+        return ~(valley_energy(exit, q, p, s) <= exit.energy)
+
+    def along_valleys(q: np.ndarray, p: np.ndarray) -> np.ndarray:
+        with np.errstate(all="ignore"):
+            s = positions(q)[:, straight:] * side[None, straight:]
+            return np.stack([valley_energy(e, q, p, s[:, j]) for j, e in enumerate(valleys)],
+                            axis=1) if valleys else np.zeros((q.shape[0], 0))
+
+    def valley_energy(exit: Exit, q: np.ndarray, p: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """The energy of rows along a relaxed exit's valley at ``s`` (measured out from the
+        minimum), ``(t . M^-1/2 p)^2 / 2 + U(q) - U(q - v(s))`` with ``v`` the floor's
+        displacement and t its unit tangent (mass-weighted), both interpolated linearly."""
         table = exit.valley
         assert table is not None
         at = s / exit.spacing
@@ -297,9 +337,8 @@ def leaving(pot: Potential, start: Start
         tangent = (table[j + 1] - table[j]) * root[None, :]
         tangent /= np.linalg.norm(tangent, axis=1)[:, None]
         speed = np.sum(tangent * p / root[None, :], axis=1)
-        own = 0.5 * speed ** 2 + (pot.energy(q) - pot.energy(q - shift))
-        return ~(own <= exit.energy)
-    return leaves
+        return 0.5 * speed ** 2 + (pot.energy(q) - pot.energy(q - shift))
+    return WellTest(leaves, along_valleys)
 
 
 @dataclass(frozen=True)
@@ -402,7 +441,7 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
     # one step per row: the engine's updates are elementwise in h, so a column runs each
     # row at its own step (bit for bit as a run of that step alone); a block of rows runs
     # all its steps before the next block starts
-    leaves = leaving(pot, start)
+    test = leaving(pot, start)
     for b in _blocks(rows, block, stop_failures is not None):
         a, size = b.start, b.stop - b.start
         report = None if progress is None else (
@@ -410,7 +449,8 @@ def run(method: Method, pot: Potential, start: Start, h_values, steps: int,
         ran = integrate(method, system, q0[b], p0[b], h_rows[b], steps, energy_every=every,
                         reference_energy=start.energy_reference, growth=growth_rows[b],
                         centre=start.reference, reach=reach[b], fit=every == 1,
-                        unit=start.kT, leaves=leaves,
+                        unit=start.kT, leaves=None if test is None else test.leaves,
+                        leave_data=None if test is None else test.along_valleys(q0[b], p0[b]),
                         stop_escapes=None if stop_failures is None else stop_failures - seen,
                         progress=report)
         escaped[perm[b]] = ran.escaped
