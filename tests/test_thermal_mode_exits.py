@@ -279,8 +279,9 @@ def _chain_leaves(q: np.ndarray, p: np.ndarray, h: float, steps: int = STEPS,
             p += 0.5 * h * f
             gone |= ~(np.all(np.isfinite(q), axis=1) & np.all(np.diff(q, axis=1) <= 8.0,
                                                               axis=1))
-    r, v = np.diff(q, axis=1), np.diff(p / m, axis=1)
-    unbound = np.any((0.5 * v * v + 0.5 * np.expm1(-r) ** 2 > 0.5) & (r > 3.0), axis=1)
+    with np.errstate(all="ignore"):  # (rows that ran off overflow; they are gone already)
+        r, v = np.diff(q, axis=1), np.diff(p / m, axis=1)
+        unbound = np.any((0.5 * v * v + 0.5 * np.expm1(-r) ** 2 > 0.5) & (r > 3.0), axis=1)
     return gone | unbound
 
 

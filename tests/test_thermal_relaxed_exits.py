@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from stepsafe.methods.library import resolve
@@ -29,6 +29,7 @@ from stepsafe.systems.thermal.sampling import (
     split_exits,
     well_exits,
 )
+from stepsafe.systems.thermal.trajectories import thermal_start
 
 VERLET = resolve("verlet")[0]
 KT, STEPS = 0.03, 20
@@ -201,18 +202,28 @@ def test_the_coupled_bond_that_leaves_along_its_valley_in_a_short_run_is_a_failu
 
 @pytest.mark.slow  # two checks per example, about 2 s of CPU each
 @settings(max_examples=4, deadline=None)
+@example(angle=1.0, log_energy=0.0, log_length=0.0, log_mass=0.0)
 @given(angle=st.floats(0.0, 2 * math.pi), log_energy=st.floats(-100.0, 100.0),
        log_length=st.floats(-50.0, 50.0), log_mass=st.floats(-50.0, 50.0))
 def test_the_coupled_bond_gets_its_verdicts_at_every_scale_and_angle(
         angle, log_energy, log_length, log_mass):
     """The frame rotated by any angle and the units scaled by powers of ten change neither
     the dynamics in reduced units nor the verdicts the reference above supports: UNSAFE
-    at h = 1.0, SAFE at h = 0.5."""
+    at h = 1.0; at h = 0.5 SAFE, or failures no more than the check's starts that hold
+    more energy than the valley's exit (those may leave by the exact flow too, energy
+    passing from the coupled coordinate to the bond: a row is exempt from a valley exit
+    only for its start's energy along the valley, so that uncoupled coordinates' energy
+    never hides a bond's escape)."""
     energy, length, mass = 10.0 ** log_energy, 10.0 ** log_length, 10.0 ** log_mass
     pot = _coupled(angle, COUPLING, SPRING, energy, length, mass)
     unit = length * math.sqrt(mass / energy)
-    for h, safe in ((HOT, False), (COOL, True)):
-        assert thermal_check(VERLET, pot, KT * energy, h * unit, steps=STEPS).safe is safe
+    assert not thermal_check(VERLET, pot, KT * energy, HOT * unit, steps=STEPS).safe
+    cool = thermal_check(VERLET, pot, KT * energy, COOL * unit, steps=STEPS)
+    start = thermal_start(pot, KT * energy, 2995, 1000)  # (the check's whole-system starts)
+    held = pot.energy(start.q) + 0.5 * np.sum(start.p ** 2 / pot.masses, axis=1) \
+        - start.energy_reference
+    may_leave = int(np.sum(held > _plateau() * energy))
+    assert cool.safe or cool.probes[0][1].failures <= may_leave, (cool.probes, may_leave)
 
 
 @pytest.mark.slow  # the chain of 18 coordinates is drawn and walked twice, about 10 s

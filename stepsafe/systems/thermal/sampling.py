@@ -44,6 +44,7 @@ import dataclasses
 import math
 import sys
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -344,23 +345,40 @@ def mode_exits(pot: Potential, kT: float, cut: float = CUT) -> tuple[Exit, ...]:
     direction) is left out, and so is one that lies along a coordinate (``e_i^2 > 1 -
     AXIS_ALONG``: :func:`axis_exits` walks that profile). None for one coordinate, or where
     the modes at the minimum cannot be found."""
+    return _directed_exits(pot, kT, cut, [(e, {"omega": omega})
+                                          for e, omega in _mode_directions(pot)])
+
+
+def _directed_exits(pot: Potential, kT: float, cut: float,
+                    directed: list[tuple[np.ndarray, dict[str, Any]]]) -> tuple[Exit, ...]:
+    """The exits of the profiles along each unit mass-weighted direction e given, each
+    with e and the given fields recorded."""
     out: list[Exit] = []
-    for e, omega in _mode_directions(pot):
+    for e, fields in directed:
         out += [dataclasses.replace(x, axis=-1, direction=tuple(float(v) for v in e),
-                                    omega=omega) for x in _profile_exits(pot, e, kT, cut)]
+                                    **fields) for x in _profile_exits(pot, e, kT, cut)]
     return tuple(out)
+
+
+def _minimum_modes(pot: Potential) -> Modes | None:
+    """The normal modes at the minimum that :func:`mode_exits` walks (every mode for
+    ``n <= EXACT_UP_TO``, the ``MODE_EXITS_LARGE`` fastest beyond); None for one
+    coordinate, without a minimum, or where they cannot be found."""
+    n = pot.dimension
+    if pot.minimum is None or n == 1:
+        return None
+    try:
+        found = modes(pot, pot.minimum, count=None if n <= EXACT_UP_TO else MODE_EXITS_LARGE)
+    except StepsafeError:
+        return None
+    return found
 
 
 def _mode_directions(pot: Potential) -> list[tuple[np.ndarray, float]]:
     """The unit mass-weighted directions :func:`mode_exits` walks, with their frequencies."""
-    n = pot.dimension
-    if pot.minimum is None or n == 1:
-        return []
-    try:
-        found = modes(pot, pot.minimum, count=None if n <= EXACT_UP_TO else MODE_EXITS_LARGE)
-    except StepsafeError:
-        return []
-    if not (np.all(np.isfinite(found.eigenvalues)) and np.isfinite(found.error)):
+    found = _minimum_modes(pot)
+    if found is None or not (np.all(np.isfinite(found.eigenvalues))
+                             and np.isfinite(found.error)):
         return []
     out = []
     for j in range(found.eigenvalues.size):
@@ -400,11 +418,8 @@ def split_exits(pot: Potential, kT: float, cut: float = CUT) -> tuple[Exit, ...]
     chain follows: each stretches some bonds and compresses others). Directions that lie
     along a coordinate or a normal mode at the minimum (squared cosine above ``1 -
     AXIS_ALONG``) are left out: those profiles are walked already."""
-    out: list[Exit] = []
-    for e, k in _split_directions(pot):
-        out += [dataclasses.replace(x, axis=-1, direction=tuple(float(v) for v in e),
-                                    split=k) for x in _profile_exits(pot, e, kT, cut)]
-    return tuple(out)
+    return _directed_exits(pot, kT, cut, [(e, {"split": k})
+                                          for e, k in _split_directions(pot)])
 
 
 def _split_directions(pot: Potential) -> list[tuple[np.ndarray, int]]:
@@ -412,11 +427,8 @@ def _split_directions(pot: Potential) -> list[tuple[np.ndarray, int]]:
     n = pot.dimension
     if pot.minimum is None or n == 1:
         return []
-    try:
-        walked = modes(pot, pot.minimum,
-                       count=None if n <= EXACT_UP_TO else MODE_EXITS_LARGE).vectors
-    except StepsafeError:
-        walked = np.zeros((n, 0))
+    found = _minimum_modes(pot)
+    walked = np.zeros((n, 0)) if found is None else found.vectors
     out = []
     for k in range(1, n):
         e = split_direction(pot.masses, k)
