@@ -19,6 +19,7 @@ import pytest
 from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_hmc_target_draws import _verlet_energy_errors
 
 from stepsafe.cli import main
 from stepsafe.core.hmc_target.advice import diverged
@@ -47,17 +48,7 @@ def _verlet_divergent(energy, grad, q: np.ndarray, h: float, steps: int,
                       rng: np.random.Generator) -> np.ndarray:
     """Which proposals of L Verlet steps from (q, p ~ N(0, I)) diverge (dH > 1000 or not
     finite)."""
-    p0 = rng.standard_normal(q.shape)
-    p, x = p0.copy(), q.copy()
-    with np.errstate(all="ignore"):
-        g = grad(x)
-        for _ in range(steps):
-            p = p - 0.5 * h * g
-            x = x + h * p
-            g = grad(x)
-            p = p - 0.5 * h * g
-        dh = energy(x) + 0.5 * (p * p).sum(-1) - energy(q) - 0.5 * (p0 * p0).sum(-1)
-    return ~np.isfinite(dh) | (dh > 1000)
+    return _verlet_energy_errors(grad, energy, q, h, steps, rng) > 1000
 
 
 def _funnel_energy(q):
